@@ -1,0 +1,135 @@
+"""Controller design: Ackermann pole placement, MIMO pole placement, discrete LQR, DC-gain
+compensation.
+
+``acker`` and ``dlqr`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
+helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answer.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.signal
+
+from jaxobs import _checks
+from jaxobs.lti import ctrb
+from jaxobs.riccati import dare
+
+__all__ = ["acker", "place", "dlqr", "dc_compensation", "critically_damped_poles"]
+
+
+def _char_poly_coefficients(poles):
+    """Real coefficients ``[1, a_1, ..., a_n]`` of ``prod (z - p_i)`` (complex poles in conjugate pairs)."""
+    poles = jnp.asarray(poles)
+    coeffs = jnp.ones((1,), jnp.result_type(poles, jnp.complex64))
+    for i in range(poles.shape[-1]):
+        coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - poles[i] * jnp.concatenate(
+            [jnp.zeros((1,), coeffs.dtype), coeffs]
+        )
+    return jnp.real(coeffs)
+
+
+def acker(Phi, Gamma, poles):
+    """Single-input pole placement by Ackermann's formula (seed 000 eq. 45-46).
+
+    ``L = [0 ... 0 1] W_c^{-1} P(Phi)`` with ``W_c = [Gamma, Phi Gamma, ..., Phi^{n-1} Gamma]`` and
+    ``P`` the desired characteristic polynomial, so that ``eig(Phi - Gamma L) = poles``.
+    Works under ``jit``/``vmap``/``grad``; complex poles must come in conjugate pairs.
+
+    Args:
+      Phi: (n, n) state matrix.  Gamma: (n, 1) input matrix.  poles: n desired poles.
+    Returns:
+      (1, n) gain ``L``.
+    """
+    Phi, Gamma = jnp.asarray(Phi), jnp.asarray(Gamma)
+    if Gamma.ndim == 1:
+        Gamma = Gamma[:, None]
+    n = Phi.shape[-1]
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("Gamma", Gamma, shape=(n, 1))
+    poles = jnp.atleast_1d(jnp.asarray(poles))
+    if poles.shape[-1] != n:
+        raise ValueError(f"poles has {poles.shape[-1]} entries but Phi has {n} states; give one pole per state")
+    if _checks.is_concrete(poles):
+        p = np.sort_complex(np.asarray(poles, dtype=complex))
+        if not np.allclose(p, np.sort_complex(p.conj()), atol=1e-12):
+            raise ValueError("poles: complex poles must come in conjugate pairs")
+    Wc = ctrb(Phi, Gamma)
+    if _checks.is_concrete(Wc):
+        Wc_np = np.asarray(Wc)
+        if np.linalg.matrix_rank(Wc_np, tol=1e-12 * np.linalg.norm(Wc_np)) < n:
+            raise ValueError("(Phi, Gamma) is not controllable: no gain places all poles (Wc is singular)")
+    a = _char_poly_coefficients(poles).astype(Phi.dtype)
+    P_Phi = jnp.zeros_like(Phi)
+    for coefficient in a:  # Horner: P(Phi) = Phi^n + a_1 Phi^{n-1} + ... + a_n I
+        P_Phi = P_Phi @ Phi + coefficient * jnp.eye(n, dtype=Phi.dtype)
+    e_n = jnp.zeros((n,), Phi.dtype).at[-1].set(1.0)
+    row = jnp.linalg.solve(Wc.T, e_n)  # [0 ... 0 1] Wc^{-1}
+    return (row @ P_Phi)[None, :]
+
+
+def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np.ndarray:
+    """MIMO pole placement (design time; SciPy's ``place_poles``).
+
+    Args:
+      zero_input_columns: inputs that cannot be actuated; their columns of ``Gamma`` are zeroed
+        for the design only and their rows of the returned gain are zero (seed 000 §8.4: "the first
+        and third columns of Gamma_r should be set to zero").
+      method: "YT" (Tits-Yang, robust) or "KNV0", as in SciPy.
+    Returns:
+      (m, n) gain ``L`` with ``eig(Phi - Gamma L) = poles``.
+    """
+    Phi = np.asarray(Phi, dtype=float)
+    Gamma = np.atleast_2d(np.asarray(Gamma, dtype=float))
+    n = Phi.shape[0]
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("Gamma", Gamma, shape=(n, None))
+    poles = np.atleast_1d(np.asarray(poles))
+    if poles.size != n:
+        raise ValueError(f"poles has {poles.size} entries but Phi has {n} states; give one pole per state")
+    m = Gamma.shape[1]
+    keep = [j for j in range(m) if j not in set(zero_input_columns)]
+    bad = [j for j in zero_input_columns if not 0 <= j < m]
+    if bad:
+        raise ValueError(f"zero_input_columns {bad} out of range for {m} inputs")
+    G = Gamma[:, keep]
+    Wc = np.asarray(ctrb(Phi, G))
+    if np.linalg.matrix_rank(Wc, tol=1e-12 * max(np.linalg.norm(Wc), 1e-300)) < n:
+        raise ValueError("(Phi, Gamma) restricted to the actuated inputs is not controllable: poles cannot be placed")
+    if len(keep) == 1:
+        L_keep = np.asarray(acker(Phi, G, poles))
+    else:
+        L_keep = scipy.signal.place_poles(Phi, G, poles, method=method).gain_matrix
+    L = np.zeros((m, n))
+    L[keep] = L_keep
+    return L
+
+
+def dlqr(A, B, Q, R):
+    """Discrete LQR: ``u = -K x`` minimising ``sum x'Qx + u'Ru``. Returns ``(K, S, converged)``.
+
+    ``S`` solves the control DARE, computed as the filter DARE of ``(A', B')`` by :func:`dare`, so
+    it is differentiable through the implicit-function rule.
+    """
+    sol = dare(jnp.swapaxes(A, -1, -2), jnp.swapaxes(B, -1, -2), Q, R)
+    S = sol.P
+    K = jnp.linalg.solve(B.T @ S @ B + R, B.T @ S @ A)
+    return K, S, sol.converged
+
+
+def critically_damped_poles(h: float, tau_c, n_fast: int):
+    """A double pole at ``exp(-h / tau_c)`` plus ``n_fast`` poles at ``z = 0`` (seed 000 §7.2:
+    critically damped response with time constant ``tau_c``, dead-time poles at the origin)."""
+    z = jnp.exp(-h / jnp.asarray(tau_c, float))
+    return jnp.concatenate([jnp.stack([z, z]), jnp.zeros((n_fast,), z.dtype)])
+
+
+def dc_compensation(dc_target, dc_closed_loop):
+    """Reference pre-amplification ``L_c = DC_closed^{-1} DC_target`` (seed 000 eq. 102-104)."""
+    M = jnp.atleast_2d(jnp.asarray(dc_closed_loop))
+    T = jnp.atleast_2d(jnp.asarray(dc_target))
+    _checks.matrix("dc_closed_loop", M, square=True)
+    if _checks.is_concrete(M) and np.linalg.cond(np.asarray(M)) > 1e12:
+        raise ValueError("dc_closed_loop is singular: the closed loop has no invertible DC gain to compensate")
+    return jnp.linalg.solve(M, T)

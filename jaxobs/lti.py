@@ -1,0 +1,277 @@
+"""Linear time-invariant models: the state-space pytree, exact ZOH discretisation with dead time,
+transfer functions to state space, and the controllability/observability/DC-gain helpers.
+
+The delay-augmented discretisation follows Cortesão 2006 (seed 000), eq. 11-18: a continuous plant
+``x' = A x + B u(t - tau)`` sampled with period ``h`` under a zero-order hold, with dead time
+``tau = (d - 1) h + tau'`` and ``0 < tau' <= h``, becomes
+
+    x_{r,k} = Phi_r x_{r,k-1} + Gamma_r u_{k-1},   x_{r,k} = [x'_k, u_{k-d}, ..., u_{k-1}]
+
+with ``Phi_1 = e^{Ah}`` (eq. 15), ``Gamma_0 = int_0^{h-tau'} e^{As} ds B`` (eq. 16) and
+``Gamma_1 = e^{A(h-tau')} int_0^{tau'} e^{As} ds B`` (eq. 17).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import _checks
+
+__all__ = ["StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "dcgain"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class StateSpace:
+    """``x' = A x + B u, y = C x + D u`` (continuous, ``dt is None``) or
+    ``x_{k+1} = A x_k + B u_k, y_k = C x_k + D u_k`` (discrete with sample time ``dt``).
+
+    A pytree: ``A, B, C, D`` are leaves (they may carry leading batch axes under ``vmap``),
+    ``dt`` is static metadata.
+    """
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array
+    D: jax.Array
+    dt: float | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def n_states(self) -> int:
+        return self.A.shape[-1]
+
+    @property
+    def n_inputs(self) -> int:
+        return self.B.shape[-1]
+
+    @property
+    def n_outputs(self) -> int:
+        return self.C.shape[-2]
+
+    @property
+    def is_discrete(self) -> bool:
+        return self.dt is not None
+
+
+def ss(A, B, C, D=None, dt: float | None = None) -> StateSpace:
+    """Build a :class:`StateSpace`, checking shapes eagerly. ``D`` defaults to zeros."""
+    A, B, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    D = jnp.zeros((C.shape[-2], B.shape[-1]), A.dtype) if D is None else jnp.atleast_2d(jnp.asarray(D))
+    _checks.matrix("D", D, shape=(C.shape[-2], B.shape[-1]))
+    if dt is not None:
+        _checks.positive_scalar("dt", dt)
+        dt = float(dt)
+    return StateSpace(A, B, C, D, dt)
+
+
+def _zoh_integral(A, B, t):
+    """``(e^{At}, int_0^t e^{As} ds B)`` from one block matrix exponential (Van Loan)."""
+    n, m = B.shape
+    block = jnp.zeros((n + m, n + m), A.dtype).at[:n, :n].set(A).at[:n, n:].set(B)
+    E = jax.scipy.linalg.expm(block * t)
+    return E[:n, :n], E[:n, n:]
+
+
+def n_delay_slots(delay: float, h: float) -> int:
+    """Number of delayed-input slots ``d`` for a concrete dead time (``tau = (d-1)h + tau'``)."""
+    return max(0, math.ceil(float(delay) / float(h) - 1e-9))
+
+
+def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> StateSpace:
+    """Exact zero-order-hold discretisation with dead time (seed 000 eq. 11-18).
+
+    Args:
+      sys: continuous-time model (``sys.dt is None``).
+      h: sample time (a Python number: it fixes the model's ``dt``).
+      delay: dead time ``tau >= 0`` in seconds; may be a traced value (differentiable almost
+        everywhere: the gradient is one-sided at whole multiples of ``h``).
+      n_delay: number of delayed-input slots in the state. Defaults to ``ceil(tau / h)`` for a
+        concrete ``delay``; must be given when ``delay`` is traced (e.g. ``vmap`` over dead times),
+        and then any ``tau`` in ``[0, n_delay * h]`` is represented exactly by placing
+        ``Gamma_0, Gamma_1`` in the right slots. A traced ``tau`` outside that range gives NaN
+        matrices.
+
+    Returns:
+      The delay-augmented discrete model with state ``[x', u_{k-d}, ..., u_{k-1}]`` (oldest slot
+      first, eq. 18). For ``d >= 1`` the new input enters only the newest slot
+      (``Gamma_r = [0 ... 0 I]``, eq. 22) unless ``tau < h``, when ``Gamma_0`` acts at once.
+      ``C`` reads ``x'`` and ``D u(t - tau)`` is routed to the slot holding that input.
+    """
+    if sys.is_discrete:
+        raise ValueError("sys is already discrete; c2d needs a continuous-time model (dt=None)")
+    _checks.positive_scalar("h", h)
+    _checks.positive_scalar("delay", delay, allow_zero=True)
+    h = float(h)
+    if n_delay is None:
+        if not _checks.is_concrete(delay):
+            raise ValueError(
+                "n_delay must be given when delay is traced (e.g. under vmap); "
+                "pass the largest number of delay samples you need"
+            )
+        n_delay = n_delay_slots(delay, h)
+    elif _checks.is_concrete(delay) and float(delay) > n_delay * h * (1 + 1e-9):
+        raise ValueError(f"delay={float(delay)} needs more than n_delay={n_delay} slots of h={h}")
+    if n_delay < 0:
+        raise ValueError(f"n_delay must be >= 0, got {n_delay}")
+
+    A, B, C, D = sys.A, sys.B, sys.C, sys.D
+    dtype = jnp.result_type(A, float)
+    A, B, C, D = (jnp.asarray(M, dtype) for M in (A, B, C, D))
+    tau = jnp.asarray(delay, dtype)
+    n, m = B.shape
+    p = C.shape[0]
+
+    # tau = (d - 1) h + tau' with 0 < tau' <= h; d = 0 only for tau = 0 (then tau' = h).
+    d = jnp.maximum(jnp.ceil(tau / h - 1e-9), 0.0)
+    tau_p = jnp.clip(tau - (d - 1.0) * h, 0.0, h)
+    Phi1, F_h = _zoh_integral(A, B, h)
+    _, F_rest = _zoh_integral(A, B, h - tau_p)
+    Gamma0 = F_rest  # eq. 16: acts on u_{k-d}
+    Gamma1 = F_h - F_rest  # eq. 17: e^{A(h-tau')} int_0^tau' e^{As} ds B, acts on u_{k-d-1}
+
+    def lag_input_matrix(lag):
+        """Input matrix multiplying u_{k-lag} in x'_k."""
+        return jnp.where(lag == d + 1, Gamma1, 0.0) + jnp.where(lag == d, Gamma0, 0.0)
+
+    size = n + n_delay * m
+    Phi = jnp.zeros((size, size), dtype).at[:n, :n].set(Phi1)
+    Gamma = jnp.zeros((size, m), dtype).at[:n].set(lag_input_matrix(1.0))
+    Cr = jnp.zeros((p, size), dtype).at[:, :n].set(C)
+    for i in range(n_delay):  # slot i of x_{r,k-1} holds u_{k-1-(n_delay-i)}
+        cols = slice(n + i * m, n + (i + 1) * m)
+        Phi = Phi.at[:n, cols].set(lag_input_matrix(float(n_delay + 1 - i)))
+        # slot i of x_{r,k} holds u_{k-(n_delay-i)}; the output sees u(kh - tau) = u_{k-d}
+        Cr = Cr.at[:, cols].set(jnp.where(d == n_delay - i, D, 0.0))
+        if i + 1 < n_delay:
+            Phi = Phi.at[cols, cols.start + m : cols.stop + m].set(jnp.eye(m, dtype=dtype))
+        else:
+            Gamma = Gamma.at[cols].set(jnp.eye(m, dtype=dtype))
+    Dr = jnp.where(d == 0, D, 0.0)
+
+    out_of_range = tau > n_delay * h * (1 + 1e-9)
+    Phi, Gamma, Cr, Dr = (jnp.where(out_of_range, jnp.nan, M) for M in (Phi, Gamma, Cr, Dr))
+    return StateSpace(Phi, Gamma, Cr, Dr, h)
+
+
+def _poly(coeffs, name) -> np.ndarray:
+    c = np.trim_zeros(np.atleast_1d(np.asarray(coeffs, dtype=float)), "f")
+    if c.size == 0:
+        c = np.zeros(1)
+    if c.ndim != 1 or not np.all(np.isfinite(c)):
+        raise ValueError(f"{name} must be a finite 1-D coefficient list (highest power first)")
+    return c
+
+
+def _siso_ss(num, den):
+    """Controllable canonical realisation of one transfer function num(s)/den(s)."""
+    num, den = _poly(num, "num"), _poly(den, "den")
+    if not np.any(den):
+        raise ValueError("den must not be identically zero")
+    if num.size > den.size:
+        raise ValueError(
+            f"improper transfer function: numerator degree {num.size - 1} exceeds "
+            f"denominator degree {den.size - 1}"
+        )
+    num, den = num / den[0], den / den[0]
+    n = den.size - 1
+    num = np.concatenate([np.zeros(n + 1 - num.size), num])
+    D = num[0]
+    rest = num[1:] - D * den[1:]  # strictly proper remainder, coefficients s^{n-1} .. s^0
+    A = np.zeros((n, n))
+    if n:
+        A[0, :] = -den[1:]
+        A[1:, :-1] = np.eye(n - 1)
+    B = np.zeros((n, 1))
+    if n:
+        B[0, 0] = 1.0
+    C = rest.reshape(1, n)
+    return A, B, C, np.array([[D]])
+
+
+def tf2ss(num, den, dt: float | None = None) -> StateSpace:
+    """Transfer function (matrix) to state space (design time, NumPy).
+
+    SISO: ``num``, ``den`` are coefficient lists, highest power first.
+    MIMO: ``num[i][j]``, ``den[i][j]`` give entry (output i, input j); every entry is
+    realised on its own (controllable canonical form) and the blocks are stacked: the state is
+    block diagonal, input j drives the blocks of column j and output i sums the blocks of row i. The result is controllable but in general not minimal: its order
+    is the sum of the entry orders. Use it as the plant of a design; reduce it with your own
+    knowledge of shared poles where a minimal model is needed.
+    """
+    if not (_is_matrix_of_polys(num) or _is_matrix_of_polys(den)):
+        A, B, C, D = _siso_ss(num, den)
+        return ss(A, B, C, D, dt)
+    if not (_is_matrix_of_polys(num) and _is_matrix_of_polys(den)):
+        raise ValueError("for a MIMO transfer function give num and den as nested lists [output][input]")
+    rows = len(num)
+    if rows == 0 or len(den) != rows:
+        raise ValueError(f"num has {len(num)} rows but den has {len(den)}; they must match")
+    cols = len(num[0])
+    for i in range(rows):
+        if len(num[i]) != cols or len(den[i]) != cols:
+            raise ValueError(
+                f"row {i} of num/den has {len(num[i])}/{len(den[i])} entries; every row needs {cols}"
+            )
+    blocks = [[_siso_ss(num[i][j], den[i][j]) for j in range(cols)] for i in range(rows)]
+    sizes = [blocks[i][j][0].shape[0] for j in range(cols) for i in range(rows)]
+    n = sum(sizes)
+    A = np.zeros((n, n))
+    B = np.zeros((n, cols))
+    C = np.zeros((rows, n))
+    D = np.zeros((rows, cols))
+    k = 0
+    for j in range(cols):
+        for i in range(rows):
+            a, b, c, dd = blocks[i][j]
+            s = a.shape[0]
+            A[k : k + s, k : k + s] = a
+            B[k : k + s, j] = b[:, 0]
+            C[i, k : k + s] = c[0]
+            D[i, j] = dd[0, 0]
+            k += s
+    return ss(A, B, C, D, dt)
+
+
+def _is_matrix_of_polys(x) -> bool:
+    """True for ``x[i][j] = coefficient list`` (a transfer-function matrix), False for one polynomial."""
+    return (
+        isinstance(x, Sequence)
+        and len(x) > 0
+        and isinstance(x[0], Sequence)
+        and len(x[0]) > 0
+        and np.ndim(x[0][0]) == 1
+    )
+
+
+def ctrb(A, B) -> jax.Array:
+    """Controllability (reachability) matrix ``[B, A B, ..., A^{n-1} B]`` (seed 000 eq. 46)."""
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    blocks = [B]
+    for _ in range(A.shape[-1] - 1):
+        blocks.append(A @ blocks[-1])
+    return jnp.concatenate(blocks, axis=-1)
+
+
+def obsv(A, C) -> jax.Array:
+    """Observability matrix ``[C; C A; ...; C A^{n-1}]``."""
+    return jnp.swapaxes(ctrb(jnp.swapaxes(A, -1, -2), jnp.swapaxes(C, -1, -2)), -1, -2)
+
+
+def dcgain(sys: StateSpace) -> jax.Array:
+    """Steady-state gain: ``C (I - A)^{-1} B + D`` (discrete) or ``-C A^{-1} B + D`` (continuous).
+
+    Infinite/NaN entries come back for systems with a pole at 1 (discrete) or 0 (continuous).
+    """
+    n = sys.A.shape[-1]
+    M = jnp.eye(n, dtype=sys.A.dtype) - sys.A if sys.is_discrete else -sys.A
+    return sys.C @ jnp.linalg.solve(M, sys.B) + sys.D
