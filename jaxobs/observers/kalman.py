@@ -1,0 +1,132 @@
+"""Classical Kalman filter (CKF): time-varying and steady-state gain.
+
+Model ``x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k``, ``y_k = C x_k + v_k`` with ``E[w w'] = Q``,
+``E[v v'] = R``; the recursion of seed 000 eq. 27-29 (covariances in :mod:`jaxobs.riccati`).
+
+Missing data: a non-finite measurement component is treated as missing. Its row of ``C`` and its
+correlations in ``R`` are removed for that step (an exact marginalisation), so the update uses only
+the finite components; when all are missing the update is skipped. ``state.missing`` counts the
+skipped components.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks
+from jaxobs.observers.base import Observer
+from jaxobs.riccati import dare, kalman_gain, predict_covariance, update_covariance
+
+__all__ = [
+    "KalmanParams",
+    "KalmanState",
+    "KalmanInputs",
+    "KalmanOutputs",
+    "kalman_filter",
+    "make_kalman",
+    "with_steady_state_gain",
+    "measurement_update",
+]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class KalmanParams:
+    """Parameters of a Kalman filter. ``gain=None``: time-varying gain from the Riccati recursion;
+    an ``(n, p)`` array: the fixed (steady-state) gain, no covariance propagation."""
+
+    Phi: jax.Array
+    Gamma: jax.Array
+    C: jax.Array
+    Q: jax.Array
+    R: jax.Array
+    x0: jax.Array
+    P0: jax.Array
+    gain: jax.Array | None = None
+
+
+class KalmanState(NamedTuple):
+    x: jax.Array  # a-posteriori estimate x_hat_{k}
+    P: jax.Array  # a-posteriori covariance P_k
+    missing: jax.Array  # number of measurement components skipped so far
+
+
+class KalmanInputs(NamedTuple):
+    u_prev: jax.Array  # input u_{k-1} applied over the last interval
+    y: jax.Array  # measurement y_k (NaN entries are missing)
+
+
+class KalmanOutputs(NamedTuple):
+    x: jax.Array  # a-posteriori estimate
+    x_prior: jax.Array  # a-priori estimate Phi x_{k-1} + Gamma u_{k-1}
+    innovation: jax.Array  # y_k - C x_prior (0 for missing components)
+    gain: jax.Array  # K_k used at this step
+
+
+def make_kalman(Phi, Gamma, C, Q, R, *, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
+    """Build and validate :class:`KalmanParams`. ``P0`` defaults to ``Q`` (``P_{-1} = Q_0``)."""
+    Phi, Gamma, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (Phi, Gamma, C))
+    n = Phi.shape[-1]
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("Gamma", Gamma, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
+    _checks.covariance("Q", Q, definite=False, size=n)
+    _checks.covariance("R", R, definite=True, size=C.shape[0])
+    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    _checks.covariance("P0", P0, definite=False, size=n)
+    x0 = jnp.zeros((n,), Phi.dtype) if x0 is None else jnp.asarray(x0)
+    params = KalmanParams(Phi, Gamma, C, Q, R, x0, P0)
+    return with_steady_state_gain(params) if steady_state else params
+
+
+def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
+    """Same filter with the fixed steady-state gain from :func:`jaxobs.riccati.dare`.
+
+    ``P`` is then set to the steady-state a-posteriori covariance and no longer propagated.
+    """
+    sol = dare(params.Phi, params.C, params.Q, params.R)
+    return dataclasses.replace(params, gain=kalman_gain(sol.P, params.C, params.R))
+
+
+def measurement_update(x1, P1, C, R, y, gain=None):
+    """Update ``(x1, P1)`` with ``y``; non-finite components of ``y`` are skipped exactly.
+
+    Returns ``(x, P, K, innovation, n_missing)``. With a fixed ``gain``, ``P`` is returned unchanged
+    and the innovation of missing components is zeroed.
+    """
+    observed = jnp.isfinite(y)
+    y0 = jnp.where(observed, y, 0.0)
+    mask = observed.astype(x1.dtype)
+    C_obs = C * mask[:, None]
+    innovation = (y0 - C @ x1) * mask
+    if gain is None:
+        # drop the missing rows of C and their correlations in R (unit variance placeholder)
+        R_obs = R * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
+        P, K = update_covariance(P1, C_obs, R_obs)
+    else:
+        P, K = P1, gain
+    x = x1 + K @ innovation
+    return x, P, K, innovation, jnp.sum(~observed)
+
+
+def _init(params: KalmanParams) -> KalmanState:
+    return KalmanState(params.x0, params.P0, jnp.zeros((), jnp.int32))
+
+
+def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
+    x1 = params.Phi @ state.x + params.Gamma @ jnp.atleast_1d(inputs.u_prev)
+    P1 = state.P if params.gain is not None else predict_covariance(state.P, params.Phi, params.Q)
+    x, P, K, innovation, n_missing = measurement_update(
+        x1, P1, params.C, params.R, jnp.atleast_1d(inputs.y), params.gain
+    )
+    state = KalmanState(x, P, state.missing + n_missing.astype(jnp.int32))
+    return state, KalmanOutputs(x, x1, innovation, K)
+
+
+kalman_filter = Observer(_init, _step)
+"""The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs`."""
