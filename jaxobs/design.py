@@ -7,7 +7,6 @@ helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answe
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.signal

@@ -1,0 +1,615 @@
+"""Throughput of the jaxobs Kalman filter and DARE solver against dynamax, simdkalman, filterpy and SciPy.
+
+What is measured (float64; n = 10 states, m = 1 output; defaults B = 1024 sequences of T = 1000 steps):
+
+1. ``independent``: B models, each with its own Phi, C, Q, R (time-varying gain). jaxobs and dynamax
+   ``lgssm_filter`` are both ``jit(vmap(...))`` over params and measurements; simdkalman runs with
+   stacked (B, n, n) matrices; filterpy filters one sequence at a time.
+2. ``shared``: one model, B measurement sequences; the JAX filters ``vmap`` over the measurements only.
+3. ``steady_state``: jaxobs with ``with_steady_state_gain`` (fixed DARE gain, no covariance
+   propagation) on the shared model, against the peers' time-varying filters of scenario 2.
+4. ``dare``: B filter DAREs, ``jit(vmap(jaxobs.riccati.dare))`` against a Python loop of
+   ``scipy.linalg.solve_discrete_are``.
+
+Models are random and stable (spectral radius 0.95) with random positive definite Q and R, and the
+measurements are simulated from them. Every filter gets the same prior: jaxobs starts from
+``x_{-1} = 0, P_{-1} = Q`` and predicts once; the peers start from that predicted prior. A small case
+checks that all filters return the same filtered means (max abs difference, stored in the JSON).
+
+Timing: each JAX function is lowered and compiled first (compile time reported separately), then
+every peer is timed as the best of ``--repeats`` runs ending in ``block_until_ready``. filterpy is
+timed on a few sequences and extrapolated to B. Throughput is plant-steps/s (B * T / seconds;
+DAREs/s for scenario 4) and the ratios are ours / peer. A peer that cannot be imported is reported
+as skipped.
+
+Run (``make bench`` does the first with ``--out out/bench``)::
+
+    python benchmarks/kalman_throughput.py --out DIR [--batch 1024] [--steps 1000] [--quick]
+    python benchmarks/kalman_throughput.py --out DIR --device-sweep   # GPU only: B = 1e3, 1e4, 1e5
+
+Writes ``DIR/kalman_throughput.json`` (every number, platform, targets) and
+``DIR/kalman_throughput.png`` (speedup ratios, log scale, with the target lines).
+"""
+
+from __future__ import annotations
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.linalg  # noqa: E402
+
+from jaxobs.observers import run  # noqa: E402
+from jaxobs.observers.kalman import (  # noqa: E402
+    KalmanInputs,
+    KalmanParams,
+    kalman_filter,
+    make_kalman,
+    with_steady_state_gain,
+)
+from jaxobs.riccati import dare  # noqa: E402
+
+N_STATES, N_OUTPUTS = 10, 1
+SPECTRAL_RADIUS = 0.95
+OURS = "jaxobs"
+# scenario -> (peer the target is measured against, minimum ours/peer ratio)
+TARGETS = {
+    "independent": ("dynamax", 1.5),
+    "shared": ("dynamax", 10.0),
+    "steady_state": ("dynamax", 20.0),
+    "dare": ("scipy", 20.0),
+}
+SWEEP_BATCHES = (1_000, 10_000, 100_000)
+
+
+def _optional_import(name: str):
+    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported."""
+    try:
+        return importlib.import_module(name), None
+    except Exception as exc:  # any import-time failure means "skip this peer"
+        return None, f"{type(exc).__name__}: {exc}"
+
+
+dynamax_lgssm, DYNAMAX_MISSING = _optional_import("dynamax.linear_gaussian_ssm")
+simdkalman, SIMDKALMAN_MISSING = _optional_import("simdkalman")
+filterpy_kalman, FILTERPY_MISSING = _optional_import("filterpy.kalman")
+
+
+# ---------------------------------------------------------------------------------------------
+# Workload
+
+
+@dataclasses.dataclass(frozen=True)
+class Workload:
+    """NumPy float64 models and data. Model arrays have a leading batch axis, or none when shared."""
+
+    Phi: np.ndarray  # (B, n, n) or (n, n)
+    C: np.ndarray  # (B, m, n) or (m, n)
+    Q: np.ndarray
+    R: np.ndarray
+    Y: np.ndarray  # (B, T, m) simulated measurements
+
+    @property
+    def shared(self) -> bool:
+        return self.Phi.ndim == 2
+
+    @property
+    def batch(self) -> int:
+        return self.Y.shape[0]
+
+    @property
+    def steps(self) -> int:
+        return self.Y.shape[1]
+
+    def model(self, i: int) -> tuple[np.ndarray, ...]:
+        """``(Phi, C, Q, R)`` of sequence ``i``."""
+        pick = (lambda M: M) if self.shared else (lambda M: M[i])
+        return tuple(pick(M) for M in (self.Phi, self.C, self.Q, self.R))
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of x_0 before the first update: one predict from x_{-1} = 0, P_{-1} = Q."""
+        mean = np.zeros(self.Phi.shape[:-1])
+        cov = self.Phi @ self.Q @ np.swapaxes(self.Phi, -1, -2) + self.Q
+        return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def random_models(rng: np.random.Generator, count: int, n: int = N_STATES, m: int = N_OUTPUTS):
+    """``count`` stable random models ``(Phi, C, Q, R)``, each stacked on a leading axis."""
+    Phi = rng.standard_normal((count, n, n))
+    Phi *= SPECTRAL_RADIUS / np.abs(np.linalg.eigvals(Phi)).max(axis=-1)[:, None, None]
+    G = rng.standard_normal((count, n, n))
+    Q = 0.1 * G @ np.swapaxes(G, -1, -2) / n + 1e-3 * np.eye(n)
+    C = rng.standard_normal((count, m, n))
+    H = rng.standard_normal((count, m, m))
+    R = 0.5 * H @ np.swapaxes(H, -1, -2) / m + 0.5 * np.eye(m)
+    return Phi, C, Q, R
+
+
+def make_workload(seed: int, batch: int, steps: int, shared: bool) -> Workload:
+    """Random models (one shared, or one per sequence) and ``batch`` simulated measurement sequences."""
+    rng = np.random.default_rng(seed)
+    Phi, C, Q, R = random_models(rng, 1 if shared else batch)
+    chol_Q, chol_R = np.linalg.cholesky(Q), np.linalg.cholesky(R)
+    x = np.zeros((batch, N_STATES))
+    Y = np.empty((batch, steps, N_OUTPUTS))
+    for k in range(steps):
+        w = (chol_Q @ rng.standard_normal((batch, N_STATES, 1)))[..., 0]
+        v = (chol_R @ rng.standard_normal((batch, N_OUTPUTS, 1)))[..., 0]
+        x = np.einsum("bij,bj->bi", np.broadcast_to(Phi, (batch, N_STATES, N_STATES)), x) + w
+        Y[:, k] = np.einsum("bij,bj->bi", np.broadcast_to(C, (batch, N_OUTPUTS, N_STATES)), x) + v
+    models = (M[0] for M in (Phi, C, Q, R)) if shared else (Phi, C, Q, R)
+    return Workload(*models, Y=Y)
+
+
+# ---------------------------------------------------------------------------------------------
+# The filters under test: each ``prepare_*`` turns a Workload into ``(fn, args)`` where ``fn(*args)``
+# returns the filtered means, shape (B, T, n). JAX entries are jit-compiled by ``measure``.
+
+
+def kalman_params(work: Workload, steady_state: bool = False) -> KalmanParams:
+    """jaxobs params (stacked over the batch unless shared); validated by ``make_kalman`` for one model."""
+    n = N_STATES
+    Phi, C, Q, R = work.model(0)
+    make_kalman(Phi, np.zeros((n, 1)), C, Q, R)  # eager validation of a representative model
+    lead = work.Phi.shape[:-2]
+    params = KalmanParams(
+        Phi=jnp.asarray(work.Phi),
+        Gamma=jnp.zeros(lead + (n, 1)),
+        C=jnp.asarray(work.C),
+        Q=jnp.asarray(work.Q),
+        R=jnp.asarray(work.R),
+        x0=jnp.zeros(lead + (n,)),
+        P0=jnp.asarray(work.Q),
+    )
+    return with_steady_state_gain(params) if steady_state else params
+
+
+def prepare_jaxobs(work: Workload, steady_state: bool = False):
+    params = kalman_params(work, steady_state)
+    u_prev = jnp.zeros((work.steps, 1))  # Gamma = 0: one input, shared by all sequences
+
+    def filtered_means(p, u, y):
+        return run(kalman_filter, p, KalmanInputs(u_prev=u, y=y))[1].x
+
+    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, None, 0))
+    return fn, (params, u_prev, jnp.asarray(work.Y))
+
+
+def prepare_dynamax(work: Workload):
+    if dynamax_lgssm is None:
+        raise PeerSkipped(DYNAMAX_MISSING)
+    lg = dynamax_lgssm
+    mean, cov = work.prior()
+    lead = work.Phi.shape[:-2]
+    params = lg.ParamsLGSSM(
+        initial=lg.ParamsLGSSMInitial(mean=mean, cov=cov),
+        dynamics=lg.ParamsLGSSMDynamics(
+            weights=work.Phi,
+            bias=np.zeros(lead + (N_STATES,)),
+            input_weights=np.zeros(lead + (N_STATES, 0)),
+            cov=work.Q,
+        ),
+        emissions=lg.ParamsLGSSMEmissions(
+            weights=work.C,
+            bias=np.zeros(lead + (N_OUTPUTS,)),
+            input_weights=np.zeros(lead + (N_OUTPUTS, 0)),
+            cov=work.R,
+        ),
+    )
+    params = jax.tree.map(jnp.asarray, params)
+
+    def filtered_means(p, y):
+        return lg.lgssm_filter(p, y).filtered_means
+
+    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, 0))
+    return fn, (params, jnp.asarray(work.Y))
+
+
+def prepare_simdkalman(work: Workload):
+    """simdkalman's vectorised update / predict over all B series (stacked matrices when not shared).
+
+    ``KalmanFilter.compute`` reads the state size from ``state_transition.shape[0]`` and so cannot
+    take per-series (B, n, n) transitions; this is its inner loop, without storing covariances.
+    """
+    if simdkalman is None:
+        raise PeerSkipped(SIMDKALMAN_MISSING)
+    kf = simdkalman.KalmanFilter(work.Phi, work.Q, work.C, work.R)
+    B, T, n = work.batch, work.steps, N_STATES
+    mean, cov = work.prior()
+
+    def filtered_means(Y):
+        m = np.broadcast_to(mean, (B, n))[..., None].copy()
+        P = np.broadcast_to(cov, (B, n, n)).copy()
+        out = np.empty((B, T, n))
+        for k in range(T):
+            m, P, _ = kf.update(m, P, Y[:, k, :, None])
+            out[:, k] = m[..., 0]
+            m, P = kf.predict_next(m, P)
+        return out
+
+    return filtered_means, (work.Y,)
+
+
+def prepare_filterpy(work: Workload, sequences: int):
+    """filterpy, one ``KalmanFilter.batch_filter`` per sequence, for the first ``sequences`` sequences."""
+    if filterpy_kalman is None:
+        raise PeerSkipped(FILTERPY_MISSING)
+    mean, cov = work.prior()
+
+    def filtered_means(Y):
+        out = []
+        for i in range(sequences):
+            Phi, C, Q, R = work.model(i)
+            kf = filterpy_kalman.KalmanFilter(dim_x=N_STATES, dim_z=N_OUTPUTS)
+            kf.F, kf.H, kf.Q, kf.R = Phi, C, Q, R
+            m0 = mean if work.shared else mean[i]
+            P0 = cov if work.shared else cov[i]
+            kf.x, kf.P = m0.copy(), P0.copy()
+            means = kf.batch_filter(Y[i], update_first=True)[0]
+            out.append(means.reshape(work.steps, N_STATES))
+        return np.stack(out)
+
+    return filtered_means, (work.Y[:sequences],)
+
+
+def prepare_dare_jaxobs(work: Workload):
+    fn = jax.vmap(lambda Phi, C, Q, R: dare(Phi, C, Q, R).P)
+    return fn, tuple(jnp.asarray(M) for M in (work.Phi, work.C, work.Q, work.R))
+
+
+def prepare_dare_scipy(work: Workload):
+    def solve_all(Phi, C, Q, R):
+        return np.stack(
+            [scipy.linalg.solve_discrete_are(A.T, H.T, W, V) for A, H, W, V in zip(Phi, C, Q, R, strict=True)]
+        )
+
+    return solve_all, (work.Phi, work.C, work.Q, work.R)
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing
+
+
+class PeerSkipped(Exception):
+    """A peer is unavailable (not installed); the message says why."""
+
+
+@dataclasses.dataclass
+class Timing:
+    seconds: float  # best of the repeats (extrapolated to the full batch where ``scale`` != 1)
+    compile_s: float | None  # jit lowering + compilation, JAX only
+    result: object
+
+
+def measure(fn: Callable, args: tuple, *, repeats: int, jit: bool, scale: float = 1.0) -> Timing:
+    """Best-of-``repeats`` wall time of ``fn(*args)`` (compiled first when ``jit``), times ``scale``."""
+    compile_s = None
+    if jit:
+        start = time.perf_counter()
+        fn = jax.jit(fn).lower(*args).compile()
+        compile_s = time.perf_counter() - start
+    best, result = float("inf"), None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return Timing(best * scale, compile_s, result)
+
+
+def run_peer(name: str, prepare: Callable, *, work_items: int, repeats: int, jit: bool, scale: float = 1.0):
+    """Time one peer; returns ``(record for the JSON, Timing or None)``. Peer failures are recorded."""
+    try:
+        fn, args = prepare()
+        timing = measure(fn, args, repeats=repeats, jit=jit, scale=scale)
+    except PeerSkipped as exc:
+        return {"status": "skipped", "reason": str(exc)}, None
+    except Exception as exc:  # a broken peer must not abort the other measurements
+        if name == OURS:
+            raise
+        return {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}, None
+    record = {
+        "status": "ok",
+        "seconds": timing.seconds,
+        "throughput": work_items / timing.seconds,
+        "compile_s": timing.compile_s,
+    }
+    return record, timing
+
+
+def add_ratios(scenario: dict, name: str) -> dict:
+    """Ours / peer throughput ratios and the target verdict of ``scenario`` (in place)."""
+    peers = scenario["peers"]
+    ours = peers[OURS]["throughput"]
+    scenario["ratios"] = {
+        peer: ours / rec["throughput"] for peer, rec in peers.items() if peer != OURS and rec["status"] == "ok"
+    }
+    if name in TARGETS:
+        peer, minimum = TARGETS[name]
+        ratio = scenario["ratios"].get(peer)
+        scenario["target"] = {
+            "peer": peer,
+            "min_ratio": minimum,
+            "ratio": ratio,
+            "met": None if ratio is None else bool(ratio >= minimum),
+        }
+    return scenario
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenarios
+
+
+def filter_peers(work: Workload, filterpy_sequences: int, steady_state: bool = False, peers=None):
+    """``{peer: (prepare, jit, scale)}`` for the filtering scenarios; ``peers`` restricts the set."""
+    table = {
+        OURS: (lambda: prepare_jaxobs(work, steady_state), True, 1.0),
+        "dynamax": (lambda: prepare_dynamax(work), True, 1.0),
+        "simdkalman": (lambda: prepare_simdkalman(work), False, 1.0),
+        "filterpy": (
+            lambda: prepare_filterpy(work, filterpy_sequences),
+            False,
+            work.batch / filterpy_sequences,
+        ),
+    }
+    return {k: v for k, v in table.items() if peers is None or k in peers}
+
+
+def filter_scenario(name: str, description: str, work: Workload, *, repeats: int, filterpy_sequences: int,
+                    steady_state: bool = False, peers=None) -> dict:
+    items = work.batch * work.steps
+    records = {}
+    for peer, (prepare, jit, scale) in filter_peers(work, filterpy_sequences, steady_state, peers).items():
+        records[peer], _ = run_peer(peer, prepare, work_items=items, repeats=repeats, jit=jit, scale=scale)
+        if scale != 1.0 and records[peer]["status"] == "ok":
+            records[peer]["extrapolated_from_sequences"] = filterpy_sequences
+    scenario = {
+        "description": description,
+        "unit": "plant-steps/s",
+        "batch": work.batch,
+        "steps": work.steps,
+        "peers": records,
+    }
+    return add_ratios(scenario, name)
+
+
+def dare_scenario(work: Workload, *, repeats: int) -> dict:
+    ours, ours_t = run_peer(OURS, lambda: prepare_dare_jaxobs(work), work_items=work.batch,
+                            repeats=repeats, jit=True)
+    scipy_rec, scipy_t = run_peer("scipy", lambda: prepare_dare_scipy(work), work_items=work.batch,
+                                  repeats=repeats, jit=False)
+    P, P_ref = np.asarray(ours_t.result), scipy_t.result
+    rel = np.abs(P - P_ref).max(axis=(-2, -1)) / np.abs(P_ref).max(axis=(-2, -1))
+    scenario = {
+        "description": f"{work.batch} filter DAREs (n={N_STATES}, m={N_OUTPUTS}): "
+        "jit(vmap(jaxobs.riccati.dare)) vs a loop of scipy.linalg.solve_discrete_are",
+        "unit": "DAREs/s",
+        "batch": work.batch,
+        "peers": {OURS: ours, "scipy": scipy_rec},
+        "max_relative_error": float(rel.max()),
+        "relative_error_tolerance": 1e-9,
+        "answers_agree": bool(rel.max() <= 1e-9),
+    }
+    return add_ratios(scenario, "dare")
+
+
+def agreement_check(seed: int, batch: int = 4, steps: int = 200) -> dict:
+    """Max abs difference of every peer's filtered means from jaxobs's on a small case (same prior)."""
+    out = {}
+    for label, shared in (("independent", False), ("shared", True)):
+        work = make_workload(seed, batch, steps, shared)
+        fn, args = prepare_jaxobs(work)
+        ref = np.asarray(jax.jit(fn)(*args))
+        diffs = {}
+        for peer, (prepare, _, _) in filter_peers(work, filterpy_sequences=batch).items():
+            if peer == OURS:
+                continue
+            try:
+                peer_fn, peer_args = prepare()
+            except PeerSkipped as exc:
+                diffs[peer] = f"skipped: {exc}"
+                continue
+            diffs[peer] = float(np.abs(np.asarray(peer_fn(*peer_args)) - ref).max())
+        if shared:  # the steady-state filter approaches the time-varying one as P settles
+            ss_fn, ss_args = prepare_jaxobs(work, steady_state=True)
+            ss = np.asarray(jax.jit(ss_fn)(*ss_args))
+            diffs["jaxobs_steady_state_last_half"] = float(np.abs(ss - ref)[:, steps // 2 :].max())
+        out[label] = diffs
+    out["scale_of_means"] = float(np.abs(ref).max())
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Device sweep (GPU only)
+
+
+def device_sweep(seed: int, steps: int, repeats: int) -> dict:
+    """Scenarios 1-3 (jaxobs and dynamax only) for B in ``SWEEP_BATCHES`` on a GPU."""
+    kinds = {d.platform for d in jax.devices()}
+    if "gpu" not in kinds and "cuda" not in kinds and "rocm" not in kinds:
+        reason = f"no GPU: jax sees {sorted(kinds)} devices"
+        print(f"device sweep skipped ({reason})")
+        return {"skipped": reason}
+    sweep = {}
+    for batch in SWEEP_BATCHES:
+        for name, (description, shared, steady) in FILTER_SCENARIOS.items():
+            work = make_workload(seed, batch, steps, shared)
+            sweep[f"{name}@B={batch}"] = filter_scenario(
+                name, description, work, repeats=repeats, filterpy_sequences=1,
+                steady_state=steady, peers=(OURS, "dynamax"),
+            )
+            print(format_scenario(f"{name} (B={batch})", sweep[f"{name}@B={batch}"]))
+    return sweep
+
+
+# ---------------------------------------------------------------------------------------------
+# Report
+
+
+# scenario -> (description, shared model, steady-state gain)
+FILTER_SCENARIOS = {
+    "independent": ("B independent models (own Phi, C, Q, R), time-varying gain", False, False),
+    "shared": ("one shared model, B measurement sequences, time-varying gain", True, False),
+    "steady_state": ("one shared model, B sequences; jaxobs with the steady-state gain, "
+                     "peers time-varying", True, True),
+}
+
+
+def environment() -> dict:
+    device = jax.devices()[0]
+    return {
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpu_count": __import__("os").cpu_count(),
+        "jax": jax.__version__,
+        "jax_backend": jax.default_backend(),
+        "device_kind": device.device_kind,
+        "x64": bool(jax.config.jax_enable_x64),
+        "peers": {
+            name: getattr(module, "__version__", "installed") if module is not None else f"missing ({why})"
+            for name, module, why in (
+                ("dynamax", importlib.import_module("dynamax") if dynamax_lgssm else None, DYNAMAX_MISSING),
+                ("simdkalman", simdkalman, SIMDKALMAN_MISSING),
+                ("filterpy", importlib.import_module("filterpy") if filterpy_kalman else None, FILTERPY_MISSING),
+            )
+        },
+    }
+
+
+def format_scenario(title: str, scenario: dict) -> str:
+    unit = scenario["unit"]
+    lines = [f"\n== {title}: {scenario['description']}",
+             f"   {'peer':<12}{'seconds':>12}{unit:>18}{'compile s':>12}{'ours/peer':>12}"]
+    for peer, rec in scenario["peers"].items():
+        if rec["status"] != "ok":
+            lines.append(f"   {peer:<12}{rec['status']}: {rec['reason']}")
+            continue
+        compile_s = "" if rec["compile_s"] is None else f"{rec['compile_s']:.2f}"
+        ratio = scenario["ratios"].get(peer)
+        ratio_s = "" if ratio is None else f"{ratio:.2f}x"
+        note = f"  (extrapolated from {rec['extrapolated_from_sequences']} seq)" \
+            if "extrapolated_from_sequences" in rec else ""
+        lines.append(f"   {peer:<12}{rec['seconds']:>12.4f}{rec['throughput']:>18.4g}{compile_s:>12}{ratio_s:>12}"
+                     + note)
+    target = scenario.get("target")
+    if target:
+        verdict = "n/a (peer unavailable)" if target["met"] is None else ("MET" if target["met"] else "MISSED")
+        got = "" if target["ratio"] is None else f", got {target['ratio']:.2f}x"
+        lines.append(f"   target: >= {target['min_ratio']:g}x {target['peer']}{got} -> {verdict}")
+    return "\n".join(lines)
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(10, 4.8))
+    x, ticks, labels = 0.0, [], []
+    for name, scenario in results["scenarios"].items():
+        start = x
+        for peer, ratio in scenario["ratios"].items():
+            met = ratio >= 1.0
+            ax.bar(x, ratio, color="tab:green" if met else "tab:red", width=0.8)
+            ax.text(x, ratio, f"{ratio:.2g}x", ha="center", va="bottom", fontsize=8)
+            ticks.append(x)
+            labels.append(f"{name}\nvs {peer}")
+            x += 1
+        target = scenario.get("target")
+        if target:
+            ax.hlines(target["min_ratio"], start - 0.45, x - 0.55, colors="k", linestyles="--")
+            ax.text(start - 0.45, target["min_ratio"], f"target {target['min_ratio']:g}x vs {target['peer']}",
+                    fontsize=7, va="bottom")
+        x += 0.7
+    ax.axhline(1.0, color="grey", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xticks(ticks, labels, fontsize=7)
+    ax.set_ylabel("speedup: jaxobs / peer (plant-steps/s)")
+    cfg = results["config"]
+    ax.set_title(f"jaxobs Kalman throughput, B={cfg['batch']}, T={cfg['steps']}, n={N_STATES}, "
+                 f"float64, {results['environment']['device_kind']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument("--batch", type=int, default=1024, help="B: sequences / models / DAREs")
+    parser.add_argument("--steps", type=int, default=1000, help="T: time steps per sequence")
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (the best is kept)")
+    parser.add_argument("--filterpy-sequences", type=int, default=4,
+                        help="sequences filterpy is timed on (extrapolated to B)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
+    parser.add_argument("--device-sweep", action="store_true",
+                        help=f"on a GPU, also time scenarios 1-3 for B in {SWEEP_BATCHES}")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.batch, args.steps = min(args.batch, 64), min(args.steps, 100)
+        args.filterpy_sequences = min(args.filterpy_sequences, 2)
+    args.filterpy_sequences = min(args.filterpy_sequences, args.batch)
+
+    results = {
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "environment": environment(),
+        "targets": {name: {"peer": peer, "min_ratio": ratio} for name, (peer, ratio) in TARGETS.items()},
+        "scenarios": {},
+    }
+    print(f"jax {jax.__version__} on {results['environment']['device_kind']} "
+          f"({results['environment']['jax_backend']}), float64, n={N_STATES}, m={N_OUTPUTS}, "
+          f"B={args.batch}, T={args.steps}, best of {args.repeats}")
+
+    results["agreement"] = agreement_check(args.seed)
+    print("\nagreement with jaxobs filtered means (max abs difference, small case):")
+    for label, diffs in results["agreement"].items():
+        print(f"   {label}: {diffs}")
+
+    for index, (name, (description, shared, steady)) in enumerate(FILTER_SCENARIOS.items(), start=1):
+        work = make_workload(args.seed, args.batch, args.steps, shared)
+        scenario = filter_scenario(name, description, work, repeats=args.repeats,
+                                   filterpy_sequences=args.filterpy_sequences, steady_state=steady)
+        results["scenarios"][name] = scenario
+        print(format_scenario(f"{index}. {name}", scenario))
+
+    dare_work = make_workload(args.seed, args.batch, 1, shared=False)
+    results["scenarios"]["dare"] = dare_scenario(dare_work, repeats=args.repeats)
+    print(format_scenario("4. dare", results["scenarios"]["dare"]))
+    print(f"   max relative error vs scipy: {results['scenarios']['dare']['max_relative_error']:.3g}")
+
+    if args.device_sweep:
+        results["device_sweep"] = device_sweep(args.seed, args.steps, args.repeats)
+
+    print("\nsummary (ours/peer, target):")
+    for name, scenario in results["scenarios"].items():
+        target = scenario["target"]
+        ratios = ", ".join(f"{peer} {r:.2f}x" for peer, r in scenario["ratios"].items())
+        print(f"   {name:<13} {ratios:<60} target >= {target['min_ratio']:g}x {target['peer']}: "
+              f"{'MET' if target['met'] else 'n/a' if target['met'] is None else 'MISSED'}")
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "kalman_throughput.json").write_text(json.dumps(results, indent=2))
+    plot(results, args.out / "kalman_throughput.png")
+    print(f"\nwrote {args.out / 'kalman_throughput.json'} and {args.out / 'kalman_throughput.png'}")
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,58 @@
+"""The ``jaxobs`` command.
+
+    jaxobs reproduce --list
+    jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def _reproduce(args) -> int:
+    from jaxobs.papers import REPRODUCTIONS
+
+    if args.list or not args.names:
+        for name, fn in REPRODUCTIONS.items():
+            doc = (sys.modules[fn.__module__].__doc__ or "").strip().splitlines()[0]
+            print(f"{name:28s} {doc}")
+        return 0
+    names = list(REPRODUCTIONS) if args.names == ["all"] else args.names
+    unknown = [n for n in names if n not in REPRODUCTIONS]
+    if unknown:
+        print(f"unknown reproduction {', '.join(unknown)}; choose from: {', '.join(REPRODUCTIONS)}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    for name in names:
+        start = time.perf_counter()
+        summary = REPRODUCTIONS[name](out)
+        print(f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
+              f"in {time.perf_counter() - start:.1f} s")
+        for key, value in summary.items():
+            if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(value, dict | list):
+                print(f"  {key} = {value:.6g}")
+            elif key == "rms_force_error":
+                print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))
+    return 0
+
+
+def main(argv=None) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    parser = argparse.ArgumentParser(prog="jaxobs", description=__doc__.strip().splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures")
+    rep.add_argument("names", nargs="*", help="reproduction name(s), or 'all'")
+    rep.add_argument("--list", action="store_true", help="list the available reproductions")
+    rep.add_argument("--out", default="out", help="output directory (default: out)")
+    rep.set_defaults(func=_reproduce)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,172 @@
+"""Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 1 (§7): force control with
+AOB-1/2/3 under the nonlinear input disturbance of eq. 81-82.
+
+Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I, and
+the closed loop of §7.2 (force tracking error of AOB-1/2/3 and a CKF against the desired closed-loop
+response). See ``shared/notes/aob_paper_conventions.md`` for the conventions that reproduce the
+printed numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs.closed_loop import ideal_response, measurement_noise, rms, simulate
+from jaxobs.observers import active
+from jaxobs.papers._output import figure_path, write_json
+from jaxobs.papers.force_control import (
+    EXAMPLE1,
+    ForceControlSetup,
+    design_gain,
+    example1_disturbance,
+    force_plant,
+    reference_gain,
+)
+
+NAME = "cortesao2006-example1"
+
+PRINTED_L_R = [0.1148, -0.0717, -0.0615, -0.0797, -0.1031, -0.1332, -0.1718]  # eq. 83
+PRINTED_TABLE_I = {  # steady-state Kalman gains, Table I
+    "AOB-1": [0.0959, 0.6043, 0.2073, 0.2073, 0.2073, 0.2073, 0.2073, 0.2073],
+    "AOB-2": [0.1285, 1.1033, 0.4256, 0.4385, 0.4514, 0.4643, 0.4771, 0.4771, 0.4900],
+    "AOB-3": [0.1691, 1.9533, 0.8134, 0.8536, 0.8949, 0.9371, 0.9803, 0.9371, 0.9803, 1.0245],
+}
+R_SCALE_FOR_PRINTED_DIGITS = 0.99795  # sigma^2/R scaled as if R were 0.021043 (conventions note)
+ORDERS = (1, 2, 3)
+FORCE_STEP = 10.0  # N; Fig. 5's reference is not printed, we use a 10 N step at t = 0
+NOISE_SEED = 0
+
+
+def aob_params(order: int, setup: ForceControlSetup = EXAMPLE1, *, r_scale: float = 1.0, steady_state=True):
+    """The AOB-N of Example 1: Q_xr = 1e-12 I, R = 2.1e-2, sigma^2 = 1e-3, c = 1/500, P_{-1} = Q_0."""
+    plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
+    L_r = design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
+    q_active = active.evolution_variance(setup.sigma2_active, order, setup.c)
+    params = active.make_aob(
+        plant, L_r, order, setup.R * r_scale, q_plant=setup.q_plant, q_active=q_active, steady_state=steady_state
+    )
+    return plant, L_r, params
+
+
+def sensor_based_ckf(plant, L_r, R):
+    """The CKF with the sensor-based (SBA) gain ``K = [1, 0, ..., 0]'`` (seed 003's "CKF, SBA"):
+    the force estimate is the measured force."""
+    params = active.make_ckf(plant, L_r, R)
+    K = active.sensor_based_gain(plant.C)
+    return dataclasses.replace(params, gain=K, gain_passive=K)
+
+
+def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) -> dict:
+    """Compute every number of Example 1. Returns a dict (arrays as JAX/NumPy values)."""
+    results: dict = {"setup": dataclasses.asdict(setup)}
+    gains, gains_scaled = {}, {}
+    for order in ORDERS:
+        plant, L_r, params = aob_params(order, setup)
+        gains[f"AOB-{order}"] = np.asarray(params.gain).ravel()
+        _, _, scaled = aob_params(order, setup, r_scale=1.0 / R_SCALE_FOR_PRINTED_DIGITS)
+        gains_scaled[f"AOB-{order}"] = np.asarray(scaled.gain).ravel()
+
+    def max_error(table):
+        return max(float(np.max(np.abs(table[k] - np.asarray(PRINTED_TABLE_I[k])))) for k in table)
+
+    def max_error_4dp(table):
+        return max(float(np.max(np.abs(np.round(table[k], 4) - np.asarray(PRINTED_TABLE_I[k])))) for k in table)
+
+    L_r = np.asarray(L_r).ravel()
+    results["L_r"] = L_r
+    results["L_r_printed"] = PRINTED_L_R
+    results["L_r_max_abs_error"] = float(np.max(np.abs(np.round(L_r, 4) - PRINTED_L_R)))
+    results["active_state_variance"] = {
+        f"AOB-{n}": float(active.evolution_variance(setup.sigma2_active, n, setup.c)) for n in ORDERS
+    }
+    results["kalman_gains"] = gains
+    results["kalman_gains_printed"] = PRINTED_TABLE_I
+    results["kalman_gains_max_abs_error"] = max_error(gains)
+    results["kalman_gains_scaled"] = {"r_scale": 1.0 / R_SCALE_FOR_PRINTED_DIGITS, "gains": gains_scaled}
+    results["kalman_gains_scaled_max_abs_error"] = max_error(gains_scaled)
+    results["kalman_gains_scaled_max_abs_error_rounded_4dp"] = max_error_4dp(gains_scaled)
+    results["strategy"] = {
+        k: active.classify_strategy(g[:, None], np.eye(1, g.size)) for k, g in gains.items()
+    }
+    results["closed_loop"] = closed_loop(setup, noise_seed)
+    results["rms_force_error"] = results["closed_loop"]["rms_force_error"]
+    return results
+
+
+def closed_loop(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) -> dict:
+    """§7.2: AOB-1/2/3 and the sensor-based CKF under D(t) (eq. 81-82) with noise of variance R.
+
+    The force error is the noise-free force minus the desired closed-loop response to the same
+    reference (eq. 43 without disturbance).
+    """
+    T = setup.num_steps
+    t = jnp.arange(T) * setup.h
+    D = example1_disturbance(t)
+    noise = measurement_noise(jax.random.PRNGKey(noise_seed), T, setup.R)
+    controllers = {f"AOB-{n}": aob_params(n, setup)[2] for n in ORDERS}
+    plant, L_r, _ = aob_params(1, setup)
+    controllers["CKF"] = sensor_based_ckf(plant, L_r, setup.R)
+    reference = jnp.full((T,), reference_gain(L_r) * FORCE_STEP)
+    desired = ideal_response(plant, L_r, reference)[:, 0]
+    out = {"t": t, "disturbance": D, "desired_force": desired, "force": {}, "active_state": {}}
+    rms_error, jitter = {}, {}
+    for name, params in controllers.items():
+        trace = simulate(plant, params, reference, disturbance=D, noise=noise)
+        force = trace.y_true[:, 0]
+        out["force"][name] = force
+        out["active_state"][name] = trace.controller.p[:, 0]
+        rms_error[name] = float(rms(force - desired))
+        noise_free = simulate(plant, params, reference, disturbance=D).y_true[:, 0]
+        jitter[name] = float(rms(force - noise_free))  # force deviation caused by the sensor noise
+    out["rms_force_error"] = rms_error
+    out["force_jitter"] = jitter
+    out["force_step"] = FORCE_STEP
+    return out
+
+
+def plot(results: dict, path: Path) -> Path:
+    """Fig. 5 analogue: force response and disturbance estimate per AOB order (plus the CKF)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cl = results["closed_loop"]
+    t = np.asarray(cl["t"])
+    names = [f"AOB-{n}" for n in ORDERS]
+    fig, axes = plt.subplots(len(names) + 1, 2, figsize=(11, 2.4 * (len(names) + 1)), sharex=True)
+    for row, name in enumerate(names + ["CKF"]):
+        ax_f, ax_p = axes[row]
+        ax_f.plot(t, np.asarray(cl["force"][name]), lw=0.8, label="force")
+        ax_f.plot(t, np.asarray(cl["desired_force"]), "k--", lw=0.8, label="desired")
+        ax_f.set_ylabel(f"{name}\nforce [N]")
+        ax_f.set_title(f"RMS error {cl['rms_force_error'][name]:.3f} N", fontsize=9, loc="right")
+        ax_p.plot(t, np.asarray(cl["disturbance"]), "k--", lw=0.8, label="D(t)")
+        ax_p.plot(t, np.asarray(cl["active_state"][name]), lw=0.8, label="active state")
+        ax_p.set_ylabel("[mm/s]")
+        if row == 0:
+            ax_f.legend(fontsize=8)
+            ax_p.legend(fontsize=8)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[-1, 1].set_xlabel("time [s]")
+    fig.suptitle("Cortesão 2006 Example 1: force response (left) and disturbance estimate (right)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def reproduce(out_dir: Path) -> dict:
+    """Compute Example 1, write ``cortesao2006-example1.json`` and the figure, return the summary."""
+    results = example1()
+    plot(results, figure_path(out_dir, NAME))
+    summary = {k: v for k, v in results.items() if k != "closed_loop"}
+    summary["closed_loop"] = {k: results["closed_loop"][k] for k in ("rms_force_error", "force_jitter", "force_step")}
+    summary["figures"] = [f"{NAME}.png"]
+    write_json(out_dir, NAME, summary)
+    return summary

@@ -1,0 +1,77 @@
+"""The 1-DOF robot force-control plant shared by seeds 000, 001 and 003, and its Example 1 design.
+
+Per Cartesian DOF (seed 003 eq. 56-61; seed 000 eq. 80) the position-controlled robot
+``1 / (1 + Tp s) e^{-s Td}`` pushes on an environment of stiffness ``Ks``:
+``G(s) = k1 / (s (s + p1)) e^{-s Td}`` with ``k1 = Ks / Tp``, ``p1 = 1 / Tp``; states
+``[force (N), force derivative (N/s)]``, input velocity in mm/s, so ``Ks`` is in N/mm
+(``Ks = 3`` reproduces the printed numbers; SI units do not).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs.design import acker, critically_damped_poles
+from jaxobs.lti import StateSpace, c2d, ss
+
+__all__ = ["ForceControlSetup", "EXAMPLE1", "force_plant", "design_gain", "example1_disturbance", "chirp"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ForceControlSetup:
+    """Nominal parameters (seed 000 §7.2, seed 003 Table 1)."""
+
+    Ks: float = 3.0  # N/mm
+    Tp: float = 0.032  # s, position response time constant
+    h: float = 0.008  # s, sample time
+    dead_time_samples: int = 5  # Td = 5 h
+    tau_c_over_Tp: float = 10.0  # closed-loop time constant tau_c = 10 Tp (seed 003 eq. 68)
+    R: float = 2.1e-2  # N^2, force sensor noise (seed 000 §7.2, seed 003 eq. 64)
+    q_plant: float = 1e-12  # Q_xr(i, i)
+    sigma2_active: float = 1e-3  # variance of xi_p
+    c: float = 1.0 / 500.0  # eq. 55 factor
+    duration: float = 20.0  # s
+
+    @property
+    def num_steps(self) -> int:
+        return int(round(self.duration / self.h))
+
+
+EXAMPLE1 = ForceControlSetup()
+
+
+def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None) -> StateSpace:
+    """Delay-augmented discrete force plant (eq. 57-61 discretised by eq. 11-18). ``Ks``, ``Tp`` and
+    ``dead_time`` (seconds) may be traced; pass ``n_delay`` then."""
+    Ks, Tp = jnp.asarray(Ks, float), jnp.asarray(Tp, float)
+    zero = jnp.zeros((), Ks.dtype)
+    A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
+    B = jnp.stack([zero, Ks / Tp])[:, None]
+    return c2d(ss(A, B, [[1.0, 0.0]]), h, dead_time, n_delay=n_delay)
+
+
+def design_gain(plant: StateSpace, h: float, tau_c):
+    """``L_r`` by Ackermann: a critically damped double pole with time constant ``tau_c`` and the
+    dead-time poles at ``z = 0`` (seed 000 eq. 83)."""
+    return acker(plant.A, plant.B, critically_damped_poles(h, tau_c, plant.n_states - 2))
+
+
+def chirp(t, f0: float, f1: float, t1: float):
+    """Linear chirp ``sin(2 pi (f0 t + (f1 - f0) t^2 / (2 t1)))``: frequency f0 at 0, f1 at t1."""
+    return jnp.sin(2.0 * jnp.pi * (f0 * t + (f1 - f0) * t**2 / (2.0 * t1)))
+
+
+def example1_disturbance(t):
+    """Seed 000 eq. 81-82: ``D = u^3 + u^2 - u``, ``u = 2 chirp(0.01 Hz -> 0.1 Hz, 20 s) - 0.5 step(t - 8)``,
+    added to the plant input (mm/s)."""
+    u = 2.0 * chirp(t, 0.01, 0.1, 20.0) - 0.5 * (t >= 8.0)
+    return u**3 + u**2 - u
+
+
+def reference_gain(L_r) -> float:
+    """Reference scaling for unit DC gain from desired force to force: the integrating plant makes
+    the closed-loop DC gain ``1 / L_1``, so ``r_k = L_1 F_d`` (seed 000: "the system input L_1 r_k")."""
+    return float(np.asarray(L_r)[0, 0])
