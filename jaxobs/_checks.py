@@ -33,8 +33,7 @@ def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False
         for axis, (want, got) in enumerate(zip(shape, (rows, cols), strict=True)):
             if want is not None and want != got:
                 raise ValueError(
-                    f"{name} has shape {a.shape[-2:]}, but dimension {axis} must be {want} "
-                    f"to match the other arguments"
+                    f"{name} has shape {a.shape[-2:]}, but dimension {axis} must be {want} to match the other arguments"
                 )
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} contains NaN or infinite entries")
@@ -52,8 +51,7 @@ def covariance(name: str, value, *, definite: bool, size: int | None = None):
     lowest = float(np.min(np.linalg.eigvalsh((a + np.swapaxes(a, -1, -2)) / 2)))
     if definite and lowest <= 1e-14 * scale:
         raise ValueError(
-            f"{name} must be positive definite (smallest eigenvalue {lowest:.3g}); "
-            f"a singular {name} cannot be inverted"
+            f"{name} must be positive definite (smallest eigenvalue {lowest:.3g}); a singular {name} cannot be inverted"
         )
     if not definite and lowest < -1e-10 * scale:
         raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lowest:.3g})")

@@ -1,7 +1,7 @@
 """The ``jaxobs`` command.
 
-    jaxobs reproduce --list
-    jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
+jaxobs reproduce --list
+jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
 """
 
 from __future__ import annotations
@@ -29,10 +29,14 @@ def _reproduce(args) -> int:
     for name in names:
         start = time.perf_counter()
         summary = REPRODUCTIONS[name](out)
-        print(f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
-              f"in {time.perf_counter() - start:.1f} s")
+        print(
+            f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
+            f"in {time.perf_counter() - start:.1f} s"
+        )
         for key, value in summary.items():
-            if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(value, dict | list):
+            if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(
+                value, dict | list
+            ):
                 print(f"  {key} = {value:.6g}")
             elif key == "rms_force_error":
                 print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))

@@ -68,9 +68,7 @@ def simulate(
     m, p = plant.n_inputs, plant.n_outputs
     reference = jnp.asarray(reference, plant.A.dtype).reshape(-1, m)
     T = reference.shape[0]
-    disturbance = (
-        jnp.zeros((T, m), plant.A.dtype) if disturbance is None else jnp.asarray(disturbance).reshape(T, m)
-    )
+    disturbance = jnp.zeros((T, m), plant.A.dtype) if disturbance is None else jnp.asarray(disturbance).reshape(T, m)
     noise = jnp.zeros((T, p), plant.A.dtype) if noise is None else jnp.asarray(noise).reshape(T, p)
     x0 = jnp.zeros((plant.n_states,), plant.A.dtype) if x0 is None else jnp.asarray(x0)
 

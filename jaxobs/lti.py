@@ -179,8 +179,7 @@ def _siso_ss(num, den):
         raise ValueError("den must not be identically zero")
     if num.size > den.size:
         raise ValueError(
-            f"improper transfer function: numerator degree {num.size - 1} exceeds "
-            f"denominator degree {den.size - 1}"
+            f"improper transfer function: numerator degree {num.size - 1} exceeds denominator degree {den.size - 1}"
         )
     num, den = num / den[0], den / den[0]
     n = den.size - 1
@@ -204,9 +203,10 @@ def tf2ss(num, den, dt: float | None = None) -> StateSpace:
     SISO: ``num``, ``den`` are coefficient lists, highest power first.
     MIMO: ``num[i][j]``, ``den[i][j]`` give entry (output i, input j); every entry is
     realised on its own (controllable canonical form) and the blocks are stacked: the state is
-    block diagonal, input j drives the blocks of column j and output i sums the blocks of row i. The result is controllable but in general not minimal: its order
-    is the sum of the entry orders. Use it as the plant of a design; reduce it with your own
-    knowledge of shared poles where a minimal model is needed.
+    block diagonal, input j drives the blocks of column j and output i sums the blocks of row i.
+    The order is the sum of the entry orders, so the realisation is in general not minimal (entries
+    sharing poles give uncontrollable or unobservable copies); build a minimal model from your
+    knowledge of the shared poles where the design needs one.
     """
     if not (_is_matrix_of_polys(num) or _is_matrix_of_polys(den)):
         A, B, C, D = _siso_ss(num, den)
@@ -219,9 +219,7 @@ def tf2ss(num, den, dt: float | None = None) -> StateSpace:
     cols = len(num[0])
     for i in range(rows):
         if len(num[i]) != cols or len(den[i]) != cols:
-            raise ValueError(
-                f"row {i} of num/den has {len(num[i])}/{len(den[i])} entries; every row needs {cols}"
-            )
+            raise ValueError(f"row {i} of num/den has {len(num[i])}/{len(den[i])} entries; every row needs {cols}")
     blocks = [[_siso_ss(num[i][j], den[i][j]) for j in range(cols)] for i in range(rows)]
     sizes = [blocks[i][j][0].shape[0] for j in range(cols) for i in range(rows)]
     n = sum(sizes)

@@ -90,9 +90,7 @@ def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) 
     results["kalman_gains_scaled"] = {"r_scale": 1.0 / R_SCALE_FOR_PRINTED_DIGITS, "gains": gains_scaled}
     results["kalman_gains_scaled_max_abs_error"] = max_error(gains_scaled)
     results["kalman_gains_scaled_max_abs_error_rounded_4dp"] = max_error_4dp(gains_scaled)
-    results["strategy"] = {
-        k: active.classify_strategy(g[:, None], np.eye(1, g.size)) for k, g in gains.items()
-    }
+    results["strategy"] = {k: active.classify_strategy(g[:, None], np.eye(1, g.size)) for k, g in gains.items()}
     results["closed_loop"] = closed_loop(setup, noise_seed)
     results["rms_force_error"] = results["closed_loop"]["rms_force_error"]
     return results

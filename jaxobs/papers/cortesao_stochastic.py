@@ -118,7 +118,9 @@ def plot(results: dict, path: Path) -> Path:
     axes[2].axhline(results["fixed_q_strategy"]["q"], color="k", ls=":", lw=0.8, label="fixed Q = 1e-5")
     axes[2].set_ylabel("Q_k (active state)")
     axes[2].legend(fontsize=8)
-    axes[3].plot(t, np.asarray(results["fixed_q_strategy"]["alpha_trace"]), lw=0.9, label="alpha_k for fixed Q (eq. 34)")
+    axes[3].plot(
+        t, np.asarray(results["fixed_q_strategy"]["alpha_trace"]), lw=0.9, label="alpha_k for fixed Q (eq. 34)"
+    )
     axes[3].plot(t, np.asarray(results["adaptive_strategy"]["alpha_trace"]), lw=0.9, label="alpha_k, adaptive")
     axes[3].set_ylabel("alpha_k")
     axes[3].set_xlabel("time [s]")
