@@ -49,6 +49,7 @@ __all__ = [
     "make_aob",
     "make_ckf",
     "with_steady_state_gains",
+    "set_active",
     "adaptive_variance",
     "alpha_for_floor",
     "strategy_alpha",
@@ -321,6 +322,15 @@ def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sig
     return with_steady_state_gains(params) if steady_state else params
 
 
+def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
+    """Switch the active state on (AOB) or off (CKF) at run time (seed 003 §6.3, §7.1).
+
+    ``on`` may be a bool, a number or a traced array (e.g. one per DOF under ``vmap``); it is cast
+    to the params' dtype so switching never triggers a recompilation.
+    """
+    return dataclasses.replace(params, active=jnp.asarray(on, params.Phi.dtype).reshape(params.active.shape))
+
+
 def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParams:
     """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, seed 000 eq. 28/48),
     for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time."""
@@ -388,7 +398,7 @@ def sensor_based_gain(C):
     return jnp.linalg.pinv(jnp.atleast_2d(C))
 
 
-def classify_strategy(gain, C, *, low: float = 0.1, high: float = 0.9) -> str:
+def classify_strategy(gain, C, *, low: float = 0.01, high: float = 0.9) -> str:
     """Name the estimation strategy of a (steady-state) gain: the fraction of the innovation that
     reaches the measured outputs, ``||C K||_2``, is below ``low`` (model-based, MBA), above ``high``
     (sensor-based, SBA) or in between (hybrid, HBA). The thresholds are this library's convention;

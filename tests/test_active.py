@@ -1,0 +1,295 @@
+"""Kalman Active Observer AOB-N (seed 000 §2-5, seed 001 §2-3, seed 003 §6)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+from hypothesis import given
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+from jaxobs.closed_loop import simulate
+from jaxobs.observers import active, run
+from jaxobs.observers.active import ActiveObserverInputs, active_observer
+from jaxobs.papers.force_control import EXAMPLE1, design_gain, example1_disturbance, force_plant
+
+H = EXAMPLE1.h
+
+
+@pytest.fixture(scope="module")
+def plant_and_gain():
+    plant = force_plant(EXAMPLE1.Ks, EXAMPLE1.Tp, H, 5 * H)
+    return plant, design_gain(plant, H, 10 * EXAMPLE1.Tp)
+
+
+def _inputs(T, key=0, noise=0.1):
+    """Measurements and references for open-loop observer runs."""
+    k1, k2 = jax.random.split(jax.random.PRNGKey(key))
+    y = jnp.cumsum(jax.random.normal(k1, (T, 1)), axis=0) * noise
+    r = jax.random.normal(k2, (T, 1))
+    return ActiveObserverInputs(y, r)
+
+
+@pytest.mark.parametrize("order, expected", [(1, 1e-3), (2, 4e-6), (3, 2.4e-8)])
+def test_evolution_variance_eq84_with_index_n_minus_1(order, expected):
+    """Eq. 53-55 with sigma^2 = 1e-3, c = 1/500 evaluated at N - 1 (the conventions note)."""
+    assert float(active.evolution_variance(1e-3, order, 1 / 500)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_theorem1_variance_of_differences():
+    """Theorem 1 (eq. 54): var of the j-th difference of white noise = sigma^2 sum C(j,i)^2."""
+    xi = np.random.default_rng(0).normal(size=400_000)
+    for j in (1, 2, 3):
+        empirical = np.var(np.diff(xi, n=j))
+        assert empirical == pytest.approx(float(active.evolution_variance(1.0, j + 1)), rel=0.02)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4])
+def test_active_state_model_is_the_ar_process_of_eq10(order):
+    """Eq. 10/37: a polynomial of degree N - 1 in k is propagated exactly; all eigenvalues are 1."""
+    Phi22 = np.asarray(active.active_state_model(order))
+    np.testing.assert_allclose(np.linalg.eigvals(Phi22), np.ones(order), atol=1e-3)
+    k = np.arange(order + 5, dtype=float)
+    coefficients = [0.5, 0.3, 0.1, 0.01][:order]  # degree N - 1
+    p = sum(c * k**j for j, c in enumerate(coefficients))
+    window = p[:order]
+    for i in range(order, k.size):
+        window = Phi22 @ window
+        assert window[-1] == pytest.approx(p[i], rel=1e-12)
+
+
+def test_augmentation_structure_eq48(plant_and_gain):
+    """Eq. 48, 41, 24: Phi_12 = Gamma_r [0 .. 0 I], Gamma_n = [Gamma_r; 0], C = [C_r 0] (two inputs)."""
+    plant, _ = plant_and_gain
+    two_input = dataclasses.replace(plant, B=jnp.concatenate([plant.B, 2 * plant.B], 1), D=jnp.zeros((1, 2)))
+    Phi, Gamma, C = active.augment(two_input, 2)
+    n = plant.n_states
+    assert Phi.shape == (n + 4, n + 4)
+    np.testing.assert_array_equal(Phi[:n, n:n + 2], 0.0)
+    np.testing.assert_array_equal(Phi[:n, n + 2:], two_input.B)
+    np.testing.assert_array_equal(Phi[n:, :n], 0.0)
+    np.testing.assert_array_equal(Gamma[n:], 0.0)
+    np.testing.assert_array_equal(C[:, n:], 0.0)
+
+
+@pytest.mark.parametrize("steady_state", [False, True])
+def test_aob_without_active_state_equals_ckf(plant_and_gain, steady_state):
+    """Seed 001 §2.1: eliminating the active state (p = 0, its Q entry 0) gives the CKF exactly."""
+    plant, L = plant_and_gain
+    T = 300
+    D = example1_disturbance(jnp.arange(T) * H)
+    noise = 0.1 * jax.random.normal(jax.random.PRNGKey(1), (T, 1))
+    r = jnp.full((T,), 1.0)
+    aob_off = active.make_aob(plant, L, 2, 0.021, q_active=1e-3, active=0.0, steady_state=steady_state)
+    ckf = active.make_ckf(plant, L, 0.021, steady_state=steady_state)
+    a = simulate(plant, aob_off, r, disturbance=D, noise=noise)
+    b = simulate(plant, ckf, r, disturbance=D, noise=noise)
+    np.testing.assert_allclose(a.u, b.u, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(a.controller.x[:, : plant.n_states], b.controller.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(a.controller.p, 0.0)
+
+
+def test_run_time_switch_does_not_recompile(plant_and_gain):
+    """Seed 003 §6.3/§7.1: switching AOB <-> CKF per DOF is a traced value, not a new program."""
+    plant, L = plant_and_gain
+    traces = []
+
+    @jax.jit
+    def final_u(params, inputs):
+        traces.append(1)
+        return run(active_observer, params, inputs)[1].u[-1]
+
+    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
+    inputs = _inputs(50)
+    on = final_u(params, inputs)
+    off = final_u(active.set_active(params, False), inputs)
+    assert len(traces) == 1
+    assert not np.allclose(on, off)
+    # per-DOF switch: a batch of 3 DOFs with different modes in one vmapped call
+    batch = jax.tree_util.tree_map(lambda x: jnp.stack([x] * 3), params)
+    batch = dataclasses.replace(batch, active=jnp.array([1.0, 0.0, 1.0]))
+    u = jax.vmap(final_u, in_axes=(0, None))(batch, inputs)
+    np.testing.assert_allclose(u, jnp.array([on, off, on]), rtol=1e-10)
+
+
+@pytest.mark.parametrize("steady_state", [False, True])
+def test_eager_jit_vmap_agree(plant_and_gain, steady_state):
+    """The observer run is the same eagerly, under jit, and batched under vmap vs a loop."""
+    plant, L = plant_and_gain
+    inputs = _inputs(80)
+    qs = [1e-4, 1e-3, 1e-2]
+    params = [active.make_aob(plant, L, 2, 0.021, q_active=q, steady_state=steady_state) for q in qs]
+    f = lambda p: run(active_observer, p, inputs)[1].x
+    eager = [f(p) for p in params]
+    jitted = [jax.jit(f)(p) for p in params]
+    batched = jax.vmap(f)(jax.tree_util.tree_map(lambda *x: jnp.stack(x), *params))
+    for i in range(len(qs)):
+        np.testing.assert_allclose(jitted[i], eager[i], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(batched[i], eager[i], rtol=1e-10, atol=1e-12)
+
+
+def test_time_varying_gain_converges_to_steady_state(plant_and_gain):
+    """K_k from eq. 27-29 with P_{-1} = Q_0 converges to the DARE gain used in Table I."""
+    plant, L = plant_and_gain
+    tv = active.make_aob(plant, L, 2, 0.021, q_active=4e-6)
+    ss = active.with_steady_state_gains(tv)
+    gains = run(active_observer, tv, _inputs(3000))[1].gain
+    np.testing.assert_allclose(gains[-1], ss.gain, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 7.0, 1e4])
+def test_qr_scale_invariance_proposition1(plant_and_gain, scale):
+    """Seed 003 Proposition 1 (eq. 55): (aQ, aR, aP0) gives the same K_k at every step."""
+    plant, L = plant_and_gain
+    base = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
+    scaled = dataclasses.replace(base, Q=base.Q * scale, R=base.R * scale, P0=base.P0 * scale)
+    inputs = _inputs(200)
+    a = run(active_observer, base, inputs)
+    b = run(active_observer, scaled, inputs)
+    np.testing.assert_allclose(b[1].gain, a[1].gain, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(b[0].P, scale * a[0].P, rtol=1e-8, atol=1e-20 * scale)
+
+
+@jax.jit
+def _posterior_covariances(params, inputs):
+    def body(state, inp):
+        state, _ = active_observer.step(params, state, inp)
+        return state, state.P
+
+    return jax.lax.scan(body, active_observer.init(params), inputs)[1]
+
+
+@given(
+    order=st.integers(1, 3),
+    log_r=st.floats(-6, 1),
+    log_q=st.floats(-10, 0),
+    seed=st.integers(0, 2**16),
+)
+def test_covariance_symmetric_psd_along_long_runs(plant_and_gain, order, log_r, log_q, seed):
+    """Joseph form keeps P symmetric and PSD over 1500 steps for any Q/R strategy."""
+    plant, L = plant_and_gain
+    params = active.make_aob(plant, L, order, 10.0**log_r, q_active=10.0**log_q)
+    Ps = np.asarray(_posterior_covariances(params, _inputs(1500, seed))[::50])
+    np.testing.assert_array_equal(Ps, np.swapaxes(Ps, -1, -2))
+    scale = np.max(np.abs(Ps), axis=(1, 2))
+    assert np.all(np.linalg.eigvalsh(Ps).min(axis=1) >= -1e-9 * scale)
+
+
+def test_nan_measurement_is_skipped_and_counted(plant_and_gain):
+    """A non-finite measurement skips the update (prediction only) and is counted."""
+    plant, L = plant_and_gain
+    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
+    inputs = _inputs(30)
+    y = inputs.y.at[10].set(jnp.nan).at[20].set(jnp.inf)
+    state, out = run(active_observer, params, ActiveObserverInputs(y, inputs.r))
+    assert int(state.missing) == 2
+    assert np.all(np.isfinite(out.x))
+    prior = params.Phi @ out.x[9] + params.Gamma @ out.u[9]
+    np.testing.assert_allclose(out.x[10], prior, rtol=1e-12, atol=1e-14)
+
+
+def test_adaptive_strategy_eq27_probability():
+    """Eq. 20-27: with sigma from eq. 27, P(|w_k| > |w_{k-1}|) = alpha for w_k ~ N(0, sigma^2)."""
+    for alpha in (0.05, 0.3173, 0.5, 0.9):
+        w_prev = 0.37
+        sigma = np.sqrt(float(active.adaptive_variance(w_prev, alpha, 0.0)))
+        probability = 2 * scipy.stats.norm.sf(w_prev / sigma)
+        assert probability == pytest.approx(alpha, rel=1e-10)
+        assert float(active.strategy_alpha(w_prev, sigma**2)) == pytest.approx(alpha, rel=1e-10)  # eq. 34
+
+
+def test_adaptive_strategy_floor_eq32():
+    """Eq. 32: for weak evolutions the alpha of eq. 32 yields sigma ~= sigma*; the floor holds."""
+    floor = 1e-3
+    w = 1e-9
+    alpha = float(active.alpha_for_floor(w, floor))
+    assert np.sqrt(float(active.adaptive_variance(w, alpha, 0.0))) == pytest.approx(floor, rel=1e-6)
+    assert float(active.adaptive_variance(0.0, 0.5, floor)) == pytest.approx(floor**2)
+
+
+def test_constant_strategy_eq35_36():
+    """Eq. 35-36: Q_k = w^2 / c^2 keeps alpha = 1 - erf(c / sqrt 2) whatever w is."""
+    c = 1.3
+    for w in (1e-4, 0.2, 5.0):
+        alpha = float(active.strategy_alpha(w, active.constant_strategy_variance(w, c)))
+        assert alpha == pytest.approx(1 - scipy.special.erf(c / np.sqrt(2)), rel=1e-10)
+
+
+def test_deviation_variance_eq46_47():
+    """Eq. 46-47: beta = 1 - erf(sqrt(2)/2) = 0.3173 makes gamma the standard deviation."""
+    assert active.BETA_ONE_SIGMA == pytest.approx(0.3173, abs=5e-5)
+    assert float(active.deviation_variance(1e-6)) == pytest.approx(1e-12, rel=1e-10)
+    assert float(active.deviation_variance(2.0, 0.05)) == pytest.approx((2.0 / 1.959964) ** 2, rel=1e-5)
+
+
+def test_adaptive_observer_uses_eq27_variance(plant_and_gain):
+    """The step's Q_k for the active state follows eq. 27 (with floor) of the last evolution."""
+    plant, L = plant_and_gain
+    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
+    _, out = run(active_observer, params, _inputs(100))
+    evolution = jnp.diff(jnp.concatenate([jnp.zeros((1, 1)), out.p]), axis=0)
+    expected = active.adaptive_variance(jnp.concatenate([jnp.zeros((1, 1)), evolution[:-1]]), 0.4, 1e-4)
+    np.testing.assert_allclose(out.q_active, expected, rtol=1e-10)
+    assert float(jnp.max(out.q_active)) > 1e-8  # the strategy is actually adapting
+
+
+def test_strategies(plant_and_gain):
+    """Seed 000 §5: the gain magnitude names the strategy (MBA small, SBA -> sensor, HBA between)."""
+    plant, L = plant_and_gain
+    C = plant.C
+    assert active.classify_strategy(active.sensor_based_gain(C), C) == "SBA"
+    np.testing.assert_allclose(active.sensor_based_gain(C)[:, 0], np.eye(1, 7)[0])
+    hba = active.make_aob(plant, L, 1, 0.021, q_active=1e-5, steady_state=True)
+    mba = active.make_ckf(plant, L, 0.021, steady_state=True)
+    aug_C = hba.C
+    assert active.classify_strategy(hba.gain, aug_C) == "HBA"
+    assert active.classify_strategy(mba.gain, C) == "MBA"
+
+
+def test_gradient_through_closed_loop(plant_and_gain):
+    """d(tracking cost)/d(log q_active, log R) through the AOB + plant scan matches finite differences."""
+    plant, L = plant_and_gain
+    T = 60
+    D = example1_disturbance(jnp.arange(T) * H + 7.0)
+    noise = 0.1 * jax.random.normal(jax.random.PRNGKey(3), (T, 1))
+
+    @jax.jit
+    def cost(log_q, log_r):
+        params = active.make_aob(plant, L, 2, jnp.exp(log_r)[None, None], q_active=jnp.exp(log_q))
+        tr = simulate(plant, params, jnp.ones((T,)), disturbance=D, noise=noise)
+        return jnp.mean(tr.y_true**2)
+
+    check_grads(cost, (jnp.log(1e-3), jnp.log(0.021)), order=1, modes=["rev", "fwd"], rtol=1e-4)
+
+    @jax.jit
+    def cost_ss(log_q):
+        params = active.make_aob(plant, L, 1, 0.021, q_active=jnp.exp(log_q), steady_state=True)
+        return jnp.sum(params.gain**2)
+
+    check_grads(cost_ss, (jnp.log(1e-3),), order=1, modes=["rev", "fwd"], rtol=1e-4)
+
+
+def test_bad_inputs(plant_and_gain):
+    """Clear ValueErrors naming the argument."""
+    plant, L = plant_and_gain
+    with pytest.raises(ValueError, match="order"):
+        active.make_aob(plant, L, 0, 0.021)
+    with pytest.raises(ValueError, match="order"):
+        active.active_state_model(0)
+    with pytest.raises(ValueError, match="alpha"):
+        active.make_aob(plant, L, 1, 0.021, alpha=1.5)
+    with pytest.raises(ValueError, match="R"):
+        active.make_aob(plant, L, 1, 0.0)
+    with pytest.raises(ValueError, match="R"):
+        active.make_aob(plant, L, 1, -1.0)
+    with pytest.raises(ValueError, match="L_r"):
+        active.make_aob(plant, L[:, :3], 1, 0.021)
+    with pytest.raises(ValueError, match="discrete"):
+        active.make_aob(dataclasses.replace(plant, dt=None), L, 1, 0.021)
+    with pytest.raises(ValueError, match="q_active"):
+        active.make_aob(plant, L, 1, 0.021, q_active=-1.0)
+    with pytest.raises(ValueError, match="c"):
+        active.evolution_variance(1e-3, 2, c=0.0)
