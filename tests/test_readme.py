@@ -1,0 +1,13 @@
+"""The README's tour runs as printed."""
+
+import re
+from pathlib import Path
+
+
+def test_readme_tour_runs(capsys):
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert blocks, "README has no python example"
+    for code in blocks:
+        exec(compile(code, "README.md", "exec"), {})
+    assert "largest stable Ks: 5.44 N/mm" in capsys.readouterr().out
