@@ -20,13 +20,29 @@ def to_builtin(value):
     return value
 
 
-def write_json(out_dir: Path, name: str, data: dict) -> Path:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{name}.json"
-    path.write_text(json.dumps(to_builtin(data), indent=2, sort_keys=False) + "\n")
-    return path
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (reproductions run headless)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
-def figure_path(out_dir: Path, name: str) -> Path:
+def save_figure(fig, out_dir: Path, name: str) -> str:
+    """Lay out, write ``out_dir/name.png`` and close ``fig``; returns the file name."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    return out_dir / f"{name}.png"
+    path = out_dir / f"{name}.png"
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
+    return path.name
+
+
+def write_reproduction(out_dir: Path, name: str, summary: dict, figures: list[str]) -> dict:
+    """Write ``out_dir/name.json`` (the summary plus the figure names) and return the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = {**summary, "figures": figures}
+    (out_dir / f"{name}.json").write_text(json.dumps(to_builtin(summary), indent=2) + "\n")
+    return summary

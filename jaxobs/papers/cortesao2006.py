@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxobs.closed_loop import ideal_response, measurement_noise, rms, simulate
 from jaxobs.observers import active
-from jaxobs.papers._output import figure_path, write_json
+from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.force_control import (
     EXAMPLE1,
     ForceControlSetup,
@@ -127,13 +127,9 @@ def closed_loop(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEE
     return out
 
 
-def plot(results: dict, path: Path) -> Path:
+def plot(results: dict, out_dir: Path) -> str:
     """Fig. 5 analogue: force response and disturbance estimate per AOB order (plus the CKF)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     cl = results["closed_loop"]
     t = np.asarray(cl["t"])
     names = [f"AOB-{n}" for n in ORDERS]
@@ -153,18 +149,13 @@ def plot(results: dict, path: Path) -> Path:
     axes[-1, 0].set_xlabel("time [s]")
     axes[-1, 1].set_xlabel("time [s]")
     fig.suptitle("Cortesão 2006 Example 1: force response (left) and disturbance estimate (right)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out_dir, NAME)
 
 
 def reproduce(out_dir: Path) -> dict:
     """Compute Example 1, write ``cortesao2006-example1.json`` and the figure, return the summary."""
     results = example1()
-    plot(results, figure_path(out_dir, NAME))
+    figure = plot(results, out_dir)
     summary = {k: v for k, v in results.items() if k != "closed_loop"}
     summary["closed_loop"] = {k: results["closed_loop"][k] for k in ("rms_force_error", "force_jitter", "force_step")}
-    summary["figures"] = [f"{NAME}.png"]
-    write_json(out_dir, NAME, summary)
-    return summary
+    return write_reproduction(out_dir, NAME, summary, [figure])

@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
-from jaxobs.papers._output import figure_path, write_json
+from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.cortesao2006 import sensor_based_ckf
 from jaxobs.papers.force_control import EXAMPLE1, design_gain, force_plant, reference_gain
 
@@ -92,14 +92,10 @@ def ramp(setup=EXAMPLE1) -> dict:
     }
 
 
-def plot(results: dict, path: Path) -> Path:
+def plot(results: dict, out_dir: Path) -> str:
     """Fig. 5 / Fig. 2 analogues: force error of CKF vs AOB, active state vs surface speed, and the
     adaptive strategy's Q_k and implied alpha_k traces."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     t = np.asarray(results["t"])
     fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
     for name, err in results["force_error"].items():
@@ -126,19 +122,14 @@ def plot(results: dict, path: Path) -> Path:
     axes[3].set_xlabel("time [s]")
     axes[3].legend(fontsize=8)
     fig.suptitle("Seed 001 §4: AOB vs CKF under a moving surface")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out_dir, NAME)
 
 
 def reproduce(out_dir: Path) -> dict:
     """Compute the §4 experiment, write ``cortesao-stochastic-ramp.json`` and the figure."""
     results = ramp()
-    plot(results, figure_path(out_dir, NAME))
+    figure = plot(results, out_dir)
     summary = {k: v for k, v in results.items() if k not in ("t", "force_error", "active_state")}
     summary["adaptive_strategy"] = {k: v for k, v in results["adaptive_strategy"].items() if not k.endswith("trace")}
     summary["fixed_q_strategy"] = {"q": Q_ACTIVE}
-    summary["figures"] = [f"{NAME}.png"]
-    write_json(out_dir, NAME, summary)
-    return summary
+    return write_reproduction(out_dir, NAME, summary, [figure])
