@@ -55,6 +55,7 @@ from jaxobs.observers import run  # noqa: E402
 from jaxobs.observers.kalman import (  # noqa: E402
     KalmanInputs,
     KalmanParams,
+    filter_shared_model,
     kalman_filter,
     make_kalman,
     with_steady_state_gain,
@@ -177,14 +178,24 @@ def kalman_params(work: Workload, steady_state: bool = False) -> KalmanParams:
 
 
 def prepare_jaxobs(work: Workload, steady_state: bool = False):
+    """Independent models: ``vmap(run)`` over params and data. One shared time-varying model:
+    ``filter_shared_model`` (Riccati recursion once, means batched). Steady state: fixed gain."""
     params = kalman_params(work, steady_state)
-    u_prev = jnp.zeros((work.steps, 1))  # Gamma = 0: one input, shared by all sequences
+    Y = jnp.asarray(work.Y)
+    U = jnp.zeros(Y.shape[:2] + (1,))  # Gamma = 0: one zero input
+
+    if work.shared and not steady_state:
+
+        def shared_means(p, u, y):
+            return filter_shared_model(p, KalmanInputs(u_prev=u, y=y))[1].x
+
+        return shared_means, (params, U, Y)
 
     def filtered_means(p, u, y):
         return run(kalman_filter, p, KalmanInputs(u_prev=u, y=y))[1].x
 
-    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, None, 0))
-    return fn, (params, u_prev, jnp.asarray(work.Y))
+    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, 0, 0))
+    return fn, (params, U, Y)
 
 
 def prepare_dynamax(work: Workload):

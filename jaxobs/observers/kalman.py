@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.observers.base import Observer
-from jaxobs.riccati import dare, kalman_gain, predict_covariance, update_covariance
+from jaxobs.observers.base import Observer, run
+from jaxobs.riccati import covariance_sequence, dare, predict_covariance, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -29,6 +29,7 @@ __all__ = [
     "kalman_filter",
     "make_kalman",
     "with_steady_state_gain",
+    "filter_shared_model",
     "measurement_update",
 ]
 
@@ -58,6 +59,7 @@ class KalmanState(NamedTuple):
 class KalmanInputs(NamedTuple):
     u_prev: jax.Array  # input u_{k-1} applied over the last interval
     y: jax.Array  # measurement y_k (NaN entries are missing)
+    gain: jax.Array | None = None  # optional K_k from a precomputed gain schedule
 
 
 class KalmanOutputs(NamedTuple):
@@ -90,7 +92,8 @@ def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     ``P`` is then set to the steady-state a-posteriori covariance and no longer propagated.
     """
     sol = dare(params.Phi, params.C, params.Q, params.R)
-    return dataclasses.replace(params, gain=kalman_gain(sol.P, params.C, params.R))
+    P, gain = update_covariance(sol.P, params.C, params.R)
+    return dataclasses.replace(params, gain=gain, P0=P)
 
 
 def measurement_update(x1, P1, C, R, y, gain=None):
@@ -120,13 +123,32 @@ def _init(params: KalmanParams) -> KalmanState:
 
 def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
     x1 = params.Phi @ state.x + params.Gamma @ jnp.atleast_1d(inputs.u_prev)
-    P1 = state.P if params.gain is not None else predict_covariance(state.P, params.Phi, params.Q)
-    x, P, K, innovation, n_missing = measurement_update(
-        x1, P1, params.C, params.R, jnp.atleast_1d(inputs.y), params.gain
-    )
+    gain = params.gain if inputs.gain is None else inputs.gain
+    P1 = state.P if gain is not None else predict_covariance(state.P, params.Phi, params.Q)
+    x, P, K, innovation, n_missing = measurement_update(x1, P1, params.C, params.R, jnp.atleast_1d(inputs.y), gain)
     state = KalmanState(x, P, state.missing + n_missing.astype(jnp.int32))
     return state, KalmanOutputs(x, x1, innovation, K)
 
 
 kalman_filter = Observer(_init, _step)
 """The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs`."""
+
+
+def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
+    """Filter a batch of sequences (leading batch axis on ``inputs.u_prev`` and ``inputs.y``) with one
+    model: the Riccati recursion runs once (:func:`jaxobs.riccati.covariance_sequence`) and only
+    the means are batched, the fast path for Monte-Carlo runs over noise seeds.
+
+    The gain schedule assumes every measurement is present: a non-finite component has its
+    innovation zeroed (the update uses the scheduled gain for the others) and is counted in
+    ``state.missing``. Where missing data are common, ``vmap`` :func:`run` with
+    :data:`kalman_filter` instead (exact, one covariance per sequence).
+    Returns ``(final_states, outputs)`` with the batch axis first.
+    """
+    num_steps = inputs.y.shape[1]
+    schedule = covariance_sequence(params.P0, params.Phi, params.C, params.Q, params.R, num_steps)
+
+    def one(u_prev, y):
+        return run(kalman_filter, params, KalmanInputs(u_prev, y, schedule.K))
+
+    return jax.vmap(one)(inputs.u_prev, inputs.y)
