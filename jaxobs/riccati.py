@@ -63,16 +63,15 @@ def kalman_gain(P1, C, R):
 def update_covariance(P1, C, R):
     """Measurement update in Joseph form: returns ``(P, K)`` (eq. 27 and 29).
 
-    ``P = (I - K C) P1 (I - K C)' + K R K'``, evaluated in its expanded form
-    ``P1 - K C P1 - (K C P1)' + K S K'`` with ``S = C P1 C' + R`` (the same matrix for any gain ``K``,
-    at ``O(n^2 p)`` instead of ``O(n^3)`` operations), then symmetrised.
+    ``P = (I - K C) P1 (I - K C)' + K R K'``: a congruence plus a PSD term, so ``P`` stays symmetric
+    positive semidefinite in floating point even for very precise measurements (the expanded
+    form ``P1 - K C P1 - ...`` cancels at the scale of ``P1`` and can turn indefinite).
     """
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
     K = _solve_spd(S, CP1).T
-    KCP1 = K @ CP1
-    P = P1 - KCP1 - KCP1.T + K @ S @ K.T
-    return symmetrize(P), K
+    IKC = jnp.eye(P1.shape[-1], dtype=P1.dtype) - K @ C
+    return symmetrize(IKC @ P1 @ IKC.T + K @ R @ K.T), K
 
 
 def riccati_step(P_prev, Phi, C, Q, R):
@@ -96,6 +95,8 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
     The papers initialise with ``P_{-1} = Q_0`` (seed 000 §7.2).
     """
     n = Phi.shape[-1]
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("C", C, shape=(None, n))
     _checks.covariance("P_init", P_init, definite=False, size=n)
     _checks.covariance("Q", Q, definite=False, size=n)
     _checks.covariance("R", R, definite=True, size=C.shape[-2])

@@ -68,8 +68,8 @@ def test_augmentation_structure_eq48(plant_and_gain):
     Phi, Gamma, C = active.augment(two_input, 2)
     n = plant.n_states
     assert Phi.shape == (n + 4, n + 4)
-    np.testing.assert_array_equal(Phi[:n, n:n + 2], 0.0)
-    np.testing.assert_array_equal(Phi[:n, n + 2:], two_input.B)
+    np.testing.assert_array_equal(Phi[:n, n : n + 2], 0.0)
+    np.testing.assert_array_equal(Phi[:n, n + 2 :], two_input.B)
     np.testing.assert_array_equal(Phi[n:, :n], 0.0)
     np.testing.assert_array_equal(Gamma[n:], 0.0)
     np.testing.assert_array_equal(C[:, n:], 0.0)

@@ -151,16 +151,18 @@ def test_c2d_delay_matches_fine_grid_simulation(tau_over_h):
 
 def test_c2d_mimo_with_feedthrough_and_delay_matches_fine_grid():
     """MIMO plant with D != 0: c2d routes D u(t - tau) to the slot holding that input (seed 000 eq. 18),
-    and the output response equals the fine-grid simulation for a fractional and a whole-sample delay."""
+    and the output response equals the fine-grid simulation for fractional and whole-sample delays, with the
+    minimal and with a padded (n_delay = 4) delay line."""
     rng = np.random.default_rng(5)
     A = rng.normal(size=(3, 3)) - 2.0 * np.eye(3)
     B, C, D = rng.normal(size=(3, 2)), rng.normal(size=(2, 3)), rng.normal(size=(2, 2))
     h = 0.05
     u = rng.normal(size=(20, 2))
-    for tau in (0.0, 0.4 * h, 2 * h, 1.7 * h):
-        y = simulate_discrete(c2d(ss(A, B, C, D), h, tau), u)
+    for tau in (0.4 * h, 1.7 * h, 2 * h):
         y_ref = simulate_fine(A, B, C, D, h, tau, u)
-        np.testing.assert_allclose(y, y_ref, rtol=0, atol=1e-9 * np.max(np.abs(y_ref)))
+        for n_delay in (None, 4):  # minimal and padded delay line
+            y = simulate_discrete(c2d(ss(A, B, C, D), h, tau, n_delay=n_delay), u)
+            np.testing.assert_allclose(y, y_ref, rtol=0, atol=1e-9 * np.max(np.abs(y_ref)))
 
 
 @pytest.mark.parametrize("tau_over_h", [0.0, 0.3, 1.0, 2.5, 4.0])
@@ -168,77 +170,60 @@ def test_c2d_padding_keeps_input_output_response(tau_over_h):
     """n_delay = 7 extra slots (traced-delay representation) have the same input-output response as the
     minimal model with ceil(tau/h) slots."""
     rng = np.random.default_rng(1)
-    A, B = rng.normal(size=(3, 3)) - np.eye(3), rng.normal(size=(3, 2))
-    C, D = rng.normal(size=(2, 3)), rng.normal(size=(2, 2))
-    sysc = ss(A, B, C, D)
-    tau = tau_over_h * 0.1
-    minimal = c2d(sysc, 0.1, tau)
-    padded = c2d(sysc, 0.1, tau, n_delay=7)
-    assert padded.A.shape == (3 + 7 * 2, 3 + 7 * 2)
+    sysc = force_plant()
+    tau = tau_over_h * H
+    minimal = c2d(sysc, H, tau)
+    padded = c2d(sysc, H, tau, n_delay=7)
+    assert padded.A.shape == (2 + 7, 2 + 7)
     assert minimal.A.shape[0] < padded.A.shape[0]
-    u = rng.normal(size=(40, 2))
+    u = rng.normal(size=(40, 1))
     y_min, y_pad = simulate_discrete(minimal, u), simulate_discrete(padded, u)
     np.testing.assert_allclose(y_pad, y_min, rtol=1e-12, atol=1e-12 * np.max(np.abs(y_min)))
 
 
 def test_c2d_traced_delay_jit_and_vmap_equal_eager():
-    """A traced dead time (fixed n_delay = 6): jit equals eager, and vmap over an array of delays equals a
-    Python loop, for every matrix of the model."""
+    """A traced dead time (fixed n_delay = 6): ``jax.jit(lambda tau: c2d(sys, h, tau, n_delay=6))`` equals eager,
+    and vmap over an array of delays equals a Python loop, for every matrix of the model (seed 000 eq. 11-18)."""
     sp = force_plant()
     taus = jnp.array([0.0, 0.3, 1.0, 2.5, 4.0, 5.7, 6.0]) * H
     jitted = jax.jit(lambda tau: c2d(sp, H, tau, n_delay=6))
-    batched = jax.vmap(lambda tau: c2d(sp, H, tau, n_delay=6))(taus)
+    batched = jax.jit(jax.vmap(lambda tau: c2d(sp, H, tau, n_delay=6)))(taus)
     for i, tau in enumerate(taus):
         eager = c2d(sp, H, float(tau), n_delay=6)
         traced = jitted(tau)
         for name in "ABCD":
             np.testing.assert_allclose(getattr(traced, name), getattr(eager, name), rtol=1e-13, atol=1e-15)
             np.testing.assert_allclose(getattr(batched, name)[i], getattr(eager, name), rtol=1e-13, atol=1e-15)
-    A_only = jax.jit(lambda tau: c2d(sp, H, tau, n_delay=6).A)(2.5 * H)
-    np.testing.assert_allclose(A_only, c2d(sp, H, 2.5 * H, n_delay=6).A, rtol=1e-13, atol=1e-15)
-
-
-def test_c2d_traced_delay_out_of_range_gives_nan():
-    """Documented contract: a traced tau beyond n_delay * h gives NaN matrices (never a silent wrong model)."""
-    out = jax.jit(lambda tau: c2d(force_plant(), H, tau, n_delay=2).A)(3.5 * H)
-    assert np.all(np.isnan(np.asarray(out)))
+    # documented contract: a traced tau beyond n_delay * h gives NaN matrices, never a silent wrong model
+    out_of_range = jitted(7.5 * H)
+    for name in "ABCD":
+        assert np.all(np.isnan(np.asarray(getattr(out_of_range, name))))
 
 
 def _central_difference(f, x, step):
     return (f(x + step) - f(x - step)) / (2 * step)
 
 
-def test_c2d_grad_wrt_fractional_delay_matches_finite_differences():
-    """d/dtau of the delay-augmented model (through Gamma_0, Gamma_1 of eq. 16-17) equals central finite
-    differences at fractional delays."""
-    sp = force_plant()
+def test_c2d_grad_wrt_delay_and_plant_parameters_matches_finite_differences():
+    """d/dtau at fractional delays (through Gamma_0, Gamma_1 of eq. 16-17) and d/dKs, d/dTp (through a function
+    building A, B of the force plant) of the delay-augmented model equal central finite differences."""
     rng = np.random.default_rng(2)
-    W = jnp.asarray(rng.normal(size=(2 + 6, 2 + 6)))
+    WA, WB = jnp.asarray(rng.normal(size=(8, 8))), jnp.asarray(rng.normal(size=(8, 1)))
 
-    def f(tau):
-        return jnp.sum(W * c2d(sp, H, tau, n_delay=6).A)
-
-    for tau in (0.3 * H, 2.5 * H, 4.6 * H):
-        g = jax.grad(f)(tau)
-        fd = _central_difference(f, tau, 1e-4 * H)
-        assert abs(float(g)) > 0
-        np.testing.assert_allclose(g, fd, rtol=1e-6)
-
-
-def test_c2d_grad_wrt_plant_parameters_matches_finite_differences():
-    """Gradient of the discretised model (tau = 2.5h) w.r.t. Ks and Tp, through a function building A, B."""
-    rng = np.random.default_rng(3)
-    WA, WB = jnp.asarray(rng.normal(size=(5, 5))), jnp.asarray(rng.normal(size=(5, 1)))
-
-    def f(Ks, Tp):
-        sysd = c2d(force_plant(Ks, Tp), H, 2.5 * H)
+    def f(Ks, Tp, tau):
+        sysd = c2d(force_plant(Ks, Tp), H, tau, n_delay=6)
         return jnp.sum(WA * sysd.A) + jnp.sum(WB * sysd.B)
 
-    gKs, gTp = jax.grad(f, argnums=(0, 1))(KS, TP)
-    fd_Ks = _central_difference(lambda k: f(k, TP), KS, 1e-5 * KS)
-    fd_Tp = _central_difference(lambda t: f(KS, t), TP, 1e-5 * TP)
-    np.testing.assert_allclose(gKs, fd_Ks, rtol=1e-7)
-    np.testing.assert_allclose(gTp, fd_Tp, rtol=1e-7)
+    grad_f = jax.jit(jax.grad(f, argnums=(0, 1, 2)))
+    for tau in (0.3 * H, 2.5 * H, 4.6 * H):
+        gKs, gTp, gtau = grad_f(KS, TP, tau)
+        fd_tau = _central_difference(lambda t: f(KS, TP, t), tau, 1e-4 * H)
+        fd_Ks = _central_difference(lambda k, tau=tau: f(k, TP, tau), KS, 1e-5 * KS)
+        fd_Tp = _central_difference(lambda t, tau=tau: f(KS, t, tau), TP, 1e-5 * TP)
+        assert abs(float(gtau)) > 0
+        np.testing.assert_allclose(gtau, fd_tau, rtol=1e-6)
+        np.testing.assert_allclose(gKs, fd_Ks, rtol=1e-7)
+        np.testing.assert_allclose(gTp, fd_Tp, rtol=1e-7)
 
 
 def test_c2d_rejects_bad_input():

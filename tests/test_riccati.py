@@ -1,0 +1,365 @@
+"""Tests for jaxobs.riccati: the Kalman covariance recursion (seed 000 eq. 27-29, Joseph form), its sequence,
+the DARE (doubling + implicit gradients), the Stein solver, and Q/R scale invariance (seed 003 Proposition 1)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+from hypothesis import given
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+from jaxobs.riccati import (
+    covariance_sequence,
+    dare,
+    kalman_gain,
+    predict_covariance,
+    riccati_step,
+    stein,
+    update_covariance,
+)
+
+
+def random_system(rng, n, m, rho=None, r_min=None):
+    """A random filter model ``(Phi, C, Q, R)``: spectral radius ``rho`` (default uniform in [0.5, 1.2], so some
+    systems are unstable), generic C (detectable), Q > 0 (stabilisable), R > 0 (smallest eigenvalue ``r_min``
+    relative to its largest when given: nearly singular R)."""
+    Phi = rng.normal(size=(n, n))
+    rho = rng.uniform(0.5, 1.2) if rho is None else rho
+    Phi *= rho / np.max(np.abs(np.linalg.eigvals(Phi)))
+    C = rng.normal(size=(m, n))
+    G = rng.normal(size=(n, n))
+    Q = G @ G.T / n + 0.1 * np.eye(n)
+    if r_min is None:
+        Hm = rng.normal(size=(m, m))
+        R = Hm @ Hm.T / m + 0.1 * np.eye(m)
+    else:
+        U, _ = np.linalg.qr(rng.normal(size=(m, m)))
+        R = U @ np.diag(np.geomspace(1.0, r_min, m) if m > 1 else [r_min]) @ U.T
+        R = (R + R.T) / 2
+    return Phi, C, Q, R
+
+
+# Compiled once per shape. Eager ``dare``/``covariance_sequence`` retrace their loop bodies on every call
+# (~0.3 s each), so the property tests use these; eager == jit is checked in its own test below.
+dare_jit = jax.jit(dare)
+sequence_jit = jax.jit(covariance_sequence, static_argnums=5)
+
+
+def rel_err(a, b):
+    return np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b))
+
+
+# ---------------------------------------------------------------------------------------------
+# one step
+
+
+def test_riccati_step_equations_seed000_eq27_29():
+    """One step: P1 = Phi P Phi' + Q (eq. 28), K = P1 C'(C P1 C' + R)^{-1} (eq. 27), Joseph-form P (eq. 29),
+    which for the optimal K equals (I - K C) P1."""
+    rng = np.random.default_rng(0)
+    Phi, C, Q, R = random_system(rng, 4, 2)
+    P_prev = np.eye(4) * 0.3 + 0.05
+    P, K, P1 = riccati_step(P_prev, Phi, C, Q, R)
+    P1_ref = Phi @ P_prev @ Phi.T + Q
+    K_ref = P1_ref @ C.T @ np.linalg.inv(C @ P1_ref @ C.T + R)
+    P_ref = (np.eye(4) - K_ref @ C) @ P1_ref
+    np.testing.assert_allclose(P1, P1_ref, rtol=1e-13)
+    np.testing.assert_allclose(K, K_ref, rtol=1e-11)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(predict_covariance(P_prev, Phi, Q), P1_ref, rtol=1e-13)
+    P_u, K_u = update_covariance(P1_ref, C, R)
+    np.testing.assert_allclose(P_u, P_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(kalman_gain(P1_ref, C, R), K_ref, rtol=1e-11)
+
+
+def test_update_covariance_is_joseph_form_eq29():
+    """update_covariance returns the Joseph expression (I-KC)P1(I-KC)' + KRK' (eq. 29 in Joseph form), written out
+    here with the gain it reports."""
+    rng = np.random.default_rng(1)
+    _, C, Q, R = random_system(rng, 3, 2)
+    P, K = update_covariance(Q, C, R)
+    K = np.asarray(K)
+    IKC = np.eye(3) - K @ C
+    np.testing.assert_allclose(P, IKC @ Q @ IKC.T + K @ R @ K.T, rtol=1e-12, atol=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------
+# DARE against SciPy
+
+
+@pytest.mark.parametrize("m", [1, 2, 4])
+@pytest.mark.parametrize("n", [1, 2, 5, 10, 20])
+def test_dare_matches_scipy(n, m):
+    """dare(Phi, C, Q, R).P = scipy.linalg.solve_discrete_are(Phi', C', Q, R) (filter DARE) to 1e-9 relative, with
+    converged True and a small residual, on random stabilisable/detectable systems (some unstable)."""
+    Phi, C, Q, R = random_system(np.random.default_rng(1000 * n + m), n, m)
+    sol = dare(Phi, C, Q, R)
+    want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)
+    assert bool(sol.converged)
+    assert float(sol.residual) < 1e-10
+    assert rel_err(sol.P, want) <= 1e-9
+
+
+@given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**32 - 1), rho=st.floats(0.1, 1.3))
+def test_dare_matches_scipy_property(n, m, seed, rho):
+    """Property: for random stabilisable/detectable systems the DARE solution equals SciPy's to 1e-9 relative and
+    satisfies its own equation (residual flag)."""
+    Phi, C, Q, R = random_system(np.random.default_rng(seed), n, m, rho=rho)
+    sol = dare_jit(Phi, C, Q, R)
+    want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)
+    assert bool(sol.converged)
+    assert rel_err(sol.P, want) <= 1e-9
+
+
+def test_dare_example1_table1_noise_seed000():
+    """Example 1 model (seed 000 §7, Td = 5h) with Table I noise Q = 1e-12 I, R = 2.1e-2: a badly scaled DARE
+    (closed-loop pole 1 - 7e-6). dare converges with a residual at rounding level and agrees with SciPy to 1e-6
+    (SciPy's own residual is ~1e-9 on this problem, so it is the less accurate of the two)."""
+    from jaxobs.lti import c2d, ss
+
+    Tp, h = 0.032, 0.008
+    sysd = c2d(ss([[0.0, 1.0], [0.0, -1.0 / Tp]], [[0.0], [3.0 / Tp]], [[1.0, 0.0]]), h, 5 * h)
+    Phi, C = np.asarray(sysd.A), np.asarray(sysd.C)
+    Q, R = 1e-12 * np.eye(7), np.array([[2.1e-2]])
+    sol = dare(Phi, C, Q, R)
+    assert bool(sol.converged)
+    assert float(sol.residual) < 1e-14
+    assert rel_err(sol.P, scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)) < 1e-6
+
+
+def test_dare_not_detectable_reports_not_converged():
+    """An unstable mode invisible to C with process noise on it has no stabilising DARE solution: converged is
+    False (a flag, never an exception)."""
+    Phi = np.diag([1.5, 0.5])
+    C = np.array([[0.0, 1.0]])
+    sol = dare(Phi, C, np.eye(2), np.eye(1))
+    assert not bool(sol.converged)
+    # the same flag under jit
+    assert not bool(jax.jit(lambda P: dare(P, C, jnp.eye(2), jnp.eye(1)).converged)(Phi))
+    # and the detectable neighbour converges
+    assert bool(dare(Phi, np.array([[1.0, 1.0]]), np.eye(2), np.eye(1)).converged)
+
+
+# ---------------------------------------------------------------------------------------------
+# gradients
+
+
+def _grad_system():
+    rng = np.random.default_rng(2)
+    n, m = 3, 2
+    Phi, C, _, _ = random_system(rng, n, m, rho=0.95)
+    G = rng.normal(size=(n, n)) / np.sqrt(n)
+    Hm = rng.normal(size=(m, m)) / np.sqrt(m) + 0.5 * np.eye(m)
+    return Phi, C, G, Hm
+
+
+def test_dare_gain_check_grads_wrt_phi():
+    """check_grads (fwd and rev, order 1) of the steady-state gain kalman_gain(dare(Phi, C, Q, R).P, C, R) w.r.t.
+    Phi: the implicit-function JVP/VJP of the DARE agrees with finite differences."""
+    Phi, C, G, Hm = _grad_system()
+    Q, R = G @ G.T + 0.1 * np.eye(3), Hm @ Hm.T
+
+    @jax.jit
+    def gain(Phi):
+        return kalman_gain(dare(Phi, C, Q, R).P, C, R)
+
+    check_grads(gain, (Phi,), order=1, modes=("fwd", "rev"))
+
+
+def test_dare_gain_check_grads_wrt_noise_factors():
+    """check_grads (fwd and rev, order 1) of the steady-state gain w.r.t. Q = G G' and R = H H' (factored so the
+    perturbed covariances stay symmetric)."""
+    Phi, C, G, Hm = _grad_system()
+
+    @jax.jit
+    def gain(G, Hm):
+        R = Hm @ Hm.T
+        return kalman_gain(dare(Phi, C, G @ G.T, R).P, C, R)
+
+    check_grads(gain, (G, Hm), order=1, modes=("fwd", "rev"))
+
+
+def test_dare_implicit_gradient_equals_unrolled_recursion():
+    """The implicit DARE gradient equals backpropagation through 2000 unrolled Riccati steps (last gain of
+    covariance_sequence), w.r.t. Phi, G (Q = GG') and H (R = HH'), to 1e-8."""
+    Phi, C, G, Hm = _grad_system()
+    W = jnp.asarray(np.random.default_rng(3).normal(size=(3, 2)))
+
+    def implicit(Phi, G, Hm):
+        Q, R = G @ G.T, Hm @ Hm.T
+        return jnp.sum(W * kalman_gain(dare(Phi, C, Q, R).P, C, R))
+
+    def unrolled(Phi, G, Hm):
+        Q, R = G @ G.T, Hm @ Hm.T
+        return jnp.sum(W * covariance_sequence(Q, Phi, C, Q, R, 2000).K[-1])
+
+    g_imp = jax.jit(jax.grad(implicit, argnums=(0, 1, 2)))(Phi, G, Hm)
+    g_unr = jax.jit(jax.grad(unrolled, argnums=(0, 1, 2)))(Phi, G, Hm)
+    for a, b in zip(g_imp, g_unr, strict=True):
+        assert np.max(np.abs(np.asarray(b))) > 1e-3
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8)
+
+
+# ---------------------------------------------------------------------------------------------
+# covariance_sequence
+
+
+def test_covariance_sequence_converges_to_dare():
+    """Iterating eq. 27-29 from P_{-1} = Q_0 converges to the DARE: last a-priori P equals dare().P and the last
+    gain equals the steady-state gain kalman_gain(dare().P, C, R)."""
+    rng = np.random.default_rng(4)
+    Phi, C, Q, R = random_system(rng, 4, 2, rho=1.1)
+    seq = covariance_sequence(Q, Phi, C, Q, R, 400)
+    sol = dare(Phi, C, Q, R)
+    assert seq.P.shape == (400, 4, 4) and seq.K.shape == (400, 4, 2) and seq.P_prior.shape == (400, 4, 4)
+    np.testing.assert_allclose(seq.P_prior[-1], sol.P, rtol=1e-10)
+    np.testing.assert_allclose(seq.K[-1], kalman_gain(sol.P, C, R), rtol=1e-10)
+    # the first step starts from P_init: P1_0 = Phi P_init Phi' + Q
+    np.testing.assert_allclose(seq.P_prior[0], Phi @ Q @ Phi.T + Q, rtol=1e-13)
+
+
+@given(
+    n=st.sampled_from([2, 3]),
+    m=st.sampled_from([1, 2]),
+    seed=st.integers(0, 2**32 - 1),
+    r_exp=st.integers(0, 10),
+    zero_init=st.booleans(),
+)
+def test_joseph_covariance_stays_symmetric_psd(n, m, seed, r_exp, zero_init):
+    """Property (Joseph form, eq. 29, symmetrised): along 300 steps every a-priori and a-posteriori covariance is
+    exactly symmetric and PSD (min eigenvalue >= -1e-10 * scale), also for nearly singular R (condition up to
+    1e10) and P_init = 0."""
+    rng = np.random.default_rng(seed)
+    Phi, C, Q, R = random_system(rng, n, m, r_min=10.0**-r_exp)
+    P_init = np.zeros((n, n)) if zero_init else Q
+    seq = sequence_jit(P_init, Phi, C, Q, R, 300)
+    for P in (np.asarray(seq.P), np.asarray(seq.P_prior)):
+        assert np.all(np.isfinite(P))
+        np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+        scale = np.max(np.abs(P), axis=(-1, -2))
+        assert np.all(np.linalg.eigvalsh(P).min(axis=-1) >= -1e-10 * scale)
+
+
+def test_joseph_update_stays_psd_for_very_precise_measurements():
+    """The reason for the Joseph form (eq. 29): with very precise measurements (R / P1 ~ 1e-16, every state
+    measured) the posterior covariance is a tiny PSD matrix computed from O(1) quantities. One update with
+    P1 ~ 1e8, R ~ 1e-8, and 50 Riccati steps with Q ~ 1, R ~ 1e-16, must stay finite, exactly symmetric and PSD
+    (min eigenvalue >= -1e-10 * scale)."""
+    failures = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        n = 3
+        Phi, C, Q, _ = random_system(rng, n, n, rho=0.9)
+        Hm = rng.normal(size=(n, n))
+        R = 1e-16 * (Hm @ Hm.T + 0.1 * np.eye(n))
+        G = rng.normal(size=(n, n))
+        P_one, _ = update_covariance(1e8 * (G @ G.T + 0.1 * np.eye(n)), C, 1e8 * R)
+        seq = sequence_jit(Q, Phi, C, Q, R, 50)
+        for label, P in (("one update", np.asarray(P_one)[None]), ("sequence", np.asarray(seq.P))):
+            assert np.all(np.isfinite(P)), (seed, label)
+            np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+            lowest = np.linalg.eigvalsh(P).min(axis=-1) / np.max(np.abs(P), axis=(-1, -2))
+            if np.any(lowest < -1e-10):
+                failures.append((seed, label, float(lowest.min())))
+    assert not failures, f"indefinite covariances (seed, where, min eig / scale): {failures}"
+
+
+@given(seed=st.integers(0, 2**32 - 1), log_alpha=st.floats(-3.0, 3.0))
+def test_kalman_gain_scale_invariance_seed003_prop1(seed, log_alpha):
+    """Seed 003 Proposition 1 (eq. 55): scaling Q, R and P_{-1} by alpha > 0 leaves every gain K_k unchanged and
+    scales every covariance by alpha."""
+    alpha = 10.0**log_alpha
+    Phi, C, Q, R = random_system(np.random.default_rng(seed), 3, 2)
+    base = sequence_jit(Q, Phi, C, Q, R, 50)
+    scaled = sequence_jit(alpha * Q, Phi, C, alpha * Q, alpha * R, 50)
+    np.testing.assert_allclose(scaled.K, base.K, rtol=1e-9, atol=1e-12 * np.max(np.abs(base.K)))
+    np.testing.assert_allclose(scaled.P, alpha * base.P, rtol=1e-9, atol=1e-12 * alpha * np.max(np.abs(base.P)))
+    np.testing.assert_allclose(scaled.P_prior, alpha * base.P_prior, rtol=1e-9)
+
+
+def test_dare_and_sequence_jit_vmap_equal_eager():
+    """Transformation test: dare and covariance_sequence give the same results eagerly, under jit, and under vmap
+    over a batch of Phi (vs a Python loop)."""
+    rng = np.random.default_rng(5)
+    systems = [random_system(rng, 3, 2, rho=r) for r in (0.6, 0.9, 1.15)]
+    C, Q, R = systems[0][1:]
+    Phis = jnp.asarray(np.stack([s[0] for s in systems]))
+    dare_j = jax.jit(lambda Phi: dare(Phi, C, Q, R))
+    dare_v = jax.jit(jax.vmap(lambda Phi: dare(Phi, C, Q, R)))(Phis)
+    seq_j = jax.jit(lambda Phi: covariance_sequence(Q, Phi, C, Q, R, 30))
+    seq_v = jax.jit(jax.vmap(lambda Phi: covariance_sequence(Q, Phi, C, Q, R, 30)))(Phis)
+    for i in range(3):
+        eager = dare(Phis[i], C, Q, R)
+        for got in (dare_j(Phis[i]), jax.tree.map(lambda x, i=i: x[i], dare_v)):
+            np.testing.assert_allclose(got.P, eager.P, rtol=1e-12)
+            assert bool(got.converged) == bool(eager.converged) is True
+            assert float(got.residual) < 1e-10
+        seq = covariance_sequence(Q, Phis[i], C, Q, R, 30)
+        for got in (seq_j(Phis[i]), jax.tree.map(lambda x, i=i: x[i], seq_v)):
+            for a, b in zip(got, seq, strict=True):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
+def test_stein_matches_scipy():
+    """stein solves X = A X A' + E (Smith doubling) like scipy.linalg.solve_discrete_lyapunov."""
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(4, 4))
+    A *= 0.9 / np.max(np.abs(np.linalg.eigvals(A)))
+    E = rng.normal(size=(4, 4))
+    X = np.asarray(stein(A, E))
+    np.testing.assert_allclose(X, scipy.linalg.solve_discrete_lyapunov(A, E), rtol=1e-10)
+    np.testing.assert_allclose(X, A @ X @ A.T + E, rtol=1e-10, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input
+
+
+def _good():
+    return np.diag([0.9, 0.5]), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(Q=np.array([[1.0, 0.5], [0.0, 1.0]])), "Q"),  # not symmetric
+        (dict(Q=np.diag([1.0, -0.5])), "Q"),  # indefinite
+        (dict(R=np.zeros((1, 1))), "R"),  # singular
+        (dict(R=np.eye(2)), "R"),  # wrong size
+        (dict(Q=np.eye(3)), "Q"),  # wrong size
+        (dict(C=np.ones((1, 3))), "C"),  # wrong number of columns
+        (dict(Phi=np.ones((2, 3))), "Phi"),  # not square
+        (dict(Phi=np.array([[np.nan, 0.0], [0.0, 0.5]])), "Phi"),  # not finite
+    ],
+)
+def test_dare_rejects_bad_input(kwargs, name):
+    """Eager validation of dare (DESIGN.md "Errors"): ValueError naming the argument."""
+    args = dict(zip(("Phi", "C", "Q", "R"), _good(), strict=True))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        dare(args["Phi"], args["C"], args["Q"], args["R"])
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(P_init=np.array([[1.0, 0.5], [0.0, 1.0]])), "P_init"),
+        (dict(Q=np.array([[1.0, 0.5], [0.0, 1.0]])), "Q"),
+        (dict(Q=np.diag([1.0, -0.5])), "Q"),
+        (dict(R=np.zeros((1, 1))), "R"),
+        (dict(R=np.eye(2)), "R"),
+        (dict(Q=np.eye(3)), "Q"),
+        (dict(C=np.ones((1, 3))), "C"),
+        (dict(Phi=np.ones((3, 2))), "Phi"),
+    ],
+)
+def test_covariance_sequence_rejects_bad_input(kwargs, name):
+    """Eager validation of covariance_sequence (DESIGN.md "Errors": shapes, symmetry, definiteness): ValueError
+    naming the argument."""
+    Phi, C, Q, R = _good()
+    args = dict(P_init=np.eye(2), Phi=Phi, C=C, Q=Q, R=R)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        covariance_sequence(args["P_init"], args["Phi"], args["C"], args["Q"], args["R"], 5)
