@@ -14,15 +14,14 @@ from jax.test_util import check_grads
 from jaxobs.closed_loop import simulate
 from jaxobs.observers import active, run
 from jaxobs.observers.active import ActiveObserverInputs, active_observer
-from jaxobs.papers.force_control import EXAMPLE1, design_gain, example1_disturbance, force_plant
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design
 
 H = EXAMPLE1.h
 
 
 @pytest.fixture(scope="module")
 def plant_and_gain():
-    plant = force_plant(EXAMPLE1.Ks, EXAMPLE1.Tp, H, 5 * H)
-    return plant, design_gain(plant, H, 10 * EXAMPLE1.Tp)
+    return nominal_design(EXAMPLE1)
 
 
 def _inputs(T, key=0, noise=0.1):

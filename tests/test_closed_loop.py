@@ -7,15 +7,14 @@ import pytest
 
 from jaxobs.closed_loop import ideal_response, measurement_noise, rms, simulate
 from jaxobs.observers import active
-from jaxobs.papers.force_control import EXAMPLE1, design_gain, example1_disturbance, force_plant
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, force_plant, nominal_design
 
 H = EXAMPLE1.h
 
 
 @pytest.fixture(scope="module")
 def nominal():
-    plant = force_plant(EXAMPLE1.Ks, EXAMPLE1.Tp, H, 5 * H)
-    return plant, design_gain(plant, H, 10 * EXAMPLE1.Tp)
+    return nominal_design(EXAMPLE1)
 
 
 def _numpy_reference(plant, params, r, d, v):

@@ -33,8 +33,8 @@ from jax.scipy.special import erf, erfinv
 from jaxobs import _checks
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Observer
-from jaxobs.observers.kalman import measurement_update
-from jaxobs.riccati import dare, kalman_gain, predict_covariance
+from jaxobs.observers.kalman import predict_and_update
+from jaxobs.riccati import dare, kalman_gain
 
 __all__ = [
     "ActiveObserverParams",
@@ -212,34 +212,25 @@ def _init(params: ActiveObserverParams) -> ActiveObserverState:
 
 
 def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: ActiveObserverInputs):
-    mask = _active_mask(params)
-    y = jnp.atleast_1d(inputs.y)
     r = jnp.atleast_1d(inputs.r)
-    x1 = params.Phi @ state.x + params.Gamma @ state.u
-
-    newest = _active_slice(params)
-    q_fixed = jnp.diagonal(params.Q)[newest]
-    if params.n_active:
+    Q = params.Q
+    q_active = alpha = evolution = p_new = jnp.zeros_like(r)
+    if params.n_active:  # static: a CKF built without active state skips this bookkeeping
+        mask = _active_mask(params)
+        newest = _active_slice(params)
         q_adaptive = adaptive_variance(state.evolution, params.alpha, params.sigma_floor)
-        q_active = jnp.where(params.alpha > 0, q_adaptive, q_fixed)
-        Q = params.Q.at[newest, newest].set(jnp.diag(q_active))
-    else:
-        q_active, Q = jnp.zeros_like(q_fixed), params.Q
-    Q = Q * jnp.outer(mask, mask)
-
-    if params.gain is None:
-        P1 = predict_covariance(state.P, params.Phi, Q)
-        gain = None
-    else:
-        P1 = state.P
-        gain = jnp.where(params.active > 0, params.gain, params.gain_passive)
-    x, P, K, innovation, n_missing = measurement_update(x1, P1, params.C, params.R, y, gain)
-    x = x * mask
-    p_new = x[newest] if params.n_active else jnp.zeros_like(r)
-    p_old = state.x[newest] if params.n_active else jnp.zeros_like(r)
-    evolution = p_new - p_old
+        q_active = jnp.where(params.alpha > 0, q_adaptive, jnp.diagonal(Q)[newest])
+        Q = Q.at[newest, newest].set(jnp.diag(q_active)) * jnp.outer(mask, mask)
+        alpha = strategy_alpha(state.evolution, q_active)
+    gain = None if params.gain is None else jnp.where(params.active > 0, params.gain, params.gain_passive)
+    x, P, K, innovation, n_missing, _ = predict_and_update(
+        state.x, state.P, state.u, inputs.y, params.Phi, params.Gamma, params.C, Q, params.R, gain
+    )
+    if params.n_active:
+        x = x * mask
+        p_new = x[newest]
+        evolution = p_new - state.x[newest]
     u = r - params.L @ x
-    alpha = strategy_alpha(state.evolution, q_active)
     new_state = ActiveObserverState(x, P, u, evolution, state.missing + n_missing.astype(jnp.int32))
     return new_state, ActiveObserverOutputs(u, x, p_new, innovation, K, q_active, alpha)
 

@@ -31,6 +31,7 @@ __all__ = [
     "with_steady_state_gain",
     "filter_shared_model",
     "measurement_update",
+    "predict_and_update",
 ]
 
 
@@ -117,17 +118,29 @@ def measurement_update(x1, P1, C, R, y, gain=None):
     return x, P, K, innovation, jnp.sum(~observed)
 
 
+def predict_and_update(x, P, u_prev, y, Phi, Gamma, C, Q, R, gain=None):
+    """One filter step (eq. 27-29): predict with ``u_{k-1}``, then update with ``y_k``.
+
+    With a fixed ``gain`` the covariance is not propagated. Returns
+    ``(x, P, K, innovation, n_missing, x_prior)``; non-finite measurements are handled by
+    :func:`measurement_update`.
+    """
+    x_prior = Phi @ x + Gamma @ jnp.atleast_1d(u_prev)
+    P_prior = P if gain is not None else predict_covariance(P, Phi, Q)
+    return *measurement_update(x_prior, P_prior, C, R, jnp.atleast_1d(y), gain), x_prior
+
+
 def _init(params: KalmanParams) -> KalmanState:
     return KalmanState(params.x0, params.P0, jnp.zeros((), jnp.int32))
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
-    x1 = params.Phi @ state.x + params.Gamma @ jnp.atleast_1d(inputs.u_prev)
     gain = params.gain if inputs.gain is None else inputs.gain
-    P1 = state.P if gain is not None else predict_covariance(state.P, params.Phi, params.Q)
-    x, P, K, innovation, n_missing = measurement_update(x1, P1, params.C, params.R, jnp.atleast_1d(inputs.y), gain)
+    x, P, K, innovation, n_missing, x_prior = predict_and_update(
+        state.x, state.P, inputs.u_prev, inputs.y, params.Phi, params.Gamma, params.C, params.Q, params.R, gain
+    )
     state = KalmanState(x, P, state.missing + n_missing.astype(jnp.int32))
-    return state, KalmanOutputs(x, x1, innovation, K)
+    return state, KalmanOutputs(x, x_prior, innovation, K)
 
 
 kalman_filter = Observer(_init, _step)

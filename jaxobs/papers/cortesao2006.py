@@ -22,9 +22,8 @@ from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.force_control import (
     EXAMPLE1,
     ForceControlSetup,
-    design_gain,
     example1_disturbance,
-    force_plant,
+    nominal_design,
     reference_gain,
 )
 
@@ -42,15 +41,12 @@ FORCE_STEP = 10.0  # N; Fig. 5's reference is not printed, we use a 10 N step at
 NOISE_SEED = 0
 
 
-def aob_params(order: int, setup: ForceControlSetup = EXAMPLE1, *, r_scale: float = 1.0, steady_state=True):
-    """The AOB-N of Example 1: Q_xr = 1e-12 I, R = 2.1e-2, sigma^2 = 1e-3, c = 1/500, P_{-1} = Q_0."""
-    plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
-    L_r = design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
+def aob_params(plant, L_r, order: int, setup: ForceControlSetup = EXAMPLE1, *, r_scale: float = 1.0):
+    """The steady-state AOB-N of Example 1: Q_xr = 1e-12 I, R = 2.1e-2, sigma^2 = 1e-3, c = 1/500."""
     q_active = active.evolution_variance(setup.sigma2_active, order, setup.c)
-    params = active.make_aob(
-        plant, L_r, order, setup.R * r_scale, q_plant=setup.q_plant, q_active=q_active, steady_state=steady_state
+    return active.make_aob(
+        plant, L_r, order, setup.R * r_scale, q_plant=setup.q_plant, q_active=q_active, steady_state=True
     )
-    return plant, L_r, params
 
 
 def sensor_based_ckf(plant, L_r, R):
@@ -65,10 +61,10 @@ def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) 
     """Compute every number of Example 1. Returns a dict (arrays as JAX/NumPy values)."""
     results: dict = {"setup": dataclasses.asdict(setup)}
     gains, gains_scaled = {}, {}
+    plant, L_r = nominal_design(setup)
     for order in ORDERS:
-        plant, L_r, params = aob_params(order, setup)
-        gains[f"AOB-{order}"] = np.asarray(params.gain).ravel()
-        _, _, scaled = aob_params(order, setup, r_scale=1.0 / R_SCALE_FOR_PRINTED_DIGITS)
+        gains[f"AOB-{order}"] = np.asarray(aob_params(plant, L_r, order, setup).gain).ravel()
+        scaled = aob_params(plant, L_r, order, setup, r_scale=1.0 / R_SCALE_FOR_PRINTED_DIGITS)
         gains_scaled[f"AOB-{order}"] = np.asarray(scaled.gain).ravel()
 
     def max_error(table):
@@ -106,8 +102,8 @@ def closed_loop(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEE
     t = jnp.arange(T) * setup.h
     D = example1_disturbance(t)
     noise = measurement_noise(jax.random.PRNGKey(noise_seed), T, setup.R)
-    controllers = {f"AOB-{n}": aob_params(n, setup)[2] for n in ORDERS}
-    plant, L_r, _ = aob_params(1, setup)
+    plant, L_r = nominal_design(setup)
+    controllers = {f"AOB-{n}": aob_params(plant, L_r, n, setup) for n in ORDERS}
     controllers["CKF"] = sensor_based_ckf(plant, L_r, setup.R)
     reference = jnp.full((T,), reference_gain(L_r) * FORCE_STEP)
     desired = ideal_response(plant, L_r, reference)[:, 0]

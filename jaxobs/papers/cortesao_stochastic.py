@@ -20,7 +20,7 @@ from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.cortesao2006 import sensor_based_ckf
-from jaxobs.papers.force_control import EXAMPLE1, design_gain, force_plant, reference_gain
+from jaxobs.papers.force_control import EXAMPLE1, nominal_design, reference_gain
 
 NAME = "cortesao-stochastic-ramp"
 
@@ -36,8 +36,7 @@ ADAPTIVE_SIGMA_FLOOR = float(np.sqrt(Q_ACTIVE))  # sigma* (§3.1): never less ac
 
 def ramp(setup=EXAMPLE1) -> dict:
     """Every number of the §4 experiment (arrays as JAX/NumPy values)."""
-    plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
-    L_r = design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
+    plant, L_r = nominal_design(setup)
     T = setup.num_steps
     t = jnp.arange(T) * setup.h
     disturbance = jnp.where(t >= SURFACE_START, SURFACE_SPEED, 0.0)

@@ -17,7 +17,15 @@ import numpy as np
 from jaxobs.design import acker, critically_damped_poles
 from jaxobs.lti import StateSpace, c2d, ss
 
-__all__ = ["ForceControlSetup", "EXAMPLE1", "force_plant", "design_gain", "example1_disturbance", "chirp"]
+__all__ = [
+    "ForceControlSetup",
+    "EXAMPLE1",
+    "force_plant",
+    "design_gain",
+    "nominal_design",
+    "example1_disturbance",
+    "chirp",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +65,12 @@ def design_gain(plant: StateSpace, h: float, tau_c):
     """``L_r`` by Ackermann: a critically damped double pole with time constant ``tau_c`` and the
     dead-time poles at ``z = 0`` (seed 000 eq. 83)."""
     return acker(plant.A, plant.B, critically_damped_poles(h, tau_c, plant.n_states - 2))
+
+
+def nominal_design(setup: ForceControlSetup = EXAMPLE1):
+    """The nominal delay-augmented plant and its ``L_r`` (tau_c = 10 Tp, seed 000 eq. 83)."""
+    plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
+    return plant, design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
 
 
 def chirp(t, f0: float, f1: float, t1: float):
