@@ -1,0 +1,263 @@
+"""jaxobs.sweep: columns and values, chunk-size and device-count independence, resume after damage, SIGKILL
+and KeyboardInterrupt, refusal of a different sweep, input validation.
+
+The sweep itself (a 50-step damped oscillator with sampled parameters) lives in sweep_scripts/sweep_case.py so
+that subprocesses run exactly the same functions as this process.
+"""
+
+import importlib.util
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxobs.sweep as sweep
+from jaxobs.sweep import config_key, load_results, run_sweep
+
+SCRIPT = Path(__file__).parent / "sweep_scripts" / "sweep_case.py"
+_spec = importlib.util.spec_from_file_location("sweep_case", SCRIPT)
+case = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(case)
+
+N, CHUNK = 1000, 128  # 8 chunks, the last one partial (104 rows)
+COLUMNS = ["index", "param.mode"]
+COLUMNS += [f"param.plant.A[{i},{j}]" for i in range(2) for j in range(2)]
+COLUMNS += ["param.plant.b[0]", "param.plant.b[1]", "param.x0[0]", "param.x0[1]"]
+COLUMNS += ["metric.cost", "metric.peak", "metric.x_final[0]", "metric.x_final[1]", "metric.stable"]
+
+
+def _run(out_dir, **kw):
+    kw = {"chunk_size": CHUNK, "config": case.CONFIG, "progress": False} | kw
+    return run_sweep(case.sampler, case.evaluate, kw.pop("num_configs", N), out_dir, **kw)
+
+
+def _manifest(out_dir):
+    return json.loads((Path(out_dir) / "manifest.json").read_text())
+
+
+def _assert_same(got, want):
+    assert list(got) == list(want)
+    for name in want:
+        assert got[name].dtype == want[name].dtype, name
+        assert np.array_equal(got[name], want[name]), name
+
+
+def _subprocess(*args, env=None, **kw):
+    env = {**os.environ, "JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu", **(env or {})}
+    cmd = [sys.executable, str(SCRIPT), *map(str, args), "--num", str(N), "--chunk", str(CHUNK)]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _finish(proc, timeout=120):
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, err
+    return [json.loads(line) for line in out.splitlines()]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted one-device sweep: (out_dir, columns)."""
+    out = tmp_path_factory.mktemp("sweep") / "reference"
+    result = _run(out)
+    assert (result.chunks_computed, result.chunks_reused, result.num_configs) == (8, 0, N)
+    return out, load_results(out)
+
+
+def test_columns_dtypes_and_values_match_a_direct_vmap(reference):
+    out, cols = reference
+    assert list(cols) == COLUMNS
+    assert cols["index"].dtype == np.int64 and np.array_equal(cols["index"], np.arange(N))
+    assert cols["param.mode"].dtype == np.int32 and cols["metric.stable"].dtype == np.bool_
+    assert cols["metric.cost"].dtype == np.float64
+
+    def row(i):
+        params = case.sampler(config_key(0, i), i)
+        return params, case.evaluate(params)
+
+    params, metrics = jax.jit(jax.vmap(row))(jnp.arange(N, dtype=jnp.int32))
+    assert np.array_equal(cols["param.plant.A[1,0]"], params["plant"]["A"][:, 1, 0])
+    assert np.array_equal(cols["param.mode"], params["mode"])
+    assert np.array_equal(cols["metric.x_final[1]"], metrics.x_final[:, 1])
+    for field in ("cost", "peak", "stable"):
+        assert np.array_equal(cols[f"metric.{field}"], getattr(metrics, field)), field
+    assert (
+        jax.random.key_data(config_key(3, 7)).tolist()
+        == jax.random.key_data(jax.random.fold_in(jax.random.key(3), 7)).tolist()
+    )
+
+    m = _manifest(out)
+    assert m["config"] == case.CONFIG and (m["seed"], m["num_configs"], m["chunk_size"]) == (0, N, CHUNK)
+    assert (m["device_count"], m["platform"], m["format_version"]) == (1, "cpu", 1)
+    assert set(m["versions"]) == {"python", "jax", "jaxlib", "numpy", "pyarrow", "jaxobs"}
+    assert list(m["columns"]) == COLUMNS and m["columns"]["metric.stable"] == "bool"
+    assert sorted(m["completed"], key=int) == [str(c) for c in range(8)]
+    assert sum(e["rows"] for e in m["completed"].values()) == N
+    assert m["compile_seconds"] > 0 and m["seconds"] >= m["compile_seconds"]
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == [f"chunk-{c:05d}.parquet" for c in range(8)]
+
+
+def test_chunk_size_does_not_change_results(reference, tmp_path):
+    result = _run(tmp_path, chunk_size=300)
+    assert result.chunks_computed == 4
+    _assert_same(load_results(tmp_path), reference[1])
+
+
+def test_resume_recomputes_missing_truncated_and_corrupt_chunks(reference, tmp_path, caplog):
+    out = tmp_path / "sweep"
+    shutil.copytree(reference[0], out)
+    chunk = out / "chunks" / "chunk-{:05d}.parquet"
+    Path(str(chunk).format(1)).unlink()
+    data = Path(str(chunk).format(2)).read_bytes()
+    Path(str(chunk).format(2)).write_bytes(data[: len(data) // 2])
+    data = bytearray(Path(str(chunk).format(5)).read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    Path(str(chunk).format(5)).write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="chunk 1 .* missing; rerun"):
+        load_results(out)
+
+    result = _run(out)
+    assert (result.chunks_computed, result.chunks_reused) == (3, 5)
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    for name in ("chunk-00001.parquet", "chunk-00002.parquet", "chunk-00005.parquet"):
+        assert name in warned
+    _assert_same(load_results(out), reference[1])
+    assert _run(out).chunks_computed == 0
+
+
+def test_sigkill_mid_sweep_then_resume_is_bit_identical(reference, tmp_path):
+    out = tmp_path / "sweep"
+    proc = _subprocess(out, env={"SWEEP_SLEEP": "0.4"})  # every chunk sleeps in a host callback
+    deadline, done = time.monotonic() + 90, 0
+    try:
+        while done < 2:
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline, "the sweep subprocess made no progress"
+            time.sleep(0.02)
+            if (out / "manifest.json").exists():
+                done = len(_manifest(out)["completed"])
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+    done = len(_manifest(out)["completed"])
+    assert 2 <= done < 8, "the subprocess was not killed mid-sweep"
+
+    (result,) = _finish(_subprocess(out))[:1]
+    assert result["chunks_reused"] >= done and result["chunks_reused"] + result["chunks_computed"] == 8
+    _assert_same(load_results(out), reference[1])
+
+
+def test_four_devices_give_bit_identical_results(reference, tmp_path):
+    fresh, mixed = tmp_path / "fresh", tmp_path / "mixed"
+    shutil.copytree(reference[0], mixed)
+    for c in (3, 7):  # recomputed on 4 devices: one step, padded with repeats of chunk 7 (itself partial)
+        (mixed / "chunks" / f"chunk-{c:05d}.parquet").unlink()
+    env = {"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()}
+    first, second, info = _finish(_subprocess(fresh, mixed, env=env))
+    assert info == {"devices": 4, "x64": True}
+    assert (first["chunks_computed"], second["chunks_computed"], second["chunks_reused"]) == (8, 2, 6)
+
+    _assert_same(load_results(fresh), reference[1])
+    _assert_same(load_results(mixed), reference[1])
+    assert _manifest(fresh)["device_count"] == 4
+    assert {e["device_count"] for e in _manifest(fresh)["completed"].values()} == {4}
+    per_chunk = {int(c): e["device_count"] for c, e in _manifest(mixed)["completed"].items()}
+    assert per_chunk == {c: 4 if c in (3, 7) else 1 for c in range(8)}
+
+
+def test_keyboard_interrupt_leaves_a_resumable_sweep(reference, tmp_path, monkeypatch, capsys):
+    write, calls = sweep._write_chunk, []
+
+    def interrupted_write(path, table):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return write(path, table)
+
+    monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path)
+    assert "interrupted after 2 of 8 chunks; rerun the same command to resume" in capsys.readouterr().err
+    assert sorted(_manifest(tmp_path)["completed"]) == ["0", "1"]
+    with pytest.raises(ValueError, match=r"incomplete \(2 of 8 chunks\); rerun"):
+        load_results(tmp_path)
+
+    monkeypatch.setattr(sweep, "_write_chunk", write)
+    result = _run(tmp_path, progress=True)
+    assert (result.chunks_computed, result.chunks_reused) == (6, 2) and result.configs_per_second > 0
+    assert "1000/1000" in capsys.readouterr().err  # the progress bar
+    _assert_same(load_results(tmp_path), reference[1])
+
+
+def test_a_different_sweep_is_refused_unless_overwrite(reference, tmp_path):
+    out = tmp_path / "sweep"
+    shutil.copytree(reference[0], out)
+    for kw, what in [
+        ({"seed": 1}, "seed"),
+        ({"config": {"case": "other"}}, "config"),
+        ({"num_configs": 999}, "num_configs"),
+        ({"chunk_size": 100}, "chunk_size"),
+    ]:
+        with pytest.raises(ValueError, match=f"different sweep \\({what} differ.*overwrite=True"):
+            _run(out, **kw)
+    with pytest.raises(ValueError, match="columns differ"):
+        run_sweep(case.sampler, lambda p: {"cost": p["x0"].sum()}, N, out, chunk_size=CHUNK, config=case.CONFIG)
+    assert _manifest(out) == _manifest(reference[0])  # nothing touched
+
+    result = _run(out, seed=1, overwrite=True)
+    assert (result.chunks_computed, result.chunks_reused) == (8, 0)
+    assert _manifest(out)["seed"] == 1
+    assert not np.array_equal(load_results(out)["param.x0[0]"], reference[1]["param.x0[0]"])
+
+
+def _scalar_sampler(key, index):
+    return {"a": jax.random.uniform(key)}
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ({"num_configs": 0}, "num_configs must be >= 1"),
+        ({"chunk_size": 0}, "chunk_size must be >= 1"),
+        ({"seed": 1.5}, "seed must be an int"),
+        ({"seed": True}, "seed must be an int"),
+        ({"sampler": None}, "sampler must be a function"),
+        ({"evaluate": 3}, "evaluate must be a function"),
+        ({"config": {"bad": {1, 2}}}, "config must be a JSON-serialisable dict"),
+        ({"evaluate": lambda p: {"z": p["a"] * 1j}}, "metric.z has dtype complex"),
+        ({"evaluate": lambda p: {}}, "evaluate returned no arrays"),
+        ({"evaluate": lambda p: "text"}, "sampler/evaluate failed"),
+        ({"evaluate": lambda p: p["missing"]}, "KeyError"),
+        ({"sampler": lambda k, i: {"a": jax.random.uniform(k), "key": k}}, "param.key has dtype key"),
+        ({"evaluate": lambda p: {"a.b": p["a"], "a": {"b": p["a"]}}}, "column names collide"),
+    ],
+)
+def test_bad_inputs_raise_before_any_file_is_written(tmp_path, args, message):
+    kw = {"sampler": _scalar_sampler, "evaluate": lambda p: {"y": p["a"] ** 2}, "num_configs": 10} | args
+    with pytest.raises(ValueError, match=message):
+        run_sweep(kw.pop("sampler"), kw.pop("evaluate"), kw.pop("num_configs"), tmp_path / "out", **kw)
+    assert not (tmp_path / "out").exists()
+
+
+def test_module_docstring_example_runs(tmp_path, monkeypatch):
+    """The example also checks that a scan may start from a constant carry (shard_map with check_vma=False)."""
+    monkeypatch.chdir(tmp_path)
+    code = sweep.__doc__.split("::")[1].split("How it runs")[0]
+    namespace = {}
+    exec("\n".join(line[4:] for line in code.splitlines()), namespace)
+    cols = namespace["cols"]
+    assert sorted(cols) == ["index", "metric.converged", "metric.x50", "param.a"]
+    assert len(cols["index"]) == 10_000 and cols["metric.converged"].dtype == np.bool_
+
+
+def test_load_results_without_a_sweep(tmp_path):
+    with pytest.raises(ValueError, match="no manifest.json"):
+        load_results(tmp_path)
