@@ -1,5 +1,6 @@
 """The ``jaxobs`` command.
 
+jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite]   (no config: the embedded default)
 jaxobs reproduce --list
 jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
 """
@@ -43,12 +44,62 @@ def _reproduce(args) -> int:
     return 0
 
 
+def _load_toml(path: Path) -> dict:
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    return tomllib.loads(path.read_text())
+
+
+def _sweep(args) -> int:
+    from jaxobs.papers import force_robustness
+
+    source = "<default>"
+    given = {}
+    if args.config:
+        source = args.config
+        path = Path(args.config)
+        if not path.is_file():
+            print(f"{source}: no such config file", file=sys.stderr)
+            return 2
+        try:
+            given = _load_toml(path)
+        except ValueError as exc:  # tomllib.TOMLDecodeError
+            print(f"{source}: not valid TOML: {exc}", file=sys.stderr)
+            return 2
+    try:
+        config = force_robustness.validate_config(given, source)
+    except force_robustness.ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    try:
+        summary = force_robustness.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+    except ValueError as exc:  # e.g. the out dir holds a different sweep
+        print(f"jaxobs sweep: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"{summary['num_configs']} configurations in {summary.get('seconds', 0.0):.1f} s; "
+        f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(summary['figures'])}"
+    )
+    for name, s in summary["controllers"].items():
+        print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
+    return 0
+
+
 def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     parser = argparse.ArgumentParser(prog="jaxobs", description=__doc__.strip().splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
+    sw = commands.add_parser("sweep", help="Monte-Carlo robustness sweep (resumable; rerun to continue)")
+    sw.add_argument("--config", help="TOML file overriding the embedded default (see jaxobs.papers.force_robustness)")
+    sw.add_argument("--out", default="out/sweep", help="output directory (default: out/sweep)")
+    sw.add_argument("--overwrite", action="store_true", help="discard a different sweep already in --out")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sw.set_defaults(func=_sweep)
     rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures")
     rep.add_argument("names", nargs="*", help="reproduction name(s), or 'all'")
     rep.add_argument("--list", action="store_true", help="list the available reproductions")

@@ -15,6 +15,7 @@ before the dead time; the true plant's dead time may differ from the nominal one
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -23,10 +24,78 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace
-from jaxobs.observers.active import ActiveObserverInputs, active_observer
+from jaxobs.observers.active import ActiveObserverInputs, ActiveObserverParams, _active_mask, active_observer
 from jaxobs.observers.base import Observer
 
-__all__ = ["ClosedLoopTrace", "simulate", "ideal_response", "measurement_noise", "rms"]
+__all__ = [
+    "ClosedLoopTrace",
+    "simulate",
+    "ideal_response",
+    "measurement_noise",
+    "rms",
+    "LinearController",
+    "linear_controller",
+    "linear_controller_of",
+]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class LinearController:
+    """A fixed-gain observer with state feedback: ``x_hat_k = x1 + K (y_k - C x1)`` with
+    ``x1 = Phi x_hat_{k-1} + Gamma u_{k-1}`` and ``u_k = r_k - L x_hat_k`` (seed 000 eq. 26, 49-50).
+
+    An AOB or CKF with steady-state gains is one (:func:`linear_controller_of`). All orders share
+    one shape after :meth:`padded` (zero states that never move), so designs of different orders
+    can be stacked and ``vmap``ped together.
+    """
+
+    Phi: jax.Array
+    Gamma: jax.Array
+    C: jax.Array
+    K: jax.Array
+    L: jax.Array
+
+    def padded(self, n: int) -> LinearController:
+        """The same controller with ``n`` observer states (extra states are identically zero)."""
+        extra = n - self.Phi.shape[-1]
+        if extra < 0:
+            raise ValueError(f"n must be >= {self.Phi.shape[-1]}, got {n}")
+        rows = lambda M: jnp.pad(M, ((0, extra), (0, 0)))
+        cols = lambda M: jnp.pad(M, ((0, 0), (0, extra)))
+        return LinearController(rows(cols(self.Phi)), rows(self.Gamma), cols(self.C), rows(self.K), cols(self.L))
+
+
+def linear_controller_of(params: ActiveObserverParams) -> LinearController:
+    """The steady-state AOB/CKF as a :class:`LinearController`. With the active state switched off
+    (``set_active(params, 0)``) its rows are zeroed and the passive gain used, as the run-time
+    switch does."""
+    if params.gain is None:
+        raise ValueError("params: a linear controller needs steady-state gains; use with_steady_state_gains")
+    mask = _active_mask(params)[:, None]
+    gain = jnp.where(params.active > 0, params.gain, params.gain_passive)
+    return LinearController(mask * params.Phi, mask * params.Gamma, params.C, mask * gain, params.L)
+
+
+class LinearControllerOutputs(NamedTuple):
+    u: jax.Array
+    x: jax.Array
+
+
+def _linear_init(params: LinearController):
+    return jnp.zeros(params.Phi.shape[-1], params.Phi.dtype), jnp.zeros(params.Gamma.shape[-1], params.Phi.dtype)
+
+
+def _linear_step(params: LinearController, state, inputs: ActiveObserverInputs):
+    x, u = state
+    x1 = params.Phi @ x + params.Gamma @ u
+    x = x1 + params.K @ (jnp.atleast_1d(inputs.y) - params.C @ x1)
+    u = jnp.atleast_1d(inputs.r) - params.L @ x
+    return (x, u), LinearControllerOutputs(u, x)
+
+
+linear_controller = Observer(_linear_init, _linear_step)
+""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`."""
 
 
 class ClosedLoopTrace(NamedTuple):

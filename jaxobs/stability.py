@@ -33,8 +33,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
+from jaxobs.closed_loop import linear_controller_of
 from jaxobs.lti import StateSpace
-from jaxobs.observers.active import ActiveObserverParams, _active_mask
+from jaxobs.observers.active import ActiveObserverParams
 
 __all__ = [
     "loop_transfer",
@@ -81,15 +82,10 @@ def closed_loop_matrix(plant: StateSpace, Phi_n, Gamma_n, C_n, K, L):
 
 def aob_loop_transfer(plant: StateSpace, params: ActiveObserverParams) -> StateSpace:
     """:func:`loop_transfer` of an AOB/CKF with steady-state gains (``with_steady_state_gains``) on
-    the true ``plant``. With the active state switched off (``set_active(params, 0)``) the
-    observer's active rows are zeroed, as the run-time switch does."""
-    if params.gain is None:
-        raise ValueError("params: the stability analysis needs steady-state gains; use with_steady_state_gains")
-    mask = _active_mask(params)
-    gain = jnp.where(params.active > 0, params.gain, params.gain_passive)
-    return loop_transfer(
-        plant, mask[:, None] * params.Phi, mask[:, None] * params.Gamma, params.C, mask[:, None] * gain, params.L
-    )
+    the true ``plant`` (the active-state switch is honoured, see
+    :func:`jaxobs.closed_loop.linear_controller_of`)."""
+    c = linear_controller_of(params)
+    return loop_transfer(plant, c.Phi, c.Gamma, c.C, c.K, c.L)
 
 
 def spectral_radius(A):
@@ -186,15 +182,24 @@ def _crossings(f, theta, values, max_crossings: int, iters: int):
     return roots, valid, jnp.sum(change) > max_crossings
 
 
-def _newton_polish(sys: StateSpace, theta0, residual):
-    """One Newton step on the exact response from a converged ``theta0`` (held constant):
-    returns ``(theta, H(theta))`` to first order, so gradients follow the implicit function
-    theorem through the crossover frequency."""
-    theta0 = jax.lax.stop_gradient(theta0)
-    H0, dH = jax.jvp(lambda t: _resolvent_response(sys, t), (theta0,), (jnp.ones_like(theta0),))
-    g, dg = residual(H0, dH)
+def _exact_with_slope(sys: StateSpace, theta):
+    """Exact ``H`` and ``dH/dtheta`` at the (held constant) frequencies ``theta``, in one batched
+    solve: Newton steps from them give first-order values whose gradients follow the implicit
+    function theorem through the crossover frequencies. (One solve call on purpose: several
+    independent batched complex solves in one XLA CPU program have been seen to deadlock.)"""
+    theta = jax.lax.stop_gradient(theta)
+    one = jax.vmap(lambda t: jax.jvp(lambda s: _resolvent_response(sys, s), (t,), (jnp.ones_like(t),)))
+    return one(theta)
+
+
+def _newton_step(theta, H, dH, residual):
+    g, dg = residual(H, dH)
     step = jnp.where(dg != 0, -g / jnp.where(dg != 0, dg, 1.0), 0.0)
-    return theta0 + step, H0 + dH * step
+    return theta + step, H + dH * step
+
+
+def _phase_residual(H, dH):
+    return jnp.imag(H), jnp.imag(dH)
 
 
 def _unit_gain_residual(H, dH):
@@ -228,13 +233,7 @@ def stability_margins(
     H_pc = fast(pc)
     pc_valid = jnp.concatenate([pc_valid, jnp.ones((2,), bool)]) & (jnp.real(H_pc) <= 0) & jnp.isfinite(H_pc)
     i_pc = jnp.argmin(jnp.where(pc_valid, jnp.abs(jnp.log(jnp.abs(H_pc))), inf))
-    theta_pc, H_star = _newton_polish(sys, pc[i_pc], lambda H, dH: (jnp.imag(H), jnp.imag(dH)))
-    endpoint = i_pc >= max_crossings  # Im H = 0 identically at z = +-1: nothing to polish
-    theta_pc = jnp.where(endpoint, pc[i_pc], theta_pc)
-    H_star = jnp.where(endpoint, _resolvent_response(sys, pc[i_pc]), H_star)
     has_pc = jnp.any(pc_valid)
-    gain_margin = jnp.where(has_pc, 1.0 / jnp.abs(jnp.real(H_star)), inf)
-    phase_crossover = jnp.where(has_pc, theta_pc / sys.dt, nan)
 
     # gain crossovers: |H| = 1
     gc, gc_valid, gc_trunc = _crossings(
@@ -243,24 +242,32 @@ def stability_margins(
     lag = jnp.remainder(jnp.degrees(jnp.angle(fast(gc))), 360.0)  # phase margin + 180 in [0, 360)
     has_gc = jnp.any(gc_valid)
     i_gc = jnp.argmin(jnp.where(gc_valid, jnp.abs(lag - 180.0), inf))
-    theta_gc, H_gc = _newton_polish(sys, gc[i_gc], _unit_gain_residual)
-    phase_margin = jnp.where(has_gc, jnp.remainder(jnp.degrees(jnp.angle(H_gc)), 360.0) - 180.0, inf)
-    gain_crossover = jnp.where(has_gc, theta_gc / sys.dt, nan)
     # a delay tau multiplies H by exp(-j w tau) (exact for whole samples): the loop first reaches -1
     # at the crossover with the smallest (phase margin mod 360) / w
     i_dm = jnp.argmin(jnp.where(gc_valid, jnp.remainder(lag - 180.0, 360.0) / gc, inf))
-    theta_dm, H_dm = _newton_polish(sys, gc[i_dm], _unit_gain_residual)
-    lag_dm = jnp.remainder(jnp.degrees(jnp.angle(H_dm)) - 180.0, 360.0)
-    delay_margin = jnp.where(has_gc, jnp.radians(lag_dm) / (theta_dm / sys.dt), inf)
 
-    # stability margin: min |1 + H| on the grid, refined by golden-section search
-    theta0 = jnp.concatenate([jnp.zeros((1,), dtype), theta])  # with DC
+    # stability margin: min |1 + H| on the grid (with DC), refined by golden-section search
+    theta0 = jnp.concatenate([jnp.zeros((1,), dtype), theta])
     distance = jnp.abs(1.0 + jnp.concatenate([fast(theta0[:1]), H]))
     i_sm = jnp.argmin(jnp.where(jnp.isfinite(distance), distance, inf))
     lo, hi = theta0[jnp.maximum(i_sm - 1, 0)], theta0[jnp.minimum(i_sm + 1, num_points)]
     theta_sm = _golden_minimum(lambda t: jnp.abs(1.0 + fast(t)), lo, hi, bisection_steps)
-    theta_sm = jax.lax.stop_gradient(theta_sm)  # a stationary point: the envelope theorem applies
-    stability_margin = jnp.abs(1.0 + _resolvent_response(sys, theta_sm))
+
+    # exact values at the selected frequencies, one Newton step each (none needed at the minimum of
+    # |1 + H|: a stationary point, so the envelope theorem gives its gradient)
+    selected = jnp.stack([pc[i_pc], gc[i_gc], gc[i_dm], theta_sm])
+    H_exact, slope = _exact_with_slope(sys, selected)
+    theta_pc, H_pc_star = _newton_step(selected[0], H_exact[0], slope[0], _phase_residual)
+    theta_gc, H_gc = _newton_step(selected[1], H_exact[1], slope[1], _unit_gain_residual)
+    theta_dm, H_dm = _newton_step(selected[2], H_exact[2], slope[2], _unit_gain_residual)
+
+    gain_margin = jnp.where(has_pc, 1.0 / jnp.abs(jnp.real(H_pc_star)), inf)
+    phase_crossover = jnp.where(has_pc, theta_pc / sys.dt, nan)
+    phase_margin = jnp.where(has_gc, jnp.remainder(jnp.degrees(jnp.angle(H_gc)), 360.0) - 180.0, inf)
+    gain_crossover = jnp.where(has_gc, theta_gc / sys.dt, nan)
+    lag_dm = jnp.remainder(jnp.degrees(jnp.angle(H_dm)) - 180.0, 360.0)
+    delay_margin = jnp.where(has_gc, jnp.radians(lag_dm) / (theta_dm / sys.dt), inf)
+    stability_margin = jnp.abs(1.0 + H_exact[3])
 
     return Margins(
         gain_margin,
@@ -269,7 +276,7 @@ def stability_margins(
         stability_margin,
         phase_crossover,
         gain_crossover,
-        theta_sm / sys.dt,
+        jax.lax.stop_gradient(theta_sm) / sys.dt,
         jnp.max(jnp.abs(closed)),
         pc_trunc | gc_trunc,
     )

@@ -34,7 +34,8 @@ def save_figure(fig, out_dir: Path, name: str) -> str:
     """Lay out, write ``out_dir/name.png`` and close ``fig``; returns the file name."""
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{name}.png"
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
     return path.name

@@ -1,0 +1,471 @@
+"""Robustness sweep of the Example 1 force controllers (seed 000 §6-7): the default ``jaxobs sweep``.
+
+AOB-1, AOB-2, AOB-3 and a CKF, each designed on the nominal plant (Ks = 3 N/mm, Tp = 32 ms, 5 samples
+of dead time) for a grid of Q/R strategies, run against true plants with stiffness, time-constant
+and (fractional) dead-time mismatch. Per configuration: the spectral radius of the closed loop
+(eq. 59) and the margins of the loop transfer function (eq. 65), and a 20 s closed-loop run under
+the disturbance of eq. 81-82 with sensor noise, scored by the RMS force error against the desired
+response (as in §7.2).
+
+The strategy grid: the variance ``sigma^2`` of the active-state noise (eq. 55, with Example 1's
+``c = 1/500``) times ``R``. The CKF has no active state, so for it the first axis is the plant-state
+variance ``Q_xr``. By Q/R scale invariance (seed 003 Proposition 1) the gains depend mostly on
+``sigma^2 / R``, the axis of the stability maps.
+
+Configuration ``i`` uses design ``i mod D`` (so every design gets the same number of plants) and
+samples its plant from its own key.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs.closed_loop import (
+    LinearController,
+    ideal_response,
+    linear_controller,
+    linear_controller_of,
+    rms,
+    simulate,
+)
+from jaxobs.lti import n_delay_slots
+from jaxobs.observers import active
+from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers.force_control import (
+    EXAMPLE1,
+    example1_disturbance,
+    force_plant,
+    nominal_design,
+    reference_gain,
+)
+from jaxobs.stability import loop_transfer, stability_margins
+from jaxobs.sweep import load_results, run_sweep
+
+__all__ = ["DEFAULT_CONFIG", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
+
+DEFAULT_CONFIG = {
+    "seed": 0,
+    "chunk_size": 2000,
+    "plant": {
+        "stiffness": [0.3, 30.0],  # N/mm, log-uniform
+        "time_constant_scale": [0.5, 1.5],  # true Tp / nominal Tp, uniform
+        "dead_time_samples": [3.0, 8.0],  # uniform, fractional samples allowed
+    },
+    "controllers": {
+        "orders": [1, 2, 3, 0],  # AOB-N; 0 is the CKF
+        "active_variance": [1e-6, 1.0],  # sigma^2 of eq. 55 (CKF: Q_xr), log grid
+        "R": [1e-3, 1.0],  # log grid
+        "grid_points": 10,
+    },
+    "simulation": {
+        "configs_per_design": 250,
+        "duration": 20.0,  # s
+        "force_step": 10.0,  # N
+        "sensor_noise": EXAMPLE1.R,  # N^2, the true sensor's noise variance
+    },
+    "margins": {"num_points": 512},
+}
+"""The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
+
+MAX_DEAD_TIME_SAMPLES = 100
+MAX_ORDER = 5
+
+
+class ConfigError(ValueError):
+    """A bad sweep configuration; the message names the file and the key."""
+
+
+def _fail(source: str, key: str, message: str):
+    raise ConfigError(f"{source}: {key}: {message}")
+
+
+def _merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
+    """``given`` over ``default``; unknown keys and type mismatches are errors."""
+    merged = copy.deepcopy(default)
+    for key, value in given.items():
+        name = f"{prefix}{key}"
+        if key not in default:
+            _fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
+        expected = default[key]
+        if isinstance(expected, dict):
+            if not isinstance(value, dict):
+                _fail(source, name, "must be a table")
+            merged[key] = _merge(expected, value, source, name + ".")
+        elif isinstance(expected, list):
+            if not isinstance(value, list) or not all(isinstance(v, int | float) for v in value):
+                _fail(source, name, f"must be a list of numbers, got {value!r}")
+            merged[key] = value
+        elif isinstance(expected, bool) or isinstance(value, bool):
+            _fail(source, name, f"must be a number, got {value!r}")
+        elif isinstance(expected, int) and not isinstance(value, int):
+            _fail(source, name, f"must be an integer, got {value!r}")
+        elif isinstance(expected, float) and not isinstance(value, int | float):
+            _fail(source, name, f"must be a number, got {value!r}")
+        else:
+            merged[key] = value
+    return merged
+
+
+def _range(config: dict, source: str, key: str, *, positive: bool = False, minimum=None, maximum=None):
+    section, name = key.split(".")
+    value = config[section][name]
+    if len(value) != 2 or not value[0] < value[1]:
+        _fail(source, key, f"must be a range [low, high] with low < high, got {value!r}")
+    if positive and value[0] <= 0:
+        _fail(source, key, f"must be positive, got {value!r}")
+    if minimum is not None and value[0] < minimum:
+        _fail(source, key, f"must be >= {minimum}, got {value!r}")
+    if maximum is not None and value[1] > maximum:
+        _fail(source, key, f"must be <= {maximum}, got {value!r}")
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
+    config = _merge(DEFAULT_CONFIG, given or {}, source)
+    _range(config, source, "plant.stiffness", positive=True)
+    _range(config, source, "plant.time_constant_scale", positive=True)
+    _range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
+    _range(config, source, "controllers.active_variance", positive=True)
+    _range(config, source, "controllers.R", positive=True)
+    orders = config["controllers"]["orders"]
+    if not orders or any(not isinstance(n, int) or not 0 <= n <= MAX_ORDER for n in orders):
+        _fail(source, "controllers.orders", f"must be a non-empty list of integers in 0..{MAX_ORDER}, got {orders!r}")
+    if len(set(orders)) != len(orders):
+        _fail(source, "controllers.orders", f"has duplicates: {orders!r}")
+    for key, low in (
+        ("seed", 0),
+        ("chunk_size", 1),
+        ("controllers.grid_points", 1),
+        ("simulation.configs_per_design", 1),
+        ("margins.num_points", 16),
+    ):
+        section, _, name = key.rpartition(".")
+        value = config[section][name] if section else config[name]
+        if value < low:
+            _fail(source, key, f"must be >= {low}, got {value!r}")
+    for key in ("duration", "force_step", "sensor_noise"):
+        if not config["simulation"][key] > 0:
+            _fail(source, f"simulation.{key}", f"must be positive, got {config['simulation'][key]!r}")
+    if config["simulation"]["duration"] < EXAMPLE1.h:
+        _fail(source, "simulation.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
+    return config
+
+
+# --------------------------------------------------------------------------------------------
+# Designs and the per-configuration evaluation
+
+
+@dataclasses.dataclass(frozen=True)
+class Designs:
+    """Stacked controllers (leading axis: design), padded to a common observer size."""
+
+    controller: LinearController
+    order: np.ndarray  # 0 = CKF
+    active_variance: np.ndarray
+    R: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+
+def _log_grid(bounds, points: int) -> np.ndarray:
+    return np.geomspace(bounds[0], bounds[1], points) if points > 1 else np.array([np.sqrt(bounds[0] * bounds[1])])
+
+
+def build_designs(config: dict) -> Designs:
+    """Every (order, sigma^2, R) controller of the grid, with steady-state gains (batched DAREs)."""
+    plant, L_r = nominal_design()
+    ctl = config["controllers"]
+    variances, Rs = _log_grid(ctl["active_variance"], ctl["grid_points"]), _log_grid(ctl["R"], ctl["grid_points"])
+    V, R = (a.ravel() for a in np.meshgrid(variances, Rs, indexing="ij"))
+    n_obs = plant.n_states + max(ctl["orders"])
+    parts, orders = [], []
+    for order in ctl["orders"]:
+
+        def design(v, r, order=order):
+            if order == 0:
+                params = active.make_ckf(plant, L_r, r, q_plant=v, steady_state=True)
+            else:
+                q = active.evolution_variance(v, order, EXAMPLE1.c)
+                params = active.make_aob(plant, L_r, order, r, q_plant=EXAMPLE1.q_plant, q_active=q, steady_state=True)
+            return linear_controller_of(params).padded(n_obs)
+
+        parts.append(jax.jit(jax.vmap(design))(jnp.asarray(V), jnp.asarray(R)))
+        orders.append(np.full(V.size, order))
+    stacked = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    count = len(ctl["orders"])
+    return Designs(stacked, np.concatenate(orders), np.tile(V, count), np.tile(R, count))
+
+
+def make_sweep(config: dict):
+    """``(sampler, evaluate, num_configs, designs)`` for :func:`jaxobs.sweep.run_sweep`."""
+    designs = build_designs(config)
+    plant_cfg, sim = config["plant"], config["simulation"]
+    h = EXAMPLE1.h
+    steps = int(round(sim["duration"] / h))
+    n_delay = n_delay_slots(plant_cfg["dead_time_samples"][1] * h, h)
+    nominal, L_r = nominal_design()
+    t = jnp.arange(steps) * h
+    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
+    desired = ideal_response(nominal, L_r, reference)[:, 0]
+    disturbance = example1_disturbance(t)
+    table = designs.controller
+    order, variance, R = (jnp.asarray(a) for a in (designs.order, designs.active_variance, designs.R))
+    log_ks = np.log(plant_cfg["stiffness"])
+    count = len(designs)
+
+    def sampler(key, index):
+        k_ks, k_tp, k_dead, k_noise = jax.random.split(key, 4)
+        design = index % count
+        return {
+            "design": design,
+            "order": order[design],
+            "active_variance": variance[design],
+            "R": R[design],
+            "stiffness": jnp.exp(jax.random.uniform(k_ks, (), minval=log_ks[0], maxval=log_ks[1])),
+            "time_constant": EXAMPLE1.Tp * jax.random.uniform(k_tp, (), minval=plant_cfg["time_constant_scale"][0],
+                                                              maxval=plant_cfg["time_constant_scale"][1]),
+            "dead_time_samples": jax.random.uniform(k_dead, (), minval=plant_cfg["dead_time_samples"][0],
+                                                    maxval=plant_cfg["dead_time_samples"][1]),
+            "noise_seed": jax.random.bits(k_noise, (), jnp.uint32),
+        }  # fmt: skip
+
+    def evaluate(p):
+        ctrl = jax.tree.map(lambda M: M[p["design"]], table)
+        true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
+        margins = stability_margins(
+            loop_transfer(true, ctrl.Phi, ctrl.Gamma, ctrl.C, ctrl.K, ctrl.L),
+            num_points=config["margins"]["num_points"],
+        )
+        noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(p["noise_seed"]), (steps,))
+        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
+        force = trace.y_true[:, 0]
+        error = rms(force - desired)
+        return {
+            "spectral_radius": margins.spectral_radius,
+            "stable": margins.spectral_radius < 1.0,
+            "gain_margin": margins.gain_margin,
+            "phase_margin": margins.phase_margin,
+            "delay_margin": margins.delay_margin,
+            "stability_margin": margins.stability_margin,
+            "rms_force_error": jnp.where(jnp.isfinite(error), error, jnp.inf),
+            "peak_force": jnp.max(jnp.where(jnp.isfinite(force), jnp.abs(force), jnp.inf)),
+        }
+
+    return sampler, evaluate, count * sim["configs_per_design"], designs
+
+
+def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
+    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report."""
+    sampler, evaluate, num_configs, designs = make_sweep(config)
+    result = run_sweep(
+        sampler,
+        evaluate,
+        num_configs,
+        out_dir,
+        seed=config["seed"],
+        chunk_size=config["chunk_size"],
+        config={"scenario": "force-control", **config},
+        progress=progress,
+        overwrite=overwrite,
+    )
+    return report(config, Path(out_dir), result, designs)
+
+
+# --------------------------------------------------------------------------------------------
+# Report: summary.json, report.md, figures
+
+NAMES = {0: "CKF"}
+
+
+def _name(order: int) -> str:
+    return NAMES.get(order, f"AOB-{order}")
+
+
+def _quantiles(values: np.ndarray) -> dict:
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return {"count": 0}
+    q = np.quantile(values, [0.05, 0.5, 0.95])
+    return {"count": int(values.size), "p05": float(q[0]), "median": float(q[1]), "p95": float(q[2])}
+
+
+def summarize(config: dict, cols: dict) -> dict:
+    """Per-controller statistics of a completed sweep."""
+    stable = cols["metric.stable"].astype(bool)
+    ks_ratio = cols["param.stiffness"] / EXAMPLE1.Ks
+    per = {}
+    for order in config["controllers"]["orders"]:
+        sel = cols["param.order"] == order
+        s = sel & stable
+        near = sel & (np.abs(np.log(ks_ratio)) < np.log(1.5))
+        per[_name(order)] = {
+            "configs": int(sel.sum()),
+            "stable_fraction": float(stable[sel].mean()),
+            "stable_fraction_within_50pct_stiffness": float(stable[near].mean()) if near.any() else None,
+            "rms_force_error_stable": _quantiles(cols["metric.rms_force_error"][s]),
+            "gain_margin_stable": _quantiles(cols["metric.gain_margin"][s]),
+            "phase_margin_stable": _quantiles(cols["metric.phase_margin"][s]),
+            "delay_margin_stable_s": _quantiles(cols["metric.delay_margin"][s]),
+        }
+    return per
+
+
+def _worst_cases(cols: dict, orders) -> dict:
+    """Per controller, the stable configuration with the largest RMS force error."""
+    worst = {}
+    for order in orders:
+        sel = np.flatnonzero((cols["param.order"] == order) & cols["metric.stable"].astype(bool))
+        if sel.size:
+            i = sel[np.argmax(cols["metric.rms_force_error"][sel])]
+            worst[_name(order)] = {k.split(".", 1)[1]: cols[k][i].item() for k in cols if k != "index"}
+            worst[_name(order)]["index"] = int(cols["index"][i])
+    return worst
+
+
+def report(config: dict, out_dir: Path, result=None, designs: Designs | None = None) -> dict:
+    """Write ``summary.json``, ``report.md`` and the figures for the sweep in ``out_dir``."""
+    import json
+
+    cols = load_results(out_dir)
+    orders = config["controllers"]["orders"]
+    summary = {
+        "num_configs": int(cols["index"].size),
+        "stable_fraction": float(cols["metric.stable"].mean()),
+        "controllers": summarize(config, cols),
+        "worst_cases": _worst_cases(cols, orders),
+        "config": config,
+    }
+    if result is not None:
+        summary["seconds"] = result.seconds
+        summary["configs_per_second"] = result.configs_per_second
+        summary["chunks_computed"] = result.chunks_computed
+        summary["chunks_reused"] = result.chunks_reused
+    figures = [
+        _plot_stability_maps(cols, orders, out_dir),
+        _plot_distributions(cols, orders, out_dir),
+        _plot_worst_cases(config, designs or build_designs(config), summary["worst_cases"], out_dir),
+    ]
+    summary["figures"] = figures
+    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
+    (out_dir / "report.md").write_text(_markdown(summary))
+    return summary
+
+
+def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
+    plt = pyplot()
+    ks_ratio = np.log10(cols["param.stiffness"] / EXAMPLE1.Ks)
+    ratio = np.log10(cols["param.active_variance"] / cols["param.R"])
+    x_edges = np.linspace(ks_ratio.min(), ks_ratio.max(), 13)
+    y_edges = np.linspace(ratio.min() - 1e-9, ratio.max() + 1e-9, 11)
+    fig, axes = plt.subplots(1, len(orders), figsize=(3.6 * len(orders), 3.6), squeeze=False, layout="constrained")
+    for ax, order in zip(axes[0], orders, strict=True):
+        sel = cols["param.order"] == order
+        total, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges])
+        stable, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges], weights=cols["metric.stable"][sel])
+        with np.errstate(invalid="ignore"):
+            frac = stable / total
+        mesh = ax.pcolormesh(x_edges, y_edges, frac.T, vmin=0, vmax=1, cmap="RdYlGn")
+        ax.set_title(_name(order))
+        ax.set_xlabel("log10 Ks_true / Ks_nominal")
+        ax.axvline(0.0, color="k", lw=0.6)
+    axes[0, 0].set_ylabel("log10 sigma^2 / R" + (" (CKF: Q_xr / R)" if 0 in orders else ""))
+    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction")
+    fig.suptitle("Stable fraction vs stiffness mismatch and Q/R strategy")
+    return save_figure(fig, out_dir, "stability_maps")
+
+
+def _plot_distributions(cols, orders, out_dir: Path) -> str:
+    plt = pyplot()
+    stable = cols["metric.stable"].astype(bool)
+    panels = [
+        ("metric.gain_margin", "gain margin (dB)", lambda v: 20 * np.log10(v)),
+        ("metric.phase_margin", "phase margin (deg)", lambda v: v),
+        ("metric.delay_margin", "delay margin (samples)", lambda v: v / EXAMPLE1.h),
+        ("metric.rms_force_error", "RMS force error (N), log10", np.log10),
+    ]
+    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6))
+    for ax, (key, label, transform) in zip(axes, panels, strict=True):
+        for order in orders:
+            sel = (cols["param.order"] == order) & stable
+            with np.errstate(divide="ignore", invalid="ignore"):
+                values = transform(cols[key][sel])
+            values = values[np.isfinite(values)]
+            if values.size:
+                ax.hist(values, bins=40, histtype="step", label=_name(order))
+        ax.set_xlabel(label)
+    axes[0].set_ylabel("stable configurations")
+    axes[0].legend()
+    fig.suptitle("Margins and tracking error over the stable configurations")
+    return save_figure(fig, out_dir, "distributions")
+
+
+def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
+    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired."""
+    plt = pyplot()
+    sim = config["simulation"]
+    steps = int(round(sim["duration"] / EXAMPLE1.h))
+    nominal, L_r = nominal_design()
+    t = np.arange(steps) * EXAMPLE1.h
+    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
+    desired = np.asarray(ideal_response(nominal, L_r, reference)[:, 0])
+    n_delay = n_delay_slots(config["plant"]["dead_time_samples"][1] * EXAMPLE1.h, EXAMPLE1.h)
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(t, desired, "k--", lw=1, label="desired")
+    for name, case in worst.items():
+        ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
+        true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
+                           n_delay=n_delay)  # fmt: skip
+        noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(case["noise_seed"]), (steps,))
+        trace = simulate(true, ctrl, reference, disturbance=example1_disturbance(jnp.asarray(t)), noise=noise,
+                         controller=linear_controller)  # fmt: skip
+        ax.plot(t, np.asarray(trace.y_true[:, 0]), lw=0.8,
+                label=f"{name}: Ks={case['stiffness']:.2g}, Tp={case['time_constant'] * 1e3:.0f} ms, "
+                f"d={case['dead_time_samples']:.1f}, RMS {case['rms_force_error']:.2f} N")  # fmt: skip
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("force (N)")
+    ax.set_title("Worst stable case per controller (largest RMS force error)")
+    ax.legend(fontsize=7)
+    return save_figure(fig, out_dir, "worst_cases")
+
+
+def _markdown(summary: dict) -> str:
+    lines = [
+        "# Robustness sweep: Example 1 force controllers",
+        "",
+        f"{summary['num_configs']} configurations; overall stable fraction {summary['stable_fraction']:.3f}.",
+    ]
+    if "seconds" in summary:
+        lines.append(
+            f"This run: {summary['seconds']:.1f} s, {summary['configs_per_second']:.0f} configurations/s "
+            f"({summary['chunks_computed']} chunks computed, {summary['chunks_reused']} reused)."
+        )
+    lines += [
+        "",
+        "| controller | stable | stable, Ks within x1.5 | median RMS force error (N) | median GM | median PM (deg) "
+        "| median delay margin (ms) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    fmt = lambda q, scale=1.0: f"{q['median'] * scale:.3g}" if q.get("count") else "-"
+    for name, s in summary["controllers"].items():
+        near = s["stable_fraction_within_50pct_stiffness"]
+        lines.append(
+            f"| {name} | {s['stable_fraction']:.3f} | {'-' if near is None else f'{near:.3f}'} "
+            f"| {fmt(s['rms_force_error_stable'])} | {fmt(s['gain_margin_stable'])} | {fmt(s['phase_margin_stable'])} "
+            f"| {fmt(s['delay_margin_stable_s'], 1e3)} |"
+        )
+    lines += ["", "Worst stable case per controller (largest RMS force error):", ""]
+    for name, case in summary["worst_cases"].items():
+        lines.append(
+            f"- {name}: config {case['index']}, Ks = {case['stiffness']:.3g} N/mm, Tp = {case['time_constant']:.4f} s, "
+            f"dead time {case['dead_time_samples']:.2f} samples, sigma^2 = {case['active_variance']:.2g}, "
+            f"R = {case['R']:.2g}: RMS {case['rms_force_error']:.3g} N, spectral radius {case['spectral_radius']:.4f}"
+        )
+    lines += [""] + [f"![{f}]({f})" for f in summary["figures"]] + [""]
+    return "\n".join(lines)

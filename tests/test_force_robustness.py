@@ -1,0 +1,97 @@
+"""The default robustness sweep (`jaxobs sweep`): config validation, the padded linear controllers,
+and a small end-to-end run with its report."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxobs.cli import main
+from jaxobs.closed_loop import linear_controller, linear_controller_of, simulate
+from jaxobs.papers import force_robustness as fr
+from jaxobs.papers.cortesao2006 import aob_params
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, force_plant, nominal_design
+
+SMALL = {
+    "chunk_size": 64,
+    "controllers": {"grid_points": 2},
+    "simulation": {"configs_per_design": 8, "duration": 2.0},
+    "margins": {"num_points": 128},
+}
+
+
+def test_padded_linear_controller_is_the_steady_state_aob():
+    """The sweep's stacked controllers (zero-padded to a common size) run exactly like the AOB."""
+    plant, L_r = nominal_design()
+    params = aob_params(plant, L_r, 2)
+    true = force_plant(1.5, 0.04, EXAMPLE1.h, 6.5 * EXAMPLE1.h, n_delay=9)
+    t = jnp.arange(300) * EXAMPLE1.h
+    ref, dist = jnp.full(300, 4.0), example1_disturbance(t)
+    aob = simulate(true, params, ref, disturbance=dist)
+    lin = simulate(true, linear_controller_of(params).padded(12), ref, disturbance=dist, controller=linear_controller)
+    np.testing.assert_allclose(lin.y_true, aob.y_true, rtol=1e-10, atol=1e-10)
+
+
+def test_default_config_is_at_least_1e5_configurations():
+    config = fr.validate_config()
+    ctl = config["controllers"]
+    count = len(ctl["orders"]) * ctl["grid_points"] ** 2 * config["simulation"]["configs_per_design"]
+    assert count >= 100_000
+    assert config["simulation"]["duration"] / EXAMPLE1.h == 2500
+
+
+@pytest.mark.parametrize(
+    "toml, key",
+    [
+        ("[plant]\nstifness = [1.0, 2.0]\n", "plant.stifness"),
+        ("seed = 'zero'\n", "seed"),
+        ("[plant]\nstiffness = [3.0, 3.0]\n", "plant.stiffness"),
+        ("[plant]\nstiffness = [-1.0, 3.0]\n", "plant.stiffness"),
+        ("[plant]\ndead_time_samples = [-2.0, 3.0]\n", "plant.dead_time_samples"),
+        ("[plant]\ndead_time_samples = [3.0, 500.0]\n", "plant.dead_time_samples"),
+        ("[controllers]\norders = [1, 9]\n", "controllers.orders"),
+        ("[controllers]\ngrid_points = 0\n", "controllers.grid_points"),
+        ("[simulation]\nduration = 0.0\n", "simulation.duration"),
+        ("plant = 3\n", "plant"),
+    ],
+)
+def test_config_errors_name_the_key_and_file_and_exit_2(tmp_path, capsys, toml, key):
+    path = tmp_path / "bad.toml"
+    path.write_text(toml)
+    out = tmp_path / "out"
+    assert main(["sweep", "--config", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and key in err
+    assert not out.exists()  # nothing computed
+
+
+def test_missing_or_invalid_toml_exits_2(tmp_path, capsys):
+    assert main(["sweep", "--config", str(tmp_path / "none.toml")]) == 2
+    path = tmp_path / "broken.toml"
+    path.write_text("[plant\n")
+    assert main(["sweep", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert "not valid TOML" in capsys.readouterr().err
+
+
+def test_small_sweep_end_to_end(tmp_path):
+    path = tmp_path / "small.toml"
+    path.write_text(
+        "chunk_size = 64\n[controllers]\ngrid_points = 2\n[simulation]\nconfigs_per_design = 8\nduration = 2.0\n"
+        "[margins]\nnum_points = 128\n"
+    )
+    out = tmp_path / "sweep"
+    assert main(["sweep", "--config", str(path), "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_configs"] == 4 * 4 * 8
+    for name in ("stability_maps.png", "distributions.png", "worst_cases.png", "report.md"):
+        assert (out / name).is_file()
+    cols = fr.load_results(out)
+    stable = cols["metric.stable"]
+    assert 0 < stable.mean() < 1  # the default mismatch range holds stable and unstable loops
+    assert np.all(np.isfinite(cols["metric.rms_force_error"][stable]))
+    assert np.all((cols["param.stiffness"] >= 0.3) & (cols["param.stiffness"] <= 30.0))
+    # rerunning continues (nothing left to compute) and gives the same summary numbers
+    assert main(["sweep", "--config", str(path), "--out", str(out), "--no-progress"]) == 0
+    again = json.loads((out / "summary.json").read_text())
+    assert again["controllers"] == summary["controllers"] and again["chunks_computed"] == 0
