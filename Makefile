@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: demo test test-fast bench lint clean
+.PHONY: demo reproduce test test-fast bench lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -14,9 +14,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $(STAMP)
 
+# The main job: the 1e5-configuration robustness sweep (resumable: rerun to continue after Ctrl-C).
 demo: $(STAMP)
-	$(BIN)/jaxobs reproduce cortesao2006-example1 --out $(OUT)
-	$(BIN)/jaxobs reproduce cortesao-stochastic-ramp --out $(OUT)
+	$(BIN)/jaxobs sweep --out $(OUT)/sweep
+
+reproduce: $(STAMP)
+	$(BIN)/jaxobs reproduce all --out $(OUT)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -30,6 +33,7 @@ $(VENV)/.bench-installed: $(STAMP)
 
 bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/kalman_throughput.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/sweep_throughput.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
