@@ -233,6 +233,19 @@ def test_switched_off_active_state_is_the_ckf_loop():
     assert float(a.gain_margin) == pytest.approx(float(b.gain_margin), rel=1e-6)
 
 
+def test_input_gain_mismatch_divides_the_gain_margin():
+    """Parametric family: a true input gain g scales the loop transfer function, so GM becomes GM / g."""
+    plant, L_r = nominal_design()
+    params = aob_params(plant, L_r, 1)
+
+    def gm(g):
+        return margins_jit(
+            aob_loop_transfer(force_plant(3.0, 0.032, EXAMPLE1.h, 0.04, input_gain=g), params)
+        ).gain_margin
+
+    assert float(gm(1.7)) == pytest.approx(float(gm(1.0)) / 1.7, rel=1e-9)
+
+
 def test_unstructured_mismatch_has_the_requested_norms():
     Phi_n, Gamma_n = jnp.eye(4) * 0.5, jnp.ones((4, 1))
     Phi, Gamma = unstructured_mismatch(jax.random.key(0), Phi_n, Gamma_n, 0.1, 0.02)

@@ -51,13 +51,14 @@ class ForceControlSetup:
 EXAMPLE1 = ForceControlSetup()
 
 
-def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None) -> StateSpace:
-    """Delay-augmented discrete force plant (eq. 57-61 discretised by eq. 11-18). ``Ks``, ``Tp`` and
-    ``dead_time`` (seconds) may be traced; pass ``n_delay`` then."""
+def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None, input_gain=1.0) -> StateSpace:
+    """Delay-augmented discrete force plant (eq. 57-61 discretised by eq. 11-18). ``Ks``, ``Tp``,
+    ``dead_time`` (seconds) and ``input_gain`` (a mismatch of the robot's velocity gain) may be
+    traced; pass ``n_delay`` for a traced dead time."""
     Ks, Tp = jnp.asarray(Ks, float), jnp.asarray(Tp, float)
     zero = jnp.zeros((), Ks.dtype)
     A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
-    B = jnp.stack([zero, Ks / Tp])[:, None]
+    B = jnp.stack([zero, input_gain * Ks / Tp])[:, None]
     return c2d(ss(A, B, [[1.0, 0.0]]), h, dead_time, n_delay=n_delay)
 
 
