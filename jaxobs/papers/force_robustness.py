@@ -203,18 +203,23 @@ def build_designs(config: dict) -> Designs:
     return Designs(stacked, np.concatenate(orders), np.tile(V, count), np.tile(R, count))
 
 
+def _scenario(config: dict):
+    """``(steps, n_delay, reference, desired force, disturbance)`` shared by every configuration."""
+    h, sim = EXAMPLE1.h, config["simulation"]
+    steps = int(round(sim["duration"] / h))
+    nominal, L_r = nominal_design()
+    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
+    desired = ideal_response(nominal, L_r, reference)[:, 0]
+    disturbance = example1_disturbance(jnp.arange(steps) * h)
+    return steps, n_delay_slots(config["plant"]["dead_time_samples"][1] * h, h), reference, desired, disturbance
+
+
 def make_sweep(config: dict):
     """``(sampler, evaluate, num_configs, designs)`` for :func:`jaxobs.sweep.run_sweep`."""
     designs = build_designs(config)
     plant_cfg, sim = config["plant"], config["simulation"]
     h = EXAMPLE1.h
-    steps = int(round(sim["duration"] / h))
-    n_delay = n_delay_slots(plant_cfg["dead_time_samples"][1] * h, h)
-    nominal, L_r = nominal_design()
-    t = jnp.arange(steps) * h
-    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
-    desired = ideal_response(nominal, L_r, reference)[:, 0]
-    disturbance = example1_disturbance(t)
+    steps, n_delay, reference, desired, disturbance = _scenario(config)
     table = designs.controller
     order, variance, R = (jnp.asarray(a) for a in (designs.order, designs.active_variance, designs.R))
     log_ks = np.log(plant_cfg["stiffness"])
@@ -410,21 +415,16 @@ def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path
     """Re-simulate each controller's worst stable case (same noise) and plot force vs desired."""
     plt = pyplot()
     sim = config["simulation"]
-    steps = int(round(sim["duration"] / EXAMPLE1.h))
-    nominal, L_r = nominal_design()
+    steps, n_delay, reference, desired, disturbance = _scenario(config)
     t = np.arange(steps) * EXAMPLE1.h
-    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
-    desired = np.asarray(ideal_response(nominal, L_r, reference)[:, 0])
-    n_delay = n_delay_slots(config["plant"]["dead_time_samples"][1] * EXAMPLE1.h, EXAMPLE1.h)
     fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, desired, "k--", lw=1, label="desired")
+    ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
     for name, case in worst.items():
         ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
         true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
                            n_delay=n_delay)  # fmt: skip
         noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(case["noise_seed"]), (steps,))
-        trace = simulate(true, ctrl, reference, disturbance=example1_disturbance(jnp.asarray(t)), noise=noise,
-                         controller=linear_controller)  # fmt: skip
+        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
         ax.plot(t, np.asarray(trace.y_true[:, 0]), lw=0.8,
                 label=f"{name}: Ks={case['stiffness']:.2g}, Tp={case['time_constant'] * 1e3:.0f} ms, "
                 f"d={case['dead_time_samples']:.1f}, RMS {case['rms_force_error']:.2f} N")  # fmt: skip
