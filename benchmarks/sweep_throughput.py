@@ -36,6 +36,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 
+from jaxobs.lti import n_delay_slots  # noqa: E402
 from jaxobs.papers import force_robustness as fr  # noqa: E402
 from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain  # noqa: E402
 from jaxobs.sweep import config_key, run_sweep  # noqa: E402
@@ -78,15 +79,15 @@ def _true_plant_numpy(Ks, Tp, dead_samples, n_delay):
     n = 2 + n_delay
     Phi, Gamma = np.zeros((n, n)), np.zeros((n, 1))
     Phi[:2, :2] = Phi1
-    slots = np.arange(n_delay)  # state 2 + j holds u_{k - n_delay + j}
+    slots = np.arange(n_delay)  # state 2 + j of x_k holds u_{k - n_delay + j}
     Phi[2 + slots[:-1], 3 + slots[:-1]] = 1.0
     Gamma[-1, 0] = 1.0
-    # u_{k-d} drives Gamma_0 and u_{k-d-1} drives Gamma_1 (lags d and d+1)
+    # x'_{k+1} gets Gamma_0 u_{k+1-d} and Gamma_1 u_{k-d} (lags d and d + 1; lag 1 is u_k itself)
     for lag, G in ((d, G0), (d + 1, G1)):
-        if lag == 0:
+        if lag == 1:
             Gamma[:2] += G
         else:
-            Phi[:2, 2 + n_delay - lag] += G[:, 0]
+            Phi[:2, 2 + n_delay + 1 - lag] += G[:, 0]
     C = np.zeros((1, n))
     C[0, 0] = 1.0
     return Phi, Gamma, C
@@ -97,10 +98,10 @@ def peer_rate(count: int) -> dict:
     import control
 
     config = fr.validate_config()
-    sampler, evaluate, _, designs = fr.make_sweep(config)
+    sampler, _, _, designs = fr.make_sweep(config)
     table = jax.tree.map(np.asarray, designs.controller)
     steps = int(round(config["simulation"]["duration"] / EXAMPLE1.h))
-    n_delay = int(np.ceil(config["plant"]["dead_time_samples"][1])) + 1
+    n_delay = n_delay_slots(config["plant"]["dead_time_samples"][1] * EXAMPLE1.h, EXAMPLE1.h)
     nominal, L_r = nominal_design()
     r = reference_gain(L_r) * config["simulation"]["force_step"]
     disturbance = np.asarray(example1_disturbance(np.arange(steps) * EXAMPLE1.h))

@@ -149,7 +149,7 @@ def simulate(
         ctrl_state, out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y, r))
         u = out.u
         x_next = plant.A @ x + plant.B @ (u + d)
-        return (x_next, ctrl_state), ClosedLoopTrace(y_true + v, y_true, u, x, out)
+        return (x_next, ctrl_state), ClosedLoopTrace(y, y_true, u, x, out)
 
     carry = (x0, controller.init(controller_params))
     _, trace = jax.lax.scan(body, carry, (reference, disturbance, noise))

@@ -33,14 +33,13 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.closed_loop import linear_controller_of
+from jaxobs.closed_loop import LinearController, linear_controller_of
 from jaxobs.lti import StateSpace
 from jaxobs.observers.active import ActiveObserverParams
 
 __all__ = [
     "loop_transfer",
     "closed_loop_matrix",
-    "aob_loop_transfer",
     "spectral_radius",
     "frequency_response",
     "Margins",
@@ -49,43 +48,38 @@ __all__ = [
 ]
 
 
-def loop_transfer(plant: StateSpace, Phi_n, Gamma_n, C_n, K, L) -> StateSpace:
+def loop_transfer(plant: StateSpace, controller: LinearController | ActiveObserverParams) -> StateSpace:
     """Loop transfer function at the plant input (seed 000 Theorem 3, eq. 65-69), state ``[x; x_hat]``.
 
-    ``plant``: the true discrete plant (any state dimension, ``D = 0``); ``Phi_n, Gamma_n, C_n``: the
-    observer's nominal model; ``K``: steady-state observer gain; ``L``: state feedback. Returns a
-    discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with ``u' = -L x_hat``
-    (negative feedback), so its return ratio is the transfer function itself.
+    ``plant``: the true discrete plant (any state dimension, ``D = 0``); ``controller``: the
+    fixed-gain observer with state feedback built on the nominal model, a
+    :class:`~jaxobs.closed_loop.LinearController` or a steady-state AOB/CKF (converted by
+    :func:`~jaxobs.closed_loop.linear_controller_of`, which honours the active-state switch).
+    Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with
+    ``u' = -L x_hat`` (negative feedback), so its return ratio is the transfer function itself.
     """
+    c = controller if isinstance(controller, LinearController) else linear_controller_of(controller)
     Phi, Gamma, C = plant.A, plant.B, plant.C
-    n, n_obs = Phi.shape[-1], Phi_n.shape[-1]
-    _checks.matrix("Phi_n", Phi_n, shape=(n_obs, n_obs), square=True)
-    _checks.matrix("Gamma_n", Gamma_n, shape=(n_obs, Gamma.shape[-1]))
-    _checks.matrix("C_n", C_n, shape=(C.shape[-2], n_obs))
-    _checks.matrix("K", K, shape=(n_obs, C.shape[-2]))
-    _checks.matrix("L", L, shape=(Gamma.shape[-1], n_obs))
-    observer = (jnp.eye(n_obs, dtype=Phi_n.dtype) - K @ C_n) @ (Phi_n - Gamma_n @ L)
-    KC = K @ C
+    n, n_obs = Phi.shape[-1], c.Phi.shape[-1]
+    _checks.matrix("Phi_n", c.Phi, shape=(n_obs, n_obs), square=True)
+    _checks.matrix("Gamma_n", c.Gamma, shape=(n_obs, Gamma.shape[-1]))
+    _checks.matrix("C_n", c.C, shape=(C.shape[-2], n_obs))
+    _checks.matrix("K", c.K, shape=(n_obs, C.shape[-2]))
+    _checks.matrix("L", c.L, shape=(Gamma.shape[-1], n_obs))
+    observer = (jnp.eye(n_obs, dtype=c.Phi.dtype) - c.K @ c.C) @ (c.Phi - c.Gamma @ c.L)
+    KC = c.K @ C
     A = jnp.block([[Phi, jnp.zeros((n, n_obs), Phi.dtype)], [KC @ Phi, observer]])
     B = jnp.concatenate([Gamma, KC @ Gamma], axis=0)
-    C_loop = jnp.concatenate([jnp.zeros((L.shape[0], n), L.dtype), L], axis=1)
-    return StateSpace(A, B, C_loop, jnp.zeros((L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
+    C_loop = jnp.concatenate([jnp.zeros((c.L.shape[0], n), c.L.dtype), c.L], axis=1)
+    return StateSpace(A, B, C_loop, jnp.zeros((c.L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
 
 
-def closed_loop_matrix(plant: StateSpace, Phi_n, Gamma_n, C_n, K, L):
+def closed_loop_matrix(plant: StateSpace, controller: LinearController | ActiveObserverParams):
     """System matrix of plant plus observer-based feedback (seed 000 Theorem 2, eq. 59), state
     ``[x; x_hat]``: ``[[Phi, -Gamma L], [K C Phi, (I - K C_n)(Phi_n - Gamma_n L) - K C Gamma L]]``.
     The loop is absolutely stable iff its spectral radius is below 1."""
-    loop = loop_transfer(plant, Phi_n, Gamma_n, C_n, K, L)
+    loop = loop_transfer(plant, controller)
     return loop.A - loop.B @ loop.C
-
-
-def aob_loop_transfer(plant: StateSpace, params: ActiveObserverParams) -> StateSpace:
-    """:func:`loop_transfer` of an AOB/CKF with steady-state gains (``with_steady_state_gains``) on
-    the true ``plant`` (the active-state switch is honoured, see
-    :func:`jaxobs.closed_loop.linear_controller_of`)."""
-    c = linear_controller_of(params)
-    return loop_transfer(plant, c.Phi, c.Gamma, c.C, c.K, c.L)
 
 
 def spectral_radius(A):

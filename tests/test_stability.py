@@ -9,13 +9,12 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxobs.closed_loop import simulate
+from jaxobs.closed_loop import LinearController, simulate
 from jaxobs.lti import ss
 from jaxobs.observers import active
 from jaxobs.papers.cortesao2006 import aob_params
 from jaxobs.papers.force_control import EXAMPLE1, force_plant, nominal_design
 from jaxobs.stability import (
-    aob_loop_transfer,
     closed_loop_matrix,
     frequency_response,
     loop_transfer,
@@ -42,7 +41,7 @@ def test_eq59_is_the_closed_loop_in_error_coordinates():
     """Theorem 2: with [x; e] = [x; x - x_hat] the closed-loop matrix is eq. 59 as printed."""
     Phi_n, Gamma_n, C, K, L, dPhi, dGamma = _random_setup(np.random.default_rng(0), m=2, p=2)
     Phi, Gamma = Phi_n + dPhi, Gamma_n + dGamma
-    A = np.asarray(closed_loop_matrix(ss(Phi, Gamma, C, dt=1.0), Phi_n, Gamma_n, C, K, L))
+    A = np.asarray(closed_loop_matrix(ss(Phi, Gamma, C, dt=1.0), LinearController(Phi_n, Gamma_n, C, K, L)))
     n = Phi.shape[0]
     I, Z = np.eye(n), np.zeros((n, n))
     T = np.block([[I, Z], [I, -I]])  # its own inverse
@@ -55,7 +54,7 @@ def test_eq66_is_the_loop_in_estimate_error_coordinates():
     """Theorem 3: with [x_hat; e] the loop matrices are eq. 66 and the output matrix [L 0] (eq. 65)."""
     Phi_n, Gamma_n, C, K, L, dPhi, dGamma = _random_setup(np.random.default_rng(1))
     Phi, Gamma = Phi_n + dPhi, Gamma_n + dGamma
-    loop = loop_transfer(ss(Phi, Gamma, C, dt=1.0), Phi_n, Gamma_n, C, K, L)
+    loop = loop_transfer(ss(Phi, Gamma, C, dt=1.0), LinearController(Phi_n, Gamma_n, C, K, L))
     n = Phi.shape[0]
     I, Z = np.eye(n), np.zeros((n, n))
     S = np.block([[Z, I], [I, -I]])  # [x_hat; e] = S [x; x_hat]
@@ -79,7 +78,7 @@ def test_closed_loop_matrix_is_what_the_simulated_aob_does():
     """The [x; x_hat] recursion of the simulated AOB-3 (closed_loop.simulate) is the matrix of eq. 59,
     also for a true plant with a longer, fractional dead time than the nominal one."""
     true, params = _aob3_loop(1.7, 0.04, 6.4 * EXAMPLE1.h)
-    A = np.asarray(closed_loop_matrix(true, params.Phi, params.Gamma, params.C, params.gain, params.L))
+    A = np.asarray(closed_loop_matrix(true, params))
     x0 = np.zeros(true.n_states)
     x0[0] = 1.0
     trace = simulate(true, params, jnp.zeros(60), x0=jnp.asarray(x0))
@@ -98,7 +97,7 @@ def test_simulation_diverges_exactly_when_the_spectral_radius_exceeds_one():
 
     def rho_and_growth(Ks, Tp, dead):
         true, params = _aob3_loop(Ks, Tp, dead)
-        rho = spectral_radius(closed_loop_matrix(true, params.Phi, params.Gamma, params.C, params.gain, params.L))
+        rho = spectral_radius(closed_loop_matrix(true, params))
         x0 = jnp.zeros(true.n_states).at[0].set(1.0)
         trace = simulate(true, params, jnp.zeros(4000), x0=x0)
         size = jnp.linalg.norm(jnp.hstack([trace.x, trace.controller.x]), axis=1)
@@ -217,7 +216,7 @@ def test_margins_under_jit_vmap_and_grad():
 def test_aob_relative_stability_decreases_with_the_order():
     """Seed 000 §6.2: more active states, more poles near z = 1, less phase and gain margin."""
     plant, L_r = nominal_design()
-    margins = [margins_jit(aob_loop_transfer(plant, aob_params(plant, L_r, n))) for n in (1, 2, 3)]
+    margins = [margins_jit(loop_transfer(plant, aob_params(plant, L_r, n))) for n in (1, 2, 3)]
     pm = [float(m.phase_margin) for m in margins]
     gm = [float(m.gain_margin) for m in margins]
     assert pm[0] > pm[1] > pm[2] > 0 and gm[0] > gm[1] > gm[2] > 1
@@ -228,7 +227,7 @@ def test_switched_off_active_state_is_the_ckf_loop():
     plant, L_r = nominal_design()
     aob = active.set_active(aob_params(plant, L_r, 2), 0.0)
     ckf = active.make_ckf(plant, L_r, EXAMPLE1.R, q_plant=EXAMPLE1.q_plant, steady_state=True)
-    a, b = margins_jit(aob_loop_transfer(plant, aob)), margins_jit(aob_loop_transfer(plant, ckf))
+    a, b = margins_jit(loop_transfer(plant, aob)), margins_jit(loop_transfer(plant, ckf))
     assert float(a.spectral_radius) == pytest.approx(float(b.spectral_radius), rel=1e-9)
     assert float(a.gain_margin) == pytest.approx(float(b.gain_margin), rel=1e-6)
 
@@ -239,9 +238,7 @@ def test_input_gain_mismatch_divides_the_gain_margin():
     params = aob_params(plant, L_r, 1)
 
     def gm(g):
-        return margins_jit(
-            aob_loop_transfer(force_plant(3.0, 0.032, EXAMPLE1.h, 0.04, input_gain=g), params)
-        ).gain_margin
+        return margins_jit(loop_transfer(force_plant(3.0, 0.032, EXAMPLE1.h, 0.04, input_gain=g), params)).gain_margin
 
     assert float(gm(1.7)) == pytest.approx(float(gm(1.0)) / 1.7, rel=1e-9)
 
@@ -260,7 +257,7 @@ def test_bad_input():
     with pytest.raises(ValueError, match="SISO"):
         stability_margins(ss(A, np.ones((2, 2)), C, dt=0.1))
     with pytest.raises(ValueError, match="K"):
-        loop_transfer(ss(A, B, C, dt=0.1), A, B, C, np.ones((3, 1)), np.ones((1, 2)))
+        loop_transfer(ss(A, B, C, dt=0.1), LinearController(A, B, C, np.ones((3, 1)), np.ones((1, 2))))
     plant, L_r = nominal_design()
     with pytest.raises(ValueError, match="steady-state"):
-        aob_loop_transfer(plant, active.make_ckf(plant, L_r, EXAMPLE1.R))
+        loop_transfer(plant, active.make_ckf(plant, L_r, EXAMPLE1.R))

@@ -245,7 +245,7 @@ def make_sweep(config: dict):
         ctrl = jax.tree.map(lambda M: M[p["design"]], table)
         true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
         margins = stability_margins(
-            loop_transfer(true, ctrl.Phi, ctrl.Gamma, ctrl.C, ctrl.K, ctrl.L),
+            loop_transfer(true, ctrl),
             num_points=config["margins"]["num_points"],
         )
         noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(p["noise_seed"]), (steps,))
