@@ -10,7 +10,11 @@ jaxobs runs through :func:`jaxobs.sweep.run_sweep` (Parquet output included, com
 The peer loops over a few configurations (``--peer-configs``) with ``scipy.linalg.expm``,
 ``numpy.linalg.eigvals``, ``control.stability_margins`` and a Python time loop, and is extrapolated.
 Device scaling reruns the jaxobs measurement in subprocesses with
-``XLA_FLAGS=--xla_force_host_platform_device_count=D`` (on a 2-core machine more devices cannot help).
+``XLA_FLAGS=--xla_force_host_platform_device_count=D`` for two workloads: the default evaluation, which the
+engine computes on one CPU device whatever D (it calls jaxlib's batched LAPACK kernels, which can deadlock
+several CPU devices; see ``jaxobs.sweep``), and its LAPACK-free closed-loop simulation alone (true plants
+from a table discretised beforehand), which shards over the D devices. Forced host devices share the
+machine's cores, so more devices than cores cannot help.
 
     python benchmarks/sweep_throughput.py --out DIR [--configs 8000] [--peer-configs 20]
 
@@ -33,26 +37,67 @@ import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 
 from jaxobs.lti import n_delay_slots  # noqa: E402
 from jaxobs.papers import force_robustness as fr  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain  # noqa: E402
+from jaxobs.papers.force_control import (  # noqa: E402
+    EXAMPLE1,
+    example1_disturbance,
+    force_plant,
+    nominal_design,
+    reference_gain,
+)
 from jaxobs.sweep import config_key, run_sweep  # noqa: E402
 
 TARGET = 100.0
+PLANT_TABLE = 1000  # true plants of the simulation-only workload
 
 
-def jaxobs_rate(configs: int, chunk: int) -> dict:
+def _simulation_only(config: dict):
+    """A LAPACK-free workload for the device scaling: the default sweep's 2500-step closed loop and RMS force
+    error, with the true plants drawn from a table discretised beforehand (the full evaluation's ``c2d`` and
+    eigenvalues call LAPACK kernels, which make the engine compute on one CPU device; see ``jaxobs.sweep``)."""
+    sampler, _, _, designs = fr.make_sweep(config)
+    n_delay, closed_loop = fr._scenario(config)[1], fr.tracking(config)
+    params = jax.vmap(lambda i: sampler(config_key(0, i), i))(jnp.arange(PLANT_TABLE))
+    plants = jax.jit(
+        jax.vmap(
+            lambda p: force_plant(
+                p["stiffness"], p["time_constant"], EXAMPLE1.h, p["dead_time_samples"] * EXAMPLE1.h, n_delay=n_delay
+            )
+        )
+    )(params)
+
+    def sample(key, index):
+        return {"design": index % len(designs), "plant": (index // len(designs)) % PLANT_TABLE,
+                "noise_seed": jax.random.bits(key, (), jnp.uint32)}  # fmt: skip
+
+    def evaluate(p):
+        ctrl = jax.tree.map(lambda M: M[p["design"]], designs.controller)
+        true = jax.tree.map(lambda M: M[p["plant"]], plants)
+        return {"rms_force_error": closed_loop(true, ctrl, p["noise_seed"])[1]}
+
+    return sample, evaluate
+
+
+def jaxobs_rate(configs: int, chunk: int, workload: str = "default") -> dict:
+    """Configurations per second of ``run_sweep`` on ``workload`` ("default" or "simulation")."""
     config = fr.validate_config({"chunk_size": chunk})
-    sampler, evaluate, _, _ = fr.make_sweep(config)
+    if workload == "default":
+        sampler, evaluate, _, _ = fr.make_sweep(config)
+    else:
+        sampler, evaluate = _simulation_only(config)
     with tempfile.TemporaryDirectory() as tmp:
         result = run_sweep(sampler, evaluate, configs, tmp, chunk_size=chunk, progress=False)
+        used = json.loads((Path(tmp) / "manifest.json").read_text())["device_count"]
     return {
         "configs": configs,
         "configs_per_second": result.configs_per_second,
         "devices": jax.device_count(),
+        "devices_used": used,
         "seconds_with_compile": result.seconds,
     }
 
@@ -141,15 +186,18 @@ def peer_rate(count: int) -> dict:
 
 
 def device_scaling(configs: int, chunk: int, counts=(1, 2, 4)) -> dict:
+    """``{workload: {devices: rate}}``, each in a subprocess with ``devices`` forced host devices."""
     out = {}
-    for devices in counts:
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
-        code = (
-            "import json, sys; sys.path.insert(0, 'benchmarks'); import sweep_throughput as s; "
-            f"print(json.dumps(s.jaxobs_rate({configs}, {chunk})))"
-        )
-        run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-        out[str(devices)] = json.loads(run.stdout.strip().splitlines()[-1])
+    for workload in ("default", "simulation"):
+        out[workload] = {}
+        for devices in counts:
+            env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
+            code = (
+                "import json, sys; sys.path.insert(0, 'benchmarks'); import sweep_throughput as s; "
+                f"print(json.dumps(s.jaxobs_rate({configs}, {chunk}, {workload!r})))"
+            )
+            run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+            out[workload][str(devices)] = json.loads(run.stdout.strip().splitlines()[-1])
     return out
 
 
@@ -179,8 +227,13 @@ def main(argv=None) -> dict:
     print(f"NumPy + python-control: {peer['configs_per_second']:.2f} configs/s ({peer['configs']} configs)")
     verdict = "MET" if ratio >= TARGET else "MISSED"
     print(f"ratio {ratio:.0f}x (target >= {TARGET:g}x): {verdict}")
-    for devices, rec in results.get("device_scaling", {}).items():
-        print(f"  {devices} host device(s): {rec['configs_per_second']:.0f} configs/s")
+    for workload, rates in results.get("device_scaling", {}).items():
+        base = rates["1"]["configs_per_second"]
+        for devices, rec in rates.items():
+            print(
+                f"  {workload}, {devices} host device(s) ({rec['devices_used']} used): "
+                f"{rec['configs_per_second']:.0f} configs/s ({rec['configs_per_second'] / base:.2f}x)"
+            )
     _plot(results, args.out / "sweep_throughput.png")
     return results
 
@@ -197,8 +250,13 @@ def _plot(results: dict, path: Path) -> None:
     a.set_ylabel("configurations / s")
     a.set_title(f"default sweep evaluation: {results['ratio']:.0f}x (target {TARGET:g}x)")
     scaling = results.get("device_scaling", {})
+    for workload, rates in scaling.items():
+        used = sorted({r["devices_used"] for r in rates.values()})
+        label = f"{workload} (devices used: {', '.join(map(str, used))})"
+        b.plot([int(d) for d in rates], [r["configs_per_second"] for r in rates.values()], "o-", label=label)
+        b.set_xticks([int(d) for d in rates])
     if scaling:
-        b.plot([int(d) for d in scaling], [r["configs_per_second"] for r in scaling.values()], "o-")
+        b.legend()
         b.set_xlabel("forced host devices")
         b.set_ylabel("configurations / s")
         b.set_title(f"device scaling ({results['platform']['cpu_count']} CPU cores)")

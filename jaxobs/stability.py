@@ -179,8 +179,8 @@ def _crossings(f, theta, values, max_crossings: int, iters: int):
 def _exact_with_slope(sys: StateSpace, theta):
     """Exact ``H`` and ``dH/dtheta`` at the (held constant) frequencies ``theta``, in one batched
     solve: Newton steps from them give first-order values whose gradients follow the implicit
-    function theorem through the crossover frequencies. (One solve call on purpose: several
-    independent batched complex solves in one XLA CPU program have been seen to deadlock.)"""
+    function theorem through the crossover frequencies. (One solve call on purpose: see the
+    eigenvalue call in :func:`stability_margins`.)"""
     theta = jax.lax.stop_gradient(theta)
     one = jax.vmap(lambda t: jax.jvp(lambda s: _resolvent_response(sys, s), (t,), (jnp.ones_like(t),)))
     return one(theta)
@@ -215,8 +215,10 @@ def stability_margins(
     _require_discrete_siso(sys)
     dtype = jnp.result_type(sys.A, float)
     d = sys.D[0, 0]
-    closed = jnp.linalg.eigvals(sys.A - sys.B @ sys.C / (1.0 + d))
-    fast = _product_response(jnp.linalg.eigvals(sys.A), closed, d)
+    # one batched eigenvalue call: independent LAPACK calls in one XLA CPU program can run at once,
+    # and jaxlib 0.10's batched LAPACK kernels deadlock when they fill its thread pool (see jaxobs.sweep)
+    poles, closed = jnp.linalg.eigvals(jnp.stack([sys.A, sys.A - sys.B @ sys.C / (1.0 + d)]))
+    fast = _product_response(poles, closed, d)
     theta = _grid(num_points, dtype)
     H = fast(theta)
     inf, nan = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype)

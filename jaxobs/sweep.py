@@ -30,6 +30,9 @@ of 32 and 128). Different ``chunk_size`` values give the same numbers up to such
 with ``in_shardings``: the per-device program is exactly ``vmap(row)``, and host callbacks run on each device
 instead of being funnelled through device 0. A chunk file holds ``chunk_size``
 rows (the last one fewer) whatever the device count, so a sweep may be resumed on another machine.
+On CPU, an evaluation that calls jaxlib's batched LAPACK kernels (``jnp.linalg.solve``, ``eigvals``,
+``cholesky``, ...) runs on one device per process (logged, and recorded as ``device_count``): with jaxlib
+0.10 several CPU devices running those kernels at once can deadlock its thread pool.
 
 Output (``out_dir``): ``chunks/chunk-00000.parquet``, ... and ``manifest.json``. Columns: ``index`` (int64),
 then ``param.<name>`` and ``metric.<name>``, where ``<name>`` is the leaf's pytree key path joined with "."
@@ -59,6 +62,7 @@ import logging
 import math
 import os
 import platform
+import re
 import shutil
 import sys
 import time
@@ -210,6 +214,43 @@ def _check_args(sampler, evaluate, num_configs, chunk_size, seed, config) -> Non
         raise ValueError(f"config must be a JSON-serialisable dict (it is stored in the manifest): {e}") from e
 
 
+# jaxlib's batched LAPACK kernels on CPU (LU, eigenvalues, Cholesky, ...; triangular solves are plain loops)
+# split their batch over XLA's intra-op thread pool and block a pool thread until the parts are done.
+# Several CPU devices running such kernels at once can take every pool thread and then wait forever
+# (seen with jaxlib 0.10.2: 2 cores, 2 forced host devices, a batched jnp.linalg.solve or eigvals).
+_BLOCKING_LAPACK = re.compile(r'custom_call_target="lapack_(?!\w*trsm)\w+"')
+
+
+def _compile(row, devices, chunk_size: int):
+    """``(compiled step, input sharding, devices used)`` for ``vmap(row)`` over one chunk per device.
+
+    On CPU, a program with blocking LAPACK kernels (see ``_BLOCKING_LAPACK``) is run on one device per
+    process instead: the forced host devices share the same cores, and jaxlib already spreads each
+    LAPACK batch over all of them.
+    """
+    while True:
+        mesh = Mesh(np.array(devices), ("configs",))
+        sharding = NamedSharding(mesh, PartitionSpec("configs"))
+        spec = PartitionSpec("configs")  # check_vma=False: scans may start from constant carries
+        step = jax.shard_map(jax.vmap(row), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+        batch = jax.ShapeDtypeStruct((len(devices) * chunk_size,), jnp.int32, sharding=sharding)
+        compiled = jax.jit(step).lower(batch).compile()
+        one_per_process = [next(d for d in devices if d.process_index == p) for p in range(jax.process_count())]
+        if len(devices) == len(one_per_process) or devices[0].platform != "cpu":
+            return compiled, sharding, devices
+        kernels = sorted(set(_BLOCKING_LAPACK.findall(compiled.as_text())))
+        if not kernels:
+            return compiled, sharding, devices
+        _log.warning(
+            "the evaluation calls jaxlib's batched CPU LAPACK kernels (%s), which can deadlock when several CPU "
+            "devices run them at once; computing on %d device(s), one per process, instead of %d",
+            ", ".join(k.split('"')[1] for k in kernels),
+            len(one_per_process),
+            len(devices),
+        )
+        devices = one_per_process
+
+
 def run_sweep(
     sampler,
     evaluate,
@@ -281,7 +322,11 @@ def run_sweep(
     completed = {c: e for c, e in completed.items() if not todo[int(c)]}
     reused_rows = sum(e["rows"] for e in completed.values())
 
-    devices = jax.devices()
+    devices, compiled, sharding, compile_seconds = jax.devices(), None, None, (old or {}).get("compile_seconds")
+    start = time.perf_counter()
+    if todo.any():  # compile before touching out_dir, so that a failure leaves it as it was
+        compiled, sharding, devices = _compile(row, devices, chunk_size)
+        compile_seconds = time.perf_counter() - start
     manifest = {
         "format_version": FORMAT_VERSION,
         **sweep_id,
@@ -294,20 +339,12 @@ def run_sweep(
         "completed": completed,
         "created": (old or {}).get("created", _now()),
         "seconds": (old or {}).get("seconds", 0.0),  # wall time of all runs, compilation included
-        "compile_seconds": (old or {}).get("compile_seconds"),
+        "compile_seconds": compile_seconds,
     }
-    start, previous_seconds = time.perf_counter(), manifest["seconds"]
+    previous_seconds = manifest["seconds"]
     done_chunks, computed_rows, compute_seconds = num_chunks - int(todo.sum()), 0, 0.0
     bar, ndev = None, len(devices)
     try:
-        if todo.any():  # compile before touching out_dir, so that a failure leaves it as it was
-            mesh = Mesh(np.array(devices), ("configs",))
-            sharding = NamedSharding(mesh, PartitionSpec("configs"))
-            spec = PartitionSpec("configs")  # check_vma=False: scans may start from constant carries
-            step = jax.shard_map(jax.vmap(row), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
-            batch = jax.ShapeDtypeStruct((ndev * chunk_size,), jnp.int32, sharding=sharding)
-            compiled = jax.jit(step).lower(batch).compile()
-            manifest["compile_seconds"] = time.perf_counter() - start
         if writer:
             if overwrite:
                 (out_dir / _MANIFEST).unlink(missing_ok=True)

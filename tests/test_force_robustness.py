@@ -2,6 +2,9 @@
 and a small end-to-end run with its report."""
 
 import json
+import os
+import subprocess
+import sys
 
 import jax.numpy as jnp
 import numpy as np
@@ -74,14 +77,24 @@ def test_missing_or_invalid_toml_exits_2(tmp_path, capsys):
     assert "not valid TOML" in capsys.readouterr().err
 
 
-def test_small_sweep_end_to_end(tmp_path):
-    path = tmp_path / "small.toml"
-    path.write_text(
-        "chunk_size = 64\n[controllers]\ngrid_points = 2\n[simulation]\nconfigs_per_design = 8\nduration = 2.0\n"
-        "[margins]\nnum_points = 128\n"
-    )
-    out = tmp_path / "sweep"
+SMALL_TOML = (
+    "chunk_size = 64\n[controllers]\ngrid_points = 2\n[simulation]\nconfigs_per_design = 8\nduration = 2.0\n"
+    "[margins]\nnum_points = 128\n"
+)
+
+
+@pytest.fixture(scope="module")
+def small_sweep(tmp_path_factory):
+    """The SMALL sweep run by the CLI on one device: (config path, out dir)."""
+    root = tmp_path_factory.mktemp("small")
+    path, out = root / "small.toml", root / "sweep"
+    path.write_text(SMALL_TOML)
     assert main(["sweep", "--config", str(path), "--out", str(out), "--no-progress"]) == 0
+    return path, out
+
+
+def test_small_sweep_end_to_end(small_sweep):
+    path, out = small_sweep
     summary = json.loads((out / "summary.json").read_text())
     assert summary["num_configs"] == 4 * 4 * 8
     for name in ("stability_maps.png", "distributions.png", "worst_cases.png", "report.md"):
@@ -95,3 +108,25 @@ def test_small_sweep_end_to_end(tmp_path):
     assert main(["sweep", "--config", str(path), "--out", str(out), "--no-progress"]) == 0
     again = json.loads((out / "summary.json").read_text())
     assert again["controllers"] == summary["controllers"] and again["chunks_computed"] == 0
+
+
+def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
+    """The default evaluation calls batched LAPACK kernels (LU, eigenvalues) that can deadlock jaxlib 0.10's CPU
+    thread pool when several devices run them at once: the engine says so and computes on one device."""
+    path, reference = small_sweep
+    out = tmp_path / "two"
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip(),
+    }
+    cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--config", str(path), "--out", str(out), "--no-progress"]
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "can deadlock when several CPU devices run them at once" in run.stderr
+    assert "lapack_dgeev_ffi" in run.stderr and "lapack_dgetrf_ffi" in run.stderr
+    assert json.loads((out / "manifest.json").read_text())["device_count"] == 1
+    want, got = fr.load_results(reference), fr.load_results(out)
+    assert list(got) == list(want)
+    for name in want:
+        assert np.array_equal(got[name], want[name], equal_nan=True), name

@@ -214,12 +214,28 @@ def _scenario(config: dict):
     return steps, n_delay_slots(config["plant"]["dead_time_samples"][1] * h, h), reference, desired, disturbance
 
 
+def tracking(config: dict):
+    """``(true plant, controller, noise seed) -> (force, RMS force error, peak |force|)``: the closed loop of
+    the scenario (the two scores are inf where it diverges)."""
+    steps, _, reference, desired, disturbance = _scenario(config)
+    std = jnp.sqrt(config["simulation"]["sensor_noise"])
+
+    def run(true, ctrl, noise_seed):
+        noise = std * jax.random.normal(jax.random.PRNGKey(noise_seed), (steps,))
+        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
+        force = trace.y_true[:, 0]
+        error, peak = rms(force - desired), jnp.max(jnp.where(jnp.isfinite(force), jnp.abs(force), jnp.inf))
+        return force, jnp.where(jnp.isfinite(error), error, jnp.inf), peak
+
+    return run
+
+
 def make_sweep(config: dict):
     """``(sampler, evaluate, num_configs, designs)`` for :func:`jaxobs.sweep.run_sweep`."""
     designs = build_designs(config)
-    plant_cfg, sim = config["plant"], config["simulation"]
-    h = EXAMPLE1.h
-    steps, n_delay, reference, desired, disturbance = _scenario(config)
+    plant_cfg, h = config["plant"], EXAMPLE1.h
+    n_delay = _scenario(config)[1]
+    closed_loop = tracking(config)
     table = designs.controller
     order, variance, R = (jnp.asarray(a) for a in (designs.order, designs.active_variance, designs.R))
     log_ks = np.log(plant_cfg["stiffness"])
@@ -248,10 +264,7 @@ def make_sweep(config: dict):
             loop_transfer(true, ctrl),
             num_points=config["margins"]["num_points"],
         )
-        noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(p["noise_seed"]), (steps,))
-        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
-        force = trace.y_true[:, 0]
-        error = rms(force - desired)
+        _, error, peak = closed_loop(true, ctrl, p["noise_seed"])
         return {
             "spectral_radius": margins.spectral_radius,
             "stable": margins.spectral_radius < 1.0,
@@ -259,11 +272,11 @@ def make_sweep(config: dict):
             "phase_margin": margins.phase_margin,
             "delay_margin": margins.delay_margin,
             "stability_margin": margins.stability_margin,
-            "rms_force_error": jnp.where(jnp.isfinite(error), error, jnp.inf),
-            "peak_force": jnp.max(jnp.where(jnp.isfinite(force), jnp.abs(force), jnp.inf)),
+            "rms_force_error": error,
+            "peak_force": peak,
         }
 
-    return sampler, evaluate, count * sim["configs_per_design"], designs
+    return sampler, evaluate, count * config["simulation"]["configs_per_design"], designs
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
@@ -414,8 +427,8 @@ def _plot_distributions(cols, orders, out_dir: Path) -> str:
 def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
     """Re-simulate each controller's worst stable case (same noise) and plot force vs desired."""
     plt = pyplot()
-    sim = config["simulation"]
-    steps, n_delay, reference, desired, disturbance = _scenario(config)
+    steps, n_delay, _, desired, _ = _scenario(config)
+    closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
     fig, ax = plt.subplots(figsize=(9, 4))
     ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
@@ -423,9 +436,8 @@ def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path
         ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
         true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
                            n_delay=n_delay)  # fmt: skip
-        noise = jnp.sqrt(sim["sensor_noise"]) * jax.random.normal(jax.random.PRNGKey(case["noise_seed"]), (steps,))
-        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
-        ax.plot(t, np.asarray(trace.y_true[:, 0]), lw=0.8,
+        force = closed_loop(true, ctrl, case["noise_seed"])[0]
+        ax.plot(t, np.asarray(force), lw=0.8,
                 label=f"{name}: Ks={case['stiffness']:.2g}, Tp={case['time_constant'] * 1e3:.0f} ms, "
                 f"d={case['dead_time_samples']:.1f}, RMS {case['rms_force_error']:.2f} N")  # fmt: skip
     ax.set_xlabel("time (s)")
