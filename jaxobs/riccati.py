@@ -65,13 +65,21 @@ def update_covariance(P1, C, R):
 
     ``P = (I - K C) P1 (I - K C)' + K R K'``: a congruence plus a PSD term, so ``P`` stays symmetric
     positive semidefinite in floating point even for very precise measurements (the expanded
-    form ``P1 - K C P1 - ...`` cancels at the scale of ``P1`` and can turn indefinite).
+    form ``P1 - K C P1 - ...`` cancels at the scale of ``P1`` and can turn indefinite). With fewer
+    outputs than half the states, each factor is applied as a rank-m correction,
+    ``(I - K C) X = X - K (C X)``: the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``.
     """
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
     K = _solve_spd(S, CP1).T
-    IKC = jnp.eye(P1.shape[-1], dtype=P1.dtype) - K @ C
-    return symmetrize(IKC @ P1 @ IKC.T + K @ R @ K.T), K
+    n, m = C.shape[-1], C.shape[-2]
+    if 2 * m < n:
+        left = P1 - K @ CP1  # (I - K C) P1
+        congruence = left - (left @ C.T) @ K.T  # ((I - K C) P1) (I - K C)'
+    else:
+        IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
+        congruence = IKC @ P1 @ IKC.T
+    return symmetrize(congruence + K @ R @ K.T), K
 
 
 def riccati_step(P_prev, Phi, C, Q, R):

@@ -74,14 +74,15 @@ def test_riccati_step_equations_seed000_eq27_29():
     np.testing.assert_allclose(kalman_gain(P1_ref, C, R), K_ref, rtol=1e-11)
 
 
-def test_update_covariance_is_joseph_form_eq29():
+@pytest.mark.parametrize("n, m", [(3, 2), (6, 1), (10, 2)])  # explicit I - K C, and rank-m corrections
+def test_update_covariance_is_joseph_form_eq29(n, m):
     """update_covariance returns the Joseph expression (I-KC)P1(I-KC)' + KRK' (eq. 29 in Joseph form), written out
     here with the gain it reports."""
     rng = np.random.default_rng(1)
-    _, C, Q, R = random_system(rng, 3, 2)
+    _, C, Q, R = random_system(rng, n, m)
     P, K = update_covariance(Q, C, R)
     K = np.asarray(K)
-    IKC = np.eye(3) - K @ C
+    IKC = np.eye(n) - K @ C
     np.testing.assert_allclose(P, IKC @ Q @ IKC.T + K @ R @ K.T, rtol=1e-12, atol=1e-15)
 
 
@@ -221,7 +222,7 @@ def test_covariance_sequence_converges_to_dare():
 
 
 @given(
-    n=st.sampled_from([2, 3]),
+    n=st.sampled_from([2, 3, 6]),
     m=st.sampled_from([1, 2]),
     seed=st.integers(0, 2**32 - 1),
     r_exp=st.integers(0, 10),
@@ -242,18 +243,18 @@ def test_joseph_covariance_stays_symmetric_psd(n, m, seed, r_exp, zero_init):
         assert np.all(np.linalg.eigvalsh(P).min(axis=-1) >= -1e-10 * scale)
 
 
-def test_joseph_update_stays_psd_for_very_precise_measurements():
-    """The reason for the Joseph form (eq. 29): with very precise measurements (R / P1 ~ 1e-16, every state
-    measured) the posterior covariance is a tiny PSD matrix computed from O(1) quantities. One update with
+@pytest.mark.parametrize("n, m", [(3, 3), (6, 1), (6, 2)])  # explicit I - K C, and rank-m corrections
+def test_joseph_update_stays_psd_for_very_precise_measurements(n, m):
+    """The reason for the Joseph form (eq. 29): with very precise measurements (R / P1 ~ 1e-16) the posterior
+    covariance is small in the measured directions, computed from O(1) quantities. One update with
     P1 ~ 1e8, R ~ 1e-8, and 50 Riccati steps with Q ~ 1, R ~ 1e-16, must stay finite, exactly symmetric and PSD
     (min eigenvalue >= -1e-10 * scale)."""
     failures = []
     for seed in range(6):
         rng = np.random.default_rng(seed)
-        n = 3
-        Phi, C, Q, _ = random_system(rng, n, n, rho=0.9)
-        Hm = rng.normal(size=(n, n))
-        R = 1e-16 * (Hm @ Hm.T + 0.1 * np.eye(n))
+        Phi, C, Q, _ = random_system(rng, n, m, rho=0.9)
+        Hm = rng.normal(size=(m, m))
+        R = 1e-16 * (Hm @ Hm.T + 0.1 * np.eye(m))
         G = rng.normal(size=(n, n))
         P_one, _ = update_covariance(1e8 * (G @ G.T + 0.1 * np.eye(n)), C, 1e8 * R)
         seq = sequence_jit(Q, Phi, C, Q, R, 50)
