@@ -1,0 +1,265 @@
+"""1-DOF robot force-control plant in MuJoCo MJX (seed 003 §7, eq. 56-58; seed 000 §7; seed 001 §4).
+
+The physical setup (seed 003 §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
+interface at ``h = 8 ms`` and an input dead time of 5 samples; a compliant force sensor of stiffness
+``Ks = 3 N/mm`` carries "the manipulator compliance"; the environment is very stiff. Per DOF the position
+response is ``Gp(s) = e^{-s Td} / (1 + Tp s)`` (eq. 56) and the plant input ``u`` is a **velocity** command
+in mm/s (eq. 59): the position interface integrates it, ``x_c = ∫ u dt``. With ``F = Ks x`` this gives the
+analytic plant ``F(s) / u(s) = Ks / (s (1 + Tp s)) e^{-s Td}`` (eq. 57) of
+:func:`jaxobs.papers.force_control.force_plant`.
+
+MJCF model (``assets/force_1dof.xml``, units mm, N, s, so masses in tonnes and ``Ks`` in N/mm as printed):
+
+* one body, the flange plus tool, on a slide joint; ``x`` (mm) is its displacement past the contact point;
+* the sensor compliance is the joint spring: ``jnt_stiffness = Ks``, ``springref = 0``, optional sensor
+  damping ``dof_damping = Ds`` (N s/mm, 0 nominally), so the sensor force is ``F = Ks x + Ds xdot``;
+* the robot's position loop is a velocity servo (``<velocity>`` actuator, gain ``kv`` in N s/mm) acting on
+  the total inertia ``M = kv Tp`` (``dof_armature = kv Tp - m_tool``, the reflected drive inertia).
+
+Derivation. The first-order position loop ``Tp xdot = x_c - x`` differentiated with ``x_c' = u`` is
+``Tp xddot + xdot = u``; multiplying by ``kv`` gives ``M xddot = kv (u - xdot)`` with ``M = kv Tp``: a
+velocity servo (for the matched initial state ``x(0) = x_c(0)``, ``xdot(0) = 0`` the two are identical).
+The sensor spring pushes back on the robot, so the MJX plant is
+
+    M xddot = kv (u - xdot) - Ks x - Ds xdot   =>   F(s)/u(s) = kv (Ks + Ds s) / (M s^2 + (kv + Ds) s + Ks).
+
+With ``Ds = 0`` and ``M = kv Tp`` this is ``Ks / (Tp s^2 + s + Ks / kv)``: the paper's plant with its
+integrator pole moved from 0 to about ``-Ks / kv`` (the robot's position loop yields to the contact force
+by ``Ks / kv``; ``3e-4 1/s`` nominally, a 0.03 %/s drift). ``kv -> infinity`` is the paper's reduction.
+
+The measured force is the simulation's joint passive force, ``F = -qfrc_passive`` (spring plus damper),
+read at the control instant ``k h`` (MuJoCo evaluates ``qfrc_passive`` at the start of a step, so the first
+physics substep of control step ``k`` reports the force of the state at ``k h``), plus additive noise.
+
+Simplifications against the real robot setup (document them where results are quoted):
+
+* one Cartesian DOF, gravity off (gravity-compensated), no coupling to the other DOFs;
+* the position loop is exactly first order (no servo resonances, no saturation, no joint friction);
+* the contact is bilateral and always closed: the sensor spring also pulls (``F < 0``) instead of losing
+  contact, there is no preload and no contact geometry (a contact-free compliant formulation keeps
+  forward and reverse differentiation smooth);
+* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, seed 003 §7.2);
+* the dead time is a whole number of control samples, applied to the command (a FIFO in the rollout state),
+  the command is held constant over a control step (ZOH), and the force is sampled without anti-alias
+  filtering;
+* semi-implicit Euler at 1 ms (``Tp / dt = 32``) shifts the lag time constant by about ``dt / 2``.
+
+Parameters map to model fields only in :func:`with_params`, so mismatched batches are
+``jax.vmap(lambda p: rollout(with_params(model, p), u))(params_batch)``.
+Float32 is adequate for the nominal model (all magnitudes are within 1e-3..1e4); tests run in float64.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from jaxobs import _checks
+
+__all__ = [
+    "CONTROL_PERIOD",
+    "SUBSTEPS",
+    "ForcePlantParams",
+    "ForceRollout",
+    "load_model",
+    "with_params",
+    "rollout",
+]
+
+ASSET = "force_1dof.xml"
+TIMESTEP = 0.001  # s, physics step (the MJCF's option/timestep)
+SUBSTEPS = 8  # physics steps per control step
+CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (seed 003 Table 1)
+_JOINT = "x"
+_BODY = "tool"
+_ACTUATOR = "servo"
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ForcePlantParams:
+    """Physical parameters of the 1-DOF force plant (mm, N, s units; seed 003 Table 1 nominal values).
+
+    Attributes:
+      ks: sensor + environment stiffness ``Ks`` in N/mm (> 0).
+      tp: position-loop time constant ``Tp`` in s (> 0).
+      damping: sensor + environment damping ``Ds`` in N s/mm (>= 0); it is part of the measured force.
+      servo_gain: velocity-servo gain ``kv`` in N s/mm (> 0); the robot's total moving inertia is
+        ``kv Tp`` (so an inertia mismatch is a ``tp`` mismatch here) and the position loop yields to the
+        contact force by ``ks / servo_gain``.
+    """
+
+    ks: float = 3.0
+    tp: float = 0.032
+    damping: float = 0.0
+    servo_gain: float = 1.0e4
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
+        _checks.positive_scalar("ks", self.ks)
+        _checks.positive_scalar("tp", self.tp)
+        _checks.positive_scalar("damping", self.damping, allow_zero=True)
+        _checks.positive_scalar("servo_gain", self.servo_gain)
+
+
+class ForceRollout(NamedTuple):
+    """Per control step ``k`` (at time ``k h``, before the step's command acts)."""
+
+    force: jax.Array  # measured force (N): simulated sensor force plus noise
+    force_true: jax.Array  # noise-free sensor force (N)
+    position: jax.Array  # tool position x (mm past the contact point)
+    velocity: jax.Array  # tool velocity (mm/s)
+    applied: jax.Array  # command applied during step k (mm/s), i.e. u_{k-d}
+
+
+def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
+    jnt = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, _JOINT)
+    body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, _BODY)
+    act = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, _ACTUATOR)
+    return jnt, body, act
+
+
+def _tool_mass(model) -> float:
+    return model.body_mass[1]
+
+
+def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
+    """Return ``model`` with the physical ``params`` written into its array fields (pure, traceable).
+
+    The one place where parameters map to fields: ``jnt_stiffness = ks``, ``dof_damping = damping``,
+    ``actuator_gainprm[0] = kv``, ``actuator_biasprm[2] = -kv``, ``dof_armature = kv tp - m_tool``.
+    Derived fields used only by constraints (``dof_invweight0``, ``actuator_acc0``, ...) are left as
+    they are: constraints and contacts are disabled in this model.
+    """
+    params.validate()
+    if _checks.is_concrete(params.servo_gain, params.tp, model.body_mass):
+        inertia, tool_mass = float(params.servo_gain) * float(params.tp), float(np.asarray(model.body_mass)[1])
+        if inertia <= tool_mass:
+            raise ValueError(f"servo_gain * tp = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain")
+    dtype = model.jnt_stiffness.dtype
+    ks, tp, damping, kv = (jnp.asarray(v, dtype) for v in (params.ks, params.tp, params.damping, params.servo_gain))
+    return model.replace(
+        jnt_stiffness=jnp.asarray(model.jnt_stiffness).at[0].set(ks),
+        dof_damping=jnp.asarray(model.dof_damping).at[0].set(damping),
+        dof_armature=jnp.asarray(model.dof_armature).at[0].set(kv * tp - _tool_mass(model)),
+        actuator_gainprm=jnp.asarray(model.actuator_gainprm).at[0, 0].set(kv),
+        actuator_biasprm=jnp.asarray(model.actuator_biasprm).at[0, 2].set(-kv),
+    )
+
+
+def load_model(params: ForcePlantParams | None = None) -> tuple[mujoco.MjModel, mjx.Model]:
+    """Load the packaged MJCF and return ``(mj_model, mjx_model)`` with ``params`` applied to both.
+
+    ``params`` must be concrete here (build batches with :func:`with_params` under ``vmap``).
+    """
+    params = ForcePlantParams() if params is None else params
+    params.validate()
+    xml = importlib.resources.files("jaxobs.mjx").joinpath("assets", ASSET).read_text()
+    m = mujoco.MjModel.from_xml_string(xml)
+    jnt, body, act = _ids(m)
+    assert (jnt, body, act) == (0, 1, 0), "force_1dof.xml layout changed; update with_params"
+    kv, tp = float(params.servo_gain), float(params.tp)
+    if kv * tp <= m.body_mass[body]:
+        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {m.body_mass[body]} t")
+    m.jnt_stiffness[jnt] = float(params.ks)
+    m.dof_damping[0] = float(params.damping)
+    m.dof_armature[0] = kv * tp - m.body_mass[body]
+    m.actuator_gainprm[act, 0] = kv
+    m.actuator_biasprm[act, 2] = -kv
+    return m, mjx.put_model(m)
+
+
+def rollout(
+    model: mjx.Model,
+    commands,
+    *,
+    dead_time_samples: int = 5,
+    substeps: int = SUBSTEPS,
+    noise=None,
+    fifo_init=None,
+) -> ForceRollout:
+    """Simulate the plant over ``len(commands)`` control steps in one ``lax.scan``.
+
+    Control step ``k`` (time ``k h``, ``h = substeps * model.opt.timestep``): the force is sampled
+    (``-qfrc_passive`` of the state at ``k h``) and ``noise[k]`` added; the command FIFO pops
+    ``u_{k-d}`` and pushes ``u_k``; ``u_{k-d}`` is held for ``substeps`` ``mjx.step`` calls (an inner
+    ``lax.scan``). Starts at rest at the contact point (``F = 0``).
+
+    Args:
+      model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params`.
+      commands: velocity commands ``u_k`` in mm/s, shape ``(T,)``.
+      dead_time_samples: command dead time ``d`` in control samples (Python int >= 0; 5 in the papers).
+      substeps: physics steps per control step (Python int >= 1).
+      noise: additive force-sensor noise in N, shape ``(T,)``, or None. Draw it outside, e.g.
+        ``sigma * jax.random.normal(key, (T,))``, and ``vmap`` over keys for seed batches.
+      fifo_init: the ``d`` commands issued before step 0 (oldest first), shape ``(d,)``; zeros by default.
+
+    Returns:
+      :class:`ForceRollout` of arrays of shape ``(T,)``. Pure: works under ``jit``, ``vmap``, ``grad``,
+      ``jacfwd``.
+    """
+    if not isinstance(dead_time_samples, (int, np.integer)) or isinstance(dead_time_samples, bool):
+        raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
+    if dead_time_samples < 0:
+        raise ValueError(f"dead_time_samples must be >= 0, got {dead_time_samples}")
+    if not isinstance(substeps, (int, np.integer)) or isinstance(substeps, bool) or substeps < 1:
+        raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
+    commands = jnp.asarray(commands)
+    if commands.ndim != 1:
+        raise ValueError(f"commands must have shape (T,) (one velocity command per control step), got {commands.shape}")
+    if _checks.is_concrete(commands) and not np.all(np.isfinite(np.asarray(commands))):
+        raise ValueError("commands contains NaN or infinite entries")
+    dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
+    commands = commands.astype(dtype)
+    n_steps = commands.shape[0]
+    if noise is None:
+        noise = jnp.zeros(n_steps, dtype)
+    else:
+        noise = jnp.asarray(noise, dtype)
+        if noise.shape != (n_steps,):
+            raise ValueError(f"noise must have the shape of commands {(n_steps,)}, got {noise.shape}")
+    d = int(dead_time_samples)
+    if fifo_init is None:
+        fifo = jnp.zeros(d, dtype)
+    else:
+        fifo = jnp.asarray(fifo_init, dtype)
+        if fifo.shape != (d,):
+            raise ValueError(f"fifo_init must have shape ({d},) (dead_time_samples entries), got {fifo.shape}")
+
+    data = mjx.make_data(model)
+    data = data.replace(
+        qpos=data.qpos.astype(dtype),
+        qvel=data.qvel.astype(dtype),
+        ctrl=data.ctrl.astype(dtype),
+        act=data.act.astype(dtype),
+        time=jnp.asarray(data.time, dtype),
+    )
+
+    def physics(data, _):
+        data = mjx.step(model, data)
+        return data, -data.qfrc_passive[0]
+
+    def control_step(carry, inputs):
+        data, fifo = carry
+        u_k, noise_k = inputs
+        if d > 0:
+            applied = fifo[0]
+            fifo = jnp.concatenate([fifo[1:], u_k[None]])
+        else:
+            applied = u_k
+        position, velocity = data.qpos[0], data.qvel[0]
+        data = data.replace(ctrl=data.ctrl.at[0].set(applied))
+        data, passive = jax.lax.scan(physics, data, None, length=substeps)
+        force = passive[0]  # evaluated by the first substep at the state of time k h
+        out = ForceRollout(force + noise_k, force, position, velocity, applied)
+        return (data, fifo), out
+
+    _, out = jax.lax.scan(control_step, (data, fifo), (commands, noise))
+    return out
