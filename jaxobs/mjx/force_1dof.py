@@ -46,6 +46,10 @@ Simplifications against the real robot setup (document them where results are qu
 
 Parameters map to model fields only in :func:`with_params`, so mismatched batches are
 ``jax.vmap(lambda p: rollout(with_params(model, p), u))(params_batch)``.
+
+:func:`closed_loop_rollout` closes the loop inside the same scan (sensor force plus noise, observer step,
+``u = r - L x_hat``, dead-time FIFO, substeps) with any controller of :func:`jaxobs.closed_loop.simulate`;
+both rollouts share one control-step function (:func:`_advance`).
 Float32 is adequate for the nominal model (all magnitudes are within 1e-3..1e4); tests run in float64.
 """
 
@@ -62,6 +66,8 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
+from jaxobs.observers.active import ActiveObserverInputs, active_observer
+from jaxobs.observers.base import Observer
 
 __all__ = [
     "CONTROL_PERIOD",
@@ -71,6 +77,9 @@ __all__ = [
     "load_model",
     "with_params",
     "rollout",
+    "ClosedLoopRollout",
+    "closed_loop_rollout",
+    "sensor_force",
 ]
 
 ASSET = "force_1dof.xml"
@@ -176,6 +185,77 @@ def load_model(params: ForcePlantParams | None = None) -> tuple[mujoco.MjModel, 
     return m, mjx.put_model(m)
 
 
+def _check_timing(dead_time_samples, substeps) -> None:
+    if not isinstance(dead_time_samples, (int, np.integer)) or isinstance(dead_time_samples, bool):
+        raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
+    if dead_time_samples < 0:
+        raise ValueError(f"dead_time_samples must be >= 0, got {dead_time_samples}")
+    if not isinstance(substeps, (int, np.integer)) or isinstance(substeps, bool) or substeps < 1:
+        raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
+
+
+def _series(name: str, value, n_steps: int, dtype, like: str) -> jax.Array:
+    """A per-control-step input of shape ``(T,)`` (zeros for None)."""
+    if value is None:
+        return jnp.zeros(n_steps, dtype)
+    value = jnp.asarray(value, dtype)
+    if value.shape != (n_steps,):
+        raise ValueError(f"{name} must have the shape of {like} {(n_steps,)}, got {value.shape}")
+    return value
+
+
+def _initial_fifo(fifo_init, d: int, dtype) -> jax.Array:
+    if fifo_init is None:
+        return jnp.zeros(d, dtype)
+    fifo = jnp.asarray(fifo_init, dtype)
+    if fifo.shape != (d,):
+        raise ValueError(f"fifo_init must have shape ({d},) (dead_time_samples entries), got {fifo.shape}")
+    return fifo
+
+
+def _initial_data(model: mjx.Model, dtype) -> mjx.Data:
+    """At rest at the contact point (``F = 0``), state arrays in ``dtype``."""
+    data = mjx.make_data(model)
+    return data.replace(
+        qpos=data.qpos.astype(dtype),
+        qvel=data.qvel.astype(dtype),
+        ctrl=data.ctrl.astype(dtype),
+        act=data.act.astype(dtype),
+        time=jnp.asarray(data.time, dtype),
+    )
+
+
+def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
+    """The noise-free sensor force of the state in ``data``: ``Ks (x - springref) + Ds xdot``.
+
+    This is ``-qfrc_passive`` as MuJoCo evaluates it at the start of the next step (spring plus damper;
+    gravity, fluid forces and gravity compensation are off in this model), computed from the state so a
+    controller can read it before choosing the step's command.
+    """
+    x = data.qpos[0] - model.qpos_spring[0]
+    return model.jnt_stiffness[0] * x + model.dof_damping[0] * data.qvel[0]
+
+
+def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.Array, u_k: jax.Array):
+    """One control step of the plant: push ``u_k`` into the dead-time FIFO, pop ``u_{k-d}`` and hold it
+    (ZOH) for ``substeps`` ``mjx.step`` calls. Returns ``(data, fifo, applied, force)`` where ``force`` is
+    ``-qfrc_passive`` evaluated by the first substep, i.e. the sensor force of the state at ``k h``.
+    Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
+    if d > 0:
+        applied = fifo[0]
+        fifo = jnp.concatenate([fifo[1:], u_k[None]])
+    else:
+        applied = u_k
+    data = data.replace(ctrl=data.ctrl.at[0].set(applied))
+
+    def physics(data, _):
+        data = mjx.step(model, data)
+        return data, -data.qfrc_passive[0]
+
+    data, passive = jax.lax.scan(physics, data, None, length=substeps)
+    return data, fifo, applied, passive[0]
+
+
 def rollout(
     model: mjx.Model,
     commands,
@@ -205,12 +285,7 @@ def rollout(
       :class:`ForceRollout` of arrays of shape ``(T,)``. Pure: works under ``jit``, ``vmap``, ``grad``,
       ``jacfwd``.
     """
-    if not isinstance(dead_time_samples, (int, np.integer)) or isinstance(dead_time_samples, bool):
-        raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
-    if dead_time_samples < 0:
-        raise ValueError(f"dead_time_samples must be >= 0, got {dead_time_samples}")
-    if not isinstance(substeps, (int, np.integer)) or isinstance(substeps, bool) or substeps < 1:
-        raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
+    _check_timing(dead_time_samples, substeps)
     commands = jnp.asarray(commands)
     if commands.ndim != 1:
         raise ValueError(f"commands must have shape (T,) (one velocity command per control step), got {commands.shape}")
@@ -219,47 +294,101 @@ def rollout(
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
     n_steps = commands.shape[0]
-    if noise is None:
-        noise = jnp.zeros(n_steps, dtype)
-    else:
-        noise = jnp.asarray(noise, dtype)
-        if noise.shape != (n_steps,):
-            raise ValueError(f"noise must have the shape of commands {(n_steps,)}, got {noise.shape}")
+    noise = _series("noise", noise, n_steps, dtype, "commands")
     d = int(dead_time_samples)
-    if fifo_init is None:
-        fifo = jnp.zeros(d, dtype)
-    else:
-        fifo = jnp.asarray(fifo_init, dtype)
-        if fifo.shape != (d,):
-            raise ValueError(f"fifo_init must have shape ({d},) (dead_time_samples entries), got {fifo.shape}")
-
-    data = mjx.make_data(model)
-    data = data.replace(
-        qpos=data.qpos.astype(dtype),
-        qvel=data.qvel.astype(dtype),
-        ctrl=data.ctrl.astype(dtype),
-        act=data.act.astype(dtype),
-        time=jnp.asarray(data.time, dtype),
-    )
-
-    def physics(data, _):
-        data = mjx.step(model, data)
-        return data, -data.qfrc_passive[0]
+    fifo = _initial_fifo(fifo_init, d, dtype)
 
     def control_step(carry, inputs):
         data, fifo = carry
         u_k, noise_k = inputs
-        if d > 0:
-            applied = fifo[0]
-            fifo = jnp.concatenate([fifo[1:], u_k[None]])
-        else:
-            applied = u_k
         position, velocity = data.qpos[0], data.qvel[0]
-        data = data.replace(ctrl=data.ctrl.at[0].set(applied))
-        data, passive = jax.lax.scan(physics, data, None, length=substeps)
-        force = passive[0]  # evaluated by the first substep at the state of time k h
+        data, fifo, applied, force = _advance(model, substeps, d, data, fifo, u_k)
         out = ForceRollout(force + noise_k, force, position, velocity, applied)
         return (data, fifo), out
 
-    _, out = jax.lax.scan(control_step, (data, fifo), (commands, noise))
+    _, out = jax.lax.scan(control_step, (_initial_data(model, dtype), fifo), (commands, noise))
+    return out
+
+
+class ClosedLoopRollout(NamedTuple):
+    """Per control step ``k`` of :func:`closed_loop_rollout` (time ``k h``; leading axis: time)."""
+
+    force: jax.Array  # measured force y_k (N): sensor force plus noise, what the controller reads
+    force_true: jax.Array  # noise-free sensor force (N)
+    position: jax.Array  # tool position x (mm past the contact point)
+    velocity: jax.Array  # tool velocity (mm/s)
+    command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
+    applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
+    controller: object  # the controller's outputs per step (e.g. ActiveObserverOutputs: x, p, gain, ...)
+
+
+def closed_loop_rollout(
+    model: mjx.Model,
+    controller_params,
+    reference,
+    *,
+    controller: Observer = active_observer,
+    dead_time_samples: int = 5,
+    substeps: int = SUBSTEPS,
+    noise=None,
+    disturbance=None,
+) -> ClosedLoopRollout:
+    """The MJX force plant under observer-based state feedback, in one ``lax.scan`` over control steps.
+
+    The MJX counterpart of :func:`jaxobs.closed_loop.simulate` with the same controller protocol. At
+    control step ``k`` (time ``k h``)::
+
+        y_k      = F(x(k h)) + v_k                          sensor force (sensor_force) plus noise
+        state, o = controller.step(params, state, ActiveObserverInputs(y_k, r_k))
+        u_k      = o.u                                       e.g. the AOB's r_k - [L_r 1] [x_r; p]_hat
+        FIFO    <- u_k + d_k;  pop u_{k-d} + d_{k-d}         dead time d samples (disturbance at the plant
+                                                             input, before the dead time, as in simulate)
+        plant   <- ``substeps`` mjx.step calls with that input held (ZOH)
+
+    The controller is built on the nominal discrete model (e.g. :func:`jaxobs.papers.cortesao2006.aob_params`
+    on :func:`jaxobs.papers.force_control.nominal_design`, whose delay states model the same ``d`` samples);
+    the state feedback ``L`` lives in ``controller_params`` (``u = r - L x_hat``, with the AOB's active
+    state fed forward through its ``L_Np = 1`` entry), exactly as in ``simulate``.
+
+    Args:
+      model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params` (the true plant; it may differ
+        from the controller's nominal model).
+      controller_params: parameters of ``controller`` (e.g. ``ActiveObserverParams``, ``LinearController``).
+      reference: ``r_k`` in mm/s, shape ``(T,)`` (``r_k = L_1 F_d`` for a desired force ``F_d``).
+      controller: an (init, step) :class:`jaxobs.observers.base.Observer` whose step takes
+        ``ActiveObserverInputs(y, r)`` and whose outputs have a field ``u`` of shape ``(1,)``; default
+        :data:`jaxobs.observers.active.active_observer` (AOB-N or CKF).
+      dead_time_samples, substeps: as in :func:`rollout`.
+      noise: force-sensor noise ``v_k`` in N, shape ``(T,)``, or None.
+      disturbance: input disturbance ``d_k`` in mm/s, shape ``(T,)``, or None.
+
+    Returns:
+      :class:`ClosedLoopRollout`; pure: works under ``jit``, ``vmap`` (over models from
+      :func:`with_params`, noise, controller parameters), ``grad`` and ``jacfwd``.
+    """
+    _check_timing(dead_time_samples, substeps)
+    reference = jnp.asarray(reference)
+    if reference.ndim != 1:
+        raise ValueError(f"reference must have shape (T,) (one reference per control step), got {reference.shape}")
+    dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
+    reference = reference.astype(dtype)
+    n_steps = reference.shape[0]
+    noise = _series("noise", noise, n_steps, dtype, "reference")
+    disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
+    d = int(dead_time_samples)
+
+    def control_step(carry, inputs):
+        data, fifo, ctrl_state = carry
+        r_k, v_k, d_k = inputs
+        force = sensor_force(model, data)
+        y_k = force + v_k
+        ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
+        u_k = jnp.reshape(ctrl_out.u, (-1,))[0].astype(dtype)
+        position, velocity = data.qpos[0], data.qvel[0]
+        data, fifo, applied, _ = _advance(model, substeps, d, data, fifo, u_k + d_k)
+        out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out)
+        return (data, fifo, ctrl_state), out
+
+    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(controller_params))
+    _, out = jax.lax.scan(control_step, carry, (reference, noise, disturbance))
     return out
