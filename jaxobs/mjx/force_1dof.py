@@ -27,9 +27,8 @@ With ``Ds = 0`` and ``M = kv Tp`` this is ``Ks / (Tp s^2 + s + Ks / kv)``: the p
 integrator pole moved from 0 to about ``-Ks / kv`` (the robot's position loop yields to the contact force
 by ``Ks / kv``; ``3e-4 1/s`` nominally, a 0.03 %/s drift). ``kv -> infinity`` is the paper's reduction.
 
-The measured force is the simulation's joint passive force, ``F = -qfrc_passive`` (spring plus damper),
-read at the control instant ``k h`` (MuJoCo evaluates ``qfrc_passive`` at the start of a step, so the first
-physics substep of control step ``k`` reports the force of the state at ``k h``), plus additive noise.
+The measured force is the joint's passive force (spring plus damper, MuJoCo's ``-qfrc_passive``) of the
+state at the control instant ``k h`` (:func:`sensor_force`), plus additive noise.
 
 Simplifications against the real robot setup (document them where results are quoted):
 
@@ -194,23 +193,14 @@ def _check_timing(dead_time_samples, substeps) -> None:
         raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
 
 
-def _series(name: str, value, n_steps: int, dtype, like: str) -> jax.Array:
-    """A per-control-step input of shape ``(T,)`` (zeros for None)."""
+def _series(name: str, value, length: int, dtype, like: str) -> jax.Array:
+    """A per-step input of shape ``(length,)`` (zeros for None); ``like`` names what fixes the length."""
     if value is None:
-        return jnp.zeros(n_steps, dtype)
+        return jnp.zeros(length, dtype)
     value = jnp.asarray(value, dtype)
-    if value.shape != (n_steps,):
-        raise ValueError(f"{name} must have the shape of {like} {(n_steps,)}, got {value.shape}")
+    if value.shape != (length,):
+        raise ValueError(f"{name} must have the shape of {like} {(length,)}, got {value.shape}")
     return value
-
-
-def _initial_fifo(fifo_init, d: int, dtype) -> jax.Array:
-    if fifo_init is None:
-        return jnp.zeros(d, dtype)
-    fifo = jnp.asarray(fifo_init, dtype)
-    if fifo.shape != (d,):
-        raise ValueError(f"fifo_init must have shape ({d},) (dead_time_samples entries), got {fifo.shape}")
-    return fifo
 
 
 def _initial_data(model: mjx.Model, dtype) -> mjx.Data:
@@ -238,8 +228,7 @@ def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
 
 def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.Array, u_k: jax.Array):
     """One control step of the plant: push ``u_k`` into the dead-time FIFO, pop ``u_{k-d}`` and hold it
-    (ZOH) for ``substeps`` ``mjx.step`` calls. Returns ``(data, fifo, applied, force)`` where ``force`` is
-    ``-qfrc_passive`` evaluated by the first substep, i.e. the sensor force of the state at ``k h``.
+    (ZOH) for ``substeps`` ``mjx.step`` calls. Returns ``(data, fifo, applied)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
     if d > 0:
         applied = fifo[0]
@@ -247,13 +236,8 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     else:
         applied = u_k
     data = data.replace(ctrl=data.ctrl.at[0].set(applied))
-
-    def physics(data, _):
-        data = mjx.step(model, data)
-        return data, -data.qfrc_passive[0]
-
-    data, passive = jax.lax.scan(physics, data, None, length=substeps)
-    return data, fifo, applied, passive[0]
+    data = jax.lax.fori_loop(0, substeps, lambda _, data: mjx.step(model, data), data)
+    return data, fifo, applied
 
 
 def rollout(
@@ -268,7 +252,7 @@ def rollout(
     """Simulate the plant over ``len(commands)`` control steps in one ``lax.scan``.
 
     Control step ``k`` (time ``k h``, ``h = substeps * model.opt.timestep``): the force is sampled
-    (``-qfrc_passive`` of the state at ``k h``) and ``noise[k]`` added; the command FIFO pops
+    (:func:`sensor_force` of the state at ``k h``) and ``noise[k]`` added; the command FIFO pops
     ``u_{k-d}`` and pushes ``u_k``; ``u_{k-d}`` is held for ``substeps`` ``mjx.step`` calls (an inner
     ``lax.scan``). Starts at rest at the contact point (``F = 0``).
 
@@ -296,13 +280,13 @@ def rollout(
     n_steps = commands.shape[0]
     noise = _series("noise", noise, n_steps, dtype, "commands")
     d = int(dead_time_samples)
-    fifo = _initial_fifo(fifo_init, d, dtype)
+    fifo = _series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
 
     def control_step(carry, inputs):
         data, fifo = carry
         u_k, noise_k = inputs
-        position, velocity = data.qpos[0], data.qvel[0]
-        data, fifo, applied, force = _advance(model, substeps, d, data, fifo, u_k)
+        force, position, velocity = sensor_force(model, data), data.qpos[0], data.qvel[0]
+        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k)
         out = ForceRollout(force + noise_k, force, position, velocity, applied)
         return (data, fifo), out
 
@@ -385,7 +369,7 @@ def closed_loop_rollout(
         ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
         u_k = jnp.reshape(ctrl_out.u, (-1,))[0].astype(dtype)
         position, velocity = data.qpos[0], data.qvel[0]
-        data, fifo, applied, _ = _advance(model, substeps, d, data, fifo, u_k + d_k)
+        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k + d_k)
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out)
         return (data, fifo, ctrl_state), out
 
