@@ -125,6 +125,7 @@ class ForceRollout(NamedTuple):
     position: jax.Array  # tool position x (mm past the contact point)
     velocity: jax.Array  # tool velocity (mm/s)
     applied: jax.Array  # command applied during step k (mm/s), i.e. u_{k-d}
+    surface: jax.Array  # environment surface position x_e at k h (mm)
 
 
 def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
@@ -184,12 +185,14 @@ def load_model(params: ForcePlantParams | None = None) -> tuple[mujoco.MjModel, 
     return m, mjx.put_model(m)
 
 
+def _is_int_at_least(value, minimum: int) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= minimum
+
+
 def _check_timing(dead_time_samples, substeps) -> None:
-    if not isinstance(dead_time_samples, (int, np.integer)) or isinstance(dead_time_samples, bool):
+    if not _is_int_at_least(dead_time_samples, 0):
         raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
-    if dead_time_samples < 0:
-        raise ValueError(f"dead_time_samples must be >= 0, got {dead_time_samples}")
-    if not isinstance(substeps, (int, np.integer)) or isinstance(substeps, bool) or substeps < 1:
+    if not _is_int_at_least(substeps, 1):
         raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
 
 
@@ -226,9 +229,15 @@ def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
     return model.jnt_stiffness[0] * x + model.dof_damping[0] * data.qvel[0]
 
 
-def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.Array, u_k: jax.Array):
+def _at_surface(model: mjx.Model, surface) -> mjx.Model:
+    """``model`` with the environment surface (the spring's rest position ``qpos_spring``) at ``surface`` mm."""
+    return model.replace(qpos_spring=jnp.asarray(model.qpos_spring).at[0].set(surface))
+
+
+def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, surface_velocity):
     """One control step of the plant: push ``u_k`` into the dead-time FIFO, pop ``u_{k-d}`` and hold it
-    (ZOH) for ``substeps`` ``mjx.step`` calls. Returns ``(data, fifo, applied)``.
+    (ZOH) for ``substeps`` ``mjx.step`` calls while the surface moves from ``surface`` at
+    ``surface_velocity`` mm/s (one position per physics step). Returns ``(data, fifo, applied, surface)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
     if d > 0:
         applied = fifo[0]
@@ -236,8 +245,28 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     else:
         applied = u_k
     data = data.replace(ctrl=data.ctrl.at[0].set(applied))
-    data = jax.lax.fori_loop(0, substeps, lambda _, data: mjx.step(model, data), data)
-    return data, fifo, applied
+    dx = surface_velocity * model.opt.timestep
+
+    def substep(_, carry):
+        data, surface = carry
+        return mjx.step(_at_surface(model, surface), data), surface + dx
+
+    data, surface = jax.lax.fori_loop(0, substeps, substep, (data, surface))
+    return data, fifo, applied, surface
+
+
+def _truncate(carry, k, horizon: int | None):
+    """Truncated backpropagation through time: cut the gradient through the scan carry every ``horizon``
+    control steps (parameters closed over by the step still receive every chunk's gradient)."""
+    if horizon is None:
+        return carry
+    cut = (k % horizon) == 0
+    return jax.tree.map(lambda c: jnp.where(cut, jax.lax.stop_gradient(c), c), carry)
+
+
+def _check_horizon(gradient_horizon) -> None:
+    if gradient_horizon is not None and not _is_int_at_least(gradient_horizon, 1):
+        raise ValueError(f"gradient_horizon must be None or a Python int >= 1, got {gradient_horizon!r}")
 
 
 def rollout(
@@ -248,13 +277,15 @@ def rollout(
     substeps: int = SUBSTEPS,
     noise=None,
     fifo_init=None,
+    surface_velocity=None,
+    gradient_horizon: int | None = None,
 ) -> ForceRollout:
     """Simulate the plant over ``len(commands)`` control steps in one ``lax.scan``.
 
     Control step ``k`` (time ``k h``, ``h = substeps * model.opt.timestep``): the force is sampled
     (:func:`sensor_force` of the state at ``k h``) and ``noise[k]`` added; the command FIFO pops
     ``u_{k-d}`` and pushes ``u_k``; ``u_{k-d}`` is held for ``substeps`` ``mjx.step`` calls (an inner
-    ``lax.scan``). Starts at rest at the contact point (``F = 0``).
+    ``lax.scan``). Starts at rest at the contact point (``F = 0``), the surface at 0.
 
     Args:
       model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params`.
@@ -264,12 +295,19 @@ def rollout(
       noise: additive force-sensor noise in N, shape ``(T,)``, or None. Draw it outside, e.g.
         ``sigma * jax.random.normal(key, (T,))``, and ``vmap`` over keys for seed batches.
       fifo_init: the ``d`` commands issued before step 0 (oldest first), shape ``(d,)``; zeros by default.
+      surface_velocity: velocity of the environment surface in mm/s during each control step, shape
+        ``(T,)``, or None (fixed). A positive velocity recedes from the tool and lowers the force: the
+        moving surface of seed 001 §4 (``xdot_e = 2 mm/s`` from 8 s). The sensor force is
+        ``Ks (x - x_e) + Ds xdot``.
+      gradient_horizon: truncate backpropagation through the plant state every this many control steps
+        (None: full gradients); bounds the memory of the backward pass and its growth on long horizons.
 
     Returns:
       :class:`ForceRollout` of arrays of shape ``(T,)``. Pure: works under ``jit``, ``vmap``, ``grad``,
       ``jacfwd``.
     """
     _check_timing(dead_time_samples, substeps)
+    _check_horizon(gradient_horizon)
     commands = jnp.asarray(commands)
     if commands.ndim != 1:
         raise ValueError(f"commands must have shape (T,) (one velocity command per control step), got {commands.shape}")
@@ -281,16 +319,19 @@ def rollout(
     noise = _series("noise", noise, n_steps, dtype, "commands")
     d = int(dead_time_samples)
     fifo = _series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
+    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "commands")
 
     def control_step(carry, inputs):
-        data, fifo = carry
-        u_k, noise_k = inputs
-        force, position, velocity = sensor_force(model, data), data.qpos[0], data.qvel[0]
-        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k)
-        out = ForceRollout(force + noise_k, force, position, velocity, applied)
-        return (data, fifo), out
+        k, u_k, noise_k, v_k = inputs
+        data, fifo, surface = _truncate(carry, k, gradient_horizon)
+        force = sensor_force(_at_surface(model, surface), data)
+        position, velocity = data.qpos[0], data.qvel[0]
+        data, fifo, applied, surface_next = _advance(model, substeps, d, data, fifo, u_k, surface, v_k)
+        out = ForceRollout(force + noise_k, force, position, velocity, applied, surface)
+        return (data, fifo, surface_next), out
 
-    _, out = jax.lax.scan(control_step, (_initial_data(model, dtype), fifo), (commands, noise))
+    carry = (_initial_data(model, dtype), fifo, jnp.zeros((), dtype))
+    _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), commands, noise, v_e))
     return out
 
 
@@ -304,6 +345,7 @@ class ClosedLoopRollout(NamedTuple):
     command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
     applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
     controller: object  # the controller's outputs per step (e.g. ActiveObserverOutputs: x, p, gain, ...)
+    surface: jax.Array  # environment surface position x_e at k h (mm)
 
 
 def closed_loop_rollout(
@@ -316,6 +358,8 @@ def closed_loop_rollout(
     substeps: int = SUBSTEPS,
     noise=None,
     disturbance=None,
+    surface_velocity=None,
+    gradient_horizon: int | None = None,
 ) -> ClosedLoopRollout:
     """The MJX force plant under observer-based state feedback, in one ``lax.scan`` over control steps.
 
@@ -345,12 +389,15 @@ def closed_loop_rollout(
       dead_time_samples, substeps: as in :func:`rollout`.
       noise: force-sensor noise ``v_k`` in N, shape ``(T,)``, or None.
       disturbance: input disturbance ``d_k`` in mm/s, shape ``(T,)``, or None.
+      surface_velocity, gradient_horizon: as in :func:`rollout` (moving environment surface in mm/s;
+        truncated backpropagation through the plant and controller state).
 
     Returns:
       :class:`ClosedLoopRollout`; pure: works under ``jit``, ``vmap`` (over models from
       :func:`with_params`, noise, controller parameters), ``grad`` and ``jacfwd``.
     """
     _check_timing(dead_time_samples, substeps)
+    _check_horizon(gradient_horizon)
     reference = jnp.asarray(reference)
     if reference.ndim != 1:
         raise ValueError(f"reference must have shape (T,) (one reference per control step), got {reference.shape}")
@@ -359,20 +406,21 @@ def closed_loop_rollout(
     n_steps = reference.shape[0]
     noise = _series("noise", noise, n_steps, dtype, "reference")
     disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
+    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "reference")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
-        data, fifo, ctrl_state = carry
-        r_k, v_k, d_k = inputs
-        force = sensor_force(model, data)
+        k, r_k, v_k, d_k, ve_k = inputs
+        data, fifo, ctrl_state, surface = _truncate(carry, k, gradient_horizon)
+        force = sensor_force(_at_surface(model, surface), data)
         y_k = force + v_k
         ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
         u_k = jnp.reshape(ctrl_out.u, (-1,))[0].astype(dtype)
         position, velocity = data.qpos[0], data.qvel[0]
-        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k + d_k)
-        out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out)
-        return (data, fifo, ctrl_state), out
+        data, fifo, applied, surface_next = _advance(model, substeps, d, data, fifo, u_k + d_k, surface, ve_k)
+        out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)
+        return (data, fifo, ctrl_state, surface_next), out
 
-    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(controller_params))
-    _, out = jax.lax.scan(control_step, carry, (reference, noise, disturbance))
+    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(controller_params), jnp.zeros((), dtype))
+    _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), reference, noise, disturbance, v_e))
     return out
