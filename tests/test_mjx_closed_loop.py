@@ -172,7 +172,8 @@ def test_receding_surface_gives_the_printed_ckf_offset_and_the_aob_removes_it(mo
 
 def test_truncated_gradients(model, nominal):
     """``gradient_horizon`` cuts backpropagation through the loop state every K steps: the forward values
-    are unchanged and a short horizon gives a finite gradient, different from the full one, that keeps its sign (the parameters closed over by the step still collect every chunk's gradient)."""
+    are unchanged and a short horizon gives a finite gradient, different from the full one, that keeps its
+    sign (the parameters closed over by the step still collect every chunk's gradient)."""
     plant, L = nominal
     T = 80
     r = step_reference(L, T)
