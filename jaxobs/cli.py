@@ -44,34 +44,24 @@ def _reproduce(args) -> int:
     return 0
 
 
-def _load_toml(path: Path) -> dict:
+def _config(args, validate) -> dict | None:
+    """The validated config of ``args.config`` (the embedded default without one), or None after printing
+    the :class:`jaxobs._config.ConfigError` (the caller exits with 2)."""
+    from jaxobs._config import ConfigError, load_toml
+
     try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
-    return tomllib.loads(path.read_text())
+        given = load_toml(args.config) if args.config else {}
+        return validate(given, args.config or "<default>")
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return None
 
 
 def _sweep(args) -> int:
     from jaxobs.papers import force_robustness
 
-    source = "<default>"
-    given = {}
-    if args.config:
-        source = args.config
-        path = Path(args.config)
-        if not path.is_file():
-            print(f"{source}: no such config file", file=sys.stderr)
-            return 2
-        try:
-            given = _load_toml(path)
-        except ValueError as exc:  # tomllib.TOMLDecodeError
-            print(f"{source}: not valid TOML: {exc}", file=sys.stderr)
-            return 2
-    try:
-        config = force_robustness.validate_config(given, source)
-    except force_robustness.ConfigError as exc:
-        print(exc, file=sys.stderr)
+    config = _config(args, force_robustness.validate_config)
+    if config is None:
         return 2
     out = Path(args.out)
     try:

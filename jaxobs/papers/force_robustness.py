@@ -18,7 +18,6 @@ samples its plant from its own key.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxobs._config import ConfigError, check_at_least, check_range, fail, merge
 from jaxobs.closed_loop import (
     LinearController,
     ideal_response,
@@ -77,67 +77,19 @@ MAX_DEAD_TIME_SAMPLES = 100
 MAX_ORDER = 5
 
 
-class ConfigError(ValueError):
-    """A bad sweep configuration; the message names the file and the key."""
-
-
-def _fail(source: str, key: str, message: str):
-    raise ConfigError(f"{source}: {key}: {message}")
-
-
-def _merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
-    """``given`` over ``default``; unknown keys and type mismatches are errors."""
-    merged = copy.deepcopy(default)
-    for key, value in given.items():
-        name = f"{prefix}{key}"
-        if key not in default:
-            _fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
-        expected = default[key]
-        if isinstance(expected, dict):
-            if not isinstance(value, dict):
-                _fail(source, name, "must be a table")
-            merged[key] = _merge(expected, value, source, name + ".")
-        elif isinstance(expected, list):
-            if not isinstance(value, list) or not all(isinstance(v, int | float) for v in value):
-                _fail(source, name, f"must be a list of numbers, got {value!r}")
-            merged[key] = value
-        elif isinstance(expected, bool) or isinstance(value, bool):
-            _fail(source, name, f"must be a number, got {value!r}")
-        elif isinstance(expected, int) and not isinstance(value, int):
-            _fail(source, name, f"must be an integer, got {value!r}")
-        elif isinstance(expected, float) and not isinstance(value, int | float):
-            _fail(source, name, f"must be a number, got {value!r}")
-        else:
-            merged[key] = value
-    return merged
-
-
-def _range(config: dict, source: str, key: str, *, positive: bool = False, minimum=None, maximum=None):
-    section, name = key.split(".")
-    value = config[section][name]
-    if len(value) != 2 or not value[0] < value[1]:
-        _fail(source, key, f"must be a range [low, high] with low < high, got {value!r}")
-    if positive and value[0] <= 0:
-        _fail(source, key, f"must be positive, got {value!r}")
-    if minimum is not None and value[0] < minimum:
-        _fail(source, key, f"must be >= {minimum}, got {value!r}")
-    if maximum is not None and value[1] > maximum:
-        _fail(source, key, f"must be <= {maximum}, got {value!r}")
-
-
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
     """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
-    config = _merge(DEFAULT_CONFIG, given or {}, source)
-    _range(config, source, "plant.stiffness", positive=True)
-    _range(config, source, "plant.time_constant_scale", positive=True)
-    _range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
-    _range(config, source, "controllers.active_variance", positive=True)
-    _range(config, source, "controllers.R", positive=True)
+    config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_range(config, source, "plant.stiffness", positive=True)
+    check_range(config, source, "plant.time_constant_scale", positive=True)
+    check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
+    check_range(config, source, "controllers.active_variance", positive=True)
+    check_range(config, source, "controllers.R", positive=True)
     orders = config["controllers"]["orders"]
     if not orders or any(not isinstance(n, int) or not 0 <= n <= MAX_ORDER for n in orders):
-        _fail(source, "controllers.orders", f"must be a non-empty list of integers in 0..{MAX_ORDER}, got {orders!r}")
+        fail(source, "controllers.orders", f"must be a non-empty list of integers in 0..{MAX_ORDER}, got {orders!r}")
     if len(set(orders)) != len(orders):
-        _fail(source, "controllers.orders", f"has duplicates: {orders!r}")
+        fail(source, "controllers.orders", f"has duplicates: {orders!r}")
     for key, low in (
         ("seed", 0),
         ("chunk_size", 1),
@@ -145,15 +97,11 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
         ("simulation.configs_per_design", 1),
         ("margins.num_points", 16),
     ):
-        section, _, name = key.rpartition(".")
-        value = config[section][name] if section else config[name]
-        if value < low:
-            _fail(source, key, f"must be >= {low}, got {value!r}")
+        check_at_least(config, source, key, low)
     for key in ("duration", "force_step", "sensor_noise"):
-        if not config["simulation"][key] > 0:
-            _fail(source, f"simulation.{key}", f"must be positive, got {config['simulation'][key]!r}")
+        check_at_least(config, source, f"simulation.{key}", 0, strict=True)
     if config["simulation"]["duration"] < EXAMPLE1.h:
-        _fail(source, "simulation.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
+        fail(source, "simulation.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
     return config
 
 

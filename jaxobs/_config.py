@@ -1,0 +1,102 @@
+"""Configuration files of the ``jaxobs`` commands: TOML over an embedded default, checked key by key.
+
+Every command that reads a config (``jaxobs sweep``, ``jaxobs tune``) merges the user's TOML over its
+embedded default with :func:`merge` (unknown keys and wrong types are errors) and checks values with
+:func:`check_range` / :func:`check_at_least`; a :class:`ConfigError` names the file and the key.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+__all__ = ["ConfigError", "fail", "load_toml", "merge", "get", "check_range", "check_at_least", "check_choice"]
+
+
+class ConfigError(ValueError):
+    """A bad configuration; the message names the file and the key."""
+
+
+def fail(source: str, key: str, message: str):
+    raise ConfigError(f"{source}: {key}: {message}")
+
+
+def load_toml(path) -> dict:
+    """Parse a TOML file; a missing file or invalid TOML is a :class:`ConfigError` naming the file."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such config file")
+    try:
+        return tomllib.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:  # tomllib.TOMLDecodeError is a ValueError
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
+    """``given`` over ``default``; unknown keys and type mismatches are errors."""
+    merged = copy.deepcopy(default)
+    for key, value in given.items():
+        name = f"{prefix}{key}"
+        if key not in default:
+            fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
+        expected = default[key]
+        if isinstance(expected, dict):
+            if not isinstance(value, dict):
+                fail(source, name, "must be a table")
+            merged[key] = merge(expected, value, source, name + ".")
+        elif isinstance(expected, list):
+            if not isinstance(value, list) or not all(isinstance(v, int | float) for v in value):
+                fail(source, name, f"must be a list of numbers, got {value!r}")
+            merged[key] = value
+        elif isinstance(expected, bool) != isinstance(value, bool):
+            kind = "true or false" if isinstance(expected, bool) else "a number"
+            fail(source, name, f"must be {kind}, got {value!r}")
+        elif isinstance(expected, str) and not isinstance(value, str):
+            fail(source, name, f"must be a string, got {value!r}")
+        elif isinstance(expected, int) and not isinstance(value, int):
+            fail(source, name, f"must be an integer, got {value!r}")
+        elif isinstance(expected, float) and not isinstance(value, int | float):
+            fail(source, name, f"must be a number, got {value!r}")
+        else:
+            merged[key] = value
+    return merged
+
+
+def get(config: dict, key: str):
+    """The value at a dotted ``key`` such as ``"plant.stiffness"``."""
+    value = config
+    for part in key.split("."):
+        value = value[part]
+    return value
+
+
+def check_range(config: dict, source: str, key: str, *, positive: bool = False, minimum=None, maximum=None,
+                allow_point: bool = False):  # fmt: skip
+    """``key`` must be ``[low, high]`` with ``low < high`` (``<=`` with ``allow_point``) within the bounds."""
+    value = get(config, key)
+    ordered = len(value) == 2 and (value[0] <= value[1] if allow_point else value[0] < value[1])
+    if not ordered:
+        fail(source, key, f"must be a range [low, high] with low {'<=' if allow_point else '<'} high, got {value!r}")
+    if positive and value[0] <= 0:
+        fail(source, key, f"must be positive, got {value!r}")
+    if minimum is not None and value[0] < minimum:
+        fail(source, key, f"must be >= {minimum}, got {value!r}")
+    if maximum is not None and value[1] > maximum:
+        fail(source, key, f"must be <= {maximum}, got {value!r}")
+
+
+def check_at_least(config: dict, source: str, key: str, low, *, strict: bool = False):
+    """``key`` must be ``>= low`` (``> low`` with ``strict``)."""
+    value = get(config, key)
+    if value < low or (strict and value == low):
+        fail(source, key, f"must be {'>' if strict else '>='} {low}, got {value!r}")
+
+
+def check_choice(config: dict, source: str, key: str, choices):
+    value = get(config, key)
+    if value not in choices:
+        fail(source, key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
