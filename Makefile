@@ -34,6 +34,7 @@ $(VENV)/.bench-installed: $(STAMP)
 bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/kalman_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/sweep_throughput.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/mjx_rollouts.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
