@@ -1,6 +1,7 @@
 """The ``jaxobs`` command.
 
 jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite]   (no config: the embedded default)
+jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite]    (no config: the embedded 1-DOF default)
 jaxobs reproduce --list
 jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
 """
@@ -78,6 +79,38 @@ def _sweep(args) -> int:
     return 0
 
 
+def _tune(args) -> int:
+    import logging
+
+    from jaxobs._config import ConfigError
+    from jaxobs.papers import tuning
+    from jaxobs.tune import CheckpointError, TuningError
+
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+    logging.getLogger("jaxobs").addHandler(handler)
+    logging.getLogger("jaxobs").setLevel(logging.INFO)
+    config = _config(args, tuning.validate_config)
+    if config is None:
+        return 2
+    out = Path(args.out)
+    try:
+        summary = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+    except (ConfigError, CheckpointError, TuningError) as exc:
+        print(f"jaxobs tune: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"{summary['problem']}: {summary['evaluations']} gradient evaluations ({summary['rollouts']} rollouts, "
+        f"{summary['seconds_tune']:.1f} s, stopped: {summary['stopped']}); wrote {out / 'tuned.json'} and "
+        f"{', '.join(summary['figures'])}"
+    )
+    for name, s in summary["heldout"].items():
+        change = s["reduction_vs_hand_set"]
+        note = "" if change is None or name == "hand-set" else f"  ({100 * change:+.1f} % lower than hand-set)"
+        print(f"  held-out {name:14s} objective {s['objective']:.4g}  diverged {s['diverged']}{note}")
+    return 0
+
+
 def main(argv=None) -> int:
     import jax
 
@@ -90,6 +123,12 @@ def main(argv=None) -> int:
     sw.add_argument("--overwrite", action="store_true", help="discard a different sweep already in --out")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
     sw.set_defaults(func=_sweep)
+    tu = commands.add_parser("tune", help="tune an observer's Q/R by gradient descent against MJX rollouts")
+    tu.add_argument("--config", help="TOML file overriding the embedded default (see jaxobs.papers.tuning)")
+    tu.add_argument("--out", default="out/tune", help="output directory (default: out/tune)")
+    tu.add_argument("--overwrite", action="store_true", help="discard a tuning run of another config in --out")
+    tu.add_argument("--no-progress", action="store_true", help="no progress bar")
+    tu.set_defaults(func=_tune)
     rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures")
     rep.add_argument("names", nargs="*", help="reproduction name(s), or 'all'")
     rep.add_argument("--list", action="store_true", help="list the available reproductions")

@@ -1,0 +1,176 @@
+"""``jaxobs tune``: run a tuning problem end to end and report it.
+
+The config's ``problem`` key picks the problem module (``PROBLEMS``; each has ``DEFAULT_CONFIG``,
+``validate_config``, ``settings``, ``config_tag`` and ``build_problem``). :func:`run` tunes from the
+problem's hand-set design with :func:`jaxobs.tune.tune` (checkpointed, resumable), runs the random-search
+baseline at the same number of rollouts, scores the hand-set, tuned and random-search designs on the
+held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png``
+(before/after on held-out plants) and ``parameters.png`` (trajectories of the unconstrained parameters).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxobs._config import ConfigError, fail
+from jaxobs.papers import force_tuning
+from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.tune import evaluate, random_search, tune
+
+__all__ = ["PROBLEMS", "validate_config", "run"]
+
+PROBLEMS = {force_tuning.NAME: force_tuning}
+"""Problem modules by the config's ``problem`` name; the first is the default."""
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    """Dispatch on ``given["problem"]`` (default: the 1-DOF force problem) to its module's validator."""
+    given = given or {}
+    name = given.get("problem", next(iter(PROBLEMS)))
+    if name not in PROBLEMS:
+        fail(source, "problem", f"must be one of {', '.join(map(repr, PROBLEMS))}, got {name!r}")
+    return PROBLEMS[name].validate_config(given, source)
+
+
+def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
+    """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``."""
+    marker = out / "config.json"
+    if marker.exists():
+        try:
+            previous = json.loads(marker.read_text()).get("tag")
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{marker}: unreadable ({exc}); use --overwrite to start over") from exc
+        if previous != tag and not overwrite:
+            raise ConfigError(f"{out} holds a tuning run of another configuration; use --overwrite or another --out")
+        if overwrite:
+            shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"tag": tag, "config": config}, indent=2) + "\n")
+
+
+def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
+    """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures."""
+    module = PROBLEMS[config["problem"]]
+    out = Path(out_dir)
+    tag = module.config_tag(config)
+    _prepare(out, tag, config, overwrite)
+    problem = module.build_problem(config)
+    settings = module.settings(config)
+    start = time.perf_counter()
+    result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
+    seconds_tune = time.perf_counter() - start
+    designs = {"hand-set": problem.theta0, "tuned": result.theta}
+    summary = {
+        "problem": config["problem"],
+        "config": config,
+        "stopped": result.stopped,
+        "evaluations": result.evaluations,
+        "rollouts": result.rollouts,
+        "seconds_tune": seconds_tune,
+        "train_objective": {"hand-set": result.history[0]["objective"], "tuned": result.objective},
+    }
+    search = None
+    if config["baseline"]["random_search"]:
+        start = time.perf_counter()
+        search = random_search(
+            problem, settings, result.evaluations, spread=config["baseline"]["spread"], seed=config["seed"],
+            progress=progress,
+        )  # fmt: skip
+        designs["random search"] = search.theta
+        summary["random_search"] = {
+            "candidates": int(search.objectives.size),
+            "rollouts": search.rollouts,
+            "seconds": time.perf_counter() - start,
+            "train_objective": search.objective,
+            "failed_candidates": int(np.sum(~np.isfinite(search.objectives))),
+        }
+    scores = {name: evaluate(problem, theta, settings) for name, theta in designs.items()}
+    hand = scores["hand-set"]["objective"]
+    summary["heldout"] = {
+        name: {
+            "objective": s["objective"],
+            "mean": s["mean"],
+            "cvar": s["cvar"],
+            "diverged": s["diverged"],
+            "reduction_vs_hand_set": 1.0 - s["objective"] / hand if np.isfinite(hand) else None,
+        }
+        for name, s in scores.items()
+    }
+    summary["parameters"] = {name: problem.describe(theta) for name, theta in designs.items()}
+    summary["theta"] = {name: {k: np.asarray(v) for k, v in theta.items()} for name, theta in designs.items()}
+    summary["figures"] = [
+        _plot_loss_curves(result.history, search, scores, settings.objective, out),
+        _plot_parameters(result.history, out),
+    ]
+    if problem.responses is not None:
+        summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
+    (out / "tuned.json").write_text(json.dumps(to_builtin(summary), indent=2) + "\n")
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# Figures
+
+
+def _plot_loss_curves(history, search, scores, objective: str, out: Path) -> str:
+    plt = pyplot()
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
+    ev = np.array([h["evaluation"] for h in history])
+    val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history])
+    ok = np.array([h["accepted"] for h in history])
+    ax.plot(ev[ok], val[ok], "o-", ms=3, label="gradient (adam): objective")
+    if np.any(~ok):
+        ax.plot(ev[~ok], np.where(np.isfinite(val[~ok]), val[~ok], np.nanmax(val)), "rx", label="rejected step")
+    ax.plot(ev[ok], np.minimum.accumulate(val[ok]), "C0--", lw=1, label="gradient: best so far")
+    if search is not None:
+        best = np.minimum.accumulate(search.objectives)
+        ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
+    ax.set(xlabel="evaluation (one rollout per training plant)", ylabel=f"training objective ({objective})",
+           yscale="log", title="Training objective")  # fmt: skip
+    ax.legend(fontsize=8)
+    for name, s in scores.items():
+        losses = np.sort(s["losses"])
+        bx.plot(np.linspace(0, 1, losses.size), losses, label=f"{name} (mean {s['mean']:.3g})")
+    bx.set(xlabel="fraction of held-out plants", ylabel="per-plant loss", yscale="log",
+           title="Held-out plants, sorted losses")  # fmt: skip
+    bx.legend(fontsize=8)
+    return save_figure(fig, out, "loss_curves")
+
+
+def _plot_parameters(history, out: Path) -> str:
+    plt = pyplot()
+    names = list(history[0]["theta"])
+    fig, axes = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.6), squeeze=False)
+    ev = [h["evaluation"] for h in history]
+    for ax, name in zip(axes[0], names, strict=True):
+        values = np.array([np.ravel(h["theta"][name]) for h in history])
+        ax.plot(ev, values, lw=1)
+        ax.set(xlabel="evaluation", title=name)
+    fig.suptitle("Unconstrained parameters (log / logit scale) during tuning")
+    return save_figure(fig, out, "parameters")
+
+
+def _plot_responses(problem, designs: dict, hand_losses, out: Path) -> str:
+    """The held-out plants with the lowest, median and highest hand-set loss, each design's response."""
+    order = np.argsort(np.where(np.isfinite(hand_losses), hand_losses, np.inf))
+    picks = np.asarray([order[0], order[order.size // 2], order[-1]])
+    plants = jax.tree.map(lambda x: x[picks], problem.heldout)
+    plt = pyplot()
+    fig, axes = plt.subplots(1, picks.size, figsize=(5 * picks.size, 3.8), sharey=True)
+    for name, theta in designs.items():
+        r = problem.responses(theta, plants)
+        output = np.asarray(r["output"])
+        for i, ax in enumerate(axes):
+            ax.plot(r["t"], output[i], lw=1, label=name)
+    for i, ax in enumerate(axes):
+        ax.plot(r["t"], r["desired"], "k--", lw=1, label="desired")
+        ax.set(xlabel="time (s)", title=f"held-out: {r['labels'][i]}")
+    axes[0].set_ylabel(r["ylabel"])
+    axes[0].legend(fontsize=8)
+    return save_figure(fig, out, "responses")
