@@ -242,7 +242,8 @@ def _failure(value, grad, diverged) -> str | None:
 
 def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str) -> str:
     shapes = {k: list(np.shape(v)) for k, v in problem.theta0.items()}
-    text = json.dumps({"tag": tag, "settings": dataclasses.asdict(settings), "theta": shapes}, sort_keys=True)
+    fixed = {k: v for k, v in dataclasses.asdict(settings).items() if k != "steps"}  # more steps may continue a run
+    text = json.dumps({"tag": tag, "settings": fixed, "theta": shapes}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -341,7 +342,7 @@ def tune(
                 "accepted": reason is None,
                 "reason": reason,
                 "scale": meta["scale"],
-                "grad_norm": float(optax.global_norm(grad)) if reason is None else None,
+                "grad_norm": float(optax.tree.norm(grad)) if reason is None else None,
                 "theta": _as_numpy(trees["theta"]),
             }
             if reason is not None:
