@@ -163,3 +163,26 @@ def test_bad_inputs_raise(nominal):
         rollout(model, u, noise=jnp.zeros(3))
     with pytest.raises(ValueError, match="fifo_init"):
         rollout(model, u, fifo_init=jnp.zeros(2))
+
+
+def test_user_mjcf_is_checked(tmp_path):
+    """load_model(xml=...) accepts a user's MJCF with the plant's names and rejects, naming the file, an
+    unreadable or invalid file and a model without the compliant force sensor (joint 'x')."""
+    import importlib.resources
+
+    text = importlib.resources.files("jaxobs.mjx").joinpath("assets", "force_1dof.xml").read_text()
+    good = tmp_path / "good.xml"
+    good.write_text(text.replace('size="10 10 10"', 'size="5 5 5"'))
+    m, _ = load_model(xml=good)
+    assert m.jnt_stiffness[0] == 3.0
+    broken = tmp_path / "broken.xml"
+    broken.write_text(text.replace("</mujoco>", ""))
+    with pytest.raises(ValueError, match="broken.xml: invalid model"):
+        load_model(xml=broken)
+    no_sensor = tmp_path / "no_sensor.xml"
+    renamed = text.replace('name="x" type="slide"', 'name="q" type="slide"').replace('joint="x"', 'joint="q"')
+    no_sensor.write_text(renamed)
+    with pytest.raises(ValueError, match="no_sensor.xml: the force sensor is missing"):
+        load_model(xml=no_sensor)
+    with pytest.raises(ValueError, match="cannot read"):
+        load_model(xml=tmp_path / "absent.xml")

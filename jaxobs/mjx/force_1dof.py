@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.resources
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -135,8 +136,9 @@ def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
     return jnt, body, act
 
 
-def _tool_mass(model) -> float:
-    return model.body_mass[1]
+def _tool_mass(model):
+    """Mass of the body moved by the force joint (the tool), in t."""
+    return model.body_mass[int(np.asarray(model.jnt_bodyid)[0])]
 
 
 def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
@@ -149,7 +151,7 @@ def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     """
     params.validate()
     if _checks.is_concrete(params.servo_gain, params.tp, model.body_mass):
-        inertia, tool_mass = float(params.servo_gain) * float(params.tp), float(np.asarray(model.body_mass)[1])
+        inertia, tool_mass = float(params.servo_gain) * float(params.tp), float(_tool_mass(model))
         if inertia <= tool_mass:
             raise ValueError(f"servo_gain * tp = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain")
     dtype = model.jnt_stiffness.dtype
@@ -163,25 +165,53 @@ def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     )
 
 
-def load_model(params: ForcePlantParams | None = None) -> tuple[mujoco.MjModel, mjx.Model]:
-    """Load the packaged MJCF and return ``(mj_model, mjx_model)`` with ``params`` applied to both.
+def _parse_mjcf(xml) -> mujoco.MjModel:
+    """The packaged MJCF (``xml=None``) or a user's file, checked for what this plant needs: a slide joint
+    ``x`` (the compliant force sensor: its spring gives the force) as the first joint, the body ``tool`` it
+    moves, and a velocity actuator ``servo`` on it. Anything else is a ``ValueError`` naming the file."""
+    if xml is None:
+        source = f"jaxobs/mjx/assets/{ASSET}"
+        text = importlib.resources.files("jaxobs.mjx").joinpath("assets", ASSET).read_text()
+    else:
+        source = str(xml)
+        try:
+            text = Path(xml).read_text()
+        except OSError as exc:
+            raise ValueError(f"MJCF {source}: cannot read it ({exc})") from exc
+    try:
+        m = mujoco.MjModel.from_xml_string(text)
+    except ValueError as exc:  # mujoco reports XML and schema errors as ValueError
+        raise ValueError(f"MJCF {source}: invalid model: {exc}") from exc
+    jnt, body, act = _ids(m)
+    if jnt != 0 or m.jnt_type[0] != mujoco.mjtJoint.mjJNT_SLIDE:
+        raise ValueError(
+            f"MJCF {source}: the force sensor is missing: the first joint must be the slide joint '{_JOINT}' "
+            "whose spring is the compliant sensor"
+        )
+    if body < 0 or m.jnt_bodyid[0] != body:
+        raise ValueError(f"MJCF {source}: joint '{_JOINT}' must move the body '{_BODY}'")
+    if act != 0 or m.actuator_trnid[0, 0] != jnt or m.actuator_biasprm[0, 2] >= 0:
+        raise ValueError(f"MJCF {source}: the first actuator must be the velocity servo '{_ACTUATOR}' on '{_JOINT}'")
+    return m
+
+
+def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[mujoco.MjModel, mjx.Model]:
+    """Load the packaged MJCF (or the file ``xml``, which must have the same joint, body and actuator
+    names; see :func:`_parse_mjcf`) and return ``(mj_model, mjx_model)`` with ``params`` applied to both.
 
     ``params`` must be concrete here (build batches with :func:`with_params` under ``vmap``).
     """
     params = ForcePlantParams() if params is None else params
     params.validate()
-    xml = importlib.resources.files("jaxobs.mjx").joinpath("assets", ASSET).read_text()
-    m = mujoco.MjModel.from_xml_string(xml)
-    jnt, body, act = _ids(m)
-    assert (jnt, body, act) == (0, 1, 0), "force_1dof.xml layout changed; update with_params"
+    m = _parse_mjcf(xml)
     kv, tp = float(params.servo_gain), float(params.tp)
-    if kv * tp <= m.body_mass[body]:
-        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {m.body_mass[body]} t")
-    m.jnt_stiffness[jnt] = float(params.ks)
+    if kv * tp <= _tool_mass(m):
+        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {_tool_mass(m)} t")
+    m.jnt_stiffness[0] = float(params.ks)
     m.dof_damping[0] = float(params.damping)
-    m.dof_armature[0] = kv * tp - m.body_mass[body]
-    m.actuator_gainprm[act, 0] = kv
-    m.actuator_biasprm[act, 2] = -kv
+    m.dof_armature[0] = kv * tp - _tool_mass(m)
+    m.actuator_gainprm[0, 0] = kv
+    m.actuator_biasprm[0, 2] = -kv
     return m, mjx.put_model(m)
 
 

@@ -69,6 +69,7 @@ DEFAULT_CONFIG = {
         "damping": [0.0, 0.0],  # sensor + environment damping, N s/mm, uniform
         "train": 16,
         "heldout": 64,
+        "mjcf": "",  # a user's MJCF of the plant (same joint/body/actuator names); "" = the packaged model
     },
     "scenario": {
         "duration": 2.0,  # s
@@ -237,7 +238,7 @@ def build_problem(config: dict) -> TuningProblem:
     order, sc = config["design"]["order"], config["scenario"]
     plant, L = nominal_design(EXAMPLE1)
     base = active.make_aob(plant, L, order, config["design"]["R"])
-    model = load_model()[1]
+    model = load_model(xml=config["plants"]["mjcf"] or None)[1]
     inputs = scenario(config)
     horizon = sc["gradient_horizon"] or None
     n_plant = plant.n_states

@@ -60,7 +60,10 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
     out = Path(out_dir)
     tag = module.config_tag(config)
     _prepare(out, tag, config, overwrite)
-    problem = module.build_problem(config)
+    try:
+        problem = module.build_problem(config)
+    except ValueError as exc:  # e.g. an invalid MJCF
+        raise ConfigError(f"{config['problem']}: {exc}") from exc
     settings = module.settings(config)
     start = time.perf_counter()
     result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
