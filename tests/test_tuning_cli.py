@@ -1,0 +1,92 @@
+"""``jaxobs tune``: config errors, and (slow) a small end-to-end run against the MJX force plant with
+its outputs, resume from the checkpoint and a corrupt checkpoint."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxobs.cli import main
+from jaxobs.papers import force_tuning, tuning
+
+
+def test_default_config_is_the_one_dof_stiffness_problem():
+    config = tuning.validate_config()
+    assert config["problem"] == "force_1dof"
+    assert config["plants"]["stiffness_scale"] == [0.5, 1.5]  # +-50 % stiffness mismatch
+    assert config["design"]["order"] == 1
+    assert (config["design"]["q_active"], config["design"]["R"]) == (1e-5, 2.1e-2)  # seed 003 eq. 62, 64
+    theta = force_tuning.initial_theta(config, force_tuning.nominal_design()[0])
+    np.testing.assert_allclose(np.exp(theta["log_q"]), [1e-12] * 7 + [1e-5], rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "toml, key",
+    [
+        ('problem = "nope"\n', "problem"),
+        ("[plants]\ntrain = 0\n", "plants.train"),
+        ("[plants]\nstiffness_scale = [1.5, 0.5]\n", "plants.stiffness_scale"),
+        ("[design]\norder = 4\n", "design.order"),
+        ('[design]\nparameterisation = "full"\n', "design.parameterisation"),
+        ('[optimizer]\noptimizer = "newton"\n', "optimizer"),
+        ("[optimizer]\nlearning_rate = -1.0\n", "optimizer"),
+        ("[scenario]\nwhatever = 1\n", "scenario.whatever"),
+    ],
+)
+def test_config_errors_name_the_key_and_file_and_exit_2(tmp_path, capsys, toml, key):
+    path = tmp_path / "bad.toml"
+    path.write_text(toml)
+    out = tmp_path / "out"
+    assert main(["tune", "--config", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and key in err
+    assert not out.exists()
+
+
+def test_invalid_mjcf_exits_2(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    (tmp_path / "plant.xml").write_text("<mujoco><worldbody></worldbody></mujoco>")
+    path.write_text(f'[plants]\nmjcf = "{tmp_path / "plant.xml"}"\n')
+    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert "plant.xml: the force sensor is missing" in capsys.readouterr().err
+
+
+SMALL = """
+[plants]
+train = 3
+heldout = 4
+[scenario]
+duration = 0.4
+[design]
+parameterisation = "{kind}"
+[optimizer]
+steps = {steps}
+checkpoint_every = 2
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["diagonal", "cholesky", "structured"])
+def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
+    """Every parameterisation runs end to end on the MJX plant; a rerun with more steps continues the
+    checkpoint; a corrupt checkpoint is an error (exit 2), not a silent restart."""
+    config, out = tmp_path / "small.toml", tmp_path / "out"
+    config.write_text(SMALL.format(kind=kind, steps=3))
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    assert summary["evaluations"] == 3 and summary["rollouts"] == 9
+    assert summary["random_search"]["rollouts"] == 9  # the baseline gets as many rollouts
+    assert set(summary["heldout"]) == {"hand-set", "tuned", "random search"}
+    assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
+    for name in ("loss_curves.png", "parameters.png", "responses.png", "checkpoint.npz"):
+        assert (out / name).stat().st_size > 0
+    config.write_text(SMALL.format(kind=kind, steps=5))
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
+    resumed = json.loads((out / "tuned.json").read_text())
+    assert (
+        resumed["evaluations"] == 5 and resumed["train_objective"]["hand-set"] == summary["train_objective"]["hand-set"]
+    )
+    (out / "checkpoint.npz").write_bytes(b"garbage")
+    capsys.readouterr()
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 2
+    assert "corrupt" in capsys.readouterr().err
