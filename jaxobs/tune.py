@@ -53,6 +53,7 @@ __all__ = [
     "unit_interval_parameters",
     "cvar",
     "robust_objective",
+    "value_and_grad",
     "TuningProblem",
     "TuneSettings",
     "TuneResult",
@@ -66,6 +67,7 @@ __all__ = [
 logger = logging.getLogger("jaxobs.tune")
 
 OBJECTIVES = ("mean", "cvar")
+GRADIENT_MODES = ("reverse", "forward")
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb}
 
 
@@ -162,6 +164,7 @@ class TuneSettings:
     """Settings of :func:`tune` (the ``[optimizer]`` table of ``jaxobs tune``'s config)."""
 
     optimizer: str = "adam"
+    gradient: str = "reverse"  # "reverse" (value_and_grad) or "forward" (jacfwd: exact, for few parameters)
     learning_rate: float = 0.1
     steps: int = 50  # gradient evaluations at most (rejected ones included)
     objective: str = "mean"
@@ -176,6 +179,8 @@ class TuneSettings:
     def validate(self) -> None:
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
+        if self.gradient not in GRADIENT_MODES:
+            raise ValueError(f"gradient must be one of {GRADIENT_MODES}, got {self.gradient!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not 0 < self.cvar_alpha <= 1:
@@ -218,6 +223,27 @@ def _objective_fn(problem: TuningProblem, settings: TuneSettings, batch):
         return value, (losses, diverged)
 
     return objective
+
+
+def value_and_grad(objective: Callable, mode: str = "reverse") -> Callable:
+    """``theta -> ((value, aux), grad)`` of ``objective: theta -> (value, aux)``: reverse mode
+    (``jax.value_and_grad``; one backward pass whatever the number of parameters) or forward mode
+    (``jax.jacfwd``; one tangent per parameter, exact through ``while`` loops, and the cheaper choice
+    for a few parameters on long rollouts since nothing is stored for a backward pass)."""
+    if mode == "reverse":
+        return jax.value_and_grad(objective, has_aux=True)
+    if mode != "forward":
+        raise ValueError(f"mode must be one of {GRADIENT_MODES}, got {mode!r}")
+
+    def with_value(theta):
+        value, aux = objective(theta)
+        return value, (value, aux)
+
+    def forward(theta):
+        grad, (value, aux) = jax.jacfwd(with_value, has_aux=True)(theta)
+        return (value, aux), grad
+
+    return forward
 
 
 def _as_numpy(theta: dict) -> dict:
@@ -310,7 +336,7 @@ def tune(
 
     settings.validate()
     optimizer = settings.optax_transform()
-    value_and_grad = jax.jit(jax.value_and_grad(_objective_fn(problem, settings, problem.train), has_aux=True))
+    evaluate_with_grad = jax.jit(value_and_grad(_objective_fn(problem, settings, problem.train), settings.gradient))
     batch = problem.batch_size(problem.train)
     theta0 = {k: jnp.asarray(v) for k, v in problem.theta0.items()}
     zeros = jax.tree.map(jnp.zeros_like, theta0)
@@ -333,7 +359,7 @@ def tune(
     try:
         while meta["evaluations"] < settings.steps:
             start = time.perf_counter()
-            (value, (_, diverged)), grad = value_and_grad(trees["theta"])
+            (value, (_, diverged)), grad = evaluate_with_grad(trees["theta"])
             meta["evaluations"] += 1
             reason = _failure(value, grad, diverged)
             record = {

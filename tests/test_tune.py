@@ -29,6 +29,7 @@ from jaxobs.tune import (
     tune,
     unit_interval,
     unit_interval_parameters,
+    value_and_grad,
 )
 
 
@@ -171,9 +172,26 @@ def test_random_search_starts_at_theta0_and_counts_rollouts():
         random_search(quadratic_problem(), s, 0)
 
 
+def test_forward_mode_gives_the_reverse_mode_gradient():
+    def objective(theta):
+        v = jnp.sum(jnp.sin(theta["a"]) * theta["b"] ** 2)
+        return v, v > 0
+
+    theta = {"a": jnp.array([0.3, -1.2]), "b": jnp.array(0.7)}
+    (v_rev, aux_rev), g_rev = jax.jit(value_and_grad(objective, "reverse"))(theta)
+    (v_fwd, aux_fwd), g_fwd = jax.jit(value_and_grad(objective, "forward"))(theta)
+    assert float(v_rev) == float(v_fwd) and bool(aux_rev) == bool(aux_fwd)
+    for k in theta:
+        np.testing.assert_allclose(g_fwd[k], g_rev[k], rtol=1e-14)
+    s = TuneSettings(learning_rate=0.2, steps=30, patience=30, gradient="forward")
+    assert float(tune(quadratic_problem(), s, progress=False).theta["x"]) == pytest.approx(2.0, abs=0.05)
+    with pytest.raises(ValueError, match="mode"):
+        value_and_grad(objective, "central")
+
+
 def test_settings_are_validated():
     for bad in ({"optimizer": "rmsprop"}, {"objective": "max"}, {"learning_rate": 0.0}, {"cvar_alpha": 1.5},
-                {"steps": 0}, {"clip_norm": -1.0}):  # fmt: skip
+                {"steps": 0}, {"clip_norm": -1.0}, {"gradient": "central"}):  # fmt: skip
         with pytest.raises(ValueError, match=next(iter(bad))):
             TuneSettings(**bad).validate()
 

@@ -92,6 +92,7 @@ DEFAULT_CONFIG = {
     },
     "optimizer": {
         "optimizer": "adam",
+        "gradient": "reverse",  # or "forward" (jacfwd)
         "learning_rate": 0.2,
         "steps": 40,
         "objective": "mean",
