@@ -1,0 +1,731 @@
+"""6-DOF compliant-motion plant in MuJoCo MJX and the peg-on-hole alignment scenario (seed 003 §7, Table 1,
+eq. 56-68, Figures 4-6).
+
+The setup of seed 003 §7: a Manutec R2 robot with a Cartesian position interface (``h = 8 ms``, input dead
+time 5 samples) holds a peg through a compliant force/torque sensor; per DOF the position response is
+``1 / (1 + Tp s) e^{-s Td}`` (eq. 56) and, with the stiffness of that DOF, the force plant is
+``G(s) = Ks / (s (1 + Tp s)) e^{-s Td}`` (eq. 57-61). Each of the six wrench components
+``[f_x, f_y, f_z, m_x, m_y, m_z]`` has its own controller (Figure 2): an AOB-1 with a hybrid estimation
+strategy (HBA) on five DOF and a classical Kalman filter with the sensor-based gain (CKF, SBA) on ``z``
+(§7.4, Figures 5-6).
+
+Units. The MJX model works in mm, N, s, rad (moments in N·mm). Everything a user passes or reads is in the
+units of Table 1 and of the per-DOF designs: forces in N, moments in **N·m**, stiffnesses in N/mm and N·m/rad,
+commands in mm/s and rad/s. So the rotational AOBs are designed on ``force_plant(100 N·m/rad, Tp, h, Td)``
+with moments in N·m, and :func:`sensor_wrench` converts the model's N·mm to N·m. The unit conversion lives
+only in :func:`with_params` (parameters to model fields) and :func:`sensor_wrench` (model to measurement).
+
+MJCF model (``assets/compliant_6dof.xml``): one tool body with three slide joints ``x, y, z`` and three
+hinge joints ``rx, ry, rz`` about the sensor origin (the body origin and centre of mass), so the generalized
+coordinates ``q`` are the six Cartesian deflections past the contact (small angles). Per DOF, as in
+:mod:`jaxobs.mjx.force_1dof`: the compliance is the joint spring (``jnt_stiffness = K_i``, ``springref = 0``,
+optional ``dof_damping = D_i``), the robot's position loop is a velocity servo of gain ``kv_i`` acting on the
+total inertia ``kv_i Tp_i`` (``dof_armature = kv_i Tp_i`` minus the tool's own mass or inertia), so each DOF
+alone is ``M qddot = kv (u - qdot) - K q`` and its force response is the paper's plant with the integrator
+pole moved to ``-K / kv`` (``3e-5 .. 2e-4 1/s`` nominally). Contacts and constraints are disabled: the model
+is smooth and differentiable.
+
+Peg-on-hole coupling (Figure 4, §7.4). The peg touches the hole edge at the contact point ``p`` (site
+``contact``); in the sensor frame at ``q = 0`` it is ``p0 = R_y(tilt) (rho, 0, -l)`` with the peg radius
+``rho``, the depth ``l`` of the peg tip below the sensor origin and the peg's initial tilt about ``y``. The
+contact springs of ``x`` and ``z`` act at ``p``, not at the sensor origin, so an alignment rotation ``theta``
+(joint ``ry``) moves the contact point by ``s(theta) = (R_y(theta) - I) p0`` and loads the contact springs::
+
+    f_x = K_x (q_x + s_x(theta)),    f_z = K_z (q_z + s_z(theta)),    p(theta) = R_y(theta) p0
+    m_y = K_ry theta + p_z(theta) f_x - p_x(theta) f_z               (moment of the contact force about
+                                                                     the sensor origin, (p x f)_y)
+
+(plus ``D_i qdot_i`` per DOF; the other three components are uncoupled). This is the gradient of the
+potential ``V = 1/2 sum_i K_i q_i^2 + 1/2 K_x ((q_x + s_x)^2 - q_x^2) + 1/2 K_z ((q_z + s_z)^2 - q_z^2)``:
+the coupling is conservative and smooth, and the generalized force beyond MuJoCo's diagonal joint springs,
+``-dV_c/dq = -(K_x s_x, 0, K_z s_z, 0, p_z f_x - p_x f_z, 0)``, is written into ``qfrc_applied`` before
+every physics step (:func:`coupling_force`). The sensor reads the total passive plus coupling force of each
+joint (:func:`sensor_wrench`). In the alignment phase the peg pivots on the three-point contact and the
+environment does not resist the rotation about ``y``: the scenario sets ``K_ry = 0``, so
+``m_y = p_z f_x - p_x f_z`` "is only function of the contact forces and of the contact geometry" (§7.4,
+[Koeppel 2001]), and the alignment velocity ``w_y`` changes ``f_x`` and ``f_z`` through ``s(theta)``: for the
+per-DOF controllers it is an equivalent input disturbance, the thing the AOB estimates and cancels.
+``coupling`` scales the lever arm ``p0`` (0 switches the coupling off and makes the six DOF independent).
+
+Controllers. :func:`design` builds the six per-DOF controllers of §7.3 (eq. 62-68): per DOF the delay-augmented
+``force_plant(K_i, Tp_i, h, 5 h)``, ``L_r`` for a critically damped loop with ``tau_c = 10 Tp`` (eq. 68),
+``Q(f_x) = diag(1e-12, ..., 1e-12, 1e-5)`` (eq. 62), ``P0(f_x) = 1e-4 I`` (eq. 63), ``R(f_x) = 2.1e-2 N^2``
+(eq. 64), ``R(f_y) = 7.4e-4 N^2`` (eq. 67) and for every other DOF ``Q = Q(f_x) R_i / R(f_x)``,
+``P0 = P0(f_x) R_i / R(f_x)`` (eq. 65-66, "analogous equations for the other dimensions"). The ``R`` of ``f_z``
+and of the moments are not printed; :data:`SENSOR_NOISE_VARIANCE` chooses ``R(f_z) = R(f_x) = 2.1e-2 N^2``
+and ``R(m_x) = R(m_y) = R(m_z) = 1e-4 (N·m)^2``. The ratio ``Q/R`` is the same in every DOF, so
+by Proposition 1 DOF with the same ``Ks`` and ``Tp`` share one Kalman gain (``f_x`` and ``f_y``; the three
+moments); ``Ks`` enters the augmented ``Phi_n`` through the active state's input column (eq. 41), so the
+rotational AOB-1 (``Ks = 100``) get larger gains than the translational ones (both HBA). The z controller is an AOB-1
+switched to CKF (``active = 0``) with the SBA gain ``K = [1, 0, ..., 0]'``, so all six have one shape and
+are stacked on a leading axis of size 6; :func:`closed_loop_rollout` steps them with one ``jax.vmap`` over DOF.
+Reference inputs (§7.1, "two reference inputs, f_d and v_d"): the controller reference is
+``r = L_1 f_d`` (:func:`force_reference`) and the velocity feedforward ``v_d`` is added to the command at the
+plant input, outside the observer's model: the AOB treats it as part of the equivalent disturbance and
+cancels it ("the full AOB annihilates any external inputs"), the CKF lets it through.
+
+Simplifications against the real Manutec R2 / DLR setup (quote them with any result):
+
+* no real contact geometry: the three-point contact is a bilateral, always-closed linear spring per DOF at
+  a fixed contact point on the peg; contact is never lost or re-established, there is no friction, no
+  chamferless-hole jamming, no 50 µm clearance and no insertion phase (only the alignment phase is
+  scripted);
+* the coupling is planar: only the alignment plane (``x``, ``z``, rotation about ``y``) is coupled through the
+  lever arm; ``y``, ``rx``, ``rz`` stay independent (the paper's misalignment moment ``m_x`` does not arise);
+* compliance lumped per Cartesian DOF (sensor in series with a very stiff environment, ``Ks ≈ Kw``, §7.2),
+  diagonal in the sensor frame; the real sensor's stiffness matrix and the robot's joint compliance are
+  not modelled; ``K_ry = 0`` in the alignment phase (pivoting peg), Table 1's value elsewhere;
+* the ``z``-rotation stiffness is not in Table 1: 100 N·m/rad is chosen (as for ``x`` and ``y``);
+* ``R`` of ``f_z`` and of the three moments are not printed: invented values (above);
+* decoupled, exactly first-order Cartesian servos (no robot kinematics or dynamics, no joint friction,
+  servo resonance or saturation, no gravity), small-angle joint coordinates for the rotations (MuJoCo
+  composes the three hinges, so large simultaneous rotations are Euler-angle-like), and each servo yields
+  to the contact force by ``K / kv``;
+* the dead time is 5 whole control samples on the command (FIFO), commands held over a control step, the
+  wrench sampled without anti-alias filtering, sensor noise white and Gaussian per channel (no cross
+  correlation, no bias drift); the paper's off-line 2 Hz Butterworth filtering of the plots is not applied;
+* the ANN reference generator trained on human demonstrations (§7.4) is replaced by a scripted reference
+  (:func:`peg_on_hole_scenario`); the contact-force magnitudes, the tilt and the ``v_z`` feedforward bias are
+  not printed and are chosen;
+* the moment controller of ``m_y`` is off during the alignment (``L = 0``, pure velocity feedforward ``w_y``),
+  as in §7.4; on-line switching between AOB, CKF and pure state feedback by task state is not scripted
+  (``set_active`` does it at run time);
+* semi-implicit Euler at 1 ms (``Tp / dt = 32``).
+
+Parameters map to model fields only in :func:`with_params`, so mismatched batches are
+``jax.vmap(lambda p: closed_loop_rollout(with_params(model, p), ...))(params_batch)``.
+
+Precision. Float32 is adequate for the plant (the open-loop wrench of the 4 s scenario stays within 5e-5 N of
+float64) but not for :func:`design`: with ``Q`` entries of 1e-12..1e-5 the float32 DARE returns steady-state
+gains near zero. Design in float64 (then cast the parameters if a float32 rollout is wanted); tests run in
+float64.
+
+Checked in ``tests/test_mjx_6dof.py``: with the coupling off each DOF's closed-loop wrench equals
+:func:`jaxobs.closed_loop.simulate` on ``force_plant`` to 0.04-0.07 % RMS of the step; the alignment rotation
+loads the contact as the formulas above say (1e-4 relative); jit equals eager; ``vmap`` over mismatched models
+and noise seeds equals single calls; reverse-mode and ``jacfwd`` gradients w.r.t. the per-DOF log active-state
+variances through :func:`design` and the loop match central differences to 5e-10.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.resources
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from jaxobs import _checks
+from jaxobs.mjx.force_1dof import _check_timing, _initial_data
+from jaxobs.observers.active import (
+    ActiveObserverInputs,
+    ActiveObserverParams,
+    active_observer,
+    make_aob,
+    sensor_based_gain,
+)
+from jaxobs.observers.base import Observer
+from jaxobs.papers.force_control import design_gain, force_plant
+
+__all__ = [
+    "DOF_NAMES",
+    "N_DOF",
+    "TABLE1_STIFFNESS",
+    "SENSOR_NOISE_VARIANCE",
+    "CONTROL_PERIOD",
+    "SUBSTEPS",
+    "Compliant6Params",
+    "WrenchRollout",
+    "Compliant6Rollout",
+    "PegOnHoleScenario",
+    "load_model",
+    "with_params",
+    "sensor_wrench",
+    "contact_point",
+    "coupling_force",
+    "rollout",
+    "closed_loop_rollout",
+    "stack_controllers",
+    "design",
+    "force_reference",
+    "peg_on_hole_scenario",
+]
+
+ASSET = "compliant_6dof.xml"
+TIMESTEP = 0.001  # s, physics step (the MJCF's option/timestep)
+SUBSTEPS = 8  # physics steps per control step
+CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (seed 003 Table 1)
+N_DOF = 6
+DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")  # joints and actuators, in the order of the wrench
+X, Y, Z, RX, RY, RZ = range(N_DOF)
+_SITE = "contact"
+_BODY = "tool"
+# Table-1 units (N/mm, N·m/rad; N, N·m) to model units (N/mm, N·mm/rad; N, N·mm)
+_TO_MODEL = np.array([1.0, 1.0, 1.0, 1e3, 1e3, 1e3])
+
+TABLE1_STIFFNESS = (3.0, 3.0, 20.0, 100.0, 100.0, 100.0)
+"""Seed 003 Table 1: 3, 3, 20 N/mm; 100, 100 N·m/rad. The z rotation (last entry) is not printed: chosen."""
+
+SENSOR_NOISE_VARIANCE = (2.1e-2, 7.4e-4, 2.1e-2, 1e-4, 1e-4, 1e-4)
+"""``R`` per wrench component in N^2 and (N·m)^2: f_x eq. 64, f_y eq. 67; f_z and the moments are not
+printed (chosen: f_z as f_x, moments std 0.01 N·m)."""
+
+Q_PLANT_FX = 1e-12  # eq. 62, plant-state entries of Q(f_x)
+Q_ACTIVE_FX = 1e-5  # eq. 62, active-state entry of Q(f_x) (AOB-1: the variance of xi_p)
+P0_FX = 1e-4  # eq. 63
+TAU_C_OVER_TP = 10.0  # eq. 68
+
+
+def _default(values):
+    return dataclasses.field(default_factory=lambda: np.array(values, dtype=float))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Compliant6Params:
+    """Physical parameters of the 6-DOF plant, in Table-1 units (per-DOF arrays in the order x, y, z, rx, ry, rz).
+
+    Attributes:
+      stiffness: sensor + environment stiffness ``K_i`` (6,): N/mm for x, y, z and N·m/rad for the rotations
+        (>= 0; 0 is a DOF the environment does not resist, e.g. the pivoting peg's ``ry`` during alignment).
+      tp: position-loop time constant ``Tp`` in s, scalar or (6,) (> 0).
+      damping: sensor + environment damping ``D_i`` (N s/mm, N·m·s/rad), scalar or (6,) (>= 0); part of the
+        measured wrench, acting on the joint coordinates (not through the contact point).
+      servo_gain: velocity-servo gain ``kv_i`` (N s/mm, N·m·s/rad), scalar or (6,) (> 0); the DOF's inertia is
+        ``kv Tp`` and its servo yields to the contact force by ``K / kv``.
+      contact_radius: ``rho`` (mm), the contact point's distance from the peg axis (23 mm peg: 11.5).
+      contact_depth: ``l`` (mm), the peg tip's depth below the sensor origin (the 30 mm peg length; the real
+        sensor-to-tip distance is not printed).
+      tilt: the peg's initial tilt about ``y`` (rad) at ``q = 0``.
+      coupling: scale of the lever arm ``p0`` (1 nominal, 0 decouples the six DOF).
+    """
+
+    stiffness: jax.Array = _default(TABLE1_STIFFNESS)
+    tp: jax.Array = _default(0.032)
+    damping: jax.Array = _default(0.0)
+    servo_gain: jax.Array = _default([1e5, 1e5, 1e5, 1e6, 1e6, 1e6])
+    contact_radius: jax.Array = _default(11.5)
+    contact_depth: jax.Array = _default(30.0)
+    tilt: jax.Array = _default(0.04)
+    coupling: jax.Array = _default(1.0)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
+        _per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
+        _per_dof("tp", self.tp, minimum=0.0, strict=True)
+        _per_dof("damping", self.damping, minimum=0.0, strict=False)
+        _per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
+        for name in ("contact_radius", "contact_depth", "tilt", "coupling"):
+            value = getattr(self, name)
+            if np.shape(value) != ():
+                raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+            if _checks.is_concrete(value) and not np.isfinite(np.asarray(value)):
+                raise ValueError(f"{name} must be finite, got {value}")
+
+    def per_dof(self, name: str, dtype=None) -> jax.Array:
+        """The field ``name`` broadcast to shape (6,)."""
+        return jnp.broadcast_to(jnp.asarray(getattr(self, name), dtype), (N_DOF,))
+
+
+def _per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
+    shape = np.shape(value)
+    if shape not in ((), (N_DOF,)):
+        raise ValueError(f"{name} must be a scalar or have shape ({N_DOF},) (x, y, z, rx, ry, rz), got {shape}")
+    if not _checks.is_concrete(value):
+        return
+    a = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or infinite entries")
+    bad = a <= minimum if strict else a < minimum
+    if np.any(bad):
+        rel = ">" if strict else ">="
+        raise ValueError(f"{name} must be {rel} {minimum} in every DOF, got {a.tolist()}")
+
+
+class WrenchRollout(NamedTuple):
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis time, then the 6 DOF)."""
+
+    wrench: jax.Array  # measured wrench (N, N·m): simulated sensor wrench plus noise
+    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
+    position: jax.Array  # joint coordinates q (mm, rad past the untensioned contact)
+    velocity: jax.Array  # qdot (mm/s, rad/s)
+    applied: jax.Array  # plant input during step k (mm/s, rad/s): the command d samples earlier
+
+
+class Compliant6Rollout(NamedTuple):
+    """Per control step ``k`` of :func:`closed_loop_rollout` (leading axis time, then the 6 DOF)."""
+
+    wrench: jax.Array  # measured wrench y_k (N, N·m): sensor wrench plus noise, what the controllers read
+    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
+    position: jax.Array  # joint coordinates q (mm, rad)
+    velocity: jax.Array  # qdot (mm/s, rad/s)
+    command: jax.Array  # controller commands u_k = r_k - L x_hat_k (mm/s, rad/s)
+    applied: jax.Array  # plant input during step k: (u + v_d + d)_{k-d}
+    controller: object  # per-DOF controller outputs (e.g. ActiveObserverOutputs), leading axes (T, 6)
+
+
+class PegOnHoleScenario(NamedTuple):
+    """The alignment phase of §7.4 (:func:`peg_on_hole_scenario`); series have shape (T, 6)."""
+
+    t: jax.Array  # (T,) time (s)
+    force_setpoint: jax.Array  # f_d (N, N·m)
+    feedforward: jax.Array  # v_d (mm/s, rad/s): w_y alignment velocity, v_z feedforward bias
+    reference: jax.Array  # controller reference r = L_1 f_d
+    plant: Compliant6Params  # the alignment-phase plant (K_ry = 0: the peg pivots on the contact)
+    controllers: ActiveObserverParams  # the six per-DOF controllers, stacked (m_y feedback off)
+
+
+# --------------------------------------------------------------------------------------------
+# Model
+
+
+def _contact_lever_arm(params: Compliant6Params, dtype) -> jax.Array:
+    """``coupling * R_y(tilt) (rho, 0, -l)`` (mm), the site position at ``q = 0``."""
+    rho, depth, tilt, c = (
+        jnp.asarray(getattr(params, f), dtype) for f in ("contact_radius", "contact_depth", "tilt", "coupling")
+    )
+    cos, sin = jnp.cos(tilt), jnp.sin(tilt)
+    return c * jnp.stack([rho * cos - depth * sin, jnp.zeros_like(rho), -rho * sin - depth * cos])
+
+
+def _tool_inertia(model) -> jax.Array:
+    """The tool body's own contribution to each joint's inertia at ``q = 0`` (mass, mass, mass, Ixx, Iyy, Izz)."""
+    mass = jnp.asarray(model.body_mass)[1]
+    inertia = jnp.asarray(model.body_inertia)[1]
+    return jnp.concatenate([jnp.broadcast_to(mass, (3,)), inertia])
+
+
+def with_params(model: mjx.Model, params: Compliant6Params) -> mjx.Model:
+    """Return ``model`` with the physical ``params`` written into its array fields (pure, traceable, vmappable).
+
+    The one place where parameters map to fields (rotational entries converted from N·m to N·mm):
+    ``jnt_stiffness = K``, ``dof_damping = D``, ``actuator_gainprm[:, 0] = kv``, ``actuator_biasprm[:, 2] = -kv``,
+    ``dof_armature = kv Tp - tool inertia``, ``site_pos[contact] = coupling R_y(tilt) (rho, 0, -l)``.
+    Derived fields used only by constraints are left as they are: constraints and contacts are disabled.
+    """
+    params.validate()
+    dtype = model.jnt_stiffness.dtype
+    unit = jnp.asarray(_TO_MODEL, dtype)
+    stiffness, damping, kv = (params.per_dof(f, dtype) * unit for f in ("stiffness", "damping", "servo_gain"))
+    inertia = kv * params.per_dof("tp", dtype)
+    if _checks.is_concrete(inertia, model.body_mass, model.body_inertia):
+        tool = np.asarray(_tool_inertia(model))
+        if np.any(np.asarray(inertia) <= tool):
+            raise ValueError(
+                f"servo_gain * tp (model units {np.asarray(inertia).tolist()}) must exceed the tool's own inertia "
+                f"{tool.tolist()} in every DOF; raise servo_gain"
+            )
+    return model.replace(
+        jnt_stiffness=stiffness,
+        dof_damping=damping,
+        dof_armature=inertia - _tool_inertia(model).astype(dtype),
+        actuator_gainprm=jnp.asarray(model.actuator_gainprm).at[:, 0].set(kv),
+        actuator_biasprm=jnp.asarray(model.actuator_biasprm).at[:, 2].set(-kv),
+        site_pos=jnp.asarray(model.site_pos).at[0].set(_contact_lever_arm(params, dtype)),
+    )
+
+
+def load_model(params: Compliant6Params | None = None) -> tuple[mujoco.MjModel, mjx.Model]:
+    """Load the packaged MJCF and return ``(mj_model, mjx_model)`` with ``params`` applied to both.
+
+    ``params`` must be concrete here (build batches with :func:`with_params` under ``vmap``).
+    """
+    params = Compliant6Params() if params is None else params
+    params.validate()
+    xml = importlib.resources.files("jaxobs.mjx").joinpath("assets", ASSET).read_text()
+    m = mujoco.MjModel.from_xml_string(xml)
+    joints = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in DOF_NAMES]
+    actuators = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, n) for n in DOF_NAMES]
+    site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, _SITE)
+    body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, _BODY)
+    layout = (joints, actuators, list(m.jnt_dofadr), list(m.actuator_trnid[:, 0]), site, body, m.nv)
+    assert layout == (list(range(6)), list(range(6)), list(range(6)), list(range(6)), 0, 1, 6), (
+        "compliant_6dof.xml layout changed; update with_params"
+    )
+    mx = with_params(mjx.put_model(m), params)
+    for field in ("jnt_stiffness", "dof_damping", "dof_armature", "actuator_gainprm", "actuator_biasprm", "site_pos"):
+        getattr(m, field)[...] = np.asarray(getattr(mx, field))
+    return m, mx
+
+
+# --------------------------------------------------------------------------------------------
+# Coupling and sensor
+
+
+def contact_point(model: mjx.Model, qpos: jax.Array) -> jax.Array:
+    """The contact point ``p(theta) = R_y(theta) p0`` (mm, sensor frame, x and z components) for the
+    alignment rotation ``theta = q_ry``: MuJoCo's own position of the ``contact`` site relative to the tool
+    body when only ``ry`` is deflected."""
+    theta = qpos[RY] - model.qpos_spring[RY]
+    p0x, p0z = model.site_pos[0, 0], model.site_pos[0, 2]
+    cos, sin = jnp.cos(theta), jnp.sin(theta)
+    return jnp.stack([cos * p0x + sin * p0z, -sin * p0x + cos * p0z])
+
+
+def _contact(model: mjx.Model, qpos: jax.Array):
+    """``(p, s, f)``: contact point, its displacement ``s = p - p0`` and the contact-spring forces (f_x, f_z)."""
+    p = contact_point(model, qpos)
+    s = p - jnp.stack([model.site_pos[0, 0], model.site_pos[0, 2]])
+    k = jnp.stack([model.jnt_stiffness[X], model.jnt_stiffness[Z]])
+    q = jnp.stack([qpos[X] - model.qpos_spring[X], qpos[Z] - model.qpos_spring[Z]])
+    return p, s, k * (q + s)
+
+
+def coupling_force(model: mjx.Model, qpos: jax.Array) -> jax.Array:
+    """The peg-on-hole coupling as a generalized force (6,) in model units (N, N·mm), ``-dV_c/dq``::
+
+        (-K_x s_x, 0, -K_z s_z, 0, -(p_z f_x - p_x f_z), 0)
+
+    with ``p``, ``s`` and the contact forces ``f`` of the module docstring; zero for a zero lever arm. Added to
+    ``qfrc_applied`` before every physics step; MuJoCo's diagonal joint springs supply the rest of the force."""
+    p, s, f = _contact(model, qpos)
+    moment = p[1] * f[0] - p[0] * f[1]
+    zero = jnp.zeros_like(moment)
+    k = model.jnt_stiffness
+    return jnp.stack([-k[X] * s[0], zero, -k[Z] * s[1], zero, -moment, zero])
+
+
+def sensor_wrench(model: mjx.Model, data: mjx.Data) -> jax.Array:
+    """The noise-free sensor wrench (6,) of the state in ``data``, in N and N·m.
+
+    ``K (q - springref) + D qdot - coupling_force(q)``: the joints' passive force (MuJoCo's
+    ``-qfrc_passive``; gravity and fluid forces are off) plus the contact coupling, i.e.
+    ``f_x = K_x (q_x + s_x)``, ``f_z = K_z (q_z + s_z)``, ``m_y = K_ry theta + p_z f_x - p_x f_z`` (plus damping),
+    the other components ``K_i q_i + D_i qdot_i``. Computed from the state, so a controller can read it before
+    choosing the step's command. Moments are converted from the model's N·mm to N·m.
+    """
+    q = data.qpos - model.qpos_spring
+    wrench = model.jnt_stiffness * q + model.dof_damping * data.qvel - coupling_force(model, data.qpos)
+    return wrench / jnp.asarray(_TO_MODEL, wrench.dtype)
+
+
+def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.Array, u_k: jax.Array):
+    """One control step: push ``u_k`` (6,) into the dead-time FIFO (d, 6), pop ``u_{k-d}`` and hold it (ZOH) for
+    ``substeps`` physics steps, each with the coupling force of its start state in ``qfrc_applied``.
+    Returns ``(data, fifo, applied)``; shared by :func:`rollout` and :func:`closed_loop_rollout`."""
+    if d > 0:
+        applied = fifo[0]
+        fifo = jnp.concatenate([fifo[1:], u_k[None]])
+    else:
+        applied = u_k
+    data = data.replace(ctrl=applied)
+
+    def substep(_, data):
+        return mjx.step(model, data.replace(qfrc_applied=coupling_force(model, data.qpos)))
+
+    data = jax.lax.fori_loop(0, substeps, substep, data)
+    return data, fifo, applied
+
+
+def _series(name: str, value, length: int, dtype, like: str) -> jax.Array:
+    """A per-step, per-DOF input of shape ``(length, 6)`` (zeros for None); ``like`` names what fixes the length."""
+    if value is None:
+        return jnp.zeros((length, N_DOF), dtype)
+    value = jnp.asarray(value, dtype)
+    if value.shape != (length, N_DOF):
+        raise ValueError(f"{name} must have the shape of {like} {(length, N_DOF)}, got {value.shape}")
+    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{name} contains NaN or infinite entries")
+    return value
+
+
+def _leading(name: str, value, what: str) -> jax.Array:
+    value = jnp.asarray(value)
+    if value.ndim != 2 or value.shape[1] != N_DOF:
+        raise ValueError(f"{name} must have shape (T, {N_DOF}) ({what} per control step and DOF), got {value.shape}")
+    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{name} contains NaN or infinite entries")
+    return value
+
+
+def _start(model: mjx.Model, dtype) -> mjx.Data:
+    data = _initial_data(model, dtype)
+    return data.replace(qfrc_applied=data.qfrc_applied.astype(dtype))
+
+
+def rollout(model: mjx.Model, commands, *, dead_time_samples: int = 5, substeps: int = SUBSTEPS, noise=None):
+    """The open-loop plant over ``len(commands)`` control steps in one ``lax.scan``.
+
+    Control step ``k``: the wrench is sampled (:func:`sensor_wrench` of the state at ``k h``) and ``noise[k]``
+    added; the FIFO pops ``u_{k-d}`` and pushes ``u_k``; ``u_{k-d}`` is held for ``substeps`` physics steps.
+    Starts at rest at the untensioned contact (zero wrench).
+
+    Args:
+      model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params`.
+      commands: velocity commands (T, 6) in mm/s and rad/s.
+      dead_time_samples, substeps: Python ints (5 and 8 in the paper's setup).
+      noise: additive wrench noise (T, 6) in N and N·m, or None.
+
+    Returns:
+      :class:`WrenchRollout`; pure (``jit``, ``vmap``, ``grad``, ``jacfwd``).
+    """
+    _check_timing(dead_time_samples, substeps)
+    commands = _leading("commands", commands, "one velocity command")
+    dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
+    commands = commands.astype(dtype)
+    noise = _series("noise", noise, commands.shape[0], dtype, "commands")
+    d = int(dead_time_samples)
+
+    def control_step(carry, inputs):
+        data, fifo = carry
+        u_k, v_k = inputs
+        wrench, position, velocity = sensor_wrench(model, data), data.qpos, data.qvel
+        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k)
+        return (data, fifo), WrenchRollout(wrench + v_k, wrench, position, velocity, applied)
+
+    _, out = jax.lax.scan(control_step, (_start(model, dtype), jnp.zeros((d, N_DOF), dtype)), (commands, noise))
+    return out
+
+
+def _check_controllers(controller_params) -> None:
+    leaves = jax.tree_util.tree_leaves(controller_params)
+    sizes = {np.shape(leaf)[0] if np.ndim(leaf) else None for leaf in leaves}
+    if not leaves or sizes != {N_DOF}:
+        raise ValueError(
+            f"controller_params must hold {N_DOF} per-DOF controllers stacked on a leading axis "
+            f"(stack_controllers / design), got leading sizes {sorted(sizes, key=str)}"
+        )
+
+
+def closed_loop_rollout(
+    model: mjx.Model,
+    controller_params,
+    reference,
+    *,
+    controller: Observer = active_observer,
+    dead_time_samples: int = 5,
+    substeps: int = SUBSTEPS,
+    feedforward=None,
+    noise=None,
+    disturbance=None,
+) -> Compliant6Rollout:
+    """The 6-DOF plant under six per-DOF observer-based controllers, in one ``lax.scan`` over control steps.
+
+    At control step ``k`` (time ``k h``)::
+
+        y_k      = w(q(k h)) + n_k                      sensor wrench (sensor_wrench, N and N·m) plus noise
+        state, o = vmap(controller.step)(params, state, ActiveObserverInputs(y_k[:, None], r_k))   per DOF
+        u_k      = o.u[:, 0]                             e.g. the AOB's r - [L_r 1] [x_r; p]_hat
+        FIFO    <- u_k + v_d,k + d_k;  pop the entry d samples old           dead time (d, 6)
+        plant   <- ``substeps`` (coupling force, mjx.step) with that input held (ZOH)
+
+    The velocity feedforward ``v_d`` and the disturbance ``d`` both enter at the plant input, outside the
+    observers' models (the AOB cancels them, the CKF does not; §7.1).
+
+    Args:
+      model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params` (the true plant).
+      controller_params: six per-DOF controller parameters stacked on a leading axis of size 6 (all the same
+        shape), e.g. from :func:`design` or :func:`stack_controllers`.
+      reference: controller references ``r_k`` (T, 6), e.g. :func:`force_reference` ``= L_1 f_d``.
+      controller: an (init, step) :class:`jaxobs.observers.base.Observer` taking ``ActiveObserverInputs(y, r)``
+        with an output field ``u`` of shape (1,); default the AOB / CKF.
+      dead_time_samples, substeps: as in :func:`rollout`.
+      feedforward: velocity feedforward ``v_d`` (T, 6) in mm/s and rad/s, or None.
+      noise: wrench noise (T, 6) in N and N·m, or None (draw it outside; ``vmap`` over keys for seed batches).
+      disturbance: input disturbance (T, 6) in mm/s and rad/s, or None.
+
+    Returns:
+      :class:`Compliant6Rollout`; pure: ``jit``, ``vmap`` (over models from :func:`with_params`, noise,
+      controller parameters), ``grad`` and ``jacfwd`` work through it.
+    """
+    _check_timing(dead_time_samples, substeps)
+    _check_controllers(controller_params)
+    reference = _leading("reference", reference, "one controller reference")
+    dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
+    reference = reference.astype(dtype)
+    n_steps = reference.shape[0]
+    feedforward = _series("feedforward", feedforward, n_steps, dtype, "reference")
+    noise = _series("noise", noise, n_steps, dtype, "reference")
+    disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
+    d = int(dead_time_samples)
+    step = jax.vmap(controller.step)
+
+    def control_step(carry, inputs):
+        data, fifo, ctrl_state = carry
+        r_k, ff_k, n_k, d_k = inputs
+        wrench = sensor_wrench(model, data)
+        y_k = wrench + n_k
+        ctrl_state, ctrl_out = step(controller_params, ctrl_state, ActiveObserverInputs(y_k[:, None], r_k))
+        u_k = jnp.reshape(ctrl_out.u, (N_DOF, -1))[:, 0].astype(dtype)
+        position, velocity = data.qpos, data.qvel
+        data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k + ff_k + d_k)
+        out = Compliant6Rollout(y_k, wrench, position, velocity, u_k, applied, ctrl_out)
+        return (data, fifo, ctrl_state), out
+
+    carry = (_start(model, dtype), jnp.zeros((d, N_DOF), dtype), jax.vmap(controller.init)(controller_params))
+    _, out = jax.lax.scan(control_step, carry, (reference, feedforward, noise, disturbance))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Controllers (seed 003 §7.3) and the scenario (§7.4)
+
+
+def stack_controllers(controllers):
+    """Stack six per-DOF controller parameters (same pytree structure and shapes) on a leading axis.
+
+    An AOB-1 and a CKF of the same plant differ in state size: build the CKF as the AOB-1 with
+    ``set_active(params, 0.0)`` (and a fixed gain in ``gain``/``gain_passive`` for the SBA), as :func:`design`
+    does, so that the six stack."""
+    controllers = list(controllers)
+    if len(controllers) != N_DOF:
+        raise ValueError(
+            f"controllers must hold {N_DOF} per-DOF controllers (x, y, z, rx, ry, rz), got {len(controllers)}"
+        )
+    structure = jax.tree_util.tree_structure(controllers[0])
+    shapes = [jnp.shape(leaf) for leaf in jax.tree_util.tree_leaves(controllers[0])]
+    for i, c in enumerate(controllers[1:], 1):
+        same = jax.tree_util.tree_structure(c) == structure
+        if not same or [jnp.shape(leaf) for leaf in jax.tree_util.tree_leaves(c)] != shapes:
+            raise ValueError(
+                f"controllers[{i}] ({DOF_NAMES[i]}) differs in structure or shapes from controllers[0]; build a CKF "
+                "as an AOB with set_active(params, 0.0) and give every controller fixed gains or none"
+            )
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *controllers)
+
+
+def design(
+    params: Compliant6Params | None = None,
+    *,
+    noise_variance=SENSOR_NOISE_VARIANCE,
+    q_active=None,
+    h: float = CONTROL_PERIOD,
+    dead_time_samples: int = 5,
+    tau_c_over_tp: float = TAU_C_OVER_TP,
+    sba=(Z,),
+    feedback_off=(),
+    steady_state: bool = True,
+) -> ActiveObserverParams:
+    """The six per-DOF controllers of seed 003 §7.3 (eq. 62-68), stacked on a leading axis of size 6.
+
+    Per DOF ``i``: ``force_plant(K_i, Tp_i, h, d h)``, ``L_r`` by :func:`jaxobs.papers.force_control.design_gain`
+    with ``tau_c = tau_c_over_tp * Tp_i`` (eq. 68), ``R_i = noise_variance[i]``, and with ``a_i = R_i / R(f_x)``
+    (eq. 65-66) an AOB-1 with ``Q = a_i diag(1e-12, ..., 1e-12, 1e-5)`` (eq. 62) and ``P0 = a_i 1e-4 I``
+    (eq. 63). The DOF in ``sba`` (default ``z``, §7.4) get the CKF with the sensor-based gain
+    ``K = [1, 0, ..., 0]'`` (the AOB-1 with ``active = 0``, same shape). The DOF in ``feedback_off`` get
+    ``L = 0`` (no force feedback: the command is the reference plus feedforward; §7.4 switches the ``m_y``
+    controller on only for the insertion).
+
+    Args:
+      params: the nominal plant (Table-1 stiffnesses; every stiffness must be > 0 here).
+      noise_variance: ``R`` per DOF (6,), N^2 and (N·m)^2 (:data:`SENSOR_NOISE_VARIANCE`).
+      q_active: active-state variances (6,) replacing ``a_i 1e-5`` (may be traced, e.g. ``exp`` of a tuned log).
+      steady_state: steady-state Kalman gains (DARE with implicit derivatives, so tuners can differentiate
+        through the design); ``False`` (time-varying gains) needs ``sba=()``, since the SBA gain is fixed and
+        the six controllers must share one pytree structure.
+
+    Returns:
+      stacked :class:`jaxobs.observers.active.ActiveObserverParams` (leading axis 6, 8 observer states each).
+    """
+    params = Compliant6Params() if params is None else params
+    params.validate()
+    if _checks.is_concrete(params.stiffness) and np.any(np.asarray(params.stiffness) <= 0):
+        raise ValueError(
+            f"stiffness must be > 0 in every DOF for a design (Ks/(s(1+Tp s)) is uncontrollable at Ks = 0), "
+            f"got {np.asarray(params.stiffness).tolist()}"
+        )
+    _per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
+    if q_active is not None:
+        _per_dof("q_active", q_active, minimum=0.0, strict=False)
+    for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
+        if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
+            raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
+    if not steady_state and sba:
+        raise ValueError("steady_state=False needs sba=(): the SBA gain is fixed, the time-varying AOBs have none")
+    r = jnp.broadcast_to(jnp.asarray(noise_variance, float), (N_DOF,))
+    ratio = r / r[X]  # eq. 65-66
+    q_active = Q_ACTIVE_FX * ratio if q_active is None else jnp.broadcast_to(jnp.asarray(q_active, float), (N_DOF,))
+    controllers = _design_aobs(
+        params.per_dof("stiffness", float), params.per_dof("tp", float), r, Q_PLANT_FX * ratio, q_active,
+        P0_FX * ratio, h=float(h), dead_time_samples=int(dead_time_samples), tau_c_over_tp=float(tau_c_over_tp),
+        steady_state=bool(steady_state),
+    )  # fmt: skip
+    if sba:
+        sensor_based = jnp.asarray([i in sba for i in range(N_DOF)])
+        gain = jnp.broadcast_to(sensor_based_gain(controllers.C[0]), controllers.gain.shape)
+        controllers = dataclasses.replace(
+            controllers,
+            active=jnp.where(sensor_based, 0.0, controllers.active),
+            gain=jnp.where(sensor_based[:, None, None], gain, controllers.gain),
+            gain_passive=jnp.where(sensor_based[:, None, None], gain, controllers.gain_passive),
+        )
+    if feedback_off:
+        off = jnp.asarray([i in feedback_off for i in range(N_DOF)])
+        controllers = dataclasses.replace(controllers, L=jnp.where(off[:, None, None], 0.0, controllers.L))
+    return controllers
+
+
+@functools.partial(jax.jit, static_argnames=("h", "dead_time_samples", "tau_c_over_tp", "steady_state"))
+def _design_aobs(stiffness, tp, r, q_plant, q_active, p0, *, h, dead_time_samples, tau_c_over_tp, steady_state):
+    """The six AOB-1 of eq. 62-68 in one ``vmap`` over DOF (compiled once per process; traceable)."""
+
+    def one(ks, tp, r, q_plant, q_active, p0):
+        plant = force_plant(ks, tp, h, dead_time_samples * h)
+        L_r = design_gain(plant, h, tau_c_over_tp * tp)
+        P0 = p0 * jnp.eye(plant.n_states + 1)
+        return make_aob(plant, L_r, 1, r, q_plant=q_plant, q_active=q_active, P0=P0, steady_state=steady_state)
+
+    return jax.vmap(one)(stiffness, tp, r, q_plant, q_active, p0)
+
+
+def force_reference(controller_params: ActiveObserverParams, force_setpoint) -> jax.Array:
+    """``r = L_1 f_d`` per DOF (unit DC gain from desired to measured wrench, seed 000 "L_1 r_k"); ``force_setpoint``
+    of shape (T, 6) or (6,). Zero for a DOF with its feedback off."""
+    return jnp.asarray(force_setpoint) * controller_params.L[:, 0, 0]
+
+
+def _smoothstep(x):
+    x = jnp.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def peg_on_hole_scenario(
+    params: Compliant6Params | None = None,
+    *,
+    duration: float = 4.0,
+    contact_force=(-5.0, 10.0),
+    contact_ramp: float = 0.5,
+    alignment=(1.5, 3.5),
+    insertion_velocity_bias: float = 0.05,
+    h: float = CONTROL_PERIOD,
+) -> PegOnHoleScenario:
+    """The alignment phase of the peg-on-hole task (§7.4, Figure 4) with the controllers of §7.3-7.4.
+
+    Scripted in place of the paper's ANN reference generator (the magnitudes are not printed; chosen here):
+
+    * ``f_x`` (negative) and ``f_z`` (positive) keep the three-point contact: setpoints ``contact_force``
+      (N), ramped in smoothly over ``contact_ramp`` s from the untensioned start; ``f_y``, ``m_x``, ``m_z`` zero;
+    * ``w_y`` (negative) aligns the peg: a raised-cosine velocity feedforward over the ``alignment`` window
+      (s) whose integral is ``-tilt``, so the peg ends upright; the ``m_y`` controller is off (``L = 0``) and
+      the plant's ``K_ry = 0`` (the peg pivots on the contact), so ``m_y`` is the contact force's moment;
+    * ``v_z`` carries a constant feedforward bias ``insertion_velocity_bias`` (mm/s), the ANN's training
+      error of Fig. 6.c that the CKF, SBA on ``z`` cannot reject.
+
+    Controllers: :func:`design` on ``params`` (Table-1 stiffnesses) with AOB-1 HBA on x, y, rx, ry, rz, CKF SBA
+    on z, and ``feedback_off=(ry,)``. Run it with
+    ``closed_loop_rollout(with_params(model, s.plant), s.controllers, s.reference, feedforward=s.feedforward)``.
+    """
+    params = Compliant6Params() if params is None else params
+    params.validate()
+    t0, t1 = (float(v) for v in alignment)
+    if not 0.0 <= t0 < t1 <= duration:
+        raise ValueError(f"alignment must be a window (t0, t1) with 0 <= t0 < t1 <= duration, got {alignment!r}")
+    if contact_ramp <= 0:
+        raise ValueError(f"contact_ramp must be > 0 s, got {contact_ramp}")
+    n_steps = int(round(duration / h))
+    t = jnp.arange(n_steps) * h
+    ramp = _smoothstep(t / contact_ramp)
+    fx, fz = (float(v) for v in contact_force)
+    setpoint = jnp.zeros((n_steps, N_DOF)).at[:, X].set(fx * ramp).at[:, Z].set(fz * ramp)
+    width = t1 - t0
+    window = (t >= t0) & (t < t1)
+    w_y = jnp.where(window, -params.tilt * (1.0 - jnp.cos(2.0 * jnp.pi * (t - t0) / width)) / width, 0.0)
+    feedforward = jnp.zeros((n_steps, N_DOF)).at[:, RY].set(w_y).at[:, Z].set(insertion_velocity_bias)
+    controllers = design(params, h=h, feedback_off=(RY,))
+    plant = dataclasses.replace(params, stiffness=params.per_dof("stiffness", float).at[RY].set(0.0))
+    return PegOnHoleScenario(t, setpoint, feedforward, force_reference(controllers, setpoint), plant, controllers)
