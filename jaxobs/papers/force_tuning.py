@@ -25,8 +25,6 @@ change when ``Q`` and ``R`` are scaled together: one direction of ``theta`` is f
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +34,7 @@ from jaxobs._config import check_at_least, check_choice, check_range, fail, merg
 from jaxobs.closed_loop import ideal_response, linear_controller_of
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
+from jaxobs.papers._tuning_config import BASELINE_DEFAULTS, check_common, optimizer_defaults
 from jaxobs.papers.force_control import (
     EXAMPLE1,
     example1_disturbance,
@@ -45,7 +44,6 @@ from jaxobs.papers.force_control import (
 )
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.tune import (
-    TuneSettings,
     TuningProblem,
     cholesky_covariance,
     cholesky_parameters,
@@ -53,7 +51,7 @@ from jaxobs.tune import (
     unit_interval_parameters,
 )
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "settings", "config_tag", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
 
 NAME = "force_1dof"
 HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # seed 003 eq. 62 and 64
@@ -90,21 +88,8 @@ DEFAULT_CONFIG = {
         "R": HAND_SET["R"],
         "spectral_radius_limit": 0.995,  # the penalty's threshold (optimizer.penalty_weight > 0 enables it)
     },
-    "optimizer": {
-        "optimizer": "adam",
-        "gradient": "reverse",  # or "forward" (jacfwd)
-        "learning_rate": 0.2,
-        "steps": 40,
-        "objective": "mean",
-        "cvar_alpha": 0.25,
-        "penalty_weight": 0.0,
-        "clip_norm": 5.0,
-        "patience": 12,
-        "min_improvement": 1e-3,
-        "max_rejections": 8,
-        "checkpoint_every": 5,
-    },
-    "baseline": {"random_search": True, "spread": 2.0},
+    "optimizer": optimizer_defaults(learning_rate=0.2, steps=40, clip_norm=5.0, patience=12, checkpoint_every=5),
+    "baseline": dict(BASELINE_DEFAULTS),
 }
 """Tune the AOB-1 of the 1-DOF MJX force plant across +-50 % stiffness mismatch (16 training plants,
 64 held-out plants, 2 s rollouts)."""
@@ -117,7 +102,7 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     for key in ("plants.stiffness_scale", "plants.time_constant_scale"):
         check_range(config, source, key, positive=True, allow_point=True)
     check_range(config, source, "plants.damping", minimum=0.0, allow_point=True)
-    for key, low in (("seed", 0), ("plants.train", 1), ("plants.heldout", 1), ("scenario.gradient_horizon", 0)):
+    for key, low in (("plants.train", 1), ("plants.heldout", 1), ("scenario.gradient_horizon", 0)):
         check_at_least(config, source, key, low)
     for key in ("duration", "force_step", "sensor_noise", "force_limit"):
         check_at_least(config, source, f"scenario.{key}", 0, strict=True)
@@ -129,22 +114,8 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     check_choice(config, source, "design.parameterisation", PARAMETERISATIONS)
     for key in ("q_plant", "q_active", "R", "spectral_radius_limit"):
         check_at_least(config, source, f"design.{key}", 0, strict=True)
-    check_at_least(config, source, "baseline.spread", 0, strict=True)
-    try:
-        settings(config).validate()
-    except ValueError as exc:
-        fail(source, "optimizer", str(exc))
+    check_common(config, source)
     return config
-
-
-def settings(config: dict) -> TuneSettings:
-    return TuneSettings(**config["optimizer"])
-
-
-def config_tag(config: dict) -> str:
-    """A short hash of everything but the optimiser settings (checked when a checkpoint is resumed)."""
-    text = json.dumps({k: v for k, v in config.items() if k != "optimizer"}, sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 # --------------------------------------------------------------------------------------------

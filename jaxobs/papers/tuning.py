@@ -1,7 +1,7 @@
 """``jaxobs tune``: run a tuning problem end to end and report it.
 
 The config's ``problem`` key picks the problem module (``PROBLEMS``; each has ``DEFAULT_CONFIG``,
-``validate_config``, ``settings``, ``config_tag`` and ``build_problem``). :func:`run` tunes from the
+``validate_config`` and ``build_problem``; the shared tables are in ``_tuning_config``). :func:`run` tunes from the
 problem's hand-set design with :func:`jaxobs.tune.tune` (checkpointed, resumable), runs the random-search
 baseline at the same number of rollouts, scores the hand-set, tuned and random-search designs on the
 held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png``
@@ -21,6 +21,8 @@ import numpy as np
 from jaxobs._config import ConfigError, fail
 from jaxobs.papers import force_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._tuning_config import config_tag
+from jaxobs.papers._tuning_config import settings as tuning_settings
 from jaxobs.tune import evaluate, random_search, tune
 
 __all__ = ["PROBLEMS", "validate_config", "run"]
@@ -58,13 +60,13 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
     """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures."""
     module = PROBLEMS[config["problem"]]
     out = Path(out_dir)
-    tag = module.config_tag(config)
+    tag = config_tag(config)
     _prepare(out, tag, config, overwrite)
     try:
         problem = module.build_problem(config)
     except ValueError as exc:  # e.g. an invalid MJCF
         raise ConfigError(f"{config['problem']}: {exc}") from exc
-    settings = module.settings(config)
+    settings = tuning_settings(config)
     start = time.perf_counter()
     result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
     seconds_tune = time.perf_counter() - start
