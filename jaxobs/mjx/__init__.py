@@ -5,9 +5,14 @@ robot, compliant force sensor of stiffness ``Ks``, command dead time as a FIFO i
 ``rollout`` runs it open loop; ``closed_loop_rollout`` runs it under an AOB / CKF (the observer protocol of
 :mod:`jaxobs.observers`) as :func:`jaxobs.closed_loop.simulate` runs the analytic plant.
 
+``compliant_6dof`` (a submodule, since its names mirror the 1-DOF ones): the 6-DOF compliant-motion
+plant of seed 003 §7 (Table 1 stiffnesses, per-DOF AOB-1 HBA / CKF SBA of eq. 62-68, the peg-on-hole
+alignment scenario with its contact moment coupled to the alignment rotation).
+
 Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.
 """
 
+from jaxobs.mjx import compliant_6dof
 from jaxobs.mjx.force_1dof import (
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -22,6 +27,7 @@ from jaxobs.mjx.force_1dof import (
 )
 
 __all__ = [
+    "compliant_6dof",
     "CONTROL_PERIOD",
     "SUBSTEPS",
     "ForcePlantParams",
