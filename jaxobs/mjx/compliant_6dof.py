@@ -121,7 +121,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _check_timing, _initial_data
+from jaxobs.mjx.force_1dof import _check_timing, _dead_time, _initial_data, _series
 from jaxobs.observers.active import (
     ActiveObserverInputs,
     ActiveObserverParams,
@@ -408,11 +408,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     """One control step: push ``u_k`` (6,) into the dead-time FIFO (d, 6), pop ``u_{k-d}`` and hold it (ZOH) for
     ``substeps`` physics steps, each with the coupling force of its start state in ``qfrc_applied``.
     Returns ``(data, fifo, applied)``; shared by :func:`rollout` and :func:`closed_loop_rollout`."""
-    if d > 0:
-        applied = fifo[0]
-        fifo = jnp.concatenate([fifo[1:], u_k[None]])
-    else:
-        applied = u_k
+    applied, fifo = _dead_time(fifo, u_k, d)
     data = data.replace(ctrl=applied)
 
     def substep(_, data):
@@ -420,18 +416,6 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
 
     data = jax.lax.fori_loop(0, substeps, substep, data)
     return data, fifo, applied
-
-
-def _series(name: str, value, length: int, dtype, like: str) -> jax.Array:
-    """A per-step, per-DOF input of shape ``(length, 6)`` (zeros for None); ``like`` names what fixes the length."""
-    if value is None:
-        return jnp.zeros((length, N_DOF), dtype)
-    value = jnp.asarray(value, dtype)
-    if value.shape != (length, N_DOF):
-        raise ValueError(f"{name} must have the shape of {like} {(length, N_DOF)}, got {value.shape}")
-    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
-        raise ValueError(f"{name} contains NaN or infinite entries")
-    return value
 
 
 def _leading(name: str, value, what: str) -> jax.Array:
@@ -468,7 +452,7 @@ def rollout(model: mjx.Model, commands, *, dead_time_samples: int = 5, substeps:
     commands = _leading("commands", commands, "one velocity command")
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
-    noise = _series("noise", noise, commands.shape[0], dtype, "commands")
+    noise = _series("noise", noise, (commands.shape[0], N_DOF), dtype, "commands")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
@@ -539,9 +523,9 @@ def closed_loop_rollout(
     dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
     reference = reference.astype(dtype)
     n_steps = reference.shape[0]
-    feedforward = _series("feedforward", feedforward, n_steps, dtype, "reference")
-    noise = _series("noise", noise, n_steps, dtype, "reference")
-    disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
+    feedforward = _series("feedforward", feedforward, (n_steps, N_DOF), dtype, "reference")
+    noise = _series("noise", noise, (n_steps, N_DOF), dtype, "reference")
+    disturbance = _series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
     d = int(dead_time_samples)
     step = jax.vmap(controller.step)
 

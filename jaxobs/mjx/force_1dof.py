@@ -136,9 +136,9 @@ def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
     return jnt, body, act
 
 
-def _tool_mass(model):
-    """Mass of the body moved by the force joint (the tool), in t."""
-    return model.body_mass[int(np.asarray(model.jnt_bodyid)[0])]
+def _tool_body(model) -> int:
+    """Index of the body moved by the force joint (the tool)."""
+    return int(np.asarray(model.jnt_bodyid)[0])
 
 
 def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
@@ -151,7 +151,8 @@ def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     """
     params.validate()
     if _checks.is_concrete(params.servo_gain, params.tp, model.body_mass):
-        inertia, tool_mass = float(params.servo_gain) * float(params.tp), float(_tool_mass(model))
+        inertia = float(params.servo_gain) * float(params.tp)
+        tool_mass = float(np.asarray(model.body_mass)[_tool_body(model)])
         if inertia <= tool_mass:
             raise ValueError(f"servo_gain * tp = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain")
     dtype = model.jnt_stiffness.dtype
@@ -159,7 +160,7 @@ def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     return model.replace(
         jnt_stiffness=jnp.asarray(model.jnt_stiffness).at[0].set(ks),
         dof_damping=jnp.asarray(model.dof_damping).at[0].set(damping),
-        dof_armature=jnp.asarray(model.dof_armature).at[0].set(kv * tp - _tool_mass(model)),
+        dof_armature=jnp.asarray(model.dof_armature).at[0].set(kv * tp - model.body_mass[_tool_body(model)]),
         actuator_gainprm=jnp.asarray(model.actuator_gainprm).at[0, 0].set(kv),
         actuator_biasprm=jnp.asarray(model.actuator_biasprm).at[0, 2].set(-kv),
     )
@@ -205,11 +206,12 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     params.validate()
     m = _parse_mjcf(xml)
     kv, tp = float(params.servo_gain), float(params.tp)
-    if kv * tp <= _tool_mass(m):
-        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {_tool_mass(m)} t")
+    tool_mass = m.body_mass[_tool_body(m)]
+    if kv * tp <= tool_mass:
+        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {tool_mass} t")
     m.jnt_stiffness[0] = float(params.ks)
     m.dof_damping[0] = float(params.damping)
-    m.dof_armature[0] = kv * tp - _tool_mass(m)
+    m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv
     m.actuator_biasprm[0, 2] = -kv
     return m, mjx.put_model(m)
@@ -226,14 +228,26 @@ def _check_timing(dead_time_samples, substeps) -> None:
         raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
 
 
-def _series(name: str, value, length: int, dtype, like: str) -> jax.Array:
-    """A per-step input of shape ``(length,)`` (zeros for None); ``like`` names what fixes the length."""
+def _series(name: str, value, shape, dtype, like: str) -> jax.Array:
+    """A per-step input of shape ``shape`` (an int: ``(shape,)``), zeros for None; finite where concrete.
+    ``like`` names what fixes the shape. Shared with :mod:`jaxobs.mjx.compliant_6dof`."""
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
     if value is None:
-        return jnp.zeros(length, dtype)
+        return jnp.zeros(shape, dtype)
     value = jnp.asarray(value, dtype)
-    if value.shape != (length,):
-        raise ValueError(f"{name} must have the shape of {like} {(length,)}, got {value.shape}")
+    if value.shape != shape:
+        raise ValueError(f"{name} must have the shape of {like} {shape}, got {value.shape}")
+    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{name} contains NaN or infinite entries")
     return value
+
+
+def _dead_time(fifo: jax.Array, u_k: jax.Array, d: int):
+    """The command FIFO of a ``d``-sample dead time (oldest first): push ``u_k``, pop ``u_{k-d}``.
+    Returns ``(applied, fifo)``; shared with :mod:`jaxobs.mjx.compliant_6dof`."""
+    if d == 0:
+        return u_k, fifo
+    return fifo[0], jnp.concatenate([fifo[1:], u_k[None]])
 
 
 def _initial_data(model: mjx.Model, dtype) -> mjx.Data:
@@ -269,11 +283,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, 
     (ZOH) for ``substeps`` ``mjx.step`` calls while the surface moves from ``surface`` at
     ``surface_velocity`` mm/s (one position per physics step). Returns ``(data, fifo, applied, surface)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
-    if d > 0:
-        applied = fifo[0]
-        fifo = jnp.concatenate([fifo[1:], u_k[None]])
-    else:
-        applied = u_k
+    applied, fifo = _dead_time(fifo, u_k, d)
     data = data.replace(ctrl=data.ctrl.at[0].set(applied))
     dx = surface_velocity * model.opt.timestep
 
