@@ -122,3 +122,27 @@ def test_spectral_radius_penalty():
     assert np.all(np.isfinite(grad["log_q"])) and float(jnp.abs(grad["log_q"][-1])) > 0
     relaxed = force_tuning.build_problem(tuning.validate_config({"plants": {"train": 3, "heldout": 1}}))
     assert float(relaxed.penalty(relaxed.theta0)) == 0.0  # the hand-set loops are well inside 0.995
+
+
+def test_peg_config_is_validated(tmp_path, capsys):
+    config = tuning.validate_config({"problem": "peg_on_hole"})
+    assert config["problem"] == "peg_on_hole" and config["optimizer"]["gradient"] == "forward"
+    path = tmp_path / "bad.toml"
+    path.write_text('problem = "peg_on_hole"\n[scenario]\nalignment_end = 9.0\n')
+    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert "scenario.alignment_end" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_peg_on_hole_small_run(tmp_path):
+    """The 6-DOF problem end to end (forward-mode gradients through design() and the MJX loop)."""
+    config, out = tmp_path / "peg.toml", tmp_path / "out"
+    config.write_text(
+        'problem = "peg_on_hole"\n[plants]\ntrain = 2\nheldout = 2\n[scenario]\nduration = 0.8\n'
+        "alignment_start = 0.2\nalignment_end = 0.7\n[optimizer]\nsteps = 3\n[baseline]\nrandom_search = false\n"
+    )
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    assert summary["evaluations"] == 3 and set(summary["heldout"]) == {"hand-set", "tuned"}
+    assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
+    assert set(summary["parameters"]["tuned"]["q_active"]) == {"x", "y", "rx", "rz"}

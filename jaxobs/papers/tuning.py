@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from jaxobs._config import ConfigError, fail
-from jaxobs.papers import force_tuning
+from jaxobs.papers import force_tuning, peg_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag
 from jaxobs.papers._tuning_config import settings as tuning_settings
@@ -27,7 +27,7 @@ from jaxobs.tune import evaluate, random_search, tune
 
 __all__ = ["PROBLEMS", "validate_config", "run"]
 
-PROBLEMS = {force_tuning.NAME: force_tuning}
+PROBLEMS = {force_tuning.NAME: force_tuning, peg_tuning.NAME: peg_tuning}
 """Problem modules by the config's ``problem`` name; the first is the default."""
 
 
