@@ -110,6 +110,7 @@ def test_small_sweep_end_to_end(small_sweep):
     assert again["controllers"] == summary["controllers"] and again["chunks_computed"] == 0
 
 
+@pytest.mark.slow
 def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
     """The default evaluation calls batched LAPACK kernels (LU, eigenvalues) that can deadlock jaxlib 0.10's CPU
     thread pool when several devices run them at once: the engine says so and computes on one device."""

@@ -69,6 +69,7 @@ def test_any_controller_of_the_protocol(model, nominal):
     np.testing.assert_allclose(lin.force_true, aob.force_true, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_gradients_match_central_differences(model, nominal):
     """d(mean squared force tracking error over 1.2 s)/d(log R, log sigma^2, c) of an AOB-2 with steady-state
     gains (DARE with implicit derivatives inside the MJX loop), reverse mode and jacfwd, against central
@@ -170,6 +171,7 @@ def test_receding_surface_gives_the_printed_ckf_offset_and_the_aob_removes_it(mo
     assert abs(offset_aob) < 0.01
 
 
+@pytest.mark.slow
 def test_truncated_gradients(model, nominal):
     """``gradient_horizon`` cuts backpropagation through the loop state every K steps: the forward values
     are unchanged and a short horizon gives a finite gradient, different from the full one, that keeps its
