@@ -145,3 +145,14 @@ def test_peg_on_hole_small_run(tmp_path):
     assert summary["evaluations"] == 3 and set(summary["heldout"]) == {"hand-set", "tuned"}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
     assert set(summary["parameters"]["tuned"]["q_active"]) == {"x", "y", "rx", "rz"}
+
+
+def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "config.json").write_text('{"tag": "another run"}')
+    assert main(["tune", "--out", str(out), "--no-progress"]) == 2
+    assert "holds a tuning run of another configuration" in capsys.readouterr().err
+    (out / "config.json").write_text("{not json")
+    assert main(["tune", "--out", str(out), "--no-progress"]) == 2
+    assert "unreadable" in capsys.readouterr().err

@@ -43,15 +43,15 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
 def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
     """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``."""
     marker = out / "config.json"
-    if marker.exists():
+    if overwrite and out.exists():
+        shutil.rmtree(out)
+    elif marker.exists():
         try:
             previous = json.loads(marker.read_text()).get("tag")
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{marker}: unreadable ({exc}); use --overwrite to start over") from exc
-        if previous != tag and not overwrite:
+        if previous != tag:
             raise ConfigError(f"{out} holds a tuning run of another configuration; use --overwrite or another --out")
-        if overwrite:
-            shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     marker.write_text(json.dumps({"tag": tag, "config": config}, indent=2) + "\n")
 
