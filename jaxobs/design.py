@@ -7,6 +7,7 @@ helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answe
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.signal
@@ -54,18 +55,26 @@ def acker(Phi, Gamma, poles):
         p = np.sort_complex(np.asarray(poles, dtype=complex))
         if not np.allclose(p, np.sort_complex(p.conj()), atol=1e-12):
             raise ValueError("poles: complex poles must come in conjugate pairs")
-    Wc = ctrb(Phi, Gamma)
+    L, Wc = _ackermann(Phi, Gamma, poles)
     if _checks.is_concrete(Wc):
         Wc_np = np.asarray(Wc)
         if np.linalg.matrix_rank(Wc_np, tol=1e-12 * np.linalg.norm(Wc_np)) < n:
             raise ValueError("(Phi, Gamma) is not controllable: no gain places all poles (Wc is singular)")
+    return L
+
+
+@jax.jit
+def _ackermann(Phi, Gamma, poles):
+    """``(L, W_c)`` of :func:`acker` (compiled once per shape: eager calls cost one dispatch)."""
+    n = Phi.shape[-1]
+    Wc = ctrb(Phi, Gamma)
     a = _char_poly_coefficients(poles).astype(Phi.dtype)
     P_Phi = jnp.zeros_like(Phi)
     for coefficient in a:  # Horner: P(Phi) = Phi^n + a_1 Phi^{n-1} + ... + a_n I
         P_Phi = P_Phi @ Phi + coefficient * jnp.eye(n, dtype=Phi.dtype)
     e_n = jnp.zeros((n,), Phi.dtype).at[-1].set(1.0)
     row = jnp.linalg.solve(Wc.T, e_n)  # [0 ... 0 1] Wc^{-1}
-    return (row @ P_Phi)[None, :]
+    return (row @ P_Phi)[None, :], Wc
 
 
 def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np.ndarray:

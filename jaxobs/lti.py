@@ -14,6 +14,7 @@ with ``Phi_1 = e^{Ah}`` (eq. 15), ``Gamma_0 = int_0^{h-tau'} e^{As} ds B`` (eq. 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
@@ -124,10 +125,15 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
     if n_delay < 0:
         raise ValueError(f"n_delay must be >= 0, got {n_delay}")
 
-    A, B, C, D = sys.A, sys.B, sys.C, sys.D
-    dtype = jnp.result_type(A, float)
-    A, B, C, D = (jnp.asarray(M, dtype) for M in (A, B, C, D))
-    tau = jnp.asarray(delay, dtype)
+    dtype = jnp.result_type(sys.A, float)
+    A, B, C, D = (jnp.asarray(M, dtype) for M in (sys.A, sys.B, sys.C, sys.D))
+    return StateSpace(*_c2d_matrices(A, B, C, D, jnp.asarray(delay, dtype), h=h, n_delay=int(n_delay)), h)
+
+
+@functools.partial(jax.jit, static_argnames=("h", "n_delay"))
+def _c2d_matrices(A, B, C, D, tau, *, h: float, n_delay: int):
+    """The numerical part of :func:`c2d` (compiled once per shape: eager calls cost one dispatch)."""
+    dtype = A.dtype
     n, m = B.shape
     p = C.shape[0]
 
@@ -159,8 +165,7 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
     Dr = jnp.where(d == 0, D, 0.0)
 
     out_of_range = tau > n_delay * h * (1 + 1e-9)
-    Phi, Gamma, Cr, Dr = (jnp.where(out_of_range, jnp.nan, M) for M in (Phi, Gamma, Cr, Dr))
-    return StateSpace(Phi, Gamma, Cr, Dr, h)
+    return tuple(jnp.where(out_of_range, jnp.nan, M) for M in (Phi, Gamma, Cr, Dr))
 
 
 def _poly(coeffs, name) -> np.ndarray:
