@@ -183,11 +183,13 @@ def state_feedback(plant: StateSpace, method: str = "decoupled", poles=None) -> 
     the rack the poles ``{0.89, 0.994}`` and the steering wheel the other five. ``L_r`` is block
     diagonal and independent of the state coordinates.
 
-    ``method="coupled"``: one MIMO :func:`jaxobs.design.place` (Tits-Yang) on the whole plant with the
-    ``T_h``/``F_r`` columns zeroed (footnote 17's MATLAB ``place``). The eigenvalues are the same,
-    but the algorithm also chooses the eigenvectors: it mixes the loops (cross gains from the
-    steering states to ``f_s`` and back), so the closed-loop DC gain and hence row 2 of ``L_c``
-    depend on the algorithm and the state coordinates.
+    ``method="coupled"``: one MIMO :func:`jaxobs.design.place` (SciPy's Tits-Yang) on the whole plant
+    with the ``T_h``/``F_r`` columns zeroed (footnote 17's MATLAB ``place``). The eigenvalues are the
+    same, but the algorithm also picks the eigenvectors and with them which loop gets which pole; it
+    may add cross gains between the loops, and then the closed-loop DC gain, hence row 2 of ``L_c``,
+    depends on the algorithm and the state coordinates. With the printed eq. 100 poles SciPy lands
+    (not converged to its tolerance) on the decoupled assignment (cross gains below 1e-6); MATLAB's
+    ``place`` evidently did not (printed row 2 is 1 % from the decoupled one), and cannot be replicated.
     """
     poles = design_poles() if poles is None else np.asarray(poles, complex)
     Phi, Gamma = np.asarray(plant.A), np.asarray(plant.B)
@@ -227,22 +229,35 @@ def active_state_limit(L_c, tau_D: float = ROAD_DISTURBANCE) -> np.ndarray:
     return -(np.asarray(L_c) @ np.array([0.0, tau_D])) / a0
 
 
-def actuation_point_filter(L_c, cutoff: float = 2 * np.pi * 100.0, h: float = H) -> StateSpace:
+def actuation_point_filter(L_c, cutoff: float = 2 * np.pi * 100.0, h: float = H, *, closed_loop=None) -> StateSpace:
     """Eq. 107: the reference pre-amplification moved to the actuators, as a discrete filter from
     ``[T_h; F_r]`` to the feed-forward commands ``[tau_m; f_s]``.
 
-    From eq. 88, ``s q = y (u_direct - alpha u_actuator)``: the actuator command that makes the
-    entry point see ``L_c [T_h; F_r]`` instead of ``[T_h; F_r]`` is
-    ``-alpha^{-1} (L_c - I) [T_h; F_r]`` (eq. 107 with the minus sign of eq. 88 written out).
-    ``alpha_h^{-1}`` and ``alpha_r^{-1}`` are improper, so they are multiplied by the low-pass
-    filters ``(w / (s + w))^k`` (``k`` = 2 and 1, the relative degrees) with ``w = cutoff`` [rad/s],
-    the "low-pass filters applied to the inputs" of the text, then discretised (ZOH, step ``h``).
+    ``closed_loop=None`` (eq. 107 as printed): from eq. 88, ``s q = y (u_direct - alpha u_actuator)``,
+    the actuator command that makes the entry point see ``L_c [T_h; F_r]`` is
+    ``-alpha^{-1} (L_c - I) [T_h; F_r]`` (the minus sign of eq. 88 written out). ``alpha_h^{-1}`` and
+    ``alpha_r^{-1}`` are improper, so they are multiplied by the low-pass filters ``(w / (s + w))^k``
+    (``k`` = 2 and 1, the relative degrees, ``w = cutoff`` [rad/s]), then discretised (ZOH, step ``h``).
+
+    This inverts the *open-loop* actuators. In the loop the command ``r_k`` passes through
+    ``Phi - Gamma L_r``, and ``L_r`` feeds back the actuator states themselves: the rack actuator's
+    discrete pole moves from 0.152 to about 0.89, so the feed-forward reaches the rack about 8 times
+    stronger at DC than eq. 107 assumes, which turns the road feedback into a negative stiffness
+    (unstable with the vehicle impedance). ``closed_loop=(Phi - Gamma L_r, Gamma, C)`` (a
+    :class:`StateSpace`, see :func:`closed_loop`) instead uses the closed-loop DC gains:
+    ``r_act = DC_act^{-1} DC_entry (L_c - I) [T_h; F_r]`` (exact at DC, as ``L_c`` itself), through
+    first-order low-pass filters with the same cutoff.
     """
     L_c = np.asarray(L_c, float)
     if L_c.shape != (2, 2):
         raise ValueError(f"L_c must be 2 x 2 (inputs T_h, F_r), got shape {L_c.shape}")
     if not cutoff > 0:
         raise ValueError(f"cutoff must be a positive frequency in rad/s, got {cutoff}")
+    M = L_c - np.eye(2)
+    if closed_loop is not None:
+        dc = np.asarray(dcgain(closed_loop))
+        G = np.linalg.solve(dc[:, list(ACTUATED)], dc[:, list(NON_ACTUATED)] @ M)
+        return c2d(ss(-cutoff * np.eye(2), cutoff * G, np.eye(2)), h)
     rows = []
     for num, den in (ALPHA_H, ALPHA_R):
         k = len(den) - len(num)  # relative degree of alpha
@@ -250,7 +265,6 @@ def actuation_point_filter(L_c, cutoff: float = 2 * np.pi * 100.0, h: float = H)
         rows.append((np.asarray(den) * cutoff**k / -num[-1], lowpass))
     zero, one = (0.0,), (1.0,)
     filt = tf2ss([[rows[0][0], zero], [zero, rows[1][0]]], [[rows[0][1], one], [one, rows[1][1]]])
-    M = L_c - np.eye(2)
     cont = ss(filt.A, np.asarray(filt.B) @ M, filt.C, np.asarray(filt.D) @ M)
     return c2d(cont, h)
 
@@ -273,10 +287,6 @@ DURATION = 4.0  # s
 def vehicle_impedance(h: float = H) -> StateSpace:
     """Eq. 111 as the discrete map from the rack position ``x_r`` to the road feedback ``F_r^* = Z_v s x_r``."""
     return c2d(tf2ss(IMPEDANCE_NUM, IMPEDANCE_DEN), h)
-
-
-class Setup(dict):
-    """Plain container of the Example 2 design (dict for easy JSON)."""
 
 
 def design(road_force_sign: float = 1.0, method: str = "decoupled", printed_poles: bool = True) -> dict:
@@ -307,19 +317,21 @@ def simulate_sbw(d: dict, torque, road_disturbance, *, reference: str = "preampl
     ``reference="preamplified"`` (eq. 106): the entry points receive ``L_c [T_h; F_r]`` with the true
     ``F_r = F_r^* + tau_D``; the AOB knows ``L_c [T_h; F_r^*]``, so the road disturbance acts as the
     input disturbance ``L_c [0; tau_D]`` at the entries ``T_h`` and ``F_r`` (the situation of eq. 113).
-    ``reference="actuators"`` (eq. 107): ``T_h`` and ``F_r`` act unamplified, the feed-forward of
-    :func:`actuation_point_filter` drives ``tau_m`` and ``f_s``.
+    ``reference="actuators"``: ``T_h`` and ``F_r`` act unamplified and the closed-loop consistent
+    feed-forward of :func:`actuation_point_filter` drives ``tau_m`` and ``f_s``;
+    ``reference="actuators_eq107"``: the same with eq. 107 as printed (open-loop ``alpha^{-1}``).
 
     Returns a dict of time series: ``delta_h``, ``x_r`` (positions), ``velocity`` (outputs), ``p``
     (active states), ``F_r_star``, ``u``.
     """
-    if reference not in ("preamplified", "actuators"):
-        raise ValueError(f"reference must be 'preamplified' or 'actuators', got {reference!r}")
+    if reference not in ("preamplified", "actuators", "actuators_eq107"):
+        raise ValueError(f"reference must be 'preamplified', 'actuators' or 'actuators_eq107', got {reference!r}")
     plant = c2d(with_positions(sbw_model()), H)
     params = aob(d["plant"], d["L_r"])
     L_c = jnp.asarray(d["L_c"])
     imp = vehicle_impedance()
-    ff = actuation_point_filter(d["L_c"], cutoff)
+    cl = closed_loop(d["plant"], d["L_r"]) if reference == "actuators" else None
+    ff = actuation_point_filter(d["L_c"], cutoff, closed_loop=cl)
     entries = jnp.zeros((4, 2)).at[0, 0].set(1.0).at[2, 1].set(1.0)  # [T_h; F_r] -> input vector
     actuators = jnp.zeros((4, 2)).at[1, 0].set(1.0).at[3, 1].set(1.0)  # [tau_m; f_s] -> input vector
     preamp = reference == "preamplified"
@@ -376,3 +388,152 @@ def simulate_target(d: dict, torque, road_disturbance):
 def _sign(d: dict) -> float:
     """The road-force sign a design was built with (from its target's F_r column DC gain)."""
     return 1.0 if float(dcgain(d["target"])[1, 2]) < 0 else -1.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Reproduction
+
+
+def _scenarios():
+    T = int(round(DURATION / H))
+    t = np.arange(T) * H
+    torque = TORQUE_AMPLITUDE * np.sin(2 * np.pi * TORQUE_FREQUENCY * t)
+    road = np.where(t >= DISTURBANCE_TIME, ROAD_DISTURBANCE, 0.0)
+    return t, torque, road
+
+
+def _matching_errors(sbw: dict, target: dict) -> dict:
+    out = {}
+    for key in ("delta_h", "x_r"):
+        a, b = np.asarray(sbw[key]), np.asarray(target[key])
+        out[key] = {
+            "max_abs": float(np.max(np.abs(a - b))),
+            "rms": float(np.sqrt(np.mean((a - b) ** 2))),
+            "target_peak": float(np.max(np.abs(b))),
+        }
+    return out
+
+
+def example2() -> dict:
+    """Every number of Example 2 (dict of arrays and floats) plus the time series for the figures."""
+    d = design()
+    paper = design(road_force_sign=-1.0)
+    unrounded = design(printed_poles=False)
+    coupled = design(method="coupled")
+    s = 1j * np.array([0.1, 1.0, 10.0, 86.7, 300.0, 1000.0])
+    target_printed, sbw_printed = printed_transfer_matrices(s)
+    realisation = {
+        "target_max_rel_error": float(
+            np.max(np.abs(frequency_response(target_model(), s) - target_printed)) / np.max(np.abs(target_printed))
+        ),
+        "sbw_max_rel_error": float(
+            np.max(np.abs(frequency_response(sbw_model(), s) - sbw_printed)) / np.max(np.abs(sbw_printed))
+        ),
+        "omega_rad_s": np.abs(s),
+    }
+    cl_poles = np.linalg.eigvals(np.asarray(closed_loop(d["plant"], d["L_r"]).A))
+    t, torque, road = _scenarios()
+    zero = np.zeros_like(t)
+    fig8 = {"sbw": simulate_sbw(d, torque, zero), "target": simulate_target(d, torque, zero)}
+    fig8_act = simulate_sbw(d, torque, zero, reference="actuators")
+    fig9 = {"sbw": simulate_sbw(d, zero, road), "target": simulate_target(d, zero, road)}
+    p_sim = np.asarray(fig9["sbw"]["p"])[-1]
+    fig9_act = simulate_sbw(d, zero, road, reference="actuators")
+    eq107 = simulate_sbw(d, torque, zero, reference="actuators_eq107")
+    L_c_printed = np.asarray(PRINTED_L_C)
+    results = {
+        "sign_convention": (
+            "transfer functions as printed (road_force_sign=+1): F_r > 0 moves the rack negative in the target "
+            "(T23(0) < 0) and in the SBW plant (y_r(0) < 0). The printed L_c and eq. 114 correspond to "
+            "road_force_sign=-1 (F_r column of eq. 91-94 flipped)."
+        ),
+        "L_r": d["L_r"],
+        "L_r_coupled": coupled["L_r"],
+        "closed_loop_poles": {"real": np.sort_complex(cl_poles).real, "imag": np.sort_complex(cl_poles).imag},
+        "L_c": d["L_c"],
+        "L_c_paper_sign": paper["L_c"],
+        "L_c_printed": L_c_printed,
+        "L_c_paper_sign_minus_printed": paper["L_c"] - L_c_printed,
+        "L_c_paper_sign_rel_error": np.abs(paper["L_c"] - L_c_printed) / np.abs(L_c_printed),
+        "L_c_unrounded_eq100_poles": unrounded["L_c"],
+        "L_c_coupled_place": coupled["L_c"],
+        "L_c_row_ratio": d["L_c"][:, 1] / d["L_c"][:, 0],
+        "target_dc_ratio_T13_T11": float(T13[-1] / T11[-1]),
+        "realisation": realisation,
+        "eq113_formula": active_state_limit(d["L_c"]),
+        "eq113_formula_paper_sign": active_state_limit(paper["L_c"]),
+        "eq113_formula_printed_L_c": active_state_limit(L_c_printed),
+        "eq114_printed": PRINTED_EQ114,
+        "eq113_simulated": p_sim[list(ACTUATED)],
+        "eq113_simulated_minus_formula": p_sim[list(ACTUATED)] - active_state_limit(d["L_c"]),
+        "locked_active_states_max_abs": float(np.max(np.abs(np.asarray(fig9["sbw"]["p"])[:, list(NON_ACTUATED)]))),
+        "model_matching_error": _matching_errors(fig8["sbw"], fig8["target"]),
+        "model_matching_error_actuators": _matching_errors(fig8_act, fig8["target"]),
+        "eq107_as_printed_diverges": bool(not np.all(np.abs(np.asarray(eq107["x_r"])) < 1.0)),
+        "road_disturbance": {
+            "tau_D": ROAD_DISTURBANCE,
+            "final_x_r_sbw": float(np.asarray(fig9["sbw"]["x_r"])[-1]),
+            "final_x_r_target": float(np.asarray(fig9["target"]["x_r"])[-1]),
+            "final_delta_h_sbw": float(np.asarray(fig9["sbw"]["delta_h"])[-1]),
+            "final_delta_h_target": float(np.asarray(fig9["target"]["delta_h"])[-1]),
+            "actuators_p_final": np.asarray(fig9_act["p"])[-1],
+            "actuators_final_x_r": float(np.asarray(fig9_act["x_r"])[-1]),
+        },
+        "assumed": {
+            "impedance_num": IMPEDANCE_NUM,
+            "impedance_den": IMPEDANCE_DEN,
+            "torque": f"{TORQUE_AMPLITUDE} sin(2 pi {TORQUE_FREQUENCY} t) Nm",
+            "feedforward_cutoff_rad_s": 2 * np.pi * 100.0,
+        },
+    }
+    results["series"] = {"t": t, "torque": torque, "road": road, "fig8": fig8, "fig9": fig9}
+    return results
+
+
+def plot(results: dict, out_dir: Path) -> list[str]:
+    """Fig. 8 (model matching) and Fig. 9 (road disturbance) analogues."""
+    plt = pyplot()
+    sr = results["series"]
+    t = np.asarray(sr["t"])
+    names = []
+    for fig_name, case, top in (("fig8", sr["fig8"], "torque"), ("fig9", sr["fig9"], "road")):
+        fig, ax = plt.subplots(2, 2, figsize=(11, 6.5), sharex=True)
+        sbw, tgt = case["sbw"], case["target"]
+        if top == "torque":
+            ax[0, 0].plot(t, np.asarray(sr["torque"]), lw=1)
+            ax[0, 0].set_ylabel("a  T_h [Nm]")
+            ax[0, 1].plot(t, np.asarray(sbw["F_r_star"]), lw=1, label="SBW")
+            ax[0, 1].plot(t, np.asarray(tgt["F_r_star"]), "k--", lw=1, label="conventional")
+            ax[0, 1].set_ylabel("b  F_r = F_r* [N]")
+            ax[0, 1].legend(fontsize=8)
+        else:
+            ax[0, 0].plot(t, np.asarray(sr["road"]), lw=1)
+            ax[0, 0].set_ylabel("a  tau_D [N]")
+            p = np.asarray(sbw["p"])
+            ax[0, 1].plot(t, p[:, 1], lw=1, label="p_2 (tau_m)")
+            ax[0, 1].plot(t, p[:, 3], lw=1, label="p_4 (f_s)")
+            for value, style in zip(results["eq113_formula"], ("C0:", "C1:"), strict=True):
+                ax[0, 1].axhline(value, ls=":", color=style[:2], lw=0.8)
+            ax[0, 1].set_ylabel("b  active states")
+            ax[0, 1].legend(fontsize=8)
+        ax[1, 0].plot(t, np.asarray(sbw["delta_h"]), lw=1, label="SBW + AOB-1")
+        ax[1, 0].plot(t, np.asarray(tgt["delta_h"]), "k--", lw=1, label="conventional")
+        ax[1, 0].set_ylabel("c  delta_h [rad]")
+        ax[1, 0].legend(fontsize=8)
+        ax[1, 1].plot(t, 1e3 * np.asarray(sbw["x_r"]), lw=1)
+        ax[1, 1].plot(t, 1e3 * np.asarray(tgt["x_r"]), "k--", lw=1)
+        ax[1, 1].set_ylabel("d  x_r [mm]")
+        for a in ax[1]:
+            a.set_xlabel("time [s]")
+        title = "model matching" if top == "torque" else "road disturbance tau_D = 1000 N at 1 s"
+        fig.suptitle(f"Cortesão 2006 Example 2 ({'Fig. 8' if top == 'torque' else 'Fig. 9'}): {title}")
+        names.append(save_figure(fig, out_dir, f"{NAME}-{fig_name}"))
+    return names
+
+
+def reproduce(out_dir: Path) -> dict:
+    """Compute Example 2, write ``cortesao2006-example2.json`` and the two figures, return the summary."""
+    results = example2()
+    figures = plot(results, out_dir)
+    summary = {k: v for k, v in results.items() if k != "series"}
+    return write_reproduction(out_dir, NAME, summary, figures)
