@@ -58,15 +58,30 @@ def _config(args, validate) -> dict | None:
         return None
 
 
-def _sweep(args) -> int:
-    from jaxobs.papers import force_robustness
+def _sweep_module(given: dict, source: str):
+    """The sweep named by the config's ``scenario`` key (default: the force-control sweep)."""
+    from jaxobs._config import fail
+    from jaxobs.papers import force_robustness, sbw_robustness
 
-    config = _config(args, force_robustness.validate_config)
-    if config is None:
+    sweeps = {"force-control": force_robustness, sbw_robustness.NAME: sbw_robustness}
+    name = given.get("scenario", "force-control")
+    if name not in sweeps:
+        fail(source, "scenario", f"must be one of {', '.join(map(repr, sweeps))}, got {name!r}")
+    return sweeps[name]
+
+
+def _sweep(args) -> int:
+    def validate(given, source):
+        module = _sweep_module(given, source)
+        return module, module.validate_config(given, source)
+
+    validated = _config(args, validate)
+    if validated is None:
         return 2
+    module, config = validated
     out = Path(args.out)
     try:
-        summary = force_robustness.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        summary = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
     except ValueError as exc:  # e.g. the out dir holds a different sweep
         print(f"jaxobs sweep: {exc}", file=sys.stderr)
         return 2
@@ -74,7 +89,7 @@ def _sweep(args) -> int:
         f"{summary['num_configs']} configurations in {summary.get('seconds', 0.0):.1f} s; "
         f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(summary['figures'])}"
     )
-    for name, s in summary["controllers"].items():
+    for name, s in summary.get("controllers", {"all": summary}).items():
         print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
     return 0
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import ConfigError, check_at_least, check_range, fail, merge
+from jaxobs._config import ConfigError, check_at_least, check_choice, check_range, fail, merge
 from jaxobs.closed_loop import (
     LinearController,
     ideal_response,
@@ -50,6 +50,7 @@ from jaxobs.sweep import load_results, run_sweep
 __all__ = ["DEFAULT_CONFIG", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
 
 DEFAULT_CONFIG = {
+    "scenario": "force-control",
     "seed": 0,
     "chunk_size": 2000,
     "plant": {
@@ -80,6 +81,7 @@ MAX_ORDER = 5
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
     """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
     config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_choice(config, source, "scenario", ("force-control",))
     check_range(config, source, "plant.stiffness", positive=True)
     check_range(config, source, "plant.time_constant_scale", positive=True)
     check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
@@ -237,7 +239,7 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
         out_dir,
         seed=config["seed"],
         chunk_size=config["chunk_size"],
-        config={"scenario": "force-control", **config},
+        config=config,
         progress=progress,
         overwrite=overwrite,
     )

@@ -106,11 +106,34 @@ def _series_loop(y, alpha) -> tuple[np.ndarray, ...]:
     return Am, Bm, Cm
 
 
-def sbw_model() -> StateSpace:
+ACTUATOR_MODELS = ("y_h", "alpha_h", "y_r", "alpha_r")  # eq. 95, 97, 96, 98
+
+
+def scaled_transfer_function(tf, gain=1.0, pole=1.0):
+    """``(num, den)`` with the gain scaled by ``gain`` and every pole by ``pole``: the numerator times
+    ``gain``, the monic denominator's ``s^{n-i}`` coefficient times ``pole^i`` (roots ``p -> pole p``)."""
+    if gain == 0 or pole <= 0:
+        raise ValueError(f"gain must be non-zero and pole > 0, got gain={gain}, pole={pole}")
+    num, den = (np.asarray(c, float) for c in tf)
+    return gain * num, den * float(pole) ** np.arange(den.size)
+
+
+def sbw_model(mismatch: dict | None = None) -> StateSpace:
     """Eq. 99 (from eq. 86-89, 95-98) as a 7-state continuous model, inputs ``[T_h, tau_m, F_r, f_s]``,
-    outputs ``[d delta_h/dt, d x_r/dt]``. States: ``y_h`` (3), ``alpha_h`` (2), ``y_r`` (1), ``alpha_r`` (1)."""
-    As, Bs, Cs = _series_loop(Y_H, ALPHA_H)
-    Ar, Br, Cr = _series_loop(Y_R, ALPHA_R)
+    outputs ``[d delta_h/dt, d x_r/dt]``. States: ``y_h`` (3), ``alpha_h`` (2), ``y_r`` (1), ``alpha_r`` (1).
+
+    ``mismatch``: optional ``{name: (gain_scale, pole_scale)}`` for names in :data:`ACTUATOR_MODELS`
+    (:func:`scaled_transfer_function`), a plant whose identified actuator models are off."""
+    mismatch = mismatch or {}
+    unknown = set(mismatch) - set(ACTUATOR_MODELS)
+    if unknown:
+        raise ValueError(f"mismatch keys must be among {ACTUATOR_MODELS}, got {sorted(unknown)}")
+    tfs = {
+        name: scaled_transfer_function(tf, *mismatch.get(name, (1.0, 1.0)))
+        for name, tf in zip(ACTUATOR_MODELS, (Y_H, ALPHA_H, Y_R, ALPHA_R), strict=True)
+    }
+    As, Bs, Cs = _series_loop(tfs["y_h"], tfs["alpha_h"])
+    Ar, Br, Cr = _series_loop(tfs["y_r"], tfs["alpha_r"])
     ns, nr = As.shape[0], Ar.shape[0]
     A = np.block([[As, np.zeros((ns, nr))], [np.zeros((nr, ns)), Ar]])
     B = np.zeros((ns + nr, 4))
@@ -308,7 +331,16 @@ def _lti_step(sys: StateSpace, x, u):
     return sys.A @ x + sys.B @ u, sys.C @ x + sys.D @ u
 
 
-def simulate_sbw(d: dict, torque, road_disturbance, *, reference: str = "preamplified", cutoff=2 * np.pi * 100.0):
+def simulate_sbw(
+    d: dict,
+    torque,
+    road_disturbance,
+    *,
+    reference: str = "preamplified",
+    cutoff=2 * np.pi * 100.0,
+    true_plant: StateSpace | None = None,
+    controller=None,
+):
     """SBW with the AOB-1 and the road feedback ``F_r^*`` of the vehicle impedance, in one ``lax.scan``.
 
     The reference depends on the rack position through ``F_r^*``, so this loop is written here rather
@@ -321,20 +353,27 @@ def simulate_sbw(d: dict, torque, road_disturbance, *, reference: str = "preampl
     feed-forward of :func:`actuation_point_filter` drives ``tau_m`` and ``f_s``;
     ``reference="actuators_eq107"``: the same with eq. 107 as printed (open-loop ``alpha^{-1}``).
 
+    ``true_plant``: the discrete plant with positions (``c2d(with_positions(sbw_model(mismatch)), H)``;
+    default the nominal one; may be traced, e.g. under ``vmap``); ``controller``: the AOB parameters
+    (default :func:`aob` of the design, time-varying gains).
+
     Returns a dict of time series: ``delta_h``, ``x_r`` (positions), ``velocity`` (outputs), ``p``
     (active states), ``F_r_star``, ``u``.
     """
     if reference not in ("preamplified", "actuators", "actuators_eq107"):
         raise ValueError(f"reference must be 'preamplified', 'actuators' or 'actuators_eq107', got {reference!r}")
-    plant = c2d(with_positions(sbw_model()), H)
-    params = aob(d["plant"], d["L_r"])
+    plant = c2d(with_positions(sbw_model()), H) if true_plant is None else true_plant
+    params = aob(d["plant"], d["L_r"]) if controller is None else controller
     L_c = jnp.asarray(d["L_c"])
     imp = vehicle_impedance()
-    cl = closed_loop(d["plant"], d["L_r"]) if reference == "actuators" else None
-    ff = actuation_point_filter(d["L_c"], cutoff, closed_loop=cl)
+    preamp = reference == "preamplified"
+    if preamp:  # no feed-forward filter (its design-time NumPy steps must not run under a trace)
+        ff = StateSpace(jnp.zeros((0, 0)), jnp.zeros((0, 2)), jnp.zeros((2, 0)), jnp.zeros((2, 2)), H)
+    else:
+        cl = closed_loop(d["plant"], d["L_r"]) if reference == "actuators" else None
+        ff = actuation_point_filter(d["L_c"], cutoff, closed_loop=cl)
     entries = jnp.zeros((4, 2)).at[0, 0].set(1.0).at[2, 1].set(1.0)  # [T_h; F_r] -> input vector
     actuators = jnp.zeros((4, 2)).at[1, 0].set(1.0).at[3, 1].set(1.0)  # [tau_m; f_s] -> input vector
-    preamp = reference == "preamplified"
 
     def body(carry, inp):
         x, ctrl, z, w = carry
@@ -394,7 +433,9 @@ def _sign(d: dict) -> float:
 # Reproduction
 
 
-def _scenarios():
+def scenarios():
+    """``(t, torque, road disturbance)`` of the Fig. 8/9 run: a 2 Nm, 0.5 Hz steering torque for 4 s and
+    a 1000 N road disturbance from 1 s."""
     T = int(round(DURATION / H))
     t = np.arange(T) * H
     torque = TORQUE_AMPLITUDE * np.sin(2 * np.pi * TORQUE_FREQUENCY * t)
@@ -432,7 +473,7 @@ def example2() -> dict:
         "omega_rad_s": np.abs(s),
     }
     cl_poles = np.linalg.eigvals(np.asarray(closed_loop(d["plant"], d["L_r"]).A))
-    t, torque, road = _scenarios()
+    t, torque, road = scenarios()
     zero = np.zeros_like(t)
     fig8 = {"sbw": simulate_sbw(d, torque, zero), "target": simulate_target(d, torque, zero)}
     fig8_act = simulate_sbw(d, torque, zero, reference="actuators")
