@@ -1,0 +1,330 @@
+"""Tests for jaxobs.observers.hinf, the a-posteriori H-infinity filter (Hassibi, Sayed & Kailath 1996, IEEE TAC
+41(1); Simon 2006 ch. 11): reduction to the Kalman filter as gamma -> inf, the existence check around the bisection
+level, the worst-case gain bound (exact singular value of the disturbance-to-error map, gradient ascent and random
+disturbances), transformations (jit, vmap, grad) and input validation."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from jaxobs.observers.base import run
+from jaxobs.observers.hinf import (
+    HinfInputs,
+    gamma_bisection,
+    hinf_filter,
+    hinf_riccati_sequence,
+    hinf_steady_state,
+    make_hinf,
+)
+from jaxobs.observers.kalman import KalmanInputs, kalman_filter, make_kalman
+
+N_STEPS = 30
+
+
+def make_problem(seed=0, n=3, p=2, T=N_STEPS):
+    """A random stable plant, correlated R, an estimated combination z = L x, and random data."""
+    rng = np.random.default_rng(seed)
+    Phi = rng.normal(size=(n, n))
+    Phi *= 0.97 / np.max(np.abs(np.linalg.eigvals(Phi)))
+    Gamma, C = rng.normal(size=(n, 1)), rng.normal(size=(p, n))
+    G = rng.normal(size=(n, n)) * 0.3
+    Q = G @ G.T + 0.01 * np.eye(n)
+    R = np.array([[0.5, 0.2], [0.2, 0.3]])[:p, :p]
+    L = np.array([[1.0, 0.5, 0.0]])[:, :n]
+    P0 = np.eye(n)
+    u, y = rng.normal(size=(T, 1)), rng.normal(size=(T, p))
+    return dict(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R, L=L, P0=P0), jnp.asarray(u), jnp.asarray(y)
+
+
+def hinf_params(model, gamma, **kw):
+    m = model
+    return make_hinf(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], gamma=gamma, L=m["L"], P0=m["P0"], **kw)
+
+
+def optimal_level(model, num_steps=N_STEPS):
+    m = model
+    return gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], L=m["L"], P0=m["P0"], num_steps=num_steps, rtol=1e-8)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    model, u, y = make_problem(0)
+    return model, u, y, optimal_level(model)
+
+
+# ---------------------------------------------------------------------------------------------
+# reduction to the Kalman filter
+
+
+@pytest.mark.parametrize("gamma", [np.inf, 1e7])
+def test_large_gamma_reproduces_the_kalman_filter(problem, gamma):
+    """gamma -> inf: the correction gamma^{-2} P L'(I - gamma^{-2} L P L')^{-1} L P vanishes, so estimates, gains
+    and the Riccati matrix equal kalman.py's (bit for bit at gamma = inf, O(gamma^{-2}) at gamma = 1e7)."""
+    model, u, y, _ = problem
+    m = model
+    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
+    fk, ok = run(kalman_filter, kp, KalmanInputs(u, y))
+    fh, oh = run(hinf_filter, hinf_params(model, gamma), HinfInputs(u, y))
+    tol = 0.0 if np.isinf(gamma) else 1e-11
+    np.testing.assert_allclose(oh.x, ok.x, rtol=0, atol=tol)
+    np.testing.assert_allclose(oh.gain, ok.gain, rtol=0, atol=tol)
+    np.testing.assert_allclose(fh.P, fk.P, rtol=0, atol=tol)
+    np.testing.assert_allclose(oh.z, ok.x @ m["L"].T, rtol=0, atol=tol)
+    assert int(fh.violations) == 0 and bool(jnp.all(oh.feasible))
+
+
+def test_correction_inflates_the_riccati_matrix(problem):
+    """For finite gamma the H-infinity matrix dominates the Kalman one (Pb_k >= P_k, the -gamma^{-2} L'L term)
+    and the gain differs; the gap shrinks monotonically as gamma grows."""
+    model, u, y, gs = problem
+    m = model
+    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
+    fk, _ = run(kalman_filter, kp, KalmanInputs(u, y))
+    gaps = []
+    for factor in [1.05, 2.0, 10.0, 100.0]:
+        fh, _ = run(hinf_filter, hinf_params(model, factor * gs.gamma), HinfInputs(u, y))
+        D = np.asarray(fh.P - fk.P)
+        assert np.linalg.eigvalsh(D)[0] > -1e-12
+        gaps.append(np.max(np.abs(D)))
+    assert all(a > b for a, b in zip(gaps, gaps[1:], strict=False))
+
+
+# ---------------------------------------------------------------------------------------------
+# existence condition and the bisection level
+
+
+def test_bisection_level_separates_feasible_from_infeasible(problem):
+    """gamma_bisection converges (found, bracket within rtol); just below it the filter flags violations, just
+    above it none, and the Riccati sequence reports the same."""
+    model, u, y, gs = problem
+    m = model
+    assert bool(gs.found)
+    assert float(gs.gamma - gs.lower) <= 1e-8 * float(gs.gamma)
+    for factor, expect_ok in [(1 - 1e-4, False), (1 + 1e-4, True), (0.5, False), (3.0, True)]:
+        gamma = factor * gs.gamma
+        final, out = run(hinf_filter, hinf_params(model, gamma), HinfInputs(u, y))
+        seq = hinf_riccati_sequence(m["P0"], m["Phi"], m["C"], m["L"], m["Q"], m["R"], gamma, N_STEPS)
+        assert (int(final.violations) == 0) == expect_ok
+        assert bool(jnp.all(seq.feasible)) == expect_ok
+        assert bool(jnp.all(out.feasible)) == expect_ok
+        np.testing.assert_array_equal(out.feasible, out.margin > 0)
+        assert np.all(np.isfinite(np.asarray(out.x)))  # a violation is flagged, never NaN
+
+
+def test_bisection_lower_bracket_and_longer_horizon():
+    """The level is at least sqrt(lambda_max(L P_0 L')) (first-step bound) and grows with the horizon; the
+    steady-state recursion converges and is feasible just above the long-horizon level, not below it."""
+    model, _, _ = make_problem(1)
+    m = model
+    short, long = optimal_level(model, 5), optimal_level(model, 400)
+    assert float(short.gamma) <= float(long.gamma) * (1 + 1e-7)
+    P1 = m["Phi"] @ m["P0"] @ m["Phi"].T + m["Q"]
+    P_first = np.linalg.inv(np.linalg.inv(P1) + m["C"].T @ np.linalg.solve(m["R"], m["C"]))
+    assert float(short.gamma) > np.sqrt(np.max(np.linalg.eigvalsh(m["L"] @ P_first @ m["L"].T)))
+    above = hinf_steady_state(m["Phi"], m["C"], m["L"], m["Q"], m["R"], 1.01 * long.gamma, P_init=m["P0"])
+    below = hinf_steady_state(m["Phi"], m["C"], m["L"], m["Q"], m["R"], 0.99 * long.gamma, P_init=m["P0"])
+    assert bool(above.converged) and bool(above.feasible)
+    assert not bool(below.feasible)
+    with pytest.raises(ValueError, match="gamma"):
+        hinf_params(model, 0.99 * long.gamma, steady_state=True)
+    ss = hinf_params(model, 1.01 * long.gamma, steady_state=True)
+    np.testing.assert_allclose(ss.gain, above.gain)
+
+
+# ---------------------------------------------------------------------------------------------
+# worst-case gain
+
+
+def error_map(model, gamma_or_none, T=N_STEPS):
+    """d = (delta, w_hat, v_hat) -> (z_k - z_hat_k)_k with x_{-1} = x0 + P0^{1/2} delta, w = Q^{1/2} w_hat,
+    v = R^{1/2} v_hat: the denominator of the H-infinity ratio is then |d|^2. gamma None: the Kalman filter."""
+    m = {k: jnp.asarray(v) for k, v in model.items()}
+    n, p = m["Phi"].shape[0], m["C"].shape[0]
+    S0, Sq, Sr = (jnp.linalg.cholesky(m[k]) for k in ("P0", "Q", "R"))
+    if gamma_or_none is None:
+        obs = kalman_filter
+        params = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
+        Inputs = KalmanInputs
+    else:
+        obs, params, Inputs = hinf_filter, hinf_params(model, gamma_or_none), HinfInputs
+    u = jnp.zeros((T, 1))
+
+    def errors(d):
+        delta, w, v = d[:n], d[n : n + T * n].reshape(T, n), d[n + T * n :].reshape(T, p)
+
+        def plant(x, wv):
+            x = m["Phi"] @ x + Sq @ wv[0]
+            return x, (x, m["C"] @ x + Sr @ wv[1])
+
+        _, (xs, ys) = jax.lax.scan(plant, params.x0 + S0 @ delta, (w, v))
+        _, out = run(obs, params, Inputs(u, ys))
+        return ((xs - out.x) @ m["L"].T).ravel()
+
+    return errors, n + T * (n + p)
+
+
+def worst_case_ratio(errors, dim):
+    T = jax.jacfwd(errors)(jnp.zeros(dim))
+    return float(jnp.linalg.norm(T, 2) ** 2)
+
+
+def test_exact_worst_case_gain_below_gamma_squared(problem):
+    """The filter is linear, so sup ratio = sigma_max(T)^2 for the disturbance-to-error Jacobian T: it stays below
+    gamma^2 for several gamma above the bisection level, and at gamma = 1.001 gamma* it is squeezed between
+    gamma*^2 (no causal filter does better) and gamma^2. The Kalman filter's worst case is at least gamma*^2."""
+    model, _, _, gs = problem
+    g_star = float(gs.gamma)
+    for factor in [1.001, 1.1, 2.0, 10.0]:
+        gamma = factor * g_star
+        ratio = worst_case_ratio(*error_map(model, gamma))
+        assert ratio < gamma**2, (factor, ratio, gamma**2)
+        if factor == 1.001:
+            assert ratio >= g_star**2 * (1 - 1e-6)
+    kalman_ratio = worst_case_ratio(*error_map(model, None))
+    assert kalman_ratio >= g_star**2 * (1 - 1e-6)
+
+
+def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(problem):
+    """Random unit-energy disturbances and 40 steps of normalised jax.grad ascent on the ratio
+    sum |z - z_hat|^2 / (|x_{-1} - x0|^2_{P0^{-1}} + sum |w|^2_{Q^{-1}} + sum |v|^2_{R^{-1}}): every ratio stays
+    below gamma^2 (gamma = 1.01 gamma*), and the ascent climbs to the exact worst case sigma_max^2."""
+    model, _, _, gs = problem
+    gamma = 1.01 * float(gs.gamma)
+    errors, dim = error_map(model, gamma)
+
+    def ratio(d):
+        return jnp.sum(errors(d) ** 2) / jnp.sum(d**2)
+
+    d0 = jax.random.normal(jax.random.PRNGKey(0), (64, dim))
+    random_ratios = jax.vmap(ratio)(d0)
+    assert float(jnp.max(random_ratios)) < gamma**2
+
+    grad = jax.jit(jax.grad(ratio))
+
+    @jax.jit
+    def ascend(d):
+        def body(d, _):
+            d = d + (0.5 / gamma**2) * grad(d)  # |d| = 1; a power-iteration-like ascent step
+            return d / jnp.linalg.norm(d), ratio(d)
+
+        return jax.lax.scan(body, d / jnp.linalg.norm(d), None, length=40)
+
+    d, history = ascend(d0[0])
+    assert float(jnp.max(history)) < gamma**2
+    exact = worst_case_ratio(errors, dim)
+    assert float(history[-1]) > float(random_ratios[0])
+    assert float(history[-1]) > 0.9 * exact
+    assert float(history[-1]) <= exact * (1 + 1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# transformations
+
+
+def test_eager_equals_jit(problem):
+    model, u, y, gs = problem
+    params = hinf_params(model, 1.2 * gs.gamma)
+    fe, oe = run(hinf_filter, params, HinfInputs(u, y))
+    fj, oj = jax.jit(lambda p, i: run(hinf_filter, p, i))(params, HinfInputs(u, y))
+    for a, b in zip(jax.tree_util.tree_leaves((fe, oe)), jax.tree_util.tree_leaves((fj, oj)), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    m = model
+    gj = jax.jit(lambda Phi: gamma_bisection(Phi, m["C"], m["Q"], m["R"], L=m["L"], P0=m["P0"],
+                                             num_steps=N_STEPS, rtol=1e-8))(jnp.asarray(m["Phi"]))  # fmt: skip
+    np.testing.assert_allclose(gj.gamma, gs.gamma, rtol=1e-12)
+
+
+def test_vmap_batched_equals_looped(problem):
+    """vmap over (gamma, measurement sequence) equals a Python loop, including the violation counts."""
+    model, u, y, gs = problem
+    gammas = jnp.asarray([0.9, 1.05, 2.0, np.inf]) * gs.gamma
+    ys = y[None] + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (4, *y.shape))
+    base = hinf_params(model, 1.0)
+
+    def one(gamma, yk):
+        return run(hinf_filter, dataclasses.replace(base, gamma=gamma), HinfInputs(u, yk))
+
+    fb, ob = jax.vmap(one)(gammas, ys)
+    for i in range(4):
+        fl, ol = one(gammas[i], ys[i])
+        np.testing.assert_allclose(ob.x[i], ol.x, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(fb.P[i], fl.P, rtol=1e-12, atol=1e-12)
+        assert int(fb.violations[i]) == int(fl.violations)
+    assert int(fb.violations[0]) > 0 and int(fb.violations[1]) == 0
+    m = model
+    lev = jax.vmap(lambda s: optimal_level(dict(m, R=s * m["R"])).gamma)(jnp.asarray([1.0, 2.0]))
+    np.testing.assert_allclose(lev[0], gs.gamma, rtol=1e-12)
+    np.testing.assert_allclose(lev[1], optimal_level(dict(m, R=2.0 * m["R"])).gamma, rtol=1e-12)
+
+
+def test_grad_finite_and_correct_wrt_gamma_and_q(problem):
+    """A tracking loss is differentiable w.r.t. gamma and a Q scale: finite gradients that match finite
+    differences (jax.test_util.check_grads, both modes)."""
+    model, u, y, gs = problem
+    base = hinf_params(model, 1.0)
+
+    def loss(gamma, q_scale):
+        params = dataclasses.replace(base, gamma=gamma, Q=q_scale * base.Q)
+        _, out = run(hinf_filter, params, HinfInputs(u, y))
+        return jnp.sum((out.z[:, 0] - y[:, 0]) ** 2)
+
+    args = (1.5 * gs.gamma, jnp.asarray(1.3))
+    g = jax.grad(loss, argnums=(0, 1))(*args)
+    assert all(np.isfinite(float(v)) and float(v) != 0.0 for v in g)
+    check_grads(loss, args, order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5)
+
+
+def test_missing_measurements_are_skipped_and_counted(problem):
+    """NaN measurements: skipped as in the Kalman filter (equal at gamma = inf), counted in state.missing."""
+    model, u, y, _ = problem
+    m = model
+    y = y.at[[3, 7], 0].set(jnp.nan).at[10].set(jnp.nan)
+    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
+    fk, ok = run(kalman_filter, kp, KalmanInputs(u, y))
+    fh, oh = run(hinf_filter, hinf_params(model, np.inf), HinfInputs(u, y))
+    assert int(fh.missing) == int(fk.missing) == 4
+    np.testing.assert_array_equal(oh.x, ok.x)
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+
+
+@pytest.mark.parametrize(
+    ("change", "name"),
+    [
+        (dict(Phi=np.ones((3, 2))), "Phi"),
+        (dict(Q=-np.eye(3)), "Q"),
+        (dict(R=np.zeros((2, 2))), "R"),
+        (dict(C=np.ones((2, 4))), "C"),
+        (dict(L=np.ones((1, 2))), "L"),
+        (dict(P0=np.array([[1.0, 2.0, 0], [0, 1, 0], [0, 0, 1]])), "P0"),
+        (dict(Gamma=np.ones((2, 1))), "Gamma"),
+        (dict(gamma=0.0), "gamma"),
+        (dict(gamma=-1.0), "gamma"),
+        (dict(gamma=np.nan), "gamma"),
+        (dict(gamma=np.ones(2)), "gamma"),
+    ],
+)
+def test_bad_inputs_raise_value_error_naming_the_argument(change, name):
+    model, _, _ = make_problem(2)
+    args = dict(model, gamma=1.0)
+    args.update(change)
+    with pytest.raises(ValueError, match=name):
+        make_hinf(args["Phi"], args["Gamma"], args["C"], args["Q"], args["R"], gamma=args["gamma"], L=args["L"],
+                  P0=args["P0"])  # fmt: skip
+
+
+def test_gamma_bisection_validates_its_inputs():
+    model, _, _ = make_problem(2)
+    m = model
+    with pytest.raises(ValueError, match="Phi"):
+        gamma_bisection(np.ones((3, 2)), m["C"], m["Q"], m["R"])
+    with pytest.raises(ValueError, match="rtol"):
+        gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], rtol=0.0)
+    with pytest.raises(ValueError, match="num_steps"):
+        gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], num_steps=0)
