@@ -1,0 +1,411 @@
+"""Inverse-dynamics state and disturbance observer (Liu & Peng, seed 004, §2-3).
+
+Plant (eq. 1, continuous time)::
+
+    x' = A x + Gamma(u, y) + B d,    y = C x
+
+with ``B`` of full column rank and ``(A, C)`` observable (Assumption 2.1). ``Gamma(u, y)`` is a known
+(possibly nonlinear) term; the user evaluates it and passes its value. The observer (eq. 2, 4)::
+
+    x_hat' = A x_hat + Gamma(u, y) + B d_hat + K (y - C x_hat)                          (2)
+    d_hat  = F1 y + F2 y' + G1 x_hat + G2 x_hat' + G3 Gamma(u, y)                       (4)
+
+Case 1 (Lemma 3.1, eq. 5-8): some ``F2`` has ``F2 C B = I`` (relative degree one); then
+``G1 = -(F1 C + F2 C A)``, ``G2 = 0``, ``G3 = -F2 C`` and the errors ``e = x_hat - x``, ``e_d = d_hat - d``
+obey ``e' = (A - B (F1 C + F2 C A) - K C) e`` (8), ``e_d = -(F1 C + F2 C A) e`` (7). Lemma 3.2: the
+zeros of ``(A, B, C, 0)`` are eigenvalues of that matrix.
+
+Case 2 (Lemma 3.3, eq. 10-18): with a left inverse ``B+`` of ``B``, ``G1 = -(F1 C + B+ A)`` (12),
+``G2 = -(F2 C - B+)`` (13), ``G3 = -B+`` (14), and ``M_e e' = A_e e`` (16) with
+``M_e = I + B (F2 C - B+)`` (17), ``A_e = A - K C - B (F1 C + B+ A)`` (18). Here every left inverse is
+``B+ = B^dagger + rho (I - B B^dagger)`` with ``B^dagger = (B'B)^{-1} B'`` and a free ``rho`` of shape
+``(n_d, n)`` (for §4.1, ``B = [1, 0]'``: ``B+ = [1, rho[0, 1]]``, the paper's ``[1 rho]``).
+
+Singular ``M_e`` (eq. 19-26, Fact 3.5): with ``M_e = U Sigma V'`` and ``U' A_e V = [[A11, A12], [A21, A22]]``
+the paper states stability iff ``A22`` and ``A11 - A12 A22^{-1} A21`` are Hurwitz. The exact condition for
+the descriptor system (16) is that ``A22`` is nonsingular and ``sigma_M^{-1} (A11 - A12 A22^{-1} A21)``
+(whose eigenvalues are the finite generalised eigenvalues of ``(A_e, M_e)``) is Hurwitz; the two agree
+when ``rank M_e = 1`` (the §4.1 example) but not in general, since a positive diagonal scaling need not
+preserve Hurwitz stability. :func:`fact35` returns both flags. Note ``det M_e = det(F2 C B)`` (``B+ B = I``),
+so ``M_e`` is nonsingular (Lemma 3.6) only for plants that also satisfy the Case 1 rank condition.
+
+The general form used here: for any ``G1, G2, G3`` of either case the observer is the descriptor system
+``M_e x_hat' = A_e x_hat + (I + B G3) Gamma + (B F1 + K) y + B F2 y'`` with ``M_e = I - B G2`` and
+``A_e = A - K C + B G1`` (these reduce to eq. 8 and eq. 17-18).
+
+Discrete time (the run-time observer, :data:`inverse_dynamics_observer`). The paper runs the
+continuous-time algorithm on 100 Hz samples with ``y'`` from a backward difference and an optional
+low-pass filter on ``y`` (§4.2). Here, with sample time ``h``:
+
+* ``y`` is optionally passed through ``lowpass_order`` identical first-order sections
+  ``s_k = p s_{k-1} + (1 - p) y_k`` (``p = lowpass_pole``), started at the first sample;
+* ``y'_k = (y_k - y_{k-1}) / h`` (backward difference; 0 at the first sample);
+* ``x_hat`` is advanced by backward Euler on the descriptor form,
+  ``(M_e - h A_e) x_hat_k = M_e x_hat_{k-1} + h N w_k``, which needs no inverse of ``M_e`` and is exactly
+  eq. 2 with ``x_hat'_k = (x_hat_k - x_hat_{k-1}) / h``; ``d_hat_k`` is then eq. 4 with the same derivative.
+  The homogeneous discrete error maps each finite pole ``lambda`` of (16) to ``1 / (1 - h lambda)`` and the
+  infinite ones (singular ``M_e``) to 0, so the discrete observer is stable whenever (16) is.
+
+Design-time checks (rank, observability, Case 1 feasibility, Hurwitz, Fact 3.5) use NumPy on concrete
+arrays and raise ``ValueError`` naming the argument; under ``jit``/``vmap``/``grad`` they are skipped and
+:func:`fact35` (with a given ``rank``) returns flags instead. Tested in float64; float32 is fine for the
+run-time step when ``h |lambda|`` is not tiny.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from jaxobs import _checks
+from jaxobs.lti import obsv
+from jaxobs.observers.base import Observer
+
+__all__ = [
+    "InverseDynamicsParams",
+    "InverseDynamicsState",
+    "InverseDynamicsInputs",
+    "InverseDynamicsOutputs",
+    "Fact35",
+    "inverse_dynamics_observer",
+    "make_inverse_dynamics",
+    "left_inverse",
+    "case1_f2",
+    "case1_gains",
+    "case2_gains",
+    "error_dynamics",
+    "fact35",
+    "plant_zeros",
+]
+
+
+# --------------------------------------------------------------------------------------------- gains
+
+
+def left_inverse(B, rho=None):
+    """Left inverse ``B+ = B^dagger + rho (I - B B^dagger)`` of a full-column-rank ``B`` (``B+ B = I``).
+
+    ``rho`` (``(n_d, n)``, default 0) spans every left inverse. Traceable and differentiable.
+    """
+    B = jnp.atleast_2d(jnp.asarray(B))
+    n = B.shape[0]
+    B_dag = jnp.linalg.solve(B.T @ B, B.T)
+    if rho is None:
+        return B_dag
+    rho = jnp.atleast_2d(jnp.asarray(rho, B.dtype))
+    return B_dag + rho @ (jnp.eye(n, dtype=B.dtype) - B @ B_dag)
+
+
+def case1_f2(B, C):
+    """The minimum-norm ``F2`` with ``F2 C B = I`` (eq. 5), or ``ValueError`` if none exists (go to Case 2)."""
+    B, C = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (B, C))
+    CB = C @ B
+    r = np.linalg.matrix_rank(CB, tol=1e-10 * max(np.linalg.norm(C) * np.linalg.norm(B), 1e-300))
+    if r < B.shape[1]:
+        raise ValueError(
+            f"B, C: no F2 satisfies F2 C B = I (Case 1, eq. 5): C B has rank {r} < n_d = {B.shape[1]} "
+            "(relative degree above one, or fewer independent outputs than disturbances); use case=2 (Lemma 3.3)"
+        )
+    return np.linalg.pinv(CB)
+
+
+def case1_gains(A, B, C, F1, F2):
+    """``(G1, G2, G3)`` of Lemma 3.1: ``-(F1 C + F2 C A)``, ``0``, ``-F2 C``. Traceable."""
+    A, B, C, F1, F2 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, F1, F2))
+    G1 = -(F1 @ C + F2 @ C @ A)
+    return G1, jnp.zeros_like(G1), -F2 @ C
+
+
+def case2_gains(A, B, C, F1, F2, rho=None):
+    """``(G1, G2, G3)`` of Lemma 3.3, eq. 12-14, with ``B+ = left_inverse(B, rho)``. Traceable."""
+    A, B, C, F1, F2 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, F1, F2))
+    Bp = left_inverse(B, rho)
+    return -(F1 @ C + Bp @ A), -(F2 @ C - Bp), -Bp
+
+
+def error_dynamics(A, B, C, K, G1, G2):
+    """``(M_e, A_e)`` of ``M_e e' = A_e e``: ``M_e = I - B G2``, ``A_e = A - K C + B G1``.
+
+    With the Case 1 gains this is eq. 8 (``M_e = I``); with the Case 2 gains, eq. 17-18. Traceable.
+    """
+    A, B, C, K = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K))
+    n = A.shape[-1]
+    return jnp.eye(n, dtype=A.dtype) - B @ G2, A - K @ C + B @ G1
+
+
+class Fact35(NamedTuple):
+    """Stability of ``M_e e' = A_e e`` through the SVD of ``M_e`` (eq. 19-26, Fact 3.5)."""
+
+    stable: jax.Array  # exact: A22 nonsingular and sigma_M^{-1} S Hurwitz (finite poles in the open LHP)
+    printed_stable: jax.Array  # Fact 3.5 as printed: A22 and S Hurwitz
+    rank: int  # n_M = rank M_e
+    A11: jax.Array
+    A12: jax.Array
+    A21: jax.Array
+    A22: jax.Array
+    S: jax.Array  # A11 - A12 A22^{-1} A21
+    poles: jax.Array  # eigenvalues of sigma_M^{-1} S: the finite poles of the error dynamics
+    fast: jax.Array  # eigenvalues of A22 (the "fast" part of Fact 3.4)
+
+
+def fact35(M_e, A_e, *, rank: int | None = None, U=None, V=None, tol: float = 1e-9) -> Fact35:
+    """Fact 3.5 test. ``rank`` (n_M) is found from the singular values when ``M_e`` is concrete and
+    must be given under tracing. Flags are arrays (``jit``-safe); eigenvalues are complex.
+
+    ``U, V`` (optional) give the SVD bases, e.g. the explicit ones printed in §4.1. The columns of ``U`` and
+    ``V`` for the zero singular values are any orthonormal bases of the two null spaces, chosen
+    independently, so the sign (and Hurwitz property) of ``A22`` in ``printed_stable`` depends on that
+    choice; only its nonsingularity, ``S`` up to congruence and the exact ``stable``/``poles`` do not.
+    """
+    M_e, A_e = jnp.asarray(M_e), jnp.asarray(A_e)
+    n = M_e.shape[-1]
+    U_svd, s, Vt = jnp.linalg.svd(M_e)
+    U = U_svd if U is None else jnp.asarray(U, A_e.dtype)
+    Vt = Vt if V is None else jnp.asarray(V, A_e.dtype).T
+    if rank is None:
+        if not _checks.is_concrete(M_e):
+            raise ValueError("rank must be given when M_e is traced (e.g. under jit or vmap)")
+        s_np = np.asarray(s)
+        rank = int(np.sum(s_np > tol * max(s_np[0], 1e-300)))
+    T = U.T @ A_e @ Vt.T
+    A11, A12, A21, A22 = T[:rank, :rank], T[:rank, rank:], T[rank:, :rank], T[rank:, rank:]
+    if rank == n:
+        S, fast = A11, jnp.zeros((0,), jnp.complex128 if A_e.dtype == jnp.float64 else jnp.complex64)
+        fast_ok = jnp.asarray(True)
+        nonsingular = jnp.asarray(True)
+    else:
+        S = A11 - A12 @ jnp.linalg.solve(A22, A21)
+        fast = jnp.linalg.eigvals(A22)
+        fast_ok = jnp.all(fast.real < 0)
+        a22_scale = jnp.maximum(jnp.max(jnp.abs(T)), jnp.finfo(T.dtype).tiny)
+        nonsingular = jnp.min(jnp.linalg.svd(A22, compute_uv=False)) > tol * a22_scale
+    sigma = jnp.diagonal(U.T @ M_e @ Vt.T)[:rank]  # = s[:rank] for an SVD basis
+    poles = jnp.linalg.eigvals(S / sigma[:, None])
+    slow_printed = jnp.all(jnp.linalg.eigvals(S).real < 0)
+    finite = jnp.all(jnp.isfinite(poles))
+    stable = nonsingular & finite & jnp.all(poles.real < 0)
+    return Fact35(stable, fast_ok & slow_printed & nonsingular, rank, A11, A12, A21, A22, S, poles, fast)
+
+
+def plant_zeros(A, B, C):
+    """Invariant zeros of ``(A, B, C, 0)`` for ``n_y = n_d`` (finite generalised eigenvalues of the
+    Rosenbrock pencil). Design time (SciPy)."""
+    A, B, C = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (A, B, C))
+    n, m, p = A.shape[0], B.shape[1], C.shape[0]
+    if p != m:
+        raise ValueError(f"C: plant_zeros needs as many outputs as disturbances, got n_y={p}, n_d={m}")
+    P = np.block([[A, B], [C, np.zeros((p, m))]])
+    E = np.block([[np.eye(n), np.zeros((n, m))], [np.zeros((p, n + m))]])
+    w = scipy.linalg.eigvals(P, E)
+    return w[np.isfinite(w) & (np.abs(w) < 1e12)]
+
+
+# --------------------------------------------------------------------------------- run-time observer
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class InverseDynamicsParams:
+    """Observer (eq. 2, 4) sampled every ``h`` seconds. ``G1, G2, G3`` come from :func:`case1_gains` or
+    :func:`case2_gains`; ``lowpass_pole`` in ``[0, 1)`` with ``lowpass_order`` (static) sections."""
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array
+    K: jax.Array
+    F1: jax.Array
+    F2: jax.Array
+    G1: jax.Array
+    G2: jax.Array
+    G3: jax.Array
+    x0: jax.Array
+    h: jax.Array
+    lowpass_pole: jax.Array
+    lowpass_order: int = dataclasses.field(default=0, metadata=dict(static=True))
+
+
+class InverseDynamicsState(NamedTuple):
+    x: jax.Array  # x_hat_{k-1}
+    y_prev: jax.Array  # (filtered) y_{k-1}
+    lowpass: jax.Array  # (lowpass_order, n_y) filter sections
+    count: jax.Array  # samples seen
+
+
+class InverseDynamicsInputs(NamedTuple):
+    y: jax.Array  # measurement y_k
+    gamma: jax.Array | None = None  # value of Gamma(u_k, y_k) (n,), None for 0
+
+
+class InverseDynamicsOutputs(NamedTuple):
+    x: jax.Array  # x_hat_k
+    d: jax.Array  # d_hat_k (eq. 4)
+    y_dot: jax.Array  # backward-difference y'_k
+    x_dot: jax.Array  # (x_hat_k - x_hat_{k-1}) / h
+
+
+def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
+    p = params.C.shape[-2]
+    dtype = params.x0.dtype
+    return InverseDynamicsState(
+        params.x0, jnp.zeros((p,), dtype), jnp.zeros((params.lowpass_order, p), dtype), jnp.zeros((), jnp.int32)
+    )
+
+
+def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: InverseDynamicsInputs):
+    A, B, C, K, F1, F2 = params.A, params.B, params.C, params.K, params.F1, params.F2
+    n = A.shape[-1]
+    h = params.h
+    first = state.count == 0
+    y = jnp.atleast_1d(inputs.y).astype(params.x0.dtype)
+    gamma = jnp.zeros((n,), y.dtype) if inputs.gamma is None else jnp.asarray(inputs.gamma, y.dtype)
+    sections = []
+    for i in range(params.lowpass_order):
+        s = jnp.where(first, y, params.lowpass_pole * state.lowpass[i] + (1 - params.lowpass_pole) * y)
+        sections.append(s)
+        y = s
+    lowpass = jnp.stack(sections) if sections else state.lowpass
+    y_dot = jnp.where(first, jnp.zeros_like(y), (y - state.y_prev) / h)
+    M_e, A_e = error_dynamics(A, B, C, K, params.G1, params.G2)
+    Nw = (gamma + B @ (params.G3 @ gamma)) + B @ (F1 @ y) + K @ y + B @ (F2 @ y_dot)
+    x = jnp.linalg.solve(M_e - h * A_e, M_e @ state.x + h * Nw)
+    x_dot = (x - state.x) / h
+    d = F1 @ y + F2 @ y_dot + params.G1 @ x + params.G2 @ x_dot + params.G3 @ gamma
+    new_state = InverseDynamicsState(x, y, lowpass, state.count + 1)
+    return new_state, InverseDynamicsOutputs(x, d, y_dot, x_dot)
+
+
+inverse_dynamics_observer = Observer(_init, _step)
+"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`."""
+
+
+def make_inverse_dynamics(
+    A,
+    B,
+    C,
+    K,
+    F1,
+    F2=None,
+    *,
+    h,
+    case: int | None = None,
+    rho=None,
+    x0=None,
+    lowpass_pole=0.0,
+    lowpass_order: int = 0,
+    check_stability: bool = True,
+) -> InverseDynamicsParams:
+    """Build and validate :class:`InverseDynamicsParams`.
+
+    Args:
+      A, B, C: plant of eq. 1 (``B`` is the disturbance matrix, full column rank; ``(A, C)`` observable).
+      K: ``(n, n_y)`` state-observer gain.  F1, F2: ``(n_d, n_y)`` disturbance gains (eq. 4).
+      h: sample time (seconds).
+      case: 1 (Lemma 3.1) or 2 (Lemma 3.3); default 1 when ``C B`` has full column rank, else 2.
+        Case 1 with ``F2=None`` takes the minimum-norm ``F2`` with ``F2 C B = I``; Case 2 needs ``F2``.
+      rho: ``(n_d, n)`` free parameter of ``B+`` (Case 2 only; default 0).
+      check_stability: raise ``ValueError`` when the error dynamics are not exponentially stable
+        (eq. 8 Hurwitz in Case 1; :func:`fact35` in Case 2).
+
+    Traceable (for gradient-based tuning of ``K, F1, F2, rho``): with traced arguments the checks are skipped.
+    """
+    A, B, C, K, F1 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K, F1))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    nd, ny = B.shape[1], C.shape[0]
+    _checks.matrix("K", K, shape=(n, ny))
+    _checks.matrix("F1", F1, shape=(nd, ny))
+    _checks.positive_scalar("h", h)
+    concrete_plant = _checks.is_concrete(A, B, C)
+    if concrete_plant:
+        Bn, An, Cn = (np.asarray(M, dtype=float) for M in (B, A, C))
+        rB = np.linalg.matrix_rank(Bn, tol=1e-10 * max(np.linalg.norm(Bn), 1e-300))
+        if rB < nd:
+            raise ValueError(f"B must have full column rank (Assumption 2.1 ii), got rank {rB} < n_d = {nd}")
+        O = np.asarray(obsv(An, Cn))
+        rO = np.linalg.matrix_rank(O, tol=1e-10 * max(np.linalg.norm(O), 1e-300))
+        if rO < n:
+            raise ValueError(
+                f"(A, C) must be observable (Assumption 2.1 iii): the observability matrix has rank {rO} < n = {n}"
+            )
+    if case is None:
+        if not concrete_plant:
+            raise ValueError("case must be given (1 or 2) when A, B, C are traced")
+        try:
+            case1_f2(B, C)
+            case = 1
+        except ValueError:
+            case = 2
+    if case == 1:
+        if F2 is None:
+            if not concrete_plant:
+                raise ValueError("F2 must be given for case=1 when B, C are traced")
+            F2 = case1_f2(B, C)
+        F2 = jnp.atleast_2d(jnp.asarray(F2, A.dtype))
+        _checks.matrix("F2", F2, shape=(nd, ny))
+        if concrete_plant:
+            case1_f2(B, C)  # raises with the Case 2 hint when no F2 exists
+            if _checks.is_concrete(F2):
+                res = np.asarray(F2) @ np.asarray(C) @ np.asarray(B) - np.eye(nd)
+                if np.max(np.abs(res)) > 1e-8:
+                    raise ValueError(
+                        f"F2 must satisfy F2 C B = I for case=1 (eq. 5); residual {np.max(np.abs(res)):.3g}"
+                    )
+        if rho is not None:
+            raise ValueError("rho is the free parameter of B+ and only applies to case=2")
+        G1, G2, G3 = case1_gains(A, B, C, F1, F2)
+    elif case == 2:
+        if F2 is None:
+            raise ValueError("F2 must be given for case=2 (Lemma 3.3)")
+        F2 = jnp.atleast_2d(jnp.asarray(F2, A.dtype))
+        _checks.matrix("F2", F2, shape=(nd, ny))
+        if rho is not None:
+            rho = jnp.atleast_2d(jnp.asarray(rho, A.dtype))
+            _checks.matrix("rho", rho, shape=(nd, n))
+        G1, G2, G3 = case2_gains(A, B, C, F1, F2, rho)
+    else:
+        raise ValueError(f"case must be 1 or 2, got {case!r}")
+    if check_stability and _checks.is_concrete(A, B, C, K, F1, F2, rho):
+        _check_error_dynamics(case, *error_dynamics(A, B, C, K, G1, G2))
+    if _checks.is_concrete(lowpass_pole):
+        p = float(np.asarray(lowpass_pole))
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"lowpass_pole must lie in [0, 1), got {p}")
+    if lowpass_order < 0:
+        raise ValueError(f"lowpass_order must be >= 0, got {lowpass_order}")
+    x0 = jnp.zeros((n,), A.dtype) if x0 is None else jnp.asarray(x0, A.dtype)
+    return InverseDynamicsParams(
+        A, B, C, K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, A.dtype), jnp.asarray(lowpass_pole, A.dtype), lowpass_order
+    )
+
+
+def _check_error_dynamics(case: int, M_e, A_e):
+    if case == 1:
+        eig = np.linalg.eigvals(np.asarray(A_e))
+        if np.max(eig.real) >= 0:
+            raise ValueError(
+                "K, F1: A - B (F1 C + F2 C A) - K C is not Hurwitz (Lemma 3.1 ii, eq. 8); eigenvalues "
+                f"{np.round(eig, 4)}. Plant zeros are fixed poles of eq. 8 (Lemma 3.2): a non-minimum-phase plant "
+                "has no stable Case 1 design"
+            )
+        return
+    res = fact35(M_e, A_e)
+    if res.rank < M_e.shape[-1] and not bool(res.stable):
+        A22 = np.asarray(res.A22)
+        if np.linalg.svd(A22, compute_uv=False).min() <= 1e-9 * max(np.abs(np.asarray(A_e)).max(), 1e-300):
+            raise ValueError(
+                "F1, F2, K, rho: M_e is singular and A22 is singular (eq. 26 has no unique solution): the error "
+                "dynamics M_e e' = A_e e are not regular; change F2 or rho"
+            )
+    if not bool(res.stable):
+        raise ValueError(
+            "F1, F2, K, rho: the error dynamics M_e e' = A_e e (eq. 16-18) are not exponentially stable "
+            f"(rank M_e = {res.rank}; slow poles {np.round(np.asarray(res.poles), 4)}, A22 eigenvalues "
+            f"{np.round(np.asarray(res.fast), 4)}; Fact 3.5)"
+        )
