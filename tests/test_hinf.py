@@ -25,6 +25,17 @@ from jaxobs.observers.kalman import KalmanInputs, kalman_filter, make_kalman
 N_STEPS = 30
 
 
+@jax.jit
+def run_hinf(params, inputs):
+    """run(hinf_filter, ...) compiled once per shape (params are a pytree, so gamma changes do not recompile)."""
+    return run(hinf_filter, params, inputs)
+
+
+@jax.jit
+def run_kalman(params, inputs):
+    return run(kalman_filter, params, inputs)
+
+
 def make_problem(seed=0, n=3, p=2, T=N_STEPS):
     """A random stable plant, correlated R, an estimated combination z = L x, and random data."""
     rng = np.random.default_rng(seed)
@@ -67,8 +78,8 @@ def test_large_gamma_reproduces_the_kalman_filter(problem, gamma):
     model, u, y, _ = problem
     m = model
     kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, ok = run(kalman_filter, kp, KalmanInputs(u, y))
-    fh, oh = run(hinf_filter, hinf_params(model, gamma), HinfInputs(u, y))
+    fk, ok = run_kalman(kp, KalmanInputs(u, y))
+    fh, oh = run_hinf(hinf_params(model, gamma), HinfInputs(u, y))
     tol = 0.0 if np.isinf(gamma) else 1e-11
     np.testing.assert_allclose(oh.x, ok.x, rtol=0, atol=tol)
     np.testing.assert_allclose(oh.gain, ok.gain, rtol=0, atol=tol)
@@ -83,10 +94,10 @@ def test_correction_inflates_the_riccati_matrix(problem):
     model, u, y, gs = problem
     m = model
     kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, _ = run(kalman_filter, kp, KalmanInputs(u, y))
+    fk, _ = run_kalman(kp, KalmanInputs(u, y))
     gaps = []
     for factor in [1.05, 2.0, 10.0, 100.0]:
-        fh, _ = run(hinf_filter, hinf_params(model, factor * gs.gamma), HinfInputs(u, y))
+        fh, _ = run_hinf(hinf_params(model, factor * gs.gamma), HinfInputs(u, y))
         D = np.asarray(fh.P - fk.P)
         assert np.linalg.eigvalsh(D)[0] > -1e-12
         gaps.append(np.max(np.abs(D)))
@@ -106,7 +117,7 @@ def test_bisection_level_separates_feasible_from_infeasible(problem):
     assert float(gs.gamma - gs.lower) <= 1e-8 * float(gs.gamma)
     for factor, expect_ok in [(1 - 1e-4, False), (1 + 1e-4, True), (0.5, False), (3.0, True)]:
         gamma = factor * gs.gamma
-        final, out = run(hinf_filter, hinf_params(model, gamma), HinfInputs(u, y))
+        final, out = run_hinf(hinf_params(model, gamma), HinfInputs(u, y))
         seq = hinf_riccati_sequence(m["P0"], m["Phi"], m["C"], m["L"], m["Q"], m["R"], gamma, N_STEPS)
         assert (int(final.violations) == 0) == expect_ok
         assert bool(jnp.all(seq.feasible)) == expect_ok
@@ -139,36 +150,37 @@ def test_bisection_lower_bracket_and_longer_horizon():
 # worst-case gain
 
 
-def error_map(model, gamma_or_none, T=N_STEPS):
-    """d = (delta, w_hat, v_hat) -> (z_k - z_hat_k)_k with x_{-1} = x0 + P0^{1/2} delta, w = Q^{1/2} w_hat,
-    v = R^{1/2} v_hat: the denominator of the H-infinity ratio is then |d|^2. gamma None: the Kalman filter."""
+def error_map(model, T=N_STEPS, kalman=False):
+    """``errors(d, gamma)``: d = (delta, w_hat, v_hat) -> (z_k - z_hat_k)_k with x_{-1} = x0 + P0^{1/2} delta,
+    w = Q^{1/2} w_hat, v = R^{1/2} v_hat, so the denominator of the H-infinity ratio is |d|^2. ``kalman``: the
+    Kalman filter instead (gamma ignored)."""
     m = {k: jnp.asarray(v) for k, v in model.items()}
     n, p = m["Phi"].shape[0], m["C"].shape[0]
     S0, Sq, Sr = (jnp.linalg.cholesky(m[k]) for k in ("P0", "Q", "R"))
-    if gamma_or_none is None:
-        obs = kalman_filter
-        params = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-        Inputs = KalmanInputs
-    else:
-        obs, params, Inputs = hinf_filter, hinf_params(model, gamma_or_none), HinfInputs
+    base = hinf_params(model, 1.0)
+    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
     u = jnp.zeros((T, 1))
 
-    def errors(d):
+    def errors(d, gamma):
         delta, w, v = d[:n], d[n : n + T * n].reshape(T, n), d[n + T * n :].reshape(T, p)
 
         def plant(x, wv):
             x = m["Phi"] @ x + Sq @ wv[0]
             return x, (x, m["C"] @ x + Sr @ wv[1])
 
-        _, (xs, ys) = jax.lax.scan(plant, params.x0 + S0 @ delta, (w, v))
-        _, out = run(obs, params, Inputs(u, ys))
+        _, (xs, ys) = jax.lax.scan(plant, base.x0 + S0 @ delta, (w, v))
+        if kalman:
+            _, out = run(kalman_filter, kp, KalmanInputs(u, ys))
+        else:
+            _, out = run(hinf_filter, dataclasses.replace(base, gamma=gamma), HinfInputs(u, ys))
         return ((xs - out.x) @ m["L"].T).ravel()
 
     return errors, n + T * (n + p)
 
 
-def worst_case_ratio(errors, dim):
-    T = jax.jacfwd(errors)(jnp.zeros(dim))
+def worst_case_ratio(errors, dim, gamma):
+    """sigma_max(T)^2 for the (linear) disturbance-to-error map T."""
+    T = jax.jit(jax.jacfwd(errors))(jnp.zeros(dim), jnp.asarray(gamma))
     return float(jnp.linalg.norm(T, 2) ** 2)
 
 
@@ -178,13 +190,15 @@ def test_exact_worst_case_gain_below_gamma_squared(problem):
     gamma*^2 (no causal filter does better) and gamma^2. The Kalman filter's worst case is at least gamma*^2."""
     model, _, _, gs = problem
     g_star = float(gs.gamma)
+    errors, dim = error_map(model)
+    jac = jax.jit(jax.jacfwd(errors))
     for factor in [1.001, 1.1, 2.0, 10.0]:
         gamma = factor * g_star
-        ratio = worst_case_ratio(*error_map(model, gamma))
+        ratio = float(jnp.linalg.norm(jac(jnp.zeros(dim), jnp.asarray(gamma)), 2) ** 2)
         assert ratio < gamma**2, (factor, ratio, gamma**2)
         if factor == 1.001:
             assert ratio >= g_star**2 * (1 - 1e-6)
-    kalman_ratio = worst_case_ratio(*error_map(model, None))
+    kalman_ratio = worst_case_ratio(*error_map(model, kalman=True), 0.0)
     assert kalman_ratio >= g_star**2 * (1 - 1e-6)
 
 
@@ -194,13 +208,13 @@ def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(pr
     below gamma^2 (gamma = 1.01 gamma*), and the ascent climbs to the exact worst case sigma_max^2."""
     model, _, _, gs = problem
     gamma = 1.01 * float(gs.gamma)
-    errors, dim = error_map(model, gamma)
+    errors, dim = error_map(model)
 
     def ratio(d):
-        return jnp.sum(errors(d) ** 2) / jnp.sum(d**2)
+        return jnp.sum(errors(d, gamma) ** 2) / jnp.sum(d**2)
 
     d0 = jax.random.normal(jax.random.PRNGKey(0), (64, dim))
-    random_ratios = jax.vmap(ratio)(d0)
+    random_ratios = jax.jit(jax.vmap(ratio))(d0)
     assert float(jnp.max(random_ratios)) < gamma**2
 
     grad = jax.jit(jax.grad(ratio))
@@ -215,7 +229,7 @@ def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(pr
 
     d, history = ascend(d0[0])
     assert float(jnp.max(history)) < gamma**2
-    exact = worst_case_ratio(errors, dim)
+    exact = worst_case_ratio(errors, dim, gamma)
     assert float(history[-1]) > float(random_ratios[0])
     assert float(history[-1]) > 0.9 * exact
     assert float(history[-1]) <= exact * (1 + 1e-9)
@@ -248,9 +262,10 @@ def test_vmap_batched_equals_looped(problem):
     def one(gamma, yk):
         return run(hinf_filter, dataclasses.replace(base, gamma=gamma), HinfInputs(u, yk))
 
-    fb, ob = jax.vmap(one)(gammas, ys)
+    fb, ob = jax.jit(jax.vmap(one))(gammas, ys)
+    one_jit = jax.jit(one)
     for i in range(4):
-        fl, ol = one(gammas[i], ys[i])
+        fl, ol = one_jit(gammas[i], ys[i])
         np.testing.assert_allclose(ob.x[i], ol.x, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(fb.P[i], fl.P, rtol=1e-12, atol=1e-12)
         assert int(fb.violations[i]) == int(fl.violations)
@@ -263,7 +278,7 @@ def test_vmap_batched_equals_looped(problem):
 
 def test_grad_finite_and_correct_wrt_gamma_and_q(problem):
     """A tracking loss is differentiable w.r.t. gamma and a Q scale: finite gradients that match finite
-    differences (jax.test_util.check_grads, both modes)."""
+    differences (jax.test_util.check_grads) and forward mode equals reverse mode."""
     model, u, y, gs = problem
     base = hinf_params(model, 1.0)
 
@@ -273,9 +288,11 @@ def test_grad_finite_and_correct_wrt_gamma_and_q(problem):
         return jnp.sum((out.z[:, 0] - y[:, 0]) ** 2)
 
     args = (1.5 * gs.gamma, jnp.asarray(1.3))
-    g = jax.grad(loss, argnums=(0, 1))(*args)
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(*args)
     assert all(np.isfinite(float(v)) and float(v) != 0.0 for v in g)
-    check_grads(loss, args, order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-5)
+    g_fwd = jax.jit(jax.jacfwd(loss, argnums=(0, 1)))(*args)
+    np.testing.assert_allclose(g_fwd, g, rtol=1e-10)
+    check_grads(jax.jit(loss), args, order=1, modes=("rev",), atol=1e-6, rtol=1e-5)
 
 
 def test_missing_measurements_are_skipped_and_counted(problem):
@@ -284,8 +301,8 @@ def test_missing_measurements_are_skipped_and_counted(problem):
     m = model
     y = y.at[[3, 7], 0].set(jnp.nan).at[10].set(jnp.nan)
     kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, ok = run(kalman_filter, kp, KalmanInputs(u, y))
-    fh, oh = run(hinf_filter, hinf_params(model, np.inf), HinfInputs(u, y))
+    fk, ok = run_kalman(kp, KalmanInputs(u, y))
+    fh, oh = run_hinf(hinf_params(model, np.inf), HinfInputs(u, y))
     assert int(fh.missing) == int(fk.missing) == 4
     np.testing.assert_array_equal(oh.x, ok.x)
 

@@ -49,6 +49,7 @@ optimal gamma use float64 (float32 is fine well above it).
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -251,7 +252,14 @@ def hinf_steady_state(Phi, C, L, Q, R, gamma, *, P_init=None, num_iters: int = 1
     Phi, C, L, Q, R, P_init = _as_matrices(Phi, C, L, Q, R, P_init)
     _validate(Phi, C, L, Q, R, P_init, gamma)
     dtype = jnp.result_type(Phi, C, L, Q, R, P_init, float)
-    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else tol
+    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
+    Phi, C, L, Q, R, P_init = (jnp.asarray(M, dtype) for M in (Phi, C, L, Q, R, P_init))
+    return _steady(Phi, C, L, Q, R, jnp.asarray(gamma, dtype), P_init, num_iters=int(num_iters), tol=tol)
+
+
+@partial(jax.jit, static_argnames=("num_iters", "tol"))
+def _steady(Phi, C, L, Q, R, gamma, P_init, *, num_iters, tol):
+    dtype = P_init.dtype
 
     def body(carry, _):
         Pb, margin, ok, _change = carry
@@ -259,7 +267,7 @@ def hinf_steady_state(Phi, C, L, Q, R, gamma, *, P_init=None, num_iters: int = 1
         change = jnp.max(jnp.abs(Pb_new - Pb)) / jnp.maximum(jnp.max(jnp.abs(Pb_new)), jnp.finfo(dtype).tiny)
         return (Pb_new, jnp.minimum(margin, m), ok & o, change), None
 
-    init = (jnp.asarray(P_init, dtype), jnp.asarray(jnp.inf, dtype), jnp.asarray(True), jnp.asarray(jnp.inf, dtype))
+    init = (P_init, jnp.asarray(jnp.inf, dtype), jnp.asarray(True), jnp.asarray(jnp.inf, dtype))
     (Pb, margin, ok, change), _ = jax.lax.scan(body, init, None, length=num_iters)
     P1 = predict_covariance(Pb, Phi, Q)
     _, K = update_covariance(P1, C, R)
@@ -332,6 +340,11 @@ def gamma_bisection(Phi, C, Q, R, *, L=None, P0=None, num_steps: int = 200, rtol
         raise ValueError(f"num_steps must be at least 1, got {num_steps}")
     dtype = jnp.result_type(Phi, C, L, Q, R, P0, float)
     Phi, C, L, Q, R, P0 = (jnp.asarray(M, dtype) for M in (Phi, C, L, Q, R, P0))
+    return _bisect(Phi, C, L, Q, R, P0, num_steps=int(num_steps), rtol=float(rtol), max_iters=int(max_iters))
+
+
+@partial(jax.jit, static_argnames=("num_steps", "rtol", "max_iters"))
+def _bisect(Phi, C, L, Q, R, P0, *, num_steps, rtol, max_iters):
 
     def exists(gamma):
         def body(carry, _):
