@@ -386,3 +386,35 @@ def test_bad_inputs_raise_clear_errors():
     np.testing.assert_allclose(p1.G2, 0.0)
     p2 = ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=0.01)
     assert float(jnp.abs(p2.G2).sum()) > 0
+
+
+def test_design_gains_meets_pole_and_box_constraints():
+    """design_gains (Adam + projection): Case 2 on the §4.1 plant from a slow start (pole -(5 - 1)/0.5 = -8) to
+    Re p <= -12 inside |F1| <= 10, 0.05 <= F2 <= 1, |K| <= 50 while shrinking |[k1 + F1 + F2 (a4 - k2)]/F2|
+    (the §4.2 objective); Case 1 with F2 held (F2 C B = I) from an unstable third pole to Re p <= -1.5 (the plant
+    zeros -2, -5 stay, Lemma 3.2). Both results pass make_inverse_dynamics' stability checks."""
+    A, B, C = siso()
+
+    def obj(g):
+        return 1e-3 * jnp.sum(
+            ((g["K"][0, 0] + g["F1"][0, 0] + g["F2"][0, 0] * (A4 - g["K"][1, 0])) / g["F2"][0, 0]) ** 2
+        )
+
+    init = dict(K=[[5.0], [0.0]], F1=[[-1.0]], F2=[[0.5]], rho=[[0.0, 0.0]])
+    bounds = dict(F1=(-10, 10), F2=(0.05, 1.0), K=(-50, 50))
+    res = ido.design_gains(
+        A, B, C, init, case=2, max_real_part=-12.0, objective=obj, bounds=bounds, fixed=("rho",), learning_rate=0.2
+    )
+    assert ido.design_gains(A, B, C, init, case=2, max_real_part=-12.0, steps=0).feasible is False
+    assert res.feasible and np.max(res.poles.real) <= -12.0 and res.objective < 1e-3
+    g = res.gains
+    ido.make_inverse_dynamics(A, B, C, g["K"], g["F1"], g["F2"], h=0.01, case=2, rho=g["rho"])
+    A1_, B1_, C1_ = case1_plant()
+    init1 = dict(K=[[0.0], [0.0], [0.0]], F1=[[-20.0]], F2=ido.case1_f2(B1_, C1_))
+    res1 = ido.design_gains(A1_, B1_, C1_, init1, case=1, max_real_part=-1.5, fixed=("F2",), learning_rate=0.2)
+    assert res1.feasible
+    for z in (-2.0, -5.0):
+        assert np.min(np.abs(res1.poles - z)) < 1e-7
+    ido.make_inverse_dynamics(A1_, B1_, C1_, res1.gains["K"], res1.gains["F1"], res1.gains["F2"], h=0.01)
+    with pytest.raises(ValueError, match="init must contain F2"):
+        ido.design_gains(A, B, C, dict(K=[[1.0], [1.0]], F1=[[1.0]]), case=2, max_real_part=-1.0)

@@ -81,6 +81,8 @@ __all__ = [
     "error_dynamics",
     "fact35",
     "plant_zeros",
+    "DesignResult",
+    "design_gains",
 ]
 
 
@@ -409,3 +411,94 @@ def _check_error_dynamics(case: int, M_e, A_e):
             f"(rank M_e = {res.rank}; slow poles {np.round(np.asarray(res.poles), 4)}, A22 eigenvalues "
             f"{np.round(np.asarray(res.fast), 4)}; Fact 3.5)"
         )
+
+
+# ------------------------------------------------------------------------------------- gain design
+
+
+class DesignResult(NamedTuple):
+    gains: dict  # K, F1, F2 (and rho in Case 2) as NumPy arrays
+    poles: np.ndarray  # finite poles of the error dynamics at the result
+    objective: float  # user objective at the result (0 without one)
+    feasible: bool  # every pole has real part <= max_real_part and the box bounds hold
+
+
+def _finite_poles(A, B, C, case: int, rank: int | None, g: dict):
+    if case == 1:
+        G1, G2, _ = case1_gains(A, B, C, g["F1"], g["F2"])
+        return jnp.linalg.eigvals(error_dynamics(A, B, C, g["K"], G1, G2)[1])
+    G1, G2, _ = case2_gains(A, B, C, g["F1"], g["F2"], g.get("rho"))
+    return fact35(*error_dynamics(A, B, C, g["K"], G1, G2), rank=rank).poles
+
+
+def design_gains(
+    A,
+    B,
+    C,
+    init: dict,
+    *,
+    case: int,
+    max_real_part: float,
+    objective=None,
+    bounds: dict | None = None,
+    fixed: tuple = (),
+    steps: int = 400,
+    learning_rate: float = 0.05,
+    penalty: float = 100.0,
+) -> DesignResult:
+    """Gradient-based choice of ``K, F1, F2`` (and ``rho``, Case 2) under a pole constraint (design time).
+
+    Minimises ``objective(gains) + penalty * sum(relu(Re p - max_real_part + 0.1)^2)`` over the finite poles
+    ``p`` of the error dynamics (eq. 8, or Fact 3.5 with the rank of ``M_e`` at ``init``) with Adam, projecting
+    onto the box ``bounds = {name: (lo, hi)}`` after each step. ``init`` holds the starting gains (Case 1:
+    ``K, F1`` and ``F2``; Case 2: also ``rho``); names in ``fixed`` are not changed (e.g. ``F2`` in Case 1,
+    which must keep ``F2 C B = I``). ``objective(gains) -> scalar`` must be JAX-traceable. The result is
+    re-checked with :func:`make_inverse_dynamics`'s tests; ``feasible`` reports the constraints.
+    """
+    import optax
+
+    A, B, C = (jnp.atleast_2d(jnp.asarray(M, float)) for M in (A, B, C))
+    theta0 = {k: jnp.atleast_2d(jnp.asarray(v, A.dtype)) for k, v in init.items() if v is not None}
+    for name in ("K", "F1", "F2"):
+        if name not in theta0:
+            raise ValueError(f"init must contain {name}")
+    if case not in (1, 2):
+        raise ValueError(f"case must be 1 or 2, got {case!r}")
+    rank = None
+    if case == 2:
+        G1, G2, _ = case2_gains(A, B, C, theta0["F1"], theta0["F2"], theta0.get("rho"))
+        rank = fact35(*error_dynamics(A, B, C, theta0["K"], G1, G2)).rank
+    bounds = dict(bounds or {})
+    for name in bounds:
+        if name not in theta0:
+            raise ValueError(f"bounds names {name!r}, which is not in init")
+    free = {k: v for k, v in theta0.items() if k not in fixed}
+    held = {k: v for k, v in theta0.items() if k in fixed}
+
+    def clip(t):
+        return {k: jnp.clip(v, *bounds[k]) if k in bounds else v for k, v in t.items()}
+
+    def loss(t):
+        g = {**held, **t}
+        p = _finite_poles(A, B, C, case, rank, g)
+        viol = jax.nn.relu(p.real - max_real_part + 0.1)
+        obj = 0.0 if objective is None else objective(g)
+        return obj + penalty * jnp.sum(viol**2)
+
+    opt = optax.adam(learning_rate)
+
+    @jax.jit
+    def update(t, s):
+        grads = jax.grad(loss)(t)
+        upd, s = opt.update(grads, s, t)
+        return clip(optax.apply_updates(t, upd)), s
+
+    t, s = clip(free), opt.init(free)
+    for _ in range(steps):
+        t, s = update(t, s)
+    g = {k: np.asarray(v) for k, v in {**held, **t}.items()}
+    poles = np.asarray(_finite_poles(A, B, C, case, rank, g))
+    in_box = all(np.all((g[k] >= lo - 1e-12) & (g[k] <= hi + 1e-12)) for k, (lo, hi) in bounds.items())
+    obj = 0.0 if objective is None else float(objective({k: jnp.asarray(v) for k, v in g.items()}))
+    feasible = bool(poles.size and np.max(poles.real) <= max_real_part and in_box)
+    return DesignResult(g, poles, obj, feasible)
