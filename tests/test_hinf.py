@@ -345,3 +345,25 @@ def test_gamma_bisection_validates_its_inputs():
         gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], rtol=0.0)
     with pytest.raises(ValueError, match="num_steps"):
         gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], num_steps=0)
+
+
+def test_vehicle_lateral_speed_seed004_eq31():
+    """Seed 004 Sec. 4.2, eq. 31: bicycle model (a1..a4 as printed, v_x = 15 m/s), yaw rate measured at 100 Hz,
+    disturbance d on the lateral-speed equation, estimated z = v_y. ZOH-discretised; the H-infinity filter at
+    1.01 gamma* keeps its exact worst-case ratio below gamma^2 while the Kalman filter's exceeds gamma*^2."""
+    import scipy.linalg
+
+    A = np.array([[-9.754, -14.03], [0.5901, -12.622]])
+    B = np.array([[2 * 51000 / 1700, 1.0], [2 * 1.14 * 51000 / 3200, 0.0]])  # [B_u, B_d]
+    M = scipy.linalg.expm(np.block([[A, B], [np.zeros((2, 4))]]) * 0.01)
+    Phi, Gu, Gd = M[:2, :2], M[:2, 2:3], M[:2, 3:4]
+    model = dict(Phi=Phi, Gamma=Gu, C=np.array([[0.0, 1.0]]), Q=Gd @ Gd.T + 1e-8 * np.eye(2), R=np.array([[1e-4]]),
+                 L=np.array([[1.0, 0.0]]), P0=1e-2 * np.eye(2))  # fmt: skip
+    T = 150
+    gs = optimal_level(model, T)
+    assert bool(gs.found)
+    gamma = 1.01 * float(gs.gamma)
+    ratio = worst_case_ratio(*error_map(model, T), gamma)
+    kalman = worst_case_ratio(*error_map(model, T, kalman=True), 0.0)
+    assert float(gs.gamma) ** 2 * (1 - 1e-6) <= ratio < gamma**2
+    assert kalman > ratio
