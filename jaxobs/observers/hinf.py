@@ -38,8 +38,9 @@ back to the Kalman matrix ``Pb_k = P_k`` for that step; the gamma bound is then 
 
 As ``gamma -> inf`` the correction vanishes and the filter is exactly the Kalman filter
 (``gamma=jnp.inf`` is allowed and gives it bit for bit). The smallest ``gamma`` for which the condition
-holds over a horizon (the optimal a-posteriori level) is found by :func:`gamma_bisection`; no causal
-filter achieves a smaller worst-case ratio over that horizon.
+holds over a horizon (the optimal a-posteriori level) is found by :func:`gamma_bisection`; no filter
+that estimates ``z_k`` from ``y_0 .. y_k`` achieves a smaller worst-case ratio over that horizon. The
+a-priori (one-step predictor, ``z_k`` from ``y_0 .. y_{k-1}``) variant is not implemented here.
 
 Missing data: as in the Kalman filter, non-finite measurement components are skipped exactly and
 counted in ``state.missing``. Precision: the condition check compares eigenvalues with zero; near the
