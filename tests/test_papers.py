@@ -21,7 +21,12 @@ def ramp(tmp_path_factory):
 
 
 def test_registry_names():
-    assert set(REPRODUCTIONS) == {"cortesao2006-example1", "cortesao-stochastic-ramp", "cortesao2006-example2"}
+    assert set(REPRODUCTIONS) == {
+        "cortesao2006-example1",
+        "cortesao-stochastic-ramp",
+        "cortesao2006-example2",
+        "liu-peng2002-vehicle",
+    }
 
 
 def test_example1_outputs_written(example1):
