@@ -344,6 +344,11 @@ def _fig_pair(run_: dict, methods, title: str):
     axes[1].set_ylabel("$v_y$ (m/s)")
     axes[1].set_xlabel("t (s)")
     axes[0].set_title(title)
+    shown = t >= 0.2  # y-limits from after the start-up spike (it stays visible, clipped)
+    for ax, key, i in ((axes[0], "d", 1), (axes[1], "v_y", 0)):
+        values = np.concatenate([run_[key][shown]] + [run_["estimates"][m][i][shown] for m in methods])
+        pad = 0.1 * (values.max() - values.min())
+        ax.set_ylim(values.min() - pad, values.max() + pad)
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
