@@ -162,14 +162,16 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
     def quantiles(x):
         return {q: float(np.quantile(x, p)) for q, p in (("median", 0.5), ("p90", 0.9), ("max", 1.0))} if x.size else {}
 
-    bins = [(lo, lo + 10) for lo in range(0, int(np.ceil(largest.max() / 10)) * 10, 10)]
-    by_largest = {f"{lo}-{hi} %": float(stable[(largest >= lo) & (largest < hi)].mean())
-                  for lo, hi in bins if np.any((largest >= lo) & (largest < hi))}  # fmt: skip
+    bins = [(lo, lo + 10) for lo in range(0, max(10, int(np.ceil(largest.max() / 10)) * 10), 10)]
+
+    def fraction(mask):
+        return float(stable[mask].mean()) if mask.any() else None
+
+    by_largest = {f"{lo}-{hi} %": fraction((largest >= lo) & (largest < hi)) for lo, hi in bins}
     by_factor = {}
     for f in FACTORS:
         x = cols[f"param.{f}"]
-        by_factor[f] = {"low": float(stable[x < np.quantile(x, 0.2)].mean()),
-                        "high": float(stable[x > np.quantile(x, 0.8)].mean())}  # fmt: skip
+        by_factor[f] = {"low": fraction(x < np.quantile(x, 0.2)), "high": fraction(x > np.quantile(x, 0.8))}
     summary = {
         "scenario": NAME,
         "num_configs": int(stable.size),
@@ -211,11 +213,13 @@ def _markdown(summary: dict) -> str:
         f"{summary['num_configs']} plants; stable fraction {summary['stable_fraction']:.3f}.",
         "",
         "Stable fraction by the largest of the eight gain/pole errors: "
-        + ", ".join(f"{k}: {v:.3f}" for k, v in summary["stable_fraction_by_largest_error"].items()),
+        + ", ".join(f"{k}: {v:.3f}" for k, v in summary["stable_fraction_by_largest_error"].items() if v is not None),
         "",
         "Stable fraction in the lowest / highest quintile of each factor: "
         + ", ".join(
-            f"{k} {v['low']:.2f}/{v['high']:.2f}" for k, v in summary["stable_fraction_by_factor_quintile"].items()
+            f"{k} {v['low']:.2f}/{v['high']:.2f}"
+            for k, v in summary["stable_fraction_by_factor_quintile"].items()
+            if None not in v.values()
         ),
         "",
         "| metric (stable plants) | median | 90 % | max |",
