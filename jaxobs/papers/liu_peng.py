@@ -41,8 +41,8 @@ observer. Values the paper does not print are in :data:`ASSUMED` (also written t
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -213,11 +213,6 @@ def simulate_truth(model: str, case: str):
 # ---------------------------------------------------------------------------------------------- estimators
 
 
-@partial(jax.jit, static_argnums=0)
-def _run(observer, params, inputs):
-    return run(observer, params, inputs)[1]
-
-
 def _discrete(A, Bu, Bd, C):
     sysd = c2d(ss(A, np.hstack([Bu, Bd]), C), H)
     Phi, Gam = np.asarray(sysd.A), np.asarray(sysd.B)
@@ -231,47 +226,74 @@ def _augmented(A, Bu, Bd, C):
     return np.asarray(Phi_a), np.vstack([Gu, [[0.0]]]), np.asarray(C_a)
 
 
-def estimate(model: str, case: str, t, y, u) -> dict:
-    """Run the four estimators on the measured ``y`` and ``u``; returns ``{method: (v_y_hat, d_hat)}``."""
-    A, Bu, Bd, C = plant(model)
-    robust = case == "robustness"
-    x0 = np.array([0.0, y[0]])
-    out = {}
-    ido = make_inverse_dynamics(
-        A, Bd, C, K_GAIN, F1, F2, h=H, case=2, x0=x0,
-        lowpass_pole=LOWPASS_POLE if robust else 0.0, lowpass_order=LOWPASS_ORDER if robust else 0,
-    )  # fmt: skip
-    o = _run(
-        inverse_dynamics_observer,
-        ido,
-        InverseDynamicsInputs(jnp.asarray(y)[:, None], jnp.asarray(u[:, None] * Bu[:, 0])),
-    )
-    out["inverse_dynamics"] = (np.asarray(o.x[:, 0]), np.asarray(o.d[:, 0]))
+class Estimators(NamedTuple):
+    """The four estimators designed on the nominal model (a pytree; :func:`run_estimators` is traceable)."""
 
+    inverse_dynamics: Any
+    aob: Any
+    hinf: Any
+    kalman: Any
+    B_u: jax.Array  # nominal steering input column (inverse-dynamics ``Gamma = B_u u_k``)
+    G_d_pinv: jax.Array  # CKF: least-squares disturbance from the state correction
+    hinf_gamma: float
+
+
+def design_estimators(model: str, lowpass: bool, num_steps: int) -> Estimators:
+    """Design-time part of :func:`estimate` (gamma bisection over ``num_steps`` samples, gains, checks), on the
+    nominal ``model``; ``lowpass`` switches the inverse-dynamics observer's low-pass on (robustness case).
+    Initial states are placeholders: :func:`run_estimators` sets them from the first yaw-rate sample."""
+    A, Bu, Bd, C = plant(model)
+    ido = make_inverse_dynamics(
+        A, Bd, C, K_GAIN, F1, F2, h=H, case=2, x0=np.zeros(2),
+        lowpass_pole=LOWPASS_POLE if lowpass else 0.0, lowpass_order=LOWPASS_ORDER if lowpass else 0,
+    )  # fmt: skip
     Phi_a, Gu_a, C_a = _augmented(A, Bu, Bd, C)
-    u_prev = jnp.asarray(np.concatenate([[u[0]], u[:-1]]))[:, None]
-    Y = jnp.asarray(y)[:, None]
     Q_a = np.asarray(active.aob_noise_covariance(2, 1, 1, Q_X, Q_D))
     P0_a = np.diag(P0_AUG)
-    xa0 = np.array([0.0, y[0], 0.0])
-    aob = make_kalman(Phi_a, Gu_a, C_a, Q_a, R_MEAS, x0=xa0, P0=P0_a)
-    o = _run(kalman_filter, aob, KalmanInputs(u_prev, Y))
-    out["aob"] = (np.asarray(o.x[:, 0]), np.asarray(o.x[:, 2]))
-
+    aob = make_kalman(Phi_a, Gu_a, C_a, Q_a, R_MEAS, x0=np.zeros(3), P0=P0_a)
     L = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    level = gamma_bisection(Phi_a, C_a, Q_a, R_MEAS, L=L, P0=P0_a, num_steps=len(t), rtol=1e-4)
-    hinf = make_hinf(Phi_a, Gu_a, C_a, Q_a, R_MEAS, gamma=HINF_GAMMA_FACTOR * float(level.gamma), L=L, x0=xa0, P0=P0_a)
-    o = _run(hinf_filter, hinf, HinfInputs(u_prev, Y))
-    out["hinf"] = (np.asarray(o.z[:, 0]), np.asarray(o.z[:, 1]))
-    out["_hinf_gamma"] = float(hinf.gamma)
-    out["_hinf_feasible"] = bool(np.all(np.asarray(o.feasible)))
-
+    level = gamma_bisection(Phi_a, C_a, Q_a, R_MEAS, L=L, P0=P0_a, num_steps=num_steps, rtol=1e-4)
+    gamma = HINF_GAMMA_FACTOR * float(level.gamma)
+    hinf = make_hinf(Phi_a, Gu_a, C_a, Q_a, R_MEAS, gamma=gamma, L=L, x0=np.zeros(3), P0=P0_a)
     Phi, Gu, Gd = _discrete(A, Bu, Bd, C)
     Q_c = SIGMA_D_CKF**2 * Gd @ Gd.T + Q_X * np.eye(2)
-    ckf = make_kalman(Phi, Gu, C, Q_c, R_MEAS, x0=x0, P0=np.diag(P0_AUG[:2]))
-    o = _run(kalman_filter, ckf, KalmanInputs(u_prev, Y))
-    d_ckf = np.asarray(o.x - o.x_prior) @ np.linalg.pinv(Gd).T
-    out["kalman"] = (np.asarray(o.x[:, 0]), d_ckf[:, 0])
+    ckf = make_kalman(Phi, Gu, C, Q_c, R_MEAS, x0=np.zeros(2), P0=np.diag(P0_AUG[:2]))
+    return Estimators(ido, aob, hinf, ckf, jnp.asarray(Bu[:, 0]), jnp.asarray(np.linalg.pinv(Gd)), gamma)
+
+
+def run_estimators(est: Estimators, y, u) -> dict:
+    """Run the designed estimators on the measured ``y`` and ``u`` (traceable, ``vmap``-able); returns
+    ``{method: (v_y_hat, d_hat)}`` and ``"_hinf_feasible"`` (every step)."""
+    y, u = jnp.asarray(y), jnp.asarray(u)
+    x0 = jnp.stack([jnp.zeros_like(y[0]), y[0]])
+    xa0 = jnp.stack([jnp.zeros_like(y[0]), y[0], jnp.zeros_like(y[0])])
+    out = {}
+    ido = dataclasses.replace(est.inverse_dynamics, x0=x0.astype(est.inverse_dynamics.x0.dtype))
+    o = run(inverse_dynamics_observer, ido, InverseDynamicsInputs(y[:, None], u[:, None] * est.B_u))[1]
+    out["inverse_dynamics"] = (o.x[:, 0], o.d[:, 0])
+
+    u_prev = jnp.concatenate([u[:1], u[:-1]])[:, None]
+    Y = y[:, None]
+    o = run(kalman_filter, dataclasses.replace(est.aob, x0=xa0), KalmanInputs(u_prev, Y))[1]
+    out["aob"] = (o.x[:, 0], o.x[:, 2])
+
+    o = run(hinf_filter, dataclasses.replace(est.hinf, x0=xa0), HinfInputs(u_prev, Y))[1]
+    out["hinf"] = (o.z[:, 0], o.z[:, 1])
+    out["_hinf_feasible"] = jnp.all(o.feasible)
+
+    o = run(kalman_filter, dataclasses.replace(est.kalman, x0=x0), KalmanInputs(u_prev, Y))[1]
+    d_ckf = (o.x - o.x_prior) @ est.G_d_pinv.T
+    out["kalman"] = (o.x[:, 0], d_ckf[:, 0])
+    return out
+
+
+def estimate(model: str, case: str, t, y, u) -> dict:
+    """Run the four estimators on the measured ``y`` and ``u``; returns ``{method: (v_y_hat, d_hat)}``."""
+    est = design_estimators(model, case == "robustness", len(t))
+    res = jax.jit(run_estimators)(est._replace(hinf_gamma=None), y, u)
+    out = {m: (np.asarray(res[m][0]), np.asarray(res[m][1])) for m in METHODS}
+    out["_hinf_gamma"] = float(est.hinf.gamma)
+    out["_hinf_feasible"] = bool(res["_hinf_feasible"])
     return out
 
 
