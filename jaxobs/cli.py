@@ -61,9 +61,13 @@ def _config(args, validate) -> dict | None:
 def _sweep_module(given: dict, source: str):
     """The sweep named by the config's ``scenario`` key (default: the force-control sweep)."""
     from jaxobs._config import fail
-    from jaxobs.papers import force_robustness, sbw_robustness
+    from jaxobs.papers import force_robustness, liu_peng_sweep, sbw_robustness
 
-    sweeps = {"force-control": force_robustness, sbw_robustness.NAME: sbw_robustness}
+    sweeps = {
+        "force-control": force_robustness,
+        sbw_robustness.NAME: sbw_robustness,
+        liu_peng_sweep.NAME: liu_peng_sweep,
+    }
     name = given.get("scenario", "force-control")
     if name not in sweeps:
         fail(source, "scenario", f"must be one of {', '.join(map(repr, sweeps))}, got {name!r}")
