@@ -212,6 +212,7 @@ def _plot(errors: dict, out_dir: Path) -> str:
         axes[row, 1].set(xscale="log", xlabel=f"RMS {e} error ({UNITS[e]})", ylabel="fraction of vehicles",
                          title=f"{e}: empirical CDF")  # fmt: skip
         axes[row, 1].legend(fontsize=8)
+        axes[row, 1].xaxis.set_minor_formatter(plt.NullFormatter())  # the log axis' minor labels overlap
         for ax in axes[row]:
             ax.grid(alpha=0.3, which="both")
     fig.suptitle(f"Liu & Peng §4.2 estimators over {errors['v_y'].shape[0]} mismatched vehicles and noise seeds")
