@@ -94,7 +94,8 @@ def _sweep(args) -> int:
         f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(summary['figures'])}"
     )
     for name, s in summary.get("controllers", {"all": summary}).items():
-        print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
+        if "stable_fraction" in s:
+            print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
     return 0
 
 

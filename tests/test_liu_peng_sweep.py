@@ -52,7 +52,7 @@ def test_cli_sweep_end_to_end(tmp_path):
             x = cols[f"metric.{error}_rms.{method}"]
             assert np.all(np.isfinite(x)) and np.all(x > 0)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["num_configs"] == 5 and summary["stable_fraction"] == 1.0
+    assert summary["num_configs"] == 5 and summary["finite_fraction"] == 1.0
     for error in liu_peng_sweep.ERRORS:
         best = [summary[f"{error}_rms"][m]["best_fraction"] for m in liu_peng.METHODS]
         assert sum(best) == pytest.approx(1.0)

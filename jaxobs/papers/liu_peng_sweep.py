@@ -172,7 +172,7 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
         "scenario": NAME,
         "num_configs": int(finite.size),
         # every method's errors finite (bounded error dynamics on this vehicle); the key `jaxobs sweep` prints
-        "stable_fraction": float(finite.mean()),
+        "finite_fraction": float(finite.mean()),
         "units": UNITS,
     }
     for e, table in errors.items():
@@ -232,7 +232,7 @@ def _markdown(summary: dict) -> str:
         f"{'on' if c['estimators']['lowpass'] else 'off'}. "
         "RMS errors over t >= 0.5 s; estimators designed on the nominal model.",
         "",
-        f"Every method's errors finite in a fraction {summary['stable_fraction']:.3f} of the vehicles.",
+        f"Every method's errors finite in a fraction {summary['finite_fraction']:.3f} of the vehicles.",
         "",
     ]
     for e in ERRORS:
