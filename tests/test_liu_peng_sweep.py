@@ -37,6 +37,7 @@ def test_no_mismatch_no_noise_reproduces_the_ideal_case():
             assert float(metrics[f"{error}_rms"][method]) == pytest.approx(reference[method][error], rel=1e-9)
 
 
+@pytest.mark.slow
 def test_cli_sweep_end_to_end(tmp_path):
     config = tmp_path / "liu_peng.toml"
     config.write_text('scenario = "liu_peng"\nchunk_size = 3\n[vehicle]\ncount = 5\n')

@@ -250,6 +250,7 @@ def test_scaled_transfer_function_scales_gain_and_poles():
         sbw.sbw_model({"y_x": (1.0, 1.0)})
 
 
+@pytest.mark.slow
 def test_robustness_sweep_small(tmp_path, capsys):
     """``jaxobs sweep`` with ``scenario = "steer_by_wire"``: the nominal plant (all factors 1) reproduces the
     Example 2 numbers (steering-angle RMS 4.1 % of the target's peak, rack left at ~1e-11 m after the
