@@ -326,6 +326,7 @@ def test_eager_jit_vmap_agree():
     np.testing.assert_allclose(a[1].x, b[1].x, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_fact35_traced_flags_and_grads():
     """fact35 with a static rank under jit/vmap gives the eager flags; the disturbance-estimation loss is
     differentiable in (F1, F2, rho) through make_inverse_dynamics (check_grads, order 1)."""

@@ -89,6 +89,7 @@ def test_decoupled_steps_match_1dof_analytic_closed_loop(model, controllers, run
     np.testing.assert_allclose(trace.applied[DEAD_TIME:], (trace.command + dist)[:-DEAD_TIME], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_alignment_rotation_loads_the_contact(loaded, model):
     """The documented coupling: rotating the peg by theta about y (joint ry) with the flange translation held moves
     the contact point p = R_y(theta) p0 by s = p - p0, so f_x = K_x s_x, f_z = K_z s_z and
@@ -142,6 +143,7 @@ def test_coupling_force_is_the_gradient_of_the_contact_potential(model):
     np.testing.assert_allclose(c6.coupling_force(model, q), -jax.grad(potential)(q), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_jit_equals_eager_and_scenario_physics(model, scenario, run):
     """The alignment scenario (f_x -> -5 N, f_z -> 10 N, w_y aligning the 0.04 rad tilt over 1.25 s, v_z bias
     0.05 mm/s, sensor noise of variance R) gives the same rollout eagerly and under jit. Physics: m_y is the
@@ -168,6 +170,7 @@ def test_jit_equals_eager_and_scenario_physics(model, scenario, run):
     assert err_aob < 0.75 * err_ckf
 
 
+@pytest.mark.slow
 def test_vmap_over_mismatched_models_and_noise_seeds(model, scenario, run):
     """Two stiffness sets (Table 1 alignment plant; x, z stiffer and rotations softer) x two noise seeds in one
     jit(vmap(vmap)) over with_params equal the four individual calls."""

@@ -117,6 +117,7 @@ def test_jit_equals_eager(nominal, run):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_gradients_finite_and_match_finite_differences(nominal):
     """Reverse mode through the rollout w.r.t. Ks and the commands: finite, and d/dKs matches a central
     difference (the force is linear in Ks to first order)."""

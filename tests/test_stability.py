@@ -198,6 +198,7 @@ def test_phase_and_delay_margins_match_their_definitions():
         assert w_dm > 0
 
 
+@pytest.mark.slow
 def test_margins_under_jit_vmap_and_grad():
     A, B, C, _ = _random_loops(1, seed=7)[0]
     sys = ss(A, B, C, dt=0.01)

@@ -92,6 +92,7 @@ def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
     assert "corrupt" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_spectral_radius_penalty():
     """The optional penalty is the mean squared excess of the closed-loop spectral radius (eq. 59, analytic
     true plants of the training batch) over design.spectral_radius_limit, checked against NumPy eigenvalues;
