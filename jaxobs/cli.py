@@ -137,18 +137,18 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     parser = argparse.ArgumentParser(prog="jaxobs", description=__doc__.strip().splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
-    sw = commands.add_parser("sweep", help="Monte-Carlo robustness sweep (resumable; rerun to continue)")
-    sw.add_argument("--config", help="TOML file overriding the embedded default (see jaxobs.papers.force_robustness)")
-    sw.add_argument("--out", default="out/sweep", help="output directory (default: out/sweep)")
-    sw.add_argument("--overwrite", action="store_true", help="discard a different sweep already in --out")
-    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
-    sw.set_defaults(func=_sweep)
-    tu = commands.add_parser("tune", help="tune an observer's Q/R by gradient descent against MJX rollouts")
-    tu.add_argument("--config", help="TOML file overriding the embedded default (see jaxobs.papers.tuning)")
-    tu.add_argument("--out", default="out/tune", help="output directory (default: out/tune)")
-    tu.add_argument("--overwrite", action="store_true", help="discard a tuning run of another config in --out")
-    tu.add_argument("--no-progress", action="store_true", help="no progress bar")
-    tu.set_defaults(func=_tune)
+    for name, func, help_text, config_help in (
+        ("sweep", _sweep, "Monte-Carlo robustness sweep (resumable; rerun to continue)",
+         "its 'scenario' key picks the sweep: force-control (default), steer_by_wire, liu_peng"),
+        ("tune", _tune, "tune an observer's Q/R by gradient descent against MJX rollouts (resumable)",
+         "its 'problem' key picks the problem: force_1dof (default), peg_on_hole"),
+    ):  # fmt: skip
+        run = commands.add_parser(name, help=help_text)
+        run.add_argument("--config", help=f"TOML file overriding the embedded default; {config_help}")
+        run.add_argument("--out", default=f"out/{name}", help=f"output directory (default: out/{name})")
+        run.add_argument("--overwrite", action="store_true", help="discard a run of another config in --out")
+        run.add_argument("--no-progress", action="store_true", help="no progress bar")
+        run.set_defaults(func=func)
     rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures")
     rep.add_argument("names", nargs="*", help="reproduction name(s), or 'all'")
     rep.add_argument("--list", action="store_true", help="list the available reproductions")
