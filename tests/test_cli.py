@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from jaxobs.cli import main
 
 
@@ -18,6 +20,7 @@ def test_unknown_name_exits_2(capsys, tmp_path):
     assert "unknown reproduction" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_reproduce_as_a_subprocess(tmp_path):
     """The installed entry point writes the JSON with the required keys."""
     proc = subprocess.run(

@@ -93,6 +93,7 @@ def small_sweep(tmp_path_factory):
     return path, out
 
 
+@pytest.mark.slow
 def test_small_sweep_end_to_end(small_sweep):
     path, out = small_sweep
     summary = json.loads((out / "summary.json").read_text())

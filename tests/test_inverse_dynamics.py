@@ -300,6 +300,7 @@ def _sequences(T=200, h=1e-2):
     return A, B, C, jnp.asarray(np.array(xs) @ C.T), d
 
 
+@pytest.mark.slow
 def test_eager_jit_vmap_agree():
     """step/run eagerly, under jit, and vmap over (K, sequences) vs a Python loop agree to 1e-12."""
     A, B, C, ys, _ = _sequences()

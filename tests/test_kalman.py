@@ -237,6 +237,7 @@ def test_steady_state_gain_with_missing_component():
 # transformations and gradients
 
 
+@pytest.mark.slow
 def test_run_eager_jit_vmap_agree():
     """Transformation test: eager run = jit(run) = vmap over batched params (vs a Python loop), and vmap over
     batched inputs."""

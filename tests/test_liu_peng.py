@@ -61,6 +61,7 @@ def test_printed_design_is_not_the_minimiser():
     assert feasible(32.622, 10, -10, 1) and score(32.622, 10, -10, 1) == pytest.approx(0, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_reproduce_writes_json_and_figures(reproduced):
     out, summary = reproduced
     assert liu_peng.NAME in REPRODUCTIONS

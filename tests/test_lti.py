@@ -181,6 +181,7 @@ def test_c2d_padding_keeps_input_output_response(tau_over_h):
     np.testing.assert_allclose(y_pad, y_min, rtol=1e-12, atol=1e-12 * np.max(np.abs(y_min)))
 
 
+@pytest.mark.slow
 def test_c2d_traced_delay_jit_and_vmap_equal_eager():
     """A traced dead time (fixed n_delay = 6): ``jax.jit(lambda tau: c2d(sys, h, tau, n_delay=6))`` equals eager,
     and vmap over an array of delays equals a Python loop, for every matrix of the model (seed 000 eq. 11-18)."""

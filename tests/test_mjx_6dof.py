@@ -64,6 +64,7 @@ def noise(key, n=T):
     return jax.random.normal(key, (n, 6)) * jnp.sqrt(jnp.asarray(c6.SENSOR_NOISE_VARIANCE))
 
 
+@pytest.mark.slow
 def test_decoupled_steps_match_1dof_analytic_closed_loop(model, controllers, run):
     """Coupling off, Table 1 stiffnesses (3, 3, 20 N/mm; 100, 100, 100 N·m/rad), Tp = 32 ms, d = 5, h = 8 ms, the
     eq. 62-68 controllers (AOB-1 HBA on five DOF, CKF SBA on z): a step of 10 N / 1 N·m on all six DOF at once

@@ -146,6 +146,7 @@ def _random_loops(count, seed=4):
     return loops
 
 
+@pytest.mark.slow
 def test_margins_agree_with_python_control():
     """Relative 1e-4 on gain/phase margins and crossovers (issue 3 §4); our stability margin is
     never worse than python-control's local minimiser and equals it where that one is global."""
