@@ -248,6 +248,7 @@ def test_strategies(plant_and_gain):
     assert active.classify_strategy(mba.gain, C) == "MBA"
 
 
+@pytest.mark.slow
 def test_gradient_through_closed_loop(plant_and_gain):
     """d(tracking cost)/d(log q_active, log R) through the AOB + plant scan matches finite differences."""
     plant, L = plant_and_gain

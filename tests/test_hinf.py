@@ -202,6 +202,7 @@ def test_exact_worst_case_gain_below_gamma_squared(problem):
     assert kalman_ratio >= g_star**2 * (1 - 1e-6)
 
 
+@pytest.mark.slow
 def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(problem):
     """Random unit-energy disturbances and 40 steps of normalised jax.grad ascent on the ratio
     sum |z - z_hat|^2 / (|x_{-1} - x0|^2_{P0^{-1}} + sum |w|^2_{Q^{-1}} + sum |v|^2_{R^{-1}}): every ratio stays

@@ -31,7 +31,7 @@ def step_reference(L, T):
     return jnp.full(T, reference_gain(L) * FORCE_STEP)
 
 
-@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("order", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_force_step_matches_analytic_closed_loop(model, nominal, order):
     """Seed 000 §7 Example 1 (Ks = 3 N/mm, Tp = 32 ms, d = 5, h = 8 ms, L_r of eq. 83, Table I AOB-N): a 10 N
     force step for 2 s under the eq. 81-82 input disturbance. The MJX loop's force equals simulate's on the
@@ -58,6 +58,7 @@ def test_force_step_matches_analytic_closed_loop(model, nominal, order):
     np.testing.assert_array_equal(trace.force, trace.force_true)  # no noise given
 
 
+@pytest.mark.slow
 def test_any_controller_of_the_protocol(model, nominal):
     """The steady-state AOB as a LinearController (closed_loop.linear_controller) runs the same loop."""
     plant, L = nominal
@@ -103,6 +104,7 @@ def test_gradients_match_central_differences(model, nominal):
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_vmap_over_stiffness_and_noise_seeds(model, nominal):
     """3 mismatched stiffnesses x 2 noise seeds in one jit(vmap(vmap)) equal the 6 individual calls."""
     plant, L = nominal

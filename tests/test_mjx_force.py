@@ -90,6 +90,7 @@ def test_vmap_over_mismatched_stiffness(nominal, run):
     np.testing.assert_allclose(forces[2], run(model_20, u).force, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_vmap_over_noise_seeds_and_tp(nominal):
     """A batch over (Tp, noise seed): noise is additive on the measurement only; Tp changes the lag."""
     _, model = nominal

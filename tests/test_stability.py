@@ -165,6 +165,7 @@ def test_margins_agree_with_python_control():
         assert float(m.stability_margin) == pytest.approx(np.abs(1 + H).min(), rel=1e-3)
 
 
+@pytest.mark.slow
 def test_gain_margin_puts_a_closed_loop_pole_on_the_unit_circle():
     """Independent of python-control: the loop gain times the gain margin has a closed-loop pole at
     exp(j w_pc dt), including crossings at the Nyquist frequency."""
@@ -215,6 +216,7 @@ def test_margins_under_jit_vmap_and_grad():
         check_grads(lambda k: stability_margins(ss(A, B * k, C, dt=0.01)).phase_margin, (1.0,), order=1, modes=["rev"])
 
 
+@pytest.mark.slow
 def test_aob_relative_stability_decreases_with_the_order():
     """Seed 000 §6.2: more active states, more poles near z = 1, less phase and gain margin."""
     plant, L_r = nominal_design()

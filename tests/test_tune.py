@@ -196,6 +196,7 @@ def test_settings_are_validated():
             TuneSettings(**bad).validate()
 
 
+@pytest.mark.slow
 def test_tuning_the_analytic_force_loop_lowers_the_held_out_error():
     """The gradient flows through DARE-based steady-state gains and the closed loop: tuning log q_active
     and log R of an AOB-1 on 4 analytic plants (Ks = 1.5..4.5 N/mm) under the eq. 81-82 disturbance lowers
