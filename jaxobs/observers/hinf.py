@@ -209,7 +209,7 @@ def hinf_riccati_step(Pb_prev, Phi, C, L, Q, R, gamma):
     P1 = predict_covariance(Pb_prev, Phi, Q)
     P, K = update_covariance(P1, C, R)
     Pb, margin, ok = hinf_correction(P, L, gamma)
-    return Pb, K, P1, margin, ok
+    return Pb, K, symmetrize(P1), margin, ok
 
 
 class HinfSequence(NamedTuple):
