@@ -21,7 +21,8 @@ measurements are simulated from them. Every filter gets the same prior: jaxobs s
 checks that all filters return the same filtered means (max abs difference, stored in the JSON).
 
 Timing: each JAX function is lowered and compiled first (compile time reported separately), then
-every peer is timed as the best of ``--repeats`` runs ending in ``block_until_ready``. filterpy is
+every peer is timed as the best of ``--repeats`` runs ending in ``block_until_ready``, in interleaved
+rounds (each round runs every peer once) so that a slow phase of the machine hits all peers. filterpy is
 timed on a few sequences and extrapolated to B. Throughput is plant-steps/s (B * T / seconds;
 DAREs/s for scenario 4) and the ratios are ours / peer. A peer that cannot be imported is reported
 as skipped.
@@ -48,7 +49,6 @@ import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
@@ -320,39 +320,47 @@ class Timing:
     result: object
 
 
-def measure(fn: Callable, args: tuple, *, repeats: int, jit: bool, scale: float = 1.0) -> Timing:
-    """Best-of-``repeats`` wall time of ``fn(*args)`` (compiled first when ``jit``), times ``scale``."""
-    compile_s = None
-    if jit:
-        start = time.perf_counter()
-        fn = jax.jit(fn).lower(*args).compile()
-        compile_s = time.perf_counter() - start
-    best, result = float("inf"), None
+def time_peers(peers: dict, *, work_items: int, repeats: int) -> tuple[dict, dict]:
+    """Time every peer of ``{name: (prepare, jit, scale)}``, interleaved.
+
+    Each peer is prepared (and compiled when ``jit``) first; then ``repeats`` rounds run every peer
+    once each, and each peer keeps its best time (times ``scale``). Interleaving spreads the slow
+    and fast phases of a shared machine over all peers alike, so their ratios are steadier than
+    with back-to-back repeats. Returns ``(records for the JSON, {name: Timing})``; a peer that is
+    missing or fails is recorded and skipped (ours failing raises).
+    """
+    records, ready = {}, {}
+    for name, (prepare, jit, scale) in peers.items():
+        try:
+            fn, args = prepare()
+            compile_s = None
+            if jit:
+                start = time.perf_counter()
+                fn = jax.jit(fn).lower(*args).compile()
+                compile_s = time.perf_counter() - start
+            ready[name] = (fn, args, scale, compile_s)
+        except PeerSkipped as exc:
+            records[name] = {"status": "skipped", "reason": str(exc)}
+        except Exception as exc:  # a broken peer must not abort the other measurements
+            if name == OURS:
+                raise
+            records[name] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+    best, results = dict.fromkeys(ready, float("inf")), {}
     for _ in range(repeats):
-        start = time.perf_counter()
-        result = jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - start)
-    return Timing(best * scale, compile_s, result)
-
-
-def run_peer(name: str, prepare: Callable, *, work_items: int, repeats: int, jit: bool, scale: float = 1.0):
-    """Time one peer; returns ``(record for the JSON, Timing or None)``. Peer failures are recorded."""
-    try:
-        fn, args = prepare()
-        timing = measure(fn, args, repeats=repeats, jit=jit, scale=scale)
-    except PeerSkipped as exc:
-        return {"status": "skipped", "reason": str(exc)}, None
-    except Exception as exc:  # a broken peer must not abort the other measurements
-        if name == OURS:
-            raise
-        return {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}, None
-    record = {
-        "status": "ok",
-        "seconds": timing.seconds,
-        "throughput": work_items / timing.seconds,
-        "compile_s": timing.compile_s,
-    }
-    return record, timing
+        for name, (fn, args, _, _) in ready.items():
+            start = time.perf_counter()
+            results[name] = jax.block_until_ready(fn(*args))
+            best[name] = min(best[name], time.perf_counter() - start)
+    timings = {}
+    for name, (_, _, scale, compile_s) in ready.items():
+        timings[name] = Timing(best[name] * scale, compile_s, results[name])
+        records[name] = {
+            "status": "ok",
+            "seconds": timings[name].seconds,
+            "throughput": work_items / timings[name].seconds,
+            "compile_s": compile_s,
+        }
+    return {name: records[name] for name in peers}, timings
 
 
 def add_ratios(scenario: dict, name: str) -> dict:
@@ -407,10 +415,9 @@ def filter_scenario(
     steady_state: bool = False,
     peers=None,
 ) -> dict:
-    items = work.batch * work.steps
-    records = {}
-    for peer, (prepare, jit, scale) in filter_peers(work, filterpy_sequences, steady_state, peers).items():
-        records[peer], _ = run_peer(peer, prepare, work_items=items, repeats=repeats, jit=jit, scale=scale)
+    table = filter_peers(work, filterpy_sequences, steady_state, peers)
+    records, _ = time_peers(table, work_items=work.batch * work.steps, repeats=repeats)
+    for peer, (_, _, scale) in table.items():
         if scale != 1.0 and records[peer]["status"] == "ok":
             records[peer]["extrapolated_from_sequences"] = filterpy_sequences
     scenario = {
@@ -424,18 +431,19 @@ def filter_scenario(
 
 
 def dare_scenario(work: Workload, *, repeats: int) -> dict:
-    ours, ours_t = run_peer(OURS, lambda: prepare_dare_jaxobs(work), work_items=work.batch, repeats=repeats, jit=True)
-    scipy_rec, scipy_t = run_peer(
-        "scipy", lambda: prepare_dare_scipy(work), work_items=work.batch, repeats=repeats, jit=False
-    )
-    P, P_ref = np.asarray(ours_t.result), scipy_t.result
+    table = {
+        OURS: (lambda: prepare_dare_jaxobs(work), True, 1.0),
+        "scipy": (lambda: prepare_dare_scipy(work), False, 1.0),
+    }
+    records, timings = time_peers(table, work_items=work.batch, repeats=repeats)
+    P, P_ref = np.asarray(timings[OURS].result), timings["scipy"].result
     rel = np.abs(P - P_ref).max(axis=(-2, -1)) / np.abs(P_ref).max(axis=(-2, -1))
     scenario = {
         "description": f"{work.batch} filter DAREs (n={N_STATES}, m={N_OUTPUTS}): "
         "jit(vmap(jaxobs.riccati.dare)) vs a loop of scipy.linalg.solve_discrete_are",
         "unit": "DAREs/s",
         "batch": work.batch,
-        "peers": {OURS: ours, "scipy": scipy_rec},
+        "peers": records,
         "max_relative_error": float(rel.max()),
         "relative_error_definition": "max over the batch of max|P - P_scipy| / max|P_scipy|",
         "relative_error_tolerance": 1e-9,
@@ -646,7 +654,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--batch", type=int, default=1024, help="B: sequences / models / DAREs")
     parser.add_argument("--steps", type=int, default=1000, help="T: time steps per sequence")
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (the best is kept)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed rounds (the best of each peer is kept)")
     parser.add_argument(
         "--filterpy-sequences", type=int, default=8, help="sequences filterpy is timed on (extrapolated to B)"
     )

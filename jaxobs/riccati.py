@@ -49,7 +49,9 @@ def _small_matmul(a, b):
     XLA on CPU runs a batch of small dot products (what ``vmap`` makes of ``Phi @ P``) as one
     library call per matrix; the sum of ``k`` outer products fuses into one elementwise loop over
     the whole batch, about 1.5x faster for a batch of 10 x 10 matrices
-    (``benchmarks/kalman_throughput.py``, scenario ``independent``).
+    (``benchmarks/kalman_throughput.py``, scenario ``independent``). The result is materialised
+    (an optimisation barrier): fused into a consumer, such as a second product, it would be
+    recomputed for every element of that consumer.
     """
     k = a.shape[-1]
     if k > _FUSED_MATMUL_MAX:
@@ -58,7 +60,7 @@ def _small_matmul(a, b):
     total = next(terms)
     for term in terms:
         total = total + term
-    return total
+    return jax.lax.optimization_barrier(total)
 
 
 def predict_covariance(P, Phi, Q):
@@ -206,13 +208,11 @@ def _doubling(Phi, C, Q, R, max_iters, tol):
 
     def body(carry):
         A, G, H, _, it = carry
-        mm = _small_matmul
-        W = eye + mm(G, H)
-        X = _small_solve(W, jnp.concatenate([A, G], axis=1))
-        WA, WG = X[:, :n], X[:, n:]
-        A_new = mm(A, WA)
-        G_new = symmetrize(G + mm(mm(A, WG), A.T))
-        H_new = symmetrize(H + mm(mm(A.T, H), WA))
+        X = _small_solve(eye + G @ H, jnp.concatenate([A, G], axis=1))  # W^-1 [A, G]
+        AX = A @ X
+        A_new = AX[:, :n]
+        G_new = symmetrize(G + AX[:, n:] @ A.T)
+        H_new = symmetrize(H + A.T @ H @ X[:, :n])
         change = jnp.max(jnp.abs(H_new - H)) / jnp.maximum(1.0, jnp.max(jnp.abs(H_new)))
         change = jnp.where(jnp.isfinite(change), change, 0.0)  # diverged: stop, flagged later
         return A_new, G_new, H_new, change, it + 1
