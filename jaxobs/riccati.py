@@ -39,8 +39,8 @@ def symmetrize(P):
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))
 
 
-# Inner dimensions up to this size are multiplied by ``_small_matmul``'s fused multiply-adds.
-_FUSED_MATMUL_MAX = 16
+# Sizes up to which ``_small_matmul`` and ``_small_solve`` unroll into fused elementwise loops.
+_UNROLL_MAX = 16
 
 
 def _small_matmul(a, b):
@@ -54,7 +54,7 @@ def _small_matmul(a, b):
     recomputed for every element of that consumer.
     """
     k = a.shape[-1]
-    if k > _FUSED_MATMUL_MAX:
+    if k > _UNROLL_MAX:
         return a @ b
     terms = (a[..., :, j, None] * b[..., None, j, :] for j in range(k))
     total = next(terms)
@@ -88,7 +88,7 @@ def _small_solve(W, X):
     scenario ``dare``).
     """
     n = W.shape[-1]
-    if n > _FUSED_MATMUL_MAX:
+    if n > _UNROLL_MAX:
         return jnp.linalg.solve(W, X)
     lu, _, permutation = jax.lax.linalg.lu(W)
     Y = jnp.take_along_axis(X, permutation[..., :, None], axis=-2)
