@@ -97,8 +97,8 @@ Parameters map to model fields only in :func:`with_params`, so mismatched batche
 
 Precision. Float32 is adequate for the plant (the open-loop wrench of the 4 s scenario stays within 5e-5 N of
 float64) but not for :func:`design`: with ``Q`` entries of 1e-12..1e-5 the float32 DARE returns steady-state
-gains near zero. Design in float64 (then cast the parameters if a float32 rollout is wanted); tests run in
-float64.
+gains near zero, so it raises ``ValueError`` unless float64 is enabled. Design in float64 (then cast the
+parameters if a float32 rollout is wanted); tests run in float64.
 
 Checked in ``tests/test_mjx_6dof.py``: with the coupling off each DOF's closed-loop wrench equals
 :func:`jaxobs.closed_loop.simulate` on ``force_plant`` to 0.04-0.07 % RMS of the step; the alignment rotation
@@ -622,6 +622,11 @@ def design(
     if not steady_state and sba:
         raise ValueError("steady_state=False needs sba=(): the SBA gain is fixed, the time-varying AOBs have none")
     r = jnp.broadcast_to(jnp.asarray(noise_variance, float), (N_DOF,))
+    if r.dtype != jnp.float64:
+        raise ValueError(
+            "design() needs float64: with Q entries of 1e-12..1e-5 the float32 DARE returns near-zero gains; "
+            "enable it in your entry point with jax.config.update('jax_enable_x64', True)"
+        )
     ratio = r / r[X]  # eq. 65-66
     q_active = Q_ACTIVE_FX * ratio if q_active is None else jnp.broadcast_to(jnp.asarray(q_active, float), (N_DOF,))
     controllers = _design_aobs(
