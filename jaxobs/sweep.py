@@ -78,7 +78,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-__all__ = ["SweepResult", "config_key", "load_results", "run_sweep"]
+__all__ = ["SweepResult", "config_key", "load_results", "run_sweep", "run_configured_sweep"]
 
 FORMAT_VERSION = 1
 _MANIFEST = "manifest.json"
@@ -396,6 +396,17 @@ def run_sweep(
         seconds=seconds,
         configs_per_second=computed_rows / compute_seconds if computed_rows else 0.0,
     )
+
+
+def run_configured_sweep(
+    config: dict, sampler, evaluate, num_configs: int, out_dir, *, progress: bool = True, overwrite: bool = False
+) -> SweepResult:
+    """:func:`run_sweep` with ``seed`` and ``chunk_size`` read from ``config`` (a scenario's validated
+    configuration), which is also stored in the manifest."""
+    return run_sweep(
+        sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
+        config=config, progress=progress, overwrite=overwrite,
+    )  # fmt: skip
 
 
 def load_results(out_dir) -> dict[str, np.ndarray]:

@@ -45,7 +45,7 @@ from jaxobs.papers.force_control import (
     reference_gain,
 )
 from jaxobs.stability import loop_transfer, stability_margins
-from jaxobs.sweep import load_results, run_sweep
+from jaxobs.sweep import load_results, run_configured_sweep
 
 __all__ = ["DEFAULT_CONFIG", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
 
@@ -232,16 +232,8 @@ def make_sweep(config: dict):
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
     """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report."""
     sampler, evaluate, num_configs, designs = make_sweep(config)
-    result = run_sweep(
-        sampler,
-        evaluate,
-        num_configs,
-        out_dir,
-        seed=config["seed"],
-        chunk_size=config["chunk_size"],
-        config=config,
-        progress=progress,
-        overwrite=overwrite,
+    result = run_configured_sweep(
+        config, sampler, evaluate, num_configs, out_dir, progress=progress, overwrite=overwrite
     )
     return report(config, Path(out_dir), result, designs)
 

@@ -32,7 +32,7 @@ from jaxobs._config import check_at_least, check_choice, check_range, merge
 from jaxobs.lti import c2d, ss
 from jaxobs.papers import liu_peng as lp
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
-from jaxobs.sweep import load_results, run_sweep
+from jaxobs.sweep import load_results, run_configured_sweep
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "make_sweep", "run", "report"]
 
@@ -153,11 +153,7 @@ def make_sweep(config: dict):
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
     """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``estimators.png``."""
-    sampler, evaluate, num_configs = make_sweep(config)
-    result = run_sweep(
-        sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
-        config=config, progress=progress, overwrite=overwrite,
-    )  # fmt: skip
+    result = run_configured_sweep(config, *make_sweep(config), out_dir, progress=progress, overwrite=overwrite)
     return report(config, Path(out_dir), result)
 
 

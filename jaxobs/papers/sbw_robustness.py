@@ -34,7 +34,7 @@ from jaxobs.observers.active import with_steady_state_gains
 from jaxobs.papers import steer_by_wire as sbw
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.stability import closed_loop_matrix, spectral_radius
-from jaxobs.sweep import config_key, load_results, run_sweep
+from jaxobs.sweep import config_key, load_results, run_configured_sweep
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "make_sweep", "run"]
 
@@ -146,11 +146,7 @@ def make_sweep(config: dict):
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
     """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``robustness.png``."""
-    sampler, evaluate, num_configs = make_sweep(config)
-    result = run_sweep(
-        sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
-        config=config, progress=progress, overwrite=overwrite,
-    )  # fmt: skip
+    result = run_configured_sweep(config, *make_sweep(config), out_dir, progress=progress, overwrite=overwrite)
     return report(config, Path(out_dir), result)
 
 
