@@ -65,7 +65,7 @@ def _shape_text(shape) -> str:
 
 def shape(name: str, value, expected: tuple, what: str = "") -> None:
     """Static check that ``value`` has shape ``expected`` (``None`` entries: any size); works on tracers."""
-    got = jnp.shape(value)
+    got = np.shape(value)
     if len(got) != len(expected) or any(e is not None and e != g for e, g in zip(expected, got, strict=False)):
         hint = f" ({what})" if what else ""
         raise ValueError(f"{name} must have shape {_shape_text(expected)}{hint}, got {tuple(got)}")
@@ -98,7 +98,7 @@ def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False
     """Check that ``value`` is a 2-D matrix (or a stack of them when ``batch``) of the given ``shape``
     (entries ``None``: any size), and finite when concrete. Shapes are checked on tracers too.
     Returns nothing; raises ``ValueError``."""
-    dims = jnp.shape(value)
+    dims = np.shape(value)
     if len(dims) != 2 and not (batch and len(dims) > 2):
         raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {tuple(dims)}")
     rows, cols = dims[-2:]

@@ -162,8 +162,8 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
     matrices = _c2d_matrices(A, B, C, D, jnp.asarray(delay, dtype), h=h, n_delay=n_delay)
     if concrete and _checks.is_concrete(delay) and not all(np.isfinite(np.asarray(M)).all() for M in matrices[:2]):
         raise ValueError(
-            f"the discretised sys overflows {jnp.dtype(dtype).name} over one sample h={h}: an unstable mode of "
-            "sys.A grows beyond the float range (e^{A h}); lower h"
+            f"h={h} is too long for sys: e^(A h) overflows {jnp.dtype(dtype).name} (an unstable mode of sys.A grows "
+            "beyond the float range over one sample); lower h"
         )
     return StateSpace(*matrices, h)
 

@@ -337,6 +337,7 @@ def make_inverse_dynamics(
         case = _checks.count("case", case, minimum=1, maximum=2)
     lowpass_order = _checks.count("lowpass_order", lowpass_order)
     _checks.shape("lowpass_pole", lowpass_pole, (), "one pole shared by the sections")
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     A, B, C, K, F1 = (M.astype(dtype) for M in (A, B, C, K, F1))
     concrete_plant = _checks.is_concrete(A, B, C)
     if concrete_plant:
@@ -391,7 +392,6 @@ def make_inverse_dynamics(
         p = float(np.asarray(lowpass_pole))
         if not 0.0 <= p < 1.0:
             raise ValueError(f"lowpass_pole must lie in [0, 1), got {p}")
-    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     return InverseDynamicsParams(
         A, B, C, K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, dtype), jnp.asarray(lowpass_pole, dtype), lowpass_order
     )
