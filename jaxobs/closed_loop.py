@@ -96,7 +96,8 @@ def _linear_step(params: LinearController, state, inputs: ActiveObserverInputs):
 
 
 linear_controller = Observer(_linear_init, _linear_step)
-""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`."""
+""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`; inputs ``ActiveObserverInputs(y, r)``
+of shapes ``(p,)`` and ``(m,)``, checked and cast as by the observer families."""
 
 
 class ClosedLoopTrace(NamedTuple):

@@ -246,7 +246,9 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Acti
 active_observer = Observer(_init, _step)
 """AOB-N / CKF observer-based controller in the (init, step) protocol.
 
-Inputs are :class:`ActiveObserverInputs` ``(y_k, r_k)``; the output ``u`` is the command to apply.
+Inputs are :class:`ActiveObserverInputs` ``(y_k, r_k)`` of shapes ``(p,)`` and ``(m,)`` (scalars where the size is
+1); the output ``u`` is the command to apply. Each step checks the inputs' shapes against the params while tracing (a
+``ValueError`` naming the field) and casts them to the params' dtype.
 """
 
 

@@ -317,7 +317,9 @@ def _step(params: HinfParams, state: HinfState, inputs: HinfInputs):
 
 
 hinf_filter = Observer(_init, _step)
-"""The a-posteriori H-infinity filter in the (init, step) protocol; inputs are :class:`HinfInputs`."""
+"""The a-posteriori H-infinity filter in the (init, step) protocol; inputs are :class:`HinfInputs` ``(u_{k-1}, y_k)`` of
+shapes ``(m,)`` and ``(p,)`` (scalars where the size is 1). Each step checks the inputs' shapes against the params
+while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 # --------------------------------------------------------------------------------------------

@@ -289,7 +289,9 @@ def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: In
 
 
 inverse_dynamics_observer = Observer(_init, _step)
-"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`."""
+"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`
+``(y_k, Gamma(u_k, y_k))`` of shapes ``(p,)`` and ``(n,)``. Each step checks the inputs' shapes against the params
+while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 def make_inverse_dynamics(

@@ -158,12 +158,14 @@ def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
 
 
 kalman_filter = Observer(_init, _step)
-"""The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs`."""
+"""The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs` ``(u_{k-1}, y_k, K_k)`` of
+shapes ``(m,)``, ``(p,)`` (scalars where the size is 1) and ``(n, p)`` or None. Each step checks the inputs' shapes
+against the params while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
-    """Filter a batch of sequences (leading batch axis on ``inputs.u_prev`` and ``inputs.y``) with one
-    model: the Riccati recursion runs once (:func:`jaxobs.riccati.covariance_sequence`) and only
+    """Filter a batch of sequences (``inputs.u_prev`` of shape ``(B, T, m)``, ``inputs.y`` of shape ``(B, T, p)``)
+    with one model: the Riccati recursion runs once (:func:`jaxobs.riccati.covariance_sequence`) and only
     the means are batched, the fast path for Monte-Carlo runs over noise seeds.
 
     The gain schedule assumes every measurement is present: a non-finite component has its
