@@ -58,6 +58,8 @@ def loop_transfer(plant: StateSpace, controller: LinearController | ActiveObserv
     Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with
     ``u' = -L x_hat`` (negative feedback), so its return ratio is the transfer function itself.
     """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
     c = controller if isinstance(controller, LinearController) else linear_controller_of(controller)
     Phi, Gamma, C = plant.A, plant.B, plant.C
     n, n_obs = Phi.shape[-1], c.Phi.shape[-1]

@@ -169,6 +169,7 @@ CASES = [
     ("margins-bisection_steps-negative", lambda: stability.stability_margins(plant_loop(), bisection_steps=-1),
      "bisection_steps"),
     ("margins-continuous", lambda: stability.stability_margins(cont()), "sys"),
+    ("loop_transfer-continuous-plant", lambda: stability.loop_transfer(cont(), linear_ctrl()), "plant"),
     ("spectral_radius-not-square", lambda: stability.spectral_radius(np.ones((2, 3))), "A"),
     ("unstructured_mismatch-negative-norm",
      lambda: stability.unstructured_mismatch(jax.random.key(0), EYE2, np.ones((2, 1)), -1.0, 0.1), "phi_norm"),
