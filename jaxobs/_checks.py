@@ -26,15 +26,20 @@ def finite(name: str, value) -> None:
 
 
 def count(name: str, value, *, minimum: int = 0, maximum: int | None = None, hint: str = "") -> int:
-    """A static count (a size, an order, a number of steps): a Python or NumPy integer, not a bool, a
-    float or an array, in ``[minimum, maximum]``. Returns it as a Python ``int``; ``hint`` ends the message."""
+    """A static count (a size, an order, a number of steps): a Python or NumPy integer or a concrete 0-d integer
+    array, not a bool, a float or a traced value, in ``[minimum, maximum]``. Returns it as a Python ``int``;
+    ``hint`` ends the message."""
     bound = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
     hint = f"; {hint}" if hint else ""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+    if not is_concrete(value):
+        raise ValueError(f"{name} must be a concrete integer {bound} (it fixes a shape), got a traced value{hint}")
+    integer = np.ndim(value) == 0 and np.issubdtype(np.asarray(value).dtype, np.integer)
+    if isinstance(value, (bool, np.bool_)) or not integer:
         raise ValueError(f"{name} must be an integer {bound}, got {value!r} ({type(value).__name__}){hint}")
+    value = int(value)
     if value < minimum or (maximum is not None and value > maximum):
-        raise ValueError(f"{name} must be an integer {bound}, got {int(value)}{hint}")
-    return int(value)
+        raise ValueError(f"{name} must be an integer {bound}, got {value}{hint}")
+    return value
 
 
 def float_dtype(**values):

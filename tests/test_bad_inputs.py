@@ -207,6 +207,7 @@ CASES = [
     ("make_aob-active-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, active=NAN), "active"),
     ("make_aob-jit-L_r-columns", lambda: jit(lambda L: active.make_aob(plant(), L, 1, 0.01).L, zeros(1, 3)), "L_r"),
     ("active_state_model-order-float", lambda: active.active_state_model(1.5), "order"),
+    ("active_state_model-jit-order-traced", lambda: jit(active.active_state_model, 2), "order"),
     ("augment-order-negative", lambda: active.augment(plant(), -1), "order"),
     ("evolution_variance-order-float", lambda: active.evolution_variance(1e-3, 2.5), "order"),
     ("aob_noise_covariance-n_plant-float", lambda: active.aob_noise_covariance(1.5, 1, 1, 1.0, 1.0), "n_plant"),
@@ -353,7 +354,8 @@ def test_c2d_of_a_stiff_model_matches_scipy():
 
 def test_the_documented_shorthands_still_work():
     """A (T,) series for a single input/output and a scalar measurement for one output are the documented
-    shorthands (no other broadcast is): same results as the (T, 1) forms."""
+    shorthands (no other broadcast is): same results as the (T, 1) forms. A concrete 0-d integer array is a count."""
+    np.testing.assert_array_equal(lti.c2d(cont(), H, n_delay=jnp.int32(2)).A, lti.c2d(cont(), H, n_delay=2).A)
     r = jnp.linspace(0.0, 1.0, 6)
     full = closed_loop.simulate(plant(), aob(), r[:, None], noise=0.01 * r[:, None])
     short = closed_loop.simulate(plant(), aob(), r, noise=0.01 * r)
