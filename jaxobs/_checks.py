@@ -1,13 +1,16 @@
-"""Eager input validation shared by the public API.
+"""Input validation shared by the public API.
 
-Every check runs only on concrete arrays: under ``jit``/``vmap``/``grad`` the inputs are tracers and
-the checks are skipped (traced code reports problems through flags and NaNs instead, never by
-raising). Each check raises ``ValueError`` naming the argument and saying how to fix it.
+Shapes, dtypes and counts are static, so the checks of them (:func:`matrix`'s shapes, :func:`count`,
+:func:`vector`, :func:`float_dtype`) run on tracers too, at trace time, under ``jit``/``vmap``/``grad``.
+Checks of values (NaN, sign, definiteness) run only on concrete arrays: on tracers they are skipped
+(traced code reports problems through flags and NaNs instead, never by raising). Each check raises
+``ValueError`` naming the argument, the expected and the given value.
 """
 
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -16,27 +19,104 @@ def is_concrete(*values) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
 
 
-def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False, batch: bool = False):
-    """Check that ``value`` is a finite 2-D matrix (or a stack of them when ``batch``).
+def finite(name: str, value) -> None:
+    """Raise when a concrete ``value`` has NaN or infinite entries (skipped on tracers)."""
+    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{name} contains NaN or infinite entries")
 
-    ``shape`` entries may be ``None`` for "any size". Returns nothing; raises ``ValueError``.
-    """
+
+def count(name: str, value, *, minimum: int = 0, maximum: int | None = None, hint: str = "") -> int:
+    """A static count (a size, an order, a number of steps): a Python or NumPy integer or a concrete 0-d integer
+    array, not a bool, a float or a traced value, in ``[minimum, maximum]``. Returns it as a Python ``int``;
+    ``hint`` ends the message."""
+    bound = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
+    hint = f"; {hint}" if hint else ""
     if not is_concrete(value):
-        return
-    a = np.asarray(value)
-    if a.ndim != 2 and not (batch and a.ndim > 2):
-        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {a.shape}")
-    rows, cols = a.shape[-2:]
+        raise ValueError(f"{name} must be a concrete integer {bound} (it fixes a shape), got a traced value{hint}")
+    integer = np.ndim(value) == 0 and np.issubdtype(np.asarray(value).dtype, np.integer)
+    if isinstance(value, (bool, np.bool_)) or not integer:
+        raise ValueError(f"{name} must be an integer {bound}, got {value!r} ({type(value).__name__}){hint}")
+    value = int(value)
+    if value < minimum or (maximum is not None and value > maximum):
+        raise ValueError(f"{name} must be an integer {bound}, got {value}{hint}")
+    return value
+
+
+def float_dtype(**values):
+    """The common floating dtype of the named arrays (``result_type`` of them and ``float``): integer and
+    bool inputs become float, float32 mixed with float64 becomes float64 (where x64 is enabled).
+    ``None`` entries are ignored; a complex or non-numeric argument raises ``ValueError`` naming it."""
+    arrays = []
+    for name, value in values.items():
+        if value is None:
+            continue
+        try:  # Python scalars stay weakly typed; sequences are read as arrays
+            value = value if isinstance(value, (jax.Array, np.ndarray, np.generic, int, float)) else jnp.asarray(value)
+            dtype = jnp.result_type(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a real numeric array, got {type(value).__name__}") from exc
+        if jnp.issubdtype(dtype, jnp.complexfloating) or not (
+            jnp.issubdtype(dtype, jnp.number) or jnp.issubdtype(dtype, jnp.bool_)
+        ):
+            raise ValueError(f"{name} must be real (a float, integer or bool array), got dtype {dtype}")
+        arrays.append(value)
+    return jnp.result_type(*arrays, float)
+
+
+def _shape_text(shape) -> str:
+    dims = ["*" if d is None else str(d) for d in shape]
+    return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
+
+
+def shape(name: str, value, expected: tuple, what: str = "") -> None:
+    """Static check that ``value`` has shape ``expected`` (``None`` entries: any size); works on tracers."""
+    got = np.shape(value)
+    if len(got) != len(expected) or any(e is not None and e != g for e, g in zip(expected, got, strict=False)):
+        hint = f" ({what})" if what else ""
+        raise ValueError(f"{name} must have shape {_shape_text(expected)}{hint}, got {tuple(got)}")
+
+
+def vector(name: str, value, size: int, dtype, *, what: str = "", check_finite: bool = True) -> jax.Array:
+    """``value`` as a ``(size,)`` vector in ``dtype``: the shape must be ``(size,)``, or ``()`` when ``size``
+    is 1 (never another broadcast). Shape checked at trace time; finiteness on concrete values when
+    ``check_finite`` (measurements, where NaN means missing, pass False)."""
+    value = jnp.asarray(value)
+    if not (value.shape == (size,) or (size == 1 and value.shape == ())):
+        shape(name, value, (size,), what)
+    if check_finite:
+        finite(name, value)
+    return jnp.reshape(value, (size,)).astype(dtype)
+
+
+def per_entry(name: str, value, size: int, dtype, what: str = "") -> jax.Array:
+    """A scalar (the same for every entry) or a ``(size,)`` vector, broadcast to ``(size,)`` in ``dtype``.
+    Shape checked at trace time (no other broadcast); finite where concrete."""
+    value = jnp.asarray(value)
+    if value.shape not in ((), (size,)):
+        hint = f" ({what})" if what else ""
+        raise ValueError(f"{name} must be a scalar or have shape ({size},){hint}, got {value.shape}")
+    finite(name, value)
+    return jnp.broadcast_to(value.astype(dtype), (size,))
+
+
+def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False, batch: bool = False):
+    """Check that ``value`` is a 2-D matrix (or a stack of them when ``batch``) of the given ``shape``
+    (entries ``None``: any size), and finite when concrete. Shapes are checked on tracers too.
+    Returns nothing; raises ``ValueError``."""
+    dims = np.shape(value)
+    if len(dims) != 2 and not (batch and len(dims) > 2):
+        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {tuple(dims)}")
+    rows, cols = dims[-2:]
     if square and rows != cols:
-        raise ValueError(f"{name} must be square, got shape {a.shape}")
+        raise ValueError(f"{name} must be square, got shape {tuple(dims)}")
     if shape is not None:
         for axis, (want, got) in enumerate(zip(shape, (rows, cols), strict=True)):
             if want is not None and want != got:
                 raise ValueError(
-                    f"{name} has shape {a.shape[-2:]}, but dimension {axis} must be {want} to match the other arguments"
+                    f"{name} has shape {tuple(dims[-2:])}, but dimension {axis} must be {want} to match the other "
+                    "arguments"
                 )
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or infinite entries")
+    finite(name, value)
 
 
 def covariance(name: str, value, *, definite: bool, size: int | None = None):
@@ -45,9 +125,11 @@ def covariance(name: str, value, *, definite: bool, size: int | None = None):
     if not is_concrete(value):
         return
     a = np.asarray(value, dtype=float)
-    scale = max(float(np.max(np.abs(a))), np.finfo(float).tiny)
+    scale = max(float(np.max(np.abs(a))), np.finfo(float).tiny) if a.size else 1.0
     if not np.allclose(a, np.swapaxes(a, -1, -2), rtol=1e-10, atol=1e-12 * scale):
         raise ValueError(f"{name} must be symmetric; symmetrise it with (M + M.T) / 2")
+    if a.size == 0:
+        return
     lowest = float(np.min(np.linalg.eigvalsh((a + np.swapaxes(a, -1, -2)) / 2)))
     if definite and lowest <= 1e-14 * scale:
         raise ValueError(
@@ -58,12 +140,15 @@ def covariance(name: str, value, *, definite: bool, size: int | None = None):
 
 
 def positive_scalar(name: str, value, *, allow_zero: bool = False):
-    """Check a finite positive (or non-negative) scalar."""
+    """Check a finite positive (or non-negative) real scalar (a bool is refused); skipped on tracers."""
     if not is_concrete(value):
         return
-    a = np.asarray(value, dtype=float)
+    a = np.asarray(value)
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
     if a.ndim != 0:
         raise ValueError(f"{name} must be a scalar, got shape {a.shape}")
+    a = a.astype(float)
     ok = np.isfinite(a) and (a >= 0 if allow_zero else a > 0)
     if not ok:
         bound = "non-negative" if allow_zero else "positive"

@@ -58,9 +58,7 @@ class LinearController:
 
     def padded(self, n: int) -> LinearController:
         """The same controller with ``n`` observer states (extra states are identically zero)."""
-        extra = n - self.Phi.shape[-1]
-        if extra < 0:
-            raise ValueError(f"n must be >= {self.Phi.shape[-1]}, got {n}")
+        extra = _checks.count("n", n, minimum=self.Phi.shape[-1]) - self.Phi.shape[-1]
         rows = lambda M: jnp.pad(M, ((0, extra), (0, 0)))
         cols = lambda M: jnp.pad(M, ((0, 0), (0, extra)))
         return LinearController(rows(cols(self.Phi)), rows(self.Gamma), cols(self.C), rows(self.K), cols(self.L))
@@ -87,15 +85,19 @@ def _linear_init(params: LinearController):
 
 
 def _linear_step(params: LinearController, state, inputs: ActiveObserverInputs):
+    m, p, dtype = params.Gamma.shape[-1], params.C.shape[-2], params.Phi.dtype
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
+    r = _checks.vector("inputs.r", inputs.r, m, dtype, what="one entry per column of Gamma", check_finite=False)
     x, u = state
     x1 = params.Phi @ x + params.Gamma @ u
-    x = x1 + params.K @ (jnp.atleast_1d(inputs.y) - params.C @ x1)
-    u = jnp.atleast_1d(inputs.r) - params.L @ x
+    x = x1 + params.K @ (y - params.C @ x1)
+    u = r - params.L @ x
     return (x, u), LinearControllerOutputs(u, x)
 
 
 linear_controller = Observer(_linear_init, _linear_step)
-""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`."""
+""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`; inputs ``ActiveObserverInputs(y, r)``
+of shapes ``(p,)`` and ``(m,)``, checked and cast as by the observer families."""
 
 
 class ClosedLoopTrace(NamedTuple):
@@ -106,6 +108,19 @@ class ClosedLoopTrace(NamedTuple):
     u: jax.Array  # commands u_k
     x: jax.Array  # true plant states x_k
     controller: object  # the controller's outputs (e.g. ActiveObserverOutputs)
+
+
+def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str) -> jax.Array:
+    """A per-sample input as ``(T, size)`` in ``dtype``: shape ``(T, size)``, or ``(T,)`` when ``size`` is 1
+    (``T = num_steps`` unless None). Shapes checked at trace time (never reshaped or broadcast otherwise),
+    finiteness where concrete."""
+    value = jnp.asarray(value)
+    T = value.shape[0] if num_steps is None and value.ndim else num_steps
+    if size == 1 and value.ndim == 1:
+        value = value[:, None]
+    _checks.shape(name, value, (T, size), what)
+    _checks.finite(name, value)
+    return value.astype(dtype)
 
 
 def simulate(
@@ -120,35 +135,49 @@ def simulate(
 ) -> ClosedLoopTrace:
     """Simulate ``plant`` under ``controller`` for ``len(reference)`` samples.
 
+    Shapes are checked against the plant at trace time (also under ``jit``); the plant runs in the common
+    floating dtype of its matrices and the series (the controller casts its inputs to its own dtype).
+
     Args:
       plant: true discrete plant (``plant.dt`` set), e.g. ``c2d`` of the mismatched model.
       controller_params: parameters of ``controller`` (built on the nominal model).
-      reference: (T, m) or (T,) references ``r_k``.
-      disturbance: (T, m) or (T,) input disturbance ``d_k`` (default zero).
-      noise: (T, p) or (T,) measurement noise ``v_k`` (default zero; see :func:`measurement_noise`).
-      x0: initial true state (default zero).
+      reference: (T, m) references ``r_k`` (or (T,) for a single-input plant).
+      disturbance: (T, m) input disturbance ``d_k`` (or (T,) for one input; default zero).
+      noise: (T, p) measurement noise ``v_k`` (or (T,) for one output; default zero; see
+        :func:`measurement_noise`).
+      x0: (n,) initial true state (default zero).
       controller: an (init, step) pair whose step takes ``ActiveObserverInputs(y, r)`` and whose
-        outputs have a field ``u``.
+        outputs have a field ``u`` of shape (m,).
     """
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d)")
     if _checks.is_concrete(plant.D) and np.any(np.asarray(plant.D) != 0):
         raise ValueError("plant.D must be zero: a feedthrough would close an algebraic loop through u_k")
-    m, p = plant.n_inputs, plant.n_outputs
-    reference = jnp.asarray(reference, plant.A.dtype).reshape(-1, m)
+    n, m, p = plant.n_states, plant.n_inputs, plant.n_outputs
+    dtype = _checks.float_dtype(
+        **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, reference=reference, disturbance=disturbance,
+        noise=noise, x0=x0,
+    )  # fmt: skip
+    A, B, C = (jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C))
+    reference = _series("reference", reference, None, m, dtype, "one reference per plant input and sample")
     T = reference.shape[0]
-    disturbance = jnp.zeros((T, m), plant.A.dtype) if disturbance is None else jnp.asarray(disturbance).reshape(T, m)
-    noise = jnp.zeros((T, p), plant.A.dtype) if noise is None else jnp.asarray(noise).reshape(T, p)
-    x0 = jnp.zeros((plant.n_states,), plant.A.dtype) if x0 is None else jnp.asarray(x0)
+    zeros = lambda size: jnp.zeros((T, size), dtype)
+    per_sample = f"one entry per plant input and sample of reference (T = {T})"
+    disturbance = zeros(m) if disturbance is None else _series("disturbance", disturbance, T, m, dtype, per_sample)
+    per_sample = f"one entry per plant output and sample of reference (T = {T})"
+    noise = zeros(p) if noise is None else _series("noise", noise, T, p, dtype, per_sample)
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per plant state")
 
     def body(carry, inputs):
         x, ctrl_state = carry
         r, d, v = inputs
-        y_true = plant.C @ x
+        y_true = C @ x
         y = y_true + v
         ctrl_state, out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y, r))
-        u = out.u
-        x_next = plant.A @ x + plant.B @ (u + d)
+        _checks.shape("controller_params", out.u, (m,), f"the controller's command u must have one entry per plant "
+                      f"input, {m}")  # fmt: skip
+        u = out.u.astype(dtype)
+        x_next = A @ x + B @ (u + d)
         return (x_next, ctrl_state), ClosedLoopTrace(y, y_true, u, x, out)
 
     carry = (x0, controller.init(controller_params))
@@ -157,24 +186,32 @@ def simulate(
 
 
 def ideal_response(plant: StateSpace, L, reference) -> jax.Array:
-    """Output of the desired closed loop ``x_k = (Phi - Gamma L) x_{k-1} + Gamma r_{k-1}``
-    (seed 000 eq. 25/43) without disturbance or noise: what the AOB aims to impose."""
-    m = plant.n_inputs
-    reference = jnp.asarray(reference, plant.A.dtype).reshape(-1, m)
-    A_cl = plant.A - plant.B @ jnp.atleast_2d(L)
+    """Output (T, p) of the desired closed loop ``x_k = (Phi - Gamma L) x_{k-1} + Gamma r_{k-1}``
+    (Cortesão 2006, eq. 25/43) without disturbance or noise: what the AOB aims to impose. ``L`` (m, n),
+    ``reference`` (T, m) (or (T,) for one input); computed in the common floating dtype."""
+    n, m = plant.n_states, plant.n_inputs
+    L = jnp.atleast_2d(jnp.asarray(L))
+    _checks.matrix("L", L, shape=(m, n))
+    dtype = _checks.float_dtype(**{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C, "plant.D": plant.D},
+                                L=L, reference=reference)  # fmt: skip
+    reference = _series("reference", reference, None, m, dtype, "one reference per plant input and sample")
+    A, B, C, D = (jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D))
+    A_cl = A - B @ L.astype(dtype)
 
     def body(x, r):
-        return A_cl @ x + plant.B @ r, plant.C @ x + plant.D @ r
+        return A_cl @ x + B @ r, C @ x + D @ r
 
-    _, y = jax.lax.scan(body, jnp.zeros((plant.n_states,), plant.A.dtype), reference)
+    _, y = jax.lax.scan(body, jnp.zeros((n,), dtype), reference)
     return y
 
 
 def measurement_noise(key, num_steps: int, R) -> jax.Array:
-    """Gaussian measurement noise with covariance ``R``: shape (num_steps, p)."""
+    """Gaussian measurement noise with covariance ``R`` (p, p), positive definite: shape (num_steps, p)."""
+    num_steps = _checks.count("num_steps", num_steps)
     R = jnp.atleast_2d(jnp.asarray(R))
-    chol = jnp.linalg.cholesky(R)
-    return jax.random.normal(key, (num_steps, R.shape[0]), R.dtype) @ chol.T
+    _checks.covariance("R", R, definite=True)
+    chol = jnp.linalg.cholesky(R.astype(_checks.float_dtype(R=R)))
+    return jax.random.normal(key, (num_steps, R.shape[0]), chol.dtype) @ chol.T
 
 
 def rms(error, axis=0):

@@ -19,43 +19,46 @@ from jaxobs.riccati import dare
 __all__ = ["acker", "place", "dlqr", "dc_compensation", "critically_damped_poles"]
 
 
-def _char_poly_coefficients(poles):
-    """Real coefficients ``[1, a_1, ..., a_n]`` of ``prod (z - p_i)`` (complex poles in conjugate pairs)."""
+def _char_poly_coefficients(poles, dtype):
+    """Real coefficients ``[1, a_1, ..., a_n]`` of ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate
+    pairs; the product is formed in the complex type of ``poles`` and ``dtype``)."""
     poles = jnp.asarray(poles)
-    coeffs = jnp.ones((1,), jnp.result_type(poles, jnp.complex64))
+    coeffs = jnp.ones((1,), jnp.result_type(poles, dtype, jnp.complex64))
     for i in range(poles.shape[-1]):
         coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - poles[i] * jnp.concatenate(
             [jnp.zeros((1,), coeffs.dtype), coeffs]
         )
-    return jnp.real(coeffs)
+    return jnp.real(coeffs).astype(dtype)
 
 
 def acker(Phi, Gamma, poles):
-    """Single-input pole placement by Ackermann's formula (seed 000 eq. 45-46).
+    """Single-input pole placement by Ackermann's formula (Cortesão 2006, eq. 45-46).
 
     ``L = [0 ... 0 1] W_c^{-1} P(Phi)`` with ``W_c = [Gamma, Phi Gamma, ..., Phi^{n-1} Gamma]`` and
     ``P`` the desired characteristic polynomial, so that ``eig(Phi - Gamma L) = poles``.
-    Works under ``jit``/``vmap``/``grad``; complex poles must come in conjugate pairs.
+    Works under ``jit``/``vmap``/``grad``; complex poles must come in conjugate pairs. Integer or mixed
+    float32/float64 matrices are computed in their common floating dtype.
 
     Args:
-      Phi: (n, n) state matrix.  Gamma: (n, 1) input matrix.  poles: n desired poles.
+      Phi: (n, n) state matrix.  Gamma: (n, 1) input matrix.  poles: (n,) desired poles.
     Returns:
       (1, n) gain ``L``.
     """
     Phi, Gamma = jnp.asarray(Phi), jnp.asarray(Gamma)
     if Gamma.ndim == 1:
         Gamma = Gamma[:, None]
+    dtype = _checks.float_dtype(Phi=Phi, Gamma=Gamma)
+    _checks.matrix("Phi", Phi, square=True)
     n = Phi.shape[-1]
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
     _checks.matrix("Gamma", Gamma, shape=(n, 1))
     poles = jnp.atleast_1d(jnp.asarray(poles))
-    if poles.shape[-1] != n:
-        raise ValueError(f"poles has {poles.shape[-1]} entries but Phi has {n} states; give one pole per state")
+    _checks.shape("poles", poles, (n,), f"one pole per state of Phi, which has {n}")
+    _checks.finite("poles", poles)
     if _checks.is_concrete(poles):
         p = np.sort_complex(np.asarray(poles, dtype=complex))
         if not np.allclose(p, np.sort_complex(p.conj()), atol=1e-12):
             raise ValueError("poles: complex poles must come in conjugate pairs")
-    L, Wc = _ackermann(Phi, Gamma, poles)
+    L, Wc = _ackermann(Phi.astype(dtype), Gamma.astype(dtype), poles)
     if _checks.is_concrete(Wc):
         Wc_np = np.asarray(Wc)
         if np.linalg.matrix_rank(Wc_np, tol=1e-12 * np.linalg.norm(Wc_np)) < n:
@@ -68,7 +71,7 @@ def _ackermann(Phi, Gamma, poles):
     """``(L, W_c)`` of :func:`acker` (compiled once per shape: eager calls cost one dispatch)."""
     n = Phi.shape[-1]
     Wc = ctrb(Phi, Gamma)
-    a = _char_poly_coefficients(poles).astype(Phi.dtype)
+    a = _char_poly_coefficients(poles, Phi.dtype)
     P_Phi = jnp.zeros_like(Phi)
     for coefficient in a:  # Horner: P(Phi) = Phi^n + a_1 Phi^{n-1} + ... + a_n I
         P_Phi = P_Phi @ Phi + coefficient * jnp.eye(n, dtype=Phi.dtype)
@@ -94,13 +97,11 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
     _checks.matrix("Phi", Phi, shape=(n, n), square=True)
     _checks.matrix("Gamma", Gamma, shape=(n, None))
     poles = np.atleast_1d(np.asarray(poles))
-    if poles.size != n:
-        raise ValueError(f"poles has {poles.size} entries but Phi has {n} states; give one pole per state")
+    _checks.shape("poles", poles, (n,), f"one pole per state of Phi, which has {n}")
+    _checks.finite("poles", poles)
     m = Gamma.shape[1]
-    keep = [j for j in range(m) if j not in set(zero_input_columns)]
-    bad = [j for j in zero_input_columns if not 0 <= j < m]
-    if bad:
-        raise ValueError(f"zero_input_columns {bad} out of range for {m} inputs")
+    zero = {_checks.count("zero_input_columns", j, maximum=m - 1) for j in zero_input_columns}
+    keep = [j for j in range(m) if j not in zero]
     G = Gamma[:, keep]
     Wc = np.asarray(ctrb(Phi, G))
     if np.linalg.matrix_rank(Wc, tol=1e-12 * max(np.linalg.norm(Wc), 1e-300)) < n:
@@ -127,17 +128,25 @@ def dlqr(A, B, Q, R):
 
 
 def critically_damped_poles(h: float, tau_c, n_fast: int):
-    """A double pole at ``exp(-h / tau_c)`` plus ``n_fast`` poles at ``z = 0`` (seed 000 §7.2:
-    critically damped response with time constant ``tau_c``, dead-time poles at the origin)."""
-    z = jnp.exp(-h / jnp.asarray(tau_c, float))
+    """A double pole at ``exp(-h / tau_c)`` plus ``n_fast`` poles at ``z = 0`` (Cortesão 2006, §7.2: critically
+    damped response with time constant ``tau_c``, dead-time poles at the origin). Returns ``(2 + n_fast,)``."""
+    _checks.positive_scalar("h", h)
+    _checks.positive_scalar("tau_c", tau_c)
+    n_fast = _checks.count("n_fast", n_fast)
+    tau_c = jnp.asarray(tau_c)
+    _checks.shape("tau_c", tau_c, (), "one time constant")
+    z = jnp.exp(-h / tau_c.astype(_checks.float_dtype(tau_c=tau_c)))
     return jnp.concatenate([jnp.stack([z, z]), jnp.zeros((n_fast,), z.dtype)])
 
 
 def dc_compensation(dc_target, dc_closed_loop):
-    """Reference pre-amplification ``L_c = DC_closed^{-1} DC_target`` (seed 000 eq. 102-104)."""
+    """Reference pre-amplification ``L_c = DC_closed^{-1} DC_target`` (Cortesão 2006, eq. 102-104):
+    ``dc_closed_loop`` (m, m), ``dc_target`` (m, k) (scalars for one channel)."""
     M = jnp.atleast_2d(jnp.asarray(dc_closed_loop))
     T = jnp.atleast_2d(jnp.asarray(dc_target))
+    dtype = _checks.float_dtype(dc_target=T, dc_closed_loop=M)
     _checks.matrix("dc_closed_loop", M, square=True)
+    _checks.matrix("dc_target", T, shape=(M.shape[0], None))
     if _checks.is_concrete(M) and np.linalg.cond(np.asarray(M)) > 1e12:
         raise ValueError("dc_closed_loop is singular: the closed loop has no invertible DC gain to compensate")
-    return jnp.linalg.solve(M, T)
+    return jnp.linalg.solve(M.astype(dtype), T.astype(dtype))

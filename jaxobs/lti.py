@@ -61,25 +61,42 @@ class StateSpace:
 
 
 def ss(A, B, C, D=None, dt: float | None = None) -> StateSpace:
-    """Build a :class:`StateSpace`, checking shapes eagerly. ``D`` defaults to zeros."""
+    """Build a :class:`StateSpace`, checking shapes (also under ``jit``) and finiteness (eagerly).
+
+    ``D`` defaults to zeros. The four matrices are cast to their common floating dtype (integers and
+    bools become float; float32 mixed with float64 becomes float64), so a model never mixes precisions.
+    """
     A, B, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C))
+    D = None if D is None else jnp.atleast_2d(jnp.asarray(D))
+    dtype = _checks.float_dtype(A=A, B=B, C=C, D=D)
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
-    D = jnp.zeros((C.shape[-2], B.shape[-1]), A.dtype) if D is None else jnp.atleast_2d(jnp.asarray(D))
+    D = jnp.zeros((C.shape[-2], B.shape[-1]), dtype) if D is None else D
     _checks.matrix("D", D, shape=(C.shape[-2], B.shape[-1]))
     if dt is not None:
         _checks.positive_scalar("dt", dt)
         dt = float(dt)
-    return StateSpace(A, B, C, D, dt)
+    return StateSpace(*(M.astype(dtype) for M in (A, B, C, D)), dt)
+
+
+MAX_DELAY_SLOTS = 1000
+"""Largest number of delayed-input slots :func:`c2d` builds (state dimension ``n + slots * m``); a longer dead
+time is refused with the number of slots it would need (hold it in a FIFO outside the model instead)."""
+
+MAX_EXPM_NORM = 1e9
+"""Largest ``h ||[A B]||_1`` :func:`c2d` accepts: beyond it the zero-order-hold matrix exponential would need
+more scaling-and-squaring steps than it is given (:data:`_EXPM_SQUARINGS`), so it is refused."""
+
+_EXPM_SQUARINGS = 32  # expm handles 1-norms up to about 5.4 * 2**32 = 2.3e10 > MAX_EXPM_NORM
 
 
 def _zoh_integral(A, B, t):
     """``(e^{At}, int_0^t e^{As} ds B)`` from one block matrix exponential (Van Loan)."""
     n, m = B.shape
     block = jnp.zeros((n + m, n + m), A.dtype).at[:n, :n].set(A).at[:n, n:].set(B)
-    E = jax.scipy.linalg.expm(block * t)
+    E = jax.scipy.linalg.expm(block * t, max_squarings=_EXPM_SQUARINGS)
     return E[:n, :n], E[:n, n:]
 
 
@@ -89,18 +106,19 @@ def n_delay_slots(delay: float, h: float) -> int:
 
 
 def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> StateSpace:
-    """Exact zero-order-hold discretisation with dead time (seed 000 eq. 11-18).
+    """Exact zero-order-hold discretisation with dead time (Cortesão 2006, eq. 11-18).
 
     Args:
       sys: continuous-time model (``sys.dt is None``).
-      h: sample time (a Python number: it fixes the model's ``dt``).
+      h: sample time (a Python number: it fixes the model's ``dt``). ``h ||[A B]||_1`` must not exceed
+        :data:`MAX_EXPM_NORM`, and a model whose unstable modes overflow over one sample is refused.
       delay: dead time ``tau >= 0`` in seconds; may be a traced value (differentiable almost
         everywhere: the gradient is one-sided at whole multiples of ``h``).
-      n_delay: number of delayed-input slots in the state. Defaults to ``ceil(tau / h)`` for a
-        concrete ``delay``; must be given when ``delay`` is traced (e.g. ``vmap`` over dead times),
-        and then any ``tau`` in ``[0, n_delay * h]`` is represented exactly by placing
-        ``Gamma_0, Gamma_1`` in the right slots. A traced ``tau`` outside that range gives NaN
-        matrices.
+      n_delay: number of delayed-input slots in the state (an integer, at most :data:`MAX_DELAY_SLOTS`).
+        Defaults to ``ceil(tau / h)`` for a concrete ``delay``; must be given when ``delay`` is traced
+        (e.g. ``vmap`` over dead times), and then any ``tau`` in ``[0, n_delay * h]`` is represented
+        exactly by placing ``Gamma_0, Gamma_1`` in the right slots. A traced ``tau`` outside that range
+        gives NaN matrices.
 
     Returns:
       The delay-augmented discrete model with state ``[x', u_{k-d}, ..., u_{k-1}]`` (oldest slot
@@ -120,14 +138,34 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
                 "pass the largest number of delay samples you need"
             )
         n_delay = n_delay_slots(delay, h)
-    elif _checks.is_concrete(delay) and float(delay) > n_delay * h * (1 + 1e-9):
+        if n_delay > MAX_DELAY_SLOTS:
+            raise ValueError(
+                f"delay={float(delay)} needs n_delay={n_delay} slots of h={h} (a state of dimension "
+                f"{sys.n_states + n_delay * sys.n_inputs}), above MAX_DELAY_SLOTS={MAX_DELAY_SLOTS}; "
+                "hold such a dead time in a FIFO outside the model"
+            )
+    n_delay = _checks.count("n_delay", n_delay, maximum=MAX_DELAY_SLOTS)
+    if _checks.is_concrete(delay) and float(delay) > n_delay * h * (1 + 1e-9):
         raise ValueError(f"delay={float(delay)} needs more than n_delay={n_delay} slots of h={h}")
-    if n_delay < 0:
-        raise ValueError(f"n_delay must be >= 0, got {n_delay}")
 
-    dtype = jnp.result_type(sys.A, float)
+    dtype = _checks.float_dtype(A=sys.A, B=sys.B, C=sys.C, D=sys.D)
     A, B, C, D = (jnp.asarray(M, dtype) for M in (sys.A, sys.B, sys.C, sys.D))
-    return StateSpace(*_c2d_matrices(A, B, C, D, jnp.asarray(delay, dtype), h=h, n_delay=int(n_delay)), h)
+    concrete = _checks.is_concrete(A, B)
+    if concrete:
+        with np.errstate(over="ignore", invalid="ignore"):
+            scale = h * float(np.max(np.abs(np.concatenate([np.asarray(A), np.asarray(B)], axis=1)).sum(axis=0)))
+        if not scale <= MAX_EXPM_NORM:
+            raise ValueError(
+                f"h * ||[sys.A, sys.B]||_1 = {scale:.3g} exceeds MAX_EXPM_NORM={MAX_EXPM_NORM:.0e}: the sample "
+                f"period h={h} is too long for the model's time scales to discretise; lower h or rescale sys"
+            )
+    matrices = _c2d_matrices(A, B, C, D, jnp.asarray(delay, dtype), h=h, n_delay=n_delay)
+    if concrete and _checks.is_concrete(delay) and not all(np.isfinite(np.asarray(M)).all() for M in matrices[:2]):
+        raise ValueError(
+            f"h={h} is too long for sys: e^(A h) overflows {jnp.dtype(dtype).name} (an unstable mode of sys.A grows "
+            "beyond the float range over one sample); lower h"
+        )
+    return StateSpace(*matrices, h)
 
 
 @functools.partial(jax.jit, static_argnames=("h", "n_delay"))
@@ -145,23 +183,26 @@ def _c2d_matrices(A, B, C, D, tau, *, h: float, n_delay: int):
     Gamma0 = F_rest  # eq. 16: acts on u_{k-d}
     Gamma1 = F_h - F_rest  # eq. 17: e^{A(h-tau')} int_0^tau' e^{As} ds B, acts on u_{k-d-1}
 
-    def lag_input_matrix(lag):
-        """Input matrix multiplying u_{k-lag} in x'_k."""
-        return jnp.where(lag == d + 1, Gamma1, 0.0) + jnp.where(lag == d, Gamma0, 0.0)
+    def lag_input_matrices(lags):
+        """Input matrices multiplying u_{k-lag} in x'_k, one (n, m) block per lag."""
+        lags = lags[:, None, None]
+        return jnp.where(lags == d + 1, Gamma1, 0.0) + jnp.where(lags == d, Gamma0, 0.0)
 
-    size = n + n_delay * m
-    Phi = jnp.zeros((size, size), dtype).at[:n, :n].set(Phi1)
-    Gamma = jnp.zeros((size, m), dtype).at[:n].set(lag_input_matrix(1.0))
-    Cr = jnp.zeros((p, size), dtype).at[:, :n].set(C)
-    for i in range(n_delay):  # slot i of x_{r,k-1} holds u_{k-1-(n_delay-i)}
-        cols = slice(n + i * m, n + (i + 1) * m)
-        Phi = Phi.at[:n, cols].set(lag_input_matrix(float(n_delay + 1 - i)))
-        # slot i of x_{r,k} holds u_{k-(n_delay-i)}; the output sees u(kh - tau) = u_{k-d}
-        Cr = Cr.at[:, cols].set(jnp.where(d == n_delay - i, D, 0.0))
-        if i + 1 < n_delay:
-            Phi = Phi.at[cols, cols.start + m : cols.stop + m].set(jnp.eye(m, dtype=dtype))
-        else:
-            Gamma = Gamma.at[cols].set(jnp.eye(m, dtype=dtype))
+    # slot i of x_{r,k-1} holds u_{k-1-(n_delay-i)}; slot i of x_{r,k} holds u_{k-(n_delay-i)}
+    slots = jnp.arange(n_delay, dtype=dtype)
+    from_slots = lag_input_matrices(n_delay + 1.0 - slots).transpose(1, 0, 2).reshape(n, n_delay * m)
+    shift = jnp.eye(n_delay * m, k=m, dtype=dtype)  # each slot takes the next newer one
+    Phi = jnp.concatenate(
+        [jnp.concatenate([Phi1, from_slots], axis=1),
+         jnp.concatenate([jnp.zeros((n_delay * m, n), dtype), shift], axis=1)], axis=0
+    )  # fmt: skip
+    newest = jnp.eye(m, dtype=dtype) if n_delay else jnp.zeros((0, m), dtype)
+    Gamma = jnp.concatenate(
+        [lag_input_matrices(jnp.ones((1,), dtype))[0], jnp.zeros((max(n_delay - 1, 0) * m, m), dtype), newest]
+    )
+    # the output sees u(kh - tau) = u_{k-d}, held in slot n_delay - d
+    at_output = (d == n_delay - slots)[:, None, None]
+    Cr = jnp.concatenate([C, jnp.where(at_output, D, 0.0).transpose(1, 0, 2).reshape(p, n_delay * m)], axis=1)
     Dr = jnp.where(d == 0, D, 0.0)
 
     out_of_range = tau > n_delay * h * (1 + 1e-9)
@@ -257,16 +298,25 @@ def _is_matrix_of_polys(x) -> bool:
 
 
 def ctrb(A, B) -> jax.Array:
-    """Controllability (reachability) matrix ``[B, A B, ..., A^{n-1} B]`` (seed 000 eq. 46)."""
+    """Controllability (reachability) matrix ``[B, A B, ..., A^{n-1} B]`` (Cortesão 2006, eq. 46); ``A`` (n, n),
+    ``B`` (n, m), optionally with the same leading batch axes. Integer inputs are computed in float."""
     A, B = jnp.asarray(A), jnp.asarray(B)
+    dtype = _checks.float_dtype(A=A, B=B)
+    _checks.matrix("A", A, square=True, batch=True)
+    n = A.shape[-1]
+    _checks.matrix("B", B, shape=(n, None), batch=True)
+    A, B = A.astype(dtype), B.astype(dtype)
     blocks = [B]
-    for _ in range(A.shape[-1] - 1):
+    for _ in range(n - 1):
         blocks.append(A @ blocks[-1])
     return jnp.concatenate(blocks, axis=-1)
 
 
 def obsv(A, C) -> jax.Array:
-    """Observability matrix ``[C; C A; ...; C A^{n-1}]``."""
+    """Observability matrix ``[C; C A; ...; C A^{n-1}]``; ``A`` (n, n), ``C`` (p, n)."""
+    A, C = jnp.asarray(A), jnp.asarray(C)
+    _checks.matrix("A", A, square=True, batch=True)
+    _checks.matrix("C", C, shape=(None, A.shape[-1]), batch=True)
     return jnp.swapaxes(ctrb(jnp.swapaxes(A, -1, -2), jnp.swapaxes(C, -1, -2)), -1, -2)
 
 

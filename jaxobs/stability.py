@@ -58,6 +58,8 @@ def loop_transfer(plant: StateSpace, controller: LinearController | ActiveObserv
     Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with
     ``u' = -L x_hat`` (negative feedback), so its return ratio is the transfer function itself.
     """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
     c = controller if isinstance(controller, LinearController) else linear_controller_of(controller)
     Phi, Gamma, C = plant.A, plant.B, plant.C
     n, n_obs = Phi.shape[-1], c.Phi.shape[-1]
@@ -83,23 +85,33 @@ def closed_loop_matrix(plant: StateSpace, controller: LinearController | ActiveO
 
 
 def spectral_radius(A):
-    """``max |eig(A)|`` (differentiable where the largest eigenvalue is simple)."""
+    """``max |eig(A)|`` of an (n, n) matrix or a stack of them (differentiable where the largest eigenvalue
+    is simple)."""
+    _checks.matrix("A", A, square=True, batch=True)
     return jnp.max(jnp.abs(jnp.linalg.eigvals(A)))
 
 
 def frequency_response(sys: StateSpace, omega):
     """``H(e^{j omega dt}) = C (zI - A)^{-1} B + D`` of a discrete SISO system at angular
     frequencies ``omega`` (rad/s), by a linear solve per frequency."""
-    _require_discrete_siso(sys)
+    sys = _require_discrete_siso(sys)
     theta = jnp.asarray(omega) * sys.dt
     return jnp.vectorize(lambda t: _resolvent_response(sys, t))(theta)
 
 
-def _require_discrete_siso(sys: StateSpace):
+def _require_discrete_siso(sys: StateSpace) -> StateSpace:
+    """``sys`` checked (discrete, SISO, consistent shapes) and cast to its common floating dtype."""
     if not sys.is_discrete:
         raise ValueError("sys must be discrete (dt set)")
     if sys.n_inputs != 1 or sys.n_outputs != 1:
         raise ValueError(f"sys must be SISO, got {sys.n_outputs} outputs and {sys.n_inputs} inputs")
+    n = sys.n_states
+    _checks.matrix("sys.A", sys.A, shape=(n, n))
+    _checks.matrix("sys.B", sys.B, shape=(n, 1))
+    _checks.matrix("sys.C", sys.C, shape=(1, n))
+    _checks.matrix("sys.D", sys.D, shape=(1, 1))
+    dtype = _checks.float_dtype(A=sys.A, B=sys.B, C=sys.C, D=sys.D)
+    return StateSpace(*(jnp.asarray(M, dtype) for M in (sys.A, sys.B, sys.C, sys.D)), sys.dt)
 
 
 def _resolvent_response(sys: StateSpace, theta):
@@ -206,14 +218,18 @@ def stability_margins(
     """Gain, phase, delay and stability margins of the discrete SISO loop ``sys`` (seed 000 §6.2),
     and the spectral radius of the closed loop ``A - B C / (1 + D)``.
 
-    Crossings are bracketed on ``num_points`` log-spaced frequencies up to Nyquist (two crossings
-    closer than one grid step can be missed; increase ``num_points``), refined by bisection, and
-    the selected ones polished by a Newton step on the exact response. ``jit``/``vmap`` compatible;
+    Crossings are bracketed on ``num_points >= 2`` log-spaced frequencies up to Nyquist (two crossings
+    closer than one grid step can be missed; increase ``num_points``), refined by ``bisection_steps >= 1``
+    bisection steps, and the selected ones (at most ``max_crossings >= 1`` of each kind) polished by a
+    Newton step on the exact response. ``jit``/``vmap`` compatible;
     differentiable where the selected crossover and the largest closed-loop eigenvalue are simple.
     Unlike python-control, the Nyquist frequency counts as a phase crossover when ``H(-1) < 0``.
     """
-    _require_discrete_siso(sys)
-    dtype = jnp.result_type(sys.A, float)
+    sys = _require_discrete_siso(sys)
+    num_points = _checks.count("num_points", num_points, minimum=2)
+    max_crossings = _checks.count("max_crossings", max_crossings, minimum=1)
+    bisection_steps = _checks.count("bisection_steps", bisection_steps, minimum=1)
+    dtype = sys.A.dtype
     d = sys.D[0, 0]
     # one batched eigenvalue call: independent LAPACK calls in one XLA CPU program can run at once,
     # and jaxlib 0.10's batched LAPACK kernels deadlock when they fill its thread pool (see jaxobs.sweep)
@@ -296,6 +312,13 @@ def unstructured_mismatch(key, Phi_n, Gamma_n, phi_norm, gamma_norm):
     """Random true model ``(Phi_n + Delta Phi, Gamma_n + Delta Gamma)`` with Gaussian directions
     scaled to spectral norms ``||Delta Phi||_2 = phi_norm`` and ``||Delta Gamma||_2 = gamma_norm``
     (the unstructured model errors of seed 000 Theorem 2)."""
+    Phi_n, Gamma_n = jnp.asarray(Phi_n), jnp.asarray(Gamma_n)
+    _checks.matrix("Phi_n", Phi_n, square=True)
+    _checks.matrix("Gamma_n", Gamma_n, shape=(Phi_n.shape[-1], None))
+    _checks.positive_scalar("phi_norm", phi_norm, allow_zero=True)
+    _checks.positive_scalar("gamma_norm", gamma_norm, allow_zero=True)
+    dtype = _checks.float_dtype(Phi_n=Phi_n, Gamma_n=Gamma_n)
+    Phi_n, Gamma_n = Phi_n.astype(dtype), Gamma_n.astype(dtype)
     k_phi, k_gamma = jax.random.split(key)
     d_phi = jax.random.normal(k_phi, Phi_n.shape, Phi_n.dtype)
     d_gamma = jax.random.normal(k_gamma, Gamma_n.shape, Gamma_n.dtype)

@@ -535,7 +535,9 @@ def closed_loop_rollout(
         wrench = sensor_wrench(model, data)
         y_k = wrench + n_k
         ctrl_state, ctrl_out = step(controller_params, ctrl_state, ActiveObserverInputs(y_k[:, None], r_k))
-        u_k = jnp.reshape(ctrl_out.u, (N_DOF, -1))[:, 0].astype(dtype)
+        _checks.shape("controller_params", ctrl_out.u, (N_DOF, 1), "per DOF the controller's command u must have "
+                      "one entry, the DOF's velocity command")  # fmt: skip
+        u_k = ctrl_out.u[:, 0].astype(dtype)
         position, velocity = data.qpos, data.qvel
         data, fifo, applied = _advance(model, substeps, d, data, fifo, u_k + ff_k + d_k)
         out = Compliant6Rollout(y_k, wrench, position, velocity, u_k, applied, ctrl_out)

@@ -455,7 +455,9 @@ def closed_loop_rollout(
         force = sensor_force(_at_surface(model, surface), data)
         y_k = force + v_k
         ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
-        u_k = jnp.reshape(ctrl_out.u, (-1,))[0].astype(dtype)
+        _checks.shape("controller_params", ctrl_out.u, (1,), "the controller's command u must have one entry, the "
+                      "1-DOF plant's velocity command")  # fmt: skip
+        u_k = ctrl_out.u[0].astype(dtype)
         position, velocity = data.qpos[0], data.qvel[0]
         data, fifo, applied, surface_next = _advance(model, substeps, d, data, fifo, u_k + d_k, surface, ve_k)
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)

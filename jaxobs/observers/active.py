@@ -66,13 +66,13 @@ __all__ = [
 
 
 def active_state_model(order: int, n_inputs: int = 1, dtype=jnp.float64):
-    """``Phi_22`` of eq. 37 for ``m = n_inputs`` channels: ``kron(companion, I_m)``.
+    """``Phi_22`` of eq. 37 for ``m = n_inputs`` channels: ``kron(companion, I_m)``, shape ``(N m, N m)``.
 
     The companion row holds ``a_i = (-1)^{i+1} C(N, i)`` (eq. 10), so ``N`` repeated eigenvalues at 1:
     ``p_k`` has zero N-th difference up to the driving noise.
     """
-    if order < 1:
-        raise ValueError(f"order N must be >= 1 for an active state, got {order}")
+    order = _checks.count("order", order, minimum=1, hint="an active state needs N >= 1")
+    n_inputs = _checks.count("n_inputs", n_inputs, minimum=1)
     companion = np.zeros((order, order))
     companion[:-1, 1:] = np.eye(order - 1)
     companion[-1, :] = [(-1) ** (i + 1) * comb(order, i) for i in range(order, 0, -1)]
@@ -86,6 +86,7 @@ def augment(plant: StateSpace, order: int):
     newest active state enters where the input does), ``Gamma_n = [Gamma_r; 0]``, ``C = [C_r 0]``.
     ``order = 0`` returns the plant matrices unchanged (the CKF).
     """
+    order = _checks.count("order", order)
     Phi_r, Gamma_r, C_r = plant.A, plant.B, plant.C
     if order == 0:
         return Phi_r, Gamma_r, C_r
@@ -110,8 +111,7 @@ def evolution_variance(sigma2, order: int, c=1.0):
     ``sigma2 * sum_{i=0}^{N-1} C(N-1, i)^2 * c^{N-1}``. (Eq. 84 prints the index as N; the Table I
     gains of §7.2 are reproduced only with N - 1: AOB-1 1e-3, AOB-2 4e-6, AOB-3 2.4e-8.)
     """
-    if order < 1:
-        raise ValueError(f"order N must be >= 1, got {order}")
+    order = _checks.count("order", order, minimum=1)
     _checks.positive_scalar("sigma2", sigma2, allow_zero=True)
     _checks.positive_scalar("c", c)
     j = order - 1
@@ -119,15 +119,20 @@ def evolution_variance(sigma2, order: int, c=1.0):
 
 
 def aob_noise_covariance(n_plant: int, order: int, n_inputs: int, q_plant, q_active):
-    """``Q = blockdiag(Q_xr, Q_Np)`` (eq. 51-53).
+    """``Q = blockdiag(Q_xr, Q_Np)`` (eq. 51-53), shape ``(n_plant + order n_inputs,)*2``.
 
     ``q_plant``: scalar or length-``n_plant`` diagonal of ``Q_xr``. ``q_active``: scalar or
     length-``n_inputs`` variance of ``^{N-1} xi_p``, placed on the newest active-state block only.
     """
-    q_plant = jnp.broadcast_to(jnp.asarray(q_plant, float), (n_plant,))
-    diag_active = jnp.zeros((order * n_inputs,), q_plant.dtype)
+    n_plant = _checks.count("n_plant", n_plant)
+    order = _checks.count("order", order)
+    n_inputs = _checks.count("n_inputs", n_inputs, minimum=1)
+    dtype = _checks.float_dtype(q_plant=q_plant, q_active=q_active)
+    q_plant = _checks.per_entry("q_plant", q_plant, n_plant, dtype, "one variance per plant state")
+    q_active = _checks.per_entry("q_active", q_active, n_inputs, dtype, "one variance per plant input")
+    diag_active = jnp.zeros((order * n_inputs,), dtype)
     if order:
-        diag_active = diag_active.at[-n_inputs:].set(jnp.broadcast_to(jnp.asarray(q_active, float), (n_inputs,)))
+        diag_active = diag_active.at[-n_inputs:].set(q_active)
     return jnp.diag(jnp.concatenate([q_plant, diag_active]))
 
 
@@ -212,7 +217,10 @@ def _init(params: ActiveObserverParams) -> ActiveObserverState:
 
 
 def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: ActiveObserverInputs):
-    r = jnp.atleast_1d(inputs.r)
+    p, dtype = params.C.shape[-2], params.Phi.dtype
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
+    r = _checks.vector("inputs.r", inputs.r, params.n_inputs, dtype, what="one entry per plant input",
+                       check_finite=False)  # fmt: skip
     Q = params.Q
     q_active = alpha = evolution = p_new = jnp.zeros_like(r)
     if params.n_active:  # static: a CKF built without active state skips this bookkeeping
@@ -224,7 +232,7 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Acti
         alpha = strategy_alpha(state.evolution, q_active)
     gain = None if params.gain is None else jnp.where(params.active > 0, params.gain, params.gain_passive)
     x, P, K, innovation, n_missing, _ = predict_and_update(
-        state.x, state.P, state.u, inputs.y, params.Phi, params.Gamma, params.C, Q, params.R, gain
+        state.x, state.P, state.u, y, params.Phi, params.Gamma, params.C, Q, params.R, gain
     )
     if params.n_active:
         x = x * mask
@@ -238,7 +246,9 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Acti
 active_observer = Observer(_init, _step)
 """AOB-N / CKF observer-based controller in the (init, step) protocol.
 
-Inputs are :class:`ActiveObserverInputs` ``(y_k, r_k)``; the output ``u`` is the command to apply.
+Inputs are :class:`ActiveObserverInputs` ``(y_k, r_k)`` of shapes ``(p,)`` and ``(m,)`` (scalars where the size is
+1); the output ``u`` is the command to apply. Each step checks the inputs' shapes against the params while tracing (a
+``ValueError`` naming the field) and casts them to the params' dtype.
 """
 
 
@@ -271,8 +281,7 @@ def make_aob(
       alpha, sigma_floor: adaptive active-state strategy of seed 001 (``alpha > 0`` enables it).
       steady_state: use the steady-state gains (:func:`with_steady_state_gains`).
     """
-    if order < 1:
-        raise ValueError(f"order must be >= 1 for an AOB, got {order}; use make_ckf for the classical filter")
+    order = _checks.count("order", order, minimum=1, hint="use make_ckf for the classical filter")
     return _make(plant, L_r, order, R, q_plant, q_active, None, P0, x0, active, alpha, sigma_floor, steady_state)
 
 
@@ -283,32 +292,44 @@ def make_ckf(plant: StateSpace, L_r, R, *, Q=None, q_plant=1e-12, P0=None, x0=No
 
 
 def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_floor, steady_state):
+    """Shared by :func:`make_aob` and :func:`make_ckf`. Every array (plant, gains, covariances, switches) is
+    cast to their common floating dtype: integers become float, float32 mixed with float64 becomes float64."""
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
     n, m = plant.n_states, plant.n_inputs
-    L_r = jnp.atleast_2d(jnp.asarray(L_r, plant.A.dtype))
+    L_r = jnp.atleast_2d(jnp.asarray(L_r))
+    Q, R, P0 = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (Q, R, P0))
+    dtype = _checks.float_dtype(
+        **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, L_r=L_r, R=R, Q=Q, P0=P0, x0=x0,
+        q_plant=q_plant, q_active=q_active, active=active, alpha=alpha, sigma_floor=sigma_floor,
+    )  # fmt: skip
     _checks.matrix("L_r", L_r, shape=(m, n))
+    plant = StateSpace(*(jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D)), plant.dt)
     Phi, Gamma, C = augment(plant, order)
     na = order * m
-    L = jnp.concatenate([L_r, jnp.zeros((m, na), L_r.dtype).at[:, na - m :].set(jnp.eye(m))], axis=1)
+    L = jnp.concatenate([L_r.astype(dtype), jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m))], axis=1)
     if Q is None:
-        _checks.positive_scalar("q_active", jnp.max(jnp.asarray(q_active)), allow_zero=True)
-        Q = aob_noise_covariance(n, order, m, q_plant, q_active)
-    Q = jnp.atleast_2d(jnp.asarray(Q, Phi.dtype))
+        Q = aob_noise_covariance(n, order, m, jnp.asarray(q_plant, dtype), jnp.asarray(q_active, dtype))
+        _checks.positive_scalar("q_active", jnp.min(jnp.asarray(q_active)), allow_zero=True)
     _checks.covariance("Q", Q, definite=False, size=n + na)
-    R = jnp.atleast_2d(jnp.asarray(R, Phi.dtype))
     _checks.covariance("R", R, definite=True, size=C.shape[0])
-    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0, Phi.dtype))
+    P0 = Q if P0 is None else P0
     _checks.covariance("P0", P0, definite=False, size=n + na)
-    x0 = jnp.zeros((n + na,), Phi.dtype) if x0 is None else jnp.asarray(x0, Phi.dtype)
-    _checks.positive_scalar("sigma_floor", jnp.max(jnp.asarray(sigma_floor)), allow_zero=True)
+    x0 = (
+        jnp.zeros((n + na,), dtype)
+        if x0 is None
+        else _checks.vector("x0", x0, n + na, dtype, what="one entry per state of the augmented model [x_r, p]")
+    )
+    _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
+    _checks.finite("active", active)
+    alpha = _checks.per_entry("alpha", alpha, m, dtype, "one per plant input")
+    sigma_floor = _checks.per_entry("sigma_floor", sigma_floor, m, dtype, "one per plant input")
+    _checks.positive_scalar("sigma_floor", jnp.min(sigma_floor), allow_zero=True)
     if _checks.is_concrete(alpha) and np.any(np.asarray(alpha) >= 1):
         raise ValueError("alpha must be < 1 (a probability); use alpha <= 0 to keep Q fixed")
-    as_array = lambda v: jnp.broadcast_to(jnp.asarray(v, Phi.dtype), (m,))
     params = ActiveObserverParams(
-        Phi, Gamma, C, L, Q, R, P0, x0,
-        jnp.asarray(active, Phi.dtype), as_array(alpha), as_array(sigma_floor),
-        n_active=na,
+        Phi, Gamma, C, L, Q.astype(dtype), R.astype(dtype), P0.astype(dtype), x0,
+        jnp.asarray(active, dtype), alpha, sigma_floor, n_active=na,
     )  # fmt: skip
     return with_steady_state_gains(params) if steady_state else params
 
@@ -316,10 +337,16 @@ def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sig
 def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
     """Switch the active state on (AOB) or off (CKF) at run time (seed 003 §6.3, §7.1).
 
-    ``on`` may be a bool, a number or a traced array (e.g. one per DOF under ``vmap``); it is cast
-    to the params' dtype so switching never triggers a recompilation.
+    ``on`` may be a bool, a number or a traced array, a scalar or of the shape of ``params.active`` (e.g. one
+    per DOF of stacked controllers); it is cast to the params' dtype so switching never triggers a recompilation.
     """
-    return dataclasses.replace(params, active=jnp.asarray(on, params.Phi.dtype).reshape(params.active.shape))
+    on = jnp.asarray(on)
+    if on.shape not in ((), params.active.shape):
+        raise ValueError(
+            f"on must be a scalar or have the shape {params.active.shape} of params.active, got {on.shape}"
+        )
+    _checks.finite("on", on)
+    return dataclasses.replace(params, active=jnp.broadcast_to(on.astype(params.Phi.dtype), params.active.shape))
 
 
 def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParams:
@@ -393,6 +420,10 @@ def classify_strategy(gain, C, *, low: float = 0.01, high: float = 0.9) -> str:
     """Name the estimation strategy of a (steady-state) gain: the fraction of the innovation that
     reaches the measured outputs, ``||C K||_2``, is below ``low`` (model-based, MBA), above ``high``
     (sensor-based, SBA) or in between (hybrid, HBA). The thresholds are this library's convention;
-    the papers define the strategies qualitatively. Design-time helper (returns a Python string)."""
+    the papers define the strategies qualitatively. Design-time helper (returns a Python string); ``gain``
+    (n, p), ``C`` (p, n)."""
+    gain, C = np.atleast_2d(np.asarray(gain, dtype=float)), np.atleast_2d(np.asarray(C, dtype=float))
+    _checks.matrix("C", C)
+    _checks.matrix("gain", gain, shape=(C.shape[1], C.shape[0]))
     fraction = float(np.linalg.norm(np.asarray(C) @ np.asarray(gain), 2))
     return "MBA" if fraction < low else "SBA" if fraction > high else "HBA"

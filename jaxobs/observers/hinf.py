@@ -157,17 +157,19 @@ def make_hinf(Phi, Gamma, C, Q, R, *, gamma, L=None, x0=None, P0=None, steady_st
     """Build and validate :class:`HinfParams`.
 
     ``L`` defaults to the identity (estimate the whole state), ``P0`` to ``Q`` and ``x0`` to zero, as in
-    :func:`jaxobs.observers.kalman.make_kalman`. ``gamma`` must be positive; ``jnp.inf`` gives the Kalman
-    filter. ``steady_state=True`` fixes the gain to the converged recursion (:func:`with_steady_state_gain`)
-    and raises ``ValueError`` (on concrete input) when the recursion does not converge or violates the
-    existence condition at that ``gamma``.
+    :func:`jaxobs.observers.kalman.make_kalman`; all arrays are cast to their common floating dtype. ``gamma``
+    must be positive; ``jnp.inf`` gives the Kalman filter. ``steady_state=True`` fixes the gain to the converged
+    recursion (:func:`with_steady_state_gain`) and raises ``ValueError`` (on concrete input) when the recursion
+    does not converge or violates the existence condition at that ``gamma``.
     """
     Phi, C, L, Q, R, P0 = _as_matrices(Phi, C, L, Q, R, P0)
     Gamma = jnp.atleast_2d(jnp.asarray(Gamma))
+    dtype = _checks.float_dtype(Phi=Phi, Gamma=Gamma, C=C, L=L, Q=Q, R=R, P0=P0, x0=x0, gamma=gamma)
     _validate(Phi, C, L, Q, R, P0, gamma, Gamma)
-    dtype = jnp.result_type(Phi, C, L, Q, R, P0, float)
+    n = Phi.shape[-1]
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
+    Phi, Gamma, C, L, Q, R, P0 = (M.astype(dtype) for M in (Phi, Gamma, C, L, Q, R, P0))
     gamma = jnp.asarray(gamma, dtype)
-    x0 = jnp.zeros((Phi.shape[-1],), dtype) if x0 is None else jnp.asarray(x0)
     params = HinfParams(Phi, Gamma, C, L, Q, R, x0, P0, gamma)
     if not steady_state:
         return params
@@ -223,9 +225,13 @@ class HinfSequence(NamedTuple):
 
 
 def hinf_riccati_sequence(P0, Phi, C, L, Q, R, gamma, num_steps: int) -> HinfSequence:
-    """``num_steps`` steps of the recursion from ``Pb_{-1} = P0`` (``lax.scan``), with per-step flags."""
+    """``num_steps`` steps of the recursion from ``Pb_{-1} = P0`` (``lax.scan``), with per-step flags, in the
+    common floating dtype of the arguments."""
     Phi, C, L, Q, R, P0 = _as_matrices(Phi, C, L, Q, R, P0)
     _validate(Phi, C, L, Q, R, P0, gamma)
+    num_steps = _checks.count("num_steps", num_steps)
+    dtype = _checks.float_dtype(Phi=Phi, C=C, L=L, Q=Q, R=R, P0=P0, gamma=gamma)
+    Phi, C, L, Q, R, P0 = (M.astype(dtype) for M in (Phi, C, L, Q, R, P0))
 
     def body(Pb, _):
         Pb, K, P1, margin, ok = hinf_riccati_step(Pb, Phi, C, L, Q, R, gamma)
@@ -294,8 +300,11 @@ def _init(params: HinfParams) -> HinfState:
 
 
 def _step(params: HinfParams, state: HinfState, inputs: HinfInputs):
-    x1 = params.Phi @ state.x + params.Gamma @ jnp.atleast_1d(inputs.u_prev)
-    y = jnp.atleast_1d(inputs.y)
+    m, p, dtype = params.Gamma.shape[-1], params.C.shape[-2], params.Phi.dtype
+    u_prev = _checks.vector("inputs.u_prev", inputs.u_prev, m, dtype, what="one entry per column of Gamma",
+                            check_finite=False)  # fmt: skip
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
+    x1 = params.Phi @ state.x + params.Gamma @ u_prev
     if params.gain is None:
         P1 = predict_covariance(state.P, params.Phi, params.Q)
         x, P, K, innovation, n_missing = measurement_update(x1, P1, params.C, params.R, y)
@@ -308,7 +317,9 @@ def _step(params: HinfParams, state: HinfState, inputs: HinfInputs):
 
 
 hinf_filter = Observer(_init, _step)
-"""The a-posteriori H-infinity filter in the (init, step) protocol; inputs are :class:`HinfInputs`."""
+"""The a-posteriori H-infinity filter in the (init, step) protocol; inputs are :class:`HinfInputs` ``(u_{k-1}, y_k)`` of
+shapes ``(m,)`` and ``(p,)`` (scalars where the size is 1). Each step checks the inputs' shapes against the params
+while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -335,13 +346,12 @@ def gamma_bisection(Phi, C, Q, R, *, L=None, P0=None, num_steps: int = 200, rtol
     """
     Phi, C, L, Q, R, P0 = _as_matrices(Phi, C, L, Q, R, P0)
     _validate(Phi, C, L, Q, R, P0)
-    if not (rtol > 0):
-        raise ValueError(f"rtol must be positive, got {rtol}")
-    if int(num_steps) < 1:
-        raise ValueError(f"num_steps must be at least 1, got {num_steps}")
+    _checks.positive_scalar("rtol", rtol)
+    num_steps = _checks.count("num_steps", num_steps, minimum=1)
+    max_iters = _checks.count("max_iters", max_iters, minimum=1)
     dtype = jnp.result_type(Phi, C, L, Q, R, P0, float)
     Phi, C, L, Q, R, P0 = (jnp.asarray(M, dtype) for M in (Phi, C, L, Q, R, P0))
-    return _bisect(Phi, C, L, Q, R, P0, num_steps=int(num_steps), rtol=float(rtol), max_iters=int(max_iters))
+    return _bisect(Phi, C, L, Q, R, P0, num_steps=num_steps, rtol=float(rtol), max_iters=max_iters)
 
 
 @partial(jax.jit, static_argnames=("num_steps", "rtol", "max_iters"))

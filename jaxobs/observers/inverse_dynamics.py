@@ -95,11 +95,14 @@ def left_inverse(B, rho=None):
     ``rho`` (``(n_d, n)``, default 0) spans every left inverse. Traceable and differentiable.
     """
     B = jnp.atleast_2d(jnp.asarray(B))
-    n = B.shape[0]
+    _checks.matrix("B", B)
+    B = B.astype(_checks.float_dtype(B=B, rho=rho))
+    n, nd = B.shape
     B_dag = jnp.linalg.solve(B.T @ B, B.T)
     if rho is None:
         return B_dag
     rho = jnp.atleast_2d(jnp.asarray(rho, B.dtype))
+    _checks.matrix("rho", rho, shape=(nd, n))
     return B_dag + rho @ (jnp.eye(n, dtype=B.dtype) - B @ B_dag)
 
 
@@ -174,6 +177,7 @@ def fact35(M_e, A_e, *, rank: int | None = None, U=None, V=None, tol: float = 1e
             raise ValueError("rank must be given when M_e is traced (e.g. under jit or vmap)")
         s_np = np.asarray(s)
         rank = int(np.sum(s_np > tol * max(s_np[0], 1e-300)))
+    rank = _checks.count("rank", rank, maximum=n)
     T = U.T @ A_e @ Vt.T
     A11, A12, A21, A22 = T[:rank, :rank], T[:rank, rank:], T[rank:, :rank], T[rank:, rank:]
     if rank == n:
@@ -260,11 +264,14 @@ def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
 
 def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: InverseDynamicsInputs):
     A, B, C, K, F1, F2 = params.A, params.B, params.C, params.K, params.F1, params.F2
-    n = A.shape[-1]
+    n, p, dtype = A.shape[-1], C.shape[-2], params.x0.dtype
     h = params.h
     first = state.count == 0
-    y = jnp.atleast_1d(inputs.y).astype(params.x0.dtype)
-    gamma = jnp.zeros((n,), y.dtype) if inputs.gamma is None else jnp.asarray(inputs.gamma, y.dtype)
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
+    gamma = jnp.zeros((n,), dtype)
+    if inputs.gamma is not None:
+        gamma = _checks.vector("inputs.gamma", inputs.gamma, n, dtype, what="the value of Gamma(u, y), one entry "
+                               "per state", check_finite=False)  # fmt: skip
     sections = []
     for i in range(params.lowpass_order):
         s = jnp.where(first, y, params.lowpass_pole * state.lowpass[i] + (1 - params.lowpass_pole) * y)
@@ -282,7 +289,9 @@ def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: In
 
 
 inverse_dynamics_observer = Observer(_init, _step)
-"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`."""
+"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`
+``(y_k, Gamma(u_k, y_k))`` of shapes ``(p,)`` and ``(n,)``. Each step checks the inputs' shapes against the params
+while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 def make_inverse_dynamics(
@@ -316,14 +325,22 @@ def make_inverse_dynamics(
     Traceable (for gradient-based tuning of ``K, F1, F2, rho``): with traced arguments the checks are skipped.
     """
     A, B, C, K, F1 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K, F1))
+    F2, rho = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (F2, rho))
+    dtype = _checks.float_dtype(A=A, B=B, C=C, K=K, F1=F1, F2=F2, rho=rho, x0=x0, h=h, lowpass_pole=lowpass_pole)
+    _checks.matrix("A", A, square=True)
     n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     nd, ny = B.shape[1], C.shape[0]
     _checks.matrix("K", K, shape=(n, ny))
     _checks.matrix("F1", F1, shape=(nd, ny))
     _checks.positive_scalar("h", h)
+    if case is not None:
+        case = _checks.count("case", case, minimum=1, maximum=2)
+    lowpass_order = _checks.count("lowpass_order", lowpass_order)
+    _checks.shape("lowpass_pole", lowpass_pole, (), "one pole shared by the sections")
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
+    A, B, C, K, F1 = (M.astype(dtype) for M in (A, B, C, K, F1))
     concrete_plant = _checks.is_concrete(A, B, C)
     if concrete_plant:
         Bn, An, Cn = (np.asarray(M, dtype=float) for M in (B, A, C))
@@ -349,7 +366,7 @@ def make_inverse_dynamics(
             if not concrete_plant:
                 raise ValueError("F2 must be given for case=1 when B, C are traced")
             F2 = case1_f2(B, C)
-        F2 = jnp.atleast_2d(jnp.asarray(F2, A.dtype))
+        F2 = jnp.atleast_2d(jnp.asarray(F2, dtype))
         _checks.matrix("F2", F2, shape=(nd, ny))
         if concrete_plant:
             case1_f2(B, C)  # raises with the Case 2 hint when no F2 exists
@@ -362,28 +379,23 @@ def make_inverse_dynamics(
         if rho is not None:
             raise ValueError("rho is the free parameter of B+ and only applies to case=2")
         G1, G2, G3 = case1_gains(A, B, C, F1, F2)
-    elif case == 2:
+    else:
         if F2 is None:
             raise ValueError("F2 must be given for case=2 (Lemma 3.3)")
-        F2 = jnp.atleast_2d(jnp.asarray(F2, A.dtype))
+        F2 = jnp.atleast_2d(jnp.asarray(F2, dtype))
         _checks.matrix("F2", F2, shape=(nd, ny))
         if rho is not None:
-            rho = jnp.atleast_2d(jnp.asarray(rho, A.dtype))
+            rho = rho.astype(dtype)
             _checks.matrix("rho", rho, shape=(nd, n))
         G1, G2, G3 = case2_gains(A, B, C, F1, F2, rho)
-    else:
-        raise ValueError(f"case must be 1 or 2, got {case!r}")
     if check_stability and _checks.is_concrete(A, B, C, K, F1, F2, rho):
         _check_error_dynamics(case, *error_dynamics(A, B, C, K, G1, G2))
     if _checks.is_concrete(lowpass_pole):
         p = float(np.asarray(lowpass_pole))
         if not 0.0 <= p < 1.0:
             raise ValueError(f"lowpass_pole must lie in [0, 1), got {p}")
-    if lowpass_order < 0:
-        raise ValueError(f"lowpass_order must be >= 0, got {lowpass_order}")
-    x0 = jnp.zeros((n,), A.dtype) if x0 is None else jnp.asarray(x0, A.dtype)
     return InverseDynamicsParams(
-        A, B, C, K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, A.dtype), jnp.asarray(lowpass_pole, A.dtype), lowpass_order
+        A, B, C, K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, dtype), jnp.asarray(lowpass_pole, dtype), lowpass_order
     )
 
 

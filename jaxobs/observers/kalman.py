@@ -71,19 +71,25 @@ class KalmanOutputs(NamedTuple):
 
 
 def make_kalman(Phi, Gamma, C, Q, R, *, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
-    """Build and validate :class:`KalmanParams`. ``P0`` defaults to ``Q`` (``P_{-1} = Q_0``)."""
+    """Build and validate :class:`KalmanParams`: ``Phi`` (n, n), ``Gamma`` (n, m), ``C`` (p, n), ``Q`` (n, n),
+    ``R`` (p, p), ``x0`` (n,) (default zeros), ``P0`` (n, n) (default ``Q``: ``P_{-1} = Q_0``).
+
+    All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
+    becomes float64), so the filter's state keeps one dtype over a run.
+    """
     Phi, Gamma, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (Phi, Gamma, C))
+    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
+    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    dtype = _checks.float_dtype(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R, P0=P0, x0=x0)
+    _checks.matrix("Phi", Phi, square=True)
     n = Phi.shape[-1]
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
     _checks.matrix("Gamma", Gamma, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
-    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
     _checks.covariance("Q", Q, definite=False, size=n)
     _checks.covariance("R", R, definite=True, size=C.shape[0])
-    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
     _checks.covariance("P0", P0, definite=False, size=n)
-    x0 = jnp.zeros((n,), Phi.dtype) if x0 is None else jnp.asarray(x0)
-    params = KalmanParams(Phi, Gamma, C, Q, R, x0, P0)
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
+    params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype))
     return with_steady_state_gain(params) if steady_state else params
 
 
@@ -135,21 +141,31 @@ def _init(params: KalmanParams) -> KalmanState:
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
-    gain = params.gain if inputs.gain is None else inputs.gain
+    n, m = params.Gamma.shape[-2:]
+    p, dtype = params.C.shape[-2], params.Phi.dtype
+    u_prev = _checks.vector("inputs.u_prev", inputs.u_prev, m, dtype, what="one entry per column of Gamma",
+                            check_finite=False)  # fmt: skip
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
+    gain = params.gain
+    if inputs.gain is not None:
+        _checks.shape("inputs.gain", inputs.gain, (n, p), "a gain K_k of shape (n_states, n_outputs)")
+        gain = jnp.asarray(inputs.gain, dtype)
     x, P, K, innovation, n_missing, x_prior = predict_and_update(
-        state.x, state.P, inputs.u_prev, inputs.y, params.Phi, params.Gamma, params.C, params.Q, params.R, gain
+        state.x, state.P, u_prev, y, params.Phi, params.Gamma, params.C, params.Q, params.R, gain
     )
     state = KalmanState(x, P, state.missing + n_missing.astype(jnp.int32))
     return state, KalmanOutputs(x, x_prior, innovation, K)
 
 
 kalman_filter = Observer(_init, _step)
-"""The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs`."""
+"""The classical Kalman filter in the (init, step) protocol; inputs are :class:`KalmanInputs` ``(u_{k-1}, y_k, K_k)`` of
+shapes ``(m,)``, ``(p,)`` (scalars where the size is 1) and ``(n, p)`` or None. Each step checks the inputs' shapes
+against the params while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
 
 
 def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
-    """Filter a batch of sequences (leading batch axis on ``inputs.u_prev`` and ``inputs.y``) with one
-    model: the Riccati recursion runs once (:func:`jaxobs.riccati.covariance_sequence`) and only
+    """Filter a batch of sequences (``inputs.u_prev`` of shape ``(B, T, m)``, ``inputs.y`` of shape ``(B, T, p)``)
+    with one model: the Riccati recursion runs once (:func:`jaxobs.riccati.covariance_sequence`) and only
     the means are batched, the fast path for Monte-Carlo runs over noise seeds.
 
     The gain schedule assumes every measurement is present: a non-finite component has its
@@ -158,10 +174,14 @@ def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
     :data:`kalman_filter` instead (exact, one covariance per sequence).
     Returns ``(final_states, outputs)`` with the batch axis first.
     """
-    num_steps = inputs.y.shape[1]
+    y, u_prev = jnp.asarray(inputs.y), jnp.asarray(inputs.u_prev)
+    p, m = params.C.shape[-2], params.Gamma.shape[-1]
+    _checks.shape("inputs.y", y, (None, None, p), "(batch, time, outputs) measurements")
+    _checks.shape("inputs.u_prev", u_prev, (y.shape[0], y.shape[1], m), "(batch, time, inputs) like inputs.y")
+    num_steps = y.shape[1]
     schedule = covariance_sequence(params.P0, params.Phi, params.C, params.Q, params.R, num_steps)
 
     def one(u_prev, y):
         return run(kalman_filter, params, KalmanInputs(u_prev, y, schedule.K))
 
-    return jax.vmap(one)(inputs.u_prev, inputs.y)
+    return jax.vmap(one)(u_prev, y)

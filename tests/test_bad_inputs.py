@@ -1,0 +1,368 @@
+"""Bad inputs to the public API: a ``ValueError`` whose message starts with the name of the argument at fault
+(shapes, dtypes and counts are static, so they are checked before computing, under ``jit`` and ``vmap`` too),
+or a correct answer (integer and mixed-precision inputs are promoted to one floating dtype)."""
+
+import functools
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from jaxobs import closed_loop, design, lti, stability
+from jaxobs.observers import active, hinf, kalman
+from jaxobs.observers import inverse_dynamics as ido
+from jaxobs.observers.base import Observer, run
+
+H = 0.01
+NAN = float("nan")
+EYE2 = np.eye(2)
+
+
+# ------------------------------------------------------------------------- small models, built once
+
+
+@functools.cache
+def cont():
+    return lti.ss([[0.0, 1.0], [0.0, -2.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+
+
+@functools.cache
+def plant():
+    return lti.c2d(cont(), H)
+
+
+@functools.cache
+def gain():
+    return design.acker(plant().A, plant().B, [0.9, 0.9])
+
+
+@functools.cache
+def aob():
+    return active.make_aob(plant(), gain(), 1, 0.01)
+
+
+@functools.cache
+def kf():
+    return kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0)
+
+
+@functools.cache
+def kf2():
+    """Two outputs."""
+    return kalman.make_kalman(plant().A, plant().B, EYE2, EYE2, EYE2)
+
+
+@functools.cache
+def hf():
+    return hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma=10.0)
+
+
+# Liu & Peng 2002, §4.1 plant (eq. 28) with the §4.2 gains
+LP_A = np.array([[-9.754, -14.03], [0.5901, -12.622]])
+LP_B, LP_C, LP_K = np.array([[1.0], [0.0]]), np.array([[0.0, 1.0]]), np.array([[47.0], [10.0]])
+
+
+def make_id(**kwargs):
+    return ido.make_inverse_dynamics(LP_A, LP_B, LP_C, LP_K, -10.0, 1.0, h=H, case=2, **kwargs)
+
+
+@functools.cache
+def idp():
+    return make_id()
+
+
+def zeros(*shape):
+    return jnp.zeros(shape)
+
+
+def jit(f, *args):
+    """``f(*args)`` traced under ``jit``: a static-shape check must raise while tracing."""
+    return jax.jit(f)(*args)
+
+
+def kalman_run(params, u_prev, y, gain=None):
+    return run(kalman.kalman_filter, params, kalman.KalmanInputs(u_prev, y, gain))
+
+
+def aob_run(y, r):
+    return run(active.active_observer, aob(), active.ActiveObserverInputs(y, r))
+
+
+def wide_command(params, state, inputs):
+    """A controller step that returns two commands whatever the plant (for the command-size checks)."""
+    return state, active.ActiveObserverOutputs(*(jnp.zeros((2,)),) * 2, *(jnp.zeros(()),) * 5)
+
+
+WIDE = Observer(lambda params: jnp.zeros(()), wide_command)
+
+
+def mjx_1dof_wide_command():
+    from jaxobs.mjx import force_1dof
+
+    model = force_1dof.load_model()[1]
+    return force_1dof.closed_loop_rollout(model, jnp.zeros(()), jnp.ones(3), controller=WIDE, substeps=1)
+
+
+def mjx_6dof_wide_command():
+    from jaxobs.mjx import compliant_6dof
+
+    model = compliant_6dof.load_model()[1]
+    return compliant_6dof.closed_loop_rollout(model, jnp.zeros((6,)), jnp.ones((3, 6)), controller=WIDE, substeps=1)
+
+
+def mjx_1dof_jit_noise():
+    from jaxobs.mjx import force_1dof
+
+    model = force_1dof.load_model()[1]
+    return jit(lambda v: force_1dof.rollout(model, jnp.ones(3), noise=v, substeps=1).force, jnp.ones(4))
+
+
+# ------------------------------------------------------------------------------- the table of cases
+
+# fmt: off
+CASES = [
+    # lti: models and discretisation
+    ("ss-A-not-square", lambda: lti.ss(np.ones((2, 3)), np.ones((2, 1)), np.ones((1, 2))), "A"),
+    ("ss-B-rows", lambda: lti.ss(EYE2, np.ones((3, 1)), np.ones((1, 2))), "B"),
+    ("ss-C-columns", lambda: lti.ss(EYE2, np.ones((2, 1)), np.ones((1, 3))), "C"),
+    ("ss-D-shape", lambda: lti.ss(EYE2, np.ones((2, 1)), np.ones((1, 2)), np.ones((2, 2))), "D"),
+    ("ss-A-nan", lambda: lti.ss([[NAN]], [[1.0]], [[1.0]]), "A"),
+    ("ss-A-complex", lambda: lti.ss(1j * EYE2, np.ones((2, 1)), np.ones((1, 2))), "A"),
+    ("ss-dt-zero", lambda: lti.ss(EYE2, np.ones((2, 1)), np.ones((1, 2)), dt=0.0), "dt"),
+    ("ss-dt-bool", lambda: lti.ss(EYE2, np.ones((2, 1)), np.ones((1, 2)), dt=True), "dt"),
+    ("ss-jit-B-rows", lambda: jit(lambda B: lti.ss(EYE2, B, np.ones((1, 2))).A, zeros(3, 1)), "B"),
+    ("c2d-n_delay-half", lambda: lti.c2d(cont(), H, 0.0, n_delay=0.5), "n_delay"),
+    ("c2d-n_delay-bool", lambda: lti.c2d(cont(), H, 0.0, n_delay=True), "n_delay"),
+    ("c2d-n_delay-negative", lambda: lti.c2d(cont(), H, 0.0, n_delay=-1), "n_delay"),
+    ("c2d-n_delay-above-limit", lambda: lti.c2d(cont(), H, 0.0, n_delay=lti.MAX_DELAY_SLOTS + 1), "n_delay"),
+    ("c2d-delay-1e6", lambda: lti.c2d(cont(), H, 1e6), "delay"),
+    ("c2d-delay-nan", lambda: lti.c2d(cont(), H, NAN), "delay"),
+    ("c2d-h-1e300", lambda: lti.c2d(cont(), 1e300), "h"),
+    ("c2d-A-1e300", lambda: lti.c2d(lti.ss([[0.0, 1.0], [0.0, -1e300]], [[0.0], [1.0]], [[1.0, 0.0]]), H), "h"),
+    ("c2d-overflowing-mode", lambda: lti.c2d(lti.ss([[1e5, 0.0], [0.0, -2.0]], [[0.0], [1.0]], [[1.0, 0.0]]), H), "h"),
+    ("c2d-h-bool", lambda: lti.c2d(cont(), True), "h"),
+    ("c2d-vmap-n_delay-float", lambda: jax.vmap(lambda t: lti.c2d(cont(), H, t, n_delay=1.5).A)(zeros(2)), "n_delay"),
+    ("ctrb-B-rows", lambda: lti.ctrb(EYE2, np.ones((3, 1))), "B"),
+    ("obsv-C-columns", lambda: lti.obsv(EYE2, np.ones((1, 3))), "C"),
+    # design
+    ("acker-poles-2d", lambda: design.acker(plant().A, plant().B, [[0.5, 0.5]]), "poles"),
+    ("acker-poles-count", lambda: design.acker(plant().A, plant().B, [0.5, 0.5, 0.5]), "poles"),
+    ("acker-poles-nan", lambda: design.acker(plant().A, plant().B, [NAN, 0.5]), "poles"),
+    ("acker-jit-poles-count", lambda: jit(lambda p: design.acker(plant().A, plant().B, p), zeros(3)), "poles"),
+    ("acker-Gamma-two-inputs", lambda: design.acker(plant().A, EYE2, [0.5, 0.5]), "Gamma"),
+    ("place-zero_input_columns-float", lambda: design.place(EYE2, EYE2, [0.1, 0.2], zero_input_columns=(0.5,)),
+     "zero_input_columns"),
+    ("place-poles-2d", lambda: design.place(EYE2, EYE2, [[0.1, 0.2]]), "poles"),
+    ("critically_damped-n_fast-float", lambda: design.critically_damped_poles(H, 0.1, 1.5), "n_fast"),
+    ("critically_damped-n_fast-negative", lambda: design.critically_damped_poles(H, 0.1, -1), "n_fast"),
+    ("critically_damped-tau_c-zero", lambda: design.critically_damped_poles(H, 0.0, 1), "tau_c"),
+    ("critically_damped-h-negative", lambda: design.critically_damped_poles(-H, 0.1, 1), "h"),
+    ("dc_compensation-target-rows", lambda: design.dc_compensation(np.ones((2, 1)), np.eye(3)), "dc_target"),
+    ("dc_compensation-target-nan", lambda: design.dc_compensation(NAN, 2.0), "dc_target"),
+    # stability
+    ("margins-num_points-1", lambda: stability.stability_margins(plant_loop(), num_points=1), "num_points"),
+    ("margins-num_points-float", lambda: stability.stability_margins(plant_loop(), num_points=64.0), "num_points"),
+    ("margins-max_crossings-0", lambda: stability.stability_margins(plant_loop(), max_crossings=0), "max_crossings"),
+    ("margins-bisection_steps-negative", lambda: stability.stability_margins(plant_loop(), bisection_steps=-1),
+     "bisection_steps"),
+    ("margins-continuous", lambda: stability.stability_margins(cont()), "sys"),
+    ("loop_transfer-continuous-plant", lambda: stability.loop_transfer(cont(), linear_ctrl()), "plant"),
+    ("spectral_radius-not-square", lambda: stability.spectral_radius(np.ones((2, 3))), "A"),
+    ("unstructured_mismatch-negative-norm",
+     lambda: stability.unstructured_mismatch(jax.random.key(0), EYE2, np.ones((2, 1)), -1.0, 0.1), "phi_norm"),
+    # Kalman filter
+    ("make_kalman-x0-length", lambda: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=zeros(3)),
+     "x0"),
+    ("make_kalman-x0-nan", lambda: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=[NAN, 0.0]),
+     "x0"),
+    ("make_kalman-jit-x0-length",
+     lambda: jit(lambda x0: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=x0).x0, zeros(3)), "x0"),
+    ("make_kalman-C-columns", lambda: kalman.make_kalman(plant().A, plant().B, np.ones((1, 3)), EYE2, 1.0), "C"),
+    ("kalman-y-3-outputs-for-1", lambda: kalman_run(kf(), zeros(5, 1), zeros(5, 3)), "inputs.y"),
+    ("kalman-jit-y-3-outputs-for-1", lambda: jit(lambda y: kalman_run(kf(), zeros(5, 1), y), zeros(5, 3)), "inputs.y"),
+    ("kalman-jit-y-1-output-for-2", lambda: jit(lambda y: kalman_run(kf2(), zeros(5, 1), y), zeros(5, 1)), "inputs.y"),
+    ("kalman-jit-u_prev-2-for-1", lambda: jit(lambda u: kalman_run(kf(), u, zeros(5, 1)), zeros(5, 2)),
+     "inputs.u_prev"),
+    ("kalman-gain-schedule-shape", lambda: kalman_run(kf(), zeros(5, 1), zeros(5, 1), zeros(5, 3, 1)), "inputs.gain"),
+    ("filter_shared_model-y-without-batch",
+     lambda: kalman.filter_shared_model(kf(), kalman.KalmanInputs(zeros(5, 1), zeros(5, 1))), "inputs.y"),
+    ("filter_shared_model-u_prev-length",
+     lambda: kalman.filter_shared_model(kf(), kalman.KalmanInputs(zeros(2, 4, 1), zeros(2, 5, 1))), "inputs.u_prev"),
+    # active observer
+    ("make_aob-order-1.5", lambda: active.make_aob(plant(), gain(), 1.5, 0.01), "order"),
+    ("make_aob-order-2.0", lambda: active.make_aob(plant(), gain(), 2.0, 0.01), "order"),
+    ("make_aob-order-bool", lambda: active.make_aob(plant(), gain(), True, 0.01), "order"),
+    ("make_aob-order-0", lambda: active.make_aob(plant(), gain(), 0, 0.01), "order"),
+    ("make_aob-order-str", lambda: active.make_aob(plant(), gain(), "1", 0.01), "order"),
+    ("make_aob-x0-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, x0=zeros(2)), "x0"),
+    ("make_aob-x0-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, x0=[0.0, NAN, 0.0]), "x0"),
+    ("make_aob-q_plant-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, q_plant=np.ones(3)), "q_plant"),
+    ("make_aob-q_active-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, q_active=np.ones(2)), "q_active"),
+    ("make_aob-alpha-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, alpha=[0.1, 0.2]), "alpha"),
+    ("make_aob-alpha-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, alpha=NAN), "alpha"),
+    ("make_aob-active-vector", lambda: active.make_aob(plant(), gain(), 1, 0.01, active=[1.0, 0.0]), "active"),
+    ("make_aob-active-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, active=NAN), "active"),
+    ("make_aob-jit-L_r-columns", lambda: jit(lambda L: active.make_aob(plant(), L, 1, 0.01).L, zeros(1, 3)), "L_r"),
+    ("active_state_model-order-float", lambda: active.active_state_model(1.5), "order"),
+    ("active_state_model-jit-order-traced", lambda: jit(active.active_state_model, 2), "order"),
+    ("augment-order-negative", lambda: active.augment(plant(), -1), "order"),
+    ("evolution_variance-order-float", lambda: active.evolution_variance(1e-3, 2.5), "order"),
+    ("aob_noise_covariance-n_plant-float", lambda: active.aob_noise_covariance(1.5, 1, 1, 1.0, 1.0), "n_plant"),
+    ("set_active-vector", lambda: active.set_active(aob(), [1.0, 0.0]), "on"),
+    ("set_active-nan", lambda: active.set_active(aob(), NAN), "on"),
+    ("aob-jit-y-3-outputs-for-1", lambda: jit(lambda y: aob_run(y, zeros(5, 1)), zeros(5, 3)), "inputs.y"),
+    ("aob-jit-r-2-for-1-input", lambda: jit(lambda r: aob_run(zeros(5, 1), r), zeros(5, 2)), "inputs.r"),
+    ("classify_strategy-gain-shape", lambda: active.classify_strategy(np.ones((3, 1)), np.ones((1, 2))), "gain"),
+    # H-infinity filter
+    ("make_hinf-x0-length", lambda: hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma=10.0,
+                                                    x0=zeros(3)), "x0"),
+    ("make_hinf-gamma-str", lambda: hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma="10"), "gamma"),
+    ("hinf-jit-y-3-outputs-for-1",
+     lambda: jit(lambda y: run(hinf.hinf_filter, hf(), hinf.HinfInputs(zeros(5, 1), y)), zeros(5, 3)), "inputs.y"),
+    ("hinf_riccati_sequence-num_steps-float",
+     lambda: hinf.hinf_riccati_sequence(EYE2, plant().A, plant().C, None, EYE2, 1.0, 10.0, 2.5), "num_steps"),
+    ("gamma_bisection-max_iters-0", lambda: hinf.gamma_bisection(plant().A, plant().C, EYE2, 1.0, max_iters=0),
+     "max_iters"),
+    # inverse-dynamics observer
+    ("make_inverse_dynamics-x0-length", lambda: make_id(x0=zeros(3)), "x0"),
+    ("make_inverse_dynamics-lowpass_order-float", lambda: make_id(lowpass_order=1.5), "lowpass_order"),
+    ("make_inverse_dynamics-lowpass_pole-vector", lambda: make_id(lowpass_pole=[0.5, 0.5]), "lowpass_pole"),
+    ("make_inverse_dynamics-case-float", lambda: ido.make_inverse_dynamics(LP_A, LP_B, LP_C, LP_K, -10.0, 1.0, h=H,
+                                                                           case=2.0), "case"),
+    ("make_inverse_dynamics-case-3", lambda: ido.make_inverse_dynamics(LP_A, LP_B, LP_C, LP_K, -10.0, 1.0, h=H,
+                                                                       case=3), "case"),
+    ("inverse_dynamics-jit-gamma-length",
+     lambda: jit(lambda g: run(ido.inverse_dynamics_observer, idp(), ido.InverseDynamicsInputs(zeros(5, 1), g)),
+                 zeros(5, 3)), "inputs.gamma"),
+    ("inverse_dynamics-jit-y-2-for-1",
+     lambda: jit(lambda y: run(ido.inverse_dynamics_observer, idp(), ido.InverseDynamicsInputs(y)), zeros(5, 2)),
+     "inputs.y"),
+    ("left_inverse-rho-shape", lambda: ido.left_inverse(LP_B, np.ones((3, 3))), "rho"),
+    ("fact35-rank-above-size", lambda: ido.fact35(EYE2, -EYE2, rank=5), "rank"),
+    # closed loop
+    ("simulate-disturbance-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), disturbance=zeros(7)),
+     "disturbance"),
+    ("simulate-noise-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), noise=zeros(7)), "noise"),
+    ("simulate-reference-2-for-1-input", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 2)), "reference"),
+    ("simulate-x0-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), x0=zeros(3)), "x0"),
+    ("simulate-reference-nan", lambda: closed_loop.simulate(plant(), aob(), jnp.full((10, 1), NAN)), "reference"),
+    ("simulate-jit-reference-2-for-1-input", lambda: jit(lambda r: closed_loop.simulate(plant(), aob(), r).y,
+                                                         zeros(10, 2)), "reference"),
+    ("simulate-jit-disturbance-length",
+     lambda: jit(lambda d: closed_loop.simulate(plant(), aob(), zeros(10, 1), disturbance=d).y, zeros(9, 1)),
+     "disturbance"),
+    ("simulate-controller-command-size", lambda: closed_loop.simulate(plant(), None, zeros(5, 1), controller=WIDE),
+     "controller_params"),
+    ("ideal_response-reference-2-for-1-input", lambda: closed_loop.ideal_response(plant(), gain(), zeros(10, 2)),
+     "reference"),
+    ("ideal_response-L-columns", lambda: closed_loop.ideal_response(plant(), np.ones((1, 3)), zeros(10)), "L"),
+    ("ideal_response-jit-reference", lambda: jit(lambda r: closed_loop.ideal_response(plant(), gain(), r),
+                                                 zeros(10, 3)), "reference"),
+    ("measurement_noise-num_steps-float", lambda: closed_loop.measurement_noise(jax.random.key(0), 2.5, 1.0),
+     "num_steps"),
+    ("measurement_noise-R-negative", lambda: closed_loop.measurement_noise(jax.random.key(0), 3, -1.0), "R"),
+    ("padded-n-float", lambda: linear_ctrl().padded(4.5), "n"),
+    ("linear_controller-jit-y-3-for-1",
+     lambda: jit(lambda y: run(closed_loop.linear_controller, linear_ctrl(), active.ActiveObserverInputs(y, zeros(5))),
+                 zeros(5, 3)), "inputs.y"),
+    # MJX rollouts
+    ("mjx-1dof-controller-command-size", mjx_1dof_wide_command, "controller_params"),
+    ("mjx-6dof-controller-command-size", mjx_6dof_wide_command, "controller_params"),
+    ("mjx-1dof-jit-noise-length", mjx_1dof_jit_noise, "noise"),
+]
+# fmt: on
+
+
+def plant_loop():
+    """A stable discrete SISO loop transfer function."""
+    return lti.ss(0.5, 1.0, 0.3, dt=H)
+
+
+@functools.cache
+def linear_ctrl():
+    return closed_loop.LinearController(plant().A, plant().B, plant().C, jnp.zeros((2, 1)), gain())
+
+
+@pytest.mark.parametrize("call, name", [pytest.param(f, n, id=i) for i, f, n in CASES])
+def test_bad_input_raises_value_error_naming_the_argument(call, name):
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
+        call()
+
+
+def test_case_table_is_large_and_unique():
+    ids = [case[0] for case in CASES]
+    assert len(ids) >= 60 and len(set(ids)) == len(ids)
+
+
+# ----------------------------------------------------------------------------------- correct answers
+
+
+def test_acker_with_integer_arrays_equals_the_float_result():
+    """Integer Phi, Gamma (and poles): the characteristic polynomial is no longer truncated to integers."""
+    L_int = design.acker(np.array([[1, 1], [0, 1]]), np.array([[0], [1]]), [0.5, 0.5])
+    L_float = design.acker(np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[0.0], [1.0]]), [0.5, 0.5])
+    np.testing.assert_allclose(L_int, [[0.25, 1.0]], rtol=1e-14)
+    np.testing.assert_array_equal(L_int, L_float)
+    assert L_int.dtype == jnp.float64
+    np.testing.assert_allclose(design.acker(np.array([[1, 1], [0, 1]]), np.array([0, 1]), np.array([0, 0])), [[1, 2]])
+
+
+def test_integer_and_mixed_precision_models_are_promoted_to_one_float_dtype():
+    """ss/c2d and the observer constructors cast integer and float32/float64 mixes to float64, and the filters
+    run (before: scan carry errors) with the results of the same model given in float64."""
+    A32 = np.asarray(plant().A, np.float32)
+    A = A32.astype(np.float64)
+    sys_int = lti.ss([[0, 1], [0, -2]], [[0], [1]], [[1, 0]])
+    assert {M.dtype for M in (sys_int.A, sys_int.B, sys_int.C, sys_int.D)} == {jnp.dtype("float64")}
+    np.testing.assert_array_equal(lti.c2d(sys_int, H).A, plant().A)
+
+    y = jnp.sin(jnp.arange(8.0))[:, None]
+    u = jnp.zeros((8, 1))
+    mixed = kalman.make_kalman(A32, plant().B, plant().C, EYE2, 1.0, x0=np.zeros(2, np.float32))
+    assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(mixed)} == {jnp.dtype("float64")}
+    reference = kalman.make_kalman(A, plant().B, plant().C, EYE2, 1.0)
+    np.testing.assert_array_equal(kalman_run(mixed, u, y)[1].x, kalman_run(reference, u, y)[1].x)
+
+    plant32 = lti.StateSpace(*(jnp.asarray(M, jnp.float32) for M in (plant().A, plant().B, plant().C, plant().D)), H)
+    params = active.make_aob(plant32, gain(), 1, 0.01)
+    assert params.Phi.dtype == jnp.float64 and params.x0.dtype == jnp.float64
+    out = run(active.active_observer, params, active.ActiveObserverInputs(y, u))[1]
+    assert out.x.dtype == jnp.float64 and np.all(np.isfinite(out.x))
+
+    h_mixed = hinf.make_hinf(A32, plant().B, plant().C, EYE2, 1, gamma=10)
+    h_ref = hinf.make_hinf(A, plant().B, plant().C, EYE2, 1.0, gamma=10.0)
+    run_h = lambda p: run(hinf.hinf_filter, p, hinf.HinfInputs(u, y))[1].x
+    np.testing.assert_array_equal(run_h(h_mixed), run_h(h_ref))
+
+    id_int = ido.make_inverse_dynamics([[-10, -14], [1, -13]], [[1], [0]], [[0, 1]], [[47], [10]], -10, 1, h=1, case=2)
+    assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(id_int)} == {jnp.dtype("float64")}
+
+
+def test_c2d_of_a_stiff_model_matches_scipy():
+    """h ||A|| = 1e7, beyond the 16 squarings of jax.scipy.linalg.expm's default (NaN before), is discretised."""
+    sys = lti.ss([[0.0, 1.0], [0.0, -1e9]], [[0.0], [1e9]], [[1.0, 0.0]])
+    d = lti.c2d(sys, H)
+    block = np.zeros((3, 3))
+    block[:2, :2], block[:2, 2:] = np.asarray(sys.A), np.asarray(sys.B)
+    E = scipy.linalg.expm(block * H)
+    np.testing.assert_allclose(d.A, E[:2, :2], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(d.B, E[:2, 2:], rtol=1e-9, atol=1e-15)
+
+
+def test_the_documented_shorthands_still_work():
+    """A (T,) series for a single input/output and a scalar measurement for one output are the documented
+    shorthands (no other broadcast is): same results as the (T, 1) forms. A concrete 0-d integer array is a count."""
+    np.testing.assert_array_equal(lti.c2d(cont(), H, n_delay=jnp.int32(2)).A, lti.c2d(cont(), H, n_delay=2).A)
+    r = jnp.linspace(0.0, 1.0, 6)
+    full = closed_loop.simulate(plant(), aob(), r[:, None], noise=0.01 * r[:, None])
+    short = closed_loop.simulate(plant(), aob(), r, noise=0.01 * r)
+    np.testing.assert_array_equal(full.y, short.y)
+    ideal = closed_loop.ideal_response(plant(), gain(), r)
+    np.testing.assert_array_equal(ideal, closed_loop.ideal_response(plant(), gain(), r[:, None]))
+    state = kalman.kalman_filter.init(kf())
+    a = kalman.kalman_filter.step(kf(), state, kalman.KalmanInputs(0.0, 1.0))[1].x
+    b = kalman.kalman_filter.step(kf(), state, kalman.KalmanInputs(jnp.zeros(1), jnp.ones(1)))[1].x
+    np.testing.assert_array_equal(a, b)
