@@ -114,6 +114,7 @@ def _tune(args) -> int:
     handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
     logging.getLogger("jaxobs").addHandler(handler)
     logging.getLogger("jaxobs").setLevel(logging.INFO)
+    logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     config = _config(args, tuning.validate_config)
     out = Path(args.out)
     with locked_out_dir(out):
