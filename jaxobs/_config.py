@@ -120,9 +120,9 @@ def check_choice(config: dict, source: str, key: str, choices):
         fail(source, key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
 
 
-def check_memory(source: str, key: str, nbytes: int, what: str) -> None:
+def check_memory(source: str, key: str, nbytes: int, what: str, hint: str = "") -> None:
     """``what`` (set by ``key``) must fit in the memory available: ``nbytes`` is the configuration's estimate."""
     try:
-        _check_memory(nbytes, what, hint=f"lower {key}")
+        _check_memory(nbytes, what, hint=hint or f"lower {key}")
     except JobError as exc:
         fail(source, key, str(exc))

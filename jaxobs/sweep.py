@@ -520,7 +520,7 @@ def run_configured_sweep(
     before anything is computed otherwise)."""
     _check_args(sampler, evaluate, num_configs, config["chunk_size"], config["seed"], config)
     layout = _row(sampler, evaluate, config["seed"])[1]
-    check_memory(2 * num_configs * _row_nbytes(layout), f"the {num_configs} rows of the sweep's report",
+    check_memory(2 * num_configs * _row_nbytes(layout), f"the report of {num_configs} configurations",
                  hint=f"lower {size_key}" if size_key else "")  # fmt: skip
     identity = json.loads(json.dumps(config))
     if size_key is not None:
@@ -554,7 +554,7 @@ def load_results(out_dir) -> dict[str, np.ndarray]:
             "rerun the same run_sweep call to resume it"
         )
     row_nbytes = sum(np.dtype(dtype).itemsize for dtype in manifest["columns"].values())
-    check_memory(2 * manifest["num_configs"] * row_nbytes, f"the {manifest['num_configs']} rows of {out_dir}")
+    check_memory(2 * manifest["num_configs"] * row_nbytes, f"loading the {manifest['num_configs']} rows of {out_dir}")
     tables = []
     for chunk in range(num_chunks):
         data, why = _read_chunk(out_dir, chunk, completed[str(chunk)])

@@ -381,8 +381,9 @@ def _meta_problem(meta) -> str | None:
     return None
 
 
-def _load_checkpoint(path: Path, template: dict, fingerprint: str) -> tuple[dict, dict]:
-    """``(trees, meta)`` from ``path``; :class:`CheckpointError` naming the file for anything unusable."""
+def _load_checkpoint(path: Path, template: dict) -> tuple[dict, dict]:
+    """``(trees, meta)`` from ``path``; :class:`CheckpointError` naming the file for anything unusable but the
+    fingerprint (checked by the caller)."""
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
@@ -395,11 +396,6 @@ def _load_checkpoint(path: Path, template: dict, fingerprint: str) -> tuple[dict
     problem = _meta_problem(meta)
     if problem is not None:
         raise CheckpointError(f"{path}: damaged checkpoint ({problem}); delete it to start over")
-    if meta["fingerprint"] != fingerprint:
-        raise CheckpointError(
-            f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
-            "to start over"
-        )
     for i, (new, old) in enumerate(zip(loaded, leaves, strict=True)):
         if new.shape != np.shape(old):
             raise CheckpointError(f"{path}: array {i} has shape {new.shape}, expected {np.shape(old)}")
@@ -449,20 +445,26 @@ def tune(
     optimizer = settings.optax_transform()
     batch = problem.batch_size(problem.train)
     theta0 = _strong(problem.theta0)
-    evaluation, sound_gradient = _evaluations(problem, settings)
-    lowered = jax.jit(evaluation).lower(theta0)
-    sound_gradient = sound_gradient and jax.jit(sound_gradient)  # compiled only if ever needed
-    fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
     zeros = jax.tree.map(jnp.zeros_like, theta0)
     trees = {"theta": theta0, "anchor": theta0, "update": zeros, "best": theta0, "opt": optimizer.init(theta0)}
     meta = {"evaluations": 0, "scale": 1.0, "best_objective": math.inf, "best_diverged": batch, "diverged": batch,
             "since_best": 0, "rejections": 0, "seconds": 0.0}  # fmt: skip
     history: list = []
     path = Path(checkpoint) if checkpoint is not None else None
-    if path is not None and path.exists():
-        trees, meta = _load_checkpoint(path, trees, fingerprint)
+    resume = path is not None and path.exists()
+    if resume:  # a damaged checkpoint is reported before the evaluation is traced
+        trees, meta = _load_checkpoint(path, trees)
         history = meta.pop("history")
-        del meta["fingerprint"]
+    evaluation, sound_gradient = _evaluations(problem, settings)
+    lowered = jax.jit(evaluation).lower(theta0)
+    sound_gradient = sound_gradient and jax.jit(sound_gradient)  # compiled only if ever needed
+    fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
+    if resume:
+        if meta.pop("fingerprint") != fingerprint:
+            raise CheckpointError(
+                f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
+                "to start over"
+            )
         logger.info("resuming from %s at evaluation %d", path, meta["evaluations"])
     evaluate_with_grad = compile_checked(
         lowered, f"one evaluation of the {batch} training rollouts",

@@ -133,6 +133,7 @@ def test_a_run_that_cannot_fit_in_memory_exits_2_with_the_estimate(tmp_path, cap
     line = _one_line(capsys)
     assert line.startswith(f"jaxobs tune: {path}: plants: the sensor noise of 1000000000016 plants over 250 steps "
                            "needs about 2 PB (estimated), more than the ")  # fmt: skip
+    assert line.endswith("; lower plants.train, plants.heldout or scenario.duration")
     assert not (tmp_path / "out").exists()
 
 

@@ -63,8 +63,8 @@ def config_tag(config: dict) -> str:
 def check_plant_memory(config: dict, source: str, steps: int, channels: int) -> None:
     """The sampled plants' noise, ``(train + heldout) x steps x channels`` float64 values, must fit in memory."""
     count = config["plants"]["train"] + config["plants"]["heldout"]
-    check_memory(source, "plants", 8 * count * steps * channels,
-                 f"the sensor noise of {count} plants over {steps} steps")  # fmt: skip
+    check_memory(source, "plants", 8 * count * steps * channels, f"the sensor noise of {count} plants over {steps} "
+                 "steps", hint="lower plants.train, plants.heldout or scenario.duration")  # fmt: skip
 
 
 def search_spread(config: dict) -> float:
