@@ -8,12 +8,14 @@ jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduc
 A user error (a bad config file or key, an output directory that cannot be written or is held by another
 jaxobs process, a run that cannot fit in memory, a sweep or checkpoint of something else in DIR) prints one
 line and exits with status 2; the output directory is checked and locked before anything is built or compiled.
-Ctrl-C prints where to resume and exits with status 130. Only a bug shows a traceback.
+Ctrl-C prints where to resume and exits with status 130 (at once, skipping the interpreter's shutdown, when
+run as the command). Only a bug shows a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -154,6 +156,7 @@ def main(argv=None) -> int:
     rep.add_argument("--list", action="store_true", help="list the available reproductions")
     rep.add_argument("--out", default="out", help="output directory (default: out)")
     rep.set_defaults(func=_reproduce)
+    as_command = argv is None
     args = parser.parse_args(argv)
     from jaxobs.tune import CheckpointError, TuningError
 
@@ -163,6 +166,10 @@ def main(argv=None) -> int:
         resumable = args.command != "reproduce"
         message = str(exc) or ("interrupted; " + RESUME_HINT if resumable else "interrupted")
         print(f"jaxobs {args.command}: {message}", file=sys.stderr)
+        if as_command:  # the process ends here: after Ctrl-C stopped an XLA compilation, jaxlib 0.10 can crash
+            sys.stdout.flush()  # (SIGSEGV) while the interpreter shuts down; every file is already in place
+            sys.stderr.flush()
+            os._exit(130)
         return 130
     except (JobError, CheckpointError, TuningError) as exc:  # ConfigError and SweepError are JobErrors
         print(f"jaxobs {args.command}: {exc}", file=sys.stderr)
