@@ -653,9 +653,9 @@ def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneS
         quantiles = np.quantile(finite, [0.5, 0.9, 1.0])
         stats = {"mean": float(np.mean(finite)), "cvar": float(cvar(jnp.asarray(finite), settings.cvar_alpha)),
                  "p50": float(quantiles[0]), "p90": float(quantiles[1]), "max": float(quantiles[2])}  # fmt: skip
+    objective = float(robust_objective(penalised, settings.objective, settings.cvar_alpha)) if finite.size else math.inf
     return {
-        "objective": float(robust_objective(penalised, settings.objective, settings.cvar_alpha))
-        if finite.size else math.inf,
+        "objective": objective,
         "finite_fraction": float(finite.size / failed.size),
         "diverged": int(failed.sum()),
         **stats,
