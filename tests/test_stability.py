@@ -276,6 +276,21 @@ def test_delay_margin_is_the_smallest_destabilising_input_delay():
         assert below < 1.0 < above
 
 
+def test_one_sample_of_delay_destabilises_a_loop_with_nyquist_gain_above_one():
+    """A whole-sample delay multiplies H(-1) by -1: when |H(-1)| > 1 the end of the Nyquist plot jumps across the
+    critical point between 0 and 1 sample, so one sample of extra delay destabilises the loop even where every gain
+    crossover allows more; the delay margin is then min(python-control formula, dt)."""
+    capped = 0
+    for A, B, C, pm, wgc in _loops_with_several_gain_crossovers(4, nyquist_gain_above_one=True):
+        m = margins_jit(ss(A, B, C, dt=DT))
+        formula = np.min(np.radians(np.mod(pm, 360.0)) / wgc)
+        assert float(m.delay_margin) == pytest.approx(min(formula, DT), rel=1e-7)
+        capped += formula > DT
+        stable, one_sample = _destabilising_samples(A, B, C, (0, 1))
+        assert stable < 1.0 < one_sample
+    assert capped >= 2  # the cap, not a gain crossover, decides on some of these loops
+
+
 @pytest.mark.slow
 def test_margins_under_jit_vmap_and_grad():
     A, B, C, _ = _random_loops(1, seed=7)[0]
