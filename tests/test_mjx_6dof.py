@@ -255,7 +255,7 @@ def test_bad_inputs_raise(model, controllers):
         c6.design(c6.peg_on_hole_scenario().plant)  # K_ry = 0: nothing to design a moment loop on
     with jax.enable_x64(False), pytest.raises(ValueError, match="float64"):
         c6.design()  # float32 would give near-zero gains for the 1e-12 Q entries
-    with pytest.raises(ValueError, match="tp"):
+    with pytest.raises(ValueError, match=r"\btp\b"):
         c6.Compliant6Params(tp=np.array(-0.032)).validate()
     with pytest.raises(ValueError, match="servo_gain"):
         c6.with_params(model, c6.Compliant6Params(servo_gain=np.array(1e-3)))

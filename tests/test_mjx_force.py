@@ -43,7 +43,8 @@ def analytic_force(u, Ks=EXAMPLE1.Ks, Tp=EXAMPLE1.Tp):
 def test_nominal_force_step_matches_analytic_plant(nominal, run):
     """Seed 003 eq. 56-58 (Ks = 3 N/mm, Tp = 32 ms, Td = 5 h, h = 8 ms) is a reduction of the MJX model:
     the force step (a 0.48 s, 2 mm/s velocity pulse; step 2.88 N) agrees with RMS difference 0.14 % of the
-    step (max 0.21 %), the README's figure; required < 5 %. The rest is semi-implicit Euler at 1 ms and the Ks/kv leak."""
+    step (max 0.21 %), the README's figure; required < 5 %. The rest is semi-implicit Euler at 1 ms and the Ks/kv
+    leak."""
     _, model = nominal
     assert CONTROL_PERIOD == EXAMPLE1.h
     u = pulse()
@@ -145,11 +146,11 @@ def test_gradients_finite_and_match_finite_differences(nominal):
 def test_bad_inputs_raise(nominal):
     _, model = nominal
     u = jnp.zeros(4)
-    with pytest.raises(ValueError, match="ks"):
+    with pytest.raises(ValueError, match=r"\bks\b"):
         load_model(ForcePlantParams(ks=-3.0))
-    with pytest.raises(ValueError, match="ks"):
+    with pytest.raises(ValueError, match=r"\bks\b"):
         with_params(model, ForcePlantParams(ks=-1.0))
-    with pytest.raises(ValueError, match="tp"):
+    with pytest.raises(ValueError, match=r"\btp\b"):
         load_model(ForcePlantParams(tp=0.0))
     with pytest.raises(ValueError, match="damping"):
         with_params(model, ForcePlantParams(damping=-0.1))

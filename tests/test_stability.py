@@ -351,7 +351,7 @@ def test_bad_input():
         stability_margins(ss(A, B, C))
     with pytest.raises(ValueError, match="SISO"):
         stability_margins(ss(A, np.ones((2, 2)), C, dt=0.1))
-    with pytest.raises(ValueError, match="K"):
+    with pytest.raises(ValueError, match=r"^K\b.*\(3, 1\)"):
         loop_transfer(ss(A, B, C, dt=0.1), LinearController(A, B, C, np.ones((3, 1)), np.ones((1, 2))))
     plant, L_r = nominal_design()
     with pytest.raises(ValueError, match="steady-state"):
