@@ -643,10 +643,11 @@ def plot(results: dict, path: Path) -> None:
         if target:
             ax.hlines(target["min_ratio"], start - 0.45, x - 0.55, colors="k", linestyles="--")
             ax.text(
-                start - 0.45,
+                x - 0.55,
                 target["min_ratio"],
                 f"target {target['min_ratio']:g}x vs {target['peer']}",
                 fontsize=7,
+                ha="right",
                 va="bottom",
             )
         ax.annotate(

@@ -250,10 +250,11 @@ class NumpyPeer:
         dist_in = np.concatenate([Gamma[:, :, 0], np.zeros((N, m + 1))], axis=1)
         z = np.zeros((N, n + m + 1))
         err = np.zeros(N)
-        for k in range(self.steps):
-            err += (z[:, 0] - self.desired[k]) ** 2
-            z = (M @ z[:, :, None])[:, :, 0] + ref_in + dist_in * self.disturbance[k] + noise_in * noise[:, k : k + 1]
-        with np.errstate(invalid="ignore", over="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):  # unstable loops overflow to inf, as in jaxobs
+            for k in range(self.steps):
+                err += (z[:, 0] - self.desired[k]) ** 2
+                inputs = ref_in + dist_in * self.disturbance[k] + noise_in * noise[:, k : k + 1]
+                z = (M @ z[:, :, None])[:, :, 0] + inputs
             rms = np.sqrt(err / self.steps)
         return {"spectral_radius": rho, "rms_force_error": np.where(np.isfinite(rms), rms, np.inf)}
 
