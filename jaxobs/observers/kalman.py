@@ -172,7 +172,8 @@ def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
     innovation zeroed (the update uses the scheduled gain for the others) and is counted in
     ``state.missing``. Where missing data are common, ``vmap`` :func:`run` with
     :data:`kalman_filter` instead (exact, one covariance per sequence).
-    Returns ``(final_states, outputs)`` with the batch axis first.
+    Returns ``(final_states, outputs)`` with the batch axis first; every final state carries the
+    schedule's last covariance.
     """
     y, u_prev = jnp.asarray(inputs.y), jnp.asarray(inputs.u_prev)
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
@@ -184,4 +185,6 @@ def filter_shared_model(params: KalmanParams, inputs: KalmanInputs):
     def one(u_prev, y):
         return run(kalman_filter, params, KalmanInputs(u_prev, y, schedule.K))
 
-    return jax.vmap(one)(u_prev, y)
+    final, outputs = jax.vmap(one)(u_prev, y)
+    P = schedule.P[-1] if num_steps else params.P0  # a given gain leaves the state's P untouched
+    return final._replace(P=jnp.broadcast_to(P, final.P.shape)), outputs
