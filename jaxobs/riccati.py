@@ -226,9 +226,11 @@ def _dot2(a, b):
     k = a.shape[-1]
     a1, a2, a3 = _slices(a, -1, k)
     b1, b2, b3 = _slices(b, -2, k)
-    s, e1 = _two_sum(a1 @ b1, a1 @ b2)
-    s, e2 = _two_sum(s, a2 @ b1)
-    return _two_sum(s, (e1 + e2) + (a1 @ b3 + a2 @ (b2 + b3) + a3 @ b))
+    # the six slice products as one batched product (one kernel to compile, not six)
+    P = jnp.stack([a1, a1, a2, a1, a2, a3], axis=-3) @ jnp.stack([b1, b2, b1, b3, b2 + b3, b], axis=-3)
+    s, e1 = _two_sum(P[..., 0, :, :], P[..., 1, :, :])
+    s, e2 = _two_sum(s, P[..., 2, :, :])
+    return _two_sum(s, (e1 + e2) + (P[..., 3, :, :] + P[..., 4, :, :] + P[..., 5, :, :]))
 
 
 def _control_residual(A, B, Q, R, X, R_gain=None, accurate: bool = True):
@@ -245,19 +247,21 @@ def _control_residual(A, B, Q, R, X, R_gain=None, accurate: bool = True):
     if not accurate:
         Ac = A - B @ K
         return symmetrize(Ac.T @ X @ Ac + K.T @ R @ K + Q - X), K, Ac
+    n, m = B.shape[-2:]
     BK, BK_lo = _dot2(B, K)
     Ac, t = _two_sum(A, -BK)
     Ac, Ac_lo = _two_sum(Ac, t - BK_lo)  # A - B K, double-word
-    XAc, t = _dot2(X, Ac)
-    XAc, XAc_lo = _two_sum(XAc, t + X @ Ac_lo)
-    W, W_lo = _dot2(Ac.T, XAc)  # A_c' X A_c
-    RK, RK_lo = _dot2(R, K)
-    V, V_lo = _dot2(K.T, RK)  # K' R K
-    F, e1 = _two_sum(W, V)
-    F, e2 = _two_sum(F, Q)
-    F, e3 = _two_sum(F, -X)
-    lo = (W_lo + (Ac.T @ XAc_lo + Ac_lo.T @ XAc)) + (V_lo + K.T @ RK_lo)
-    return symmetrize(F + ((e1 + e2 + e3) + lo)), K, Ac
+    # A_c' X A_c + K' R K = Z' M Z with Z = [A_c; K], M = blockdiag(X, R): two products
+    Z = jnp.concatenate([Ac, K], axis=-2)
+    Z_lo = jnp.concatenate([Ac_lo, jnp.zeros_like(K)], axis=-2)
+    M = jnp.block([[X, jnp.zeros((n, m), X.dtype)], [jnp.zeros((m, n), X.dtype), R]])
+    MZ, t = _dot2(M, Z)
+    MZ, MZ_lo = _two_sum(MZ, t + M @ Z_lo)
+    W, W_lo = _dot2(Z.T, MZ)
+    F, e1 = _two_sum(W, Q)
+    F, e2 = _two_sum(F, -X)
+    lo = W_lo + (Z.T @ MZ_lo + Z_lo.T @ MZ)
+    return symmetrize(F + ((e1 + e2) + lo)), K, Ac
 
 
 def _doubling(A, G, H, max_iters):
@@ -268,13 +272,13 @@ def _doubling(A, G, H, max_iters):
     ``W = I + G H``; ``H_j`` is the Riccati recursion after ``2^j`` steps from zero and ``A_j`` behaves
     like the ``2^j``-th power of the closed loop, so both converge quadratically once ``2^j`` exceeds the
     closed loop's time constant (Chu, Fan, Lin & Wang 2004). Iterates until ``A_j`` is below
-    ``sqrt(eps)`` of ``A`` (the remaining error of ``H`` is then about ``eps``; Newton steps finish the job)
-    or ``max_iters`` is reached. A stalling ``H`` is no stopping criterion: with precise sensors the
+    ``eps^(1/4)`` of ``A`` (the remaining error of ``H`` is then about ``sqrt(eps)``, which one Newton step
+    removes) or ``max_iters`` is reached. A stalling ``H`` is no stopping criterion: with precise sensors the
     recursion lingers near a non-stabilising solution for many steps before it leaves it.
     """
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
-    small = jnp.sqrt(jnp.finfo(A.dtype).eps) * jnp.maximum(jnp.max(jnp.abs(A)), jnp.finfo(A.dtype).tiny)
+    small = jnp.finfo(A.dtype).eps ** 0.25 * jnp.maximum(jnp.max(jnp.abs(A)), jnp.finfo(A.dtype).tiny)
 
     def cond(carry):
         A_j, _, _, it = carry
@@ -305,23 +309,23 @@ def _smith(A, E, max_iters: int, atol=None):
     n = A.shape[-1]
     small = jnp.finfo(A.dtype).eps * 1e-3
 
-    def size(A_j):
-        return jnp.max(jnp.abs(A_j))
+    def decayed(A_j):  # NaN-safe: XLA's vectorised max may skip NaN entries
+        return jnp.all(jnp.isfinite(A_j)) & (n * jnp.max(jnp.abs(A_j)) < 1)
 
     def cond(carry):
         A_j, X, it = carry
-        a = size(A_j)
+        a = jnp.max(jnp.abs(A_j))
         done = a <= small
         if atol is not None:
             done = done | ((n * a < 1) & (a * a * jnp.max(jnp.abs(X)) <= atol))
-        return (it < max_iters) & ~done & jnp.isfinite(a)
+        return (it < max_iters) & ~done & jnp.all(jnp.isfinite(A_j))
 
     def body(carry):
         A_j, X, it = carry
         return A_j @ A_j, X + A_j @ X @ A_j.T, it + 1
 
     A_j, X, _ = jax.lax.while_loop(cond, body, (A, E, 0))
-    return X, n * size(A_j) < 1
+    return X, decayed(A_j)
 
 
 def stein(A, E, max_iters: int = 64):
@@ -333,6 +337,20 @@ def stein(A, E, max_iters: int = 64):
     return _smith(A, E, max_iters)[0]
 
 
+class _Newton(NamedTuple):
+    """Carry of the Newton iteration in :func:`_solve_control_dare`."""
+
+    X: jax.Array
+    F: jax.Array  # residual at X of the gain for R_gain (carried, or evaluated afresh at a round's start)
+    size: jax.Array  # relative size of the last correction (inf before the first)
+    previous: jax.Array  # ... and of the one before
+    first: jax.Array  # ... and of the round's first correction (NaN before it)
+    halvings: jax.Array  # corrections 0.3 to 0.7 of the one before, since the last faster one (linear rate)
+    stable: jax.Array  # the last correction's closed loop is stable
+    steps: jax.Array  # Newton steps so far
+    R_gain: jax.Array  # R of the gain used by the next step (regularised in an attempt's first step)
+
+
 def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     """Stabilising solution of the control DARE: doubling for a first approximation, then Newton's method.
 
@@ -341,23 +359,26 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
        non-stabilising solution; the tiny regulariser makes its limit the stabilising one.
     2. Newton's method on the true data (Hewer 1971), in defect-correction form: with the residual ``F`` at
        ``X`` and the closed loop ``A_c``, solve the Stein equation ``N = A_c' N A_c + F`` (:func:`_smith`)
-       and set ``X <- X + N``, until the correction is at the rounding level of ``X``. The residual is
-       evaluated in double-word arithmetic (:func:`_control_residual`) while the corrections are large, then
-       carried from step to step by the exact update of :func:`_next_residual`, whose terms are all of the
-       size of the (small) correction. Quadratic convergence: one or two steps recover the digits the
-       doubling loses for precise sensors or ill-conditioned problems.
+       and set ``X <- X + N``, until the correction is at the rounding level of ``X`` (``4 eps``) or stalls
+       at the floor set by the conditioning. The residual is evaluated in double-word arithmetic
+       (:func:`_control_residual`) at the start of a round and carried from step to step by the exact
+       update of :func:`_next_residual`; a round whose first correction exceeded ``eps^(1/3)`` of ``X`` (a
+       far start, whose carried residual has drifted by rounding errors of that size) is followed by
+       another. From the doubling's answer: one round of two steps.
     3. Precise sensors on unstable plants can break the doubling down (``I + G H`` singular to working
-       precision, ``G = B R^{-1} B'``). If the result is not finite and stabilising, both steps are
-       repeated with the doubling run on ``R + (|B'B| |Q| / kappa) I`` for ``kappa`` in ``_KAPPAS``; the
-       regularised solution's gain is stabilising, the first Newton step (Hewer's step with that gain)
-       keeps it so, and the following steps converge to the solution of the true data.
+       precision, ``G = B R^{-1} B'``). If no stabilising solution was found, both steps are repeated with
+       the doubling run on ``R + (|B'B| |Q| / kappa) I`` for ``kappa`` in ``_KAPPAS``; the regularised
+       solution's gain is stabilising, the first Newton step (Hewer's step with that gain) keeps it so,
+       and the following steps converge to the solution of the true data.
 
     Returns ``(X, residual, found)``: the relative residual ``max|F(X)| / max(|X|, scale)`` (``scale`` is
     ``max|Q|``, or ``1 / max|B R^{-1} B'|`` when ``Q = 0``) and whether the stabilising solution was found:
     ``X`` finite, the last Newton step's closed loop stable (its powers decayed, :func:`_smith`: no
-    eigenvalue on or outside the unit circle) and Newton's corrections settled: below ``4 eps`` of ``X``, or
-    stalled at the rounding floor below ``sqrt(eps)``. Where the solution sits on the boundary of existence
-    (a closed-loop eigenvalue on the unit circle) Newton converges only linearly and runs out of steps.
+    eigenvalue on or outside the unit circle), and Newton's method settled: its corrections fell to ``4 eps``
+    of ``X``, or stalled below ``sqrt(eps)``, and not at a linear rate (four corrections of 0.3 to 0.7 of
+    the one before since the last faster one). Where the solution sits on the boundary of existence (a
+    closed-loop eigenvalue on the unit circle, reached only in the limit of the regulariser) Newton's
+    method converges linearly, halving its corrections to the end: not settled.
     """
     n, m = B.shape[-2:]
     dtype = A.dtype
@@ -368,49 +389,43 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     H = symmetrize(Q) + 4 * n * eps * scale * jnp.eye(n, dtype=dtype)
     bq = jnp.max(jnp.abs(B.T @ B)) * q_scale
 
-    def newton(accurate: bool, target):
-        """Newton steps until the relative correction is below ``target`` or ``newton_steps`` in all. With
-        ``accurate``, each step evaluates the residual afresh in double-word arithmetic; without, the carried
-        residual is valid once the corrections are small (below ``sqrt(eps)``), and the steps stop when they
-        stall (the corrections stop halving: the rounding floor)."""
+    def step(c: _Newton) -> _Newton:
+        K = _gain(A, B, c.R_gain, c.X)
+        Ac = A - B @ K
+        N, stable = _smith(Ac.T, c.F, max_iters, atol=0.1 * eps * jnp.max(jnp.abs(c.X)))
+        N = symmetrize(N)
+        X, rounding = _two_sum(c.X, N)
+        F = _next_residual(B, R, c.F, X, N, rounding, K, Ac, c.R_gain - R)
+        size = jnp.max(jnp.abs(N)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
+        size = jnp.where(jnp.all(jnp.isfinite(N)) & jnp.isfinite(size), size, jnp.inf)
+        ratio = size / c.size
+        halvings = jnp.where(ratio <= 0.3, 0, jnp.where(ratio < 0.7, c.halvings + 1, c.halvings))
+        first = jnp.where(jnp.isnan(c.first), size, c.first)
+        return _Newton(X, F, size, c.size, first, halvings, stable, c.steps + 1, R)
 
-        def body(carry):
-            X, F, size, _, _, it, R_gain = carry
-            R_gain = jnp.where(it == 0, R_gain, R)
-            if accurate:
-                F, K, Ac = _control_residual(A, B, Q, R, X, R_gain)
-            else:
-                K = _gain(A, B, R_gain, X)
-                Ac = A - B @ K
-            N, stable = _smith(Ac.T, F, max_iters, atol=0.1 * eps * jnp.max(jnp.abs(X)))
-            N = symmetrize(N)
-            X_new, rounding = _two_sum(X, N)
-            F_new = _next_residual(B, R, F, X_new, N, rounding, K, Ac, R_gain - R)
-            new_size = jnp.max(jnp.abs(N)) / jnp.maximum(jnp.max(jnp.abs(X_new)), scale)
-            new_size = jnp.where(jnp.isfinite(new_size), new_size, jnp.inf)
-            return X_new, F_new, new_size, size, stable, it + 1, R_gain
+    def stepping(c: _Newton):
+        go = (c.steps < newton_steps) & (c.size > 4 * eps) & jnp.all(jnp.isfinite(c.X))
+        return go & ~_stalled(c.size, c.previous)
 
-        def cond(carry):
-            X, _, size, previous, _, it, _ = carry
-            go = (it < newton_steps) & (size > target) & jnp.all(jnp.isfinite(X))
-            if accurate:
-                return go
-            return go & (size <= jnp.sqrt(eps)) & ~_stalled(size, previous)
+    def newton_round(c: _Newton) -> _Newton:
+        F = _control_residual(A, B, Q, R, c.X, c.R_gain)[0]
+        inf, nan, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype), jnp.asarray(0)
+        return jax.lax.while_loop(stepping, step, c._replace(F=F, size=inf, previous=inf, first=nan, halvings=zero))
 
-        return cond, body
+    def another_round(c: _Newton):
+        far = jnp.isnan(c.first) | (c.first > eps ** (1 / 3))
+        return far & (c.steps < newton_steps) & jnp.all(jnp.isfinite(c.X))
 
     def attempt(carry):
         *_, j = carry
         R_reg = R + jnp.where(j > 0, bq / jnp.asarray((1.0,) + _KAPPAS, dtype)[j], 0.0) * jnp.eye(m, dtype=dtype)
         X = _doubling(A, B @ _solve_spd(R_reg, B.T), H, max_iters)
-        inf = jnp.asarray(jnp.inf, dtype)
-        carry = (X, jnp.zeros_like(X), inf, inf, jnp.asarray(False), 0, R_reg)
-        carry = jax.lax.while_loop(*newton(True, jnp.sqrt(eps)), carry)
-        X, F, size, previous, stable, it, _ = jax.lax.while_loop(
-            *newton(False, 4 * eps), carry[:3] + (inf,) + carry[4:]
-        )
-        settled = (size <= 4 * eps) | (_stalled(size, previous) & (size <= jnp.sqrt(eps)))
-        return X, F, stable & settled & jnp.all(jnp.isfinite(X)), j + 1
+        inf, nan, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype), jnp.asarray(0)
+        c = _Newton(X, jnp.zeros_like(X), inf, inf, nan, zero, jnp.asarray(False), zero, R_reg)
+        c = jax.lax.while_loop(another_round, newton_round, c)
+        converged = (c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))
+        settled = converged & (c.halvings < 4)
+        return c.X, c.F, c.stable & settled & jnp.all(jnp.isfinite(c.X)), j + 1
 
     def retry(carry):
         _, _, found, j = carry
@@ -419,7 +434,7 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     init = (jnp.zeros_like(A), jnp.zeros_like(A), jnp.asarray(False), 0)
     X, F, found, _ = jax.lax.while_loop(retry, attempt, init)
     residual = jnp.max(jnp.abs(F)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
-    return X, jnp.where(jnp.isfinite(residual), residual, jnp.inf), found
+    return X, jnp.where(jnp.all(jnp.isfinite(F)) & jnp.isfinite(residual), residual, jnp.inf), found
 
 
 def _stalled(size, previous):
@@ -586,6 +601,6 @@ def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
 
 # Newton steps in all (each attempt): from the doubling's answer one or two suffice; from a regularised
 # doubling (precise sensors on unstable plants) up to about eight
-_NEWTON_STEPS = 12
+_NEWTON_STEPS = 16
 # kappa of the regularised doublings tried when the first attempt fails: R + (|B'B| |Q| / kappa) I
 _KAPPAS = (1e4, 1.0)

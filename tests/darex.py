@@ -556,3 +556,94 @@ def reference_solution(A, B, Q, R, X0, max_iters: int = 40) -> Reference | None:
             return Reference(X, K, max(size, previous) if stalled else size)
         previous = size
     return None
+
+
+# ---------------------------------------------------------------------------------------------
+# Errors against the reference, and the floor below which float64 results cannot be ranked
+
+
+def gain(A, B, R, X) -> np.ndarray:
+    """The control gain ``(R + B'XB)^{-1} B'XA`` of a float64 solution ``X``."""
+    X = np.asarray(X, np.float64)
+    return np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
+
+
+def _gain_scale(ex: Example, ref: Reference) -> float:
+    """``|K|``, or ``|A| |B| |X| / |R + B'XB|`` where the gain vanishes by structure (DAREX 2.3, 4.1)."""
+    X = ref.X.astype(float)
+    S = ex.R + ex.B.T @ X @ ex.B
+    natural = np.linalg.norm(ex.A) * np.linalg.norm(ex.B) * np.linalg.norm(X) / np.linalg.norm(S)
+    return max(float(np.linalg.norm(ref.K.astype(float))), natural)
+
+
+def errors(ex: Example, X, ref: Reference) -> tuple[float, float]:
+    """Relative (Frobenius) errors of a float64 solution ``X`` and of its gain against the reference."""
+    X = np.asarray(X, np.float64)
+    e_X = np.linalg.norm(X.astype(np.longdouble) - ref.X) / np.linalg.norm(ref.X)
+    e_K = np.linalg.norm(gain(ex.A, ex.B, ex.R, X).astype(np.longdouble) - ref.K) / _gain_scale(ex, ref)
+    return float(e_X), float(e_K)
+
+
+def floors(ex: Example, ref: Reference) -> tuple[float, float]:
+    """Errors that no float64 answer can be expected to beat, plus ten times the reference's own uncertainty.
+
+    For ``X``: ``2 eps`` (its correctly rounded value is within ``eps / 2`` entrywise). For the gain, relative to
+    its scale: the first-order effect of that rounding, ``eps || |S^{-1} B'| |X| |A_c| ||`` (``dK = S^{-1} B' dX
+    A_c``), plus that of forming and solving ``S = R + B'XB`` in float64, ``eps cond(S) |K|``: with a precise
+    sensor (``R`` tiny) and ``B'XB`` singular, no float64 ``X`` gives the gain to better than ``cond(S) eps``.
+    """
+    eps = np.finfo(np.float64).eps
+    X, K = ref.X.astype(float), ref.K.astype(float)
+    S = ex.R + ex.B.T @ X @ ex.B
+    Ac = ex.A - ex.B @ K
+    dK = eps * np.linalg.norm(np.abs(np.linalg.solve(S, ex.B.T)) @ np.abs(X) @ np.abs(Ac))
+    dK += eps * np.linalg.cond(S) * np.linalg.norm(K)
+    return 2 * eps + 10 * ref.uncertainty, float(dK / _gain_scale(ex, ref)) + 10 * ref.uncertainty
+
+
+def compare(cases: list[Example]) -> list[dict]:
+    """Solve every case with ``jaxobs.riccati.dare`` (one ``jit(vmap(...))`` per shape, as the filter DARE of
+    ``(A', B')``) and with SciPy, and measure both against :func:`reference_solution` (refined from SciPy's answer,
+    or from ours where SciPy fails). One dict per case: errors of ``X`` and of the gain, floors, flags."""
+    import warnings
+    from collections import defaultdict
+
+    import jax
+    import scipy.linalg
+
+    from jaxobs.riccati import dare
+
+    groups = defaultdict(list)
+    for index, ex in enumerate(cases):
+        groups[(ex.A.shape, ex.B.shape)].append(index)
+    solve = jax.jit(jax.vmap(lambda A, B, Q, R: dare(A.T, B.T, Q, R)))
+    rows = [None] * len(cases)
+    for indices in groups.values():
+        sol = solve(*(np.stack([getattr(cases[i], name) for i in indices]) for name in "ABQR"))
+        for j, i in enumerate(indices):
+            ex = cases[i]
+            ours = np.asarray(sol.P[j])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    theirs = scipy.linalg.solve_discrete_are(ex.A, ex.B, ex.Q, ex.R)
+                except (ValueError, np.linalg.LinAlgError):
+                    theirs = None
+            ref = reference_solution(ex.A, ex.B, ex.Q, ex.R, theirs if theirs is not None else ours)
+            row = dict(name=ex.name, n=ex.A.shape[0], m=ex.B.shape[1], converged=bool(sol.converged[j]))
+            row.update(residual=float(sol.residual[j]), scipy_failed=theirs is None, reference=ref is not None)
+            if ref is not None:
+                row.update(uncertainty=ref.uncertainty)
+                row["floor_X"], row["floor_K"] = floors(ex, ref)
+                row["ours_X"], row["ours_K"] = errors(ex, ours, ref)
+                if theirs is not None:
+                    row["scipy_X"], row["scipy_K"] = errors(ex, theirs, ref)
+            rows[i] = row
+    return rows
+
+
+def ratio(row: dict, quantity: str) -> float:
+    """``ours / (scipy + floor)`` for ``quantity`` "X" or "K" of a :func:`compare` row (0 when ours is exact)."""
+    ours = row[f"ours_{quantity}"]
+    return 0.0 if ours == 0 else ours / (row[f"scipy_{quantity}"] + row[f"floor_{quantity}"])
+
