@@ -646,4 +646,3 @@ def ratio(row: dict, quantity: str) -> float:
     """``ours / (scipy + floor)`` for ``quantity`` "X" or "K" of a :func:`compare` row (0 when ours is exact)."""
     ours = row[f"ours_{quantity}"]
     return 0.0 if ours == 0 else ours / (row[f"scipy_{quantity}"] + row[f"floor_{quantity}"])
-
