@@ -296,7 +296,7 @@ def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sig
     _checks.matrix("L_r", L_r, shape=(m, n))
     Phi, Gamma, C = augment(plant, order)
     na = order * m
-    L = jnp.concatenate([L_r, jnp.zeros((m, na), L_r.dtype).at[:, na - m :].set(jnp.eye(m))], axis=1)
+    L = jnp.concatenate([L_r, jnp.zeros((m, na), L_r.dtype).at[:, na - m :].set(jnp.eye(m, dtype=L_r.dtype))], axis=1)
     if Q is None:
         _checks.positive_scalar("q_active", jnp.max(jnp.asarray(q_active)), allow_zero=True)
         Q = aob_noise_covariance(n, order, m, q_plant, q_active)
