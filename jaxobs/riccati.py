@@ -205,7 +205,7 @@ def _slices(a, axis: int, k: int):
     finfo = jnp.finfo(a.dtype)
     p = finfo.nmant + 1
     beta = (p - 2 - max(k - 1, 1).bit_length()) // 2
-    int_type = jnp.int64 if finfo.bits == 64 else jnp.int32
+    int_type = {64: jnp.int64, 32: jnp.int32, 16: jnp.int16}[finfo.bits]
     bits = jax.lax.bitcast_convert_type(jnp.max(jnp.abs(a), axis=axis, keepdims=True), int_type)
     biased = bits >> finfo.nmant  # biased exponent of the largest entry: it is below 2^(biased - bias + 1)
     # sigma = 1.5 * 2^(e + p - 1 - beta) with e = biased - bias + 1, assembled from its bit pattern
@@ -233,20 +233,17 @@ def _dot2(a, b):
     return _two_sum(s, (e1 + e2) + (P[..., 3, :, :] + P[..., 4, :, :] + P[..., 5, :, :]))
 
 
-def _control_residual(A, B, Q, R, X, R_gain=None, accurate: bool = True):
+def _control_residual(A, B, Q, R, X, R_gain=None):
     """Residual of the control DARE ``X = A'XA - A'XB (R + B'XB)^{-1} B'XA + Q`` at ``X``.
 
     Returns ``(F, K, A_c)`` with the gain ``K = (R_gain + B'XB)^{-1} B'XA`` (``R_gain`` defaults to ``R``),
     ``A_c = A - B K`` and ``F = A_c' X A_c + K' R K + Q - X``, the residual of one Riccati step with that gain.
     For the optimal gain this is the DARE residual, stationary in ``K`` (errors in the gain enter at second
-    order). Its terms cancel to ``|F| << |A_c|^2 |X|``, so with ``accurate`` ``F`` is evaluated in
-    double-word arithmetic (:func:`_dot2`, about ``eps^2`` relative to the terms) and rounded once: Newton
-    steps with it recover the digits that a residual in working precision leaves to the DARE's condition.
+    order). Its terms cancel to ``|F| << |A_c|^2 |X|``, so ``F`` is evaluated in double-word arithmetic
+    (:func:`_dot2`, about ``eps^2`` relative to the terms) and rounded once: Newton steps with it recover the
+    digits that a residual in working precision leaves to the DARE's condition number.
     """
     K = _gain(A, B, R if R_gain is None else R_gain, X)
-    if not accurate:
-        Ac = A - B @ K
-        return symmetrize(Ac.T @ X @ Ac + K.T @ R @ K + Q - X), K, Ac
     n, m = B.shape[-2:]
     BK, BK_lo = _dot2(B, K)
     Ac, t = _two_sum(A, -BK)
@@ -439,8 +436,8 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
 
 def _stalled(size, previous):
     """Newton's corrections stopped converging: the last is not below 0.9 of the one before (at the rounding
-    floor they wander; a solution on the boundary of existence makes them halve steadily, which is not a
-    stall, so those runs end at the step limit instead)."""
+    floor they wander; a solution on the boundary of existence makes them halve steadily instead, which
+    :func:`_solve_control_dare` counts)."""
     return size > 0.9 * previous
 
 
@@ -484,7 +481,8 @@ def _control_dare_jvp(max_iters, primals, tangents):
     A, B, Q, R = primals
     dA, dB, dQ, dR = tangents
     X, residual, found = _control_dare(A, B, Q, R, max_iters)
-    _, K, Ac = _control_residual(A, B, Q, R, X, accurate=False)
+    K = _gain(A, B, R, X)
+    Ac = A - B @ K
     M = Ac.T @ X @ (dA - dB @ K)
     E = M + M.T + K.T @ dR @ K + dQ
 
