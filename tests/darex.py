@@ -541,6 +541,8 @@ def reference_solution(A, B, Q, R, X0, max_iters: int = 40) -> Reference | None:
     import scipy.linalg
 
     X = np.asarray(X0, np.longdouble)
+    if not np.all(np.isfinite(X)):
+        return None
     X = (X + X.T) / 2
     previous = np.inf
     for _ in range(max_iters):
