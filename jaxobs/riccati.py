@@ -512,21 +512,22 @@ def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
 def dare(Phi, C, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
     """Stabilising solution of the filter DARE ``P = Phi P Phi' - Phi P C'(C P C' + R)^{-1} C P Phi' + Q``.
 
-    The same ``P`` as ``scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)``: the steady-state
-    a-priori covariance ``P1`` of eq. 28; the steady-state Kalman gain is ``kalman_gain(sol.P, C, R)``.
-    Solved as the control DARE of ``(Phi', C')`` by structured doubling (at most ``max_iters`` doublings,
-    i.e. a horizon of ``2**max_iters`` Riccati steps), refined by Newton's method with a residual in
-    double-word arithmetic: as accurate as SciPy's Schur method or more, on the DAREX benchmark collection
-    (Abels & Benner 1999), for precise sensors (``R`` down to ``1e-12`` of ``Q``) and unstable ``Phi``
-    (``benchmarks/dare_accuracy.py``). Gradients (forward and reverse) come from the implicit function
-    theorem: one Stein solve, not backpropagation through the iterations.
+    ``Phi`` (n, n), ``C`` (p, n), ``Q`` (n, n) PSD, ``R`` (p, p) PD; ``P`` (n, n). The same ``P`` as
+    ``scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)``: the steady-state a-priori covariance ``P1`` of
+    eq. 28; the steady-state Kalman gain is ``kalman_gain(sol.P, C, R)``. Solved as the control DARE of
+    ``(Phi', C')`` by structured doubling (at most ``max_iters`` doublings, i.e. a horizon of
+    ``2**max_iters`` Riccati steps, and as many squarings per Stein solve), refined by Newton's method
+    with a residual in double-word arithmetic: as accurate as SciPy's Schur method or more, on the DAREX
+    benchmark collection (Abels & Benner 1999), for precise sensors (``R`` down to ``1e-12`` of ``Q``) and
+    unstable ``Phi`` (``benchmarks/dare_accuracy.py``). Gradients (forward and reverse) come from the
+    implicit function theorem: one Stein solve, not backpropagation through the iterations.
 
     Returns a :class:`DareSolution`. ``converged`` means the stabilising solution was found: ``P`` finite,
     the steady-state filter ``Phi - K_p C`` (``K_p = Phi P C' (C P C' + R)^{-1}``) stable, Newton's method
     settled, and the residual below ``tol`` (default ``sqrt(eps)``). It is False (a flag, never an
     exception, so it works under ``jit``) when no stabilising solution exists, i.e. ``(Phi, C)`` is not
     detectable or ``Q`` does not excite a mode on the unit circle, or when the working precision does not
-    resolve the problem (e.g. the AOB designs in float32); :func:`require_converged` turns the flag into
+    resolve the problem (e.g. the AOB-3 design in float32); :func:`require_converged` turns the flag into
     an error message for eager callers.
     """
     n = Phi.shape[-1]
