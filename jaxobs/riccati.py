@@ -211,6 +211,7 @@ def _slices(a, axis: int, k: int):
     # sigma = 1.5 * 2^(e + p - 1 - beta) with e = biased - bias + 1, assembled from its bit pattern
     sigma_bits = ((biased + (p - beta)) << finfo.nmant) | (1 << (finfo.nmant - 1))
     sigma = jax.lax.bitcast_convert_type(sigma_bits.astype(int_type), a.dtype)
+    sigma = jax.lax.optimization_barrier(sigma)  # computed once, not in each slice's fused loop
     slices = []
     for _ in range(2):
         hi = (a + sigma) - sigma
@@ -226,11 +227,9 @@ def _dot2(a, b):
     k = a.shape[-1]
     a1, a2, a3 = _slices(a, -1, k)
     b1, b2, b3 = _slices(b, -2, k)
-    # the six slice products as one batched product (one kernel to compile, not six)
-    P = jnp.stack([a1, a1, a2, a1, a2, a3], axis=-3) @ jnp.stack([b1, b2, b1, b3, b2 + b3, b], axis=-3)
-    s, e1 = _two_sum(P[..., 0, :, :], P[..., 1, :, :])
-    s, e2 = _two_sum(s, P[..., 2, :, :])
-    return _two_sum(s, (e1 + e2) + (P[..., 3, :, :] + P[..., 4, :, :] + P[..., 5, :, :]))
+    s, e1 = _two_sum(a1 @ b1, a1 @ b2)
+    s, e2 = _two_sum(s, a2 @ b1)
+    return _two_sum(s, (e1 + e2) + (a1 @ b3 + a2 @ (b2 + b3) + a3 @ b))
 
 
 def _control_residual(A, B, Q, R, X, R_gain=None):
