@@ -34,7 +34,7 @@ from jaxobs import _checks
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Observer
 from jaxobs.observers.kalman import predict_and_update
-from jaxobs.riccati import dare, kalman_gain
+from jaxobs.riccati import dare, kalman_gain, require_converged
 
 __all__ = [
     "ActiveObserverParams",
@@ -147,7 +147,9 @@ class ActiveObserverParams:
 
     ``gain``/``gain_passive``: ``None`` for the time-varying Riccati gain, or the steady-state
     gains of the AOB and of the same filter with the active state switched off
-    (:func:`with_steady_state_gains`).
+    (:func:`with_steady_state_gains`); ``gain_converged`` says whether both DAREs found their stabilising
+    solutions (a boolean array when computed under tracing, reported by every step as
+    ``ActiveObserverOutputs.converged``).
     """
 
     Phi: jax.Array  # augmented open-loop Phi_n (eq. 48)
@@ -163,6 +165,7 @@ class ActiveObserverParams:
     sigma_floor: jax.Array  # sigma* of seed 001 §3.1: minimum std of the active-state evolution
     gain: jax.Array | None = None
     gain_passive: jax.Array | None = None
+    gain_converged: jax.Array | None = None
     n_active: int = dataclasses.field(default=0, metadata=dict(static=True))
 
     @property
@@ -191,6 +194,7 @@ class ActiveObserverOutputs(NamedTuple):
     gain: jax.Array  # K_k
     q_active: jax.Array  # variance used for the newest active state at this step
     alpha: jax.Array  # strategy implied by q_active and w_{k-1} (seed 001 eq. 34)
+    converged: jax.Array  # the steady-state gains' DAREs converged (True for time-varying gains)
 
 
 def _active_slice(params: ActiveObserverParams):
@@ -240,7 +244,8 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Acti
         evolution = p_new - state.x[newest]
     u = r - params.L @ x
     new_state = ActiveObserverState(x, P, u, evolution, state.missing + n_missing.astype(jnp.int32))
-    return new_state, ActiveObserverOutputs(u, x, p_new, innovation, K, q_active, alpha)
+    converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
+    return new_state, ActiveObserverOutputs(u, x, p_new, innovation, K, q_active, alpha, converged)
 
 
 active_observer = Observer(_init, _step)
@@ -279,7 +284,8 @@ def make_aob(
       P0: ``P_{-1}``; defaults to ``Q`` (the papers' ``P_{-1} = Q_0``).
       active: 1 for the AOB, 0 to run it as a CKF (traced; switch at run time).
       alpha, sigma_floor: adaptive active-state strategy of seed 001 (``alpha > 0`` enables it).
-      steady_state: use the steady-state gains (:func:`with_steady_state_gains`).
+      steady_state: use the steady-state gains (:func:`with_steady_state_gains`; raises ``ValueError`` with
+        the reason when their DARE does not converge, e.g. AOB-3 in float32).
     """
     order = _checks.count("order", order, minimum=1, hint="use make_ckf for the classical filter")
     return _make(plant, L_r, order, R, q_plant, q_active, None, P0, x0, active, alpha, sigma_floor, steady_state)
@@ -307,7 +313,7 @@ def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sig
     plant = StateSpace(*(jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D)), plant.dt)
     Phi, Gamma, C = augment(plant, order)
     na = order * m
-    L = jnp.concatenate([L_r.astype(dtype), jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m))], axis=1)
+    L = jnp.concatenate([L_r.astype(dtype), jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m, dtype=dtype))], axis=1)
     if Q is None:
         Q = aob_noise_covariance(n, order, m, jnp.asarray(q_plant, dtype), jnp.asarray(q_active, dtype))
         _checks.positive_scalar("q_active", jnp.min(jnp.asarray(q_active)), allow_zero=True)
@@ -351,19 +357,29 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
 
 def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParams:
     """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, seed 000 eq. 28/48),
-    for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time."""
+    for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time.
+
+    Eagerly, raises ``ValueError`` with the reason when a DARE has no stabilising solution or did not
+    converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64 from AOB-3 on); under
+    tracing both flags are stored, combined, in ``gain_converged``.
+    """
     n = params.Phi.shape[-1]
     n_plant = n - params.n_active
+    label = f"AOB-{params.n_active // params.n_inputs}" if params.n_active else "CKF"
     sol = dare(params.Phi, params.C, params.Q, params.R)
+    require_converged(sol, params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
     gain = kalman_gain(sol.P, params.C, params.R)
+    converged = sol.converged
     if params.n_active:
         rows = slice(0, n_plant)
         Phi_r, C_r, Q_r = params.Phi[rows, rows], params.C[:, rows], params.Q[rows, rows]
-        P_r = dare(Phi_r, C_r, Q_r, params.R).P
-        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(P_r, C_r, params.R))
+        sol_r = dare(Phi_r, C_r, Q_r, params.R)
+        require_converged(sol_r, Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
+        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.P, C_r, params.R))
+        converged = converged & sol_r.converged
     else:
         gain_passive = gain
-    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive)
+    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=converged)
 
 
 # --------------------------------------------------------------------------------------------

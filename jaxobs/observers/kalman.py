@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from jaxobs import _checks
 from jaxobs.observers.base import Observer, run
-from jaxobs.riccati import covariance_sequence, dare, predict_covariance, update_covariance
+from jaxobs.riccati import covariance_sequence, dare, predict_covariance, require_converged, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -39,7 +39,9 @@ __all__ = [
 @dataclasses.dataclass(frozen=True)
 class KalmanParams:
     """Parameters of a Kalman filter. ``gain=None``: time-varying gain from the Riccati recursion;
-    an ``(n, p)`` array: the fixed (steady-state) gain, no covariance propagation."""
+    an ``(n, p)`` array: the fixed (steady-state) gain, no covariance propagation. ``gain_converged``:
+    whether the DARE behind a steady-state gain found its stabilising solution (a boolean array when
+    :func:`with_steady_state_gain` ran under tracing, else True or None)."""
 
     Phi: jax.Array
     Gamma: jax.Array
@@ -49,6 +51,7 @@ class KalmanParams:
     x0: jax.Array
     P0: jax.Array
     gain: jax.Array | None = None
+    gain_converged: jax.Array | None = None
 
 
 class KalmanState(NamedTuple):
@@ -68,6 +71,7 @@ class KalmanOutputs(NamedTuple):
     x_prior: jax.Array  # a-priori estimate Phi x_{k-1} + Gamma u_{k-1}
     innovation: jax.Array  # y_k - C x_prior (0 for missing components)
     gain: jax.Array  # K_k used at this step
+    converged: jax.Array  # the steady-state gain's DARE converged (True for time-varying gains)
 
 
 def make_kalman(Phi, Gamma, C, Q, R, *, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
@@ -96,11 +100,15 @@ def make_kalman(Phi, Gamma, C, Q, R, *, x0=None, P0=None, steady_state: bool = F
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     """Same filter with the fixed steady-state gain from :func:`jaxobs.riccati.dare`.
 
-    ``P`` is then set to the steady-state a-posteriori covariance and no longer propagated.
+    ``P`` is then set to the steady-state a-posteriori covariance and no longer propagated. Eagerly,
+    raises ``ValueError`` with the reason when the DARE has no stabilising solution or did not converge
+    (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and reported by every step
+    (``KalmanOutputs.converged``).
     """
     sol = dare(params.Phi, params.C, params.Q, params.R)
+    require_converged(sol, params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
     P, gain = update_covariance(sol.P, params.C, params.R)
-    return dataclasses.replace(params, gain=gain, P0=P)
+    return dataclasses.replace(params, gain=gain, P0=P, gain_converged=sol.converged)
 
 
 def measurement_update(x1, P1, C, R, y, gain=None):
@@ -154,7 +162,8 @@ def _step(params: KalmanParams, state: KalmanState, inputs: KalmanInputs):
         state.x, state.P, u_prev, y, params.Phi, params.Gamma, params.C, params.Q, params.R, gain
     )
     state = KalmanState(x, P, state.missing + n_missing.astype(jnp.int32))
-    return state, KalmanOutputs(x, x_prior, innovation, K)
+    converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
+    return state, KalmanOutputs(x, x_prior, innovation, K, converged)
 
 
 kalman_filter = Observer(_init, _step)
