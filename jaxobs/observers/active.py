@@ -313,7 +313,8 @@ def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sig
     plant = StateSpace(*(jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D)), plant.dt)
     Phi, Gamma, C = augment(plant, order)
     na = order * m
-    L = jnp.concatenate([L_r.astype(dtype), jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m, dtype=dtype))], axis=1)
+    compensation = jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m, dtype=dtype))
+    L = jnp.concatenate([L_r.astype(dtype), compensation], axis=1)
     if Q is None:
         Q = aob_noise_covariance(n, order, m, jnp.asarray(q_plant, dtype), jnp.asarray(q_active, dtype))
         _checks.positive_scalar("q_active", jnp.min(jnp.asarray(q_active)), allow_zero=True)
