@@ -93,7 +93,7 @@ def aob_run(y, r):
 
 def wide_command(params, state, inputs):
     """A controller step that returns two commands whatever the plant (for the command-size checks)."""
-    return state, active.ActiveObserverOutputs(*(jnp.zeros((2,)),) * 2, *(jnp.zeros(()),) * 5)
+    return state, active.ActiveObserverOutputs(*(jnp.zeros((2,)),) * 2, *(jnp.zeros(()),) * 6)
 
 
 WIDE = Observer(lambda params: jnp.zeros(()), wide_command)
