@@ -13,10 +13,18 @@ import numpy as np
 import scipy.signal
 
 from jaxobs import _checks
-from jaxobs.lti import ctrb
+from jaxobs.lti import StateSpace, ctrb, dcgain
 from jaxobs.riccati import dare
 
-__all__ = ["acker", "place", "dlqr", "dc_compensation", "critically_damped_poles"]
+__all__ = [
+    "acker",
+    "place",
+    "dlqr",
+    "dc_compensation",
+    "reference_gain",
+    "critically_damped_poles",
+    "critically_damped_gain",
+]
 
 
 def _char_poly_coefficients(poles, dtype):
@@ -137,6 +145,44 @@ def critically_damped_poles(h: float, tau_c, n_fast: int):
     _checks.shape("tau_c", tau_c, (), "one time constant")
     z = jnp.exp(-h / tau_c.astype(_checks.float_dtype(tau_c=tau_c)))
     return jnp.concatenate([jnp.stack([z, z]), jnp.zeros((n_fast,), z.dtype)])
+
+
+def critically_damped_gain(plant: StateSpace, tau_c):
+    """State feedback ``L_r`` (1, n) for a discrete single-input plant whose first two states are the slow
+    dynamics and the others dead-time slots: a critically damped double pole with time constant ``tau_c`` and
+    the remaining poles at ``z = 0`` (Cortesão 2006 §7.2, eq. 83), by :func:`acker`.
+
+    Example:
+      >>> from jaxobs.plants import force_plant
+      >>> L_r = critically_damped_gain(force_plant(3.0, 0.032, 0.008, 0.040), tau_c=0.32)
+      >>> [round(float(v), 4) for v in L_r[0, :3]]
+      [0.1148, -0.0717, -0.0615]
+    """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
+    if plant.n_states < 2:
+        raise ValueError(f"plant must have at least the two slow states, got {plant.n_states} states")
+    return acker(plant.A, plant.B, critically_damped_poles(plant.dt, tau_c, plant.n_states - 2))
+
+
+def reference_gain(plant: StateSpace, L):
+    """Reference pre-gain ``N`` (m, p) for unit DC gain from the reference (in output units) to the output under
+    ``u = N r - L x``: ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an
+    invertible closed-loop DC gain). Use it as :class:`~jaxobs.observers.feedback.FeedbackParams` ``N``.
+
+    Example:
+      >>> from jaxobs.plants import force_plant
+      >>> plant = force_plant(3.0, 0.032, 0.008, 0.040)
+      >>> L_r = critically_damped_gain(plant, tau_c=0.32)
+      >>> bool(jnp.allclose(reference_gain(plant, L_r), L_r[0, 0]))   # the integrating plant: N = L_1
+      True
+    """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
+    L = jnp.atleast_2d(jnp.asarray(L))
+    _checks.matrix("L", L, shape=(plant.n_inputs, plant.n_states))
+    closed = StateSpace(plant.A - plant.B @ L, plant.B, plant.C, plant.D, plant.dt)
+    return dc_compensation(jnp.eye(plant.n_outputs, dtype=L.dtype), dcgain(closed))
 
 
 def dc_compensation(dc_target, dc_closed_loop):

@@ -33,9 +33,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.closed_loop import LinearController, linear_controller_of
 from jaxobs.lti import StateSpace
-from jaxobs.observers.active import ActiveObserverParams
+from jaxobs.observers.base import Controller
+from jaxobs.observers.feedback import LinearFeedback
 
 __all__ = [
     "loop_transfer",
@@ -48,39 +48,49 @@ __all__ = [
 ]
 
 
-def loop_transfer(plant: StateSpace, controller: LinearController | ActiveObserverParams) -> StateSpace:
-    """Loop transfer function at the plant input (seed 000 Theorem 3, eq. 65-69), state ``[x; x_hat]``.
+def _linear_form(controller: Controller, params) -> LinearFeedback:
+    if controller.linear is None:
+        raise ValueError("controller has no linear form: stability analysis needs a linear fixed-gain controller")
+    return controller.linear(params)
 
-    ``plant``: the true discrete plant (any state dimension, ``D = 0``); ``controller``: the
-    fixed-gain observer with state feedback built on the nominal model, a
-    :class:`~jaxobs.closed_loop.LinearController` or a steady-state AOB/CKF (converted by
-    :func:`~jaxobs.closed_loop.linear_controller_of`, which honours the active-state switch).
-    Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with
-    ``u' = -L x_hat`` (negative feedback), so its return ratio is the transfer function itself.
+
+def loop_transfer(plant: StateSpace, controller: Controller, params) -> StateSpace:
+    """Loop transfer function at the plant input (Cortesão 2006 Theorem 3, eq. 65-69), state ``[x; x_hat]``.
+
+    Args:
+      plant: the true discrete plant (any state dimension, ``D = 0``).
+      controller: a linear controller with a fixed gain, e.g. an observer-based controller
+        (:func:`~jaxobs.observers.feedback.observer_controller`) around a steady-state Kalman filter or AOB
+        (its linear form honours the AOB's active-state switch).
+      params: the controller's params, built on the nominal model.
+
+    Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with ``u' = -L x_hat``
+    (negative feedback), so its return ratio is the transfer function itself.
     """
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
-    c = controller if isinstance(controller, LinearController) else linear_controller_of(controller)
+    lin = _linear_form(controller, params)
+    c, L = lin.observer, lin.L
     Phi, Gamma, C = plant.A, plant.B, plant.C
     n, n_obs = Phi.shape[-1], c.Phi.shape[-1]
     _checks.matrix("Phi_n", c.Phi, shape=(n_obs, n_obs), square=True)
     _checks.matrix("Gamma_n", c.Gamma, shape=(n_obs, Gamma.shape[-1]))
     _checks.matrix("C_n", c.C, shape=(C.shape[-2], n_obs))
     _checks.matrix("K", c.K, shape=(n_obs, C.shape[-2]))
-    _checks.matrix("L", c.L, shape=(Gamma.shape[-1], n_obs))
-    observer = (jnp.eye(n_obs, dtype=c.Phi.dtype) - c.K @ c.C) @ (c.Phi - c.Gamma @ c.L)
+    _checks.matrix("L", L, shape=(Gamma.shape[-1], n_obs))
+    observer = (jnp.eye(n_obs, dtype=c.Phi.dtype) - c.K @ c.C) @ (c.Phi - c.Gamma @ L)
     KC = c.K @ C
     A = jnp.block([[Phi, jnp.zeros((n, n_obs), Phi.dtype)], [KC @ Phi, observer]])
     B = jnp.concatenate([Gamma, KC @ Gamma], axis=0)
-    C_loop = jnp.concatenate([jnp.zeros((c.L.shape[0], n), c.L.dtype), c.L], axis=1)
-    return StateSpace(A, B, C_loop, jnp.zeros((c.L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
+    C_loop = jnp.concatenate([jnp.zeros((L.shape[0], n), L.dtype), L], axis=1)
+    return StateSpace(A, B, C_loop, jnp.zeros((L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
 
 
-def closed_loop_matrix(plant: StateSpace, controller: LinearController | ActiveObserverParams):
-    """System matrix of plant plus observer-based feedback (seed 000 Theorem 2, eq. 59), state
+def closed_loop_matrix(plant: StateSpace, controller: Controller, params):
+    """System matrix of plant plus observer-based feedback (Cortesão 2006 Theorem 2, eq. 59), state
     ``[x; x_hat]``: ``[[Phi, -Gamma L], [K C Phi, (I - K C_n)(Phi_n - Gamma_n L) - K C Gamma L]]``.
-    The loop is absolutely stable iff its spectral radius is below 1."""
-    loop = loop_transfer(plant, controller)
+    The loop is absolutely stable iff its spectral radius is below 1. Arguments as :func:`loop_transfer`."""
+    loop = loop_transfer(plant, controller, params)
     return loop.A - loop.B @ loop.C
 
 

@@ -66,8 +66,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.observers.active import ActiveObserverInputs, active_observer
-from jaxobs.observers.base import Observer
+from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
     "CONTROL_PERIOD",
@@ -384,16 +383,16 @@ class ClosedLoopRollout(NamedTuple):
     velocity: jax.Array  # tool velocity (mm/s)
     command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
     applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
-    controller: object  # the controller's outputs per step (e.g. ActiveObserverOutputs: x, p, gain, ...)
+    controller: object  # the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
     surface: jax.Array  # environment surface position x_e at k h (mm)
 
 
 def closed_loop_rollout(
     model: mjx.Model,
-    controller_params,
+    controller: Controller,
+    params,
     reference,
     *,
-    controller: Observer = active_observer,
     dead_time_samples: int = 5,
     substeps: int = SUBSTEPS,
     noise=None,
@@ -407,25 +406,24 @@ def closed_loop_rollout(
     control step ``k`` (time ``k h``)::
 
         y_k      = F(x(k h)) + v_k                          sensor force (sensor_force) plus noise
-        state, o = controller.step(params, state, ActiveObserverInputs(y_k, r_k))
+        state, o = controller.step(params, state, ControllerInputs(y_k, r_k))
         u_k      = o.u                                       e.g. the AOB's r_k - [L_r 1] [x_r; p]_hat
         FIFO    <- u_k + d_k;  pop u_{k-d} + d_{k-d}         dead time d samples (disturbance at the plant
                                                              input, before the dead time, as in simulate)
         plant   <- ``substeps`` mjx.step calls with that input held (ZOH)
 
-    The controller is built on the nominal discrete model (e.g. :func:`jaxobs.papers.cortesao2006.aob_params`
-    on :func:`jaxobs.papers.force_control.nominal_design`, whose delay states model the same ``d`` samples);
-    the state feedback ``L`` lives in ``controller_params`` (``u = r - L x_hat``, with the AOB's active
-    state fed forward through its ``L_Np = 1`` entry), exactly as in ``simulate``.
+    The controller is built on the nominal discrete model (e.g. an AOB on :func:`jaxobs.plants.force_plant`,
+    whose delay states model the same ``d`` samples); the state feedback lives in its params
+    (``u = r - L x_hat``, with the AOB's active state fed forward through its ``L_Np = 1`` entry), exactly as
+    in ``simulate``.
 
     Args:
       model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params` (the true plant; it may differ
         from the controller's nominal model).
-      controller_params: parameters of ``controller`` (e.g. ``ActiveObserverParams``, ``LinearController``).
+      controller: any :class:`~jaxobs.observers.base.Controller` whose outputs have ``u`` of shape (1,), e.g.
+        :data:`jaxobs.observers.active.active_observer_controller`.
+      params: the controller's params (e.g. :class:`~jaxobs.observers.feedback.FeedbackParams`).
       reference: ``r_k`` in mm/s, shape ``(T,)`` (``r_k = L_1 F_d`` for a desired force ``F_d``).
-      controller: an (init, step) :class:`jaxobs.observers.base.Observer` whose step takes
-        ``ActiveObserverInputs(y, r)`` and whose outputs have a field ``u`` of shape ``(1,)``; default
-        :data:`jaxobs.observers.active.active_observer` (AOB-N or CKF).
       dead_time_samples, substeps: as in :func:`rollout`.
       noise: force-sensor noise ``v_k`` in N, shape ``(T,)``, or None.
       disturbance: input disturbance ``d_k`` in mm/s, shape ``(T,)``, or None.
@@ -454,8 +452,8 @@ def closed_loop_rollout(
         data, fifo, ctrl_state, surface = _truncate(carry, k, gradient_horizon)
         force = sensor_force(_at_surface(model, surface), data)
         y_k = force + v_k
-        ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
-        _checks.shape("controller_params", ctrl_out.u, (1,), "the controller's command u must have one entry, the "
+        ctrl_state, ctrl_out = controller.step(params, ctrl_state, ControllerInputs(y_k[None], r_k[None]))
+        _checks.shape("params", ctrl_out.u, (1,), "the controller's command u must have one entry, the "
                       "1-DOF plant's velocity command")  # fmt: skip
         u_k = ctrl_out.u[0].astype(dtype)
         position, velocity = data.qpos[0], data.qvel[0]
@@ -463,6 +461,6 @@ def closed_loop_rollout(
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)
         return (data, fifo, ctrl_state, surface_next), out
 
-    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(controller_params), jnp.zeros((), dtype))
+    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), reference, noise, disturbance, v_e))
     return out

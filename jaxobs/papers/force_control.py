@@ -14,14 +14,12 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs.design import acker, critically_damped_poles
-from jaxobs.lti import StateSpace, c2d, ss
+from jaxobs.design import critically_damped_gain
+from jaxobs.plants import force_plant
 
 __all__ = [
     "ForceControlSetup",
     "EXAMPLE1",
-    "force_plant",
-    "design_gain",
     "nominal_design",
     "example1_disturbance",
     "chirp",
@@ -51,27 +49,10 @@ class ForceControlSetup:
 EXAMPLE1 = ForceControlSetup()
 
 
-def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None, input_gain=1.0) -> StateSpace:
-    """Delay-augmented discrete force plant (eq. 57-61 discretised by eq. 11-18). ``Ks``, ``Tp``,
-    ``dead_time`` (seconds) and ``input_gain`` (a mismatch of the robot's velocity gain) may be
-    traced; pass ``n_delay`` for a traced dead time."""
-    Ks, Tp = jnp.asarray(Ks, float), jnp.asarray(Tp, float)
-    zero = jnp.zeros((), Ks.dtype)
-    A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
-    B = jnp.stack([zero, input_gain * Ks / Tp])[:, None]
-    return c2d(ss(A, B, [[1.0, 0.0]]), h, dead_time, n_delay=n_delay)
-
-
-def design_gain(plant: StateSpace, h: float, tau_c):
-    """``L_r`` by Ackermann: a critically damped double pole with time constant ``tau_c`` and the
-    dead-time poles at ``z = 0`` (seed 000 eq. 83)."""
-    return acker(plant.A, plant.B, critically_damped_poles(h, tau_c, plant.n_states - 2))
-
-
 def nominal_design(setup: ForceControlSetup = EXAMPLE1):
     """The nominal delay-augmented plant and its ``L_r`` (tau_c = 10 Tp, seed 000 eq. 83)."""
     plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
-    return plant, design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
+    return plant, critically_damped_gain(plant, setup.tau_c_over_Tp * setup.Tp)
 
 
 def chirp(t, f0: float, f1: float, t1: float):
