@@ -1,20 +1,35 @@
 """Configuration files of the ``jaxobs`` commands: TOML over an embedded default, checked key by key.
 
 Every command that reads a config (``jaxobs sweep``, ``jaxobs tune``) merges the user's TOML over its
-embedded default with :func:`merge` (unknown keys and wrong types are errors) and checks values with
-:func:`check_range` / :func:`check_at_least`; a :class:`ConfigError` names the file and the key.
+embedded default with :func:`merge` (unknown keys, wrong types and non-finite numbers such as TOML's ``inf``
+and ``nan`` are errors) and checks values with :func:`check_range` / :func:`check_at_least`, and the sizes of what
+the configuration will allocate with :func:`check_memory`; a :class:`ConfigError` names the file and the key.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 
-__all__ = ["ConfigError", "fail", "load_toml", "merge", "get", "check_range", "check_at_least", "check_choice"]
+from jaxobs._resources import JobError
+from jaxobs._resources import check_memory as _check_memory
+
+__all__ = [
+    "ConfigError",
+    "fail",
+    "load_toml",
+    "merge",
+    "get",
+    "check_range",
+    "check_at_least",
+    "check_choice",
+    "check_memory",
+]
 
 
-class ConfigError(ValueError):
-    """A bad configuration; the message names the file and the key."""
+class ConfigError(JobError):
+    """A bad configuration (a ``ValueError``); the message names the file and the key."""
 
 
 def fail(source: str, key: str, message: str):
@@ -37,10 +52,13 @@ def load_toml(path) -> dict:
 
 
 def merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
-    """``given`` over ``default``; unknown keys and type mismatches are errors."""
+    """``given`` over ``default``; unknown keys, type mismatches and non-finite numbers are errors."""
     merged = copy.deepcopy(default)
     for key, value in given.items():
         name = f"{prefix}{key}"
+        numbers = value if isinstance(value, list) else [value]
+        if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+            fail(source, name, f"must be finite, got {value!r}")
         if key not in default:
             fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
         expected = default[key]
@@ -100,3 +118,11 @@ def check_choice(config: dict, source: str, key: str, choices):
     value = get(config, key)
     if value not in choices:
         fail(source, key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+def check_memory(source: str, key: str, nbytes: int, what: str, hint: str = "") -> None:
+    """``what`` (set by ``key``) must fit in the memory available: ``nbytes`` is the configuration's estimate."""
+    try:
+        _check_memory(nbytes, what, hint=hint or f"lower {key}")
+    except JobError as exc:
+        fail(source, key, str(exc))

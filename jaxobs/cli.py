@@ -4,14 +4,25 @@ jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite]   (no config: the em
 jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite]    (no config: the embedded 1-DOF default)
 jaxobs reproduce --list
 jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
+
+A user error (a bad config file or key, an output directory that cannot be written or is held by another
+jaxobs process, a run that cannot fit in memory, a sweep or checkpoint of something else in DIR) prints one
+line and exits with status 2; the output directory is checked and locked before anything is built or compiled.
+Ctrl-C prints where to resume and exits with status 130 (at once, skipping the interpreter's shutdown, when
+run as the command). Only a bug shows a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
+
+from jaxobs._resources import JobError, locked_out_dir
+
+RESUME_HINT = "rerun the same command to resume"
 
 
 def _reproduce(args) -> int:
@@ -28,34 +39,33 @@ def _reproduce(args) -> int:
         print(f"unknown reproduction {', '.join(unknown)}; choose from: {', '.join(REPRODUCTIONS)}", file=sys.stderr)
         return 2
     out = Path(args.out)
-    for name in names:
-        start = time.perf_counter()
-        summary = REPRODUCTIONS[name](out)
-        print(
-            f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
-            f"in {time.perf_counter() - start:.1f} s"
-        )
-        for key, value in summary.items():
-            if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(
-                value, dict | list
-            ):
-                print(f"  {key} = {value:.6g}")
-            elif key == "rms_force_error":
-                print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))
+    with locked_out_dir(out):
+        for name in names:
+            _reproduce_one(name, REPRODUCTIONS[name], out)
     return 0
 
 
-def _config(args, validate) -> dict | None:
-    """The validated config of ``args.config`` (the embedded default without one), or None after printing
-    the :class:`jaxobs._config.ConfigError` (the caller exits with 2)."""
-    from jaxobs._config import ConfigError, load_toml
+def _reproduce_one(name: str, reproduction, out: Path) -> None:
+    start = time.perf_counter()
+    summary = reproduction(out)
+    print(
+        f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
+        f"in {time.perf_counter() - start:.1f} s"
+    )
+    for key, value in summary.items():
+        if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(value, dict | list):
+            print(f"  {key} = {value:.6g}")
+        elif key == "rms_force_error":
+            print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))
 
-    try:
-        given = load_toml(args.config) if args.config else {}
-        return validate(given, args.config or "<default>")
-    except ConfigError as exc:
-        print(exc, file=sys.stderr)
-        return None
+
+def _config(args, validate):
+    """``validate(the TOML of args.config, its name)`` (the embedded default without one); raises
+    :class:`jaxobs._config.ConfigError`."""
+    from jaxobs._config import load_toml
+
+    given = load_toml(args.config) if args.config else {}
+    return validate(given, args.config or "<default>")
 
 
 def _sweep_module(given: dict, source: str):
@@ -79,16 +89,14 @@ def _sweep(args) -> int:
         module = _sweep_module(given, source)
         return module, module.validate_config(given, source)
 
-    validated = _config(args, validate)
-    if validated is None:
-        return 2
-    module, config = validated
+    from jaxobs.sweep import read_manifest
+
+    module, config = _config(args, validate)
     out = Path(args.out)
-    try:
+    with locked_out_dir(out):
+        if not args.overwrite:
+            read_manifest(out)  # a damaged manifest is reported before the sweep is built
         summary = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
-    except ValueError as exc:  # e.g. the out dir holds a different sweep
-        print(f"jaxobs sweep: {exc}", file=sys.stderr)
-        return 2
     print(
         f"{summary['num_configs']} configurations in {summary.get('seconds', 0.0):.1f} s; "
         f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(summary['figures'])}"
@@ -102,23 +110,17 @@ def _sweep(args) -> int:
 def _tune(args) -> int:
     import logging
 
-    from jaxobs._config import ConfigError
     from jaxobs.papers import tuning
-    from jaxobs.tune import CheckpointError, TuningError
 
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
     logging.getLogger("jaxobs").addHandler(handler)
     logging.getLogger("jaxobs").setLevel(logging.INFO)
+    logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     config = _config(args, tuning.validate_config)
-    if config is None:
-        return 2
     out = Path(args.out)
-    try:
+    with locked_out_dir(out):
         summary = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
-    except (ConfigError, CheckpointError, TuningError) as exc:
-        print(f"jaxobs tune: {exc}", file=sys.stderr)
-        return 2
     print(
         f"{summary['problem']}: {summary['evaluations']} gradient evaluations ({summary['rollouts']} rollouts, "
         f"{summary['seconds_tune']:.1f} s, stopped: {summary['stopped']}); wrote {out / 'tuned.json'} and "
@@ -127,7 +129,7 @@ def _tune(args) -> int:
     for name, s in summary["heldout"].items():
         change = s["reduction_vs_hand_set"]
         note = "" if change is None or name == "hand-set" else f"  ({100 * change:+.1f} % lower than hand-set)"
-        print(f"  held-out {name:14s} objective {s['objective']:.4g}  diverged {s['diverged']}{note}")
+        print(f"  held-out {name:30s} objective {s['objective']:.4g}  finite {s['finite_fraction']:.3f}{note}")
     return 0
 
 
@@ -154,8 +156,24 @@ def main(argv=None) -> int:
     rep.add_argument("--list", action="store_true", help="list the available reproductions")
     rep.add_argument("--out", default="out", help="output directory (default: out)")
     rep.set_defaults(func=_reproduce)
+    as_command = argv is None
     args = parser.parse_args(argv)
-    return args.func(args)
+    from jaxobs.tune import CheckpointError, TuningError
+
+    try:
+        return args.func(args)
+    except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped
+        resumable = args.command != "reproduce"
+        message = str(exc) or ("interrupted; " + RESUME_HINT if resumable else "interrupted")
+        print(f"jaxobs {args.command}: {message}", file=sys.stderr)
+        if as_command:  # the process ends here: after Ctrl-C stopped an XLA compilation, jaxlib 0.10 can crash
+            sys.stdout.flush()  # (SIGSEGV) while the interpreter shuts down; every file is already in place
+            sys.stderr.flush()
+            os._exit(130)
+        return 130
+    except (JobError, CheckpointError, TuningError) as exc:  # ConfigError and SweepError are JobErrors
+        print(f"jaxobs {args.command}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -38,9 +38,23 @@ Output (``out_dir``): ``chunks/chunk-00000.parquet``, ... and ``manifest.json``.
 then ``param.<name>`` and ``metric.<name>``, where ``<name>`` is the leaf's pytree key path joined with "."
 (dict keys, dataclass / NamedTuple fields, list positions; a bare array has no suffix). A leaf with trailing
 dimensions becomes one column per entry, ``name[i]`` / ``name[i,j]`` (C order). Bool, integer and float dtypes
-are kept. Every file is written to ``*.tmp``, fsynced and moved into place with ``os.replace``; the manifest
-records each completed chunk's row count and SHA-256. Rerunning the same call reuses the chunks whose checksum
-matches and recomputes the rest; a different sweep in the same directory is refused unless ``overwrite=True``.
+are kept. Every file is written to a temporary file unique to the process, fsynced and moved into place with
+``os.replace``; the manifest records each completed chunk's row count and SHA-256.
+
+Resuming and extending. Rerunning the same call reuses the chunks whose checksum matches and recomputes the
+rest. The manifest records a fingerprint of the computation: the SHA-256 of the lowered (StableHLO) program of
+``vmap(row)`` over one chunk, which holds the traced sampler and evaluate with every constant they close over,
+plus the jax and jaxlib versions. A sweep whose fingerprint, ``config``, ``seed``, ``chunk_size`` or columns
+differ from the manifest's is refused (:class:`SweepError`) unless ``overwrite=True``: chunks computed by other
+code are never mixed in (host callbacks count by position only: the program does not see their Python code).
+``num_configs`` may change: a larger sweep reuses every full chunk it has and recomputes the last, partial one.
+
+One process at a time. The writer holds an exclusive lock on ``out_dir`` (``.jaxobs.lock``, with its pid) for
+the whole call; a second process is refused with a :class:`jaxobs._resources.JobError` naming the holder's pid.
+The directory is checked for writing before anything is compiled, and the memory one step needs (XLA's
+estimate for the compiled program, plus the host copy of its output) is checked against the memory available
+before the first step runs. Ctrl-C raises :class:`jaxobs._resources.Interrupted` (a ``KeyboardInterrupt``)
+saying how many chunks are done; rerun the same call to resume.
 
 Multi-host (not tested here: it needs several machines). Call ``jax.distributed.initialize()`` first and run
 the same command in every process, with ``out_dir`` on a filesystem all processes see. The mesh then spans the
@@ -53,6 +67,7 @@ Precision: the engine never touches ``jax_enable_x64``; enable it in your entry 
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import importlib.metadata
@@ -60,11 +75,9 @@ import io
 import json
 import logging
 import math
-import os
 import platform
 import re
 import shutil
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,11 +91,26 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-__all__ = ["SweepResult", "config_key", "load_results", "run_sweep", "run_configured_sweep"]
+from jaxobs._resources import Interrupted, JobError, atomic_write, check_memory, locked_out_dir, program_nbytes
 
-FORMAT_VERSION = 1
+__all__ = [
+    "SweepError",
+    "SweepResult",
+    "config_key",
+    "load_results",
+    "read_manifest",
+    "run_sweep",
+    "run_configured_sweep",
+]
+
+FORMAT_VERSION = 2
 _MANIFEST = "manifest.json"
+_REPLACE = "pass overwrite=True (CLI: --overwrite) to replace it, or use a new out_dir"
 _log = logging.getLogger(__name__)
+
+
+class SweepError(JobError):
+    """``out_dir`` holds something this sweep cannot use: another sweep, a damaged manifest, missing chunks."""
 
 
 @dataclass(frozen=True)
@@ -110,37 +138,61 @@ def _chunk_path(out_dir: Path, chunk: int) -> Path:
     return out_dir / "chunks" / f"chunk-{chunk:05d}.parquet"
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path.tmp``, fsync, then ``os.replace`` it onto ``path``."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _write_chunk(path: Path, table: pa.Table) -> str:
     """Write one chunk atomically; return the SHA-256 of the file's bytes."""
     sink = io.BytesIO()
     pq.write_table(table, sink)
     data = sink.getvalue()
-    _atomic_write(path, data)
+    atomic_write(path, data)
     return hashlib.sha256(data).hexdigest()
 
 
 def _write_manifest(out_dir: Path, manifest: dict) -> None:
     manifest["updated"] = _now()
-    _atomic_write(out_dir / _MANIFEST, json.dumps(manifest, indent=1).encode())
+    atomic_write(out_dir / _MANIFEST, json.dumps(manifest, indent=1).encode())
 
 
-def _read_manifest(out_dir: Path) -> dict | None:
+_MANIFEST_FIELDS = {
+    "config": dict, "seed": int, "num_configs": int, "chunk_size": int, "num_chunks": int, "columns": dict,
+    "completed": dict, "fingerprint": str,
+}  # fmt: skip
+
+
+def _manifest_problem(manifest) -> str | None:
+    """What makes ``manifest`` (parsed JSON) unusable, or None."""
+    if not isinstance(manifest, dict):
+        return f"a JSON {type(manifest).__name__} instead of an object"
+    if manifest.get("format_version") != FORMAT_VERSION:
+        return f"format_version {manifest.get('format_version')!r}, this version writes {FORMAT_VERSION}"
+    for key, kind in _MANIFEST_FIELDS.items():
+        value = manifest.get(key)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            return f"{key} is {'missing' if key not in manifest else type(value).__name__}, expected {kind.__name__}"
+    if not all(isinstance(v, str) for v in manifest["columns"].values()) or "index" not in manifest["columns"]:
+        return "columns is not a table of column dtypes"
+    for chunk, entry in manifest["completed"].items():
+        if not (
+            chunk.isdigit() and isinstance(entry, dict) and isinstance(entry.get("rows"), int)
+            and entry["rows"] > 0 and isinstance(entry.get("sha256"), str)
+        ):  # fmt: skip
+            return f"completed[{chunk!r}] is not a chunk entry (rows, sha256)"
+    return None
+
+
+def read_manifest(out_dir) -> dict | None:
+    """The manifest of the sweep in ``out_dir`` (None if there is none); :class:`SweepError` if it is unreadable
+    or not a manifest of this version (a cheap check to run before building a sweep)."""
+    path = Path(out_dir) / _MANIFEST
     try:
-        return json.loads((out_dir / _MANIFEST).read_text())
+        manifest = json.loads(path.read_text())
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as e:
-        raise ValueError(f"{out_dir / _MANIFEST} is unreadable ({e}); use overwrite=True or a new out_dir") from e
+        raise SweepError(f"{path} is unreadable ({e}); {_REPLACE}") from e
+    problem = _manifest_problem(manifest)
+    if problem is not None:
+        raise SweepError(f"{path} is not a sweep manifest this version can use ({problem}); {_REPLACE}")
+    return manifest
 
 
 def _read_chunk(out_dir: Path, chunk: int, entry: dict | None) -> tuple[bytes | None, str]:
@@ -251,29 +303,9 @@ def _compile(row, devices, chunk_size: int):
         devices = one_per_process
 
 
-def run_sweep(
-    sampler,
-    evaluate,
-    num_configs: int,
-    out_dir,
-    *,
-    seed: int = 0,
-    chunk_size: int = 4096,
-    config: dict | None = None,
-    progress: bool = True,
-    overwrite: bool = False,
-) -> SweepResult:
-    """Evaluate ``evaluate(sampler(config_key(seed, i), i))`` for ``i < num_configs`` into ``out_dir``.
-
-    ``sampler(key, index)`` returns one configuration's parameters, ``evaluate(params)`` its metrics (pytrees of
-    bool/int/float arrays; the engine ``vmap``s both). ``config`` is a JSON-able description of the sweep stored
-    verbatim in the manifest. Rerunning the same call resumes; ``overwrite=True`` discards an existing sweep.
-    Raises ``ValueError`` for bad arguments, a bad evaluation (checked with ``jax.eval_shape`` before any file
-    is written) or a different sweep already in ``out_dir``.
-    """
-    _check_args(sampler, evaluate, num_configs, chunk_size, seed, config)
-    num_configs, chunk_size, seed = int(num_configs), int(chunk_size), int(seed)
-    config = {} if config is None else json.loads(json.dumps(config))
+def _row(sampler, evaluate, seed: int):
+    """``(row, layout)``: ``row(index) = (params, metrics)`` of one configuration and its columns
+    (:func:`_columns`), checked with ``jax.eval_shape``."""
 
     def row(index):
         params = sampler(config_key(seed, index), index)
@@ -291,46 +323,127 @@ def run_sweep(
     names = ["index"] + [name for name, *_ in layout]
     if len(set(names)) != len(names):
         raise ValueError(f"column names collide (rename pytree keys): {names}")
-    columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
+    return row, layout
 
-    out_dir = Path(out_dir)
-    writer = jax.process_index() == 0
+
+def _row_nbytes(layout) -> int:
+    return 8 + sum(dtype.itemsize for *_, dtype in layout)
+
+
+def _fingerprint(row, chunk_size: int) -> str:
+    """What computes the chunks: the SHA-256 of the lowered program of ``vmap(row)`` over one chunk (without
+    shardings, so the device count does not enter) and of the jax and jaxlib versions."""
+    lowered = jax.jit(jax.vmap(row)).lower(jax.ShapeDtypeStruct((chunk_size,), jnp.int32))
+    digest = hashlib.sha256(lowered.as_text().encode())
+    versions = _versions()
+    digest.update(f"jax {versions['jax']} jaxlib {versions['jaxlib']}".encode())
+    return digest.hexdigest()
+
+
+def _check_step_memory(compiled, devices, chunk_size: int, row_nbytes: int) -> None:
+    """Refuse a step that cannot fit: XLA's per-device estimate of the compiled step (CPU devices share the host
+    memory) and the host copy of its outputs (NumPy arrays, then an Arrow table)."""
+    per_device = program_nbytes(compiled)
+    host = 2 * len(devices) * chunk_size * row_nbytes
+    what = f"one step of the sweep ({len(devices)} device(s) x chunk_size {chunk_size})"
+    if devices[0].platform == "cpu":
+        check_memory(host + len(devices) * (per_device or 0), what, hint="lower chunk_size")
+    else:
+        check_memory(per_device, what, device=devices[0], hint="lower chunk_size")
+        check_memory(host, f"the host copy of {what}", hint="lower chunk_size")
+
+
+def _reusable(out_dir: Path, old: dict | None, num_configs: int, chunk_size: int) -> dict:
+    """The manifest entries of ``old`` to keep: the chunks of this sweep whose file matches its checksum and
+    holds the rows it must hold now, and any chunks past its end (kept for a later extension)."""
     num_chunks = math.ceil(num_configs / chunk_size)
-    sweep_id = {"config": config, "seed": seed, "num_configs": num_configs, "chunk_size": chunk_size}
-    old = None if overwrite else _read_manifest(out_dir)
-    if old is not None:
-        diff = [k for k in sweep_id if old.get(k) != sweep_id[k]]
-        diff += ["columns"] if not diff and old.get("columns") != columns else []
-        if diff or old.get("format_version") != FORMAT_VERSION:
-            raise ValueError(
-                f"{out_dir} holds a different sweep ({', '.join(diff) or 'format_version'} differ); "
-                "pass overwrite=True (CLI: --overwrite) to replace it, or use a new out_dir"
-            )
-    completed = {}
-    for chunk in range(0 if overwrite else num_chunks):
-        entry = ((old or {}).get("completed") or {}).get(str(chunk))
+    entries = (old or {}).get("completed", {})
+    kept = {c: e for c, e in entries.items() if int(c) >= num_chunks}
+    for chunk in range(num_chunks):
+        entry = entries.get(str(chunk))
         if entry is None and not _chunk_path(out_dir, chunk).exists():
             continue
+        rows = min(chunk_size, num_configs - chunk * chunk_size)
         data, why = _read_chunk(out_dir, chunk, entry)
+        if data is not None and entry["rows"] != rows:
+            data, why = None, f"it holds {entry['rows']} rows, the sweep now needs {rows}"
         if data is None:
             _log.warning("recomputing chunk %d (%s): %s", chunk, _chunk_path(out_dir, chunk), why)
         else:
-            completed[str(chunk)] = entry
+            kept[str(chunk)] = entry
+    return kept
+
+
+def run_sweep(
+    sampler,
+    evaluate,
+    num_configs: int,
+    out_dir,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    config: dict | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> SweepResult:
+    """Evaluate ``evaluate(sampler(config_key(seed, i), i))`` for ``i < num_configs`` into ``out_dir``.
+
+    ``sampler(key, index)`` returns one configuration's parameters, ``evaluate(params)`` its metrics (pytrees of
+    bool/int/float arrays; the engine ``vmap``s both). ``config`` is a JSON-able description of the sweep stored
+    verbatim in the manifest. Rerunning the same call resumes, with a larger ``num_configs`` it extends the sweep;
+    ``overwrite=True`` discards an existing sweep.
+
+    Raises ``ValueError`` for bad arguments or a bad evaluation (checked with ``jax.eval_shape`` before any file
+    is written), :class:`SweepError` (a ``ValueError``) for a different sweep in ``out_dir``,
+    :class:`jaxobs._resources.JobError` (a ``ValueError``) for an unwritable or locked ``out_dir`` or a step
+    that cannot fit in memory, and :class:`jaxobs._resources.Interrupted` on Ctrl-C.
+    """
+    _check_args(sampler, evaluate, num_configs, chunk_size, seed, config)
+    num_configs, chunk_size, seed = int(num_configs), int(chunk_size), int(seed)
+    config = {} if config is None else json.loads(json.dumps(config))
+
+    row, layout = _row(sampler, evaluate, seed)
+    out_dir = Path(out_dir)
+    writer = jax.process_index() == 0
+    with locked_out_dir(out_dir) if writer else contextlib.nullcontext():
+        return _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer)
+
+
+def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer):
+    """:func:`run_sweep` once its arguments are checked and ``out_dir`` is held."""
+    columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
+    num_chunks = math.ceil(num_configs / chunk_size)
+    identity = {"config": config, "seed": seed, "chunk_size": chunk_size}
+    fingerprint = _fingerprint(row, chunk_size)
+    old = None if overwrite else read_manifest(out_dir)
+    if old is not None:
+        diff = [k for k in identity if old[k] != identity[k]] or (["columns"] if old["columns"] != columns else [])
+        if diff:
+            raise SweepError(f"{out_dir} holds a different sweep ({', '.join(diff)} differ); {_REPLACE}")
+        if old["fingerprint"] != fingerprint:
+            raise SweepError(
+                f"{out_dir} holds chunks computed by other code (the lowered sampler/evaluate program or the "
+                f"jax/jaxlib versions differ from this call's); {_REPLACE}"
+            )
+    completed = _reusable(out_dir, old, num_configs, chunk_size)
     todo = np.array([str(c) not in completed for c in range(num_chunks)])
     if jax.process_count() > 1:  # every process must compute the same chunks: process 0 decides
         todo = np.asarray(multihost_utils.broadcast_one_to_all(todo))
-    completed = {c: e for c, e in completed.items() if not todo[int(c)]}
-    reused_rows = sum(e["rows"] for e in completed.values())
+    completed = {c: e for c, e in completed.items() if int(c) >= num_chunks or not todo[int(c)]}
+    reused_rows = sum(e["rows"] for c, e in completed.items() if int(c) < num_chunks)
 
     devices, compiled, sharding, compile_seconds = jax.devices(), None, None, (old or {}).get("compile_seconds")
     start = time.perf_counter()
-    if todo.any():  # compile before touching out_dir, so that a failure leaves it as it was
+    if todo.any():  # compile and size the step before writing anything
         compiled, sharding, devices = _compile(row, devices, chunk_size)
         compile_seconds = time.perf_counter() - start
+        _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
     manifest = {
         "format_version": FORMAT_VERSION,
-        **sweep_id,
+        **identity,
+        "num_configs": num_configs,
         "num_chunks": num_chunks,
+        "fingerprint": fingerprint,
         "device_count": len(devices),
         "platform": devices[0].platform,
         "device_kind": devices[0].device_kind,
@@ -350,8 +463,8 @@ def run_sweep(
                 (out_dir / _MANIFEST).unlink(missing_ok=True)
                 shutil.rmtree(out_dir / "chunks", ignore_errors=True)
             (out_dir / "chunks").mkdir(parents=True, exist_ok=True)
-            for tmp in (out_dir / "chunks").glob("*.tmp"):
-                tmp.unlink()
+            for tmp in [*(out_dir / "chunks").glob("*.tmp"), *out_dir.glob(f"{_MANIFEST}.*.tmp")]:
+                tmp.unlink()  # left by a killed run: this process holds the lock, so no other writer owns them
             _write_manifest(out_dir, manifest)
         bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer))
         todo_chunks = [int(c) for c in np.flatnonzero(todo)]
@@ -378,15 +491,13 @@ def run_sweep(
                 bar.update(rows)
             compute_seconds += time.perf_counter() - t0
             bar.set_postfix({"configs/s": f"{computed_rows / compute_seconds:.0f}"})
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        raise Interrupted(
+            f"interrupted after {done_chunks} of {num_chunks} chunks; rerun the same command to resume"
+        ) from exc
+    finally:
         if bar is not None:
             bar.close()
-        print(
-            f"interrupted after {done_chunks} of {num_chunks} chunks; rerun the same command to resume",
-            file=sys.stderr,
-        )
-        raise
-    bar.close()
     seconds = time.perf_counter() - start
     return SweepResult(
         out_dir=out_dir,
@@ -399,37 +510,56 @@ def run_sweep(
 
 
 def run_configured_sweep(
-    config: dict, sampler, evaluate, num_configs: int, out_dir, *, progress: bool = True, overwrite: bool = False
-) -> SweepResult:
+    config: dict, sampler, evaluate, num_configs: int, out_dir, *, size_key: str | None = None,
+    progress: bool = True, overwrite: bool = False,
+) -> SweepResult:  # fmt: skip
     """:func:`run_sweep` with ``seed`` and ``chunk_size`` read from ``config`` (a scenario's validated
-    configuration), which is also stored in the manifest."""
+    configuration), which is also stored in the manifest, less the dotted ``size_key`` that sets ``num_configs``
+    if given: then the same configuration with more configurations extends the sweep in ``out_dir``. A
+    scenario's report loads every row, so the rows must fit in memory (:class:`jaxobs._resources.JobError`
+    before anything is computed otherwise)."""
+    _check_args(sampler, evaluate, num_configs, config["chunk_size"], config["seed"], config)
+    layout = _row(sampler, evaluate, config["seed"])[1]
+    check_memory(2 * num_configs * _row_nbytes(layout), f"the report of {num_configs} configurations",
+                 hint=f"lower {size_key}" if size_key else "")  # fmt: skip
+    identity = json.loads(json.dumps(config))
+    if size_key is not None:
+        *parents, last = size_key.split(".")
+        table = identity
+        for part in parents:
+            table = table[part]
+        del table[last]
     return run_sweep(
         sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
-        config=config, progress=progress, overwrite=overwrite,
+        config=identity, progress=progress, overwrite=overwrite,
     )  # fmt: skip
 
 
 def load_results(out_dir) -> dict[str, np.ndarray]:
     """All rows of a finished sweep, ``{column: array}`` in index order; checksums are verified.
 
-    Raises ``ValueError`` if the sweep is incomplete or a chunk is missing or corrupt (rerun the same
-    ``run_sweep`` call to resume or repair it).
+    Raises :class:`SweepError` (a ``ValueError``) if the sweep is incomplete or a chunk is missing or corrupt
+    (rerun the same ``run_sweep`` call to resume or repair it), and :class:`jaxobs._resources.JobError` if the
+    columns cannot fit in memory (checked before reading).
     """
     out_dir = Path(out_dir)
-    manifest = _read_manifest(out_dir)
+    manifest = read_manifest(out_dir)
     if manifest is None:
-        raise ValueError(f"no {_MANIFEST} in {out_dir}; run run_sweep there first")
+        raise SweepError(f"no {_MANIFEST} in {out_dir}; run run_sweep there first")
     completed, num_chunks = manifest["completed"], manifest["num_chunks"]
-    if len(completed) < num_chunks or any(str(c) not in completed for c in range(num_chunks)):
-        raise ValueError(
-            f"sweep in {out_dir} is incomplete ({len(completed)} of {num_chunks} chunks); "
+    missing = [c for c in range(num_chunks) if str(c) not in completed]
+    if missing:
+        raise SweepError(
+            f"sweep in {out_dir} is incomplete ({num_chunks - len(missing)} of {num_chunks} chunks); "
             "rerun the same run_sweep call to resume it"
         )
+    row_nbytes = sum(np.dtype(dtype).itemsize for dtype in manifest["columns"].values())
+    check_memory(2 * manifest["num_configs"] * row_nbytes, f"loading the {manifest['num_configs']} rows of {out_dir}")
     tables = []
     for chunk in range(num_chunks):
         data, why = _read_chunk(out_dir, chunk, completed[str(chunk)])
         if data is None:
-            raise ValueError(
+            raise SweepError(
                 f"chunk {chunk} of the sweep in {out_dir} is {why}; rerun the same run_sweep call to repair it"
             )
         tables.append(pq.read_table(pa.BufferReader(data)))

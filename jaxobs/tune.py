@@ -4,8 +4,8 @@ A tuning problem (:class:`TuningProblem`) is a set of unconstrained parameters `
 e.g. the log-diagonal of ``Q`` and ``log R`` of an AOB), a function giving one loss per plant of a batch
 of mismatched plants (each a closed-loop rollout, e.g. in MuJoCo MJX), and a training and a held-out
 batch. :func:`tune` minimises a robust objective of the training losses with optax; :func:`random_search`
-is the gradient-free baseline at the same number of rollouts; :func:`evaluate` scores any ``theta`` on
-the held-out batch.
+is the gradient-free baseline (at equal rollouts, or for a given wall time); :func:`evaluate` scores any
+``theta`` on the held-out batch.
 
 Parameterisations (constrained values from unconstrained ``theta``; each with its inverse for starting
 from a hand-set design):
@@ -19,12 +19,26 @@ Robust objectives over the per-plant losses ``J_1..J_B``: the mean, and the cond
 ``CVaR_alpha`` (the mean of the worst ``ceil(alpha B)`` losses), plus an optional penalty (e.g. on the
 closed-loop spectral radius of :mod:`jaxobs.stability`).
 
-The loop (:func:`tune`): optax (adam by default) after global-norm gradient clipping; a step whose
-rollouts diverge (a non-finite loss or gradient, or a plant flagged by the problem) is rejected with a
-logged message and retried from the last accepted point with half the step; early stopping when the
-objective has not improved for ``patience`` evaluations; a progress bar showing the objective; checkpoints
-every ``checkpoint_every`` evaluations, from which a rerun resumes (a corrupt or foreign checkpoint is an
-error, never silently ignored).
+Diverged plants. A robust design must not ignore a plant whose rollout diverges (flagged by the problem, or a
+non-finite loss), but its loss is no measure of quality. In the objective it is replaced by a penalty
+(:func:`penalise_diverged`): with ``P = divergence_factor x`` the largest loss of the sound plants, a diverged
+plant with a finite loss ``L`` counts as ``P (1 + log(1 + L / P))``, one with a non-finite loss as ``P``. It thus
+counts as worse than every sound plant, and its own gradient (``P`` is held constant in derivatives) enters with
+a weight ``P / (P + L) <= 1`` that pulls it back without letting its blown-up scale dominate. In reverse mode
+a non-finite rollout can poison the gradient (a zero cotangent times an infinite derivative is NaN); the
+gradient is then recomputed with the diverged plants' inputs replaced by a sound plant's, which drops their own
+terms (the objective's value is the first one). A training set in which some plants diverge under the initial
+design is therefore a normal problem; only one in which every plant diverges is an error.
+
+The loop (:func:`tune`): optax (adam by default) after global-norm gradient clipping. An evaluation is
+rejected, logged, and retried from the last accepted point with half the step when its objective or gradient
+is not finite or when more training plants diverge than at the last accepted point (so accepted steps never
+lose a plant). The best design is the one with the fewest diverged plants, then the lowest objective. Early
+stopping when the objective has not improved for ``patience`` evaluations; a progress bar showing the
+objective; checkpoints every ``checkpoint_every`` evaluations and on Ctrl-C, from which a rerun resumes (a
+corrupt, damaged or foreign checkpoint is an error, never silently ignored: the checkpoint records a
+fingerprint of the settings, the tag and the lowered program of the evaluation). The compiled evaluation's
+memory (XLA's estimate) is checked against the memory available before it first runs.
 """
 
 from __future__ import annotations
@@ -34,7 +48,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import time
 import zipfile
 from collections.abc import Callable
@@ -46,6 +59,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxobs._resources import Interrupted, compile_checked, temporary_path
+
 __all__ = [
     "cholesky_covariance",
     "cholesky_parameters",
@@ -53,10 +68,12 @@ __all__ = [
     "unit_interval_parameters",
     "cvar",
     "robust_objective",
+    "penalise_diverged",
     "value_and_grad",
     "TuningProblem",
     "TuneSettings",
     "TuneResult",
+    "SearchResult",
     "TuningError",
     "CheckpointError",
     "tune",
@@ -126,6 +143,19 @@ def robust_objective(losses, kind: str = "mean", alpha: float = 0.25):
     raise ValueError(f"objective must be one of {OBJECTIVES}, got {kind!r}")
 
 
+def penalise_diverged(losses, failed, factor: float, own=None):
+    """``losses`` (B,) with each ``failed`` plant's loss ``L`` replaced by a penalty above every sound plant's:
+    with ``P = factor x`` the largest loss of the sound plants (held constant in derivatives),
+    ``P (1 + log(1 + L / P))`` where ``L >= 0`` is finite and ``own`` (default: all) allows it, else ``P``.
+    The failed plant's own gradient thus enters with the weight ``P / (P + L) <= 1``, which shrinks as it
+    diverges further. NaN if every plant failed."""
+    own = jnp.ones_like(failed) if own is None else own
+    worst = jax.lax.stop_gradient(factor * jnp.max(jnp.where(failed, -jnp.inf, losses)))
+    usable = failed & own & jnp.isfinite(losses)
+    excess = jnp.log1p(jnp.maximum(jnp.where(usable, losses, 0.0), 0.0) / worst)
+    return jnp.where(failed, worst * (1.0 + jnp.where(usable, excess, 0.0)), losses)
+
+
 # --------------------------------------------------------------------------------------------
 # Problem, settings, results
 
@@ -138,13 +168,15 @@ class TuningProblem:
       theta0: unconstrained initial parameters, a dict of arrays (the hand-set design, usually).
       losses: ``(theta, batch) -> (losses, diverged)``, one loss and one divergence flag per plant of the
         batch (shape ``(B,)`` each); pure and differentiable in ``theta``. A flagged plant (e.g. a force
-        beyond the sensor's range) rejects the optimiser step like a NaN does.
+        beyond the sensor's range) is penalised like a non-finite loss (see the module docstring).
       train, heldout: batches of mismatched plants (pytrees with a leading batch axis), any structure that
         ``losses`` understands.
       penalty: optional ``theta -> scalar >= 0`` added with ``TuneSettings.penalty_weight``.
       describe: ``theta -> dict`` of readable (constrained) values for reports.
       responses: optional ``(theta, batch) -> dict`` of time series for a before/after figure: ``t`` (T,),
         ``output`` (B, T) or (B, T, k), ``desired`` (T,) or (T, k), ``labels`` (one per plant), ``ylabel``.
+      search_box: optional ``{name: (low, high)}`` bounds of ``theta`` (arrays of each entry's shape) for
+        :func:`random_search`; entries with ``low == high`` stay fixed.
     """
 
     theta0: dict
@@ -154,6 +186,7 @@ class TuningProblem:
     penalty: Callable | None = None
     describe: Callable = dict
     responses: Callable | None = None
+    search_box: dict | None = None
 
     def batch_size(self, batch) -> int:
         return int(jax.tree.leaves(batch)[0].shape[0])
@@ -170,6 +203,7 @@ class TuneSettings:
     objective: str = "mean"
     cvar_alpha: float = 0.25
     penalty_weight: float = 0.0
+    divergence_factor: float = 10.0  # a diverged plant's loss: this times the largest finite loss
     clip_norm: float = 1.0  # global-norm gradient clipping; 0 disables it
     patience: int = 15  # early stopping: evaluations without an improvement of min_improvement
     min_improvement: float = 1e-3  # relative
@@ -188,9 +222,10 @@ class TuneSettings:
         for name, low in (("learning_rate", 0.0), ("steps", 0), ("patience", 0), ("checkpoint_every", 0)):
             if not getattr(self, name) > low:
                 raise ValueError(f"{name} must be > {low}, got {getattr(self, name)!r}")
-        for name in ("penalty_weight", "clip_norm", "min_improvement", "max_rejections"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        for name, low in (("penalty_weight", 0), ("clip_norm", 0), ("min_improvement", 0), ("max_rejections", 0),
+                          ("divergence_factor", 1)):  # fmt: skip
+            if not getattr(self, name) >= low:
+                raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
 
     def optax_transform(self) -> optax.GradientTransformation:
         base = OPTIMIZERS[self.optimizer](self.learning_rate)
@@ -198,29 +233,40 @@ class TuneSettings:
 
 
 class TuneResult(NamedTuple):
-    theta: dict  # the best accepted parameters
+    theta: dict  # the best accepted parameters (fewest diverged training plants, then lowest objective)
     objective: float  # their training objective
-    history: list  # one dict per evaluation: step, objective, accepted, reason, grad_norm, theta, seconds
+    history: list  # one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
     stopped: str  # why the loop ended: "steps", "early stopping"
     evaluations: int  # gradient evaluations (each is one rollout per training plant)
     rollouts: int  # evaluations x training batch size
+    diverged: int  # diverged training plants of the best theta
+    seconds: float  # wall time of the tuning over all runs that built this checkpoint, compilation included
 
 
 class TuningError(RuntimeError):
-    """Tuning cannot go on (e.g. the initial design diverges, or every retry of a step does)."""
+    """Tuning cannot go on (e.g. every training plant diverges under the initial design, or every retry of a
+    step fails)."""
 
 
 class CheckpointError(RuntimeError):
-    """A checkpoint that cannot be used (corrupt, or written for another problem or configuration)."""
+    """A checkpoint that cannot be used (corrupt, damaged, or written for another problem or configuration)."""
 
 
-def _objective_fn(problem: TuningProblem, settings: TuneSettings, batch):
-    def objective(theta):
+def _objective_fn(problem: TuningProblem, settings: TuneSettings):
+    """``(theta, batch, replaced=None) -> (objective, failed)``: the robust objective of the penalised losses
+    (plus the problem's penalty); ``replaced`` (B,) marks plants whose inputs were replaced, which count as failed
+    without a loss of their own."""
+
+    def objective(theta, batch, replaced=None):
         losses, diverged = problem.losses(theta, batch)
-        value = robust_objective(losses, settings.objective, settings.cvar_alpha)
+        failed, own = jnp.asarray(diverged) | ~jnp.isfinite(losses), None
+        if replaced is not None:
+            failed, own = failed | replaced, ~replaced
+        penalised = penalise_diverged(losses, failed, settings.divergence_factor, own)
+        value = robust_objective(penalised, settings.objective, settings.cvar_alpha)
         if problem.penalty is not None and settings.penalty_weight > 0:
             value = value + settings.penalty_weight * problem.penalty(theta)
-        return value, (losses, diverged)
+        return value, failed
 
     return objective
 
@@ -246,42 +292,98 @@ def value_and_grad(objective: Callable, mode: str = "reverse") -> Callable:
     return forward
 
 
-def _as_numpy(theta: dict) -> dict:
-    return {k: np.asarray(v).tolist() for k, v in theta.items()}
+def _evaluations(problem: TuningProblem, settings: TuneSettings):
+    """``(evaluation, sound_gradient)`` on the training batch: ``theta -> ((objective, failed), grad)``, and
+    ``(theta, failed) -> grad`` with the failed plants' inputs replaced by the first sound plant's (so without
+    their own gradient terms), for a reverse-mode gradient that a diverged rollout made non-finite (None in
+    forward mode, where a failed plant's tangents stay in its own lane)."""
+    objective, batch = _objective_fn(problem, settings), problem.train
+    size = problem.batch_size(batch)
+
+    def evaluation(theta):
+        return value_and_grad(lambda th: objective(th, batch), settings.gradient)(theta)
+
+    def sound_gradient(theta, failed):
+        keep = jnp.where(failed, jnp.argmin(failed), jnp.arange(size))
+        sound = jax.tree.map(lambda x: x[keep], batch)
+        return value_and_grad(lambda th: objective(th, sound, failed), settings.gradient)(theta)[1]
+
+    return evaluation, (sound_gradient if settings.gradient == "reverse" else None)
 
 
-def _failure(value, grad, diverged) -> str | None:
-    """Why an evaluation is unusable, or None."""
-    flagged = np.flatnonzero(np.asarray(diverged))
-    if flagged.size:
-        return f"the rollouts of {flagged.size} plant(s) diverged (first: plant {int(flagged[0])})"
+def _finite(tree) -> bool:
+    return all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(tree))
+
+
+def _failure(value, grad, failed, allowed: int) -> str | None:
+    """Why an evaluation is rejected (more than ``allowed`` plants diverged, or a non-finite objective or
+    gradient), or None."""
+    failed = np.asarray(failed)
+    count = int(failed.sum())
+    if count == failed.size:
+        return f"every one of the {count} plants diverged"
+    if count > allowed:
+        return f"{count} plant(s) diverged, {allowed} at the last accepted point"
     if not np.isfinite(float(value)):
         return f"the objective is {float(value)}"
-    if grad is not None and not all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad)):
+    if grad is not None and not _finite(grad):
         return "the gradient is not finite"
     return None
+
+
+def _strong(theta: dict) -> dict:
+    """``theta`` as JAX arrays of fixed (not weak) dtypes, the types the compiled evaluation is called with."""
+    return {k: jnp.asarray(v).astype(jnp.asarray(v).dtype) for k, v in theta.items()}
+
+
+def _as_numpy(theta: dict) -> dict:
+    return {k: np.asarray(v).tolist() for k, v in theta.items()}
 
 
 # --------------------------------------------------------------------------------------------
 # Checkpoints
 
+_META = {"evaluations": int, "scale": float, "best_objective": float, "best_diverged": int, "diverged": int,
+         "since_best": int, "rejections": int, "seconds": float, "history": list, "fingerprint": str}  # fmt: skip
 
-def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str) -> str:
+
+def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str, program: str) -> str:
     shapes = {k: list(np.shape(v)) for k, v in problem.theta0.items()}
     fixed = {k: v for k, v in dataclasses.asdict(settings).items() if k != "steps"}  # more steps may continue a run
-    text = json.dumps({"tag": tag, "settings": fixed, "theta": shapes}, sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    text = json.dumps({"tag": tag, "settings": fixed, "theta": shapes, "jax": jax.__version__}, sort_keys=True)
+    return hashlib.sha256((text + program).encode()).hexdigest()[:16]
 
 
 def _save_checkpoint(path: Path, trees: dict, meta: dict) -> None:
     arrays = {f"leaf{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(trees))}
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
-    os.replace(tmp, path)
+    tmp = temporary_path(path, ".tmp.npz")
+    try:
+        np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
-def _load_checkpoint(path: Path, template: dict, fingerprint: str) -> tuple[dict, dict]:
-    """``(trees, meta)`` from ``path``; :class:`CheckpointError` naming the file for anything unusable."""
+def _meta_problem(meta) -> str | None:
+    """What makes a checkpoint's ``meta`` unusable, or None."""
+    if not isinstance(meta, dict):
+        return f"meta is a JSON {type(meta).__name__}, not an object"
+    for key, kind in _META.items():
+        value = meta.get(key)
+        ok = isinstance(value, int | float) if kind is float else isinstance(value, kind)
+        if not ok or isinstance(value, bool):
+            return f"meta.{key} is {'missing' if key not in meta else repr(value)}, expected {kind.__name__}"
+    numbers = [meta[k] for k, kind in _META.items() if kind in (int, float)]
+    if not all(math.isfinite(v) and v >= 0 for v in numbers) or meta["scale"] <= 0:
+        return "meta holds a negative or non-finite count, scale or objective"
+    if len(meta["history"]) != meta["evaluations"] or not all(isinstance(h, dict) for h in meta["history"]):
+        return f"meta.history has {len(meta['history'])} entries for {meta['evaluations']} evaluations"
+    return None
+
+
+def _load_checkpoint(path: Path, template: dict) -> tuple[dict, dict]:
+    """``(trees, meta)`` from ``path``; :class:`CheckpointError` naming the file for anything unusable but the
+    fingerprint (checked by the caller)."""
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
@@ -289,15 +391,16 @@ def _load_checkpoint(path: Path, template: dict, fingerprint: str) -> tuple[dict
             loaded = [data[f"leaf{i}"] for i in range(len(leaves))]
             if len(data.files) != len(leaves) + 1:
                 raise ValueError(f"{len(data.files) - 1} arrays, expected {len(leaves)}")
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise CheckpointError(f"{path}: corrupt or unreadable checkpoint ({exc}); delete it to start over") from exc
-    if meta.get("fingerprint") != fingerprint:
-        raise CheckpointError(
-            f"{path}: written for a different problem or settings; delete it (or use another --out) to start over"
-        )
+    problem = _meta_problem(meta)
+    if problem is not None:
+        raise CheckpointError(f"{path}: damaged checkpoint ({problem}); delete it to start over")
     for i, (new, old) in enumerate(zip(loaded, leaves, strict=True)):
         if new.shape != np.shape(old):
             raise CheckpointError(f"{path}: array {i} has shape {new.shape}, expected {np.shape(old)}")
+        if new.dtype.kind in "fc" and not np.all(np.isfinite(new)):
+            raise CheckpointError(f"{path}: array {i} holds NaN or infinite values; delete it to start over")
     return jax.tree.unflatten(treedef, [jnp.asarray(x) for x in loaded]), meta
 
 
@@ -315,56 +418,83 @@ def tune(
 ) -> TuneResult:
     """Minimise the robust objective of ``problem``'s training losses from ``problem.theta0``.
 
-    Each evaluation computes the objective and its gradient (``jit(value_and_grad)``, one rollout per
-    training plant). An accepted evaluation takes an optax step ``theta <- theta + s * update`` with step
-    scale ``s`` (1 normally); a rejected one (see the module docstring) is logged, returns to the last
-    accepted ``theta`` and retries with ``s / 2`` (``s`` doubles back towards 1 on each acceptance). The
-    initial design must not diverge (:class:`TuningError`), nor may ``max_rejections`` retries in a row.
+    Each evaluation computes the objective and its gradient (one rollout per training plant). An accepted
+    evaluation takes an optax step ``theta <- theta + s * update`` with step scale ``s`` (1 normally); a
+    rejected one (see the module docstring) is logged, returns to the last accepted ``theta`` and retries with
+    ``s / 2`` (``s`` doubles back towards 1 on each acceptance). Training plants that diverge under the initial
+    design are penalised and logged; the initial design must not fail on every plant (:class:`TuningError`), nor
+    may ``max_rejections`` retries in a row.
 
     Args:
       problem: the :class:`TuningProblem`.
       settings: :class:`TuneSettings`.
-      checkpoint: a ``.npz`` path: written every ``settings.checkpoint_every`` evaluations and at the end,
-        and resumed from when it exists (it must come from the same problem shapes, settings and ``tag``).
+      checkpoint: a ``.npz`` path: written every ``settings.checkpoint_every`` evaluations, at the end and on
+        Ctrl-C, and resumed from when it exists (it must come from the same problem, program, settings and
+        ``tag``).
       progress: show a progress bar with the objective.
       tag: a string identifying the problem's configuration, checked when resuming.
 
     Returns:
-      :class:`TuneResult` with the best accepted ``theta``.
+      :class:`TuneResult` with the best accepted ``theta``. Ctrl-C raises
+      :class:`jaxobs._resources.Interrupted` after saving the checkpoint.
     """
     from tqdm.auto import tqdm
 
     settings.validate()
+    start = time.perf_counter()
     optimizer = settings.optax_transform()
-    evaluate_with_grad = jax.jit(value_and_grad(_objective_fn(problem, settings, problem.train), settings.gradient))
     batch = problem.batch_size(problem.train)
-    theta0 = {k: jnp.asarray(v) for k, v in problem.theta0.items()}
+    theta0 = _strong(problem.theta0)
     zeros = jax.tree.map(jnp.zeros_like, theta0)
     trees = {"theta": theta0, "anchor": theta0, "update": zeros, "best": theta0, "opt": optimizer.init(theta0)}
-    meta = {"evaluations": 0, "scale": 1.0, "best_objective": math.inf, "since_best": 0, "rejections": 0}
+    meta = {"evaluations": 0, "scale": 1.0, "best_objective": math.inf, "best_diverged": batch, "diverged": batch,
+            "since_best": 0, "rejections": 0, "seconds": 0.0}  # fmt: skip
     history: list = []
-    fingerprint = _fingerprint(problem, settings, tag)
     path = Path(checkpoint) if checkpoint is not None else None
-    if path is not None and path.exists():
-        trees, meta = _load_checkpoint(path, trees, fingerprint)
+    resume = path is not None and path.exists()
+    if resume:  # a damaged checkpoint is reported before the evaluation is traced
+        trees, meta = _load_checkpoint(path, trees)
         history = meta.pop("history")
+    evaluation, sound_gradient = _evaluations(problem, settings)
+    lowered = jax.jit(evaluation).lower(theta0)
+    sound_gradient = sound_gradient and jax.jit(sound_gradient)  # compiled only if ever needed
+    fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
+    if resume:
+        if meta.pop("fingerprint") != fingerprint:
+            raise CheckpointError(
+                f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
+                "to start over"
+            )
         logger.info("resuming from %s at evaluation %d", path, meta["evaluations"])
+    evaluate_with_grad = compile_checked(
+        lowered, f"one evaluation of the {batch} training rollouts",
+        hint="use fewer training plants, shorter rollouts or a gradient_horizon",
+    )  # fmt: skip
+    previous_seconds = meta["seconds"]
 
-    def save():
+    def save(trees, meta, history):
+        meta["seconds"] = previous_seconds + time.perf_counter() - start
         if path is not None:
             _save_checkpoint(path, trees, {**meta, "fingerprint": fingerprint, "history": history})
 
     stopped = "steps"
     bar = tqdm(total=settings.steps, initial=meta["evaluations"], desc="tune", disable=not progress, unit="eval")
+    saved = (dict(trees), dict(meta), len(history))
     try:
-        while meta["evaluations"] < settings.steps:
-            start = time.perf_counter()
-            (value, (_, diverged)), grad = evaluate_with_grad(trees["theta"])
+        while meta["evaluations"] < settings.steps and meta["since_best"] < settings.patience:
+            saved = (dict(trees), dict(meta), len(history))  # a consistent state for Ctrl-C
+            step_start = time.perf_counter()
+            (value, failed), grad = evaluate_with_grad(trees["theta"])
+            if sound_gradient is not None and 0 < np.sum(failed) < batch and not _finite(grad):
+                grad = sound_gradient(trees["theta"], failed)
+            first = meta["evaluations"] == 0
             meta["evaluations"] += 1
-            reason = _failure(value, grad, diverged)
+            count = int(np.sum(np.asarray(failed)))
+            reason = _failure(value, grad, failed, batch - 1 if first else meta["diverged"])
             record = {
                 "evaluation": meta["evaluations"],
                 "objective": float(value) if np.isfinite(float(value)) else None,
+                "diverged": count,
                 "accepted": reason is None,
                 "reason": reason,
                 "scale": meta["scale"],
@@ -372,7 +502,7 @@ def tune(
                 "theta": _as_numpy(trees["theta"]),
             }
             if reason is not None:
-                if meta["evaluations"] == 1:
+                if first:
                     raise TuningError(f"the initial parameters fail on the training batch: {reason}")
                 meta["rejections"] += 1
                 meta["scale"] /= 2
@@ -381,48 +511,81 @@ def tune(
                     meta["evaluations"], reason, meta["scale"],
                 )  # fmt: skip
                 if meta["rejections"] > settings.max_rejections:
-                    save()
+                    save(trees, meta, history + [record])
                     raise TuningError(
                         f"{meta['rejections']} consecutive steps rejected (last: {reason}); lower the learning rate"
                     )
                 trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["anchor"], trees["update"])
             else:
-                meta["rejections"] = 0
+                if first and count:
+                    logger.warning(
+                        "%d of %d training plants diverge under the initial design; each counts as at least %g "
+                        "times the largest loss of the others", count, batch, settings.divergence_factor,
+                    )  # fmt: skip
+                meta["rejections"], meta["diverged"] = 0, count
                 value = float(value)
-                if value < meta["best_objective"] * (1 - settings.min_improvement):
-                    meta["since_best"] = 0
-                else:
-                    meta["since_best"] += 1
-                if value < meta["best_objective"]:
-                    meta["best_objective"], trees["best"] = value, trees["theta"]
+                improved = count < meta["best_diverged"] or value < meta["best_objective"] * (
+                    1 - settings.min_improvement
+                )
+                meta["since_best"] = 0 if improved else meta["since_best"] + 1
+                if (count, value) < (meta["best_diverged"], meta["best_objective"]):
+                    meta["best_diverged"], meta["best_objective"], trees["best"] = count, value, trees["theta"]
                 update, trees["opt"] = optimizer.update(grad, trees["opt"], trees["theta"])
                 meta["scale"] = min(1.0, 2 * meta["scale"])
                 trees["anchor"], trees["update"] = trees["theta"], update
                 trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["theta"], update)
-            record["seconds"] = time.perf_counter() - start
+            record["seconds"] = time.perf_counter() - step_start
             history.append(record)
             bar.update(1)
             bar.set_postfix(
                 objective=f"{value:.4g}" if reason is None else "rejected", best=f"{meta['best_objective']:.4g}"
             )
             if meta["evaluations"] % settings.checkpoint_every == 0:
-                save()
-            if meta["since_best"] >= settings.patience:
-                stopped = "early stopping"
-                break
+                save(trees, meta, history)
+    except KeyboardInterrupt as exc:
+        trees, meta, done = saved
+        where = ""
+        if meta["evaluations"] > 0 and path is not None:
+            save(trees, meta, history[:done])
+            where = f"; checkpoint saved to {path}"
+        raise Interrupted(
+            f"interrupted after {meta['evaluations']} of {settings.steps} evaluations{where}; "
+            "rerun the same command to resume"
+        ) from exc
     finally:
         bar.close()
-    save()
+    if meta["since_best"] >= settings.patience:
+        stopped = "early stopping"
+    save(trees, meta, history)
     return TuneResult(
-        trees["best"], meta["best_objective"], history, stopped, meta["evaluations"], meta["evaluations"] * batch
-    )
+        trees["best"], meta["best_objective"], history, stopped, meta["evaluations"], meta["evaluations"] * batch,
+        meta["best_diverged"], meta["seconds"],
+    )  # fmt: skip
 
 
 class SearchResult(NamedTuple):
-    theta: dict  # the best candidate
-    objective: float
-    objectives: np.ndarray  # per candidate (inf where it failed)
-    rollouts: int
+    candidates: list  # every candidate theta, the first being theta0
+    objectives: np.ndarray  # training objective per candidate (inf where every plant diverged)
+    diverged: np.ndarray  # diverged training plants per candidate
+    elapsed: np.ndarray  # wall time (s) when each candidate was scored, compilation included
+    rollouts_per_candidate: int
+
+    def best(self, count: int | None = None) -> tuple[dict, float, int]:
+        """``(theta, objective, diverged)`` of the best of the first ``count`` candidates (default: all): the
+        fewest diverged plants, then the lowest objective."""
+        count = len(self.candidates) if count is None else count
+        i = min(range(count), key=lambda j: (self.diverged[j], self.objectives[j]))
+        return self.candidates[i], float(self.objectives[i]), int(self.diverged[i])
+
+    def within(self, seconds: float) -> int:
+        """How many candidates were scored within ``seconds`` (at least 1)."""
+        return max(1, int(np.searchsorted(self.elapsed, seconds, side="right")))
+
+
+def _search_box(problem: TuningProblem, spread: float) -> dict:
+    if problem.search_box is not None:
+        return {k: (jnp.asarray(lo), jnp.asarray(hi)) for k, (lo, hi) in problem.search_box.items()}
+    return {k: (jnp.asarray(v) - spread, jnp.asarray(v) + spread) for k, v in problem.theta0.items()}
 
 
 def random_search(
@@ -430,46 +593,71 @@ def random_search(
     settings: TuneSettings,
     num_candidates: int,
     *,
+    seconds: float = 0.0,
     spread: float = 2.0,
     seed: int = 0,
     progress: bool = True,
 ) -> SearchResult:
-    """Gradient-free baseline: ``theta0`` and ``num_candidates - 1`` candidates ``theta0 + U(-spread, spread)``
-    (per unconstrained coordinate: a factor up to ``e^spread`` on log-parameters), each scored by the same
-    training objective as :func:`tune` (one rollout per training plant); the best finite one wins."""
+    """Gradient-free baseline: ``theta0``, then candidates drawn uniformly from ``problem.search_box`` (default:
+    ``theta0 +- spread`` per unconstrained coordinate, a factor up to ``e^spread`` on log-parameters), each
+    scored by the same penalised training objective as :func:`tune` (one rollout per training plant). Draws at
+    least ``num_candidates`` and goes on until ``seconds`` of wall time (compilation included) have passed, so
+    that one search gives the baseline at equal rollouts (:meth:`SearchResult.best` of the first ones) and at
+    equal wall time (:meth:`SearchResult.within`)."""
     from tqdm.auto import tqdm
 
     settings.validate()
     if num_candidates < 1:
         raise ValueError(f"num_candidates must be >= 1, got {num_candidates}")
-    objective = jax.jit(_objective_fn(problem, settings, problem.train))
+    start = time.perf_counter()
+    objective = _objective_fn(problem, settings)
+    score = jax.jit(lambda theta: objective(theta, problem.train))
+    box = _search_box(problem, spread)
+    theta0 = _strong(problem.theta0)
     key = jax.random.PRNGKey(seed)
-    theta0 = {k: jnp.asarray(v) for k, v in problem.theta0.items()}
-    best, best_value, values = theta0, math.inf, []
-    for i in tqdm(range(num_candidates), desc="random search", disable=not progress, unit="eval"):
+    candidates, values, diverged, elapsed = [], [], [], []
+    bar = tqdm(total=num_candidates, desc="random search", disable=not progress, unit="eval")
+    while len(candidates) < num_candidates or elapsed[-1] < seconds:
         key, sub = jax.random.split(key)
         keys = dict(zip(theta0, jax.random.split(sub, len(theta0)), strict=True))
-        candidate = theta0 if i == 0 else {
-            k: v + jax.random.uniform(keys[k], v.shape, v.dtype, -spread, spread) for k, v in theta0.items()
+        candidate = theta0 if not candidates else {
+            k: jax.random.uniform(keys[k], v.shape, v.dtype, box[k][0], box[k][1]) for k, v in theta0.items()
         }  # fmt: skip
-        value, (_, diverged) = objective(candidate)
-        value = math.inf if _failure(value, None, diverged) else float(value)
-        values.append(value)
-        if value < best_value:
-            best, best_value = candidate, value
-    return SearchResult(best, best_value, np.asarray(values), num_candidates * problem.batch_size(problem.train))
+        value, failed = score(candidate)
+        count = int(np.sum(np.asarray(failed)))
+        candidates.append(candidate)
+        values.append(float(value) if count < np.size(failed) and np.isfinite(float(value)) else math.inf)
+        diverged.append(count)
+        elapsed.append(time.perf_counter() - start)
+        bar.update(1)
+    bar.close()
+    return SearchResult(
+        candidates, np.asarray(values), np.asarray(diverged), np.asarray(elapsed), problem.batch_size(problem.train)
+    )
 
 
 def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneSettings(), batch=None) -> dict:
-    """Scores of ``theta`` on ``batch`` (default: the held-out plants): the objective of ``settings``, the
-    mean and the CVaR of the per-plant losses, the number of diverged plants, and the losses."""
+    """Scores of ``theta`` on ``batch`` (default: the held-out plants): ``objective`` (the robust objective of
+    ``settings`` with diverged plants penalised as in training: finite unless every plant diverges),
+    ``finite_fraction`` (of plants that did not diverge), ``diverged`` (their count), the ``mean``, ``cvar`` and
+    quantiles ``p50``, ``p90``, ``max`` of the finite losses (None if there are none), and ``losses`` (inf where
+    diverged)."""
     batch = problem.heldout if batch is None else batch
     losses, diverged = jax.jit(problem.losses)(theta, batch)
-    losses = np.where(np.asarray(diverged), np.inf, np.asarray(losses))
+    losses = np.asarray(losses)
+    failed = np.asarray(diverged) | ~np.isfinite(losses)
+    penalised = penalise_diverged(jnp.asarray(losses), jnp.asarray(failed), settings.divergence_factor)
+    finite = losses[~failed]
+    stats = dict.fromkeys(("mean", "cvar", "p50", "p90", "max"))
+    if finite.size:
+        quantiles = np.quantile(finite, [0.5, 0.9, 1.0])
+        stats = {"mean": float(np.mean(finite)), "cvar": float(cvar(jnp.asarray(finite), settings.cvar_alpha)),
+                 "p50": float(quantiles[0]), "p90": float(quantiles[1]), "max": float(quantiles[2])}  # fmt: skip
+    objective = float(robust_objective(penalised, settings.objective, settings.cvar_alpha)) if finite.size else math.inf
     return {
-        "objective": float(robust_objective(jnp.asarray(losses), settings.objective, settings.cvar_alpha)),
-        "mean": float(np.mean(losses)),
-        "cvar": float(cvar(jnp.asarray(losses), settings.cvar_alpha)),
-        "diverged": int(np.sum(np.asarray(diverged))),
-        "losses": losses,
+        "objective": objective,
+        "finite_fraction": float(finite.size / failed.size),
+        "diverged": int(failed.sum()),
+        **stats,
+        "losses": np.where(failed, np.inf, losses),
     }

@@ -1,5 +1,7 @@
 """jaxobs.sweep: columns and values, chunk-size and device-count independence, resume after damage, SIGKILL
-and KeyboardInterrupt, refusal of a different sweep, input validation.
+and KeyboardInterrupt, refusal of a different sweep (config, columns or the program's fingerprint) and of a
+damaged manifest, extension to more configurations, the lock against a second process, the memory check,
+input validation.
 
 The sweep itself (a 50-step damped oscillator with sampled parameters) lives in sweep_scripts/sweep_case.py so
 that subprocesses run exactly the same functions as this process.
@@ -21,7 +23,8 @@ import numpy as np
 import pytest
 
 import jaxobs.sweep as sweep
-from jaxobs.sweep import config_key, load_results, run_sweep
+from jaxobs._resources import Interrupted, JobError
+from jaxobs.sweep import SweepError, config_key, load_results, run_sweep
 
 SCRIPT = Path(__file__).parent / "sweep_scripts" / "sweep_case.py"
 _spec = importlib.util.spec_from_file_location("sweep_case", SCRIPT)
@@ -96,13 +99,15 @@ def test_columns_dtypes_and_values_match_a_direct_vmap(reference):
 
     m = _manifest(out)
     assert m["config"] == case.CONFIG and (m["seed"], m["num_configs"], m["chunk_size"]) == (0, N, CHUNK)
-    assert (m["device_count"], m["platform"], m["format_version"]) == (1, "cpu", 1)
+    assert (m["device_count"], m["platform"], m["format_version"]) == (1, "cpu", 2)
+    assert len(m["fingerprint"]) == 64
     assert set(m["versions"]) == {"python", "jax", "jaxlib", "numpy", "pyarrow", "jaxobs"}
     assert list(m["columns"]) == COLUMNS and m["columns"]["metric.stable"] == "bool"
     assert sorted(m["completed"], key=int) == [str(c) for c in range(8)]
     assert sum(e["rows"] for e in m["completed"].values()) == N
     assert m["compile_seconds"] > 0 and m["seconds"] >= m["compile_seconds"]
     assert sorted(p.name for p in (out / "chunks").iterdir()) == [f"chunk-{c:05d}.parquet" for c in range(8)]
+    assert sorted(p.name for p in out.iterdir()) == [".jaxobs.lock", "chunks", "manifest.json"]  # no temporaries
 
 
 def test_chunk_size_does_not_change_results(reference, tmp_path):
@@ -183,11 +188,10 @@ def test_keyboard_interrupt_leaves_a_resumable_sweep(reference, tmp_path, monkey
         return write(path, table)
 
     monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(Interrupted, match="interrupted after 2 of 8 chunks; rerun the same command to resume"):
         _run(tmp_path)
-    assert "interrupted after 2 of 8 chunks; rerun the same command to resume" in capsys.readouterr().err
     assert sorted(_manifest(tmp_path)["completed"]) == ["0", "1"]
-    with pytest.raises(ValueError, match=r"incomplete \(2 of 8 chunks\); rerun"):
+    with pytest.raises(SweepError, match=r"incomplete \(2 of 8 chunks\); rerun"):
         load_results(tmp_path)
 
     monkeypatch.setattr(sweep, "_write_chunk", write)
@@ -200,22 +204,102 @@ def test_keyboard_interrupt_leaves_a_resumable_sweep(reference, tmp_path, monkey
 def test_a_different_sweep_is_refused_unless_overwrite(reference, tmp_path):
     out = tmp_path / "sweep"
     shutil.copytree(reference[0], out)
-    for kw, what in [
-        ({"seed": 1}, "seed"),
-        ({"config": {"case": "other"}}, "config"),
-        ({"num_configs": 999}, "num_configs"),
-        ({"chunk_size": 100}, "chunk_size"),
-    ]:
-        with pytest.raises(ValueError, match=f"different sweep \\({what} differ.*overwrite=True"):
+    for kw, what in [({"seed": 1}, "seed"), ({"config": {"c": 1}}, "config"), ({"chunk_size": 100}, "chunk_size")]:
+        with pytest.raises(SweepError, match=f"different sweep \\({what} differ.*overwrite=True"):
             _run(out, **kw)
-    with pytest.raises(ValueError, match="columns differ"):
+    with pytest.raises(SweepError, match="columns differ"):
         run_sweep(case.sampler, lambda p: {"cost": p["x0"].sum()}, N, out, chunk_size=CHUNK, config=case.CONFIG)
+
+    def changed(p):  # the same config and columns, other numbers: the fingerprint tells them apart
+        return case.evaluate(p)._replace(cost=2.0 * case.evaluate(p).cost)
+
+    with pytest.raises(SweepError, match="computed by other code .*overwrite=True"):
+        run_sweep(case.sampler, changed, N, out, chunk_size=CHUNK, config=case.CONFIG, progress=False)
     assert _manifest(out) == _manifest(reference[0])  # nothing touched
 
-    result = _run(out, seed=1, overwrite=True)
+    result = run_sweep(case.sampler, changed, N, out, chunk_size=CHUNK, config=case.CONFIG, progress=False,
+                       overwrite=True)  # fmt: skip
     assert (result.chunks_computed, result.chunks_reused) == (8, 0)
-    assert _manifest(out)["seed"] == 1
-    assert not np.array_equal(load_results(out)["param.x0[0]"], reference[1]["param.x0[0]"])
+    np.testing.assert_array_equal(load_results(out)["metric.cost"], 2.0 * reference[1]["metric.cost"])
+
+
+def test_more_configurations_extend_the_sweep(reference, tmp_path):
+    """1000 -> 1300 configurations: the 7 full chunks are reused, the partial chunk 7 and chunks 8-10 computed;
+    back to 1000: chunk 7 is recomputed with 104 rows, chunks 8-10 stay for a later extension."""
+    out = tmp_path / "sweep"
+    shutil.copytree(reference[0], out)
+    longer = _run(out, num_configs=1300)
+    assert (longer.chunks_computed, longer.chunks_reused, longer.num_configs) == (4, 7, 1300)
+    cols = load_results(out)
+    assert cols["index"].tolist() == list(range(1300))
+    _assert_same({k: v[:N] for k, v in cols.items()}, reference[1])
+    shorter = _run(out)
+    assert (shorter.chunks_computed, shorter.chunks_reused) == (1, 7)
+    _assert_same(load_results(out), reference[1])
+    assert sorted(_manifest(out)["completed"], key=int) == [str(c) for c in range(11)]
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("[]", "a JSON list instead of an object"),
+        ("", "unreadable"),
+        ('{"format_version": 2}', "config is missing"),
+        ("MANIFEST completed=[]", "completed is list"),
+        ('MANIFEST completed={"0": []}', r"completed\['0'\] is not a chunk entry"),
+        ("MANIFEST format_version=1", "format_version 1"),
+    ],
+)
+def test_a_damaged_manifest_is_refused_with_its_name(reference, tmp_path, text, message):
+    out = tmp_path / "sweep"
+    shutil.copytree(reference[0], out)
+    if text.startswith("MANIFEST"):
+        key, value = text.split(" ", 1)[1].split("=", 1)
+        text = json.dumps({**_manifest(out), key: json.loads(value)})
+    (out / "manifest.json").write_text(text)
+    for call in (lambda: _run(out), lambda: load_results(out)):
+        with pytest.raises(SweepError, match=message) as info:
+            call()
+        assert str(out / "manifest.json") in str(info.value)
+    assert _run(out, overwrite=True).chunks_computed == 8
+
+
+def test_a_second_process_on_the_same_out_dir_exits_2_naming_the_holder(tmp_path):
+    """A slow sweep holds the lock; `jaxobs sweep` on the same directory exits 2 at once, naming its pid."""
+    out = tmp_path / "sweep"
+    holder = _subprocess(out, env={"SWEEP_SLEEP": "3"})  # 8 chunks: about 24 s, killed well before
+    try:
+        deadline = time.monotonic() + 90
+        while not (out / "manifest.json").exists():
+            assert holder.poll() is None, holder.communicate()[1]
+            assert time.monotonic() < deadline, "the sweep subprocess did not start"
+            time.sleep(0.05)
+        env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+        second = subprocess.run([sys.executable, "-m", "jaxobs.cli", "sweep", "--out", str(out), "--no-progress"],
+                                env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert second.returncode == 2, second.stderr
+        lines = second.stderr.strip().splitlines()
+        assert lines == [
+            f"jaxobs sweep: {out} is in use by another jaxobs process (pid {holder.pid}); wait for it to finish "
+            "or choose another output directory"
+        ]
+        with pytest.raises(JobError, match=f"pid {holder.pid}"):  # the library refuses as well
+            _run(out)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.communicate()
+    assert _run(out).chunks_computed > 0  # the kernel released the dead holder's lock
+
+
+def test_a_step_that_cannot_fit_in_memory_is_refused_before_it_runs(tmp_path):
+    def evaluate(p):  # a 10^7-sample intermediate per configuration: 80 MB each, 8 TB per chunk of 10^5
+        return {"s": jnp.cumsum(jax.random.normal(jax.random.key(0), (10**7,)) * p["a"])[-1]}
+
+    message = (r"one step of the sweep \(1 device\(s\) x chunk_size 100000\) needs about [\d.]+ TB \(estimated\), "
+               r"more than the .* of memory available; lower chunk_size")  # fmt: skip
+    with pytest.raises(JobError, match=message):
+        run_sweep(_scalar_sampler, evaluate, 10**5, tmp_path / "out", chunk_size=10**5, progress=False)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".jaxobs.lock"]  # nothing written
 
 
 def _scalar_sampler(key, index):
@@ -259,5 +343,13 @@ def test_module_docstring_example_runs(tmp_path, monkeypatch):
 
 
 def test_load_results_without_a_sweep(tmp_path):
-    with pytest.raises(ValueError, match="no manifest.json"):
+    with pytest.raises(SweepError, match="no manifest.json"):
         load_results(tmp_path)
+
+
+def test_an_unwritable_out_dir_is_refused_before_compiling(tmp_path):
+    (tmp_path / "file").write_text("")
+    for out, message in [(tmp_path / "file", "exists and is not a directory"),
+                         (tmp_path / "file" / "sub", "cannot write to .*: Not a directory")]:  # fmt: skip
+        with pytest.raises(JobError, match=message):
+            run_sweep(_scalar_sampler, lambda p: {"y": p["a"]}, 10, out, progress=False)

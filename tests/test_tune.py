@@ -1,7 +1,9 @@
-"""jaxobs.tune: parameterisations, robust objectives and the optax loop (rejection, early stopping,
-checkpoints), on cheap problems: a quadratic and the analytic force loop of jaxobs.closed_loop."""
+"""jaxobs.tune: parameterisations, robust objectives and the optax loop (penalised divergence, rejection,
+early stopping, checkpoints, Ctrl-C), the random search and evaluate, on cheap problems: a quadratic and the
+analytic force loop of jaxobs.closed_loop."""
 
 import dataclasses
+import json
 import logging
 
 import jax
@@ -12,6 +14,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
+import jaxobs.tune as tune_module
+from jaxobs._resources import Interrupted
 from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
 from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, force_plant, nominal_design, reference_gain
@@ -24,6 +28,7 @@ from jaxobs.tune import (
     cholesky_parameters,
     cvar,
     evaluate,
+    penalise_diverged,
     random_search,
     robust_objective,
     tune,
@@ -133,8 +138,78 @@ def test_nan_loss_is_rejected():
     problem = TuningProblem({"x": jnp.asarray(0.0)}, losses, jnp.array([3.0]), jnp.array([3.0]))
     result = tune(problem, TuneSettings(learning_rate=0.6, steps=30, clip_norm=0.0), progress=False)
     reasons = {h["reason"] for h in result.history if not h["accepted"]}
-    assert reasons and all("objective is nan" in r for r in reasons)
+    assert reasons == {"every one of the 1 plants diverged"}  # a NaN loss counts as a diverged plant
     assert float(result.theta["x"]) <= 1.0
+
+
+def test_penalise_diverged():
+    losses = jnp.array([1.0, 4.0, jnp.inf, 12.0])
+    failed = jnp.array([False, False, True, True])
+    p = 40.0  # 10 x the worst sound loss
+    want = [1.0, 4.0, p, p * (1 + np.log1p(12.0 / p))]
+    np.testing.assert_allclose(penalise_diverged(losses, failed, 10.0), want, rtol=1e-15)
+    np.testing.assert_allclose(penalise_diverged(losses, failed, 10.0, own=~failed), [1.0, 4.0, p, p])
+    g = jax.grad(lambda x: jnp.sum(penalise_diverged(x, failed, 10.0)))(jnp.array([1.0, 4.0, 3.0, 12.0]))
+    np.testing.assert_allclose(g, [1.0, 1.0, p / (p + 3.0), p / (p + 12.0)], rtol=1e-15)  # P held constant
+    assert not jnp.isfinite(penalise_diverged(losses, jnp.ones(4, bool), 10.0)).any()
+
+
+def reach_problem():
+    """Per-plant loss ``(x - t)^2`` for t = 1, 2, 3, 8; a plant diverges when ``|x - t| > 5`` (t = 8 at the
+    start, x = 0). Its penalised loss pulls x up until it is rescued at x = 3; then the mean optimum is 3.5."""
+
+    def losses(theta, t):
+        return (theta["x"] - t) ** 2, jnp.abs(theta["x"] - t) > 5.0
+
+    train = jnp.array([1.0, 2.0, 3.0, 8.0])
+    return TuningProblem({"x": jnp.asarray(0.0)}, losses, train, jnp.array([1.0, 2.0, 8.0, 20.0]))
+
+
+def test_a_few_diverging_plants_are_penalised_not_refused(caplog):
+    s = TuneSettings(learning_rate=0.3, steps=80, patience=80, clip_norm=0.0, checkpoint_every=1000)
+    with caplog.at_level(logging.WARNING, logger="jaxobs.tune"):
+        result = tune(reach_problem(), s, progress=False)
+    assert "1 of 4 training plants diverge under the initial design" in caplog.text
+    first, p = result.history[0], 10.0 * 9  # plant t = 8 at x = 0: L = 64, P = 10 x the worst sound loss
+    assert first["accepted"] and first["diverged"] == 1
+    assert first["objective"] == pytest.approx((1 + 4 + 9 + p * (1 + np.log1p(64 / p))) / 4)
+    assert first["grad_norm"] == pytest.approx(abs(-2 - 4 - 6 - 16 * p / (p + 64)) / 4)
+    assert result.diverged == 0 and float(result.theta["x"]) == pytest.approx(3.5, abs=0.05)
+    counts = [h["diverged"] for h in result.history if h["accepted"]]
+    assert counts == sorted(counts, reverse=True)  # accepted steps never lose a plant
+
+    scores = evaluate(reach_problem(), result.theta, s)  # held-out t = 1, 2, 8, 20: the last diverges
+    assert scores["diverged"] == 1 and scores["finite_fraction"] == 0.75
+    finite = (float(result.theta["x"]) - np.array([1.0, 2.0, 8.0])) ** 2
+    assert scores["mean"] == pytest.approx(finite.mean()) and scores["max"] == pytest.approx(finite.max())
+    assert scores["p50"] == pytest.approx(np.median(finite))
+    p, own = 10 * finite.max(), (float(result.theta["x"]) - 20.0) ** 2
+    assert scores["objective"] == pytest.approx((finite.sum() + p * (1 + np.log1p(own / p))) / 4)
+    assert np.isinf(scores["losses"][3])
+    with pytest.raises(TuningError, match="every one of the 4 plants diverged"):
+        tune(dataclasses.replace(reach_problem(), theta0={"x": jnp.asarray(50.0)}), s, progress=False)
+
+
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
+def test_a_diverged_rollout_does_not_poison_the_gradient(mode):
+    """Plant 3's loss overflows (exp(800 x) at x = 1): in reverse mode its zero cotangent times an infinite
+    derivative is NaN, so the evaluation is redone with its input replaced by a sound plant's."""
+
+    def losses(theta, p):
+        x = theta["x"]
+        loss = (x - p["t"]) ** 2 + jnp.exp(p["s"] * x) - 1.0
+        return loss, jnp.zeros(loss.shape, bool)
+
+    batch = {"t": jnp.array([0.0, 3.0, 0.0]), "s": jnp.array([0.0, 0.0, 800.0])}
+    problem = TuningProblem({"x": jnp.asarray(1.0)}, losses, batch, batch)
+    plain = jax.jit(tune_module._evaluations(problem, TuneSettings(gradient=mode))[0])
+    grad = plain({"x": jnp.asarray(1.0)})[1]["x"]
+    assert bool(jnp.isnan(grad)) == (mode == "reverse")
+    result = tune(problem, TuneSettings(gradient=mode, steps=1), progress=False)
+    first = result.history[0]
+    assert first["accepted"] and first["diverged"] == 1
+    assert first["objective"] == pytest.approx((1 + 4 + 10 * 4) / 3)  # l = 1, 4 and P = 10 x 4 (no own loss)
+    assert first["grad_norm"] == pytest.approx(abs(2 * 1 + 2 * (1 - 3)) / 3)  # P is held constant
 
 
 def test_early_stopping():
@@ -153,21 +228,88 @@ def test_checkpoint_resume_is_identical_and_bad_checkpoints_raise(tmp_path):
     assert resumed.evaluations == 12 and len(resumed.history) == 12
     assert float(resumed.theta["x"]) == float(straight.theta["x"])
     assert [h["objective"] for h in resumed.history] == [h["objective"] for h in straight.history]
-    with pytest.raises(CheckpointError, match="different problem or settings"):
+    assert resumed.seconds > first.seconds > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.npz"]  # no temporary file left
+    with pytest.raises(CheckpointError, match="different problem, program or settings"):
         tune(quadratic_problem(), dataclasses.replace(s, learning_rate=0.3), checkpoint=path)
-    with pytest.raises(CheckpointError, match="different problem or settings"):
+    with pytest.raises(CheckpointError, match="different problem, program or settings"):
         tune(quadratic_problem(), s, checkpoint=path, tag="another config")
-    path.write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="corrupt"):
-        tune(quadratic_problem(), s, checkpoint=path)
+    with pytest.raises(CheckpointError, match="different problem, program or settings"):  # same shapes, other losses
+        tune(quadratic_problem(targets=(1.0, 2.0, 4.0)), s, checkpoint=path)
 
 
-def test_random_search_starts_at_theta0_and_counts_rollouts():
+def _rewrite(path, edit_meta=None, edit_arrays=None):
+    with np.load(path) as data:
+        meta, arrays = json.loads(str(data["meta"])), {k: data[k] for k in data.files if k != "meta"}
+    meta = edit_meta(meta) if edit_meta else meta
+    arrays = edit_arrays(arrays) if edit_arrays else arrays
+    np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
+
+
+def _nan_floats(arrays):
+    return {k: np.full_like(v, np.nan) if v.dtype.kind == "f" else v for k, v in arrays.items()}
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda p: p.write_bytes(b""), "corrupt or unreadable"),
+        (lambda p: p.write_bytes(b"not a checkpoint"), "corrupt or unreadable"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: [m]), "meta is a JSON list"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: {k: v for k, v in m.items() if k != "scale"}), "meta.scale"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "evaluations": "3"}), "meta.evaluations"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "history": m["history"][:-1]}), "history has 2 entries"),
+        (lambda p: _rewrite(p, edit_arrays=_nan_floats), "holds NaN"),
+        (lambda p: _rewrite(p, edit_arrays=lambda a: dict(list(a.items())[:-1])), "corrupt or unreadable"),
+    ],
+)
+def test_damaged_checkpoints_raise(tmp_path, damage, message):
+    """Each damaged checkpoint (the NaN one keeps a valid fingerprint) is a CheckpointError naming the file."""
+    path = tmp_path / "ckpt.npz"
+    s = TuneSettings(steps=3, checkpoint_every=1, patience=100)
+    tune(quadratic_problem(), s, checkpoint=path, progress=False)
+    damage(path)
+    with pytest.raises(CheckpointError, match=message) as info:
+        tune(quadratic_problem(), dataclasses.replace(s, steps=5), checkpoint=path, progress=False)
+    assert str(path) in str(info.value)
+
+
+def test_ctrl_c_saves_the_checkpoint_and_the_rerun_resumes(tmp_path, monkeypatch):
+    s = TuneSettings(learning_rate=0.1, steps=10, checkpoint_every=100, patience=100)
+    straight = tune(quadratic_problem(), s, progress=False)
+    failure, calls = tune_module._failure, []
+
+    def interrupted(*args):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return failure(*args)
+
+    monkeypatch.setattr(tune_module, "_failure", interrupted)
+    path = tmp_path / "ckpt.npz"
+    with pytest.raises(Interrupted, match=r"after 4 of 10 evaluations; checkpoint saved to .*ckpt.npz; rerun"):
+        tune(quadratic_problem(), s, checkpoint=path, progress=False)
+    monkeypatch.setattr(tune_module, "_failure", failure)
+    resumed = tune(quadratic_problem(), s, checkpoint=path, progress=False)
+    assert [h["objective"] for h in resumed.history] == [h["objective"] for h in straight.history]
+    assert float(resumed.theta["x"]) == float(straight.theta["x"])
+
+
+def test_random_search_box_budgets_and_best():
     s = TuneSettings()
     search = random_search(quadratic_problem(start=0.0), s, 30, spread=3.0, seed=1, progress=False)
-    assert search.objectives.shape == (30,) and search.rollouts == 90
+    assert search.objectives.shape == (30,) and search.rollouts_per_candidate == 3
     assert search.objectives[0] == pytest.approx(14 / 3)  # theta0 = 0: (1 + 4 + 9) / 3
-    assert search.objective == float(np.min(search.objectives)) < 1.0
+    theta, value, diverged = search.best()
+    assert value == float(np.min(search.objectives)) < 1.0 and diverged == 0
+    assert all(-3.0 <= float(c["x"]) <= 3.0 for c in search.candidates)
+    assert search.best(1)[1] == search.objectives[0]
+    assert np.all(np.diff(search.elapsed) >= 0) and search.within(0.0) == 1 and search.within(1e9) == 30
+
+    boxed = dataclasses.replace(quadratic_problem(), search_box={"x": (jnp.asarray(5.0), jnp.asarray(6.0))})
+    timed = random_search(boxed, s, 2, seconds=0.5, progress=False)
+    assert len(timed.candidates) > 2 and timed.elapsed[-1] >= 0.5  # goes on for the wall-time budget
+    assert all(5.0 <= float(c["x"]) <= 6.0 for c in timed.candidates[1:])
     with pytest.raises(ValueError, match="num_candidates"):
         random_search(quadratic_problem(), s, 0)
 
@@ -191,7 +333,7 @@ def test_forward_mode_gives_the_reverse_mode_gradient():
 
 def test_settings_are_validated():
     for bad in ({"optimizer": "rmsprop"}, {"objective": "max"}, {"learning_rate": 0.0}, {"cvar_alpha": 1.5},
-                {"steps": 0}, {"clip_norm": -1.0}, {"gradient": "central"}):  # fmt: skip
+                {"steps": 0}, {"clip_norm": -1.0}, {"gradient": "central"}, {"divergence_factor": 0.5}):  # fmt: skip
         with pytest.raises(ValueError, match=next(iter(bad))):
             TuneSettings(**bad).validate()
 

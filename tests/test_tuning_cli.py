@@ -1,5 +1,6 @@
-"""``jaxobs tune``: config errors, and (slow) a small end-to-end run against the MJX force plant with
-its outputs, resume from the checkpoint and a corrupt checkpoint."""
+"""``jaxobs tune``: config errors, the random search's box, and (slow) small end-to-end runs against the MJX
+force plant: outputs, resume from the checkpoint, a corrupt checkpoint, a training set with diverging plants,
+and the held-out loss falling."""
 
 import json
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxobs.cli import main
-from jaxobs.papers import force_tuning, tuning
+from jaxobs.papers import _tuning_config, force_tuning, tuning
 
 
 def test_default_config_is_the_one_dof_stiffness_problem():
@@ -62,25 +63,35 @@ parameterisation = "{kind}"
 [optimizer]
 steps = {steps}
 checkpoint_every = 2
+[baseline]
+random_search = {search}
 """
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["diagonal", "cholesky", "structured"])
 def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
-    """Every parameterisation runs end to end on the MJX plant; a rerun with more steps continues the
-    checkpoint; a corrupt checkpoint is an error (exit 2), not a silent restart."""
+    """Every parameterisation runs end to end on the MJX plant (the random search, which runs as long as the
+    tuning, with the diagonal one only); a rerun with more steps continues the checkpoint; a corrupt checkpoint
+    is an error (exit 2), not a silent restart."""
     config, out = tmp_path / "small.toml", tmp_path / "out"
-    config.write_text(SMALL.format(kind=kind, steps=3))
+    search = str(kind == "diagonal").lower()
+    config.write_text(SMALL.format(kind=kind, steps=3, search=search))
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "tuned.json").read_text())
     assert summary["evaluations"] == 3 and summary["rollouts"] == 9
-    assert summary["random_search"]["rollouts"] == 9  # the baseline gets as many rollouts
-    assert set(summary["heldout"]) == {"hand-set", "tuned", "random search"}
+    assert set(summary["heldout"]["tuned"]) >= {"objective", "finite_fraction", "p50", "p90", "max"}
+    if kind == "diagonal":
+        search = summary["random_search"]
+        assert search["equal rollouts"]["rollouts"] == 9  # the baseline at as many rollouts
+        assert search["equal time"]["seconds"] <= summary["seconds_tune"]
+        assert search["candidates"] >= 3 and search["spread"] == 3 * 0.2  # the tuner's reach: steps x learning rate
+        baselines = {"random search, equal rollouts", "random search, equal time"}
+        assert set(summary["heldout"]) == {"hand-set", "tuned", *baselines}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
     for name in ("loss_curves.png", "parameters.png", "responses.png", "checkpoint.npz"):
         assert (out / name).stat().st_size > 0
-    config.write_text(SMALL.format(kind=kind, steps=5))
+    config.write_text(SMALL.format(kind=kind, steps=5, search=search))
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     resumed = json.loads((out / "tuned.json").read_text())
     assert (
@@ -144,6 +155,7 @@ def test_peg_on_hole_small_run(tmp_path):
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "tuned.json").read_text())
     assert summary["evaluations"] == 3 and set(summary["heldout"]) == {"hand-set", "tuned"}
+    assert summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
     assert set(summary["parameters"]["tuned"]["q_active"]) == {"x", "y", "rx", "rz"}
 
@@ -157,3 +169,50 @@ def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
     (out / "config.json").write_text("{not json")
     assert main(["tune", "--out", str(out), "--no-progress"]) == 2
     assert "unreadable" in capsys.readouterr().err
+
+
+def test_the_random_search_box_is_the_tuners_reach():
+    """Default ``baseline.spread = 0``: theta0 +- steps x learning_rate on every log coordinate; the off-diagonal
+    entries of a Cholesky factor (not log-scaled) stay at theta0; an explicit spread is used as given."""
+    config = tuning.validate_config({"design": {"parameterisation": "cholesky"}})
+    assert _tuning_config.search_spread(config) == 40 * 0.2
+    theta0 = {"q_cholesky": np.diag([1.0, 2.0]), "log_r": np.asarray(-3.0)}
+    box = _tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
+    np.testing.assert_array_equal(box["q_cholesky"][0], [[-7.0, 0.0], [0.0, -6.0]])
+    np.testing.assert_array_equal(box["q_cholesky"][1], [[9.0, 0.0], [0.0, 10.0]])
+    assert (float(box["log_r"][0]), float(box["log_r"][1])) == (-11.0, 5.0)
+    assert _tuning_config.search_spread(tuning.validate_config({"baseline": {"spread": 2.5}})) == 2.5
+    position = tuning._box_position({"q_cholesky": np.diag([1.0, 10.0]), "log_r": np.asarray(-11.0)}, box)
+    assert position == {"q_cholesky": [0.5, 1.0], "log_r": [0.0]}
+
+
+DIVERGING = """
+[plants]
+stiffness_scale = [0.5, 20.0]
+train = 8
+heldout = 8
+[scenario]
+duration = 1.0
+force_limit = 900.0
+[optimizer]
+steps = 10
+[baseline]
+random_search = false
+"""
+
+
+@pytest.mark.slow
+def test_diverging_training_plants_are_penalised_and_the_held_out_loss_falls(tmp_path, capsys):
+    """Stiffness up to 20x nominal: 2 of 8 training plants exceed the 900 N limit under the hand-set design. The
+    tuner starts (penalising them), and in 10 evaluations the held-out objective falls (measured 7.35e4 ->
+    6.29e3) with every held-out plant kept below the limit (hand-set: 7 of 8)."""
+    config, out = tmp_path / "diverging.toml", tmp_path / "out"
+    config.write_text(DIVERGING)
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
+    assert "2 of 8 training plants diverge under the initial design" in capsys.readouterr().err
+    summary = json.loads((out / "tuned.json").read_text())
+    assert summary["train_diverged"] == {"hand-set": 2, "tuned": 0}
+    hand, tuned = summary["heldout"]["hand-set"], summary["heldout"]["tuned"]
+    assert hand["finite_fraction"] == 7 / 8 and tuned["finite_fraction"] == 1.0
+    assert tuned["objective"] < 0.5 * hand["objective"]
+    assert tuned["p90"] < hand["p90"]

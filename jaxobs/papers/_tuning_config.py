@@ -1,5 +1,10 @@
 """The config tables every ``jaxobs tune`` problem shares: ``[optimizer]`` (:class:`jaxobs.tune.TuneSettings`),
-``[baseline]`` (the random search) and the seed, with their checks; plus the run's tag."""
+``[baseline]`` (the random search and its box) and the seed, with their checks; plus the run's tag.
+
+The random search's box is ``theta0 +- spread`` per unconstrained coordinate. Its default width (``spread = 0``)
+is the gradient tuner's reach, ``optimizer.steps x optimizer.learning_rate``: adam moves a coordinate by about
+the learning rate per step at most, so the box holds every point the tuner can reach with its budget, and both
+methods search the same region (fixed before any tuning result is known)."""
 
 from __future__ import annotations
 
@@ -7,12 +12,23 @@ import dataclasses
 import hashlib
 import json
 
-from jaxobs._config import check_at_least, fail
+import jax.numpy as jnp
+
+from jaxobs._config import check_at_least, check_memory, fail
 from jaxobs.tune import TuneSettings
 
-__all__ = ["optimizer_defaults", "BASELINE_DEFAULTS", "check_common", "settings", "config_tag"]
+__all__ = [
+    "optimizer_defaults",
+    "BASELINE_DEFAULTS",
+    "check_common",
+    "check_plant_memory",
+    "settings",
+    "config_tag",
+    "search_spread",
+    "search_box",
+]
 
-BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}  # candidates theta0 + U(-spread, spread)
+BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}  # candidates theta0 + U(-spread, spread); 0: the reach
 
 
 def optimizer_defaults(**overrides) -> dict:
@@ -27,7 +43,7 @@ def optimizer_defaults(**overrides) -> dict:
 def check_common(config: dict, source: str) -> None:
     """Check ``seed``, ``[optimizer]`` and ``[baseline]``; a :class:`jaxobs._config.ConfigError` names the key."""
     check_at_least(config, source, "seed", 0)
-    check_at_least(config, source, "baseline.spread", 0, strict=True)
+    check_at_least(config, source, "baseline.spread", 0)
     try:
         settings(config).validate()
     except ValueError as exc:
@@ -42,3 +58,27 @@ def config_tag(config: dict) -> str:
     """A short hash of everything but the optimiser settings (a resumed run must match it)."""
     text = json.dumps({k: v for k, v in config.items() if k != "optimizer"}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def check_plant_memory(config: dict, source: str, steps: int, channels: int) -> None:
+    """The sampled plants' noise, ``(train + heldout) x steps x channels`` float64 values, must fit in memory."""
+    count = config["plants"]["train"] + config["plants"]["heldout"]
+    check_memory(source, "plants", 8 * count * steps * channels, f"the sensor noise of {count} plants over {steps} "
+                 "steps", hint="lower plants.train, plants.heldout or scenario.duration")  # fmt: skip
+
+
+def search_spread(config: dict) -> float:
+    """``baseline.spread``, or the tuner's reach ``steps x learning_rate`` when it is 0."""
+    spread, opt = config["baseline"]["spread"], config["optimizer"]
+    return spread if spread > 0 else opt["steps"] * opt["learning_rate"]
+
+
+def search_box(config: dict, theta0: dict, cholesky: tuple = ()) -> dict:
+    """``{name: (low, high)}``: ``theta0 +- search_spread(config)``, except the strictly lower-triangular
+    entries of the Cholesky factors named in ``cholesky`` (not log-scaled), which stay at ``theta0``."""
+    spread, box = search_spread(config), {}
+    for name, value in theta0.items():
+        value = jnp.asarray(value)
+        width = spread * (jnp.eye(value.shape[0]) if name in cholesky else jnp.ones_like(value))
+        box[name] = (value - width, value + width)
+    return box

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import ConfigError, check_at_least, check_choice, check_range, fail, merge
+from jaxobs._resources import compile_checked
 from jaxobs.closed_loop import (
     LinearController,
     ideal_response,
@@ -74,6 +75,7 @@ DEFAULT_CONFIG = {
 }
 """The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
 
+SIZE_KEY = "simulation.configs_per_design"  # a larger value extends a sweep in the same directory
 MAX_DEAD_TIME_SAMPLES = 100
 MAX_ORDER = 5
 
@@ -146,7 +148,10 @@ def build_designs(config: dict) -> Designs:
                 params = active.make_aob(plant, L_r, order, r, q_plant=EXAMPLE1.q_plant, q_active=q, steady_state=True)
             return linear_controller_of(params).padded(n_obs)
 
-        parts.append(jax.jit(jax.vmap(design))(jnp.asarray(V), jnp.asarray(R)))
+        V_, R_ = jnp.asarray(V), jnp.asarray(R)
+        build = compile_checked(jax.jit(jax.vmap(design)).lower(V_, R_), f"the {V.size} designs of order {order}",
+                                hint="lower controllers.grid_points")  # fmt: skip
+        parts.append(build(V_, R_))
         orders.append(np.full(V.size, order))
     stacked = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
     count = len(ctl["orders"])
@@ -233,7 +238,7 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
     """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report."""
     sampler, evaluate, num_configs, designs = make_sweep(config)
     result = run_configured_sweep(
-        config, sampler, evaluate, num_configs, out_dir, progress=progress, overwrite=overwrite
+        config, sampler, evaluate, num_configs, out_dir, size_key=SIZE_KEY, progress=progress, overwrite=overwrite
     )
     return report(config, Path(out_dir), result, designs)
 

@@ -34,7 +34,13 @@ from jaxobs._config import check_at_least, check_choice, check_range, fail, merg
 from jaxobs.closed_loop import ideal_response, linear_controller_of
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
-from jaxobs.papers._tuning_config import BASELINE_DEFAULTS, check_common, optimizer_defaults
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    check_common,
+    check_plant_memory,
+    optimizer_defaults,
+    search_box,
+)
 from jaxobs.papers.force_control import (
     EXAMPLE1,
     example1_disturbance,
@@ -115,6 +121,7 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     for key in ("q_plant", "q_active", "R", "spectral_radius_limit"):
         check_at_least(config, source, f"design.{key}", 0, strict=True)
     check_common(config, source)
+    check_plant_memory(config, source, int(round(config["scenario"]["duration"] / EXAMPLE1.h)), 1)
     return config
 
 
@@ -271,12 +278,14 @@ def build_problem(config: dict) -> TuningProblem:
             "ylabel": "force (N)",
         }
 
+    theta0 = initial_theta(config, plant)
     return TuningProblem(
-        theta0=initial_theta(config, plant),
+        theta0=theta0,
         losses=losses,
         train=train,
         heldout=sample_plants(config, "heldout"),
         penalty=penalty,
         describe=describe,
         responses=responses,
+        search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
     )

@@ -153,7 +153,9 @@ def make_sweep(config: dict):
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
     """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``estimators.png``."""
-    result = run_configured_sweep(config, *make_sweep(config), out_dir, progress=progress, overwrite=overwrite)
+    result = run_configured_sweep(
+        config, *make_sweep(config), out_dir, size_key="vehicle.count", progress=progress, overwrite=overwrite
+    )
     return report(config, Path(out_dir), result)
 
 

@@ -24,7 +24,13 @@ import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
 from jaxobs.closed_loop import ideal_response
-from jaxobs.papers._tuning_config import BASELINE_DEFAULTS, check_common, optimizer_defaults
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    check_common,
+    check_plant_memory,
+    optimizer_defaults,
+    search_box,
+)
 from jaxobs.papers.force_control import force_plant
 from jaxobs.tune import TuningProblem
 
@@ -70,6 +76,9 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     if config["scenario"]["alignment_end"] > config["scenario"]["duration"]:
         fail(source, "scenario.alignment_end", "must not exceed scenario.duration")
     check_common(config, source)
+    from jaxobs.mjx.compliant_6dof import CONTROL_PERIOD
+
+    check_plant_memory(config, source, int(round(config["scenario"]["duration"] / CONTROL_PERIOD)), 6)
     return config
 
 
@@ -154,11 +163,13 @@ def build_problem(config: dict) -> TuningProblem:
             "ylabel": "f_x (N)",
         }
 
+    theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
     return TuningProblem(
-        theta0={"log_q_active": jnp.log(q_hand[tuned])},
+        theta0=theta0,
         losses=losses,
         train=sample("train"),
         heldout=sample("heldout"),
         describe=describe,
         responses=responses,
+        search_box=search_box(config, theta0),
     )

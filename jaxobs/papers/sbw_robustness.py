@@ -15,7 +15,8 @@ scaled by independent factors (+-30 % by default). Per configuration:
 
 The true plants are realised and discretised on the host (transfer functions to state space is a design
 -time step), from the same per-configuration draws the sampler makes, and the sweep engine evaluates
-them by index (``jaxobs sweep --config tuning/steer_by_wire_sweep.toml``).
+them by index (``jaxobs sweep --config tuning/steer_by_wire_sweep.toml``). The table of plants is part of the
+evaluated program, so a sweep with another ``plants.count`` is a different sweep (it cannot extend one).
 """
 
 from __future__ import annotations

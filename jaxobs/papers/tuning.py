@@ -3,25 +3,28 @@
 The config's ``problem`` key picks the problem module (``PROBLEMS``; each has ``DEFAULT_CONFIG``,
 ``validate_config`` and ``build_problem``; the shared tables are in ``_tuning_config``). :func:`run` tunes from the
 problem's hand-set design with :func:`jaxobs.tune.tune` (checkpointed, resumable), runs the random-search
-baseline at the same number of rollouts, scores the hand-set, tuned and random-search designs on the
-held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png``
-(before/after on held-out plants) and ``parameters.png`` (trajectories of the unconstrained parameters).
+baseline in the problem's search box (:func:`jaxobs.papers._tuning_config.search_box`) for at least as many
+rollouts and as much wall time as the tuning took, scores the hand-set, tuned and random-search designs (best at
+equal rollouts, best at equal wall time) on the held-out plants, and writes ``tuned.json`` and three figures:
+``loss_curves.png``, ``responses.png`` (before/after on held-out plants) and ``parameters.png`` (trajectories of
+the unconstrained parameters). The output directory is locked for the run
+(:func:`jaxobs._resources.locked_out_dir`).
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
 from jaxobs._config import ConfigError, fail
+from jaxobs._resources import LOCK_NAME, atomic_write, locked_out_dir
 from jaxobs.papers import force_tuning, peg_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
-from jaxobs.papers._tuning_config import config_tag
+from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
 from jaxobs.tune import evaluate, random_search, tune
 
@@ -41,25 +44,45 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
 
 
 def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
-    """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``."""
+    """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``,
+    which empties it (all but the lock the caller holds)."""
     marker = out / "config.json"
-    if overwrite and out.exists():
-        shutil.rmtree(out)
+    if overwrite:
+        for entry in out.iterdir():
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            elif entry.name != LOCK_NAME:
+                entry.unlink()
     elif marker.exists():
         try:
-            previous = json.loads(marker.read_text()).get("tag")
-        except json.JSONDecodeError as exc:
+            previous = json.loads(marker.read_text())
+        except (OSError, ValueError) as exc:
             raise ConfigError(f"{marker}: unreadable ({exc}); use --overwrite to start over") from exc
-        if previous != tag:
+        if not isinstance(previous, dict) or not isinstance(previous.get("tag"), str):
+            raise ConfigError(f"{marker}: not a jaxobs tune record (no tag); use --overwrite to start over")
+        if previous["tag"] != tag:
             raise ConfigError(f"{out} holds a tuning run of another configuration; use --overwrite or another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"tag": tag, "config": config}, indent=2) + "\n")
+    atomic_write(marker, (json.dumps({"tag": tag, "config": config}, indent=2) + "\n").encode())
+
+
+def _box_position(theta: dict, box: dict) -> dict:
+    """Where ``theta`` lies in ``box``: per free coordinate, 0 at the low and 1 at the high bound."""
+    position = {}
+    for name, (low, high) in box.items():
+        low, high, value = (np.ravel(np.asarray(a)) for a in (low, high, theta[name]))
+        free = high > low
+        position[name] = ((value[free] - low[free]) / (high[free] - low[free])).tolist()
+    return position
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
     """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures."""
+    with locked_out_dir(out_dir) as out:
+        return _run(config, out, progress, overwrite)
+
+
+def _run(config: dict, out: Path, progress: bool, overwrite: bool) -> dict:
     module = PROBLEMS[config["problem"]]
-    out = Path(out_dir)
     tag = config_tag(config)
     _prepare(out, tag, config, overwrite)
     try:
@@ -67,9 +90,7 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
     except ValueError as exc:  # e.g. an invalid MJCF
         raise ConfigError(f"{config['problem']}: {exc}") from exc
     settings = tuning_settings(config)
-    start = time.perf_counter()
     result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
-    seconds_tune = time.perf_counter() - start
     designs = {"hand-set": problem.theta0, "tuned": result.theta}
     summary = {
         "problem": config["problem"],
@@ -77,32 +98,36 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
         "stopped": result.stopped,
         "evaluations": result.evaluations,
         "rollouts": result.rollouts,
-        "seconds_tune": seconds_tune,
+        "seconds_tune": result.seconds,
         "train_objective": {"hand-set": result.history[0]["objective"], "tuned": result.objective},
+        "train_diverged": {"hand-set": result.history[0]["diverged"], "tuned": result.diverged},
     }
     search = None
     if config["baseline"]["random_search"]:
-        start = time.perf_counter()
         search = random_search(
-            problem, settings, result.evaluations, spread=config["baseline"]["spread"], seed=config["seed"],
-            progress=progress,
-        )  # fmt: skip
-        designs["random search"] = search.theta
+            problem, settings, result.evaluations, seconds=result.seconds, seed=config["seed"], progress=progress
+        )
         summary["random_search"] = {
-            "candidates": int(search.objectives.size),
-            "rollouts": search.rollouts,
-            "seconds": time.perf_counter() - start,
-            "train_objective": search.objective,
+            "spread": search_spread(config),
+            "tuned_position_in_box": _box_position(result.theta, problem.search_box),
+            "candidates": len(search.candidates),
             "failed_candidates": int(np.sum(~np.isfinite(search.objectives))),
         }
+        for name, count in (("equal rollouts", result.evaluations), ("equal time", search.within(result.seconds))):
+            theta, objective, diverged = search.best(count)
+            designs[f"random search, {name}"] = theta
+            summary["random_search"][name] = {
+                "candidates": count,
+                "rollouts": count * search.rollouts_per_candidate,
+                "seconds": float(search.elapsed[count - 1]),
+                "train_objective": objective,
+                "train_diverged": diverged,
+            }
     scores = {name: evaluate(problem, theta, settings) for name, theta in designs.items()}
     hand = scores["hand-set"]["objective"]
     summary["heldout"] = {
         name: {
-            "objective": s["objective"],
-            "mean": s["mean"],
-            "cvar": s["cvar"],
-            "diverged": s["diverged"],
+            **{k: v for k, v in s.items() if k != "losses"},
             "reduction_vs_hand_set": 1.0 - s["objective"] / hand if np.isfinite(hand) else None,
         }
         for name, s in scores.items()
@@ -115,7 +140,7 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
     ]
     if problem.responses is not None:
         summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
-    (out / "tuned.json").write_text(json.dumps(to_builtin(summary), indent=2) + "\n")
+    atomic_write(out / "tuned.json", (json.dumps(to_builtin(summary), indent=2) + "\n").encode())
     return summary
 
 
@@ -136,12 +161,13 @@ def _plot_loss_curves(history, search, scores, objective: str, out: Path) -> str
     if search is not None:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
+        ax.axvline(ev.size, color="k", lw=0.6, ls=":")  # equal rollouts
     ax.set(xlabel="evaluation (one rollout per training plant)", ylabel=f"training objective ({objective})",
            yscale="log", title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
     for name, s in scores.items():
         losses = np.sort(s["losses"])
-        bx.plot(np.linspace(0, 1, losses.size), losses, label=f"{name} (mean {s['mean']:.3g})")
+        bx.plot(np.linspace(0, 1, losses.size), losses, label=f"{name} (objective {s['objective']:.3g})")
     bx.set(xlabel="fraction of held-out plants", ylabel="per-plant loss", yscale="log",
            title="Held-out plants, sorted losses")  # fmt: skip
     bx.legend(fontsize=8)

@@ -1,0 +1,223 @@
+"""What the jobs (``jaxobs.sweep``, ``jaxobs.tune`` and the ``jaxobs`` command) need from the machine: a writable
+output directory held by one process at a time, atomic writes, and enough memory.
+
+* :func:`locked_out_dir` checks that a directory can be written (it exists or can be created, is a directory,
+  accepts a file: this catches a regular file, a missing permission and a read-only file system) and holds an
+  exclusive ``flock`` on ``.jaxobs.lock`` inside it, with the holder's pid written in the file. The lock is
+  re-entrant within a process (the command takes it before building anything, the engine again inside) and the
+  operating system releases it when the process dies, so a crash never leaves a stale lock.
+* :func:`atomic_write` writes through a temporary file named after the process and a random token, so that two
+  writers never share a temporary file.
+* :func:`check_memory` refuses an allocation larger than the memory available (``/proc/meminfo``'s
+  ``MemAvailable``, capped by a cgroup limit; a GPU's free memory), naming the estimate, before anything is
+  allocated; :func:`program_nbytes` is XLA's estimate for a compiled program, and :func:`compile_checked`
+  compiles a lowered function and checks that estimate before it ever runs.
+
+POSIX only (``fcntl``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import secrets
+from pathlib import Path
+
+__all__ = [
+    "JobError",
+    "Interrupted",
+    "LOCK_NAME",
+    "locked_out_dir",
+    "atomic_write",
+    "temporary_path",
+    "available_memory",
+    "program_nbytes",
+    "check_memory",
+    "compile_checked",
+    "format_bytes",
+]
+
+LOCK_NAME = ".jaxobs.lock"
+_held: dict[Path, list] = {}  # resolved directory -> [file descriptor, depth]
+
+
+class JobError(ValueError):
+    """A job cannot run as asked: its output directory is unusable or in use, or it cannot fit in memory."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a resumable job; the message says where it stopped and how to resume."""
+
+
+def _check_writable(path: Path) -> None:
+    if path.exists() and not path.is_dir():
+        raise JobError(f"{path} exists and is not a directory; choose another output directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = temporary_path(path / ".jaxobs-write-test")
+        with open(probe, "wb") as f:
+            f.write(b"0")
+            f.flush()
+            os.fsync(f.fileno())
+        probe.unlink()
+    except OSError as exc:
+        raise JobError(f"cannot write to {path}: {exc.strerror or exc}; choose another output directory") from exc
+
+
+def _holder(fd: int) -> str:
+    os.lseek(fd, 0, os.SEEK_SET)
+    text = os.read(fd, 64).decode(errors="replace").strip()
+    return f"pid {text}" if text.isdigit() else "pid unknown"
+
+
+@contextlib.contextmanager
+def locked_out_dir(path):
+    """Check that ``path`` can be written (creating it) and hold its lock for the ``with`` block; yields ``path``.
+
+    Raises :class:`JobError` naming the directory (and the holder's pid when another process has it).
+    """
+    path = Path(path)
+    _check_writable(path)
+    key = path.resolve()
+    if key in _held:
+        _held[key][1] += 1
+        try:
+            yield path
+        finally:
+            _held[key][1] -= 1
+        return
+    try:
+        fd = os.open(key / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise JobError(f"cannot create the lock file in {path}: {exc.strerror or exc}") from exc
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = _holder(fd)
+        os.close(fd)
+        raise JobError(
+            f"{path} is in use by another jaxobs process ({holder}); wait for it to finish or choose another "
+            "output directory"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _held[key] = [fd, 1]
+    try:
+        yield path
+    finally:
+        _held[key][1] -= 1
+        if _held[key][1] == 0:
+            del _held[key]
+            os.close(fd)  # releases the flock
+
+
+def temporary_path(path: Path, suffix: str = ".tmp") -> Path:
+    """``path`` + ``.<pid>.<random>`` + ``suffix``: a temporary name no other writer uses."""
+    return path.with_name(f"{path.name}.{os.getpid()}.{secrets.token_hex(4)}{suffix}")
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file next to ``path``, fsync, then ``os.replace`` it onto ``path``."""
+    tmp = temporary_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        text = Path(path).read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _host_memory() -> int | None:
+    """Bytes of host memory available: ``MemAvailable`` capped by the cgroup's limit minus its usage."""
+    available = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                available = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    if available is None and hasattr(os, "sysconf"):
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError):
+            pass
+    for limit_file, usage_file in (
+        ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),  # cgroup v2
+        ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"),  # v1
+    ):
+        limit, usage = _read_int(limit_file), _read_int(usage_file)
+        if limit is not None and limit < 2**60:  # "max" or a huge number: no limit
+            room = max(limit - (usage or 0), 0)
+            available = room if available is None else min(available, room)
+            break
+    return available
+
+
+def available_memory(device=None) -> int | None:
+    """Bytes free for a new allocation on ``device`` (default: the host); None where unknown."""
+    if device is None or device.platform == "cpu":
+        return _host_memory()
+    try:
+        stats = device.memory_stats() or {}
+    except Exception:  # noqa: BLE001 - some backends do not implement memory_stats
+        return None
+    if "bytes_limit" not in stats:
+        return None
+    return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+
+
+def program_nbytes(compiled) -> int | None:
+    """XLA's estimate of the memory one run of ``compiled`` needs per device (arguments, outputs, temporaries
+    and code); None where the backend gives no memory analysis."""
+    try:
+        stats = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 - not implemented on every backend
+        return None
+    if stats is None:
+        return None
+    return int(
+        stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes
+        + stats.generated_code_size_in_bytes - stats.alias_size_in_bytes
+    )  # fmt: skip
+
+
+def format_bytes(n: float) -> str:
+    """``1.6e12`` -> ``"1.6 TB"`` (decimal units)."""
+    units, i = ("bytes", "KB", "MB", "GB", "TB", "PB"), 0
+    while abs(n) >= 1000 and i < len(units) - 1:
+        n, i = n / 1000, i + 1
+    return f"{n:.0f} bytes" if i == 0 else f"{n:.3g} {units[i]}"
+
+
+def check_memory(nbytes: int | None, what: str, device=None, hint: str = "") -> None:
+    """Raise :class:`JobError` if ``nbytes`` (an estimate of what ``what`` allocates) exceeds the memory
+    available on ``device`` (default: the host). Unknown sizes or unknown free memory pass."""
+    free = available_memory(device)
+    if nbytes is None or free is None or nbytes <= free:
+        return
+    where = "memory" if device is None or device.platform == "cpu" else f"memory on {device.device_kind}"
+    raise JobError(
+        f"{what} needs about {format_bytes(nbytes)} (estimated), more than the {format_bytes(free)} of {where} "
+        f"available{'; ' + hint if hint else ''}"
+    )
+
+
+def compile_checked(lowered, what: str, hint: str = ""):
+    """Compile ``lowered`` (a ``jax.jit(f).lower(...)``) after checking that one run fits in the memory of the
+    default device (:class:`JobError` otherwise)."""
+    import jax
+
+    compiled = lowered.compile()
+    check_memory(program_nbytes(compiled), what, device=jax.devices()[0], hint=hint)
+    return compiled
