@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Controller
-from jaxobs.observers.feedback import LinearFeedback
+from jaxobs.observers.feedback import FeedbackParams
 
 __all__ = [
     "loop_transfer",
@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 
-def _linear_form(controller: Controller, params) -> LinearFeedback:
+def _linear_form(controller: Controller, params) -> FeedbackParams:
     if controller.linear is None:
         raise ValueError("controller has no linear form: stability analysis needs a linear fixed-gain controller")
     return controller.linear(params)
@@ -70,7 +70,7 @@ def loop_transfer(plant: StateSpace, controller: Controller, params) -> StateSpa
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
     lin = _linear_form(controller, params)
-    c, L = lin.observer, lin.L
+    c, L = lin.estimator, lin.L
     Phi, Gamma, C = plant.A, plant.B, plant.C
     n, n_obs = Phi.shape[-1], c.Phi.shape[-1]
     _checks.matrix("Phi_n", c.Phi, shape=(n_obs, n_obs), square=True)

@@ -15,7 +15,7 @@ from jaxobs.observers.base import (
     LinearObserver,
     run,
 )
-from jaxobs.observers.feedback import FeedbackParams, LinearFeedback, observer_controller
+from jaxobs.observers.feedback import FeedbackParams, observer_controller
 
 __all__ = [
     "Estimator",
@@ -23,7 +23,6 @@ __all__ = [
     "EstimatorInputs",
     "ControllerInputs",
     "LinearObserver",
-    "LinearFeedback",
     "FeedbackParams",
     "observer_controller",
     "run",

@@ -98,7 +98,8 @@ class Estimator(NamedTuple):
 class Controller(NamedTuple):
     """A controller: ``init(params) -> state``, ``step(params, state, ControllerInputs) -> (state, outputs)``.
 
-    ``linear``: for linear controllers, ``params -> LinearFeedback`` (see :mod:`jaxobs.observers.feedback`).
+    ``linear``: for linear controllers, ``params ->`` the params of the same controller around a
+    :class:`LinearObserver` (see :func:`jaxobs.observers.feedback.observer_controller`).
     """
 
     init: InitFn

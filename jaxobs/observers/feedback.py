@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.observers.base import Controller, ControllerInputs, Estimator, EstimatorInputs, LinearObserver
 
-__all__ = ["FeedbackParams", "FeedbackState", "FeedbackOutputs", "LinearFeedback", "observer_controller"]
+__all__ = ["FeedbackParams", "FeedbackState", "FeedbackOutputs", "observer_controller"]
 
 
 @jax.tree_util.register_dataclass
@@ -46,6 +46,14 @@ class FeedbackParams:
     def n_inputs(self) -> int:
         return self.L.shape[-2]
 
+    def padded(self, n: int) -> FeedbackParams:
+        """The same controller with ``n`` estimator states (extra states identically zero), for a fixed-gain
+        :class:`~jaxobs.observers.base.LinearObserver` estimator: designs of different orders then stack."""
+        if not isinstance(self.estimator, LinearObserver):
+            raise ValueError("padded needs a LinearObserver estimator; take the controller's linear form first")
+        estimator = self.estimator.padded(n)
+        return FeedbackParams(estimator, jnp.pad(self.L, ((0, 0), (0, n - self.L.shape[-1]))), self.N)
+
 
 class FeedbackState(NamedTuple):
     estimator: Any  # the estimator's state
@@ -56,23 +64,6 @@ class FeedbackOutputs(NamedTuple):
     u: jax.Array  # (m,) command u_k = N r_k - L x_hat_k
     x: jax.Array  # (n,) the estimate x_hat_k used
     estimator: Any  # the estimator's outputs at sample k
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class LinearFeedback:
-    """The linear form of an observer-based controller with a fixed gain: the observer's matrices, ``L``
-    (m, n) and ``N`` (m, q) or ``None``."""
-
-    observer: LinearObserver
-    L: jax.Array
-    N: jax.Array | None = None
-
-    def padded(self, n: int) -> LinearFeedback:
-        """The same controller with ``n`` observer states (extra states identically zero)."""
-        extra = n - self.L.shape[-1]
-        L = jnp.pad(self.L, ((0, 0), (0, max(extra, 0))))
-        return LinearFeedback(self.observer.padded(n), L, self.N)
 
 
 def _reference(params: FeedbackParams, r):
@@ -88,8 +79,9 @@ def _reference(params: FeedbackParams, r):
 def observer_controller(estimator: Estimator) -> Controller:
     """The controller ``u_k = N r_k - L x_hat_k`` around ``estimator`` (params: :class:`FeedbackParams`).
 
-    The controller's ``linear`` form exists when the estimator's does (fixed gain): a :class:`LinearFeedback`
-    for :mod:`jaxobs.stability`.
+    The controller's ``linear`` form exists when the estimator's does (fixed gain): the same controller as
+    :class:`FeedbackParams` around the estimator's :class:`~jaxobs.observers.base.LinearObserver`, i.e. the
+    params of :data:`jaxobs.observers.linear.linear_controller`, which :mod:`jaxobs.stability` analyses.
 
     Example:
       >>> import jax.numpy as jnp
@@ -115,7 +107,7 @@ def observer_controller(estimator: Estimator) -> Controller:
     linear = None
     if estimator.linear is not None:
 
-        def linear(params: FeedbackParams) -> LinearFeedback:
-            return LinearFeedback(estimator.linear(params.estimator), params.L, params.N)
+        def linear(params: FeedbackParams) -> FeedbackParams:
+            return FeedbackParams(estimator.linear(params.estimator), params.L, params.N)
 
     return Controller(init, step, linear)

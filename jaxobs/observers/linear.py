@@ -18,8 +18,9 @@ import jax.numpy as jnp
 
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
+from jaxobs.observers.feedback import observer_controller
 
-__all__ = ["LinearObserver", "LinearObserverState", "LinearObserverOutputs", "linear_observer"]
+__all__ = ["LinearObserver", "LinearObserverState", "LinearObserverOutputs", "linear_observer", "linear_controller"]
 
 
 class LinearObserverState(NamedTuple):
@@ -55,3 +56,8 @@ def _step(params: LinearObserver, state: LinearObserverState, inputs: EstimatorI
 
 linear_observer = Estimator(_init, _step, linear=lambda params: params)
 """The fixed-gain linear observer; params: :class:`~jaxobs.observers.base.LinearObserver`."""
+
+linear_controller = observer_controller(linear_observer)
+"""The fixed-gain linear observer with state feedback; params: :class:`~jaxobs.observers.feedback.FeedbackParams`
+around a :class:`~jaxobs.observers.base.LinearObserver`, e.g. the linear form ``controller.linear(params)`` of any
+fixed-gain controller, padded with :meth:`~jaxobs.observers.feedback.FeedbackParams.padded` to stack designs."""

@@ -15,12 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs.design import critically_damped_gain
+from jaxobs.observers.active import ActiveObserverParams, feedback_gain
+from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.plants import force_plant
 
 __all__ = [
     "ForceControlSetup",
     "EXAMPLE1",
     "nominal_design",
+    "with_feedback",
     "example1_disturbance",
     "chirp",
 ]
@@ -53,6 +56,12 @@ def nominal_design(setup: ForceControlSetup = EXAMPLE1):
     """The nominal delay-augmented plant and its ``L_r`` (tau_c = 10 Tp, seed 000 eq. 83)."""
     plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
     return plant, critically_damped_gain(plant, setup.tau_c_over_Tp * setup.Tp)
+
+
+def with_feedback(aob: ActiveObserverParams, L_r) -> FeedbackParams:
+    """The AOB (or CKF) ``aob`` with the state feedback ``u = r - L_r x_hat_r - p_hat`` (eq. 49-50), the params of
+    :data:`jaxobs.observers.active.active_observer_controller`."""
+    return FeedbackParams(aob, feedback_gain(aob, L_r))
 
 
 def chirp(t, f0: float, f1: float, t1: float):

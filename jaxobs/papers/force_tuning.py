@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
-from jaxobs.closed_loop import ideal_response, linear_controller_of
+from jaxobs.closed_loop import ideal_response
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
 from jaxobs.papers._tuning_config import (
@@ -41,13 +41,9 @@ from jaxobs.papers._tuning_config import (
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.force_control import (
-    EXAMPLE1,
-    example1_disturbance,
-    force_plant,
-    nominal_design,
-    reference_gain,
-)
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
+from jaxobs.plants import force_plant
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.tune import (
     TuningProblem,
@@ -164,10 +160,10 @@ def covariances(theta: dict, n_plant: int, order: int):
     return active.aob_noise_covariance(n_plant, order, 1, jnp.exp(theta["log_q_plant"]), q_active), R
 
 
-def controller(theta: dict, base: active.ActiveObserverParams, n_plant: int, order: int):
-    """The steady-state AOB of ``theta`` (``base`` supplies the model and ``L``; ``P0 = Q``)."""
+def controller(theta: dict, base: active.ActiveObserverParams, L_r, n_plant: int, order: int) -> FeedbackParams:
+    """The steady-state AOB of ``theta`` with the state feedback ``L_r`` (``base`` supplies the model)."""
     Q, R = covariances(theta, n_plant, order)
-    return active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=R, P0=Q))
+    return with_feedback(active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=R, P0=Q)), L_r)
 
 
 # --------------------------------------------------------------------------------------------
@@ -216,19 +212,19 @@ def build_problem(config: dict) -> TuningProblem:
 
     order, sc = config["design"]["order"], config["scenario"]
     plant, L = nominal_design(EXAMPLE1)
-    base = active.make_aob(plant, L, order, config["design"]["R"])
+    base = active.make_aob(plant, order, config["design"]["R"])
     model = load_model(xml=config["plants"]["mjcf"] or None)[1]
     inputs = scenario(config)
     horizon = sc["gradient_horizon"] or None
     n_plant = plant.n_states
 
     def rollout(theta, plants):
-        ctrl = controller(theta, base, n_plant, order)
+        ctrl = controller(theta, base, L, n_plant, order)
 
         def one(ks, tp, damping, noise):
             true = with_params(model, ForcePlantParams(ks=ks, tp=tp, damping=damping))
             return closed_loop_rollout(
-                true, ctrl, inputs["reference"], noise=noise, disturbance=inputs["disturbance"],
+                true, active.active_observer_controller, ctrl, inputs["reference"], noise=noise, disturbance=inputs["disturbance"],
                 surface_velocity=inputs["surface_velocity"], gradient_horizon=horizon,
             ).force_true  # fmt: skip
 
@@ -247,24 +243,25 @@ def build_problem(config: dict) -> TuningProblem:
 
     def penalty(theta):
         """Mean squared excess of the closed-loop spectral radius (analytic true plants, eq. 59) over the limit."""
-        ctrl = linear_controller_of(controller(theta, base, n_plant, order))
+        ctrl = controller(theta, base, L, n_plant, order)
 
         def radius(ks, tp):
-            return spectral_radius(closed_loop_matrix(force_plant(ks, tp, h, dead_time), ctrl))
+            plant = force_plant(ks, tp, h, dead_time)
+            return spectral_radius(closed_loop_matrix(plant, active.active_observer_controller, ctrl))
 
         rho = jax.vmap(radius)(train["ks"], train["tp"])
         return jnp.mean(jnp.maximum(rho - limit, 0.0) ** 2)
 
     def describe(theta):
         Q, R = covariances(theta, n_plant, order)
-        ctrl = controller(theta, base, n_plant, order)
+        aob = controller(theta, base, L, n_plant, order).estimator
         return {
             "Q_diagonal": np.asarray(jnp.diagonal(Q)).tolist(),
             "q_active": float(Q[-1, -1]),
             "R": float(R[0, 0]),
             "q_active_over_R": float(Q[-1, -1] / R[0, 0]),
-            "kalman_gain": np.asarray(ctrl.gain).ravel().tolist(),
-            "strategy": active.classify_strategy(np.asarray(ctrl.gain), np.asarray(ctrl.C)),
+            "kalman_gain": np.asarray(aob.gain).ravel().tolist(),
+            "strategy": active.classify_strategy(np.asarray(aob.gain), np.asarray(aob.C)),
         }
 
     rollout_jit = jax.jit(rollout)
