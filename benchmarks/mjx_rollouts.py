@@ -1,5 +1,6 @@
 """Closed-loop MJX rollouts with the Active Observer in the loop: plant-steps per second and seconds per gradient
-step for batches of 1, 64 and 1024 mismatched plants, against CPU MuJoCo stepping the same model in a Python loop.
+step for batches of 1, 64 and 1024 mismatched plants, against CPU MuJoCo stepping the same model (batched with
+``mujoco.rollout``, and one plant at a time in a Python loop).
 
 Plant: the 1-DOF force plant of :mod:`jaxobs.mjx` (1 ms physics, ``SUBSTEPS = 8`` physics steps per 8 ms
 control step, 5-sample command dead time), under the Example 1 AOB-1 with steady-state gains and its state
@@ -16,22 +17,26 @@ Workloads, all in float64:
   true force and the ideal closed-loop response, w.r.t. ``(log R, log q_active)`` of the AOB-1, which is rebuilt
   inside the function (``make_aob(..., steady_state=True)``: a DARE with implicit derivatives) and shared by
   the batch. Reported as seconds per gradient step.
-* CPU MuJoCo peer: the same ``MjModel`` (``jnt_stiffness`` set per plant) stepped by ``mujoco.mj_step`` in a
-  Python loop, with the same steady-state AOB computed in NumPy (``x1 = Phi x + Gamma u_prev``,
-  ``x = x1 + K (y - C x1)``, ``u = r - L x``), a 5-sample FIFO for the dead time, the force read as
-  ``Ks x + Ds xdot`` before the step's command, and ``SUBSTEPS`` ``mj_step`` calls per control step with the
-  command held. Its force trace is checked once against the MJX rollout for one plant. It is timed on a few
-  plants (``--peer-plants``) and extrapolated to ``B`` plants: a sequential loop costs ``B`` times one plant,
-  so its plant-steps/s does not depend on ``B``. CPU MuJoCo has no gradient; for reference the JSON gives the
-  cost of a central-difference gradient of the two parameters with it (4 rollouts per plant), also
-  extrapolated, and the ratio to the MJX gradient step.
+* CPU MuJoCo peers: the same ``MjModel`` (``jnt_stiffness`` set per plant) with the same steady-state AOB in
+  NumPy (``x1 = Phi x + Gamma u_prev``, ``x = x1 + K (y - C x1)``, ``u = r - L x``, one function batched over
+  plants), a 5-sample FIFO for the dead time, the force read as ``Ks x + Ds xdot`` before the step's command, and
+  ``SUBSTEPS`` physics steps per control step with the command held. ``cpu_rollout`` is batched the way MuJoCo
+  batches: one ``mujoco.rollout.rollout`` call per control step advances every plant of the batch (one model
+  copy per plant, one ``MjData`` per CPU thread) and the AOB step runs on (B, ...) arrays. ``cpu_loop`` steps
+  one plant at a time with ``mujoco.mj_step`` in a Python loop; it is timed on a few plants (``--peer-plants``)
+  and extrapolated to ``B`` (a sequential loop costs ``B`` times one plant). The batched peer's force traces are
+  checked against MJX on every plant of the batch (max abs difference in the JSON). CPU MuJoCo has no
+  gradient; for reference the JSON gives the cost of a central-difference gradient of the two parameters with
+  the faster CPU peer of each round (4 rollouts per plant, estimated from its measured forward time) and the
+  ratio to the MJX gradient step.
 
-jaxobs timings exclude compilation (one warm-up call, reported separately as ``compile_seconds``) and are the
-median of ``--repeats`` calls ending in ``block_until_ready``. On a GPU the JSON records the device name; on a
-CPU-only machine it says "CPU only".
+Timing (``benchmarks/_timing.py``): per batch, ``--rounds`` interleaved rounds each run every entry once (MJX
+forward and gradient compiled first: ``compile_s``); times, rates and the paired ratios are reported as the
+median and [min, max] over the rounds. On a GPU the JSON records the device name; on a CPU-only machine it says
+"CPU only".
 
     python benchmarks/mjx_rollouts.py --out DIR [--steps 250] [--batches 1 64 1024] [--max-batch N]
-                                      [--repeats 3] [--peer-plants 20]
+                                      [--rounds 5] [--peer-plants 20]
 
 Writes ``DIR/mjx_rollouts.json`` and ``DIR/mjx_rollouts.png``.
 """
@@ -43,15 +48,17 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import argparse  # noqa: E402
+import copy  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
-import statistics  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+from _timing import Timed, format_range, paired_ratio, time_interleaved  # noqa: E402
+from mujoco import rollout as mj_rollout  # noqa: E402
 
 from jaxobs.closed_loop import ideal_response  # noqa: E402
 from jaxobs.mjx import SUBSTEPS, ForcePlantParams, closed_loop_rollout, load_model, with_params  # noqa: E402
@@ -77,8 +84,6 @@ class Problem:
         self.disturbance = example1_disturbance(jnp.arange(steps) * EXAMPLE1.h)
         self.desired = ideal_response(self.plant, self.L, self.reference)[:, 0]
         self.theta = jnp.array([np.log(EXAMPLE1.R), np.log(EXAMPLE1.sigma2_active)])
-        self.forward = jax.jit(jax.vmap(self.force, in_axes=(None, 0, 0)))
-        """``jit(vmap(rollout))``: (params, ks (B,), noise (B, T)) -> true forces (B, T)."""
 
     def plants(self, batch: int):
         """``(ks, noise)`` of a batch: stiffnesses spread over KS_RANGE and one sensor-noise draw per plant."""
@@ -93,6 +98,10 @@ class Problem:
         trace = closed_loop_rollout(model, params, self.reference, noise=noise, disturbance=self.disturbance)
         return trace.force_true
 
+    def forces(self, params, ks, noise):
+        """True force traces (B, T) of the plants of stiffnesses ``ks`` (B,) under ``params``, noise (B, T)."""
+        return jax.vmap(self.force, in_axes=(None, 0, 0))(params, ks, noise)
+
     def loss(self, theta, ks, noise):
         """Batch mean of the mean squared force tracking error of an AOB-1 with R = exp(theta[0]) and
         active-state variance exp(theta[1])."""
@@ -100,105 +109,126 @@ class Problem:
         params = make_aob(
             self.plant, self.L, 1, jnp.exp(log_r), q_plant=EXAMPLE1.q_plant, q_active=jnp.exp(log_q), steady_state=True
         )
-        forces = jax.vmap(self.force, in_axes=(None, 0, 0))(params, ks, noise)
-        return jnp.mean((forces - self.desired) ** 2)
-
-
-def _time(fn, *args, repeats: int) -> dict:
-    """Compile (first call) and the median of ``repeats`` further calls, in seconds."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    compile_seconds = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return {"seconds": statistics.median(times), "seconds_all": times, "compile_seconds": compile_seconds}
-
-
-def jaxobs_forward(problem: Problem, batch: int, repeats: int) -> dict:
-    ks, noise = problem.plants(batch)
-    rec = _time(problem.forward, problem.params, ks, noise, repeats=repeats)
-    steps = batch * problem.steps
-    rec["plant_steps_per_second"] = steps * SUBSTEPS / rec["seconds"]
-    rec["control_steps_per_second"] = steps / rec["seconds"]
-    return rec
-
-
-def jaxobs_gradient(problem: Problem, batch: int, repeats: int) -> dict:
-    ks, noise = problem.plants(batch)
-    fn = jax.jit(jax.value_and_grad(problem.loss))
-    rec = _time(fn, problem.theta, ks, noise, repeats=repeats)
-    value, grad = fn(problem.theta, ks, noise)
-    rec["loss"] = float(value)
-    rec["grad"] = np.asarray(grad).tolist()
-    rec["plant_steps_per_second"] = batch * problem.steps * SUBSTEPS / rec["seconds"]
-    return rec
+        return jnp.mean((self.forces(params, ks, noise) - self.desired) ** 2)
 
 
 class NumpyAOB:
-    """The steady-state AOB of ``params`` in NumPy (the controller step of jaxobs.observers.active)."""
+    """The steady-state AOB of ``params`` in NumPy (the controller step of jaxobs.observers.active), batched over
+    a leading plant axis, with the dead-time FIFO of the command."""
 
     def __init__(self, params):
         self.Phi, self.Gamma, self.C, self.L, self.K = (
             np.asarray(m) for m in (params.Phi, params.Gamma, params.C, params.L, params.gain)
         )
 
-    def rollout(self, m: mujoco.MjModel, reference, noise, disturbance) -> np.ndarray:
-        """True force per control step of the CPU MuJoCo plant ``m`` under this controller."""
-        d = mujoco.MjData(m)
-        Phi, Gamma, C, L, K = self.Phi, self.Gamma, self.C, self.L, self.K
-        x, u_prev = np.zeros(Phi.shape[0]), np.zeros(Gamma.shape[1])
-        fifo = [0.0] * DEAD_TIME
-        ks, ds = m.jnt_stiffness[0], m.dof_damping[0]
-        force = np.empty(len(reference))
-        for k in range(len(reference)):
-            force[k] = ks * d.qpos[0] + ds * d.qvel[0]
-            y = force[k] + noise[k]
-            x1 = Phi @ x + Gamma @ u_prev
-            x = x1 + K @ (y - C @ x1)
-            u_prev = reference[k] - L @ x
-            fifo.append(float(u_prev[0]) + disturbance[k])
-            d.ctrl[0] = fifo.pop(0)
+    def init(self, batch: int):
+        """``(x_hat, u_prev, fifo)``: zero estimate, no previous command, an empty dead-time FIFO."""
+        return (
+            np.zeros((batch, self.Phi.shape[0])),
+            np.zeros((batch, self.Gamma.shape[1])),
+            np.zeros((batch, DEAD_TIME)),
+        )
+
+    def step(self, state, y, r, d):
+        """One control step on (B,) measurements ``y``: the new state and the command leaving the FIFO."""
+        x, u_prev, fifo = state
+        x1 = x @ self.Phi.T + u_prev @ self.Gamma.T
+        x = x1 + (y[:, None] - x1 @ self.C.T) @ self.K.T
+        u = r - x @ self.L.T
+        applied = fifo[:, 0]
+        fifo = np.concatenate([fifo[:, 1:], u + d], axis=1)
+        return (x, u, fifo), applied
+
+
+def cpu_loop(problem: Problem, aob: NumpyAOB, ks, noise) -> np.ndarray:
+    """True forces (B, T) of CPU MuJoCo plants of stiffnesses ``ks``, one plant at a time (``mj_step``)."""
+    m = copy.copy(problem.mj_model)
+    reference, disturbance = np.asarray(problem.reference), np.asarray(problem.disturbance)
+    forces = np.empty((len(ks), problem.steps))
+    for i, k_s in enumerate(ks):
+        m.jnt_stiffness[0] = k_s
+        d, state = mujoco.MjData(m), aob.init(1)
+        for k in range(problem.steps):
+            forces[i, k] = k_s * d.qpos[0] + m.dof_damping[0] * d.qvel[0]
+            state, applied = aob.step(state, forces[i, k : k + 1] + noise[i, k], reference[k], disturbance[k])
+            d.ctrl[0] = applied[0]
             for _ in range(SUBSTEPS):
                 mujoco.mj_step(m, d)
-        return force
+    return forces
 
 
-def peer(problem: Problem, plants: int) -> dict:
-    """CPU MuJoCo + NumPy AOB: trace agreement with MJX on one plant, then plant-steps/s over ``plants``."""
-    aob = NumpyAOB(problem.params)
-    m = problem.mj_model
-    reference, disturbance = np.asarray(problem.reference), np.asarray(problem.disturbance)
-    ks_check = jnp.array([CHECK_KS])
-    noise_check = problem.plants(1)[1]
-    mjx_force = np.asarray(problem.forward(problem.params, ks_check, noise_check))[0]
-    m.jnt_stiffness[0] = CHECK_KS
-    cpu_force = aob.rollout(m, reference, np.asarray(noise_check[0]), disturbance)
-    max_diff = float(np.max(np.abs(cpu_force - mjx_force)))
+class CpuRollout:
+    """CPU MuJoCo batched over plants: one model copy per plant, one ``MjData`` per thread, and one
+    ``mujoco.rollout.rollout`` call per control step advancing every plant by ``SUBSTEPS`` physics steps."""
 
-    ks, noise = problem.plants(plants)
-    ks, noise = np.asarray(ks), np.asarray(noise)
-    start = time.perf_counter()
-    for i in range(plants):
-        m.jnt_stiffness[0] = ks[i]
-        aob.rollout(m, reference, noise[i], disturbance)
-    seconds = time.perf_counter() - start
-    m.jnt_stiffness[0] = EXAMPLE1.Ks
-    rate = plants * problem.steps * SUBSTEPS / seconds
+    SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+    def __init__(self, problem: Problem, ks):
+        self.problem, self.ks = problem, np.asarray(ks)
+        self.models = []
+        for k_s in self.ks:
+            m = copy.copy(problem.mj_model)
+            m.jnt_stiffness[0] = k_s
+            self.models.append(m)
+        self.datas = [mujoco.MjData(problem.mj_model) for _ in range(os.cpu_count() or 1)]
+        self.state0 = np.empty(mujoco.mj_stateSize(problem.mj_model, self.SPEC))
+        mujoco.mj_getState(problem.mj_model, mujoco.MjData(problem.mj_model), self.state0, self.SPEC)
+        self.nq = problem.mj_model.nq
+        self.damping = problem.mj_model.dof_damping[0]
+
+    def forces(self, aob: NumpyAOB, noise) -> np.ndarray:
+        """True forces (B, T) under the AOB; ``noise`` (B, T)."""
+        p = self.problem
+        reference, disturbance = np.asarray(p.reference), np.asarray(p.disturbance)
+        batch = len(self.ks)
+        state, ctrl = aob.init(batch), np.zeros((batch, 1, 1))
+        physics = np.tile(self.state0, (batch, 1))
+        forces = np.empty((batch, p.steps))
+        for k in range(p.steps):  # physics state: [time, qpos, qvel, ...]
+            forces[:, k] = self.ks * physics[:, 1] + self.damping * physics[:, 1 + self.nq]
+            state, ctrl[:, 0, 0] = aob.step(state, forces[:, k] + noise[:, k], reference[k], disturbance[k])
+            physics = mj_rollout.rollout(self.models, self.datas, physics, ctrl, nstep=SUBSTEPS)[0][:, -1]
+        return forces
+
+
+def time_batch(problem: Problem, batch: int, rounds: int, peer_plants: int) -> dict:
+    """Interleaved rounds of MJX forward, MJX gradient, the batched and the looped CPU MuJoCo peers."""
+    ks, noise = problem.plants(batch)
+    ks_np, noise_np = np.asarray(ks), np.asarray(noise)
+    aob, cpu = NumpyAOB(problem.params), CpuRollout(problem, ks_np)
+    loop_plants = min(peer_plants, batch)
+    entries = {
+        "mjx_forward": (
+            lambda: (jax.vmap(problem.force, in_axes=(None, 0, 0)), (problem.params, ks, noise)),
+            True,
+            1.0,
+        ),
+        "mjx_gradient": (lambda: (jax.value_and_grad(problem.loss), (problem.theta, ks, noise)), True, 1.0),
+        "cpu_rollout": (lambda: (lambda: cpu.forces(aob, noise_np), ()), False, 1.0),
+        "cpu_loop": (
+            lambda: (lambda: cpu_loop(problem, aob, ks_np[:loop_plants], noise_np[:loop_plants]), ()),
+            False,
+            batch / loop_plants,
+        ),
+    }
+    timings, _ = time_interleaved(entries, rounds, required=tuple(entries))
+    physics_steps = batch * problem.steps * SUBSTEPS
+    rec = {name: t.record(physics_steps, "physics plant-steps/s") for name, t in timings.items()}
+    rec["cpu_loop"]["extrapolated_from_plants"] = loop_plants
+    mjx_forces = np.asarray(timings["mjx_forward"].result)
+    value, grad = timings["mjx_gradient"].result
+    rec["mjx_gradient"].update(loss=float(value), grad=np.asarray(grad).tolist())
+    faster = zip(timings["cpu_rollout"].seconds, timings["cpu_loop"].seconds, strict=True)
+    central = Timed([4 * min(pair) for pair in faster], None, None)  # the faster CPU peer of each round
+    diff = {name: float(np.max(np.abs(timings[name].result - mjx_forces[: len(timings[name].result)])))
+            for name in ("cpu_rollout", "cpu_loop")}  # fmt: skip
     return {
-        "plants_timed": plants,
-        "seconds": seconds,
-        "seconds_per_plant": seconds / plants,
-        "plant_steps_per_second": rate,
-        "control_steps_per_second": rate / SUBSTEPS,
-        "trace_check": {
-            "ks": CHECK_KS,
-            "max_abs_force_difference_N": max_diff,
-            "max_abs_force_N": float(np.max(np.abs(mjx_force))),
-        },
-        "mujoco": mujoco.__version__,
+        **rec,
+        "cpu_central_difference_gradient": central.record(physics_steps, "physics plant-steps/s"),
+        "forward_ratio_vs_cpu_rollout": paired_ratio(timings["mjx_forward"], timings["cpu_rollout"]),
+        "forward_ratio_vs_cpu_loop": paired_ratio(timings["mjx_forward"], timings["cpu_loop"]),
+        "gradient_ratio_vs_central_differences": paired_ratio(timings["mjx_gradient"], central),
+        "trace_check": {"max_abs_force_difference_N": diff, "max_abs_force_N": float(np.max(np.abs(mjx_forces)))},
     }
 
 
@@ -219,36 +249,25 @@ def main(argv=None) -> dict:
     parser.add_argument("--steps", type=int, default=250, help="control steps per rollout (8 physics steps each)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
     parser.add_argument("--max-batch", type=int, default=None, help="skip batches larger than this")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--peer-plants", type=int, default=20)
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved timed rounds (median and range)")
+    parser.add_argument("--peer-plants", type=int, default=20, help="plants the looped CPU peer is timed on")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     batches = [b for b in args.batches if args.max_batch is None or b <= args.max_batch]
     start = time.perf_counter()
     problem = Problem(args.steps)
-    timed = {}
-    for batch in batches:
-        timed[batch] = jaxobs_forward(problem, batch, args.repeats), jaxobs_gradient(problem, batch, args.repeats)
-        print(f"batch {batch} done ({time.perf_counter() - start:.0f} s)", flush=True)
-    cpu = peer(problem, args.peer_plants)  # after the jaxobs timings, so their compile times include every shape
     rows = {}
-    for batch, (fwd, grad) in timed.items():
-        cpu_seconds = batch * problem.steps * SUBSTEPS / cpu["plant_steps_per_second"]
-        rows[str(batch)] = {
-            "jaxobs_forward": fwd,
-            "jaxobs_gradient": grad,
-            "cpu_mujoco_forward_seconds": cpu_seconds,
-            "cpu_mujoco_central_difference_gradient_seconds": 4 * cpu_seconds,
-            "forward_ratio": fwd["plant_steps_per_second"] / cpu["plant_steps_per_second"],
-            "gradient_ratio_vs_central_differences": 4 * cpu_seconds / grad["seconds"],
-        }
+    for batch in batches:
+        rows[str(batch)] = time_batch(problem, batch, args.rounds, args.peer_plants)
+        print(f"batch {batch} done ({time.perf_counter() - start:.0f} s)", flush=True)
     results = {
         "steps": args.steps,
         "substeps": SUBSTEPS,
         "physics_steps_per_rollout": args.steps * SUBSTEPS,
         "ks_range": list(KS_RANGE),
+        "rounds": args.rounds,
         "batches": rows,
-        "cpu_mujoco": cpu,
+        "mujoco": mujoco.__version__,
         "platform": _platform(),
         "total_seconds": time.perf_counter() - start,
     }
@@ -259,53 +278,64 @@ def main(argv=None) -> dict:
 
 
 def _print(results: dict) -> None:
-    cpu = results["cpu_mujoco"]
-    print(f"device: {results['platform']['device']}; {results['steps']} control steps x {SUBSTEPS} physics steps")
     print(
-        f"CPU MuJoCo + NumPy AOB: {cpu['plant_steps_per_second']:.3g} plant-steps/s ({cpu['plants_timed']} plants); "
-        f"trace vs MJX: max |dF| = {cpu['trace_check']['max_abs_force_difference_N']:.2g} N"
-    )
-    print(
-        f"{'batch':>6} {'MJX plant-steps/s':>18} {'CPU MuJoCo':>12} {'ratio':>8} "
-        f"{'MJX s/grad':>11} {'CPU FD s/grad':>14} {'ratio':>8}"
+        f"device: {results['platform']['device']}; {results['steps']} control steps x {SUBSTEPS} physics steps; "
+        f"{results['rounds']} interleaved rounds, median [min, max]"
     )
     for batch, row in results["batches"].items():
-        fwd, grad = row["jaxobs_forward"], row["jaxobs_gradient"]
+        diff = row["trace_check"]["max_abs_force_difference_N"]
+        print(f"batch {batch} (trace vs MJX: rollout {diff['cpu_rollout']:.2g} N, loop {diff['cpu_loop']:.2g} N)")
+        for name in ("mjx_forward", "cpu_rollout", "cpu_loop"):
+            print(f"   {name:<13} {format_range(row[name]['throughput'], '.3g')} physics plant-steps/s")
+        print(f"   MJX forward / CPU rollout: {format_range(row['forward_ratio_vs_cpu_rollout'], '.3g', 'x')}")
+        print(f"   MJX forward / CPU loop:    {format_range(row['forward_ratio_vs_cpu_loop'], '.3g', 'x')}")
+        central = format_range(row["cpu_central_difference_gradient"]["seconds"], ".3g")
         print(
-            f"{batch:>6} {fwd['plant_steps_per_second']:>18.3g} {cpu['plant_steps_per_second']:>12.3g} "
-            f"{row['forward_ratio']:>7.2f}x {grad['seconds']:>11.3g} "
-            f"{row['cpu_mujoco_central_difference_gradient_seconds']:>14.3g} "
-            f"{row['gradient_ratio_vs_central_differences']:>7.2f}x"
+            f"   MJX gradient step {format_range(row['mjx_gradient']['seconds'], '.3g')} s; central differences "
+            f"with the faster CPU peer {central} s: "
+            f"{format_range(row['gradient_ratio_vs_central_differences'], '.3g', 'x')}"
         )
     print(f"total {results['total_seconds']:.0f} s")
+
+
+def _yerr(summaries: list) -> list:
+    """Matplotlib error bars from the median to the [min, max] range of each summary."""
+    return [[s["median"] - s["min"] for s in summaries], [s["max"] - s["median"] for s in summaries]]
 
 
 def _plot(results: dict, path: Path) -> None:
     from jaxobs.papers._output import pyplot
 
     plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
     batches = [int(k) for k in results["batches"]]
     rows = list(results["batches"].values())
-    cpu_rate = results["cpu_mujoco"]["plant_steps_per_second"]
     device = results["platform"]["device"]
-    a.plot(batches, [r["jaxobs_forward"]["plant_steps_per_second"] for r in rows], "o-", label=f"jaxobs/MJX ({device})")
-    a.plot(batches, [cpu_rate] * len(batches), "s--", color="tab:gray", label="CPU MuJoCo loop (extrapolated)")
+    for name, label, style in (
+        ("mjx_forward", f"jaxobs/MJX ({device})", "o-"),
+        ("cpu_rollout", "CPU MuJoCo, mujoco.rollout batched", "s--"),
+        ("cpu_loop", "CPU MuJoCo, Python loop (extrapolated)", "^:"),
+    ):
+        rates = [r[name]["throughput"] for r in rows]
+        a.errorbar(batches, [r["median"] for r in rates], yerr=_yerr(rates), fmt=style, capsize=3, label=label)
     a.set_xscale("log")
     a.set_yscale("log")
     a.set_xlabel("batch (plants)")
-    a.set_ylabel("physics plant-steps / s")
-    a.set_title(f"forward, AOB-1 in the loop, {results['physics_steps_per_rollout']} steps/rollout")
-    a.legend()
-    b.plot(batches, [r["jaxobs_gradient"]["seconds"] for r in rows], "o-", label="jaxobs/MJX value_and_grad")
-    fd = [r["cpu_mujoco_central_difference_gradient_seconds"] for r in rows]
-    b.plot(batches, fd, "s--", color="tab:gray", label="CPU MuJoCo central differences (est.)")
+    a.set_ylabel("physics plant-steps / s (median, bar: [min, max])")
+    a.set_title(f"forward, AOB-1 in the loop, {results['physics_steps_per_rollout']} steps/rollout", fontsize=10)
+    a.legend(fontsize=8)
+    for name, label, style in (
+        ("mjx_gradient", "jaxobs/MJX value_and_grad", "o-"),
+        ("cpu_central_difference_gradient", "CPU MuJoCo, central differences (4 rollouts, faster peer)", "s--"),
+    ):
+        secs = [r[name]["seconds"] for r in rows]
+        b.errorbar(batches, [s["median"] for s in secs], yerr=_yerr(secs), fmt=style, capsize=3, label=label)
     b.set_xscale("log")
     b.set_yscale("log")
     b.set_xlabel("batch (plants)")
-    b.set_ylabel("s / gradient step")
-    b.set_title("gradient w.r.t. (log R, log q_active)")
-    b.legend()
+    b.set_ylabel("s / gradient step (median, bar: [min, max])")
+    b.set_title(f"gradient w.r.t. (log R, log q_active), {results['rounds']} interleaved rounds", fontsize=10)
+    b.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

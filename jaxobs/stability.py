@@ -139,7 +139,8 @@ class Margins(NamedTuple):
     ``phase_margin``: degrees, ``angle(H) + 180`` wrapped to (-180, 180] at the gain crossover with
     the smallest ``|margin|`` (inf if none); ``delay_margin``: seconds, the smallest extra input delay
     that destabilises a stable loop, ``min_i mod(pm_i, 360) / w_i`` over all gain crossovers (inf if
-    none); ``stability_margin``: ``min_w |1 + H|``; frequencies in rad/s (nan if none);
+    none), at most one sample ``dt`` when ``|H(-1)| > 1`` (one sample of delay flips the sign of
+    ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; frequencies in rad/s (nan if none);
     ``spectral_radius`` of the closed loop (the margins mean something only when it is below 1).
     ``truncated``: more crossings than ``max_crossings`` were seen (margins may be optimistic).
     """
@@ -289,6 +290,10 @@ def stability_margins(
     gain_crossover = jnp.where(has_gc, theta_gc / sys.dt, nan)
     lag_dm = jnp.remainder(jnp.degrees(jnp.angle(H_dm)) - 180.0, 360.0)
     delay_margin = jnp.where(has_gc, jnp.radians(lag_dm) / (theta_dm / sys.dt), inf)
+    # a whole-sample delay multiplies H(-1) by -1: when |H(-1)| > 1 the end of the Nyquist plot jumps across -1
+    # between 0 and 1 sample, so one sample destabilises the loop whatever the gain crossovers allow
+    nyquist_gain = jnp.abs(fast(jnp.asarray(jnp.pi, dtype)))
+    delay_margin = jnp.where(nyquist_gain > 1.0, jnp.minimum(delay_margin, sys.dt), delay_margin)
     stability_margin = jnp.abs(1.0 + H_exact[3])
 
     return Margins(

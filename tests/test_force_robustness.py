@@ -9,6 +9,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.cli import main
 from jaxobs.closed_loop import linear_controller, linear_controller_of, simulate
@@ -132,3 +133,31 @@ def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
     assert list(got) == list(want)
     for name in want:
         assert np.array_equal(got[name], want[name], equal_nan=True), name
+
+
+@pytest.mark.slow
+def test_readme_default_sweep_figures(tmp_path):
+    """The README's figures of the default ``jaxobs sweep`` (100 000 configurations), from a fresh run of that
+    command: stable fractions over the whole range and within x1.5 of the nominal stiffness, median phase margins
+    and RMS force errors of the stable loops. Regression snapshots of this implementation (a seeded Monte-Carlo
+    run), pinned to their printed digits; the fractions may differ by a few configurations on another machine
+    (loops within rounding of rho = 1), hence the allowance of 2e-4 (5 of 25 000; within x1.5: 5e-4)."""
+    out = tmp_path / "sweep"
+    assert main(["sweep", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_configs"] == 100_000
+    c = summary["controllers"]
+    names = ("AOB-1", "AOB-2", "AOB-3", "CKF")
+    whole = r"whole mismatch range: AOB-1 ([0-9.]+), AOB-2 ([0-9.]+), AOB-3 ([0-9.]+), CKF ([0-9.]+);"
+    near = r"nominal stiffness: ([0-9.]+), ([0-9.]+), ([0-9.]+), ([0-9.]+)\."
+    rms = r"median RMS force error falls with it \(([0-9.]+), ([0-9.]+), ([0-9.]+) N; CKF ([0-9.]+) N\)"
+    for group, name in enumerate(names, start=1):
+        pin(c[name]["stable_fraction"], whole, group, noise=2e-4)
+        pin(c[name]["stable_fraction_within_50pct_stiffness"], near, group, noise=5e-4)
+        pin(c[name]["rms_force_error_stable"]["median"], rms, group)
+    for group, name in enumerate(names[:3], start=1):
+        pin(
+            c[name]["phase_margin_stable"]["median"],
+            r"falls with the order \(([0-9.]+), ([0-9.]+), ([0-9.]+) degrees\)",
+            group,
+        )

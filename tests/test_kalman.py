@@ -14,6 +14,7 @@ from jaxobs.observers.base import run
 from jaxobs.observers.kalman import (
     KalmanInputs,
     KalmanParams,
+    filter_shared_model,
     kalman_filter,
     make_kalman,
     measurement_update,
@@ -64,15 +65,23 @@ def make_problem(seed=0, n=3, m=1, p=2, T=60):
     G = rng.normal(size=(n, n)) * 0.3
     Q = G @ G.T + 0.01 * np.eye(n)
     R = np.array([[0.5, 0.2], [0.2, 0.3]])[:p, :p] if p <= 2 else np.eye(p) * 0.4
+    model = dict(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R)
     u = rng.normal(size=(T, m))
-    x = rng.normal(size=n)
+    y, x = simulate(model, u, rng)
+    return model, u, y, x
+
+
+def simulate(model, u, rng):
+    """Measurements and states of ``model`` driven by ``u`` from a random initial state."""
+    Phi, Gamma, C = model["Phi"], model["Gamma"], model["C"]
+    Lq, Lr = np.linalg.cholesky(model["Q"]), np.linalg.cholesky(model["R"])
+    x = rng.normal(size=Phi.shape[0])
     xs, ys = [], []
-    Lq, Lr = np.linalg.cholesky(Q), np.linalg.cholesky(R)
-    for k in range(T):
-        x = Phi @ x + Gamma @ u[k] + Lq @ rng.normal(size=n)
+    for u_k in u:
+        x = Phi @ x + Gamma @ u_k + Lq @ rng.normal(size=x.size)
         xs.append(x)
-        ys.append(C @ x + Lr @ rng.normal(size=p))
-    return dict(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R), u, np.array(ys), np.array(xs)
+        ys.append(C @ x + Lr @ rng.normal(size=C.shape[0]))
+    return np.array(ys), np.array(xs)
 
 
 def params_of(model, **kw):
@@ -234,6 +243,69 @@ def test_steady_state_gain_with_missing_component():
 
 
 # ---------------------------------------------------------------------------------------------
+# one model, a batch of sequences
+
+
+def _shared_model_batch(seed, p=2, T=40, batch=3):
+    """One model and ``batch`` input and measurement sequences simulated from it: ``(model, U, Y)`` with U, Y of
+    shapes (batch, T, m) and (batch, T, p)."""
+    model, u, y, _ = make_problem(seed, p=p, T=T)
+    rng = np.random.default_rng(seed + 1)
+    U, Y = [u], [y]
+    for _ in range(batch - 1):
+        U.append(rng.normal(size=u.shape))
+        Y.append(simulate(model, U[-1], rng)[0])
+    return model, np.stack(U), np.stack(Y)
+
+
+def test_filter_shared_model_equals_vmapped_run():
+    """filter_shared_model (one Riccati recursion for the batch) returns what vmap(run(kalman_filter)) returns on the
+    same data: estimates, a-priori estimates, innovations, gains, final estimates, covariances and counts."""
+    model, U, Y = _shared_model_batch(13)
+    params = params_of(model, x0=np.array([0.2, -0.1, 0.4]))
+    inputs = KalmanInputs(jnp.asarray(U), jnp.asarray(Y))
+    shared_final, shared = jax.jit(filter_shared_model)(params, inputs)
+    final, out = jax.jit(jax.vmap(lambda i: run(kalman_filter, params, i)))(inputs)
+    for got, want in ((shared, out), (shared_final, final)):
+        for name, a, b in zip(got._fields, got, want, strict=True):
+            assert a.shape == b.shape, name
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
+
+
+def test_filter_shared_model_missing_data_keeps_the_schedule():
+    """Documented: the gain schedule assumes every measurement present, so a non-finite component has its innovation
+    zeroed, the other components use the scheduled gain K_k, and it is counted in state.missing; the exact (per
+    sequence) treatment is vmap(run) and differs."""
+    model, U, Y = _shared_model_batch(14, T=30, batch=2)
+    Y = Y.copy()
+    Y[0, [4, 11], 1] = np.nan
+    Y[1, 7, :] = np.nan
+    params = params_of(model)
+    inputs = KalmanInputs(jnp.asarray(U), jnp.asarray(Y))
+    final, out = filter_shared_model(params, inputs)
+    np.testing.assert_array_equal(final.missing, [2, 2])
+    # NumPy: the covariance recursion of eq. 27-29 without missing data, then x = x1 + K_k (y - C x1) masked
+    P, gains = np.asarray(params.P0), []
+    for _ in range(Y.shape[1]):
+        P1 = model["Phi"] @ P @ model["Phi"].T + model["Q"]
+        K = P1 @ model["C"].T @ np.linalg.inv(model["C"] @ P1 @ model["C"].T + model["R"])
+        IKC = np.eye(3) - K @ model["C"]
+        P = IKC @ P1 @ IKC.T + K @ model["R"] @ K.T
+        gains.append(K)
+    for b in range(Y.shape[0]):
+        x = np.asarray(params.x0)
+        for k, K in enumerate(gains):
+            x1 = model["Phi"] @ x + model["Gamma"] @ U[b, k]
+            innovation = np.where(np.isfinite(Y[b, k]), Y[b, k] - model["C"] @ x1, 0.0)
+            x = x1 + K @ innovation
+            np.testing.assert_allclose(out.x[b, k], x, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(out.innovation[b, k], innovation, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(out.gain[b, k], K, rtol=1e-10, atol=1e-12)
+    _, exact = jax.vmap(lambda i: run(kalman_filter, params, i))(inputs)
+    assert np.max(np.abs(np.asarray(exact.x[0, 4:]) - np.asarray(out.x[0, 4:]))) > 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
 # transformations and gradients
 
 
@@ -304,16 +376,16 @@ def test_grad_with_missing_measurements_is_finite_and_correct():
 def test_make_kalman_rejects_bad_input():
     """Eager validation in make_kalman: ValueError naming the argument."""
     model, _, _, _ = make_problem(11)
-    with pytest.raises(ValueError, match="Q"):
+    with pytest.raises(ValueError, match=r"^Q\b.*positive semidefinite"):
         make_kalman(model["Phi"], model["Gamma"], model["C"], -model["Q"], model["R"])
-    with pytest.raises(ValueError, match="R"):
+    with pytest.raises(ValueError, match=r"^R\b.*positive definite"):
         make_kalman(model["Phi"], model["Gamma"], model["C"], model["Q"], np.zeros((2, 2)))
-    with pytest.raises(ValueError, match="P0"):
+    with pytest.raises(ValueError, match=r"^P0\b.*\(3, 2\)"):
         make_kalman(model["Phi"], model["Gamma"], model["C"], model["Q"], model["R"], P0=np.ones((3, 2)))
-    with pytest.raises(ValueError, match="Gamma"):
+    with pytest.raises(ValueError, match=r"^Gamma\b.*\(4, 1\)"):
         make_kalman(model["Phi"], np.ones((4, 1)), model["C"], model["Q"], model["R"])
-    with pytest.raises(ValueError, match="C"):
+    with pytest.raises(ValueError, match=r"^C\b.*\(2, 4\)"):
         make_kalman(model["Phi"], model["Gamma"], np.ones((2, 4)), model["Q"], model["R"])
-    with pytest.raises(ValueError, match="Phi"):
+    with pytest.raises(ValueError, match=r"^Phi\b.*\(3, 2\)"):
         make_kalman(np.ones((3, 2)), model["Gamma"], model["C"], model["Q"], model["R"])
     assert isinstance(params_of(model), KalmanParams)

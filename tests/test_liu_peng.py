@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.papers import REPRODUCTIONS, liu_peng
 
@@ -111,6 +112,28 @@ def test_robustness_deteriorates_but_stays_reasonable(reproduced):
         robust = summary["rms"][model]["robustness"]["inverse_dynamics"]
         assert robust["v_y"] > 5 * ideal["v_y"] and robust["d"] > 5 * ideal["d"]
         assert robust["v_y"] < 0.05 and robust["d"] < 0.5
+
+
+def test_readme_reproduction_figures(reproduced):
+    """The README's row for this reproduction, pinned to its printed digits: the a_i from the printed parameters
+    (eq. 31 with a4's sign corrected) and the RMS v_y / d errors of the four estimators on the parameter model, ideal
+    and with the paper's uncertainties. The RMS errors are regression snapshots of this implementation (the paper
+    prints figures only, and one noise seed is used)."""
+    out, summary = reproduced
+    data = json.loads((out / f"{liu_peng.NAME}.json").read_text())
+    a = r"a1\.\.a4 = ([0-9.-]+), ([0-9.-]+), ([0-9.-]+), ([0-9.-]+);"
+    for group, value in enumerate(data["a_from_parameters"], start=1):
+        pin(value, a, group)
+    number = r"([0-9.]+) / ([0-9.]+)"
+    rows = {
+        "ideal": r"parameter model: ideal " + ", ".join([number] * 4) + ";",
+        "robustness": r"with the paper's uncertainties " + ", ".join([number] * 4) + r" \(m/s",
+    }
+    for case, pattern in rows.items():
+        for i, method in enumerate(("inverse_dynamics", "hinf", "aob", "kalman")):
+            rms = summary["rms"]["parameters"][case][method]
+            pin(rms["v_y"], pattern, 2 * i + 1)
+            pin(rms["d"], pattern, 2 * i + 2)
 
 
 def test_no_lowpass_noise_is_differentiated_twice(monkeypatch):

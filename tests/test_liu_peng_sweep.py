@@ -5,6 +5,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs import cli
 from jaxobs.papers import liu_peng, liu_peng_sweep
@@ -60,3 +61,25 @@ def test_cli_sweep_end_to_end(tmp_path):
         for q in summary[f"{error}_rms"].values():
             assert q["p10"] <= q["median"] <= q["p90"] <= q["max"]
     assert (out / "estimators.png").is_file() and "estimators.png" in (out / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_readme_sweep_figures(tmp_path):
+    """The README's figures of ``jaxobs sweep --config tuning/liu_peng_sweep.toml`` (500 vehicles), from a fresh run
+    of that command: median RMS v_y error per estimator, the 90th percentiles, the Kalman filter's share of best
+    vehicles. Regression snapshots of this implementation (a seeded Monte-Carlo run), pinned to their printed
+    digits."""
+    out = tmp_path / "lp"
+    assert cli.main(["sweep", "--config", "tuning/liu_peng_sweep.toml", "--out", str(out), "--no-progress"]) == 0
+    v = json.loads((out / "summary.json").read_text())["v_y_rms"]
+    medians = (
+        r"inverse dynamics ([0-9.]+), H-infinity ([0-9.]+), AOB-1 ([0-9.]+), "
+        r"Kalman filter without a disturbance state ([0-9.]+) m/s"
+    )
+    for group, method in enumerate(("inverse_dynamics", "hinf", "aob", "kalman"), start=1):
+        pin(v[method]["median"], medians, group)
+    p90 = r"\(90th percentile ([0-9.]+) against ([0-9.]+) to ([0-9.]+) m/s\)"
+    pin(v["kalman"]["p90"], p90, 1)
+    pin(min(v[m]["p90"] for m in ("inverse_dynamics", "hinf", "aob")), p90, 2)
+    pin(max(v[m]["p90"] for m in ("inverse_dynamics", "hinf", "aob")), p90, 3)
+    pin(100 * v["kalman"]["best_fraction"], r"is best on ([0-9.]+) % of the vehicles")

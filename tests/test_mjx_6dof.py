@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.closed_loop import ideal_response, rms, simulate
 from jaxobs.mjx import compliant_6dof as c6
@@ -70,8 +71,8 @@ def test_decoupled_steps_match_1dof_analytic_closed_loop(model, controllers, run
     eq. 62-68 controllers (AOB-1 HBA on five DOF, CKF SBA on z): a step of 10 N / 1 N·m on all six DOF at once
     under the eq. 81-82 input disturbance. Each DOF's wrench equals jaxobs.closed_loop.simulate of the same
     controller on force_plant(K_i, Tp, h, 5 h) with RMS difference 0.038-0.071 % of the step (x 0.069 %, y 0.071 %,
-    z 0.053 %, rotations 0.038-0.040 %); required < 5 % (asserted < 0.5 %). The residual is semi-implicit Euler
-    at 1 ms and the servo's K / kv yield."""
+    z 0.053 %, rotations 0.038-0.040 %), the README's "0.07 %"; required < 5 % (asserted < 0.5 %). The residual is
+    semi-implicit Euler at 1 ms and the servo's K / kv yield."""
     plant = dataclasses.replace(c6.Compliant6Params(), coupling=np.array(0.0))
     m = c6.with_params(model, plant)
     r = c6.force_reference(controllers, jnp.broadcast_to(STEP, (T, 6)))
@@ -85,6 +86,7 @@ def test_decoupled_steps_match_1dof_analytic_closed_loop(model, controllers, run
     wrench_ref = ref.y_true[..., 0].T
     rms = jnp.sqrt(jnp.mean((trace.wrench_true - wrench_ref) ** 2, axis=0)) / STEP
     assert float(jnp.max(rms)) < 0.005, rms  # measured <= 0.00071 of the step
+    pin(100 * float(jnp.max(rms)), r"agrees with the 1-DOF analytic loop to ([0-9.]+) % with the coupling off")
     np.testing.assert_allclose(trace.command, ref.u[..., 0].T, atol=0.01 * float(jnp.max(jnp.abs(ref.u))))
     np.testing.assert_array_equal(trace.wrench, trace.wrench_true)  # no noise given
     np.testing.assert_allclose(trace.applied[DEAD_TIME:], (trace.command + dist)[:-DEAD_TIME], rtol=1e-12)
@@ -201,7 +203,7 @@ def test_gradients_match_central_differences(model):
     """d(normalised mean squared wrench tracking error over 0.64 s)/d(log q_active per DOF) through design (eq.
     62-67, steady-state gains by DARE with implicit derivatives) and the coupled MJX loop (steps on all six DOF,
     eq. 81-82 disturbance, noise), reverse mode and jacfwd against central differences (step 1e-4 in log):
-    max relative error 4.6e-10 (reverse) over the five AOB DOF, required <= 1e-3; jacfwd equals reverse mode to
+    max relative error 4.6e-10 (reverse) over the five AOB DOF, asserted <= 5e-9; jacfwd equals reverse mode to
     2e-15; the CKF z entry is exactly 0."""
     n = 80
     r_f = jnp.broadcast_to(STEP, (n, 6))
@@ -222,7 +224,7 @@ def test_gradients_match_central_differences(model):
     aob = [0, 1, 3, 4, 5]
     assert np.all(np.isfinite(g_rev)) and np.all(np.abs(fd[aob]) > 1e-8)
     assert float(g_rev[c6.Z]) == 0.0 and fd[c6.Z] == 0.0
-    np.testing.assert_allclose(g_rev[aob], fd[aob], rtol=1e-3)
+    np.testing.assert_allclose(g_rev[aob], fd[aob], rtol=5e-9)
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8, atol=1e-15)
 
 
@@ -253,7 +255,7 @@ def test_bad_inputs_raise(model, controllers):
         c6.design(c6.peg_on_hole_scenario().plant)  # K_ry = 0: nothing to design a moment loop on
     with jax.enable_x64(False), pytest.raises(ValueError, match="float64"):
         c6.design()  # float32 would give near-zero gains for the 1e-12 Q entries
-    with pytest.raises(ValueError, match="tp"):
+    with pytest.raises(ValueError, match=r"\btp\b"):
         c6.Compliant6Params(tp=np.array(-0.032)).validate()
     with pytest.raises(ValueError, match="servo_gain"):
         c6.with_params(model, c6.Compliant6Params(servo_gain=np.array(1e-3)))

@@ -186,8 +186,8 @@ def test_gain_margin_puts_a_closed_loop_pole_on_the_unit_circle():
     assert checked > 30
 
 
-def test_phase_and_delay_margins_match_their_definitions():
-    """|H(w_gc)| = 1 with angle pm - 180; an extra delay of delay_margin puts -1 on the locus."""
+def test_phase_margin_matches_its_definition():
+    """|H(w_gc)| = 1 and angle(-H(w_gc)) = phase margin at the reported gain crossover."""
     for A, B, C, _ in _random_loops(15, seed=6):
         sys = ss(A, B, C, dt=0.01)
         m = margins_jit(sys)
@@ -196,8 +196,99 @@ def test_phase_and_delay_margins_match_their_definitions():
         H = complex(frequency_response(sys, m.gain_crossover))
         assert abs(H) == pytest.approx(1.0, abs=1e-9)
         assert np.degrees(np.angle(-H)) == pytest.approx(float(m.phase_margin), abs=1e-6)
-        w_dm = float(m.delay_margin)
-        assert w_dm > 0
+
+
+DT = 0.01
+
+
+def _response(A, B, C, theta):
+    """``H(e^{j theta})`` of the loop ``(A, B, C)`` at the normalised frequencies ``theta``."""
+    n = A.shape[0]
+    return np.array([(C @ np.linalg.solve(np.exp(1j * t) * np.eye(n) - A, B)).item() for t in np.atleast_1d(theta)])
+
+
+def _loops_with_several_gain_crossovers(count, *, nyquist_gain_above_one=False, seed=8, size=4):
+    """Random loops, stable when closed, with two or more gain crossovers of which the one setting the delay
+    margin is not the phase-margin crossover, python-control's crossovers (returnall=True) verified on the exact
+    response, and ``|H(-1)|`` below or above 1 as asked. Returns ``(A, B, C, phase margins [deg], gain crossovers
+    [rad/s])``."""
+    rng = np.random.default_rng(seed)
+    loops = []
+    while len(loops) < count:
+        A = rng.normal(size=(size, size))
+        A *= rng.uniform(0.5, 0.98) / np.abs(np.linalg.eigvals(A)).max()
+        B, C = rng.normal(size=(size, 1)) * rng.uniform(0.5, 5.0), rng.normal(size=(1, size))
+        if np.abs(np.linalg.eigvals(A - B @ C)).max() > 0.99:
+            continue
+        if (abs(_response(A, B, C, np.pi)[0]) > 1.0) != nyquist_gain_above_one:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                _, pm, _, _, wgc, _ = control.stability_margins(control.ss(A, B, C, 0, DT), returnall=True)
+            except Warning:
+                continue
+        pm, wgc = np.atleast_1d(pm), np.atleast_1d(wgc)
+        if len(wgc) < 2 or np.argmin(np.mod(pm, 360.0) / wgc) == np.argmin(np.abs(pm)):
+            continue
+        if np.max(np.abs(np.abs(_response(A, B, C, wgc * DT)) - 1.0)) > 1e-9:
+            continue
+        loops.append((A, B, C, pm, wgc))
+    return loops
+
+
+def _destabilising_samples(A, B, C, samples):
+    """Spectral radii of the closed loop with each number of extra input delay samples in ``samples``."""
+    radii = []
+    for k in samples:
+        Ad, Bd, Cd = _with_input_delay(A, B, C, k)
+        radii.append(np.abs(np.linalg.eigvals(Ad - Bd @ Cd)).max())
+    return radii
+
+
+def _with_input_delay(A, B, C, samples):
+    """The loop ``H(z) z^-samples``: a chain of ``samples`` unit delays in front of the plant input."""
+    n = A.shape[0]
+    size = n + samples
+    Ad, Bd, Cd = np.zeros((size, size)), np.zeros((size, 1)), np.zeros((1, size))
+    Ad[:n, :n], Cd[:, :n] = A, C
+    if samples == 0:
+        Bd[:n] = B
+    else:
+        Ad[:n, n + samples - 1] = B[:, 0]  # the oldest slot drives the plant
+        Ad[n + 1 :, n : n + samples - 1] = np.eye(samples - 1)
+        Bd[n, 0] = 1.0
+    return Ad, Bd, Cd
+
+
+def test_delay_margin_is_the_smallest_destabilising_input_delay():
+    """The delay margin is min_i mod(pm_i, 360) [rad] / w_i [rad/s] over every gain crossover (from python-control's
+    crossovers, returnall=True), in seconds, on loops whose phase-margin crossover does not set it; and it is the
+    delay that destabilises the loop: with floor(dm / dt) extra samples of input delay the closed loop is stable,
+    with ceil(dm / dt) it is not (whole-sample delays are exact in discrete time)."""
+    for A, B, C, pm, wgc in _loops_with_several_gain_crossovers(6):
+        m = margins_jit(ss(A, B, C, dt=DT))
+        want = np.min(np.radians(np.mod(pm, 360.0)) / wgc)
+        assert float(m.delay_margin) == pytest.approx(want, rel=1e-7)
+        samples = float(m.delay_margin) / DT
+        assert abs(samples - round(samples)) > 1e-3  # the floor / ceil bracket is unambiguous
+        below, above = _destabilising_samples(A, B, C, (int(np.floor(samples)), int(np.ceil(samples))))
+        assert below < 1.0 < above
+
+
+def test_one_sample_of_delay_destabilises_a_loop_with_nyquist_gain_above_one():
+    """A whole-sample delay multiplies H(-1) by -1: when |H(-1)| > 1 the end of the Nyquist plot jumps across the
+    critical point between 0 and 1 sample, so one sample of extra delay destabilises the loop even where every gain
+    crossover allows more; the delay margin is then min(python-control formula, dt)."""
+    capped = 0
+    for A, B, C, pm, wgc in _loops_with_several_gain_crossovers(4, nyquist_gain_above_one=True):
+        m = margins_jit(ss(A, B, C, dt=DT))
+        formula = np.min(np.radians(np.mod(pm, 360.0)) / wgc)
+        assert float(m.delay_margin) == pytest.approx(min(formula, DT), rel=1e-7)
+        capped += formula > DT
+        stable, one_sample = _destabilising_samples(A, B, C, (0, 1))
+        assert stable < 1.0 < one_sample
+    assert capped >= 2  # the cap, not a gain crossover, decides on some of these loops
 
 
 @pytest.mark.slow
@@ -260,7 +351,7 @@ def test_bad_input():
         stability_margins(ss(A, B, C))
     with pytest.raises(ValueError, match="SISO"):
         stability_margins(ss(A, np.ones((2, 2)), C, dt=0.1))
-    with pytest.raises(ValueError, match="K"):
+    with pytest.raises(ValueError, match=r"^K\b.*\(3, 1\)"):
         loop_transfer(ss(A, B, C, dt=0.1), LinearController(A, B, C, np.ones((3, 1)), np.ones((1, 2))))
     plant, L_r = nominal_design()
     with pytest.raises(ValueError, match="steady-state"):

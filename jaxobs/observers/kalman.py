@@ -172,13 +172,16 @@ def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     The gain schedule assumes every measurement is present: a non-finite component has its innovation zeroed
     (the scheduled gain is used for the others) and is counted in ``state.missing``. Where missing data are
     common, ``vmap`` :func:`~jaxobs.observers.base.run` with :data:`kalman_filter` instead (exact, one
-    covariance per sequence). Returns ``(final_states, outputs)`` with the batch axis first.
+    covariance per sequence). Returns ``(final_states, outputs)`` with the batch axis first; every final state
+    carries the schedule's last covariance.
     """
     if params.gain is not None:
         raise ValueError("params has a fixed gain: filter_shared_model computes the time-varying one; use vmap(run)")
     y = jnp.asarray(inputs.y)
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     _checks.shape("inputs.y", y, (None, None, p), "(batch, time, outputs) measurements")
+    if y.shape[1] == 0:
+        raise ValueError("inputs.y has no samples: give at least one (its shape is (batch, time, outputs))")
     u_prev = inputs.u_prev
     if u_prev is not None:
         u_prev = jnp.asarray(u_prev)

@@ -1,7 +1,8 @@
 """Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 1 (§7): force control with
 AOB-1/2/3 under the nonlinear input disturbance of eq. 81-82.
 
-Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I, and
+Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I (with R as
+printed, and with sigma^2/R scaled by a factor fitted to the table: :data:`SIGMA2_OVER_R_FIT`), and
 the closed loop of §7.2 (force tracking error of AOB-1/2/3 and a CKF against the desired closed-loop
 response). See ``shared/notes/aob_paper_conventions.md`` for the conventions that reproduce the
 printed numbers.
@@ -36,7 +37,10 @@ PRINTED_TABLE_I = {  # steady-state Kalman gains, Table I
     "AOB-2": [0.1285, 1.1033, 0.4256, 0.4385, 0.4514, 0.4643, 0.4771, 0.4771, 0.4900],
     "AOB-3": [0.1691, 1.9533, 0.8134, 0.8536, 0.8949, 0.9371, 0.9803, 0.9371, 0.9803, 1.0245],
 }
-R_SCALE_FOR_PRINTED_DIGITS = 0.99795  # sigma^2/R scaled as if R were 0.021043 (conventions note)
+SIGMA2_OVER_R_FIT = 0.99795
+"""A fit, not a reproduction: the factor on sigma^2/R (as if R were 0.021043, not the printed 0.021) that minimises
+the max abs error of the AOB-1/2/3 gains against the printed Table I (to 5 digits), so the error it leaves is a
+fit residual."""
 ORDERS = (1, 2, 3)
 FORCE_STEP = 10.0  # N; Fig. 5's reference is not printed, we use a 10 N step at t = 0
 NOISE_SEED = 0
@@ -59,12 +63,12 @@ def sensor_based_ckf(plant, L_r, R):
 def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) -> dict:
     """Compute every number of Example 1. Returns a dict (arrays as JAX/NumPy values)."""
     results: dict = {"setup": dataclasses.asdict(setup)}
-    gains, gains_scaled = {}, {}
+    gains, gains_fit = {}, {}
     plant, L_r = nominal_design(setup)
     for order in ORDERS:
         gains[f"AOB-{order}"] = np.asarray(aob_params(plant, order, setup).gain).ravel()
-        scaled = aob_params(plant, order, setup, r_scale=1.0 / R_SCALE_FOR_PRINTED_DIGITS)
-        gains_scaled[f"AOB-{order}"] = np.asarray(scaled.gain).ravel()
+        fit = aob_params(plant, order, setup, r_scale=1.0 / SIGMA2_OVER_R_FIT)
+        gains_fit[f"AOB-{order}"] = np.asarray(fit.gain).ravel()
 
     def max_error(table):
         return max(float(np.max(np.abs(table[k] - np.asarray(PRINTED_TABLE_I[k])))) for k in table)
@@ -82,9 +86,9 @@ def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) 
     results["kalman_gains"] = gains
     results["kalman_gains_printed"] = PRINTED_TABLE_I
     results["kalman_gains_max_abs_error"] = max_error(gains)
-    results["kalman_gains_scaled"] = {"r_scale": 1.0 / R_SCALE_FOR_PRINTED_DIGITS, "gains": gains_scaled}
-    results["kalman_gains_scaled_max_abs_error"] = max_error(gains_scaled)
-    results["kalman_gains_scaled_max_abs_error_rounded_4dp"] = max_error_4dp(gains_scaled)
+    results["kalman_gains_fit"] = {"sigma2_over_r_fit": SIGMA2_OVER_R_FIT, "gains": gains_fit}
+    results["kalman_gains_fit_max_abs_error"] = max_error(gains_fit)
+    results["kalman_gains_fit_max_abs_error_rounded_4dp"] = max_error_4dp(gains_fit)
     results["strategy"] = {k: active.classify_strategy(g[:, None], np.eye(1, g.size)) for k, g in gains.items()}
     results["closed_loop"] = closed_loop(setup, noise_seed)
     results["rms_force_error"] = results["closed_loop"]["rms_force_error"]
