@@ -92,12 +92,19 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
     """MIMO pole placement (design time; SciPy's ``place_poles``).
 
     Args:
+      Phi: (n, n) state matrix.  Gamma: (n, m) input matrix.
+      poles: (n,) desired closed-loop poles (complex ones in conjugate pairs).
       zero_input_columns: inputs that cannot be actuated; their columns of ``Gamma`` are zeroed
-        for the design only and their rows of the returned gain are zero (seed 000 §8.4: "the first
+        for the design only and their rows of the returned gain are zero (Cortesão 2006 §8.4: "the first
         and third columns of Gamma_r should be set to zero").
       method: "YT" (Tits-Yang, robust) or "KNV0", as in SciPy.
     Returns:
       (m, n) gain ``L`` with ``eig(Phi - Gamma L) = poles``.
+
+    Example:
+      >>> L = place([[1.0, 0.1], [0.0, 1.0]], [[0.0, 1.0], [0.1, 0.0]], [0.5, 0.6])
+      >>> L.shape
+      (2, 2)
     """
     Phi = np.asarray(Phi, dtype=float)
     Gamma = np.atleast_2d(np.asarray(Gamma, dtype=float))
@@ -148,7 +155,7 @@ def critically_damped_poles(h: float, tau_c, n_fast: int):
 
 
 def critically_damped_gain(plant: StateSpace, tau_c):
-    """State feedback ``L_r`` (1, n) for a discrete single-input plant whose first two states are the slow
+    """State feedback ``L_r`` (1, n) for a discrete single-input ``plant`` whose first two states are the slow
     dynamics and the others dead-time slots: a critically damped double pole with time constant ``tau_c`` and
     the remaining poles at ``z = 0`` (Cortesão 2006 §7.2, eq. 83), by :func:`acker`.
 
@@ -166,8 +173,8 @@ def critically_damped_gain(plant: StateSpace, tau_c):
 
 
 def reference_gain(plant: StateSpace, L):
-    """Reference pre-gain ``N`` (m, p) for unit DC gain from the reference (in output units) to the output under
-    ``u = N r - L x``: ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an
+    """Reference pre-gain ``N`` (m, p) of a discrete ``plant`` for unit DC gain from the reference (in output units)
+    to the output under the state feedback ``u = N r - L x`` (``L`` (m, n)): ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an
     invertible closed-loop DC gain). Use it as :class:`~jaxobs.observers.feedback.FeedbackParams` ``N``.
 
     Example:

@@ -6,6 +6,7 @@ import dataclasses
 import doctest
 import importlib
 import inspect
+import re
 
 import pytest
 
@@ -38,6 +39,13 @@ def _documentation(name: str) -> str:
     return ""
 
 
+def _describes(doc: str, name: str) -> bool:
+    """``name`` appears as an argument is described: in double backticks, or starting an ``Args`` entry
+    (``name:``, ``name (``), or in a list of names sharing an entry (``A, B, C:``)."""
+    word = re.escape(name)
+    return re.search(rf"``{word}``|^\s*{word}\s*[:(]|(?:^|[\s,]){word}\s*,[^\n]*:|[\s,]{word}\s*:", doc, re.M) is not None
+
+
 def test_version():
     assert isinstance(jo.__version__, str) and jo.__version__[0].isdigit()
 
@@ -48,10 +56,10 @@ def test_exported_name_resolves_and_is_documented(name):
     doc = _documentation(name)
     assert len(doc) > 40, f"jo.{name} has no real docstring"
     if inspect.isfunction(obj):
-        missing = [p for p in inspect.signature(obj).parameters if p not in doc]
+        missing = [p for p in inspect.signature(obj).parameters if not _describes(doc, p)]
         assert not missing, f"jo.{name}: arguments {missing} are not described in its docstring"
     elif inspect.isclass(obj) and dataclasses.is_dataclass(obj):
-        missing = [f.name for f in dataclasses.fields(obj) if f.name not in doc]
+        missing = [f.name for f in dataclasses.fields(obj) if not _describes(doc, f.name)]
         assert not missing, f"jo.{name}: fields {missing} are not described in its docstring"
 
 

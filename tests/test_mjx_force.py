@@ -8,7 +8,8 @@ import pytest
 from _readme import pin
 
 from jaxobs.mjx import CONTROL_PERIOD, ForcePlantParams, load_model, rollout, with_params
-from jaxobs.papers.force_control import EXAMPLE1, force_plant
+from jaxobs.papers.force_control import EXAMPLE1
+from jaxobs.plants import force_plant
 
 T = 120
 PULSE = 60  # 0.48 s at U mm/s: the force steps by Ks * U * PULSE * h

@@ -67,11 +67,9 @@ def test_table1_kalman_gains_with_the_fitted_sigma2_over_r(example1):
     fit = summary["kalman_gains_fit"]
     error = summary["kalman_gains_fit_max_abs_error"]
     assert fit["sigma2_over_r_fit"] == cortesao2006.SIGMA2_OVER_R_FIT
-    plant, L_r = nominal_design()
+    plant, _ = nominal_design()
     for moved in (cortesao2006.SIGMA2_OVER_R_FIT - 1e-4, cortesao2006.SIGMA2_OVER_R_FIT + 1e-4):
-        gains = {
-            f"AOB-{n}": cortesao2006.aob_params(plant, L_r, n, r_scale=1.0 / moved).gain.ravel() for n in (1, 2, 3)
-        }
+        gains = {f"AOB-{n}": cortesao2006.aob_params(plant, n, r_scale=1.0 / moved).gain.ravel() for n in (1, 2, 3)}
         worse = max(np.abs(np.asarray(g) - cortesao2006.PRINTED_TABLE_I[k]).max() for k, g in gains.items())
         assert worse > error
     rounded = {k: np.round(v, 4) for k, v in fit["gains"].items()}

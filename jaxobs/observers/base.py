@@ -29,6 +29,8 @@ from typing import Any, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 
+from jaxobs import _checks
+
 __all__ = [
     "EstimatorInputs",
     "ControllerInputs",
@@ -128,9 +130,8 @@ class LinearObserver:
     def padded(self, n: int) -> LinearObserver:
         """The same observer with ``n >= n_states`` states; the extra states are identically zero, so
         observers of different orders can be stacked and ``vmap``-ped together."""
+        n = _checks.count("n", n, minimum=self.Phi.shape[-1], hint="the padded observer keeps all its states")
         extra = n - self.Phi.shape[-1]
-        if extra < 0:
-            raise ValueError(f"n must be >= the observer's {self.Phi.shape[-1]} states, got {n}")
         rows = lambda M: jnp.pad(M, ((0, extra), (0, 0)))
         cols = lambda M: jnp.pad(M, ((0, 0), (0, extra)))
         return LinearObserver(rows(cols(self.Phi)), rows(self.Gamma), cols(self.C), rows(self.K))
@@ -147,7 +148,7 @@ def _time_length(inputs) -> int:
         raise ValueError("inputs has no arrays: give at least the measurements y with a leading time axis")
     if len(set(lengths.values())) > 1:
         listing = ", ".join(f"inputs{k}: {v}" for k, v in lengths.items())
-        raise ValueError(f"every input series must have the same number of samples (leading axis), got {listing}")
+        raise ValueError(f"inputs: every series must have the same number of samples (leading axis), got {listing}")
     return next(iter(lengths.values()))
 
 

@@ -27,8 +27,8 @@ Wiley 2006, ch. 11, gives the same Riccati equation in game-theoretic form, with
     Pb_k = (P_k^{-1} - gamma^{-2} Cz' Cz)^{-1}
          = P_k + gamma^{-2} P_k Cz' (I - gamma^{-2} Cz P_k Cz')^{-1} Cz P_k      (Woodbury; no inverse of P)
 
-starting from ``P1_0 = P0`` (the first step has no prediction). The estimate has the Kalman structure; only the Riccati matrix is
-inflated by the ``-gamma^{-2} Cz' Cz`` term. Existence condition, checked at every step::
+starting from ``P1_0 = P0`` (the first step has no prediction). The estimate has the Kalman structure; only the
+Riccati matrix is inflated by the ``-gamma^{-2} Cz' Cz`` term. Existence condition, checked at every step::
 
     P1_k^{-1} + C' R^{-1} C - gamma^{-2} Cz' Cz > 0    <=>    I - gamma^{-2} Cz P_k Cz' > 0
 
@@ -268,8 +268,9 @@ class HinfSteadyState(NamedTuple):
 
 
 def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 1000, tol: float | None = None):
-    """Steady state of the H-infinity Riccati recursion by ``num_iters`` fixed-point steps from ``P_init``
-    (default ``Q``). A fixed trip count (``lax.scan``), so it is differentiable in both modes.
+    """Steady state of the H-infinity Riccati recursion by ``num_iters`` steps of :func:`hinf_riccati_sequence`'s
+    recursion from the prior ``P_init`` of ``x_0`` (default ``Q``; the first step has no prediction). A fixed trip
+    count (``lax.scan``), so it is differentiable in both modes.
 
     ``converged``: the relative change of the last step is below ``tol`` (default ``sqrt(eps)``);
     ``feasible``: the existence condition held at every step. Both flags, never an exception.
@@ -286,14 +287,14 @@ def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 
 def _steady(Phi, C, Cz, Q, R, gamma, P_init, *, num_iters, tol):
     dtype = P_init.dtype
 
-    def body(carry, _):
+    def body(carry, first):
         Pb, margin, ok, _change = carry
-        Pb_new, _, _, m, o = hinf_riccati_step(Pb, Phi, C, Cz, Q, R, gamma)
+        Pb_new, _, _, m, o = hinf_riccati_step(Pb, Phi, C, Cz, Q, R, gamma, first=first)
         change = jnp.max(jnp.abs(Pb_new - Pb)) / jnp.maximum(jnp.max(jnp.abs(Pb_new)), jnp.finfo(dtype).tiny)
         return (Pb_new, jnp.minimum(margin, m), ok & o, change), None
 
     init = (P_init, jnp.asarray(jnp.inf, dtype), jnp.asarray(True), jnp.asarray(jnp.inf, dtype))
-    (Pb, margin, ok, change), _ = jax.lax.scan(body, init, None, length=num_iters)
+    (Pb, margin, ok, change), _ = jax.lax.scan(body, init, jnp.arange(num_iters) == 0)
     P1 = predict_covariance(Pb, Phi, Q)
     _, K = update_covariance(P1, C, R)
     converged = jnp.isfinite(change) & (change < tol) & jnp.all(jnp.isfinite(Pb))
@@ -340,7 +341,9 @@ def _step(params: HinfParams, state: HinfState, inputs: EstimatorInputs):
 
 def _linear(params: HinfParams) -> LinearObserver:
     if params.gain is None:
-        raise ValueError("params: the linear form needs a fixed gain; use with_steady_state_gain (or steady_state=True)")
+        raise ValueError(
+            "params: the linear form needs a fixed gain; use with_steady_state_gain (or steady_state=True)"
+        )
     return LinearObserver(params.Phi, params.Gamma, params.C, params.gain)
 
 

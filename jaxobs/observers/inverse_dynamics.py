@@ -332,6 +332,8 @@ def make_inverse_dynamics(
       case: 1 (Lemma 3.1) or 2 (Lemma 3.3); default 1 when ``C B`` has full column rank, else 2.
         Case 1 with ``F2=None`` takes the minimum-norm ``F2`` with ``F2 C B = I``; Case 2 needs ``F2``.
       rho: ``(n_d, n)`` free parameter of ``B+`` (Case 2 only; default 0).
+      x0: ``(n,)`` the estimate the observer integrates from (default zeros).
+      lowpass_pole: pole in ``[0, 1)`` of the ``lowpass_order`` first-order sections filtering ``y`` (§4.2).
       check_stability: raise ``ValueError`` when the error dynamics are not exponentially stable
         (eq. 8 Hurwitz in Case 1; :func:`fact35` in Case 2).
 

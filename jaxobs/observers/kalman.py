@@ -109,11 +109,12 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
 
 
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
-    """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}`` of the filter DARE
-    (:func:`jaxobs.riccati.dare` on ``(Phi', C')``); ``P0`` becomes the steady-state a-posteriori covariance.
+    """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}``, ``P`` the a-priori
+    solution of the filter DARE (:func:`jaxobs.riccati.dare`); ``P0`` becomes the steady-state a-posteriori
+    covariance.
     """
-    sol = dare(params.Phi.T, params.C.T, params.Q, params.R)
-    P, gain = update_covariance(sol.X, params.C, params.R)
+    sol = dare(params.Phi, params.C, params.Q, params.R)
+    P, gain = update_covariance(sol.P, params.C, params.R)
     return dataclasses.replace(params, gain=gain, P0=P)
 
 
@@ -148,7 +149,9 @@ def _step(params: KalmanParams, state: KalmanState, inputs: EstimatorInputs):
 
 def _linear(params: KalmanParams) -> LinearObserver:
     if params.gain is None:
-        raise ValueError("params: the linear form needs a fixed gain; use with_steady_state_gain (or steady_state=True)")
+        raise ValueError(
+            "params: the linear form needs a fixed gain; use with_steady_state_gain (or steady_state=True)"
+        )
     return LinearObserver(params.Phi, params.Gamma, params.C, params.gain)
 
 

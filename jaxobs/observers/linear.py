@@ -6,7 +6,8 @@ Its params are the :class:`~jaxobs.observers.base.LinearObserver` matrices (Cort
     x_hat_k = x_prior + K (y_k - C x_prior)
 
 It is also what every fixed-gain family reduces to (their ``linear`` form), so designs of different families
-and orders can be padded to one size, stacked and run under one ``vmap``.
+and orders can be padded to one size, stacked and run under one ``vmap``. As in the Kalman-type families, the
+first sample has no prediction: ``x_hat_0 = x_prior_0 + K (y_0 - C x_prior_0)`` with ``x_prior_0 = 0``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
+from jaxobs.kalman_steps import predict, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
 
@@ -24,7 +26,8 @@ __all__ = ["LinearObserver", "LinearObserverState", "LinearObserverOutputs", "li
 
 
 class LinearObserverState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1}
+    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1} (zero before the first sample)
+    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
     missing: jax.Array  # () measurement components skipped so far
 
 
@@ -35,23 +38,22 @@ class LinearObserverOutputs(NamedTuple):
 
 
 def _init(params: LinearObserver) -> LinearObserverState:
-    return LinearObserverState(jnp.zeros(params.Phi.shape[-1], params.Phi.dtype), jnp.zeros((), jnp.int32))
+    zero = jnp.zeros((), jnp.int32)
+    return LinearObserverState(jnp.zeros(params.Phi.shape[-1], params.Phi.dtype), jnp.zeros((), bool), zero)
 
 
 def _step(params: LinearObserver, state: LinearObserverState, inputs: EstimatorInputs):
     dtype = params.Phi.dtype
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
-    x_prior = params.Phi @ state.x
-    if inputs.u_prev is not None:
-        u = _checks.vector("inputs.u_prev", inputs.u_prev, m, dtype, what="one entry per column of Gamma",
-                           check_finite=False)  # fmt: skip
-        x_prior = x_prior + params.Gamma @ u
-    observed = jnp.isfinite(y)
-    innovation = jnp.where(observed, y - params.C @ x_prior, 0.0)
-    x = x_prior + params.K @ innovation
-    missing = state.missing + jnp.sum(~observed).astype(jnp.int32)
-    return LinearObserverState(x, missing), LinearObserverOutputs(x, x_prior, innovation)
+    u = inputs.u_prev
+    if u is not None:
+        u = _checks.vector("inputs.u_prev", u, m, dtype, what="one entry per column of Gamma", check_finite=False)
+    x_prior, _ = predict(state.x, None, params.Phi, None, params.Gamma, u, skip=~state.started)
+    result = update(x_prior, None, params.C, None, y, gain=params.K)
+    missing = state.missing + result.n_missing.astype(jnp.int32)
+    new_state = LinearObserverState(result.x, jnp.ones((), bool), missing)
+    return new_state, LinearObserverOutputs(result.x, x_prior, result.innovation)
 
 
 linear_observer = Estimator(_init, _step, linear=lambda params: params)
