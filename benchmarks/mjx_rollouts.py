@@ -4,9 +4,9 @@ step for batches of 1, 64 and 1024 mismatched plants, against CPU MuJoCo steppin
 
 Plant: the 1-DOF force plant of :mod:`jaxobs.mjx` (1 ms physics, ``SUBSTEPS = 8`` physics steps per 8 ms
 control step, 5-sample command dead time), under the Example 1 AOB-1 with steady-state gains and its state
-feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params`` with ``jaxobs.papers.force_control.with_feedback``), tracking a 10 N force step for ``T`` control steps
-(default 250 = 2 s = 2000 physics steps) with the Example 1 input disturbance and sensor noise
-``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor stiffness ``ks`` over
+feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params`` with ``jaxobs.papers.force_control.with_feedback``),
+tracking a 10 N force step for ``T`` control steps (default 250 = 2 s = 2000 physics steps) with the Example 1
+input disturbance and sensor noise ``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor stiffness ``ks`` over
 [1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
 
 Workloads, all in float64:
@@ -114,7 +114,8 @@ class Problem:
         """Batch mean of the mean squared force tracking error of an AOB-1 with R = exp(theta[0]) and
         active-state variance exp(theta[1])."""
         log_r, log_q = theta
-        aob = make_aob(self.plant, 1, jnp.exp(log_r), q_plant=EXAMPLE1.q_plant, q_active=jnp.exp(log_q), steady_state=True)
+        q_plant, q_active = EXAMPLE1.q_plant, jnp.exp(log_q)
+        aob = make_aob(self.plant, 1, jnp.exp(log_r), q_plant=q_plant, q_active=q_active, steady_state=True)
         params = with_feedback(aob, self.L)
         return jnp.mean((self.forces(params, ks, noise) - self.desired) ** 2)
 

@@ -40,7 +40,7 @@ from jaxobs.plants import force_plant
 from jaxobs.riccati import dare
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
-from jaxobs.tune import TuneSettings, TuningProblem, random_search, tune
+from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
 
 try:
     __version__ = version("jaxobs")

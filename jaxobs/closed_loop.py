@@ -51,6 +51,25 @@ def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str
     return value.astype(dtype)
 
 
+# what feeds each input of the controller in simulate: a shape error names that argument
+_SOURCES = {
+    "inputs.r": "reference: each row is the controller's",
+    "inputs.y": "plant: its outputs are the controller's",
+}
+
+
+def _controller_step(controller: Controller, params, state, inputs: ControllerInputs):
+    """``controller.step``; a shape error of its inputs (raised while tracing) is re-raised naming the argument of
+    :func:`simulate` that feeds them."""
+    try:
+        return controller.step(params, state, inputs)
+    except ValueError as error:
+        field = str(error).split(" ", 1)[0]
+        if field in _SOURCES:
+            raise ValueError(f"{_SOURCES[field]} {field}, and {error}") from error
+        raise
+
+
 def simulate(
     plant: StateSpace,
     controller: Controller,
@@ -63,7 +82,8 @@ def simulate(
 ) -> ClosedLoopTrace:
     """Simulate ``plant`` under ``controller`` for ``len(reference)`` samples.
 
-    Shapes are checked against the plant at trace time (also under ``jit``); the plant runs in the common
+    Shapes are checked against the plant at trace time (also under ``jit``); a reference or plant that does not fit
+    the controller's inputs raises ``ValueError`` naming ``reference`` or ``plant``. The plant runs in the common
     floating dtype of its matrices and the series (the controller casts its inputs to its own dtype).
 
     Args:
@@ -121,7 +141,7 @@ def simulate(
         r, d, v = inputs
         y_true = C @ x
         y = y_true + v
-        ctrl_state, out = controller.step(params, ctrl_state, ControllerInputs(y, r))
+        ctrl_state, out = _controller_step(controller, params, ctrl_state, ControllerInputs(y, r))
         _checks.shape("params", out.u, (m,), f"the controller's command u must have one entry per plant input, {m}")
         u = out.u.astype(dtype)
         x_next = A @ x + B @ (u + d)
@@ -153,7 +173,14 @@ def ideal_response(plant: StateSpace, L, reference) -> jax.Array:
 
 
 def measurement_noise(key, num_steps: int, R) -> jax.Array:
-    """Gaussian measurement noise with covariance ``R`` (p, p), positive definite: shape (num_steps, p)."""
+    """Gaussian measurement noise with covariance ``R`` (p, p), positive definite: ``num_steps`` samples drawn
+    from the PRNG ``key``, shape (num_steps, p).
+
+    Example:
+      >>> import jax
+      >>> measurement_noise(jax.random.PRNGKey(0), 100, [[2.1e-2]]).shape
+      (100, 1)
+    """
     num_steps = _checks.count("num_steps", num_steps)
     R = jnp.atleast_2d(jnp.asarray(R))
     _checks.covariance("R", R, definite=True)
@@ -162,5 +189,5 @@ def measurement_noise(key, num_steps: int, R) -> jax.Array:
 
 
 def rms(error, axis=0):
-    """Root-mean-square over ``axis``."""
+    """Root-mean-square of ``error`` over ``axis`` (default 0, the time axis of a trace): ``sqrt(mean(error^2))``."""
     return jnp.sqrt(jnp.mean(jnp.square(error), axis=axis))

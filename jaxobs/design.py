@@ -174,8 +174,9 @@ def critically_damped_gain(plant: StateSpace, tau_c):
 
 def reference_gain(plant: StateSpace, L):
     """Reference pre-gain ``N`` (m, p) of a discrete ``plant`` for unit DC gain from the reference (in output units)
-    to the output under the state feedback ``u = N r - L x`` (``L`` (m, n)): ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an
-    invertible closed-loop DC gain). Use it as :class:`~jaxobs.observers.feedback.FeedbackParams` ``N``.
+    to the output under the state feedback ``u = N r - L x`` (``L`` (m, n)):
+    ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an invertible closed-loop
+    DC gain). Use it as :class:`~jaxobs.observers.feedback.FeedbackParams` ``N``.
 
     Example:
       >>> from jaxobs.plants import force_plant

@@ -20,7 +20,10 @@ def _attribute_docstring(obj_name: str, module) -> str | None:
     objects are documented), or None."""
     body = ast.parse(inspect.getsource(module)).body
     for node, following in zip(body, body[1:], strict=False):
-        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        if isinstance(node, ast.Assign):
+            targets = node.targets
+        else:
+            targets = [node.target] if isinstance(node, ast.AnnAssign) else []
         if any(isinstance(t, ast.Name) and t.id == obj_name for t in targets):
             if isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant):
                 return following.value.value
@@ -43,7 +46,8 @@ def _describes(doc: str, name: str) -> bool:
     """``name`` appears as an argument is described: in double backticks, or starting an ``Args`` entry
     (``name:``, ``name (``), or in a list of names sharing an entry (``A, B, C:``)."""
     word = re.escape(name)
-    return re.search(rf"``{word}``|^\s*{word}\s*[:(]|(?:^|[\s,]){word}\s*,[^\n]*:|[\s,]{word}\s*:", doc, re.M) is not None
+    pattern = rf"``{word}``|^\s*{word}\s*[:(]|(?:^|[\s,]){word}\s*,[^\n]*:|[\s,]{word}\s*:"
+    return re.search(pattern, doc, re.M) is not None
 
 
 def test_version():

@@ -356,8 +356,8 @@ def test_gamma_bisection_validates_its_inputs():
         gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], num_steps=0)
 
 
-def test_vehicle_lateral_speed_seed004_eq31():
-    """Seed 004 Sec. 4.2, eq. 31: bicycle model (a1..a4 as printed, v_x = 15 m/s), yaw rate measured at 100 Hz,
+def test_vehicle_lateral_speed_liu_peng2002_eq31():
+    """Liu & Peng 2002 Sec. 4.2, eq. 31: bicycle model (a1..a4 as printed, v_x = 15 m/s), yaw rate measured at 100 Hz,
     disturbance d on the lateral-speed equation, estimated z = v_y. ZOH-discretised; the H-infinity filter at
     1.01 gamma* keeps its exact worst-case ratio below gamma^2 while the Kalman filter's exceeds gamma*^2."""
     import scipy.linalg

@@ -1,4 +1,4 @@
-"""Liu & Peng (seed 004) inverse-dynamics observer: Lemmas 3.1-3.6, Fact 3.5, §4.1 eq. 28-30."""
+"""Liu & Peng 2002 inverse-dynamics observer: Lemmas 3.1-3.6, Fact 3.5, §4.1 eq. 28-30."""
 
 import jax
 import jax.numpy as jnp

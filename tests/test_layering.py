@@ -32,7 +32,8 @@ def _library_modules():
 
 @pytest.mark.parametrize("path", list(_library_modules()), ids=lambda p: str(p.relative_to(PACKAGE)))
 def test_library_module_does_not_import_the_paper_layer(path):
-    arrows = sorted(name for name in _imported_modules(path) if name == "jaxobs.papers" or name.startswith("jaxobs.papers."))
+    imported = _imported_modules(path)
+    arrows = sorted(name for name in imported if name == "jaxobs.papers" or name.startswith("jaxobs.papers."))
     assert not arrows, f"{path.relative_to(PACKAGE)} imports {arrows}: the library must not depend on jaxobs.papers"
 
 

@@ -36,7 +36,7 @@ def step_reference(L, T):
 
 @pytest.mark.parametrize("order", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_force_step_matches_analytic_closed_loop(model, nominal, order):
-    """Seed 000 §7 Example 1 (Ks = 3 N/mm, Tp = 32 ms, d = 5, h = 8 ms, L_r of eq. 83, Table I AOB-N): a 10 N
+    """Cortesão 2006 §7 Example 1 (Ks = 3 N/mm, Tp = 32 ms, d = 5, h = 8 ms, L_r of eq. 83, Table I AOB-N): a 10 N
     force step for 2 s under the eq. 81-82 input disturbance. The MJX loop's force equals simulate's on the
     analytic plant with RMS difference 0.049 % (AOB-1) / 0.048 % (AOB-2) of the step (max 0.10 %); required
     < 5 %. The residual is the MJX model's semi-implicit Euler and its Ks / kv position-loop yield."""
@@ -164,7 +164,7 @@ def test_bad_inputs_raise(model, nominal):
 
 
 def test_receding_surface_gives_the_printed_ckf_offset_and_the_aob_removes_it(model, nominal):
-    """Seed 001 §4 on the MJX plant: the surface recedes at 2 mm/s. The sensor-based CKF settles at
+    """The stochastic AOB paper §4 on the MJX plant: the surface recedes at 2 mm/s. The sensor-based CKF settles at
     ``Delta F_ss = -0.6839 Ks xdot_e`` (eq. 50, printed magnitude 4.1034 N for Ks = 3; measured within 0.2 %:
     the MJX plant's position loop yields by Ks / kv); the AOB-1 (Q_active = 1e-5) removes it (measured
     |Delta F| < 0.01 N after 6 s)."""

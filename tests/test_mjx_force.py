@@ -1,4 +1,4 @@
-"""The 1-DOF MJX force plant (jaxobs.mjx.force_1dof) against the analytic plant of seed 003 eq. 56-58."""
+"""The 1-DOF MJX force plant (jaxobs.mjx.force_1dof) against the analytic plant of the MRAC chapter eq. 56-58."""
 
 import jax
 import jax.numpy as jnp
@@ -42,7 +42,7 @@ def analytic_force(u, Ks=EXAMPLE1.Ks, Tp=EXAMPLE1.Tp):
 
 
 def test_nominal_force_step_matches_analytic_plant(nominal, run):
-    """Seed 003 eq. 56-58 (Ks = 3 N/mm, Tp = 32 ms, Td = 5 h, h = 8 ms) is a reduction of the MJX model:
+    """The MRAC chapter eq. 56-58 (Ks = 3 N/mm, Tp = 32 ms, Td = 5 h, h = 8 ms) is a reduction of the MJX model:
     the force step (a 0.48 s, 2 mm/s velocity pulse; step 2.88 N) agrees with RMS difference 0.14 % of the
     step (max 0.21 %), the README's figure; required < 5 %. The rest is semi-implicit Euler at 1 ms and the Ks/kv
     leak."""

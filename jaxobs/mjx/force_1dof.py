@@ -1,6 +1,7 @@
-"""1-DOF robot force-control plant in MuJoCo MJX (seed 003 §7, eq. 56-58; seed 000 §7; seed 001 §4).
+"""1-DOF robot force-control plant in MuJoCo MJX (Cortesão, MRAC chapter §7, eq. 56-58; Cortesão 2006 §7; the
+stochastic AOB paper §4).
 
-The physical setup (seed 003 §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
+The physical setup (the MRAC chapter §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
 interface at ``h = 8 ms`` and an input dead time of 5 samples; a compliant force sensor of stiffness
 ``Ks = 3 N/mm`` carries "the manipulator compliance"; the environment is very stiff. Per DOF the position
 response is ``Gp(s) = e^{-s Td} / (1 + Tp s)`` (eq. 56) and the plant input ``u`` is a **velocity** command
@@ -37,7 +38,7 @@ Simplifications against the real robot setup (document them where results are qu
 * the contact is bilateral and always closed: the sensor spring also pulls (``F < 0``) instead of losing
   contact, there is no preload and no contact geometry (a contact-free compliant formulation keeps
   forward and reverse differentiation smooth);
-* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, seed 003 §7.2);
+* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, the MRAC chapter §7.2);
 * the dead time is a whole number of control samples, applied to the command (a FIFO in the rollout state),
   the command is held constant over a control step (ZOH), and the force is sampled without anti-alias
   filtering;
@@ -84,7 +85,7 @@ __all__ = [
 ASSET = "force_1dof.xml"
 TIMESTEP = 0.001  # s, physics step (the MJCF's option/timestep)
 SUBSTEPS = 8  # physics steps per control step
-CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (seed 003 Table 1)
+CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (the MRAC chapter Table 1)
 _JOINT = "x"
 _BODY = "tool"
 _ACTUATOR = "servo"
@@ -93,7 +94,7 @@ _ACTUATOR = "servo"
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ForcePlantParams:
-    """Physical parameters of the 1-DOF force plant (mm, N, s units; seed 003 Table 1 nominal values).
+    """Physical parameters of the 1-DOF force plant (mm, N, s units; the MRAC chapter Table 1 nominal values).
 
     Attributes:
       ks: sensor + environment stiffness ``Ks`` in N/mm (> 0).
@@ -336,7 +337,7 @@ def rollout(
       fifo_init: the ``d`` commands issued before step 0 (oldest first), shape ``(d,)``; zeros by default.
       surface_velocity: velocity of the environment surface in mm/s during each control step, shape
         ``(T,)``, or None (fixed). A positive velocity recedes from the tool and lowers the force: the
-        moving surface of seed 001 §4 (``xdot_e = 2 mm/s`` from 8 s). The sensor force is
+        moving surface of the stochastic AOB paper §4 (``xdot_e = 2 mm/s`` from 8 s). The sensor force is
         ``Ks (x - x_e) + Ds xdot``.
       gradient_horizon: truncate backpropagation through the plant state every this many control steps
         (None: full gradients); bounds the memory of the backward pass and its growth on long horizons.

@@ -292,8 +292,9 @@ active_observer_controller = observer_controller(active_observer)
 
 
 def feedback_gain(params: ActiveObserverParams, L_r):
-    """``L = [L_r, 0, ..., 0, I]`` (Cortesão 2006 eq. 49-50): the plant's state feedback ``L_r`` (m, n) plus the
-    compensation of the newest active state, on the augmented state (m, n + n_active)."""
+    """``L = [L_r, 0, ..., 0, I]`` (Cortesão 2006 eq. 49-50) for the AOB ``params``: the plant's state feedback
+    ``L_r`` (m, n) plus the compensation of the newest active state, on the augmented state (m, n + n_active);
+    the ``L`` of :class:`~jaxobs.observers.feedback.FeedbackParams` for :data:`active_observer_controller`."""
     if not params.matched:
         raise ValueError(
             "params: the active state enters through disturbance_input, not the plant input, so state feedback "
@@ -333,7 +334,8 @@ def make_aob(
       q_plant: diagonal of ``Q_xr`` (eq. 51), small: the model is trusted, errors go to ``p``.
       q_active: variance of ``^{N-1} xi_p`` (see :func:`evolution_variance`), scalar or one per input.
       P0: (n_aug, n_aug) prior covariance of ``x_0``; defaults to ``Phi_n Q Phi_n' + Q`` (the papers'
-        ``P_{-1} = Q_0`` advanced one step).
+        ``P_{-1} = Q_0`` advanced one step; with ``active = 0`` the active block of ``Q`` is zeroed first, so the
+        switched-off AOB starts from the CKF's prior).
       x0: (n_aug,) prior mean of ``x_0`` (default zeros).
       active: 1 for the AOB, 0 to run it as a CKF (traced; switch at run time).
       alpha, sigma_floor: adaptive active-state strategy of the stochastic AOB paper (``alpha > 0`` enables it),
@@ -356,8 +358,16 @@ def make_aob(
 
 
 def make_ckf(plant: StateSpace, R, *, Q=None, q_plant=1e-12, P0=None, x0=None, steady_state=False):
-    """The classical Kalman filter on the plant model (the AOB without active state), in the AOB's params so
-    that both run in the same sweeps. ``Q`` defaults to ``q_plant * I``; ``P0`` to ``Phi Q Phi' + Q``."""
+    """The classical Kalman filter (CKF) on the plant model: the AOB without active state, in the AOB's params so
+    that both run in the same sweeps and controllers.
+
+    Args:
+      plant: discrete nominal model.  R: (p, p) measurement noise covariance.
+      Q: (n, n) process noise covariance; default ``q_plant * I``.
+      q_plant: scalar or (n,) diagonal of the default ``Q``.
+      P0: (n, n) prior covariance of ``x_0``; default ``Phi Q Phi' + Q``.  x0: (n,) prior mean (default zeros).
+      steady_state: use the steady-state gain.
+    """
     return _make(plant, 0, R, q_plant, 0.0, Q, P0, x0, 1.0, 0.0, 0.0, None, steady_state)
 
 
@@ -383,15 +393,18 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
     _checks.covariance("Q", Q, definite=False, size=n + na)
     _checks.covariance("R", R, definite=True, size=C.shape[0])
     Q = Q.astype(dtype)
-    P0 = symmetrize(predict_covariance(Q, Phi, Q)) if P0 is None else P0
+    _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
+    _checks.finite("active", active)
+    if P0 is None:  # P_{-1} = Q_0 with the switch applied, advanced one step: switched off, the CKF's prior
+        mask = jnp.concatenate([jnp.ones((n,), dtype), jnp.broadcast_to(jnp.asarray(active, dtype), (na,))])
+        Q_switched = Q * jnp.outer(mask, mask)
+        P0 = symmetrize(predict_covariance(Q_switched, Phi, Q_switched))
     _checks.covariance("P0", P0, definite=False, size=n + na)
     x0 = (
         jnp.zeros((n + na,), dtype)
         if x0 is None
         else _checks.vector("x0", x0, n + na, dtype, what="one entry per state of the augmented model [x_r, p]")
     )
-    _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
-    _checks.finite("active", active)
     alpha = _checks.per_entry("alpha", alpha, q, dtype, "one per active-state channel")
     sigma_floor = _checks.per_entry("sigma_floor", sigma_floor, q, dtype, "one per active-state channel")
     _checks.positive_scalar("sigma_floor", jnp.min(sigma_floor), allow_zero=True)
@@ -409,6 +422,8 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
 
     ``on`` may be a bool, a number or a traced array, a scalar or of the shape of ``params.active`` (e.g. one
     per DOF of stacked controllers); it is cast to the params' dtype so switching never triggers a recompilation.
+    The prior ``P0`` is kept: a time-varying AOB switched off before its first sample starts from the AOB's default
+    prior, not the CKF's (``make_aob(..., active=0)`` gives that).
     """
     on = jnp.asarray(on)
     if on.shape not in ((), params.active.shape):
@@ -440,7 +455,7 @@ def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParam
 # Stochastic design of Q (Cortesão, Koeppe, Nunes & Hirzinger, stochastic AOB paper §3)
 
 BETA_ONE_SIGMA = float(1.0 - erf(np.sqrt(2.0) / 2.0))
-"""Seed 001 eq. 47: the probability of a deviation larger than one standard deviation (0.3173)."""
+"""The stochastic AOB paper eq. 47: the probability of a deviation larger than one standard deviation (0.3173)."""
 
 
 def adaptive_variance(evolution, alpha, sigma_floor):
@@ -453,24 +468,25 @@ def adaptive_variance(evolution, alpha, sigma_floor):
 
 
 def alpha_for_floor(evolution, sigma_floor):
-    """Seed 001 eq. 32: the ``alpha_k`` that yields ``sigma = sigma*`` for weak evolutions,
+    """The stochastic AOB paper eq. 32: the ``alpha_k`` that yields ``sigma = sigma*`` for weak evolutions,
     ``1 - sqrt(2/pi) |w_{k-1}| / sigma*``."""
     return 1.0 - jnp.sqrt(2.0 / jnp.pi) * jnp.abs(evolution) / sigma_floor
 
 
 def strategy_alpha(evolution, q):
-    """Seed 001 eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``."""
+    """The stochastic AOB paper eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``."""
     q = jnp.maximum(q, jnp.finfo(jnp.result_type(q, float)).tiny)
     return 1.0 - erf(jnp.abs(evolution) / jnp.sqrt(2.0 * q))
 
 
 def constant_strategy_variance(evolution, c):
-    """Seed 001 eq. 35-36: ``Q_k = |w_{k-1}|^2 / c^2`` keeps ``alpha = 1 - erf(c / sqrt 2)`` constant."""
+    """The stochastic AOB paper, eq. 35-36: ``Q_k = |w_{k-1}|^2 / c^2`` keeps ``alpha = 1 - erf(c / sqrt 2)``
+    constant."""
     return jnp.abs(evolution) ** 2 / c**2
 
 
 def deviation_variance(gamma, beta=BETA_ONE_SIGMA):
-    """Seed 001 eq. 45-46: the ``Q_i`` for which ``P(|x_i - E x_i| > gamma) = beta``:
+    """The stochastic AOB paper eq. 45-46: the ``Q_i`` for which ``P(|x_i - E x_i| > gamma) = beta``:
     ``(gamma / (sqrt(2) erfinv(1 - beta)))**2``. With the default beta (eq. 47), ``Q_i = gamma**2``."""
     return (gamma / (jnp.sqrt(2.0) * erfinv(1.0 - beta))) ** 2
 

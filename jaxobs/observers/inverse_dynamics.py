@@ -1,4 +1,4 @@
-"""Inverse-dynamics state and disturbance observer (Liu & Peng, seed 004, §2-3).
+"""Inverse-dynamics state and disturbance observer (Liu & Peng, Liu & Peng 2002, §2-3).
 
 Plant (eq. 1, continuous time)::
 

@@ -1,4 +1,4 @@
-"""Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 1 (§7): force control with
+"""Cortesão 2006, "On Kalman Active Observers" (Cortesão 2006), Example 1 (§7): force control with
 AOB-1/2/3 under the nonlinear input disturbance of eq. 81-82.
 
 Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I (with R as

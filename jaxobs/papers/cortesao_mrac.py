@@ -50,9 +50,9 @@ from jaxobs.mjx.compliant_6dof import (
     N_DOF,
     NOMINAL_STIFFNESS,
     RY,
+    Compliant6Params,
     X,
     Z,
-    Compliant6Params,
     _per_dof,
 )
 from jaxobs.observers.active import feedback_gain, make_aob, sensor_based_gain

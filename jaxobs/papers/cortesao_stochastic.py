@@ -1,5 +1,5 @@
 """Cortesão, Koeppe, Nunes, Hirzinger, "Stochastic Active Observers: active state analysis"
-(seed 001), §4: AOB vs CKF force tracking while the contact surface moves.
+(the stochastic AOB paper), §4: AOB vs CKF force tracking while the contact surface moves.
 
 From 8 s the surface recedes at ``xdot_e = 2 mm/s`` (eq. 48): a constant velocity disturbance at
 the plant input. The sensor-based CKF keeps a steady-state force error, printed as
@@ -27,8 +27,8 @@ NAME = "cortesao-stochastic-ramp"
 PRINTED_COEFFICIENT = 0.6839  # eq. 50
 SURFACE_SPEED = 2.0  # mm/s (xdot_e)
 SURFACE_START = 8.0  # s
-Q_ACTIVE = 1e-5  # seed 001 §4: "Q_k = 1e-5"
-GAMMA_OTHER = 1e-12  # seed 001 §4: gamma for the other states, beta from eq. 47
+Q_ACTIVE = 1e-5  # The stochastic AOB paper §4: "Q_k = 1e-5"
+GAMMA_OTHER = 1e-12  # The stochastic AOB paper §4: gamma for the other states, beta from eq. 47
 FORCE_SETPOINT = 10.0  # N (not printed)
 ADAPTIVE_ALPHA = 0.5  # strategy P(|w_k| > |w_{k-1}|) = alpha (eq. 20)
 ADAPTIVE_SIGMA_FLOOR = float(np.sqrt(Q_ACTIVE))  # sigma* (§3.1): never less active than Q = 1e-5
@@ -122,7 +122,7 @@ def plot(results: dict, out_dir: Path) -> str:
     axes[3].set_ylabel("alpha_k")
     axes[3].set_xlabel("time [s]")
     axes[3].legend(fontsize=8)
-    fig.suptitle("Seed 001 §4: AOB vs CKF under a moving surface")
+    fig.suptitle("the stochastic AOB paper §4: AOB vs CKF under a moving surface")
     return save_figure(fig, out_dir, NAME)
 
 

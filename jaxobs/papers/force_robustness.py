@@ -1,4 +1,4 @@
-"""Robustness sweep of the Example 1 force controllers (seed 000 §6-7): the default ``jaxobs sweep``.
+"""Robustness sweep of the Example 1 force controllers (Cortesão 2006 §6-7): the default ``jaxobs sweep``.
 
 AOB-1, AOB-2, AOB-3 and a CKF, each designed on the nominal plant (Ks = 3 N/mm, Tp = 32 ms, 5 samples
 of dead time) for a grid of Q/R strategies, run against true plants with stiffness, time-constant
@@ -9,7 +9,7 @@ response (as in §7.2).
 
 The strategy grid: the variance ``sigma^2`` of the active-state noise (eq. 55, with Example 1's
 ``c = 1/500``) times ``R``. The CKF has no active state, so for it the first axis is the plant-state
-variance ``Q_xr``. By Q/R scale invariance (seed 003 Proposition 1) the gains depend mostly on
+variance ``Q_xr``. By Q/R scale invariance (the MRAC chapter Proposition 1) the gains depend mostly on
 ``sigma^2 / R``, the axis of the stability maps.
 
 Configuration ``i`` uses design ``i mod D`` (so every design gets the same number of plants) and

@@ -1,4 +1,4 @@
-"""Liu & Peng (seed 004) §4.2: vehicle lateral speed and disturbance from yaw rate (eq. 31, Figs. 3-5).
+"""Liu & Peng 2002 §4.2: vehicle lateral speed and disturbance from yaw rate (eq. 31, Figs. 3-5).
 
 Bicycle model (eq. 31), state ``x = [v_y, r]`` (m/s, rad/s), steering ``u`` (rad), disturbance ``d``
 (m/s^2, lateral acceleration at the centre of gravity), measured ``y = r`` at 100 Hz::

@@ -1,4 +1,4 @@
-"""Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (seed 003 §7) against MJX rollouts.
+"""Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (the MRAC chapter §7) against MJX rollouts.
 
 The task of :func:`jaxobs.papers.cortesao_mrac.peg_on_hole_scenario`: three-point contact kept by ``f_x < 0``
 and ``f_z > 0`` while the alignment velocity ``w_y`` uprights the tilted peg (its contact moment couples
@@ -33,7 +33,7 @@ from jaxobs.papers._tuning_config import (
     search_box,
 )
 from jaxobs.plants import force_plant
-from jaxobs.tune import TuningProblem
+from jaxobs.tuning import TuningProblem
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
 

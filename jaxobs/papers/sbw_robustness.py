@@ -1,4 +1,4 @@
-"""Robustness of the steer-by-wire model matching (seed 000 §8) to errors in the identified actuator models.
+"""Robustness of the steer-by-wire model matching (Cortesão 2006 §8) to errors in the identified actuator models.
 
 The controller is the Example 2 design (:mod:`jaxobs.papers.steer_by_wire`: decoupled ``L_r`` for the
 poles of eq. 100-101, ``L_c`` of eq. 102-105, the AOB-1 of eq. 108-110 with its steady-state gains),

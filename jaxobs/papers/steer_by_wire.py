@@ -1,4 +1,4 @@
-"""Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 2 (§8): steer-by-wire (SBW) model
+"""Cortesão 2006, "On Kalman Active Observers" (Cortesão 2006), Example 2 (§8): steer-by-wire (SBW) model
 matching with a MIMO AOB-1.
 
 The SBW setup (eq. 95-99) has four inputs ``u = [T_h, tau_m, F_r, f_s]`` (steering-wheel torque,

@@ -13,7 +13,7 @@ from a hand-set design):
 * positive scalars and diagonals by ``exp`` (``log_q``, ``log_r``, ``log_sigma2``);
 * full covariances by a Cholesky factor with a log-diagonal (:func:`cholesky_covariance`), so every
   ``theta`` gives a positive-definite ``Q`` and all correlations are reachable;
-* factors in ``(0, 1)`` such as ``c`` of seed 000 eq. 55 by the logistic function (:func:`unit_interval`).
+* factors in ``(0, 1)`` such as ``c`` of Cortesão 2006 eq. 55 by the logistic function (:func:`unit_interval`).
 
 Robust objectives over the per-plant losses ``J_1..J_B``: the mean, and the conditional value at risk
 ``CVaR_alpha`` (the mean of the worst ``ceil(alpha B)`` losses), plus an optional penalty (e.g. on the
@@ -81,7 +81,7 @@ __all__ = [
     "evaluate",
 ]
 
-logger = logging.getLogger("jaxobs.tune")
+logger = logging.getLogger("jaxobs.tuning")
 
 OBJECTIVES = ("mean", "cvar")
 GRADIENT_MODES = ("reverse", "forward")
@@ -108,7 +108,7 @@ def cholesky_parameters(cov):
 
 
 def unit_interval(raw):
-    """A factor in ``(0, 1)`` (e.g. ``c`` of seed 000 eq. 55): the logistic function of ``raw``."""
+    """A factor in ``(0, 1)`` (e.g. ``c`` of Cortesão 2006 eq. 55): the logistic function of ``raw``."""
     return jax.nn.sigmoid(raw)
 
 
