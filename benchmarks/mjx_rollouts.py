@@ -6,8 +6,8 @@ Plant: the 1-DOF force plant of :mod:`jaxobs.mjx` (1 ms physics, ``SUBSTEPS = 8`
 control step, 5-sample command dead time), under the Example 1 AOB-1 with steady-state gains and its state
 feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params`` with ``jaxobs.papers.force_control.with_feedback``),
 tracking a 10 N force step for ``T`` control steps (default 250 = 2 s = 2000 physics steps) with the Example 1
-input disturbance and sensor noise ``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor stiffness ``ks`` over
-[1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
+input disturbance and sensor noise ``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor
+stiffness ``ks`` over [1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
 
 Workloads, all in float64:
 

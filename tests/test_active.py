@@ -274,8 +274,8 @@ def test_adaptive_observer_uses_eq27_variance(plant_and_gain):
 def test_newest_active_state_is_the_one_the_input_channel_feeds(plant_and_gain, order):
     """Eq. 41: Phi_12 = Gamma_r [0 ... 0 I] couples only the newest active state into the plant. The step reports
     that state as d, and the adaptive strategy (the stochastic AOB paper eq. 27) puts its Q_k there: the run equals a
-    Kalman filter whose Q has q_active_k on the newest state (the Kalman predict and update with the observer's own matrices; the
-    first step updates the prior x0, P0 without a prediction)."""
+    Kalman filter whose Q has q_active_k on the newest state (the Kalman predict and update with the observer's own
+    matrices; the first step updates the prior x0, P0 without a prediction)."""
     plant, _ = plant_and_gain
     params = active.make_aob(plant, order, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
     n = plant.n_states
