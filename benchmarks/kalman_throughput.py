@@ -88,11 +88,16 @@ SWEEP_BATCHES = (1_000, 10_000, 100_000)
 
 
 def _optional_import(name: str):
-    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported."""
+    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported. JAX's matmul precision is
+    restored afterwards: dynamax sets ``jax_default_matmul_precision`` when imported, which would change the
+    programs of every library timed after it."""
+    precision = jax.config.jax_default_matmul_precision
     try:
         return importlib.import_module(name), None
     except Exception as exc:  # any import-time failure means "skip this peer"
         return None, f"{type(exc).__name__}: {exc}"
+    finally:
+        jax.config.update("jax_default_matmul_precision", precision)
 
 
 dynamax_lgssm, DYNAMAX_MISSING = _optional_import("dynamax.linear_gaussian_ssm")
