@@ -14,7 +14,7 @@ import scipy.signal
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ctrb, dcgain
-from jaxobs.riccati import dare
+from jaxobs.riccati import _solve_spd, dare, require_converged, symmetrize
 
 __all__ = [
     "acker",
@@ -133,12 +133,21 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
 def dlqr(A, B, Q, R):
     """Discrete LQR: ``u = -K x`` minimising ``sum x'Qx + u'Ru``. Returns ``(K, S, converged)``.
 
-    ``S`` solves the control DARE, computed as the filter DARE of ``(A', B')`` by :func:`dare`, so
-    it is differentiable through the implicit-function rule.
+    ``S`` solves the control DARE (the filter DARE of ``(A', B')``, :func:`jaxobs.riccati.dare`, so it is
+    differentiable through the implicit-function rule) and ``K = (R + B'SB)^{-1} B'SA``. ``converged``
+    means the stabilising solution was found (``A - B K`` stable). Eagerly, a solve that did not converge
+    raises ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under tracing the flag is
+    returned.
     """
-    sol = dare(jnp.swapaxes(A, -1, -2), jnp.swapaxes(B, -1, -2), Q, R)
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    At, Bt = jnp.swapaxes(A, -1, -2), jnp.swapaxes(B, -1, -2)
+    sol = dare(At, Bt, Q, R)
+    require_converged(sol, At, Bt, Q, R, what="dlqr's DARE", control=True)
     S = sol.P
-    K = jnp.linalg.solve(B.T @ S @ B + R, B.T @ S @ A)
+    K = _solve_spd(symmetrize(B.T @ S @ B + R), B.T @ S @ A)
     return K, S, sol.converged
 
 

@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks
 
@@ -30,6 +31,7 @@ __all__ = [
     "kalman_gain",
     "dare",
     "DareSolution",
+    "require_converged",
     "stein",
 ]
 
@@ -175,50 +177,151 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 
 
 class DareSolution(NamedTuple):
-    """Stabilising solution of the filter DARE and how well it solves it."""
+    """Stabilising solution of a DARE and how well it solves it."""
 
-    P: jax.Array  # a-priori steady-state covariance
-    residual: jax.Array  # max |Ricc(P) - P| / max |P|
-    converged: jax.Array  # P finite and residual below sqrt(machine epsilon)
-
-
-def _riccati_map(P, Phi, C, Q, R):
-    """``Phi P Phi' - Phi P C' (C P C' + R)^{-1} C P Phi' + Q``."""
-    S = C @ P @ C.T + R
-    PhiPCt = Phi @ P @ C.T
-    return Phi @ P @ Phi.T - PhiPCt @ _solve_spd(S, PhiPCt.T) + Q
+    P: jax.Array  # the solution (for the filter DARE: the a-priori steady-state covariance)
+    residual: jax.Array  # max |Ricc(P) - P| / max(|P|, scale): scale = max|Q|, or R / |C|^2 when Q = 0
+    converged: jax.Array  # the stabilising solution was found: P finite, closed loop stable, residual small
 
 
-def _doubling(Phi, C, Q, R, max_iters, tol):
-    """Structured doubling algorithm (SDA) for the filter DARE.
+# Double-word arithmetic for the DARE residual, whose terms cancel to many digits: a value is the
+# unevaluated sum ``hi + lo`` of two floats (Ogita, Rump & Oishi 2005, "Accurate sum and dot product").
+# Only additions and exact products are used, so the compiler's fused multiply-adds cannot break it.
 
-    The filter DARE is the control DARE of ``(A, B) = (Phi', C')``. SDA iterates
-    ``A <- A W^{-1} A``, ``G <- G + A W^{-1} G A'``, ``H <- H + A' H W^{-1} A`` with ``W = I + G H``,
-    from ``A = Phi', G = C' R^{-1} C, H = Q``; ``H_j`` equals the Riccati recursion after ``2^j``
-    steps from zero, so it converges quadratically to the stabilising solution. Iterates until
-    the relative change of ``H`` is below ``tol`` or ``max_iters`` is reached.
+
+def _two_sum(a, b):
+    """``(s, e)`` with ``s = fl(a + b)`` and ``s + e = a + b`` exactly (Knuth's TwoSum)."""
+    s = a + b
+    v = s - a
+    return s, (a - (s - v)) + (b - v)
+
+
+def _slices(a, axis: int, k: int):
+    """``a = a1 + a2 + a3`` exactly, ``a1`` and ``a2`` with ``beta`` bits relative to the largest entry of their
+    row (``axis=-1``) or column (``axis=-2``), ``beta = (p - 2 - ceil(log2 k)) // 2`` for a ``p``-bit mantissa:
+    products of such slices summed over ``k`` terms are exact in any order, with or without fused
+    multiply-adds (Ozaki, Ogita, Oishi & Rump 2012). Each slice is ``a`` rounded by adding and subtracting
+    ``1.5 * 2^(e + p - 1 - beta)`` (``2^e`` above the row's largest entry)."""
+    finfo = jnp.finfo(a.dtype)
+    p = finfo.nmant + 1
+    beta = (p - 2 - max(k - 1, 1).bit_length()) // 2
+    int_type = {64: jnp.int64, 32: jnp.int32, 16: jnp.int16}[finfo.bits]
+    bits = jax.lax.bitcast_convert_type(jnp.max(jnp.abs(a), axis=axis, keepdims=True), int_type)
+    biased = bits >> finfo.nmant  # biased exponent of the largest entry: it is below 2^(biased - bias + 1)
+    # sigma = 1.5 * 2^(e + p - 1 - beta) with e = biased - bias + 1, assembled from its bit pattern
+    sigma_bits = ((biased + (p - beta)) << finfo.nmant) | (1 << (finfo.nmant - 1))
+    sigma = jax.lax.bitcast_convert_type(sigma_bits.astype(int_type), a.dtype)
+    sigma = jax.lax.optimization_barrier(sigma)  # computed once, not in each slice's fused loop
+    slices = []
+    for _ in range(2):
+        hi = (a + sigma) - sigma
+        slices.append(hi)
+        a, sigma = a - hi, sigma * 2.0**-beta
+    return (*slices, a)
+
+
+def _dot2(a, b):
+    """``a @ b`` as a double-word ``(hi, lo)`` with an error of about ``eps^2 k`` times the largest entries of
+    ``a``'s row and ``b``'s column: the three leading slice products of :func:`_slices` are exact and summed
+    with :func:`_two_sum`, the remaining ones (``eps^2`` smaller) in working precision."""
+    k = a.shape[-1]
+    a1, a2, a3 = _slices(a, -1, k)
+    b1, b2, b3 = _slices(b, -2, k)
+    s, e1 = _two_sum(a1 @ b1, a1 @ b2)
+    s, e2 = _two_sum(s, a2 @ b1)
+    return _two_sum(s, (e1 + e2) + (a1 @ b3 + a2 @ (b2 + b3) + a3 @ b))
+
+
+def _control_residual(A, B, Q, R, X, R_gain=None):
+    """Residual of the control DARE ``X = A'XA - A'XB (R + B'XB)^{-1} B'XA + Q`` at ``X``.
+
+    Returns ``(F, K, A_c)`` with the gain ``K = (R_gain + B'XB)^{-1} B'XA`` (``R_gain`` defaults to ``R``),
+    ``A_c = A - B K`` and ``F = A_c' X A_c + K' R K + Q - X``, the residual of one Riccati step with that gain.
+    For the optimal gain this is the DARE residual, stationary in ``K`` (errors in the gain enter at second
+    order). Its terms cancel to ``|F| << |A_c|^2 |X|``, so ``F`` is evaluated in double-word arithmetic
+    (:func:`_dot2`, about ``eps^2`` relative to the terms) and rounded once: Newton steps with it recover the
+    digits that a residual in working precision leaves to the DARE's condition number.
     """
-    n = Phi.shape[-1]
-    eye = jnp.eye(n, dtype=Phi.dtype)
-    G0 = C.T @ _solve_spd(R, C)
+    K = _gain(A, B, R if R_gain is None else R_gain, X)
+    n, m = B.shape[-2:]
+    BK, BK_lo = _dot2(B, K)
+    Ac, t = _two_sum(A, -BK)
+    Ac, Ac_lo = _two_sum(Ac, t - BK_lo)  # A - B K, double-word
+    # A_c' X A_c + K' R K = Z' M Z with Z = [A_c; K], M = blockdiag(X, R): two products
+    Z = jnp.concatenate([Ac, K], axis=-2)
+    Z_lo = jnp.concatenate([Ac_lo, jnp.zeros_like(K)], axis=-2)
+    M = jnp.block([[X, jnp.zeros((n, m), X.dtype)], [jnp.zeros((m, n), X.dtype), R]])
+    MZ, t = _dot2(M, Z)
+    MZ, MZ_lo = _two_sum(MZ, t + M @ Z_lo)
+    W, W_lo = _dot2(Z.T, MZ)
+    F, e1 = _two_sum(W, Q)
+    F, e2 = _two_sum(F, -X)
+    lo = W_lo + (Z.T @ MZ_lo + Z_lo.T @ MZ)
+    return symmetrize(F + ((e1 + e2) + lo)), K, Ac
+
+
+def _doubling(A, G, H, max_iters):
+    """Structured doubling algorithm (SDA) for ``X = H + A' X (I + G X)^{-1} A`` (control DARE with
+    ``G = B R^{-1} B'``, ``H = Q``).
+
+    SDA iterates ``A <- A W^{-1} A``, ``G <- G + A W^{-1} G A'``, ``H <- H + A' H W^{-1} A`` with
+    ``W = I + G H``; ``H_j`` is the Riccati recursion after ``2^j`` steps from zero and ``A_j`` behaves
+    like the ``2^j``-th power of the closed loop, so both converge quadratically once ``2^j`` exceeds the
+    closed loop's time constant (Chu, Fan, Lin & Wang 2004). Iterates until ``A_j`` is below
+    ``eps^(1/4)`` of ``A`` (the remaining error of ``H`` is then about ``sqrt(eps)``, which one Newton step
+    removes) or ``max_iters`` is reached. A stalling ``H`` is no stopping criterion: with precise sensors the
+    recursion lingers near a non-stabilising solution for many steps before it leaves it.
+    """
+    n = A.shape[-1]
+    eye = jnp.eye(n, dtype=A.dtype)
+    small = jnp.finfo(A.dtype).eps ** 0.25 * jnp.maximum(jnp.max(jnp.abs(A)), jnp.finfo(A.dtype).tiny)
 
     def cond(carry):
-        _, _, _, change, it = carry
-        return (it < max_iters) & (change > tol)
+        A_j, _, _, it = carry
+        return (it < max_iters) & (jnp.max(jnp.abs(A_j)) > small)  # NaN (diverged) stops, flagged later
 
     def body(carry):
-        A, G, H, _, it = carry
+        A, G, H, it = carry
         X = _small_solve(eye + G @ H, jnp.concatenate([A, G], axis=1))  # W^-1 [A, G]
         AX = A @ X
         A_new = AX[:, :n]
         G_new = symmetrize(G + AX[:, n:] @ A.T)
         H_new = symmetrize(H + A.T @ H @ X[:, :n])
-        change = jnp.max(jnp.abs(H_new - H)) / jnp.maximum(1.0, jnp.max(jnp.abs(H_new)))
-        change = jnp.where(jnp.isfinite(change), change, 0.0)  # diverged: stop, flagged later
-        return A_new, G_new, H_new, change, it + 1
+        return A_new, G_new, H_new, it + 1
 
-    init = (Phi.T, symmetrize(G0), symmetrize(Q), jnp.asarray(jnp.inf, Phi.dtype), 0)
-    return jax.lax.while_loop(cond, body, init)[2]
+    return jax.lax.while_loop(cond, body, (A, symmetrize(G), symmetrize(H), 0))[2]
+
+
+def _smith(A, E, max_iters: int, atol=None):
+    """Smith's doubling for ``X = A X A' + E``: ``X <- X + A_j X A_j'``, ``A_j <- A_j^2``.
+
+    Stops when ``A^(2^j)`` is below ``eps / 1000`` (max norm) or, given ``atol``, once the next term
+    ``A_j X A_j'`` is below ``atol`` and ``n max|A_j| < 1``; at most ``max_iters`` squarings. Returns
+    ``(X, stable)``: ``stable`` when ``n max|A_j| < 1`` at the end, which proves the spectral radius of ``A``
+    below one (``rho(A)^(2^j) <= ||A_j||_2 <= n max|A_j|``). A matrix with an eigenvalue on or outside the
+    unit circle never gets there (its powers stay large or overflow): the closed-loop stability test of
+    the DARE solvers, by squaring, with no eigenvalue solver (none runs on GPUs in JAX).
+    """
+    n = A.shape[-1]
+    small = jnp.finfo(A.dtype).eps * 1e-3
+
+    def decayed(A_j):  # NaN-safe: XLA's vectorised max may skip NaN entries
+        return jnp.all(jnp.isfinite(A_j)) & (n * jnp.max(jnp.abs(A_j)) < 1)
+
+    def cond(carry):
+        A_j, X, it = carry
+        a = jnp.max(jnp.abs(A_j))
+        done = a <= small
+        if atol is not None:
+            done = done | ((n * a < 1) & (a * a * jnp.max(jnp.abs(X)) <= atol))
+        return (it < max_iters) & ~done & jnp.all(jnp.isfinite(A_j))
+
+    def body(carry):
+        A_j, X, it = carry
+        return A_j @ A_j, X + A_j @ X @ A_j.T, it + 1
+
+    A_j, X, _ = jax.lax.while_loop(cond, body, (A, E, 0))
+    return X, decayed(A_j)
 
 
 def stein(A, E, max_iters: int = 64):
@@ -227,66 +330,204 @@ def stein(A, E, max_iters: int = 64):
     Smith's doubling: ``X <- X + A X A'``, ``A <- A A``, until ``A^(2^j)`` vanishes (at most
     ``max_iters`` squarings). Linear in ``E``.
     """
-
-    def cond(carry):
-        A_j, _, it = carry
-        return (it < max_iters) & (jnp.max(jnp.abs(A_j)) > jnp.finfo(A_j.dtype).eps * 1e-3)
-
-    def body(carry):
-        A_j, X, it = carry
-        return A_j @ A_j, X + A_j @ X @ A_j.T, it + 1
-
-    return jax.lax.while_loop(cond, body, (A, E, 0))[1]
+    return _smith(A, E, max_iters)[0]
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(4, 5))
-def _dare_P(Phi, C, Q, R, max_iters, tol):
-    return _doubling(Phi, C, Q, R, max_iters, tol)
+class _Newton(NamedTuple):
+    """Carry of the Newton iteration in :func:`_solve_control_dare`."""
+
+    X: jax.Array
+    F: jax.Array  # residual at X of the gain for R_gain (carried, or evaluated afresh at a round's start)
+    size: jax.Array  # relative size of the last correction (inf before the first)
+    previous: jax.Array  # ... and of the one before
+    first: jax.Array  # ... and of the round's first correction (NaN before it)
+    halvings: jax.Array  # corrections 0.3 to 0.7 of the one before, since the last faster one (linear rate)
+    stable: jax.Array  # the last correction's closed loop is stable
+    steps: jax.Array  # Newton steps so far
+    R_gain: jax.Array  # R of the gain used by the next step (regularised in an attempt's first step)
 
 
-@_dare_P.defjvp
-def _dare_P_jvp(max_iters, tol, primals, tangents):
-    """Implicit differentiation: at the solution, ``dP = Phi_c dP Phi_c' + E`` with
-    ``Phi_c = Phi - K_p C``, ``K_p = Phi P C' S^{-1}`` (envelope theorem on the optimal gain) and
-    ``E = (dPhi - K_p dC) P Phi_c' + Phi_c P (dPhi - K_p dC)' + K_p dR K_p' + dQ``.
-    The Stein solve is a ``custom_linear_solve`` so reverse mode transposes it (one adjoint Stein
-    solve) instead of backpropagating through the doubling iterations.
+def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
+    """Stabilising solution of the control DARE: doubling for a first approximation, then Newton's method.
+
+    1. SDA (:func:`_doubling`) on ``Q + delta I`` with ``delta = 4 n eps max|Q|`` (just above the rounding
+       of ``Q``): where an unstable mode is not excited by ``Q`` the doubling from zero would converge to a
+       non-stabilising solution; the tiny regulariser makes its limit the stabilising one.
+    2. Newton's method on the true data (Hewer 1971), in defect-correction form: with the residual ``F`` at
+       ``X`` and the closed loop ``A_c``, solve the Stein equation ``N = A_c' N A_c + F`` (:func:`_smith`)
+       and set ``X <- X + N``, until the correction is at the rounding level of ``X`` (``4 eps``) or stalls
+       at the floor set by the conditioning. The residual is evaluated in double-word arithmetic
+       (:func:`_control_residual`) at the start of a round and carried from step to step by the exact
+       update of :func:`_next_residual`; a round whose first correction exceeded ``eps^(1/3)`` of ``X`` (a
+       far start, whose carried residual has drifted by rounding errors of that size) is followed by
+       another. From the doubling's answer: one round of two steps.
+    3. Precise sensors on unstable plants can break the doubling down (``I + G H`` singular to working
+       precision, ``G = B R^{-1} B'``). If no stabilising solution was found, both steps are repeated with
+       the doubling run on ``R + (|B'B| |Q| / kappa) I`` for ``kappa`` in ``_KAPPAS``; the regularised
+       solution's gain is stabilising, the first Newton step (Hewer's step with that gain) keeps it so,
+       and the following steps converge to the solution of the true data.
+
+    Returns ``(X, residual, found)``: the relative residual ``max|F(X)| / max(|X|, scale)`` (``scale`` is
+    ``max|Q|``, or ``1 / max|B R^{-1} B'|`` when ``Q = 0``) and whether the stabilising solution was found:
+    ``X`` finite, the last Newton step's closed loop stable (its powers decayed, :func:`_smith`: no
+    eigenvalue on or outside the unit circle), and Newton's method settled: its corrections fell to ``4 eps``
+    of ``X``, or stalled below ``sqrt(eps)``, and not at a linear rate (four corrections of 0.3 to 0.7 of
+    the one before since the last faster one). Where the solution sits on the boundary of existence (a
+    closed-loop eigenvalue on the unit circle, reached only in the limit of the regulariser) Newton's
+    method converges linearly, halving its corrections to the end: not settled.
     """
-    Phi, C, Q, R = primals
-    dPhi, dC, dQ, dR = tangents
-    P = _dare_P(Phi, C, Q, R, max_iters, tol)
-    S = C @ P @ C.T + R
-    Kp = _solve_spd(S, C @ P @ Phi.T).T
-    Phi_c = Phi - Kp @ C
-    M = (dPhi - Kp @ dC) @ P @ Phi_c.T
-    E = M + M.T + Kp @ dR @ Kp.T + dQ
+    n, m = B.shape[-2:]
+    dtype = A.dtype
+    eps = jnp.finfo(dtype).eps
+    q_scale = jnp.max(jnp.abs(Q))
+    g_scale = jnp.max(jnp.abs(B @ _solve_spd(R, B.T)))
+    scale = jnp.where(q_scale > 0, q_scale, jnp.where(g_scale > 0, 1.0 / g_scale, 1.0))
+    H = symmetrize(Q) + 4 * n * eps * scale * jnp.eye(n, dtype=dtype)
+    bq = jnp.max(jnp.abs(B.T @ B)) * q_scale
 
-    def matvec(X):
-        return X - Phi_c @ X @ Phi_c.T
+    def step(c: _Newton) -> _Newton:
+        K = _gain(A, B, c.R_gain, c.X)
+        Ac = A - B @ K
+        N, stable = _smith(Ac.T, c.F, max_iters, atol=0.1 * eps * jnp.max(jnp.abs(c.X)))
+        N = symmetrize(N)
+        X, rounding = _two_sum(c.X, N)
+        F = _next_residual(B, R, c.F, X, N, rounding, K, Ac, c.R_gain - R)
+        size = jnp.max(jnp.abs(N)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
+        size = jnp.where(jnp.all(jnp.isfinite(N)) & jnp.isfinite(size), size, jnp.inf)
+        ratio = size / c.size
+        halvings = jnp.where(ratio <= 0.3, 0, jnp.where(ratio < 0.7, c.halvings + 1, c.halvings))
+        first = jnp.where(jnp.isnan(c.first), size, c.first)
+        return _Newton(X, F, size, c.size, first, halvings, stable, c.steps + 1, R)
+
+    def stepping(c: _Newton):
+        go = (c.steps < newton_steps) & (c.size > 4 * eps) & jnp.all(jnp.isfinite(c.X))
+        return go & ~_stalled(c.size, c.previous)
+
+    def newton_round(c: _Newton) -> _Newton:
+        F = _control_residual(A, B, Q, R, c.X, c.R_gain)[0]
+        inf, nan, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype), jnp.asarray(0)
+        return jax.lax.while_loop(stepping, step, c._replace(F=F, size=inf, previous=inf, first=nan, halvings=zero))
+
+    def another_round(c: _Newton):
+        far = jnp.isnan(c.first) | (c.first > eps ** (1 / 3))
+        return far & (c.steps < newton_steps) & jnp.all(jnp.isfinite(c.X))
+
+    def attempt(carry):
+        *_, j = carry
+        R_reg = R + jnp.where(j > 0, bq / jnp.asarray((1.0,) + _KAPPAS, dtype)[j], 0.0) * jnp.eye(m, dtype=dtype)
+        X = _doubling(A, B @ _solve_spd(R_reg, B.T), H, max_iters)
+        inf, nan, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype), jnp.asarray(0)
+        c = _Newton(X, jnp.zeros_like(X), inf, inf, nan, zero, jnp.asarray(False), zero, R_reg)
+        c = jax.lax.while_loop(another_round, newton_round, c)
+        converged = (c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))
+        settled = converged & (c.halvings < 4)
+        return c.X, c.F, c.stable & settled & jnp.all(jnp.isfinite(c.X)), j + 1
+
+    def retry(carry):
+        _, _, found, j = carry
+        return ~found & (j <= len(_KAPPAS))
+
+    init = (jnp.zeros_like(A), jnp.zeros_like(A), jnp.asarray(False), 0)
+    X, F, found, _ = jax.lax.while_loop(retry, attempt, init)
+    residual = jnp.max(jnp.abs(F)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
+    return X, jnp.where(jnp.all(jnp.isfinite(F)) & jnp.isfinite(residual), residual, jnp.inf), found
+
+
+def _stalled(size, previous):
+    """Newton's corrections stopped converging: the last is not below 0.9 of the one before (at the rounding
+    floor they wander; a solution on the boundary of existence makes them halve steadily instead, which
+    :func:`_solve_control_dare` counts)."""
+    return size > 0.9 * previous
+
+
+def _gain(A, B, R, X):
+    """``K = (R + B'XB)^{-1} B'XA``."""
+    XB = X @ B
+    return _solve_spd(symmetrize(R + B.T @ XB), XB.T @ A)
+
+
+def _next_residual(B, R, F, X_new, N, rounding, K, Ac, dR):
+    """The DARE residual at ``X_new = X + N - rounding`` from the residual ``F`` of the gain ``K`` at ``X``.
+
+    The residual of a gain is affine in ``X``, and the optimal gain's is below any other's by a square
+    (``S (K - K*)`` completed): with ``A_c = A - B K``, ``S = R + B' X_new B``, ``D = B' N A_c + dR K``
+    (``dR = R_gain - R``, the difference ``S_new (K* - K)`` when ``K`` is optimal for ``R_gain`` at ``X``)::
+
+        F(X_new) = F - (N - A_c' N A_c) - D' S^{-1} D + (rounding - A_c' rounding A_c)
+
+    Every term is of the size of ``N`` (or of the rounding of ``X + N``), so working precision suffices where
+    evaluating ``F(X_new)`` afresh would cancel ``|A_c|^2 |X|`` down to ``|F|``.
+    """
+    D = B.T @ N @ Ac + dR @ K
+    S = symmetrize(R + B.T @ X_new @ B)
+    smith_error = F - (N - Ac.T @ N @ Ac)
+    return symmetrize(smith_error - D.T @ _solve_spd(S, D) + (rounding - Ac.T @ rounding @ Ac))
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _control_dare(A, B, Q, R, max_iters):
+    return _solve_control_dare(A, B, Q, R, max_iters, _NEWTON_STEPS)
+
+
+@_control_dare.defjvp
+def _control_dare_jvp(max_iters, primals, tangents):
+    """Implicit differentiation: at the solution, ``dX = A_c' dX A_c + E`` with ``A_c = A - B K``,
+    ``K = (R + B'XB)^{-1} B'XA`` (envelope theorem on the optimal gain) and
+    ``E = M + M' + K' dR K + dQ``, ``M = A_c' X (dA - dB K)``. The Stein solve is a
+    ``custom_linear_solve`` so reverse mode transposes it (one adjoint Stein solve) instead of
+    backpropagating through the iterations. The residual and the flag have zero tangents.
+    """
+    A, B, Q, R = primals
+    dA, dB, dQ, dR = tangents
+    X, residual, found = _control_dare(A, B, Q, R, max_iters)
+    K = _gain(A, B, R, X)
+    Ac = A - B @ K
+    M = Ac.T @ X @ (dA - dB @ K)
+    E = M + M.T + K.T @ dR @ K + dQ
+
+    def matvec(Y):
+        return Y - Ac.T @ Y @ Ac
 
     def solve(_, b):
-        return stein(Phi_c, b)
+        return stein(Ac.T, b, max_iters)
 
     def transpose_solve(_, b):
-        return stein(Phi_c.T, b)
+        return stein(Ac, b, max_iters)
 
-    dP = jax.lax.custom_linear_solve(matvec, E, solve, transpose_solve)
-    return P, dP
+    dX = jax.lax.custom_linear_solve(matvec, E, solve, transpose_solve)
+    no_tangent = np.zeros(jnp.shape(found), dtype=jax.dtypes.float0)
+    return (X, residual, found), (dX, jnp.zeros_like(residual), no_tangent)
+
+
+@partial(jax.jit, static_argnames=("max_iters", "tol"))
+def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
+    """The control DARE ``X = A'XA - A'XB (R + B'XB)^{-1} B'XA + Q`` (``scipy.linalg.solve_discrete_are``'s
+    form), compiled once per shape so that eager calls cost one dispatch. ``converged`` also needs the
+    residual below ``tol``."""
+    X, residual, found = _control_dare(A, B, Q, R, max_iters)
+    return DareSolution(X, residual, found & (residual < tol))
 
 
 def dare(Phi, C, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
     """Stabilising solution of the filter DARE ``P = Phi P Phi' - Phi P C'(C P C' + R)^{-1} C P Phi' + Q``.
 
-    The same ``P`` as ``scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)``: the steady-state
-    a-priori covariance ``P1`` of eq. 28; the steady-state Kalman gain is
-    ``kalman_gain(sol.P, C, R)``. Solved by a structured doubling algorithm (at most
-    ``max_iters`` doublings, i.e. a horizon of ``2**max_iters`` Riccati steps). Gradients (forward and
-    reverse) come from the implicit function theorem: one Stein solve, not backpropagation
-    through the iterations.
+    ``Phi`` (n, n), ``C`` (p, n), ``Q`` (n, n) PSD, ``R`` (p, p) PD; ``P`` (n, n). The same ``P`` as
+    ``scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)``: the steady-state a-priori covariance ``P1`` of
+    eq. 28; the steady-state Kalman gain is ``kalman_gain(sol.P, C, R)``. Solved as the control DARE of
+    ``(Phi', C')`` by structured doubling (at most ``max_iters`` doublings, i.e. a horizon of
+    ``2**max_iters`` Riccati steps, and as many squarings per Stein solve), refined by Newton's method
+    with a residual in double-word arithmetic: as accurate as SciPy's Schur method or more, on the DAREX
+    benchmark collection (Abels & Benner 1999), for precise sensors (``R`` down to ``1e-12`` of ``Q``) and
+    unstable ``Phi`` (``benchmarks/dare_accuracy.py``). Gradients (forward and reverse) come from the
+    implicit function theorem: one Stein solve, not backpropagation through the iterations.
 
-    Returns a :class:`DareSolution`; ``converged`` is False (never an exception under ``jit``) when
-    ``(Phi, C)`` is not detectable or ``(Phi, Q^{1/2})`` not stabilisable enough for the iteration to
-    settle, which shows as a non-finite ``P`` or a large residual.
+    Returns a :class:`DareSolution`. ``converged`` means the stabilising solution was found: ``P`` finite,
+    the steady-state filter ``Phi - K_p C`` (``K_p = Phi P C' (C P C' + R)^{-1}``) stable, Newton's method
+    settled, and the residual below ``tol`` (default ``sqrt(eps)``). It is False (a flag, never an
+    exception, so it works under ``jit``) when no stabilising solution exists, i.e. ``(Phi, C)`` is not
+    detectable or ``Q`` does not excite a mode on the unit circle, or when the working precision does not
+    resolve the problem (e.g. the AOB-3 design in float32); :func:`require_converged` turns the flag into
+    an error message for eager callers.
     """
     n = Phi.shape[-1]
     _checks.matrix("Phi", Phi, shape=(n, n), square=True)
@@ -295,12 +536,69 @@ def dare(Phi, C, Q, R, *, max_iters: int = 64, tol: float | None = None) -> Dare
     _checks.covariance("R", R, definite=True, size=C.shape[-2])
     dtype = jnp.result_type(Phi, C, Q, R, float)
     Phi, C, Q, R = (jnp.asarray(M, dtype) for M in (Phi, C, Q, R))
-    eps = jnp.finfo(dtype).eps
-    step_tol = float(100 * eps) if tol is None else tol
-    P = _dare_P(Phi, C, Q, R, max_iters, step_tol)
-    P_stop = jax.lax.stop_gradient(P)
-    scale = jnp.maximum(jnp.max(jnp.abs(P_stop)), jnp.finfo(dtype).tiny)
-    residual = jnp.max(jnp.abs(_riccati_map(P_stop, Phi, C, Q, R) - P_stop)) / scale
-    residual = jnp.where(jnp.isfinite(residual), residual, jnp.inf)
-    converged = jnp.all(jnp.isfinite(P_stop)) & (residual < jnp.sqrt(eps))
-    return DareSolution(P, residual, converged)
+    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
+    return _solve(Phi.T, C.T, Q, R, max_iters=int(max_iters), tol=tol)
+
+
+def require_converged(sol: DareSolution, Phi, C, Q, R, *, what: str, control: bool = False) -> None:
+    """Raise ``ValueError`` saying why when ``sol`` (from :func:`dare` on ``(Phi, C, Q, R)``) is concrete and
+    not converged; do nothing under ``jit``/``vmap``/``grad``, where the flag travels with the result.
+
+    For eager design calls (:func:`jaxobs.observers.kalman.with_steady_state_gain`, ...). ``what`` names the
+    caller's solve in the message; ``control`` words it for the control DARE of ``(A, B) = (Phi', C')``.
+    The reason is found on the concrete data: an undetectable (unstabilisable) mode on or outside the unit
+    circle, a unit-circle mode that ``Q`` does not excite, a working precision below float64, or else an
+    ill-conditioned problem.
+    """
+    if not _checks.is_concrete(sol.converged) or bool(np.all(np.asarray(sol.converged))):
+        return
+    raise ValueError(f"{what} did not converge: {_failure_reason(sol, Phi, C, Q, control)}")
+
+
+def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
+    """Why :func:`dare` found no stabilising solution: the first of the tests below that holds (eager, NumPy)."""
+    Phi, C, Q = (np.asarray(M, np.float64) for M in (Phi, C, Q))
+    n = Phi.shape[-1]
+    pair = "(A, B) is not stabilisable" if control else "(Phi, C) is not detectable"
+    seen = "moved by B" if control else "seen by C"
+    excite = (
+        "penalised by Q: (Q^{1/2}, A) has an unobservable mode on the unit circle"
+        if control
+        else "excited by Q: (Phi, Q^{1/2}) has an uncontrollable mode on the unit circle"
+    )
+    scale = max(np.max(np.abs(Phi)), 1.0)
+    for lam in np.linalg.eigvals(Phi):
+        shifted = lam * np.eye(n) - Phi
+        if abs(lam) >= 1 - 1e-9:
+            C_scaled = C / max(np.max(np.abs(C)), np.finfo(float).tiny) * scale
+            if np.linalg.svd(np.vstack([shifted, C_scaled]), compute_uv=False)[-1] <= 1e-9 * scale:
+                return (
+                    f"the DARE has no stabilising solution: {pair}, the mode at eigenvalue {lam:.6g} "
+                    f"(|eigenvalue| = {abs(lam):.6g} >= 1) is not {seen}"
+                )
+        if abs(abs(lam) - 1) <= 1e-9:
+            Q_scaled = Q / max(np.max(np.abs(Q)), np.finfo(float).tiny) * scale
+            if np.linalg.svd(np.hstack([shifted, Q_scaled]), compute_uv=False)[-1] <= 1e-9 * scale:
+                return (
+                    f"the DARE has no stabilising solution: the mode at eigenvalue {lam:.6g} on the unit circle "
+                    f"is not {excite}"
+                )
+    dtype = np.asarray(sol.P).dtype
+    residual = float(np.max(np.asarray(sol.residual)))
+    if np.finfo(dtype).eps > np.finfo(np.float64).eps:
+        return (
+            f"{dtype} does not resolve this problem (residual {residual:.3g}); enable float64 with "
+            "jax.config.update('jax_enable_x64', True) and pass float64 arrays"
+        )
+    return (
+        f"no stabilising solution was found in float64 (residual {residual:.3g}, solution "
+        f"{'finite' if np.all(np.isfinite(np.asarray(sol.P))) else 'not finite'}): the problem is too "
+        "ill-conditioned, e.g. a closed-loop pole within about 1e-8 of the unit circle"
+    )
+
+
+# Newton steps in all (each attempt): from the doubling's answer one or two suffice; from a regularised
+# doubling (precise sensors on unstable plants) up to about eight
+_NEWTON_STEPS = 16
+# kappa of the regularised doublings tried when the first attempt fails: R + (|B'B| |Q| / kappa) I
+_KAPPAS = (1e4, 1.0)

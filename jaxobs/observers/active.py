@@ -41,7 +41,7 @@ from jaxobs.kalman_steps import predict, update
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
-from jaxobs.riccati import dare, kalman_gain, predict_covariance, symmetrize
+from jaxobs.riccati import dare, kalman_gain, predict_covariance, require_converged, symmetrize
 
 __all__ = [
     "ActiveObserverParams",
@@ -168,6 +168,8 @@ class ActiveObserverParams:
       sigma_floor: (q,) ``sigma*`` of that paper (§3.1): minimum std of the active-state evolution.
       gain, gain_passive: ``None`` for the time-varying Riccati gain, or the (n_aug, p) steady-state gains of
         the AOB and of the same filter with the active state switched off (:func:`with_steady_state_gains`).
+      gain_converged: () whether both DAREs behind the steady-state gains found their stabilising solutions
+        (an array when computed under tracing, reported by every step as ``ActiveObserverOutputs.converged``).
       order: static AOB order N (0 for the CKF).  n_channels: static q.
       matched: static; True when the active state enters where the input does (``G_d = Gamma_r``), so that
         :func:`feedback_gain` can cancel it.
@@ -185,6 +187,7 @@ class ActiveObserverParams:
     sigma_floor: jax.Array
     gain: jax.Array | None = None
     gain_passive: jax.Array | None = None
+    gain_converged: jax.Array | None = None
     order: int = dataclasses.field(default=0, metadata=dict(static=True))
     n_channels: int = dataclasses.field(default=1, metadata=dict(static=True))
     matched: bool = dataclasses.field(default=True, metadata=dict(static=True))
@@ -214,6 +217,7 @@ class ActiveObserverOutputs(NamedTuple):
     gain: jax.Array  # (n_aug, p) K_k
     q_active: jax.Array  # (q,) variance used for the newest active state at this step
     alpha: jax.Array  # (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
+    converged: jax.Array  # () the steady-state gains' DAREs converged (True for time-varying gains)
 
 
 def _active_slice(params: ActiveObserverParams):
@@ -265,7 +269,9 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Esti
         evolution = d - state.x[newest]
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = ActiveObserverState(x, result.P, evolution, jnp.ones((), bool), missing)
-    return new_state, ActiveObserverOutputs(x, d, x_prior, result.innovation, result.K, q_active, alpha)
+    converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
+    outputs = ActiveObserverOutputs(x, d, x_prior, result.innovation, result.K, q_active, alpha, converged)
+    return new_state, outputs
 
 
 def _linear(params: ActiveObserverParams) -> LinearObserver:
@@ -342,7 +348,8 @@ def make_aob(
         scalars or one per channel.
       disturbance_input: (n, q) matrix ``G_d`` through which the active state enters (default ``Gamma_r``, the
         papers' equivalent input disturbance, ``q = m``): e.g. a known disturbance direction to estimate.
-      steady_state: use the steady-state gains (:func:`with_steady_state_gains`).
+      steady_state: use the steady-state gains (:func:`with_steady_state_gains`; raises ``ValueError`` with
+        the reason when their DARE does not converge, e.g. AOB-3 in float32).
 
     Example:
       >>> from jaxobs.lti import ss, c2d
@@ -436,19 +443,29 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
 
 def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParams:
     """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, Cortesão 2006 eq. 28/48),
-    for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time."""
+    for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time.
+
+    Eagerly, raises ``ValueError`` with the reason when a DARE has no stabilising solution or did not
+    converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64 from AOB-3 on); under
+    tracing both flags are stored, combined, in ``gain_converged``.
+    """
     n = params.Phi.shape[-1]
     n_plant = n - params.n_active
+    label = f"AOB-{params.order}" if params.order else "CKF"
     sol = dare(params.Phi, params.C, params.Q, params.R)
+    require_converged(sol, params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
     gain = kalman_gain(sol.P, params.C, params.R)
+    converged = sol.converged
     if params.n_active:
         rows = slice(0, n_plant)
         Phi_r, C_r, Q_r = params.Phi[rows, rows], params.C[:, rows], params.Q[rows, rows]
-        P_r = dare(Phi_r, C_r, Q_r, params.R).P
-        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(P_r, C_r, params.R))
+        sol_r = dare(Phi_r, C_r, Q_r, params.R)
+        require_converged(sol_r, Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
+        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.P, C_r, params.R))
+        converged = converged & sol_r.converged
     else:
         gain_passive = gain
-    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive)
+    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=converged)
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.kalman_steps import predict, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import covariance_sequence, dare, update_covariance
+from jaxobs.riccati import covariance_sequence, dare, require_converged, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -47,6 +47,8 @@ class KalmanParams:
       x0: (n,) prior mean of ``x_0``.  P0: (n, n) prior covariance of ``x_0``.
       gain: ``None`` for the time-varying gain of the Riccati recursion, or a fixed (n, p) gain (no covariance
         propagation; see :func:`with_steady_state_gain`).
+      gain_converged: () whether the DARE behind a steady-state gain found its stabilising solution (an array
+        when :func:`with_steady_state_gain` ran under tracing, else True or ``None``).
     """
 
     Phi: jax.Array
@@ -57,6 +59,7 @@ class KalmanParams:
     x0: jax.Array
     P0: jax.Array
     gain: jax.Array | None = None
+    gain_converged: jax.Array | None = None
 
 
 class KalmanState(NamedTuple):
@@ -71,6 +74,7 @@ class KalmanOutputs(NamedTuple):
     x_prior: jax.Array  # (n,) a-priori estimate x_hat_{k|k-1}
     innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
     gain: jax.Array  # (n, p) gain K_k used at this step
+    converged: jax.Array  # () the steady-state gain's DARE converged (True for time-varying gains)
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
@@ -111,11 +115,14 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}``, ``P`` the a-priori
     solution of the filter DARE (:func:`jaxobs.riccati.dare`); ``P0`` becomes the steady-state a-posteriori
-    covariance.
+    covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution or did
+    not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and reported by every
+    step (``KalmanOutputs.converged``).
     """
     sol = dare(params.Phi, params.C, params.Q, params.R)
+    require_converged(sol, params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
     P, gain = update_covariance(sol.P, params.C, params.R)
-    return dataclasses.replace(params, gain=gain, P0=P)
+    return dataclasses.replace(params, gain=gain, P0=P, gain_converged=sol.converged)
 
 
 def _inputs(params: KalmanParams, inputs: EstimatorInputs):
@@ -135,7 +142,8 @@ def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
     result = update(x_prior, state.P if P_prior is None else P_prior, params.C, params.R, y, gain)
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = KalmanState(result.x, result.P, jnp.ones((), bool), missing)
-    return new_state, KalmanOutputs(result.x, x_prior, result.innovation, result.K)
+    converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
+    return new_state, KalmanOutputs(result.x, x_prior, result.innovation, result.K, converged)
 
 
 def _init(params: KalmanParams) -> KalmanState:
