@@ -345,7 +345,7 @@ def prepare_write_floor(work: Workload):
 
 
 def prepare_dare_jaxobs(work: Workload):
-    fn = jax.vmap(lambda Phi, C, Q, R: dare(Phi, C, Q, R).P)
+    fn = jax.vmap(lambda Phi, C, Q, R: dare(Phi.T, C.T, Q, R).X)
     return fn, tuple(jnp.asarray(M) for M in (work.Phi, work.C, work.Q, work.R))
 
 

@@ -19,7 +19,7 @@ enables float64 itself: do it in your entry point (``jax.config.update("jax_enab
 from importlib.metadata import PackageNotFoundError, version
 
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
-from jaxobs.design import acker, critically_damped_gain, dlqr, place, reference_gain
+from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, place, reference_gain
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
 from jaxobs.observers import (
     Controller,
@@ -59,6 +59,7 @@ __all__ = [
     "dcgain",
     "dare",
     "dlqr",
+    "dlqe",
     "acker",
     "place",
     "reference_gain",

@@ -1,7 +1,7 @@
 """Controller design: Ackermann pole placement, MIMO pole placement, discrete LQR, DC-gain
 compensation.
 
-``acker`` and ``dlqr`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
+``acker``, ``dlqr`` and ``dlqe`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
 helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answer.
 """
 
@@ -14,12 +14,13 @@ import scipy.signal
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ctrb, dcgain
-from jaxobs.riccati import _solve_spd, dare, require_converged, symmetrize
+from jaxobs.riccati import _solve_spd, dare, filter_dare, require_converged, symmetrize
 
 __all__ = [
     "acker",
     "place",
     "dlqr",
+    "dlqe",
     "dc_compensation",
     "reference_gain",
     "critically_damped_poles",
@@ -131,24 +132,76 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
 
 
 def dlqr(A, B, Q, R):
-    """Discrete LQR: ``u = -K x`` minimising ``sum x'Qx + u'Ru``. Returns ``(K, S, converged)``.
+    """Discrete linear-quadratic regulator, as python-control's ``dlqr``: the state feedback ``u = -K x`` that
+    minimises ``sum_k x_k' Q x_k + u_k' R u_k`` for ``x_{k+1} = A x_k + B u_k``.
 
-    ``S`` solves the control DARE (the filter DARE of ``(A', B')``, :func:`jaxobs.riccati.dare`, so it is
-    differentiable through the implicit-function rule) and ``K = (R + B'SB)^{-1} B'SA``. ``converged``
-    means the stabilising solution was found (``A - B K`` stable). Eagerly, a solve that did not converge
-    raises ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under tracing the flag is
-    returned.
+    Args:
+      A: (n, n).  B: (n, m).  Q: (n, n) positive semidefinite.  R: (m, m) positive definite.
+
+    Returns:
+      ``(K, S, E)``: the (m, n) gain ``K = (R + B'SB)^{-1} B'SA`` (a state feedback, ``L`` in jaxobs' own
+      notation), the solution ``S`` of :func:`jaxobs.riccati.dare` ``(A, B, Q, R)`` and the (n,) closed-loop
+      eigenvalues ``E`` of ``A - B K``.
+
+    Differentiable (implicit-function rule through the DARE). Eagerly, a DARE without a stabilising solution
+    raises ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under ``jit`` the gain and ``S``
+    are NaN then (the flag itself is ``jaxobs.dare(A, B, Q, R).converged``).
+
+    Example:
+      >>> import numpy as np
+      >>> K, S, E = dlqr(np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]]), np.eye(2), np.eye(1))
+      >>> K.shape, bool(np.all(np.abs(E) < 1))
+      ((1, 2), True)
     """
     A, B = jnp.asarray(A), jnp.asarray(B)
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
-    At, Bt = jnp.swapaxes(A, -1, -2), jnp.swapaxes(B, -1, -2)
-    sol = dare(At, Bt, Q, R)
-    require_converged(sol, At, Bt, Q, R, what="dlqr's DARE", control=True)
-    S = sol.P
-    K = _solve_spd(symmetrize(B.T @ S @ B + R), B.T @ S @ A)
-    return K, S, sol.converged
+    sol = dare(A, B, Q, R)
+    require_converged(sol, A, B, Q, R, what="dlqr's DARE")
+    R = jnp.asarray(R, sol.X.dtype)
+    K = _solve_spd(symmetrize(B.T @ sol.X @ B + R), B.T @ sol.X @ A)
+    K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, S, jnp.linalg.eigvals(A - B @ K)
+
+
+def dlqe(A, G, C, QN, RN):
+    """Steady-state Kalman estimator (linear-quadratic estimator), as python-control's ``dlqe``, for
+    ``x_{k+1} = A x_k + B u_k + G w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = QN``, ``E[v v'] = RN``.
+
+    Args:
+      A: (n, n).  G: (n, q) process-noise input.  C: (p, n).  QN: (q, q) positive semidefinite.
+      RN: (p, p) positive definite.
+
+    Returns:
+      ``(K, P, E)``: the (n, p) gain of the one-step predictor ``x_{k+1|k} = A x_{k|k-1} + B u_k + K (y_k -
+      C x_{k|k-1})`` (python-control names it ``L``), ``K = A P C' (C P C' + RN)^{-1}``; the a-priori covariance
+      ``P`` (the filter DARE, :func:`jaxobs.riccati.filter_dare`); the (n,) eigenvalues ``E`` of ``A - K C``.
+      The gain of the filtered (a-posteriori) form that jaxobs' Kalman filter uses is
+      ``jaxobs.riccati.kalman_gain(P, C, RN)``.
+
+    Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution; under ``jit`` the
+    gain and ``P`` are NaN then.
+
+    Example:
+      >>> import numpy as np
+      >>> K, P, E = dlqe(np.array([[1.0, 0.1], [0.0, 1.0]]), np.eye(2), np.array([[1.0, 0.0]]), 0.01 * np.eye(2),
+      ...                np.eye(1))
+      >>> K.shape, bool(np.all(np.abs(E) < 1))
+      ((2, 1), True)
+    """
+    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("G", G, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    sol = filter_dare(A, C, G @ QN @ G.T, RN, what="dlqe's DARE")
+    RN = jnp.asarray(RN, sol.X.dtype)
+    CP = C @ sol.X
+    K = _solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
+    K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, P, jnp.linalg.eigvals(A - K @ C)
 
 
 def critically_damped_poles(h: float, tau_c, n_fast: int):

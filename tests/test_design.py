@@ -10,8 +10,9 @@ import scipy.linalg
 from jax.test_util import check_grads
 from scipy.optimize import linear_sum_assignment
 
-from jaxobs.design import acker, critically_damped_poles, dc_compensation, dlqr, place
+from jaxobs.design import acker, critically_damped_poles, dc_compensation, dlqe, dlqr, place
 from jaxobs.lti import c2d, ctrb, ss
+from jaxobs.riccati import dare
 
 
 def assert_same_spectrum(actual, target, atol):
@@ -201,20 +202,49 @@ def test_place_rejects_bad_input():
 
 
 def test_dlqr_matches_python_control_and_scipy():
-    """dlqr: K = (B'SB + R)^{-1} B'SA with S the control DARE solution, as control.dlqr and
-    scipy.linalg.solve_discrete_are."""
+    """dlqr returns what control.dlqr returns: K = (B'SB + R)^{-1} B'SA, S the control DARE solution (as
+    scipy.linalg.solve_discrete_are) and the closed-loop eigenvalues E of A - B K."""
     rng = np.random.default_rng(31)
     A, B = 1.1 * rng.normal(size=(4, 4)) / 2.0, rng.normal(size=(4, 2))
     G = rng.normal(size=(4, 4))
     Q, R = G @ G.T + 0.1 * np.eye(4), np.array([[2.0, 0.3], [0.3, 1.0]])
-    K, S, converged = dlqr(A, B, Q, R)
-    assert bool(converged)
+    K, S, E = dlqr(A, B, Q, R)
     S_ref = scipy.linalg.solve_discrete_are(A, B, Q, R)
     K_ctrl, S_ctrl, E_ctrl = control.dlqr(A, B, Q, R)
     np.testing.assert_allclose(S, S_ref, rtol=1e-9)
     np.testing.assert_allclose(S, S_ctrl, rtol=1e-9)
     np.testing.assert_allclose(K, K_ctrl, rtol=1e-9, atol=1e-12)
-    assert_same_spectrum(np.linalg.eigvals(A - B @ np.asarray(K)), E_ctrl, atol=1e-8)
+    assert_same_spectrum(E, E_ctrl, atol=1e-8)
+    sol = dare(A, B, Q, R)  # the control DARE itself, as SciPy's
+    assert bool(sol.converged)
+    np.testing.assert_allclose(sol.X, S_ref, rtol=1e-9)
+
+
+def test_dlqe_matches_python_control():
+    """dlqe returns what control.dlqe returns: the predictor gain A P C' (C P C' + RN)^{-1}, the a-priori covariance
+    P (the filter DARE of (A, C) with process noise G QN G') and the eigenvalues of A - K C."""
+    rng = np.random.default_rng(32)
+    A, G, C = 1.1 * rng.normal(size=(4, 4)) / 2.0, rng.normal(size=(4, 2)), rng.normal(size=(2, 4))
+    QN, RN = np.array([[1.0, 0.2], [0.2, 0.5]]), np.array([[0.3, 0.1], [0.1, 0.2]])
+    K, P, E = dlqe(A, G, C, QN, RN)
+    K_ctrl, P_ctrl, E_ctrl = control.dlqe(A, G, C, QN, RN)
+    np.testing.assert_allclose(P, P_ctrl, rtol=1e-9)
+    np.testing.assert_allclose(K, K_ctrl, rtol=1e-9, atol=1e-12)
+    assert_same_spectrum(E, E_ctrl, atol=1e-8)
+
+
+def test_dlqr_and_dlqe_raise_eagerly_and_give_nan_under_jit_when_no_stabilising_solution():
+    """An unstable mode the input cannot move (A = diag(1.2, 0.5), B = [0, 1]'): dlqr raises naming (A, B); under
+    jit its gain and S are NaN. The dual for dlqe: a mode C cannot see."""
+    A, B, Q, R = np.diag([1.2, 0.5]), np.array([[0.0], [1.0]]), np.eye(2), np.eye(1)
+    with pytest.raises(ValueError, match=r"^dlqr's DARE did not converge: .*\(A, B\) is not stabilisable"):
+        dlqr(A, B, Q, R)
+    K, S, _ = jax.jit(dlqr)(A, B, Q, R)
+    assert np.all(np.isnan(K)) and np.all(np.isnan(S))
+    with pytest.raises(ValueError, match=r"^dlqe's DARE did not converge: .*not detectable"):
+        dlqe(A, np.eye(2), B.T, Q, R)
+    K, P, _ = jax.jit(dlqe)(A, np.eye(2), B.T, Q, R)
+    assert np.all(np.isnan(K)) and np.all(np.isnan(P))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -145,7 +145,7 @@ def test_steady_state_filter_converges_to_time_varying():
     inputs = inputs_of(u, y)
     tv = params_of(model)
     ss_params = params_of(model, steady_state=True)
-    K_ss = kalman_gain(dare(model["Phi"], model["C"], model["Q"], model["R"]).P, model["C"], model["R"])
+    K_ss = kalman_gain(dare(model["Phi"].T, model["C"].T, model["Q"], model["R"]).X, model["C"], model["R"])
     np.testing.assert_allclose(ss_params.gain, K_ss, rtol=1e-12)
     _, out_tv = run(kalman_filter, tv, inputs)
     _, out_ss = run(kalman_filter, ss_params, inputs)
@@ -163,7 +163,7 @@ def test_steady_state_covariance_is_the_dare_posterior():
     model, u, y, _ = make_problem(3, T=5)
     params = with_steady_state_gain(params_of(model))
     P_post, _ = update_covariance(
-        dare(model["Phi"], model["C"], model["Q"], model["R"]).P, jnp.asarray(model["C"]), jnp.asarray(model["R"])
+        dare(model["Phi"].T, model["C"].T, model["Q"], model["R"]).X, jnp.asarray(model["C"]), jnp.asarray(model["R"])
     )
     final, _ = run(kalman_filter, params, inputs_of(u, y))
     np.testing.assert_allclose(final.P, P_post, rtol=1e-10)

@@ -41,7 +41,7 @@ from jaxobs.kalman_steps import predict, update
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
-from jaxobs.riccati import dare, kalman_gain, predict_covariance, require_converged, symmetrize
+from jaxobs.riccati import filter_dare, kalman_gain, predict_covariance, symmetrize
 
 __all__ = [
     "ActiveObserverParams",
@@ -452,16 +452,14 @@ def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParam
     n = params.Phi.shape[-1]
     n_plant = n - params.n_active
     label = f"AOB-{params.order}" if params.order else "CKF"
-    sol = dare(params.Phi, params.C, params.Q, params.R)
-    require_converged(sol, params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
-    gain = kalman_gain(sol.P, params.C, params.R)
+    sol = filter_dare(params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
+    gain = kalman_gain(sol.X, params.C, params.R)
     converged = sol.converged
     if params.n_active:
         rows = slice(0, n_plant)
         Phi_r, C_r, Q_r = params.Phi[rows, rows], params.C[:, rows], params.Q[rows, rows]
-        sol_r = dare(Phi_r, C_r, Q_r, params.R)
-        require_converged(sol_r, Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
-        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.P, C_r, params.R))
+        sol_r = filter_dare(Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
+        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.X, C_r, params.R))
         converged = converged & sol_r.converged
     else:
         gain_passive = gain

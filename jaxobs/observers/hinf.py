@@ -61,7 +61,7 @@ import numpy as np
 from jaxobs import _checks
 from jaxobs.kalman_steps import predict, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import _solve_spd, predict_covariance, symmetrize, update_covariance
+from jaxobs.riccati import _solve_spd, is_stable, predict_covariance, symmetrize, update_covariance
 
 __all__ = [
     "HinfParams",
@@ -269,13 +269,18 @@ class HinfSteadyState(NamedTuple):
 
 def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 1000, tol: float | None = None):
     """Steady state of the H-infinity Riccati recursion by ``num_iters`` steps of :func:`hinf_riccati_sequence`'s
-    recursion from the prior ``P_init`` of ``x_0`` (default ``Q``; the first step has no prediction). A fixed trip
-    count (``lax.scan``), so it is differentiable in both modes.
+    recursion from the prior ``P_init`` of ``x_0`` (the first step has no prediction; default ``Q + I``, positive
+    definite, from which the recursion reaches the stabilising solution where one exists). A fixed trip count
+    (``lax.scan``), so it is differentiable in both modes.
 
-    ``converged``: the relative change of the last step is below ``tol`` (default ``sqrt(eps)``);
-    ``feasible``: the existence condition held at every step. Both flags, never an exception.
+    ``converged``: the relative change of the last step is below ``tol`` (default ``sqrt(eps)``), and the steady
+    filter's error dynamics ``(I - K C) Phi`` are stable (the stabilising solution); ``feasible``: the existence
+    condition held at every step. Both flags, never an exception.
     """
+    default_start = P_init is None
     Phi, C, Cz, Q, R, P_init = _as_matrices(Phi, C, Cz, Q, R, P_init)
+    if default_start:
+        P_init = P_init + jnp.eye(P_init.shape[-1], dtype=P_init.dtype)
     _validate(Phi, C, Cz, Q, R, P_init, gamma)
     dtype = jnp.result_type(Phi, C, Cz, Q, R, P_init, float)
     tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
@@ -297,7 +302,9 @@ def _steady(Phi, C, Cz, Q, R, gamma, P_init, *, num_iters, tol):
     (Pb, margin, ok, change), _ = jax.lax.scan(body, init, jnp.arange(num_iters) == 0)
     P1 = predict_covariance(Pb, Phi, Q)
     _, K = update_covariance(P1, C, R)
-    converged = jnp.isfinite(change) & (change < tol) & jnp.all(jnp.isfinite(Pb))
+    n = Phi.shape[-1]
+    stable = is_stable((jnp.eye(n, dtype=dtype) - K @ C) @ Phi)  # the steady filter's error dynamics
+    converged = jnp.isfinite(change) & (change < tol) & jnp.all(jnp.isfinite(Pb)) & stable
     return HinfSteadyState(P1, Pb, K, margin, converged, ok)
 
 

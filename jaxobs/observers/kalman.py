@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.kalman_steps import predict, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import covariance_sequence, dare, require_converged, update_covariance
+from jaxobs.riccati import covariance_sequence, filter_dare, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -114,14 +114,13 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
 
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}``, ``P`` the a-priori
-    solution of the filter DARE (:func:`jaxobs.riccati.dare`); ``P0`` becomes the steady-state a-posteriori
+    solution of the filter DARE (:func:`jaxobs.riccati.filter_dare`); ``P0`` becomes the steady-state a-posteriori
     covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution or did
     not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and reported by every
     step (``KalmanOutputs.converged``).
     """
-    sol = dare(params.Phi, params.C, params.Q, params.R)
-    require_converged(sol, params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
-    P, gain = update_covariance(sol.P, params.C, params.R)
+    sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
+    P, gain = update_covariance(sol.X, params.C, params.R)
     return dataclasses.replace(params, gain=gain, P0=P, gain_converged=sol.converged)
 
 
