@@ -152,6 +152,21 @@ def test_bisection_lower_bracket_and_longer_horizon():
     np.testing.assert_allclose(ss.gain, above.gain)
 
 
+@pytest.mark.parametrize("gamma", [np.inf, 50.0])
+def test_steady_state_converged_means_the_stabilising_solution(gamma):
+    """``converged`` of hinf_steady_state means the stabilising solution was found (issue 13): an unstable mode that
+    Q does not excite (Phi = diag(1.5, 0.5), C = [[1, 1]], Q = diag(0, 0.01)) gets the stable filter from the default
+    positive definite start, flagged converged; an undetectable mode on the unit circle (Phi = diag(1, 0.5),
+    C = [[0, 1]]) is flagged not converged (before, both reported converged = True)."""
+    R, Cz = np.eye(1), np.eye(2)
+    Phi, C, Q = np.diag([1.5, 0.5]), np.array([[1.0, 1.0]]), np.diag([0.0, 0.01])
+    sol = hinf_steady_state(Phi, C, Cz, Q, R, gamma)
+    filter_matrix = (np.eye(2) - np.asarray(sol.gain) @ C) @ Phi
+    assert bool(sol.converged) and np.max(np.abs(np.linalg.eigvals(filter_matrix))) < 1
+    undetectable = hinf_steady_state(np.diag([1.0, 0.5]), np.array([[0.0, 1.0]]), Cz, np.eye(2), R, gamma)
+    assert not bool(undetectable.converged)
+
+
 # ---------------------------------------------------------------------------------------------
 # worst-case gain
 

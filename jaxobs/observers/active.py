@@ -28,6 +28,7 @@ adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from math import comb
 from typing import NamedTuple
 
@@ -41,7 +42,7 @@ from jaxobs.kalman_steps import predict, update
 from jaxobs.lti import StateSpace
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
-from jaxobs.riccati import filter_dare, kalman_gain, predict_covariance, symmetrize
+from jaxobs.riccati import dare, kalman_gain, require_converged, symmetrize
 
 __all__ = [
     "ActiveObserverParams",
@@ -383,29 +384,34 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
     cast to their common floating dtype: integers become float, float32 mixed with float64 becomes float64."""
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
-    n, m = plant.n_states, plant.n_inputs
+    n = plant.n_states
     Q, R, P0 = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (Q, R, P0))
     dtype = _checks.float_dtype(
         **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, R=R, Q=Q, P0=P0, x0=x0,
         q_plant=q_plant, q_active=q_active, active=active, alpha=alpha, sigma_floor=sigma_floor,
         disturbance_input=disturbance_input,
     )  # fmt: skip
-    plant = StateSpace(*(jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D)), plant.dt)
-    Phi, Gamma, C = augment(plant, order, disturbance_input)
-    q = m if disturbance_input is None else jnp.atleast_2d(jnp.asarray(disturbance_input)).shape[-1]
+    A, B, C_r = (jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C))
+    G_d = B if disturbance_input is None else jnp.atleast_2d(jnp.asarray(disturbance_input, dtype))
+    _checks.matrix("disturbance_input", G_d, shape=(n, None))
+    q = G_d.shape[-1]
     na = order * q
-    if Q is None:
-        Q = aob_noise_covariance(n, order, q, jnp.asarray(q_plant, dtype), jnp.asarray(q_active, dtype))
+    given_Q = Q is not None
+    if given_Q:
+        _checks.covariance("Q", Q, definite=False, size=n + na)
+    else:
+        _checks.per_entry("q_plant", q_plant, n, dtype, "one variance per plant state")
+        _checks.per_entry("q_active", q_active, q, dtype, "one variance per active-state channel")
         _checks.positive_scalar("q_active", jnp.min(jnp.asarray(q_active)), allow_zero=True)
-    _checks.covariance("Q", Q, definite=False, size=n + na)
-    _checks.covariance("R", R, definite=True, size=C.shape[0])
-    Q = Q.astype(dtype)
     _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
     _checks.finite("active", active)
-    if P0 is None:  # P_{-1} = Q_0 with the switch applied, advanced one step: switched off, the CKF's prior
-        mask = jnp.concatenate([jnp.ones((n,), dtype), jnp.broadcast_to(jnp.asarray(active, dtype), (na,))])
-        Q_switched = Q * jnp.outer(mask, mask)
-        P0 = symmetrize(predict_covariance(Q_switched, Phi, Q_switched))
+    Q = Q.astype(dtype) if given_Q else None
+    q_plant, q_active, active = (jnp.asarray(v, dtype) for v in (q_plant, q_active, active))
+    Phi, Gamma, C, Q, P0_default = _assemble(A, B, C_r, G_d, Q, q_plant, q_active, active, order=order)
+    if not given_Q:
+        _checks.covariance("Q", Q, definite=False, size=n + na)
+    _checks.covariance("R", R, definite=True, size=C.shape[0])
+    P0 = P0_default if P0 is None else P0
     _checks.covariance("P0", P0, definite=False, size=n + na)
     x0 = (
         jnp.zeros((n + na,), dtype)
@@ -422,6 +428,21 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
         jnp.asarray(active, dtype), alpha, sigma_floor, order=order, n_channels=q, matched=disturbance_input is None,
     )  # fmt: skip
     return with_steady_state_gains(params) if steady_state else params
+
+
+@partial(jax.jit, static_argnames=("order",))
+def _assemble(A, B, C, G_d, Q, q_plant, q_active, active, *, order: int):
+    """The augmented model (eq. 30-48), its ``Q`` (eq. 51-53, unless given) and the default prior: the papers'
+    ``P_{-1} = Q_0`` with the switch applied, advanced one step (switched off: the CKF's prior). One compiled
+    program, so eager constructions cost one dispatch."""
+    plant = StateSpace(A, B, C, jnp.zeros((C.shape[0], B.shape[1]), A.dtype), 1.0)
+    Phi, Gamma, C_aug = augment(plant, order, G_d)
+    n, q = A.shape[-1], G_d.shape[-1]
+    if Q is None:
+        Q = aob_noise_covariance(n, order, q, q_plant, q_active)
+    mask = jnp.concatenate([jnp.ones((n,), A.dtype), jnp.broadcast_to(active, (order * q,))])
+    Q_switched = Q * jnp.outer(mask, mask)
+    return Phi, Gamma, C_aug, Q, symmetrize(Phi @ Q_switched @ Phi.T + Q_switched)
 
 
 def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
@@ -445,25 +466,34 @@ def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParam
     """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, Cortesão 2006 eq. 28/48),
     for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time.
 
-    Eagerly, raises ``ValueError`` with the reason when a DARE has no stabilising solution or did not
-    converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64 from AOB-3 on); under
-    tracing both flags are stored, combined, in ``gain_converged``.
+    The passive DARE is the plant's, embedded at the augmented size with the active states' rows and columns
+    zero (its solution is ``blockdiag(P_r, 0)``, its gain ``[K_r; 0]``), so both are one batched solve: one
+    compiled program per model size. Eagerly, raises ``ValueError`` with the reason when a DARE has no
+    stabilising solution or did not converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64
+    from AOB-3 on); under tracing both flags are stored, combined, in ``gain_converged``.
     """
-    n = params.Phi.shape[-1]
-    n_plant = n - params.n_active
+    n_plant = params.Phi.shape[-1] - params.n_active
+    gain, gain_passive, sol = _steady_state_gains(params.Phi, params.C, params.Q, params.R, n_plant=n_plant)
     label = f"AOB-{params.order}" if params.order else "CKF"
-    sol = filter_dare(params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
-    gain = kalman_gain(sol.X, params.C, params.R)
-    converged = sol.converged
-    if params.n_active:
-        rows = slice(0, n_plant)
-        Phi_r, C_r, Q_r = params.Phi[rows, rows], params.C[:, rows], params.Q[rows, rows]
-        sol_r = filter_dare(Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
-        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.X, C_r, params.R))
-        converged = converged & sol_r.converged
-    else:
-        gain_passive = gain
-    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=converged)
+    for i, what in enumerate((f"the {label} steady-state gain's DARE", "the passive (CKF) steady-state gain's DARE")):
+        if i and not params.n_active:
+            break
+        plant_only = slice(0, n_plant if i else None)
+        Phi, C, Q = params.Phi[plant_only, plant_only], params.C[:, plant_only], params.Q[plant_only, plant_only]
+        require_converged(jax.tree.map(lambda a, i=i: a[i], sol), Phi.T, C.T, Q, params.R, what=what, estimation=True)
+    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=jnp.all(sol.converged))
+
+
+@partial(jax.jit, static_argnames=("n_plant",))
+def _steady_state_gains(Phi, C, Q, R, *, n_plant: int):
+    """``(gain, gain_passive, solutions)`` of :func:`with_steady_state_gains`: the AOB's and the embedded plant's
+    filter DAREs in one ``vmap``."""
+    plant = (jnp.arange(Phi.shape[-1]) < n_plant).astype(Phi.dtype)
+    keep = jnp.outer(plant, plant)
+    Phis, Qs = jnp.stack([Phi, Phi * keep]), jnp.stack([Q, Q * keep])
+    sol = jax.vmap(lambda Phi, Q: dare(Phi.T, C.T, Q, R))(Phis, Qs)
+    gains = jax.vmap(lambda X: kalman_gain(X, C, R))(sol.X)
+    return gains[0], gains[1] * plant[:, None], sol
 
 
 # --------------------------------------------------------------------------------------------
