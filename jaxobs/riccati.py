@@ -149,9 +149,9 @@ def riccati_step(P_prev, Phi, C, Q, R):
 class CovarianceSequence(NamedTuple):
     """Stacked over time (leading axis ``num_steps``)."""
 
-    P: jax.Array  # a-posteriori covariances P_k
-    K: jax.Array  # Kalman gains K_k
-    P_prior: jax.Array  # a-priori covariances P1_k
+    P: jax.Array  # (T, n, n) a-posteriori covariances P_k
+    K: jax.Array  # (T, n, p) Kalman gains K_k
+    P_prior: jax.Array  # (T, n, n) a-priori covariances P1_k
 
 
 def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
@@ -181,9 +181,9 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 class DareSolution(NamedTuple):
     """Stabilising solution of a DARE and how well it solves it."""
 
-    X: jax.Array  # the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
-    residual: jax.Array  # max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
-    converged: jax.Array  # the stabilising solution was found: X finite, closed loop stable, residual small
+    X: jax.Array  # (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
+    residual: jax.Array  # () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
+    converged: jax.Array  # () the stabilising solution was found: X finite, closed loop stable, residual small
 
 
 # Double-word arithmetic for the DARE residual, whose terms cancel to many digits: a value is the

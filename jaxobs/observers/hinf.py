@@ -235,11 +235,11 @@ def hinf_riccati_step(Pb_prev, Phi, C, Cz, Q, R, gamma, *, first=False):
 class HinfSequence(NamedTuple):
     """Stacked over time (leading axis ``num_steps``)."""
 
-    P: jax.Array  # Pb_k
-    K: jax.Array  # gains K_k
-    P_prior: jax.Array  # P1_k
-    margin: jax.Array
-    feasible: jax.Array
+    P: jax.Array  # (T, n, n) Pb_k
+    K: jax.Array  # (T, n, p) gains K_k
+    P_prior: jax.Array  # (T, n, n) P1_k
+    margin: jax.Array  # (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
+    feasible: jax.Array  # (T,) the existence condition held at step k
 
 
 def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSequence:
@@ -259,12 +259,12 @@ def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSe
 
 
 class HinfSteadyState(NamedTuple):
-    P_prior: jax.Array  # steady P1
-    P: jax.Array  # steady Pb
-    gain: jax.Array  # steady K = P1 C' (C P1 C' + R)^{-1}
-    margin: jax.Array  # smallest margin met along the iteration
-    converged: jax.Array  # relative change of the last step below tol and finite
-    feasible: jax.Array  # existence condition held at every iteration
+    P_prior: jax.Array  # (n, n) steady P1
+    P: jax.Array  # (n, n) steady Pb
+    gain: jax.Array  # (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
+    margin: jax.Array  # () smallest margin met along the iteration
+    converged: jax.Array  # () last relative change below tol, finite, and the steady filter stable
+    feasible: jax.Array  # () existence condition held at every iteration
 
 
 def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 1000, tol: float | None = None):
@@ -367,10 +367,10 @@ checks them against the params while tracing and casts them to the params' dtype
 
 
 class GammaSearch(NamedTuple):
-    gamma: jax.Array  # smallest level found feasible (upper end of the final bracket)
-    lower: jax.Array  # largest level found infeasible
-    found: jax.Array  # gamma is feasible and (gamma - lower) <= rtol * gamma
-    iterations: jax.Array
+    gamma: jax.Array  # () smallest level found feasible (upper end of the final bracket)
+    lower: jax.Array  # () largest level found infeasible
+    found: jax.Array  # () gamma is feasible and (gamma - lower) <= rtol * gamma
+    iterations: jax.Array  # () recursions evaluated
 
 
 def gamma_bisection(Phi, C, Q, R, *, Cz=None, P0=None, num_steps: int = 200, rtol: float = 1e-6,

@@ -246,10 +246,10 @@ class InverseDynamicsParams:
 
 
 class InverseDynamicsState(NamedTuple):
-    x: jax.Array  # x_hat_{k-1}
-    y_prev: jax.Array  # (filtered) y_{k-1}
+    x: jax.Array  # (n,) x_hat_{k-1}
+    y_prev: jax.Array  # (n_y,) (filtered) y_{k-1}
     lowpass: jax.Array  # (lowpass_order, n_y) filter sections
-    count: jax.Array  # samples seen
+    count: jax.Array  # () samples seen
 
 
 class InverseDynamicsOutputs(NamedTuple):
