@@ -100,7 +100,7 @@ class Problem:
 
     def force(self, params, ks, noise):
         """True force trace of one plant of stiffness ``ks`` under the controller ``params``."""
-        model = with_params(self.model, ForcePlantParams(ks=ks))
+        model = with_params(self.model, ForcePlantParams(stiffness=ks))
         trace = closed_loop_rollout(
             model, active_observer_controller, params, self.reference, noise=noise, disturbance=self.disturbance
         )

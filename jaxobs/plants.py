@@ -20,17 +20,20 @@ from jaxobs.lti import StateSpace, c2d, ss
 __all__ = ["force_plant"]
 
 
-def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None, input_gain=1.0) -> StateSpace:
+def force_plant(stiffness, time_constant, h: float, dead_time, *, n_delay: int | None = None, input_gain=1.0
+                ) -> StateSpace:  # fmt: skip
     """The delay-augmented discrete force plant (Cortesão, MRAC chapter eq. 57-61, discretised by Cortesão
     2006 eq. 11-18).
 
     Args:
-      Ks: environment (plus sensor) stiffness, N/mm.  Tp: position-loop time constant, s.
+      stiffness: environment (plus sensor) stiffness ``Ks``, N/mm.  time_constant: position-loop time constant
+        ``Tp``, s.
       h: sample time, s (a Python number).  dead_time: input dead time ``Td``, s.
       n_delay: number of delay slots; required when ``dead_time`` is traced (see :func:`jaxobs.lti.c2d`).
       input_gain: a mismatch factor of the robot's velocity gain (1 nominally).
 
-    ``Ks``, ``Tp``, ``dead_time`` and ``input_gain`` may be traced (``vmap`` over mismatched plants, ``grad``).
+    ``stiffness``, ``time_constant``, ``dead_time`` and ``input_gain`` may be traced (``vmap`` over mismatched
+    plants, ``grad``).
     Returns the discrete :class:`~jaxobs.lti.StateSpace` with states ``[F, dF/dt, u_{k-d}, ..., u_{k-1}]``.
 
     Example:
@@ -39,9 +42,9 @@ def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None, inpu
       >>> plant.n_states, plant.dt
       (7, 0.008)
     """
-    _checks.positive_scalar("Ks", Ks)
-    _checks.positive_scalar("Tp", Tp)
-    Ks, Tp = jnp.asarray(Ks, float), jnp.asarray(Tp, float)
+    _checks.positive_scalar("stiffness", stiffness)
+    _checks.positive_scalar("time_constant", time_constant)
+    Ks, Tp = jnp.asarray(stiffness, float), jnp.asarray(time_constant, float)
     zero = jnp.zeros((), Ks.dtype)
     A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
     B = jnp.stack([zero, input_gain * Ks / Tp])[:, None]

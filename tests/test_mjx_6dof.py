@@ -249,8 +249,8 @@ def test_bad_inputs_raise(model, controllers):
         c6.with_params(model, c6.Compliant6Params(stiffness=np.array([3.0, 3.0, -20.0, 100.0, 100.0, 100.0])))
     with pytest.raises(ValueError, match="stiffness"):
         c6.load_model(c6.Compliant6Params(stiffness=np.array([3.0, 3.0])))
-    with pytest.raises(ValueError, match=r"\btp\b"):
-        c6.Compliant6Params(tp=np.array(-0.032)).validate()
+    with pytest.raises(ValueError, match=r"\btime_constant\b"):
+        c6.Compliant6Params(time_constant=np.array(-0.032)).validate()
     with pytest.raises(ValueError, match="servo_gain"):
         c6.with_params(model, c6.Compliant6Params(servo_gain=np.array(1e-3)))
     with pytest.raises(ValueError, match="commands"):

@@ -125,7 +125,7 @@ def test_vmap_over_stiffness_and_noise_seeds(model, nominal):
 
     def one(ks, key):
         noise = jnp.sqrt(EXAMPLE1.R) * jax.random.normal(key, (T,))
-        trace = closed_loop_rollout(with_params(model, ForcePlantParams(ks=ks)), AOB, params, r, noise=noise)
+        trace = closed_loop_rollout(with_params(model, ForcePlantParams(stiffness=ks)), AOB, params, r, noise=noise)
         return trace.force, trace.controller.x
 
     ks = jnp.array([1.5, 3.0, 6.0])

@@ -149,7 +149,7 @@ class Compliant6Params:
     Attributes:
       stiffness: sensor + environment stiffness ``K_i`` (6,): N/mm for x, y, z and N·m/rad for the rotations
         (>= 0; 0 is a DOF the environment does not resist, e.g. the pivoting peg's ``ry`` during alignment).
-      tp: position-loop time constant ``Tp`` in s, scalar or (6,) (> 0).
+      time_constant: position-loop time constant ``Tp`` in s, scalar or (6,) (> 0).
       damping: sensor + environment damping ``D_i`` (N s/mm, N·m·s/rad), scalar or (6,) (>= 0); part of the
         measured wrench, acting on the joint coordinates (not through the contact point).
       servo_gain: velocity-servo gain ``kv_i`` (N s/mm, N·m·s/rad), scalar or (6,) (> 0); the DOF's inertia is
@@ -162,7 +162,7 @@ class Compliant6Params:
     """
 
     stiffness: jax.Array = _default(NOMINAL_STIFFNESS)
-    tp: jax.Array = _default(0.032)
+    time_constant: jax.Array = _default(0.032)
     damping: jax.Array = _default(0.0)
     servo_gain: jax.Array = _default([1e5, 1e5, 1e5, 1e6, 1e6, 1e6])
     contact_radius: jax.Array = _default(11.5)
@@ -173,7 +173,7 @@ class Compliant6Params:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
         _per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
-        _per_dof("tp", self.tp, minimum=0.0, strict=True)
+        _per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
         _per_dof("damping", self.damping, minimum=0.0, strict=False)
         _per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
         for name in ("contact_radius", "contact_depth", "tilt", "coupling"):
@@ -257,13 +257,13 @@ def with_params(model: mjx.Model, params: Compliant6Params) -> mjx.Model:
     dtype = model.jnt_stiffness.dtype
     unit = jnp.asarray(_TO_MODEL, dtype)
     stiffness, damping, kv = (params.per_dof(f, dtype) * unit for f in ("stiffness", "damping", "servo_gain"))
-    inertia = kv * params.per_dof("tp", dtype)
+    inertia = kv * params.per_dof("time_constant", dtype)
     if _checks.is_concrete(inertia, model.body_mass, model.body_inertia):
         tool = np.asarray(_tool_inertia(model))
         if np.any(np.asarray(inertia) <= tool):
             raise ValueError(
-                f"servo_gain * tp (model units {np.asarray(inertia).tolist()}) must exceed the tool's own inertia "
-                f"{tool.tolist()} in every DOF; raise servo_gain"
+                f"servo_gain * time_constant (model units {np.asarray(inertia).tolist()}) must exceed the tool's own "
+                f"inertia {tool.tolist()} in every DOF; raise servo_gain"
             )
     return model.replace(
         jnt_stiffness=stiffness,

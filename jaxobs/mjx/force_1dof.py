@@ -97,23 +97,23 @@ class ForcePlantParams:
     """Physical parameters of the 1-DOF force plant (mm, N, s units; the MRAC chapter Table 1 nominal values).
 
     Attributes:
-      ks: sensor + environment stiffness ``Ks`` in N/mm (> 0).
-      tp: position-loop time constant ``Tp`` in s (> 0).
+      stiffness: sensor + environment stiffness ``Ks`` in N/mm (> 0).
+      time_constant: position-loop time constant ``Tp`` in s (> 0).
       damping: sensor + environment damping ``Ds`` in N s/mm (>= 0); it is part of the measured force.
       servo_gain: velocity-servo gain ``kv`` in N s/mm (> 0); the robot's total moving inertia is
-        ``kv Tp`` (so an inertia mismatch is a ``tp`` mismatch here) and the position loop yields to the
-        contact force by ``ks / servo_gain``.
+        ``kv Tp`` (so an inertia mismatch is a ``time_constant`` mismatch here) and the position loop yields to
+        the contact force by ``stiffness / servo_gain``.
     """
 
-    ks: float = 3.0
-    tp: float = 0.032
+    stiffness: float = 3.0
+    time_constant: float = 0.032
     damping: float = 0.0
     servo_gain: float = 1.0e4
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        _checks.positive_scalar("ks", self.ks)
-        _checks.positive_scalar("tp", self.tp)
+        _checks.positive_scalar("stiffness", self.stiffness)
+        _checks.positive_scalar("time_constant", self.time_constant)
         _checks.positive_scalar("damping", self.damping, allow_zero=True)
         _checks.positive_scalar("servo_gain", self.servo_gain)
 
@@ -144,19 +144,22 @@ def _tool_body(model) -> int:
 def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     """Return ``model`` with the physical ``params`` written into its array fields (pure, traceable).
 
-    The one place where parameters map to fields: ``jnt_stiffness = ks``, ``dof_damping = damping``,
-    ``actuator_gainprm[0] = kv``, ``actuator_biasprm[2] = -kv``, ``dof_armature = kv tp - m_tool``.
+    The one place where parameters map to fields: ``jnt_stiffness = stiffness``, ``dof_damping = damping``,
+    ``actuator_gainprm[0] = kv``, ``actuator_biasprm[2] = -kv``, ``dof_armature = kv time_constant - m_tool``.
     Derived fields used only by constraints (``dof_invweight0``, ``actuator_acc0``, ...) are left as
     they are: constraints and contacts are disabled in this model.
     """
     params.validate()
-    if _checks.is_concrete(params.servo_gain, params.tp, model.body_mass):
-        inertia = float(params.servo_gain) * float(params.tp)
+    if _checks.is_concrete(params.servo_gain, params.time_constant, model.body_mass):
+        inertia = float(params.servo_gain) * float(params.time_constant)
         tool_mass = float(np.asarray(model.body_mass)[_tool_body(model)])
         if inertia <= tool_mass:
-            raise ValueError(f"servo_gain * tp = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain")
+            raise ValueError(
+                f"servo_gain * time_constant = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain"
+            )
     dtype = model.jnt_stiffness.dtype
-    ks, tp, damping, kv = (jnp.asarray(v, dtype) for v in (params.ks, params.tp, params.damping, params.servo_gain))
+    fields = (params.stiffness, params.time_constant, params.damping, params.servo_gain)
+    ks, tp, damping, kv = (jnp.asarray(v, dtype) for v in fields)
     return model.replace(
         jnt_stiffness=jnp.asarray(model.jnt_stiffness).at[0].set(ks),
         dof_damping=jnp.asarray(model.dof_damping).at[0].set(damping),
@@ -205,11 +208,11 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     params = ForcePlantParams() if params is None else params
     params.validate()
     m = _parse_mjcf(xml)
-    kv, tp = float(params.servo_gain), float(params.tp)
+    kv, tp = float(params.servo_gain), float(params.time_constant)
     tool_mass = m.body_mass[_tool_body(m)]
     if kv * tp <= tool_mass:
-        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {tool_mass} t")
-    m.jnt_stiffness[0] = float(params.ks)
+        raise ValueError(f"servo_gain * time_constant = {kv * tp} must exceed the tool mass {tool_mass} t")
+    m.jnt_stiffness[0] = float(params.stiffness)
     m.dof_damping[0] = float(params.damping)
     m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv

@@ -155,7 +155,7 @@ def design(
     ratio = r / r[X]  # eq. 65-66
     q_active = Q_ACTIVE_FX * ratio if q_active is None else jnp.broadcast_to(jnp.asarray(q_active, float), (N_DOF,))
     controllers = _design_aobs(
-        params.per_dof("stiffness", float), params.per_dof("tp", float), r, Q_PLANT_FX * ratio, q_active,
+        params.per_dof("stiffness", float), params.per_dof("time_constant", float), r, Q_PLANT_FX * ratio, q_active,
         P0_FX * ratio, h=float(h), dead_time_samples=int(dead_time_samples), tau_c_over_tp=float(tau_c_over_tp),
         steady_state=bool(steady_state),
     )  # fmt: skip

@@ -222,7 +222,7 @@ def build_problem(config: dict) -> TuningProblem:
         ctrl = controller(theta, base, L, n_plant, order)
 
         def one(ks, tp, damping, noise):
-            true = with_params(model, ForcePlantParams(ks=ks, tp=tp, damping=damping))
+            true = with_params(model, ForcePlantParams(stiffness=ks, time_constant=tp, damping=damping))
             return closed_loop_rollout(
                 true, active.active_observer_controller, ctrl, inputs["reference"], noise=noise,
                 disturbance=inputs["disturbance"],

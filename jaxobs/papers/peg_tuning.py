@@ -101,7 +101,7 @@ def build_problem(config: dict) -> TuningProblem:
     stiffness = nominal.per_dof("stiffness", float)
 
     def desired_one(ks, L, r):
-        plant = force_plant(ks, nominal.tp, h, d * h)
+        plant = force_plant(ks, nominal.time_constant, h, d * h)
         return ideal_response(plant, L[:, : plant.n_states], r)[:, 0]
 
     desired = jax.vmap(desired_one, in_axes=(0, 0, 1), out_axes=1)(stiffness, hand_set.L, scenario.reference)
