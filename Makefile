@@ -35,6 +35,8 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/kalman_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/sweep_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/mjx_rollouts.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/dare_accuracy.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

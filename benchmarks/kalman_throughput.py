@@ -23,8 +23,8 @@ shape: no filter can beat it, so ``floor / peer`` is the largest ratio over that
 this machine (reported as ``attainable_ratio`` next to each target).
 
 Models are random and stable (spectral radius 0.95) with random positive definite Q and R, and the
-measurements are simulated from them. Every filter gets the same prior: jaxobs starts from
-``x_{-1} = 0, P_{-1} = Q`` and predicts once; the peers start from that predicted prior. A small case
+measurements are simulated from them. Every filter gets the same prior of ``x_0`` (the state at the first
+measurement): mean 0 and the covariance ``Phi Q Phi' + Q`` (one prediction from ``P_{-1} = Q``). A small case
 checks that all filters return the same filtered means (max abs difference, stored in the JSON).
 
 Timing (``benchmarks/_timing.py``): each JAX function is lowered and compiled first (compile time reported
@@ -62,9 +62,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 from _timing import Skipped, format_range, paired_ratio, time_interleaved  # noqa: E402
 
-from jaxobs.observers import run  # noqa: E402
+from jaxobs.observers import EstimatorInputs, run  # noqa: E402
 from jaxobs.observers.kalman import (  # noqa: E402
-    KalmanInputs,
     KalmanParams,
     filter_shared_model,
     kalman_filter,
@@ -89,11 +88,16 @@ SWEEP_BATCHES = (1_000, 10_000, 100_000)
 
 
 def _optional_import(name: str):
-    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported."""
+    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported. JAX's matmul precision is
+    restored afterwards: dynamax sets ``jax_default_matmul_precision`` when imported, which would change the
+    programs of every library timed after it."""
+    precision = jax.config.jax_default_matmul_precision
     try:
         return importlib.import_module(name), None
     except Exception as exc:  # any import-time failure means "skip this peer"
         return None, f"{type(exc).__name__}: {exc}"
+    finally:
+        jax.config.update("jax_default_matmul_precision", precision)
 
 
 dynamax_lgssm, DYNAMAX_MISSING = _optional_import("dynamax.linear_gaussian_ssm")
@@ -173,19 +177,21 @@ def make_workload(seed: int, batch: int, steps: int, shared: bool) -> Workload:
 
 
 def kalman_params(work: Workload, steady_state: bool = False) -> KalmanParams:
-    """jaxobs params (stacked over the batch unless shared); validated by ``make_kalman`` for one model."""
+    """jaxobs params (stacked over the batch unless shared; a model without inputs); validated by ``make_kalman``
+    for one model."""
     n = N_STATES
     Phi, C, Q, R = work.model(0)
-    make_kalman(Phi, np.zeros((n, 1)), C, Q, R)  # eager validation of a representative model
+    make_kalman(Phi, C, Q, R)  # eager validation of a representative model
     lead = work.Phi.shape[:-2]
+    mean, cov = work.prior()
     params = KalmanParams(
         Phi=jnp.asarray(work.Phi),
-        Gamma=jnp.zeros(lead + (n, 1)),
+        Gamma=jnp.zeros(lead + (n, 0)),
         C=jnp.asarray(work.C),
         Q=jnp.asarray(work.Q),
         R=jnp.asarray(work.R),
-        x0=jnp.zeros(lead + (n,)),
-        P0=jnp.asarray(work.Q),
+        x0=jnp.asarray(mean),
+        P0=jnp.asarray(cov),
     )
     return with_steady_state_gain(params) if steady_state else params
 
@@ -195,20 +201,19 @@ def prepare_jaxobs(work: Workload, steady_state: bool = False):
     ``filter_shared_model`` (Riccati recursion once, means batched). Steady state: fixed gain."""
     params = kalman_params(work, steady_state)
     Y = jnp.asarray(work.Y)
-    U = jnp.zeros(Y.shape[:2] + (1,))  # Gamma = 0: one zero input
 
     if work.shared and not steady_state:
 
-        def shared_means(p, u, y):
-            return filter_shared_model(p, KalmanInputs(u_prev=u, y=y))[1].x
+        def shared_means(p, y):
+            return filter_shared_model(p, EstimatorInputs(y=y))[1].x
 
-        return shared_means, (params, U, Y)
+        return shared_means, (params, Y)
 
-    def filtered_means(p, u, y):
-        return run(kalman_filter, p, KalmanInputs(u_prev=u, y=y))[1].x
+    def filtered_means(p, y):
+        return run(kalman_filter, p, EstimatorInputs(y=y))[1].x
 
-    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, 0, 0))
-    return fn, (params, U, Y)
+    fn = jax.vmap(filtered_means, in_axes=(None if work.shared else 0, 0))
+    return fn, (params, Y)
 
 
 def prepare_dynamax(work: Workload):
@@ -290,7 +295,7 @@ def prepare_filterpy(work: Workload, sequences: int):
 
 def prepare_numpy_schedule(work: Workload, steady_state: bool = False):
     """NumPy batched over the B sequences of one shared model, with the gain schedule they all share: the
-    covariance recursion (eq. 27-29, Joseph form, from the same ``P_{-1} = Q``) runs once per call, or not at
+    covariance recursion (eq. 27-29, Joseph form, from the same prior) runs once per call, or not at
     all with the steady-state gain of ``scipy.linalg.solve_discrete_are`` (computed here, before the timing,
     as jaxobs's). Then one (B, n) update per step: the same work as jaxobs on scenarios 2 and 3."""
     if not work.shared:
@@ -340,7 +345,7 @@ def prepare_write_floor(work: Workload):
 
 
 def prepare_dare_jaxobs(work: Workload):
-    fn = jax.vmap(lambda Phi, C, Q, R: dare(Phi, C, Q, R).P)
+    fn = jax.vmap(lambda Phi, C, Q, R: dare(Phi.T, C.T, Q, R).X)
     return fn, tuple(jnp.asarray(M) for M in (work.Phi, work.C, work.Q, work.R))
 
 

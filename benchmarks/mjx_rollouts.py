@@ -4,10 +4,10 @@ step for batches of 1, 64 and 1024 mismatched plants, against CPU MuJoCo steppin
 
 Plant: the 1-DOF force plant of :mod:`jaxobs.mjx` (1 ms physics, ``SUBSTEPS = 8`` physics steps per 8 ms
 control step, 5-sample command dead time), under the Example 1 AOB-1 with steady-state gains and its state
-feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params``), tracking a 10 N force step for ``T`` control steps
-(default 250 = 2 s = 2000 physics steps) with the Example 1 input disturbance and sensor noise
-``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor stiffness ``ks`` over
-[1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
+feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params`` with ``jaxobs.papers.force_control.with_feedback``),
+tracking a 10 N force step for ``T`` control steps (default 250 = 2 s = 2000 physics steps) with the Example 1
+input disturbance and sensor noise ``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor
+stiffness ``ks`` over [1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
 
 Workloads, all in float64:
 
@@ -62,9 +62,15 @@ from mujoco import rollout as mj_rollout  # noqa: E402
 
 from jaxobs.closed_loop import ideal_response  # noqa: E402
 from jaxobs.mjx import SUBSTEPS, ForcePlantParams, closed_loop_rollout, load_model, with_params  # noqa: E402
-from jaxobs.observers.active import make_aob  # noqa: E402
+from jaxobs.observers.active import active_observer_controller, make_aob  # noqa: E402
 from jaxobs.papers.cortesao2006 import aob_params  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain  # noqa: E402
+from jaxobs.papers.force_control import (  # noqa: E402
+    EXAMPLE1,
+    example1_disturbance,
+    nominal_design,
+    reference_gain,
+    with_feedback,
+)
 
 FORCE_STEP = 10.0  # N
 KS_RANGE = (1.5, 4.5)  # N/mm, the batch's sensor stiffnesses
@@ -79,7 +85,7 @@ class Problem:
         self.steps = steps
         self.mj_model, self.model = load_model()
         self.plant, self.L = nominal_design(EXAMPLE1)
-        self.params = aob_params(self.plant, self.L, 1)
+        self.params = with_feedback(aob_params(self.plant, 1), self.L)
         self.reference = jnp.full(steps, reference_gain(self.L) * FORCE_STEP)
         self.disturbance = example1_disturbance(jnp.arange(steps) * EXAMPLE1.h)
         self.desired = ideal_response(self.plant, self.L, self.reference)[:, 0]
@@ -94,8 +100,10 @@ class Problem:
 
     def force(self, params, ks, noise):
         """True force trace of one plant of stiffness ``ks`` under the controller ``params``."""
-        model = with_params(self.model, ForcePlantParams(ks=ks))
-        trace = closed_loop_rollout(model, params, self.reference, noise=noise, disturbance=self.disturbance)
+        model = with_params(self.model, ForcePlantParams(stiffness=ks))
+        trace = closed_loop_rollout(
+            model, active_observer_controller, params, self.reference, noise=noise, disturbance=self.disturbance
+        )
         return trace.force_true
 
     def forces(self, params, ks, noise):
@@ -106,9 +114,9 @@ class Problem:
         """Batch mean of the mean squared force tracking error of an AOB-1 with R = exp(theta[0]) and
         active-state variance exp(theta[1])."""
         log_r, log_q = theta
-        params = make_aob(
-            self.plant, self.L, 1, jnp.exp(log_r), q_plant=EXAMPLE1.q_plant, q_active=jnp.exp(log_q), steady_state=True
-        )
+        q_plant, q_active = EXAMPLE1.q_plant, jnp.exp(log_q)
+        aob = make_aob(self.plant, 1, jnp.exp(log_r), q_plant=q_plant, q_active=q_active, steady_state=True)
+        params = with_feedback(aob, self.L)
         return jnp.mean((self.forces(params, ks, noise) - self.desired) ** 2)
 
 
@@ -117,8 +125,9 @@ class NumpyAOB:
     a leading plant axis, with the dead-time FIFO of the command."""
 
     def __init__(self, params):
+        aob = params.estimator
         self.Phi, self.Gamma, self.C, self.L, self.K = (
-            np.asarray(m) for m in (params.Phi, params.Gamma, params.C, params.L, params.gain)
+            np.asarray(m) for m in (aob.Phi, aob.Gamma, aob.C, params.L, aob.gain)
         )
 
     def init(self, batch: int):

@@ -55,8 +55,10 @@ import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 from _timing import Timed, format_range, paired_ratio, summary, time_interleaved  # noqa: E402
 
+from jaxobs.observers.linear import linear_controller  # noqa: E402
 from jaxobs.papers import force_robustness as fr  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1, force_plant  # noqa: E402
+from jaxobs.papers.force_control import EXAMPLE1  # noqa: E402
+from jaxobs.plants import force_plant  # noqa: E402
 from jaxobs.stability import closed_loop_matrix, spectral_radius  # noqa: E402
 from jaxobs.sweep import config_key  # noqa: E402
 
@@ -87,7 +89,7 @@ def prepare_jaxobs(config: dict, configs: int, margins: bool = True):
         def evaluate(p):
             ctrl = jax.tree.map(lambda M: M[p["design"]], designs.controller)
             true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
-            rho = spectral_radius(closed_loop_matrix(true, ctrl))
+            rho = spectral_radius(closed_loop_matrix(true, linear_controller, ctrl))
             return {"spectral_radius": rho, "rms_force_error": closed_loop(true, ctrl, p["noise_seed"])[1]}
 
     def evaluate_all(indices):
@@ -213,8 +215,8 @@ class NumpyPeer:
         """Loop transfer functions at the plant input (eq. 65) ``(A, B, C)`` and the closed-loop matrices."""
         Phi, Gamma = self.true_plants(p["stiffness"], p["time_constant"], p["dead_time_samples"])
         N, n = Phi.shape[:2]
-        Pn, Gn, Cn, K, L = (M[p["design"]] for M in (self.table.Phi, self.table.Gamma, self.table.C,
-                                                      self.table.K, self.table.L))  # fmt: skip
+        obs = self.table.estimator
+        Pn, Gn, Cn, K, L = (M[p["design"]] for M in (obs.Phi, obs.Gamma, obs.C, obs.K, self.table.L))
         m = Pn.shape[-1]
         KC = K[:, :, :1]  # K C with C = [1, 0, ...]: the first column of the (N, m, n) product
         observer = (np.eye(m) - K @ Cn) @ (Pn - Gn @ L)

@@ -1,4 +1,4 @@
-"""What the jobs (``jaxobs.sweep``, ``jaxobs.tune`` and the ``jaxobs`` command) need from the machine: a writable
+"""What the jobs (``jaxobs.sweep``, ``jaxobs.tuning`` and the ``jaxobs`` command) need from the machine: a writable
 output directory held by one process at a time, atomic writes, and enough memory.
 
 * :func:`locked_out_dir` checks that a directory can be written (it exists or can be created, is a directory,

@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     rep.set_defaults(func=_reproduce)
     as_command = argv is None
     args = parser.parse_args(argv)
-    from jaxobs.tune import CheckpointError, TuningError
+    from jaxobs.tuning import CheckpointError, TuningError
 
     try:
         return args.func(args)

@@ -5,7 +5,7 @@ one ``lax.scan``. Batch it with ``vmap`` over plants, mismatches, Q/R settings a
 At each sample ``k``::
 
     y_k     = C x_k + v_k                          (strictly proper plant: D = 0)
-    u_k     = controller(y_k, r_k)                 (e.g. the AOB of jaxobs.observers.active)
+    u_k     = controller(y_k, r_k)                 (any Controller, e.g. an AOB with state feedback)
     x_{k+1} = A x_k + B (u_k + d_k)                (d_k: disturbance at the plant input, eq. 81)
 
 For a delay-augmented plant from :func:`jaxobs.lti.c2d` the disturbance enters with the command,
@@ -15,7 +15,6 @@ before the dead time; the true plant's dead time may differ from the nominal one
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -24,90 +23,19 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace
-from jaxobs.observers.active import ActiveObserverInputs, ActiveObserverParams, _active_mask, active_observer
-from jaxobs.observers.base import Observer
+from jaxobs.observers.base import Controller, ControllerInputs
 
-__all__ = [
-    "ClosedLoopTrace",
-    "simulate",
-    "ideal_response",
-    "measurement_noise",
-    "rms",
-    "LinearController",
-    "linear_controller",
-    "linear_controller_of",
-]
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class LinearController:
-    """A fixed-gain observer with state feedback: ``x_hat_k = x1 + K (y_k - C x1)`` with
-    ``x1 = Phi x_hat_{k-1} + Gamma u_{k-1}`` and ``u_k = r_k - L x_hat_k`` (seed 000 eq. 26, 49-50).
-
-    An AOB or CKF with steady-state gains is one (:func:`linear_controller_of`). All orders share
-    one shape after :meth:`padded` (zero states that never move), so designs of different orders
-    can be stacked and ``vmap``ped together.
-    """
-
-    Phi: jax.Array
-    Gamma: jax.Array
-    C: jax.Array
-    K: jax.Array
-    L: jax.Array
-
-    def padded(self, n: int) -> LinearController:
-        """The same controller with ``n`` observer states (extra states are identically zero)."""
-        extra = _checks.count("n", n, minimum=self.Phi.shape[-1]) - self.Phi.shape[-1]
-        rows = lambda M: jnp.pad(M, ((0, extra), (0, 0)))
-        cols = lambda M: jnp.pad(M, ((0, 0), (0, extra)))
-        return LinearController(rows(cols(self.Phi)), rows(self.Gamma), cols(self.C), rows(self.K), cols(self.L))
-
-
-def linear_controller_of(params: ActiveObserverParams) -> LinearController:
-    """The steady-state AOB/CKF as a :class:`LinearController`. With the active state switched off
-    (``set_active(params, 0)``) its rows are zeroed and the passive gain used, as the run-time
-    switch does."""
-    if params.gain is None:
-        raise ValueError("params: a linear controller needs steady-state gains; use with_steady_state_gains")
-    mask = _active_mask(params)[:, None]
-    gain = jnp.where(params.active > 0, params.gain, params.gain_passive)
-    return LinearController(mask * params.Phi, mask * params.Gamma, params.C, mask * gain, params.L)
-
-
-class LinearControllerOutputs(NamedTuple):
-    u: jax.Array
-    x: jax.Array
-
-
-def _linear_init(params: LinearController):
-    return jnp.zeros(params.Phi.shape[-1], params.Phi.dtype), jnp.zeros(params.Gamma.shape[-1], params.Phi.dtype)
-
-
-def _linear_step(params: LinearController, state, inputs: ActiveObserverInputs):
-    m, p, dtype = params.Gamma.shape[-1], params.C.shape[-2], params.Phi.dtype
-    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
-    r = _checks.vector("inputs.r", inputs.r, m, dtype, what="one entry per column of Gamma", check_finite=False)
-    x, u = state
-    x1 = params.Phi @ x + params.Gamma @ u
-    x = x1 + params.K @ (y - params.C @ x1)
-    u = r - params.L @ x
-    return (x, u), LinearControllerOutputs(u, x)
-
-
-linear_controller = Observer(_linear_init, _linear_step)
-""":class:`LinearController` in the (init, step) protocol, for :func:`simulate`; inputs ``ActiveObserverInputs(y, r)``
-of shapes ``(p,)`` and ``(m,)``, checked and cast as by the observer families."""
+__all__ = ["ClosedLoopTrace", "simulate", "ideal_response", "measurement_noise", "rms"]
 
 
 class ClosedLoopTrace(NamedTuple):
     """Time series of a closed-loop run (leading axis: time)."""
 
-    y: jax.Array  # noisy measurements y_k
-    y_true: jax.Array  # noise-free outputs C x_k
-    u: jax.Array  # commands u_k
-    x: jax.Array  # true plant states x_k
-    controller: object  # the controller's outputs (e.g. ActiveObserverOutputs)
+    y: jax.Array  # (T, p) noisy measurements y_k
+    y_true: jax.Array  # (T, p) noise-free outputs C x_k
+    u: jax.Array  # (T, m) commands u_k
+    x: jax.Array  # (T, n) true plant states x_k
+    controller: object  # the controller's outputs stacked over time (e.g. FeedbackOutputs)
 
 
 def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str) -> jax.Array:
@@ -123,31 +51,68 @@ def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str
     return value.astype(dtype)
 
 
+# what feeds each input of the controller in simulate: a shape error names that argument
+_SOURCES = {
+    "inputs.r": "reference: each row is the controller's",
+    "inputs.y": "plant: its outputs are the controller's",
+}
+
+
+def _controller_step(controller: Controller, params, state, inputs: ControllerInputs):
+    """``controller.step``; a shape error of its inputs (raised while tracing) is re-raised naming the argument of
+    :func:`simulate` that feeds them."""
+    try:
+        return controller.step(params, state, inputs)
+    except ValueError as error:
+        field = str(error).split(" ", 1)[0]
+        if field in _SOURCES:
+            raise ValueError(f"{_SOURCES[field]} {field}, and {error}") from error
+        raise
+
+
 def simulate(
     plant: StateSpace,
-    controller_params,
+    controller: Controller,
+    params,
     reference,
     *,
     disturbance=None,
     noise=None,
     x0=None,
-    controller: Observer = active_observer,
 ) -> ClosedLoopTrace:
     """Simulate ``plant`` under ``controller`` for ``len(reference)`` samples.
 
-    Shapes are checked against the plant at trace time (also under ``jit``); the plant runs in the common
+    Shapes are checked against the plant at trace time (also under ``jit``); a reference or plant that does not fit
+    the controller's inputs raises ``ValueError`` naming ``reference`` or ``plant``. The plant runs in the common
     floating dtype of its matrices and the series (the controller casts its inputs to its own dtype).
 
     Args:
       plant: true discrete plant (``plant.dt`` set), e.g. ``c2d`` of the mismatched model.
-      controller_params: parameters of ``controller`` (built on the nominal model).
-      reference: (T, m) references ``r_k`` (or (T,) for a single-input plant).
+      controller: any :class:`~jaxobs.observers.base.Controller` (e.g.
+        :data:`jaxobs.observers.active.active_observer_controller`) whose outputs have ``u`` of shape (m,).
+      params: the controller's parameters (built on the nominal model).
+      reference: (T, q) references ``r_k`` as the controller takes them (``q = m`` without a reference pre-gain;
+        (T,) for ``q = 1``).
       disturbance: (T, m) input disturbance ``d_k`` (or (T,) for one input; default zero).
       noise: (T, p) measurement noise ``v_k`` (or (T,) for one output; default zero; see
         :func:`measurement_noise`).
       x0: (n,) initial true state (default zero).
-      controller: an (init, step) pair whose step takes ``ActiveObserverInputs(y, r)`` and whose
-        outputs have a field ``u`` of shape (m,).
+
+    Returns:
+      :class:`ClosedLoopTrace` (leading axis time).
+
+    Example:
+      >>> import jax.numpy as jnp
+      >>> from jaxobs.lti import ss, c2d
+      >>> from jaxobs.design import acker
+      >>> from jaxobs.observers import FeedbackParams, active
+      >>> plant = c2d(ss([[0, 1], [0, -31.25]], [[0], [93.75]], [[1, 0]]), 0.008, delay=0.04)
+      >>> L_r = acker(plant.A, plant.B, [0.975, 0.975, 0, 0, 0, 0, 0])
+      >>> aob = active.make_aob(plant, order=1, R=2.1e-2, steady_state=True)
+      >>> params = FeedbackParams(aob, active.feedback_gain(aob, L_r))
+      >>> trace = simulate(plant, active.active_observer_controller, params, jnp.full(100, L_r[0, 0] * 10.0))
+      >>> trace.y_true.shape
+      (100, 1)
     """
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d)")
@@ -159,7 +124,10 @@ def simulate(
         noise=noise, x0=x0,
     )  # fmt: skip
     A, B, C = (jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C))
-    reference = _series("reference", reference, None, m, dtype, "one reference per plant input and sample")
+    reference = jnp.asarray(reference)
+    reference = reference[:, None] if reference.ndim == 1 else reference
+    _checks.shape("reference", reference, (None, None), "(T, q): one reference vector per sample")
+    _checks.finite("reference", reference)
     T = reference.shape[0]
     zeros = lambda size: jnp.zeros((T, size), dtype)
     per_sample = f"one entry per plant input and sample of reference (T = {T})"
@@ -173,14 +141,13 @@ def simulate(
         r, d, v = inputs
         y_true = C @ x
         y = y_true + v
-        ctrl_state, out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y, r))
-        _checks.shape("controller_params", out.u, (m,), f"the controller's command u must have one entry per plant "
-                      f"input, {m}")  # fmt: skip
+        ctrl_state, out = _controller_step(controller, params, ctrl_state, ControllerInputs(y, r))
+        _checks.shape("params", out.u, (m,), f"the controller's command u must have one entry per plant input, {m}")
         u = out.u.astype(dtype)
         x_next = A @ x + B @ (u + d)
         return (x_next, ctrl_state), ClosedLoopTrace(y, y_true, u, x, out)
 
-    carry = (x0, controller.init(controller_params))
+    carry = (x0, controller.init(params))
     _, trace = jax.lax.scan(body, carry, (reference, disturbance, noise))
     return trace
 
@@ -206,7 +173,14 @@ def ideal_response(plant: StateSpace, L, reference) -> jax.Array:
 
 
 def measurement_noise(key, num_steps: int, R) -> jax.Array:
-    """Gaussian measurement noise with covariance ``R`` (p, p), positive definite: shape (num_steps, p)."""
+    """Gaussian measurement noise with covariance ``R`` (p, p), positive definite: ``num_steps`` samples drawn
+    from the PRNG ``key``, shape (num_steps, p).
+
+    Example:
+      >>> import jax
+      >>> measurement_noise(jax.random.PRNGKey(0), 100, [[2.1e-2]]).shape
+      (100, 1)
+    """
     num_steps = _checks.count("num_steps", num_steps)
     R = jnp.atleast_2d(jnp.asarray(R))
     _checks.covariance("R", R, definite=True)
@@ -215,5 +189,5 @@ def measurement_noise(key, num_steps: int, R) -> jax.Array:
 
 
 def rms(error, axis=0):
-    """Root-mean-square over ``axis``."""
+    """Root-mean-square of ``error`` over ``axis`` (default 0, the time axis of a trace): ``sqrt(mean(error^2))``."""
     return jnp.sqrt(jnp.mean(jnp.square(error), axis=axis))

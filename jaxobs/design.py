@@ -1,7 +1,7 @@
 """Controller design: Ackermann pole placement, MIMO pole placement, discrete LQR, DC-gain
 compensation.
 
-``acker`` and ``dlqr`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
+``acker``, ``dlqr`` and ``dlqe`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
 helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answer.
 """
 
@@ -13,10 +13,19 @@ import numpy as np
 import scipy.signal
 
 from jaxobs import _checks
-from jaxobs.lti import ctrb
-from jaxobs.riccati import _solve_spd, dare, require_converged, symmetrize
+from jaxobs.lti import StateSpace, ctrb, dcgain
+from jaxobs.riccati import _solve_spd, dare, filter_dare, require_converged, symmetrize
 
-__all__ = ["acker", "place", "dlqr", "dc_compensation", "critically_damped_poles"]
+__all__ = [
+    "acker",
+    "place",
+    "dlqr",
+    "dlqe",
+    "dc_compensation",
+    "reference_gain",
+    "critically_damped_poles",
+    "critically_damped_gain",
+]
 
 
 def _char_poly_coefficients(poles, dtype):
@@ -84,12 +93,19 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
     """MIMO pole placement (design time; SciPy's ``place_poles``).
 
     Args:
+      Phi: (n, n) state matrix.  Gamma: (n, m) input matrix.
+      poles: (n,) desired closed-loop poles (complex ones in conjugate pairs).
       zero_input_columns: inputs that cannot be actuated; their columns of ``Gamma`` are zeroed
-        for the design only and their rows of the returned gain are zero (seed 000 §8.4: "the first
+        for the design only and their rows of the returned gain are zero (Cortesão 2006 §8.4: "the first
         and third columns of Gamma_r should be set to zero").
       method: "YT" (Tits-Yang, robust) or "KNV0", as in SciPy.
     Returns:
       (m, n) gain ``L`` with ``eig(Phi - Gamma L) = poles``.
+
+    Example:
+      >>> L = place([[1.0, 0.1], [0.0, 1.0]], [[0.0, 1.0], [0.1, 0.0]], [0.5, 0.6])
+      >>> L.shape
+      (2, 2)
     """
     Phi = np.asarray(Phi, dtype=float)
     Gamma = np.atleast_2d(np.asarray(Gamma, dtype=float))
@@ -116,24 +132,76 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
 
 
 def dlqr(A, B, Q, R):
-    """Discrete LQR: ``u = -K x`` minimising ``sum x'Qx + u'Ru``. Returns ``(K, S, converged)``.
+    """Discrete linear-quadratic regulator, as python-control's ``dlqr``: the state feedback ``u = -K x`` that
+    minimises ``sum_k x_k' Q x_k + u_k' R u_k`` for ``x_{k+1} = A x_k + B u_k``.
 
-    ``S`` solves the control DARE (the filter DARE of ``(A', B')``, :func:`jaxobs.riccati.dare`, so it is
-    differentiable through the implicit-function rule) and ``K = (R + B'SB)^{-1} B'SA``. ``converged``
-    means the stabilising solution was found (``A - B K`` stable). Eagerly, a solve that did not converge
-    raises ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under tracing the flag is
-    returned.
+    Args:
+      A: (n, n).  B: (n, m).  Q: (n, n) positive semidefinite.  R: (m, m) positive definite.
+
+    Returns:
+      ``(K, S, E)``: the (m, n) gain ``K = (R + B'SB)^{-1} B'SA`` (a state feedback, ``L`` in jaxobs' own
+      notation), the solution ``S`` of :func:`jaxobs.riccati.dare` ``(A, B, Q, R)`` and the (n,) closed-loop
+      eigenvalues ``E`` of ``A - B K``.
+
+    Differentiable (implicit-function rule through the DARE). Eagerly, a DARE without a stabilising solution
+    raises ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under ``jit`` the gain and ``S``
+    are NaN then (the flag itself is ``jaxobs.dare(A, B, Q, R).converged``).
+
+    Example:
+      >>> import numpy as np
+      >>> K, S, E = dlqr(np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]]), np.eye(2), np.eye(1))
+      >>> K.shape, bool(np.all(np.abs(E) < 1))
+      ((1, 2), True)
     """
     A, B = jnp.asarray(A), jnp.asarray(B)
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
-    At, Bt = jnp.swapaxes(A, -1, -2), jnp.swapaxes(B, -1, -2)
-    sol = dare(At, Bt, Q, R)
-    require_converged(sol, At, Bt, Q, R, what="dlqr's DARE", control=True)
-    S = sol.P
-    K = _solve_spd(symmetrize(B.T @ S @ B + R), B.T @ S @ A)
-    return K, S, sol.converged
+    sol = dare(A, B, Q, R)
+    require_converged(sol, A, B, Q, R, what="dlqr's DARE")
+    R = jnp.asarray(R, sol.X.dtype)
+    K = _solve_spd(symmetrize(B.T @ sol.X @ B + R), B.T @ sol.X @ A)
+    K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, S, jnp.linalg.eigvals(A - B @ K)
+
+
+def dlqe(A, G, C, QN, RN):
+    """Steady-state Kalman estimator (linear-quadratic estimator), as python-control's ``dlqe``, for
+    ``x_{k+1} = A x_k + B u_k + G w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = QN``, ``E[v v'] = RN``.
+
+    Args:
+      A: (n, n).  G: (n, q) process-noise input.  C: (p, n).  QN: (q, q) positive semidefinite.
+      RN: (p, p) positive definite.
+
+    Returns:
+      ``(K, P, E)``: the (n, p) gain of the one-step predictor ``x_{k+1|k} = A x_{k|k-1} + B u_k + K (y_k -
+      C x_{k|k-1})`` (python-control names it ``L``), ``K = A P C' (C P C' + RN)^{-1}``; the a-priori covariance
+      ``P`` (the filter DARE, :func:`jaxobs.riccati.filter_dare`); the (n,) eigenvalues ``E`` of ``A - K C``.
+      The gain of the filtered (a-posteriori) form that jaxobs' Kalman filter uses is
+      ``jaxobs.riccati.kalman_gain(P, C, RN)``.
+
+    Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution; under ``jit`` the
+    gain and ``P`` are NaN then.
+
+    Example:
+      >>> import numpy as np
+      >>> K, P, E = dlqe(np.array([[1.0, 0.1], [0.0, 1.0]]), np.eye(2), np.array([[1.0, 0.0]]), 0.01 * np.eye(2),
+      ...                np.eye(1))
+      >>> K.shape, bool(np.all(np.abs(E) < 1))
+      ((2, 1), True)
+    """
+    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("G", G, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    sol = filter_dare(A, C, G @ QN @ G.T, RN, what="dlqe's DARE")
+    RN = jnp.asarray(RN, sol.X.dtype)
+    CP = C @ sol.X
+    K = _solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
+    K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, P, jnp.linalg.eigvals(A - K @ C)
 
 
 def critically_damped_poles(h: float, tau_c, n_fast: int):
@@ -146,6 +214,45 @@ def critically_damped_poles(h: float, tau_c, n_fast: int):
     _checks.shape("tau_c", tau_c, (), "one time constant")
     z = jnp.exp(-h / tau_c.astype(_checks.float_dtype(tau_c=tau_c)))
     return jnp.concatenate([jnp.stack([z, z]), jnp.zeros((n_fast,), z.dtype)])
+
+
+def critically_damped_gain(plant: StateSpace, tau_c):
+    """State feedback ``L_r`` (1, n) for a discrete single-input ``plant`` whose first two states are the slow
+    dynamics and the others dead-time slots: a critically damped double pole with time constant ``tau_c`` and
+    the remaining poles at ``z = 0`` (Cortesão 2006 §7.2, eq. 83), by :func:`acker`.
+
+    Example:
+      >>> from jaxobs.plants import force_plant
+      >>> L_r = critically_damped_gain(force_plant(3.0, 0.032, 0.008, 0.040), tau_c=0.32)
+      >>> [round(float(v), 4) for v in L_r[0, :3]]
+      [0.1148, -0.0717, -0.0615]
+    """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
+    if plant.n_states < 2:
+        raise ValueError(f"plant must have at least the two slow states, got {plant.n_states} states")
+    return acker(plant.A, plant.B, critically_damped_poles(plant.dt, tau_c, plant.n_states - 2))
+
+
+def reference_gain(plant: StateSpace, L):
+    """Reference pre-gain ``N`` (m, p) of a discrete ``plant`` for unit DC gain from the reference (in output units)
+    to the output under the state feedback ``u = N r - L x`` (``L`` (m, n)):
+    ``N = [C (I - Phi + Gamma L)^{-1} Gamma]^{-1}`` (needs as many inputs as outputs and an invertible closed-loop
+    DC gain). Use it as :class:`~jaxobs.observers.feedback.FeedbackParams` ``N``.
+
+    Example:
+      >>> from jaxobs.plants import force_plant
+      >>> plant = force_plant(3.0, 0.032, 0.008, 0.040)
+      >>> L_r = critically_damped_gain(plant, tau_c=0.32)
+      >>> bool(jnp.allclose(reference_gain(plant, L_r), L_r[0, 0]))   # the integrating plant: N = L_1
+      True
+    """
+    if not plant.is_discrete:
+        raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
+    L = jnp.atleast_2d(jnp.asarray(L))
+    _checks.matrix("L", L, shape=(plant.n_inputs, plant.n_states))
+    closed = StateSpace(plant.A - plant.B @ L, plant.B, plant.C, plant.D, plant.dt)
+    return dc_compensation(jnp.eye(plant.n_outputs, dtype=L.dtype), dcgain(closed))
 
 
 def dc_compensation(dc_target, dc_closed_loop):

@@ -1,7 +1,7 @@
 """Linear time-invariant models: the state-space pytree, exact ZOH discretisation with dead time,
 transfer functions to state space, and the controllability/observability/DC-gain helpers.
 
-The delay-augmented discretisation follows Cortesão 2006 (seed 000), eq. 11-18: a continuous plant
+The delay-augmented discretisation follows Cortesão 2006 (Cortesão 2006), eq. 11-18: a continuous plant
 ``x' = A x + B u(t - tau)`` sampled with period ``h`` under a zero-order hold, with dead time
 ``tau = (d - 1) h + tau'`` and ``0 < tau' <= h``, becomes
 
@@ -33,8 +33,12 @@ class StateSpace:
     """``x' = A x + B u, y = C x + D u`` (continuous, ``dt is None``) or
     ``x_{k+1} = A x_k + B u_k, y_k = C x_k + D u_k`` (discrete with sample time ``dt``).
 
-    A pytree: ``A, B, C, D`` are leaves (they may carry leading batch axes under ``vmap``),
-    ``dt`` is static metadata.
+    Attributes:
+      A: (n, n) state matrix.  B: (n, m) input matrix.  C: (p, n) output matrix.  D: (p, m) feedthrough.
+      dt: sample time in seconds (static metadata), ``None`` for continuous time.
+
+    A pytree: ``A, B, C, D`` are leaves (they may carry leading batch axes under ``vmap``). Build it with
+    :func:`ss`, which checks and casts.
     """
 
     A: jax.Array
@@ -63,8 +67,17 @@ class StateSpace:
 def ss(A, B, C, D=None, dt: float | None = None) -> StateSpace:
     """Build a :class:`StateSpace`, checking shapes (also under ``jit``) and finiteness (eagerly).
 
-    ``D`` defaults to zeros. The four matrices are cast to their common floating dtype (integers and
-    bools become float; float32 mixed with float64 becomes float64), so a model never mixes precisions.
+    Args:
+      A: (n, n).  B: (n, m).  C: (p, n).  D: (p, m), default zeros.
+      dt: sample time in seconds for a discrete model; ``None`` (default) for continuous time.
+
+    The four matrices are cast to their common floating dtype (integers and bools become float; float32 mixed
+    with float64 becomes float64), so a model never mixes precisions.
+
+    Example:
+      >>> sys = ss([[0.0, 1.0], [0.0, -2.0]], [[0.0], [1.0]], [[1.0, 0.0]])
+      >>> sys.n_states, sys.n_inputs, sys.n_outputs, sys.is_discrete
+      (2, 1, 1, False)
     """
     A, B, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C))
     D = None if D is None else jnp.atleast_2d(jnp.asarray(D))
@@ -125,6 +138,12 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
       first, eq. 18). For ``d >= 1`` the new input enters only the newest slot
       (``Gamma_r = [0 ... 0 I]``, eq. 22) unless ``tau < h``, when ``Gamma_0`` acts at once.
       ``C`` reads ``x'`` and ``D u(t - tau)`` is routed to the slot holding that input.
+
+    Example:
+      >>> sys = ss([[0.0, 1.0], [0.0, -31.25]], [[0.0], [93.75]], [[1.0, 0.0]])   # 3 / (s (0.032 s + 1))
+      >>> plant = c2d(sys, 0.008, delay=0.040)                                     # five samples of dead time
+      >>> plant.A.shape, plant.dt
+      ((7, 7), 0.008)
     """
     if sys.is_discrete:
         raise ValueError("sys is already discrete; c2d needs a continuous-time model (dt=None)")
@@ -253,6 +272,12 @@ def tf2ss(num, den, dt: float | None = None) -> StateSpace:
     The order is the sum of the entry orders, so the realisation is in general not minimal (entries
     sharing poles give uncontrollable or unobservable copies); build a minimal model from your
     knowledge of the shared poles where the design needs one.
+
+    ``dt``: sample time of a discrete transfer function (``None``: continuous).
+
+    Example:
+      >>> tf2ss([1.0], [1.0, 3.0, 2.0]).A.shape            # 1 / (s^2 + 3 s + 2)
+      (2, 2)
     """
     if not (_is_matrix_of_polys(num) or _is_matrix_of_polys(den)):
         A, B, C, D = _siso_ss(num, den)
@@ -321,7 +346,8 @@ def obsv(A, C) -> jax.Array:
 
 
 def dcgain(sys: StateSpace) -> jax.Array:
-    """Steady-state gain: ``C (I - A)^{-1} B + D`` (discrete) or ``-C A^{-1} B + D`` (continuous).
+    """Steady-state gain (p, m) of ``sys``: ``C (I - A)^{-1} B + D`` (discrete) or ``-C A^{-1} B + D``
+    (continuous).
 
     Infinite/NaN entries come back for systems with a pole at 1 (discrete) or 0 (continuous).
     """

@@ -1,7 +1,7 @@
 """Riccati recursions: the Kalman covariance step, its sequence over time, and the discrete
 algebraic Riccati equation (DARE).
 
-Notation of Cortesão 2006 (seed 000) eq. 27-29, for ``x_k = Phi x_{k-1} + w_k``, ``y_k = C x_k + v_k``,
+Notation of Cortesão 2006 (Cortesão 2006) eq. 27-29, for ``x_k = Phi x_{k-1} + w_k``, ``y_k = C x_k + v_k``,
 ``E[w w'] = Q``, ``E[v v'] = R``::
 
     P1_k = Phi P_{k-1} Phi' + Q                      (a-priori covariance, eq. 28)
@@ -30,9 +30,11 @@ __all__ = [
     "covariance_sequence",
     "kalman_gain",
     "dare",
+    "filter_dare",
     "DareSolution",
     "require_converged",
     "stein",
+    "is_stable",
 ]
 
 
@@ -147,15 +149,15 @@ def riccati_step(P_prev, Phi, C, Q, R):
 class CovarianceSequence(NamedTuple):
     """Stacked over time (leading axis ``num_steps``)."""
 
-    P: jax.Array  # a-posteriori covariances P_k
-    K: jax.Array  # Kalman gains K_k
-    P_prior: jax.Array  # a-priori covariances P1_k
+    P: jax.Array  # (T, n, n) a-posteriori covariances P_k
+    K: jax.Array  # (T, n, p) Kalman gains K_k
+    P_prior: jax.Array  # (T, n, n) a-priori covariances P1_k
 
 
 def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
     """Gains and covariances of ``num_steps`` Riccati steps from ``P_{-1} = P_init`` (``lax.scan``).
 
-    The papers initialise with ``P_{-1} = Q_0`` (seed 000 §7.2).
+    The papers initialise with ``P_{-1} = Q_0`` (Cortesão 2006 §7.2).
     """
     n = Phi.shape[-1]
     _checks.matrix("Phi", Phi, shape=(n, n), square=True)
@@ -179,9 +181,9 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 class DareSolution(NamedTuple):
     """Stabilising solution of a DARE and how well it solves it."""
 
-    P: jax.Array  # the solution (for the filter DARE: the a-priori steady-state covariance)
-    residual: jax.Array  # max |Ricc(P) - P| / max(|P|, scale): scale = max|Q|, or R / |C|^2 when Q = 0
-    converged: jax.Array  # the stabilising solution was found: P finite, closed loop stable, residual small
+    X: jax.Array  # (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
+    residual: jax.Array  # () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
+    converged: jax.Array  # () the stabilising solution was found: X finite, closed loop stable, residual small
 
 
 # Double-word arithmetic for the DARE residual, whose terms cancel to many digits: a value is the
@@ -322,6 +324,13 @@ def _smith(A, E, max_iters: int, atol=None):
 
     A_j, X, _ = jax.lax.while_loop(cond, body, (A, E, 0))
     return X, decayed(A_j)
+
+
+def is_stable(A, max_iters: int = 64):
+    """Whether the spectral radius of the (n, n) matrix ``A`` is below one, decided by squaring (:func:`_smith`):
+    no eigenvalue solver, so it runs on every backend. Works under ``jit``/``vmap``; undecided to rounding for
+    spectral radii within about ``1e-14`` of one."""
+    return _smith(A, jnp.zeros_like(A), max_iters)[1]
 
 
 def stein(A, E, max_iters: int = 64):
@@ -508,51 +517,84 @@ def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
     return DareSolution(X, residual, found & (residual < tol))
 
 
-def dare(Phi, C, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
-    """Stabilising solution of the filter DARE ``P = Phi P Phi' - Phi P C'(C P C' + R)^{-1} C P Phi' + Q``.
+def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
+    """Stabilising solution ``X`` of the discrete algebraic Riccati equation, as
+    ``scipy.linalg.solve_discrete_are(A, B, Q, R)``::
 
-    ``Phi`` (n, n), ``C`` (p, n), ``Q`` (n, n) PSD, ``R`` (p, p) PD; ``P`` (n, n). The same ``P`` as
-    ``scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)``: the steady-state a-priori covariance ``P1`` of
-    eq. 28; the steady-state Kalman gain is ``kalman_gain(sol.P, C, R)``. Solved as the control DARE of
-    ``(Phi', C')`` by structured doubling (at most ``max_iters`` doublings, i.e. a horizon of
-    ``2**max_iters`` Riccati steps, and as many squarings per Stein solve), refined by Newton's method
-    with a residual in double-word arithmetic: as accurate as SciPy's Schur method or more, on the DAREX
-    benchmark collection (Abels & Benner 1999), for precise sensors (``R`` down to ``1e-12`` of ``Q``) and
-    unstable ``Phi`` (``benchmarks/dare_accuracy.py``). Gradients (forward and reverse) come from the
-    implicit function theorem: one Stein solve, not backpropagation through the iterations.
+        X = A' X A - A' X B (R + B' X B)^{-1} B' X A + Q
 
-    Returns a :class:`DareSolution`. ``converged`` means the stabilising solution was found: ``P`` finite,
-    the steady-state filter ``Phi - K_p C`` (``K_p = Phi P C' (C P C' + R)^{-1}``) stable, Newton's method
-    settled, and the residual below ``tol`` (default ``sqrt(eps)``). It is False (a flag, never an
-    exception, so it works under ``jit``) when no stabilising solution exists, i.e. ``(Phi, C)`` is not
-    detectable or ``Q`` does not excite a mode on the unit circle, or when the working precision does not
-    resolve the problem (e.g. the AOB-3 design in float32); :func:`require_converged` turns the flag into
-    an error message for eager callers.
+    Args:
+      A: (n, n).  B: (n, m).  Q: (n, n) positive semidefinite.  R: (m, m) positive definite.
+      max_iters: at most ``max_iters`` doublings (a horizon of ``2**max_iters`` Riccati steps) and as many
+        squarings per Stein solve.
+      tol: the relative residual below which the solution counts as converged (default ``sqrt(eps)``).
+
+    The LQR of ``(A, B)`` takes ``X`` as the cost-to-go (:func:`jaxobs.design.dlqr`); the Kalman filter of a
+    model ``(Phi, C)`` solves the equation of ``(Phi', C')``, whose ``X`` is the steady-state a-priori
+    covariance (Cortesão 2006 eq. 28), with gain ``kalman_gain(X, C, R)``. Solved by structured doubling
+    (Chu, Fan, Lin & Wang 2004) refined by Newton's method with a residual in double-word arithmetic: as
+    accurate as SciPy's Schur method or more on the DAREX benchmark collection (Abels & Benner 1999), for
+    precise sensors (``R`` down to ``1e-12`` of ``Q``) and unstable ``A`` (``benchmarks/dare_accuracy.py``).
+    Gradients (forward and reverse) come from the implicit function theorem: one Stein solve, not
+    backpropagation through the iterations.
+
+    Returns a :class:`DareSolution` ``(X, residual, converged)``. ``converged`` means the stabilising solution
+    was found: ``X`` finite, the closed loop ``A - B K`` (``K = (R + B'XB)^{-1} B'XA``) stable, Newton's
+    method settled, and the residual below ``tol``. It is False (a flag, never an exception, so it works under
+    ``jit``) when no stabilising solution exists (``(A, B)`` not stabilisable, or ``Q`` does not penalise a
+    mode on the unit circle) or when the working precision does not resolve the problem (e.g. the AOB-3
+    design in float32); :func:`require_converged` turns the flag into an error message for eager callers.
+
+    Example:
+      >>> import numpy as np, scipy.linalg
+      >>> A, B = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+      >>> sol = dare(A, B, np.eye(2), np.eye(1))
+      >>> X = scipy.linalg.solve_discrete_are(A, B, np.eye(2), np.eye(1))
+      >>> bool(sol.converged), bool(np.allclose(sol.X, X))
+      (True, True)
     """
-    n = Phi.shape[-1]
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
-    _checks.matrix("C", C, shape=(None, n))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
     _checks.covariance("Q", Q, definite=False, size=n)
-    _checks.covariance("R", R, definite=True, size=C.shape[-2])
-    dtype = jnp.result_type(Phi, C, Q, R, float)
-    Phi, C, Q, R = (jnp.asarray(M, dtype) for M in (Phi, C, Q, R))
+    _checks.covariance("R", R, definite=True, size=B.shape[-1])
+    dtype = jnp.result_type(A, B, Q, R, float)
+    A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
     tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
-    return _solve(Phi.T, C.T, Q, R, max_iters=int(max_iters), tol=tol)
+    return _solve(A, B, Q, R, max_iters=int(max_iters), tol=tol)
 
 
-def require_converged(sol: DareSolution, Phi, C, Q, R, *, what: str, control: bool = False) -> None:
-    """Raise ``ValueError`` saying why when ``sol`` (from :func:`dare` on ``(Phi, C, Q, R)``) is concrete and
-    not converged; do nothing under ``jit``/``vmap``/``grad``, where the flag travels with the result.
+def filter_dare(Phi, C, Q, R, *, what: str = "the filter DARE") -> DareSolution:
+    """The filter (estimation) DARE of a model ``(Phi, C)``, ``P = Phi P Phi' - Phi P C'(C P C' + R)^{-1} C P Phi'
+    + Q``: :func:`dare` of ``(Phi', C', Q, R)``, whose ``X`` is the steady-state a-priori covariance (Cortesão 2006
+    eq. 28; the gain is ``kalman_gain(X, C, R)``). Eagerly, raises ``ValueError`` with the reason (``what`` names
+    the solve) when it did not converge; under tracing the flag is in the result.
 
-    For eager design calls (:func:`jaxobs.observers.kalman.with_steady_state_gain`, ...). ``what`` names the
-    caller's solve in the message; ``control`` words it for the control DARE of ``(A, B) = (Phi', C')``.
-    The reason is found on the concrete data: an undetectable (unstabilisable) mode on or outside the unit
-    circle, a unit-circle mode that ``Q`` does not excite, a working precision below float64, or else an
-    ill-conditioned problem.
+    Args:
+      Phi: (n, n).  C: (p, n).  Q: (n, n) positive semidefinite.  R: (p, p) positive definite.
+    """
+    _checks.matrix("Phi", Phi, square=True)
+    _checks.matrix("C", C, shape=(None, np.shape(Phi)[-1]))
+    A, B = jnp.swapaxes(jnp.asarray(Phi), -1, -2), jnp.swapaxes(jnp.asarray(C), -1, -2)
+    sol = dare(A, B, Q, R)
+    require_converged(sol, A, B, Q, R, what=what, estimation=True)
+    return sol
+
+
+def require_converged(sol: DareSolution, A, B, Q, R, *, what: str, estimation: bool = False) -> None:
+    """Raise ``ValueError`` saying why when ``sol`` (from :func:`dare` on ``(A, B, Q, R)``) is concrete and not
+    converged; do nothing under ``jit``/``vmap``/``grad``, where the flag travels with the result.
+
+    For eager design calls (:func:`jaxobs.design.dlqr`, :func:`jaxobs.observers.kalman.with_steady_state_gain`,
+    ...). ``what`` names the caller's solve in the message; ``estimation`` words it for the filter of the model
+    ``(Phi, C) = (A', B')``. The reason is found on the concrete data: an unstabilisable (undetectable) mode on
+    or outside the unit circle, a unit-circle mode that ``Q`` does not reach, a working precision below
+    float64, or else an ill-conditioned problem.
     """
     if not _checks.is_concrete(sol.converged) or bool(np.all(np.asarray(sol.converged))):
         return
-    raise ValueError(f"{what} did not converge: {_failure_reason(sol, Phi, C, Q, control)}")
+    Phi, C = np.swapaxes(np.asarray(A), -1, -2), np.swapaxes(np.asarray(B), -1, -2)
+    raise ValueError(f"{what} did not converge: {_failure_reason(sol, Phi, C, Q, control=not estimation)}")
 
 
 def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
@@ -583,7 +625,7 @@ def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
                     f"the DARE has no stabilising solution: the mode at eigenvalue {lam:.6g} on the unit circle "
                     f"is not {excite}"
                 )
-    dtype = np.asarray(sol.P).dtype
+    dtype = np.asarray(sol.X).dtype
     residual = float(np.max(np.asarray(sol.residual)))
     if np.finfo(dtype).eps > np.finfo(np.float64).eps:
         return (
@@ -592,7 +634,7 @@ def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
         )
     return (
         f"no stabilising solution was found in float64 (residual {residual:.3g}, solution "
-        f"{'finite' if np.all(np.isfinite(np.asarray(sol.P))) else 'not finite'}): the problem is too "
+        f"{'finite' if np.all(np.isfinite(np.asarray(sol.X))) else 'not finite'}): the problem is too "
         "ill-conditioned, e.g. a closed-loop pole within about 1e-8 of the unit circle"
     )
 

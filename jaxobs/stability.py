@@ -1,4 +1,4 @@
-"""Stability of observer-based control with model errors (seed 000 §6): closed-loop matrices,
+"""Stability of observer-based control with model errors (Cortesão 2006 §6): closed-loop matrices,
 spectral radius, the loop transfer function at the plant input, and discrete-time margins.
 
 The true plant ``x_k = Phi x_{k-1} + Gamma u_{k-1}``, ``y_k = C x_k`` (eq. 57-58) is controlled by
@@ -33,9 +33,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.closed_loop import LinearController, linear_controller_of
 from jaxobs.lti import StateSpace
-from jaxobs.observers.active import ActiveObserverParams
+from jaxobs.observers.base import Controller
+from jaxobs.observers.feedback import FeedbackParams
 
 __all__ = [
     "loop_transfer",
@@ -48,44 +48,59 @@ __all__ = [
 ]
 
 
-def loop_transfer(plant: StateSpace, controller: LinearController | ActiveObserverParams) -> StateSpace:
-    """Loop transfer function at the plant input (seed 000 Theorem 3, eq. 65-69), state ``[x; x_hat]``.
+def _linear_form(controller: Controller, params) -> FeedbackParams:
+    if controller.linear is None:
+        raise ValueError("controller has no linear form: stability analysis needs a linear fixed-gain controller")
+    return controller.linear(params)
 
-    ``plant``: the true discrete plant (any state dimension, ``D = 0``); ``controller``: the
-    fixed-gain observer with state feedback built on the nominal model, a
-    :class:`~jaxobs.closed_loop.LinearController` or a steady-state AOB/CKF (converted by
-    :func:`~jaxobs.closed_loop.linear_controller_of`, which honours the active-state switch).
-    Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with
-    ``u' = -L x_hat`` (negative feedback), so its return ratio is the transfer function itself.
+
+def loop_transfer(plant: StateSpace, controller: Controller, params) -> StateSpace:
+    """Loop transfer function at the plant input (Cortesão 2006 Theorem 3, eq. 65-69), state ``[x; x_hat]``.
+
+    Args:
+      plant: the true discrete plant (any state dimension, ``D = 0``).
+      controller: a linear controller with a fixed gain, e.g. an observer-based controller
+        (:func:`~jaxobs.observers.feedback.observer_controller`) around a steady-state Kalman filter or AOB
+        (its linear form honours the AOB's active-state switch).
+      params: the controller's params, built on the nominal model.
+
+    Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with ``u' = -L x_hat``
+    (negative feedback), so its return ratio is the transfer function itself.
     """
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
-    c = controller if isinstance(controller, LinearController) else linear_controller_of(controller)
+    lin = _linear_form(controller, params)
+    c, L = lin.estimator, lin.L
     Phi, Gamma, C = plant.A, plant.B, plant.C
     n, n_obs = Phi.shape[-1], c.Phi.shape[-1]
     _checks.matrix("Phi_n", c.Phi, shape=(n_obs, n_obs), square=True)
     _checks.matrix("Gamma_n", c.Gamma, shape=(n_obs, Gamma.shape[-1]))
     _checks.matrix("C_n", c.C, shape=(C.shape[-2], n_obs))
     _checks.matrix("K", c.K, shape=(n_obs, C.shape[-2]))
-    _checks.matrix("L", c.L, shape=(Gamma.shape[-1], n_obs))
-    observer = (jnp.eye(n_obs, dtype=c.Phi.dtype) - c.K @ c.C) @ (c.Phi - c.Gamma @ c.L)
+    _checks.matrix("L", L, shape=(Gamma.shape[-1], n_obs))
+    observer = (jnp.eye(n_obs, dtype=c.Phi.dtype) - c.K @ c.C) @ (c.Phi - c.Gamma @ L)
     KC = c.K @ C
     A = jnp.block([[Phi, jnp.zeros((n, n_obs), Phi.dtype)], [KC @ Phi, observer]])
     B = jnp.concatenate([Gamma, KC @ Gamma], axis=0)
-    C_loop = jnp.concatenate([jnp.zeros((c.L.shape[0], n), c.L.dtype), c.L], axis=1)
-    return StateSpace(A, B, C_loop, jnp.zeros((c.L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
+    C_loop = jnp.concatenate([jnp.zeros((L.shape[0], n), L.dtype), L], axis=1)
+    return StateSpace(A, B, C_loop, jnp.zeros((L.shape[0], Gamma.shape[-1]), A.dtype), plant.dt)
 
 
-def closed_loop_matrix(plant: StateSpace, controller: LinearController | ActiveObserverParams):
-    """System matrix of plant plus observer-based feedback (seed 000 Theorem 2, eq. 59), state
+def closed_loop_matrix(plant: StateSpace, controller: Controller, params):
+    """System matrix of plant plus observer-based feedback (Cortesão 2006 Theorem 2, eq. 59), state
     ``[x; x_hat]``: ``[[Phi, -Gamma L], [K C Phi, (I - K C_n)(Phi_n - Gamma_n L) - K C Gamma L]]``.
-    The loop is absolutely stable iff its spectral radius is below 1."""
-    loop = loop_transfer(plant, controller)
+    The loop is absolutely stable iff its spectral radius is below 1.
+
+    Args:
+      plant: the true discrete plant.  controller: a linear fixed-gain controller.  params: its params (see
+        :func:`loop_transfer`).
+    """
+    loop = loop_transfer(plant, controller, params)
     return loop.A - loop.B @ loop.C
 
 
 def spectral_radius(A):
-    """``max |eig(A)|`` of an (n, n) matrix or a stack of them (differentiable where the largest eigenvalue
+    """``max |eig(A)|`` of an (n, n) matrix ``A`` or a stack of them (differentiable where the largest eigenvalue
     is simple)."""
     _checks.matrix("A", A, square=True, batch=True)
     return jnp.max(jnp.abs(jnp.linalg.eigvals(A)))
@@ -216,15 +231,27 @@ def _unit_gain_residual(H, dH):
 def stability_margins(
     sys: StateSpace, *, num_points: int = 1024, max_crossings: int = 8, bisection_steps: int = 30
 ) -> Margins:
-    """Gain, phase, delay and stability margins of the discrete SISO loop ``sys`` (seed 000 §6.2),
+    """Gain, phase, delay and stability margins of the discrete SISO loop ``sys`` (Cortesão 2006 §6.2),
     and the spectral radius of the closed loop ``A - B C / (1 + D)``.
 
-    Crossings are bracketed on ``num_points >= 2`` log-spaced frequencies up to Nyquist (two crossings
-    closer than one grid step can be missed; increase ``num_points``), refined by ``bisection_steps >= 1``
-    bisection steps, and the selected ones (at most ``max_crossings >= 1`` of each kind) polished by a
-    Newton step on the exact response. ``jit``/``vmap`` compatible;
-    differentiable where the selected crossover and the largest closed-loop eigenvalue are simple.
-    Unlike python-control, the Nyquist frequency counts as a phase crossover when ``H(-1) < 0``.
+    Args:
+      sys: the discrete SISO loop transfer function (e.g. :func:`loop_transfer`), negative feedback.
+      num_points: crossings are bracketed on ``num_points >= 2`` log-spaced frequencies up to Nyquist (two
+        crossings closer than one grid step can be missed; increase it).
+      max_crossings: at most ``max_crossings >= 1`` crossings of each kind are refined.
+      bisection_steps: ``>= 1`` bisection steps refine each bracket; the selected crossings are then polished by
+        a Newton step on the exact response.
+
+    Returns :class:`Margins`. ``jit``/``vmap`` compatible; differentiable where the selected crossover and the
+    largest closed-loop eigenvalue are simple. Unlike python-control, the Nyquist frequency counts as a phase
+    crossover when ``H(-1) < 0``.
+
+    Example:
+      >>> from jaxobs.lti import ss
+      >>> loop = ss([[0.5]], [[1.0]], [[0.4]], dt=0.01)                 # 0.4 / (z - 0.5)
+      >>> m = stability_margins(loop)
+      >>> round(float(m.gain_margin), 3), bool(m.spectral_radius < 1)
+      (3.75, True)
     """
     sys = _require_discrete_siso(sys)
     num_points = _checks.count("num_points", num_points, minimum=2)
@@ -316,7 +343,7 @@ def _golden_minimum(f, lo, hi, iters: int):
 def unstructured_mismatch(key, Phi_n, Gamma_n, phi_norm, gamma_norm):
     """Random true model ``(Phi_n + Delta Phi, Gamma_n + Delta Gamma)`` with Gaussian directions
     scaled to spectral norms ``||Delta Phi||_2 = phi_norm`` and ``||Delta Gamma||_2 = gamma_norm``
-    (the unstructured model errors of seed 000 Theorem 2)."""
+    (the unstructured model errors of Cortesão 2006 Theorem 2)."""
     Phi_n, Gamma_n = jnp.asarray(Phi_n), jnp.asarray(Gamma_n)
     _checks.matrix("Phi_n", Phi_n, square=True)
     _checks.matrix("Gamma_n", Gamma_n, shape=(Phi_n.shape[-1], None))

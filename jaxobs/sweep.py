@@ -388,10 +388,17 @@ def run_sweep(
 ) -> SweepResult:
     """Evaluate ``evaluate(sampler(config_key(seed, i), i))`` for ``i < num_configs`` into ``out_dir``.
 
-    ``sampler(key, index)`` returns one configuration's parameters, ``evaluate(params)`` its metrics (pytrees of
-    bool/int/float arrays; the engine ``vmap``s both). ``config`` is a JSON-able description of the sweep stored
-    verbatim in the manifest. Rerunning the same call resumes, with a larger ``num_configs`` it extends the sweep;
-    ``overwrite=True`` discards an existing sweep.
+    Args:
+      sampler: ``sampler(key, index)`` returns one configuration's parameters (a pytree of arrays).
+      evaluate: ``evaluate(params)`` returns its metrics (a pytree of bool/int/float arrays); the engine ``vmap``s
+        both and writes one row per configuration (Parquet chunks).
+      num_configs: how many configurations.  out_dir: where the chunks and the manifest go.
+      seed: the PRNG seed of the configuration keys.  chunk_size: configurations per compiled step and chunk.
+      config: a JSON-able description of the sweep stored verbatim in the manifest.
+      progress: show a progress bar.  overwrite: discard an existing, different sweep in ``out_dir``.
+
+    Rerunning the same call resumes; with a larger ``num_configs`` it extends the sweep. Returns a
+    :class:`SweepResult`; read the rows with :func:`load_results`.
 
     Raises ``ValueError`` for bad arguments or a bad evaluation (checked with ``jax.eval_shape`` before any file
     is written), :class:`SweepError` (a ``ValueError``) for a different sweep in ``out_dir``,
@@ -536,7 +543,7 @@ def run_configured_sweep(
 
 
 def load_results(out_dir) -> dict[str, np.ndarray]:
-    """All rows of a finished sweep, ``{column: array}`` in index order; checksums are verified.
+    """All rows of the finished sweep in ``out_dir``, ``{column: array}`` in index order; checksums are verified.
 
     Raises :class:`SweepError` (a ``ValueError``) if the sweep is incomplete or a chunk is missing or corrupt
     (rerun the same ``run_sweep`` call to resume or repair it), and :class:`jaxobs._resources.JobError` if the

@@ -1,15 +1,33 @@
-"""Test configuration: float64 everywhere and a modest hypothesis profile.
+"""Test configuration: float64 everywhere, one JAX configuration for every test, a modest hypothesis profile.
 
-x64 is switched on here (the entry point of the test run), never on import of the library
-(DESIGN.md, "Precision"). ``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
+x64 is switched on here (the entry point of the test run), never on import of the library.
+``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
 """
 
 import os
 
 import jax
+import pytest
 from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
+
+
+def _jax_config() -> dict:
+    return {name: getattr(jax.config, name) for name in dir(jax.config) if name.startswith("jax_")}
+
+
+_SESSION_CONFIG = _jax_config()
+
+
+@pytest.fixture(autouse=True)
+def _restore_jax_config():
+    """Undo any change of JAX's global configuration a test (or a peer imported by it) made: dynamax, for one,
+    sets ``jax_default_matmul_precision`` when imported, which would change every later test's programs."""
+    yield
+    for name, value in _jax_config().items():
+        if name in _SESSION_CONFIG and value != _SESSION_CONFIG[name]:
+            jax.config.update(name, _SESSION_CONFIG[name])
 
 settings.register_profile(
     "jaxobs",

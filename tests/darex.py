@@ -618,13 +618,13 @@ def compare(cases: list[Example]) -> list[dict]:
     groups = defaultdict(list)
     for index, ex in enumerate(cases):
         groups[(ex.A.shape, ex.B.shape)].append(index)
-    solve = jax.jit(jax.vmap(lambda A, B, Q, R: dare(A.T, B.T, Q, R)))
+    solve = jax.jit(jax.vmap(lambda A, B, Q, R: dare(A, B, Q, R)))
     rows = [None] * len(cases)
     for indices in groups.values():
         sol = solve(*(np.stack([getattr(cases[i], name) for i in indices]) for name in "ABQR"))
         for j, i in enumerate(indices):
             ex = cases[i]
-            ours = np.asarray(sol.P[j])
+            ours = np.asarray(sol.X[j])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 try:

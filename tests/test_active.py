@@ -1,4 +1,4 @@
-"""Kalman Active Observer AOB-N (seed 000 §2-5, seed 001 §2-3, seed 003 §6)."""
+"""Kalman Active Observer AOB-N (Cortesão 2006 §2-5, the stochastic AOB paper §2-3, the MRAC chapter §6)."""
 
 import dataclasses
 
@@ -12,10 +12,11 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 from jaxobs.closed_loop import simulate
-from jaxobs.observers import active, run
-from jaxobs.observers.active import ActiveObserverInputs, active_observer
-from jaxobs.observers.kalman import predict_and_update
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design
+from jaxobs.kalman_steps import predict, update
+from jaxobs.observers import ControllerInputs, EstimatorInputs, active, run
+from jaxobs.observers.active import active_observer, active_observer_controller
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
+from jaxobs.plants import force_plant
 
 H = EXAMPLE1.h
 
@@ -25,12 +26,23 @@ def plant_and_gain():
     return nominal_design(EXAMPLE1)
 
 
-def _inputs(T, key=0, noise=0.1):
-    """Measurements and references for open-loop observer runs."""
+def _series(T, key=0, noise=0.1):
+    """A random-walk measurement series (T, 1) and a white series (T, 1) for open-loop runs."""
     k1, k2 = jax.random.split(jax.random.PRNGKey(key))
     y = jnp.cumsum(jax.random.normal(k1, (T, 1)), axis=0) * noise
-    r = jax.random.normal(k2, (T, 1))
-    return ActiveObserverInputs(y, r)
+    return y, jax.random.normal(k2, (T, 1))
+
+
+def _inputs(T, key=0, noise=0.1):
+    """Estimator inputs: the measurements and the commands applied before them."""
+    y, u_prev = _series(T, key, noise)
+    return EstimatorInputs(y=y, u_prev=u_prev)
+
+
+def _controller_inputs(T, key=0, noise=0.1):
+    """Controller inputs: the measurements and the references."""
+    y, r = _series(T, key, noise)
+    return ControllerInputs(y=y, r=r)
 
 
 @pytest.mark.parametrize("order, expected", [(1, 1e-3), (2, 4e-6), (3, 2.4e-8)])
@@ -77,40 +89,62 @@ def test_augmentation_structure_eq48(plant_and_gain):
 
 @pytest.mark.parametrize("steady_state", [False, True])
 def test_aob_without_active_state_equals_ckf(plant_and_gain, steady_state):
-    """Seed 001 §2.1: eliminating the active state (p = 0, its Q entry 0) gives the CKF exactly."""
+    """The stochastic AOB paper §2.1: eliminating the active state (p = 0, its Q entry 0) gives the CKF exactly."""
     plant, L = plant_and_gain
     T = 300
     D = example1_disturbance(jnp.arange(T) * H)
     noise = 0.1 * jax.random.normal(jax.random.PRNGKey(1), (T, 1))
     r = jnp.full((T,), 1.0)
-    aob_off = active.make_aob(plant, L, 2, 0.021, q_active=1e-3, active=0.0, steady_state=steady_state)
-    ckf = active.make_ckf(plant, L, 0.021, steady_state=steady_state)
-    a = simulate(plant, aob_off, r, disturbance=D, noise=noise)
-    b = simulate(plant, ckf, r, disturbance=D, noise=noise)
+    aob_off = active.make_aob(plant, 2, 0.021, q_active=1e-3, active=0.0, steady_state=steady_state)
+    ckf = active.make_ckf(plant, 0.021, steady_state=steady_state)
+    a = simulate(plant, active_observer_controller, with_feedback(aob_off, L), r, disturbance=D, noise=noise)
+    b = simulate(plant, active_observer_controller, with_feedback(ckf, L), r, disturbance=D, noise=noise)
     np.testing.assert_allclose(a.u, b.u, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(a.controller.x[:, : plant.n_states], b.controller.x, rtol=1e-10, atol=1e-12)
-    np.testing.assert_array_equal(a.controller.p, 0.0)
+    np.testing.assert_array_equal(a.controller.estimator.d, 0.0)
+
+
+def test_aob_as_estimator_equals_the_estimate_of_the_aob_as_controller(plant_and_gain):
+    """The AOB run as a plain estimator on the measurements and commands recorded in a closed loop (the AOB-2 with
+    the adaptive strategy of Cortesão, Koeppe, Nunes & Hirzinger, time-varying gain, a mismatched true plant, the
+    eq. 81-82 disturbance and sensor noise) reproduces every output of the AOB inside the controller, to rounding:
+    the controller only adds u_k = r_k - L x_hat_k (Cortesão 2006 eq. 49-50) around the same estimator."""
+    plant, L = plant_and_gain
+    T = 200
+    aob = active.make_aob(plant, 2, 0.021, q_active=1e-5, alpha=0.3, sigma_floor=1e-4)
+    true = force_plant(2.0, 1.2 * EXAMPLE1.Tp, H, 5.5 * H, n_delay=6)
+    noise = 0.1 * jax.random.normal(jax.random.PRNGKey(4), (T, 1))
+    reference = jnp.full((T,), float(L[0, 0]) * 5.0)
+    D = example1_disturbance(jnp.arange(T) * H + 7.5)
+    trace = simulate(true, active_observer_controller, with_feedback(aob, L), reference, disturbance=D, noise=noise)
+    u_prev = jnp.concatenate([jnp.zeros((1, 1)), trace.u[:-1]])  # the controller starts from u_{-1} = 0
+    _, out = run(active_observer, aob, EstimatorInputs(y=trace.y, u_prev=u_prev))
+    for name in out._fields:
+        np.testing.assert_allclose(getattr(out, name), getattr(trace.controller.estimator, name), rtol=1e-12,
+                                   atol=1e-14, err_msg=name)  # fmt: skip
+    assert float(jnp.max(jnp.abs(out.d))) > 0.1  # the active state is doing work here
 
 
 def test_run_time_switch_does_not_recompile(plant_and_gain):
-    """Seed 003 §6.3/§7.1: switching AOB <-> CKF per DOF is a traced value, not a new program."""
+    """The MRAC chapter §6.3/§7.1: switching AOB <-> CKF per DOF is a traced value, not a new program."""
     plant, L = plant_and_gain
     traces = []
 
     @jax.jit
     def final_u(params, inputs):
         traces.append(1)
-        return run(active_observer, params, inputs)[1].u[-1]
+        return run(active_observer_controller, params, inputs)[1].u[-1]
 
-    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
-    inputs = _inputs(50)
+    aob = active.make_aob(plant, 1, 0.021, q_active=1e-3)
+    params = with_feedback(aob, L)
+    inputs = _controller_inputs(50)
     on = final_u(params, inputs)
-    off = final_u(active.set_active(params, False), inputs)
+    off = final_u(with_feedback(active.set_active(aob, False), L), inputs)
     assert len(traces) == 1
     assert not np.allclose(on, off)
     # per-DOF switch: a batch of 3 DOFs with different modes in one vmapped call
     batch = jax.tree_util.tree_map(lambda x: jnp.stack([x] * 3), params)
-    batch = dataclasses.replace(batch, active=jnp.array([1.0, 0.0, 1.0]))
+    batch = dataclasses.replace(batch, estimator=active.set_active(batch.estimator, jnp.array([1.0, 0.0, 1.0])))
     u = jax.vmap(final_u, in_axes=(0, None))(batch, inputs)
     np.testing.assert_allclose(u, jnp.array([on, off, on]), rtol=1e-10)
 
@@ -118,10 +152,10 @@ def test_run_time_switch_does_not_recompile(plant_and_gain):
 @pytest.mark.parametrize("steady_state", [False, True])
 def test_eager_jit_vmap_agree(plant_and_gain, steady_state):
     """The observer run is the same eagerly, under jit, and batched under vmap vs a loop."""
-    plant, L = plant_and_gain
+    plant, _ = plant_and_gain
     inputs = _inputs(80)
     qs = [1e-4, 1e-3, 1e-2]
-    params = [active.make_aob(plant, L, 2, 0.021, q_active=q, steady_state=steady_state) for q in qs]
+    params = [active.make_aob(plant, 2, 0.021, q_active=q, steady_state=steady_state) for q in qs]
     f = lambda p: run(active_observer, p, inputs)[1].x
     eager = [f(p) for p in params]
     jitted = [jax.jit(f)(p) for p in params]
@@ -133,8 +167,8 @@ def test_eager_jit_vmap_agree(plant_and_gain, steady_state):
 
 def test_time_varying_gain_converges_to_steady_state(plant_and_gain):
     """K_k from eq. 27-29 with P_{-1} = Q_0 converges to the DARE gain used in Table I."""
-    plant, L = plant_and_gain
-    tv = active.make_aob(plant, L, 2, 0.021, q_active=4e-6)
+    plant, _ = plant_and_gain
+    tv = active.make_aob(plant, 2, 0.021, q_active=4e-6)
     ss = active.with_steady_state_gains(tv)
     gains = run(active_observer, tv, _inputs(3000))[1].gain
     np.testing.assert_allclose(gains[-1], ss.gain, rtol=1e-6, atol=1e-9)
@@ -142,9 +176,9 @@ def test_time_varying_gain_converges_to_steady_state(plant_and_gain):
 
 @pytest.mark.parametrize("scale", [1e-3, 7.0, 1e4])
 def test_qr_scale_invariance_proposition1(plant_and_gain, scale):
-    """Seed 003 Proposition 1 (eq. 55): (aQ, aR, aP0) gives the same K_k at every step."""
-    plant, L = plant_and_gain
-    base = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
+    """The MRAC chapter Proposition 1 (eq. 55): (aQ, aR, aP0) gives the same K_k at every step."""
+    plant, _ = plant_and_gain
+    base = active.make_aob(plant, 1, 0.021, q_active=1e-3)
     scaled = dataclasses.replace(base, Q=base.Q * scale, R=base.R * scale, P0=base.P0 * scale)
     inputs = _inputs(200)
     a = run(active_observer, base, inputs)
@@ -170,8 +204,8 @@ def _posterior_covariances(params, inputs):
 )
 def test_covariance_symmetric_psd_along_long_runs(plant_and_gain, order, log_r, log_q, seed):
     """Joseph form keeps P symmetric and PSD over 1500 steps for any Q/R strategy."""
-    plant, L = plant_and_gain
-    params = active.make_aob(plant, L, order, 10.0**log_r, q_active=10.0**log_q)
+    plant, _ = plant_and_gain
+    params = active.make_aob(plant, order, 10.0**log_r, q_active=10.0**log_q)
     Ps = np.asarray(_posterior_covariances(params, _inputs(1500, seed))[::50])
     np.testing.assert_array_equal(Ps, np.swapaxes(Ps, -1, -2))
     scale = np.max(np.abs(Ps), axis=(1, 2))
@@ -180,14 +214,14 @@ def test_covariance_symmetric_psd_along_long_runs(plant_and_gain, order, log_r, 
 
 def test_nan_measurement_is_skipped_and_counted(plant_and_gain):
     """A non-finite measurement skips the update (prediction only) and is counted."""
-    plant, L = plant_and_gain
-    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-3)
+    plant, _ = plant_and_gain
+    params = active.make_aob(plant, 1, 0.021, q_active=1e-3)
     inputs = _inputs(30)
     y = inputs.y.at[10].set(jnp.nan).at[20].set(jnp.inf)
-    state, out = run(active_observer, params, ActiveObserverInputs(y, inputs.r))
+    state, out = run(active_observer, params, EstimatorInputs(y=y, u_prev=inputs.u_prev))
     assert int(state.missing) == 2
     assert np.all(np.isfinite(out.x))
-    prior = params.Phi @ out.x[9] + params.Gamma @ out.u[9]
+    prior = params.Phi @ out.x[9] + params.Gamma @ inputs.u_prev[10]
     np.testing.assert_allclose(out.x[10], prior, rtol=1e-12, atol=1e-14)
 
 
@@ -227,10 +261,10 @@ def test_deviation_variance_eq46_47():
 
 def test_adaptive_observer_uses_eq27_variance(plant_and_gain):
     """The step's Q_k for the active state follows eq. 27 (with floor) of the last evolution."""
-    plant, L = plant_and_gain
-    params = active.make_aob(plant, L, 1, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
+    plant, _ = plant_and_gain
+    params = active.make_aob(plant, 1, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
     _, out = run(active_observer, params, _inputs(100))
-    evolution = jnp.diff(jnp.concatenate([jnp.zeros((1, 1)), out.p]), axis=0)
+    evolution = jnp.diff(jnp.concatenate([jnp.zeros((1, 1)), out.d]), axis=0)
     expected = active.adaptive_variance(jnp.concatenate([jnp.zeros((1, 1)), evolution[:-1]]), 0.4, 1e-4)
     np.testing.assert_allclose(out.q_active, expected, rtol=1e-10)
     assert float(jnp.max(out.q_active)) > 1e-8  # the strategy is actually adapting
@@ -239,32 +273,34 @@ def test_adaptive_observer_uses_eq27_variance(plant_and_gain):
 @pytest.mark.parametrize("order", [2, 3])
 def test_newest_active_state_is_the_one_the_input_channel_feeds(plant_and_gain, order):
     """Eq. 41: Phi_12 = Gamma_r [0 ... 0 I] couples only the newest active state into the plant. The step reports
-    that state as p, and the adaptive strategy (seed 001 eq. 27) puts its Q_k there: the run equals a Kalman filter
-    whose Q has q_active_k on the newest state (predict_and_update with the observer's own matrices)."""
-    plant, L = plant_and_gain
-    params = active.make_aob(plant, L, order, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
+    that state as d, and the adaptive strategy (the stochastic AOB paper eq. 27) puts its Q_k there: the run equals a
+    Kalman filter whose Q has q_active_k on the newest state (the Kalman predict and update with the observer's own
+    matrices; the first step updates the prior x0, P0 without a prediction)."""
+    plant, _ = plant_and_gain
+    params = active.make_aob(plant, order, 0.021, q_active=1e-5, alpha=0.4, sigma_floor=1e-4)
     n = plant.n_states
     fed = np.flatnonzero(np.any(np.asarray(params.Phi[:n, n:]) != 0, axis=0)) + n
     assert fed.tolist() == [n + order - 1]
     inputs = _inputs(40)
     _, out = run(active_observer, params, inputs)
-    np.testing.assert_array_equal(out.p[:, 0], out.x[:, fed[0]])
-    x, P, u = params.x0, params.P0, jnp.zeros(1)
+    np.testing.assert_array_equal(out.d[:, 0], out.x[:, fed[0]])
+    x, P = params.x0, params.P0
     for k in range(40):
-        Q = params.Q.at[fed[0], fed[0]].set(out.q_active[k, 0])
-        x, P, *_ = predict_and_update(x, P, u, inputs.y[k], params.Phi, params.Gamma, params.C, Q, params.R)
-        u = inputs.r[k] - params.L @ x
+        if k:
+            Q = params.Q.at[fed[0], fed[0]].set(out.q_active[k, 0])
+            x, P = predict(x, P, params.Phi, Q, params.Gamma, inputs.u_prev[k])
+        x, P, *_ = update(x, P, params.C, params.R, inputs.y[k])
         np.testing.assert_allclose(out.x[k], x, rtol=1e-9, atol=1e-12)
 
 
 def test_strategies(plant_and_gain):
-    """Seed 000 §5: the gain magnitude names the strategy (MBA small, SBA -> sensor, HBA between)."""
-    plant, L = plant_and_gain
+    """Cortesão 2006 §5: the gain magnitude names the strategy (MBA small, SBA -> sensor, HBA between)."""
+    plant, _ = plant_and_gain
     C = plant.C
     assert active.classify_strategy(active.sensor_based_gain(C), C) == "SBA"
     np.testing.assert_allclose(active.sensor_based_gain(C)[:, 0], np.eye(1, 7)[0])
-    hba = active.make_aob(plant, L, 1, 0.021, q_active=1e-5, steady_state=True)
-    mba = active.make_ckf(plant, L, 0.021, steady_state=True)
+    hba = active.make_aob(plant, 1, 0.021, q_active=1e-5, steady_state=True)
+    mba = active.make_ckf(plant, 0.021, steady_state=True)
     aug_C = hba.C
     assert active.classify_strategy(hba.gain, aug_C) == "HBA"
     assert active.classify_strategy(mba.gain, C) == "MBA"
@@ -280,15 +316,15 @@ def test_gradient_through_closed_loop(plant_and_gain):
 
     @jax.jit
     def cost(log_q, log_r):
-        params = active.make_aob(plant, L, 2, jnp.exp(log_r)[None, None], q_active=jnp.exp(log_q))
-        tr = simulate(plant, params, jnp.ones((T,)), disturbance=D, noise=noise)
+        params = with_feedback(active.make_aob(plant, 2, jnp.exp(log_r)[None, None], q_active=jnp.exp(log_q)), L)
+        tr = simulate(plant, active_observer_controller, params, jnp.ones((T,)), disturbance=D, noise=noise)
         return jnp.mean(tr.y_true**2)
 
     check_grads(cost, (jnp.log(1e-3), jnp.log(0.021)), order=1, modes=["rev", "fwd"], rtol=1e-4)
 
     @jax.jit
     def cost_ss(log_q):
-        params = active.make_aob(plant, L, 1, 0.021, q_active=jnp.exp(log_q), steady_state=True)
+        params = active.make_aob(plant, 1, 0.021, q_active=jnp.exp(log_q), steady_state=True)
         return jnp.sum(params.gain**2)
 
     check_grads(cost_ss, (jnp.log(1e-3),), order=1, modes=["rev", "fwd"], rtol=1e-4)
@@ -298,20 +334,20 @@ def test_bad_inputs(plant_and_gain):
     """Clear ValueErrors naming the argument."""
     plant, L = plant_and_gain
     with pytest.raises(ValueError, match=r"^order\b.*>= 1.*got 0"):
-        active.make_aob(plant, L, 0, 0.021)
+        active.make_aob(plant, 0, 0.021)
     with pytest.raises(ValueError, match=r"^order\b.*>= 1.*got 0"):
         active.active_state_model(0)
     with pytest.raises(ValueError, match=r"^alpha\b.*< 1"):
-        active.make_aob(plant, L, 1, 0.021, alpha=1.5)
+        active.make_aob(plant, 1, 0.021, alpha=1.5)
     with pytest.raises(ValueError, match=r"^R\b.*positive definite.*smallest eigenvalue 0\)"):
-        active.make_aob(plant, L, 1, 0.0)
+        active.make_aob(plant, 1, 0.0)
     with pytest.raises(ValueError, match=r"^R\b.*positive definite.*smallest eigenvalue -1\)"):
-        active.make_aob(plant, L, 1, -1.0)
+        active.make_aob(plant, 1, -1.0)
     with pytest.raises(ValueError, match=r"^L_r\b.*\(1, 3\)"):
-        active.make_aob(plant, L[:, :3], 1, 0.021)
+        active.feedback_gain(active.make_aob(plant, 1, 0.021), L[:, :3])
     with pytest.raises(ValueError, match=r"^plant\b.*discrete"):
-        active.make_aob(dataclasses.replace(plant, dt=None), L, 1, 0.021)
+        active.make_aob(dataclasses.replace(plant, dt=None), 1, 0.021)
     with pytest.raises(ValueError, match=r"^q_active\b.*non-negative.*-1\.0"):
-        active.make_aob(plant, L, 1, 0.021, q_active=-1.0)
+        active.make_aob(plant, 1, 0.021, q_active=-1.0)
     with pytest.raises(ValueError, match=r"^c\b.*positive.*0\.0"):
         active.evolution_variance(1e-3, 2, c=0.0)

@@ -12,9 +12,9 @@ import pytest
 import scipy.linalg
 
 from jaxobs import closed_loop, design, lti, stability
-from jaxobs.observers import active, hinf, kalman
+from jaxobs.observers import active, feedback, hinf, kalman, linear
 from jaxobs.observers import inverse_dynamics as ido
-from jaxobs.observers.base import Observer, run
+from jaxobs.observers.base import Controller, ControllerInputs, EstimatorInputs, LinearObserver, run
 
 H = 0.01
 NAN = float("nan")
@@ -24,40 +24,63 @@ EYE2 = np.eye(2)
 # ------------------------------------------------------------------------- small models, built once
 
 
-@functools.cache
+def built_once(build):
+    """Cache a model builder and build eagerly even when first called inside a ``jit`` case (no leaked tracer)."""
+
+    @functools.cache
+    def cached():
+        with jax.ensure_compile_time_eval():
+            return build()
+
+    return cached
+
+
+@built_once
 def cont():
     return lti.ss([[0.0, 1.0], [0.0, -2.0]], [[0.0], [1.0]], [[1.0, 0.0]])
 
 
-@functools.cache
+@built_once
 def plant():
     return lti.c2d(cont(), H)
 
 
-@functools.cache
+@built_once
 def gain():
     return design.acker(plant().A, plant().B, [0.9, 0.9])
 
 
-@functools.cache
+@built_once
 def aob():
-    return active.make_aob(plant(), gain(), 1, 0.01)
+    return active.make_aob(plant(), 1, 0.01)
 
 
-@functools.cache
+@built_once
+def aob_ctrl():
+    """The AOB-1 with the state feedback gain(): params of active.active_observer_controller."""
+    return feedback.FeedbackParams(aob(), active.feedback_gain(aob(), gain()))
+
+
+@built_once
 def kf():
-    return kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0)
+    return kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, Gamma=plant().B)
 
 
-@functools.cache
+@built_once
 def kf2():
     """Two outputs."""
-    return kalman.make_kalman(plant().A, plant().B, EYE2, EYE2, EYE2)
+    return kalman.make_kalman(plant().A, EYE2, EYE2, EYE2, Gamma=plant().B)
 
 
-@functools.cache
+@built_once
+def kf_plain():
+    """No inputs (no Gamma)."""
+    return kalman.make_kalman(plant().A, plant().C, EYE2, 1.0)
+
+
+@built_once
 def hf():
-    return hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma=10.0)
+    return hinf.make_hinf(plant().A, plant().C, EYE2, 1.0, gamma=10.0, Gamma=plant().B)
 
 
 # Liu & Peng 2002, §4.1 plant (eq. 28) with the §4.2 gains
@@ -69,9 +92,15 @@ def make_id(**kwargs):
     return ido.make_inverse_dynamics(LP_A, LP_B, LP_C, LP_K, -10.0, 1.0, h=H, case=2, **kwargs)
 
 
-@functools.cache
+@built_once
 def idp():
     return make_id()
+
+
+@built_once
+def idp_gamma():
+    """With the known term Gamma(u, y) given by its value (Bu = I)."""
+    return make_id(Bu=EYE2)
 
 
 def zeros(*shape):
@@ -83,34 +112,44 @@ def jit(f, *args):
     return jax.jit(f)(*args)
 
 
-def kalman_run(params, u_prev, y, gain=None):
-    return run(kalman.kalman_filter, params, kalman.KalmanInputs(u_prev, y, gain))
+def kalman_run(params, u_prev, y):
+    return run(kalman.kalman_filter, params, EstimatorInputs(y=y, u_prev=u_prev))
 
 
-def aob_run(y, r):
-    return run(active.active_observer, aob(), active.ActiveObserverInputs(y, r))
+def aob_run(y, u_prev):
+    """The AOB as an estimator."""
+    return run(active.active_observer, aob(), EstimatorInputs(y=y, u_prev=u_prev))
+
+
+def aob_ctrl_run(y, r):
+    """The AOB with state feedback as a controller."""
+    return run(active.active_observer_controller, aob_ctrl(), ControllerInputs(y=y, r=r))
+
+
+def simulate_aob(reference, **kwargs):
+    return closed_loop.simulate(plant(), active.active_observer_controller, aob_ctrl(), reference, **kwargs)
 
 
 def wide_command(params, state, inputs):
     """A controller step that returns two commands whatever the plant (for the command-size checks)."""
-    return state, active.ActiveObserverOutputs(*(jnp.zeros((2,)),) * 2, *(jnp.zeros(()),) * 6)
+    return state, feedback.FeedbackOutputs(jnp.zeros((2,)), jnp.zeros((2,)), None)
 
 
-WIDE = Observer(lambda params: jnp.zeros(()), wide_command)
+WIDE = Controller(lambda params: jnp.zeros(()), wide_command)
 
 
 def mjx_1dof_wide_command():
     from jaxobs.mjx import force_1dof
 
     model = force_1dof.load_model()[1]
-    return force_1dof.closed_loop_rollout(model, jnp.zeros(()), jnp.ones(3), controller=WIDE, substeps=1)
+    return force_1dof.closed_loop_rollout(model, WIDE, jnp.zeros(()), jnp.ones(3), substeps=1)
 
 
 def mjx_6dof_wide_command():
     from jaxobs.mjx import compliant_6dof
 
     model = compliant_6dof.load_model()[1]
-    return compliant_6dof.closed_loop_rollout(model, jnp.zeros((6,)), jnp.ones((3, 6)), controller=WIDE, substeps=1)
+    return compliant_6dof.closed_loop_rollout(model, WIDE, jnp.zeros((6,)), jnp.ones((3, 6)), substeps=1)
 
 
 def mjx_1dof_jit_noise():
@@ -169,43 +208,47 @@ CASES = [
     ("margins-bisection_steps-negative", lambda: stability.stability_margins(plant_loop(), bisection_steps=-1),
      "bisection_steps"),
     ("margins-continuous", lambda: stability.stability_margins(cont()), "sys"),
-    ("loop_transfer-continuous-plant", lambda: stability.loop_transfer(cont(), linear_ctrl()), "plant"),
+    ("loop_transfer-continuous-plant", lambda: stability.loop_transfer(cont(), linear.linear_controller, linear_ctrl()),
+     "plant"),
     ("spectral_radius-not-square", lambda: stability.spectral_radius(np.ones((2, 3))), "A"),
     ("unstructured_mismatch-negative-norm",
      lambda: stability.unstructured_mismatch(jax.random.key(0), EYE2, np.ones((2, 1)), -1.0, 0.1), "phi_norm"),
     # Kalman filter
-    ("make_kalman-x0-length", lambda: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=zeros(3)),
-     "x0"),
-    ("make_kalman-x0-nan", lambda: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=[NAN, 0.0]),
-     "x0"),
+    ("make_kalman-x0-length", lambda: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, x0=zeros(3)), "x0"),
+    ("make_kalman-x0-nan", lambda: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, x0=[NAN, 0.0]), "x0"),
     ("make_kalman-jit-x0-length",
-     lambda: jit(lambda x0: kalman.make_kalman(plant().A, plant().B, plant().C, EYE2, 1.0, x0=x0).x0, zeros(3)), "x0"),
-    ("make_kalman-C-columns", lambda: kalman.make_kalman(plant().A, plant().B, np.ones((1, 3)), EYE2, 1.0), "C"),
+     lambda: jit(lambda x0: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, x0=x0).x0, zeros(3)), "x0"),
+    ("make_kalman-C-columns", lambda: kalman.make_kalman(plant().A, np.ones((1, 3)), EYE2, 1.0), "C"),
+    ("make_kalman-Gamma-rows", lambda: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, Gamma=np.ones((3, 1))),
+     "Gamma"),
     ("kalman-y-3-outputs-for-1", lambda: kalman_run(kf(), zeros(5, 1), zeros(5, 3)), "inputs.y"),
     ("kalman-jit-y-3-outputs-for-1", lambda: jit(lambda y: kalman_run(kf(), zeros(5, 1), y), zeros(5, 3)), "inputs.y"),
     ("kalman-jit-y-1-output-for-2", lambda: jit(lambda y: kalman_run(kf2(), zeros(5, 1), y), zeros(5, 1)), "inputs.y"),
     ("kalman-jit-u_prev-2-for-1", lambda: jit(lambda u: kalman_run(kf(), u, zeros(5, 1)), zeros(5, 2)),
      "inputs.u_prev"),
-    ("kalman-gain-schedule-shape", lambda: kalman_run(kf(), zeros(5, 1), zeros(5, 1), zeros(5, 3, 1)), "inputs.gain"),
+    ("kalman-jit-u_prev-for-a-model-without-inputs", lambda: jit(lambda u: kalman_run(kf_plain(), u, zeros(5, 1)),
+                                                                 zeros(5, 1)), "inputs.u_prev"),
+    ("run-y-and-u_prev-lengths", lambda: kalman_run(kf(), zeros(4, 1), zeros(5, 1)), "inputs"),
     ("filter_shared_model-y-without-batch",
-     lambda: kalman.filter_shared_model(kf(), kalman.KalmanInputs(zeros(5, 1), zeros(5, 1))), "inputs.y"),
+     lambda: kalman.filter_shared_model(kf(), EstimatorInputs(y=zeros(5, 1), u_prev=zeros(5, 1))), "inputs.y"),
     ("filter_shared_model-u_prev-length",
-     lambda: kalman.filter_shared_model(kf(), kalman.KalmanInputs(zeros(2, 4, 1), zeros(2, 5, 1))), "inputs.u_prev"),
+     lambda: kalman.filter_shared_model(kf(), EstimatorInputs(y=zeros(2, 5, 1), u_prev=zeros(2, 4, 1))),
+     "inputs.u_prev"),
     # active observer
-    ("make_aob-order-1.5", lambda: active.make_aob(plant(), gain(), 1.5, 0.01), "order"),
-    ("make_aob-order-2.0", lambda: active.make_aob(plant(), gain(), 2.0, 0.01), "order"),
-    ("make_aob-order-bool", lambda: active.make_aob(plant(), gain(), True, 0.01), "order"),
-    ("make_aob-order-0", lambda: active.make_aob(plant(), gain(), 0, 0.01), "order"),
-    ("make_aob-order-str", lambda: active.make_aob(plant(), gain(), "1", 0.01), "order"),
-    ("make_aob-x0-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, x0=zeros(2)), "x0"),
-    ("make_aob-x0-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, x0=[0.0, NAN, 0.0]), "x0"),
-    ("make_aob-q_plant-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, q_plant=np.ones(3)), "q_plant"),
-    ("make_aob-q_active-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, q_active=np.ones(2)), "q_active"),
-    ("make_aob-alpha-length", lambda: active.make_aob(plant(), gain(), 1, 0.01, alpha=[0.1, 0.2]), "alpha"),
-    ("make_aob-alpha-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, alpha=NAN), "alpha"),
-    ("make_aob-active-vector", lambda: active.make_aob(plant(), gain(), 1, 0.01, active=[1.0, 0.0]), "active"),
-    ("make_aob-active-nan", lambda: active.make_aob(plant(), gain(), 1, 0.01, active=NAN), "active"),
-    ("make_aob-jit-L_r-columns", lambda: jit(lambda L: active.make_aob(plant(), L, 1, 0.01).L, zeros(1, 3)), "L_r"),
+    ("make_aob-order-1.5", lambda: active.make_aob(plant(), 1.5, 0.01), "order"),
+    ("make_aob-order-2.0", lambda: active.make_aob(plant(), 2.0, 0.01), "order"),
+    ("make_aob-order-bool", lambda: active.make_aob(plant(), True, 0.01), "order"),
+    ("make_aob-order-0", lambda: active.make_aob(plant(), 0, 0.01), "order"),
+    ("make_aob-order-str", lambda: active.make_aob(plant(), "1", 0.01), "order"),
+    ("make_aob-x0-length", lambda: active.make_aob(plant(), 1, 0.01, x0=zeros(2)), "x0"),
+    ("make_aob-x0-nan", lambda: active.make_aob(plant(), 1, 0.01, x0=[0.0, NAN, 0.0]), "x0"),
+    ("make_aob-q_plant-length", lambda: active.make_aob(plant(), 1, 0.01, q_plant=np.ones(3)), "q_plant"),
+    ("make_aob-q_active-length", lambda: active.make_aob(plant(), 1, 0.01, q_active=np.ones(2)), "q_active"),
+    ("make_aob-alpha-length", lambda: active.make_aob(plant(), 1, 0.01, alpha=[0.1, 0.2]), "alpha"),
+    ("make_aob-alpha-nan", lambda: active.make_aob(plant(), 1, 0.01, alpha=NAN), "alpha"),
+    ("make_aob-active-vector", lambda: active.make_aob(plant(), 1, 0.01, active=[1.0, 0.0]), "active"),
+    ("make_aob-active-nan", lambda: active.make_aob(plant(), 1, 0.01, active=NAN), "active"),
+    ("feedback_gain-jit-L_r-columns", lambda: jit(lambda L: active.feedback_gain(aob(), L), zeros(1, 3)), "L_r"),
     ("active_state_model-order-float", lambda: active.active_state_model(1.5), "order"),
     ("active_state_model-jit-order-traced", lambda: jit(active.active_state_model, 2), "order"),
     ("augment-order-negative", lambda: active.augment(plant(), -1), "order"),
@@ -214,14 +257,20 @@ CASES = [
     ("set_active-vector", lambda: active.set_active(aob(), [1.0, 0.0]), "on"),
     ("set_active-nan", lambda: active.set_active(aob(), NAN), "on"),
     ("aob-jit-y-3-outputs-for-1", lambda: jit(lambda y: aob_run(y, zeros(5, 1)), zeros(5, 3)), "inputs.y"),
-    ("aob-jit-r-2-for-1-input", lambda: jit(lambda r: aob_run(zeros(5, 1), r), zeros(5, 2)), "inputs.r"),
+    ("aob-jit-u_prev-2-for-1-input", lambda: jit(lambda u: aob_run(zeros(5, 1), u), zeros(5, 2)), "inputs.u_prev"),
+    ("aob-controller-jit-y-3-outputs-for-1", lambda: jit(lambda y: aob_ctrl_run(y, zeros(5, 1)), zeros(5, 3)),
+     "inputs.y"),
+    ("aob-controller-jit-r-2-for-1-input", lambda: jit(lambda r: aob_ctrl_run(zeros(5, 1), r), zeros(5, 2)),
+     "inputs.r"),
     ("classify_strategy-gain-shape", lambda: active.classify_strategy(np.ones((3, 1)), np.ones((1, 2))), "gain"),
     # H-infinity filter
-    ("make_hinf-x0-length", lambda: hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma=10.0,
-                                                    x0=zeros(3)), "x0"),
-    ("make_hinf-gamma-str", lambda: hinf.make_hinf(plant().A, plant().B, plant().C, EYE2, 1.0, gamma="10"), "gamma"),
+    ("make_hinf-x0-length", lambda: hinf.make_hinf(plant().A, plant().C, EYE2, 1.0, gamma=10.0, x0=zeros(3)), "x0"),
+    ("make_hinf-gamma-str", lambda: hinf.make_hinf(plant().A, plant().C, EYE2, 1.0, gamma="10"), "gamma"),
+    ("make_hinf-Cd-columns", lambda: hinf.make_hinf(plant().A, plant().C, EYE2, 1.0, gamma=10.0, Cd=np.ones((1, 3))),
+     "Cd"),
     ("hinf-jit-y-3-outputs-for-1",
-     lambda: jit(lambda y: run(hinf.hinf_filter, hf(), hinf.HinfInputs(zeros(5, 1), y)), zeros(5, 3)), "inputs.y"),
+     lambda: jit(lambda y: run(hinf.hinf_filter, hf(), EstimatorInputs(y=y, u_prev=zeros(5, 1))), zeros(5, 3)),
+     "inputs.y"),
     ("hinf_riccati_sequence-num_steps-float",
      lambda: hinf.hinf_riccati_sequence(EYE2, plant().A, plant().C, None, EYE2, 1.0, 10.0, 2.5), "num_steps"),
     ("gamma_bisection-max_iters-0", lambda: hinf.gamma_bisection(plant().A, plant().C, EYE2, 1.0, max_iters=0),
@@ -234,28 +283,28 @@ CASES = [
                                                                            case=2.0), "case"),
     ("make_inverse_dynamics-case-3", lambda: ido.make_inverse_dynamics(LP_A, LP_B, LP_C, LP_K, -10.0, 1.0, h=H,
                                                                        case=3), "case"),
-    ("inverse_dynamics-jit-gamma-length",
-     lambda: jit(lambda g: run(ido.inverse_dynamics_observer, idp(), ido.InverseDynamicsInputs(zeros(5, 1), g)),
-                 zeros(5, 3)), "inputs.gamma"),
+    ("make_inverse_dynamics-Bu-rows", lambda: make_id(Bu=np.ones((3, 1))), "Bu"),
+    ("inverse_dynamics-jit-u_prev-length",
+     lambda: jit(lambda u: run(ido.inverse_dynamics_observer, idp_gamma(), EstimatorInputs(y=zeros(5, 1), u_prev=u)),
+                 zeros(5, 3)), "inputs.u_prev"),
     ("inverse_dynamics-jit-y-2-for-1",
-     lambda: jit(lambda y: run(ido.inverse_dynamics_observer, idp(), ido.InverseDynamicsInputs(y)), zeros(5, 2)),
+     lambda: jit(lambda y: run(ido.inverse_dynamics_observer, idp(), EstimatorInputs(y=y)), zeros(5, 2)),
      "inputs.y"),
     ("left_inverse-rho-shape", lambda: ido.left_inverse(LP_B, np.ones((3, 3))), "rho"),
     ("fact35-rank-above-size", lambda: ido.fact35(EYE2, -EYE2, rank=5), "rank"),
     # closed loop
-    ("simulate-disturbance-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), disturbance=zeros(7)),
-     "disturbance"),
-    ("simulate-noise-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), noise=zeros(7)), "noise"),
-    ("simulate-reference-2-for-1-input", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 2)), "reference"),
-    ("simulate-x0-length", lambda: closed_loop.simulate(plant(), aob(), zeros(10, 1), x0=zeros(3)), "x0"),
-    ("simulate-reference-nan", lambda: closed_loop.simulate(plant(), aob(), jnp.full((10, 1), NAN)), "reference"),
-    ("simulate-jit-reference-2-for-1-input", lambda: jit(lambda r: closed_loop.simulate(plant(), aob(), r).y,
-                                                         zeros(10, 2)), "reference"),
-    ("simulate-jit-disturbance-length",
-     lambda: jit(lambda d: closed_loop.simulate(plant(), aob(), zeros(10, 1), disturbance=d).y, zeros(9, 1)),
-     "disturbance"),
-    ("simulate-controller-command-size", lambda: closed_loop.simulate(plant(), None, zeros(5, 1), controller=WIDE),
-     "controller_params"),
+    ("simulate-disturbance-length", lambda: simulate_aob(zeros(10, 1), disturbance=zeros(7)), "disturbance"),
+    ("simulate-noise-length", lambda: simulate_aob(zeros(10, 1), noise=zeros(7)), "noise"),
+    ("simulate-reference-2-for-1-input", lambda: simulate_aob(zeros(10, 2)), "reference"),
+    ("simulate-x0-length", lambda: simulate_aob(zeros(10, 1), x0=zeros(3)), "x0"),
+    ("simulate-reference-nan", lambda: simulate_aob(jnp.full((10, 1), NAN)), "reference"),
+    ("simulate-jit-reference-2-for-1-input", lambda: jit(lambda r: simulate_aob(r).y, zeros(10, 2)), "reference"),
+    ("simulate-jit-disturbance-length", lambda: jit(lambda d: simulate_aob(zeros(10, 1), disturbance=d).y,
+                                                    zeros(9, 1)), "disturbance"),
+    ("simulate-plant-2-outputs-for-1",
+     lambda: closed_loop.simulate(lti.StateSpace(plant().A, plant().B, EYE2, zeros(2, 1), H),
+                                  active.active_observer_controller, aob_ctrl(), zeros(10, 1)), "plant"),
+    ("simulate-controller-command-size", lambda: closed_loop.simulate(plant(), WIDE, None, zeros(5, 1)), "params"),
     ("ideal_response-reference-2-for-1-input", lambda: closed_loop.ideal_response(plant(), gain(), zeros(10, 2)),
      "reference"),
     ("ideal_response-L-columns", lambda: closed_loop.ideal_response(plant(), np.ones((1, 3)), zeros(10)), "L"),
@@ -266,11 +315,14 @@ CASES = [
     ("measurement_noise-R-negative", lambda: closed_loop.measurement_noise(jax.random.key(0), 3, -1.0), "R"),
     ("padded-n-float", lambda: linear_ctrl().padded(4.5), "n"),
     ("linear_controller-jit-y-3-for-1",
-     lambda: jit(lambda y: run(closed_loop.linear_controller, linear_ctrl(), active.ActiveObserverInputs(y, zeros(5))),
+     lambda: jit(lambda y: run(linear.linear_controller, linear_ctrl(), ControllerInputs(y=y, r=zeros(5))),
                  zeros(5, 3)), "inputs.y"),
+    ("linear_controller-jit-L-columns",
+     lambda: jit(lambda L: run(linear.linear_controller, feedback.FeedbackParams(linear_ctrl().estimator, L),
+                               ControllerInputs(y=zeros(5), r=zeros(5))), zeros(1, 3)), "L"),
     # MJX rollouts
-    ("mjx-1dof-controller-command-size", mjx_1dof_wide_command, "controller_params"),
-    ("mjx-6dof-controller-command-size", mjx_6dof_wide_command, "controller_params"),
+    ("mjx-1dof-controller-command-size", mjx_1dof_wide_command, "params"),
+    ("mjx-6dof-controller-command-size", mjx_6dof_wide_command, "params"),
     ("mjx-1dof-jit-noise-length", mjx_1dof_jit_noise, "noise"),
 ]
 # fmt: on
@@ -281,12 +333,13 @@ def plant_loop():
     return lti.ss(0.5, 1.0, 0.3, dt=H)
 
 
-@functools.cache
+@built_once
 def linear_ctrl():
-    return closed_loop.LinearController(plant().A, plant().B, plant().C, jnp.zeros((2, 1)), gain())
+    """A fixed-gain observer with state feedback: params of linear.linear_controller."""
+    return feedback.FeedbackParams(LinearObserver(plant().A, plant().B, plant().C, jnp.zeros((2, 1))), gain())
 
 
-@pytest.mark.parametrize("call, name", [pytest.param(f, n, id=i) for i, f, n in CASES])
+@pytest.mark.parametrize("call, name", [pytest.param(call, name, id=case_id) for case_id, call, name in CASES])
 def test_bad_input_raises_value_error_naming_the_argument(call, name):
     with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
         call()
@@ -321,20 +374,20 @@ def test_integer_and_mixed_precision_models_are_promoted_to_one_float_dtype():
 
     y = jnp.sin(jnp.arange(8.0))[:, None]
     u = jnp.zeros((8, 1))
-    mixed = kalman.make_kalman(A32, plant().B, plant().C, EYE2, 1.0, x0=np.zeros(2, np.float32))
+    mixed = kalman.make_kalman(A32, plant().C, EYE2, 1.0, Gamma=plant().B, x0=np.zeros(2, np.float32))
     assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(mixed)} == {jnp.dtype("float64")}
-    reference = kalman.make_kalman(A, plant().B, plant().C, EYE2, 1.0)
+    reference = kalman.make_kalman(A, plant().C, EYE2, 1.0, Gamma=plant().B)
     np.testing.assert_array_equal(kalman_run(mixed, u, y)[1].x, kalman_run(reference, u, y)[1].x)
 
     plant32 = lti.StateSpace(*(jnp.asarray(M, jnp.float32) for M in (plant().A, plant().B, plant().C, plant().D)), H)
-    params = active.make_aob(plant32, gain(), 1, 0.01)
+    params = active.make_aob(plant32, 1, np.array([[0.01]]))  # float32 plant, float64 R
     assert params.Phi.dtype == jnp.float64 and params.x0.dtype == jnp.float64
-    out = run(active.active_observer, params, active.ActiveObserverInputs(y, u))[1]
+    out = run(active.active_observer, params, EstimatorInputs(y=y, u_prev=u))[1]
     assert out.x.dtype == jnp.float64 and np.all(np.isfinite(out.x))
 
-    h_mixed = hinf.make_hinf(A32, plant().B, plant().C, EYE2, 1, gamma=10)
-    h_ref = hinf.make_hinf(A, plant().B, plant().C, EYE2, 1.0, gamma=10.0)
-    run_h = lambda p: run(hinf.hinf_filter, p, hinf.HinfInputs(u, y))[1].x
+    h_mixed = hinf.make_hinf(A32, plant().C, EYE2, 1, gamma=10, Gamma=plant().B)
+    h_ref = hinf.make_hinf(A, plant().C, EYE2, 1.0, gamma=10.0, Gamma=plant().B)
+    run_h = lambda p: run(hinf.hinf_filter, p, EstimatorInputs(y=y, u_prev=u))[1].x
     np.testing.assert_array_equal(run_h(h_mixed), run_h(h_ref))
 
     id_int = ido.make_inverse_dynamics([[-10, -14], [1, -13]], [[1], [0]], [[0, 1]], [[47], [10]], -10, 1, h=1, case=2)
@@ -357,12 +410,12 @@ def test_the_documented_shorthands_still_work():
     shorthands (no other broadcast is): same results as the (T, 1) forms. A concrete 0-d integer array is a count."""
     np.testing.assert_array_equal(lti.c2d(cont(), H, n_delay=jnp.int32(2)).A, lti.c2d(cont(), H, n_delay=2).A)
     r = jnp.linspace(0.0, 1.0, 6)
-    full = closed_loop.simulate(plant(), aob(), r[:, None], noise=0.01 * r[:, None])
-    short = closed_loop.simulate(plant(), aob(), r, noise=0.01 * r)
+    full = simulate_aob(r[:, None], noise=0.01 * r[:, None])
+    short = simulate_aob(r, noise=0.01 * r)
     np.testing.assert_array_equal(full.y, short.y)
     ideal = closed_loop.ideal_response(plant(), gain(), r)
     np.testing.assert_array_equal(ideal, closed_loop.ideal_response(plant(), gain(), r[:, None]))
     state = kalman.kalman_filter.init(kf())
-    a = kalman.kalman_filter.step(kf(), state, kalman.KalmanInputs(0.0, 1.0))[1].x
-    b = kalman.kalman_filter.step(kf(), state, kalman.KalmanInputs(jnp.zeros(1), jnp.ones(1)))[1].x
+    a = kalman.kalman_filter.step(kf(), state, EstimatorInputs(y=1.0, u_prev=0.0))[1].x
+    b = kalman.kalman_filter.step(kf(), state, EstimatorInputs(y=jnp.ones(1), u_prev=jnp.zeros(1)))[1].x
     np.testing.assert_array_equal(a, b)

@@ -1,4 +1,4 @@
-"""Tests for jaxobs.design: acker (seed 000 eq. 45-46, Example 1 eq. 83), place, dlqr, critically_damped_poles,
+"""Tests for jaxobs.design: acker (Cortesão 2006 eq. 45-46, Example 1 eq. 83), place, dlqr, critically_damped_poles,
 dc_compensation."""
 
 import control
@@ -10,8 +10,9 @@ import scipy.linalg
 from jax.test_util import check_grads
 from scipy.optimize import linear_sum_assignment
 
-from jaxobs.design import acker, critically_damped_poles, dc_compensation, dlqr, place
+from jaxobs.design import acker, critically_damped_poles, dc_compensation, dlqe, dlqr, place
 from jaxobs.lti import c2d, ctrb, ss
+from jaxobs.riccati import dare
 
 
 def assert_same_spectrum(actual, target, atol):
@@ -43,7 +44,7 @@ def random_poles(rng, n):
     return np.array([rng.uniform(-0.8, 0.8)], complex)
 
 
-# Example 1 (seed 000 §7): force plant Ks = 3 N/mm, Tp = 32 ms, h = 8 ms, Td = 5h
+# Example 1 (Cortesão 2006 §7): force plant Ks = 3 N/mm, Tp = 32 ms, h = 8 ms, Td = 5h
 KS, TP, H = 3.0, 0.032, 0.008
 
 
@@ -58,7 +59,7 @@ def example1_model():
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 5])
 def test_acker_places_poles_on_random_systems(n):
-    """Ackermann (seed 000 eq. 45-46): eig(Phi - Gamma L) equals the target poles to 1e-8."""
+    """Ackermann (Cortesão 2006 eq. 45-46): eig(Phi - Gamma L) equals the target poles to 1e-8."""
     rng = np.random.default_rng(100 + n)
     for _ in range(3):
         Phi, Gamma = random_siso(rng, n)
@@ -78,8 +79,8 @@ def test_acker_matches_python_control():
         np.testing.assert_allclose(acker(Phi, Gamma, poles), want, rtol=1e-8, atol=1e-10)
 
 
-def test_acker_example1_gain_seed000_eq83():
-    """Seed 000 eq. 83: Example 1 (Td = 5h), double pole at exp(-h / (10 Tp)) and five poles at 0 gives the
+def test_acker_example1_gain_cortesao2006_eq83():
+    """Cortesão 2006 eq. 83: Example 1 (Td = 5h), double pole at exp(-h / (10 Tp)) and five poles at 0 gives the
     printed L_r = [0.1148, -0.0717, -0.0615, -0.0797, -0.1031, -0.1332, -0.1718] (4 decimals: tolerance 5e-5)."""
     sysd = example1_model()
     poles = critically_damped_poles(H, 10 * TP, 5)
@@ -93,8 +94,8 @@ def test_acker_example1_gain_seed000_eq83():
     np.testing.assert_allclose(char, np.real(np.poly(np.asarray(poles))), atol=1e-10)
 
 
-def test_critically_damped_poles_seed000_sec7_2():
-    """Seed 000 §7.2: a double pole at exp(-h / tau_c) and n_fast poles at the origin."""
+def test_critically_damped_poles_cortesao2006_sec7_2():
+    """Cortesão 2006 §7.2: a double pole at exp(-h / tau_c) and n_fast poles at the origin."""
     p = np.asarray(critically_damped_poles(H, 10 * TP, 5))
     z = np.exp(-H / (10 * TP))
     np.testing.assert_allclose(p, [z, z, 0, 0, 0, 0, 0], rtol=1e-15)
@@ -169,8 +170,8 @@ def test_place_random_mimo_system():
     assert_same_spectrum(np.linalg.eigvals(Phi - Gamma @ L_c), complex_poles, atol=1e-8)
 
 
-def test_place_zero_input_columns_seed000_sec8_4():
-    """Seed 000 §8.4: inputs listed in zero_input_columns are left out of the design; their rows of L are zero
+def test_place_zero_input_columns_cortesao2006_sec8_4():
+    """Cortesão 2006 §8.4: inputs listed in zero_input_columns are left out of the design; their rows of L are zero
     and the remaining inputs still place every pole (MIMO path and the single-input/acker path)."""
     rng = np.random.default_rng(22)
     Phi, Gamma = rng.normal(size=(4, 4)), rng.normal(size=(4, 3))
@@ -201,28 +202,57 @@ def test_place_rejects_bad_input():
 
 
 def test_dlqr_matches_python_control_and_scipy():
-    """dlqr: K = (B'SB + R)^{-1} B'SA with S the control DARE solution, as control.dlqr and
-    scipy.linalg.solve_discrete_are."""
+    """dlqr returns what control.dlqr returns: K = (B'SB + R)^{-1} B'SA, S the control DARE solution (as
+    scipy.linalg.solve_discrete_are) and the closed-loop eigenvalues E of A - B K."""
     rng = np.random.default_rng(31)
     A, B = 1.1 * rng.normal(size=(4, 4)) / 2.0, rng.normal(size=(4, 2))
     G = rng.normal(size=(4, 4))
     Q, R = G @ G.T + 0.1 * np.eye(4), np.array([[2.0, 0.3], [0.3, 1.0]])
-    K, S, converged = dlqr(A, B, Q, R)
-    assert bool(converged)
+    K, S, E = dlqr(A, B, Q, R)
     S_ref = scipy.linalg.solve_discrete_are(A, B, Q, R)
     K_ctrl, S_ctrl, E_ctrl = control.dlqr(A, B, Q, R)
     np.testing.assert_allclose(S, S_ref, rtol=1e-9)
     np.testing.assert_allclose(S, S_ctrl, rtol=1e-9)
     np.testing.assert_allclose(K, K_ctrl, rtol=1e-9, atol=1e-12)
-    assert_same_spectrum(np.linalg.eigvals(A - B @ np.asarray(K)), E_ctrl, atol=1e-8)
+    assert_same_spectrum(E, E_ctrl, atol=1e-8)
+    sol = dare(A, B, Q, R)  # the control DARE itself, as SciPy's
+    assert bool(sol.converged)
+    np.testing.assert_allclose(sol.X, S_ref, rtol=1e-9)
+
+
+def test_dlqe_matches_python_control():
+    """dlqe returns what control.dlqe returns: the predictor gain A P C' (C P C' + RN)^{-1}, the a-priori covariance
+    P (the filter DARE of (A, C) with process noise G QN G') and the eigenvalues of A - K C."""
+    rng = np.random.default_rng(32)
+    A, G, C = 1.1 * rng.normal(size=(4, 4)) / 2.0, rng.normal(size=(4, 2)), rng.normal(size=(2, 4))
+    QN, RN = np.array([[1.0, 0.2], [0.2, 0.5]]), np.array([[0.3, 0.1], [0.1, 0.2]])
+    K, P, E = dlqe(A, G, C, QN, RN)
+    K_ctrl, P_ctrl, E_ctrl = control.dlqe(A, G, C, QN, RN)
+    np.testing.assert_allclose(P, P_ctrl, rtol=1e-9)
+    np.testing.assert_allclose(K, K_ctrl, rtol=1e-9, atol=1e-12)
+    assert_same_spectrum(E, E_ctrl, atol=1e-8)
+
+
+def test_dlqr_and_dlqe_raise_eagerly_and_give_nan_under_jit_when_no_stabilising_solution():
+    """An unstable mode the input cannot move (A = diag(1.2, 0.5), B = [0, 1]'): dlqr raises naming (A, B); under
+    jit its gain and S are NaN. The dual for dlqe: a mode C cannot see."""
+    A, B, Q, R = np.diag([1.2, 0.5]), np.array([[0.0], [1.0]]), np.eye(2), np.eye(1)
+    with pytest.raises(ValueError, match=r"^dlqr's DARE did not converge: .*\(A, B\) is not stabilisable"):
+        dlqr(A, B, Q, R)
+    K, S, _ = jax.jit(dlqr)(A, B, Q, R)
+    assert np.all(np.isnan(K)) and np.all(np.isnan(S))
+    with pytest.raises(ValueError, match=r"^dlqe's DARE did not converge: .*not detectable"):
+        dlqe(A, np.eye(2), B.T, Q, R)
+    K, P, _ = jax.jit(dlqe)(A, np.eye(2), B.T, Q, R)
+    assert np.all(np.isnan(K)) and np.all(np.isnan(P))
 
 
 # ---------------------------------------------------------------------------------------------
 # dc_compensation
 
 
-def test_dc_compensation_seed000_eq102_104():
-    """Seed 000 eq. 102-104: L_c = DC_closed^{-1} DC_target, so DC_closed L_c = DC_target; a singular closed-loop
+def test_dc_compensation_cortesao2006_eq102_104():
+    """Cortesão 2006 eq. 102-104: L_c = DC_closed^{-1} DC_target, so DC_closed L_c = DC_target; a singular closed-loop
     DC gain -> ValueError naming dc_closed_loop."""
     M = np.array([[2.0, 0.5], [0.1, 1.5]])
     T = np.array([[1.0, 0.2], [0.0, 1.0]])

@@ -12,10 +12,13 @@ import pytest
 from _readme import pin
 
 from jaxobs.cli import main
-from jaxobs.closed_loop import linear_controller, linear_controller_of, simulate
+from jaxobs.closed_loop import simulate
+from jaxobs.observers.active import active_observer_controller
+from jaxobs.observers.linear import linear_controller
 from jaxobs.papers import force_robustness as fr
 from jaxobs.papers.cortesao2006 import aob_params
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, force_plant, nominal_design
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
+from jaxobs.plants import force_plant
 
 SMALL = {
     "chunk_size": 64,
@@ -28,12 +31,13 @@ SMALL = {
 def test_padded_linear_controller_is_the_steady_state_aob():
     """The sweep's stacked controllers (zero-padded to a common size) run exactly like the AOB."""
     plant, L_r = nominal_design()
-    params = aob_params(plant, L_r, 2)
+    params = with_feedback(aob_params(plant, 2), L_r)
     true = force_plant(1.5, 0.04, EXAMPLE1.h, 6.5 * EXAMPLE1.h, n_delay=9)
     t = jnp.arange(300) * EXAMPLE1.h
     ref, dist = jnp.full(300, 4.0), example1_disturbance(t)
-    aob = simulate(true, params, ref, disturbance=dist)
-    lin = simulate(true, linear_controller_of(params).padded(12), ref, disturbance=dist, controller=linear_controller)
+    aob = simulate(true, active_observer_controller, params, ref, disturbance=dist)
+    padded = active_observer_controller.linear(params).padded(12)
+    lin = simulate(true, linear_controller, padded, ref, disturbance=dist)
     np.testing.assert_allclose(lin.y_true, aob.y_true, rtol=1e-10, atol=1e-10)
 
 

@@ -11,16 +11,15 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxobs.observers.base import run
+from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.observers.hinf import (
-    HinfInputs,
     gamma_bisection,
     hinf_filter,
     hinf_riccati_sequence,
     hinf_steady_state,
     make_hinf,
 )
-from jaxobs.observers.kalman import KalmanInputs, kalman_filter, make_kalman
+from jaxobs.observers.kalman import kalman_filter, make_kalman
 
 N_STEPS = 30
 
@@ -37,7 +36,10 @@ def run_kalman(params, inputs):
 
 
 def make_problem(seed=0, n=3, p=2, T=N_STEPS):
-    """A random stable plant, correlated R, an estimated combination z = L x, and random data."""
+    """A random stable plant, correlated R, an estimated combination z = Cz x, and random data (u_prev, y).
+
+    The prior of x_0 is that of x_{-1} ~ (0, I) advanced one step, P0 = Phi Phi' + Q (so the levels are those of the
+    earlier convention, a prior of x_{-1} with the identity covariance)."""
     rng = np.random.default_rng(seed)
     Phi = rng.normal(size=(n, n))
     Phi *= 0.97 / np.max(np.abs(np.linalg.eigvals(Phi)))
@@ -45,20 +47,25 @@ def make_problem(seed=0, n=3, p=2, T=N_STEPS):
     G = rng.normal(size=(n, n)) * 0.3
     Q = G @ G.T + 0.01 * np.eye(n)
     R = np.array([[0.5, 0.2], [0.2, 0.3]])[:p, :p]
-    L = np.array([[1.0, 0.5, 0.0]])[:, :n]
-    P0 = np.eye(n)
+    Cz = np.array([[1.0, 0.5, 0.0]])[:, :n]
+    P0 = Phi @ Phi.T + Q
     u, y = rng.normal(size=(T, 1)), rng.normal(size=(T, p))
-    return dict(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R, L=L, P0=P0), jnp.asarray(u), jnp.asarray(y)
+    return dict(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R, Cz=Cz, P0=P0), jnp.asarray(u), jnp.asarray(y)
 
 
 def hinf_params(model, gamma, **kw):
     m = model
-    return make_hinf(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], gamma=gamma, L=m["L"], P0=m["P0"], **kw)
+    return make_hinf(m["Phi"], m["C"], m["Q"], m["R"], gamma=gamma, Gamma=m["Gamma"], Cz=m["Cz"], P0=m["P0"], **kw)
+
+
+def kalman_params(model):
+    m = model
+    return make_kalman(m["Phi"], m["C"], m["Q"], m["R"], Gamma=m["Gamma"], P0=m["P0"])
 
 
 def optimal_level(model, num_steps=N_STEPS):
     m = model
-    return gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], L=m["L"], P0=m["P0"], num_steps=num_steps, rtol=1e-8)
+    return gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], Cz=m["Cz"], P0=m["P0"], num_steps=num_steps, rtol=1e-8)
 
 
 @pytest.fixture(scope="module")
@@ -73,31 +80,30 @@ def problem():
 
 @pytest.mark.parametrize("gamma", [np.inf, 1e7])
 def test_large_gamma_reproduces_the_kalman_filter(problem, gamma):
-    """gamma -> inf: the correction gamma^{-2} P L'(I - gamma^{-2} L P L')^{-1} L P vanishes, so estimates, gains
+    """gamma -> inf: the correction gamma^{-2} P Cz'(I - gamma^{-2} Cz P Cz')^{-1} Cz P vanishes, so estimates, gains
     and the Riccati matrix equal kalman.py's (bit for bit at gamma = inf, O(gamma^{-2}) at gamma = 1e7)."""
     model, u, y, _ = problem
     m = model
-    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, ok = run_kalman(kp, KalmanInputs(u, y))
-    fh, oh = run_hinf(hinf_params(model, gamma), HinfInputs(u, y))
+    kp = kalman_params(model)
+    fk, ok = run_kalman(kp, EstimatorInputs(y=y, u_prev=u))
+    fh, oh = run_hinf(hinf_params(model, gamma), EstimatorInputs(y=y, u_prev=u))
     tol = 0.0 if np.isinf(gamma) else 1e-11
     np.testing.assert_allclose(oh.x, ok.x, rtol=0, atol=tol)
     np.testing.assert_allclose(oh.gain, ok.gain, rtol=0, atol=tol)
     np.testing.assert_allclose(fh.P, fk.P, rtol=0, atol=tol)
-    np.testing.assert_allclose(oh.z, ok.x @ m["L"].T, rtol=0, atol=tol)
+    np.testing.assert_allclose(oh.z, ok.x @ m["Cz"].T, rtol=0, atol=tol)
     assert int(fh.violations) == 0 and bool(jnp.all(oh.feasible))
 
 
 def test_correction_inflates_the_riccati_matrix(problem):
-    """For finite gamma the H-infinity matrix dominates the Kalman one (Pb_k >= P_k, the -gamma^{-2} L'L term)
+    """For finite gamma the H-infinity matrix dominates the Kalman one (Pb_k >= P_k, the -gamma^{-2} Cz'Cz term)
     and the gain differs; the gap shrinks monotonically as gamma grows."""
     model, u, y, gs = problem
-    m = model
-    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, _ = run_kalman(kp, KalmanInputs(u, y))
+    kp = kalman_params(model)
+    fk, _ = run_kalman(kp, EstimatorInputs(y=y, u_prev=u))
     gaps = []
     for factor in [1.05, 2.0, 10.0, 100.0]:
-        fh, _ = run_hinf(hinf_params(model, factor * gs.gamma), HinfInputs(u, y))
+        fh, _ = run_hinf(hinf_params(model, factor * gs.gamma), EstimatorInputs(y=y, u_prev=u))
         D = np.asarray(fh.P - fk.P)
         assert np.linalg.eigvalsh(D)[0] > -1e-12
         gaps.append(np.max(np.abs(D)))
@@ -117,8 +123,8 @@ def test_bisection_level_separates_feasible_from_infeasible(problem):
     assert float(gs.gamma - gs.lower) <= 1e-8 * float(gs.gamma)
     for factor, expect_ok in [(1 - 1e-4, False), (1 + 1e-4, True), (0.5, False), (3.0, True)]:
         gamma = factor * gs.gamma
-        final, out = run_hinf(hinf_params(model, gamma), HinfInputs(u, y))
-        seq = hinf_riccati_sequence(m["P0"], m["Phi"], m["C"], m["L"], m["Q"], m["R"], gamma, N_STEPS)
+        final, out = run_hinf(hinf_params(model, gamma), EstimatorInputs(y=y, u_prev=u))
+        seq = hinf_riccati_sequence(m["P0"], m["Phi"], m["C"], m["Cz"], m["Q"], m["R"], gamma, N_STEPS)
         assert (int(final.violations) == 0) == expect_ok
         assert bool(jnp.all(seq.feasible)) == expect_ok
         assert bool(jnp.all(out.feasible)) == expect_ok
@@ -127,17 +133,17 @@ def test_bisection_level_separates_feasible_from_infeasible(problem):
 
 
 def test_bisection_lower_bracket_and_longer_horizon():
-    """The level is at least sqrt(lambda_max(L P_0 L')) (first-step bound) and grows with the horizon; the
-    steady-state recursion converges and is feasible just above the long-horizon level, not below it."""
+    """The level is at least sqrt(lambda_max(Cz P_0 Cz')) (first-step bound; P_0 the first Kalman a-posteriori
+    matrix, from the prior P0 without prediction) and grows with the horizon; the steady-state recursion converges
+    and is feasible just above the long-horizon level, not below it."""
     model, _, _ = make_problem(1)
     m = model
     short, long = optimal_level(model, 5), optimal_level(model, 400)
     assert float(short.gamma) <= float(long.gamma) * (1 + 1e-7)
-    P1 = m["Phi"] @ m["P0"] @ m["Phi"].T + m["Q"]
-    P_first = np.linalg.inv(np.linalg.inv(P1) + m["C"].T @ np.linalg.solve(m["R"], m["C"]))
-    assert float(short.gamma) > np.sqrt(np.max(np.linalg.eigvalsh(m["L"] @ P_first @ m["L"].T)))
-    above = hinf_steady_state(m["Phi"], m["C"], m["L"], m["Q"], m["R"], 1.01 * long.gamma, P_init=m["P0"])
-    below = hinf_steady_state(m["Phi"], m["C"], m["L"], m["Q"], m["R"], 0.99 * long.gamma, P_init=m["P0"])
+    P_first = np.linalg.inv(np.linalg.inv(m["P0"]) + m["C"].T @ np.linalg.solve(m["R"], m["C"]))
+    assert float(short.gamma) > np.sqrt(np.max(np.linalg.eigvalsh(m["Cz"] @ P_first @ m["Cz"].T)))
+    above = hinf_steady_state(m["Phi"], m["C"], m["Cz"], m["Q"], m["R"], 1.01 * long.gamma, P_init=m["P0"])
+    below = hinf_steady_state(m["Phi"], m["C"], m["Cz"], m["Q"], m["R"], 0.99 * long.gamma, P_init=m["P0"])
     assert bool(above.converged) and bool(above.feasible)
     assert not bool(below.feasible)
     with pytest.raises(ValueError, match="gamma"):
@@ -146,36 +152,54 @@ def test_bisection_lower_bracket_and_longer_horizon():
     np.testing.assert_allclose(ss.gain, above.gain)
 
 
+@pytest.mark.parametrize("gamma", [np.inf, 50.0])
+def test_steady_state_converged_means_the_stabilising_solution(gamma):
+    """``converged`` of hinf_steady_state means the stabilising solution was found (issue 13): an unstable mode that
+    Q does not excite (Phi = diag(1.5, 0.5), C = [[1, 1]], Q = diag(0, 0.01)) gets the stable filter from the default
+    positive definite start, flagged converged; an undetectable mode on the unit circle (Phi = diag(1, 0.5),
+    C = [[0, 1]]) is flagged not converged (before, both reported converged = True)."""
+    R, Cz = np.eye(1), np.eye(2)
+    Phi, C, Q = np.diag([1.5, 0.5]), np.array([[1.0, 1.0]]), np.diag([0.0, 0.01])
+    sol = hinf_steady_state(Phi, C, Cz, Q, R, gamma)
+    filter_matrix = (np.eye(2) - np.asarray(sol.gain) @ C) @ Phi
+    assert bool(sol.converged) and np.max(np.abs(np.linalg.eigvals(filter_matrix))) < 1
+    undetectable = hinf_steady_state(np.diag([1.0, 0.5]), np.array([[0.0, 1.0]]), Cz, np.eye(2), R, gamma)
+    assert not bool(undetectable.converged)
+
+
 # ---------------------------------------------------------------------------------------------
 # worst-case gain
 
 
 def error_map(model, T=N_STEPS, kalman=False):
-    """``errors(d, gamma)``: d = (delta, w_hat, v_hat) -> (z_k - z_hat_k)_k with x_{-1} = x0 + P0^{1/2} delta,
-    w = Q^{1/2} w_hat, v = R^{1/2} v_hat, so the denominator of the H-infinity ratio is |d|^2. ``kalman``: the
-    Kalman filter instead (gamma ignored)."""
+    """``errors(d, gamma)``: d = (delta, w_hat, v_hat) -> (z_k - z_hat_k)_k for k = 0 .. T-1 with the state of the
+    first measurement x_0 = x0 + P0^{1/2} delta, x_k = Phi x_{k-1} + Q^{1/2} w_hat_k (k >= 1) and
+    y_k = C x_k + R^{1/2} v_hat_k, so the denominator of the H-infinity ratio is |d|^2. ``kalman``: the Kalman
+    filter instead (gamma ignored)."""
     m = {k: jnp.asarray(v) for k, v in model.items()}
     n, p = m["Phi"].shape[0], m["C"].shape[0]
     S0, Sq, Sr = (jnp.linalg.cholesky(m[k]) for k in ("P0", "Q", "R"))
     base = hinf_params(model, 1.0)
-    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
+    kp = kalman_params(model)
     u = jnp.zeros((T, 1))
 
     def errors(d, gamma):
-        delta, w, v = d[:n], d[n : n + T * n].reshape(T, n), d[n + T * n :].reshape(T, p)
+        delta, w, v = d[:n], d[n : n + (T - 1) * n].reshape(T - 1, n), d[n + (T - 1) * n :].reshape(T, p)
 
-        def plant(x, wv):
-            x = m["Phi"] @ x + Sq @ wv[0]
-            return x, (x, m["C"] @ x + Sr @ wv[1])
+        def plant(x, w_k):
+            x = m["Phi"] @ x + Sq @ w_k
+            return x, x
 
-        _, (xs, ys) = jax.lax.scan(plant, base.x0 + S0 @ delta, (w, v))
+        x_first = base.x0 + S0 @ delta
+        xs = jnp.concatenate([x_first[None], jax.lax.scan(plant, x_first, w)[1]])
+        inputs = EstimatorInputs(y=xs @ m["C"].T + v @ Sr.T, u_prev=u)
         if kalman:
-            _, out = run(kalman_filter, kp, KalmanInputs(u, ys))
+            _, out = run(kalman_filter, kp, inputs)
         else:
-            _, out = run(hinf_filter, dataclasses.replace(base, gamma=gamma), HinfInputs(u, ys))
-        return ((xs - out.x) @ m["L"].T).ravel()
+            _, out = run(hinf_filter, dataclasses.replace(base, gamma=gamma), inputs)
+        return ((xs - out.x) @ m["Cz"].T).ravel()
 
-    return errors, n + T * (n + p)
+    return errors, n + (T - 1) * n + T * p
 
 
 def worst_case_ratio(errors, dim, gamma):
@@ -205,7 +229,7 @@ def test_exact_worst_case_gain_below_gamma_squared(problem):
 @pytest.mark.slow
 def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(problem):
     """Random unit-energy disturbances and 40 steps of normalised jax.grad ascent on the ratio
-    sum |z - z_hat|^2 / (|x_{-1} - x0|^2_{P0^{-1}} + sum |w|^2_{Q^{-1}} + sum |v|^2_{R^{-1}}): every ratio stays
+    sum |z - z_hat|^2 / (|x_0 - x0|^2_{P0^{-1}} + sum_{k>=1} |w_k|^2_{Q^{-1}} + sum |v|^2_{R^{-1}}): every ratio stays
     below gamma^2 (gamma = 1.01 gamma*), and the ascent climbs to the exact worst case sigma_max^2."""
     model, _, _, gs = problem
     gamma = 1.01 * float(gs.gamma)
@@ -243,12 +267,12 @@ def test_adversarial_disturbances_by_gradient_ascent_stay_below_gamma_squared(pr
 def test_eager_equals_jit(problem):
     model, u, y, gs = problem
     params = hinf_params(model, 1.2 * gs.gamma)
-    fe, oe = run(hinf_filter, params, HinfInputs(u, y))
-    fj, oj = jax.jit(lambda p, i: run(hinf_filter, p, i))(params, HinfInputs(u, y))
+    fe, oe = run(hinf_filter, params, EstimatorInputs(y=y, u_prev=u))
+    fj, oj = jax.jit(lambda p, i: run(hinf_filter, p, i))(params, EstimatorInputs(y=y, u_prev=u))
     for a, b in zip(jax.tree_util.tree_leaves((fe, oe)), jax.tree_util.tree_leaves((fj, oj)), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
     m = model
-    gj = jax.jit(lambda Phi: gamma_bisection(Phi, m["C"], m["Q"], m["R"], L=m["L"], P0=m["P0"],
+    gj = jax.jit(lambda Phi: gamma_bisection(Phi, m["C"], m["Q"], m["R"], Cz=m["Cz"], P0=m["P0"],
                                              num_steps=N_STEPS, rtol=1e-8))(jnp.asarray(m["Phi"]))  # fmt: skip
     np.testing.assert_allclose(gj.gamma, gs.gamma, rtol=1e-12)
 
@@ -261,7 +285,7 @@ def test_vmap_batched_equals_looped(problem):
     base = hinf_params(model, 1.0)
 
     def one(gamma, yk):
-        return run(hinf_filter, dataclasses.replace(base, gamma=gamma), HinfInputs(u, yk))
+        return run(hinf_filter, dataclasses.replace(base, gamma=gamma), EstimatorInputs(y=yk, u_prev=u))
 
     fb, ob = jax.jit(jax.vmap(one))(gammas, ys)
     one_jit = jax.jit(one)
@@ -285,7 +309,7 @@ def test_grad_finite_and_correct_wrt_gamma_and_q(problem):
 
     def loss(gamma, q_scale):
         params = dataclasses.replace(base, gamma=gamma, Q=q_scale * base.Q)
-        _, out = run(hinf_filter, params, HinfInputs(u, y))
+        _, out = run(hinf_filter, params, EstimatorInputs(y=y, u_prev=u))
         return jnp.sum((out.z[:, 0] - y[:, 0]) ** 2)
 
     args = (1.5 * gs.gamma, jnp.asarray(1.3))
@@ -299,11 +323,10 @@ def test_grad_finite_and_correct_wrt_gamma_and_q(problem):
 def test_missing_measurements_are_skipped_and_counted(problem):
     """NaN measurements: skipped as in the Kalman filter (equal at gamma = inf), counted in state.missing."""
     model, u, y, _ = problem
-    m = model
     y = y.at[[3, 7], 0].set(jnp.nan).at[10].set(jnp.nan)
-    kp = make_kalman(m["Phi"], m["Gamma"], m["C"], m["Q"], m["R"], P0=m["P0"])
-    fk, ok = run_kalman(kp, KalmanInputs(u, y))
-    fh, oh = run_hinf(hinf_params(model, np.inf), HinfInputs(u, y))
+    kp = kalman_params(model)
+    fk, ok = run_kalman(kp, EstimatorInputs(y=y, u_prev=u))
+    fh, oh = run_hinf(hinf_params(model, np.inf), EstimatorInputs(y=y, u_prev=u))
     assert int(fh.missing) == int(fk.missing) == 4
     np.testing.assert_array_equal(oh.x, ok.x)
 
@@ -319,7 +342,7 @@ def test_missing_measurements_are_skipped_and_counted(problem):
         (dict(Q=-np.eye(3)), "Q"),
         (dict(R=np.zeros((2, 2))), "R"),
         (dict(C=np.ones((2, 4))), "C"),
-        (dict(L=np.ones((1, 2))), "L"),
+        (dict(Cz=np.ones((1, 2))), "Cz"),
         (dict(P0=np.array([[1.0, 2.0, 0], [0, 1, 0], [0, 0, 1]])), "P0"),
         (dict(Gamma=np.ones((2, 1))), "Gamma"),
         (dict(gamma=0.0), "gamma"),
@@ -333,7 +356,7 @@ def test_bad_inputs_raise_value_error_naming_the_argument(change, name):
     args = dict(model, gamma=1.0)
     args.update(change)
     with pytest.raises(ValueError, match=name):
-        make_hinf(args["Phi"], args["Gamma"], args["C"], args["Q"], args["R"], gamma=args["gamma"], L=args["L"],
+        make_hinf(args["Phi"], args["C"], args["Q"], args["R"], gamma=args["gamma"], Gamma=args["Gamma"], Cz=args["Cz"],
                   P0=args["P0"])  # fmt: skip
 
 
@@ -348,8 +371,8 @@ def test_gamma_bisection_validates_its_inputs():
         gamma_bisection(m["Phi"], m["C"], m["Q"], m["R"], num_steps=0)
 
 
-def test_vehicle_lateral_speed_seed004_eq31():
-    """Seed 004 Sec. 4.2, eq. 31: bicycle model (a1..a4 as printed, v_x = 15 m/s), yaw rate measured at 100 Hz,
+def test_vehicle_lateral_speed_liu_peng2002_eq31():
+    """Liu & Peng 2002 Sec. 4.2, eq. 31: bicycle model (a1..a4 as printed, v_x = 15 m/s), yaw rate measured at 100 Hz,
     disturbance d on the lateral-speed equation, estimated z = v_y. ZOH-discretised; the H-infinity filter at
     1.01 gamma* keeps its exact worst-case ratio below gamma^2 while the Kalman filter's exceeds gamma*^2."""
     import scipy.linalg
@@ -358,8 +381,9 @@ def test_vehicle_lateral_speed_seed004_eq31():
     B = np.array([[2 * 51000 / 1700, 1.0], [2 * 1.14 * 51000 / 3200, 0.0]])  # [B_u, B_d]
     M = scipy.linalg.expm(np.block([[A, B], [np.zeros((2, 4))]]) * 0.01)
     Phi, Gu, Gd = M[:2, :2], M[:2, 2:3], M[:2, 3:4]
-    model = dict(Phi=Phi, Gamma=Gu, C=np.array([[0.0, 1.0]]), Q=Gd @ Gd.T + 1e-8 * np.eye(2), R=np.array([[1e-4]]),
-                 L=np.array([[1.0, 0.0]]), P0=1e-2 * np.eye(2))  # fmt: skip
+    Q = Gd @ Gd.T + 1e-8 * np.eye(2)  # P0 below: the prior of x_0 from x_{-1} with covariance 1e-2 I
+    model = dict(Phi=Phi, Gamma=Gu, C=np.array([[0.0, 1.0]]), Q=Q, R=np.array([[1e-4]]), Cz=np.array([[1.0, 0.0]]),
+                 P0=1e-2 * Phi @ Phi.T + Q)  # fmt: skip
     T = 150
     gs = optimal_level(model, T)
     assert bool(gs.found)

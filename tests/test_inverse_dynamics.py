@@ -1,4 +1,4 @@
-"""Liu & Peng (seed 004) inverse-dynamics observer: Lemmas 3.1-3.6, Fact 3.5, §4.1 eq. 28-30."""
+"""Liu & Peng 2002 inverse-dynamics observer: Lemmas 3.1-3.6, Fact 3.5, §4.1 eq. 28-30."""
 
 import jax
 import jax.numpy as jnp
@@ -9,7 +9,7 @@ from jax.test_util import check_grads
 
 from jaxobs.lti import c2d, ss
 from jaxobs.observers import inverse_dynamics as ido
-from jaxobs.observers.base import run
+from jaxobs.observers.base import EstimatorInputs, run
 
 # §4.2 printed a_i, used here only as a concrete §4.1 plant (eq. 28)
 A1, A2, A3, A4 = -9.754, -14.03, 0.5901, -12.622
@@ -34,18 +34,15 @@ def paper_basis(F2, rho):
     return np.array([[f, 1], [1, -f]]) / s, np.array([[0.0, 1.0], [1.0, 0.0]])
 
 
-def simulate(params, A, B, C, d, x0, h, gamma=None):
-    """Exact ZOH plant (d held over each sample) and the observer; returns (x, outputs)."""
+def simulate(params, A, B, C, d, x0, h):
+    """Exact ZOH plant (d held over each sample, no known term Gamma) and the observer; returns (x, outputs)."""
     plant = c2d(ss(A, B, C), h)
-    T = d.shape[0]
 
     def body(x, dk):
         return plant.A @ x + plant.B @ dk, x
 
     _, xs = jax.lax.scan(body, jnp.asarray(x0, float), jnp.asarray(d))
-    ys = xs @ C.T
-    g = jnp.zeros((T, A.shape[0])) if gamma is None else gamma
-    _, out = run(ido.inverse_dynamics_observer, params, ido.InverseDynamicsInputs(ys, g))
+    _, out = run(ido.inverse_dynamics_observer, params, EstimatorInputs(y=xs @ C.T))
     return xs, out
 
 
@@ -267,10 +264,12 @@ def test_lemma_3_3_with_rho():
 
 def test_lowpass_and_constant_disturbance_steady_state():
     """Constant d and Gamma: with a 5-section low-pass (pole 0.9) on y the steady state is exact (d_hat = d, x_hat = x
-    to 1e-8), since the filter has unit DC gain and the backward-Euler fixed point solves A_e x + N w = 0."""
+    to 1e-8), since the filter has unit DC gain and the backward-Euler fixed point solves A_e x + N w = 0. Gamma's
+    value is the input (Bu = I)."""
     A, B, C = siso()
     K = np.array([[47.0], [10.0]])
-    params = ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=1e-2, case=2, lowpass_pole=0.9, lowpass_order=5)
+    params = ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=1e-2, Bu=np.eye(2), case=2, lowpass_pole=0.9,
+                                       lowpass_order=5)  # fmt: skip
     T = 800
     gamma = jnp.tile(jnp.array([0.3, -0.2]), (T, 1))
     # plant with Gamma: x' = A x + Gamma + B d = A x + [B I] [d; Gamma]
@@ -281,9 +280,26 @@ def test_lowpass_and_constant_disturbance_steady_state():
     for k in range(T - 1):
         xs.append(np.asarray(plant.A) @ xs[-1] + np.asarray(plant.B) @ dg[k])
     xs = np.array(xs)
-    _, out = run(ido.inverse_dynamics_observer, params, ido.InverseDynamicsInputs(jnp.asarray(xs @ C.T), gamma))
+    _, out = run(ido.inverse_dynamics_observer, params, EstimatorInputs(y=jnp.asarray(xs @ C.T), u_prev=gamma))
     np.testing.assert_allclose(out.d[-1], [0.7], atol=1e-8)
     np.testing.assert_allclose(out.x[-1], xs[-1], atol=1e-8)
+
+
+def test_known_term_is_bu_times_u_prev():
+    """Gamma(u, y) = Bu u_prev: an input through Bu (2 x 1) gives what its value Bu u_prev given with Bu = I gives;
+    the innovation output is y_k - C x_hat_k."""
+    A, B, C, ys, _ = _sequences(T=50)
+    K, Bu = np.array([[47.0], [10.0]]), np.array([[0.4], [-1.3]])
+    u = jnp.asarray(np.random.default_rng(4).normal(size=(50, 1)))
+    through_bu = ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=1e-2, Bu=Bu, case=2)
+    as_value = ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=1e-2, Bu=np.eye(2), case=2)
+    _, a = run(ido.inverse_dynamics_observer, through_bu, EstimatorInputs(y=ys, u_prev=u))
+    _, b = run(ido.inverse_dynamics_observer, as_value, EstimatorInputs(y=ys, u_prev=u @ Bu.T))
+    _, without = run(ido.inverse_dynamics_observer, through_bu, EstimatorInputs(y=ys))
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.d, b.d, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.innovation, ys - a.x @ C.T, rtol=1e-12, atol=1e-12)  # y_k - C x_hat_k
+    assert np.max(np.abs(np.asarray(a.x - without.x))) > 1e-3  # the input does act
 
 
 # -------------------------------------------------------------------------------------- transforms
@@ -306,24 +322,24 @@ def test_eager_jit_vmap_agree():
     A, B, C, ys, _ = _sequences()
     Ks = [np.array([[47.0], [10.0]]), np.array([[30.0], [2.0]]), np.array([[60.0], [-5.0]])]
     plist = [ido.make_inverse_dynamics(A, B, C, K, -10.0, 1.0, h=1e-2, case=2) for K in Ks]
-    inputs = ido.InverseDynamicsInputs(ys, None)
+    inputs = EstimatorInputs(y=ys)
     obs = ido.inverse_dynamics_observer
     eager = [run(obs, p, inputs)[1] for p in plist]
     run_jit = jax.jit(lambda p, i: run(obs, p, i))
     jitted = [run_jit(p, inputs)[1] for p in plist]
     batched_p = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *plist)
     ys_b = jnp.stack([ys, 1.1 * ys, 0.9 * ys])
-    batched = jax.vmap(lambda p, y: run(obs, p, ido.InverseDynamicsInputs(y, None))[1])(batched_p, ys_b)
+    batched = jax.vmap(lambda p, y: run(obs, p, EstimatorInputs(y=y))[1])(batched_p, ys_b)
     for i, p in enumerate(plist):
         np.testing.assert_allclose(jitted[i].x, eager[i].x, atol=1e-12)
         np.testing.assert_allclose(jitted[i].d, eager[i].d, atol=1e-12)
-        looped = run(obs, p, ido.InverseDynamicsInputs(ys_b[i], None))[1]
+        looped = run(obs, p, EstimatorInputs(y=ys_b[i]))[1]
         np.testing.assert_allclose(batched.x[i], looped.x, atol=1e-12)
         np.testing.assert_allclose(batched.d[i], looped.d, atol=1e-12)
     # one step eagerly vs jit
     s0 = obs.init(plist[0])
-    a = obs.step(plist[0], s0, ido.InverseDynamicsInputs(ys[0]))
-    b = jax.jit(obs.step)(plist[0], s0, ido.InverseDynamicsInputs(ys[0]))
+    a = obs.step(plist[0], s0, EstimatorInputs(y=ys[0]))
+    b = jax.jit(obs.step)(plist[0], s0, EstimatorInputs(y=ys[0]))
     np.testing.assert_allclose(a[1].x, b[1].x, atol=1e-14)
 
 
@@ -346,7 +362,7 @@ def test_fact35_traced_flags_and_grads():
 
     def loss(F1, F2, rho):
         p = ido.make_inverse_dynamics(A, B, C, K, F1, F2, h=1e-2, case=2, rho=jnp.stack([0.0, rho])[None])
-        _, out = run(ido.inverse_dynamics_observer, p, ido.InverseDynamicsInputs(ys, None))
+        _, out = run(ido.inverse_dynamics_observer, p, EstimatorInputs(y=ys))
         return jnp.mean((out.d[10:] - d[10:]) ** 2)
 
     check_grads(loss, (-10.0, 1.0, 0.2), order=1, modes=["rev"], atol=1e-5, rtol=1e-4)

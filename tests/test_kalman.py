@@ -1,6 +1,9 @@
-"""Tests for jaxobs.observers.kalman (classical Kalman filter, seed 000 eq. 27-29) run through
-jaxobs.observers.base.run: a plain NumPy reference filter, steady-state gain, missing (NaN) measurements,
-transformations (jit, vmap) and gradients."""
+"""Tests for jaxobs.observers.kalman (classical Kalman filter, Cortesão 2006 eq. 27-29) run through
+jaxobs.observers.base.run: a plain NumPy reference filter, filterpy and dynamax on the same data and prior,
+steady-state gain, missing (NaN) measurements, transformations (jit, vmap) and gradients.
+
+Prior convention: ``x0, P0`` are the prior of ``x_0``, the state at the first measurement; the first step
+updates without predicting."""
 
 import dataclasses
 
@@ -10,30 +13,34 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxobs.observers.base import run
+from jaxobs.kalman_steps import update
+from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.observers.kalman import (
-    KalmanInputs,
     KalmanParams,
     filter_shared_model,
     kalman_filter,
     make_kalman,
-    measurement_update,
     with_steady_state_gain,
 )
 from jaxobs.riccati import dare, kalman_gain, update_covariance
 
 
 def reference_filter(Phi, Gamma, C, Q, R, x0, P0, u_prev, y):
-    """Plain NumPy Kalman filter (seed 000 eq. 27-29): predict x1 = Phi x + Gamma u, P1 = Phi P Phi' + Q;
-    K = P1 C' S^{-1}; Joseph update. A non-finite measurement component is left out of the update by using
-    only the observed rows of C and the observed block of R; with none observed the update is skipped."""
+    """Plain NumPy Kalman filter (Cortesão 2006 eq. 27-29) from the prior ``(x0, P0)`` of ``x_0``: the first
+    step uses the prior as the prediction, every later one predicts x1 = Phi x + Gamma u_{k-1},
+    P1 = Phi P Phi' + Q (``u_prev[0]`` is not used); K = P1 C' S^{-1}; Joseph update. A non-finite measurement
+    component is left out of the update by using only the observed rows of C and the observed block of R; with
+    none observed the update is skipped."""
     n, p = Phi.shape[0], C.shape[0]
     x, P = np.asarray(x0, float), np.asarray(P0, float)
     xs, x1s, innovations, gains = [], [], [], []
     missing = 0
-    for u_k, y_k in zip(u_prev, y, strict=True):
-        x1 = Phi @ x + Gamma @ np.atleast_1d(u_k)
-        P1 = Phi @ P @ Phi.T + Q
+    for k, (u_k, y_k) in enumerate(zip(u_prev, y, strict=True)):
+        if k == 0:
+            x1, P1 = x, P
+        else:
+            x1 = Phi @ x + Gamma @ np.atleast_1d(u_k)
+            P1 = Phi @ P @ Phi.T + Q
         y_k = np.atleast_1d(y_k)
         obs = np.isfinite(y_k)
         missing += int(np.sum(~obs))
@@ -72,7 +79,7 @@ def make_problem(seed=0, n=3, m=1, p=2, T=60):
 
 
 def simulate(model, u, rng):
-    """Measurements and states of ``model`` driven by ``u`` from a random initial state."""
+    """Measurements and states of ``model`` driven by ``u`` (``u[k]`` is ``u_{k-1}``) from a random ``x_{-1}``."""
     Phi, Gamma, C = model["Phi"], model["Gamma"], model["C"]
     Lq, Lr = np.linalg.cholesky(model["Q"]), np.linalg.cholesky(model["R"])
     x = rng.normal(size=Phi.shape[0])
@@ -85,7 +92,11 @@ def simulate(model, u, rng):
 
 
 def params_of(model, **kw):
-    return make_kalman(model["Phi"], model["Gamma"], model["C"], model["Q"], model["R"], **kw)
+    return make_kalman(model["Phi"], model["C"], model["Q"], model["R"], Gamma=model["Gamma"], **kw)
+
+
+def inputs_of(u, y):
+    return EstimatorInputs(y=jnp.asarray(y), u_prev=jnp.asarray(u))
 
 
 def reference_of(model, params, u, y):
@@ -98,14 +109,15 @@ def reference_of(model, params, u, y):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_run_matches_numpy_reference_seed000_eq27_29():
+def test_run_matches_numpy_reference_eq27_29():
     """run(kalman_filter, ...) equals the NumPy reference filter (eq. 27-29, Joseph form) to 1e-10: estimates,
     a-priori estimates, innovations, gains and the final covariance."""
     model, u, y, _ = make_problem(0)
     x0 = np.array([0.3, -0.2, 0.1])
     params = params_of(model, x0=x0, P0=np.eye(3))
-    final, out = run(kalman_filter, params, KalmanInputs(jnp.asarray(u), jnp.asarray(y)))
+    final, out = run(kalman_filter, params, inputs_of(u, y))
     xs, x1s, innovations, gains, P, missing = reference_of(model, params, u, y)
+    np.testing.assert_allclose(out.x_prior[0], x0, rtol=0, atol=0)  # the first step does not predict
     np.testing.assert_allclose(out.x, xs, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(out.x_prior, x1s, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(out.innovation, innovations, rtol=1e-10, atol=1e-10)
@@ -115,8 +127,8 @@ def test_run_matches_numpy_reference_seed000_eq27_29():
     assert int(final.missing) == missing == 0
 
 
-def test_default_initialisation_p0_is_q0_seed000_sec7_2():
-    """make_kalman defaults: P_{-1} = Q_0 (seed 000 §7.2) and x0 = 0; the filter's init returns them."""
+def test_default_prior_is_zero_mean_with_covariance_q():
+    """make_kalman defaults: the prior of x_0 is x0 = 0, P0 = Q; the filter's init returns them."""
     model, _, _, _ = make_problem(1)
     params = params_of(model)
     np.testing.assert_array_equal(params.P0, model["Q"])
@@ -130,10 +142,10 @@ def test_steady_state_filter_converges_to_time_varying():
     """The steady-state gain (DARE) variant uses K_ss at every step; the time-varying filter's gain converges to
     K_ss and after a long run both give the same estimates."""
     model, u, y, _ = make_problem(2, T=400)
-    inputs = KalmanInputs(jnp.asarray(u), jnp.asarray(y))
+    inputs = inputs_of(u, y)
     tv = params_of(model)
     ss_params = params_of(model, steady_state=True)
-    K_ss = kalman_gain(dare(model["Phi"], model["C"], model["Q"], model["R"]).P, model["C"], model["R"])
+    K_ss = kalman_gain(dare(model["Phi"].T, model["C"].T, model["Q"], model["R"]).X, model["C"], model["R"])
     np.testing.assert_allclose(ss_params.gain, K_ss, rtol=1e-12)
     _, out_tv = run(kalman_filter, tv, inputs)
     _, out_ss = run(kalman_filter, ss_params, inputs)
@@ -151,10 +163,115 @@ def test_steady_state_covariance_is_the_dare_posterior():
     model, u, y, _ = make_problem(3, T=5)
     params = with_steady_state_gain(params_of(model))
     P_post, _ = update_covariance(
-        dare(model["Phi"], model["C"], model["Q"], model["R"]).P, jnp.asarray(model["C"]), jnp.asarray(model["R"])
+        dare(model["Phi"].T, model["C"].T, model["Q"], model["R"]).X, jnp.asarray(model["C"]), jnp.asarray(model["R"])
     )
-    final, _ = run(kalman_filter, params, KalmanInputs(jnp.asarray(u), jnp.asarray(y)))
+    final, _ = run(kalman_filter, params, inputs_of(u, y))
     np.testing.assert_allclose(final.P, P_post, rtol=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------
+# peers: filterpy and dynamax on the same data and prior
+
+
+@jax.jit
+def run_with_covariances(params, inputs):
+    """run(kalman_filter, ...) that also stacks the a-posteriori covariance of every step."""
+
+    def body(state, step_inputs):
+        state, out = kalman_filter.step(params, state, step_inputs)
+        return state, (out, state.P)
+
+    return jax.lax.scan(body, kalman_filter.init(params), inputs)[1]
+
+
+def peer_problem(with_inputs, seed=15, T=40):
+    """A model with one input (or none: no Gamma), data simulated from it, and the prior ``(x_prev, P_prev)`` of
+    ``x_{-1}`` that filterpy starts from (it predicts before every update)."""
+    model, u, y, _ = make_problem(seed, T=T)
+    rng = np.random.default_rng(seed + 1)
+    if not with_inputs:
+        model = dict(model, Gamma=np.zeros((3, 1)))
+        u = np.zeros_like(u)
+        y = simulate(model, u, rng)[0]
+    G = rng.normal(size=(3, 3))
+    return model, u, y, rng.normal(size=3), G @ G.T + 0.5 * np.eye(3)
+
+
+@pytest.mark.parametrize("with_inputs", [True, False], ids=["inputs", "no-inputs"])
+def test_equals_filterpy_and_dynamax_on_the_same_data_and_prior(with_inputs):
+    """The Kalman filter equals filterpy's KalmanFilter (to 1e-10) and dynamax's lgssm_filter (to 1e-8: dynamax adds
+    1e-9 I to the innovation covariance it solves with) on the same data: estimates and covariances at every step
+    (and filterpy's a-priori estimates, innovations and gains), with one input and, without inputs, as the plain
+    filter (no Gamma, EstimatorInputs(y=...) only).
+
+    Priors: filterpy predicts then updates at every step, so it starts from a prior of x_{-1}, (x_prev, P_prev);
+    jaxobs and dynamax take the prior of x_0, that prior advanced one step: x0 = Phi x_prev + Gamma u_{-1},
+    P0 = Phi P_prev Phi' + Q. dynamax's transition into x_t uses inputs[t], so its inputs are jaxobs' u_prev."""
+    filterpy_kalman = pytest.importorskip("filterpy.kalman")
+    lgssm = pytest.importorskip("dynamax.linear_gaussian_ssm")
+    model, u, y, x_prev, P_prev = peer_problem(with_inputs)
+    Phi, Gamma, C, Q, R = (model[k] for k in ("Phi", "Gamma", "C", "Q", "R"))
+    x0, P0 = Phi @ x_prev + Gamma @ u[0], Phi @ P_prev @ Phi.T + Q
+    if with_inputs:
+        params = params_of(model, x0=x0, P0=P0)
+        inputs = EstimatorInputs(y=jnp.asarray(y), u_prev=jnp.asarray(u))
+    else:
+        params = make_kalman(Phi, C, Q, R, x0=x0, P0=P0)
+        inputs = EstimatorInputs(y=jnp.asarray(y))
+    out, P = run_with_covariances(params, inputs)
+
+    kf = filterpy_kalman.KalmanFilter(dim_x=3, dim_z=2, dim_u=1 if with_inputs else 0)
+    kf.x, kf.P, kf.F, kf.H, kf.Q, kf.R = x_prev.copy(), P_prev.copy(), Phi, C, Q, R
+    kf.B = Gamma if with_inputs else None
+    fp = {name: [] for name in ("x", "P", "x_prior", "y", "K")}
+    for u_k, y_k in zip(u, y, strict=True):
+        kf.predict(u=u_k if with_inputs else None)
+        kf.update(y_k)
+        for name, values in fp.items():
+            values.append(np.array(getattr(kf, name)))
+    for name, got in (("x", out.x), ("P", P), ("x_prior", out.x_prior), ("y", out.innovation), ("K", out.gain)):
+        np.testing.assert_allclose(got, np.stack(fp[name]), rtol=1e-10, atol=1e-10, err_msg=f"filterpy {name}")
+
+    dx_params = lgssm.ParamsLGSSM(
+        initial=lgssm.ParamsLGSSMInitial(mean=jnp.asarray(x0), cov=jnp.asarray(P0)),
+        dynamics=lgssm.ParamsLGSSMDynamics(weights=jnp.asarray(Phi), bias=jnp.zeros(3),
+                                           input_weights=jnp.asarray(Gamma if with_inputs else np.zeros((3, 0))),
+                                           cov=jnp.asarray(Q)),
+        emissions=lgssm.ParamsLGSSMEmissions(weights=jnp.asarray(C), bias=jnp.zeros(2),
+                                             input_weights=jnp.zeros((2, 1 if with_inputs else 0)),
+                                             cov=jnp.asarray(R)),
+    )  # fmt: skip
+    post = lgssm.lgssm_filter(dx_params, jnp.asarray(y), jnp.asarray(u) if with_inputs else None)
+    # dynamax adds 1e-9 I to the innovation covariance before each solve (its psd_solve), so it agrees to ~1e-9
+    np.testing.assert_allclose(out.x, post.filtered_means, rtol=1e-8, atol=1e-8, err_msg="dynamax means")
+    np.testing.assert_allclose(P, post.filtered_covariances, rtol=1e-8, atol=1e-8, err_msg="dynamax covariances")
+
+
+def test_plain_filter_without_inputs_takes_y_only():
+    """A model without inputs (no Gamma): Gamma has shape (n, 0), run, filter_shared_model and the steady-state
+    filter take EstimatorInputs(y=...) only; the estimates equal the NumPy reference with a zero input, and an
+    input given to such a model is rejected."""
+    model, _, y, _ = make_problem(16, T=30)
+    Phi, C, Q, R = (model[k] for k in ("Phi", "C", "Q", "R"))
+    x0 = np.array([0.5, -0.3, 0.2])
+    params = make_kalman(Phi, C, Q, R, x0=x0, P0=2.0 * Q)
+    assert params.Gamma.shape == (3, 0)
+    run_y = jax.jit(lambda p, y_: run(kalman_filter, p, EstimatorInputs(y=y_)))
+    final, out = run_y(params, jnp.asarray(y))
+    reference = lambda y_: reference_filter(Phi, np.zeros((3, 1)), C, Q, R, x0, 2.0 * Q, np.zeros((30, 1)), y_)
+    xs, *_, P, _ = reference(y)
+    np.testing.assert_allclose(out.x, xs, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(final.P, P, rtol=1e-10, atol=1e-12)
+    shared_final, shared = jax.jit(filter_shared_model)(params, EstimatorInputs(y=jnp.stack([y, -y])))
+    np.testing.assert_allclose(shared.x[0], out.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(shared.x[1], reference(-y)[0], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(shared_final.P[1], P, rtol=1e-10, atol=1e-12)
+    ss = make_kalman(Phi, C, Q, R, steady_state=True)
+    _, out_ss = run_y(ss, jnp.asarray(y))
+    assert out_ss.x.shape == (30, 3) and np.all(np.isfinite(np.asarray(out_ss.x)))
+    assert kalman_filter.linear(ss).Gamma.shape == (3, 0)
+    with pytest.raises(ValueError, match=r"^inputs\.u_prev\b"):
+        run(kalman_filter, params, EstimatorInputs(y=jnp.asarray(y), u_prev=jnp.zeros((30, 1))))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -170,7 +287,7 @@ def test_nan_measurements_skip_the_update_single_output():
     nan_steps = [0, 3, 4, 5, 17, 30, 49]
     y[nan_steps, 0] = np.nan
     params = params_of(model, x0=np.ones(3))
-    final, out = run(kalman_filter, params, KalmanInputs(jnp.asarray(u), jnp.asarray(y)))
+    final, out = run(kalman_filter, params, inputs_of(u, y))
     xs, x1s, innovations, gains, P, missing = reference_of(model, params, u, y)
     assert missing == len(nan_steps) == int(final.missing)
     np.testing.assert_allclose(out.x, xs, rtol=1e-10, atol=1e-10)
@@ -190,7 +307,7 @@ def test_partial_nan_conditions_on_observed_components():
     y[[5, 20], 1] = np.nan
     y[[13, 14], :] = np.nan
     params = params_of(model)
-    final, out = run(kalman_filter, params, KalmanInputs(jnp.asarray(u), jnp.asarray(y)))
+    final, out = run(kalman_filter, params, inputs_of(u, y))
     xs, x1s, innovations, gains, P, missing = reference_of(model, params, u, y)
     assert int(final.missing) == missing == 3 + 2 + 4
     np.testing.assert_allclose(out.x, xs, rtol=1e-10, atol=1e-10)
@@ -200,7 +317,7 @@ def test_partial_nan_conditions_on_observed_components():
     assert np.all(np.isfinite(np.asarray(out.x)))
 
 
-def test_measurement_update_one_missing_component_is_exact_conditioning():
+def test_update_one_missing_component_is_exact_conditioning():
     """Single update, 2 outputs, non-diagonal R, second component NaN: x and P equal the Gaussian conditioning
     on the first component alone (row C[0], variance R[0, 0]); the reported gain has a zero column."""
     rng = np.random.default_rng(6)
@@ -210,7 +327,7 @@ def test_measurement_update_one_missing_component_is_exact_conditioning():
     R = np.array([[0.5, 0.4], [0.4, 0.6]])
     x1 = rng.normal(size=3)
     y = np.array([0.7, np.nan])
-    x, P, K, innovation, n_missing = measurement_update(x1, P1, C, R, y)
+    x, P, K, innovation, n_missing = update(x1, P1, C, R, y)
     c, r = C[0:1], R[0:1, 0:1]
     k = P1 @ c.T / (c @ P1 @ c.T + r)
     np.testing.assert_allclose(x, x1 + k[:, 0] * (0.7 - c @ x1), rtol=1e-12)
@@ -220,7 +337,7 @@ def test_measurement_update_one_missing_component_is_exact_conditioning():
     np.testing.assert_allclose(innovation, [0.7 - (c @ x1)[0], 0.0], rtol=1e-12)
     assert int(n_missing) == 1
     # the full (non-missing) update differs: the correlation with the second component matters
-    x_full, *_ = measurement_update(x1, P1, C, R, np.array([0.7, 0.1]))
+    x_full, *_ = update(x1, P1, C, R, np.array([0.7, 0.1]))
     assert np.max(np.abs(np.asarray(x_full) - np.asarray(x))) > 1e-3
 
 
@@ -232,7 +349,7 @@ def test_steady_state_gain_with_missing_component():
     y[4, 1] = np.nan
     y[8, :] = np.nan
     params = params_of(model, steady_state=True)
-    final, out = run(kalman_filter, params, KalmanInputs(jnp.asarray(u), jnp.asarray(y)))
+    final, out = run(kalman_filter, params, inputs_of(u, y))
     assert int(final.missing) == 3
     innov = np.asarray(out.innovation)
     assert innov[4, 1] == 0.0 and np.all(innov[8] == 0.0)
@@ -263,7 +380,7 @@ def test_filter_shared_model_equals_vmapped_run():
     same data: estimates, a-priori estimates, innovations, gains, final estimates, covariances and counts."""
     model, U, Y = _shared_model_batch(13)
     params = params_of(model, x0=np.array([0.2, -0.1, 0.4]))
-    inputs = KalmanInputs(jnp.asarray(U), jnp.asarray(Y))
+    inputs = inputs_of(U, Y)
     shared_final, shared = jax.jit(filter_shared_model)(params, inputs)
     final, out = jax.jit(jax.vmap(lambda i: run(kalman_filter, params, i)))(inputs)
     for got, want in ((shared, out), (shared_final, final)):
@@ -281,13 +398,14 @@ def test_filter_shared_model_missing_data_keeps_the_schedule():
     Y[0, [4, 11], 1] = np.nan
     Y[1, 7, :] = np.nan
     params = params_of(model)
-    inputs = KalmanInputs(jnp.asarray(U), jnp.asarray(Y))
+    inputs = inputs_of(U, Y)
     final, out = filter_shared_model(params, inputs)
     np.testing.assert_array_equal(final.missing, [2, 2])
     # NumPy: the covariance recursion of eq. 27-29 without missing data, then x = x1 + K_k (y - C x1) masked
+    # (no prediction at the first step: the prior of x_0 is the first a-priori estimate)
     P, gains = np.asarray(params.P0), []
-    for _ in range(Y.shape[1]):
-        P1 = model["Phi"] @ P @ model["Phi"].T + model["Q"]
+    for k in range(Y.shape[1]):
+        P1 = P if k == 0 else model["Phi"] @ P @ model["Phi"].T + model["Q"]
         K = P1 @ model["C"].T @ np.linalg.inv(model["C"] @ P1 @ model["C"].T + model["R"])
         IKC = np.eye(3) - K @ model["C"]
         P = IKC @ P1 @ IKC.T + K @ model["R"] @ K.T
@@ -295,7 +413,7 @@ def test_filter_shared_model_missing_data_keeps_the_schedule():
     for b in range(Y.shape[0]):
         x = np.asarray(params.x0)
         for k, K in enumerate(gains):
-            x1 = model["Phi"] @ x + model["Gamma"] @ U[b, k]
+            x1 = x if k == 0 else model["Phi"] @ x + model["Gamma"] @ U[b, k]
             innovation = np.where(np.isfinite(Y[b, k]), Y[b, k] - model["C"] @ x1, 0.0)
             x = x1 + K @ innovation
             np.testing.assert_allclose(out.x[b, k], x, rtol=1e-10, atol=1e-12)
@@ -316,7 +434,7 @@ def test_run_eager_jit_vmap_agree():
     model, u, y, _ = make_problem(8, T=30)
     y = y.copy()
     y[7, 0] = np.nan
-    inputs = KalmanInputs(jnp.asarray(u), jnp.asarray(y))
+    inputs = inputs_of(u, y)
     scales, x0s = (0.5, 1.0, 3.0), np.random.default_rng(9).normal(size=(3, 3))
     params = [params_of(dict(model, Q=s * model["Q"]), x0=x0) for s, x0 in zip(scales, x0s, strict=True)]
     batched = jax.tree.map(lambda *xs: jnp.stack(xs), *params)
@@ -328,9 +446,9 @@ def test_run_eager_jit_vmap_agree():
             for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(eager), strict=True):
                 np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-13)
     ys = jnp.stack([inputs.y, 2.0 * inputs.y])
-    v_inputs = jax.vmap(lambda y_: run_jit(params[0], KalmanInputs(inputs.u_prev, y_)))(ys)
+    v_inputs = jax.vmap(lambda y_: run_jit(params[0], EstimatorInputs(y=y_, u_prev=inputs.u_prev)))(ys)
     for i in range(2):
-        eager = run(kalman_filter, params[0], KalmanInputs(inputs.u_prev, ys[i]))
+        eager = run(kalman_filter, params[0], EstimatorInputs(y=ys[i], u_prev=inputs.u_prev))
         for a, b in zip(jax.tree.leaves(v_inputs), jax.tree.leaves(eager), strict=True):
             np.testing.assert_allclose(a[i], b, rtol=1e-12, atol=1e-13)
 
@@ -339,7 +457,7 @@ def test_grad_of_estimation_error_wrt_noise_scales():
     """check_grads (rev, order 1) of the summed squared estimation error through run (T = 20) w.r.t. a Q scale and
     an R scale; the gradient is nonzero."""
     model, u, y, x_true = make_problem(10, T=20)
-    inputs = KalmanInputs(jnp.asarray(u), jnp.asarray(y))
+    inputs = inputs_of(u, y)
     base = params_of(model)
 
     @jax.jit
@@ -360,7 +478,7 @@ def test_grad_with_missing_measurements_is_finite_and_correct():
     y = y.copy()
     y[[3, 11], 0] = np.nan
     y[15, :] = np.nan
-    inputs = KalmanInputs(jnp.asarray(u), jnp.asarray(y))
+    inputs = inputs_of(u, y)
     base = params_of(model)
 
     @jax.jit
@@ -377,15 +495,15 @@ def test_make_kalman_rejects_bad_input():
     """Eager validation in make_kalman: ValueError naming the argument."""
     model, _, _, _ = make_problem(11)
     with pytest.raises(ValueError, match=r"^Q\b.*positive semidefinite"):
-        make_kalman(model["Phi"], model["Gamma"], model["C"], -model["Q"], model["R"])
+        make_kalman(model["Phi"], model["C"], -model["Q"], model["R"], Gamma=model["Gamma"])
     with pytest.raises(ValueError, match=r"^R\b.*positive definite"):
-        make_kalman(model["Phi"], model["Gamma"], model["C"], model["Q"], np.zeros((2, 2)))
+        make_kalman(model["Phi"], model["C"], model["Q"], np.zeros((2, 2)), Gamma=model["Gamma"])
     with pytest.raises(ValueError, match=r"^P0\b.*\(3, 2\)"):
-        make_kalman(model["Phi"], model["Gamma"], model["C"], model["Q"], model["R"], P0=np.ones((3, 2)))
+        make_kalman(model["Phi"], model["C"], model["Q"], model["R"], Gamma=model["Gamma"], P0=np.ones((3, 2)))
     with pytest.raises(ValueError, match=r"^Gamma\b.*\(4, 1\)"):
-        make_kalman(model["Phi"], np.ones((4, 1)), model["C"], model["Q"], model["R"])
+        make_kalman(model["Phi"], model["C"], model["Q"], model["R"], Gamma=np.ones((4, 1)))
     with pytest.raises(ValueError, match=r"^C\b.*\(2, 4\)"):
-        make_kalman(model["Phi"], model["Gamma"], np.ones((2, 4)), model["Q"], model["R"])
+        make_kalman(model["Phi"], np.ones((2, 4)), model["Q"], model["R"], Gamma=model["Gamma"])
     with pytest.raises(ValueError, match=r"^Phi\b.*\(3, 2\)"):
-        make_kalman(np.ones((3, 2)), model["Gamma"], model["C"], model["Q"], model["R"])
+        make_kalman(np.ones((3, 2)), model["C"], model["Q"], model["R"], Gamma=model["Gamma"])
     assert isinstance(params_of(model), KalmanParams)

@@ -1,4 +1,4 @@
-"""Liu & Peng (seed 004) §4.2, vehicle lateral speed from yaw rate: eq. 31 from the printed parameters, the
+"""Liu & Peng 2002 §4.2, vehicle lateral speed from yaw rate: eq. 31 from the printed parameters, the
 printed a_i and design claims that do not reproduce, and the `jaxobs reproduce liu-peng2002-vehicle` entry."""
 
 import json

@@ -1,5 +1,5 @@
-"""Tests for jaxobs.lti: c2d with dead time (seed 000 eq. 11-18, seed 001 eq. 51-52), tf2ss, ctrb, obsv,
-dcgain."""
+"""Tests for jaxobs.lti: c2d with dead time (Cortesão 2006 eq. 11-18, the stochastic AOB paper eq. 51-52), tf2ss,
+ctrb, obsv, dcgain."""
 
 import control
 import jax
@@ -11,7 +11,7 @@ import scipy.signal
 
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
 
-# Example 1 force plant (seed 003 eq. 57-61, seed 000 §7): G(s) = k1 / (s (s + p1)) e^{-s Td}
+# Example 1 force plant (the MRAC chapter eq. 57-61, Cortesão 2006 §7): G(s) = k1 / (s (s + p1)) e^{-s Td}
 KS, TP = 3.0, 0.032
 K1, P1 = KS / TP, 1.0 / TP
 H = 0.008
@@ -22,7 +22,7 @@ def force_plant(Ks=KS, Tp=TP):
 
 
 def zoh_closed_form(t):
-    """``(e^{At}, int_0^t e^{As} ds B)`` of the force plant in closed form (seed 001 eq. 51-52)."""
+    """``(e^{At}, int_0^t e^{As} ds B)`` of the force plant in closed form (the stochastic AOB paper eq. 51-52)."""
     e = np.exp(-P1 * t)
     Phi = np.array([[1.0, (1.0 - e) / P1], [0.0, e]])
     Gam = K1 / P1 * np.array([[t + (e - 1.0) / P1], [1.0 - e]])
@@ -75,10 +75,10 @@ def simulate_fine(A, B, C, D, h, tau, u, factor=1000):
 # c2d: structure of the Example 1 model
 
 
-def test_c2d_example1_structure_seed000_eq11_18():
+def test_c2d_example1_structure_cortesao2006_eq11_18():
     """Td = 5h: Phi_r is 7x7 with Phi_1 = e^{Ah} (eq. 15) in closed form, Gamma_1 = full ZOH matrix in the
-    column of slot 1 (eq. 17; seed 001 eq. 51-52), Gamma_0 = 0 (eq. 16, tau' = h), a shift register for the
-    delayed inputs and Gamma_r = e_7 (eq. 18/22)."""
+    column of slot 1 (eq. 17; the stochastic AOB paper eq. 51-52), Gamma_0 = 0 (eq. 16, tau' = h), a shift register
+    for the delayed inputs and Gamma_r = e_7 (eq. 18/22)."""
     sysd = c2d(force_plant(), H, 5 * H)
     Phi, Gam, C, D = (np.asarray(M) for M in (sysd.A, sysd.B, sysd.C, sysd.D))
     assert Phi.shape == (7, 7) and Gam.shape == (7, 1) and C.shape == (1, 7) and D.shape == (1, 1)
@@ -98,7 +98,7 @@ def test_c2d_example1_structure_seed000_eq11_18():
     np.testing.assert_array_equal(D, 0.0)
 
 
-def test_c2d_fractional_delay_gamma0_gamma1_seed000_eq16_17():
+def test_c2d_fractional_delay_gamma0_gamma1_cortesao2006_eq16_17():
     """tau = 2.5h = (d - 1)h + tau' with d = 3, tau' = h/2: Gamma_0 = int_0^{h-tau'} e^{As} ds B on u_{k-3}
     (eq. 16) and Gamma_1 = e^{A(h-tau')} int_0^{tau'} e^{As} ds B on u_{k-4} (eq. 17), in closed form."""
     tau_p = 0.5 * H
@@ -136,7 +136,7 @@ def test_c2d_zero_delay_matches_scipy_cont2discrete():
 
 @pytest.mark.parametrize("tau_over_h", [0.0, 0.3, 1.0, 2.5, 4.0])
 def test_c2d_delay_matches_fine_grid_simulation(tau_over_h):
-    """Seed 000 eq. 11-18: the delay-augmented model reproduces, at the sampling instants, the continuous plant
+    """Cortesão 2006 eq. 11-18: the delay-augmented model reproduces, at the sampling instants, the continuous plant
     driven by a zero-order-held input delayed by tau (independent 1000x finer integration)."""
     rng = np.random.default_rng(int(10 * tau_over_h))
     u = rng.normal(size=(25, 1))
@@ -150,7 +150,7 @@ def test_c2d_delay_matches_fine_grid_simulation(tau_over_h):
 
 
 def test_c2d_mimo_with_feedthrough_and_delay_matches_fine_grid():
-    """MIMO plant with D != 0: c2d routes D u(t - tau) to the slot holding that input (seed 000 eq. 18),
+    """MIMO plant with D != 0: c2d routes D u(t - tau) to the slot holding that input (Cortesão 2006 eq. 18),
     and the output response equals the fine-grid simulation for fractional and whole-sample delays, with the
     minimal and with a padded (n_delay = 4) delay line."""
     rng = np.random.default_rng(5)
@@ -184,7 +184,7 @@ def test_c2d_padding_keeps_input_output_response(tau_over_h):
 @pytest.mark.slow
 def test_c2d_traced_delay_jit_and_vmap_equal_eager():
     """A traced dead time (fixed n_delay = 6): ``jax.jit(lambda tau: c2d(sys, h, tau, n_delay=6))`` equals eager,
-    and vmap over an array of delays equals a Python loop, for every matrix of the model (seed 000 eq. 11-18).
+    and vmap over an array of delays equals a Python loop, for every matrix of the model (Cortesão 2006 eq. 11-18).
     The limit tau <= n_delay * h is tested on both sides in test_c2d_delay_limit_is_n_delay_samples_on_both_sides."""
     sp = force_plant()
     taus = jnp.array([0.0, 0.3, 1.0, 2.5, 4.0, 5.7, 6.0]) * H
@@ -347,7 +347,7 @@ def test_tf2ss_rejects_improper_and_ragged():
 
 
 def test_ctrb_obsv_against_numpy_and_python_control():
-    """ctrb = [B, AB, ..., A^{n-1}B] (seed 000 eq. 46) and obsv = [C; CA; ...; CA^{n-1}], by hand and as
+    """ctrb = [B, AB, ..., A^{n-1}B] (Cortesão 2006 eq. 46) and obsv = [C; CA; ...; CA^{n-1}], by hand and as
     control.ctrb / control.obsv."""
     rng = np.random.default_rng(4)
     A, B, C = rng.normal(size=(4, 4)), rng.normal(size=(4, 2)), rng.normal(size=(3, 4))

@@ -1,4 +1,4 @@
-"""The 1-DOF MJX force plant (jaxobs.mjx.force_1dof) against the analytic plant of seed 003 eq. 56-58."""
+"""The 1-DOF MJX force plant (jaxobs.mjx.force_1dof) against the analytic plant of the MRAC chapter eq. 56-58."""
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +8,8 @@ import pytest
 from _readme import pin
 
 from jaxobs.mjx import CONTROL_PERIOD, ForcePlantParams, load_model, rollout, with_params
-from jaxobs.papers.force_control import EXAMPLE1, force_plant
+from jaxobs.papers.force_control import EXAMPLE1
+from jaxobs.plants import force_plant
 
 T = 120
 PULSE = 60  # 0.48 s at U mm/s: the force steps by Ks * U * PULSE * h
@@ -41,7 +42,7 @@ def analytic_force(u, Ks=EXAMPLE1.Ks, Tp=EXAMPLE1.Tp):
 
 
 def test_nominal_force_step_matches_analytic_plant(nominal, run):
-    """Seed 003 eq. 56-58 (Ks = 3 N/mm, Tp = 32 ms, Td = 5 h, h = 8 ms) is a reduction of the MJX model:
+    """The MRAC chapter eq. 56-58 (Ks = 3 N/mm, Tp = 32 ms, Td = 5 h, h = 8 ms) is a reduction of the MJX model:
     the force step (a 0.48 s, 2 mm/s velocity pulse; step 2.88 N) agrees with RMS difference 0.14 % of the
     step (max 0.21 %), the README's figure; required < 5 %. The rest is semi-implicit Euler at 1 ms and the Ks/kv
     leak."""
@@ -84,12 +85,12 @@ def test_vmap_over_mismatched_stiffness(nominal, run):
     ks = jnp.array([1.5, 3.0, 20.0])
     u = pulse()
 
-    forces = jax.jit(jax.vmap(lambda k: rollout(with_params(model, ForcePlantParams(ks=k)), u).force))(ks)
+    forces = jax.jit(jax.vmap(lambda k: rollout(with_params(model, ForcePlantParams(stiffness=k)), u).force))(ks)
     assert forces.shape == (3, T)
     slope = (forces[:, 50] - forces[:, 40]) / (10 * CONTROL_PERIOD)
     np.testing.assert_allclose(slope / ks, U, rtol=1e-3)
     np.testing.assert_allclose(forces / ks[:, None], jnp.broadcast_to(forces[1] / 3.0, (3, T)), rtol=3e-3, atol=1e-9)
-    _, model_20 = load_model(ForcePlantParams(ks=20.0))
+    _, model_20 = load_model(ForcePlantParams(stiffness=20.0))
     np.testing.assert_allclose(forces[2], run(model_20, u).force, rtol=1e-12, atol=1e-12)
 
 
@@ -103,7 +104,7 @@ def test_vmap_over_noise_seeds_and_tp(nominal):
 
     def one(tp, key):
         noise = jnp.sqrt(EXAMPLE1.R) * jax.random.normal(key, (T,))
-        return rollout(with_params(model, ForcePlantParams(tp=tp)), u, noise=noise), noise
+        return rollout(with_params(model, ForcePlantParams(time_constant=tp)), u, noise=noise), noise
 
     out, noise = jax.jit(jax.vmap(one))(tps, keys)
     np.testing.assert_allclose(out.force - out.force_true, noise, atol=1e-12)
@@ -129,7 +130,7 @@ def test_gradients_finite_and_match_finite_differences(nominal):
     u = pulse(24, 12)
 
     def loss(ks, u):
-        f = rollout(with_params(model, ForcePlantParams(ks=ks)), u).force
+        f = rollout(with_params(model, ForcePlantParams(stiffness=ks)), u).force
         return jnp.sum(f**2)
 
     g_ks, g_u = jax.jit(jax.grad(loss, argnums=(0, 1)))(3.0, u)
@@ -146,12 +147,12 @@ def test_gradients_finite_and_match_finite_differences(nominal):
 def test_bad_inputs_raise(nominal):
     _, model = nominal
     u = jnp.zeros(4)
-    with pytest.raises(ValueError, match=r"\bks\b"):
-        load_model(ForcePlantParams(ks=-3.0))
-    with pytest.raises(ValueError, match=r"\bks\b"):
-        with_params(model, ForcePlantParams(ks=-1.0))
-    with pytest.raises(ValueError, match=r"\btp\b"):
-        load_model(ForcePlantParams(tp=0.0))
+    with pytest.raises(ValueError, match=r"\bstiffness\b"):
+        load_model(ForcePlantParams(stiffness=-3.0))
+    with pytest.raises(ValueError, match=r"\bstiffness\b"):
+        with_params(model, ForcePlantParams(stiffness=-1.0))
+    with pytest.raises(ValueError, match=r"\btime_constant\b"):
+        load_model(ForcePlantParams(time_constant=0.0))
     with pytest.raises(ValueError, match="damping"):
         with_params(model, ForcePlantParams(damping=-0.1))
     with pytest.raises(ValueError, match="servo_gain"):

@@ -1,5 +1,5 @@
-"""Reproductions of the printed numbers (seed 000 §7, seed 001 §4) through `reproduce`, and the README's
-reproduction figures pinned to them (tests/_readme.py)."""
+"""Reproductions of the printed numbers (Cortesão 2006 §7, the stochastic AOB paper §4) through `reproduce`, and the
+README's reproduction figures pinned to them (tests/_readme.py)."""
 
 import json
 
@@ -43,13 +43,13 @@ def test_example1_outputs_written(example1):
 
 
 def test_eq83_state_feedback_gain_all_seven_to_4_decimals(example1):
-    """Seed 000 eq. 83: L_r = [0.1148 -0.0717 -0.0615 -0.0797 -0.1031 -0.1332 -0.1718]."""
+    """Cortesão 2006 eq. 83: L_r = [0.1148 -0.0717 -0.0615 -0.0797 -0.1031 -0.1332 -0.1718]."""
     _, summary = example1
     np.testing.assert_array_equal(np.round(summary["L_r"], 4), cortesao2006.PRINTED_L_R)
 
 
 def test_table1_kalman_gains_nominal_within_1e_3(example1):
-    """Seed 000 Table I with R = 2.1e-2 as printed: max abs error 9.9e-4 (about 0.1 %), the README's figure."""
+    """Cortesão 2006 Table I with R = 2.1e-2 as printed: max abs error 9.9e-4 (about 0.1 %), the README's figure."""
     _, summary = example1
     assert summary["kalman_gains_max_abs_error"] < 1.0e-3
     for name, printed in cortesao2006.PRINTED_TABLE_I.items():
@@ -67,11 +67,9 @@ def test_table1_kalman_gains_with_the_fitted_sigma2_over_r(example1):
     fit = summary["kalman_gains_fit"]
     error = summary["kalman_gains_fit_max_abs_error"]
     assert fit["sigma2_over_r_fit"] == cortesao2006.SIGMA2_OVER_R_FIT
-    plant, L_r = nominal_design()
+    plant, _ = nominal_design()
     for moved in (cortesao2006.SIGMA2_OVER_R_FIT - 1e-4, cortesao2006.SIGMA2_OVER_R_FIT + 1e-4):
-        gains = {
-            f"AOB-{n}": cortesao2006.aob_params(plant, L_r, n, r_scale=1.0 / moved).gain.ravel() for n in (1, 2, 3)
-        }
+        gains = {f"AOB-{n}": cortesao2006.aob_params(plant, n, r_scale=1.0 / moved).gain.ravel() for n in (1, 2, 3)}
         worse = max(np.abs(np.asarray(g) - cortesao2006.PRINTED_TABLE_I[k]).max() for k, g in gains.items())
         assert worse > error
     rounded = {k: np.round(v, 4) for k, v in fit["gains"].items()}
@@ -85,7 +83,7 @@ def test_table1_kalman_gains_with_the_fitted_sigma2_over_r(example1):
 
 
 def test_force_tracking_improves_with_aob_order(example1):
-    """Seed 000 §7.2: "the improvement of the force response as the AOB order increases" under D(t)
+    """Cortesão 2006 §7.2: "the improvement of the force response as the AOB order increases" under D(t)
     of eq. 81-82, and every AOB beats the sensor-based CKF. The RMS errors the README prints are regression
     snapshots (this implementation's, one noise seed), pinned to their printed digits."""
     _, summary = example1
@@ -98,14 +96,14 @@ def test_force_tracking_improves_with_aob_order(example1):
 
 
 def test_noise_sensitivity_grows_with_order(example1):
-    """Seed 000 §7.2: the gains increase with the order, 'being more sensitive to noise'."""
+    """Cortesão 2006 §7.2: the gains increase with the order, 'being more sensitive to noise'."""
     _, summary = example1
     jitter = summary["closed_loop"]["force_jitter"]
     assert jitter["AOB-1"] < jitter["AOB-2"] < jitter["AOB-3"]
 
 
-def test_seed001_ckf_steady_state_force_error(ramp):
-    """Seed 001 eq. 50: Delta F_ss ~= 0.6839 Ks xdot_e = 4.1034 N (Ks = 3, xdot_e = 2) for the
+def test_stochastic_aob_ckf_steady_state_force_error(ramp):
+    """The stochastic AOB paper eq. 50: Delta F_ss ~= 0.6839 Ks xdot_e = 4.1034 N (Ks = 3, xdot_e = 2) for the
     sensor-based CKF; the simulated value equals the closed form to 1e-9 and the printed
     coefficient to its 4 decimals (the README's 4.1032 N and 0.683867 pinned)."""
     _, s = ramp
@@ -116,8 +114,8 @@ def test_seed001_ckf_steady_state_force_error(ramp):
     pin(s["delta_f_ss_coefficient"], r"coefficient ([0-9.]+)\)")
 
 
-def test_seed001_aob_removes_the_steady_state_error(ramp):
-    """Seed 001 §4: 'When the AOB is used, the steady state error disappears' (fixed and adaptive Q)."""
+def test_stochastic_aob_aob_removes_the_steady_state_error(ramp):
+    """The stochastic AOB paper §4: 'When the AOB is used, the steady state error disappears' (fixed and adaptive Q)."""
     out, s = ramp
     pin(abs(s["delta_f_ss_aob"]), r"AOB-1 ΔF_ss ≈ ([0-9.e-]+) N")  # the README's figure (1.2e-9 N)
     assert abs(s["delta_f_ss_aob_adaptive"]) < 1e-11  # 3e-12 N

@@ -17,3 +17,4 @@ def test_readme_tour_runs(capsys):
     out = capsys.readouterr().out
     assert "largest stable Ks: 5.44 N/mm" in out
     assert "held-out loss 5.82 -> 1.98" in out  # the tuning example
+    assert "(200, 2) 10" in out  # the filtering example

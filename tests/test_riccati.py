@@ -1,5 +1,6 @@
-"""Tests for jaxobs.riccati: the Kalman covariance recursion (seed 000 eq. 27-29, Joseph form), its sequence,
-the DARE (doubling + implicit gradients), the Stein solver, and Q/R scale invariance (seed 003 Proposition 1)."""
+"""Tests for jaxobs.riccati: the Kalman covariance recursion (Cortesão 2006 eq. 27-29, Joseph form), its sequence,
+the DARE (doubling + implicit gradients), the Stein solver, and Q/R scale invariance (the MRAC chapter
+Proposition 1)."""
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +14,7 @@ from jax.test_util import check_grads
 from jaxobs.riccati import (
     covariance_sequence,
     dare,
+    filter_dare,
     kalman_gain,
     predict_covariance,
     riccati_step,
@@ -43,7 +45,7 @@ def random_system(rng, n, m, rho=None, r_min=None):
 
 # Compiled once per shape. Eager ``dare``/``covariance_sequence`` retrace their loop bodies on every call
 # (~0.3 s each), so the property tests use these; eager == jit is checked in its own test below.
-dare_jit = jax.jit(dare)
+filter_dare_jit = jax.jit(lambda Phi, C, Q, R: dare(Phi.T, C.T, Q, R))  # the filter DARE of (Phi, C)
 sequence_jit = jax.jit(covariance_sequence, static_argnums=5)
 
 
@@ -55,7 +57,7 @@ def rel_err(a, b):
 # one step
 
 
-def test_riccati_step_equations_seed000_eq27_29():
+def test_riccati_step_equations_cortesao2006_eq27_29():
     """One step: P1 = Phi P Phi' + Q (eq. 28), K = P1 C'(C P1 C' + R)^{-1} (eq. 27), Joseph-form P (eq. 29),
     which for the optimal K equals (I - K C) P1."""
     rng = np.random.default_rng(0)
@@ -92,15 +94,15 @@ def test_update_covariance_is_joseph_form_eq29(n, m):
 
 @pytest.mark.parametrize("n, m", [(1, 1), (5, 2), (20, 4)])
 def test_dare_matches_scipy(n, m):
-    """dare(Phi, C, Q, R).P = scipy.linalg.solve_discrete_are(Phi', C', Q, R) (filter DARE) to 1e-9 relative, with
+    """dare(Phi.T, C.T, Q, R).X = scipy.linalg.solve_discrete_are(Phi', C', Q, R) (filter DARE) to 1e-9 relative, with
     converged True and a small residual, on random stabilisable/detectable systems (some unstable). The systematic
     comparison against an exact reference is tests/test_dare_accuracy.py."""
     Phi, C, Q, R = random_system(np.random.default_rng(1000 * n + m), n, m)
-    sol = dare(Phi, C, Q, R)
+    sol = dare(Phi.T, C.T, Q, R)
     want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)
     assert bool(sol.converged)
     assert float(sol.residual) < 1e-14
-    assert rel_err(sol.P, want) <= 1e-9
+    assert rel_err(sol.X, want) <= 1e-9
 
 
 @given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**32 - 1), rho=st.floats(0.1, 1.3))
@@ -108,14 +110,14 @@ def test_dare_matches_scipy_property(n, m, seed, rho):
     """Property: for random stabilisable/detectable systems the DARE solution equals SciPy's to 1e-9 relative and
     satisfies its own equation (residual flag)."""
     Phi, C, Q, R = random_system(np.random.default_rng(seed), n, m, rho=rho)
-    sol = dare_jit(Phi, C, Q, R)
+    sol = filter_dare_jit(Phi, C, Q, R)
     want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)
     assert bool(sol.converged)
-    assert rel_err(sol.P, want) <= 1e-9
+    assert rel_err(sol.X, want) <= 1e-9
 
 
-def test_dare_example1_table1_noise_seed000():
-    """Example 1 model (seed 000 §7, Td = 5h) with Table I noise Q = 1e-12 I, R = 2.1e-2: a badly scaled DARE
+def test_dare_example1_table1_noise_cortesao2006():
+    """Example 1 model (Cortesão 2006 §7, Td = 5h) with Table I noise Q = 1e-12 I, R = 2.1e-2: a badly scaled DARE
     (closed-loop pole 1 - 7e-6). dare converges with a residual at rounding level and agrees with SciPy to 1e-6
     (SciPy's own error is 2e-7 on this problem, ours 2e-12: benchmarks/dare_accuracy.py, case "CKF")."""
     from jaxobs.lti import c2d, ss
@@ -124,10 +126,10 @@ def test_dare_example1_table1_noise_seed000():
     sysd = c2d(ss([[0.0, 1.0], [0.0, -1.0 / Tp]], [[0.0], [3.0 / Tp]], [[1.0, 0.0]]), h, 5 * h)
     Phi, C = np.asarray(sysd.A), np.asarray(sysd.C)
     Q, R = 1e-12 * np.eye(7), np.array([[2.1e-2]])
-    sol = dare(Phi, C, Q, R)
+    sol = dare(Phi.T, C.T, Q, R)
     assert bool(sol.converged)
     assert float(sol.residual) < 1e-14
-    assert rel_err(sol.P, scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)) < 1e-6
+    assert rel_err(sol.X, scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)) < 1e-6
 
 
 def test_dare_precise_sensor_issue13():
@@ -140,14 +142,14 @@ def test_dare_precise_sensor_issue13():
     Q = g @ g.T
     for r in (1.0, 1e-4, 1e-8, 1e-12):
         R = np.array([[r]])
-        sol = dare(Phi, C, Q, R)
+        sol = dare(Phi.T, C.T, Q, R)
         assert bool(sol.converged), r
-        P = np.asarray(sol.P)
+        P = np.asarray(sol.X)
         for _ in range(200):  # P <- Phi P_post Phi' + Q with the Joseph-form P_post: contracting at the solution
             K = P @ C.T / (C @ P @ C.T + R)
             IKC = np.eye(2) - K @ C
             P = Phi @ (IKC @ P @ IKC.T + K @ R @ K.T) @ Phi.T + Q
-        assert rel_err(sol.P, P) < 1e-14, r
+        assert rel_err(sol.X, P) < 1e-14, r
 
 
 def filter_spectral_radius(Phi, C, R, P):
@@ -180,12 +182,12 @@ def test_dare_converged_means_stabilising_solution_found(case):
     the first three cases reported converged=True with the eigenvalue 1.5 kept, P = 1.8e17 and a rotation kept."""
     _, Phi, C, Q, exists = case
     Phi, C, Q, R = (np.atleast_2d(np.asarray(M, float)) for M in (Phi, C, Q, [[1.0]]))
-    sol = dare(Phi, C, Q, R)
+    sol = dare(Phi.T, C.T, Q, R)
     assert bool(sol.converged) is exists
     if exists:
-        assert filter_spectral_radius(Phi, C, R, sol.P) < 1
+        assert filter_spectral_radius(Phi, C, R, sol.X) < 1
         want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)
-        np.testing.assert_allclose(sol.P, want, rtol=1e-8, atol=1e-12 * max(1.0, np.max(np.abs(want))))
+        np.testing.assert_allclose(sol.X, want, rtol=1e-8, atol=1e-12 * max(1.0, np.max(np.abs(want))))
 
 
 def test_dare_flags_under_jit_and_vmap_equal_eager():
@@ -194,12 +196,12 @@ def test_dare_flags_under_jit_and_vmap_equal_eager():
     cases = [c for c in FLAG_CASES if np.shape(c[1]) == (2, 2) and np.shape(c[2]) == (1, 2)]
     Phi, C, Q = (np.stack([np.asarray(c[k], float) for c in cases]) for k in (1, 2, 3))
     R = np.ones((len(cases), 1, 1))
-    batched = jax.jit(jax.vmap(dare))(Phi, C, Q, R)
+    batched = jax.jit(jax.vmap(lambda Phi, C, Q, R: dare(Phi.T, C.T, Q, R)))(Phi, C, Q, R)
     for i, case in enumerate(cases):
-        eager = dare(Phi[i], C[i], Q[i], R[i])
+        eager = dare(Phi[i].T, C[i].T, Q[i], R[i])
         assert bool(batched.converged[i]) is bool(eager.converged) is case[4], case[0]
         if case[4]:
-            np.testing.assert_allclose(batched.P[i], eager.P, rtol=1e-13, atol=1e-15 * np.max(np.abs(eager.P)))
+            np.testing.assert_allclose(batched.X[i], eager.X, rtol=1e-13, atol=1e-15 * np.max(np.abs(eager.X)))
 
 
 def test_closed_loop_test_by_squaring_near_the_unit_circle():
@@ -234,15 +236,15 @@ def _grad_system():
 
 
 def test_dare_gain_check_grads():
-    """check_grads (fwd and rev, order 1) of the steady-state gain kalman_gain(dare(Phi, C, Q, R).P, C, R) w.r.t. Phi
-    and the factors of Q = G G' and R = H H' (factored so the perturbed covariances stay symmetric): the
+    """check_grads (fwd and rev, order 1) of the steady-state gain kalman_gain(dare(Phi.T, C.T, Q, R).X, C, R) w.r.t.
+    Phi and the factors of Q = G G' and R = H H' (factored so the perturbed covariances stay symmetric): the
     implicit-function JVP/VJP of the DARE agrees with finite differences."""
     Phi, C, G, Hm = _grad_system()
 
     @jax.jit
     def gain(Phi, G, Hm):
         R = Hm @ Hm.T
-        return kalman_gain(dare(Phi, C, G @ G.T + 0.1 * jnp.eye(3), R).P, C, R)
+        return kalman_gain(dare(Phi.T, C.T, G @ G.T + 0.1 * jnp.eye(3), R).X, C, R)
 
     check_grads(gain, (Phi, G, Hm), order=1, modes=("fwd", "rev"))
 
@@ -257,7 +259,7 @@ def test_dare_check_grads_precise_sensor_unstable_plant():
 
     @jax.jit
     def gain(Phi, G):
-        return kalman_gain(dare(Phi, C, G @ G.T + 0.1 * jnp.eye(3), R).P, C, R)
+        return kalman_gain(dare(Phi.T, C.T, G @ G.T + 0.1 * jnp.eye(3), R).X, C, R)
 
     check_grads(gain, (Phi, G), order=1, modes=("fwd", "rev"), eps=1e-6)
 
@@ -267,10 +269,10 @@ def test_dare_gradient_is_implicit():
     implicit rule (custom_linear_solve) and no transposed while loop, and the flag and residual carry no tangent."""
     Phi, C, G, Hm = _grad_system()
     R = Hm @ Hm.T
-    loss = lambda Phi: jnp.sum(dare(Phi, C, G @ G.T, R).P)
+    loss = lambda Phi: jnp.sum(dare(Phi.T, C.T, G @ G.T, R).X)
     jaxpr = str(jax.make_jaxpr(jax.grad(loss))(Phi))
     assert "custom_lin" in jaxpr or "linear_solve" in jaxpr
-    _, tangents = jax.jvp(lambda Phi: dare(Phi, C, G @ G.T, R), (Phi,), (jnp.ones_like(Phi),))
+    _, tangents = jax.jvp(lambda Phi: dare(Phi.T, C.T, G @ G.T, R), (Phi,), (jnp.ones_like(Phi),))
     assert float(jnp.max(jnp.abs(tangents.residual))) == 0.0
 
 
@@ -282,7 +284,7 @@ def test_dare_implicit_gradient_equals_unrolled_recursion():
 
     def implicit(Phi, G, Hm):
         Q, R = G @ G.T, Hm @ Hm.T
-        return jnp.sum(W * kalman_gain(dare(Phi, C, Q, R).P, C, R))
+        return jnp.sum(W * kalman_gain(dare(Phi.T, C.T, Q, R).X, C, R))
 
     def unrolled(Phi, G, Hm):
         Q, R = G @ G.T, Hm @ Hm.T
@@ -300,15 +302,15 @@ def test_dare_implicit_gradient_equals_unrolled_recursion():
 
 
 def test_covariance_sequence_converges_to_dare():
-    """Iterating eq. 27-29 from P_{-1} = Q_0 converges to the DARE: last a-priori P equals dare().P and the last
-    gain equals the steady-state gain kalman_gain(dare().P, C, R)."""
+    """Iterating eq. 27-29 from P_{-1} = Q_0 converges to the DARE: last a-priori P equals dare().X and the last
+    gain equals the steady-state gain kalman_gain(dare().X, C, R)."""
     rng = np.random.default_rng(4)
     Phi, C, Q, R = random_system(rng, 4, 2, rho=1.1)
     seq = covariance_sequence(Q, Phi, C, Q, R, 400)
-    sol = dare(Phi, C, Q, R)
+    sol = dare(Phi.T, C.T, Q, R)
     assert seq.P.shape == (400, 4, 4) and seq.K.shape == (400, 4, 2) and seq.P_prior.shape == (400, 4, 4)
-    np.testing.assert_allclose(seq.P_prior[-1], sol.P, rtol=1e-10)
-    np.testing.assert_allclose(seq.K[-1], kalman_gain(sol.P, C, R), rtol=1e-10)
+    np.testing.assert_allclose(seq.P_prior[-1], sol.X, rtol=1e-10)
+    np.testing.assert_allclose(seq.K[-1], kalman_gain(sol.X, C, R), rtol=1e-10)
     # the first step starts from P_init: P1_0 = Phi P_init Phi' + Q
     np.testing.assert_allclose(seq.P_prior[0], Phi @ Q @ Phi.T + Q, rtol=1e-13)
 
@@ -377,8 +379,8 @@ def test_joseph_update_stays_psd_for_very_precise_measurements(n, m):
 
 
 @given(seed=st.integers(0, 2**32 - 1), log_alpha=st.floats(-3.0, 3.0))
-def test_kalman_gain_scale_invariance_seed003_prop1(seed, log_alpha):
-    """Seed 003 Proposition 1 (eq. 55): scaling Q, R and P_{-1} by alpha > 0 leaves every gain K_k unchanged and
+def test_kalman_gain_scale_invariance_mrac_chapter_prop1(seed, log_alpha):
+    """The MRAC chapter Proposition 1 (eq. 55): scaling Q, R and P_{-1} by alpha > 0 leaves every gain K_k unchanged and
     scales every covariance by alpha."""
     alpha = 10.0**log_alpha
     Phi, C, Q, R = random_system(np.random.default_rng(seed), 3, 2)
@@ -396,14 +398,14 @@ def test_dare_and_sequence_jit_vmap_equal_eager():
     systems = [random_system(rng, 3, 2, rho=r) for r in (0.6, 0.9, 1.15)]
     C, Q, R = systems[0][1:]
     Phis = jnp.asarray(np.stack([s[0] for s in systems]))
-    dare_j = jax.jit(lambda Phi: dare(Phi, C, Q, R))
-    dare_v = jax.jit(jax.vmap(lambda Phi: dare(Phi, C, Q, R)))(Phis)
+    dare_j = jax.jit(lambda Phi: dare(Phi.T, C.T, Q, R))
+    dare_v = jax.jit(jax.vmap(lambda Phi: dare(Phi.T, C.T, Q, R)))(Phis)
     seq_j = jax.jit(lambda Phi: covariance_sequence(Q, Phi, C, Q, R, 30))
     seq_v = jax.jit(jax.vmap(lambda Phi: covariance_sequence(Q, Phi, C, Q, R, 30)))(Phis)
     for i in range(3):
-        eager = dare(Phis[i], C, Q, R)
+        eager = dare(Phis[i].T, C.T, Q, R)
         for got in (dare_j(Phis[i]), jax.tree.map(lambda x, i=i: x[i], dare_v)):
-            np.testing.assert_allclose(got.P, eager.P, rtol=1e-12)
+            np.testing.assert_allclose(got.X, eager.X, rtol=1e-12)
             assert bool(got.converged) == bool(eager.converged) is True
             assert float(got.residual) < 1e-10
         seq = covariance_sequence(Q, Phis[i], C, Q, R, 30)
@@ -467,11 +469,15 @@ def _good():
     ],
 )
 def test_dare_rejects_bad_input(kwargs, name):
-    """Eager validation of dare (DESIGN.md "Errors"): ValueError naming the argument."""
+    """Eager validation of dare (DESIGN.md "Errors"): ValueError naming the argument, in dare's control form
+    ``(A, B) = (Phi', C')`` and in the filter form of filter_dare."""
     args = dict(zip(("Phi", "C", "Q", "R"), _good(), strict=True))
     args.update(kwargs)
-    with pytest.raises(ValueError, match=rf"\b{name}\b"):
-        dare(args["Phi"], args["C"], args["Q"], args["R"])
+    control_name = {"Phi": "A", "C": "B"}.get(name, name)
+    with pytest.raises(ValueError, match=rf"^{control_name}\b"):
+        dare(args["Phi"].T, args["C"].T, args["Q"], args["R"])
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        filter_dare(args["Phi"], args["C"], args["Q"], args["R"])
 
 
 @pytest.mark.parametrize(

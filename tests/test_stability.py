@@ -1,4 +1,4 @@
-"""jaxobs.stability: eq. 59 and eq. 65-66 (seed 000 §6), spectral radius and margins against NumPy,
+"""jaxobs.stability: eq. 59 and eq. 65-66 (Cortesão 2006 §6), spectral radius and margins against NumPy,
 python-control and independent checks."""
 
 import warnings
@@ -9,11 +9,14 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxobs.closed_loop import LinearController, simulate
+from jaxobs.closed_loop import simulate
 from jaxobs.lti import ss
-from jaxobs.observers import active
+from jaxobs.observers import FeedbackParams, LinearObserver, active
+from jaxobs.observers.active import active_observer_controller
+from jaxobs.observers.linear import linear_controller
 from jaxobs.papers.cortesao2006 import aob_params
-from jaxobs.papers.force_control import EXAMPLE1, force_plant, nominal_design
+from jaxobs.papers.force_control import EXAMPLE1, nominal_design, with_feedback
+from jaxobs.plants import force_plant
 from jaxobs.stability import (
     closed_loop_matrix,
     frequency_response,
@@ -25,6 +28,16 @@ from jaxobs.stability import (
 
 control = pytest.importorskip("control")
 margins_jit = jax.jit(stability_margins)  # one compilation per state dimension
+
+
+def _linear(Phi_n, Gamma_n, C, K, L):
+    """The params of the fixed-gain observer-based controller (observer gain K, state feedback L)."""
+    return FeedbackParams(LinearObserver(*(jnp.asarray(M) for M in (Phi_n, Gamma_n, C, K))), jnp.asarray(L))
+
+
+def _aob(plant, L_r, order):
+    """The steady-state AOB-N of Example 1 with its state feedback (Cortesão 2006 eq. 49-50)."""
+    return with_feedback(aob_params(plant, order), L_r)
 
 
 def _random_setup(rng, n=5, m=1, p=1):
@@ -41,7 +54,7 @@ def test_eq59_is_the_closed_loop_in_error_coordinates():
     """Theorem 2: with [x; e] = [x; x - x_hat] the closed-loop matrix is eq. 59 as printed."""
     Phi_n, Gamma_n, C, K, L, dPhi, dGamma = _random_setup(np.random.default_rng(0), m=2, p=2)
     Phi, Gamma = Phi_n + dPhi, Gamma_n + dGamma
-    A = np.asarray(closed_loop_matrix(ss(Phi, Gamma, C, dt=1.0), LinearController(Phi_n, Gamma_n, C, K, L)))
+    A = np.asarray(closed_loop_matrix(ss(Phi, Gamma, C, dt=1.0), linear_controller, _linear(Phi_n, Gamma_n, C, K, L)))
     n = Phi.shape[0]
     I, Z = np.eye(n), np.zeros((n, n))
     T = np.block([[I, Z], [I, -I]])  # its own inverse
@@ -54,7 +67,7 @@ def test_eq66_is_the_loop_in_estimate_error_coordinates():
     """Theorem 3: with [x_hat; e] the loop matrices are eq. 66 and the output matrix [L 0] (eq. 65)."""
     Phi_n, Gamma_n, C, K, L, dPhi, dGamma = _random_setup(np.random.default_rng(1))
     Phi, Gamma = Phi_n + dPhi, Gamma_n + dGamma
-    loop = loop_transfer(ss(Phi, Gamma, C, dt=1.0), LinearController(Phi_n, Gamma_n, C, K, L))
+    loop = loop_transfer(ss(Phi, Gamma, C, dt=1.0), linear_controller, _linear(Phi_n, Gamma_n, C, K, L))
     n = Phi.shape[0]
     I, Z = np.eye(n), np.zeros((n, n))
     S = np.block([[Z, I], [I, -I]])  # [x_hat; e] = S [x; x_hat]
@@ -71,17 +84,17 @@ def test_eq66_is_the_loop_in_estimate_error_coordinates():
 def _aob3_loop(Ks, Tp, dead_time):
     plant, L_r = nominal_design()
     true = force_plant(Ks, Tp, EXAMPLE1.h, dead_time, n_delay=9)
-    return true, aob_params(plant, L_r, 3)
+    return true, _aob(plant, L_r, 3)
 
 
 def test_closed_loop_matrix_is_what_the_simulated_aob_does():
     """The [x; x_hat] recursion of the simulated AOB-3 (closed_loop.simulate) is the matrix of eq. 59,
     also for a true plant with a longer, fractional dead time than the nominal one."""
     true, params = _aob3_loop(1.7, 0.04, 6.4 * EXAMPLE1.h)
-    A = np.asarray(closed_loop_matrix(true, params))
+    A = np.asarray(closed_loop_matrix(true, active_observer_controller, params))
     x0 = np.zeros(true.n_states)
     x0[0] = 1.0
-    trace = simulate(true, params, jnp.zeros(60), x0=jnp.asarray(x0))
+    trace = simulate(true, active_observer_controller, params, jnp.zeros(60), x0=jnp.asarray(x0))
     z = np.hstack([np.asarray(trace.x), np.asarray(trace.controller.x)])
     np.testing.assert_allclose(z[1:], z[:-1] @ A.T, atol=1e-12)
 
@@ -97,9 +110,9 @@ def test_simulation_diverges_exactly_when_the_spectral_radius_exceeds_one():
 
     def rho_and_growth(Ks, Tp, dead):
         true, params = _aob3_loop(Ks, Tp, dead)
-        rho = spectral_radius(closed_loop_matrix(true, params))
+        rho = spectral_radius(closed_loop_matrix(true, active_observer_controller, params))
         x0 = jnp.zeros(true.n_states).at[0].set(1.0)
-        trace = simulate(true, params, jnp.zeros(4000), x0=x0)
+        trace = simulate(true, active_observer_controller, params, jnp.zeros(4000), x0=x0)
         size = jnp.linalg.norm(jnp.hstack([trace.x, trace.controller.x]), axis=1)
         return rho, jnp.log(size[-1] / size[-1001]) / 1000.0
 
@@ -309,9 +322,9 @@ def test_margins_under_jit_vmap_and_grad():
 
 @pytest.mark.slow
 def test_aob_relative_stability_decreases_with_the_order():
-    """Seed 000 §6.2: more active states, more poles near z = 1, less phase and gain margin."""
+    """Cortesão 2006 §6.2: more active states, more poles near z = 1, less phase and gain margin."""
     plant, L_r = nominal_design()
-    margins = [margins_jit(loop_transfer(plant, aob_params(plant, L_r, n))) for n in (1, 2, 3)]
+    margins = [margins_jit(loop_transfer(plant, active_observer_controller, _aob(plant, L_r, n))) for n in (1, 2, 3)]
     pm = [float(m.phase_margin) for m in margins]
     gm = [float(m.gain_margin) for m in margins]
     assert pm[0] > pm[1] > pm[2] > 0 and gm[0] > gm[1] > gm[2] > 1
@@ -320,9 +333,10 @@ def test_aob_relative_stability_decreases_with_the_order():
 
 def test_switched_off_active_state_is_the_ckf_loop():
     plant, L_r = nominal_design()
-    aob = active.set_active(aob_params(plant, L_r, 2), 0.0)
-    ckf = active.make_ckf(plant, L_r, EXAMPLE1.R, q_plant=EXAMPLE1.q_plant, steady_state=True)
-    a, b = margins_jit(loop_transfer(plant, aob)), margins_jit(loop_transfer(plant, ckf))
+    aob = with_feedback(active.set_active(aob_params(plant, 2), 0.0), L_r)
+    ckf = with_feedback(active.make_ckf(plant, EXAMPLE1.R, q_plant=EXAMPLE1.q_plant, steady_state=True), L_r)
+    a = margins_jit(loop_transfer(plant, active_observer_controller, aob))
+    b = margins_jit(loop_transfer(plant, active_observer_controller, ckf))
     assert float(a.spectral_radius) == pytest.approx(float(b.spectral_radius), rel=1e-9)
     assert float(a.gain_margin) == pytest.approx(float(b.gain_margin), rel=1e-6)
 
@@ -330,10 +344,11 @@ def test_switched_off_active_state_is_the_ckf_loop():
 def test_input_gain_mismatch_divides_the_gain_margin():
     """Parametric family: a true input gain g scales the loop transfer function, so GM becomes GM / g."""
     plant, L_r = nominal_design()
-    params = aob_params(plant, L_r, 1)
+    params = _aob(plant, L_r, 1)
 
     def gm(g):
-        return margins_jit(loop_transfer(force_plant(3.0, 0.032, EXAMPLE1.h, 0.04, input_gain=g), params)).gain_margin
+        true = force_plant(3.0, 0.032, EXAMPLE1.h, 0.04, input_gain=g)
+        return margins_jit(loop_transfer(true, active_observer_controller, params)).gain_margin
 
     assert float(gm(1.7)) == pytest.approx(float(gm(1.0)) / 1.7, rel=1e-9)
 
@@ -352,7 +367,7 @@ def test_bad_input():
     with pytest.raises(ValueError, match="SISO"):
         stability_margins(ss(A, np.ones((2, 2)), C, dt=0.1))
     with pytest.raises(ValueError, match=r"^K\b.*\(3, 1\)"):
-        loop_transfer(ss(A, B, C, dt=0.1), LinearController(A, B, C, np.ones((3, 1)), np.ones((1, 2))))
+        loop_transfer(ss(A, B, C, dt=0.1), linear_controller, _linear(A, B, C, np.ones((3, 1)), np.ones((1, 2))))
     plant, L_r = nominal_design()
     with pytest.raises(ValueError, match="steady-state"):
-        loop_transfer(plant, active.make_ckf(plant, L_r, EXAMPLE1.R))
+        loop_transfer(plant, active_observer_controller, with_feedback(active.make_ckf(plant, EXAMPLE1.R), L_r))

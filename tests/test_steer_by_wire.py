@@ -1,4 +1,4 @@
-"""Seed 000 §8 (Example 2, steer-by-wire): realisation, L_r / L_c design, eq. 113-114 and the AOB-1 loop."""
+"""Cortesão 2006 §8 (Example 2, steer-by-wire): realisation, L_r / L_c design, eq. 113-114 and the AOB-1 loop."""
 
 import json
 

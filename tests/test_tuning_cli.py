@@ -16,7 +16,7 @@ def test_default_config_is_the_one_dof_stiffness_problem():
     assert config["problem"] == "force_1dof"
     assert config["plants"]["stiffness_scale"] == [0.5, 1.5]  # +-50 % stiffness mismatch
     assert config["design"]["order"] == 1
-    assert (config["design"]["q_active"], config["design"]["R"]) == (1e-5, 2.1e-2)  # seed 003 eq. 62, 64
+    assert (config["design"]["q_active"], config["design"]["R"]) == (1e-5, 2.1e-2)  # The MRAC chapter eq. 62, 64
     theta = force_tuning.initial_theta(config, force_tuning.nominal_design()[0])
     np.testing.assert_allclose(np.exp(theta["log_q"]), [1e-12] * 7 + [1e-5], rtol=1e-12)
 
@@ -82,10 +82,10 @@ def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
     assert summary["evaluations"] == 3 and summary["rollouts"] == 9
     assert set(summary["heldout"]["tuned"]) >= {"objective", "finite_fraction", "p50", "p90", "max"}
     if kind == "diagonal":
-        search = summary["random_search"]
-        assert search["equal rollouts"]["rollouts"] == 9  # the baseline at as many rollouts
-        assert search["equal time"]["seconds"] <= summary["seconds_tune"]
-        assert search["candidates"] >= 3 and search["spread"] == 3 * 0.2  # the tuner's reach: steps x learning rate
+        found = summary["random_search"]
+        assert found["equal rollouts"]["rollouts"] == 9  # the baseline at as many rollouts
+        assert found["equal time"]["seconds"] <= summary["seconds_tune"]
+        assert found["candidates"] >= 3 and found["spread"] == 3 * 0.2  # the tuner's reach: steps x learning rate
         baselines = {"random search, equal rollouts", "random search, equal time"}
         assert set(summary["heldout"]) == {"hand-set", "tuned", *baselines}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
@@ -111,8 +111,9 @@ def test_spectral_radius_penalty():
     import jax
     import jax.numpy as jnp
 
-    from jaxobs.closed_loop import linear_controller_of
-    from jaxobs.papers.force_control import EXAMPLE1, force_plant
+    from jaxobs.observers.active import active_observer_controller
+    from jaxobs.papers.force_control import EXAMPLE1
+    from jaxobs.plants import force_plant
     from jaxobs.stability import closed_loop_matrix
 
     config = tuning.validate_config(
@@ -121,12 +122,13 @@ def test_spectral_radius_penalty():
     problem = force_tuning.build_problem(config)
     theta = problem.theta0
     plant, L = force_tuning.nominal_design()
-    base = force_tuning.active.make_aob(plant, L, 1, 2.1e-2)
-    ctrl = linear_controller_of(force_tuning.controller(theta, base, plant.n_states, 1))
+    base = force_tuning.active.make_aob(plant, 1, 2.1e-2)
+    ctrl = force_tuning.controller(theta, base, L, plant.n_states, 1)
     rho = [
-        np.max(np.abs(np.linalg.eigvals(np.asarray(closed_loop_matrix(force_plant(ks, tp, EXAMPLE1.h, 0.04), ctrl)))))
+        np.max(np.abs(np.linalg.eigvals(np.asarray(
+            closed_loop_matrix(force_plant(ks, tp, EXAMPLE1.h, 0.04), active_observer_controller, ctrl)))))
         for ks, tp in zip(problem.train["ks"], problem.train["tp"], strict=True)
-    ]
+    ]  # fmt: skip
     expected = np.mean(np.maximum(np.array(rho) - 0.9, 0.0) ** 2)
     assert expected > 0
     assert float(problem.penalty(theta)) == pytest.approx(expected, rel=1e-9)

@@ -1,12 +1,12 @@
 """MuJoCo MJX plants shipped with jaxobs (MJCF under ``jaxobs/mjx/assets``).
 
-``force_1dof``: the 1-DOF robot force-control plant of seeds 000 §7, 001 §4 and 003 §7 (velocity-servo
+``force_1dof``: the 1-DOF robot force-control plant of Cortesão 2006 §7, 001 §4 and 003 §7 (velocity-servo
 robot, compliant force sensor of stiffness ``Ks``, command dead time as a FIFO in the rollout state).
 ``rollout`` runs it open loop; ``closed_loop_rollout`` runs it under an AOB / CKF (the observer protocol of
 :mod:`jaxobs.observers`) as :func:`jaxobs.closed_loop.simulate` runs the analytic plant.
 
 ``compliant_6dof`` (a submodule, since its names mirror the 1-DOF ones): the 6-DOF compliant-motion
-plant of seed 003 §7 (Table 1 stiffnesses, per-DOF AOB-1 HBA / CKF SBA of eq. 62-68, the peg-on-hole
+plant of the MRAC chapter §7 (Table 1 stiffnesses, per-DOF AOB-1 HBA / CKF SBA of eq. 62-68, the peg-on-hole
 alignment scenario with its contact moment coupled to the alignment rotation).
 
 Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.

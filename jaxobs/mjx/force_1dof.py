@@ -1,6 +1,7 @@
-"""1-DOF robot force-control plant in MuJoCo MJX (seed 003 §7, eq. 56-58; seed 000 §7; seed 001 §4).
+"""1-DOF robot force-control plant in MuJoCo MJX (Cortesão, MRAC chapter §7, eq. 56-58; Cortesão 2006 §7; the
+stochastic AOB paper §4).
 
-The physical setup (seed 003 §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
+The physical setup (the MRAC chapter §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
 interface at ``h = 8 ms`` and an input dead time of 5 samples; a compliant force sensor of stiffness
 ``Ks = 3 N/mm`` carries "the manipulator compliance"; the environment is very stiff. Per DOF the position
 response is ``Gp(s) = e^{-s Td} / (1 + Tp s)`` (eq. 56) and the plant input ``u`` is a **velocity** command
@@ -37,7 +38,7 @@ Simplifications against the real robot setup (document them where results are qu
 * the contact is bilateral and always closed: the sensor spring also pulls (``F < 0``) instead of losing
   contact, there is no preload and no contact geometry (a contact-free compliant formulation keeps
   forward and reverse differentiation smooth);
-* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, seed 003 §7.2);
+* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, the MRAC chapter §7.2);
 * the dead time is a whole number of control samples, applied to the command (a FIFO in the rollout state),
   the command is held constant over a control step (ZOH), and the force is sampled without anti-alias
   filtering;
@@ -66,8 +67,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.observers.active import ActiveObserverInputs, active_observer
-from jaxobs.observers.base import Observer
+from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
     "CONTROL_PERIOD",
@@ -85,7 +85,7 @@ __all__ = [
 ASSET = "force_1dof.xml"
 TIMESTEP = 0.001  # s, physics step (the MJCF's option/timestep)
 SUBSTEPS = 8  # physics steps per control step
-CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (seed 003 Table 1)
+CONTROL_PERIOD = TIMESTEP * SUBSTEPS  # h = 8 ms (the MRAC chapter Table 1)
 _JOINT = "x"
 _BODY = "tool"
 _ACTUATOR = "servo"
@@ -94,26 +94,26 @@ _ACTUATOR = "servo"
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ForcePlantParams:
-    """Physical parameters of the 1-DOF force plant (mm, N, s units; seed 003 Table 1 nominal values).
+    """Physical parameters of the 1-DOF force plant (mm, N, s units; the MRAC chapter Table 1 nominal values).
 
     Attributes:
-      ks: sensor + environment stiffness ``Ks`` in N/mm (> 0).
-      tp: position-loop time constant ``Tp`` in s (> 0).
+      stiffness: sensor + environment stiffness ``Ks`` in N/mm (> 0).
+      time_constant: position-loop time constant ``Tp`` in s (> 0).
       damping: sensor + environment damping ``Ds`` in N s/mm (>= 0); it is part of the measured force.
       servo_gain: velocity-servo gain ``kv`` in N s/mm (> 0); the robot's total moving inertia is
-        ``kv Tp`` (so an inertia mismatch is a ``tp`` mismatch here) and the position loop yields to the
-        contact force by ``ks / servo_gain``.
+        ``kv Tp`` (so an inertia mismatch is a ``time_constant`` mismatch here) and the position loop yields to
+        the contact force by ``stiffness / servo_gain``.
     """
 
-    ks: float = 3.0
-    tp: float = 0.032
+    stiffness: float = 3.0
+    time_constant: float = 0.032
     damping: float = 0.0
     servo_gain: float = 1.0e4
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        _checks.positive_scalar("ks", self.ks)
-        _checks.positive_scalar("tp", self.tp)
+        _checks.positive_scalar("stiffness", self.stiffness)
+        _checks.positive_scalar("time_constant", self.time_constant)
         _checks.positive_scalar("damping", self.damping, allow_zero=True)
         _checks.positive_scalar("servo_gain", self.servo_gain)
 
@@ -144,19 +144,22 @@ def _tool_body(model) -> int:
 def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     """Return ``model`` with the physical ``params`` written into its array fields (pure, traceable).
 
-    The one place where parameters map to fields: ``jnt_stiffness = ks``, ``dof_damping = damping``,
-    ``actuator_gainprm[0] = kv``, ``actuator_biasprm[2] = -kv``, ``dof_armature = kv tp - m_tool``.
+    The one place where parameters map to fields: ``jnt_stiffness = stiffness``, ``dof_damping = damping``,
+    ``actuator_gainprm[0] = kv``, ``actuator_biasprm[2] = -kv``, ``dof_armature = kv time_constant - m_tool``.
     Derived fields used only by constraints (``dof_invweight0``, ``actuator_acc0``, ...) are left as
     they are: constraints and contacts are disabled in this model.
     """
     params.validate()
-    if _checks.is_concrete(params.servo_gain, params.tp, model.body_mass):
-        inertia = float(params.servo_gain) * float(params.tp)
+    if _checks.is_concrete(params.servo_gain, params.time_constant, model.body_mass):
+        inertia = float(params.servo_gain) * float(params.time_constant)
         tool_mass = float(np.asarray(model.body_mass)[_tool_body(model)])
         if inertia <= tool_mass:
-            raise ValueError(f"servo_gain * tp = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain")
+            raise ValueError(
+                f"servo_gain * time_constant = {inertia} must exceed the tool mass {tool_mass} t; raise servo_gain"
+            )
     dtype = model.jnt_stiffness.dtype
-    ks, tp, damping, kv = (jnp.asarray(v, dtype) for v in (params.ks, params.tp, params.damping, params.servo_gain))
+    fields = (params.stiffness, params.time_constant, params.damping, params.servo_gain)
+    ks, tp, damping, kv = (jnp.asarray(v, dtype) for v in fields)
     return model.replace(
         jnt_stiffness=jnp.asarray(model.jnt_stiffness).at[0].set(ks),
         dof_damping=jnp.asarray(model.dof_damping).at[0].set(damping),
@@ -205,11 +208,11 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     params = ForcePlantParams() if params is None else params
     params.validate()
     m = _parse_mjcf(xml)
-    kv, tp = float(params.servo_gain), float(params.tp)
+    kv, tp = float(params.servo_gain), float(params.time_constant)
     tool_mass = m.body_mass[_tool_body(m)]
     if kv * tp <= tool_mass:
-        raise ValueError(f"servo_gain * tp = {kv * tp} must exceed the tool mass {tool_mass} t")
-    m.jnt_stiffness[0] = float(params.ks)
+        raise ValueError(f"servo_gain * time_constant = {kv * tp} must exceed the tool mass {tool_mass} t")
+    m.jnt_stiffness[0] = float(params.stiffness)
     m.dof_damping[0] = float(params.damping)
     m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv
@@ -337,7 +340,7 @@ def rollout(
       fifo_init: the ``d`` commands issued before step 0 (oldest first), shape ``(d,)``; zeros by default.
       surface_velocity: velocity of the environment surface in mm/s during each control step, shape
         ``(T,)``, or None (fixed). A positive velocity recedes from the tool and lowers the force: the
-        moving surface of seed 001 §4 (``xdot_e = 2 mm/s`` from 8 s). The sensor force is
+        moving surface of the stochastic AOB paper §4 (``xdot_e = 2 mm/s`` from 8 s). The sensor force is
         ``Ks (x - x_e) + Ds xdot``.
       gradient_horizon: truncate backpropagation through the plant state every this many control steps
         (None: full gradients); bounds the memory of the backward pass and its growth on long horizons.
@@ -384,16 +387,16 @@ class ClosedLoopRollout(NamedTuple):
     velocity: jax.Array  # tool velocity (mm/s)
     command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
     applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
-    controller: object  # the controller's outputs per step (e.g. ActiveObserverOutputs: x, p, gain, ...)
+    controller: object  # the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
     surface: jax.Array  # environment surface position x_e at k h (mm)
 
 
 def closed_loop_rollout(
     model: mjx.Model,
-    controller_params,
+    controller: Controller,
+    params,
     reference,
     *,
-    controller: Observer = active_observer,
     dead_time_samples: int = 5,
     substeps: int = SUBSTEPS,
     noise=None,
@@ -407,25 +410,24 @@ def closed_loop_rollout(
     control step ``k`` (time ``k h``)::
 
         y_k      = F(x(k h)) + v_k                          sensor force (sensor_force) plus noise
-        state, o = controller.step(params, state, ActiveObserverInputs(y_k, r_k))
+        state, o = controller.step(params, state, ControllerInputs(y_k, r_k))
         u_k      = o.u                                       e.g. the AOB's r_k - [L_r 1] [x_r; p]_hat
         FIFO    <- u_k + d_k;  pop u_{k-d} + d_{k-d}         dead time d samples (disturbance at the plant
                                                              input, before the dead time, as in simulate)
         plant   <- ``substeps`` mjx.step calls with that input held (ZOH)
 
-    The controller is built on the nominal discrete model (e.g. :func:`jaxobs.papers.cortesao2006.aob_params`
-    on :func:`jaxobs.papers.force_control.nominal_design`, whose delay states model the same ``d`` samples);
-    the state feedback ``L`` lives in ``controller_params`` (``u = r - L x_hat``, with the AOB's active
-    state fed forward through its ``L_Np = 1`` entry), exactly as in ``simulate``.
+    The controller is built on the nominal discrete model (e.g. an AOB on :func:`jaxobs.plants.force_plant`,
+    whose delay states model the same ``d`` samples); the state feedback lives in its params
+    (``u = r - L x_hat``, with the AOB's active state fed forward through its ``L_Np = 1`` entry), exactly as
+    in ``simulate``.
 
     Args:
       model: an ``mjx.Model`` from :func:`load_model` / :func:`with_params` (the true plant; it may differ
         from the controller's nominal model).
-      controller_params: parameters of ``controller`` (e.g. ``ActiveObserverParams``, ``LinearController``).
+      controller: any :class:`~jaxobs.observers.base.Controller` whose outputs have ``u`` of shape (1,), e.g.
+        :data:`jaxobs.observers.active.active_observer_controller`.
+      params: the controller's params (e.g. :class:`~jaxobs.observers.feedback.FeedbackParams`).
       reference: ``r_k`` in mm/s, shape ``(T,)`` (``r_k = L_1 F_d`` for a desired force ``F_d``).
-      controller: an (init, step) :class:`jaxobs.observers.base.Observer` whose step takes
-        ``ActiveObserverInputs(y, r)`` and whose outputs have a field ``u`` of shape ``(1,)``; default
-        :data:`jaxobs.observers.active.active_observer` (AOB-N or CKF).
       dead_time_samples, substeps: as in :func:`rollout`.
       noise: force-sensor noise ``v_k`` in N, shape ``(T,)``, or None.
       disturbance: input disturbance ``d_k`` in mm/s, shape ``(T,)``, or None.
@@ -454,8 +456,8 @@ def closed_loop_rollout(
         data, fifo, ctrl_state, surface = _truncate(carry, k, gradient_horizon)
         force = sensor_force(_at_surface(model, surface), data)
         y_k = force + v_k
-        ctrl_state, ctrl_out = controller.step(controller_params, ctrl_state, ActiveObserverInputs(y_k[None], r_k))
-        _checks.shape("controller_params", ctrl_out.u, (1,), "the controller's command u must have one entry, the "
+        ctrl_state, ctrl_out = controller.step(params, ctrl_state, ControllerInputs(y_k[None], r_k[None]))
+        _checks.shape("params", ctrl_out.u, (1,), "the controller's command u must have one entry, the "
                       "1-DOF plant's velocity command")  # fmt: skip
         u_k = ctrl_out.u[0].astype(dtype)
         position, velocity = data.qpos[0], data.qvel[0]
@@ -463,6 +465,6 @@ def closed_loop_rollout(
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)
         return (data, fifo, ctrl_state, surface_next), out
 
-    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(controller_params), jnp.zeros((), dtype))
+    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), reference, noise, disturbance, v_e))
     return out

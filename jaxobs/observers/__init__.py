@@ -1,11 +1,35 @@
-"""Observers in the (init, step) protocol: one module per family.
+"""Estimators and controllers in one protocol (:mod:`jaxobs.observers.base`), one module per family.
 
-``kalman`` (classical Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``inverse_dynamics``
-(Liu & Peng's inverse-dynamics state and disturbance observers, Cases 1 and 2), ``hinf`` (discrete-time
-suboptimal H-infinity filter).
+Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
+a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
+observers), ``linear`` (fixed-gain linear observer). ``feedback.observer_controller`` turns any of them into an
+observer-based controller.
 """
 
-from jaxobs.observers import active, hinf, inverse_dynamics, kalman
-from jaxobs.observers.base import Observer, run
+from jaxobs.observers import active, feedback, hinf, inverse_dynamics, kalman, linear
+from jaxobs.observers.base import (
+    Controller,
+    ControllerInputs,
+    Estimator,
+    EstimatorInputs,
+    LinearObserver,
+    run,
+)
+from jaxobs.observers.feedback import FeedbackParams, observer_controller
 
-__all__ = ["Observer", "run", "kalman", "active", "inverse_dynamics", "hinf"]
+__all__ = [
+    "Estimator",
+    "Controller",
+    "EstimatorInputs",
+    "ControllerInputs",
+    "LinearObserver",
+    "FeedbackParams",
+    "observer_controller",
+    "run",
+    "kalman",
+    "active",
+    "hinf",
+    "inverse_dynamics",
+    "linear",
+    "feedback",
+]

@@ -1,27 +1,34 @@
-"""Kalman Active Observer AOB-N (Cortesão 2006, seed 000 §2-5; seed 001; seed 003 §5-6).
+"""Kalman Active Observer AOB-N (Cortesão 2006 §2-5; Cortesão, Koeppe, Nunes & Hirzinger, "Stochastic
+Active Observers"; Cortesão, MRAC chapter §5-6) as an estimator.
 
 A Kalman filter on the plant model augmented with an *active state* ``p_k``: an equivalent input
-disturbance modelled as an order-N auto-regressive process (eq. 10, 37) that is estimated and fed
-back, ``u_k = r_k - L_r x_hat_{r,k} - p_hat_k`` (eq. 20, 49-50). With the active state removed it
-is the classical Kalman filter (CKF) with state feedback (seed 001 §2.1).
+disturbance modelled as an order-N auto-regressive process (Cortesão 2006 eq. 10, 37) whose newest value
+``p_hat_k`` is the observer's disturbance estimate ``d`` (one entry per plant input). With the active state
+removed it is the classical Kalman filter (CKF).
 
 State order (eq. 18, 40): ``x = [x_{r,k}, p_{k-N+1}, ..., p_k]`` where each ``p`` block has one entry
-per plant input (footnote 3 of seed 000), so ``n_active = N * m``.
+per plant input (footnote 3 of Cortesão 2006), so ``n_active = N * m``.
 
-The controller step (eq. 47, equivalently eq. 7-9 of seed 001) with ``u_{k-1} = r_{k-1} - L x_hat_{k-1}``::
+The estimator step (eq. 47) with the command ``u_{k-1}`` actually applied::
 
-    x_prior = Phi_n x_hat_{k-1} + Gamma_n u_{k-1}            (= [Phi_{L,n} 0; 0 Phi_22] x_hat + [Gamma_r; 0] r)
+    x_prior = Phi_n x_hat_{k-1} + Gamma_n u_{k-1}
     x_hat_k = x_prior + K_k (y_k - C x_prior)                 (K_k from eq. 27-29 with the open-loop Phi_n)
-    u_k     = r_k - L x_hat_k
+
+As a controller (:func:`jaxobs.observers.feedback.observer_controller` with :func:`feedback_gain`) it commands
+``u_k = r_k - L_r x_hat_{r,k} - p_hat_k`` (eq. 20, 49-50): :data:`active_observer_controller`.
+
+Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0`` (as in :mod:`jaxobs.observers.kalman`); the
+papers' ``P_{-1} = Q_0`` (Cortesão 2006 §7.2) is the default, advanced one step: ``P0 = Phi_n Q Phi_n' + Q``.
 
 Run-time switches, all traced values (no recompilation): ``active`` (1 = AOB, 0 = CKF: the active
-state is locked at 0 and its Q entry zeroed, seed 001 §2.1 / seed 003 §6.3), and the adaptive
-strategy of seed 001 §3 (``alpha > 0``).
+state is locked at 0 and its Q entry zeroed; Cortesão et al., stochastic AOB §2.1; MRAC chapter §6.3), and the
+adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from math import comb
 from typing import NamedTuple
 
@@ -31,17 +38,19 @@ import numpy as np
 from jax.scipy.special import erf, erfinv
 
 from jaxobs import _checks
+from jaxobs.kalman_steps import predict, update
 from jaxobs.lti import StateSpace
-from jaxobs.observers.base import Observer
-from jaxobs.observers.kalman import predict_and_update
-from jaxobs.riccati import dare, kalman_gain, require_converged
+from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
+from jaxobs.observers.feedback import observer_controller
+from jaxobs.riccati import dare, kalman_gain, require_converged, symmetrize
 
 __all__ = [
     "ActiveObserverParams",
     "ActiveObserverState",
-    "ActiveObserverInputs",
     "ActiveObserverOutputs",
     "active_observer",
+    "active_observer_controller",
+    "feedback_gain",
     "active_state_model",
     "augment",
     "evolution_variance",
@@ -65,35 +74,39 @@ __all__ = [
 # Active-state model and augmentation
 
 
-def active_state_model(order: int, n_inputs: int = 1, dtype=jnp.float64):
-    """``Phi_22`` of eq. 37 for ``m = n_inputs`` channels: ``kron(companion, I_m)``, shape ``(N m, N m)``.
+def active_state_model(order: int, n_channels: int = 1, dtype=jnp.float64):
+    """``Phi_22`` of eq. 37 for ``q = n_channels`` channels: ``kron(companion, I_q)``, shape ``(N q, N q)``.
 
     The companion row holds ``a_i = (-1)^{i+1} C(N, i)`` (eq. 10), so ``N`` repeated eigenvalues at 1:
     ``p_k`` has zero N-th difference up to the driving noise.
     """
     order = _checks.count("order", order, minimum=1, hint="an active state needs N >= 1")
-    n_inputs = _checks.count("n_inputs", n_inputs, minimum=1)
+    n_channels = _checks.count("n_channels", n_channels, minimum=1)
     companion = np.zeros((order, order))
     companion[:-1, 1:] = np.eye(order - 1)
     companion[-1, :] = [(-1) ** (i + 1) * comb(order, i) for i in range(order, 0, -1)]
-    return jnp.asarray(np.kron(companion, np.eye(n_inputs)), dtype)
+    return jnp.asarray(np.kron(companion, np.eye(n_channels)), dtype)
 
 
-def augment(plant: StateSpace, order: int):
+def augment(plant: StateSpace, order: int, disturbance_input=None):
     """Augmented open-loop model (eq. 30, 39, 48, 24): returns ``(Phi_n, Gamma_n, C)``.
 
-    ``Phi_n = [[Phi_r, Phi_12], [0, Phi_22]]`` with ``Phi_12 = Gamma_r [0 ... 0 I]`` (eq. 41: the
-    newest active state enters where the input does), ``Gamma_n = [Gamma_r; 0]``, ``C = [C_r 0]``.
-    ``order = 0`` returns the plant matrices unchanged (the CKF).
+    ``Phi_n = [[Phi_r, Phi_12], [0, Phi_22]]`` with ``Phi_12 = G_d [0 ... 0 I]`` (eq. 41: the newest active
+    state enters where the disturbance does), ``Gamma_n = [Gamma_r; 0]``, ``C = [C_r 0]``. ``G_d``
+    (``disturbance_input``, (n, q)) defaults to ``Gamma_r``: the papers' equivalent input disturbance, which
+    state feedback can cancel. ``order = 0`` returns the plant matrices unchanged (the CKF).
     """
     order = _checks.count("order", order)
     Phi_r, Gamma_r, C_r = plant.A, plant.B, plant.C
     if order == 0:
         return Phi_r, Gamma_r, C_r
+    G_d = Gamma_r if disturbance_input is None else jnp.atleast_2d(jnp.asarray(disturbance_input, Phi_r.dtype))
     n, m = Gamma_r.shape[-2:]
-    na = order * m
-    Phi22 = active_state_model(order, m, Phi_r.dtype)
-    Phi12 = jnp.zeros((n, na), Phi_r.dtype).at[:, na - m :].set(Gamma_r)
+    _checks.matrix("disturbance_input", G_d, shape=(n, None))
+    q = G_d.shape[-1]
+    na = order * q
+    Phi22 = active_state_model(order, q, Phi_r.dtype)
+    Phi12 = jnp.zeros((n, na), Phi_r.dtype).at[:, na - q :].set(G_d)
     top = jnp.concatenate([Phi_r, Phi12], axis=1)
     bottom = jnp.concatenate([jnp.zeros((na, n), Phi_r.dtype), Phi22], axis=1)
     Phi_n = jnp.concatenate([top, bottom], axis=0)
@@ -118,89 +131,100 @@ def evolution_variance(sigma2, order: int, c=1.0):
     return sigma2 * sum(comb(j, i) ** 2 for i in range(j + 1)) * jnp.asarray(c) ** j
 
 
-def aob_noise_covariance(n_plant: int, order: int, n_inputs: int, q_plant, q_active):
-    """``Q = blockdiag(Q_xr, Q_Np)`` (eq. 51-53), shape ``(n_plant + order n_inputs,)*2``.
+def aob_noise_covariance(n_plant: int, order: int, n_channels: int, q_plant, q_active):
+    """``Q = blockdiag(Q_xr, Q_Np)`` (eq. 51-53), shape ``(n_plant + order n_channels,)*2``.
 
     ``q_plant``: scalar or length-``n_plant`` diagonal of ``Q_xr``. ``q_active``: scalar or
-    length-``n_inputs`` variance of ``^{N-1} xi_p``, placed on the newest active-state block only.
+    length-``n_channels`` variance of ``^{N-1} xi_p``, placed on the newest active-state block only.
     """
     n_plant = _checks.count("n_plant", n_plant)
     order = _checks.count("order", order)
-    n_inputs = _checks.count("n_inputs", n_inputs, minimum=1)
+    n_channels = _checks.count("n_channels", n_channels, minimum=1)
     dtype = _checks.float_dtype(q_plant=q_plant, q_active=q_active)
     q_plant = _checks.per_entry("q_plant", q_plant, n_plant, dtype, "one variance per plant state")
-    q_active = _checks.per_entry("q_active", q_active, n_inputs, dtype, "one variance per plant input")
-    diag_active = jnp.zeros((order * n_inputs,), dtype)
+    q_active = _checks.per_entry("q_active", q_active, n_channels, dtype, "one variance per active-state channel")
+    diag_active = jnp.zeros((order * n_channels,), dtype)
     if order:
-        diag_active = diag_active.at[-n_inputs:].set(q_active)
+        diag_active = diag_active.at[-n_channels:].set(q_active)
     return jnp.diag(jnp.concatenate([q_plant, diag_active]))
 
 
 # --------------------------------------------------------------------------------------------
-# Parameters, state and the controller step
+# Parameters, state and the estimator step
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ActiveObserverParams:
-    """An AOB-N (or, with ``n_active = 0``, a CKF) with state feedback.
+    """An AOB-N (or, with ``order = 0``, a CKF) for a plant with ``n`` states and ``m`` inputs, with ``q``
+    active-state channels (``q = m`` for the papers' equivalent input disturbance); shapes with
+    ``n_aug = n + n_active``, ``n_active = N q``.
 
-    ``gain``/``gain_passive``: ``None`` for the time-varying Riccati gain, or the steady-state
-    gains of the AOB and of the same filter with the active state switched off
-    (:func:`with_steady_state_gains`); ``gain_converged`` says whether both DAREs found their stabilising
-    solutions (a boolean array when computed under tracing, reported by every step as
-    ``ActiveObserverOutputs.converged``).
+    Attributes:
+      Phi: (n_aug, n_aug) augmented open-loop ``Phi_n`` (eq. 48).  Gamma: (n_aug, m) ``[Gamma_r; 0]``.
+      C: (p, n_aug) ``[C_r 0]`` (eq. 24).  Q: (n_aug, n_aug) eq. 51.  R: (p, p).
+      x0: (n_aug,), P0: (n_aug, n_aug): prior of ``x_0``.
+      active: () 1.0 for the AOB, 0.0 for the CKF (run-time switch).
+      alpha: (q,) adaptive strategy of the stochastic AOB paper (eq. 27) per channel; <= 0 keeps Q fixed.
+      sigma_floor: (q,) ``sigma*`` of that paper (§3.1): minimum std of the active-state evolution.
+      gain, gain_passive: ``None`` for the time-varying Riccati gain, or the (n_aug, p) steady-state gains of
+        the AOB and of the same filter with the active state switched off (:func:`with_steady_state_gains`).
+      gain_converged: () whether both DAREs behind the steady-state gains found their stabilising solutions
+        (an array when computed under tracing, reported by every step as ``ActiveObserverOutputs.converged``).
+      order: static AOB order N (0 for the CKF).  n_channels: static q.
+      matched: static; True when the active state enters where the input does (``G_d = Gamma_r``), so that
+        :func:`feedback_gain` can cancel it.
     """
 
-    Phi: jax.Array  # augmented open-loop Phi_n (eq. 48)
-    Gamma: jax.Array  # [Gamma_r; 0]
-    C: jax.Array  # [C_r 0] (eq. 24)
-    L: jax.Array  # [L_r, L_Np] (eq. 49-50)
-    Q: jax.Array  # eq. 51
+    Phi: jax.Array
+    Gamma: jax.Array
+    C: jax.Array
+    Q: jax.Array
     R: jax.Array
-    P0: jax.Array  # P_{-1}
+    P0: jax.Array
     x0: jax.Array
-    active: jax.Array  # 1.0 AOB, 0.0 CKF (run-time switch)
-    alpha: jax.Array  # adaptive strategy of seed 001 eq. 27 per input; <= 0 keeps Q fixed
-    sigma_floor: jax.Array  # sigma* of seed 001 §3.1: minimum std of the active-state evolution
+    active: jax.Array
+    alpha: jax.Array
+    sigma_floor: jax.Array
     gain: jax.Array | None = None
     gain_passive: jax.Array | None = None
     gain_converged: jax.Array | None = None
-    n_active: int = dataclasses.field(default=0, metadata=dict(static=True))
+    order: int = dataclasses.field(default=0, metadata=dict(static=True))
+    n_channels: int = dataclasses.field(default=1, metadata=dict(static=True))
+    matched: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
     @property
     def n_inputs(self) -> int:
         return self.Gamma.shape[-1]
 
+    @property
+    def n_active(self) -> int:
+        return self.order * self.n_channels
+
 
 class ActiveObserverState(NamedTuple):
-    x: jax.Array  # a-posteriori estimate [x_r, ^N p]
-    P: jax.Array  # a-posteriori covariance
-    u: jax.Array  # last command u_{k-1}
-    evolution: jax.Array  # last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
-    missing: jax.Array  # measurement components skipped so far
-
-
-class ActiveObserverInputs(NamedTuple):
-    y: jax.Array  # measurement y_k (NaN = missing)
-    r: jax.Array  # reference r_k
+    x: jax.Array  # (n_aug,) a-posteriori estimate [x_r, p] (the prior mean before the first step)
+    P: jax.Array  # (n_aug, n_aug) its covariance
+    evolution: jax.Array  # (q,) last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
+    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
+    missing: jax.Array  # () int32, measurement components skipped so far
 
 
 class ActiveObserverOutputs(NamedTuple):
-    u: jax.Array  # command u_k = r_k - L x_hat_k
-    x: jax.Array  # a-posteriori estimate
-    p: jax.Array  # newest active state p_hat_k (zeros for a CKF)
-    innovation: jax.Array
-    gain: jax.Array  # K_k
-    q_active: jax.Array  # variance used for the newest active state at this step
-    alpha: jax.Array  # strategy implied by q_active and w_{k-1} (seed 001 eq. 34)
-    converged: jax.Array  # the steady-state gains' DAREs converged (True for time-varying gains)
+    x: jax.Array  # (n_aug,) a-posteriori estimate
+    d: jax.Array  # (q,) newest active state p_hat_k: the equivalent input disturbance (zeros for a CKF)
+    x_prior: jax.Array  # (n_aug,) a-priori estimate
+    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
+    gain: jax.Array  # (n_aug, p) K_k
+    q_active: jax.Array  # (q,) variance used for the newest active state at this step
+    alpha: jax.Array  # (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
+    converged: jax.Array  # () the steady-state gains' DAREs converged (True for time-varying gains)
 
 
 def _active_slice(params: ActiveObserverParams):
     """Indices of the newest active-state block (where the driving noise enters)."""
     n = params.Phi.shape[-1]
-    return slice(n - params.n_inputs, n)
+    return slice(n - params.n_channels, n)
 
 
 def _active_mask(params: ActiveObserverParams):
@@ -214,52 +238,87 @@ def _active_mask(params: ActiveObserverParams):
 
 def _init(params: ActiveObserverParams) -> ActiveObserverState:
     mask = _active_mask(params)
-    m = params.n_inputs
+    zeros = jnp.zeros((params.n_channels,), params.Phi.dtype)
     P0 = params.P0 * jnp.outer(mask, mask)
-    zeros = jnp.zeros((m,), params.Phi.dtype)
-    return ActiveObserverState(params.x0 * mask, P0, zeros, zeros, jnp.zeros((), jnp.int32))
+    return ActiveObserverState(params.x0 * mask, P0, zeros, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
-def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: ActiveObserverInputs):
-    p, dtype = params.C.shape[-2], params.Phi.dtype
+def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: EstimatorInputs):
+    p, m, dtype = params.C.shape[-2], params.n_inputs, params.Phi.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
-    r = _checks.vector("inputs.r", inputs.r, params.n_inputs, dtype, what="one entry per plant input",
-                       check_finite=False)  # fmt: skip
+    u_prev = inputs.u_prev
+    if u_prev is not None:
+        u_prev = _checks.vector("inputs.u_prev", u_prev, m, dtype, what="one entry per plant input",
+                                check_finite=False)  # fmt: skip
     Q = params.Q
-    q_active = alpha = evolution = p_new = jnp.zeros_like(r)
+    q_active = alpha = evolution = d = jnp.zeros((params.n_channels,), dtype)
+    mask = _active_mask(params)
     if params.n_active:  # static: a CKF built without active state skips this bookkeeping
-        mask = _active_mask(params)
         newest = _active_slice(params)
         q_adaptive = adaptive_variance(state.evolution, params.alpha, params.sigma_floor)
         q_active = jnp.where(params.alpha > 0, q_adaptive, jnp.diagonal(Q)[newest])
         Q = Q.at[newest, newest].set(jnp.diag(q_active)) * jnp.outer(mask, mask)
         alpha = strategy_alpha(state.evolution, q_active)
     gain = None if params.gain is None else jnp.where(params.active > 0, params.gain, params.gain_passive)
-    x, P, K, innovation, n_missing, _ = predict_and_update(
-        state.x, state.P, state.u, y, params.Phi, params.Gamma, params.C, Q, params.R, gain
-    )
+    P = None if gain is not None else state.P
+    x_prior, P_prior = predict(state.x, P, params.Phi, Q, params.Gamma, u_prev, skip=~state.started)
+    P_prior = state.P if P_prior is None else P_prior
+    result = update(x_prior, P_prior, params.C, params.R, y, gain)
+    x = result.x * mask if params.n_active else result.x
     if params.n_active:
-        x = x * mask
-        p_new = x[newest]
-        evolution = p_new - state.x[newest]
-    u = r - params.L @ x
-    new_state = ActiveObserverState(x, P, u, evolution, state.missing + n_missing.astype(jnp.int32))
+        d = x[newest]
+        evolution = d - state.x[newest]
+    missing = state.missing + result.n_missing.astype(jnp.int32)
+    new_state = ActiveObserverState(x, result.P, evolution, jnp.ones((), bool), missing)
     converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
-    return new_state, ActiveObserverOutputs(u, x, p_new, innovation, K, q_active, alpha, converged)
+    outputs = ActiveObserverOutputs(x, d, x_prior, result.innovation, result.K, q_active, alpha, converged)
+    return new_state, outputs
 
 
-active_observer = Observer(_init, _step)
-"""AOB-N / CKF observer-based controller in the (init, step) protocol.
+def _linear(params: ActiveObserverParams) -> LinearObserver:
+    """The steady-state AOB/CKF as a fixed-gain linear observer; with the active state switched off its rows
+    are zeroed and the passive gain used, as the run-time switch does."""
+    if params.gain is None:
+        raise ValueError("params: the linear form needs steady-state gains; use with_steady_state_gains")
+    mask = _active_mask(params)[:, None]
+    gain = jnp.where(params.active > 0, params.gain, params.gain_passive)
+    return LinearObserver(mask * params.Phi, mask * params.Gamma, params.C, mask * gain)
 
-Inputs are :class:`ActiveObserverInputs` ``(y_k, r_k)`` of shapes ``(p,)`` and ``(m,)`` (scalars where the size is
-1); the output ``u`` is the command to apply. Each step checks the inputs' shapes against the params while tracing (a
-``ValueError`` naming the field) and casts them to the params' dtype.
+
+active_observer = Estimator(_init, _step, _linear)
+"""The AOB-N / CKF as an :class:`~jaxobs.observers.base.Estimator` over :class:`ActiveObserverParams`.
+
+Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,), ``u_prev`` the command actually applied over
+the last interval; each step checks them against the params while tracing and casts them to the params'
+dtype. Outputs: :class:`ActiveObserverOutputs` (``d`` is the active-state estimate ``p_hat_k``).
 """
+
+active_observer_controller = observer_controller(active_observer)
+"""The AOB-N / CKF with state feedback ``u_k = N r_k - L x_hat_k`` (Cortesão 2006 eq. 49-50); params:
+:class:`~jaxobs.observers.feedback.FeedbackParams` with ``L = feedback_gain(aob, L_r)``."""
+
+
+def feedback_gain(params: ActiveObserverParams, L_r):
+    """``L = [L_r, 0, ..., 0, I]`` (Cortesão 2006 eq. 49-50) for the AOB ``params``: the plant's state feedback
+    ``L_r`` (m, n) plus the compensation of the newest active state, on the augmented state (m, n + n_active);
+    the ``L`` of :class:`~jaxobs.observers.feedback.FeedbackParams` for :data:`active_observer_controller`."""
+    if not params.matched:
+        raise ValueError(
+            "params: the active state enters through disturbance_input, not the plant input, so state feedback "
+            "cannot cancel it; build the L of your controller from L_r yourself"
+        )
+    m, n_aug = params.n_inputs, params.Phi.shape[-1]
+    n = n_aug - params.n_active
+    L_r = jnp.atleast_2d(jnp.asarray(L_r))
+    _checks.matrix("L_r", L_r, shape=(m, n))
+    L = jnp.zeros((m, n_aug), params.Phi.dtype).at[:, :n].set(L_r)
+    if params.n_active:
+        L = L.at[:, n_aug - m :].set(jnp.eye(m, dtype=params.Phi.dtype))
+    return L
 
 
 def make_aob(
     plant: StateSpace,
-    L_r,
     order: int,
     R,
     *,
@@ -270,82 +329,129 @@ def make_aob(
     active=1.0,
     alpha=0.0,
     sigma_floor=0.0,
+    disturbance_input=None,
     steady_state: bool = False,
 ) -> ActiveObserverParams:
-    """Build an AOB-N for a discrete (delay-augmented) plant and state feedback ``L_r``.
+    """Build an AOB-N for a discrete (delay-augmented) plant.
 
     Args:
       plant: discrete nominal model ``(Phi_r, Gamma_r, C_r)``, e.g. from :func:`jaxobs.lti.c2d`.
-      L_r: (m, n) state-feedback gain designed on the plant (e.g. :func:`jaxobs.design.acker`).
       order: N >= 1 (use :func:`make_ckf` for the CKF).
-      R: measurement noise covariance.
+      R: (p, p) measurement noise covariance (a scalar for one output).
       q_plant: diagonal of ``Q_xr`` (eq. 51), small: the model is trusted, errors go to ``p``.
-      q_active: variance of ``^{N-1} xi_p`` (see :func:`evolution_variance`).
-      P0: ``P_{-1}``; defaults to ``Q`` (the papers' ``P_{-1} = Q_0``).
+      q_active: variance of ``^{N-1} xi_p`` (see :func:`evolution_variance`), scalar or one per input.
+      P0: (n_aug, n_aug) prior covariance of ``x_0``; defaults to ``Phi_n Q Phi_n' + Q`` (the papers'
+        ``P_{-1} = Q_0`` advanced one step; with ``active = 0`` the active block of ``Q`` is zeroed first, so the
+        switched-off AOB starts from the CKF's prior).
+      x0: (n_aug,) prior mean of ``x_0`` (default zeros).
       active: 1 for the AOB, 0 to run it as a CKF (traced; switch at run time).
-      alpha, sigma_floor: adaptive active-state strategy of seed 001 (``alpha > 0`` enables it).
+      alpha, sigma_floor: adaptive active-state strategy of the stochastic AOB paper (``alpha > 0`` enables it),
+        scalars or one per channel.
+      disturbance_input: (n, q) matrix ``G_d`` through which the active state enters (default ``Gamma_r``, the
+        papers' equivalent input disturbance, ``q = m``): e.g. a known disturbance direction to estimate.
       steady_state: use the steady-state gains (:func:`with_steady_state_gains`; raises ``ValueError`` with
         the reason when their DARE does not converge, e.g. AOB-3 in float32).
+
+    Example:
+      >>> from jaxobs.lti import ss, c2d
+      >>> from jaxobs.observers import active
+      >>> plant = c2d(ss([[0, 1], [0, -31.25]], [[0], [93.75]], [[1, 0]]), 0.008, delay=0.04)
+      >>> aob = active.make_aob(plant, order=2, R=2.1e-2, q_active=4e-6, steady_state=True)
+      >>> aob.Phi.shape, aob.gain.shape
+      ((9, 9), (9, 1))
     """
     order = _checks.count("order", order, minimum=1, hint="use make_ckf for the classical filter")
-    return _make(plant, L_r, order, R, q_plant, q_active, None, P0, x0, active, alpha, sigma_floor, steady_state)
+    return _make(plant, order, R, q_plant, q_active, None, P0, x0, active, alpha, sigma_floor, disturbance_input,
+                 steady_state)  # fmt: skip
 
 
-def make_ckf(plant: StateSpace, L_r, R, *, Q=None, q_plant=1e-12, P0=None, x0=None, steady_state=False):
-    """Classical Kalman filter with state feedback ``u = r - L_r x_hat`` (the AOB without active
-    state). ``Q`` defaults to ``q_plant * I``."""
-    return _make(plant, L_r, 0, R, q_plant, 0.0, Q, P0, x0, 1.0, 0.0, 0.0, steady_state)
+def make_ckf(plant: StateSpace, R, *, Q=None, q_plant=1e-12, P0=None, x0=None, steady_state=False):
+    """The classical Kalman filter (CKF) on the plant model: the AOB without active state, in the AOB's params so
+    that both run in the same sweeps and controllers.
+
+    Args:
+      plant: discrete nominal model.  R: (p, p) measurement noise covariance.
+      Q: (n, n) process noise covariance; default ``q_plant * I``.
+      q_plant: scalar or (n,) diagonal of the default ``Q``.
+      P0: (n, n) prior covariance of ``x_0``; default ``Phi Q Phi' + Q``.  x0: (n,) prior mean (default zeros).
+      steady_state: use the steady-state gain.
+    """
+    return _make(plant, 0, R, q_plant, 0.0, Q, P0, x0, 1.0, 0.0, 0.0, None, steady_state)
 
 
-def _make(plant, L_r, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_floor, steady_state):
-    """Shared by :func:`make_aob` and :func:`make_ckf`. Every array (plant, gains, covariances, switches) is
+def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_floor, disturbance_input, steady_state):
+    """Shared by :func:`make_aob` and :func:`make_ckf`. Every array (plant, covariances, switches) is
     cast to their common floating dtype: integers become float, float32 mixed with float64 becomes float64."""
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
-    n, m = plant.n_states, plant.n_inputs
-    L_r = jnp.atleast_2d(jnp.asarray(L_r))
+    n = plant.n_states
     Q, R, P0 = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (Q, R, P0))
     dtype = _checks.float_dtype(
-        **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, L_r=L_r, R=R, Q=Q, P0=P0, x0=x0,
+        **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, R=R, Q=Q, P0=P0, x0=x0,
         q_plant=q_plant, q_active=q_active, active=active, alpha=alpha, sigma_floor=sigma_floor,
+        disturbance_input=disturbance_input,
     )  # fmt: skip
-    _checks.matrix("L_r", L_r, shape=(m, n))
-    plant = StateSpace(*(jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C, plant.D)), plant.dt)
-    Phi, Gamma, C = augment(plant, order)
-    na = order * m
-    compensation = jnp.zeros((m, na), dtype).at[:, na - m :].set(jnp.eye(m, dtype=dtype))
-    L = jnp.concatenate([L_r.astype(dtype), compensation], axis=1)
-    if Q is None:
-        Q = aob_noise_covariance(n, order, m, jnp.asarray(q_plant, dtype), jnp.asarray(q_active, dtype))
+    A, B, C_r = (jnp.asarray(M, dtype) for M in (plant.A, plant.B, plant.C))
+    G_d = B if disturbance_input is None else jnp.atleast_2d(jnp.asarray(disturbance_input, dtype))
+    _checks.matrix("disturbance_input", G_d, shape=(n, None))
+    q = G_d.shape[-1]
+    na = order * q
+    given_Q = Q is not None
+    if given_Q:
+        _checks.covariance("Q", Q, definite=False, size=n + na)
+    else:
+        _checks.per_entry("q_plant", q_plant, n, dtype, "one variance per plant state")
+        _checks.per_entry("q_active", q_active, q, dtype, "one variance per active-state channel")
         _checks.positive_scalar("q_active", jnp.min(jnp.asarray(q_active)), allow_zero=True)
-    _checks.covariance("Q", Q, definite=False, size=n + na)
+    _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
+    _checks.finite("active", active)
+    Q = Q.astype(dtype) if given_Q else None
+    q_plant, q_active, active = (jnp.asarray(v, dtype) for v in (q_plant, q_active, active))
+    Phi, Gamma, C, Q, P0_default = _assemble(A, B, C_r, G_d, Q, q_plant, q_active, active, order=order)
+    if not given_Q:
+        _checks.covariance("Q", Q, definite=False, size=n + na)
     _checks.covariance("R", R, definite=True, size=C.shape[0])
-    P0 = Q if P0 is None else P0
+    P0 = P0_default if P0 is None else P0
     _checks.covariance("P0", P0, definite=False, size=n + na)
     x0 = (
         jnp.zeros((n + na,), dtype)
         if x0 is None
         else _checks.vector("x0", x0, n + na, dtype, what="one entry per state of the augmented model [x_r, p]")
     )
-    _checks.shape("active", active, (), "a scalar switch: 1 for the AOB, 0 for the CKF")
-    _checks.finite("active", active)
-    alpha = _checks.per_entry("alpha", alpha, m, dtype, "one per plant input")
-    sigma_floor = _checks.per_entry("sigma_floor", sigma_floor, m, dtype, "one per plant input")
+    alpha = _checks.per_entry("alpha", alpha, q, dtype, "one per active-state channel")
+    sigma_floor = _checks.per_entry("sigma_floor", sigma_floor, q, dtype, "one per active-state channel")
     _checks.positive_scalar("sigma_floor", jnp.min(sigma_floor), allow_zero=True)
     if _checks.is_concrete(alpha) and np.any(np.asarray(alpha) >= 1):
         raise ValueError("alpha must be < 1 (a probability); use alpha <= 0 to keep Q fixed")
     params = ActiveObserverParams(
-        Phi, Gamma, C, L, Q.astype(dtype), R.astype(dtype), P0.astype(dtype), x0,
-        jnp.asarray(active, dtype), alpha, sigma_floor, n_active=na,
+        Phi, Gamma, C, Q, R.astype(dtype), P0.astype(dtype), x0,
+        jnp.asarray(active, dtype), alpha, sigma_floor, order=order, n_channels=q, matched=disturbance_input is None,
     )  # fmt: skip
     return with_steady_state_gains(params) if steady_state else params
 
 
+@partial(jax.jit, static_argnames=("order",))
+def _assemble(A, B, C, G_d, Q, q_plant, q_active, active, *, order: int):
+    """The augmented model (eq. 30-48), its ``Q`` (eq. 51-53, unless given) and the default prior: the papers'
+    ``P_{-1} = Q_0`` with the switch applied, advanced one step (switched off: the CKF's prior). One compiled
+    program, so eager constructions cost one dispatch."""
+    plant = StateSpace(A, B, C, jnp.zeros((C.shape[0], B.shape[1]), A.dtype), 1.0)
+    Phi, Gamma, C_aug = augment(plant, order, G_d)
+    n, q = A.shape[-1], G_d.shape[-1]
+    if Q is None:
+        Q = aob_noise_covariance(n, order, q, q_plant, q_active)
+    mask = jnp.concatenate([jnp.ones((n,), A.dtype), jnp.broadcast_to(active, (order * q,))])
+    Q_switched = Q * jnp.outer(mask, mask)
+    return Phi, Gamma, C_aug, Q, symmetrize(Phi @ Q_switched @ Phi.T + Q_switched)
+
+
 def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
-    """Switch the active state on (AOB) or off (CKF) at run time (seed 003 §6.3, §7.1).
+    """Switch the active state on (AOB) or off (CKF) at run time (Cortesão, MRAC chapter §6.3, §7.1).
 
     ``on`` may be a bool, a number or a traced array, a scalar or of the shape of ``params.active`` (e.g. one
     per DOF of stacked controllers); it is cast to the params' dtype so switching never triggers a recompilation.
+    The prior ``P0`` is kept: a time-varying AOB switched off before its first sample starts from the AOB's default
+    prior, not the CKF's (``make_aob(..., active=0)`` gives that).
     """
     on = jnp.asarray(on)
     if on.shape not in ((), params.active.shape):
@@ -357,41 +463,48 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
 
 
 def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParams:
-    """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, seed 000 eq. 28/48),
+    """Fix the gains at their steady state (DARE with the open-loop ``Phi_n``, Cortesão 2006 eq. 28/48),
     for the AOB and for the passive (CKF) mode, so ``active`` still switches at run time.
 
-    Eagerly, raises ``ValueError`` with the reason when a DARE has no stabilising solution or did not
-    converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64 from AOB-3 on); under
-    tracing both flags are stored, combined, in ``gain_converged``.
+    The passive DARE is the plant's, embedded at the augmented size with the active states' rows and columns
+    zero (its solution is ``blockdiag(P_r, 0)``, its gain ``[K_r; 0]``), so both are one batched solve: one
+    compiled program per model size. Eagerly, raises ``ValueError`` with the reason when a DARE has no
+    stabilising solution or did not converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64
+    from AOB-3 on); under tracing both flags are stored, combined, in ``gain_converged``.
     """
-    n = params.Phi.shape[-1]
-    n_plant = n - params.n_active
-    label = f"AOB-{params.n_active // params.n_inputs}" if params.n_active else "CKF"
-    sol = dare(params.Phi, params.C, params.Q, params.R)
-    require_converged(sol, params.Phi, params.C, params.Q, params.R, what=f"the {label} steady-state gain's DARE")
-    gain = kalman_gain(sol.P, params.C, params.R)
-    converged = sol.converged
-    if params.n_active:
-        rows = slice(0, n_plant)
-        Phi_r, C_r, Q_r = params.Phi[rows, rows], params.C[:, rows], params.Q[rows, rows]
-        sol_r = dare(Phi_r, C_r, Q_r, params.R)
-        require_converged(sol_r, Phi_r, C_r, Q_r, params.R, what="the passive (CKF) steady-state gain's DARE")
-        gain_passive = jnp.zeros_like(gain).at[rows].set(kalman_gain(sol_r.P, C_r, params.R))
-        converged = converged & sol_r.converged
-    else:
-        gain_passive = gain
-    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=converged)
+    n_plant = params.Phi.shape[-1] - params.n_active
+    gain, gain_passive, sol = _steady_state_gains(params.Phi, params.C, params.Q, params.R, n_plant=n_plant)
+    label = f"AOB-{params.order}" if params.order else "CKF"
+    for i, what in enumerate((f"the {label} steady-state gain's DARE", "the passive (CKF) steady-state gain's DARE")):
+        if i and not params.n_active:
+            break
+        plant_only = slice(0, n_plant if i else None)
+        Phi, C, Q = params.Phi[plant_only, plant_only], params.C[:, plant_only], params.Q[plant_only, plant_only]
+        require_converged(jax.tree.map(lambda a, i=i: a[i], sol), Phi.T, C.T, Q, params.R, what=what, estimation=True)
+    return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=jnp.all(sol.converged))
+
+
+@partial(jax.jit, static_argnames=("n_plant",))
+def _steady_state_gains(Phi, C, Q, R, *, n_plant: int):
+    """``(gain, gain_passive, solutions)`` of :func:`with_steady_state_gains`: the AOB's and the embedded plant's
+    filter DAREs in one ``vmap``."""
+    plant = (jnp.arange(Phi.shape[-1]) < n_plant).astype(Phi.dtype)
+    keep = jnp.outer(plant, plant)
+    Phis, Qs = jnp.stack([Phi, Phi * keep]), jnp.stack([Q, Q * keep])
+    sol = jax.vmap(lambda Phi, Q: dare(Phi.T, C.T, Q, R))(Phis, Qs)
+    gains = jax.vmap(lambda X: kalman_gain(X, C, R))(sol.X)
+    return gains[0], gains[1] * plant[:, None], sol
 
 
 # --------------------------------------------------------------------------------------------
-# Stochastic design of Q (seed 001 §3)
+# Stochastic design of Q (Cortesão, Koeppe, Nunes & Hirzinger, stochastic AOB paper §3)
 
 BETA_ONE_SIGMA = float(1.0 - erf(np.sqrt(2.0) / 2.0))
-"""Seed 001 eq. 47: the probability of a deviation larger than one standard deviation (0.3173)."""
+"""The stochastic AOB paper eq. 47: the probability of a deviation larger than one standard deviation (0.3173)."""
 
 
 def adaptive_variance(evolution, alpha, sigma_floor):
-    """Active-state variance for the strategy ``P(|w_k| > |w_{k-1}|) = alpha`` (seed 001 eq. 20, 27):
+    """Active-state variance for the strategy ``P(|w_k| > |w_{k-1}|) = alpha`` (stochastic AOB paper, eq. 20, 27):
     ``sigma = |w_{k-1}| / (sqrt(2) erfinv(1 - alpha))``, floored at ``sigma_floor`` (sigma*, §3.1)
     so the estimate can follow abrupt changes after quiet periods. Returns ``sigma**2``."""
     alpha = jnp.clip(alpha, 1e-12, 1.0 - 1e-12)
@@ -400,36 +513,37 @@ def adaptive_variance(evolution, alpha, sigma_floor):
 
 
 def alpha_for_floor(evolution, sigma_floor):
-    """Seed 001 eq. 32: the ``alpha_k`` that yields ``sigma = sigma*`` for weak evolutions,
+    """The stochastic AOB paper eq. 32: the ``alpha_k`` that yields ``sigma = sigma*`` for weak evolutions,
     ``1 - sqrt(2/pi) |w_{k-1}| / sigma*``."""
     return 1.0 - jnp.sqrt(2.0 / jnp.pi) * jnp.abs(evolution) / sigma_floor
 
 
 def strategy_alpha(evolution, q):
-    """Seed 001 eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``."""
+    """The stochastic AOB paper eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``."""
     q = jnp.maximum(q, jnp.finfo(jnp.result_type(q, float)).tiny)
     return 1.0 - erf(jnp.abs(evolution) / jnp.sqrt(2.0 * q))
 
 
 def constant_strategy_variance(evolution, c):
-    """Seed 001 eq. 35-36: ``Q_k = |w_{k-1}|^2 / c^2`` keeps ``alpha = 1 - erf(c / sqrt 2)`` constant."""
+    """The stochastic AOB paper, eq. 35-36: ``Q_k = |w_{k-1}|^2 / c^2`` keeps ``alpha = 1 - erf(c / sqrt 2)``
+    constant."""
     return jnp.abs(evolution) ** 2 / c**2
 
 
 def deviation_variance(gamma, beta=BETA_ONE_SIGMA):
-    """Seed 001 eq. 45-46: the ``Q_i`` for which ``P(|x_i - E x_i| > gamma) = beta``:
+    """The stochastic AOB paper eq. 45-46: the ``Q_i`` for which ``P(|x_i - E x_i| > gamma) = beta``:
     ``(gamma / (sqrt(2) erfinv(1 - beta)))**2``. With the default beta (eq. 47), ``Q_i = gamma**2``."""
     return (gamma / (jnp.sqrt(2.0) * erfinv(1.0 - beta))) ** 2
 
 
 # --------------------------------------------------------------------------------------------
-# Estimation strategies (seed 000 §5, seed 003 §6.3)
+# Estimation strategies (Cortesão 2006 §5; MRAC chapter §6.3)
 
 
 def sensor_based_gain(C):
     """The sensor-based (SBA) limit of a Kalman gain: measured states are replaced by the
     measurements, the others are not corrected (``K = C^+``; for ``C = [1 0 ... 0]``,
-    ``K = [1, 0, ..., 0]'``), the "CKF, SBA" of seed 003 §7.4."""
+    ``K = [1, 0, ..., 0]'``), the "CKF, SBA" of the MRAC chapter §7.4."""
     return jnp.linalg.pinv(jnp.atleast_2d(C))
 
 

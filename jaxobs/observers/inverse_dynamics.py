@@ -1,4 +1,4 @@
-"""Inverse-dynamics state and disturbance observer (Liu & Peng, seed 004, §2-3).
+"""Inverse-dynamics state and disturbance observer (Liu & Peng, Liu & Peng 2002, §2-3).
 
 Plant (eq. 1, continuous time)::
 
@@ -64,12 +64,11 @@ import scipy.linalg
 
 from jaxobs import _checks
 from jaxobs.lti import obsv
-from jaxobs.observers.base import Observer
+from jaxobs.observers.base import Estimator, EstimatorInputs
 
 __all__ = [
     "InverseDynamicsParams",
     "InverseDynamicsState",
-    "InverseDynamicsInputs",
     "InverseDynamicsOutputs",
     "Fact35",
     "inverse_dynamics_observer",
@@ -217,12 +216,23 @@ def plant_zeros(A, B, C):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class InverseDynamicsParams:
-    """Observer (eq. 2, 4) sampled every ``h`` seconds. ``G1, G2, G3`` come from :func:`case1_gains` or
-    :func:`case2_gains`; ``lowpass_pole`` in ``[0, 1)`` with ``lowpass_order`` (static) sections."""
+    """Observer (eq. 2, 4) sampled every ``h`` seconds (``n`` states, ``n_d`` disturbances, ``n_y`` outputs,
+    ``m`` inputs).
+
+    Attributes:
+      A: (n, n).  B: (n, n_d) disturbance matrix.  C: (n_y, n).
+      Bu: (n, m) input matrix of the known term ``Gamma(u, y) = Bu u`` (m = 0 without inputs; for a nonlinear
+        ``Gamma`` take ``Bu = I`` and pass its value as the input).
+      K: (n, n_y).  F1, F2: (n_d, n_y).  G1: (n_d, n), G2: (n_d, n), G3: (n_d, n) from :func:`case1_gains` or
+      :func:`case2_gains`.
+      x0: (n,) the estimate the observer integrates from (``x_hat`` one sample before the first).
+      h: () sample time.  lowpass_pole: () in ``[0, 1)`` with ``lowpass_order`` (static) sections.
+    """
 
     A: jax.Array
     B: jax.Array
     C: jax.Array
+    Bu: jax.Array
     K: jax.Array
     F1: jax.Array
     F2: jax.Array
@@ -236,22 +246,18 @@ class InverseDynamicsParams:
 
 
 class InverseDynamicsState(NamedTuple):
-    x: jax.Array  # x_hat_{k-1}
-    y_prev: jax.Array  # (filtered) y_{k-1}
+    x: jax.Array  # (n,) x_hat_{k-1}
+    y_prev: jax.Array  # (n_y,) (filtered) y_{k-1}
     lowpass: jax.Array  # (lowpass_order, n_y) filter sections
-    count: jax.Array  # samples seen
-
-
-class InverseDynamicsInputs(NamedTuple):
-    y: jax.Array  # measurement y_k
-    gamma: jax.Array | None = None  # value of Gamma(u_k, y_k) (n,), None for 0
+    count: jax.Array  # () samples seen
 
 
 class InverseDynamicsOutputs(NamedTuple):
-    x: jax.Array  # x_hat_k
-    d: jax.Array  # d_hat_k (eq. 4)
-    y_dot: jax.Array  # backward-difference y'_k
-    x_dot: jax.Array  # (x_hat_k - x_hat_{k-1}) / h
+    x: jax.Array  # (n,) x_hat_k
+    d: jax.Array  # (n_d,) d_hat_k (eq. 4)
+    innovation: jax.Array  # (n_y,) output error y_k - C x_hat_k (the term K acts on in eq. 2)
+    y_dot: jax.Array  # (n_y,) backward-difference y'_k
+    x_dot: jax.Array  # (n,) (x_hat_k - x_hat_{k-1}) / h
 
 
 def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
@@ -262,16 +268,17 @@ def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
     )
 
 
-def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: InverseDynamicsInputs):
+def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: EstimatorInputs):
     A, B, C, K, F1, F2 = params.A, params.B, params.C, params.K, params.F1, params.F2
-    n, p, dtype = A.shape[-1], C.shape[-2], params.x0.dtype
+    n, p, m, dtype = A.shape[-1], C.shape[-2], params.Bu.shape[-1], params.x0.dtype
     h = params.h
     first = state.count == 0
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
     gamma = jnp.zeros((n,), dtype)
-    if inputs.gamma is not None:
-        gamma = _checks.vector("inputs.gamma", inputs.gamma, n, dtype, what="the value of Gamma(u, y), one entry "
-                               "per state", check_finite=False)  # fmt: skip
+    if inputs.u_prev is not None:
+        u = _checks.vector("inputs.u_prev", inputs.u_prev, m, dtype, what="one entry per column of Bu",
+                           check_finite=False)  # fmt: skip
+        gamma = params.Bu @ u
     sections = []
     for i in range(params.lowpass_order):
         s = jnp.where(first, y, params.lowpass_pole * state.lowpass[i] + (1 - params.lowpass_pole) * y)
@@ -285,13 +292,17 @@ def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: In
     x_dot = (x - state.x) / h
     d = F1 @ y + F2 @ y_dot + params.G1 @ x + params.G2 @ x_dot + params.G3 @ gamma
     new_state = InverseDynamicsState(x, y, lowpass, state.count + 1)
-    return new_state, InverseDynamicsOutputs(x, d, y_dot, x_dot)
+    return new_state, InverseDynamicsOutputs(x, d, y - C @ x, y_dot, x_dot)
 
 
-inverse_dynamics_observer = Observer(_init, _step)
-"""The sampled inverse-dynamics observer in the (init, step) protocol; inputs are :class:`InverseDynamicsInputs`
-``(y_k, Gamma(u_k, y_k))`` of shapes ``(p,)`` and ``(n,)``. Each step checks the inputs' shapes against the params
-while tracing (a ``ValueError`` naming the field) and casts them to the params' dtype."""
+inverse_dynamics_observer = Estimator(_init, _step)
+"""The sampled inverse-dynamics observer as an :class:`~jaxobs.observers.base.Estimator` over
+:class:`InverseDynamicsParams`.
+
+Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (n_y,) and (m,): ``Gamma = Bu u_prev`` is the known term over
+the step to sample ``k`` (backward Euler evaluates eq. 2 at ``t_k``; to use the input of sample ``k`` itself,
+pass that series as ``u_prev``). Each step checks the inputs against the params while tracing and casts them to
+the params' dtype. Outputs: :class:`InverseDynamicsOutputs`."""
 
 
 def make_inverse_dynamics(
@@ -303,6 +314,7 @@ def make_inverse_dynamics(
     F2=None,
     *,
     h,
+    Bu=None,
     case: int | None = None,
     rho=None,
     x0=None,
@@ -316,9 +328,12 @@ def make_inverse_dynamics(
       A, B, C: plant of eq. 1 (``B`` is the disturbance matrix, full column rank; ``(A, C)`` observable).
       K: ``(n, n_y)`` state-observer gain.  F1, F2: ``(n_d, n_y)`` disturbance gains (eq. 4).
       h: sample time (seconds).
+      Bu: ``(n, m)`` input matrix of the known term ``Gamma(u, y) = Bu u`` (default none).
       case: 1 (Lemma 3.1) or 2 (Lemma 3.3); default 1 when ``C B`` has full column rank, else 2.
         Case 1 with ``F2=None`` takes the minimum-norm ``F2`` with ``F2 C B = I``; Case 2 needs ``F2``.
       rho: ``(n_d, n)`` free parameter of ``B+`` (Case 2 only; default 0).
+      x0: ``(n,)`` the estimate the observer integrates from (default zeros).
+      lowpass_pole: pole in ``[0, 1)`` of the ``lowpass_order`` first-order sections filtering ``y`` (§4.2).
       check_stability: raise ``ValueError`` when the error dynamics are not exponentially stable
         (eq. 8 Hurwitz in Case 1; :func:`fact35` in Case 2).
 
@@ -326,10 +341,13 @@ def make_inverse_dynamics(
     """
     A, B, C, K, F1 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K, F1))
     F2, rho = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (F2, rho))
-    dtype = _checks.float_dtype(A=A, B=B, C=C, K=K, F1=F1, F2=F2, rho=rho, x0=x0, h=h, lowpass_pole=lowpass_pole)
+    dtype = _checks.float_dtype(A=A, B=B, C=C, K=K, F1=F1, F2=F2, rho=rho, x0=x0, h=h, lowpass_pole=lowpass_pole,
+                                Bu=Bu)  # fmt: skip
     _checks.matrix("A", A, square=True)
     n = A.shape[-1]
     _checks.matrix("B", B, shape=(n, None))
+    Bu = jnp.zeros((n, 0), dtype) if Bu is None else jnp.atleast_2d(jnp.asarray(Bu))
+    _checks.matrix("Bu", Bu, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     nd, ny = B.shape[1], C.shape[0]
     _checks.matrix("K", K, shape=(n, ny))
@@ -395,8 +413,9 @@ def make_inverse_dynamics(
         if not 0.0 <= p < 1.0:
             raise ValueError(f"lowpass_pole must lie in [0, 1), got {p}")
     return InverseDynamicsParams(
-        A, B, C, K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, dtype), jnp.asarray(lowpass_pole, dtype), lowpass_order
-    )
+        A, B, C, Bu.astype(dtype), K, F1, F2, G1, G2, G3, x0, jnp.asarray(h, dtype), jnp.asarray(lowpass_pole, dtype),
+        lowpass_order,
+    )  # fmt: skip
 
 
 def _check_error_dynamics(case: int, M_e, A_e):

@@ -1,4 +1,4 @@
-"""The config tables every ``jaxobs tune`` problem shares: ``[optimizer]`` (:class:`jaxobs.tune.TuneSettings`),
+"""The config tables every ``jaxobs tune`` problem shares: ``[optimizer]`` (:class:`jaxobs.tuning.TuneSettings`),
 ``[baseline]`` (the random search and its box) and the seed, with their checks; plus the run's tag.
 
 The random search's box is ``theta0 +- spread`` per unconstrained coordinate. Its default width (``spread = 0``)
@@ -15,7 +15,7 @@ import json
 import jax.numpy as jnp
 
 from jaxobs._config import check_at_least, check_memory, fail
-from jaxobs.tune import TuneSettings
+from jaxobs.tuning import TuneSettings
 
 __all__ = [
     "optimizer_defaults",
@@ -32,7 +32,7 @@ BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}  # candidates theta0 
 
 
 def optimizer_defaults(**overrides) -> dict:
-    """The ``[optimizer]`` table: :class:`jaxobs.tune.TuneSettings`'s fields, with a problem's ``overrides``."""
+    """The ``[optimizer]`` table: :class:`jaxobs.tuning.TuneSettings`'s fields, with a problem's ``overrides``."""
     table = dataclasses.asdict(TuneSettings())
     unknown = set(overrides) - set(table)
     if unknown:

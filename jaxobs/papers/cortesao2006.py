@@ -1,4 +1,4 @@
-"""Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 1 (§7): force control with
+"""Cortesão 2006, "On Kalman Active Observers" (Cortesão 2006), Example 1 (§7): force control with
 AOB-1/2/3 under the nonlinear input disturbance of eq. 81-82.
 
 Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I (with R as
@@ -26,6 +26,7 @@ from jaxobs.papers.force_control import (
     example1_disturbance,
     nominal_design,
     reference_gain,
+    with_feedback,
 )
 
 NAME = "cortesao2006-example1"
@@ -45,20 +46,18 @@ FORCE_STEP = 10.0  # N; Fig. 5's reference is not printed, we use a 10 N step at
 NOISE_SEED = 0
 
 
-def aob_params(plant, L_r, order: int, setup: ForceControlSetup = EXAMPLE1, *, r_scale: float = 1.0):
-    """The steady-state AOB-N of Example 1: Q_xr = 1e-12 I, R = 2.1e-2, sigma^2 = 1e-3, c = 1/500."""
+def aob_params(plant, order: int, setup: ForceControlSetup = EXAMPLE1, *, r_scale: float = 1.0):
+    """The steady-state AOB-N estimator of Example 1: Q_xr = 1e-12 I, R = 2.1e-2, sigma^2 = 1e-3, c = 1/500."""
     q_active = active.evolution_variance(setup.sigma2_active, order, setup.c)
-    return active.make_aob(
-        plant, L_r, order, setup.R * r_scale, q_plant=setup.q_plant, q_active=q_active, steady_state=True
-    )
+    return active.make_aob(plant, order, setup.R * r_scale, q_plant=setup.q_plant, q_active=q_active, steady_state=True)
 
 
 def sensor_based_ckf(plant, L_r, R):
-    """The CKF with the sensor-based (SBA) gain ``K = [1, 0, ..., 0]'`` (seed 003's "CKF, SBA"):
-    the force estimate is the measured force."""
-    params = active.make_ckf(plant, L_r, R)
+    """The CKF with the sensor-based (SBA) gain ``K = [1, 0, ..., 0]'`` (the MRAC chapter's "CKF, SBA"), with
+    state feedback ``L_r``: the force estimate is the measured force."""
+    params = active.make_ckf(plant, R)
     K = active.sensor_based_gain(plant.C)
-    return dataclasses.replace(params, gain=K, gain_passive=K)
+    return with_feedback(dataclasses.replace(params, gain=K, gain_passive=K), L_r)
 
 
 def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) -> dict:
@@ -67,8 +66,8 @@ def example1(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEED) 
     gains, gains_fit = {}, {}
     plant, L_r = nominal_design(setup)
     for order in ORDERS:
-        gains[f"AOB-{order}"] = np.asarray(aob_params(plant, L_r, order, setup).gain).ravel()
-        fit = aob_params(plant, L_r, order, setup, r_scale=1.0 / SIGMA2_OVER_R_FIT)
+        gains[f"AOB-{order}"] = np.asarray(aob_params(plant, order, setup).gain).ravel()
+        fit = aob_params(plant, order, setup, r_scale=1.0 / SIGMA2_OVER_R_FIT)
         gains_fit[f"AOB-{order}"] = np.asarray(fit.gain).ravel()
 
     def max_error(table):
@@ -107,19 +106,19 @@ def closed_loop(setup: ForceControlSetup = EXAMPLE1, noise_seed: int = NOISE_SEE
     D = example1_disturbance(t)
     noise = measurement_noise(jax.random.PRNGKey(noise_seed), T, setup.R)
     plant, L_r = nominal_design(setup)
-    controllers = {f"AOB-{n}": aob_params(plant, L_r, n, setup) for n in ORDERS}
+    controllers = {f"AOB-{n}": with_feedback(aob_params(plant, n, setup), L_r) for n in ORDERS}
     controllers["CKF"] = sensor_based_ckf(plant, L_r, setup.R)
     reference = jnp.full((T,), reference_gain(L_r) * FORCE_STEP)
     desired = ideal_response(plant, L_r, reference)[:, 0]
     out = {"t": t, "disturbance": D, "desired_force": desired, "force": {}, "active_state": {}}
     rms_error, jitter = {}, {}
     for name, params in controllers.items():
-        trace = simulate(plant, params, reference, disturbance=D, noise=noise)
+        trace = simulate(plant, active.active_observer_controller, params, reference, disturbance=D, noise=noise)
         force = trace.y_true[:, 0]
         out["force"][name] = force
-        out["active_state"][name] = trace.controller.p[:, 0]
+        out["active_state"][name] = trace.controller.estimator.d[:, 0]
         rms_error[name] = float(rms(force - desired))
-        noise_free = simulate(plant, params, reference, disturbance=D).y_true[:, 0]
+        noise_free = simulate(plant, active.active_observer_controller, params, reference, disturbance=D).y_true[:, 0]
         jitter[name] = float(rms(force - noise_free))  # force deviation caused by the sensor noise
     out["rms_force_error"] = rms_error
     out["force_jitter"] = jitter

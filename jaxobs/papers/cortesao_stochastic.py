@@ -1,5 +1,5 @@
 """Cortesão, Koeppe, Nunes, Hirzinger, "Stochastic Active Observers: active state analysis"
-(seed 001), §4: AOB vs CKF force tracking while the contact surface moves.
+(the stochastic AOB paper), §4: AOB vs CKF force tracking while the contact surface moves.
 
 From 8 s the surface recedes at ``xdot_e = 2 mm/s`` (eq. 48): a constant velocity disturbance at
 the plant input. The sensor-based CKF keeps a steady-state force error, printed as
@@ -20,15 +20,15 @@ from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.cortesao2006 import sensor_based_ckf
-from jaxobs.papers.force_control import EXAMPLE1, nominal_design, reference_gain
+from jaxobs.papers.force_control import EXAMPLE1, nominal_design, reference_gain, with_feedback
 
 NAME = "cortesao-stochastic-ramp"
 
 PRINTED_COEFFICIENT = 0.6839  # eq. 50
 SURFACE_SPEED = 2.0  # mm/s (xdot_e)
 SURFACE_START = 8.0  # s
-Q_ACTIVE = 1e-5  # seed 001 §4: "Q_k = 1e-5"
-GAMMA_OTHER = 1e-12  # seed 001 §4: gamma for the other states, beta from eq. 47
+Q_ACTIVE = 1e-5  # The stochastic AOB paper §4: "Q_k = 1e-5"
+GAMMA_OTHER = 1e-12  # The stochastic AOB paper §4: gamma for the other states, beta from eq. 47
 FORCE_SETPOINT = 10.0  # N (not printed)
 ADAPTIVE_ALPHA = 0.5  # strategy P(|w_k| > |w_{k-1}|) = alpha (eq. 20)
 ADAPTIVE_SIGMA_FLOOR = float(np.sqrt(Q_ACTIVE))  # sigma* (§3.1): never less active than Q = 1e-5
@@ -46,14 +46,16 @@ def ramp(setup=EXAMPLE1) -> dict:
     q_plant = float(active.deviation_variance(GAMMA_OTHER))
     controllers = {
         "CKF-SBA": sensor_based_ckf(plant, L_r, setup.R),
-        "CKF-tiny-Q": active.make_ckf(plant, L_r, setup.R, q_plant=q_plant),
-        "AOB-1": active.make_aob(plant, L_r, 1, setup.R, q_plant=q_plant, q_active=Q_ACTIVE),
-        "AOB-1-adaptive": active.make_aob(
-            plant, L_r, 1, setup.R, q_plant=q_plant, q_active=Q_ACTIVE,
+        "CKF-tiny-Q": with_feedback(active.make_ckf(plant, setup.R, q_plant=q_plant), L_r),
+        "AOB-1": with_feedback(active.make_aob(plant, 1, setup.R, q_plant=q_plant, q_active=Q_ACTIVE), L_r),
+        "AOB-1-adaptive": with_feedback(active.make_aob(
+            plant, 1, setup.R, q_plant=q_plant, q_active=Q_ACTIVE,
             alpha=ADAPTIVE_ALPHA, sigma_floor=ADAPTIVE_SIGMA_FLOOR,
-        ),
+        ), L_r),
     }  # fmt: skip
-    traces = {name: simulate(plant, params, reference, disturbance=disturbance) for name, params in controllers.items()}
+    controller = active.active_observer_controller
+    traces = {name: simulate(plant, controller, params, reference, disturbance=disturbance)
+              for name, params in controllers.items()}  # fmt: skip
     force_error = {name: tr.y_true[:, 0] - desired for name, tr in traces.items()}
     settled = t >= setup.duration - 1.0  # last second: steady state
     delta_f_ss = {name: float(jnp.mean(e[settled])) for name, e in force_error.items()}
@@ -62,12 +64,12 @@ def ramp(setup=EXAMPLE1) -> dict:
 
     L = np.asarray(L_r).ravel()
     coefficient = (1.0 + setup.Ks * L[1] + L[2:].sum()) / (setup.Ks * L[0])
-    adaptive = traces["AOB-1-adaptive"].controller
-    fixed = traces["AOB-1"].controller
+    adaptive = traces["AOB-1-adaptive"].controller.estimator
+    fixed = traces["AOB-1"].controller.estimator
     return {
         "t": t,
         "force_error": force_error,
-        "active_state": {k: traces[k].controller.p[:, 0] for k in ("AOB-1", "AOB-1-adaptive")},
+        "active_state": {k: traces[k].controller.estimator.d[:, 0] for k in ("AOB-1", "AOB-1-adaptive")},
         "surface_speed": SURFACE_SPEED,
         "delta_f_ss_ckf": delta_f_ss["CKF-SBA"],
         "delta_f_ss_ckf_printed": PRINTED_COEFFICIENT * setup.Ks * SURFACE_SPEED,
@@ -120,7 +122,7 @@ def plot(results: dict, out_dir: Path) -> str:
     axes[3].set_ylabel("alpha_k")
     axes[3].set_xlabel("time [s]")
     axes[3].legend(fontsize=8)
-    fig.suptitle("Seed 001 §4: AOB vs CKF under a moving surface")
+    fig.suptitle("the stochastic AOB paper §4: AOB vs CKF under a moving surface")
     return save_figure(fig, out_dir, NAME)
 
 

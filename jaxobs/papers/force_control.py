@@ -1,6 +1,7 @@
-"""The 1-DOF robot force-control plant shared by seeds 000, 001 and 003, and its Example 1 design.
+"""Example 1 of Cortesão 2006 (§7): the settings and the design of the 1-DOF robot force-control plant shared by
+Cortesão 2006, the stochastic AOB paper and the MRAC chapter (the plant itself: :func:`jaxobs.plants.force_plant`).
 
-Per Cartesian DOF (seed 003 eq. 56-61; seed 000 eq. 80) the position-controlled robot
+Per Cartesian DOF (the MRAC chapter eq. 56-61; Cortesão 2006 eq. 80) the position-controlled robot
 ``1 / (1 + Tp s) e^{-s Td}`` pushes on an environment of stiffness ``Ks``:
 ``G(s) = k1 / (s (s + p1)) e^{-s Td}`` with ``k1 = Ks / Tp``, ``p1 = 1 / Tp``; states
 ``[force (N), force derivative (N/s)]``, input velocity in mm/s, so ``Ks`` is in N/mm
@@ -14,15 +15,16 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs.design import acker, critically_damped_poles
-from jaxobs.lti import StateSpace, c2d, ss
+from jaxobs.design import critically_damped_gain
+from jaxobs.observers.active import ActiveObserverParams, feedback_gain
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.plants import force_plant
 
 __all__ = [
     "ForceControlSetup",
     "EXAMPLE1",
-    "force_plant",
-    "design_gain",
     "nominal_design",
+    "with_feedback",
     "example1_disturbance",
     "chirp",
 ]
@@ -30,14 +32,14 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True)
 class ForceControlSetup:
-    """Nominal parameters (seed 000 §7.2, seed 003 Table 1)."""
+    """Nominal parameters (Cortesão 2006 §7.2, the MRAC chapter Table 1)."""
 
     Ks: float = 3.0  # N/mm
     Tp: float = 0.032  # s, position response time constant
     h: float = 0.008  # s, sample time
     dead_time_samples: int = 5  # Td = 5 h
-    tau_c_over_Tp: float = 10.0  # closed-loop time constant tau_c = 10 Tp (seed 003 eq. 68)
-    R: float = 2.1e-2  # N^2, force sensor noise (seed 000 §7.2, seed 003 eq. 64)
+    tau_c_over_Tp: float = 10.0  # closed-loop time constant tau_c = 10 Tp (the MRAC chapter eq. 68)
+    R: float = 2.1e-2  # N^2, force sensor noise (Cortesão 2006 §7.2, the MRAC chapter eq. 64)
     q_plant: float = 1e-12  # Q_xr(i, i)
     sigma2_active: float = 1e-3  # variance of xi_p
     c: float = 1.0 / 500.0  # eq. 55 factor
@@ -51,27 +53,16 @@ class ForceControlSetup:
 EXAMPLE1 = ForceControlSetup()
 
 
-def force_plant(Ks, Tp, h: float, dead_time, *, n_delay: int | None = None, input_gain=1.0) -> StateSpace:
-    """Delay-augmented discrete force plant (eq. 57-61 discretised by eq. 11-18). ``Ks``, ``Tp``,
-    ``dead_time`` (seconds) and ``input_gain`` (a mismatch of the robot's velocity gain) may be
-    traced; pass ``n_delay`` for a traced dead time."""
-    Ks, Tp = jnp.asarray(Ks, float), jnp.asarray(Tp, float)
-    zero = jnp.zeros((), Ks.dtype)
-    A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
-    B = jnp.stack([zero, input_gain * Ks / Tp])[:, None]
-    return c2d(ss(A, B, [[1.0, 0.0]]), h, dead_time, n_delay=n_delay)
-
-
-def design_gain(plant: StateSpace, h: float, tau_c):
-    """``L_r`` by Ackermann: a critically damped double pole with time constant ``tau_c`` and the
-    dead-time poles at ``z = 0`` (seed 000 eq. 83)."""
-    return acker(plant.A, plant.B, critically_damped_poles(h, tau_c, plant.n_states - 2))
-
-
 def nominal_design(setup: ForceControlSetup = EXAMPLE1):
-    """The nominal delay-augmented plant and its ``L_r`` (tau_c = 10 Tp, seed 000 eq. 83)."""
+    """The nominal delay-augmented plant and its ``L_r`` (tau_c = 10 Tp, Cortesão 2006 eq. 83)."""
     plant = force_plant(setup.Ks, setup.Tp, setup.h, setup.dead_time_samples * setup.h)
-    return plant, design_gain(plant, setup.h, setup.tau_c_over_Tp * setup.Tp)
+    return plant, critically_damped_gain(plant, setup.tau_c_over_Tp * setup.Tp)
+
+
+def with_feedback(aob: ActiveObserverParams, L_r) -> FeedbackParams:
+    """The AOB (or CKF) ``aob`` with the state feedback ``u = r - L_r x_hat_r - p_hat`` (eq. 49-50), the params of
+    :data:`jaxobs.observers.active.active_observer_controller`."""
+    return FeedbackParams(aob, feedback_gain(aob, L_r))
 
 
 def chirp(t, f0: float, f1: float, t1: float):
@@ -80,7 +71,7 @@ def chirp(t, f0: float, f1: float, t1: float):
 
 
 def example1_disturbance(t):
-    """Seed 000 eq. 81-82: ``D = u^3 + u^2 - u``, ``u = 2 chirp(0.01 Hz -> 0.1 Hz, 20 s) - 0.5 step(t - 8)``,
+    """Cortesão 2006 eq. 81-82: ``D = u^3 + u^2 - u``, ``u = 2 chirp(0.01 Hz -> 0.1 Hz, 20 s) - 0.5 step(t - 8)``,
     added to the plant input (mm/s)."""
     u = 2.0 * chirp(t, 0.01, 0.1, 20.0) - 0.5 * (t >= 8.0)
     return u**3 + u**2 - u
@@ -88,5 +79,5 @@ def example1_disturbance(t):
 
 def reference_gain(L_r) -> float:
     """Reference scaling for unit DC gain from desired force to force: the integrating plant makes
-    the closed-loop DC gain ``1 / L_1``, so ``r_k = L_1 F_d`` (seed 000: "the system input L_1 r_k")."""
+    the closed-loop DC gain ``1 / L_1``, so ``r_k = L_1 F_d`` (Cortesão 2006: "the system input L_1 r_k")."""
     return float(np.asarray(L_r)[0, 0])

@@ -1,4 +1,4 @@
-"""Robustness sweep of the Example 1 force controllers (seed 000 §6-7): the default ``jaxobs sweep``.
+"""Robustness sweep of the Example 1 force controllers (Cortesão 2006 §6-7): the default ``jaxobs sweep``.
 
 AOB-1, AOB-2, AOB-3 and a CKF, each designed on the nominal plant (Ks = 3 N/mm, Tp = 32 ms, 5 samples
 of dead time) for a grid of Q/R strategies, run against true plants with stiffness, time-constant
@@ -9,7 +9,7 @@ response (as in §7.2).
 
 The strategy grid: the variance ``sigma^2`` of the active-state noise (eq. 55, with Example 1's
 ``c = 1/500``) times ``R``. The CKF has no active state, so for it the first axis is the plant-state
-variance ``Q_xr``. By Q/R scale invariance (seed 003 Proposition 1) the gains depend mostly on
+variance ``Q_xr``. By Q/R scale invariance (the MRAC chapter Proposition 1) the gains depend mostly on
 ``sigma^2 / R``, the axis of the stability maps.
 
 Configuration ``i`` uses design ``i mod D`` (so every design gets the same number of plants) and
@@ -27,24 +27,14 @@ import numpy as np
 
 from jaxobs._config import ConfigError, check_at_least, check_choice, check_range, fail, merge
 from jaxobs._resources import compile_checked
-from jaxobs.closed_loop import (
-    LinearController,
-    ideal_response,
-    linear_controller,
-    linear_controller_of,
-    rms,
-    simulate,
-)
+from jaxobs.closed_loop import ideal_response, rms, simulate
 from jaxobs.lti import n_delay_slots
 from jaxobs.observers import active
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.observers.linear import linear_controller
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
-from jaxobs.papers.force_control import (
-    EXAMPLE1,
-    example1_disturbance,
-    force_plant,
-    nominal_design,
-    reference_gain,
-)
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
+from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
 from jaxobs.sweep import load_results, run_configured_sweep
 
@@ -117,7 +107,7 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
 class Designs:
     """Stacked controllers (leading axis: design), padded to a common observer size."""
 
-    controller: LinearController
+    controller: FeedbackParams  # params of jaxobs.observers.linear.linear_controller
     order: np.ndarray  # 0 = CKF
     active_variance: np.ndarray
     R: np.ndarray
@@ -142,11 +132,11 @@ def build_designs(config: dict) -> Designs:
 
         def design(v, r, order=order):
             if order == 0:
-                params = active.make_ckf(plant, L_r, r, q_plant=v, steady_state=True)
+                params = active.make_ckf(plant, r, q_plant=v, steady_state=True)
             else:
                 q = active.evolution_variance(v, order, EXAMPLE1.c)
-                params = active.make_aob(plant, L_r, order, r, q_plant=EXAMPLE1.q_plant, q_active=q, steady_state=True)
-            return linear_controller_of(params).padded(n_obs)
+                params = active.make_aob(plant, order, r, q_plant=EXAMPLE1.q_plant, q_active=q, steady_state=True)
+            return active.active_observer_controller.linear(with_feedback(params, L_r)).padded(n_obs)
 
         V_, R_ = jnp.asarray(V), jnp.asarray(R)
         build = compile_checked(jax.jit(jax.vmap(design)).lower(V_, R_), f"the {V.size} designs of order {order}",
@@ -177,7 +167,7 @@ def tracking(config: dict):
 
     def run(true, ctrl, noise_seed):
         noise = std * jax.random.normal(jax.random.PRNGKey(noise_seed), (steps,))
-        trace = simulate(true, ctrl, reference, disturbance=disturbance, noise=noise, controller=linear_controller)
+        trace = simulate(true, linear_controller, ctrl, reference, disturbance=disturbance, noise=noise)
         force = trace.y_true[:, 0]
         error, peak = rms(force - desired), jnp.max(jnp.where(jnp.isfinite(force), jnp.abs(force), jnp.inf))
         return force, jnp.where(jnp.isfinite(error), error, jnp.inf), peak
@@ -216,7 +206,7 @@ def make_sweep(config: dict):
         ctrl = jax.tree.map(lambda M: M[p["design"]], table)
         true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
         margins = stability_margins(
-            loop_transfer(true, ctrl),
+            loop_transfer(true, linear_controller, ctrl),
             num_points=config["margins"]["num_points"],
         )
         _, error, peak = closed_loop(true, ctrl, p["noise_seed"])

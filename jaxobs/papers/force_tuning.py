@@ -1,24 +1,24 @@
 """Tuning the AOB of the 1-DOF force plant against MJX rollouts: the default ``jaxobs tune`` problem.
 
-The controller is the AOB-N of seeds 000/003 designed on the nominal analytic plant (Ks = 3 N/mm,
+The controller is the AOB-N of Cortesão 2006 and the MRAC chapter designed on the nominal analytic plant (Ks = 3 N/mm,
 Tp = 32 ms, 5 samples of dead time; ``L_r`` for tau_c = 10 Tp, eq. 68) with steady-state gains. The
-hand-set design it starts from is seed 003 eq. 62-64: ``Q = diag(1e-12, ..., 1e-12, 1e-5)``,
+hand-set design it starts from is the MRAC chapter eq. 62-64: ``Q = diag(1e-12, ..., 1e-12, 1e-5)``,
 ``R = 2.1e-2``. It runs against the MJX force plant (:mod:`jaxobs.mjx.force_1dof`) with mismatched
 stiffness (+-50 % by default), time constant and damping, under the papers' disturbances: a 10 N
-force step at t = 0, the input disturbance of seed 000 eq. 81-82 (a window of it, crossing its 8 s
-step) and the receding surface of seed 001 §4 (2 mm/s). The per-plant loss is the mean squared
-force tracking error against the desired closed loop (seed 000 eq. 43, the nominal ``Phi - Gamma L``
+force step at t = 0, the input disturbance of Cortesão 2006 eq. 81-82 (a window of it, crossing its 8 s
+step) and the receding surface of the stochastic AOB paper §4 (2 mm/s). The per-plant loss is the mean squared
+force tracking error against the desired closed loop (Cortesão 2006 eq. 43, the nominal ``Phi - Gamma L``
 response), in N^2; sensor noise of the printed variance is drawn per plant with a fixed seed (common
 random numbers, so the objective is deterministic).
 
 Parameterisations (``design.parameterisation``) of the unconstrained ``theta``:
 
 * ``"diagonal"``: ``log_q`` (every diagonal entry of ``Q``) and ``log_r``;
-* ``"cholesky"``: ``q_cholesky`` (:func:`jaxobs.tune.cholesky_covariance`) and ``log_r``;
+* ``"cholesky"``: ``q_cholesky`` (:func:`jaxobs.tuning.cholesky_covariance`) and ``log_r``;
 * ``"structured"``: the papers' design space, ``log_q_plant`` (``Q_xr = q I``), ``log_sigma2`` and
   ``logit_c`` (the active-state variance of eq. 53-55) and ``log_r``.
 
-By Q/R scale invariance (seed 003 Proposition 1) the steady-state gains, hence the losses, do not
+By Q/R scale invariance (the MRAC chapter Proposition 1) the steady-state gains, hence the losses, do not
 change when ``Q`` and ``R`` are scaled together: one direction of ``theta`` is flat.
 """
 
@@ -31,9 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
-from jaxobs.closed_loop import ideal_response, linear_controller_of
+from jaxobs.closed_loop import ideal_response
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
+from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
     check_common,
@@ -41,15 +42,10 @@ from jaxobs.papers._tuning_config import (
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.force_control import (
-    EXAMPLE1,
-    example1_disturbance,
-    force_plant,
-    nominal_design,
-    reference_gain,
-)
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
+from jaxobs.plants import force_plant
 from jaxobs.stability import closed_loop_matrix, spectral_radius
-from jaxobs.tune import (
+from jaxobs.tuning import (
     TuningProblem,
     cholesky_covariance,
     cholesky_parameters,
@@ -60,7 +56,7 @@ from jaxobs.tune import (
 __all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
 
 NAME = "force_1dof"
-HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # seed 003 eq. 62 and 64
+HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # The MRAC chapter eq. 62 and 64
 PARAMETERISATIONS = ("diagonal", "cholesky", "structured")
 MAX_ORDER = 3
 
@@ -81,7 +77,7 @@ DEFAULT_CONFIG = {
         "sensor_noise": EXAMPLE1.R,  # N^2, the true sensor's noise variance
         "disturbance_window": 7.0,  # s: the plant sees D(t + 7 s) of eq. 81-82 (its 8 s step at t = 1 s)
         "disturbance_scale": 1.0,
-        "surface_speed": 2.0,  # mm/s, receding (seed 001 §4)
+        "surface_speed": 2.0,  # mm/s, receding (the stochastic AOB paper §4)
         "surface_start": 1.5,  # s
         "force_limit": 1000.0,  # N: a rollout beyond it counts as diverged
         "gradient_horizon": 0,  # control steps of truncated backpropagation; 0 = none
@@ -164,10 +160,10 @@ def covariances(theta: dict, n_plant: int, order: int):
     return active.aob_noise_covariance(n_plant, order, 1, jnp.exp(theta["log_q_plant"]), q_active), R
 
 
-def controller(theta: dict, base: active.ActiveObserverParams, n_plant: int, order: int):
-    """The steady-state AOB of ``theta`` (``base`` supplies the model and ``L``; ``P0 = Q``)."""
+def controller(theta: dict, base: active.ActiveObserverParams, L_r, n_plant: int, order: int) -> FeedbackParams:
+    """The steady-state AOB of ``theta`` with the state feedback ``L_r`` (``base`` supplies the model)."""
     Q, R = covariances(theta, n_plant, order)
-    return active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=R, P0=Q))
+    return with_feedback(active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=R, P0=Q)), L_r)
 
 
 # --------------------------------------------------------------------------------------------
@@ -211,24 +207,25 @@ def scenario(config: dict) -> dict:
 
 
 def build_problem(config: dict) -> TuningProblem:
-    """The :class:`jaxobs.tune.TuningProblem` of ``config`` (see the module docstring)."""
+    """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
     from jaxobs.mjx import ForcePlantParams, closed_loop_rollout, load_model, with_params
 
     order, sc = config["design"]["order"], config["scenario"]
     plant, L = nominal_design(EXAMPLE1)
-    base = active.make_aob(plant, L, order, config["design"]["R"])
+    base = active.make_aob(plant, order, config["design"]["R"])
     model = load_model(xml=config["plants"]["mjcf"] or None)[1]
     inputs = scenario(config)
     horizon = sc["gradient_horizon"] or None
     n_plant = plant.n_states
 
     def rollout(theta, plants):
-        ctrl = controller(theta, base, n_plant, order)
+        ctrl = controller(theta, base, L, n_plant, order)
 
         def one(ks, tp, damping, noise):
-            true = with_params(model, ForcePlantParams(ks=ks, tp=tp, damping=damping))
+            true = with_params(model, ForcePlantParams(stiffness=ks, time_constant=tp, damping=damping))
             return closed_loop_rollout(
-                true, ctrl, inputs["reference"], noise=noise, disturbance=inputs["disturbance"],
+                true, active.active_observer_controller, ctrl, inputs["reference"], noise=noise,
+                disturbance=inputs["disturbance"],
                 surface_velocity=inputs["surface_velocity"], gradient_horizon=horizon,
             ).force_true  # fmt: skip
 
@@ -247,24 +244,25 @@ def build_problem(config: dict) -> TuningProblem:
 
     def penalty(theta):
         """Mean squared excess of the closed-loop spectral radius (analytic true plants, eq. 59) over the limit."""
-        ctrl = linear_controller_of(controller(theta, base, n_plant, order))
+        ctrl = controller(theta, base, L, n_plant, order)
 
         def radius(ks, tp):
-            return spectral_radius(closed_loop_matrix(force_plant(ks, tp, h, dead_time), ctrl))
+            plant = force_plant(ks, tp, h, dead_time)
+            return spectral_radius(closed_loop_matrix(plant, active.active_observer_controller, ctrl))
 
         rho = jax.vmap(radius)(train["ks"], train["tp"])
         return jnp.mean(jnp.maximum(rho - limit, 0.0) ** 2)
 
     def describe(theta):
         Q, R = covariances(theta, n_plant, order)
-        ctrl = controller(theta, base, n_plant, order)
+        aob = controller(theta, base, L, n_plant, order).estimator
         return {
             "Q_diagonal": np.asarray(jnp.diagonal(Q)).tolist(),
             "q_active": float(Q[-1, -1]),
             "R": float(R[0, 0]),
             "q_active_over_R": float(Q[-1, -1] / R[0, 0]),
-            "kalman_gain": np.asarray(ctrl.gain).ravel().tolist(),
-            "strategy": active.classify_strategy(np.asarray(ctrl.gain), np.asarray(ctrl.C)),
+            "kalman_gain": np.asarray(aob.gain).ravel().tolist(),
+            "strategy": active.classify_strategy(np.asarray(aob.gain), np.asarray(aob.C)),
         }
 
     rollout_jit = jax.jit(rollout)

@@ -1,4 +1,4 @@
-"""Liu & Peng (seed 004) §4.2: vehicle lateral speed and disturbance from yaw rate (eq. 31, Figs. 3-5).
+"""Liu & Peng 2002 §4.2: vehicle lateral speed and disturbance from yaw rate (eq. 31, Figs. 3-5).
 
 Bicycle model (eq. 31), state ``x = [v_y, r]`` (m/s, rad/s), steering ``u`` (rad), disturbance ``d``
 (m/s^2, lateral acceleration at the centre of gravity), measured ``y = r`` at 100 Hz::
@@ -21,12 +21,11 @@ Estimators, all at h = 10 ms, all on the nominal model and the measured steering
   random-walk disturbance state ``[v_y, r, d]``, estimating ``z = [v_y, d]`` at ``HINF_GAMMA_FACTOR`` times the
   optimal level over the run (:func:`~jaxobs.observers.hinf.gamma_bisection`). The paper used MATLAB's
   continuous-time ``hinf()``; its weights are not printed.
-* ``"aob"``: an AOB-1 *estimator*: :func:`jaxobs.observers.active.augment` of the ZOH plant whose "input" is the
-  disturbance channel (so the active state ``p`` is ``d``, entering where ``d`` does, with the AOB-1 random-walk
-  model) and the AOB noise design :func:`~jaxobs.observers.active.aob_noise_covariance` (model trusted,
-  ``Q_x = 1e-10``; ``Q_p`` as below), run as a time-varying Kalman filter with the steering as known input.
-  Nothing is fed back (an AOB-1 as a controller would cancel ``p`` at its own input, the steering, which is not
-  where ``d`` acts).
+* ``"aob"``: the AOB-1 as an estimator (:func:`jaxobs.observers.active.make_aob` with
+  ``disturbance_input = G_d``, so the active state ``p`` is ``d``, entering where ``d`` does, with the AOB-1
+  random-walk model), the AOB noise design (model trusted, ``Q_x = 1e-10``; ``Q_p`` as below), time-varying gain,
+  the steering as known input. Nothing is fed back (an AOB-1 as a controller would cancel ``p`` at its own input,
+  the steering, which is not where ``d`` acts).
 * ``"kalman"``: the classical Kalman filter on the plant alone (no disturbance state; ``d`` is white process noise
   ``Q = s_d^2 G_d G_d'``); ``d_hat`` is the least-squares disturbance that explains the state correction,
   ``G_d^+ (x_hat_k - x_prior_k)`` (one sample late). This is the usual approach the paper's introduction says is
@@ -51,10 +50,10 @@ import scipy.linalg
 
 from jaxobs.lti import c2d, ss
 from jaxobs.observers import active
-from jaxobs.observers.base import run
-from jaxobs.observers.hinf import HinfInputs, gamma_bisection, hinf_filter, make_hinf
-from jaxobs.observers.inverse_dynamics import InverseDynamicsInputs, inverse_dynamics_observer, make_inverse_dynamics
-from jaxobs.observers.kalman import KalmanInputs, kalman_filter, make_kalman
+from jaxobs.observers.base import EstimatorInputs, run
+from jaxobs.observers.hinf import gamma_bisection, hinf_filter, make_hinf
+from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
+from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 
 NAME = "liu-peng2002-vehicle"
@@ -222,8 +221,14 @@ def _discrete(A, Bu, Bd, C):
 def _augmented(A, Bu, Bd, C):
     """AOB-1 augmentation with the disturbance channel as the active-state input: ``[v_y, r, d]``."""
     Phi, Gu, Gd = _discrete(A, Bu, Bd, C)
-    Phi_a, _, C_a = active.augment(ss(Phi, Gd, C, dt=H), 1)
-    return np.asarray(Phi_a), np.vstack([Gu, [[0.0]]]), np.asarray(C_a)
+    Phi_a, Gu_a, C_a = active.augment(ss(Phi, Gu, C, dt=H), 1, disturbance_input=Gd)
+    return np.asarray(Phi_a), np.asarray(Gu_a), np.asarray(C_a)
+
+
+def _advanced(Phi, Q, P):
+    """The estimators start from ``x_{-1}`` (the sample before the first measurement) with covariance ``P``; the
+    library's prior is that of ``x_0``: ``Phi P Phi' + Q`` (the mean is advanced in :func:`run_estimators`)."""
+    return Phi @ P @ Phi.T + Q
 
 
 class Estimators(NamedTuple):
@@ -233,7 +238,6 @@ class Estimators(NamedTuple):
     aob: Any
     hinf: Any
     kalman: Any
-    B_u: jax.Array  # nominal steering input column (inverse-dynamics ``Gamma = B_u u_k``)
     G_d_pinv: jax.Array  # CKF: least-squares disturbance from the state correction
     hinf_gamma: float
 
@@ -244,44 +248,51 @@ def design_estimators(model: str, lowpass: bool, num_steps: int) -> Estimators:
     Initial states are placeholders: :func:`run_estimators` sets them from the first yaw-rate sample."""
     A, Bu, Bd, C = plant(model)
     ido = make_inverse_dynamics(
-        A, Bd, C, K_GAIN, F1, F2, h=H, case=2, x0=np.zeros(2),
+        A, Bd, C, K_GAIN, F1, F2, h=H, Bu=Bu, case=2, x0=np.zeros(2),
         lowpass_pole=LOWPASS_POLE if lowpass else 0.0, lowpass_order=LOWPASS_ORDER if lowpass else 0,
     )  # fmt: skip
+    Phi, Gu, Gd = _discrete(A, Bu, Bd, C)
     Phi_a, Gu_a, C_a = _augmented(A, Bu, Bd, C)
     Q_a = np.asarray(active.aob_noise_covariance(2, 1, 1, Q_X, Q_D))
-    P0_a = np.diag(P0_AUG)
-    aob = make_kalman(Phi_a, Gu_a, C_a, Q_a, R_MEAS, x0=np.zeros(3), P0=P0_a)
-    L = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    level = gamma_bisection(Phi_a, C_a, Q_a, R_MEAS, L=L, P0=P0_a, num_steps=num_steps, rtol=1e-4)
+    P0_a = _advanced(Phi_a, Q_a, np.diag(P0_AUG))
+    aob = active.make_aob(ss(Phi, Gu, C, dt=H), 1, R_MEAS, q_plant=Q_X, q_active=Q_D, disturbance_input=Gd,
+                          P0=P0_a)  # fmt: skip
+    Cz = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    level = gamma_bisection(Phi_a, C_a, Q_a, R_MEAS, Cz=Cz, P0=P0_a, num_steps=num_steps, rtol=1e-4)
     gamma = HINF_GAMMA_FACTOR * float(level.gamma)
-    hinf = make_hinf(Phi_a, Gu_a, C_a, Q_a, R_MEAS, gamma=gamma, L=L, x0=np.zeros(3), P0=P0_a)
-    Phi, Gu, Gd = _discrete(A, Bu, Bd, C)
+    hinf = make_hinf(Phi_a, C_a, Q_a, R_MEAS, gamma=gamma, Gamma=Gu_a, Cz=Cz, Cd=Cz[1:], P0=P0_a)
     Q_c = SIGMA_D_CKF**2 * Gd @ Gd.T + Q_X * np.eye(2)
-    ckf = make_kalman(Phi, Gu, C, Q_c, R_MEAS, x0=np.zeros(2), P0=np.diag(P0_AUG[:2]))
-    return Estimators(ido, aob, hinf, ckf, jnp.asarray(Bu[:, 0]), jnp.asarray(np.linalg.pinv(Gd)), gamma)
+    ckf = make_kalman(Phi, C, Q_c, R_MEAS, Gamma=Gu, P0=_advanced(Phi, Q_c, np.diag(P0_AUG[:2])))
+    return Estimators(ido, aob, hinf, ckf, jnp.asarray(np.linalg.pinv(Gd)), gamma)
 
 
 def run_estimators(est: Estimators, y, u) -> dict:
     """Run the designed estimators on the measured ``y`` and ``u`` (traceable, ``vmap``-able); returns
-    ``{method: (v_y_hat, d_hat)}`` and ``"_hinf_feasible"`` (every step)."""
+    ``{method: (v_y_hat, d_hat)}`` and ``"_hinf_feasible"`` (every step).
+
+    The inverse-dynamics observer evaluates its known term ``B_u u`` at ``t_k`` (backward Euler, §4.2), so it gets
+    the steering of sample ``k`` as its input; the three Kalman-type filters get ``u_{k-1}``, held over the
+    interval, and start from ``x_{-1} = [0, y_0, 0]`` advanced one sample.
+    """
     y, u = jnp.asarray(y), jnp.asarray(u)
     x0 = jnp.stack([jnp.zeros_like(y[0]), y[0]])
     xa0 = jnp.stack([jnp.zeros_like(y[0]), y[0], jnp.zeros_like(y[0])])
     out = {}
     ido = dataclasses.replace(est.inverse_dynamics, x0=x0.astype(est.inverse_dynamics.x0.dtype))
-    o = run(inverse_dynamics_observer, ido, InverseDynamicsInputs(y[:, None], u[:, None] * est.B_u))[1]
+    o = run(inverse_dynamics_observer, ido, EstimatorInputs(y[:, None], u[:, None]))[1]
     out["inverse_dynamics"] = (o.x[:, 0], o.d[:, 0])
 
     u_prev = jnp.concatenate([u[:1], u[:-1]])[:, None]
-    Y = y[:, None]
-    o = run(kalman_filter, dataclasses.replace(est.aob, x0=xa0), KalmanInputs(u_prev, Y))[1]
-    out["aob"] = (o.x[:, 0], o.x[:, 2])
+    inputs = EstimatorInputs(y[:, None], u_prev)
+    aob, hinf, kf = est.aob, est.hinf, est.kalman
+    o = run(active.active_observer, dataclasses.replace(aob, x0=aob.Phi @ xa0 + aob.Gamma @ u_prev[0]), inputs)[1]
+    out["aob"] = (o.x[:, 0], o.d[:, 0])
 
-    o = run(hinf_filter, dataclasses.replace(est.hinf, x0=xa0), HinfInputs(u_prev, Y))[1]
-    out["hinf"] = (o.z[:, 0], o.z[:, 1])
+    o = run(hinf_filter, dataclasses.replace(hinf, x0=hinf.Phi @ xa0 + hinf.Gamma @ u_prev[0]), inputs)[1]
+    out["hinf"] = (o.z[:, 0], o.d[:, 0])
     out["_hinf_feasible"] = jnp.all(o.feasible)
 
-    o = run(kalman_filter, dataclasses.replace(est.kalman, x0=x0), KalmanInputs(u_prev, Y))[1]
+    o = run(kalman_filter, dataclasses.replace(kf, x0=kf.Phi @ x0 + kf.Gamma @ u_prev[0]), inputs)[1]
     d_ckf = (o.x - o.x_prior) @ est.G_d_pinv.T
     out["kalman"] = (o.x[:, 0], d_ckf[:, 0])
     return out

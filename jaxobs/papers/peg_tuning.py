@@ -1,6 +1,6 @@
-"""Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (seed 003 §7) against MJX rollouts.
+"""Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (the MRAC chapter §7) against MJX rollouts.
 
-The task of :func:`jaxobs.mjx.compliant_6dof.peg_on_hole_scenario`: three-point contact kept by ``f_x < 0``
+The task of :func:`jaxobs.papers.cortesao_mrac.peg_on_hole_scenario`: three-point contact kept by ``f_x < 0``
 and ``f_z > 0`` while the alignment velocity ``w_y`` uprights the tilted peg (its contact moment couples
 into ``f_x``, ``f_z`` and ``m_y``) and ``v_z`` carries a feedforward bias. The hand-set design is eq. 62-68:
 AOB-1 HBA on x, y, rx, ry, rz with ``Q = a_i diag(1e-12, ..., 1e-5)``, ``a_i = R_i / R(f_x)``, CKF SBA on z,
@@ -24,6 +24,7 @@ import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
 from jaxobs.closed_loop import ideal_response
+from jaxobs.observers.active import active_observer_controller
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
     check_common,
@@ -31,8 +32,8 @@ from jaxobs.papers._tuning_config import (
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.force_control import force_plant
-from jaxobs.tune import TuningProblem
+from jaxobs.plants import force_plant
+from jaxobs.tuning import TuningProblem
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
 
@@ -84,22 +85,23 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
 
 def build_problem(config: dict) -> TuningProblem:
     from jaxobs.mjx import compliant_6dof as c6
+    from jaxobs.papers import cortesao_mrac as mrac
 
     sc, pl = config["scenario"], config["plants"]
     nominal = c6.Compliant6Params()
-    scenario = c6.peg_on_hole_scenario(
+    scenario = mrac.peg_on_hole_scenario(
         nominal, duration=sc["duration"], alignment=(sc["alignment_start"], sc["alignment_end"]),
         insertion_velocity_bias=sc["insertion_velocity_bias"],
     )  # fmt: skip
     tuned = np.array([c6.X, c6.Y, c6.RX, c6.RZ])
     hand_set = scenario.controllers
-    noise_variance = jnp.asarray(c6.SENSOR_NOISE_VARIANCE)
-    q_hand = c6.Q_ACTIVE_FX * noise_variance / noise_variance[c6.X]  # eq. 62, 65
+    noise_variance = jnp.asarray(mrac.SENSOR_NOISE_VARIANCE)
+    q_hand = mrac.Q_ACTIVE_FX * noise_variance / noise_variance[c6.X]  # eq. 62, 65
     h, d = c6.CONTROL_PERIOD, 5
     stiffness = nominal.per_dof("stiffness", float)
 
     def desired_one(ks, L, r):
-        plant = force_plant(ks, nominal.tp, h, d * h)
+        plant = force_plant(ks, nominal.time_constant, h, d * h)
         return ideal_response(plant, L[:, : plant.n_states], r)[:, 0]
 
     desired = jax.vmap(desired_one, in_axes=(0, 0, 1), out_axes=1)(stiffness, hand_set.L, scenario.reference)
@@ -108,7 +110,7 @@ def build_problem(config: dict) -> TuningProblem:
 
     def controllers(theta):
         q = q_hand.at[tuned].set(jnp.exp(theta["log_q_active"]))
-        return c6.design(nominal, q_active=q, feedback_off=(c6.RY,))
+        return mrac.design(nominal, q_active=q, feedback_off=(c6.RY,))
 
     def rollout(theta, plants):
         ctrl = controllers(theta)
@@ -119,8 +121,9 @@ def build_problem(config: dict) -> TuningProblem:
                 contact_radius=radius,
             )  # fmt: skip
             return c6.closed_loop_rollout(
-                c6.with_params(model, true), ctrl, scenario.reference, feedforward=scenario.feedforward, noise=noise
-            ).wrench_true
+                c6.with_params(model, true), active_observer_controller, ctrl, scenario.reference,
+                feedforward=scenario.feedforward, noise=noise,
+            ).wrench_true  # fmt: skip
 
         return jax.vmap(one)(plants["stiffness_scale"], plants["tilt"], plants["contact_radius"], plants["noise"])
 

@@ -1,4 +1,4 @@
-"""Robustness of the steer-by-wire model matching (seed 000 §8) to errors in the identified actuator models.
+"""Robustness of the steer-by-wire model matching (Cortesão 2006 §8) to errors in the identified actuator models.
 
 The controller is the Example 2 design (:mod:`jaxobs.papers.steer_by_wire`: decoupled ``L_r`` for the
 poles of eq. 100-101, ``L_c`` of eq. 102-105, the AOB-1 of eq. 108-110 with its steady-state gains),
@@ -21,6 +21,7 @@ evaluated program, so a sweep with another ``plants.count`` is a different sweep
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -29,9 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, check_range, merge
-from jaxobs.closed_loop import LinearController, linear_controller_of
 from jaxobs.lti import StateSpace, c2d
-from jaxobs.observers.active import with_steady_state_gains
+from jaxobs.observers.active import active_observer_controller, with_steady_state_gains
+from jaxobs.observers.base import LinearObserver
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.observers.linear import linear_controller
 from jaxobs.papers import steer_by_wire as sbw
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.stability import closed_loop_matrix, spectral_radius
@@ -96,15 +99,17 @@ def _true_plants(config: dict, sampler) -> tuple[StateSpace, StateSpace]:
     return stack(bare), stack(positions)
 
 
-def _without_locked_states(params) -> LinearController:
-    """The steady-state AOB as a :class:`~jaxobs.closed_loop.LinearController` without the active states
-    that eq. 109 locks at 0 (``Q_p = 0``, no gain, never excited): they are eigenvalues at exactly 1 that no
-    input or measurement reaches, so they would make every loop look marginally stable."""
-    c = linear_controller_of(params)
-    q = np.diagonal(np.asarray(params.Q))
+def _without_locked_states(params: FeedbackParams) -> FeedbackParams:
+    """The steady-state AOB controller as a fixed-gain linear one (params of ``linear_controller``) without
+    the active states that eq. 109 locks at 0 (``Q_p = 0``, no gain, never excited): they are eigenvalues at
+    exactly 1 that no input or measurement reaches, so they would make every loop look marginally stable."""
+    lin = active_observer_controller.linear(params)
+    c, aob = lin.estimator, params.estimator
+    q = np.diagonal(np.asarray(aob.Q))
     n = q.size
-    keep = np.array([i for i in range(n) if i < n - params.n_active or q[i] > 0])
-    return LinearController(c.Phi[np.ix_(keep, keep)], c.Gamma[keep], c.C[:, keep], c.K[keep], c.L[:, keep])
+    keep = np.array([i for i in range(n) if i < n - aob.n_active or q[i] > 0])
+    observer = LinearObserver(c.Phi[np.ix_(keep, keep)], c.Gamma[keep], c.C[:, keep], c.K[keep])
+    return FeedbackParams(observer, lin.L[:, keep])
 
 
 def make_sweep(config: dict):
@@ -112,7 +117,8 @@ def make_sweep(config: dict):
     sampler = _sampler(config)
     bare, positions = _true_plants(config, sampler)
     d = sbw.design()
-    controller = with_steady_state_gains(sbw.aob(d["plant"], d["L_r"]))
+    design = sbw.aob(d["plant"], d["L_r"])
+    controller = dataclasses.replace(design, estimator=with_steady_state_gains(design.estimator))
     loop_controller = _without_locked_states(controller)
     _, torque, road = sbw.scenarios()
     no_torque, no_road = np.zeros_like(torque), np.zeros_like(road)
@@ -123,7 +129,7 @@ def make_sweep(config: dict):
         return StateSpace(table.A[i], table.B[i], table.C[i], table.D[i], sbw.H)
 
     def evaluate(p):
-        rho = spectral_radius(closed_loop_matrix(pick(bare, p["plant"]), loop_controller))
+        rho = spectral_radius(closed_loop_matrix(pick(bare, p["plant"]), linear_controller, loop_controller))
         true = pick(positions, p["plant"])
         matching = sbw.simulate_sbw(d, torque, no_road, true_plant=true, controller=controller)
         rejection = sbw.simulate_sbw(d, no_torque, road, true_plant=true, controller=controller)  # Fig. 9

@@ -1,4 +1,4 @@
-"""Cortesão 2006, "On Kalman Active Observers" (seed 000), Example 2 (§8): steer-by-wire (SBW) model
+"""Cortesão 2006, "On Kalman Active Observers" (Cortesão 2006), Example 2 (§8): steer-by-wire (SBW) model
 matching with a MIMO AOB-1.
 
 The SBW setup (eq. 95-99) has four inputs ``u = [T_h, tau_m, F_r, f_s]`` (steering-wheel torque,
@@ -32,7 +32,9 @@ import numpy as np
 
 from jaxobs.design import acker, dc_compensation, place
 from jaxobs.lti import StateSpace, c2d, dcgain, ss, tf2ss
-from jaxobs.observers.active import ActiveObserverInputs, active_observer, make_aob
+from jaxobs.observers.active import active_observer_controller, feedback_gain, make_aob
+from jaxobs.observers.base import ControllerInputs
+from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 
 NAME = "cortesao2006-example2"
@@ -321,10 +323,12 @@ def design(road_force_sign: float = 1.0, method: str = "decoupled", printed_pole
     return {"target": target, "plant": plant, "L_r": L_r, "L_c": np.asarray(L_c)}
 
 
-def aob(plant: StateSpace, L_r):
-    """The AOB-1 of eq. 108-110: ``Q_xr = 1e-12 I``, ``Q_p = diag(0, 1e-1, 0, 1e3)``, ``R = 4 I``,
-    ``P_{-1} = Q_0``, time-varying Kalman gain. The zero ``Q_p`` entries lock ``p_1 = p_3 = 0``."""
-    return make_aob(plant, L_r, 1, R_MEAS * np.eye(2), q_plant=Q_PLANT, q_active=jnp.asarray(Q_ACTIVE))
+def aob(plant: StateSpace, L_r) -> FeedbackParams:
+    """The AOB-1 of eq. 108-110 with its state feedback: ``Q_xr = 1e-12 I``, ``Q_p = diag(0, 1e-1, 0, 1e3)``,
+    ``R = 4 I``, ``P_{-1} = Q_0``, time-varying Kalman gain. The zero ``Q_p`` entries lock ``p_1 = p_3 = 0``.
+    Params of :data:`jaxobs.observers.active.active_observer_controller`."""
+    estimator = make_aob(plant, 1, R_MEAS * np.eye(2), q_plant=Q_PLANT, q_active=jnp.asarray(Q_ACTIVE))
+    return FeedbackParams(estimator, feedback_gain(estimator, L_r))
 
 
 def _lti_step(sys: StateSpace, x, u):
@@ -389,14 +393,15 @@ def simulate_sbw(
             r = entries @ known + actuators @ u_ff
             dist = entries @ (true - known)
         y = plant.C @ x
-        ctrl, out = active_observer.step(params, ctrl, ActiveObserverInputs(y, r))
+        ctrl, out = active_observer_controller.step(params, ctrl, ControllerInputs(y, r))
         x_next = plant.A @ x + plant.B @ (out.u + dist)
-        series = {"delta_h": x[-2], "x_r": x[-1], "velocity": y, "p": out.p, "F_r_star": F_star[0], "u": out.u}
+        series = {"delta_h": x[-2], "x_r": x[-1], "velocity": y, "p": out.estimator.d, "F_r_star": F_star[0],
+                  "u": out.u}  # fmt: skip
         return (x_next, ctrl, z, w), series
 
     carry = (
         jnp.zeros(plant.n_states),
-        active_observer.init(params),
+        active_observer_controller.init(params),
         jnp.zeros(imp.n_states),
         jnp.zeros(ff.n_states),
     )

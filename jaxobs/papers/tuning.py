@@ -2,7 +2,7 @@
 
 The config's ``problem`` key picks the problem module (``PROBLEMS``; each has ``DEFAULT_CONFIG``,
 ``validate_config`` and ``build_problem``; the shared tables are in ``_tuning_config``). :func:`run` tunes from the
-problem's hand-set design with :func:`jaxobs.tune.tune` (checkpointed, resumable), runs the random-search
+problem's hand-set design with :func:`jaxobs.tuning.tune` (checkpointed, resumable), runs the random-search
 baseline in the problem's search box (:func:`jaxobs.papers._tuning_config.search_box`) for at least as many
 rollouts and as much wall time as the tuning took, scores the hand-set, tuned and random-search designs (best at
 equal rollouts, best at equal wall time) on the held-out plants, and writes ``tuned.json`` and three figures:
@@ -26,7 +26,7 @@ from jaxobs.papers import force_tuning, peg_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
-from jaxobs.tune import evaluate, random_search, tune
+from jaxobs.tuning import evaluate, random_search, tune
 
 __all__ = ["PROBLEMS", "validate_config", "run"]
 

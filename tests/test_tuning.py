@@ -1,4 +1,4 @@
-"""jaxobs.tune: parameterisations, robust objectives and the optax loop (penalised divergence, rejection,
+"""jaxobs.tuning: parameterisations, robust objectives and the optax loop (penalised divergence, rejection,
 early stopping, checkpoints, Ctrl-C), the random search and evaluate, on cheap problems: a quadratic and the
 analytic force loop of jaxobs.closed_loop."""
 
@@ -14,12 +14,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-import jaxobs.tune as tune_module
+from jaxobs import tuning
 from jaxobs._resources import Interrupted
 from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, force_plant, nominal_design, reference_gain
-from jaxobs.tune import (
+from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
+from jaxobs.plants import force_plant
+from jaxobs.tuning import (
     CheckpointError,
     TuneSettings,
     TuningError,
@@ -109,7 +110,7 @@ def test_diverging_steps_are_rejected_with_a_message(caplog):
     """With ``theta > 1.5`` flagged as divergence, adam (lr 0.5) overshoots into it; those steps are
     rejected, logged, retried from the last accepted point with half the step, and tuning ends below 1.5."""
     s = TuneSettings(learning_rate=0.5, steps=40, patience=40, clip_norm=0.0, checkpoint_every=1000)
-    with caplog.at_level(logging.WARNING, logger="jaxobs.tune"):
+    with caplog.at_level(logging.WARNING, logger="jaxobs.tuning"):
         result = tune(quadratic_problem(limit=1.5), s, progress=False)
     rejected = [h for h in result.history if not h["accepted"]]
     assert rejected and all("diverged" in h["reason"] for h in rejected)
@@ -167,7 +168,7 @@ def reach_problem():
 
 def test_a_few_diverging_plants_are_penalised_not_refused(caplog):
     s = TuneSettings(learning_rate=0.3, steps=80, patience=80, clip_norm=0.0, checkpoint_every=1000)
-    with caplog.at_level(logging.WARNING, logger="jaxobs.tune"):
+    with caplog.at_level(logging.WARNING, logger="jaxobs.tuning"):
         result = tune(reach_problem(), s, progress=False)
     assert "1 of 4 training plants diverge under the initial design" in caplog.text
     first, p = result.history[0], 10.0 * 9  # plant t = 8 at x = 0: L = 64, P = 10 x the worst sound loss
@@ -202,7 +203,7 @@ def test_a_diverged_rollout_does_not_poison_the_gradient(mode):
 
     batch = {"t": jnp.array([0.0, 3.0, 0.0]), "s": jnp.array([0.0, 0.0, 800.0])}
     problem = TuningProblem({"x": jnp.asarray(1.0)}, losses, batch, batch)
-    plain = jax.jit(tune_module._evaluations(problem, TuneSettings(gradient=mode))[0])
+    plain = jax.jit(tuning._evaluations(problem, TuneSettings(gradient=mode))[0])
     grad = plain({"x": jnp.asarray(1.0)})[1]["x"]
     assert bool(jnp.isnan(grad)) == (mode == "reverse")
     result = tune(problem, TuneSettings(gradient=mode, steps=1), progress=False)
@@ -277,7 +278,7 @@ def test_damaged_checkpoints_raise(tmp_path, damage, message):
 def test_ctrl_c_saves_the_checkpoint_and_the_rerun_resumes(tmp_path, monkeypatch):
     s = TuneSettings(learning_rate=0.1, steps=10, checkpoint_every=100, patience=100)
     straight = tune(quadratic_problem(), s, progress=False)
-    failure, calls = tune_module._failure, []
+    failure, calls = tuning._failure, []
 
     def interrupted(*args):
         calls.append(1)
@@ -285,11 +286,11 @@ def test_ctrl_c_saves_the_checkpoint_and_the_rerun_resumes(tmp_path, monkeypatch
             raise KeyboardInterrupt
         return failure(*args)
 
-    monkeypatch.setattr(tune_module, "_failure", interrupted)
+    monkeypatch.setattr(tuning, "_failure", interrupted)
     path = tmp_path / "ckpt.npz"
     with pytest.raises(Interrupted, match=r"after 4 of 10 evaluations; checkpoint saved to .*ckpt.npz; rerun"):
         tune(quadratic_problem(), s, checkpoint=path, progress=False)
-    monkeypatch.setattr(tune_module, "_failure", failure)
+    monkeypatch.setattr(tuning, "_failure", failure)
     resumed = tune(quadratic_problem(), s, checkpoint=path, progress=False)
     assert [h["objective"] for h in resumed.history] == [h["objective"] for h in straight.history]
     assert float(resumed.theta["x"]) == float(straight.theta["x"])
@@ -348,15 +349,17 @@ def test_tuning_the_analytic_force_loop_lowers_the_held_out_error():
     reference = jnp.full((T,), reference_gain(L) * 10.0)
     desired = ideal_response(plant, L, reference)[:, 0]
     dist = example1_disturbance(jnp.arange(T) * EXAMPLE1.h + 7.0)
-    base = active.make_aob(plant, L, 1, EXAMPLE1.R, q_plant=1e-12, q_active=1e-5)
+    base = active.make_aob(plant, 1, EXAMPLE1.R, q_plant=1e-12, q_active=1e-5)
 
     def losses(theta, ks):
         Q = base.Q.at[-1, -1].set(jnp.exp(theta["log_q_active"]))
-        ctrl = active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=jnp.exp(theta["log_r"]).reshape(1, 1)))
+        aob = active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=jnp.exp(theta["log_r"]).reshape(1, 1)))
+        ctrl = with_feedback(aob, L)
 
         def one(k):
             true = force_plant(k, EXAMPLE1.Tp, EXAMPLE1.h, 5 * EXAMPLE1.h)
-            return jnp.mean((simulate(true, ctrl, reference, disturbance=dist).y_true[:, 0] - desired) ** 2)
+            trace = simulate(true, active.active_observer_controller, ctrl, reference, disturbance=dist)
+            return jnp.mean((trace.y_true[:, 0] - desired) ** 2)
 
         loss = jax.vmap(one)(ks)
         return loss, ~jnp.isfinite(loss)

@@ -13,7 +13,7 @@ from a hand-set design):
 * positive scalars and diagonals by ``exp`` (``log_q``, ``log_r``, ``log_sigma2``);
 * full covariances by a Cholesky factor with a log-diagonal (:func:`cholesky_covariance`), so every
   ``theta`` gives a positive-definite ``Q`` and all correlations are reachable;
-* factors in ``(0, 1)`` such as ``c`` of seed 000 eq. 55 by the logistic function (:func:`unit_interval`).
+* factors in ``(0, 1)`` such as ``c`` of Cortesão 2006 eq. 55 by the logistic function (:func:`unit_interval`).
 
 Robust objectives over the per-plant losses ``J_1..J_B``: the mean, and the conditional value at risk
 ``CVaR_alpha`` (the mean of the worst ``ceil(alpha B)`` losses), plus an optional penalty (e.g. on the
@@ -81,7 +81,7 @@ __all__ = [
     "evaluate",
 ]
 
-logger = logging.getLogger("jaxobs.tune")
+logger = logging.getLogger("jaxobs.tuning")
 
 OBJECTIVES = ("mean", "cvar")
 GRADIENT_MODES = ("reverse", "forward")
@@ -108,7 +108,7 @@ def cholesky_parameters(cov):
 
 
 def unit_interval(raw):
-    """A factor in ``(0, 1)`` (e.g. ``c`` of seed 000 eq. 55): the logistic function of ``raw``."""
+    """A factor in ``(0, 1)`` (e.g. ``c`` of Cortesão 2006 eq. 55): the logistic function of ``raw``."""
     return jax.nn.sigmoid(raw)
 
 
@@ -194,20 +194,36 @@ class TuningProblem:
 
 @dataclasses.dataclass(frozen=True)
 class TuneSettings:
-    """Settings of :func:`tune` (the ``[optimizer]`` table of ``jaxobs tune``'s config)."""
+    """Settings of :func:`tune` (the ``[optimizer]`` table of ``jaxobs tune``'s config).
+
+    Attributes:
+      optimizer: "adam", "sgd", "adabelief" or "lamb" (optax).
+      gradient: "reverse" (``value_and_grad``) or "forward" (``jacfwd``: exact, for few parameters).
+      learning_rate: the optimizer's step size.
+      steps: gradient evaluations at most (rejected ones included).
+      objective: "mean" or "cvar" of the per-plant losses.  cvar_alpha: the CVaR fraction of worst plants.
+      penalty_weight: weight of the problem's penalty term (0: off).
+      divergence_factor: a diverged plant's loss is this times the largest finite loss (see
+        :func:`penalise_diverged`).
+      clip_norm: global-norm gradient clipping; 0 disables it.
+      patience: early stopping after this many evaluations without a relative improvement of ``min_improvement``.
+      min_improvement: relative improvement that resets ``patience``.
+      max_rejections: consecutive rejected (diverging) steps before giving up.
+      checkpoint_every: evaluations between checkpoints.
+    """
 
     optimizer: str = "adam"
-    gradient: str = "reverse"  # "reverse" (value_and_grad) or "forward" (jacfwd: exact, for few parameters)
+    gradient: str = "reverse"
     learning_rate: float = 0.1
-    steps: int = 50  # gradient evaluations at most (rejected ones included)
+    steps: int = 50
     objective: str = "mean"
     cvar_alpha: float = 0.25
     penalty_weight: float = 0.0
-    divergence_factor: float = 10.0  # a diverged plant's loss: this times the largest finite loss
-    clip_norm: float = 1.0  # global-norm gradient clipping; 0 disables it
-    patience: int = 15  # early stopping: evaluations without an improvement of min_improvement
-    min_improvement: float = 1e-3  # relative
-    max_rejections: int = 8  # consecutive rejected steps before giving up
+    divergence_factor: float = 10.0
+    clip_norm: float = 1.0
+    patience: int = 15
+    min_improvement: float = 1e-3
+    max_rejections: int = 8
     checkpoint_every: int = 10
 
     def validate(self) -> None:
@@ -603,7 +619,14 @@ def random_search(
     scored by the same penalised training objective as :func:`tune` (one rollout per training plant). Draws at
     least ``num_candidates`` and goes on until ``seconds`` of wall time (compilation included) have passed, so
     that one search gives the baseline at equal rollouts (:meth:`SearchResult.best` of the first ones) and at
-    equal wall time (:meth:`SearchResult.within`)."""
+    equal wall time (:meth:`SearchResult.within`).
+
+    Args:
+      problem: the :class:`TuningProblem`.  settings: the objective's settings (as for :func:`tune`).
+      num_candidates: candidates drawn at least.  seconds: keep drawing until this much wall time has passed.
+      spread: half-width of the default box in unconstrained coordinates.  seed: PRNG seed of the draws.
+      progress: show a progress bar.
+    """
     from tqdm.auto import tqdm
 
     settings.validate()
