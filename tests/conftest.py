@@ -29,6 +29,7 @@ def _restore_jax_config():
         if name in _SESSION_CONFIG and value != _SESSION_CONFIG[name]:
             jax.config.update(name, _SESSION_CONFIG[name])
 
+
 settings.register_profile(
     "jaxobs",
     max_examples=12,

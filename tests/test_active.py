@@ -174,6 +174,30 @@ def test_time_varying_gain_converges_to_steady_state(plant_and_gain):
     np.testing.assert_allclose(gains[-1], ss.gain, rtol=1e-6, atol=1e-9)
 
 
+def test_steady_state_gain_of_a_locked_active_state_is_the_limit_of_the_recursion(plant_and_gain):
+    """A zero ``Q_p`` entry with a zero prior locks the active state (Cortesão 2006 eq. 109): a mode at 1 that
+    neither noise nor the measurement reaches, so no DARE has a stabilising solution. The steady-state gain is the
+    limit of the time-varying recursion: the plant's filter, with a zero gain on the locked state."""
+    plant, _ = plant_and_gain
+    base = active.make_aob(plant, 1, 0.021, q_plant=1e-6, q_active=4e-6)
+    lock = jnp.ones(base.Q.shape[-1]).at[-1].set(0.0)
+    locked = dataclasses.replace(base, Q=base.Q * jnp.outer(lock, lock), P0=base.P0 * jnp.outer(lock, lock))
+    ss = active.with_steady_state_gains(locked)
+
+    def riccati_step(P, _):  # P_{k+1|k} from P_{k|k-1}: the filter's recursion without the data
+        K = P @ locked.C.T @ jnp.linalg.inv(locked.C @ P @ locked.C.T + locked.R)
+        P = locked.Phi @ (P - K @ locked.C @ P) @ locked.Phi.T + locked.Q
+        return P, K
+
+    _, gains = jax.lax.scan(riccati_step, locked.P0, None, length=20_000)
+    np.testing.assert_allclose(gains[-1], ss.gain, rtol=1e-6, atol=1e-12)
+    assert float(jnp.max(jnp.abs(ss.gain[-1]))) == 0.0 and bool(ss.gain_converged)
+    ckf = active.with_steady_state_gains(active.make_aob(plant, 1, 0.021, q_plant=1e-6, q_active=4e-6, active=0))
+    np.testing.assert_allclose(ss.gain, ckf.gain_passive, rtol=1e-10, atol=1e-14)
+    with pytest.raises(ValueError, match="not excited by Q"):  # a locked state the prior leaves uncertain
+        active.with_steady_state_gains(dataclasses.replace(locked, P0=base.P0))
+
+
 @pytest.mark.parametrize("scale", [1e-3, 7.0, 1e4])
 def test_qr_scale_invariance_proposition1(plant_and_gain, scale):
     """The MRAC chapter Proposition 1 (eq. 55): (aQ, aR, aP0) gives the same K_k at every step."""

@@ -468,32 +468,56 @@ def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParam
 
     The passive DARE is the plant's, embedded at the augmented size with the active states' rows and columns
     zero (its solution is ``blockdiag(P_r, 0)``, its gain ``[K_r; 0]``), so both are one batched solve: one
-    compiled program per model size. Eagerly, raises ``ValueError`` with the reason when a DARE has no
+    compiled program per model size. States that stay exactly known (no noise in ``Q``, none in the prior ``P0``,
+    and moved only by such states: the active states locked by a zero ``Q_p`` entry, Cortesão 2006 eq. 109) keep
+    zero covariance and gain in the time-varying filter; they are embedded the same way, so the gain is the limit
+    of the filter's recursion from ``P0`` (a locked constant is a mode at 1 that no DARE could stabilise).
+
+    Eagerly, raises ``ValueError`` with the reason when a DARE has no
     stabilising solution or did not converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64
     from AOB-3 on); under tracing both flags are stored, combined, in ``gain_converged``.
     """
     n_plant = params.Phi.shape[-1] - params.n_active
-    gain, gain_passive, sol = _steady_state_gains(params.Phi, params.C, params.Q, params.R, n_plant=n_plant)
+    gain, gain_passive, sol, masks = _steady_state_gains(
+        params.Phi, params.C, params.Q, params.R, params.P0, n_plant=n_plant
+    )
     label = f"AOB-{params.order}" if params.order else "CKF"
     for i, what in enumerate((f"the {label} steady-state gain's DARE", "the passive (CKF) steady-state gain's DARE")):
         if i and not params.n_active:
             break
-        plant_only = slice(0, n_plant if i else None)
-        Phi, C, Q = params.Phi[plant_only, plant_only], params.C[:, plant_only], params.Q[plant_only, plant_only]
+        if not _checks.is_concrete(masks):
+            break
+        kept = np.flatnonzero(np.asarray(masks[i]))
+        Phi, C, Q = params.Phi[np.ix_(kept, kept)], params.C[:, kept], params.Q[np.ix_(kept, kept)]
         require_converged(jax.tree.map(lambda a, i=i: a[i], sol), Phi.T, C.T, Q, params.R, what=what, estimation=True)
     return dataclasses.replace(params, gain=gain, gain_passive=gain_passive, gain_converged=jnp.all(sol.converged))
 
 
+def _exactly_known_states(Phi, Q, P0):
+    """Mask (bool, ``(n,)``) of the states the filter knows exactly forever: no noise in ``Q`` or ``P0`` and
+    moved only by such states, so their covariance rows stay zero. A fixed point of ``n`` shrinking steps."""
+    known = (jnp.diagonal(Q) == 0) & (jnp.diagonal(P0) == 0)
+
+    def shrink(_, known):
+        moved_by_unknown = jnp.any((Phi != 0) & ~known[None, :], axis=1)
+        return known & ~moved_by_unknown
+
+    return jax.lax.fori_loop(0, Phi.shape[-1], shrink, known)
+
+
 @partial(jax.jit, static_argnames=("n_plant",))
-def _steady_state_gains(Phi, C, Q, R, *, n_plant: int):
-    """``(gain, gain_passive, solutions)`` of :func:`with_steady_state_gains`: the AOB's and the embedded plant's
-    filter DAREs in one ``vmap``."""
-    plant = (jnp.arange(Phi.shape[-1]) < n_plant).astype(Phi.dtype)
-    keep = jnp.outer(plant, plant)
-    Phis, Qs = jnp.stack([Phi, Phi * keep]), jnp.stack([Q, Q * keep])
-    sol = jax.vmap(lambda Phi, Q: dare(Phi.T, C.T, Q, R))(Phis, Qs)
-    gains = jax.vmap(lambda X: kalman_gain(X, C, R))(sol.X)
-    return gains[0], gains[1] * plant[:, None], sol
+def _steady_state_gains(Phi, C, Q, R, P0, *, n_plant: int):
+    """``(gain, gain_passive, solutions, masks)`` of :func:`with_steady_state_gains`: the AOB's and the embedded
+    plant's filter DAREs in one ``vmap``, each on the states in its row of ``masks`` (the others exactly known or
+    switched off: zero rows and columns)."""
+    estimated = ~_exactly_known_states(Phi, Q, P0)
+    plant = jnp.arange(Phi.shape[-1]) < n_plant
+    masks = jnp.stack([estimated, estimated & plant])
+    weights = masks.astype(Phi.dtype)
+    keep = weights[:, :, None] * weights[:, None, :]
+    sol = jax.vmap(lambda keep: dare(Phi.T * keep, C.T, Q * keep, R))(keep)
+    gains = jax.vmap(lambda X: kalman_gain(X, C, R))(sol.X) * weights[:, :, None]
+    return gains[0], gains[1], sol, masks
 
 
 # --------------------------------------------------------------------------------------------

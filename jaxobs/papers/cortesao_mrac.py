@@ -80,8 +80,6 @@ class PegOnHoleScenario(NamedTuple):
     controllers: FeedbackParams  # the six per-DOF AOB controllers, stacked (m_y feedback off)
 
 
-
-
 TABLE1_STIFFNESS = NOMINAL_STIFFNESS
 """Table 1: 3, 3, 20 N/mm; 100, 100 N·m/rad. The z rotation (last entry) is not printed: chosen (100 N·m/rad)."""
 
@@ -93,8 +91,6 @@ Q_PLANT_FX = 1e-12  # eq. 62, plant-state entries of Q(f_x)
 Q_ACTIVE_FX = 1e-5  # eq. 62, active-state entry of Q(f_x) (AOB-1: the variance of xi_p)
 P0_FX = 1e-4  # eq. 63
 TAU_C_OVER_TP = 10.0  # eq. 68
-
-
 
 
 def design(
