@@ -700,46 +700,34 @@ def _lyapunov(A, E, max_iters, atol=None):
 _SHIFT_FACTORS = (1.0, 2**-0.5, 2**0.5, 0.5, 2.0, 2**-1.5, 2**1.5)
 
 
-def _care_shift(A, G, Q):
-    """The Cayley shift of :func:`_solve_care`. Nominal: the geometric mean of the eigenvalue moduli of the Hamiltonian
-    ``H = [[A, -G], [-Q, -A']]``, ``|det H|^(1/2n)``, which equals that of the closed loop's when the stabilising
-    solution exists (the eigenvalues of ``H`` are those of ``A - G X`` and their mirror images), so the transform maps
-    the closed-loop spectrum symmetrically about the centre of the unit disc; ``H`` is balanced first
-    (``G / s``, ``s Q``, ``s = sqrt(|Q| / |G|)``). That nominal value can be an eigenvalue of ``A`` (an unstable
-    ``A`` with ``Q = 0`` has ``|det H|^(1/2n) = |det A|^(1/n)``, the eigenvalue itself for ``n = 1``), where
-    ``A - gamma I`` is singular; a cheap test moves it away: of the multiples ``_SHIFT_FACTORS`` of the nominal
-    value, the one with the smallest ``cond_1(A - gamma I) * factor^(+-1)`` (the penalty prefers the nominal shift).
-    """
+def _care_nominal_shift(A, G, Q):
+    """The nominal Cayley shift of the CARE: the geometric mean of the eigenvalue moduli of the Hamiltonian
+    ``H = [[A, -G], [-Q, -A']]``, ``|det H|^(1/2n)``. Where the stabilising solution exists it equals that of the
+    closed loop's (the eigenvalues of ``H`` are those of ``A - G X`` and their mirror images), so the transform maps
+    the closed-loop spectrum symmetrically about the centre of the unit disc. ``H`` is balanced first (``G / s``,
+    ``s Q``, ``s = sqrt(|Q| / |G|)``); the result is clipped to the spectral bound ``|A| + sqrt(|G| |Q|)``."""
     n = A.shape[-1]
     g, q = _norm_bound(G), _norm_bound(Q)
     s = jnp.where((g > 0) & (q > 0), jnp.sqrt(q / jnp.where(g > 0, g, 1.0)), 1.0)
     H = jnp.block([[A, -G / s], [-s * Q, -A.T]])
     bound = _norm_bound(A) + jnp.sqrt(g * q)
-    bound = jnp.where(bound > 0, bound, 1.0)
-    nominal = _geometric_mean_modulus(H, 2 * n, bound)
+    return _geometric_mean_modulus(H, 2 * n, jnp.where(bound > 0, bound, 1.0))
+
+
+def _care_shift(A, G, Q):
+    """The Cayley shift of :func:`_solve_care`: the nominal one (:func:`_care_nominal_shift`) can be an eigenvalue of
+    ``A`` (an unstable ``A`` with ``Q = 0`` has ``|det H|^(1/2n) = |det A|^(1/n)``, the eigenvalue itself for
+    ``n = 1``), where ``A - gamma I`` is singular. A cheap test moves it away: of the multiples ``_SHIFT_FACTORS`` of
+    the nominal value, the one with the smallest ``cond_1(A - gamma I) * max(factor, 1 / factor)`` (the penalty
+    prefers the nominal shift)."""
+    n = A.shape[-1]
+    nominal = _care_nominal_shift(A, G, Q)
     factors = jnp.asarray(_SHIFT_FACTORS, A.dtype)
-    eye = jnp.eye(n, dtype=A.dtype)
-    shifted = A[None] - (nominal * factors)[:, None, None] * eye
-    inverse = jnp.linalg.inv(shifted)
+    shifted = A[None] - (nominal * factors)[:, None, None] * jnp.eye(n, dtype=A.dtype)
     norm1 = lambda M: jnp.max(jnp.sum(jnp.abs(M), axis=-2), axis=-1)
-    cond = norm1(shifted) * norm1(inverse)
+    cond = norm1(shifted) * norm1(jnp.linalg.inv(shifted))
     score = jnp.where(jnp.isfinite(cond), cond, jnp.inf) * jnp.maximum(factors, 1 / factors)
     return nominal * factors[jnp.argmin(score)]
-
-
-def lyapunov(A, E, max_iters: int = 64):
-    """Solve the continuous Lyapunov equation ``A X + X A' + E = 0`` for a Hurwitz (n, n) ``A`` (python-control's
-    ``lyap(A, E)``, SciPy's ``solve_continuous_lyapunov(A, -E)``): the Stein equation of its Cayley transform
-    (:func:`stein`'s doubling, at most ``max_iters`` squarings). Linear in ``E``; works under ``jit``/``vmap``/``grad``.
-
-    Example:
-      >>> import numpy as np
-      >>> X = lyapunov(np.array([[-1.0, 2.0], [0.0, -3.0]]), np.eye(2))
-      >>> bool(np.allclose(np.array([[-1.0, 2.0], [0.0, -3.0]]) @ X + X @ np.array([[-1.0, 0.0], [2.0, -3.0]]),
-      ...                  -np.eye(2)))
-      True
-    """
-    return _lyapunov(jnp.swapaxes(A, -1, -2), E, max_iters)[0]
 
 
 def _care_terms(A, B, Q, R, X):
@@ -835,8 +823,8 @@ def _solve_care(A, B, Q, R, max_iters):
         go = (c.steps < _NEWTON_STEPS) & (c.size > 4 * eps) & jnp.all(jnp.isfinite(c.X))
         return go & ~_stalled(c.size, c.previous)
 
-    inf = jnp.asarray(jnp.inf, dtype)
-    c = jax.lax.while_loop(stepping, step, _CareNewton(X0, inf, inf, jnp.asarray(0), jnp.asarray(False), jnp.asarray(0)))
+    inf, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(0)
+    c = jax.lax.while_loop(stepping, step, _CareNewton(X0, inf, inf, zero, jnp.asarray(False), zero))
     F, _, _, size = _care_terms(A, B, Q, R, c.X)
     settled = ((c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))) & (c.halvings < 4)
     residual = jnp.max(jnp.abs(F)) / jnp.maximum(size, jnp.finfo(dtype).tiny)
@@ -927,3 +915,59 @@ def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSo
     A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
     tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
     return _solve_care_jit(A, B, Q, R, max_iters=int(max_iters), tol=tol)
+
+
+def _pbh_deficient_eigenvalues(A, C, region, tol: float = 1e-9):
+    """Eigenvalues ``lam`` of ``A`` in ``region`` (a predicate on a NumPy eigenvalue) whose PBH matrix
+    ``[lam I - A; C]`` loses rank (smallest singular value below ``tol`` times ``max(|A|, 1)``, ``C`` scaled to
+    ``A``): the unobservable modes of ``(C, A)`` there (eager, NumPy; for the uncontrollable modes of ``(A, B)`` pass
+    ``(A', B')``)."""
+    A, C = np.asarray(A, np.float64), np.asarray(C, np.float64)
+    n = A.shape[-1]
+    scale = max(float(np.max(np.abs(A))) if A.size else 0.0, 1.0)
+    C_scaled = C / max(float(np.max(np.abs(C))) if C.size else 0.0, np.finfo(float).tiny) * scale
+    deficient = []
+    for lam in np.linalg.eigvals(A):
+        if region(lam):
+            pbh = np.vstack([lam * np.eye(n) - A, C_scaled])
+            if np.linalg.svd(pbh, compute_uv=False)[-1] <= tol * scale:
+                deficient.append(complex(lam))
+    return deficient
+
+
+def _require_care_converged(sol: CareSolution, A, B, Q, *, what: str, estimation: bool = False) -> None:
+    """:func:`require_converged` for :func:`care` on ``(A, B, Q, R)``: raise ``ValueError`` saying why when ``sol`` is
+    concrete and not converged (``estimation`` words it for the Kalman-Bucy filter of ``(A', B')``); nothing under
+    tracing. Reasons, tested on the concrete data: an unstabilisable (undetectable) mode in the closed right
+    half-plane, a mode on the imaginary axis that ``Q`` does not reach, a working precision below float64, or else
+    an ill-conditioned problem."""
+    if not _checks.is_concrete(sol.converged) or bool(np.all(np.asarray(sol.converged))):
+        return
+    A, B, Q = (np.asarray(M, np.float64) for M in (A, B, Q))
+    pair, seen = ("(A, B) is not stabilisable", "moved by B")
+    if estimation:
+        pair, seen = "(A, C) is not detectable", "seen by C"
+    for lam in _pbh_deficient_eigenvalues(A.T, B.T, lambda lam: lam.real >= -1e-9 * max(1.0, abs(lam))):
+        raise ValueError(
+            f"{what} did not converge: the CARE has no stabilising solution: {pair}, the mode at eigenvalue "
+            f"{lam:.6g} (real part >= 0) is not {seen}"
+        )
+    excite = "excited by the process noise" if estimation else "penalised by Q"
+    for lam in _pbh_deficient_eigenvalues(A, Q, lambda lam: abs(lam.real) <= 1e-9 * max(1.0, abs(lam))):
+        raise ValueError(
+            f"{what} did not converge: the CARE has no stabilising solution: the mode at eigenvalue {lam:.6g} on the "
+            f"imaginary axis is not {excite}"
+        )
+    dtype = np.asarray(sol.X).dtype
+    residual = float(np.max(np.asarray(sol.residual)))
+    if np.finfo(dtype).eps > np.finfo(np.float64).eps:
+        reason = (
+            f"{dtype} does not resolve this problem (residual {residual:.3g}); enable float64 with "
+            "jax.config.update('jax_enable_x64', True) and pass float64 arrays"
+        )
+    else:
+        reason = (
+            f"no stabilising solution was found in float64 (residual {residual:.3g}): the problem is too "
+            "ill-conditioned, e.g. a closed-loop pole within rounding of the imaginary axis"
+        )
+    raise ValueError(f"{what} did not converge: {reason}")
