@@ -1,5 +1,5 @@
-"""Riccati recursions: the Kalman covariance step, its sequence over time, and the discrete
-algebraic Riccati equation (DARE).
+"""Riccati recursions: the Kalman covariance step, its sequence over time, the discrete algebraic Riccati equation
+(DARE), and the continuous one (CARE) with the continuous Lyapunov equation.
 
 Notation of Cortesão 2006 (Cortesão 2006) eq. 27-29, for ``x_k = Phi x_{k-1} + w_k``, ``y_k = C x_k + v_k``,
 ``E[w w'] = Q``, ``E[v v'] = R``::
@@ -35,6 +35,9 @@ __all__ = [
     "require_converged",
     "stein",
     "is_stable",
+    "care",
+    "CareSolution",
+    "lyapunov",
 ]
 
 
@@ -656,6 +659,7 @@ class CareSolution(NamedTuple):
 
     X: jax.Array  # (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
     residual: jax.Array  # () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B')
+    # (floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift)
     converged: jax.Array  # () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
 
 
@@ -692,8 +696,22 @@ def _lyapunov(A, E, max_iters, atol=None):
     bound = jnp.where(bound > 0, bound, 1.0)
     gamma = _geometric_mean_modulus(A, A.shape[-1], bound)
     Ad, M = _cayley(A, gamma)
-    X, stable = _smith(Ad.T, symmetrize(2 * gamma * M.T @ E @ M), max_iters, atol=atol)
-    return symmetrize(X), stable
+    return _smith(Ad.T, 2 * gamma * M.T @ E @ M, max_iters, atol=atol)
+
+
+def lyapunov(A, E, max_iters: int = 64):
+    """Solve the continuous Lyapunov equation ``A X + X A' + E = 0`` for a Hurwitz (n, n) ``A`` (python-control's
+    ``lyap(A, E)``, SciPy's ``solve_continuous_lyapunov(A, -E)``): the Stein equation of its Cayley transform
+    (:func:`stein`'s doubling, at most ``max_iters`` squarings). Linear in ``E``; works under ``jit``/``vmap``/``grad``.
+
+    Example:
+      >>> import numpy as np
+      >>> X = lyapunov(np.array([[-1.0, 2.0], [0.0, -3.0]]), np.eye(2))
+      >>> bool(np.allclose(np.array([[-1.0, 2.0], [0.0, -3.0]]) @ X + X @ np.array([[-1.0, 0.0], [2.0, -3.0]]),
+      ...                  -np.eye(2)))
+      True
+    """
+    return _lyapunov(jnp.swapaxes(A, -1, -2), E, max_iters)[0]
 
 
 # Multiples of the nominal Cayley shift of the CARE tried by the conditioning test, in order of preference
@@ -812,7 +830,7 @@ def _solve_care(A, B, Q, R, max_iters):
     def step(c: _CareNewton) -> _CareNewton:
         F, _, Ac, _ = _care_terms(A, B, Q, R, c.X)
         N, stable = _lyapunov(Ac, F, max_iters, atol=0.1 * eps * jnp.max(jnp.abs(c.X)))
-        X = symmetrize(c.X + N)
+        X = symmetrize(c.X + symmetrize(N))
         size = jnp.max(jnp.abs(N)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
         size = jnp.where(jnp.all(jnp.isfinite(N)) & jnp.isfinite(size), size, jnp.inf)
         ratio = size / c.size
@@ -827,7 +845,7 @@ def _solve_care(A, B, Q, R, max_iters):
     c = jax.lax.while_loop(stepping, step, _CareNewton(X0, inf, inf, zero, jnp.asarray(False), zero))
     F, _, _, size = _care_terms(A, B, Q, R, c.X)
     settled = ((c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))) & (c.halvings < 4)
-    residual = jnp.max(jnp.abs(F)) / jnp.maximum(size, jnp.finfo(dtype).tiny)
+    residual = jnp.max(jnp.abs(F)) / jnp.maximum(size, gamma * scale)  # floor gamma^2 / |G| where Q = 0
     residual = jnp.where(jnp.isfinite(residual), residual, jnp.inf)
     return c.X, residual, c.stable & settled & jnp.all(jnp.isfinite(c.X))
 
