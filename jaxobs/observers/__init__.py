@@ -3,11 +3,12 @@
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
 observers), ``linear`` (fixed-gain linear observer), ``pe_monitor`` (persistency-of-excitation monitor: the
-windowed Gram matrix of the regressors). ``feedback.observer_controller`` turns any of them into an observer-based
-controller.
+windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time Luenberger, Kalman-Bucy and
+output-injection observers, sampled by :func:`~jaxobs.observers.ct_linear.sampled`).
+``feedback.observer_controller`` turns any of them into an observer-based controller.
 """
 
-from jaxobs.observers import active, feedback, hinf, inverse_dynamics, kalman, linear, pe_monitor
+from jaxobs.observers import active, ct_linear, feedback, hinf, inverse_dynamics, kalman, linear, pe_monitor
 from jaxobs.observers.base import (
     Controller,
     ControllerInputs,
@@ -33,5 +34,6 @@ __all__ = [
     "inverse_dynamics",
     "linear",
     "pe_monitor",
+    "ct_linear",
     "feedback",
 ]
