@@ -10,7 +10,9 @@
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
-* jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning).
+* jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
+* adaptation: :mod:`jaxobs.adaptive` (update laws, parameter projection, excitation); continuous-time observers:
+  :mod:`jaxobs.observers.ct_linear`.
 
 MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
 enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``).

@@ -316,7 +316,7 @@ def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
     tau = _checks.vector("tau", tau, p, dtype, what="one entry per parameter")
     G = _gain(Gamma, p, dtype)
     epsilon = _positive("epsilon", epsilon, dtype)
-    value, grad = jax.value_and_grad(lambda t: region(t).astype(dtype))(theta_hat)
+    value, grad = jax.value_and_grad(lambda t: jnp.asarray(region(t), dtype))(theta_hat)
     if _checks.is_concrete(value, epsilon) and not float(value) <= float(epsilon) * (1 + 1e-9):
         raise ValueError(
             f"theta_hat must lie in the projection set Theta = {{P(theta_hat) <= epsilon = {float(epsilon):.6g}}}, "
