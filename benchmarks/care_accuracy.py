@@ -11,6 +11,9 @@ Run::
 
     python benchmarks/care_accuracy.py --out DIR [--quick]
 
+(on a shared machine with ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1``: threaded BLAS contention inflates SciPy's
+times up to 50 ms).
+
 Prints the table (worst errors per (n, m, r)) and writes ``DIR/care_accuracy.json`` (every case).
 """
 

@@ -217,9 +217,11 @@ def test_care_check_grads(shift, modes):
     check_grads(lqr_gain, _grad_problem(shift), order=1, modes=modes)
 
 
+@pytest.mark.slow
 def test_care_gradient_is_implicit():
     """Reverse mode does not differentiate through the iterations: the gradient's jaxpr holds the Lyapunov solves of
-    the implicit rule (custom_linear_solve), and the flag and residual carry no tangent."""
+    the implicit rule (custom_linear_solve), and the flag and residual carry no tangent. (Slow: the default
+    check_grads in reverse mode would already fail on a while_loop.)"""
     A, B, Gq, Hr = _grad_problem(0.0)
     Q, R = Gq @ Gq.T, Hr @ Hr.T
     jaxpr = str(jax.make_jaxpr(jax.grad(lambda A: jnp.sum(care(A, B, Q, R).X)))(A))
