@@ -36,6 +36,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/sweep_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/mjx_rollouts.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/dare_accuracy.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/care_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench
 
 lint: $(STAMP)

@@ -3,14 +3,16 @@
 ``import jaxobs as jo`` gives the main entry points; the modules hold the rest:
 
 * models and design: :func:`ss`, :func:`c2d` (zero-order hold with dead time), :func:`dare`, :func:`dlqr`,
-  :func:`dlqe`, :func:`acker`, :func:`place`, :func:`reference_gain`, :func:`critically_damped_gain`,
-  :func:`force_plant`;
+  :func:`dlqe`, :func:`care`, :func:`lqr`, :func:`lqe`, :func:`acker`, :func:`place`, :func:`reference_gain`,
+  :func:`critically_damped_gain`, :func:`force_plant`;
 * estimators and controllers (one protocol, :mod:`jaxobs.observers`): :data:`kalman_filter`,
   :data:`active_observer` (the Kalman Active Observer), :data:`hinf_filter`, :data:`inverse_dynamics_observer`,
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
-* jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning).
+* jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
+* adaptation: :mod:`jaxobs.adaptive` (update laws, parameter projection, excitation); continuous-time observers:
+  :mod:`jaxobs.observers.ct_linear`.
 
 MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
 enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``).
@@ -19,7 +21,7 @@ enables float64 itself: do it in your entry point (``jax.config.update("jax_enab
 from importlib.metadata import PackageNotFoundError, version
 
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
-from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, place, reference_gain
+from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
 from jaxobs.observers import (
     Controller,
@@ -37,7 +39,7 @@ from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_in
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
 from jaxobs.plants import force_plant
-from jaxobs.riccati import dare
+from jaxobs.riccati import care, dare
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
@@ -60,6 +62,9 @@ __all__ = [
     "dare",
     "dlqr",
     "dlqe",
+    "care",
+    "lqr",
+    "lqe",
     "acker",
     "place",
     "reference_gain",

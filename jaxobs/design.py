@@ -1,8 +1,9 @@
-"""Controller design: Ackermann pole placement, MIMO pole placement, discrete LQR, DC-gain
-compensation.
+"""Controller design: Ackermann pole placement, MIMO pole placement, discrete and continuous LQR and LQE, the PBH
+detectability test, DC-gain compensation.
 
-``acker``, ``dlqr`` and ``dlqe`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` is a design-time
-helper on concrete arrays (SciPy), as MIMO placement has no unique, smooth answer.
+``acker``, ``dlqr``, ``dlqe``, ``lqr`` and ``lqe`` are JAX functions (``jit``/``vmap``/``grad``); ``place`` and
+``is_detectable`` are design-time helpers on concrete arrays (SciPy, NumPy), as MIMO placement has no unique, smooth
+answer.
 """
 
 from __future__ import annotations
@@ -14,13 +15,25 @@ import scipy.signal
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ctrb, dcgain
-from jaxobs.riccati import _solve_spd, dare, filter_dare, require_converged, symmetrize
+from jaxobs.riccati import (
+    _pbh_deficient_eigenvalues,
+    _require_care_converged,
+    _solve_spd,
+    care,
+    dare,
+    filter_dare,
+    require_converged,
+    symmetrize,
+)
 
 __all__ = [
     "acker",
     "place",
     "dlqr",
     "dlqe",
+    "lqr",
+    "lqe",
+    "is_detectable",
     "dc_compensation",
     "reference_gain",
     "critically_damped_poles",
@@ -202,6 +215,100 @@ def dlqe(A, G, C, QN, RN):
     K = _solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, P, jnp.linalg.eigvals(A - K @ C)
+
+
+def lqr(A, B, Q, R):
+    """Continuous linear-quadratic regulator, as python-control's ``lqr``: the state feedback ``u = -K x`` that
+    minimises ``int x' Q x + u' R u dt`` for ``x' = A x + B u``.
+
+    Args:
+      A: (n, n).  B: (n, m).  Q: (n, n) positive semidefinite.  R: (m, m) positive definite.
+
+    Returns:
+      ``(K, S, E)``: the (m, n) gain ``K = R^{-1} B' S`` (a state feedback, ``L`` in jaxobs' own notation), the
+      solution ``S`` of :func:`jaxobs.riccati.care` ``(A, B, Q, R)`` and the (n,) closed-loop eigenvalues ``E`` of
+      ``A - B K``.
+
+    Differentiable (implicit-function rule through the CARE). Eagerly, a CARE without a stabilising solution raises
+    ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under ``jit`` the gain and ``S`` are NaN then
+    (the flag itself is ``jaxobs.riccati.care(A, B, Q, R).converged``).
+
+    Example:
+      >>> import numpy as np
+      >>> K, S, E = lqr(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), np.eye(2), np.eye(1))
+      >>> [round(float(k), 4) for k in K[0]], bool(np.all(E.real < 0))
+      ([1.0, 1.7321], True)
+    """
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    sol = care(A, B, Q, R)
+    _require_care_converged(sol, A, B, Q, what="lqr's CARE")
+    R = jnp.asarray(R, sol.X.dtype)
+    K = _solve_spd(symmetrize(R), B.T @ sol.X)
+    K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, S, jnp.linalg.eigvals(A - B @ K)
+
+
+def lqe(A, G, C, QN, RN):
+    """Steady-state Kalman-Bucy filter (linear-quadratic estimator), as python-control's ``lqe``, for
+    ``x' = A x + B u + G w``, ``y = C x + v`` with white noises of intensities ``E[w w'] = QN``, ``E[v v'] = RN``
+    (Grip 2010 eq. 1.7 with its stationary gain).
+
+    Args:
+      A: (n, n).  G: (n, q) process-noise input.  C: (p, n).  QN: (q, q) positive semidefinite.
+      RN: (p, p) positive definite.
+
+    Returns:
+      ``(K, P, E)``: the (n, p) observer gain ``K = P C' RN^{-1}`` of ``x_hat' = A x_hat + B u + K (y - C x_hat)``
+      (python-control names it ``L``), the steady-state error covariance ``P``, the solution of the filter CARE
+      ``A P + P A' - P C' RN^{-1} C P + G QN G' = 0`` (:func:`jaxobs.riccati.care` of ``(A', C')``), and the (n,)
+      eigenvalues ``E`` of ``A - K C``.
+
+    Eagerly, raises ``ValueError`` with the reason when the CARE has no stabilising solution (e.g. ``(A, C)`` not
+    detectable); under ``jit`` the gain and ``P`` are NaN then.
+
+    Example:
+      >>> import numpy as np
+      >>> K, P, E = lqe(np.array([[0.0, 1.0], [0.0, 0.0]]), np.eye(2), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1))
+      >>> K.shape, bool(np.all(E.real < 0))
+      ((2, 1), True)
+    """
+    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("G", G, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    _checks.covariance("RN", RN, definite=True, size=C.shape[-2])
+    W = symmetrize(G @ QN @ G.T)
+    sol = care(A.T, C.T, W, RN)
+    _require_care_converged(sol, A.T, C.T, W, what="lqe's CARE", estimation=True)
+    RN = jnp.asarray(RN, sol.X.dtype)
+    K = _solve_spd(symmetrize(RN), C @ sol.X).T
+    K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
+    return K, P, jnp.linalg.eigvals(A - K @ C)
+
+
+def is_detectable(A, C, *, discrete: bool = False) -> bool:
+    """Whether ``(C, A)`` is detectable, by the PBH test (Grip 2010 §1.1.1): every eigenvalue ``lam`` of ``A`` with
+    ``rank [A - lam I; C] < n`` (an unobservable mode) is stable, ``Re lam < 0`` (``|lam| < 1`` when ``discrete``).
+    Exactly then an observer gain ``K`` with ``A - K C`` stable exists. Design time (NumPy, concrete arrays).
+
+    Args:
+      A: (n, n) state matrix.  C: (p, n) output matrix.
+      discrete: test against the unit circle instead of the imaginary axis.
+
+    Example:
+      >>> is_detectable([[1.0, 0.0], [0.0, -1.0]], [[1.0, 0.0]]), is_detectable([[1.0, 0.0], [0.0, -1.0]], [[0.0, 1.0]])
+      (True, False)
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    _checks.matrix("A", A, square=True)
+    _checks.matrix("C", C, shape=(None, A.shape[-1]))
+    unstable = (lambda lam: abs(lam) >= 1) if discrete else (lambda lam: lam.real >= 0)
+    return not _pbh_deficient_eigenvalues(A, C, unstable)
 
 
 def critically_damped_poles(h: float, tau_c, n_fast: int):

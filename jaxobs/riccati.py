@@ -1,5 +1,5 @@
-"""Riccati recursions: the Kalman covariance step, its sequence over time, and the discrete
-algebraic Riccati equation (DARE).
+"""Riccati recursions: the Kalman covariance step, its sequence over time, the discrete algebraic Riccati equation
+(DARE), and the continuous one (CARE) with the continuous Lyapunov equation.
 
 Notation of Cortesão 2006 (Cortesão 2006) eq. 27-29, for ``x_k = Phi x_{k-1} + w_k``, ``y_k = C x_k + v_k``,
 ``E[w w'] = Q``, ``E[v v'] = R``::
@@ -35,6 +35,9 @@ __all__ = [
     "require_converged",
     "stein",
     "is_stable",
+    "care",
+    "CareSolution",
+    "lyapunov",
 ]
 
 
@@ -644,3 +647,345 @@ def _failure_reason(sol: DareSolution, Phi, C, Q, control: bool) -> str:
 _NEWTON_STEPS = 16
 # kappa of the regularised doublings tried when the first attempt fails: R + (|B'B| |Q| / kappa) I
 _KAPPAS = (1e4, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Continuous algebraic Riccati equation (CARE) and continuous Lyapunov equation, by Cayley transforms onto the
+# discrete machinery above
+
+
+class CareSolution(NamedTuple):
+    """Stabilising solution of a CARE and how well it solves it."""
+
+    X: jax.Array  # (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
+    residual: jax.Array  # () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B')
+    # (floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift)
+    converged: jax.Array  # () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+
+
+def _norm_bound(A):
+    """``max(|A|_1, |A|_inf)``: a bound on the spectral radius of ``A`` and of ``A'``."""
+    return jnp.maximum(jnp.max(jnp.sum(jnp.abs(A), axis=-2)), jnp.max(jnp.sum(jnp.abs(A), axis=-1)))
+
+
+def _cayley(A, gamma):
+    """``(A_d, M)`` with ``M = (A - gamma I)^{-1}`` and the Cayley transform ``A_d = (A + gamma I) M = I + 2 gamma M``:
+    ``A_d`` is Schur stable exactly when ``A`` is Hurwitz (an eigenvalue ``mu`` maps to ``(mu + gamma)/(mu - gamma)``,
+    inside the unit circle for ``Re mu < 0``, near its centre for ``|mu|`` near ``gamma``)."""
+    n = A.shape[-1]
+    eye = jnp.eye(n, dtype=A.dtype)
+    M = _small_solve(A - gamma * eye, eye)
+    return eye + 2 * gamma * M, M
+
+
+def _geometric_mean_modulus(M, power: int, bound):
+    """``|det M|^(1/power)`` (the geometric mean of the eigenvalue moduli for ``power`` = the size of ``M``) from an
+    LU factorisation, clipped to ``[sqrt(eps) bound, bound]``; ``bound`` where ``M`` is singular."""
+    logdet = jnp.linalg.slogdet(M)[1] / power
+    mean = jnp.where(jnp.isfinite(logdet), jnp.exp(jnp.minimum(logdet, jnp.log(bound))), bound)
+    return jnp.clip(mean, jnp.sqrt(jnp.finfo(M.dtype).eps) * bound, bound)
+
+
+def _lyapunov(A, E, max_iters, atol=None):
+    """``(X, stable)`` for ``A' X + X A + E = 0``: with the Cayley transform (:func:`_cayley`) of shift ``gamma``, the
+    geometric mean of the eigenvalue moduli of ``A`` (``|det A|^(1/n)``: it maps the spectrum of a Hurwitz ``A``
+    symmetrically about the centre of the unit disc, and a Hurwitz ``A`` has no eigenvalue on the positive real axis),
+    the equation is the Stein equation ``X = A_d' X A_d + 2 gamma M' E M``, solved by :func:`_smith`, whose ``stable``
+    says ``A_d`` is Schur stable, that is ``A`` Hurwitz."""
+    bound = _norm_bound(A)
+    bound = jnp.where(bound > 0, bound, 1.0)
+    gamma = _geometric_mean_modulus(A, A.shape[-1], bound)
+    Ad, M = _cayley(A, gamma)
+    return _smith(Ad.T, 2 * gamma * M.T @ E @ M, max_iters, atol=atol)
+
+
+def lyapunov(A, E, max_iters: int = 64):
+    """Solve the continuous Lyapunov equation ``A X + X A' + E = 0`` for a Hurwitz (n, n) ``A`` (python-control's
+    ``lyap(A, E)``, SciPy's ``solve_continuous_lyapunov(A, -E)``): the Stein equation of its Cayley transform
+    (:func:`stein`'s doubling, at most ``max_iters`` squarings). Linear in ``E``; works under ``jit``/``vmap``/``grad``.
+
+    Example:
+      >>> import numpy as np
+      >>> X = lyapunov(np.array([[-1.0, 2.0], [0.0, -3.0]]), np.eye(2))
+      >>> bool(np.allclose(np.array([[-1.0, 2.0], [0.0, -3.0]]) @ X + X @ np.array([[-1.0, 0.0], [2.0, -3.0]]),
+      ...                  -np.eye(2)))
+      True
+    """
+    return _lyapunov(jnp.swapaxes(A, -1, -2), E, max_iters)[0]
+
+
+# Multiples of the nominal Cayley shift of the CARE tried by the conditioning test, in order of preference
+_SHIFT_FACTORS = (1.0, 2**-0.5, 2**0.5, 0.5, 2.0, 2**-1.5, 2**1.5)
+
+
+def _care_nominal_shift(A, G, Q):
+    """The nominal Cayley shift of the CARE: the geometric mean of the eigenvalue moduli of the Hamiltonian
+    ``H = [[A, -G], [-Q, -A']]``, ``|det H|^(1/2n)``. Where the stabilising solution exists it equals that of the
+    closed loop's (the eigenvalues of ``H`` are those of ``A - G X`` and their mirror images), so the transform maps
+    the closed-loop spectrum symmetrically about the centre of the unit disc. ``H`` is balanced first (``G / s``,
+    ``s Q``, ``s = sqrt(|Q| / |G|)``); the result is clipped to the spectral bound ``|A| + sqrt(|G| |Q|)``."""
+    n = A.shape[-1]
+    g, q = _norm_bound(G), _norm_bound(Q)
+    s = jnp.where((g > 0) & (q > 0), jnp.sqrt(q / jnp.where(g > 0, g, 1.0)), 1.0)
+    H = jnp.block([[A, -G / s], [-s * Q, -A.T]])
+    bound = _norm_bound(A) + jnp.sqrt(g * q)
+    return _geometric_mean_modulus(H, 2 * n, jnp.where(bound > 0, bound, 1.0))
+
+
+def _care_shift(A, G, Q):
+    """The Cayley shift of :func:`_solve_care`: the nominal one (:func:`_care_nominal_shift`) can be an eigenvalue of
+    ``A`` (an unstable ``A`` with ``Q = 0`` has ``|det H|^(1/2n) = |det A|^(1/n)``, the eigenvalue itself for
+    ``n = 1``), where ``A - gamma I`` is singular. A cheap test moves it away: of the multiples ``_SHIFT_FACTORS`` of
+    the nominal value, the one with the smallest ``cond_1(A - gamma I) * max(factor, 1 / factor)`` (the penalty
+    prefers the nominal shift)."""
+    n = A.shape[-1]
+    nominal = _care_nominal_shift(A, G, Q)
+    factors = jnp.asarray(_SHIFT_FACTORS, A.dtype)
+    shifted = A[None] - (nominal * factors)[:, None, None] * jnp.eye(n, dtype=A.dtype)
+    norm1 = lambda M: jnp.max(jnp.sum(jnp.abs(M), axis=-2), axis=-1)
+    cond = norm1(shifted) * norm1(jnp.linalg.inv(shifted))
+    score = jnp.where(jnp.isfinite(cond), cond, jnp.inf) * jnp.maximum(factors, 1 / factors)
+    return nominal * factors[jnp.argmin(score)]
+
+
+def _care_terms(A, B, Q, R, X):
+    """The CARE residual ``F = A'X + XA - X G X + Q`` (``G = B R^{-1} B'``) at ``X``, in the form stationary in the gain
+    ``K = R^{-1} B' X``: ``F = A_c' X + X A_c + K' R K + Q`` with ``A_c = A - B K``; its terms cancel to ``|F|``, so it
+    is evaluated in double-word arithmetic (:func:`_dot2`) and rounded once. Returns ``(F, K, A_c, size)``, ``size``
+    the largest of the terms ``max|Q|``, ``2 max|XA|``, ``max|XGX|`` (the scale of the relative residual)."""
+    K = _solve_spd(symmetrize(R), B.T @ X)
+    BK, BK_lo = _dot2(B, K)
+    Ac, t = _two_sum(A, -BK)
+    Ac, Ac_lo = _two_sum(Ac, t - BK_lo)  # A - B K, double-word
+    XA, XA_lo = _dot2(X, Ac)
+    XA_lo = XA_lo + X @ Ac_lo
+    RK, RK_lo = _dot2(R, K)
+    KRK, KRK_lo = _dot2(K.T, RK)
+    KRK_lo = KRK_lo + K.T @ RK_lo
+    F, e1 = _two_sum(XA, XA.T)
+    F, e2 = _two_sum(F, KRK)
+    F, e3 = _two_sum(F, Q)
+    F = symmetrize(F + ((e1 + e2 + e3) + (XA_lo + XA_lo.T + KRK_lo)))
+    size = jnp.maximum(jnp.max(jnp.abs(Q)), jnp.maximum(2 * jnp.max(jnp.abs(X @ A)), jnp.max(jnp.abs(KRK))))
+    return F, K, Ac, size
+
+
+def _care_to_dare(A, B, Q, R, gamma):
+    """The DARE ``(A_d, B_d, Q_d, R_d)`` whose stabilising solution is the CARE's, by the Cayley transform of the
+    Hamiltonian with shift ``gamma`` (Chu, Fan & Lin 2005, the initial step of their doubling for the CARE). With
+    ``A_g = A - gamma I``, ``Z = A_g^{-1} B``, ``Y = A_g^{-T} Q A_g^{-1}``::
+
+        R_d = R + Z' Q Z,   B_d = sqrt(2 gamma) Z,   Q_d = 2 gamma (Y - A_g^{-T} Q Z R_d^{-1} Z' Q A_g^{-1}),
+        A_d = (A + gamma I) A_g^{-1} - 2 gamma Z R_d^{-1} Z' Q A_g^{-1}
+
+    (``R_d > 0``, ``Q_d >= 0``): the pencil of the DARE is the Cayley transform ``(H + gamma I)(H - gamma I)^{-1}`` of
+    the Hamiltonian ``H = [[A, -G], [-Q, -A']]``, which maps its stable invariant subspace ``[I; X]`` to the DARE's.
+    """
+    Ad0, M = _cayley(A, gamma)  # (A + gamma I) A_g^{-1}, A_g^{-1}
+    Z = M @ B
+    QM = Q @ M  # Q A_g^{-1}
+    Rd = symmetrize(R + Z.T @ Q @ Z)
+    W = _solve_spd(Rd, Z.T @ QM)  # R_d^{-1} Z' Q A_g^{-1}
+    Qd = symmetrize(2 * gamma * (M.T @ QM - QM.T @ Z @ W))
+    Ad = Ad0 - 2 * gamma * Z @ W
+    return Ad, jnp.sqrt(2 * gamma) * Z, Qd, Rd
+
+
+class _CareNewton(NamedTuple):
+    """Carry of the Newton(-Kleinman) iteration of :func:`_solve_care`."""
+
+    X: jax.Array
+    size: jax.Array  # relative size of the last correction (inf before the first)
+    previous: jax.Array  # ... and of the one before
+    halvings: jax.Array  # corrections 0.3 to 0.7 of the one before, since the last faster one (linear rate)
+    stable: jax.Array  # the last correction's closed loop is Hurwitz
+    steps: jax.Array
+
+
+def _solve_care(A, B, Q, R, max_iters):
+    """Stabilising solution of the CARE ``A'X + XA - X B R^{-1} B' X + Q = 0``.
+
+    1. The Cayley transform with the shift ``gamma`` of :func:`_care_shift` (near the geometric mean of the
+       closed-loop eigenvalue moduli, away from the eigenvalues of ``A``) maps it to a DARE (:func:`_care_to_dare`)
+       solved by :func:`_solve_control_dare` (doubling, Newton's method, regularised retries).
+    2. Newton-Kleinman steps on the CARE itself (Kleinman 1968): the residual ``F`` in double-word arithmetic
+       (:func:`_care_terms`), the correction from the Lyapunov equation ``A_c' N + N A_c + F = 0``
+       (:func:`_lyapunov`), until it is at the rounding level of ``X`` or stalls; they remove what the transform
+       lost to rounding (``eps`` times the conditioning of ``A - gamma I`` and of the transformed closed loop).
+
+    Returns ``(X, residual, found)``: ``found`` when ``X`` is finite, the last correction's closed loop Hurwitz, and
+    Newton's method settled (to ``4 eps``, or stalled below ``sqrt(eps)``, and not at a linear rate: where the
+    closed loop has an eigenvalue on the imaginary axis, in the limit of existence, the corrections halve steadily).
+    """
+    dtype = A.dtype
+    eps = jnp.finfo(dtype).eps
+    G = B @ _solve_spd(symmetrize(R), B.T)
+    gamma = _care_shift(A, G, Q)
+    X0 = symmetrize(_solve_control_dare(*_care_to_dare(A, B, Q, R, gamma), max_iters, _NEWTON_STEPS)[0])
+    q_scale = jnp.max(jnp.abs(Q))
+    g_scale = jnp.max(jnp.abs(G))
+    # the size of X where it is zero (the relative correction needs a floor): |Q| / gamma, or gamma / |G| when Q = 0
+    scale = jnp.where(q_scale > 0, q_scale / gamma, jnp.where(g_scale > 0, gamma / g_scale, 1.0))
+
+    def step(c: _CareNewton) -> _CareNewton:
+        F, _, Ac, _ = _care_terms(A, B, Q, R, c.X)
+        N, stable = _lyapunov(Ac, F, max_iters, atol=0.1 * eps * jnp.max(jnp.abs(c.X)))
+        X = symmetrize(c.X + symmetrize(N))
+        size = jnp.max(jnp.abs(N)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
+        size = jnp.where(jnp.all(jnp.isfinite(N)) & jnp.isfinite(size), size, jnp.inf)
+        ratio = size / c.size
+        halvings = jnp.where(ratio <= 0.3, 0, jnp.where(ratio < 0.7, c.halvings + 1, c.halvings))
+        return _CareNewton(X, size, c.size, halvings, stable, c.steps + 1)
+
+    def stepping(c: _CareNewton):
+        go = (c.steps < _NEWTON_STEPS) & (c.size > 4 * eps) & jnp.all(jnp.isfinite(c.X))
+        return go & ~_stalled(c.size, c.previous)
+
+    inf, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(0)
+    c = jax.lax.while_loop(stepping, step, _CareNewton(X0, inf, inf, zero, jnp.asarray(False), zero))
+    F, _, _, size = _care_terms(A, B, Q, R, c.X)
+    settled = ((c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))) & (c.halvings < 4)
+    residual = jnp.max(jnp.abs(F)) / jnp.maximum(size, gamma * scale)  # floor gamma^2 / |G| where Q = 0
+    residual = jnp.where(jnp.isfinite(residual), residual, jnp.inf)
+    return c.X, residual, c.stable & settled & jnp.all(jnp.isfinite(c.X))
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(4,))
+def _care(A, B, Q, R, max_iters):
+    return _solve_care(A, B, Q, R, max_iters)
+
+
+@_care.defjvp
+def _care_jvp(max_iters, primals, tangents):
+    """Implicit differentiation: at the solution, ``A_c' dX + dX A_c + E = 0`` with ``A_c = A - B K``,
+    ``K = R^{-1} B' X`` and ``E = M + M' + K' dR K + dQ``, ``M = X (dA - dB K)``; the Lyapunov solve is a
+    ``custom_linear_solve`` (its transpose is the Lyapunov equation of ``A_c'``), so reverse mode costs one adjoint
+    solve, not a backpropagation through the iterations. The residual and the flag have zero tangents."""
+    A, B, Q, R = primals
+    dA, dB, dQ, dR = tangents
+    X, residual, found = _care(A, B, Q, R, max_iters)
+    K = _solve_spd(symmetrize(R), B.T @ X)
+    Ac = A - B @ K
+    M = X @ (dA - dB @ K)
+    E = M + M.T + K.T @ dR @ K + dQ
+
+    def matvec(Y):
+        return -(Ac.T @ Y + Y @ Ac)
+
+    def solve(_, b):
+        return _lyapunov(Ac, b, max_iters)[0]
+
+    def transpose_solve(_, b):
+        return _lyapunov(Ac.T, b, max_iters)[0]
+
+    dX = jax.lax.custom_linear_solve(matvec, E, solve, transpose_solve)
+    no_tangent = np.zeros(jnp.shape(found), dtype=jax.dtypes.float0)
+    return (X, residual, found), (dX, jnp.zeros_like(residual), no_tangent)
+
+
+@partial(jax.jit, static_argnames=("max_iters", "tol"))
+def _solve_care_jit(A, B, Q, R, *, max_iters: int, tol: float) -> CareSolution:
+    """:func:`care`'s numerical core, compiled once per shape; ``converged`` also needs the residual below ``tol``."""
+    X, residual, found = _care(A, B, Q, R, max_iters)
+    return CareSolution(X, residual, found & (residual < tol))
+
+
+def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSolution:
+    """Stabilising solution ``X`` of the continuous algebraic Riccati equation, as
+    ``scipy.linalg.solve_continuous_are(A, B, Q, R)``::
+
+        A' X + X A - X B R^{-1} B' X + Q = 0
+
+    Args:
+      A: (n, n).  B: (n, m).  Q: (n, n) positive semidefinite.  R: (m, m) positive definite.
+      max_iters: at most ``max_iters`` doublings and as many squarings per Lyapunov solve.
+      tol: the relative residual below which the solution counts as converged (default ``sqrt(eps)``).
+
+    The LQR of ``x' = A x + B u`` takes ``X`` as the cost-to-go (:func:`jaxobs.design.lqr`); the Kalman-Bucy filter
+    of ``(A, C)`` solves the equation of ``(A', C')``, whose ``X`` is the steady-state error covariance
+    (:func:`jaxobs.design.lqe`; Grip 2010 eq. 1.7). Solved in pure JAX: a Cayley transform, with a shift above the
+    spectral radius of the Hamiltonian (never at an eigenvalue of ``A``), maps it to a DARE solved by :func:`dare`'s
+    doubling and Newton machinery; Newton-Kleinman steps on the CARE, with the residual in double-word arithmetic,
+    then restore the digits the transform lost. Gradients (forward and reverse) by the implicit function theorem:
+    one Lyapunov solve.
+
+    Returns a :class:`CareSolution` ``(X, residual, converged)``. ``converged`` means the stabilising solution was
+    found: ``X`` finite, ``A - B K`` Hurwitz (``K = R^{-1} B' X``; tested on its Cayley transform by squaring, no
+    eigenvalue solver), Newton's method settled, and the residual below ``tol``. It is False (a flag, never an
+    exception, so it works under ``jit``) when no stabilising solution exists (``(A, B)`` not stabilisable, or a
+    mode on the imaginary axis that ``Q`` does not penalise) or when the working precision does not resolve the
+    problem; eager design calls (:func:`jaxobs.design.lqr`) turn it into an error with the reason.
+
+    Example:
+      >>> import numpy as np, scipy.linalg
+      >>> A, B = np.array([[0.0, 1.0], [2.0, -1.0]]), np.array([[0.0], [1.0]])
+      >>> sol = care(A, B, np.eye(2), np.eye(1))
+      >>> X = scipy.linalg.solve_continuous_are(A, B, np.eye(2), np.eye(1))
+      >>> bool(sol.converged), bool(np.allclose(sol.X, X))
+      (True, True)
+    """
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    _checks.covariance("Q", Q, definite=False, size=n)
+    _checks.covariance("R", R, definite=True, size=B.shape[-1])
+    dtype = jnp.result_type(A, B, Q, R, float)
+    A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
+    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
+    return _solve_care_jit(A, B, Q, R, max_iters=int(max_iters), tol=tol)
+
+
+def _pbh_deficient_eigenvalues(A, C, region, tol: float = 1e-9):
+    """Eigenvalues ``lam`` of ``A`` in ``region`` (a predicate on a NumPy eigenvalue) whose PBH matrix
+    ``[lam I - A; C]`` loses rank (smallest singular value below ``tol`` times ``max(|A|, 1)``, ``C`` scaled to
+    ``A``): the unobservable modes of ``(C, A)`` there (eager, NumPy; for the uncontrollable modes of ``(A, B)`` pass
+    ``(A', B')``)."""
+    A, C = np.asarray(A, np.float64), np.asarray(C, np.float64)
+    n = A.shape[-1]
+    scale = max(float(np.max(np.abs(A))) if A.size else 0.0, 1.0)
+    C_scaled = C / max(float(np.max(np.abs(C))) if C.size else 0.0, np.finfo(float).tiny) * scale
+    deficient = []
+    for lam in np.linalg.eigvals(A):
+        if region(lam):
+            pbh = np.vstack([lam * np.eye(n) - A, C_scaled])
+            if np.linalg.svd(pbh, compute_uv=False)[-1] <= tol * scale:
+                deficient.append(complex(lam))
+    return deficient
+
+
+def _require_care_converged(sol: CareSolution, A, B, Q, *, what: str, estimation: bool = False) -> None:
+    """:func:`require_converged` for :func:`care` on ``(A, B, Q, R)``: raise ``ValueError`` saying why when ``sol`` is
+    concrete and not converged (``estimation`` words it for the Kalman-Bucy filter of ``(A', B')``); nothing under
+    tracing. Reasons, tested on the concrete data: an unstabilisable (undetectable) mode in the closed right
+    half-plane, a mode on the imaginary axis that ``Q`` does not reach, a working precision below float64, or else
+    an ill-conditioned problem."""
+    if not _checks.is_concrete(sol.converged) or bool(np.all(np.asarray(sol.converged))):
+        return
+    A, B, Q = (np.asarray(M, np.float64) for M in (A, B, Q))
+    pair, seen = ("(A, B) is not stabilisable", "moved by B")
+    if estimation:
+        pair, seen = "(A, C) is not detectable", "seen by C"
+    for lam in _pbh_deficient_eigenvalues(A.T, B.T, lambda lam: lam.real >= -1e-9 * max(1.0, abs(lam))):
+        raise ValueError(
+            f"{what} did not converge: the CARE has no stabilising solution: {pair}, the mode at eigenvalue "
+            f"{lam:.6g} (real part >= 0) is not {seen}"
+        )
+    excite = "excited by the process noise" if estimation else "penalised by Q"
+    for lam in _pbh_deficient_eigenvalues(A, Q, lambda lam: abs(lam.real) <= 1e-9 * max(1.0, abs(lam))):
+        raise ValueError(
+            f"{what} did not converge: the CARE has no stabilising solution: the mode at eigenvalue {lam:.6g} on the "
+            f"imaginary axis is not {excite}"
+        )
+    dtype = np.asarray(sol.X).dtype
+    residual = float(np.max(np.asarray(sol.residual)))
+    if np.finfo(dtype).eps > np.finfo(np.float64).eps:
+        reason = (
+            f"{dtype} does not resolve this problem (residual {residual:.3g}); enable float64 with "
+            "jax.config.update('jax_enable_x64', True) and pass float64 arrays"
+        )
+    else:
+        reason = (
+            f"no stabilising solution was found in float64 (residual {residual:.3g}): the problem is too "
+            "ill-conditioned, e.g. a closed-loop pole within rounding of the imaginary axis"
+        )
+    raise ValueError(f"{what} did not converge: {reason}")

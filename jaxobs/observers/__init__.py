@@ -2,11 +2,13 @@
 
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
-observers), ``linear`` (fixed-gain linear observer). ``feedback.observer_controller`` turns any of them into an
-observer-based controller.
+observers), ``linear`` (fixed-gain linear observer), ``pe_monitor`` (persistency-of-excitation monitor: the
+windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time Luenberger, Kalman-Bucy and
+output-injection observers, sampled by :func:`~jaxobs.observers.ct_linear.sampled`).
+``feedback.observer_controller`` turns any of them into an observer-based controller.
 """
 
-from jaxobs.observers import active, feedback, hinf, inverse_dynamics, kalman, linear
+from jaxobs.observers import active, ct_linear, feedback, hinf, inverse_dynamics, kalman, linear, pe_monitor
 from jaxobs.observers.base import (
     Controller,
     ControllerInputs,
@@ -31,5 +33,7 @@ __all__ = [
     "hinf",
     "inverse_dynamics",
     "linear",
+    "pe_monitor",
+    "ct_linear",
     "feedback",
 ]

@@ -1,0 +1,111 @@
+"""The persistency-of-excitation monitor as an estimator: the Gram matrix of the regressors over a sliding window,
+its smallest eigenvalue, and the least-squares estimate of the window.
+
+A regressor ``omega`` (p,) is persistently exciting when ``int_t^{t+T} omega omega' dtau >= epsilon I`` for all
+``t`` (Grip 2010 §1.3.1, Example 1.1 continued; the same condition on ``S`` in Prop. 5.4): parameter estimates
+converge only then. The monitor evaluates it on the last ``N`` samples (``T = N dt``, rectangle rule,
+:func:`jaxobs.adaptive.excitation`), so it can gate adaptation (freeze or pull back an update law when the
+excitation is low) or report it. Its measurement is the regressor with the target of the regression
+``z = omega' theta``: ``inputs.y = [omega; z]`` (p + 1,), and its estimate ``out.x`` is the least-squares ``theta``
+of the window, held at its last value while the window is not exciting. A sample with a non-finite entry is
+missing: it contributes nothing to the window and is counted in ``state.missing``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks
+from jaxobs.adaptive import excitation
+from jaxobs.observers.base import Estimator, EstimatorInputs
+
+__all__ = ["PEMonitorParams", "PEMonitorState", "PEMonitorOutputs", "pe_monitor", "make_pe_monitor"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PEMonitorParams:
+    """Parameters of the persistency-of-excitation monitor.
+
+    Attributes:
+      dt: () sample period.  threshold: () ``epsilon`` of the condition ``gram >= epsilon I``.
+      window: static number ``N`` of samples in the window (``T = N dt``).
+      n_regressors: static size ``p`` of the regressor.
+    """
+
+    dt: jax.Array
+    threshold: jax.Array
+    window: int = dataclasses.field(metadata=dict(static=True))
+    n_regressors: int = dataclasses.field(metadata=dict(static=True))
+
+
+class PEMonitorState(NamedTuple):
+    regressors: jax.Array  # (N, p) the last N regressors (a ring buffer; zero rows before the window fills)
+    targets: jax.Array  # (N,) their targets
+    count: jax.Array  # () int32 samples seen (the next one goes to row count mod N)
+    theta: jax.Array  # (p,) the last least-squares estimate of an exciting window (zero before)
+    missing: jax.Array  # () int32 samples skipped for non-finite entries
+
+
+class PEMonitorOutputs(NamedTuple):
+    x: jax.Array  # (p,) least-squares theta of the window (held while it is not exciting)
+    innovation: jax.Array  # (1,) z - omega' theta_previous (0 for a missing sample)
+    gram: jax.Array  # (p, p) dt sum of omega omega' over the window
+    lambda_min: jax.Array  # () its smallest eigenvalue
+    excited: jax.Array  # () bool: the window is full and lambda_min >= threshold
+
+
+def make_pe_monitor(n_regressors, window, dt, threshold) -> PEMonitorParams:
+    """Params of :data:`pe_monitor` for a (``n_regressors``,) regressor, a window of ``window`` samples of period
+    ``dt`` and the excitation level ``threshold`` (``epsilon``), with the checks (``ValueError`` naming the argument).
+
+    Example:
+      >>> import numpy as np
+      >>> from jaxobs.observers.base import EstimatorInputs, run
+      >>> t = 0.01 * np.arange(700)
+      >>> y = np.stack([np.sin(t), np.cos(t), 2 * np.sin(t) - np.cos(t)], axis=1)  # [omega; z], theta = (2, -1)
+      >>> _, out = run(pe_monitor, make_pe_monitor(2, 629, 0.01, 1.0), EstimatorInputs(y=y))
+      >>> bool(out.excited[-1]), np.round(out.x[-1], 6).tolist()
+      (True, [2.0, -1.0])
+    """
+    p = _checks.count("n_regressors", n_regressors, minimum=1)
+    N = _checks.count("window", window, minimum=1)
+    _checks.positive_scalar("dt", dt)
+    _checks.positive_scalar("threshold", threshold)
+    dtype = _checks.float_dtype(dt=dt, threshold=threshold)
+    return PEMonitorParams(jnp.asarray(dt, dtype), jnp.asarray(threshold, dtype), N, p)
+
+
+def _init(params: PEMonitorParams) -> PEMonitorState:
+    N, p, dtype = params.window, params.n_regressors, params.dt.dtype
+    zero = jnp.zeros((), jnp.int32)
+    return PEMonitorState(jnp.zeros((N, p), dtype), jnp.zeros(N, dtype), zero, jnp.zeros(p, dtype), zero)
+
+
+def _step(params: PEMonitorParams, state: PEMonitorState, inputs: EstimatorInputs):
+    p, dtype = params.n_regressors, params.dt.dtype
+    what = "the regressor omega and the target z"
+    y = _checks.vector("inputs.y", inputs.y, p + 1, dtype, what=what, check_finite=False)
+    seen = jnp.all(jnp.isfinite(y))
+    y = jnp.where(seen, y, 0)
+    omega, z = y[:p], y[p]
+    row = state.count % params.window
+    regressors = state.regressors.at[row].set(omega)
+    targets = state.targets.at[row].set(z)
+    gram, lowest = excitation(regressors, params.dt)
+    excited = (state.count + 1 >= params.window) & (lowest >= params.threshold)
+    moment = params.dt * regressors.T @ targets
+    solved = jnp.linalg.solve(jnp.where(excited, gram, jnp.eye(p, dtype=dtype)), moment)
+    theta = jnp.where(excited, solved, state.theta)
+    innovation = jnp.where(seen, z - omega @ state.theta, 0)[None]
+    new_state = PEMonitorState(regressors, targets, state.count + 1, theta, state.missing + (~seen).astype(jnp.int32))
+    return new_state, PEMonitorOutputs(theta, innovation, gram, lowest, excited)
+
+
+pe_monitor = Estimator(_init, _step)
+"""The persistency-of-excitation monitor; params: :class:`PEMonitorParams` (:func:`make_pe_monitor`); measurement
+``inputs.y = [omega; z]`` (p + 1,); outputs :class:`PEMonitorOutputs`."""

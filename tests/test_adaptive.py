@@ -1,0 +1,343 @@
+"""Tests for jaxobs.adaptive: the update laws (gradient, normalised gradient, Lyapunov law of Grip 2010 Example 1.1,
+discrete and continuous RLS with forgetting), the parameter projection of Grip 2010 App. 5.A with its two
+inequalities and set invariance, the clipping form, and the excitation measure.
+
+Continuous-time laws are integrated by a fixed-step RK4 written here (``_rk4``), to be replaced by jaxobs.ct."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+from jaxobs.adaptive import (
+    Ball,
+    Box,
+    clip_step,
+    excitation,
+    gradient_law,
+    lyapunov_law,
+    project,
+    rls_rate,
+    rls_update,
+)
+
+
+def _rk4(f, state, h, steps):
+    """Classical fixed-step RK4 of ``state_dot = f(t, state)`` (a pytree) over ``steps`` steps of ``h`` from t = 0;
+    returns the final state and the states after every step."""
+    add = lambda a, b, s: jax.tree.map(lambda x, y: x + s * y, a, b)
+
+    def step(x, k):
+        t = k * h
+        k1 = f(t, x)
+        k2 = f(t + h / 2, add(x, k1, h / 2))
+        k3 = f(t + h / 2, add(x, k2, h / 2))
+        k4 = f(t + h, add(x, k3, h))
+        x = jax.tree.map(lambda x, a, b, c, d: x + h / 6 * (a + 2 * b + 2 * c + d), x, k1, k2, k3, k4)
+        return x, x
+
+    return jax.lax.scan(step, state, jnp.arange(steps))
+
+
+# ---------------------------------------------------------------------------------------------
+# gradient and Lyapunov laws
+
+
+def test_gradient_laws_descend_the_weighted_parameter_error():
+    """The gradient law is Gamma phi e (e = z - phi' theta_hat), the normalised one that over 1 + |phi|^2, and both
+    decrease V = theta_tilde' Gamma^{-1} theta_tilde / 2 at the rate |e|^2 (resp. |e|^2 / (1 + |phi|^2)) when
+    z = phi' theta: the reason for the law (Grip 2010 §1.3.1). Scalar and (p, q) regressors."""
+    rng = np.random.default_rng(0)
+    L = rng.normal(size=(3, 3))
+    Gamma = L @ L.T + 0.5 * np.eye(3)
+    theta, theta_hat = rng.normal(size=3), rng.normal(size=3)
+    for phi in (rng.normal(size=3), rng.normal(size=(3, 2))):
+        z = phi.T @ theta
+        e = z - phi.T @ theta_hat
+        Phi = phi.reshape(3, -1)
+        for normalized, m2 in ((False, 1.0), (True, 1 + np.sum(phi**2))):
+            rate = np.asarray(gradient_law(theta_hat, phi, z, Gamma, normalized=normalized))
+            np.testing.assert_allclose(rate, Gamma @ Phi @ np.atleast_1d(e) / m2, rtol=1e-13)
+            V_dot = -(theta - theta_hat) @ np.linalg.solve(Gamma, rate)
+            assert V_dot == pytest.approx(-np.sum(e**2) / m2, rel=1e-12)
+    assert np.allclose(gradient_law(theta_hat, phi[:, 0], z[0], 2.0), 2 * phi[:, 0] * (z[0] - phi[:, 0] @ theta_hat))
+
+
+def _example_1_1(omega, Gamma, theta, x0, T, h=0.005):
+    """Grip 2010 Example 1.1: x_dot = omega(t)' theta + u, u = -x - omega(t)' theta_hat, theta_hat_dot = Gamma omega x
+    (lyapunov_law), with the integral of x^2 carried along; RK4 from theta_hat = 0. Returns the final
+    (x, theta_hat, int x^2) and W(t) = x^2 / 2 + theta_tilde' Gamma^{-1} theta_tilde / 2 at t = 0 and T."""
+    Gamma_inv = np.linalg.inv(Gamma)
+
+    def f(t, s):
+        x, theta_hat, _ = s
+        w = omega(t)
+        u = -x - w @ theta_hat
+        return w @ theta + u, lyapunov_law(w, x, Gamma), x**2
+
+    s0 = (jnp.asarray(x0), jnp.zeros(2), jnp.asarray(0.0))
+    (x, theta_hat, energy), _ = jax.jit(lambda s: _rk4(f, s, h, int(round(T / h))))(s0)
+    W = lambda x, th: 0.5 * x**2 + 0.5 * (theta - th) @ Gamma_inv @ (theta - th)
+    return float(x), np.asarray(theta_hat), float(energy), W(x0, np.zeros(2)), W(float(x), np.asarray(theta_hat))
+
+
+def test_example_1_1_constant_regressor_closed_form():
+    """Constant omega (Example 1.1 continued): x -> 0 and theta_tilde converges to the null space of omega', to the
+    point theta_tilde(inf) = (I - Gamma omega omega' / (omega' Gamma omega)) theta_tilde(0) (from s = omega'
+    theta_tilde: s_dot = -(omega' Gamma omega) x, so int x = s(0) / (omega' Gamma omega)); W_dot = -x^2."""
+    omega, Gamma, theta = np.array([1.0, 2.0]), np.array([[2.0, 0.5], [0.5, 1.0]]), np.array([1.0, -1.0])
+    x, theta_hat, energy, W0, WT = _example_1_1(lambda t: jnp.asarray(omega), Gamma, theta, x0=0.5, T=60.0)
+    want = (np.eye(2) - np.outer(Gamma @ omega, omega) / (omega @ Gamma @ omega)) @ theta
+    np.testing.assert_allclose(theta - theta_hat, want, atol=1e-12)  # 6e-14 measured
+    assert abs(x) < 1e-12
+    assert WT - W0 == pytest.approx(-energy, rel=1e-8)  # RK4 at h = 0.005: 8e-10 measured
+
+
+def test_example_1_1_persistent_excitation_gives_parameter_convergence():
+    """omega(t) = [sin t, cos t] is persistently exciting (its Gram matrix over any 2 pi window is pi I):
+    theta_tilde -> 0 (below 1e-7 at t = 100 from |theta_tilde(0)| = 1.4), and W decreases by int x^2."""
+    theta, Gamma = np.array([1.0, -1.0]), np.eye(2)
+    omega = lambda t: jnp.stack([jnp.sin(t), jnp.cos(t)])
+    x, theta_hat, energy, W0, WT = _example_1_1(omega, Gamma, theta, x0=0.5, T=100.0)
+    assert np.max(np.abs(theta - theta_hat)) < 1e-7 and abs(x) < 1e-7
+    assert WT - W0 == pytest.approx(-energy, rel=1e-8)
+    t = 0.01 * np.arange(629)
+    np.testing.assert_allclose(excitation(np.stack([np.sin(t), np.cos(t)], 1), 0.01)[0], np.pi * np.eye(2), atol=0.02)
+
+
+# ---------------------------------------------------------------------------------------------
+# recursive least squares
+
+
+def _batch_weighted_ls(Phis, zs, lam, theta0, P0):
+    """The minimiser of sum_i lam^(N-1-i) |z_i - Phi_i' theta|^2 + lam^N (theta - theta0)' P0^{-1} (theta - theta0)
+    over the finite z_i (rows dropped where NaN), and the inverse of its Hessian / 2."""
+    N = len(Phis)
+    info = lam**N * np.linalg.inv(P0)
+    rhs = info @ theta0
+    for i, (Phi, z) in enumerate(zip(Phis, zs, strict=True)):
+        seen = np.isfinite(z)
+        w = lam ** (N - 1 - i)
+        info = info + w * Phi[:, seen] @ Phi[:, seen].T
+        rhs = rhs + w * Phi[:, seen] @ z[seen]
+    return np.linalg.solve(info, rhs), np.linalg.inv(info)
+
+
+@jax.jit
+def _run_rls(theta0, P0, Phis, zs, lam):
+    def step(carry, data):
+        return rls_update(*carry, *data, forgetting=lam), None
+
+    return jax.lax.scan(step, (theta0, P0), (Phis, zs))[0]
+
+
+@pytest.mark.parametrize("q", [1, 2])
+@pytest.mark.parametrize("lam", [1.0, 0.9])
+def test_rls_equals_batch_least_squares(q, lam):
+    """After N steps, RLS with forgetting factor lam is the batch weighted least-squares estimate with the prior as
+    regulariser, and P the inverse information, to 1e-10 relative (noisy data, 40 samples of 3 parameters, q
+    equations per sample; with lam = 0.9 the data and the prior are discounted); NaN targets are dropped exactly."""
+    rng = np.random.default_rng(10 * q + int(10 * lam))
+    N, p = 40, 3
+    theta = rng.normal(size=p)
+    Phis = rng.normal(size=(N, p, q))
+    zs = np.einsum("kpq,p->kq", Phis, theta) + 0.1 * rng.normal(size=(N, q))
+    zs[[5, 17], 0] = np.nan
+    theta0, P0 = rng.normal(size=p), 10.0 * np.eye(p)
+    theta_hat, P = _run_rls(theta0, P0, Phis, zs, lam)
+    want, P_want = _batch_weighted_ls(Phis, zs, lam, theta0, P0)
+    np.testing.assert_allclose(theta_hat, want, rtol=1e-10)
+    np.testing.assert_allclose(P, P_want, rtol=1e-10)
+
+
+def test_rls_with_vague_prior_is_ordinary_least_squares():
+    """lam = 1 and P0 = 1e8 I: the regulariser's pull is 1e-8 of the information, so RLS equals np.linalg.lstsq to
+    1e-7 relative; the scalar-regressor form (phi (p,), z ()) gives the same as q = 1."""
+    rng = np.random.default_rng(4)
+    Phis, zs = rng.normal(size=(30, 2, 1)), rng.normal(size=(30, 1))
+    theta_hat, _ = _run_rls(np.zeros(2), 1e8 * np.eye(2), Phis, zs, 1.0)
+    want = np.linalg.lstsq(Phis[:, :, 0], zs[:, 0], rcond=None)[0]
+    np.testing.assert_allclose(theta_hat, want, rtol=1e-7)
+    scalar = jax.jit(lambda t, P, phi, z: rls_update(t, P, phi, z))
+    got = (np.zeros(2), 1e8 * np.eye(2))
+    for k in range(3):
+        got = scalar(*got, Phis[k, :, 0], zs[k, 0])
+    np.testing.assert_allclose(got[0], _run_rls(np.zeros(2), 1e8 * np.eye(2), Phis[:3], zs[:3], 1.0)[0], rtol=1e-12)
+
+
+def test_continuous_rls_is_weighted_least_squares():
+    """Continuous RLS with forgetting rate beta (rls_rate) and its information form (Omega_dot = -beta Omega +
+    phi phi', b_dot = -beta b + phi z, theta_hat = Omega^{-1} b) integrated by the same RK4 agree to 1e-9 at t = 10,
+    and the estimate has converged to theta (z = phi' theta, phi = [sin t, 1] persistently exciting)."""
+    theta, beta, P0 = np.array([0.7, -1.2]), 0.5, 2.0 * np.eye(2)
+    phi = lambda t: jnp.stack([jnp.sin(t), jnp.ones_like(t)])
+
+    def f(t, s):
+        theta_hat, P, Omega, b = s
+        w = phi(t)
+        z = w @ theta + 0.1 * jnp.sin(3 * t)  # a disturbance, so that the estimate is a compromise
+        rate, P_dot = rls_rate(theta_hat, P, w, z, forgetting=beta)
+        return rate, P_dot, -beta * Omega + jnp.outer(w, w), -beta * b + w * z
+
+    s0 = (jnp.zeros(2), jnp.asarray(P0), jnp.linalg.inv(P0), jnp.zeros(2))
+    (theta_hat, P, Omega, b), _ = jax.jit(lambda s: _rk4(f, s, 0.005, 2000))(s0)
+    np.testing.assert_allclose(theta_hat, np.linalg.solve(Omega, b), rtol=1e-9)
+    np.testing.assert_allclose(P, np.linalg.inv(Omega), rtol=1e-9)
+    assert np.max(np.abs(theta_hat - theta)) < 0.1
+
+
+# ---------------------------------------------------------------------------------------------
+# projection
+
+
+def _point(region, direction, level):
+    """The point on the ray from the centre of ``region`` along ``direction`` where P = ``level`` (closed form)."""
+    if isinstance(region, Ball):
+        return region.center + region.radius * np.sqrt(1 + level) * direction / np.linalg.norm(direction)
+    middle, half = (region.upper + region.lower) / 2, (region.upper - region.lower) / 2
+    t = ((1 + level) / np.sum(direction ** (2 * region.order))) ** (1 / (2 * region.order))
+    return middle + half * t * direction
+
+
+@jax.jit
+def _projection_terms(tau, theta_hat, theta, Gamma, region, epsilon):
+    """(theta_tilde' Gamma^-1 Proj - theta_tilde' Gamma^-1 tau, Proj' Gamma^-1 Proj - tau' Gamma^-1 tau,
+    grad P' Proj): the two App. 5.A inequalities say the first is >= 0 and the second <= 0."""
+    proj = project(tau, theta_hat, Gamma, region, epsilon)
+    tilde = theta - theta_hat
+    first = tilde @ jnp.linalg.solve(Gamma, proj - tau)
+    second = proj @ jnp.linalg.solve(Gamma, proj) - tau @ jnp.linalg.solve(Gamma, tau)
+    return first, second, jax.grad(region)(theta_hat) @ proj
+
+
+vectors = st.lists(st.floats(-1, 1), min_size=3, max_size=3).map(np.array)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    kind=st.sampled_from(["ball", "box"]),
+    L=st.lists(st.floats(-1, 1), min_size=9, max_size=9).map(lambda v: np.reshape(v, (3, 3))),
+    d_theta=vectors,
+    d_hat=vectors,
+    s_theta=st.floats(-1, 0),
+    s_hat=st.floats(-1, 1),
+    epsilon=st.floats(0.01, 1.0),
+    tau=st.lists(st.floats(-10, 10), min_size=3, max_size=3).map(np.array),
+)
+def test_projection_inequalities(kind, L, d_theta, d_hat, s_theta, s_hat, epsilon, tau):
+    """Grip 2010 App. 5.A (Krstić et al. Lemma E.1), for theta in Pi, theta_hat anywhere in Theta (s_hat: the level
+    P(theta_hat) as a fraction of epsilon, negative inside Pi) and any tau, Gamma SPD:
+    -theta_tilde' Gamma^{-1} Proj(tau) <= -theta_tilde' Gamma^{-1} tau and Proj' Gamma^{-1} Proj <= tau' Gamma^{-1}
+    tau; and on the outer boundary P = epsilon the projected rate never points outwards (grad P' Proj <= 0)."""
+    assume(np.linalg.norm(d_theta) > 1e-3 and np.linalg.norm(d_hat) > 1e-3)
+    Gamma = L @ L.T + 0.1 * np.eye(3)
+    if kind == "ball":
+        region = Ball(center=np.array([0.5, -1.0, 2.0]), radius=np.asarray(1.5))
+    else:
+        region = Box(lower=np.array([-5.0, 0.0, 1.0]), upper=np.array([5.0, 0.5, 3.0]))
+    theta = _point(region, d_theta, s_theta)
+    theta_hat = _point(region, d_hat, s_hat * epsilon if s_hat > 0 else s_hat)
+    scale = tau @ np.linalg.solve(Gamma, tau) + np.linalg.norm(theta - theta_hat) * np.linalg.norm(tau) * 10
+    tol = 1e-10 * (1 + scale) * np.linalg.cond(Gamma)
+    first, second, _ = _projection_terms(tau, theta_hat, theta, Gamma, region, epsilon)
+    assert float(first) >= -tol
+    assert float(second) <= tol
+    edge = _point(region, d_hat, epsilon)
+    _, _, outward = _projection_terms(tau, edge, theta, Gamma, region, epsilon)
+    assert float(outward) <= tol
+
+
+@pytest.mark.parametrize(
+    "region, Gamma, half",
+    [(Ball(center=np.zeros(2), radius=np.asarray(1.0)), np.array([[2.0, 0.5], [0.5, 1.0]]), np.ones(2)),
+     (Box(lower=np.array([-5.0, -1.0]), upper=np.array([5.0, 1.0])), np.diag([0.3, 1.0]), np.array([5.0, 1.0]))],
+    ids=["ball", "box"],
+)  # fmt: skip
+def test_projected_estimate_never_leaves_the_set(region, Gamma, half):
+    """theta_hat_dot = Proj(Gamma (theta_target(t) - theta_hat)), the target circling at 3 times the set's size, from
+    the centre, for 20 s: theta_hat reaches the boundary layer and presses on it. The exact solution stays in Theta;
+    RK4 leaves it by its own error only: P - epsilon < 1e-3 epsilon at h = 0.01 (measured 5e-5 and 4e-5), shrinking
+    as h^2 (a quarter or less at h/2; second order, as Proj is Lipschitz but not smooth)."""
+    epsilon = 0.1
+    target = lambda t: 3 * half * jnp.stack([jnp.cos(t), jnp.sin(t)])
+    f = lambda t, th: project(Gamma @ (target(t) - th), th, Gamma, region, epsilon)
+    overshoot = {}
+    for h in (0.01, 0.005):
+        _, path = jax.jit(lambda th, h=h: _rk4(f, th, h, int(round(20 / h))))(jnp.zeros(2))
+        levels = np.asarray(jax.vmap(region)(path))
+        assert levels.max() > 0.99 * epsilon  # the flow presses on the boundary
+        overshoot[h] = levels.max() - epsilon
+    assert overshoot[0.01] < 1e-3 * epsilon
+    assert overshoot[0.005] <= overshoot[0.01] / 3.5, overshoot
+
+
+def test_clip_step_keeps_the_box_exactly():
+    """The thesis's discrete form: Euler then clipping; the estimate stays in [lower, upper] exactly, and equals the
+    Euler step inside."""
+    step = jax.jit(clip_step)
+    theta = np.array([0.5, 0.5])
+    for rate in ([100.0, -3.0], [-100.0, 1.0], [0.1, 0.2]):
+        new = np.asarray(step(theta, np.array(rate), 0.01, np.array([0.05, 0.1]), np.array([1.1, 1.0])))
+        assert np.all(new >= [0.05, 0.1]) and np.all(new <= [1.1, 1.0])
+    np.testing.assert_allclose(new, theta + 0.01 * np.array(rate), rtol=1e-15)
+
+
+def test_project_jit_vmap_grad():
+    """vmap over a batch of estimates equals the loop (eager calls), and the projection is differentiable inside the
+    boundary layer (check_grads in tau and theta_hat, away from its switching surfaces)."""
+    ball, Gamma = Ball(center=np.zeros(2), radius=np.asarray(1.0)), np.array([[2.0, 0.5], [0.5, 1.0]])
+    hats = np.array([[0.0, 0.0], [1.02, 0.0], [0.0, -1.04], [0.7, 0.74]])
+    tau = np.array([1.0, -2.0])
+    batched = jax.jit(jax.vmap(lambda th: project(tau, th, Gamma, ball, 0.1)))(hats)
+    for th, got in zip(hats, batched, strict=True):
+        np.testing.assert_allclose(got, project(tau, th, Gamma, ball, 0.1), rtol=1e-14)
+    check_grads(lambda t, th: project(t, th, Gamma, ball, 0.1), (tau, hats[2]), order=1, modes=("rev",))
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input
+
+
+GOOD = dict(Gamma=np.eye(2), theta_hat=np.zeros(2), epsilon=0.1)
+BAD_GAMMAS = [np.array([[1.0, 1.0], [0.0, 1.0]]), np.diag([1.0, -1.0]), np.zeros((2, 2)), -1.0, 0.0, np.ones(2)]
+
+
+@pytest.mark.parametrize("Gamma", BAD_GAMMAS, ids=["asymmetric", "indefinite", "singular", "negative", "zero", "1d"])
+def test_gamma_must_be_symmetric_positive_definite(Gamma):
+    ball = Ball(center=np.zeros(2), radius=np.asarray(1.0))
+    calls = [
+        lambda: gradient_law(np.zeros(2), np.ones(2), 1.0, Gamma),
+        lambda: lyapunov_law(np.ones(2), 1.0, Gamma),
+        lambda: project(np.ones(2), np.zeros(2), Gamma, ball, 0.1),
+    ]
+    for call in calls:
+        with pytest.raises(ValueError, match=r"^Gamma\b"):
+            call()
+
+
+def test_bad_values_raise_naming_the_argument():
+    """dt <= 0, theta_hat(0) outside the projection set (or the clip bounds), epsilon <= 0, a forgetting factor
+    outside (0, 1], P not positive definite, and shape mismatches: ValueError naming the argument."""
+    ball = Ball(center=np.zeros(2), radius=np.asarray(1.0))
+    cases = [
+        ("dt", lambda: clip_step(np.zeros(1), np.ones(1), 0.0, -1.0, 1.0)),
+        ("dt", lambda: clip_step(np.zeros(1), np.ones(1), -0.01, -1.0, 1.0)),
+        ("dt", lambda: excitation(np.ones((5, 2)), 0.0)),
+        ("theta_hat", lambda: project(np.ones(2), np.array([1.2, 0.0]), 1.0, ball, 0.1)),
+        ("theta_hat", lambda: clip_step(np.array([2.0]), np.ones(1), 0.1, -1.0, 1.0)),
+        ("epsilon", lambda: project(np.ones(2), np.zeros(2), 1.0, ball, 0.0)),
+        ("epsilon", lambda: project(np.ones(2), np.zeros(2), 1.0, ball, -0.1)),
+        ("forgetting", lambda: rls_update(np.zeros(2), np.eye(2), np.ones(2), 1.0, forgetting=0.0)),
+        ("forgetting", lambda: rls_update(np.zeros(2), np.eye(2), np.ones(2), 1.0, forgetting=1.5)),
+        ("forgetting", lambda: rls_rate(np.zeros(2), np.eye(2), np.ones(2), 1.0, forgetting=-1.0)),
+        ("P", lambda: rls_update(np.zeros(2), np.diag([1.0, -1.0]), np.ones(2), 1.0)),
+        ("phi", lambda: gradient_law(np.zeros(2), np.ones(3), 1.0, 1.0)),
+        ("z", lambda: rls_update(np.zeros(2), np.eye(2), np.ones((2, 3)), np.ones(2))),
+        ("tau", lambda: project(np.ones(3), np.zeros(2), 1.0, ball, 0.1)),
+    ]
+    for name, call in cases:
+        with pytest.raises(ValueError, match=rf"^{name}\b"):
+            call()
