@@ -38,6 +38,7 @@ from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
+from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.plants import force_plant
 from jaxobs.riccati import care, dare
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
@@ -90,6 +91,8 @@ __all__ = [
     "make_hinf",
     "inverse_dynamics_observer",
     "make_inverse_dynamics",
+    "pe_monitor",
+    "make_pe_monitor",
     "linear_observer",
     # closed loops and robustness
     "simulate",

@@ -6,11 +6,13 @@ import dataclasses
 import doctest
 import importlib
 import inspect
+import pkgutil
 import re
 
 import pytest
 
 import jaxobs as jo
+import jaxobs.observers
 
 NAMES = [name for name in jo.__all__ if name != "__version__"]
 
@@ -34,9 +36,8 @@ def _documentation(name: str) -> str:
     obj = getattr(jo, name)
     if inspect.isfunction(obj) or inspect.isclass(obj):
         return inspect.getdoc(obj) or ""
-    for module_name in ("jaxobs.observers.kalman", "jaxobs.observers.active", "jaxobs.observers.hinf",
-                        "jaxobs.observers.inverse_dynamics", "jaxobs.observers.linear"):  # fmt: skip
-        module = importlib.import_module(module_name)
+    for info in pkgutil.iter_modules(jaxobs.observers.__path__, "jaxobs.observers."):
+        module = importlib.import_module(info.name)
         if getattr(module, name, None) is obj:
             return _attribute_docstring(name, module) or ""
     return ""
