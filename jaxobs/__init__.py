@@ -38,6 +38,14 @@ from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
 from jaxobs.plants import force_plant
 from jaxobs.riccati import dare
+from jaxobs.scb import (
+    SCB,
+    infinite_zero_structure,
+    invariant_zeros,
+    is_left_invertible,
+    is_minimum_phase,
+    is_right_invertible,
+)
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
@@ -102,4 +110,11 @@ __all__ = [
     "TuningProblem",
     "TuneSettings",
     "random_search",
+    # structure (design time, NumPy/sympy; the decomposition itself is jaxobs.scb.scb)
+    "SCB",
+    "invariant_zeros",
+    "infinite_zero_structure",
+    "is_left_invertible",
+    "is_right_invertible",
+    "is_minimum_phase",
 ]

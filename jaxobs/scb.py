@@ -48,12 +48,17 @@ __all__ = [
 class SCB:
     """Result of :func:`scb`.
 
-    A (n, n), B (n, m), C (p, n), D (p, m): the SCB matrices (7.6); Gamma1 (n, n), Gamma2 (p, p), Gamma3 (m, m):
-    the state, output and input transformations (x = Gamma1 x_scb, ...) of the pre-transformed system
-    (B U, Y^-1 C, Y^-1 D U); U (m, m), Y (p, p): the pre-transformation of section 7.2.4 (identities for D = 0);
-    dims: (n_a, n_b, n_c, n_d); chain_lengths: the lengths q_i of the integrator chains of x_d, in their order
-    in x_d (nondecreasing); m0: rank of D (the dimension of y_0 and u_0); exact: sympy matrices (True) or NumPy
-    arrays (False); symbols: the free symbols of the input matrices, sorted by name.
+    Fields:
+      A, B, C, D: the SCB matrices (7.6), shapes (n, n), (n, m), (p, n), (p, m).
+      Gamma1, Gamma2, Gamma3: the state (n, n), output (p, p) and input (m, m) transformations,
+        ``x = Gamma1 x_scb``, ``y = Gamma2 y_scb``, ``u = Gamma3 u_scb``, of the pre-transformed system
+        ``(A, B U, Y^-1 C, Y^-1 D U)``.
+      U, Y: the pre-transformation (m, m), (p, p) of section 7.2.4 (identities for D = 0).
+      dims: ``(n_a, n_b, n_c, n_d)``.
+      chain_lengths: the lengths q_i of the integrator chains of x_d, in their order in x_d (nondecreasing).
+      m0: the rank of D (the dimension of y_0 and u_0).
+      exact: sympy matrices (True) or NumPy arrays (False).
+      symbols: the free symbols of the input matrices, sorted by name.
     """
 
     A: Any
@@ -318,7 +323,11 @@ def _structure(bk, A, B, C):
         q = len(following)
         pivots = bk.rref(null[:, :q])[1] if null.shape[0] else ()
         if null.shape[0] and len(pivots) != null.shape[0]:
-            raise RuntimeError("scb: internal error, the states found are linearly dependent")
+            # exact arithmetic cannot get here (the states found are independent by construction); in floating
+            # point it means the rank decisions at this tolerance contradict each other
+            raise np.linalg.LinAlgError(
+                "scb: inconsistent rank decisions (ill-conditioned for numeric=True at this tol; use exact arithmetic)"
+            )
         for k in range(null.shape[0]):
             phi, phi_b = null[k : k + 1, :q], null[k : k + 1, q:]
             seq = [_combine(bk, phi, [s[lev] for s in combos], n) for lev in range(depth)]
@@ -620,6 +629,11 @@ def invariant_zeros(system) -> list:
     Returns:
       list of sympy numbers/expressions (exact; irrational roots as ``CRootOf``) or of complex floats (numeric).
       Raises ValueError when the roots of a symbolic characteristic polynomial cannot be expressed.
+
+    Example:
+      >>> import jaxobs as jo
+      >>> jo.invariant_zeros(([[0, 1], [-2, -3]], [[0], [1]], [[1, 1]]))  # (s + 1)/((s + 1)(s + 2))
+      [-1]
     """
     s = _system(system)
     Aaa = s.block("aa")
