@@ -157,6 +157,12 @@ class _Exact:
             return self.zeros(0, r)
         return self.rref(basis)[0]
 
+    def dependencies(self, source, M, y):
+        """Rows [phi, phi_y] with phi (source M) + phi_y y = 0 (y of full row rank), phi in reduced row echelon
+        form."""
+        x = self.mul(source, M)
+        return self.left_null(self.vstack([x, y]) if y.shape[0] else x)
+
     @staticmethod
     def is_zero(x):
         return x.is_zero_matrix
@@ -201,37 +207,36 @@ class _Float:
     def inv(x):
         return np.linalg.inv(x) if x.size else x
 
-    def _cut(self, s, scale):
+    def _cut(self, scale):
         return self.tol * max(scale, 1.0)
 
     def rank(self, x):
         if 0 in x.shape:
             return 0
         s = np.linalg.svd(x, compute_uv=False)
-        return int(np.sum(s > self._cut(s, s[0])))
+        return int(np.sum(s > self._cut(s[0])))
 
     def rref(self, x):
-        """Gauss-Jordan elimination with partial pivoting; a column whose candidates are all below the tolerance
-        (relative to the largest entry of x) is not a pivot."""
+        """Gauss-Jordan elimination of a matrix of full row rank (every use in the algorithm): the pivot of each
+        row is the leftmost column whose largest remaining entry reaches ``tol`` times the largest remaining entry
+        of all columns, so there is one pivot per row."""
         r = np.array(x, dtype=float)
         if 0 in r.shape:
             return r, ()
-        cut = self._cut(None, float(np.max(np.abs(r))))
-        pivots, row = [], 0
-        for col in range(r.shape[1]):
-            if row == r.shape[0]:
-                break
-            k = row + int(np.argmax(np.abs(r[row:, col])))
-            if abs(r[k, col]) <= cut:
-                r[row:, col] = 0.0
-                continue
+        pivots = []
+        for row in range(r.shape[0]):
+            rest = np.abs(r[row:, :])
+            best = rest.max()
+            col = int(np.argmax(rest.max(axis=0) >= self.tol * best)) if best > 0 else -1
+            if col < 0 or col in pivots:
+                raise np.linalg.LinAlgError("scb: rank deficiency where full rank is required (numeric=True)")
+            k = row + int(np.argmax(rest[:, col]))
             r[[row, k]] = r[[k, row]]
             r[row] /= r[row, col]
             others = np.arange(r.shape[0]) != row
             r[others] -= np.outer(r[others, col], r[row])
             pivots.append(col)
-            row += 1
-        return r[: len(pivots)], tuple(pivots)
+        return r, tuple(pivots)
 
     def left_null(self, x):
         r, c = x.shape
@@ -240,9 +245,27 @@ class _Float:
         if r == 0:
             return np.zeros((0, 0))
         u, s, _ = np.linalg.svd(x)
-        k = int(np.sum(s > self._cut(s, s[0] if s.size else 0.0)))
+        k = int(np.sum(s > self._cut(s[0] if s.size else 0.0)))
         basis = u[:, k:].T
         return self.rref(basis)[0] if basis.shape[0] else np.zeros((0, r))
+
+    def dependencies(self, source, M, y):
+        """As the exact one. The rows of x = source M are expressed in an orthonormal basis of the complement of
+        the rows of y (so at most ``columns - rows(y)`` of them can be independent), scaled by ``|source_i| |M|``
+        (a row that is small on that scale is numerically zero) and get their rank decided by singular values;
+        phi_y comes from least squares."""
+        x = source @ M
+        if x.shape[1] == 0:
+            return self.left_null(x)
+        scale = np.linalg.norm(source, axis=1) * max(np.linalg.norm(M, 2), np.finfo(float).tiny)
+        scale[scale == 0] = 1.0
+        complement = np.linalg.svd(y)[2][y.shape[0] :].T if y.shape[0] else np.eye(x.shape[1])
+        phi = self.left_null((x @ complement) / scale[:, None]) if complement.shape[1] else np.eye(x.shape[0])
+        if phi.shape[0] == 0:
+            return np.zeros((0, x.shape[0] + y.shape[0]))
+        phi = self.rref(phi / scale[None, :])[0]
+        coeffs = np.linalg.lstsq(y.T, x.T, rcond=None)[0].T if y.shape[0] else np.zeros((x.shape[0], 0))
+        return np.hstack([phi, -phi @ coeffs])
 
     def is_zero(self, x):
         return not x.size or float(np.max(np.abs(x))) <= self.tol
@@ -288,10 +311,7 @@ def _structure(bk, A, B, C):
         # S_i: split the level-`depth` rows into new chain bottoms and input-free combinations (aligned with the
         # bottoms of the shorter chains whose input rows they repeat).
         level = bk.vstack([seq[-1] for seq in active])
-        dependent = bk.mul(level, B)
-        if inputs:
-            dependent = bk.vstack([dependent, bk.vstack(inputs)])
-        null = bk.left_null(dependent)
+        null = bk.dependencies(level, B, bk.vstack(inputs) if inputs else bk.zeros(0, B.shape[1]))
         p_i = len(active)
         pivots = bk.rref(null[:, :p_i])[1] if null.shape[0] else ()
         old_chains = list(chains)
@@ -315,11 +335,12 @@ def _structure(bk, A, B, C):
             break
         # phi_i: combinations whose next derivative depends on the states found so far end as x_b sequences;
         # their terms in non-output states of chains and of the other sequences are removed by aligned shifts.
-        following = [bk.mul(seq[-1], A) for seq in combos]
+        last = bk.vstack([seq[-1] for seq in combos])
+        following = [_row(bk, bk.mul(last, A), k) for k in range(len(combos))]
         tagged = [(ch, lev) for ch in chains for lev in range(len(ch))]
         tagged += [(seq, lev) for seq in combos for lev in range(depth)]
         old = [seq[lev] for seq, lev in tagged] + [r for seq in xb for r in seq]
-        null = bk.left_null(bk.vstack(following + old))
+        null = bk.dependencies(last, A, bk.vstack(old) if old else bk.zeros(0, n))
         q = len(following)
         pivots = bk.rref(null[:, :q])[1] if null.shape[0] else ()
         if null.shape[0] and len(pivots) != null.shape[0]:
