@@ -79,3 +79,12 @@ def test_dc_motor_numeric_scb(written):
     # the printed numbers are rounded to the digits shown: -433.3, -592.7, -1.1e5, -1.5e5, 95.9
     digits = np.array([[1, 1, 0], [0, 0, 0], [1e4, 1e4, 0.1]]) / 2 + np.array([[0.05, 0.05, 0], [0, 0, 0], [0, 0, 0]])
     assert np.all(np.abs(num - printed) <= np.maximum(digits, 1e-12))
+
+
+def test_random_20_state_systems(written):
+    """Section 7.6: with 4 inputs the typical SCB is x_a 16 + x_d 4, with 3 inputs x_b 17 + x_d 3; exact."""
+    _, data = written
+    runs = data["random_20_states"]
+    assert all(r["residuals_zero"] for k in ("4_inputs", "3_inputs") for r in runs[k])
+    assert [r["dims"] for r in runs["4_inputs"]].count([16, 0, 0, 4]) >= 2
+    assert [r["dims"] for r in runs["3_inputs"]].count([0, 17, 0, 3]) >= 2
