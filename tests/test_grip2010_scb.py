@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from _readme import printed
 
 sp = pytest.importorskip("sympy")
 
@@ -88,3 +89,11 @@ def test_random_20_state_systems(written):
     assert all(r["residuals_zero"] for k in ("4_inputs", "3_inputs") for r in runs[k])
     assert [r["dims"] for r in runs["4_inputs"]].count([16, 0, 0, 4]) >= 2
     assert [r["dims"] for r in runs["3_inputs"]].count([0, 17, 0, 3]) >= 2
+
+
+def test_readme_row(written):
+    """The README's row of this reproduction shows the computed dims, in the order of the cases."""
+    _, data = written
+    row = printed(r"\| `grip2010-scb` \|([^|]*\|[^|]*)\|")
+    shown = ", ".join("({}, {}, {}, {})".format(*data[name]["dims"]) for name in grip2010_scb.CASES)
+    assert f"dims {shown}" in row
