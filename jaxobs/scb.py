@@ -290,7 +290,7 @@ def _complement(bk, rows, n):
     return bk.vstack(keep) if keep else bk.zeros(0, n)
 
 
-def _row(bk, m, i):
+def _row(m, i):
     return m[i : i + 1, :]
 
 
@@ -305,7 +305,7 @@ def _structure(bk, A, B, C):
     """x_b sequences and x_d chains (section 7.4.1): returns (chains, chain input rows, x_b sequences)."""
     n = A.shape[0]
     chains, inputs, xb = [], [], []
-    active = [[_row(bk, C, k)] for k in range(C.shape[0])]
+    active = [[_row(C, k)] for k in range(C.shape[0])]
     depth = 1
     while active:
         # S_i: split the level-`depth` rows into new chain bottoms and input-free combinations (aligned with the
@@ -336,7 +336,7 @@ def _structure(bk, A, B, C):
         # phi_i: combinations whose next derivative depends on the states found so far end as x_b sequences;
         # their terms in non-output states of chains and of the other sequences are removed by aligned shifts.
         last = bk.vstack([seq[-1] for seq in combos])
-        following = [_row(bk, bk.mul(last, A), k) for k in range(len(combos))]
+        following = [_row(bk.mul(last, A), k) for k in range(len(combos))]
         tagged = [(ch, lev) for ch in chains for lev in range(len(ch))]
         tagged += [(seq, lev) for seq in combos for lev in range(depth)]
         old = [seq[lev] for seq, lev in tagged] + [r for seq in xb for r in seq]
@@ -520,7 +520,7 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       D: (p, m) feedthrough, zero if None.
       numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact
         fractions / rational functions.
-      tol: relative rank tolerance of the numeric variant.
+      tol: relative rank tolerance of the numeric variant, in (0, 1).
 
     Returns:
       :class:`SCB`. With ``Ah = A - B_0 C_0`` of the pre-transformed system (section 7.2.4),
@@ -535,6 +535,8 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
     """
     given = _validate(A, B, C, D)
     if numeric:
+        if not (isinstance(tol, Real) and np.isfinite(tol) and 0 < tol < 1):
+            raise ValueError(f"tol must be a number in (0, 1), got {tol!r}")
         bk = _Float(float(tol))
         mats = {}
         for k, (rows, shape) in given.items():

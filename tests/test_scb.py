@@ -296,6 +296,8 @@ def test_floats_become_exact_decimal_fractions():
         (([[0, 1], [0, 0]], [[0, 0], [1, 1]], [[1, 0]]), {}, "B"),
         (([[0, 1], [0, 0]], [[0], [1]], [[1, 0], [2, 0]]), {}, "C"),
         (([[0, 1], [0, 0]], [[0], [1]], [[1, 0]], [[sp.oo]]), {}, "D"),
+        (([[0, 1], [0, 0]], [[0], [1]], [[1, 0]]), {"numeric": True, "tol": 0.0}, "tol"),
+        (([[0, 1], [0, 0]], [[0], [1]], [[sp.Symbol("a"), 0]]), {"numeric": True}, "C"),
     ],
 )
 def test_bad_input_names_the_argument(args, kwargs, name):
