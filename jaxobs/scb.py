@@ -16,11 +16,13 @@ transposed pair (A_ss^T, B_sc^T). As in the thesis, null spaces are put in reduc
 complements are rows of the identity, so the result is deterministic and changes few original states.
 
 Arithmetic. By default everything is exact: entries may be integers, fractions or sympy expressions in symbols
-(rational functions; rank decisions are then generic, i.e. valid except on a proper algebraic set of parameter
-values, which is how the structure of the DC motor of Grip 2010, section 7.5.2, changes at sigma_1 = 0), and a
-float entry is replaced by the fraction of its shortest decimal form (0.0023 -> 23/10000). ``numeric=True`` runs
-the same algorithm in floating point with rank decisions by singular values against a tolerance: faster on
-large floating models, but rank decisions near the tolerance may identify a different structure (section 7.6).
+(rational functions over the rationals or an algebraic extension such as QQ<sqrt(2)>; rank decisions are then
+generic, i.e. valid except on a proper algebraic set of parameter values, which is how the structure of the DC
+motor of Grip 2010, section 7.5.2, changes at sigma_1 = 0; transcendental expressions such as sin(theta) act as
+independent generators, so identities like sin^2 + cos^2 = 1 are not used). A float entry is replaced by the
+fraction of its shortest decimal form (0.0023 -> 23/10000). ``numeric=True`` runs the same algorithm in floating
+point with rank decisions by singular values against a tolerance: faster on large floating models, but rank
+decisions near the tolerance may identify a different structure (section 7.6).
 """
 
 from __future__ import annotations
