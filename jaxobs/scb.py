@@ -521,7 +521,10 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       C: (p, n) output matrix; ``[C, D]`` must have full row rank.
       D: (p, m) feedthrough, zero if None.
       numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact
-        fractions / rational functions.
+        fractions / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A,
+        r A^2, ...), so long sequences give ill-conditioned Gammas (cond(Gamma1) ~ 1e40 for a 17-state x_b of a
+        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions
+        and the matrices are not; use the exact variant for them.
       tol: relative rank tolerance of the numeric variant, in (0, 1).
 
     Returns:
