@@ -41,6 +41,14 @@ from jaxobs.observers.linear import linear_observer
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.plants import force_plant
 from jaxobs.riccati import care, dare
+from jaxobs.scb import (
+    SCB,
+    infinite_zero_structure,
+    invariant_zeros,
+    is_left_invertible,
+    is_minimum_phase,
+    is_right_invertible,
+)
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
@@ -110,4 +118,11 @@ __all__ = [
     "TuningProblem",
     "TuneSettings",
     "random_search",
+    # structure (design time, NumPy/sympy; the decomposition itself is jaxobs.scb.scb)
+    "SCB",
+    "invariant_zeros",
+    "infinite_zero_structure",
+    "is_left_invertible",
+    "is_right_invertible",
+    "is_minimum_phase",
 ]

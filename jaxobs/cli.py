@@ -49,7 +49,7 @@ def _reproduce_one(name: str, reproduction, out: Path) -> None:
     start = time.perf_counter()
     summary = reproduction(out)
     print(
-        f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures'])} "
+        f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures']) or 'no figures'} "
         f"in {time.perf_counter() - start:.1f} s"
     )
     for key, value in summary.items():

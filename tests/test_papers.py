@@ -29,6 +29,7 @@ def test_registry_names():
         "cortesao-stochastic-ramp",
         "cortesao2006-example2",
         "liu-peng2002-vehicle",
+        "grip2010-scb",
     }
 
 

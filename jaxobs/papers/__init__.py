@@ -1,13 +1,14 @@
 """Reproductions of the source documents: one module per paper, each returning data and drawing
 figures. ``REPRODUCTIONS`` maps the names used by ``jaxobs reproduce`` to their entry points."""
 
-from jaxobs.papers import cortesao2006, cortesao_stochastic, liu_peng, steer_by_wire
+from jaxobs.papers import cortesao2006, cortesao_stochastic, grip2010_scb, liu_peng, steer_by_wire
 
 REPRODUCTIONS = {
     cortesao2006.NAME: cortesao2006.reproduce,
     cortesao_stochastic.NAME: cortesao_stochastic.reproduce,
     steer_by_wire.NAME: steer_by_wire.reproduce,
     liu_peng.NAME: liu_peng.reproduce,
+    grip2010_scb.NAME: grip2010_scb.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]
