@@ -8,6 +8,9 @@
 * estimators and controllers (one protocol, :mod:`jaxobs.observers`): :data:`kalman_filter`,
   :data:`active_observer` (the Kalman Active Observer), :data:`hinf_filter`, :data:`inverse_dynamics_observer`,
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
+* nonlinear models and filters: :func:`nonlinear_model` (discrete or continuous-discrete ``f(x, u, t)``,
+  ``h(x)``), :data:`extended_kalman_filter` (:func:`make_ekf`), :data:`unscented_kalman_filter`
+  (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning).
@@ -31,11 +34,14 @@ from jaxobs.observers import (
     observer_controller,
     run,
 )
+from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
+from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
+from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
 from jaxobs.plants import force_plant
 from jaxobs.riccati import dare
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
@@ -86,6 +92,12 @@ __all__ = [
     "inverse_dynamics_observer",
     "make_inverse_dynamics",
     "linear_observer",
+    "NonlinearModel",
+    "nonlinear_model",
+    "extended_kalman_filter",
+    "make_ekf",
+    "unscented_kalman_filter",
+    "make_ukf",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -2,11 +2,11 @@
 
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
-observers), ``linear`` (fixed-gain linear observer). ``feedback.observer_controller`` turns any of them into an
+observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman filter). ``feedback.observer_controller`` turns any of them into an
 observer-based controller.
 """
 
-from jaxobs.observers import active, feedback, hinf, inverse_dynamics, kalman, linear
+from jaxobs.observers import active, ekf, feedback, hinf, inverse_dynamics, kalman, linear, ukf
 from jaxobs.observers.base import (
     Controller,
     ControllerInputs,
@@ -32,4 +32,6 @@ __all__ = [
     "inverse_dynamics",
     "linear",
     "feedback",
+    "ekf",
+    "ukf",
 ]
