@@ -24,6 +24,7 @@ from importlib.metadata import PackageNotFoundError, version
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, place, reference_gain
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
+from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
     Controller,
     ControllerInputs,
@@ -34,11 +35,10 @@ from jaxobs.observers import (
     observer_controller,
     run,
 )
-from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
+from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
-from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
 from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter

@@ -249,13 +249,15 @@ def gaussian_step(linearize: Linearize, iterations: int, model: NonlinearModel, 
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
     t = jnp.where(first, state.t, state.t + model.dt)
     x, P, zero = m_prior, P_prior, jnp.zeros_like(m_prior)
+    innovation = None
     for i in range(iterations):
         lin = linearize(model.h, x, P)
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
         R = model.R if lin.Omega is None else model.R + lin.Omega
         result = update(zero, P_prior, lin.G, R, y - h_bar)  # the correction of m_prior, error-state form
         x, P = m_prior + result.x, result.P
-        innovation = result.innovation if i == 0 else innovation
+        if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
+            innovation = result.innovation
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = GaussianState(x, P, t, jnp.ones((), bool), missing)
     return new_state, GaussianOutputs(x, P, m_prior, innovation, result.K)

@@ -2,8 +2,8 @@
 
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
-observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman filter). ``feedback.observer_controller`` turns any of them into an
-observer-based controller.
+observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman
+filter). ``feedback.observer_controller`` turns any of them into an observer-based controller.
 """
 
 from jaxobs.observers import active, ekf, feedback, hinf, inverse_dynamics, kalman, linear, ukf

@@ -86,7 +86,8 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
     if rule == "cubature" and any(v is not None for v in given.values()):
         raise ValueError(f"rule='cubature' fixes alpha=1, beta=0, kappa=0; got {given} (use rule='unscented')")
     dtype = model.x0.dtype
-    values = {k: jnp.asarray(d if v is None else v, dtype) for (k, v), d in zip(given.items(), RULES[rule], strict=True)}
+    defaults = dict(zip(given, RULES[rule], strict=True))
+    values = {k: jnp.asarray(defaults[k] if v is None else v, dtype) for k, v in given.items()}
     for name, value in values.items():
         _checks.shape(name, value, (), "a scalar")
         _checks.finite(name, value)
