@@ -89,28 +89,6 @@ class NonlinearModel:
     method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
 
 
-def _partial(name: str, fn) -> jax.tree_util.Partial:
-    if isinstance(fn, jax.tree_util.Partial):
-        return fn
-    if not callable(fn):
-        raise ValueError(f"{name} must be a function, got {type(fn).__name__}")
-    return jax.tree_util.Partial(fn)
-
-
-def _check_output(name: str, signature: str, fn, args, size: int, dtype, what: str) -> None:
-    """``fn(*args)`` must return a floating ``(size,)`` array (checked abstractly, once)."""
-    try:
-        out = jax.eval_shape(fn, *args)
-    except Exception as exc:  # the user's function failed on arrays of the model's shapes
-        shapes = ", ".join(str(jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a))) for a in args)
-        raise ValueError(f"{name}{signature} failed on arguments {shapes}: {type(exc).__name__}: {exc}") from exc
-    if not isinstance(out, jax.ShapeDtypeStruct) or out.shape != (size,):
-        got = out.shape if isinstance(out, jax.ShapeDtypeStruct) else type(out).__name__
-        raise ValueError(f"{name}{signature} must return {what}, shape ({size},), got {got}")
-    if not jnp.issubdtype(out.dtype, jnp.floating):
-        raise ValueError(f"{name}{signature} must return a floating array, got dtype {out.dtype}")
-
-
 def nonlinear_model(
     f, h, Q, R, *, x0, P0=None, n_inputs: int = 0, dt=1.0, t0=0.0, continuous: bool = False,
     substeps: int = 1, method: str = "rk4",
@@ -140,7 +118,7 @@ def nonlinear_model(
       >>> model.Q.shape, model.R.shape
       ((2, 2), (1, 1))
     """
-    f, h = _partial("f", f), _partial("h", h)
+    f, h = _checks.function("f", f), _checks.function("h", h)
     Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
     x0 = jnp.atleast_1d(jnp.asarray(x0))
     P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
@@ -164,8 +142,8 @@ def nonlinear_model(
     p = R.shape[0]
     x, u = jnp.zeros((n,), dtype), jnp.zeros((n_inputs,), dtype)
     what = "dx/dt" if continuous else "the next state"
-    _check_output("f", "(x, u, t)", f, (x, u, t0), n, dtype, f"{what}, one entry per entry of x0")
-    _check_output("h", "(x)", h, (x,), p, dtype, "the measurement, one entry per row of R")
+    _checks.returns("f(x, u, t)", f, (x, u, t0), (n,), f"{what}, one entry per entry of x0")
+    _checks.returns("h(x)", h, (x,), (p,), "the measurement, one entry per row of R")
     cast = lambda M: M.astype(dtype)
     return NonlinearModel(f, h, cast(Q), cast(R), cast(x0), cast(P0), dt, t0, n_inputs, continuous, substeps, method)
 

@@ -3,10 +3,11 @@
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
 observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman
-filter). ``feedback.observer_controller`` turns any of them into an observer-based controller.
+filter), ``continuous`` (continuous-time observers run as sampled estimators). ``feedback.observer_controller``
+turns any of them into an observer-based controller.
 """
 
-from jaxobs.observers import active, ekf, feedback, hinf, inverse_dynamics, kalman, linear, ukf
+from jaxobs.observers import active, continuous, ekf, feedback, hinf, inverse_dynamics, kalman, linear, ukf
 from jaxobs.observers.base import (
     Controller,
     ControllerInputs,
@@ -34,4 +35,5 @@ __all__ = [
     "feedback",
     "ekf",
     "ukf",
+    "continuous",
 ]
