@@ -71,7 +71,7 @@ def _simulate(f, h, Q, R, x_true0, u_prev, T, rng):
     return xs, y
 
 
-def pendulum(T=200, seed=0) -> Problem:
+def pendulum(T=120, seed=0) -> Problem:
     rng = np.random.default_rng(seed)
     q = 1.0
     Q = q * np.array([[DT**3 / 3, DT**2 / 2], [DT**2 / 2, DT]])
@@ -81,7 +81,7 @@ def pendulum(T=200, seed=0) -> Problem:
     return Problem(pendulum_f, pendulum_h, Q, R, np.array([1.4, 0.1]), 0.3 * np.eye(2), y, u_prev, x)
 
 
-def bearings(T=100, seed=1) -> Problem:
+def bearings(T=60, seed=1) -> Problem:
     rng = np.random.default_rng(seed)
     dt, q = 0.1, 0.1
     Q = q * np.kron(np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]), np.eye(2))
@@ -138,3 +138,15 @@ def linear_problem(seed=0, n=3, m=1, p=2, T=40, missing=True):
         y[11, 1] = np.inf
     problem = Problem(f, h, Q, R, rng.normal(size=n), np.eye(n), y, u_prev, x)
     return problem, A, B, C
+
+
+def relative_error(a, b) -> float:
+    """``max |a - b| / max |b|``."""
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b))))
+
+
+def van_loan(A, Qc, h):
+    """``Q_d = int_0^h e^{As} Qc e^{A's} ds``, the covariance of the sampled process noise (Van Loan 1978)."""
+    n = A.shape[0]
+    E = jax.scipy.linalg.expm(jnp.block([[-A, Qc], [jnp.zeros((n, n)), A.T]]) * h)
+    return E[n:, n:].T @ E[:n, n:]

@@ -16,6 +16,8 @@ from _nonlinear_models import (
     linear_problem,
     pendulum,
     pendulum_f,
+    relative_error,
+    van_loan,
     without_dynamax_regularisation,
 )
 from jax.test_util import check_grads
@@ -23,10 +25,6 @@ from jax.test_util import check_grads
 import jaxobs as jo
 from jaxobs.lti import c2d, ss
 from jaxobs.nonlinear import gaussian_step
-
-
-def relative_error(a, b):
-    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b))))
 
 
 @pytest.mark.parametrize("make_problem", [pendulum, bearings], ids=["pendulum", "bearings"])
@@ -43,7 +41,7 @@ def test_equals_dynamax_ekf(make_problem, monkeypatch):
     assert relative_error(out.x, post.filtered_means) < 1e-9
     assert relative_error(out.P, post.filtered_covariances) < 1e-9
     # the filter tracks: the estimate is closer to the truth than the prior guess
-    assert np.sqrt(np.mean((out.x[-50:] - problem.x[-50:]) ** 2)) < 0.5
+    assert np.sqrt(np.mean((out.x[-30:] - problem.x[-30:]) ** 2)) < 0.5
 
 
 def test_linear_model_equals_the_kalman_filter():
@@ -56,15 +54,6 @@ def test_linear_model_equals_the_kalman_filter():
         np.testing.assert_allclose(getattr(out, name), getattr(kf_out, name), rtol=1e-12, atol=1e-12, err_msg=name)
     np.testing.assert_allclose(state.P, kf_state.P, rtol=1e-12, atol=1e-14)
     assert int(state.missing) == int(kf_state.missing) == 4
-
-
-def van_loan(A, Qc, h):
-    """``Q_d = int_0^h e^{As} Qc e^{A's} ds`` (Van Loan 1978)."""
-    n = A.shape[0]
-    M = jnp.block([[-A, Qc], [jnp.zeros((n, n)), A.T]]) * h
-    E = jax.scipy.linalg.expm(M)
-    Phi = E[n:, n:].T
-    return Phi @ E[:n, n:]
 
 
 def test_continuous_discrete_linear_model_equals_the_exact_discretisation():
@@ -168,7 +157,7 @@ def test_gradients_reach_model_parameters_and_noise():
     """check_grads (forward and reverse) of the estimation error through the EKF with respect to a model parameter
     bound in a Partial (the pendulum's gravity), the measurement noise and, continuous-discrete, the spectral
     density."""
-    problem = pendulum(T=15)
+    problem = pendulum(T=8)
     truth, inputs = jnp.asarray(problem.x), problem.inputs()
 
     def loss(g, r, continuous):
