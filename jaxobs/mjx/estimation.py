@@ -85,13 +85,20 @@ def _measurement(model: mjx.Model, x):
     return data.sensordata
 
 
+@functools.cache
+def _transition_of(substeps: int):
+    """One function object per ``substeps``: ``Partial`` s built from it compare equal (the same pytree structure),
+    so a jitted filter is not retraced for another model or another call of :func:`transition`."""
+    return functools.partial(_transition, substeps=substeps)
+
+
 def transition(model: mjx.Model, *, substeps: int = 1) -> jax.tree_util.Partial:
     """``f(x, u, t)``: the state after ``substeps`` ``mjx.step`` s from ``x = (qpos, qvel)`` with ``ctrl = u`` (nu,)
     held, starting at time ``t``; a ``Partial`` carrying ``model`` as a leaf. The sample period is
     :func:`sample_period`."""
     check_model(model, sensors=False)
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per sample")
-    return jax.tree_util.Partial(functools.partial(_transition, substeps=substeps), model)
+    return jax.tree_util.Partial(_transition_of(substeps), model)
 
 
 def measurement(model: mjx.Model) -> jax.tree_util.Partial:
