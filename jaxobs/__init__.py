@@ -10,7 +10,9 @@
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
 * nonlinear models and filters: :func:`nonlinear_model` (discrete or continuous-discrete ``f(x, u, t)``,
   ``h(x)``), :data:`extended_kalman_filter` (:func:`make_ekf`), :data:`unscented_kalman_filter`
-  (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`;
+  (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
+  ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
+  (:func:`make_continuous_observer`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning).
@@ -36,6 +38,7 @@ from jaxobs.observers import (
     run,
 )
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
+from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
 from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
@@ -98,6 +101,8 @@ __all__ = [
     "make_ekf",
     "unscented_kalman_filter",
     "make_ukf",
+    "continuous_observer",
+    "make_continuous_observer",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -35,7 +35,8 @@ def _documentation(name: str) -> str:
     if inspect.isfunction(obj) or inspect.isclass(obj):
         return inspect.getdoc(obj) or ""
     for module_name in ("jaxobs.observers.kalman", "jaxobs.observers.active", "jaxobs.observers.hinf",
-                        "jaxobs.observers.inverse_dynamics", "jaxobs.observers.linear"):  # fmt: skip
+                        "jaxobs.observers.inverse_dynamics", "jaxobs.observers.linear", "jaxobs.observers.ekf",
+                        "jaxobs.observers.ukf", "jaxobs.observers.continuous"):  # fmt: skip
         module = importlib.import_module(module_name)
         if getattr(module, name, None) is obj:
             return _attribute_docstring(name, module) or ""
@@ -68,7 +69,8 @@ def test_exported_name_resolves_and_is_documented(name):
 
 
 MAIN_ENTRY_POINTS = ["c2d", "dare", "dlqr", "make_kalman", "make_aob", "run", "simulate", "observer_controller",
-                     "stability_margins", "force_plant", "critically_damped_gain"]  # fmt: skip
+                     "stability_margins", "force_plant", "critically_damped_gain", "nonlinear_model", "make_ekf",
+                     "make_ukf", "make_continuous_observer"]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", MAIN_ENTRY_POINTS)
