@@ -153,7 +153,9 @@ def test_eager_steps_jit_and_vmap_agree():
         np.testing.assert_allclose(batched[b], estimates(ys[b]), rtol=1e-12)
 
 
-def test_gradients_reach_model_parameters_and_noise():
+@pytest.mark.parametrize("continuous", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["discrete", "continuous-discrete"])  # fmt: skip
+def test_gradients_reach_model_parameters_and_noise(continuous):
     """check_grads (forward and reverse) of the estimation error through the EKF with respect to a model parameter
     bound in a Partial (the pendulum's gravity), the measurement noise and, continuous-discrete, the spectral
     density."""
@@ -173,8 +175,7 @@ def test_gradients_reach_model_parameters_and_noise():
         x = jo.run(jo.extended_kalman_filter, jo.make_ekf(model), inputs)[1].x
         return jnp.sum((x - truth) ** 2)
 
-    for continuous in (False, True):
-        check_grads(jax.jit(partial(loss, continuous=continuous)), (9.81, 0.09), order=1, modes=("fwd", "rev"))
+    check_grads(jax.jit(partial(loss, continuous=continuous)), (9.81, 0.09), order=1, modes=("fwd", "rev"))
 
 
 def test_gaussian_step_is_the_ekf_step():

@@ -131,9 +131,8 @@ def test_missing_component_equals_the_model_without_it():
     assert int(state.missing) == 30
 
 
-def test_vmap_over_sigma_point_parameters_and_gradients():
-    """alpha, beta, kappa are leaves: a vmap over three settings equals a loop, and check_grads (forward and
-    reverse) of the estimation error with respect to alpha and the measurement noise passes."""
+def _sigma_point_error():
+    """The squared estimation error of the UKF on a short pendulum run as a jitted function of ``(alpha, r)``."""
     problem = pendulum(T=8)
     truth = jnp.asarray(problem.x)
 
@@ -144,10 +143,22 @@ def test_vmap_over_sigma_point_parameters_and_gradients():
         x = jo.run(jo.unscented_kalman_filter, jo.make_ukf(model, alpha=alpha), problem.inputs())[1].x
         return jnp.sum((x - truth) ** 2)
 
+    return error
+
+
+def test_vmap_over_sigma_point_parameters():
+    """alpha, beta, kappa are leaves: a vmap over three settings of alpha equals a loop."""
+    error = _sigma_point_error()
     alphas = jnp.array([0.5, 1.0, 1.5])
     batched = jax.vmap(error, in_axes=(0, None))(alphas, 0.09)
     np.testing.assert_allclose(batched, [error(a, 0.09) for a in alphas], rtol=1e-12)
-    check_grads(error, (1.2, 0.09), order=1, modes=("fwd", "rev"))
+
+
+@pytest.mark.slow
+def test_gradients_with_respect_to_alpha_and_the_measurement_noise():
+    """check_grads (forward and reverse) of the estimation error with respect to alpha and the measurement noise
+    (the filter step shared with the EKF is checked in the default set by tests/test_ekf.py)."""
+    check_grads(_sigma_point_error(), (1.2, 0.09), order=1, modes=("fwd", "rev"))
 
 
 def test_bad_inputs_raise_naming_the_argument():
