@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxobs"
-FAMILIES = {"kalman", "active", "hinf", "inverse_dynamics", "linear"}
+FAMILIES = {"kalman", "active", "hinf", "inverse_dynamics", "linear", "ekf", "ukf", "continuous"}
 
 
 def _imported_modules(path: Path) -> set[str]:
