@@ -95,7 +95,7 @@ def test_iterated_update_converges_to_the_map_estimate():
         e = y - bearings_h(x)
         return (x - m) @ jnp.linalg.solve(P, x - m) + e @ jnp.linalg.solve(jnp.asarray(problem.R), e)
 
-    @jax.jit
+    # one step: eager dispatch is cheaper than compiling one program per iteration count
     def estimate(params):
         return jo.extended_kalman_filter.step(params, jo.extended_kalman_filter.init(params), jo.EstimatorInputs(y))[1]
 

@@ -103,7 +103,7 @@ def test_iterated_posterior_linearisation_reaches_a_fixed_point():
     model = jo.nonlinear_model(problem.f, problem.h, problem.Q, problem.R, x0=m, P0=P)
     y = jo.EstimatorInputs(jnp.asarray(problem.y[0]))
 
-    @jax.jit
+    # one step: eager dispatch is cheaper than compiling one program per iteration count
     def estimate(params):
         return jo.unscented_kalman_filter.step(params, jo.unscented_kalman_filter.init(params), y)[1].x
 
