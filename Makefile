@@ -38,6 +38,8 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/dare_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/care_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/nonlinear.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/ct_integration.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

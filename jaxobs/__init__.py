@@ -8,6 +8,11 @@
 * estimators and controllers (one protocol, :mod:`jaxobs.observers`): :data:`kalman_filter`,
   :data:`active_observer` (the Kalman Active Observer), :data:`hinf_filter`, :data:`inverse_dynamics_observer`,
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
+* nonlinear models and filters: :func:`nonlinear_model` (discrete or continuous-discrete ``f(x, u, t)``,
+  ``h(x)``), :data:`extended_kalman_filter` (:func:`make_ekf`), :data:`unscented_kalman_filter`
+  (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
+  ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
+  (:func:`make_continuous_observer`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
@@ -23,6 +28,7 @@ from importlib.metadata import PackageNotFoundError, version
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
+from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
     Controller,
     ControllerInputs,
@@ -34,11 +40,14 @@ from jaxobs.observers import (
     run,
 )
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
+from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
+from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_observer
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
+from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
 from jaxobs.plants import force_plant
 from jaxobs.riccati import care, dare
 from jaxobs.scb import (
@@ -102,6 +111,14 @@ __all__ = [
     "pe_monitor",
     "make_pe_monitor",
     "linear_observer",
+    "NonlinearModel",
+    "nonlinear_model",
+    "extended_kalman_filter",
+    "make_ekf",
+    "unscented_kalman_filter",
+    "make_ukf",
+    "continuous_observer",
+    "make_continuous_observer",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -153,3 +153,30 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
     if not ok:
         bound = "non-negative" if allow_zero else "positive"
         raise ValueError(f"{name} must be a finite {bound} number, got {float(a)}")
+
+
+def function(name: str, fn) -> jax.tree_util.Partial:
+    """``fn`` as a ``jax.tree_util.Partial``: a pytree whose bound arguments are leaves (so ``jit``, ``vmap`` and
+    ``grad`` reach the parameters a user binds) and whose function is static. A ``Partial`` is returned as is."""
+    if isinstance(fn, jax.tree_util.Partial):
+        return fn
+    if not callable(fn):
+        raise ValueError(f"{name} must be a function, got {type(fn).__name__}")
+    return jax.tree_util.Partial(fn)
+
+
+def returns(call: str, fn, args: tuple, shape: tuple, what: str) -> None:
+    """Check abstractly (``jax.eval_shape``, nothing runs) that ``fn(*args)`` returns a floating array of
+    ``shape`` (``None`` entries: any size); ``call`` names the call in the message, e.g. ``"f(x, u, t)"``."""
+    try:
+        out = jax.eval_shape(fn, *args)
+    except Exception as exc:  # the user's function failed on arrays of the expected shapes
+        given = ", ".join(str(jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a))) for a in args)
+        raise ValueError(f"{call} failed on arguments {given}: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        raise ValueError(f"{call} must return {what}, an array of shape {_shape_text(shape)}, got {type(out).__name__}")
+    shape_ok = len(out.shape) == len(shape) and all(e is None or e == g for e, g in zip(shape, out.shape, strict=True))
+    if not shape_ok:
+        raise ValueError(f"{call} must return {what}, shape {_shape_text(shape)}, got {out.shape}")
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        raise ValueError(f"{call} must return a floating array, got dtype {out.dtype}")

@@ -9,10 +9,14 @@ robot, compliant force sensor of stiffness ``Ks``, command dead time as a FIFO i
 plant of the MRAC chapter §7 (Table 1 stiffnesses, per-DOF AOB-1 HBA / CKF SBA of eq. 62-68, the peg-on-hole
 alignment scenario with its contact moment coupled to the alignment rotation).
 
+``estimation`` (a submodule): state estimation on MJX models for the EKF and UKF of :mod:`jaxobs.observers`:
+the state ``(qpos, qvel)``, the transition ``mjx.step``, the measurement ``sensordata``; the shipped cart-pole
+with sensors (``examples/mjx_state_estimation.py``).
+
 Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.
 """
 
-from jaxobs.mjx import compliant_6dof
+from jaxobs.mjx import compliant_6dof, estimation
 from jaxobs.mjx.force_1dof import (
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -28,6 +32,7 @@ from jaxobs.mjx.force_1dof import (
 
 __all__ = [
     "compliant_6dof",
+    "estimation",
     "CONTROL_PERIOD",
     "SUBSTEPS",
     "ForcePlantParams",

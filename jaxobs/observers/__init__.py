@@ -2,13 +2,26 @@
 
 Families: ``kalman`` (Kalman filter), ``active`` (Kalman Active Observer AOB-N), ``hinf`` (discrete-time
 a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dynamics state and disturbance
-observers), ``linear`` (fixed-gain linear observer), ``pe_monitor`` (persistency-of-excitation monitor: the
-windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time Luenberger, Kalman-Bucy and
-output-injection observers, sampled by :func:`~jaxobs.observers.ct_linear.sampled`).
-``feedback.observer_controller`` turns any of them into an observer-based controller.
+observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman
+filter), ``continuous`` (continuous-time observers run as sampled estimators), ``pe_monitor``
+(persistency-of-excitation monitor: the windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time
+Luenberger, Kalman-Bucy and output-injection observers). ``feedback.observer_controller`` turns any of them into
+an observer-based controller.
 """
 
-from jaxobs.observers import active, ct_linear, feedback, hinf, inverse_dynamics, kalman, linear, pe_monitor
+from jaxobs.observers import (
+    active,
+    continuous,
+    ct_linear,
+    ekf,
+    feedback,
+    hinf,
+    inverse_dynamics,
+    kalman,
+    linear,
+    pe_monitor,
+    ukf,
+)
 from jaxobs.observers.base import (
     Controller,
     ControllerInputs,
@@ -36,4 +49,7 @@ __all__ = [
     "pe_monitor",
     "ct_linear",
     "feedback",
+    "ekf",
+    "ukf",
+    "continuous",
 ]

@@ -1,0 +1,241 @@
+"""Nonlinear Gaussian state-space models and the filter step the extended and unscented Kalman filters share.
+
+Model, discrete time (``t_k = t0 + k dt``)::
+
+    x_k = f(x_{k-1}, u_{k-1}, t_{k-1}) + w_k,    y_k = h(x_k) + v_k,    w_k ~ N(0, Q),  v_k ~ N(0, R)
+
+or continuous-discrete (``continuous=True``): ``dx/dt = f(x, u, t) + w(t)`` with white noise of spectral density
+``Q``, the input ``u_{k-1}`` held over ``[t_{k-1}, t_k]``, and the same measurements at the samples.
+
+Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0``, the state at the first measurement (as in
+:mod:`jaxobs.observers.kalman`, dynamax and cuthbert): the first step updates without a prediction.
+
+A Gaussian filter replaces each nonlinear map ``g`` (``f`` or ``h``) around a Gaussian ``N(m, P)`` by a linear one
+with an error term, its *linearisation* (Särkkä 2013, ch. 5-6)::
+
+    g(x) ~ g_bar + G (x - m) + e,    e ~ N(0, Omega)
+
+the first-order Taylor series (``g_bar = g(m)``, ``G = dg/dx (m)``, ``Omega = 0``: the extended Kalman filter) or a
+statistical linear regression on sigma points (the unscented and cubature filters). With it, one step is the
+linear Kalman step of :mod:`jaxobs.kalman_steps` and :mod:`jaxobs.riccati`::
+
+    predict (discrete):    m_prior = f_bar,   P_prior = F P F' + Q + Omega_f
+    predict (continuous):  dm/dt = f_bar(m, P),   dP/dt = F P + P F' + Q   over [t_{k-1}, t_k] (jaxobs.ct)
+    update:                Joseph-form update with C = H and R + Omega_h on the innovation y_k - h_bar
+
+(the continuous moment equations: Jazwinski 1970 for the Taylor form, Särkkä 2007 for sigma points).
+Missing data: non-finite components of ``y_k`` are skipped exactly and counted, as in the linear filter.
+Iterated update (``iterations > 1``): ``h`` is linearised again around the current posterior and the update
+redone from the prior, ``x_{i+1} = m_prior + K_i (y - h_bar_i - H_i (m_prior - x_i))``: the Gauss-Newton iterated
+EKF (Bell & Cathey 1993) for the Taylor form, the iterated posterior linearisation filter (García-Fernández,
+Svensson, Morelande & Särkkä 2015) for sigma points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks, ct
+from jaxobs.kalman_steps import update
+from jaxobs.riccati import predict_covariance, symmetrize
+
+__all__ = [
+    "NonlinearModel",
+    "nonlinear_model",
+    "Linearization",
+    "GaussianState",
+    "GaussianOutputs",
+    "gaussian_init",
+    "gaussian_step",
+]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NonlinearModel:
+    """A nonlinear Gaussian state-space model (``n`` states, ``m`` inputs, ``p`` outputs); build it with
+    :func:`nonlinear_model`.
+
+    Attributes:
+      f: the transition ``f(x, u, t) -> x_next`` (discrete) or ``-> dx/dt`` (``continuous``), as a
+        ``jax.tree_util.Partial``: its bound arguments (model parameters, an MJX model) are leaves of this
+        pytree, so ``grad`` and ``vmap`` reach them.
+      h: the measurement ``h(x) -> y`` (p,), a ``Partial`` likewise.
+      Q: (n, n) process noise covariance (discrete) or spectral density (continuous).
+      R: (p, p) measurement noise covariance.  x0: (n,) prior mean of ``x_0``.  P0: (n, n) its covariance.
+      dt: () sample period (the time step between measurements).  t0: () time of the first measurement.
+      n_inputs: static ``m``; ``f`` receives an (m,) input (an empty one when ``m = 0``).
+      continuous: static; ``f`` is the time derivative and the prediction integrates over each sample.
+      substeps: static number of fixed integration steps per sample (continuous models).
+      method: static integration rule, ``"rk4"`` or ``"euler"`` (:data:`jaxobs.ct.METHODS`).
+    """
+
+    f: Callable
+    h: Callable
+    Q: jax.Array
+    R: jax.Array
+    x0: jax.Array
+    P0: jax.Array
+    dt: jax.Array
+    t0: jax.Array
+    n_inputs: int = dataclasses.field(default=0, metadata=dict(static=True))
+    continuous: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
+
+
+def nonlinear_model(
+    f, h, Q, R, *, x0, P0=None, n_inputs: int = 0, dt=1.0, t0=0.0, continuous: bool = False,
+    substeps: int = 1, method: str = "rk4",
+) -> NonlinearModel:  # fmt: skip
+    """Build and check a :class:`NonlinearModel`.
+
+    Args:
+      f: transition ``f(x, u, t)``: the next state (discrete) or ``dx/dt`` (``continuous``), shape (n,). A plain
+        function or a ``jax.tree_util.Partial`` whose bound arguments should be differentiable or batched.
+      h: measurement ``h(x)``, shape (p,) (a function or a ``Partial``).
+      Q: (n, n) positive semidefinite (a covariance, or a spectral density for a continuous ``f``).
+      R: (p, p) positive definite.  x0: (n,) prior mean of ``x_0``.  P0: (n, n) its covariance (default ``Q``).
+      n_inputs: the number of inputs ``m`` (``u`` has shape (m,)).
+      dt: sample period (> 0).  t0: time of the first measurement; step ``k`` predicts from ``t0 + (k-1) dt``.
+      continuous: ``f`` is a time derivative (continuous-discrete filtering).
+      substeps: fixed integration steps per sample.  method: ``"rk4"`` or ``"euler"``.
+
+    The outputs of ``f`` and ``h`` are checked once, abstractly (``jax.eval_shape``). All arrays are cast to their
+    common floating dtype.
+
+    Example:
+      >>> import jax.numpy as jnp
+      >>> from jaxobs.nonlinear import nonlinear_model
+      >>> pendulum = lambda x, u, t: jnp.array([x[1], -9.81 * jnp.sin(x[0])])
+      >>> model = nonlinear_model(pendulum, lambda x: jnp.sin(x[:1]), 0.01 * jnp.eye(2), [[0.1]],
+      ...                         x0=[0.5, 0.0], dt=0.05, continuous=True, substeps=4)
+      >>> model.Q.shape, model.R.shape
+      ((2, 2), (1, 1))
+    """
+    f, h = _checks.function("f", f), _checks.function("h", h)
+    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
+    x0 = jnp.atleast_1d(jnp.asarray(x0))
+    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    dtype = _checks.float_dtype(Q=Q, R=R, x0=x0, P0=P0, dt=dt, t0=t0)
+    _checks.shape("x0", x0, (None,), "the prior mean, one entry per state")
+    n = x0.shape[0]
+    _checks.covariance("Q", Q, definite=False, size=n)
+    _checks.covariance("R", R, definite=True)
+    _checks.covariance("P0", P0, definite=False, size=n)
+    _checks.finite("x0", x0)
+    _checks.positive_scalar("dt", dt)
+    dt, t0 = jnp.asarray(dt, dtype), jnp.asarray(t0, dtype)
+    _checks.shape("dt", dt, (), "a scalar sample period")
+    _checks.shape("t0", t0, (), "a scalar time")
+    _checks.finite("t0", t0)
+    n_inputs = _checks.count("n_inputs", n_inputs, hint="the size of the input u of f(x, u, t)")
+    continuous = bool(continuous)
+    substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
+    if method not in ct.METHODS:
+        raise ValueError(f"method must be one of {sorted(ct.METHODS)}, got {method!r}")
+    p = R.shape[0]
+    x, u = jnp.zeros((n,), dtype), jnp.zeros((n_inputs,), dtype)
+    what = "dx/dt" if continuous else "the next state"
+    _checks.returns("f(x, u, t)", f, (x, u, t0), (n,), f"{what}, one entry per entry of x0")
+    _checks.returns("h(x)", h, (x,), (p,), "the measurement, one entry per row of R")
+    cast = lambda M: M.astype(dtype)
+    return NonlinearModel(f, h, cast(Q), cast(R), cast(x0), cast(P0), dt, t0, n_inputs, continuous, substeps, method)
+
+
+class Linearization(NamedTuple):
+    """``g(x) ~ mean + G (x - m) + e``, ``e ~ N(0, Omega)``, around ``N(m, P)`` (shapes for ``g: (n,) -> (k,)``)."""
+
+    mean: jax.Array  # (k,) g_bar
+    G: jax.Array  # (k, n) Jacobian (Taylor) or regression matrix (sigma points)
+    Omega: jax.Array | None  # (k, k) covariance of the linearisation error; None when zero (Taylor)
+
+
+class Linearize(Protocol):
+    def __call__(self, g: Callable, m: jax.Array, P: jax.Array) -> Linearization:
+        """The linearisation of ``g`` around ``N(m, P)``."""
+
+
+class GaussianState(NamedTuple):
+    x: jax.Array  # (n,) a-posteriori mean x_hat_{k-1|k-1} (the prior mean before the first step)
+    P: jax.Array  # (n, n) its covariance
+    t: jax.Array  # () its time
+    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
+    missing: jax.Array  # () int32, measurement components skipped so far
+
+
+class GaussianOutputs(NamedTuple):
+    x: jax.Array  # (n,) a-posteriori mean x_hat_{k|k}
+    P: jax.Array  # (n, n) its covariance
+    x_prior: jax.Array  # (n,) a-priori mean x_hat_{k|k-1}
+    innovation: jax.Array  # (p,) y_k - h_bar around the prior (0 for missing components)
+    gain: jax.Array  # (n, p) gain of the (last) update (zero columns for missing components)
+
+
+def gaussian_init(model: NonlinearModel) -> GaussianState:
+    """The state before the first measurement: the prior ``(x0, P0)`` at ``t0``."""
+    return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+
+
+def _inputs(model: NonlinearModel, inputs):
+    """``(y, u)`` checked against the model's sizes (at trace time) and cast to its dtype."""
+    p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
+    if inputs.u_prev is None:
+        if m:
+            raise ValueError(f"inputs.u_prev is required: the model has n_inputs={m}, got None")
+        return y, jnp.zeros((0,), dtype)
+    u = _checks.vector("inputs.u_prev", inputs.u_prev, m, dtype, what="n_inputs entries", check_finite=False)
+    return y, u
+
+
+def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
+    if not model.continuous:
+        lin = linearize(lambda x: model.f(x, u, t), m, P)
+        Q = model.Q if lin.Omega is None else model.Q + lin.Omega
+        return lin.mean, predict_covariance(P, lin.G, Q)
+
+    def moments(state, u, t):  # the moment equations dm/dt, dP/dt
+        m, P = state
+        lin = linearize(lambda x: model.f(x, u, t), m, P)
+        FP = lin.G @ P
+        return lin.mean, FP + FP.T + model.Q
+
+    m, P = ct.integrate(moments, (m, P), u, t, model.dt, substeps=model.substeps, method=model.method)
+    return m, symmetrize(P)
+
+
+def gaussian_step(linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs):
+    """One step of the Gaussian filter with ``linearize`` (the equations of this module).
+
+    Args:
+      linearize: ``(g, m, P) -> Linearization``.  iterations: static number of updates (1: no iteration).
+      model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
+      inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
+
+    Returns:
+      ``(GaussianState, GaussianOutputs)`` of sample ``k``.
+    """
+    y, u = _inputs(model, inputs)
+    m_pred, P_pred = _predict(linearize, model, state.x, state.P, u, state.t)
+    first = ~state.started  # the prior is that of x_0: no prediction before the first update
+    m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
+    t = jnp.where(first, state.t, state.t + model.dt)
+    x, P, zero = m_prior, P_prior, jnp.zeros_like(m_prior)
+    innovation = None
+    for i in range(iterations):
+        lin = linearize(model.h, x, P)
+        h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
+        R = model.R if lin.Omega is None else model.R + lin.Omega
+        result = update(zero, P_prior, lin.G, R, y - h_bar)  # the correction of m_prior, error-state form
+        x, P = m_prior + result.x, result.P
+        if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
+            innovation = result.innovation
+    missing = state.missing + result.n_missing.astype(jnp.int32)
+    new_state = GaussianState(x, P, t, jnp.ones((), bool), missing)
+    return new_state, GaussianOutputs(x, P, m_prior, innovation, result.K)

@@ -1,0 +1,92 @@
+"""The extended Kalman filter (EKF): discrete time or continuous-discrete, with an iterated-update option.
+
+The model is a :class:`~jaxobs.nonlinear.NonlinearModel` (``f(x, u, t)``, ``h(x)``, ``Q``, ``R``, prior); each map
+is replaced by its first-order Taylor series around the current mean, the Jacobians by forward-mode autodiff
+(``jax.jacfwd``)::
+
+    F = df/dx (x_hat_{k-1}, u_{k-1}, t_{k-1}),   x_prior = f(x_hat_{k-1}, u_{k-1}, t_{k-1}),   P_prior = F P F' + Q
+    H = dh/dx (x_prior),   K = P_prior H' (H P_prior H' + R)^{-1},   x_hat_k = x_prior + K (y_k - h(x_prior))
+
+and ``P_k`` by the Joseph form (:mod:`jaxobs.kalman_steps`). Continuous-discrete (``model.continuous``): the
+mean and the covariance follow ``dm/dt = f(m, u, t)``, ``dP/dt = F P + P F' + Q`` over each sample, integrated by
+:mod:`jaxobs.ct`. ``iterations > 1``: the Gauss-Newton iterated update (Bell & Cathey 1993) relinearises ``h``
+around the latest estimate, ``x_{i+1} = x_prior + K_i (y_k - h(x_i) - H_i (x_prior - x_i))``.
+
+Prior and missing data as in the Kalman filter (:mod:`jaxobs.nonlinear`): the first step updates the prior of
+``x_0`` without a prediction; non-finite measurement components are skipped and counted (``state.missing``).
+On a linear model the EKF is the Kalman filter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks
+from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
+from jaxobs.observers.base import Estimator, EstimatorInputs
+
+__all__ = ["EKFParams", "make_ekf", "extended_kalman_filter", "taylor"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class EKFParams:
+    """Parameters of the extended Kalman filter.
+
+    Attributes:
+      model: the :class:`~jaxobs.nonlinear.NonlinearModel`.
+      iterations: static number of Gauss-Newton updates per sample (1: the plain EKF).
+    """
+
+    model: NonlinearModel
+    iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
+
+
+def make_ekf(model: NonlinearModel, *, iterations: int = 1) -> EKFParams:
+    """The extended Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
+
+    Args:
+      model: a :class:`~jaxobs.nonlinear.NonlinearModel`, discrete or continuous.
+      iterations: number of Gauss-Newton updates per sample (an integer >= 1; 1 is the plain EKF).
+
+    Example:
+      >>> import jax.numpy as jnp
+      >>> import jaxobs as jo
+      >>> f = lambda x, u, t: jnp.array([x[0] + 0.1 * x[1], x[1] - 0.1 * jnp.sin(x[0])])
+      >>> model = jo.nonlinear_model(f, lambda x: x[:1], 1e-4 * jnp.eye(2), [[0.01]], x0=[0.3, 0.0])
+      >>> _, out = jo.run(jo.extended_kalman_filter, jo.make_ekf(model), jo.EstimatorInputs(y=jnp.ones((20, 1))))
+      >>> out.x.shape, out.P.shape
+      ((20, 2), (20, 2, 2))
+    """
+    if not isinstance(model, NonlinearModel):
+        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
+    return EKFParams(model, iterations)
+
+
+def taylor(g, m, P) -> Linearization:
+    """First-order Taylor linearisation of ``g`` at ``m``: ``(g(m), dg/dx (m), None)``; one forward-mode pass
+    evaluates ``g`` and its Jacobian together. ``P`` is unused."""
+    del P
+
+    def value_twice(x):
+        value = g(x)
+        return value, value
+
+    G, mean = jax.jacfwd(value_twice, has_aux=True)(m)
+    return Linearization(mean, jnp.reshape(G, (mean.shape[0], m.shape[0])), None)
+
+
+def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
+    return gaussian_step(taylor, params.iterations, params.model, state, inputs)
+
+
+extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
+"""The extended Kalman filter as an :class:`~jaxobs.observers.base.Estimator` over :class:`EKFParams`.
+
+Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,) (``u_prev=None`` without inputs), checked
+against the model while tracing. State: :class:`~jaxobs.nonlinear.GaussianState`. Outputs:
+:class:`~jaxobs.nonlinear.GaussianOutputs` (``x``, ``P``, ``x_prior``, ``innovation``, ``gain``)."""
