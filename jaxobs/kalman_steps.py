@@ -34,6 +34,7 @@ __all__ = [
     "predict",
     "update",
     "observed",
+    "observed_model",
     "innovation_log_likelihood",
     "tria",
     "SquareRootUpdate",
@@ -80,10 +81,11 @@ def observed(y, dtype=None):
     return finite.astype(dtype or y.dtype), jnp.where(finite, y, 0.0)
 
 
-def _marginal(C, R, mask):
-    """``(C, R)`` with the rows of missing components removed: rows of ``C`` zeroed, their rows and columns of
-    ``R`` replaced by a unit variance placeholder. ``C P C' + R`` is then the innovation covariance of the
-    observed components with 1 on a missing diagonal, which adds exactly 0 to a log-determinant."""
+def observed_model(C, R, mask):
+    """``(C, R)`` with the rows of missing components (``mask`` 0, from :func:`observed`) removed: rows of ``C``
+    zeroed, their rows and columns of ``R`` replaced by a unit variance placeholder. ``C P C' + R`` is then the
+    innovation covariance of the observed components with 1 on a missing diagonal, which adds exactly 0 to a
+    log-determinant."""
     return C * mask[:, None], R * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
 
 
@@ -118,7 +120,7 @@ def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
     n_missing = jnp.sum(1 - mask.astype(jnp.int32))
     S = None
     if gain is None:
-        C_o, R_o = _marginal(C, R, mask)
+        C_o, R_o = observed_model(C, R, mask)
         P, K = update_covariance(P_prior, C_o, R_o)
         S = symmetrize(C_o @ P_prior @ C_o.T + R_o)
     else:

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxobs.kalman_steps import update
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.observers.kalman import (
     KalmanParams,
@@ -315,30 +314,6 @@ def test_partial_nan_conditions_on_observed_components():
     np.testing.assert_allclose(out.gain, gains, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(final.P, P, rtol=1e-10, atol=1e-12)
     assert np.all(np.isfinite(np.asarray(out.x)))
-
-
-def test_update_one_missing_component_is_exact_conditioning():
-    """Single update, 2 outputs, non-diagonal R, second component NaN: x and P equal the Gaussian conditioning
-    on the first component alone (row C[0], variance R[0, 0]); the reported gain has a zero column."""
-    rng = np.random.default_rng(6)
-    G = rng.normal(size=(3, 3))
-    P1 = G @ G.T + 0.1 * np.eye(3)
-    C = rng.normal(size=(2, 3))
-    R = np.array([[0.5, 0.4], [0.4, 0.6]])
-    x1 = rng.normal(size=3)
-    y = np.array([0.7, np.nan])
-    x, P, K, innovation, n_missing = update(x1, P1, C, R, y)
-    c, r = C[0:1], R[0:1, 0:1]
-    k = P1 @ c.T / (c @ P1 @ c.T + r)
-    np.testing.assert_allclose(x, x1 + k[:, 0] * (0.7 - c @ x1), rtol=1e-12)
-    np.testing.assert_allclose(P, P1 - k @ c @ P1, rtol=1e-10, atol=1e-13)
-    np.testing.assert_allclose(K[:, 0], k[:, 0], rtol=1e-12)
-    np.testing.assert_array_equal(K[:, 1], 0.0)
-    np.testing.assert_allclose(innovation, [0.7 - (c @ x1)[0], 0.0], rtol=1e-12)
-    assert int(n_missing) == 1
-    # the full (non-missing) update differs: the correlation with the second component matters
-    x_full, *_ = update(x1, P1, C, R, np.array([0.7, 0.1]))
-    assert np.max(np.abs(np.asarray(x_full) - np.asarray(x))) > 1e-3
 
 
 def test_steady_state_gain_with_missing_component():
