@@ -27,6 +27,7 @@ For the linear-Gaussian model of :mod:`jaxobs.kalman_steps` and a record ``y_0 .
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -104,7 +105,12 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
     _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
     _checks.matrix("Phi", Phi, shape=(n, n), square=True)
-    Phi = jnp.asarray(Phi, x.dtype)
+    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
+
+
+@partial(jax.jit, static_argnames=("parallel",))
+def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
+    n = x.shape[-1]
     elements = jax.vmap(_smoother_element, (None, 0, 0, 0, 0))(Phi, x[:-1], P[:-1], x_prior[1:], P_prior[1:])
     last = _SmootherElement(jnp.zeros((1, n, n), x.dtype), x[-1:], P[-1:])
     elements = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), elements, last)
@@ -192,18 +198,24 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
     """
     if params.gain is not None:
         raise ValueError("params has a fixed gain: the parallel filter computes the time-varying one")
-    n, p, m, dtype = params.Phi.shape[-1], params.C.shape[-2], params.Gamma.shape[-1], params.Phi.dtype
+    p, m = params.C.shape[-2], params.Gamma.shape[-1]
     y = jnp.asarray(inputs.y)
     _checks.shape("inputs.y", y, (None, p), "(time, outputs) measurements")
     T = y.shape[0]
     if T == 0:
         raise ValueError("inputs.y has no samples: give at least one (its shape is (time, outputs))")
-    y = y.astype(dtype)
-    offsets = jnp.zeros((T, n), dtype)
-    if inputs.u_prev is not None:
-        u_prev = jnp.asarray(inputs.u_prev)
+    u_prev = inputs.u_prev
+    if u_prev is not None:
+        u_prev = jnp.asarray(u_prev)
         _checks.shape("inputs.u_prev", u_prev, (T, m), "(time, inputs) like inputs.y")
-        offsets = u_prev.astype(dtype) @ params.Gamma.T
+    return _parallel_filter(params, y, u_prev)
+
+
+@jax.jit
+def _parallel_filter(params: KalmanParams, y, u_prev):
+    n, dtype, T = params.Phi.shape[-1], params.Phi.dtype, y.shape[0]
+    y = y.astype(dtype)
+    offsets = jnp.zeros((T, n), dtype) if u_prev is None else u_prev.astype(dtype) @ params.Gamma.T
     first = update(params.x0, params.P0, params.C, params.R, y[0])
     zeros = jnp.zeros((n, n), dtype)
     head = _FilterElement(zeros, first.x, first.P, jnp.zeros((n,), dtype), zeros)
@@ -235,11 +247,14 @@ def _with_covariances(params):
 
 def _filtered(estimator: Estimator, params, inputs, parallel: bool):
     if not parallel:
-        return run(estimator, params, inputs)[1]
+        return _run(estimator, params, inputs)[1]
     if estimator is not kalman_filter:
         raise ValueError("parallel=True runs the Kalman filter (estimator=kalman_filter with KalmanParams); for an "
                          "active observer see parallel_filter")  # fmt: skip
     return parallel_filter(params, inputs)[1]
+
+
+_run = jax.jit(run, static_argnums=0)  # one compiled program per estimator and shapes, also for eager calls
 
 
 def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):
