@@ -8,6 +8,9 @@
 * estimators and controllers (one protocol, :mod:`jaxobs.observers`): :data:`kalman_filter`,
   :data:`active_observer` (the Kalman Active Observer), :data:`hinf_filter`, :data:`inverse_dynamics_observer`,
   :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
+* estimation over a record (:mod:`jaxobs.smoothing`): :func:`log_likelihood`, :func:`smooth` (Rauch-Tung-Striebel,
+  for the Kalman filter and the active observer), :func:`rts_smoother`, :func:`parallel_filter` (parallel in time),
+  and the square-root Kalman filter :data:`square_root_kalman_filter` (:func:`square_root_form`);
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning).
@@ -34,10 +37,11 @@ from jaxobs.observers import (
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
-from jaxobs.observers.kalman import kalman_filter, make_kalman
+from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
 from jaxobs.observers.linear import linear_observer
 from jaxobs.plants import force_plant
 from jaxobs.riccati import dare
+from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
@@ -76,6 +80,8 @@ __all__ = [
     "run",
     "kalman_filter",
     "make_kalman",
+    "square_root_kalman_filter",
+    "square_root_form",
     "active_observer",
     "active_observer_controller",
     "make_aob",
@@ -86,6 +92,12 @@ __all__ = [
     "inverse_dynamics_observer",
     "make_inverse_dynamics",
     "linear_observer",
+    # estimation over a record
+    "log_likelihood",
+    "smooth",
+    "rts_smoother",
+    "parallel_filter",
+    "Smoothed",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -43,7 +43,8 @@ __all__ = ["Smoothed", "rts_smoother", "smooth", "log_likelihood", "parallel_fil
 
 
 class Smoothed(NamedTuple):
-    """Smoothed record (leading axis ``T``)."""
+    """The smoothed record (leading axis ``T``): ``x`` (T, n) the means ``x_{k|T-1}``, ``P`` (T, n, n) the
+    covariances ``P_{k|T-1}``, ``gain`` (T, n, n) the smoother gains ``E_k`` (zero at the last sample)."""
 
     x: jax.Array  # (T, n) smoothed means x_{k|T-1}
     P: jax.Array  # (T, n, n) smoothed covariances P_{k|T-1}
