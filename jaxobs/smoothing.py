@@ -164,11 +164,11 @@ def _filter_element(Phi, Q, C, R, offset, y) -> _FilterElement:
 def _filter_combine(earlier: _FilterElement, later: _FilterElement) -> _FilterElement:
     """Särkkä & García-Fernández (2021), Lemma 8: ``earlier`` then ``later``."""
     n = earlier.b.shape[-1]
-    W = jnp.eye(n, dtype=earlier.b.dtype) + earlier.C @ later.J
-    right = jnp.linalg.solve(W, jnp.concatenate([earlier.A, (earlier.b + earlier.C @ later.eta)[:, None],
-                                                  earlier.C @ later.A.T], axis=1))  # fmt: skip
-    left = jnp.linalg.solve(W.T, jnp.concatenate([(later.eta - later.J @ earlier.b)[:, None], later.J @ earlier.A],
-                                                 axis=1))  # fmt: skip
+    W = jax.scipy.linalg.lu_factor(jnp.eye(n, dtype=earlier.b.dtype) + earlier.C @ later.J)  # one LU, two solves
+    right = jax.scipy.linalg.lu_solve(W, jnp.concatenate([earlier.A, (earlier.b + earlier.C @ later.eta)[:, None],
+                                                          earlier.C @ later.A.T], axis=1))  # fmt: skip
+    left = jax.scipy.linalg.lu_solve(W, jnp.concatenate([(later.eta - later.J @ earlier.b)[:, None],
+                                                         later.J @ earlier.A], axis=1), trans=1)  # fmt: skip
     A = later.A @ right[:, :n]
     b = later.A @ right[:, n] + later.b
     Cov = symmetrize(later.A @ right[:, n + 1 :] + later.C)

@@ -68,7 +68,8 @@ def test_exported_name_resolves_and_is_documented(name):
 
 
 MAIN_ENTRY_POINTS = ["c2d", "dare", "dlqr", "make_kalman", "make_aob", "run", "simulate", "observer_controller",
-                     "stability_margins", "force_plant", "critically_damped_gain", "smooth", "log_likelihood"]  # fmt: skip
+                     "stability_margins", "force_plant", "critically_damped_gain", "smooth",
+                     "log_likelihood"]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", MAIN_ENTRY_POINTS)
