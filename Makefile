@@ -37,6 +37,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/mjx_rollouts.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/dare_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/estimation.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
