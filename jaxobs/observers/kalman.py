@@ -214,8 +214,8 @@ def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     The gain schedule assumes every measurement is present: a non-finite component has its innovation zeroed
     (the scheduled gain is used for the others) and is counted in ``state.missing``. Where missing data are
     common, ``vmap`` :func:`~jaxobs.observers.base.run` with :data:`kalman_filter` instead (exact, one
-    covariance per sequence); ``S`` and ``log_likelihood`` are then the schedule's (exact without missing data,
-    through ``S = (I - C K_k)^{-1} R``). Returns ``(final_states, outputs)`` with the batch axis first; every final
+    covariance per sequence). ``S`` and ``log_likelihood`` are the schedule's (exact without missing data, through
+    ``S = (I - C K_k)^{-1} R``). Returns ``(final_states, outputs)`` with the batch axis first; every final
     state carries the schedule's last covariance.
     """
     if params.gain is not None:
