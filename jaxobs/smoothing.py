@@ -308,4 +308,8 @@ def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, par
       >>> bool(ll(0.01) > ll(10.0))
       True
     """
-    return jnp.sum(_filtered(estimator, params, inputs, parallel).log_likelihood)
+    per_step = getattr(_filtered(estimator, params, inputs, parallel), "log_likelihood", None)
+    if per_step is None:
+        raise ValueError("estimator has no log_likelihood output: use a Kalman-type estimator (kalman_filter, "
+                         "square_root_kalman_filter, active_observer) with a noise model")  # fmt: skip
+    return jnp.sum(per_step)

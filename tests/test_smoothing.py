@@ -18,9 +18,10 @@ from jax.test_util import check_grads
 from test_kalman import make_problem, params_of, peer_problem
 
 from jaxobs.closed_loop import simulate
-from jaxobs.observers import EstimatorInputs, active, run
+from jaxobs.observers import EstimatorInputs, LinearObserver, active, run
 from jaxobs.observers.active import active_observer, active_observer_controller
 from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
+from jaxobs.observers.linear import linear_observer
 from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
 from jaxobs.smoothing import log_likelihood, parallel_filter, rts_smoother, smooth
 
@@ -288,6 +289,11 @@ def test_entry_points_reject_what_they_cannot_do():
         )
     with pytest.raises(ValueError, match=r"^inputs\.y has no samples"):
         parallel_filter(params, EstimatorInputs(y=jnp.zeros((0, 2))))
+    observer = LinearObserver(params.Phi, params.Gamma, params.C, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"^estimator has no log_likelihood output"):
+        log_likelihood(linear_observer, observer, inputs)
+    with pytest.raises(ValueError, match=r"^params \(LinearObserver\) has no output_covariance"):
+        smooth(linear_observer, observer, inputs)
 
 
 # --------------------------------------------------------------------------------------------
