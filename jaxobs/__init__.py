@@ -13,6 +13,9 @@
   (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
   ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
   (:func:`make_continuous_observer`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
+* estimation over a record (:mod:`jaxobs.smoothing`): :func:`log_likelihood`, :func:`smooth` (Rauch-Tung-Striebel,
+  for the Kalman filter and the active observer), :func:`rts_smoother`, :func:`parallel_filter` (parallel in time),
+  and the square-root Kalman filter :data:`square_root_kalman_filter` (:func:`square_root_form`);
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
@@ -44,7 +47,7 @@ from jaxobs.observers.continuous import continuous_observer, make_continuous_obs
 from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
-from jaxobs.observers.kalman import kalman_filter, make_kalman
+from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
 from jaxobs.observers.linear import linear_observer
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
@@ -58,6 +61,7 @@ from jaxobs.scb import (
     is_minimum_phase,
     is_right_invertible,
 )
+from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
 from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
@@ -99,6 +103,8 @@ __all__ = [
     "run",
     "kalman_filter",
     "make_kalman",
+    "square_root_kalman_filter",
+    "square_root_form",
     "active_observer",
     "active_observer_controller",
     "make_aob",
@@ -119,6 +125,12 @@ __all__ = [
     "make_ukf",
     "continuous_observer",
     "make_continuous_observer",
+    # estimation over a record
+    "log_likelihood",
+    "smooth",
+    "rts_smoother",
+    "parallel_filter",
+    "Smoothed",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

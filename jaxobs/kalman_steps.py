@@ -1,5 +1,6 @@
 """The Kalman building blocks every Kalman-type estimator shares: prediction, the Joseph-form measurement
-update with missing data, the innovation and the gain.
+update with missing data, the innovation, its covariance and the log-likelihood, and the same steps in
+square-root (Cholesky factor) form.
 
 Model (Cortesão 2006 eq. 27-29)::
 
@@ -9,23 +10,37 @@ Model (Cortesão 2006 eq. 27-29)::
     K_k     = P_prior C' S_k^{-1},  S_k = C P_prior C' + R                                   (gain)
     x_k     = x_prior + K_k (y_k - C x_prior)                                                (update)
     P_k     = (I - K_k C) P_prior (I - K_k C)' + K_k R K_k'                                  (Joseph form)
+    log p(y_k | y_0..y_{k-1}) = -(p log 2 pi + log det S_k + e_k' S_k^{-1} e_k) / 2,  e_k = y_k - C x_prior
 
 Missing data: a non-finite component of ``y_k`` is missing. Its row of ``C`` and its correlations in ``R``
-are removed for that step, an exact marginalisation, so the update uses only the finite components; when all
-are missing the update leaves the prediction unchanged. The covariance algebra itself lives in
-:mod:`jaxobs.riccati`.
+are removed for that step, an exact marginalisation, so the update and the log-likelihood use only the finite
+components; when all are missing the update leaves the prediction unchanged and the log-likelihood is 0. The
+covariance algebra itself lives in :mod:`jaxobs.riccati`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular
 
-from jaxobs.riccati import predict_covariance, update_covariance
+from jaxobs.riccati import predict_covariance, symmetrize, update_covariance
 
-__all__ = ["Update", "predict", "update"]
+__all__ = [
+    "Update",
+    "predict",
+    "update",
+    "observed",
+    "observed_model",
+    "innovation_log_likelihood",
+    "tria",
+    "SquareRootUpdate",
+    "square_root_predict",
+    "square_root_update",
+]
 
 
 class Update(NamedTuple):
@@ -36,6 +51,8 @@ class Update(NamedTuple):
     K: jax.Array  # (n, p) gain used (zero columns for missing components)
     innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
     n_missing: jax.Array  # () number of missing components
+    S: jax.Array | None = None  # (p, p) innovation covariance of the observed components, 1 on a missing diagonal
+    log_likelihood: jax.Array | None = None  # () log p(y_k | y_0..y_{k-1}) of the observed components
 
 
 def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
@@ -56,21 +73,145 @@ def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
     return x_prior, P_prior
 
 
+def observed(y, dtype=None):
+    """``(mask, y_observed)`` of a measurement ``y`` (p,): ``mask`` 1 on finite components and 0 on missing ones
+    (in ``dtype``, default ``y``'s), ``y_observed`` with the missing ones set to 0, so that no NaN reaches a
+    product or a gradient."""
+    finite = jnp.isfinite(y)
+    return finite.astype(dtype or y.dtype), jnp.where(finite, y, 0.0)
+
+
+def observed_model(C, R, mask):
+    """``(C, R)`` with the rows of missing components (``mask`` 0, from :func:`observed`) removed: rows of ``C``
+    zeroed, their rows and columns of ``R`` replaced by a unit variance placeholder. ``C P C' + R`` is then the
+    innovation covariance of the observed components with 1 on a missing diagonal, which adds exactly 0 to a
+    log-determinant."""
+    return C * mask[:, None], R * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
+
+
+def innovation_log_likelihood(innovation, S, n_observed):
+    """``log N(innovation; 0, S)`` over ``n_observed`` components: ``-(n log 2 pi + log det S + e' S^{-1} e) / 2``
+    with a Cholesky factor of ``S`` (p, p). Components with ``innovation`` 0 and a unit row and column of ``S``
+    (missing ones, see :func:`update`) add exactly 0."""
+    return _log_normal(innovation, jnp.linalg.cholesky(S), n_observed)
+
+
+def _log_normal(innovation, S_sqrt, n_observed):
+    """:func:`innovation_log_likelihood` from a triangular factor ``S_sqrt`` of ``S`` (diagonal of either sign)."""
+    z = solve_triangular(S_sqrt, innovation, lower=True)
+    log_det = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(S_sqrt))))
+    return -0.5 * (n_observed * math.log(2.0 * math.pi) + log_det + z @ z)
+
+
 def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
     """Measurement update of ``(x_prior, P_prior)`` with ``y`` (p,); non-finite components are missing.
 
     With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form updates the covariance; with a
     fixed ``gain`` (n, p) the covariance is returned unchanged and the innovation of missing components is
     zero (so they do not move the estimate).
+
+    ``S`` and ``log_likelihood`` are those of the observed components (exact marginals; 0 when all are missing).
+    With a fixed gain they assume it is a Kalman gain of the model ``(C, R)``, such as the steady-state gain: then
+    ``C K = I - R S^{-1}`` (eq. 27), so ``S = (I - C K)^{-1} R`` is the steady-state ``C P_prior C' + R`` without
+    its ``P_prior``; they are ``None`` when ``R`` is ``None`` (an observer without a noise model).
     """
-    observed = jnp.isfinite(y)
-    mask = observed.astype(x_prior.dtype)
-    y_observed = jnp.where(observed, y, 0.0)  # before the subtraction: no NaN reaches a gradient
-    innovation = (y_observed - C @ x_prior) * mask
+    mask, y_observed = observed(y, x_prior.dtype)
+    innovation = (y_observed - C @ x_prior) * mask  # y masked before the subtraction: no NaN reaches a gradient
+    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
+    S = None
     if gain is None:
-        # drop the missing rows of C and their correlations in R (unit variance placeholder)
-        R_obs = R * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
-        P, K = update_covariance(P_prior, C * mask[:, None], R_obs)
+        C_o, R_o = observed_model(C, R, mask)
+        P, K = update_covariance(P_prior, C_o, R_o)
+        S = symmetrize(C_o @ P_prior @ C_o.T + R_o)
     else:
         P, K = P_prior, gain
-    return Update(x_prior + K @ innovation, P, K, innovation, jnp.sum(~observed))
+        if R is not None:
+            S_full = jnp.linalg.solve(jnp.eye(C.shape[-2], dtype=R.dtype) - C @ gain, R)
+            S = symmetrize(S_full) * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
+    ll = None if S is None else innovation_log_likelihood(innovation, S, jnp.sum(mask))
+    return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
+
+
+# --------------------------------------------------------------------------------------------
+# Square-root form: covariances carried as factors, P = P_sqrt P_sqrt'
+
+
+def _transpose(A):
+    return jnp.swapaxes(A, -1, -2)
+
+
+@jax.custom_jvp
+def tria(A):
+    """A lower-triangular ``(n, n)`` factor ``T`` with ``T T' = A A'`` for ``A`` (n, k), ``k >= n``: the
+    transposed R factor of a QR decomposition of ``A'`` (Arasaratnam & Haykin 2008). Its diagonal may have
+    either sign.
+
+    Its derivative is finite where ``A`` is rank deficient (a singular covariance): differentiating ``T T' = A A'``
+    with ``A = T V'`` (``V`` the QR's orthonormal factor) gives ``T^+ dT + (T^+ dT)' = X + X'``,
+    ``X = T^+ dA V``, on the column space of ``T``, whose lower-triangular solution ``dT = T (tril(X + X') -
+    diag(X))`` is completed by the part of ``dA V`` outside that space, ``(I - T T^+) dA V``; ``T^+`` is the
+    pseudo-inverse, which the standard QR derivative replaces by an inverse that does not exist there.
+    """
+    if A.shape[-1] < A.shape[-2]:
+        raise ValueError(f"tria needs at least as many columns as rows, got shape {A.shape}")
+    return _transpose(jnp.linalg.qr(_transpose(A), mode="r"))
+
+
+@tria.defjvp
+def _tria_jvp(primals, tangents):
+    (A,), (dA,) = primals, tangents
+    V, R = jnp.linalg.qr(_transpose(A), mode="reduced")
+    T = _transpose(R)
+    T_pinv = jnp.linalg.pinv(T)
+    dAV = dA @ V
+    X = T_pinv @ dAV
+    n = T.shape[-1]
+    lower = jnp.tril(X + _transpose(X)) - X * jnp.eye(n, dtype=X.dtype)
+    outside = dAV - T @ (T_pinv @ dAV)  # (I - T T^+) dA V
+    return T, T @ lower + outside
+
+
+class SquareRootUpdate(NamedTuple):
+    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs)."""
+
+    x: jax.Array  # (n,) a-posteriori mean
+    P_sqrt: jax.Array  # (n, n) lower-triangular factor of the a-posteriori covariance
+    K: jax.Array  # (n, p) gain (zero columns for missing components)
+    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
+    n_missing: jax.Array  # () number of missing components
+    S_sqrt: jax.Array  # (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
+    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components
+
+
+def square_root_predict(x, P_sqrt, Phi, Q_sqrt, Gamma=None, u_prev=None, *, skip=None):
+    """:func:`predict` with factors: ``P_sqrt`` (n, n) of ``P`` and ``Q_sqrt`` (n, r) of ``Q = Q_sqrt Q_sqrt'``;
+    the a-priori factor is ``tria([Phi P_sqrt, Q_sqrt])`` (:func:`tria`)."""
+    x_prior, _ = predict(x, None, Phi, None, Gamma, u_prev, skip=skip)
+    P_prior = tria(jnp.concatenate([Phi @ P_sqrt, Q_sqrt], axis=-1))
+    if skip is not None:
+        P_prior = jnp.where(skip, P_sqrt, P_prior)
+    return x_prior, P_prior
+
+
+def square_root_update(x_prior, P_sqrt, C, R_sqrt, y) -> SquareRootUpdate:
+    """:func:`update` with factors: ``P_sqrt`` (n, n) of the a-priori covariance, ``R_sqrt`` (p, s) of ``R``.
+
+    One triangularisation of the pre-array (Bierman 1977)::
+
+        [[C P_sqrt, R_sqrt, D], [P_sqrt, 0, 0]]  ->  tria  ->  [[S_sqrt, 0], [G, P_sqrt_post]],  K = G S_sqrt^{-1}
+
+    with the rows of missing components of ``C`` and ``R_sqrt`` zeroed and ``D`` the unit placeholder on their
+    diagonal (as in :func:`update`).
+    """
+    mask, y_observed = observed(y, x_prior.dtype)
+    innovation = (y_observed - C @ x_prior) * mask
+    p, n = C.shape[-2], P_sqrt.shape[-1]
+    dtype = x_prior.dtype
+    top = jnp.concatenate([(C * mask[:, None]) @ P_sqrt, R_sqrt * mask[:, None], jnp.diag(1.0 - mask)], axis=-1)
+    bottom = jnp.concatenate([P_sqrt, jnp.zeros((n, top.shape[-1] - n), dtype)], axis=-1)
+    post = tria(jnp.concatenate([top, bottom], axis=-2))
+    S_sqrt, G, P_post = post[:p, :p], post[p:, :p], post[p:, p:]
+    K = _transpose(solve_triangular(_transpose(S_sqrt), _transpose(G), lower=False))  # G S_sqrt^{-1}
+    ll = _log_normal(innovation, S_sqrt, jnp.sum(mask))
+    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
+    return SquareRootUpdate(x_prior + K @ innovation, P_post, K, innovation, n_missing, S_sqrt, ll)

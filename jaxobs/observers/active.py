@@ -50,6 +50,7 @@ __all__ = [
     "ActiveObserverOutputs",
     "active_observer",
     "active_observer_controller",
+    "disturbance",
     "feedback_gain",
     "active_state_model",
     "augment",
@@ -174,6 +175,8 @@ class ActiveObserverParams:
       order: static AOB order N (0 for the CKF).  n_channels: static q.
       matched: static; True when the active state enters where the input does (``G_d = Gamma_r``), so that
         :func:`feedback_gain` can cancel it.
+      output_covariance: static; every step also outputs the covariances ``P``, ``P_prior`` (what the smoothers of
+        :mod:`jaxobs.smoothing` read; ``2 T n_aug^2`` more numbers over ``T`` steps). Time-varying gains only.
     """
 
     Phi: jax.Array
@@ -192,6 +195,7 @@ class ActiveObserverParams:
     order: int = dataclasses.field(default=0, metadata=dict(static=True))
     n_channels: int = dataclasses.field(default=1, metadata=dict(static=True))
     matched: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
     @property
     def n_inputs(self) -> int:
@@ -219,6 +223,10 @@ class ActiveObserverOutputs(NamedTuple):
     q_active: jax.Array  # (q,) variance used for the newest active state at this step
     alpha: jax.Array  # (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
     converged: jax.Array  # () the steady-state gains' DAREs converged (True for time-varying gains)
+    S: jax.Array  # (p, p) innovation covariance of the observed components (1 on a missing diagonal)
+    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) under the active-state model (0 when all are missing)
+    P: jax.Array | None = None  # (n_aug, n_aug) a-posteriori covariance (with output_covariance, else None)
+    P_prior: jax.Array | None = None  # (n_aug, n_aug) a-priori covariance (with output_covariance, else None)
 
 
 def _active_slice(params: ActiveObserverParams):
@@ -260,6 +268,9 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Esti
         Q = Q.at[newest, newest].set(jnp.diag(q_active)) * jnp.outer(mask, mask)
         alpha = strategy_alpha(state.evolution, q_active)
     gain = None if params.gain is None else jnp.where(params.active > 0, params.gain, params.gain_passive)
+    if gain is not None and params.output_covariance:
+        raise ValueError("params.output_covariance: steady-state gains propagate no covariance; use the time-varying "
+                         "gain (params.gain None)")  # fmt: skip
     P = None if gain is not None else state.P
     x_prior, P_prior = predict(state.x, P, params.Phi, Q, params.Gamma, u_prev, skip=~state.started)
     P_prior = state.P if P_prior is None else P_prior
@@ -271,8 +282,18 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Esti
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = ActiveObserverState(x, result.P, evolution, jnp.ones((), bool), missing)
     converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
-    outputs = ActiveObserverOutputs(x, d, x_prior, result.innovation, result.K, q_active, alpha, converged)
+    covariances = (result.P, P_prior) if params.output_covariance else ()
+    outputs = ActiveObserverOutputs(x, d, x_prior, result.innovation, result.K, q_active, alpha, converged, result.S,
+                                    result.log_likelihood, *covariances)  # fmt: skip
     return new_state, outputs
+
+
+def disturbance(params: ActiveObserverParams, x):
+    """The newest active state ``p_k`` (..., q) of augmented states ``x`` (..., n_aug): the disturbance estimate
+    ``d`` of any record of states, e.g. the smoothed ones of :func:`jaxobs.smoothing.smooth` (zeros for a CKF)."""
+    if not params.n_active:
+        return jnp.zeros((*jnp.shape(x)[:-1], params.n_channels), jnp.result_type(x))
+    return x[..., _active_slice(params)]
 
 
 def _linear(params: ActiveObserverParams) -> LinearObserver:

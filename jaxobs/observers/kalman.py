@@ -10,6 +10,13 @@ and every later step predicts with ``u_{k-1}`` and updates with ``y_k``. A model
 ``Gamma`` and no ``u_prev``.
 
 Missing data: non-finite measurement components are skipped exactly and counted in ``state.missing``.
+
+Every step also gives the innovation covariance ``S_k`` and the log-likelihood ``log p(y_k | y_0..y_{k-1})`` of the
+observed components (their sum over a record is the model's log marginal likelihood, exact with missing data;
+:func:`jaxobs.smoothing.log_likelihood`); with ``output_covariance`` the a-posteriori and a-priori covariances,
+which the smoothers of :mod:`jaxobs.smoothing` read. :data:`square_root_kalman_filter` is the same filter with
+Cholesky factors of the covariances (Bierman 1977): for long float32 runs, and with gradients that stay finite
+where a covariance is singular.
 """
 
 from __future__ import annotations
@@ -21,9 +28,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.kalman_steps import predict, update
+from jaxobs.kalman_steps import predict, square_root_predict, square_root_update, tria, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import covariance_sequence, filter_dare, update_covariance
+from jaxobs.riccati import covariance_sequence, filter_dare, symmetrize, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -33,6 +40,10 @@ __all__ = [
     "make_kalman",
     "with_steady_state_gain",
     "filter_shared_model",
+    "SquareRootKalmanParams",
+    "SquareRootKalmanState",
+    "square_root_kalman_filter",
+    "square_root_form",
 ]
 
 
@@ -49,6 +60,9 @@ class KalmanParams:
         propagation; see :func:`with_steady_state_gain`).
       gain_converged: () whether the DARE behind a steady-state gain found its stabilising solution (an array
         when :func:`with_steady_state_gain` ran under tracing, else True or ``None``).
+      output_covariance: static; every step also outputs the a-posteriori and a-priori covariances ``P``,
+        ``P_prior`` (what the smoothers need): ``2 T n^2`` more numbers over ``T`` steps (16 MB for ``n = 10``,
+        ``T = 10^4`` in float64). Time-varying gain only (a fixed gain propagates no covariance).
     """
 
     Phi: jax.Array
@@ -60,6 +74,7 @@ class KalmanParams:
     P0: jax.Array
     gain: jax.Array | None = None
     gain_converged: jax.Array | None = None
+    output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
 class KalmanState(NamedTuple):
@@ -75,6 +90,10 @@ class KalmanOutputs(NamedTuple):
     innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
     gain: jax.Array  # (n, p) gain K_k used at this step
     converged: jax.Array  # () the steady-state gain's DARE converged (True for time-varying gains)
+    S: jax.Array  # (p, p) innovation covariance C P_prior C' + R of the observed components (1 on a missing diagonal)
+    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components (0 when all are missing)
+    P: jax.Array | None = None  # (n, n) a-posteriori covariance P_{k|k} (with output_covariance, else None)
+    P_prior: jax.Array | None = None  # (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
@@ -135,14 +154,27 @@ def _inputs(params: KalmanParams, inputs: EstimatorInputs):
     return y, u_prev
 
 
+def _require_time_varying(params, what: str) -> None:
+    """The covariance outputs exist only where a covariance is propagated (static check)."""
+    if params.output_covariance:
+        raise ValueError(
+            f"params.output_covariance: {what} propagates no covariance; use the time-varying gain (params.gain None)"
+        )
+
+
 def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
     P = None if gain is not None else state.P
+    if gain is not None:
+        _require_time_varying(params, "a fixed-gain filter")
     x_prior, P_prior = predict(state.x, P, params.Phi, params.Q, params.Gamma, u_prev, skip=~state.started)
     result = update(x_prior, state.P if P_prior is None else P_prior, params.C, params.R, y, gain)
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = KalmanState(result.x, result.P, jnp.ones((), bool), missing)
     converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
-    return new_state, KalmanOutputs(result.x, x_prior, result.innovation, result.K, converged)
+    covariances = (result.P, P_prior) if params.output_covariance else ()
+    outputs = KalmanOutputs(result.x, x_prior, result.innovation, result.K, converged, result.S,
+                            result.log_likelihood, *covariances)  # fmt: skip
+    return new_state, outputs
 
 
 def _init(params: KalmanParams) -> KalmanState:
@@ -182,11 +214,15 @@ def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     The gain schedule assumes every measurement is present: a non-finite component has its innovation zeroed
     (the scheduled gain is used for the others) and is counted in ``state.missing``. Where missing data are
     common, ``vmap`` :func:`~jaxobs.observers.base.run` with :data:`kalman_filter` instead (exact, one
-    covariance per sequence). Returns ``(final_states, outputs)`` with the batch axis first; every final state
-    carries the schedule's last covariance.
+    covariance per sequence). ``S`` and ``log_likelihood`` are the schedule's (exact without missing data, through
+    ``S = (I - C K_k)^{-1} R``). Returns ``(final_states, outputs)`` with the batch axis first; every final
+    state carries the schedule's last covariance.
     """
     if params.gain is not None:
         raise ValueError("params has a fixed gain: filter_shared_model computes the time-varying one; use vmap(run)")
+    if params.output_covariance:
+        raise ValueError("params.output_covariance: filter_shared_model shares one covariance schedule over the batch "
+                         "and outputs none; use vmap(run) for the covariances of every sequence")  # fmt: skip
     y = jnp.asarray(inputs.y)
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     _checks.shape("inputs.y", y, (None, None, p), "(batch, time, outputs) measurements")
@@ -212,3 +248,99 @@ def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
         return state._replace(P=last_P), out
 
     return jax.vmap(one)(y, u_prev)
+
+
+# --------------------------------------------------------------------------------------------
+# Square-root form
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SquareRootKalmanParams:
+    """The Kalman filter of :class:`KalmanParams` with its covariances given by factors (``M = M_sqrt M_sqrt'``,
+    any factor, e.g. a Cholesky factor or the noise input matrix ``G`` of ``Q = G G'``), for
+    :data:`square_root_kalman_filter`. Differentiate with respect to the factors: singular covariances are then
+    no special case.
+
+    Attributes:
+      Phi: (n, n).  Gamma: (n, m).  C: (p, n).  x0: (n,) prior mean of ``x_0``.
+      Q_sqrt: (n, r) factor of the process noise covariance.  R_sqrt: (p, s) factor of the (positive definite)
+        measurement noise covariance.  P0_sqrt: (n, n) factor of the prior covariance of ``x_0``.
+      output_covariance: static; outputs ``P = P_sqrt P_sqrt'`` and ``P_prior`` at every step (see
+        :class:`KalmanParams`).
+    """
+
+    Phi: jax.Array
+    Gamma: jax.Array
+    C: jax.Array
+    Q_sqrt: jax.Array
+    R_sqrt: jax.Array
+    x0: jax.Array
+    P0_sqrt: jax.Array
+    output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
+
+
+class SquareRootKalmanState(NamedTuple):
+    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+    P_sqrt: jax.Array  # (n, n) lower-triangular factor of its covariance
+    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
+    missing: jax.Array  # () int32, measurement components skipped so far
+
+
+def _factor(M):
+    """A lower-triangular factor of a symmetric positive semidefinite ``M``: an eigendecomposition with the
+    rounding-level negative eigenvalues clipped, triangularised (:func:`jaxobs.kalman_steps.tria`)."""
+    w, V = jnp.linalg.eigh(symmetrize(M))
+    return tria(V * jnp.sqrt(jnp.clip(w, 0.0)))
+
+
+def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
+    """The same time-varying filter with factors of ``Q``, ``R`` and ``P0`` (lower triangular; semidefinite
+    ``Q`` and ``P0`` allowed): the params of :data:`square_root_kalman_filter`, whose outputs equal those of
+    :data:`kalman_filter` on ``params`` to rounding.
+
+    Example:
+      >>> from jaxobs.observers import kalman, EstimatorInputs, run
+      >>> params = kalman.make_kalman(Phi=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]])
+      >>> _, out = run(kalman.square_root_kalman_filter, kalman.square_root_form(params),
+      ...              EstimatorInputs(y=jnp.ones((50, 1))))
+      >>> bool(jnp.allclose(out.x, run(kalman.kalman_filter, params, EstimatorInputs(y=jnp.ones((50, 1))))[1].x))
+      True
+    """
+    if params.gain is not None:
+        raise ValueError("params has a fixed gain: the square-root form propagates the time-varying covariance")
+    Q_sqrt, R_sqrt, P0_sqrt = (_factor(M) for M in (params.Q, params.R, params.P0))
+    return SquareRootKalmanParams(params.Phi, params.Gamma, params.C, Q_sqrt, R_sqrt, params.x0, P0_sqrt,
+                                  output_covariance=params.output_covariance)  # fmt: skip
+
+
+def _square_root_init(params: SquareRootKalmanParams) -> SquareRootKalmanState:
+    return SquareRootKalmanState(params.x0, params.P0_sqrt, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+
+
+def _square_root_step(params: SquareRootKalmanParams, state: SquareRootKalmanState, inputs: EstimatorInputs):
+    n, p = params.Phi.shape[-1], params.C.shape[-2]
+    _checks.shape("params.Q_sqrt", params.Q_sqrt, (n, None), "a factor of Q: one row per state")
+    _checks.shape("params.R_sqrt", params.R_sqrt, (p, None), "a factor of R: one row per row of C")
+    _checks.shape("params.P0_sqrt", params.P0_sqrt, (n, n), "a square factor of P0")
+    y, u_prev = _inputs(params, inputs)
+    x_prior, P_prior = square_root_predict(state.x, state.P_sqrt, params.Phi, params.Q_sqrt, params.Gamma, u_prev,
+                                           skip=~state.started)  # fmt: skip
+    result = square_root_update(x_prior, P_prior, params.C, params.R_sqrt, y)
+    missing = state.missing + result.n_missing.astype(jnp.int32)
+    new_state = SquareRootKalmanState(result.x, result.P_sqrt, jnp.ones((), bool), missing)
+    gram = lambda M: M @ M.T
+    covariances = (gram(result.P_sqrt), gram(P_prior)) if params.output_covariance else ()
+    outputs = KalmanOutputs(result.x, x_prior, result.innovation, result.K, jnp.asarray(True), gram(result.S_sqrt),
+                            result.log_likelihood, *covariances)  # fmt: skip
+    return new_state, outputs
+
+
+square_root_kalman_filter = Estimator(_square_root_init, _square_root_step)
+"""The Kalman filter in square-root form (Bierman 1977) as an :class:`~jaxobs.observers.base.Estimator` over
+:class:`SquareRootKalmanParams` (from :func:`square_root_form`, or built from factors): it carries a
+lower-triangular factor of the covariance (:class:`SquareRootKalmanState`), predicts with the triangularisation of
+``[Phi P_sqrt, Q_sqrt]`` and updates with that of the pre-array of :func:`jaxobs.kalman_steps.square_root_update`,
+so covariances stay positive semidefinite in any precision. Outputs: :class:`KalmanOutputs` (the covariances
+``S``, ``P``, ``P_prior`` as products of the factors). Costs about twice the covariance form per step
+(``benchmarks/estimation.py``)."""

@@ -1,0 +1,315 @@
+"""Estimation over a whole record: the log-likelihood of a record, Rauch-Tung-Striebel smoothing for every
+Kalman-type estimator, and the parallel-in-time filter and smoother (Särkkä & García-Fernández 2021).
+
+For the linear-Gaussian model of :mod:`jaxobs.kalman_steps` and a record ``y_0 .. y_{T-1}``:
+
+* the **log-likelihood** ``log p(y_0 .. y_{T-1}) = sum_k log p(y_k | y_0 .. y_{k-1})`` is the sum of the filter's
+  ``log_likelihood`` outputs (:func:`log_likelihood`), exact with missing components;
+* the **smoother** (Rauch, Tung & Striebel 1965) gives ``x_{k|T-1}``, ``P_{k|T-1}`` from the filter's
+  a-posteriori and a-priori means and covariances, backwards from the last sample::
+
+      E_k = P_k Phi' P_prior_{k+1}^{-1}
+      x_{k|T-1} = x_k + E_k (x_{k+1|T-1} - x_prior_{k+1})
+      P_{k|T-1} = P_k + E_k (P_{k+1|T-1} - P_prior_{k+1}) E_k'
+
+  It reads only the filter's outputs, so it serves every Kalman-type estimator that outputs its covariances
+  (``output_covariance``): the Kalman filter and the Kalman Active Observer, whose smoothed newest active state
+  is the offline reconstruction of the input disturbance (:func:`jaxobs.observers.active.disturbance`), with the
+  adaptive strategy too (its a-priori covariances carry the variance it used). Missing data need nothing: the
+  filter skipped them.
+* **parallel in time**: the filter and the smoother as ``jax.lax.associative_scan`` over per-sample elements
+  (Särkkä & García-Fernández 2021, Lemmas 7-10): ``O(log T)`` sequential depth instead of ``T``, for ``O(n^3)``
+  more work per sample. It pays where a device runs the ``T`` elements at once; on a 2-core CPU the parallel
+  filter is slower at T = 100 and 10^4, the smoother breaks even at 10^4, and the parallel programs compile 10-20
+  times longer (``docs/estimation.md``, ``benchmarks/estimation.py``). The results equal the sequential ones to
+  rounding.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks
+from jaxobs.kalman_steps import observed, observed_model, update
+from jaxobs.observers.base import Estimator, EstimatorInputs, run
+from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter
+from jaxobs.riccati import predict_covariance, symmetrize
+
+__all__ = ["Smoothed", "rts_smoother", "smooth", "log_likelihood", "parallel_filter"]
+
+
+class Smoothed(NamedTuple):
+    """The smoothed record (leading axis ``T``): ``x`` (T, n) the means ``x_{k|T-1}``, ``P`` (T, n, n) the
+    covariances ``P_{k|T-1}``, ``gain`` (T, n, n) the smoother gains ``E_k`` (zero at the last sample)."""
+
+    x: jax.Array  # (T, n) smoothed means x_{k|T-1}
+    P: jax.Array  # (T, n, n) smoothed covariances P_{k|T-1}
+    gain: jax.Array  # (T, n, n) smoother gains E_k (zero at the last sample)
+
+
+# --------------------------------------------------------------------------------------------
+# Smoother
+
+
+class _SmootherElement(NamedTuple):
+    """``x_{k|T-1} = E x_{k+1|T-1} + g`` with ``P_{k|T-1} = E P_{k+1|T-1} E' + L``."""
+
+    E: jax.Array
+    g: jax.Array
+    L: jax.Array
+
+
+def _smoother_element(Phi, x, P, x_prior_next, P_prior_next) -> _SmootherElement:
+    """The element of sample ``k`` from its a-posteriori ``(x, P)`` and the a-priori moments of ``k + 1``.
+
+    A state without a-priori variance (a zero diagonal entry of ``P_prior_next``, e.g. an active state switched
+    off) gets a unit placeholder in the solve: ``Phi P`` has a zero row there, so its gain column is zero."""
+    unit = jnp.diag((jnp.diagonal(P_prior_next) == 0).astype(P.dtype))
+    E = jnp.linalg.solve(P_prior_next + unit, Phi @ P).T  # P_prior symmetric: (P_prior^-1 Phi P)'
+    return _SmootherElement(E, x - E @ x_prior_next, symmetrize(P - E @ P_prior_next @ E.T))
+
+
+def _smoother_combine(earlier: _SmootherElement, later: _SmootherElement) -> _SmootherElement:
+    """The element of ``earlier`` applied after ``later`` (Särkkä & García-Fernández 2021, Lemma 10)."""
+    E = earlier.E @ later.E
+    g = earlier.E @ later.g + earlier.g
+    return _SmootherElement(E, g, symmetrize(earlier.E @ later.L @ earlier.E.T + earlier.L))
+
+
+def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
+    """Rauch-Tung-Striebel smoother of a filtered record.
+
+    Args:
+      Phi: (n, n) the filter's state transition.
+      filtered: the filter's outputs over ``T`` samples with the fields ``x`` (T, n), ``P`` (T, n, n),
+        ``x_prior`` (T, n) and ``P_prior`` (T, n, n): those of a Kalman-type estimator run with
+        ``output_covariance=True`` (:func:`smooth` does both).
+      parallel: combine the samples with ``jax.lax.associative_scan`` (depth ``O(log T)``) instead of
+        ``jax.lax.scan``; same result to rounding.
+
+    Returns:
+      :class:`Smoothed`. Differentiable; works under ``jit`` and ``vmap``.
+    """
+    x, P, x_prior, P_prior = (getattr(filtered, name, None) for name in ("x", "P", "x_prior", "P_prior"))
+    if P is None or P_prior is None:
+        raise ValueError("filtered has no covariances P, P_prior: run the filter with output_covariance=True "
+                         "(dataclasses.replace(params, output_covariance=True)) or use smooth()")  # fmt: skip
+    _checks.shape("filtered.x", x, (None, None), "(T, n) a-posteriori means")
+    T, n = x.shape
+    if T == 0:
+        raise ValueError("filtered has no samples: give at least one (its x has shape (T, n))")
+    _checks.shape("filtered.P", P, (T, n, n), "(T, n, n) a-posteriori covariances")
+    _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
+    _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
+
+
+@partial(jax.jit, static_argnames=("parallel",))
+def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
+    n = x.shape[-1]
+    elements = jax.vmap(_smoother_element, (None, 0, 0, 0, 0))(Phi, x[:-1], P[:-1], x_prior[1:], P_prior[1:])
+    last = _SmootherElement(jnp.zeros((1, n, n), x.dtype), x[-1:], P[-1:])
+    elements = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), elements, last)
+    if parallel:
+        # reverse=True scans from the last sample: the accumulated element is the later one
+        combine = jax.vmap(lambda later, earlier: _smoother_combine(earlier, later))
+        combined = jax.lax.associative_scan(combine, elements, reverse=True)
+    else:
+
+        def body(later, element):
+            out = _smoother_combine(element, later)
+            return out, out
+
+        first = jax.tree.map(lambda a: a[-1], elements)
+        _, combined = jax.lax.scan(body, first, jax.tree.map(lambda a: a[:-1], elements), reverse=True)
+        combined = jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), combined, first)
+    return Smoothed(combined.g, combined.L, elements.E)
+
+
+# --------------------------------------------------------------------------------------------
+# Parallel filter
+
+
+class _FilterElement(NamedTuple):
+    """``p(x_k | x_j, y_{j+1..k}) = N(A x_j + b, C)`` and ``p(y_{j+1..k} | x_j) ∝ N_I(x_j; eta, J)``."""
+
+    A: jax.Array
+    b: jax.Array
+    C: jax.Array
+    eta: jax.Array
+    J: jax.Array
+
+
+def _filter_element(Phi, Q, C, R, offset, y) -> _FilterElement:
+    """The element of a sample ``k >= 1`` (Särkkä & García-Fernández 2021, Lemma 7), with the input's
+    contribution ``offset = Gamma u_{k-1}`` and the missing components removed as in
+    :func:`jaxobs.kalman_steps.update`."""
+    mask, y_observed = observed(y, Phi.dtype)
+    C_o, R_o = observed_model(C, R, mask)
+    S = symmetrize(C_o @ Q @ C_o.T + R_o)
+    CS = jnp.linalg.solve(S, C_o).T  # C' S^{-1}
+    K = Q @ CS
+    IKC = jnp.eye(Phi.shape[-1], dtype=Phi.dtype) - K @ C_o
+    residual = y_observed - C_o @ offset
+    Cov = symmetrize(IKC @ Q @ IKC.T + K @ R_o @ K.T)
+    return _FilterElement(IKC @ Phi, offset + K @ residual, Cov, Phi.T @ (CS @ residual),
+                          symmetrize(Phi.T @ CS @ C_o @ Phi))  # fmt: skip
+
+
+def _filter_combine(earlier: _FilterElement, later: _FilterElement) -> _FilterElement:
+    """Särkkä & García-Fernández (2021), Lemma 8: ``earlier`` then ``later``."""
+    n = earlier.b.shape[-1]
+    W = jax.scipy.linalg.lu_factor(jnp.eye(n, dtype=earlier.b.dtype) + earlier.C @ later.J)  # one LU, two solves
+    right = jax.scipy.linalg.lu_solve(W, jnp.concatenate([earlier.A, (earlier.b + earlier.C @ later.eta)[:, None],
+                                                          earlier.C @ later.A.T], axis=1))  # fmt: skip
+    left = jax.scipy.linalg.lu_solve(W, jnp.concatenate([(later.eta - later.J @ earlier.b)[:, None],
+                                                         later.J @ earlier.A], axis=1), trans=1)  # fmt: skip
+    A = later.A @ right[:, :n]
+    b = later.A @ right[:, n] + later.b
+    Cov = symmetrize(later.A @ right[:, n + 1 :] + later.C)
+    eta = earlier.A.T @ left[:, 0] + earlier.eta
+    J = symmetrize(earlier.A.T @ left[:, 1:] + earlier.J)
+    return _FilterElement(A, b, Cov, eta, J)
+
+
+def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
+    """The time-varying Kalman filter (:data:`~jaxobs.observers.kalman.kalman_filter`) in parallel over time.
+
+    The a-posteriori moments of every sample come from one ``jax.lax.associative_scan`` over per-sample elements
+    (Särkkä & García-Fernández 2021, Lemmas 7-8; the first element holds the prior of ``x_0`` updated with
+    ``y_0``, as in the sequential filter); the outputs are then computed from the a-priori moments they imply
+    with :func:`jaxobs.kalman_steps.update`, for all samples at once. Equal to ``run(kalman_filter, params,
+    inputs)`` to rounding, missing components included.
+
+    An active observer without its adaptive strategy (``alpha <= 0``) and switched on is the Kalman filter of
+    its augmented model: run it in parallel as ``make_kalman(aob.Phi, aob.C, aob.Q, aob.R, Gamma=aob.Gamma,
+    x0=aob.x0, P0=aob.P0)``.
+
+    Args:
+      params: :class:`~jaxobs.observers.kalman.KalmanParams` with the time-varying gain (``gain`` ``None``).
+      inputs: ``EstimatorInputs`` with ``y`` (T, p) and ``u_prev`` (T, m) or ``None``.
+
+    Returns:
+      ``(final_state, outputs)`` as :func:`~jaxobs.observers.base.run` returns them.
+    """
+    if params.gain is not None:
+        raise ValueError("params has a fixed gain: the parallel filter computes the time-varying one")
+    p, m = params.C.shape[-2], params.Gamma.shape[-1]
+    y = jnp.asarray(inputs.y)
+    _checks.shape("inputs.y", y, (None, p), "(time, outputs) measurements")
+    T = y.shape[0]
+    if T == 0:
+        raise ValueError("inputs.y has no samples: give at least one (its shape is (time, outputs))")
+    u_prev = inputs.u_prev
+    if u_prev is not None:
+        u_prev = jnp.asarray(u_prev)
+        _checks.shape("inputs.u_prev", u_prev, (T, m), "(time, inputs) like inputs.y")
+    return _parallel_filter(params, y, u_prev)
+
+
+@jax.jit
+def _parallel_filter(params: KalmanParams, y, u_prev):
+    n, dtype, T = params.Phi.shape[-1], params.Phi.dtype, y.shape[0]
+    y = y.astype(dtype)
+    offsets = jnp.zeros((T, n), dtype) if u_prev is None else u_prev.astype(dtype) @ params.Gamma.T
+    first = update(params.x0, params.P0, params.C, params.R, y[0])
+    zeros = jnp.zeros((n, n), dtype)
+    head = _FilterElement(zeros, first.x, first.P, jnp.zeros((n,), dtype), zeros)
+    rest = jax.vmap(_filter_element, (None, None, None, None, 0, 0))(
+        params.Phi, params.Q, params.C, params.R, offsets[1:], y[1:]
+    )
+    elements = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), head, rest)
+    posterior = jax.lax.associative_scan(jax.vmap(_filter_combine), elements)  # fn sees batches of pairs
+    x_prior = jnp.concatenate([params.x0[None], posterior.b[:-1] @ params.Phi.T + offsets[1:]])
+    P_prior = jnp.concatenate([params.P0[None], predict_covariance(posterior.C[:-1], params.Phi, params.Q)])
+    result = jax.vmap(update, (0, 0, None, None, 0))(x_prior, P_prior, params.C, params.R, y)
+    covariances = (result.P, P_prior) if params.output_covariance else ()
+    outputs = KalmanOutputs(result.x, x_prior, result.innovation, result.K, jnp.ones((T,), bool), result.S,
+                            result.log_likelihood, *covariances)  # fmt: skip
+    final = KalmanState(result.x[-1], result.P[-1], jnp.ones((), bool), jnp.sum(result.n_missing).astype(jnp.int32))
+    return final, outputs
+
+
+# --------------------------------------------------------------------------------------------
+# Whole-record entry points
+
+
+def _with_covariances(params):
+    if not any(f.name == "output_covariance" for f in dataclasses.fields(params)):
+        raise ValueError(f"params ({type(params).__name__}) has no output_covariance switch: smoothing needs a "
+                         "Kalman-type estimator that outputs its covariances")  # fmt: skip
+    return dataclasses.replace(params, output_covariance=True)
+
+
+def _filtered(estimator: Estimator, params, inputs, parallel: bool):
+    if not parallel:
+        return _run(estimator, params, inputs)[1]
+    if estimator is not kalman_filter:
+        raise ValueError("parallel=True runs the Kalman filter (estimator=kalman_filter with KalmanParams); for an "
+                         "active observer see parallel_filter")  # fmt: skip
+    return parallel_filter(params, inputs)[1]
+
+
+_run = jax.jit(run, static_argnums=0)  # one compiled program per estimator and shapes, also for eager calls
+
+
+def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):
+    """Filter a record and smooth it (:func:`rts_smoother`).
+
+    Args:
+      estimator: a Kalman-type estimator whose params have an ``output_covariance`` switch and a time-varying
+        gain: :data:`~jaxobs.observers.kalman.kalman_filter`,
+        :data:`~jaxobs.observers.kalman.square_root_kalman_filter`,
+        :data:`~jaxobs.observers.active.active_observer`.
+      params: its params (``output_covariance`` is switched on here).
+      inputs: ``EstimatorInputs`` over ``T`` samples.
+      parallel: filter (Kalman filter only, :func:`parallel_filter`) and smooth with associative scans.
+
+    Returns:
+      ``(outputs, smoothed)``: the filter's outputs (with covariances) and :class:`Smoothed`.
+
+    Example:
+      >>> import jaxobs as jo
+      >>> params = jo.make_kalman(Phi=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]])
+      >>> y = jnp.sin(0.1 * jnp.arange(100.0))[:, None]
+      >>> filtered, smoothed = jo.smooth(jo.kalman_filter, params, jo.EstimatorInputs(y=y))
+      >>> bool(jnp.all(smoothed.P[:, 0, 0] <= filtered.P[:, 0, 0]))  # smoothing never adds uncertainty
+      True
+    """
+    params = _with_covariances(params)
+    filtered = _filtered(estimator, params, inputs, parallel)
+    return filtered, rts_smoother(params.Phi, filtered, parallel=parallel)
+
+
+def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):
+    """``log p(y_0 .. y_{T-1})`` of a record under the estimator's model: the sum of its per-sample
+    ``log_likelihood`` outputs (exact marginals over the observed components; with a steady-state gain, the
+    steady-state approximation). Differentiable in ``params``: the objective for fitting ``Q``, ``R`` or a model
+    to data (maximum likelihood), or for comparing models (e.g. active observers of different orders).
+
+    Args:
+      estimator: :data:`~jaxobs.observers.kalman.kalman_filter`,
+        :data:`~jaxobs.observers.kalman.square_root_kalman_filter`,
+        :data:`~jaxobs.observers.active.active_observer` (any estimator with a ``log_likelihood`` output).
+      params: its params.  inputs: ``EstimatorInputs`` over ``T`` samples.
+      parallel: use :func:`parallel_filter` (Kalman filter only).
+
+    Example:
+      >>> import jaxobs as jo
+      >>> y = jnp.cumsum(jnp.ones((200, 1)) * 0.1, axis=0)
+      >>> ll = lambda q: jo.log_likelihood(jo.kalman_filter, jo.make_kalman([[1.0]], [[1.0]], [[q]], [[0.1]]),
+      ...                                  jo.EstimatorInputs(y=y))
+      >>> bool(ll(0.01) > ll(10.0))
+      True
+    """
+    per_step = getattr(_filtered(estimator, params, inputs, parallel), "log_likelihood", None)
+    if per_step is None:
+        raise ValueError("estimator has no log_likelihood output: use a Kalman-type estimator (kalman_filter, "
+                         "square_root_kalman_filter, active_observer) with a noise model")  # fmt: skip
+    return jnp.sum(per_step)

@@ -1,0 +1,173 @@
+"""Tests for jaxobs.kalman_steps: the measurement update's innovation covariance and log-likelihood (exact
+marginals over the observed components, NaN-safe gradients, fixed gains), the square-root predict and update, and
+the triangularisation ``tria`` with its derivative at rank-deficient factors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+from jax.test_util import check_grads
+
+from jaxobs.kalman_steps import (
+    innovation_log_likelihood,
+    predict,
+    square_root_predict,
+    square_root_update,
+    tria,
+    update,
+)
+from jaxobs.riccati import filter_dare, kalman_gain
+
+
+def _problem(seed=6, n=3, p=2):
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(n, n))
+    P1 = G @ G.T + 0.1 * np.eye(n)
+    C = rng.normal(size=(p, n))
+    R = np.array([[0.5, 0.4], [0.4, 0.6]]) if p == 2 else np.diag(rng.uniform(0.2, 0.6, p))
+    return P1, C, R, rng.normal(size=n)
+
+
+def test_update_one_missing_component_is_exact_conditioning():
+    """Single update, 2 outputs, non-diagonal R, second component NaN: x and P equal the Gaussian conditioning on
+    the first component alone (row C[0], variance R[0, 0]); the reported gain has a zero column; S is that
+    component's innovation variance with the unit placeholder on the missing one, and the log-likelihood is the
+    scalar normal log density of the observed component."""
+    P1, C, R, x1 = _problem()
+    y = np.array([0.7, np.nan])
+    x, P, K, innovation, n_missing, S, ll = update(x1, P1, C, R, y)
+    c, r = C[0:1], R[0:1, 0:1]
+    s = (c @ P1 @ c.T + r)[0, 0]
+    k = P1 @ c.T / s
+    np.testing.assert_allclose(x, x1 + k[:, 0] * (0.7 - c @ x1), rtol=1e-12)
+    np.testing.assert_allclose(P, P1 - k @ c @ P1, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(K[:, 0], k[:, 0], rtol=1e-12)
+    np.testing.assert_array_equal(K[:, 1], 0.0)
+    np.testing.assert_allclose(innovation, [0.7 - (c @ x1)[0], 0.0], rtol=1e-12)
+    assert int(n_missing) == 1
+    np.testing.assert_allclose(S, [[s, 0.0], [0.0, 1.0]], rtol=1e-12, atol=0)
+    assert float(ll) == pytest.approx(scipy.stats.norm(c @ x1, np.sqrt(s)).logpdf(0.7)[0], rel=1e-13)
+    # the full (non-missing) update differs: the correlation with the second component matters
+    x_full, *_ = update(x1, P1, C, R, np.array([0.7, 0.1]))
+    assert np.max(np.abs(np.asarray(x_full) - np.asarray(x))) > 1e-3
+
+
+@pytest.mark.parametrize("pattern", ["none", "first", "middle", "last", "all"])
+def test_log_likelihood_is_the_marginal_of_the_observed_components(pattern):
+    """Four outputs with a dense R: for every pattern of missing components the log-likelihood equals SciPy's
+    multivariate normal log density of the observed ones (mean C_o x_prior, covariance C_o P C_o' + R_oo) to
+    1e-13, and all missing gives exactly 0; the missing components' placeholder adds exactly nothing (the
+    log-likelihood of a measurement with its missing entries set to other finite values but masked is the same)."""
+    rng = np.random.default_rng(3)
+    n, p = 3, 4
+    G = rng.normal(size=(n, n))
+    P1 = G @ G.T + 0.2 * np.eye(n)
+    C = rng.normal(size=(p, n))
+    H = rng.normal(size=(p, p))
+    R = H @ H.T + 0.3 * np.eye(p)
+    x1, y = rng.normal(size=n), rng.normal(size=p)
+    missing = {"none": [], "first": [0], "middle": [1, 2], "last": [3], "all": [0, 1, 2, 3]}[pattern]
+    y[missing] = np.nan
+    result = update(x1, P1, C, R, y)
+    obs = np.isfinite(y)
+    if not obs.any():
+        assert float(result.log_likelihood) == 0.0
+        np.testing.assert_array_equal(result.S, np.eye(p))
+        return
+    Co = C[obs]
+    expected = scipy.stats.multivariate_normal(Co @ x1, Co @ P1 @ Co.T + R[np.ix_(obs, obs)]).logpdf(y[obs])
+    assert float(result.log_likelihood) == pytest.approx(expected, rel=1e-13)
+    np.testing.assert_allclose(innovation_log_likelihood(result.innovation, result.S, obs.sum()), expected,
+                               rtol=1e-13)  # fmt: skip
+
+
+def test_log_likelihood_gradients_are_finite_with_missing_components():
+    """Gradients of the log-likelihood with respect to the prior mean, covariance and R pass check_grads (forward
+    and reverse) with one component missing, and are finite (exactly zero) with all missing: no NaN reaches a
+    gradient."""
+    P1, C, R, x1 = _problem(7)
+
+    def ll(x, P, R_, y):
+        return update(x, P, C, R_, y).log_likelihood
+
+    for y in (np.array([0.3, np.nan]), np.array([np.nan, np.nan])):
+        f = lambda x, P, R_, y=y: ll(x, P, R_, y)
+        check_grads(f, (x1, P1, R), order=1, modes=("fwd", "rev"))
+        grads = jax.grad(f, argnums=(0, 1, 2))(x1, P1, R)
+        assert all(np.all(np.isfinite(g)) for g in grads)
+    grads = jax.grad(lambda x, P, R_: ll(x, P, R_, np.array([np.nan, np.nan])), argnums=(0, 1, 2))(x1, P1, R)
+    assert all(np.all(np.asarray(g) == 0.0) for g in grads)
+
+
+def test_fixed_gain_innovation_covariance_is_the_steady_state_one():
+    """With the steady-state gain, S = (I - C K)^{-1} R equals C X C' + R of the filter DARE's a-priori solution X to
+    1e-12, its log-likelihood equals the update's from X, and a missing component gives its marginal (the observed
+    block of S)."""
+    rng = np.random.default_rng(8)
+    Phi = rng.normal(size=(3, 3))
+    Phi *= 0.9 / np.max(np.abs(np.linalg.eigvals(Phi)))
+    _, C, R, x1 = _problem(8)
+    Q = np.diag([0.3, 0.1, 0.2])
+    X = np.asarray(filter_dare(Phi, C, Q, R).X)
+    K = kalman_gain(X, C, R)
+    y = np.array([0.4, -0.2])
+    fixed, optimal = update(x1, None, C, R, y, gain=K), update(x1, X, C, R, y)
+    np.testing.assert_allclose(fixed.S, C @ X @ C.T + R, rtol=1e-12)
+    assert float(fixed.log_likelihood) == pytest.approx(float(optimal.log_likelihood), rel=1e-12)
+    np.testing.assert_allclose(fixed.x, optimal.x, rtol=1e-12)
+    half = update(x1, None, C, R, np.array([0.4, np.nan]), gain=K)
+    np.testing.assert_allclose(half.S, [[(C @ X @ C.T + R)[0, 0], 0.0], [0.0, 1.0]], rtol=1e-12)
+    assert update(x1, None, C, None, y, gain=K).log_likelihood is None  # no noise model, no likelihood
+
+
+@pytest.mark.parametrize("missing", [[], [1], [0, 1]])
+def test_square_root_steps_equal_the_covariance_steps(missing):
+    """square_root_predict/update on Cholesky factors give the mean, gain, innovation, log-likelihood of predict/
+    update and factors of their covariances (P_sqrt P_sqrt', S_sqrt S_sqrt') to 1e-12, lower triangular, with and
+    without missing components; a rank-1 factor of Q (the noise input matrix) is accepted."""
+    P1, C, R, x1 = _problem(9)
+    rng = np.random.default_rng(9)
+    Phi, Gamma, u = rng.normal(size=(3, 3)) * 0.5, rng.normal(size=(3, 1)), rng.normal(size=1)
+    g = rng.normal(size=(3, 1))
+    x_prior, P_prior = predict(x1, P1, Phi, g @ g.T, Gamma, u)
+    xs_prior, Ps_prior = square_root_predict(x1, np.linalg.cholesky(P1), Phi, g, Gamma, u)
+    np.testing.assert_allclose(xs_prior, x_prior, rtol=1e-13)
+    np.testing.assert_allclose(Ps_prior @ Ps_prior.T, P_prior, rtol=1e-12, atol=1e-13)
+    y = np.array([0.4, -0.2])
+    y[missing] = np.nan
+    cov, sq = update(x_prior, P_prior, C, R, y), square_root_update(xs_prior, Ps_prior, C, np.linalg.cholesky(R), y)
+    for name in ("x", "K", "innovation", "log_likelihood", "n_missing"):
+        np.testing.assert_allclose(getattr(sq, name), getattr(cov, name), rtol=1e-12, atol=1e-13, err_msg=name)
+    np.testing.assert_allclose(sq.P_sqrt @ sq.P_sqrt.T, cov.P, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(sq.S_sqrt @ sq.S_sqrt.T, cov.S, rtol=1e-12, atol=1e-13)
+    for M in (Ps_prior, sq.P_sqrt, sq.S_sqrt):
+        np.testing.assert_array_equal(np.triu(M, 1), 0.0)
+
+
+def _plain_tria(A):
+    """tria through JAX's own QR derivative (which divides by the diagonal of R)."""
+    return jnp.linalg.qr(A.T, mode="r").T
+
+
+def test_tria_factor_and_derivative():
+    """tria(A) is lower triangular with tria(A) tria(A)' = A A'. Full rank: its derivative passes check_grads
+    (forward and reverse). Rank deficient (a singular covariance): the derivative of tria(A) tria(A)' (what every
+    use depends on) passes check_grads and is finite, where JAX's QR derivative gives NaN."""
+    rng = np.random.default_rng(10)
+    A = rng.normal(size=(3, 5))
+    T = tria(A)
+    np.testing.assert_array_equal(np.triu(T, 1), 0.0)
+    np.testing.assert_allclose(T @ T.T, A @ A.T, rtol=1e-12)
+    check_grads(tria, (A,), order=1, modes=("fwd", "rev"))
+    B = A.copy()
+    B[2] = B[0] - 2 * B[1]  # rank 2
+    gram = lambda M: tria(M) @ tria(M).T
+    check_grads(gram, (B,), order=1, modes=("fwd", "rev"))
+    Z = np.zeros((3, 5))
+    Z[0, 0] = 1.0  # rank 1 with zero rows
+    loss = lambda f: lambda M: jnp.sum(jnp.sin(f(M)))
+    assert np.all(np.isfinite(jax.grad(loss(tria))(Z)))
+    assert not np.all(np.isfinite(jax.grad(loss(_plain_tria))(Z)))  # the test is not vacuous
+    with pytest.raises(ValueError, match="at least as many columns"):
+        tria(np.ones((3, 2)))
