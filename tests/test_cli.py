@@ -113,7 +113,7 @@ def test_a_tuning_record_of_the_wrong_structure_exits_2(tmp_path, capsys):
     [
         ("sweep", "[plant]\nstiffness = [0.3, inf]\n", "plant.stiffness"),
         ("sweep", "[simulation]\nsensor_noise = nan\n", "simulation.sensor_noise"),
-        ("sweep", 'scenario = "liu_peng"\n[noise]\nstd = -inf\n', "noise.std"),
+        ("sweep", 'scenario = "liu-peng"\n[noise]\nstd = -inf\n', "noise.std"),
         ("tune", "[scenario]\nsensor_noise = nan\n", "scenario.sensor_noise"),
         ("tune", "[optimizer]\nlearning_rate = inf\n", "optimizer.learning_rate"),
     ],
@@ -140,7 +140,7 @@ def test_a_run_that_cannot_fit_in_memory_exits_2_with_the_estimate(tmp_path, cap
 def test_ctrl_c_exits_130_with_the_resume_hint(tmp_path):
     """SIGINT once the command holds its output directory (its pid is in the lock file): no traceback."""
     config = tmp_path / "small.toml"
-    config.write_text('scenario = "liu_peng"\nchunk_size = 3\n[vehicle]\ncount = 6\n')
+    config.write_text('scenario = "liu-peng"\nchunk_size = 3\n[vehicle]\ncount = 6\n')
     out = tmp_path / "out"
     run_cli = (  # Python's own SIGINT handler even where the test runner's SIGINT is ignored (a background job)
         "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "

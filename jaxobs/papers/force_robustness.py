@@ -38,32 +38,56 @@ from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
 from jaxobs.sweep import load_results, run_configured_sweep
 
-__all__ = ["DEFAULT_CONFIG", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
+
+NAME = "force-control"
 
 DEFAULT_CONFIG = {
-    "scenario": "force-control",
+    "scenario": NAME,
     "seed": 0,
     "chunk_size": 2000,
     "plant": {
-        "stiffness": [0.3, 30.0],  # N/mm, log-uniform
-        "time_constant_scale": [0.5, 1.5],  # true Tp / nominal Tp, uniform
-        "dead_time_samples": [3.0, 8.0],  # uniform, fractional samples allowed
+        "stiffness": [0.3, 30.0],
+        "time_constant_scale": [0.5, 1.5],
+        "dead_time_samples": [3.0, 8.0],
     },
     "controllers": {
-        "orders": [1, 2, 3, 0],  # AOB-N; 0 is the CKF
-        "active_variance": [1e-6, 1.0],  # sigma^2 of eq. 55 (CKF: Q_xr), log grid
-        "R": [1e-3, 1.0],  # log grid
+        "orders": [1, 2, 3, 0],
+        "active_variance": [1e-6, 1.0],
+        "R": [1e-3, 1.0],
         "grid_points": 10,
     },
     "simulation": {
         "configs_per_design": 250,
-        "duration": 20.0,  # s
-        "force_step": 10.0,  # N
-        "sensor_noise": EXAMPLE1.R,  # N^2, the true sensor's noise variance
+        "duration": 20.0,
+        "force_step": 10.0,
+        "sensor_noise": EXAMPLE1.R,
     },
     "margins": {"num_points": 512},
 }
 """The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
+
+CONFIG_NOTES = {
+    "scenario": f"the sweep ('jaxobs sweep --list'); {NAME!r} is the default",
+    "seed": "base of every configuration's random key (configuration i draws from its own key)",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+    "plant": "the true plants, drawn independently per configuration",
+    "plant.stiffness": "true sensor stiffness Ks (N/mm, nominal 3), log-uniform in [low, high]",
+    "plant.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
+    "plant.dead_time_samples": "true dead time in samples of h = 8 ms (nominal 5), uniform; fractions allowed",
+    "controllers": "the designs, all on the nominal plant: every order x grid_points x grid_points Q/R strategies",
+    "controllers.orders": "AOB-N orders to design; 0 is the CKF (no active state)",
+    "controllers.active_variance": "range of sigma^2 of eq. 55 (the CKF: its plant-state variance Q_xr), log grid",
+    "controllers.R": "range of the designs' measurement variance R (N^2), log grid",
+    "controllers.grid_points": "points of each log grid (one point: the geometric mean of the range)",
+    "simulation": "the closed-loop run of each configuration (eq. 81-82 disturbance at the plant input)",
+    "simulation.configs_per_design": "true plants per design; a larger value extends a sweep in the same directory",
+    "simulation.duration": "simulated time (s)",
+    "simulation.force_step": "force set-point (N) from t = 0",
+    "simulation.sensor_noise": "the true sensor's noise variance (N^2)",
+    "margins": "the loop transfer function's margins (eq. 65)",
+    "margins.num_points": "frequency points of the margin search (at least 16)",
+}
 
 SIZE_KEY = "simulation.configs_per_design"  # a larger value extends a sweep in the same directory
 MAX_DEAD_TIME_SAMPLES = 100
@@ -73,7 +97,7 @@ MAX_ORDER = 5
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
     """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
     config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", ("force-control",))
+    check_choice(config, source, "scenario", (NAME,))
     check_range(config, source, "plant.stiffness", positive=True)
     check_range(config, source, "plant.time_constant_scale", positive=True)
     check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
