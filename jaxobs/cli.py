@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         run = commands.add_parser(name, help=help_text, description=help_text)
         run.add_argument("--config", metavar="FILE",
-                         help=f"TOML file over the defaults; its '{what}' key picks the {what} (see --list)")  # fmt: skip
+                         help=f"TOML file over the defaults; its '{what}' key picks the {what} (--list)")  # fmt: skip
         run.add_argument("--out", metavar="DIR", default=f"out/{name}", help=f"output directory (default: out/{name})")
         run.add_argument("--overwrite", action="store_true", help="discard a run of another config in --out")
         run.add_argument("--no-progress", action="store_true", help="no progress bar")

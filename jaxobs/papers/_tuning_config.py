@@ -49,7 +49,7 @@ COMMON_NOTES = {
     "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
     "baseline": "the random-search baseline, scored like the tuner",
     "baseline.random_search": "run the baseline (same rollouts, then the same wall time as the tuning)",
-    "baseline.spread": "candidates theta0 + U(-spread, spread) per coordinate; 0: the tuner's reach, steps x learning_rate",
+    "baseline.spread": "candidates theta0 + U(-spread, spread) per coordinate; 0: the tuner's reach (steps x rate)",
 }
 """Notes of the keys every problem shares, for ``jaxobs tune --print-config``."""
 

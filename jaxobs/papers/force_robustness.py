@@ -38,7 +38,17 @@ from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
 from jaxobs.sweep import load_results, run_configured_sweep
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
+__all__ = [
+    "NAME",
+    "DEFAULT_CONFIG",
+    "CONFIG_NOTES",
+    "ConfigError",
+    "validate_config",
+    "build_designs",
+    "make_sweep",
+    "run",
+    "report",
+]
 
 NAME = "force-control"
 

@@ -123,7 +123,7 @@ CONFIG_NOTES = {
     "design.q_plant": "hand-set plant-state variance Q_xr",
     "design.q_active": "hand-set active-state variance",
     "design.R": "hand-set measurement variance (N^2)",
-    "design.spectral_radius_limit": "threshold of the spectral-radius penalty (optimizer.penalty_weight > 0 enables it)",
+    "design.spectral_radius_limit": "threshold of the spectral-radius penalty (enabled by optimizer.penalty_weight)",
 }
 
 

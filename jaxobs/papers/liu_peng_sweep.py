@@ -77,7 +77,8 @@ CONFIG_NOTES = {
     "noise": "the measured yaw rate's noise, a fresh seed per configuration",
     "noise.std": "standard deviation of the white yaw-rate noise (rad/s)",
     "noise.sine": "amplitude of the 1 Hz sine on the yaw rate (rad/s)",
-    "estimators.lowpass": "the fifth-order 3 Hz low-pass on y before the inverse-dynamics observer (§4.2 robustness case)",
+    "estimators": "the four estimators, designed once on the nominal vehicle",
+    "estimators.lowpass": "the fifth-order 3 Hz low-pass on y before the inverse-dynamics observer (§4.2 robustness)",
 }
 
 
