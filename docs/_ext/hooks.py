@@ -20,7 +20,6 @@ from pathlib import Path
 from mkdocs.structure.files import File
 
 ROOT = Path(__file__).parents[2]
-sys.path.insert(0, str(ROOT))  # document and run this checkout, wherever the environment's jaxobs points
 PACKAGE = "jaxobs"
 API_SECTION = "API reference"
 API_INDEX = "api/index.md"
@@ -91,6 +90,7 @@ def _markdown(name: str) -> str:
 
 
 def on_config(config):
+    sys.path.insert(0, str(ROOT))  # run this checkout's command, wherever the environment's jaxobs points
     names = public_modules()
     nav = config["nav"]
     for i, entry in enumerate(nav):
@@ -109,13 +109,19 @@ def on_files(files, config):
 
 
 def _cli_output(args: str) -> str:
+    import jaxobs
     from jaxobs.cli import main
 
+    if Path(jaxobs.__file__).parent != ROOT / PACKAGE:
+        raise RuntimeError(f"the command-line page would show {jaxobs.__file__}, not this checkout's jaxobs")
     out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-        status = main(shlex.split(args))
-        if status:
-            raise RuntimeError(f"jaxobs {args} exited with status {status}")
+    try:
+        with contextlib.redirect_stdout(out):
+            status = main(shlex.split(args))
+    except SystemExit as exc:  # --help, --version
+        status = exc.code
+    if status:
+        raise RuntimeError(f"jaxobs {args} exited with status {status}")
     return f"```console\n$ jaxobs {args}\n{out.getvalue().rstrip()}\n```"
 
 
