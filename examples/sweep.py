@@ -1,3 +1,4 @@
+# slow: 4000 closed-loop spectral radii in chunks of 1000 (about 12 s of CPU)
 """Robustness sweep guide: a Monte-Carlo sweep of your own with the engine behind ``jaxobs sweep``."""
 
 # --8<-- [start:design]
