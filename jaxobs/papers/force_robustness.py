@@ -371,50 +371,68 @@ def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
 
 
 def _plot_distributions(cols, orders, out_dir: Path) -> str:
+    """Histograms of the stable configurations' margins and RMS errors, in report.md's units; the quantities that
+    span decades on log axes (log-spaced bins shared by the controllers)."""
     plt = pyplot()
     stable = cols["metric.stable"].astype(bool)
-    panels = [
-        ("metric.gain_margin", "gain margin (dB)", lambda v: 20 * np.log10(v)),
-        ("metric.phase_margin", "phase margin (deg)", lambda v: v),
-        ("metric.delay_margin", "delay margin (samples)", lambda v: v / EXAMPLE1.h),
-        ("metric.rms_force_error", "RMS force error (N), log10", np.log10),
+    panels = [  # key, label, scale to report.md's unit, log axis
+        ("metric.gain_margin", "gain margin (factor)", 1.0, True),
+        ("metric.phase_margin", "phase margin (deg)", 1.0, False),
+        ("metric.delay_margin", "delay margin (ms)", 1e3, True),
+        ("metric.rms_force_error", "RMS force error (N)", 1.0, True),
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6))
-    for ax, (key, label, transform) in zip(axes, panels, strict=True):
+    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6), layout="constrained")
+    for ax, (key, label, scale, log) in zip(axes, panels, strict=True):
+        values = {}
         for order in orders:
-            sel = (cols["param.order"] == order) & stable
-            with np.errstate(divide="ignore", invalid="ignore"):
-                values = transform(cols[key][sel])
-            values = values[np.isfinite(values)]
-            if values.size:
-                ax.hist(values, bins=40, histtype="step", label=_name(order))
+            v = scale * cols[key][(cols["param.order"] == order) & stable]
+            values[order] = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
+        pooled = np.concatenate(list(values.values()))
+        if not pooled.size:
+            continue
+        low, high = pooled.min(), pooled.max()
+        bins = np.geomspace(low, high * (1 + 1e-9), 41) if log and high > low else 40
+        for order, v in values.items():
+            if v.size:
+                ax.hist(v, bins=bins, histtype="step", label=_name(order), color=_colour(order))
+        if log:
+            ax.set_xscale("log")
         ax.set_xlabel(label)
     axes[0].set_ylabel("stable configurations")
     axes[0].legend()
-    fig.suptitle("Margins and tracking error over the stable configurations")
+    fig.suptitle("Margins and tracking error over the stable configurations (infinite margins left out)")
     return save_figure(fig, out_dir, "distributions")
 
 
+def _colour(order: int) -> str:
+    """One colour per controller in every figure (AOB-1, AOB-2, AOB-3, CKF)."""
+    return {1: "C0", 2: "C1", 3: "C2", 0: "C3"}.get(order, "C4")
+
+
 def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
-    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired."""
+    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired, one panel (and one
+    force scale) per controller."""
     plt = pyplot()
     steps, n_delay, _, desired, _ = _scenario(config)
     closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
-    for name, case in worst.items():
+    orders = {_name(order): order for order in config["controllers"]["orders"]}
+    fig, axes = plt.subplots(len(worst), 1, figsize=(9, 2.4 * len(worst) + 0.6), sharex=True, squeeze=False,
+                             layout="constrained")  # fmt: skip
+    for ax, (name, case) in zip(axes[:, 0], worst.items(), strict=True):
         ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
         true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
                            n_delay=n_delay)  # fmt: skip
         force = closed_loop(true, ctrl, case["noise_seed"])[0]
-        ax.plot(t, np.asarray(force), lw=0.8,
-                label=f"{name}: Ks={case['stiffness']:.2g}, Tp={case['time_constant'] * 1e3:.0f} ms, "
-                f"d={case['dead_time_samples']:.1f}, RMS {case['rms_force_error']:.2f} N")  # fmt: skip
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("force (N)")
-    ax.set_title("Worst stable case per controller (largest RMS force error)")
-    ax.legend(fontsize=7)
+        ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        ax.plot(t, np.asarray(force), lw=0.8, color=_colour(orders[name]), label=name)
+        ax.set_title(f"{name}: Ks = {case['stiffness']:.2g} N/mm, Tp = {case['time_constant'] * 1e3:.0f} ms, "
+                     f"dead time {case['dead_time_samples']:.1f} samples; RMS error {case['rms_force_error']:.2f} N",
+                     fontsize=9)  # fmt: skip
+        ax.set_ylabel("force (N)")
+        ax.legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle("Worst stable case per controller (largest RMS force error)")
     return save_figure(fig, out_dir, "worst_cases")
 
 
