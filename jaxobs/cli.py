@@ -184,7 +184,8 @@ def _tune(args) -> int:
     )
     for name, s in result["heldout"].items():
         change = s["reduction_vs_hand_set"]
-        note = "" if change is None or name == "hand-set" else f"  ({100 * change:+.1f} % lower than hand-set)"
+        side = "lower" if change is not None and change >= 0 else "higher"
+        note = "" if change is None or name == "hand-set" else f"  ({abs(100 * change):.1f} % {side} than hand-set)"
         print(f"  held-out {name:30s} objective {s['objective']:.4g}  finite {s['finite_fraction']:.3f}{note}")
     return 0
 
