@@ -399,7 +399,8 @@ def _plot_distributions(cols, orders, out_dir: Path) -> str:
             ax.set_xscale("log")
         ax.set_xlabel(label)
     axes[0].set_ylabel("stable configurations")
-    axes[0].legend()
+    if axes[0].get_legend_handles_labels()[0]:  # not for a sweep without a stable configuration
+        axes[0].legend()
     fig.suptitle("Margins and tracking error over the stable configurations (infinite margins left out)")
     return save_figure(fig, out_dir, "distributions")
 
@@ -417,9 +418,13 @@ def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path
     closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
     orders = {_name(order): order for order in config["controllers"]["orders"]}
-    fig, axes = plt.subplots(len(worst), 1, figsize=(9, 2.4 * len(worst) + 0.6), sharex=True, squeeze=False,
+    rows = max(len(worst), 1)  # a sweep without a stable configuration still gets its (empty) figure
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.4 * rows + 0.6), sharex=True, squeeze=False,
                              layout="constrained")  # fmt: skip
-    for ax, (name, case) in zip(axes[:, 0], worst.items(), strict=True):
+    if not worst:
+        axes[0, 0].plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        axes[0, 0].set(title="no stable configuration", ylabel="force (N)")
+    for ax, (name, case) in zip(axes[: len(worst), 0], worst.items(), strict=True):
         ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
         true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
                            n_delay=n_delay)  # fmt: skip
