@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: demo reproduce test test-fast bench lint clean
+.PHONY: demo reproduce test test-fast bench docs lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -42,8 +42,18 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/ct_integration.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/estimation.py --out $(OUT)/bench
 
+# The documentation site (MkDocs, Material theme, API reference from the docstrings) into site/; --strict: any
+# warning (a broken link or cross-reference, an example that no longer exists) fails the build.
+# NO_MKDOCS_2_WARNING silences a banner that mkdocs-material prints on every build.
+$(VENV)/.docs-installed: $(STAMP)
+	$(BIN)/python -m pip install -e '.[docs]'
+	touch $@
+
+docs: $(VENV)/.docs-installed
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) $(OUT) site .pytest_cache

@@ -4,12 +4,16 @@ Every command that reads a config (``jaxobs sweep``, ``jaxobs tune``) merges the
 embedded default with :func:`merge` (unknown keys, wrong types and non-finite numbers such as TOML's ``inf``
 and ``nan`` are errors) and checks values with :func:`check_range` / :func:`check_at_least`, and the sizes of what
 the configuration will allocate with :func:`check_memory`; a :class:`ConfigError` names the file and the key.
+Each scenario documents its keys in a ``{dotted key: note}`` dict beside its default, and :func:`to_toml` writes
+a configuration back as TOML with every key's note above it (``--print-config``).
 """
 
 from __future__ import annotations
 
 import copy
+import json
 import math
+import textwrap
 from pathlib import Path
 
 from jaxobs._resources import JobError
@@ -25,6 +29,8 @@ __all__ = [
     "check_at_least",
     "check_choice",
     "check_memory",
+    "leaf_keys",
+    "to_toml",
 ]
 
 
@@ -126,3 +132,43 @@ def check_memory(source: str, key: str, nbytes: int, what: str, hint: str = "") 
         _check_memory(nbytes, what, hint=hint or f"lower {key}")
     except JobError as exc:
         fail(source, key, str(exc))
+
+
+def leaf_keys(config: dict, prefix: str = "") -> list[str]:
+    """The dotted names of the values of ``config`` (not of its tables), in order."""
+    keys = []
+    for key, value in config.items():
+        keys += leaf_keys(value, f"{prefix}{key}.") if isinstance(value, dict) else [f"{prefix}{key}"]
+    return keys
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, int | float | str):
+        return json.dumps(value)  # a TOML float or integer, or a basic string with JSON's escapes
+    raise TypeError(f"no TOML form for {value!r}")
+
+
+def to_toml(config: dict, notes: dict, header: str = "", width: int = 100) -> str:
+    """``config`` as TOML, each key preceded by its note (``notes[dotted key]``, a table's note above its header),
+    after ``header`` as comment lines. Parses back to ``config``."""
+
+    def comment(text: str) -> list[str]:
+        return [f"# {line}" if line else "#" for line in textwrap.wrap(text, width - 2)] if text else []
+
+    def table(values: dict, prefix: str) -> list[str]:
+        lines = []
+        for key, value in values.items():
+            if not isinstance(value, dict):
+                lines += [*comment(notes.get(prefix + key, "")), f"{key} = {_toml_value(value)}"]
+        for key, value in values.items():
+            if isinstance(value, dict):
+                name = prefix + key
+                lines += ["", *comment(notes.get(name, "")), f"[{name}]", *table(value, name + ".")]
+        return lines
+
+    head = [line for text in header.splitlines() for line in (comment(text) or ["#"])]
+    return "\n".join([*head, *([""] if head else []), *table(config, "")]).strip("\n") + "\n"

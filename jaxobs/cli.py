@@ -1,9 +1,23 @@
-"""The ``jaxobs`` command.
+"""The jaxobs command: robustness sweeps, tuning against MJX rollouts, reproductions of the papers.
 
-jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite]   (no config: the embedded default)
-jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite]    (no config: the embedded 1-DOF default)
-jaxobs reproduce --list
-jaxobs reproduce NAME [NAME ...] [--out DIR]     (NAME "all" runs every reproduction)
+Usage::
+
+    jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
+    jaxobs sweep --list                      the scenarios, one line each
+    jaxobs sweep --print-config [SCENARIO]   its full default config as TOML, every key commented
+    jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
+    jaxobs tune --list | --print-config [PROBLEM]
+    jaxobs reproduce --list
+    jaxobs reproduce NAME [NAME ...] [--out DIR] [--no-cache]     (NAME "all" runs every reproduction)
+    jaxobs --version
+
+Without ``--config``, ``sweep`` and ``tune`` run their default scenario; a config file's ``scenario`` (``problem``)
+key picks another, its other keys override that scenario's defaults (``--print-config`` with ``--config`` prints
+the merged result). Scenario, problem and reproduction names are lower case with hyphens.
+
+Run as the command, it keeps JAX's persistent compilation cache in ``$JAXOBS_CACHE_DIR``, else
+``$XDG_CACHE_HOME/jaxobs/jax-cache``, else ``~/.cache/jaxobs/jax-cache`` (``--no-cache``: off), so a second run of
+the same command skips most of the compilation; ``JAX_COMPILATION_CACHE_DIR`` set by the user wins.
 
 A user error (a bad config file or key, an output directory that cannot be written or is held by another
 jaxobs process, a run that cannot fit in memory, a sweep or checkpoint of something else in DIR) prints one
@@ -15,6 +29,7 @@ run as the command). Only a bug shows a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -23,15 +38,40 @@ from pathlib import Path
 from jaxobs._resources import JobError, locked_out_dir
 
 RESUME_HINT = "rerun the same command to resume"
+CACHE_MIN_COMPILE_SECONDS = 0.2  # programs that compile faster are not worth a cache file
+
+
+def summary(module) -> str:
+    """The first paragraph of ``module``'s docstring on one line (the description ``--list`` prints)."""
+    first = (module.__doc__ or "").strip().split("\n\n")[0]
+    return " ".join(first.replace("``", "").split())
+
+
+def _print_list(registry: dict) -> None:
+    width = max(map(len, registry))
+    for name, module in registry.items():
+        print(f"{name:{width}s}  {summary(module)}")
+
+
+def _sweeps() -> dict:
+    """Sweep modules by scenario name; the first is the default."""
+    from jaxobs.papers import force_robustness, liu_peng_sweep, sbw_robustness
+
+    return {m.NAME: m for m in (force_robustness, sbw_robustness, liu_peng_sweep)}
+
+
+def _problems() -> dict:
+    """Tuning problem modules by problem name; the first is the default."""
+    from jaxobs.papers.tuning import PROBLEMS
+
+    return PROBLEMS
 
 
 def _reproduce(args) -> int:
     from jaxobs.papers import REPRODUCTIONS
 
     if args.list or not args.names:
-        for name, fn in REPRODUCTIONS.items():
-            doc = (sys.modules[fn.__module__].__doc__ or "").strip().splitlines()[0]
-            print(f"{name:28s} {doc}")
+        _print_list({name: sys.modules[fn.__module__] for name, fn in REPRODUCTIONS.items()})
         return 0
     names = list(REPRODUCTIONS) if args.names == ["all"] else args.names
     unknown = [n for n in names if n not in REPRODUCTIONS]
@@ -47,61 +87,71 @@ def _reproduce(args) -> int:
 
 def _reproduce_one(name: str, reproduction, out: Path) -> None:
     start = time.perf_counter()
-    summary = reproduction(out)
+    result = reproduction(out)
     print(
-        f"{name}: wrote {out / (name + '.json')} and {', '.join(summary['figures']) or 'no figures'} "
+        f"{name}: wrote {out / (name + '.json')} and {', '.join(result['figures']) or 'no figures'} "
         f"in {time.perf_counter() - start:.1f} s"
     )
-    for key, value in summary.items():
+    for key, value in result.items():
         if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(value, dict | list):
             print(f"  {key} = {value:.6g}")
         elif key == "rms_force_error":
             print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))
 
 
-def _config(args, validate):
-    """``validate(the TOML of args.config, its name)`` (the embedded default without one); raises
-    :class:`jaxobs._config.ConfigError`."""
-    from jaxobs._config import load_toml
+def _scenario(args, registry: dict, key: str):
+    """``(module, complete config, source)``: ``--config``'s TOML (or nothing) over the defaults of the scenario its
+    ``key`` names, or ``--print-config``'s, or the default one; raises :class:`jaxobs._config.ConfigError`."""
+    from jaxobs._config import fail, load_toml
 
     given = load_toml(args.config) if args.config else {}
-    return validate(given, args.config or "<default>")
+    source = args.config or "<default>"
+    chosen = getattr(args, "print_config", None) or None  # --print-config NAME
+    name = given.get(key, chosen or next(iter(registry)))
+    if chosen and name != chosen:
+        fail(source, key, f"is {name!r}, not the {chosen!r} of --print-config")
+    if name not in registry:
+        fail(source if key in given else "--print-config", key,
+             f"must be one of {', '.join(map(repr, registry))}, got {name!r}")  # fmt: skip
+    module = registry[name]
+    return module, module.validate_config({**given, key: name}, source), source
 
 
-def _sweep_module(given: dict, source: str):
-    """The sweep named by the config's ``scenario`` key (default: the force-control sweep)."""
-    from jaxobs._config import fail
-    from jaxobs.papers import force_robustness, liu_peng_sweep, sbw_robustness
+def _print_config(args, registry: dict, key: str) -> int:
+    from jaxobs._config import to_toml
 
-    sweeps = {
-        "force-control": force_robustness,
-        sbw_robustness.NAME: sbw_robustness,
-        liu_peng_sweep.NAME: liu_peng_sweep,
-    }
-    name = given.get("scenario", "force-control")
-    if name not in sweeps:
-        fail(source, "scenario", f"must be one of {', '.join(map(repr, sweeps))}, got {name!r}")
-    return sweeps[name]
+    with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only (mujoco.mjx prints on import)
+        module, config, source = _scenario(args, registry, key)
+    name = config[key]
+    where = f"{source}'s values over the defaults of" if args.config else "the defaults of"
+    header = (
+        f"jaxobs {args.command} --config FILE: {where} {key} {name!r}. {summary(module)}\n"
+        "A config file needs only the keys it changes; the others keep these values."
+    )
+    print(to_toml(config, module.CONFIG_NOTES, header), end="")
+    return 0
 
 
 def _sweep(args) -> int:
-    def validate(given, source):
-        module = _sweep_module(given, source)
-        return module, module.validate_config(given, source)
-
     from jaxobs.sweep import read_manifest
 
-    module, config = _config(args, validate)
+    registry = _sweeps()
+    if args.list:
+        _print_list(registry)
+        return 0
+    if args.print_config is not None:
+        return _print_config(args, registry, "scenario")
+    module, config, _ = _scenario(args, registry, "scenario")
     out = Path(args.out)
     with locked_out_dir(out):
         if not args.overwrite:
             read_manifest(out)  # a damaged manifest is reported before the sweep is built
-        summary = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
     print(
-        f"{summary['num_configs']} configurations in {summary.get('seconds', 0.0):.1f} s; "
-        f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(summary['figures'])}"
+        f"{result['num_configs']} configurations in {result.get('seconds', 0.0):.1f} s; "
+        f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(result['figures'])}"
     )
-    for name, s in summary.get("controllers", {"all": summary}).items():
+    for name, s in result.get("controllers", {"all": result}).items():
         if "stable_fraction" in s:
             print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
     return 0
@@ -112,52 +162,102 @@ def _tune(args) -> int:
 
     from jaxobs.papers import tuning
 
+    registry = _problems()
+    if args.list:
+        _print_list(registry)
+        return 0
+    if args.print_config is not None:
+        return _print_config(args, registry, "problem")
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
     logging.getLogger("jaxobs").addHandler(handler)
     logging.getLogger("jaxobs").setLevel(logging.INFO)
     logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
-    config = _config(args, tuning.validate_config)
+    _, config, _ = _scenario(args, registry, "problem")
     out = Path(args.out)
     with locked_out_dir(out):
-        summary = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
     print(
-        f"{summary['problem']}: {summary['evaluations']} gradient evaluations ({summary['rollouts']} rollouts, "
-        f"{summary['seconds_tune']:.1f} s, stopped: {summary['stopped']}); wrote {out / 'tuned.json'} and "
-        f"{', '.join(summary['figures'])}"
+        f"{result['problem']}: {result['evaluations']} gradient evaluations ({result['rollouts']} rollouts, "
+        f"{result['seconds_tune']:.1f} s, stopped: {result['stopped']}); wrote {out / 'tuned.json'} and "
+        f"{', '.join(result['figures'])}"
     )
-    for name, s in summary["heldout"].items():
+    for name, s in result["heldout"].items():
         change = s["reduction_vs_hand_set"]
-        note = "" if change is None or name == "hand-set" else f"  ({100 * change:+.1f} % lower than hand-set)"
+        side = "lower" if change is not None and change >= 0 else "higher"
+        note = "" if change is None or name == "hand-set" else f"  ({abs(100 * change):.1f} % {side} than hand-set)"
         print(f"  held-out {name:30s} objective {s['objective']:.4g}  finite {s['finite_fraction']:.3f}{note}")
     return 0
 
 
+def cache_dir() -> Path:
+    """Where the command keeps JAX's persistent compilation cache (see the module docstring)."""
+    if os.environ.get("JAXOBS_CACHE_DIR"):
+        return Path(os.environ["JAXOBS_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "jaxobs" / "jax-cache"
+
+
+def _enable_compilation_cache() -> None:
+    """JAX's persistent compilation cache in :func:`cache_dir` (unless the user set JAX's own); a directory that
+    cannot be created leaves the cache off, with a note on stderr."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    path = cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"jaxobs: no compilation cache ({path}: {exc.strerror})", file=sys.stderr)
+        return
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECONDS)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of the ``jaxobs`` command (its help texts are the command-line reference)."""
+    from jaxobs import __version__
+
+    parser = argparse.ArgumentParser(prog="jaxobs", description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"jaxobs {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{sweep,tune,reproduce}")
+    for name, func, help_text, what in (
+        ("sweep", _sweep, "Monte-Carlo robustness sweep (resumable; rerun to continue)", "scenario"),
+        ("tune", _tune, "tune an observer's Q/R by gradient descent against MJX rollouts (resumable)", "problem"),
+    ):
+        run = commands.add_parser(name, help=help_text, description=help_text)
+        run.add_argument("--config", metavar="FILE",
+                         help=f"TOML file over the defaults; its '{what}' key picks the {what} (--list)")  # fmt: skip
+        run.add_argument("--out", metavar="DIR", default=f"out/{name}", help=f"output directory (default: out/{name})")
+        run.add_argument("--overwrite", action="store_true", help="discard a run of another config in --out")
+        run.add_argument("--no-progress", action="store_true", help="no progress bar")
+        run.add_argument("--list", action="store_true", help=f"list the {what}s with a one-line description")
+        run.add_argument("--print-config", nargs="?", const="", metavar=what.upper(),
+                         help=f"print the full config of {what.upper()} (default: the default {what}; with "
+                              f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
+        run.set_defaults(func=func)
+    rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures",
+                              description="reproduce a paper's numbers and figures")  # fmt: skip
+    rep.add_argument("names", nargs="*", metavar="NAME", help="reproduction name(s), or 'all'")
+    rep.add_argument("--list", action="store_true", help="list the reproductions with a one-line description")
+    rep.add_argument("--out", metavar="DIR", default="out", help="output directory (default: out)")
+    rep.set_defaults(func=_reproduce)
+    for sub in commands.choices.values():
+        sub.add_argument("--no-cache", action="store_true", help="no persistent compilation cache")
+    return parser
+
+
 def main(argv=None) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``, as the ``jaxobs`` command); returns the exit
+    status. Only the command (``argv`` omitted) turns the persistent compilation cache on."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    parser = argparse.ArgumentParser(prog="jaxobs", description=__doc__.strip().splitlines()[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    for name, func, help_text, config_help in (
-        ("sweep", _sweep, "Monte-Carlo robustness sweep (resumable; rerun to continue)",
-         "its 'scenario' key picks the sweep: force-control (default), steer_by_wire, liu_peng"),
-        ("tune", _tune, "tune an observer's Q/R by gradient descent against MJX rollouts (resumable)",
-         "its 'problem' key picks the problem: force_1dof (default), peg_on_hole"),
-    ):  # fmt: skip
-        run = commands.add_parser(name, help=help_text)
-        run.add_argument("--config", help=f"TOML file overriding the embedded default; {config_help}")
-        run.add_argument("--out", default=f"out/{name}", help=f"output directory (default: out/{name})")
-        run.add_argument("--overwrite", action="store_true", help="discard a run of another config in --out")
-        run.add_argument("--no-progress", action="store_true", help="no progress bar")
-        run.set_defaults(func=func)
-    rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures")
-    rep.add_argument("names", nargs="*", help="reproduction name(s), or 'all'")
-    rep.add_argument("--list", action="store_true", help="list the available reproductions")
-    rep.add_argument("--out", default="out", help="output directory (default: out)")
-    rep.set_defaults(func=_reproduce)
     as_command = argv is None
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
+    if as_command and not args.no_cache:
+        _enable_compilation_cache()
     from jaxobs.tuning import CheckpointError, TuningError
 
     try:

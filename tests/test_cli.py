@@ -1,21 +1,141 @@
-"""The `jaxobs` command: listing, the one-line errors with exit status 2 (before anything is built), Ctrl-C."""
+"""The `jaxobs` command: listing, --print-config, --version, the compilation cache, the one-line errors with exit
+status 2 (before anything is built), Ctrl-C."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
 
+import jax
 import pytest
 
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+from jaxobs import __version__, cli
+from jaxobs._config import leaf_keys
 from jaxobs.cli import main
+from jaxobs.papers import REPRODUCTIONS
+
+COMMANDS = {"sweep": ("scenario", cli._sweeps), "tune": ("problem", cli._problems)}
+NAME_STYLE = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+)*")  # lower case words joined by hyphens
 
 
-def test_list(capsys):
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxobs {__version__}"
+
+
+def test_every_name_has_one_style():
+    names = [*REPRODUCTIONS, *cli._sweeps(), *cli._problems()]
+    assert [n for n in names if not NAME_STYLE.fullmatch(n)] == []
+
+
+@pytest.mark.parametrize("command", ["sweep", "tune", "reproduce"])
+def test_list_prints_every_name_with_its_description(capsys, command):
+    registry = cli._sweeps() if command == "sweep" else cli._problems() if command == "tune" else {
+        name: sys.modules[fn.__module__] for name, fn in REPRODUCTIONS.items()}  # fmt: skip
+    assert main([command, "--list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == list(registry)
+    for line, module in zip(lines, registry.values(), strict=True):
+        description = line.split(maxsplit=1)[1]
+        assert description == cli.summary(module) and len(description) > 20 and "``" not in description
+
+
+def _scenarios():
+    return [(command, name) for command, (_, registry) in COMMANDS.items() for name in registry()]
+
+
+@pytest.mark.parametrize("command, name", _scenarios())
+def test_print_config_is_the_full_default_every_key_commented(tmp_path, capsys, command, name):
+    """The TOML parses back to the scenario's complete default config, every value has a comment line above it,
+    and it runs as a config file (a round trip through --config)."""
+    key, registry = COMMANDS[command]
+    module = registry()[name]
+    assert main([command, "--print-config", name]) == 0
+    text = capsys.readouterr().out
+    assert tomllib.loads(text) == module.validate_config({key: name})
+    assert set(leaf_keys(module.DEFAULT_CONFIG)) <= set(module.CONFIG_NOTES)  # every key documented ...
+    tables = {k for k, v in module.DEFAULT_CONFIG.items() if isinstance(v, dict)}
+    assert set(module.CONFIG_NOTES) <= set(leaf_keys(module.DEFAULT_CONFIG)) | tables  # ... and no stale note
+    lines = text.splitlines()
+    values = [i for i, line in enumerate(lines) if re.match(r"\w+ = ", line)]
+    assert len(values) == len(leaf_keys(module.DEFAULT_CONFIG))
+    assert all(lines[i - 1].startswith("# ") for i in values)
+    path = tmp_path / "printed.toml"
+    path.write_text(text)
+    assert main([command, "--config", str(path), "--print-config"]) == 0
+    assert tomllib.loads(capsys.readouterr().out) == tomllib.loads(text)
+
+
+def test_print_config_of_a_file_merges_it_over_its_scenario(tmp_path, capsys):
+    path = tmp_path / "small.toml"
+    path.write_text('scenario = "liu-peng"\n[vehicle]\ncount = 7\n')
+    assert main(["sweep", "--config", str(path), "--print-config"]) == 0
+    printed = tomllib.loads(capsys.readouterr().out)
+    assert printed["scenario"] == "liu-peng" and printed["vehicle"]["count"] == 7
+    assert printed["noise"] == cli._sweeps()["liu-peng"].DEFAULT_CONFIG["noise"]
+    assert main(["sweep", "--print-config"]) == 0  # no name, no file: the default scenario
+    assert tomllib.loads(capsys.readouterr().out)["scenario"] == next(iter(cli._sweeps()))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["sweep", "--print-config", "liu_peng"], "--print-config: scenario: must be one of 'force-control', "),
+        (["tune", "--print-config", "nope"], "--print-config: problem: must be one of 'force-1dof', 'peg-on-hole'"),
+    ],
+)
+def test_print_config_of_an_unknown_name_exits_2(capsys, argv, message):
+    assert main(argv) == 2
+    assert _one_line(capsys).startswith(f"jaxobs {argv[0]}: {message}")
+
+
+def test_print_config_that_contradicts_the_file_exits_2(tmp_path, capsys):
+    path = tmp_path / "lp.toml"
+    path.write_text('scenario = "liu-peng"\n')
+    assert main(["sweep", "--config", str(path), "--print-config", "steer-by-wire"]) == 2
+    assert _one_line(capsys) == (f"jaxobs sweep: {path}: scenario: is 'liu-peng', not the 'steer-by-wire' of "
+                                 "--print-config")  # fmt: skip
+
+
+def test_cache_directory(monkeypatch, tmp_path):
+    monkeypatch.delenv("JAXOBS_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cli.cache_dir() == tmp_path / "xdg" / "jaxobs" / "jax-cache"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert cli.cache_dir() == tmp_path / "home" / ".cache" / "jaxobs" / "jax-cache"
+    monkeypatch.setenv("JAXOBS_CACHE_DIR", str(tmp_path / "mine"))
+    assert cli.cache_dir() == tmp_path / "mine"
+
+
+def test_cache_is_enabled_where_it_can_be_created(monkeypatch, tmp_path, capsys):
+    """(The test's JAX configuration is restored by conftest; nothing is compiled while the cache is on.)"""
+    if jax.config.jax_compilation_cache_dir:
+        pytest.skip("JAX_COMPILATION_CACHE_DIR is set for this test run")
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("JAXOBS_CACHE_DIR", str(tmp_path / "file" / "cache"))
+    cli._enable_compilation_cache()
+    assert jax.config.jax_compilation_cache_dir is None
+    assert _one_line(capsys).startswith(f"jaxobs: no compilation cache ({tmp_path / 'file' / 'cache'}: ")
+    monkeypatch.setenv("JAXOBS_CACHE_DIR", str(tmp_path / "cache"))
+    cli._enable_compilation_cache()
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache") and (tmp_path / "cache").is_dir()
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == cli.CACHE_MIN_COMPILE_SECONDS
+
+
+def test_a_call_of_main_leaves_the_cache_off(capsys):
     assert main(["reproduce", "--list"]) == 0
-    out = capsys.readouterr().out
-    assert "cortesao2006-example1" in out and "cortesao-stochastic-ramp" in out
+    assert jax.config.jax_compilation_cache_dir is None
 
 
 def test_unknown_name_exits_2(capsys, tmp_path):
@@ -24,18 +144,35 @@ def test_unknown_name_exits_2(capsys, tmp_path):
 
 
 @pytest.mark.slow
-def test_reproduce_as_a_subprocess(tmp_path):
-    """The installed entry point writes the JSON with the required keys."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "jaxobs.cli", "reproduce", "cortesao-stochastic-ramp", "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr
-    data = json.loads((tmp_path / "cortesao-stochastic-ramp.json").read_text())
+def test_reproduce_as_a_subprocess_fills_and_reuses_the_compilation_cache(tmp_path):
+    """The command writes the JSON with the required keys; its first run fills the persistent compilation cache,
+    a second run reads it and prints the same numbers; ``--no-cache`` writes nothing."""
+
+    def run(out, cache, *flags):
+        env = {**os.environ, "JAXOBS_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu", "JAX_LOG_COMPILES": "1"}
+        # (JAX_LOG_COMPILES logs each persistent-cache hit)
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        command = [sys.executable, "-m", "jaxobs.cli", "reproduce", "cortesao-stochastic-ramp", "--out", str(out)]
+        proc = subprocess.run([*command, *flags], capture_output=True, text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr
+        hits = set(re.findall(r"Persistent compilation cache hit for '[^']*' with key '([^']*)'", proc.stderr))
+        return proc.stdout, hits
+
+    first, _ = run(tmp_path / "first", tmp_path / "cache")
+    data = json.loads((tmp_path / "first" / "cortesao-stochastic-ramp.json").read_text())
     assert abs(data["delta_f_ss_ckf"] - 4.1034) < 5e-4
-    assert "delta_f_ss_ckf" in proc.stdout
+    assert "delta_f_ss_ckf" in first
+    cached = {p.name.removesuffix("-cache") for p in (tmp_path / "cache").glob("*-cache")}
+    assert cached, "the first run cached no program"
+    second, hits = run(tmp_path / "second", tmp_path / "cache")
+    assert cached <= hits  # every program the first run cached was read back instead of compiled
+
+    def numbers(out):
+        return [line for line in out.splitlines() if line.startswith("  ")]
+
+    assert numbers(second) == numbers(first)
+    run(tmp_path / "third", tmp_path / "no-cache", "--no-cache")
+    assert not (tmp_path / "no-cache").exists()
 
 
 # --------------------------------------------------------------------------------------------
@@ -113,7 +250,7 @@ def test_a_tuning_record_of_the_wrong_structure_exits_2(tmp_path, capsys):
     [
         ("sweep", "[plant]\nstiffness = [0.3, inf]\n", "plant.stiffness"),
         ("sweep", "[simulation]\nsensor_noise = nan\n", "simulation.sensor_noise"),
-        ("sweep", 'scenario = "liu_peng"\n[noise]\nstd = -inf\n', "noise.std"),
+        ("sweep", 'scenario = "liu-peng"\n[noise]\nstd = -inf\n', "noise.std"),
         ("tune", "[scenario]\nsensor_noise = nan\n", "scenario.sensor_noise"),
         ("tune", "[optimizer]\nlearning_rate = inf\n", "optimizer.learning_rate"),
     ],
@@ -140,7 +277,7 @@ def test_a_run_that_cannot_fit_in_memory_exits_2_with_the_estimate(tmp_path, cap
 def test_ctrl_c_exits_130_with_the_resume_hint(tmp_path):
     """SIGINT once the command holds its output directory (its pid is in the lock file): no traceback."""
     config = tmp_path / "small.toml"
-    config.write_text('scenario = "liu_peng"\nchunk_size = 3\n[vehicle]\ncount = 6\n')
+    config.write_text('scenario = "liu-peng"\nchunk_size = 3\n[vehicle]\ncount = 6\n')
     out = tmp_path / "out"
     run_cli = (  # Python's own SIGINT handler even where the test runner's SIGINT is ignored (a background job)
         "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "

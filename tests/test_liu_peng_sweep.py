@@ -41,7 +41,7 @@ def test_no_mismatch_no_noise_reproduces_the_ideal_case():
 @pytest.mark.slow
 def test_cli_sweep_end_to_end(tmp_path):
     config = tmp_path / "liu_peng.toml"
-    config.write_text('scenario = "liu_peng"\nchunk_size = 3\n[vehicle]\ncount = 5\n')
+    config.write_text('scenario = "liu-peng"\nchunk_size = 3\n[vehicle]\ncount = 5\n')
     out = tmp_path / "sweep"
     assert cli.main(["sweep", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     cols = load_results(out)

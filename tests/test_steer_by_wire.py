@@ -278,14 +278,14 @@ def test_scaled_transfer_function_scales_gain_and_poles():
 
 @pytest.mark.slow
 def test_robustness_sweep_small(tmp_path, capsys):
-    """``jaxobs sweep`` with ``scenario = "steer_by_wire"``: the nominal plant (all factors 1) reproduces the
+    """``jaxobs sweep`` with ``scenario = "steer-by-wire"``: the nominal plant (all factors 1) reproduces the
     Example 2 numbers (steering-angle RMS 4.07 % of the target's peak, a regression snapshot, the README's
     "4.1 % nominal"; rack left at ~1e-11 m after the road disturbance, stable); a +-30 % batch runs end to end
     with its report."""
     from jaxobs.cli import main
 
     nominal = tmp_path / "nominal.toml"
-    nominal.write_text('scenario = "steer_by_wire"\nchunk_size = 2\n[plants]\ncount = 2\n'
+    nominal.write_text('scenario = "steer-by-wire"\nchunk_size = 2\n[plants]\ncount = 2\n'
                        "gain_scale = [1.0, 1.0]\npole_scale = [1.0, 1.0]\n")  # fmt: skip
     assert main(["sweep", "--config", str(nominal), "--out", str(tmp_path / "nominal"), "--no-progress"]) == 0
     summary = json.loads((tmp_path / "nominal" / "summary.json").read_text())
@@ -294,13 +294,13 @@ def test_robustness_sweep_small(tmp_path, capsys):
     pin(100 * summary["steering_rms_rel"]["median"], r"\(16 % at the 90th percentile, ([0-9.]+) % nominal\)")
     assert summary["rack_final_error_m"]["max"] < 1e-9
     mixed = tmp_path / "mixed.toml"
-    mixed.write_text('scenario = "steer_by_wire"\nchunk_size = 3\n[plants]\ncount = 6\n')
+    mixed.write_text('scenario = "steer-by-wire"\nchunk_size = 3\n[plants]\ncount = 6\n')
     assert main(["sweep", "--config", str(mixed), "--out", str(tmp_path / "mixed"), "--no-progress"]) == 0
     out = tmp_path / "mixed"
     assert json.loads((out / "summary.json").read_text())["num_configs"] == 6
     assert (out / "robustness.png").stat().st_size > 0 and "stable fraction" in (out / "report.md").read_text()
     bad = tmp_path / "bad.toml"
-    bad.write_text('scenario = "steer_by_wire"\n[plants]\ngain_scale = [1.3, 0.7]\n')
+    bad.write_text('scenario = "steer-by-wire"\n[plants]\ngain_scale = [1.3, 0.7]\n')
     assert main(["sweep", "--config", str(bad), "--out", str(tmp_path / "bad")]) == 2
     assert "plants.gain_scale" in capsys.readouterr().err
 

@@ -13,7 +13,7 @@ from jaxobs.papers import _tuning_config, force_tuning, tuning
 
 def test_default_config_is_the_one_dof_stiffness_problem():
     config = tuning.validate_config()
-    assert config["problem"] == "force_1dof"
+    assert config["problem"] == "force-1dof"
     assert config["plants"]["stiffness_scale"] == [0.5, 1.5]  # +-50 % stiffness mismatch
     assert config["design"]["order"] == 1
     assert (config["design"]["q_active"], config["design"]["R"]) == (1e-5, 2.1e-2)  # The MRAC chapter eq. 62, 64
@@ -138,10 +138,10 @@ def test_spectral_radius_penalty():
 
 
 def test_peg_config_is_validated(tmp_path, capsys):
-    config = tuning.validate_config({"problem": "peg_on_hole"})
-    assert config["problem"] == "peg_on_hole" and config["optimizer"]["gradient"] == "forward"
+    config = tuning.validate_config({"problem": "peg-on-hole"})
+    assert config["problem"] == "peg-on-hole" and config["optimizer"]["gradient"] == "forward"
     path = tmp_path / "bad.toml"
-    path.write_text('problem = "peg_on_hole"\n[scenario]\nalignment_end = 9.0\n')
+    path.write_text('problem = "peg-on-hole"\n[scenario]\nalignment_end = 9.0\n')
     assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out")]) == 2
     assert "scenario.alignment_end" in capsys.readouterr().err
 
@@ -151,7 +151,7 @@ def test_peg_on_hole_small_run(tmp_path):
     """The 6-DOF problem end to end (forward-mode gradients through design() and the MJX loop)."""
     config, out = tmp_path / "peg.toml", tmp_path / "out"
     config.write_text(
-        'problem = "peg_on_hole"\n[plants]\ntrain = 2\nheldout = 2\n[scenario]\nduration = 0.8\n'
+        'problem = "peg-on-hole"\n[plants]\ntrain = 2\nheldout = 2\n[scenario]\nduration = 0.8\n'
         "alignment_start = 0.2\nalignment_end = 0.7\n[optimizer]\nsteps = 3\n[baseline]\nrandom_search = false\n"
     )
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0

@@ -224,7 +224,7 @@ class InverseDynamicsParams:
       Bu: (n, m) input matrix of the known term ``Gamma(u, y) = Bu u`` (m = 0 without inputs; for a nonlinear
         ``Gamma`` take ``Bu = I`` and pass its value as the input).
       K: (n, n_y).  F1, F2: (n_d, n_y).  G1: (n_d, n), G2: (n_d, n), G3: (n_d, n) from :func:`case1_gains` or
-      :func:`case2_gains`.
+        :func:`case2_gains`.
       x0: (n,) the estimate the observer integrates from (``x_hat`` one sample before the first).
       h: () sample time.  lowpass_pole: () in ``[0, 1)`` with ``lowpass_order`` (static) sections.
     """

@@ -20,6 +20,7 @@ from jaxobs.tuning import TuneSettings
 __all__ = [
     "optimizer_defaults",
     "BASELINE_DEFAULTS",
+    "COMMON_NOTES",
     "check_common",
     "check_plant_memory",
     "settings",
@@ -28,7 +29,29 @@ __all__ = [
     "search_box",
 ]
 
-BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}  # candidates theta0 + U(-spread, spread); 0: the reach
+BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}
+
+COMMON_NOTES = {
+    "seed": "seed of the sampled plants (training and held-out sets) and of the random search",
+    "optimizer": "the gradient tuner (jaxobs.tuning.TuneSettings)",
+    "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief' or 'lamb'",
+    "optimizer.gradient": "'reverse' (value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
+    "optimizer.learning_rate": "the optimizer's step size (in the unconstrained parameters)",
+    "optimizer.steps": "gradient evaluations at most, rejected ones included",
+    "optimizer.objective": "'mean' or 'cvar' (mean of the cvar_alpha worst) of the per-plant training losses",
+    "optimizer.cvar_alpha": "fraction of worst training plants the CVaR objective averages",
+    "optimizer.penalty_weight": "weight of the problem's penalty term; 0 switches it off",
+    "optimizer.divergence_factor": "a diverged plant's loss is this times the largest finite loss (at least 1)",
+    "optimizer.clip_norm": "global-norm gradient clipping; 0 switches it off",
+    "optimizer.patience": "stop after this many evaluations without a relative improvement of min_improvement",
+    "optimizer.min_improvement": "relative improvement of the objective that resets patience",
+    "optimizer.max_rejections": "consecutive rejected (more plants diverging) steps before giving up",
+    "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
+    "baseline": "the random-search baseline, scored like the tuner",
+    "baseline.random_search": "run the baseline (same rollouts, then the same wall time as the tuning)",
+    "baseline.spread": "candidates theta0 + U(-spread, spread) per coordinate; 0: the tuner's reach (steps x rate)",
+}
+"""Notes of the keys every problem shares, for ``jaxobs tune --print-config``."""
 
 
 def optimizer_defaults(**overrides) -> dict:

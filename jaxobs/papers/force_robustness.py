@@ -38,32 +38,66 @@ from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
 from jaxobs.sweep import load_results, run_configured_sweep
 
-__all__ = ["DEFAULT_CONFIG", "ConfigError", "validate_config", "build_designs", "make_sweep", "run", "report"]
+__all__ = [
+    "NAME",
+    "DEFAULT_CONFIG",
+    "CONFIG_NOTES",
+    "ConfigError",
+    "validate_config",
+    "build_designs",
+    "make_sweep",
+    "run",
+    "report",
+]
+
+NAME = "force-control"
 
 DEFAULT_CONFIG = {
-    "scenario": "force-control",
+    "scenario": NAME,
     "seed": 0,
     "chunk_size": 2000,
     "plant": {
-        "stiffness": [0.3, 30.0],  # N/mm, log-uniform
-        "time_constant_scale": [0.5, 1.5],  # true Tp / nominal Tp, uniform
-        "dead_time_samples": [3.0, 8.0],  # uniform, fractional samples allowed
+        "stiffness": [0.3, 30.0],
+        "time_constant_scale": [0.5, 1.5],
+        "dead_time_samples": [3.0, 8.0],
     },
     "controllers": {
-        "orders": [1, 2, 3, 0],  # AOB-N; 0 is the CKF
-        "active_variance": [1e-6, 1.0],  # sigma^2 of eq. 55 (CKF: Q_xr), log grid
-        "R": [1e-3, 1.0],  # log grid
+        "orders": [1, 2, 3, 0],
+        "active_variance": [1e-6, 1.0],
+        "R": [1e-3, 1.0],
         "grid_points": 10,
     },
     "simulation": {
         "configs_per_design": 250,
-        "duration": 20.0,  # s
-        "force_step": 10.0,  # N
-        "sensor_noise": EXAMPLE1.R,  # N^2, the true sensor's noise variance
+        "duration": 20.0,
+        "force_step": 10.0,
+        "sensor_noise": EXAMPLE1.R,
     },
     "margins": {"num_points": 512},
 }
 """The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
+
+CONFIG_NOTES = {
+    "scenario": f"the sweep ('jaxobs sweep --list'); {NAME!r} is the default",
+    "seed": "base of every configuration's random key (configuration i draws from its own key)",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+    "plant": "the true plants, drawn independently per configuration",
+    "plant.stiffness": "true sensor stiffness Ks (N/mm, nominal 3), log-uniform in [low, high]",
+    "plant.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
+    "plant.dead_time_samples": "true dead time in samples of h = 8 ms (nominal 5), uniform; fractions allowed",
+    "controllers": "the designs, all on the nominal plant: every order x grid_points x grid_points Q/R strategies",
+    "controllers.orders": "AOB-N orders to design; 0 is the CKF (no active state)",
+    "controllers.active_variance": "range of sigma^2 of eq. 55 (the CKF: its plant-state variance Q_xr), log grid",
+    "controllers.R": "range of the designs' measurement variance R (N^2), log grid",
+    "controllers.grid_points": "points of each log grid (one point: the geometric mean of the range)",
+    "simulation": "the closed-loop run of each configuration (eq. 81-82 disturbance at the plant input)",
+    "simulation.configs_per_design": "true plants per design; a larger value extends a sweep in the same directory",
+    "simulation.duration": "simulated time (s)",
+    "simulation.force_step": "force set-point (N) from t = 0",
+    "simulation.sensor_noise": "the true sensor's noise variance (N^2)",
+    "margins": "the loop transfer function's margins (eq. 65)",
+    "margins.num_points": "frequency points of the margin search (at least 16)",
+}
 
 SIZE_KEY = "simulation.configs_per_design"  # a larger value extends a sweep in the same directory
 MAX_DEAD_TIME_SAMPLES = 100
@@ -73,7 +107,7 @@ MAX_ORDER = 5
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
     """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
     config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", ("force-control",))
+    check_choice(config, source, "scenario", (NAME,))
     check_range(config, source, "plant.stiffness", positive=True)
     check_range(config, source, "plant.time_constant_scale", positive=True)
     check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
@@ -337,50 +371,73 @@ def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
 
 
 def _plot_distributions(cols, orders, out_dir: Path) -> str:
+    """Histograms of the stable configurations' margins and RMS errors, in report.md's units; the quantities that
+    span decades on log axes (log-spaced bins shared by the controllers)."""
     plt = pyplot()
     stable = cols["metric.stable"].astype(bool)
-    panels = [
-        ("metric.gain_margin", "gain margin (dB)", lambda v: 20 * np.log10(v)),
-        ("metric.phase_margin", "phase margin (deg)", lambda v: v),
-        ("metric.delay_margin", "delay margin (samples)", lambda v: v / EXAMPLE1.h),
-        ("metric.rms_force_error", "RMS force error (N), log10", np.log10),
+    panels = [  # key, label, scale to report.md's unit, log axis
+        ("metric.gain_margin", "gain margin (factor)", 1.0, True),
+        ("metric.phase_margin", "phase margin (deg)", 1.0, False),
+        ("metric.delay_margin", "delay margin (ms)", 1e3, True),
+        ("metric.rms_force_error", "RMS force error (N)", 1.0, True),
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6))
-    for ax, (key, label, transform) in zip(axes, panels, strict=True):
+    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6), layout="constrained")
+    for ax, (key, label, scale, log) in zip(axes, panels, strict=True):
+        values = {}
         for order in orders:
-            sel = (cols["param.order"] == order) & stable
-            with np.errstate(divide="ignore", invalid="ignore"):
-                values = transform(cols[key][sel])
-            values = values[np.isfinite(values)]
-            if values.size:
-                ax.hist(values, bins=40, histtype="step", label=_name(order))
+            v = scale * cols[key][(cols["param.order"] == order) & stable]
+            values[order] = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
+        pooled = np.concatenate(list(values.values()))
+        if not pooled.size:
+            continue
+        low, high = pooled.min(), pooled.max()
+        bins = np.geomspace(low, high * (1 + 1e-9), 41) if log and high > low else 40
+        for order, v in values.items():
+            if v.size:
+                ax.hist(v, bins=bins, histtype="step", label=_name(order), color=_colour(order))
+        if log:
+            ax.set_xscale("log")
         ax.set_xlabel(label)
     axes[0].set_ylabel("stable configurations")
-    axes[0].legend()
-    fig.suptitle("Margins and tracking error over the stable configurations")
+    if axes[0].get_legend_handles_labels()[0]:  # not for a sweep without a stable configuration
+        axes[0].legend()
+    fig.suptitle("Margins and tracking error over the stable configurations (infinite margins left out)")
     return save_figure(fig, out_dir, "distributions")
 
 
+def _colour(order: int) -> str:
+    """One colour per controller in every figure (AOB-1, AOB-2, AOB-3, CKF)."""
+    return {1: "C0", 2: "C1", 3: "C2", 0: "C3"}.get(order, "C4")
+
+
 def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
-    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired."""
+    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired, one panel (and one
+    force scale) per controller."""
     plt = pyplot()
     steps, n_delay, _, desired, _ = _scenario(config)
     closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
-    for name, case in worst.items():
+    orders = {_name(order): order for order in config["controllers"]["orders"]}
+    rows = max(len(worst), 1)  # a sweep without a stable configuration still gets its (empty) figure
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.4 * rows + 0.6), sharex=True, squeeze=False,
+                             layout="constrained")  # fmt: skip
+    if not worst:
+        axes[0, 0].plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        axes[0, 0].set(title="no stable configuration", ylabel="force (N)")
+    for ax, (name, case) in zip(axes[: len(worst), 0], worst.items(), strict=True):
         ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
         true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
                            n_delay=n_delay)  # fmt: skip
         force = closed_loop(true, ctrl, case["noise_seed"])[0]
-        ax.plot(t, np.asarray(force), lw=0.8,
-                label=f"{name}: Ks={case['stiffness']:.2g}, Tp={case['time_constant'] * 1e3:.0f} ms, "
-                f"d={case['dead_time_samples']:.1f}, RMS {case['rms_force_error']:.2f} N")  # fmt: skip
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("force (N)")
-    ax.set_title("Worst stable case per controller (largest RMS force error)")
-    ax.legend(fontsize=7)
+        ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        ax.plot(t, np.asarray(force), lw=0.8, color=_colour(orders[name]), label=name)
+        ax.set_title(f"{name}: Ks = {case['stiffness']:.2g} N/mm, Tp = {case['time_constant'] * 1e3:.0f} ms, "
+                     f"dead time {case['dead_time_samples']:.1f} samples; RMS error {case['rms_force_error']:.2f} N",
+                     fontsize=9)  # fmt: skip
+        ax.set_ylabel("force (N)")
+        ax.legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle("Worst stable case per controller (largest RMS force error)")
     return save_figure(fig, out_dir, "worst_cases")
 
 

@@ -37,6 +37,7 @@ from jaxobs.observers import active
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
+    COMMON_NOTES,
     check_common,
     check_plant_memory,
     optimizer_defaults,
@@ -53,9 +54,9 @@ from jaxobs.tuning import (
     unit_interval_parameters,
 )
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
 
-NAME = "force_1dof"
+NAME = "force-1dof"
 HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # The MRAC chapter eq. 62 and 64
 PARAMETERISATIONS = ("diagonal", "cholesky", "structured")
 MAX_ORDER = 3
@@ -64,37 +65,66 @@ DEFAULT_CONFIG = {
     "problem": NAME,
     "seed": 0,
     "plants": {
-        "stiffness_scale": [0.5, 1.5],  # true Ks / nominal Ks, uniform
-        "time_constant_scale": [1.0, 1.0],  # true Tp / nominal Tp, uniform
-        "damping": [0.0, 0.0],  # sensor + environment damping, N s/mm, uniform
+        "stiffness_scale": [0.5, 1.5],
+        "time_constant_scale": [1.0, 1.0],
+        "damping": [0.0, 0.0],
         "train": 16,
         "heldout": 64,
-        "mjcf": "",  # a user's MJCF of the plant (same joint/body/actuator names); "" = the packaged model
+        "mjcf": "",
     },
     "scenario": {
-        "duration": 2.0,  # s
-        "force_step": 10.0,  # N at t = 0
-        "sensor_noise": EXAMPLE1.R,  # N^2, the true sensor's noise variance
-        "disturbance_window": 7.0,  # s: the plant sees D(t + 7 s) of eq. 81-82 (its 8 s step at t = 1 s)
+        "duration": 2.0,
+        "force_step": 10.0,
+        "sensor_noise": EXAMPLE1.R,
+        "disturbance_window": 7.0,
         "disturbance_scale": 1.0,
-        "surface_speed": 2.0,  # mm/s, receding (the stochastic AOB paper §4)
-        "surface_start": 1.5,  # s
-        "force_limit": 1000.0,  # N: a rollout beyond it counts as diverged
-        "gradient_horizon": 0,  # control steps of truncated backpropagation; 0 = none
+        "surface_speed": 2.0,
+        "surface_start": 1.5,
+        "force_limit": 1000.0,
+        "gradient_horizon": 0,
     },
     "design": {
-        "order": 1,  # AOB-N
+        "order": 1,
         "parameterisation": "diagonal",
         "q_plant": HAND_SET["q_plant"],
         "q_active": HAND_SET["q_active"],
         "R": HAND_SET["R"],
-        "spectral_radius_limit": 0.995,  # the penalty's threshold (optimizer.penalty_weight > 0 enables it)
+        "spectral_radius_limit": 0.995,
     },
     "optimizer": optimizer_defaults(learning_rate=0.2, steps=40, clip_norm=5.0, patience=12, checkpoint_every=5),
     "baseline": dict(BASELINE_DEFAULTS),
 }
 """Tune the AOB-1 of the 1-DOF MJX force plant across +-50 % stiffness mismatch (16 training plants,
 64 held-out plants, 2 s rollouts)."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": f"the tuning problem ('jaxobs tune --list'); {NAME!r} is the default",
+    "plants": "the mismatched MJX plants, drawn per plant (training and held-out sets from independent keys)",
+    "plants.stiffness_scale": "true Ks / nominal Ks (3 N/mm), uniform",
+    "plants.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
+    "plants.damping": "sensor + environment damping (N s/mm), uniform",
+    "plants.train": "training plants (one rollout each per gradient evaluation)",
+    "plants.heldout": "held-out plants, never used in training, that score the designs",
+    "plants.mjcf": "a user's MJCF of the plant (same joint, body and actuator names); empty: the packaged model",
+    "scenario": "the rollout every plant runs",
+    "scenario.duration": "rollout length (s)",
+    "scenario.force_step": "force set-point (N) from t = 0",
+    "scenario.sensor_noise": "the true sensor's noise variance (N^2), drawn per plant with a fixed seed",
+    "scenario.disturbance_window": "the plant sees D(t + window) of eq. 81-82 (s; 7: its 8 s step at t = 1 s)",
+    "scenario.disturbance_scale": "factor on the eq. 81-82 input disturbance",
+    "scenario.surface_speed": "receding contact surface speed (mm/s; the stochastic AOB paper §4)",
+    "scenario.surface_start": "time the surface starts moving (s)",
+    "scenario.force_limit": "a rollout whose force exceeds it (N) counts as diverged",
+    "scenario.gradient_horizon": "control steps of truncated backpropagation; 0: the whole rollout",
+    "design": "the AOB and its hand-set starting point (the MRAC chapter eq. 62-64)",
+    "design.order": "AOB-N order (1 to 3)",
+    "design.parameterisation": "'diagonal' (log Q diagonal), 'cholesky' (full Q) or 'structured' (eq. 53-55)",
+    "design.q_plant": "hand-set plant-state variance Q_xr",
+    "design.q_active": "hand-set active-state variance",
+    "design.R": "hand-set measurement variance (N^2)",
+    "design.spectral_radius_limit": "threshold of the spectral-radius penalty (enabled by optimizer.penalty_weight)",
+}
 
 
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:

@@ -361,21 +361,28 @@ LABELS = {
     "aob": "AOB-1 (estimator)",
     "kalman": "Kalman (no d state)",
 }
+STYLES = {  # the H-infinity and AOB-1 estimates nearly coincide: H-infinity dashed, on top
+    "inverse_dynamics": dict(color="C0", lw=1.0, zorder=3),
+    "hinf": dict(color="C1", lw=1.4, ls=(0, (4, 3)), zorder=4),
+    "aob": dict(color="C2", lw=1.0, zorder=2),
+    "kalman": dict(color="C3", lw=1.0, zorder=2),
+}
 
 
 def _fig_pair(run_: dict, methods, title: str):
     plt = pyplot()
-    fig, axes = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
+    fig, axes = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True, layout="constrained")  # no clipped label
     t = run_["t"]
     axes[0].plot(t, run_["d"], "k", lw=2, label="true")
     axes[1].plot(t, run_["v_y"], "k", lw=2, label="true")
     for m in methods:
         vy, d = run_["estimates"][m]
-        axes[0].plot(t, d, lw=1, label=LABELS[m])
-        axes[1].plot(t, vy, lw=1, label=LABELS[m])
+        rms = run_["rms"][m]
+        axes[0].plot(t, d, label=f"{LABELS[m]}, RMS {float(rms['d']):.3g}", **STYLES[m])
+        axes[1].plot(t, vy, label=f"{LABELS[m]}, RMS {float(rms['v_y']):.3g}", **STYLES[m])
     axes[0].set_ylabel("d (m/s$^2$)")
     axes[1].set_ylabel("$v_y$ (m/s)")
-    axes[1].set_xlabel("t (s)")
+    axes[1].set_xlabel(f"t (s); RMS errors from t = {RMS_START:g} s")
     axes[0].set_title(title)
     shown = t >= 0.2  # y-limits from after the start-up spike (it stays visible, clipped)
     for ax, key, i in ((axes[0], "d", 1), (axes[1], "v_y", 0)):

@@ -34,9 +34,9 @@ from jaxobs.papers import liu_peng as lp
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.sweep import load_results, run_configured_sweep
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
 
-NAME = "liu_peng"
+NAME = "liu-peng"
 SCALES = ("mass_scale", "inertia_scale", "front_stiffness_scale", "rear_stiffness_scale")
 ERRORS = ("v_y", "d")
 UNITS = {"v_y": "m/s", "d": "m/s^2"}
@@ -46,22 +46,40 @@ DEFAULT_CONFIG = {
     "seed": 0,
     "chunk_size": 100,
     "vehicle": {
-        "mass_scale": [0.8, 1.2],  # true m / nominal, uniform
-        "inertia_scale": [0.8, 1.2],  # true I_z / nominal
-        "front_stiffness_scale": [0.7, 1.1],  # true C_f / nominal
-        "rear_stiffness_scale": [0.7, 1.1],  # true C_r / nominal
-        "steer_offset_deg": [-0.02, 0.02],  # true road-wheel angle minus the measured 0.33 deg
+        "mass_scale": [0.8, 1.2],
+        "inertia_scale": [0.8, 1.2],
+        "front_stiffness_scale": [0.7, 1.1],
+        "rear_stiffness_scale": [0.7, 1.1],
+        "steer_offset_deg": [-0.02, 0.02],
         "count": 500,
     },
     "noise": {
-        "std": lp.NOISE_STD,  # white yaw-rate noise (rad/s), a fresh seed per configuration
-        "sine": lp.NOISE_SINE,  # amplitude of the 1 Hz sine on the yaw rate (rad/s)
+        "std": lp.NOISE_STD,
+        "sine": lp.NOISE_SINE,
     },
     "estimators": {
-        "lowpass": True,  # the robustness case's fifth-order low-pass on y for the inverse-dynamics observer
+        "lowpass": True,
     },
 }
 """500 vehicles: m, I_z +-20 %, C_f, C_r -30..+10 %, steering offset +-0.02 deg, the §4.2 robustness noise."""
+
+CONFIG_NOTES = {
+    "scenario": "the sweep ('jaxobs sweep --list')",
+    "seed": "base of every configuration's random key",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+    "vehicle": "the true vehicles, every factor drawn independently and uniformly per configuration",
+    "vehicle.mass_scale": "true mass m / nominal",
+    "vehicle.inertia_scale": "true yaw inertia I_z / nominal",
+    "vehicle.front_stiffness_scale": "true front cornering stiffness C_f / nominal",
+    "vehicle.rear_stiffness_scale": "true rear cornering stiffness C_r / nominal",
+    "vehicle.steer_offset_deg": "true road-wheel angle minus the measured 0.33 deg (deg)",
+    "vehicle.count": "number of vehicles (configurations); a larger value extends a sweep in the same directory",
+    "noise": "the measured yaw rate's noise, a fresh seed per configuration",
+    "noise.std": "standard deviation of the white yaw-rate noise (rad/s)",
+    "noise.sine": "amplitude of the 1 Hz sine on the yaw rate (rad/s)",
+    "estimators": "the four estimators, designed once on the nominal vehicle",
+    "estimators.lowpass": "the fifth-order 3 Hz low-pass on y before the inverse-dynamics observer (§4.2 robustness)",
+}
 
 
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:

@@ -27,6 +27,7 @@ from jaxobs.closed_loop import ideal_response
 from jaxobs.observers.active import active_observer_controller
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
+    COMMON_NOTES,
     check_common,
     check_plant_memory,
     optimizer_defaults,
@@ -35,31 +36,48 @@ from jaxobs.papers._tuning_config import (
 from jaxobs.plants import force_plant
 from jaxobs.tuning import TuningProblem
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
 
-NAME = "peg_on_hole"
+NAME = "peg-on-hole"
 
 DEFAULT_CONFIG = {
     "problem": NAME,
     "seed": 0,
     "plants": {
-        "stiffness_scale": [0.5, 1.5],  # per DOF, independently, uniform
-        "tilt": [0.02, 0.06],  # initial peg tilt (rad), uniform
-        "contact_radius": [10.0, 13.0],  # mm (the peg radius is 11.5 mm), uniform
+        "stiffness_scale": [0.5, 1.5],
+        "tilt": [0.02, 0.06],
+        "contact_radius": [10.0, 13.0],
         "train": 8,
         "heldout": 32,
     },
     "scenario": {
-        "duration": 3.0,  # s
-        "alignment_start": 1.0,  # s
-        "alignment_end": 2.5,  # s
-        "insertion_velocity_bias": 0.05,  # mm/s on v_z
-        "force_limit": 1000.0,  # N (and N m): a rollout beyond it counts as diverged
+        "duration": 3.0,
+        "alignment_start": 1.0,
+        "alignment_end": 2.5,
+        "insertion_velocity_bias": 0.05,
+        "force_limit": 1000.0,
     },
     "optimizer": optimizer_defaults(learning_rate=0.3, steps=20, gradient="forward", patience=8, checkpoint_every=5),
     "baseline": dict(BASELINE_DEFAULTS),
 }
 """Tune the x, y, rx, rz active-state variances over +-50 % stiffness mismatch (8 training, 32 held-out plants)."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": "the tuning problem ('jaxobs tune --list')",
+    "plants": "the mismatched 6-DOF MJX plants (training and held-out sets from independent keys)",
+    "plants.stiffness_scale": "true / nominal stiffness, each of the six DOF drawn independently, uniform",
+    "plants.tilt": "initial peg tilt (rad), uniform",
+    "plants.contact_radius": "contact lever (mm; the peg radius is 11.5 mm), uniform",
+    "plants.train": "training plants (one rollout each per gradient evaluation)",
+    "plants.heldout": "held-out plants, never used in training, that score the designs",
+    "scenario": "the alignment task every plant runs (the MRAC chapter §7)",
+    "scenario.duration": "rollout length (s)",
+    "scenario.alignment_start": "start of the alignment rotation w_y (s)",
+    "scenario.alignment_end": "end of the alignment rotation (s), at most the duration",
+    "scenario.insertion_velocity_bias": "feedforward bias on v_z (mm/s)",
+    "scenario.force_limit": "a rollout whose force (N) or moment (N m) exceeds it counts as diverged",
+}
 
 
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:

@@ -40,9 +40,9 @@ from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.sweep import config_key, load_results, run_configured_sweep
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "validate_config", "make_sweep", "run"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run"]
 
-NAME = "steer_by_wire"
+NAME = "steer-by-wire"
 FACTORS = tuple(f"{model}_{kind}" for model in sbw.ACTUATOR_MODELS for kind in ("gain", "pole"))
 
 DEFAULT_CONFIG = {
@@ -50,12 +50,22 @@ DEFAULT_CONFIG = {
     "seed": 0,
     "chunk_size": 250,
     "plants": {
-        "gain_scale": [0.7, 1.3],  # each actuator model's gain, uniform
-        "pole_scale": [0.7, 1.3],  # each actuator model's poles, uniform
+        "gain_scale": [0.7, 1.3],
+        "pole_scale": [0.7, 1.3],
         "count": 1000,
     },
 }
 """1000 SBW plants with every gain and pole of eq. 95-98 off by up to +-30 %."""
+
+CONFIG_NOTES = {
+    "scenario": "the sweep ('jaxobs sweep --list')",
+    "seed": "base of every configuration's random key",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+    "plants": "the true SBW plants: the four identified actuator models of eq. 95-98, each factor drawn independently",
+    "plants.gain_scale": "true / identified gain of each actuator model, uniform",
+    "plants.pole_scale": "true / identified poles of each actuator model (all its poles by one factor), uniform",
+    "plants.count": "number of true plants (configurations); another count is another sweep",
+}
 
 
 def validate_config(given: dict | None = None, source: str = "<default>") -> dict:

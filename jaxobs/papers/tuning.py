@@ -175,15 +175,26 @@ def _plot_loss_curves(history, search, scores, objective: str, out: Path) -> str
 
 
 def _plot_parameters(history, out: Path) -> str:
+    """Each unconstrained parameter per evaluation, one panel per entry of ``theta``, a line per component
+    (labelled by its flat index when there are at most 10)."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = pyplot()
     names = list(history[0]["theta"])
-    fig, axes = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 3.8), squeeze=False, layout="constrained")
     ev = [h["evaluation"] for h in history]
     for ax, name in zip(axes[0], names, strict=True):
         values = np.array([np.ravel(h["theta"][name]) for h in history])
-        ax.plot(ev, values, lw=1)
-        ax.set(xlabel="evaluation", title=name)
-    fig.suptitle("Unconstrained parameters (log / logit scale) during tuning")
+        for i, column in enumerate(values.T):
+            ax.plot(ev, column, "o-", ms=2.5, lw=1, label=f"{name}[{i}]")
+        size = values.shape[1]
+        ax.set(xlabel="evaluation", ylabel=f"{name} (unconstrained)", title=name if size <= 10 else
+               f"{name} ({size} components, flattened)")  # fmt: skip
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        if 1 < size <= 10:  # a legend of more entries would hide the lines
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle("Unconstrained parameters during tuning (log_: natural log of a variance; logit_: of a factor "
+                 "in (0, 1); q_cholesky: Cholesky factor, log diagonal)", fontsize=10)  # fmt: skip
     return save_figure(fig, out, "parameters")
 
 

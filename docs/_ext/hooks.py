@@ -1,0 +1,129 @@
+"""MkDocs hooks: the API reference generated from the package, the command-line page from the parser.
+
+* API reference: one page per public module of ``jaxobs`` (a module without a leading underscore in its path),
+  written in memory (``api/<module>.md``, rendered by mkdocstrings) and put under the ``API reference`` section
+  of the nav, grouped by subpackage. A new module appears without editing mkdocs.yml. A package's page shows its
+  docstring, what it defines itself and the table of what it exports (linked to their modules' pages).
+* Command line: ``<!-- jaxobs-cli: ARGS -->`` in a page is replaced by the output of ``jaxobs ARGS`` (help texts,
+  ``--list``, ``--print-config``), so the page shows what the installed command prints.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import shlex
+import sys
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+ROOT = Path(__file__).parents[2]
+PACKAGE = "jaxobs"
+API_SECTION = "API reference"
+API_INDEX = "api/index.md"
+CLI_MARKER = re.compile(r"<!-- jaxobs-cli: (.*?) -->")
+
+
+def public_modules() -> list[str]:
+    """Dotted names of the public modules, packages first within each package, sorted."""
+    names = []
+    for path in sorted((ROOT / PACKAGE).rglob("*.py")):
+        parts = list(path.relative_to(ROOT).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        if not any(p.startswith("_") for p in parts):
+            names.append(".".join(parts))
+    return sorted(names, key=lambda name: (name.split("."), name))
+
+
+def _is_package(name: str) -> bool:
+    return (ROOT / Path(*name.split(".")) / "__init__.py").is_file()
+
+
+def _page(name: str) -> str:
+    return API_INDEX if name == PACKAGE else f"api/{name}.md"
+
+
+def _nav(names: list[str], parent: str) -> list:
+    """Nav entries of the modules directly under ``parent`` (subpackages as sections headed by their page)."""
+    entries = []
+    for name in names:
+        if name.rpartition(".")[0] != parent:
+            continue
+        if _is_package(name):
+            entries.append({name: [_page(name), *_nav(names, name)]})
+        else:
+            entries.append({name: _page(name)})
+    return entries
+
+
+def _exports(name: str) -> list[tuple[str, str]]:
+    """``(exported name, canonical path)`` for each name of the package ``name``'s ``__all__`` defined in jaxobs."""
+    import griffe
+
+    package = griffe.load(name, search_paths=[str(ROOT)], resolve_aliases=True, resolve_external=False)
+    rows = []
+    for export in package.exports or []:
+        if export.startswith("__") or export not in package.members:
+            continue
+        member = package.members[export]
+        try:
+            path = member.final_target.path if member.is_alias else member.path
+        except (griffe.AliasResolutionError, griffe.CyclicAliasError):
+            continue
+        if path.startswith(PACKAGE + "."):
+            rows.append((export, path))
+    return rows
+
+
+def _markdown(name: str) -> str:
+    header = f"::: {name}\n    options:\n      heading_level: 1\n"
+    if not _is_package(name):
+        return header
+    exports = _exports(name)
+    own = [export for export, path in exports if path == f"{name}.{export}"]  # defined in the package itself
+    rows = "".join(f"| [`{export}`][{path}] | `{path.rpartition('.')[0]}` |\n" for export, path in exports)
+    table = f"\n| name | defined in |\n| --- | --- |\n{rows}" if rows else ""
+    return header + f"      members: {own or 'false'}\n" + table
+
+
+def on_config(config):
+    sys.path.insert(0, str(ROOT))  # run this checkout's command, wherever the environment's jaxobs points
+    names = public_modules()
+    nav = config["nav"]
+    for i, entry in enumerate(nav):
+        if isinstance(entry, dict) and entry.get(API_SECTION) == API_INDEX:
+            nav[i] = {API_SECTION: [API_INDEX, *_nav(names, PACKAGE)]}
+            break
+    else:
+        raise ValueError(f"mkdocs.yml: the nav needs the entry '{API_SECTION}: {API_INDEX}'")
+    return config
+
+
+def on_files(files, config):
+    for name in public_modules():
+        files.append(File.generated(config, _page(name), content=_markdown(name)))
+    return files
+
+
+def _cli_output(args: str) -> str:
+    import jaxobs
+    from jaxobs.cli import main
+
+    if Path(jaxobs.__file__).parent != ROOT / PACKAGE:
+        raise RuntimeError(f"the command-line page would show {jaxobs.__file__}, not this checkout's jaxobs")
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            status = main(shlex.split(args))
+    except SystemExit as exc:  # --help, --version
+        status = exc.code
+    if status:
+        raise RuntimeError(f"jaxobs {args} exited with status {status}")
+    return f"```console\n$ jaxobs {args}\n{out.getvalue().rstrip()}\n```"
+
+
+def on_page_markdown(markdown, page, config, files):
+    return CLI_MARKER.sub(lambda m: _cli_output(m.group(1)), markdown)

@@ -1,0 +1,31 @@
+# slow: 1-DOF MJX force plant, 4 training plants x 0.5 s rollouts, 5 gradient steps (about 40 s of CPU)
+"""Tuning guide: the noise covariances of an AOB-1 tuned by gradient descent through MuJoCo MJX rollouts."""
+
+# --8<-- [start:problem]
+import jax
+
+import jaxobs as jo
+from jaxobs.papers import force_tuning, tuning
+from jaxobs.tuning import evaluate
+
+jax.config.update("jax_enable_x64", True)
+
+# the packaged 1-DOF problem ('jaxobs tune --list'), made small: any key of 'jaxobs tune --print-config'
+small = {"plants": {"train": 4, "heldout": 8}, "scenario": {"duration": 0.5}, "optimizer": {"steps": 5}}
+config = tuning.validate_config(small)
+problem = force_tuning.build_problem(config)  # a jo.TuningProblem: theta0, per-plant losses, train/held-out plants
+print(sorted(problem.theta0), problem.batch_size(problem.train), problem.batch_size(problem.heldout))
+# prints: ['log_q', 'log_r'] 4 8
+# --8<-- [end:problem]
+
+# --8<-- [start:tune]
+settings = jo.TuneSettings(**config["optimizer"])  # adam on the mean loss of the training plants
+result = jo.tune(problem, settings, progress=False)  # add checkpoint="tune.npz" to resume after Ctrl-C
+before, after = (evaluate(problem, theta, settings) for theta in (problem.theta0, result.theta))
+print(f"{result.evaluations} evaluations, {result.rollouts} rollouts")
+print(f"held-out mean squared force error: {before['mean']:.2f} -> {after['mean']:.2f} N^2")
+print({k: f"{v:.1e}" for k, v in problem.describe(result.theta).items() if k in ("q_active", "R")})
+# prints: 5 evaluations, 20 rollouts
+# prints: held-out mean squared force error: 24.54 -> 22.61 N^2
+# prints: {'q_active': '2.2e-05', 'R': '9.4e-03'}
+# --8<-- [end:tune]
