@@ -282,7 +282,8 @@ def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, set
     theta = jax.tree.map(lambda a: jnp.asarray(a).astype(jnp.result_type(a, float)), theta0)
     if not jax.tree.leaves(theta):
         raise ValueError("theta0 has no parameters to fit")
-    _checks.finite("theta0", jax.tree.leaves(theta))
+    for leaf in jax.tree.leaves(theta):
+        _checks.finite("theta0", leaf)
     y, u = _batched(build(theta), inputs)
     step, optimizer = _stepper(estimator, settings)
     state = optimizer.init(theta)
