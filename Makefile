@@ -41,6 +41,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/nonlinear.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/ct_integration.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/estimation.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/learning.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
