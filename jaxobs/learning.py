@@ -423,7 +423,7 @@ def em(params: KalmanParams, inputs: EstimatorInputs, *, iterations: int = 100, 
     Each iteration smooths every sequence with the current model (E-step, with the lag-one cross-covariances) and
     sets the fields in ``update`` to the maximisers of the expected complete-data log-likelihood (M-step), e.g.
     ``Q = sum_k E[(x_k - Phi x_{k-1} - Gamma u_{k-1})(...)'] / (B (T - 1))`` and
-    ``R = sum_k E[(y_k - C x_k)(...)'] / (B T)`` (Shumway & Stoffer 1982, eq. 12-14; Ghahramani & Hinton 1996),
+    ``R = sum_k E[(y_k - C x_k)(...)'] / (B T)`` (Shumway & Stoffer 1982; Ghahramani & Hinton 1996),
     missing components included (module docstring). The log-likelihood never decreases; it stops when its relative
     change falls below ``tolerance``. Works under ``jit`` (``iterations`` and ``update`` static) and ``vmap``.
 

@@ -191,22 +191,22 @@ def test_missing_data_loss_is_per_observed_component(missing_data):
     np.testing.assert_allclose(negative_log_likelihood(kalman_filter, params, padded), -total / count, rtol=1e-12)
 
 
-def test_jit_and_vmap():
-    """negative_log_likelihood and em under jit and vmap over datasets equal the eager calls; sample under vmap."""
-    datasets = [_data_with_missing(jax.random.PRNGKey(k), sequences=2, steps=20) for k in (5, 6)]
+def test_jit_and_vmap(missing_data):
+    """negative_log_likelihood and em under jit and vmap over two data sets equal the eager calls (em with the shapes
+    and settings of the stationary-point test, whose compiled program it reuses)."""
+    datasets = [missing_data, missing_data._replace(y=missing_data.y[::-1] * 0.9)]
     stacked = jax.tree.map(lambda *a: jnp.stack(a), *datasets)
-    params = _model_with_inputs()
+    params = dataclasses.replace(_model_with_inputs(), Q=jnp.eye(2), R=jnp.eye(2))
     eager = [negative_log_likelihood(kalman_filter, params, d) for d in datasets]
     batched = jax.jit(jax.vmap(lambda d: negative_log_likelihood(kalman_filter, params, d)))(stacked)
     np.testing.assert_allclose(batched, eager, rtol=1e-12)
-    each = [em(params, d, iterations=2, update=("Q", "R", "C"), tolerance=0.0) for d in datasets]
-    together = jax.jit(jax.vmap(lambda d: em(params, d, iterations=2, update=("Q", "R", "C"), tolerance=0.0)))(stacked)
+    each = [em(params, d, iterations=3000, tolerance=1e-15) for d in datasets]
+    together = jax.jit(jax.vmap(lambda d: em(params, d, iterations=3000, tolerance=1e-15)))(stacked)
     for i, single in enumerate(each):
+        assert 10 < int(single.iterations) < 3000
         for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(jax.tree.map(lambda x, i=i: x[i], together)),
                         strict=True):  # fmt: skip
-            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
-    x, y = jax.vmap(lambda k: sample(params, k, 5, jnp.zeros((5, 1))))(jax.random.split(jax.random.PRNGKey(0), 3))
-    assert x.shape == (3, 5, 2) and y.shape == (3, 5, 2)
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
 def test_bad_inputs_raise_naming_the_argument(scalar_data):
