@@ -85,15 +85,23 @@ def sample(params: KalmanParams, key, num_steps: int, u_prev=None):
     Returns:
       ``(x, y)`` of shapes (T, n) and (T, p).
     """
+    if not isinstance(params, KalmanParams):
+        raise ValueError(f"params must be KalmanParams (make_kalman), got {type(params).__name__}")
     T = _checks.count("num_steps", num_steps, minimum=1)
-    n, m, p, dtype = params.Phi.shape[-1], params.Gamma.shape[-1], params.C.shape[-2], params.Phi.dtype
+    m, dtype = params.Gamma.shape[-1], params.Phi.dtype
     if u_prev is not None:
         u_prev = jnp.asarray(u_prev, dtype)
         _checks.shape("u_prev", u_prev, (T, m), "(num_steps, inputs)")
+    return _sample(params, key, u_prev, num_steps=T)
+
+
+@partial(jax.jit, static_argnames=("num_steps",))
+def _sample(params: KalmanParams, key, u_prev, *, num_steps: int):
+    n, p, dtype = params.Phi.shape[-1], params.C.shape[-2], params.Phi.dtype
     k0, kw, kv = jax.random.split(key, 3)
     x0 = params.x0 + _psd_sqrt(params.P0) @ jax.random.normal(k0, (n,), dtype)
-    w = jax.random.normal(kw, (T, n), dtype) @ _psd_sqrt(params.Q).T
-    v = jax.random.normal(kv, (T, p), dtype) @ _psd_sqrt(params.R).T
+    w = jax.random.normal(kw, (num_steps, n), dtype) @ _psd_sqrt(params.Q).T
+    v = jax.random.normal(kv, (num_steps, p), dtype) @ _psd_sqrt(params.R).T
     drive = w[1:] if u_prev is None else w[1:] + u_prev[1:] @ params.Gamma.T
 
     def body(x, d):
