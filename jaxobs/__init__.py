@@ -16,6 +16,9 @@
 * estimation over a record (:mod:`jaxobs.smoothing`): :func:`log_likelihood`, :func:`smooth` (Rauch-Tung-Striebel,
   for the Kalman filter and the active observer), :func:`rts_smoother`, :func:`parallel_filter` (parallel in time),
   and the square-root Kalman filter :data:`square_root_kalman_filter` (:func:`square_root_form`);
+* learning from data (:mod:`jaxobs.learning`): maximum likelihood of ``Q``, ``R`` or any model parameter with optax
+  (:func:`fit`, :class:`FitSettings`, :func:`covariance_model`), EM for the linear-Gaussian model (:func:`em`), and
+  :func:`sample` to draw records of it;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
@@ -30,6 +33,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
+from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
 from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
@@ -131,6 +135,12 @@ __all__ = [
     "rts_smoother",
     "parallel_filter",
     "Smoothed",
+    # learning from data
+    "sample",
+    "fit",
+    "FitSettings",
+    "covariance_model",
+    "em",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -1,0 +1,496 @@
+"""Learning a model from recorded data: maximum likelihood by gradient (optax) for any estimator with a
+log-likelihood, and expectation-maximisation for the linear-Gaussian model.
+
+Data are ``B`` recorded sequences of ``T`` samples, ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components
+missing) and ``u_prev`` (B, T, m) or ``None``; one sequence may be given as (T, p).
+
+* :func:`fit` minimises the negative log-likelihood per observed measurement component
+  (:func:`negative_log_likelihood`, the sum over sequences of :func:`jaxobs.smoothing.log_likelihood`, exact with
+  missing data) over unconstrained parameters ``theta`` mapped to the estimator's params by ``build_params``, so
+  ``Q``, ``R`` and any model parameter can be learned. Constraints come from the tuner's parameterisations
+  (:func:`jaxobs.tuning.cholesky_covariance` for covariances, ``exp`` for positive scalars,
+  :func:`jaxobs.tuning.unit_interval`); :func:`covariance_model` builds the usual case, full ``Q`` and ``R``. The
+  loop takes optax steps (L-BFGS with a zoom line search by default: the objective is deterministic and smooth;
+  or a first-order optimizer of the tuner), shows a progress bar, stops early once the loss stops improving and
+  returns the best parameters and the loss curve.
+* :func:`em` is the EM algorithm of the linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani & Hinton 1996):
+  the E-step is the Rauch-Tung-Striebel smoother (:func:`jaxobs.smoothing.smooth`) with the lag-one
+  cross-covariances ``Cov(x_k, x_{k-1} | Y) = P_{k|T-1} E_{k-1}'`` (de Jong 1989; ``E`` the smoother gains), the
+  M-step the closed-form maximiser of the expected complete-data log-likelihood over any of ``Phi``, ``Gamma``,
+  ``C``, ``Q``, ``R``, ``x0``, ``P0``. Missing measurement components are latent in the complete data: given
+  ``x_k`` and the observed components ``o``, the noise is ``v_k | x_k, y_o ~ N(G (y_o - C_o x_k), R - G R_o.)``
+  with ``G = R_.o R_oo^{-1}``, which makes every iteration an exact EM step for any ``R``, so the log-likelihood
+  never decreases.
+* :func:`sample` draws records from a linear-Gaussian model (the data of the tests and of
+  ``benchmarks/learning.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import lru_cache, partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxobs import _checks
+from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.kalman import KalmanParams, kalman_filter
+from jaxobs.riccati import symmetrize
+from jaxobs.smoothing import log_likelihood, smooth
+from jaxobs.tuning import OPTIMIZERS, cholesky_covariance, cholesky_parameters
+
+__all__ = [
+    "sample",
+    "negative_log_likelihood",
+    "covariance_model",
+    "FitSettings",
+    "FitResult",
+    "fit",
+    "EMResult",
+    "em",
+    "EM_FIELDS",
+]
+
+EM_FIELDS = ("Phi", "Gamma", "C", "Q", "R", "x0", "P0")
+"""The fields of :class:`~jaxobs.observers.kalman.KalmanParams` that :func:`em` can update."""
+
+
+# --------------------------------------------------------------------------------------------
+# Data
+
+
+def _psd_sqrt(M):
+    """A factor ``L`` with ``L L' = M`` for a symmetric positive semidefinite ``M`` (eigen-decomposition: also for a
+    singular ``M``)."""
+    values, vectors = jnp.linalg.eigh(symmetrize(M))
+    return vectors * jnp.sqrt(jnp.maximum(values, 0.0))
+
+
+def sample(params: KalmanParams, key, num_steps: int, u_prev=None):
+    """Draw one record of the linear-Gaussian model of ``params`` (prior convention of
+    :mod:`jaxobs.observers.kalman`): ``x_0 ~ N(x0, P0)``, ``x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k``,
+    ``y_k = C x_k + v_k``, ``w ~ N(0, Q)``, ``v ~ N(0, R)``.
+
+    Args:
+      params: :class:`~jaxobs.observers.kalman.KalmanParams` (``Q``, ``P0`` may be singular).
+      key: a PRNG key (``vmap`` over keys for a batch of records).
+      num_steps: ``T``, the number of samples.
+      u_prev: (T, m) inputs ``u_{k-1}`` as the filter reads them (row 0 unused), or ``None``.
+
+    Returns:
+      ``(x, y)`` of shapes (T, n) and (T, p).
+    """
+    if not isinstance(params, KalmanParams):
+        raise ValueError(f"params must be KalmanParams (make_kalman), got {type(params).__name__}")
+    T = _checks.count("num_steps", num_steps, minimum=1)
+    m, dtype = params.Gamma.shape[-1], params.Phi.dtype
+    if u_prev is not None:
+        u_prev = jnp.asarray(u_prev, dtype)
+        _checks.shape("u_prev", u_prev, (T, m), "(num_steps, inputs)")
+    return _sample(params, key, u_prev, num_steps=T)
+
+
+@partial(jax.jit, static_argnames=("num_steps",))
+def _sample(params: KalmanParams, key, u_prev, *, num_steps: int):
+    n, p, dtype = params.Phi.shape[-1], params.C.shape[-2], params.Phi.dtype
+    k0, kw, kv = jax.random.split(key, 3)
+    x0 = params.x0 + _psd_sqrt(params.P0) @ jax.random.normal(k0, (n,), dtype)
+    w = jax.random.normal(kw, (num_steps, n), dtype) @ _psd_sqrt(params.Q).T
+    v = jax.random.normal(kv, (num_steps, p), dtype) @ _psd_sqrt(params.R).T
+    drive = w[1:] if u_prev is None else w[1:] + u_prev[1:] @ params.Gamma.T
+
+    def body(x, d):
+        x = params.Phi @ x + d
+        return x, x
+
+    _, rest = jax.lax.scan(body, x0, drive)
+    x = jnp.concatenate([x0[None], rest])
+    return x, x @ params.C.T + v
+
+
+def _batched(params, inputs: EstimatorInputs, what: str = "inputs"):
+    """``(y, u_prev)`` as (B, T, p) and (B, T, m) or None, shapes checked (static) against ``params``."""
+    if not isinstance(inputs, EstimatorInputs):
+        raise ValueError(f"{what} must be EstimatorInputs(y, u_prev), got {type(inputs).__name__}")
+    p, m = params.C.shape[-2], params.Gamma.shape[-1]
+    y = jnp.asarray(inputs.y)
+    if y.ndim == 2:
+        y = y[None]
+    _checks.shape(f"{what}.y", y, (None, None, p), "(sequences, time, outputs) or (time, outputs) measurements")
+    if y.shape[0] == 0 or y.shape[1] == 0:
+        raise ValueError(f"{what}.y has shape {y.shape}: give at least one sequence of at least one sample")
+    u = inputs.u_prev
+    if u is not None:
+        u = jnp.asarray(u)
+        u = u[None] if u.ndim == 2 else u
+        _checks.shape(f"{what}.u_prev", u, (y.shape[0], y.shape[1], m), "(sequences, time, inputs) like y")
+        _checks.finite(f"{what}.u_prev", u)
+    if _checks.is_concrete(y) and not np.any(np.isfinite(np.asarray(y))):
+        raise ValueError(f"{what}.y has no finite (observed) component: there is nothing to learn from")
+    return y, u
+
+
+# --------------------------------------------------------------------------------------------
+# Maximum likelihood by gradient
+
+
+def _nll(estimator: Estimator, params, y, u):
+    per_sequence = jax.vmap(lambda yb, ub: log_likelihood(estimator, params, EstimatorInputs(yb, ub)),
+                            (0, None if u is None else 0))(y, u)  # fmt: skip
+    return -jnp.sum(per_sequence) / jnp.maximum(jnp.sum(jnp.isfinite(y)), 1)
+
+
+def negative_log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs):
+    """``-log p(Y) / N``: the negative log-likelihood of ``B`` records under the estimator's model per observed
+    measurement component (``N`` finite entries of ``y``), the loss :func:`fit` minimises. Works under ``jit``,
+    ``vmap`` and ``grad``.
+
+    Args:
+      estimator: an estimator with a ``log_likelihood`` output (:data:`~jaxobs.observers.kalman.kalman_filter`,
+        :data:`~jaxobs.observers.kalman.square_root_kalman_filter`, :data:`~jaxobs.observers.active.active_observer`).
+      params: its params.
+      inputs: ``EstimatorInputs`` with ``y`` (B, T, p) or (T, p) and ``u_prev`` (B, T, m), (T, m) or ``None``.
+    """
+    return _nll(estimator, params, *_batched(params, inputs))
+
+
+def _replace_covariances(params, theta: dict):
+    return dataclasses.replace(params, **{name: cholesky_covariance(raw) for name, raw in theta.items()})
+
+
+def covariance_model(params, names=("Q", "R")):
+    """``(build_params, theta0)`` for :func:`fit` to learn the covariances ``names`` of ``params`` (full positive
+    definite matrices through :func:`jaxobs.tuning.cholesky_covariance`), starting from their current values; the
+    other fields stay fixed (``P0`` among them unless named).
+
+    Args:
+      params: the estimator's params (a dataclass with the fields ``names``, e.g.
+        :class:`~jaxobs.observers.kalman.KalmanParams`).
+      names: the covariance fields to learn.
+    """
+    fields = {f.name for f in dataclasses.fields(params)}
+    unknown = [name for name in names if name not in fields]
+    if unknown or not names:
+        raise ValueError(f"names must be fields of {type(params).__name__}, got {list(names)}")
+    theta0 = {}
+    for name in names:
+        try:
+            theta0[name] = cholesky_parameters(getattr(params, name))
+        except ValueError as exc:
+            raise ValueError(f"params.{name}: {exc}") from exc
+    return jax.tree_util.Partial(_replace_covariances, params), theta0
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    """Settings of :func:`fit`.
+
+    Attributes:
+      optimizer: "lbfgs" (optax L-BFGS with a zoom line search) or a first-order optimizer of the tuner ("adam",
+        "sgd", "adabelief", "lamb") with ``learning_rate``.
+      learning_rate: step size of a first-order optimizer (L-BFGS chooses its own).
+      steps: optimizer steps at most.
+      tolerance: early stopping: the loss (nats per observed component) counts as improved when it falls more
+        than ``tolerance`` below the best so far.
+      patience: stop after this many steps without improvement.
+    """
+
+    optimizer: str = "lbfgs"
+    learning_rate: float = 0.05
+    steps: int = 200
+    tolerance: float = 1e-10
+    patience: int = 10
+
+    def validate(self) -> None:
+        if self.optimizer != "lbfgs" and self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"settings.optimizer must be 'lbfgs' or one of {', '.join(OPTIMIZERS)}, "
+                             f"got {self.optimizer!r}")  # fmt: skip
+        for name in ("steps", "patience"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"settings.{name} must be an integer >= 1, got {value!r}")
+        for name, allow_zero in (("learning_rate", False), ("tolerance", True)):
+            _checks.positive_scalar(f"settings.{name}", getattr(self, name), allow_zero=allow_zero)
+
+
+class FitResult(NamedTuple):
+    theta: Any  # the best parameters found (lowest loss)
+    params: Any  # build_params(theta)
+    loss: np.ndarray  # (steps taken,) the loss at each iterate, the loss curve (nats per observed component)
+    grad_norm: np.ndarray  # (steps taken,) the gradient's global norm at each iterate
+    stopped: str  # "converged" (no improvement for settings.patience steps), "steps", or "non-finite"
+    best_loss: float  # the loss of theta
+
+
+@lru_cache(maxsize=64)
+def _stepper(estimator: Estimator, settings: FitSettings):
+    """One jitted optimizer step ``(build, theta, opt_state, y, u) -> (theta, opt_state, loss, grad_norm)`` (the loss
+    and gradient are those of the given ``theta``) and the optimizer; cached so that fits with the same estimator,
+    settings, ``build_params`` function and shapes compile once."""
+    lbfgs = settings.optimizer == "lbfgs"
+    optimizer = optax.lbfgs() if lbfgs else OPTIMIZERS[settings.optimizer](settings.learning_rate)
+
+    def step(build, theta, state, y, u):
+        loss = lambda th: _nll(estimator, build(th), y, u)  # noqa: E731
+        if lbfgs:
+            value, grad = optax.value_and_grad_from_state(loss)(theta, state=state)
+            updates, state = optimizer.update(grad, state, theta, value=value, grad=grad, value_fn=loss)
+        else:
+            value, grad = jax.value_and_grad(loss)(theta)
+            updates, state = optimizer.update(grad, state, theta)
+        return optax.apply_updates(theta, updates), state, value, optax.tree.norm(grad)
+
+    return jax.jit(step), optimizer
+
+
+def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, settings: FitSettings = FitSettings(),
+        *, progress: bool = True) -> FitResult:  # fmt: skip
+    """Maximum-likelihood fit of ``build_params(theta)`` to ``B`` recorded sequences.
+
+    Minimises :func:`negative_log_likelihood` over the unconstrained ``theta`` with optax, one jitted step per
+    iteration (compiled once per estimator, settings, ``build_params`` function and shapes), with a progress bar
+    and early stopping (:class:`FitSettings`). Eager: the loop runs in Python.
+
+    Args:
+      estimator: an estimator with a ``log_likelihood`` output, e.g. :data:`~jaxobs.observers.kalman.kalman_filter`.
+      build_params: ``theta -> params``, pure and differentiable, e.g. from :func:`covariance_model` (a function or a
+        ``jax.tree_util.Partial``, whose bound arrays are arguments, not constants, of the compiled step).
+      theta0: the initial unconstrained parameters (a pytree of arrays).
+      inputs: ``EstimatorInputs`` with ``y`` (B, T, p) or (T, p), NaN where missing, and ``u_prev`` or ``None``.
+      settings: :class:`FitSettings`.
+      progress: show a progress bar with the loss.
+
+    Returns:
+      :class:`FitResult`: the best ``theta``, its params, the loss curve.
+
+    Example:
+      >>> import jax, jaxobs as jo
+      >>> true = jo.make_kalman([[0.9]], [[1.0]], [[0.5]], [[0.2]])
+      >>> _, y = jax.vmap(lambda k: jo.sample(true, k, 200))(jax.random.split(jax.random.PRNGKey(0), 4))
+      >>> build, theta0 = jo.covariance_model(jo.make_kalman([[0.9]], [[1.0]], [[1.0]], [[1.0]], P0=[[0.5]]))
+      >>> result = jo.fit(jo.kalman_filter, build, theta0, jo.EstimatorInputs(y=y), progress=False)
+      >>> result.stopped, bool(result.loss[-1] < result.loss[0])
+      ('converged', True)
+      >>> bool(abs(result.params.Q[0, 0] - 0.5) < 0.2)
+      True
+    """
+    from tqdm.auto import tqdm
+
+    if not isinstance(settings, FitSettings):
+        raise ValueError(f"settings must be FitSettings, got {type(settings).__name__}")
+    settings.validate()
+    if not isinstance(estimator, Estimator):
+        raise ValueError(f"estimator must be an Estimator, got {type(estimator).__name__}")
+    build = _checks.function("build_params", build_params)
+    theta = jax.tree.map(lambda a: jnp.asarray(a).astype(jnp.result_type(a, float)), theta0)
+    if not jax.tree.leaves(theta):
+        raise ValueError("theta0 has no parameters to fit")
+    for leaf in jax.tree.leaves(theta):
+        _checks.finite("theta0", leaf)
+    y, u = _batched(build(theta), inputs)
+    step, optimizer = _stepper(estimator, settings)
+    state = optimizer.init(theta)
+    best, best_loss, since_best, stopped = theta, math.inf, 0, "steps"
+    losses, norms = [], []
+    bar = tqdm(total=settings.steps, desc="fit", disable=not progress, unit="step")
+    try:
+        for i in range(settings.steps):
+            new_theta, state, value, norm = step(build, theta, state, y, u)
+            value, norm = float(value), float(norm)
+            if not (math.isfinite(value) and math.isfinite(norm)):
+                if i == 0:
+                    raise ValueError(f"theta0: the loss or its gradient is not finite there ({value}, {norm})")
+                stopped = "non-finite"
+                break
+            losses.append(value)
+            norms.append(norm)
+            if value < best_loss - settings.tolerance:
+                since_best = 0
+            else:
+                since_best += 1
+            if value < best_loss:
+                best, best_loss = theta, value
+            bar.update(1)
+            bar.set_postfix(loss=f"{value:.6g}")
+            if since_best >= settings.patience:
+                stopped = "converged"
+                break
+            theta = new_theta
+    finally:
+        bar.close()
+    return FitResult(best, build(best), np.asarray(losses), np.asarray(norms), stopped, best_loss)
+
+
+# --------------------------------------------------------------------------------------------
+# Expectation-maximisation, linear-Gaussian
+
+
+class EMResult(NamedTuple):
+    params: KalmanParams  # after the last update
+    log_likelihood: jax.Array  # (iterations,) log p(Y) of the params before each update (NaN after the last)
+    iterations: jax.Array  # () updates made
+    converged: jax.Array  # () the relative log-likelihood change fell below the tolerance
+
+
+class _Statistics(NamedTuple):
+    """Sums over the sequences of the expected complete-data statistics (``z = [x; u]`` the regressor of the
+    transition, ``y`` with its missing components latent)."""
+
+    S11: jax.Array  # sum_k E[x_k x_k'], k >= 1
+    S10: jax.Array  # sum_k E[x_k z_{k-1}']
+    S00: jax.Array  # sum_k E[z_{k-1} z_{k-1}']
+    Sxx: jax.Array  # sum_k E[x_k x_k'], all k
+    Syx: jax.Array  # sum_k E[y_k x_k']
+    Syy: jax.Array  # sum_k E[y_k y_k']
+    m0: jax.Array  # (B, n) E[x_0]
+    V0: jax.Array  # (B, n, n) Cov(x_0)
+    log_likelihood: jax.Array  # () log p(Y)
+
+
+def _sequence_statistics(params: KalmanParams, y, u):
+    """The E-step of one sequence: the smoother's moments turned into the complete-data statistics."""
+    filtered, smoothed = smooth(kalman_filter, params, EstimatorInputs(y, u))
+    m, V, E = smoothed.x, smoothed.P, smoothed.gain
+    T, n = m.shape
+    dtype = m.dtype
+    u = jnp.zeros((T, params.Gamma.shape[-1]), dtype) if u is None else u.astype(dtype)
+    Exx = V + m[:, :, None] * m[:, None, :]
+    # lag one: Cov(x_k, x_{k-1} | Y) = P_{k|T-1} E_{k-1}' (de Jong 1989)
+    cross = V[1:] @ jnp.swapaxes(E[:-1], -1, -2) + m[1:, :, None] * m[:-1, None, :]
+    z_mean = jnp.concatenate([m[:-1], u[1:]], axis=1)
+    S10 = jnp.concatenate([jnp.sum(cross, 0), m[1:].T @ u[1:]], axis=1)
+    S00 = z_mean.T @ z_mean + jnp.pad(jnp.sum(V[:-1], 0), ((0, u.shape[1]), (0, u.shape[1])))
+    # measurements with missing components latent: E[y | x, Y] = H x + G y_o, Cov[y | x, Y] = R - G R_o.
+    mask = jnp.isfinite(y).astype(dtype)
+    y_o = jnp.where(mask > 0, y, 0.0).astype(dtype)
+
+    def measurement(mask_k, y_k, m_k, Exx_k):
+        R_o = params.R * jnp.outer(mask_k, mask_k) + jnp.diag(1.0 - mask_k)
+        G = jnp.linalg.solve(R_o, (params.R * mask_k[None, :]).T).T  # R_.o R_oo^{-1}, zero columns where missing
+        H = params.C - G @ (params.C * mask_k[:, None])
+        Gy = G @ y_k
+        Eyx = H @ Exx_k + jnp.outer(Gy, m_k)
+        Hm = H @ m_k
+        Eyy = H @ Exx_k @ H.T + jnp.outer(Hm, Gy) + jnp.outer(Gy, Hm) + jnp.outer(Gy, Gy)
+        return Eyx, Eyy + params.R - G @ (params.R * mask_k[:, None])
+
+    Eyx, Eyy = jax.vmap(measurement)(mask, y_o, m, Exx)
+    return (jnp.sum(Exx[1:], 0), S10, S00, jnp.sum(Exx, 0), jnp.sum(Eyx, 0), jnp.sum(Eyy, 0), m[0], V[0],
+            jnp.sum(filtered.log_likelihood))  # fmt: skip
+
+
+def _statistics(params: KalmanParams, y, u) -> _Statistics:
+    parts = jax.vmap(_sequence_statistics, (None, 0, None if u is None else 0))(params, y, u)
+    *sums, m0, V0, ll = parts
+    return _Statistics(*(jnp.sum(s, 0) for s in sums), m0, V0, jnp.sum(ll))
+
+
+def _maximise(params: KalmanParams, s: _Statistics, counts: tuple[int, int], update: frozenset) -> KalmanParams:
+    """The M-step: each field in ``update`` set to its maximiser given the others' new values (``[Phi, Gamma]`` by
+    least squares on the free columns, then ``Q``; ``C``, then ``R``; ``x0``, then ``P0``)."""
+    n = params.Phi.shape[-1]
+    transitions, measurements = counts
+    A = jnp.concatenate([params.Phi, params.Gamma], axis=1)
+    free = np.array([("Phi" in update)] * n + [("Gamma" in update)] * params.Gamma.shape[-1])
+    if free.any():
+        F, X = np.flatnonzero(free), np.flatnonzero(~free)
+        rhs = s.S10[:, F] - A[:, X] @ s.S00[np.ix_(X, F)]
+        A = A.at[:, F].set(jnp.linalg.solve(s.S00[np.ix_(F, F)], rhs.T).T)
+    new = {}
+    if "Phi" in update:
+        new["Phi"] = A[:, :n]
+    if "Gamma" in update:
+        new["Gamma"] = A[:, n:]
+    if "Q" in update:
+        AS = A @ s.S10.T
+        new["Q"] = symmetrize(s.S11 - AS - AS.T + A @ s.S00 @ A.T) / transitions
+    C = jnp.linalg.solve(s.Sxx, s.Syx.T).T if "C" in update else params.C
+    if "C" in update:
+        new["C"] = C
+    if "R" in update:
+        CS = C @ s.Syx.T
+        new["R"] = symmetrize(s.Syy - CS - CS.T + C @ s.Sxx @ C.T) / measurements
+    x0 = jnp.mean(s.m0, 0) if "x0" in update else params.x0
+    if "x0" in update:
+        new["x0"] = x0
+    if "P0" in update:
+        d = s.m0 - x0
+        new["P0"] = symmetrize(jnp.mean(s.V0, 0) + d.T @ d / s.m0.shape[0])
+    return dataclasses.replace(params, **new)
+
+
+def em(params: KalmanParams, inputs: EstimatorInputs, *, iterations: int = 100, update=("Q", "R"),
+       tolerance: float = 1e-9) -> EMResult:  # fmt: skip
+    """Expectation-maximisation of the linear-Gaussian model's likelihood over ``B`` recorded sequences.
+
+    Each iteration smooths every sequence with the current model (E-step, with the lag-one cross-covariances) and
+    sets the fields in ``update`` to the maximisers of the expected complete-data log-likelihood (M-step), e.g.
+    ``Q = sum_k E[(x_k - Phi x_{k-1} - Gamma u_{k-1})(...)'] / (B (T - 1))`` and
+    ``R = sum_k E[(y_k - C x_k)(...)'] / (B T)`` (Shumway & Stoffer 1982; Ghahramani & Hinton 1996),
+    missing components included (module docstring). The log-likelihood never decreases; it stops when its relative
+    change falls below ``tolerance``. Works under ``jit`` (``iterations`` and ``update`` static) and ``vmap``.
+
+    Args:
+      params: :class:`~jaxobs.observers.kalman.KalmanParams` with the time-varying gain, the initial model.
+      inputs: ``EstimatorInputs`` with ``y`` (B, T, p) or (T, p), NaN where missing, and ``u_prev`` or ``None``.
+      iterations: EM iterations at most.
+      update: the fields to learn, a subset of :data:`EM_FIELDS` (``x0``, ``P0`` from a single sequence collapse
+        to its smoothed ``x_0``: give several sequences).
+      tolerance: stop when ``ll_i - ll_{i-1} <= tolerance |ll_i|``.
+
+    Returns:
+      :class:`EMResult`.
+
+    Example:
+      >>> import jax, jaxobs as jo
+      >>> true = jo.make_kalman([[0.9]], [[1.0]], [[0.5]], [[0.2]])
+      >>> _, y = jax.vmap(lambda k: jo.sample(true, k, 200))(jax.random.split(jax.random.PRNGKey(0), 4))
+      >>> result = jo.em(jo.make_kalman([[0.9]], [[1.0]], [[1.0]], [[1.0]], P0=[[0.5]]), jo.EstimatorInputs(y=y))
+      >>> ll = result.log_likelihood[: int(result.iterations)]
+      >>> bool(jnp.all(jnp.diff(ll) >= -1e-9 * jnp.abs(ll[1:])))
+      True
+    """
+    if not isinstance(params, KalmanParams):
+        raise ValueError(f"params must be KalmanParams (make_kalman), got {type(params).__name__}")
+    if params.gain is not None:
+        raise ValueError("params has a fixed gain: EM needs the time-varying filter's covariances (gain None)")
+    iterations = _checks.count("iterations", iterations, minimum=1)
+    update = (update,) if isinstance(update, str) else tuple(update)
+    unknown = [f for f in update if f not in EM_FIELDS]
+    if unknown or not update:
+        raise ValueError(f"update must name fields among {EM_FIELDS}, got {list(update)}")
+    _checks.positive_scalar("tolerance", tolerance, allow_zero=True)
+    y, u = _batched(params, inputs)
+    if u is None and "Gamma" in update:
+        raise ValueError("update names Gamma but inputs.u_prev is None: there is no input to fit it on")
+    if y.shape[1] < 2 and {"Phi", "Gamma", "Q"} & set(update):
+        raise ValueError(f"inputs.y has {y.shape[1]} sample per sequence: Phi, Gamma and Q need at least 2")
+    params = dataclasses.replace(params, output_covariance=False)
+    return _em(params, y, u, tolerance, iterations=iterations, update=frozenset(update))
+
+
+@partial(jax.jit, static_argnames=("iterations", "update"))
+def _em(params, y, u, tolerance, *, iterations: int, update: frozenset) -> EMResult:
+    counts = (y.shape[0] * (y.shape[1] - 1), y.shape[0] * y.shape[1])
+    dtype = params.Phi.dtype
+    y = y.astype(dtype)
+
+    def cond(carry):
+        i, _, _, done = carry
+        return (i < iterations) & ~done
+
+    def body(carry):
+        i, current, lls, _ = carry
+        stats = _statistics(current, y, u)
+        previous = lls[jnp.maximum(i - 1, 0)]
+        done = (i > 0) & (stats.log_likelihood - previous <= tolerance * jnp.abs(stats.log_likelihood))
+        return i + 1, _maximise(current, stats, counts, update), lls.at[i].set(stats.log_likelihood), done
+
+    start = (jnp.zeros((), jnp.int32), params, jnp.full((iterations,), jnp.nan, dtype), jnp.zeros((), bool))
+    i, params, lls, done = jax.lax.while_loop(cond, body, start)
+    return EMResult(params, lls, i, done)
