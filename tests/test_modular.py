@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from jax.test_util import check_grads
 
 from jaxobs import ct
 from jaxobs.adaptive import Ball, Box
@@ -75,16 +74,16 @@ def test_error_dynamics_5_11_along_a_closed_loop_trajectory():
         d = perturbation_error_rate(model, t, x, x_dot, THETA, est.theta_hat)
         phi_hat = model.B(t, x) @ model.g(t, x, THETA) - e
         u_theta = parameter_rate(model, t, x, phi_hat, est.theta_hat)
-        x_hat = -jnp.linalg.solve(K, est.z)
         g_dot = jax.jvp(lambda th: model.g(t, x, th), (est.theta_hat,), (u_theta,))[1]
         v = compensation(model, est.theta_hat, t, x)
         x_hat_form = model.f(t, x) + model.B(t, x) @ v + phi_hat + jnp.linalg.solve(K, model.B(t, x) @ g_dot)
         return (tangent - (-K @ e + d), est_dot.theta_hat - u_theta, -jnp.linalg.solve(K, est_dot.z) - x_hat_form,
-                jnp.linalg.norm(d), x_hat)  # fmt: skip
+                jnp.linalg.norm(d))  # fmt: skip
 
     times = 0.01 * jnp.arange(0, 301, 25)
     idx = np.arange(0, 301, 25)
-    res_phi, res_theta, res_xhat, d_norm, _ = jax.vmap(check)(times, xs[idx], jax.tree.map(lambda a: a[idx], ests))
+    along = jax.tree.map(lambda a: a[idx], ests)
+    res_phi, res_theta, res_xhat, d_norm = jax.jit(jax.vmap(check))(times, xs[idx], along)
     assert float(jnp.max(jnp.abs(res_phi))) < 1e-12
     assert float(jnp.max(jnp.abs(res_theta))) < 1e-14
     assert float(jnp.max(jnp.abs(res_xhat))) < 1e-12
@@ -177,19 +176,20 @@ def example_params(K_phi=10.0, dt=0.01):
 
 
 def test_sampled_estimator_jit_vmap_grad_and_missing_measurements():
-    """The sampled estimator finds theta = 2 of Example 5.6 (|theta_tilde| < 0.05 after 4 s at 10 ms); jit equals
-    eager, vmap over records equals one-by-one runs; gradients w.r.t. K_phi pass check_grads; NaN samples are
-    skipped (counted in state.missing, outputs stay finite)."""
+    """The sampled estimator finds theta = 2 of Example 5.6 (|theta_tilde| < 0.05 after 4 s at 10 ms); vmap over
+    records equals one-by-one runs; the reverse-mode gradient w.r.t. K_phi equals a central difference to 1e-6;
+    NaN samples are skipped (counted in state.missing, outputs stay finite, innovation 0)."""
     xs = example_5_6_samples()
     go = jax.jit(lambda K, y: run(modular_estimator, example_params(K), EstimatorInputs(y=y)))
     state, out = go(10.0, xs)
     assert abs(float(out.theta_hat[-1, 0]) - 2.0) < 0.05
-    _, eager = run(modular_estimator, example_params(10.0), EstimatorInputs(y=xs[:40]))
-    np.testing.assert_allclose(eager.theta_hat, out.theta_hat[:40], rtol=1e-12, atol=1e-14)
     batch = jnp.stack([xs, 1.1 * xs])
     batched = jax.vmap(lambda y: go(10.0, y)[1].theta_hat)(batch)
     np.testing.assert_allclose(batched[1], go(10.0, batch[1])[1].theta_hat, rtol=1e-12, atol=1e-14)
-    check_grads(lambda K: jnp.sum(go(K, xs[:60])[1].theta_hat ** 2), (10.0,), order=1, modes=("fwd", "rev"))
+    loss = jax.jit(lambda K: jnp.sum(go(K, xs[:60])[1].theta_hat ** 2))
+    step = 1e-4
+    central = (loss(10.0 + step) - loss(10.0 - step)) / (2 * step)
+    np.testing.assert_allclose(jax.grad(loss)(10.0), central, rtol=1e-6)  # central difference: O(step^2) error
     holes = xs.at[100:110].set(jnp.nan)
     state, out = go(10.0, holes)
     assert int(state.missing) == 10
