@@ -280,6 +280,7 @@ def example_5_6() -> tuple[dict, dict]:
             "modular": np.median(mean_m, axis=0),
             "gradient": np.median(mean_g, axis=0),
         },
+        "mean_abs_theta_error_last5s": {"modular": mean_m, "gradient": mean_g},  # (seeds, segments)
         "projection_active_fraction": {
             "modular": float(np.mean(np.asarray(active_m))),
             "gradient": float(np.mean(np.asarray(active_g))),
