@@ -7,6 +7,7 @@ import json
 import jax
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.papers import REPRODUCTIONS, grip2010_adaptive
 
@@ -84,3 +85,24 @@ def test_example_5_6_batched_seed_equals_its_single_run(example_5_6):
     per_seed = data["noisy"]["mean_abs_theta_error_last5s"]
     np.testing.assert_allclose(single[0][0], per_seed["modular"][3], rtol=1e-10)
     np.testing.assert_allclose(single[1][0], per_seed["gradient"][3], rtol=1e-10)
+
+
+def test_readme_rows(example_1_1, example_5_6):
+    """The README's rows of both reproductions show the computed numbers."""
+    _, one = example_1_1
+    pin(one["constant_omega"]["theta_tilde_final"][0], r"theta_tilde\(60 s\) = \[([0-9.]+), -0.5556\]")
+    pin(one["sinusoidal_omega"]["theta_tilde_final_norm"], r"\\\|theta_tilde\(60 s\)\\\| = ([0-9.e-]+);")
+    pin(one["lyapunov_identity_max_error"], r"∫x²\\\| = ([0-9.e-]+) \(RK4", noise=5e-14)  # rounding: machine-dependent
+    _, five = example_5_6
+    free, noisy = five["noise_free"], five["noisy"]
+    pin(free["peak_abs_x"]["modular"][1], r"after the -2 → 4 step ([0-9.]+) vs")
+    pin(free["peak_abs_x"]["gradient"][1], r"after the -2 → 4 step [0-9.]+ vs ([0-9.]+),")
+    pin(min(free["last_exit_0p6_s"]["modular"]), r"above 0.6 at ([0-9.]+)-[0-9.]+ s vs")
+    pin(max(free["last_exit_0p6_s"]["modular"]), r"above 0.6 at [0-9.]+-([0-9.]+) s vs")
+    pin(min(free["last_exit_0p6_s"]["gradient"]), r"s vs ([0-9.]+)-[0-9.]+ s after each step")
+    pin(max(free["last_exit_0p6_s"]["gradient"]), r"s vs [0-9.]+-([0-9.]+) s after each step")
+    pin(100 * noisy["modular_better_fraction"], r"modular better in ([0-9]+) % of seed")
+    median = noisy["median_mean_abs_theta_error_last5s"]
+    pin(median["modular"], r"median last-5-s mean \\\|theta_tilde\\\| ([0-9.]+) vs")
+    pin(median["gradient"], r"median last-5-s mean \\\|theta_tilde\\\| [0-9.]+ vs ([0-9.]+),")
+    pin(noisy["projection_active_fraction"]["modular"] * 64, r"its projection active in ([0-9]+) seed of 64")
