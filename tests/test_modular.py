@@ -209,6 +209,9 @@ def test_sampled_estimator_jit_vmap_grad_and_missing_measurements():
         (dict(g=lambda t, x, th: th[:1]), r"^g\(t, x, theta\) must return"),
         (dict(law="inversion"), r"^theta_star is required"),
         (dict(law="newton"), r"^law must be one of"),
+        (dict(epsilon=0.0), r"^epsilon must be a finite positive number"),
+        (dict(law="intermittent", theta_star=lambda t, x, phi: phi), r"^l is required"),
+        (dict(M=lambda t, x, th: jnp.ones((2, 3))), r"^M\(t, x, theta_hat\) must return"),
     ],
 )
 def test_bad_inputs_raise_naming_the_argument(change, match):
