@@ -135,7 +135,8 @@ def test_prop_5_1_inversion_gives_exponential_parameter_error():
 
 def test_update_laws_against_their_hand_written_forms():
     """Remark 5.1's default M = (dg/dtheta)' B' and Example 5.6's M = sin t (5.22); Prop. 5.2's weight l switches the
-    inversion off (rate 0) and on (Gamma (theta* - theta_hat)); the phi_hat saturation bounds what the law sees."""
+    inversion off (rate 0) and on (Gamma (theta* - theta_hat)); the phi_hat saturation bounds what the law sees;
+    Example 5.5's combined law as a custom direction."""
     g = lambda t, x, th: jnp.exp(jnp.sin(t) * th)
     common = dict(theta0=[0.5], K_phi=10.0, Gamma=3.0, dt=0.001, n=1)
     t, x, phi_hat, th = 0.7, jnp.array([0.2]), jnp.array([1.9]), jnp.array([0.5])
@@ -211,6 +212,7 @@ def test_sampled_estimator_jit_vmap_grad_and_missing_measurements():
         (dict(law="inversion"), r"^theta_star is required"),
         (dict(law="newton"), r"^law must be one of"),
         (dict(epsilon=0.0), r"^epsilon must be a finite positive number"),
+        (dict(law="custom"), r"^direction is required"),
         (dict(law="intermittent", theta_star=lambda t, x, phi: phi), r"^l is required"),
         (dict(M=lambda t, x, th: jnp.ones((2, 3))), r"^M\(t, x, theta_hat\) must return"),
     ],

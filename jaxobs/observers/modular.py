@@ -25,7 +25,9 @@ The update laws (``law``), all through the projection of App. 5.A (:func:`jaxobs
 * ``"intermittent"`` (Prop. 5.2): ``Proj(l(t, x) Gamma (theta* - theta_hat))`` with ``l`` in [0, 1], where
   ``theta*`` needs to exist only where ``l > 0``;
 * ``"gradient"`` (Props. 5.3, 5.4): ``Proj(Gamma M(t, x, theta_hat) (phi_hat - B g(t, x, theta_hat)))``, ``M``
-  (p, n) by default ``(dg/dtheta)' B'`` (Remark 5.1: steepest descent of ``|B (g(theta) - g(theta_hat))|^2``).
+  (p, n) by default ``(dg/dtheta)' B'`` (Remark 5.1: steepest descent of ``|B (g(theta) - g(theta_hat))|^2``);
+* ``"custom"``: ``Proj(Gamma direction(t, x, phi_hat, theta_hat))`` for laws that combine the above per parameter
+  (Example 5.5) or are designed by hand (the drilling estimator's (5.26)-(5.27)).
 
 ``dg/dtheta`` and ``d`` come from automatic differentiation. The compensation ``v = -g(t, x, theta_hat)`` (5.15) is
 :func:`compensation`. The estimator runs on sampled measurements through :mod:`jaxobs.observers.continuous`
@@ -66,8 +68,8 @@ __all__ = [
     "compensation",
 ]
 
-LAWS = ("inversion", "intermittent", "gradient")
-"""The parameter update laws: Grip 2010 Prop. 5.1, Prop. 5.2, Props. 5.3/5.4."""
+LAWS = ("inversion", "intermittent", "gradient", "custom")
+"""The parameter update laws: Grip 2010 Prop. 5.1, Prop. 5.2, Props. 5.3/5.4, and a user direction."""
 
 
 @jax.tree_util.register_dataclass
@@ -80,7 +82,8 @@ class ModularModel:
       f: ``f(t, x)`` (n,).  B: ``B(t, x)`` (n, m).  g: ``g(t, x, theta)`` (m,).  v: ``v(t, x, u)`` (m,), the known
         input (``u`` (r,) the applied input of the sample), or ``None`` (no known input).
         theta_star: ``theta*(t, x, phi)`` (p,) or ``None``.  l: ``l(t, x)`` () in [0, 1] or ``None``.
-        M: ``M(t, x, theta_hat)`` (p, n) or ``None`` (Remark 5.1).  (All ``jax.tree_util.Partial``: bound
+        M: ``M(t, x, theta_hat)`` (p, n) or ``None`` (Remark 5.1).  direction: ``direction(t, x, phi,
+        theta_hat)`` (p,) or ``None``.  (All ``jax.tree_util.Partial``: bound
         arguments are leaves.)
       K_phi: (n, n) symmetric positive-definite injection gain.  Gamma: (p, p) symmetric positive-definite
         adaptation gain.  region: the smooth convex ``P`` of the projection set (:class:`jaxobs.adaptive.Ball`,
@@ -96,6 +99,7 @@ class ModularModel:
     theta_star: Callable | None
     l: Callable | None
     M: Callable | None
+    direction: Callable | None
     K_phi: jax.Array
     Gamma: jax.Array
     region: Callable | None
@@ -147,6 +151,8 @@ def parameter_rate(model: ModularModel, t, x, phi_hat, theta_hat):
         else:
             M = model.M(t, x, theta_hat)
         tau = model.Gamma @ (M @ (phi - Bm @ model.g(t, x, theta_hat)))
+    elif model.law == "custom":
+        tau = model.Gamma @ model.direction(t, x, phi, theta_hat)
     else:
         star = model.theta_star(t, x, phi)
         if model.law == "intermittent":
@@ -195,22 +201,24 @@ def _applied_input(t, x, u):
 
 
 def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=None, n_inputs: int = 0,
-                 theta_star=None, l=None, M=None, region=None, epsilon=0.1, phi_bounds=None, z0=None, t0=0.0,
-                 substeps: int = 1, method: str = "rk4", n=None) -> ModularParams:  # fmt: skip
+                 theta_star=None, l=None, M=None, direction=None, region=None, epsilon=0.1, phi_bounds=None,
+                 z0=None, t0=0.0, substeps: int = 1, method: str = "rk4", n=None) -> ModularParams:  # fmt: skip
     """Params of the modular estimator (Grip 2010 eq. 5.8) with the checks.
 
     Args:
       f: ``f(t, x)`` (n,).  B: ``B(t, x)`` (n, m).  g: ``g(t, x, theta)`` (m,).
       theta0: (p,) initial estimate, inside the projection set ``{region <= epsilon}``.
       K_phi: positive scalar or (n, n) symmetric positive definite.  Gamma: positive scalar or (p, p) SPD.
-      dt: sample period (> 0).  law: ``"inversion"``, ``"intermittent"`` or ``"gradient"`` (:data:`LAWS`).
+      dt: sample period (> 0).  law: ``"inversion"``, ``"intermittent"``, ``"gradient"`` or ``"custom"``
+        (:data:`LAWS`).
       v: known input ``v(t, x, u)`` (m,) given the applied input ``u`` (``n_inputs``,) of the sample (held over
         it); default ``v = u`` when ``n_inputs = m`` (e.g. the compensation :func:`compensation` applied by a
         controller) and ``v = 0`` when ``n_inputs = 0``.
       n_inputs: the size of ``u`` (default 0).
       theta_star: ``theta*(t, x, phi)`` (p,), the inverse of ``phi = B g(t, x, theta)`` (inversion laws).
       l: ``l(t, x)`` () in [0, 1] (``"intermittent"``).  M: ``M(t, x, theta_hat)`` (p, n) (``"gradient"``;
-        default Remark 5.1's ``(dg/dtheta)' B'``).
+        default Remark 5.1's ``(dg/dtheta)' B'``).  direction: ``direction(t, x, phi, theta_hat)`` (p,), the
+        unprojected rate before ``Gamma`` (``"custom"``).
       region: the projection set's smooth convex ``P`` (e.g. ``jaxobs.adaptive.Box``) or ``None``.
       epsilon: its boundary layer (> 0).  phi_bounds: ``(lower, upper)`` (n,) saturation of ``phi_hat`` or ``None``.
       z0: (n,) initial ``z`` (default 0).  t0: time of the first sample.  substeps, method: the integration
@@ -271,6 +279,11 @@ def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=
             raise ValueError("l is required by law='intermittent': the weight l(t, x) in [0, 1] of Prop. 5.2")
         l = _checks.function("l", l)
         _checks.returns("l(t, x)", l, (t_, x_), (), "a scalar weight in [0, 1]")
+    if law == "custom":
+        if direction is None:
+            raise ValueError("direction is required by law='custom': the rate direction(t, x, phi, theta_hat)")
+        direction = _checks.function("direction", direction)
+        _checks.returns("direction(t, x, phi, theta_hat)", direction, (t_, x_, x_, theta0), (p,), "one per parameter")
     if M is not None:
         M = _checks.function("M", M)
         _checks.returns("M(t, x, theta_hat)", M, (t_, x_, theta0), (p, n), "a (p, n) matrix")
@@ -291,7 +304,7 @@ def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=
     upper = jnp.broadcast_to(jnp.asarray(upper, dtype), (n,))
     if _checks.is_concrete(lower, upper) and not bool(jnp.all(lower < upper)):
         raise ValueError("phi_bounds must be (lower, upper) with lower < upper in every entry")
-    model = ModularModel(f, B, g, v, theta_star, l, M, K_phi, Gamma, region, epsilon, lower, upper, law)
+    model = ModularModel(f, B, g, v, theta_star, l, M, direction, K_phi, Gamma, region, epsilon, lower, upper, law)
     part = jax.tree_util.Partial
     sampled = make_continuous_observer(part(modular_rate, model), part(_x_hat, model), x0=ModularState(z0, theta0),
                                        dt=dt, t0=t0, n_inputs=n_inputs, substeps=substeps, method=method)  # fmt: skip
