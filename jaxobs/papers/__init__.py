@@ -11,6 +11,7 @@ REPRODUCTIONS = {
     grip2010_scb.NAME: grip2010_scb.reproduce,
     grip2010_adaptive.NAME_EXAMPLE_1_1: grip2010_adaptive.reproduce_example_1_1,
     grip2010_adaptive.NAME_EXAMPLE_5_6: grip2010_adaptive.reproduce_example_5_6,
+    grip2010_adaptive.NAME_DRILLING: grip2010_adaptive.reproduce_drilling,
 }
 
 __all__ = ["REPRODUCTIONS"]
