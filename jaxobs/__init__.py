@@ -22,8 +22,9 @@
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
-* adaptation: :mod:`jaxobs.adaptive` (update laws, parameter projection, excitation); continuous-time observers:
-  :mod:`jaxobs.observers.ct_linear`.
+* adaptation: :mod:`jaxobs.adaptive` (update laws, parameter projection, excitation); the modular parameter and
+  perturbation estimator of Grip 2010 ch. 5: :data:`modular_estimator` (:func:`make_modular`); continuous-time
+  linear observers: :mod:`jaxobs.observers.ct_linear`.
 
 MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
 enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``).
@@ -53,6 +54,7 @@ from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
 from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
 from jaxobs.observers.linear import linear_observer
+from jaxobs.observers.modular import make_modular, modular_estimator
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
 from jaxobs.plants import force_plant
@@ -129,6 +131,8 @@ __all__ = [
     "make_ukf",
     "continuous_observer",
     "make_continuous_observer",
+    "modular_estimator",
+    "make_modular",
     # estimation over a record
     "log_likelihood",
     "smooth",

@@ -155,6 +155,19 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
         raise ValueError(f"{name} must be a finite {bound} number, got {float(a)}")
 
 
+def gain(name: str, value, size: int, dtype) -> jax.Array:
+    """A gain as a (size, size) matrix: a positive scalar (times the identity) or a symmetric positive-definite
+    matrix; ``ValueError`` naming ``name`` otherwise (values checked when concrete)."""
+    value = jnp.asarray(value)
+    if value.ndim == 0:
+        positive_scalar(name, value)
+        return value.astype(dtype) * jnp.eye(size, dtype=dtype)
+    if value.ndim != 2:
+        raise ValueError(f"{name} must be a positive scalar or a ({size}, {size}) matrix, got shape {value.shape}")
+    covariance(name, value, definite=True, size=size)
+    return value.astype(dtype)
+
+
 def function(name: str, fn) -> jax.tree_util.Partial:
     """``fn`` as a ``jax.tree_util.Partial``: a pytree whose bound arguments are leaves (so ``jit``, ``vmap`` and
     ``grad`` reach the parameters a user binds) and whose function is static. A ``Partial`` is returned as is."""

@@ -49,19 +49,6 @@ __all__ = [
 # validation and shapes
 
 
-def _gain(Gamma, p: int, dtype) -> jax.Array:
-    """``Gamma`` as a (p, p) matrix: a positive scalar (``Gamma I``) or a symmetric positive-definite (p, p) matrix;
-    ``ValueError`` naming ``Gamma`` otherwise (values checked when concrete)."""
-    Gamma = jnp.asarray(Gamma)
-    if Gamma.ndim == 0:
-        _checks.positive_scalar("Gamma", Gamma)
-        return Gamma.astype(dtype) * jnp.eye(p, dtype=dtype)
-    if Gamma.ndim != 2:
-        raise ValueError(f"Gamma must be a positive scalar or a ({p}, {p}) matrix, got shape {Gamma.shape}")
-    _checks.covariance("Gamma", Gamma, definite=True, size=p)
-    return Gamma.astype(dtype)
-
-
 def _regression(theta_hat, phi, z):
     """``(theta_hat (p,), phi (p, q), z (q,), dtype)`` with the shapes checked at trace time: ``phi`` (p,) with
     ``z`` () is the scalar regression ``q = 1``."""
@@ -119,7 +106,7 @@ def lyapunov_law(omega, x, Gamma) -> jax.Array:
         _checks.shape("x", x, (), "a scalar for a (p,) omega")
     else:
         _checks.shape("x", x, (omega.shape[1],), "one entry per column of omega")
-    return _gain(Gamma, p, dtype) @ (omega * x if omega.ndim == 1 else omega @ x)
+    return _checks.gain("Gamma", Gamma, p, dtype) @ (omega * x if omega.ndim == 1 else omega @ x)
 
 
 def gradient_law(theta_hat, phi, z, Gamma, *, normalized: bool = False) -> jax.Array:
@@ -142,7 +129,7 @@ def gradient_law(theta_hat, phi, z, Gamma, *, normalized: bool = False) -> jax.A
       [0.6666666666666666, 0.6666666666666666]
     """
     theta_hat, phi, z, dtype = _regression(theta_hat, phi, z)
-    rate = _gain(Gamma, theta_hat.shape[0], dtype) @ (phi @ (z - phi.T @ theta_hat))
+    rate = _checks.gain("Gamma", Gamma, theta_hat.shape[0], dtype) @ (phi @ (z - phi.T @ theta_hat))
     return rate / (1 + jnp.sum(phi**2)) if normalized else rate
 
 
@@ -314,7 +301,7 @@ def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
         raise ValueError(f"theta_hat must be a (p,) vector, got shape {theta_hat.shape}")
     p = theta_hat.shape[0]
     tau = _checks.vector("tau", tau, p, dtype, what="one entry per parameter")
-    G = _gain(Gamma, p, dtype)
+    G = _checks.gain("Gamma", Gamma, p, dtype)
     epsilon = _positive("epsilon", epsilon, dtype)
     value, grad = jax.value_and_grad(lambda t: jnp.asarray(region(t), dtype))(theta_hat)
     if _checks.is_concrete(value, epsilon) and not float(value) <= float(epsilon) * (1 + 1e-9):

@@ -24,7 +24,7 @@ def luenberger(L, x, u, y, t):
 
 
 def observer(L=L, substeps=20):
-    return make_continuous_observer(jax.tree_util.Partial(luenberger, L), lambda x: C @ x, x0=jnp.array([0.5, -0.2]),
+    return make_continuous_observer(jax.tree_util.Partial(luenberger, L), lambda x, u: C @ x, x0=jnp.array([0.5, -0.2]),
                                     dt=H, n_inputs=1, substeps=substeps)  # fmt: skip
 
 
@@ -73,11 +73,11 @@ def test_jit_vmap_and_gradients_with_respect_to_the_gain():
 
 def test_bad_inputs_raise_naming_the_argument():
     with pytest.raises(ValueError, match=r"F\(x_hat, u, y, t\) must return dx_hat/dt"):
-        make_continuous_observer(lambda x, u, y, t: x[:1], lambda x: x, x0=jnp.zeros(2), dt=0.1)
-    with pytest.raises(ValueError, match=r"h\(x_hat\) must return the output estimate"):
-        make_continuous_observer(lambda x, u, y, t: x, lambda x: jnp.sum(x), x0=jnp.zeros(2), dt=0.1)
+        make_continuous_observer(lambda x, u, y, t: x[:1], lambda x, u: x, x0=jnp.zeros(2), dt=0.1)
+    with pytest.raises(ValueError, match=r"h\(x_hat, u\) must return the output estimate"):
+        make_continuous_observer(lambda x, u, y, t: x, lambda x, u: jnp.sum(x), x0=jnp.zeros(2), dt=0.1)
     with pytest.raises(ValueError, match="dt must be a finite positive number"):
-        make_continuous_observer(lambda x, u, y, t: x, lambda x: x, x0=jnp.zeros(2), dt=-1.0)
+        make_continuous_observer(lambda x, u, y, t: x, lambda x, u: x, x0=jnp.zeros(2), dt=-1.0)
     params = observer()
     state = continuous_observer.init(params)
     with pytest.raises(ValueError, match=r"inputs.y must have shape \(2,\)"):

@@ -1,6 +1,6 @@
 """Tests for the continuous-time linear observers (jaxobs.observers.ct_linear): Luenberger (Grip 2010 eq. 1.3-1.4),
 Kalman-Bucy (eq. 1.7, Riccati differential equation and stationary gain), the output-injection observer (eq. 1.9),
-the exosystem augmentation (eq. 1.8) and the sampled-data runner.
+the exosystem augmentation (eq. 1.8) and their sampled runs (as_continuous + continuous_observer).
 
 The pure right-hand sides are checked on the joint plant + observer system integrated by a fixed-step RK4 written
 here: the error must follow the linear error dynamics exactly (expm), to RK4's accuracy."""
@@ -14,19 +14,15 @@ import scipy.linalg
 
 from jaxobs.design import place
 from jaxobs.observers.base import EstimatorInputs, run
+from jaxobs.observers.continuous import continuous_observer
 from jaxobs.observers.ct_linear import (
+    as_continuous,
     augment,
-    kalman_bucy_init,
-    kalman_bucy_output,
-    kalman_bucy_rate,
-    luenberger_output,
     luenberger_rate,
     make_kalman_bucy,
     make_luenberger,
     make_output_injection,
-    output_injection_output,
     output_injection_rate,
-    sampled,
     sinusoid_exosystem,
 )
 
@@ -58,7 +54,7 @@ def test_luenberger_error_follows_a_minus_kc():
 
     def f(t, s):
         x, x_hat = s
-        return A @ x + B @ u(t), luenberger_rate(params, t, x_hat, u(t), C @ x)
+        return A @ x + B @ u(t), luenberger_rate(params, x_hat, u(t), C @ x, t)
 
     x0 = np.array([1.0, -0.5])
     x, x_hat = jax.jit(lambda s: _rk4(f, s, 0.001, 3000))((jnp.asarray(x0), jnp.zeros(2)))
@@ -87,11 +83,11 @@ def test_kalman_bucy_riccati_ode_converges_to_the_stationary_filter():
     L_ctrl, P_ctrl, _ = control.lqe(A, np.eye(2), C, Q, R)
     np.testing.assert_allclose(stationary.K, L_ctrl, rtol=1e-12)
     params = make_kalman_bucy(A, B, C, Q, R, P0=np.zeros((2, 2)))
-    filt = sampled(kalman_bucy_rate, kalman_bucy_init, kalman_bucy_output, dt=0.01, substeps=2)
-    state, _ = jax.jit(lambda y: run(filt, params, EstimatorInputs(y=y, u_prev=np.zeros((1500, 1)))))(
+    filt = as_continuous(params, dt=0.01, substeps=2)
+    state, _ = jax.jit(lambda y: run(continuous_observer, filt, EstimatorInputs(y=y, u_prev=np.zeros((1500, 1)))))(
         np.zeros((1500, 1))
     )
-    np.testing.assert_allclose(state.estimate.P, P_ctrl, rtol=1e-12)
+    np.testing.assert_allclose(state.x.P, P_ctrl, rtol=1e-12)
 
 
 def pendulum(y, u):
@@ -109,7 +105,7 @@ def test_output_injection_error_dynamics_are_linear():
 
     def f(t, s):
         z, z_hat = s
-        return pendulum(z[0], u(t)) + jnp.array([z[1], 0.0]), output_injection_rate(params, t, z_hat, u(t), z[0])
+        return pendulum(z[0], u(t)) + jnp.array([z[1], 0.0]), output_injection_rate(params, z_hat, u(t), z[0], t)
 
     z0 = np.array([2.5, 0.0])
     z, z_hat = jax.jit(lambda s: _rk4(f, s, 0.001, 4000))((jnp.asarray(z0), jnp.zeros(2)))
@@ -135,21 +131,21 @@ def test_exosystem_augmentation_estimates_a_sinusoidal_disturbance():
     for k in range(1, T):
         z[k] = Phi @ z[k - 1] + Gam[:, 0] * u[k - 1]
     u_prev = np.concatenate([[0.0], u[:-1]])[:, None]
-    observer = sampled(luenberger_rate, lambda p: p.x0, luenberger_output, dt=dt, substeps=1)
-    _, out = jax.jit(lambda y, u: run(observer, params, EstimatorInputs(y=y, u_prev=u)))(z[:, :1], u_prev)
+    observer = as_continuous(params, dt=dt, substeps=1)
+    _, out = jax.jit(lambda y, u: run(continuous_observer, observer, EstimatorInputs(y=y, u_prev=u)))(z[:, :1], u_prev)
     d_hat = np.asarray(out.x)[:, 1:] @ np.asarray(C_w)[0]
     late = t > 8.0
     np.testing.assert_allclose(z[late, 1], np.sin(2 * t[late]), atol=1e-12)  # the exosystem is the sinusoid
     assert np.max(np.abs(d_hat[late] - np.sin(2 * t[late]))) < 1e-6
 
 
-def test_sampled_runner_missing_measurements_and_vmap():
+def test_sampled_run_missing_measurements_and_vmap():
     """All measurements missing: no injection, the estimate follows the model (x_hat = expm(A t) x0 to RK4
     accuracy) and the innovation is 0; a batch of measurement records under vmap equals one-by-one runs."""
     K = place(A.T, C.T, [-3.0, -4.0]).T
     params = make_luenberger(A, B, C, K, x0=[1.0, 0.0])
-    observer = sampled(luenberger_rate, lambda p: p.x0, luenberger_output, dt=0.01)
-    go = jax.jit(lambda y: run(observer, params, EstimatorInputs(y=y, u_prev=jnp.zeros((200, 1))))[1])
+    observer = as_continuous(params, dt=0.01)
+    go = jax.jit(lambda y: run(continuous_observer, observer, EstimatorInputs(y=y, u_prev=jnp.zeros((200, 1))))[1])
     out = go(np.full((200, 1), np.nan))
     np.testing.assert_allclose(out.x[-1], scipy.linalg.expm(A * 1.99) @ [1.0, 0.0], rtol=1e-9)
     assert np.all(np.asarray(out.innovation) == 0)
@@ -171,4 +167,6 @@ def test_augment_and_output_injection_reject_bad_input():
     with pytest.raises(ValueError, match=r"^l or poles\b"):
         make_output_injection(pendulum, 2)
     with pytest.raises(ValueError, match=r"^dt\b"):
-        sampled(output_injection_rate, lambda p: p.x0, output_injection_output, dt=0.0)
+        as_continuous(make_output_injection(pendulum, 2, l=[5.0, 6.0]), dt=0.0)
+    with pytest.raises(ValueError, match=r"^params\b"):
+        as_continuous(np.eye(2), dt=0.1)

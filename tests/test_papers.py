@@ -30,6 +30,9 @@ def test_registry_names():
         "cortesao2006-example2",
         "liu-peng2002-vehicle",
         "grip2010-scb",
+        "grip2010-example1.1",
+        "grip2010-example5.6",
+        "grip2010-drilling",
     }
 
 

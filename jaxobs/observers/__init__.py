@@ -5,7 +5,8 @@ a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dyna
 observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman
 filter), ``continuous`` (continuous-time observers run as sampled estimators), ``pe_monitor``
 (persistency-of-excitation monitor: the windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time
-Luenberger, Kalman-Bucy and output-injection observers). ``feedback.observer_controller`` turns any of them into
+Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
+estimator of Grip 2010 ch. 5). ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
 
@@ -19,6 +20,7 @@ from jaxobs.observers import (
     inverse_dynamics,
     kalman,
     linear,
+    modular,
     pe_monitor,
     ukf,
 )
@@ -52,4 +54,5 @@ __all__ = [
     "ekf",
     "ukf",
     "continuous",
+    "modular",
 ]

@@ -2,20 +2,19 @@
 differential equation or stationary gain), the observer with linear error dynamics for systems in the
 output-injection canonical form (eq. 1.9), and the disturbance/exosystem augmentation (eq. 1.8).
 
-Each observer is a pure right-hand side ``rate(params, t, x_hat, u, y)`` of its continuous-time dynamics (``x_hat``
-a pytree: the estimate, and its covariance for the Kalman-Bucy filter), so it can be integrated inside any ODE
-solver together with the plant. :func:`sampled` turns one into an :class:`~jaxobs.observers.base.Estimator` for
-sampled data: over each sample interval the input ``u_{k-1}`` and the last measurement ``y_{k-1}`` are held and
-the dynamics are integrated by ``substeps`` fixed RK4 steps (a local integrator, to be replaced by
-:mod:`jaxobs.ct`); ``out.x`` is the estimate at the sample ``t_k``. As in the Kalman-type families, ``x0`` is the
-estimate at the first sample, which only stores ``y_0``.
+Each observer is a pure right-hand side ``rate(params, x_hat, u, y, t)`` of its continuous-time dynamics (``x_hat``
+a pytree: the estimate, and its covariance for the Kalman-Bucy filter) with an output map ``output(params, x_hat,
+u)``, so it can be integrated inside any ODE solver together with the plant. :func:`as_continuous` binds them into
+the :class:`~jaxobs.observers.continuous.ContinuousObserverParams` that
+:data:`~jaxobs.observers.continuous.continuous_observer` runs on sampled data (``out.x`` is the estimate at the
+sample ``t_k``; ``x0`` is the estimate at the first sample, which only stores ``y_0``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +22,7 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs.design import _char_poly_coefficients, is_detectable, lqe
-from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.continuous import ContinuousObserverParams, make_continuous_observer
 from jaxobs.riccati import _pbh_deficient_eigenvalues, symmetrize
 
 __all__ = [
@@ -40,9 +39,8 @@ __all__ = [
     "sinusoid_exosystem",
     "luenberger_output",
     "kalman_bucy_output",
-    "kalman_bucy_init",
     "output_injection_output",
-    "sampled",
+    "as_continuous",
     "KalmanBucyEstimate",
 ]
 
@@ -109,17 +107,16 @@ def _require_detectable(A, C) -> None:
         )
 
 
-def luenberger_rate(params: LuenbergerParams, t, x_hat, u, y):
-    """Right-hand side of Grip 2010 eq. 1.3: ``A x_hat + B u + K (y - y_hat)``, ``y_hat = C x_hat + D u``; ``u`` (m,)
-    or ``None`` (no input), ``y`` (p,)."""
+def luenberger_rate(params: LuenbergerParams, x_hat, u, y, t):
+    """Right-hand side of Grip 2010 eq. 1.3: ``A x_hat + B u + K (y - y_hat)``, ``y_hat = C x_hat + D u``; ``x_hat``
+    (n,), ``u`` (m,), ``y`` (p,), ``t`` unused."""
     del t
-    drive = params.A @ x_hat if u is None else params.A @ x_hat + params.B @ u
-    return drive + params.K @ (y - luenberger_output(params, x_hat, u)[1])
+    return params.A @ x_hat + params.B @ u + params.K @ (y - luenberger_output(params, x_hat, u))
 
 
 def luenberger_output(params: LuenbergerParams, x_hat, u):
-    """``(x_hat, C x_hat + D u)`` (``u`` may be ``None``)."""
-    return x_hat, params.C @ x_hat if u is None else params.C @ x_hat + params.D @ u
+    """``y_hat = C x_hat + D u`` (p,)."""
+    return params.C @ x_hat + params.D @ u
 
 
 # --------------------------------------------------------------------------------------------
@@ -186,27 +183,22 @@ class KalmanBucyEstimate(NamedTuple):
     P: jax.Array  # (n, n) error covariance
 
 
-def kalman_bucy_rate(params: KalmanBucyParams, t, estimate: KalmanBucyEstimate, u, y) -> KalmanBucyEstimate:
-    """Right-hand side of the Kalman-Bucy filter (Grip 2010 eq. 1.7 with the Riccati differential equation)."""
+def kalman_bucy_rate(params: KalmanBucyParams, estimate: KalmanBucyEstimate, u, y, t) -> KalmanBucyEstimate:
+    """Right-hand side of the Kalman-Bucy filter (Grip 2010 eq. 1.7 with the Riccati differential equation);
+    ``u`` (m,), ``y`` (p,), ``t`` unused."""
     del t
     x, P = estimate
     gain_t = jnp.linalg.solve(params.R, params.C @ P)  # K' = R^{-1} C P
-    x_dot = params.A @ x + gain_t.T @ (y - params.C @ x)
-    x_dot = x_dot if u is None else x_dot + params.B @ u
+    x_dot = params.A @ x + params.B @ u + gain_t.T @ (y - params.C @ x)
     AP = params.A @ P
     P_dot = AP + AP.T + params.Q - P @ params.C.T @ gain_t
     return KalmanBucyEstimate(x_dot, symmetrize(P_dot))
 
 
 def kalman_bucy_output(params: KalmanBucyParams, estimate: KalmanBucyEstimate, u):
-    """``(x_hat, C x_hat)``."""
+    """``y_hat = C x_hat`` (p,)."""
     del u
-    return estimate.x, params.C @ estimate.x
-
-
-def kalman_bucy_init(params: KalmanBucyParams) -> KalmanBucyEstimate:
-    """``(x0, P0)``."""
-    return KalmanBucyEstimate(params.x0, params.P0)
+    return params.C @ estimate.x
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,8 +255,8 @@ def make_output_injection(gamma: Callable, n, *, l=None, poles=None, x0=None) ->
     return OutputInjectionParams(l, x0, gamma)
 
 
-def output_injection_rate(params: OutputInjectionParams, t, z_hat, u, y):
-    """Right-hand side of Grip 2010 eq. 1.9's observer; ``y`` () or (1,), ``u`` (m,)."""
+def output_injection_rate(params: OutputInjectionParams, z_hat, u, y, t):
+    """Right-hand side of Grip 2010 eq. 1.9's observer; ``y`` () or (1,), ``u`` (m,), ``t`` unused."""
     del t
     y = jnp.reshape(y, ())
     shifted = jnp.concatenate([z_hat[1:], jnp.zeros((1,), z_hat.dtype)])
@@ -272,9 +264,9 @@ def output_injection_rate(params: OutputInjectionParams, t, z_hat, u, y):
 
 
 def output_injection_output(params: OutputInjectionParams, z_hat, u):
-    """``(z_hat, z_hat_1)``."""
+    """``y_hat = z_hat_1`` (1,)."""
     del params, u
-    return z_hat, z_hat[:1]
+    return z_hat[:1]
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,80 +330,45 @@ def augment(A, B, C, E, A_w, C_w=None, B_w=None):
 
 
 # --------------------------------------------------------------------------------------------
-# sampled-data runner (local RK4; to be replaced by jaxobs.ct)
+# sampled data
 
 
-class SampledState(NamedTuple):
-    estimate: Any  # the observer's state (x_hat, or (x_hat, P) for the Kalman-Bucy filter) at the last sample
-    y: jax.Array  # (p,) the last measurement (NaN entries: missing)
-    t: jax.Array  # () time of the last sample (0 at the first)
-    started: jax.Array  # () bool: a sample has been processed
-
-
-class SampledOutputs(NamedTuple):
-    x: jax.Array  # (n,) estimate at the sample
-    innovation: jax.Array  # (p,) y_k - y_hat at the sample (0 for missing components)
-
-
-def _rk4(rate, t, x, h, substeps: int):
-    """``substeps`` classical RK4 steps of ``h`` from time ``t`` (local integrator, to be replaced by jaxobs.ct)."""
-
-    def step(x, i):
-        s = t + i * h
-        k1 = rate(s, x)
-        k2 = rate(s + h / 2, jax.tree.map(lambda a, b: a + h / 2 * b, x, k1))
-        k3 = rate(s + h / 2, jax.tree.map(lambda a, b: a + h / 2 * b, x, k2))
-        k4 = rate(s + h, jax.tree.map(lambda a, b: a + h * b, x, k3))
-        return jax.tree.map(lambda a, b, c, d, e: a + h / 6 * (b + 2 * c + 2 * d + e), x, k1, k2, k3, k4), None
-
-    return jax.lax.scan(step, x, jnp.arange(substeps))[0]
-
-
-def sampled(rate: Callable, init: Callable, output: Callable, dt: float, substeps: int = 4) -> Estimator:
-    """A continuous-time observer as a sampled-data :class:`~jaxobs.observers.base.Estimator`.
-
-    ``init(params)`` gives the observer state at the first sample, ``rate(params, t, state, u, y)`` its dynamics,
-    ``output(params, state, u) -> (x_hat, y_hat)`` its estimate and predicted measurement. Over each interval
-    ``[t_{k-1}, t_k]`` of length ``dt`` the input ``u_{k-1}`` is held (zero-order hold, as the plant's), the
-    measurement is interpolated linearly between ``y_{k-1}`` and ``y_k`` (both known at step ``k``), and
-    ``substeps`` RK4 steps integrate the dynamics; a measurement component missing at either end is replaced by the
-    prediction ``y_hat`` along the way, so it injects nothing. ``dt`` and ``substeps`` are static.
+def as_continuous(params, dt, *, n_inputs: int | None = None, t0=0.0, substeps: int = 4, method: str = "rk4",
+                  measurement: str = "linear") -> ContinuousObserverParams:  # fmt: skip
+    """The observer of ``params`` (:class:`LuenbergerParams`, :class:`KalmanBucyParams` or
+    :class:`OutputInjectionParams`) as :class:`~jaxobs.observers.continuous.ContinuousObserverParams`, run on
+    sampled data by :data:`~jaxobs.observers.continuous.continuous_observer`: ``u_{k-1}`` held over each interval
+    of length ``dt``, the measurement interpolated linearly between the samples by default, ``substeps`` fixed
+    steps of ``method`` per interval. ``n_inputs`` is ``B``'s column count for the linear observers and must be
+    given for an output-injection observer whose ``gamma`` reads ``u`` (default 0). The estimate is ``x_hat``
+    (``KalmanBucyEstimate(x, P)`` for the Kalman-Bucy filter).
 
     Example:
       >>> import numpy as np
-      >>> from jaxobs.observers.base import run
+      >>> from jaxobs.observers import EstimatorInputs, run
+      >>> from jaxobs.observers.continuous import continuous_observer
       >>> params = make_luenberger([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]], [[3.0], [2.0]])
-      >>> observer = sampled(luenberger_rate, lambda p: p.x0, luenberger_output, dt=0.01)
       >>> t = 0.01 * np.arange(1000)  # the unit-acceleration double integrator: position t^2/2, velocity t
-      >>> _, out = run(observer, params, EstimatorInputs(y=(t**2 / 2)[:, None], u_prev=np.ones((1000, 1))))
-      >>> np.round(np.asarray(out.x[-1]) - [t[-1] ** 2 / 2, t[-1]], 4).tolist()  # 8e-6: the interpolation of y
-      [0.0, 0.0]
+      >>> inputs = EstimatorInputs(y=(t**2 / 2)[:, None], u_prev=np.ones((1000, 1)))
+      >>> _, out = run(continuous_observer, as_continuous(params, dt=0.01), inputs)
+      >>> error = np.asarray(out.x[-1]) - [t[-1] ** 2 / 2, t[-1]]  # 8e-6 in position (linear interpolation of y)
+      >>> bool(np.all(np.abs(error) < 1e-4))  # holding y instead (measurement="hold") gives 0.05
+      True
     """
-    _checks.positive_scalar("dt", dt)
-    substeps = _checks.count("substeps", substeps, minimum=1)
-
-    def init_fn(params) -> SampledState:
-        state = init(params)
-        x_hat, y_hat = output(params, state, None)
-        dtype = x_hat.dtype
-        return SampledState(state, jnp.zeros_like(y_hat), jnp.zeros((), dtype), jnp.zeros((), bool))
-
-    def step_fn(params, state: SampledState, inputs: EstimatorInputs):
-        p, dtype = state.y.shape[0], state.y.dtype
-        y = _checks.vector("inputs.y", inputs.y, p, dtype, check_finite=False)
-        u = None if inputs.u_prev is None else jnp.asarray(inputs.u_prev, dtype)
-        seen = jnp.isfinite(state.y) & jnp.isfinite(y)
-        y0, y1 = jnp.where(seen, state.y, 0), jnp.where(seen, y, 0)
-
-        def dynamics(s, x):
-            measured = y0 + (s - state.t) / dt * (y1 - y0)
-            return rate(params, s, x, u, jnp.where(seen, measured, output(params, x, u)[1]))
-
-        moved = _rk4(dynamics, state.t, state.estimate, dt / substeps, substeps)
-        estimate = jax.tree.map(lambda a, b: jnp.where(state.started, a, b), moved, state.estimate)
-        x_hat, y_hat = output(params, estimate, u)
-        innovation = jnp.where(jnp.isfinite(y), y - y_hat, 0)
-        t = jnp.where(state.started, state.t + dt, state.t)
-        return SampledState(estimate, y, t, jnp.ones((), bool)), SampledOutputs(x_hat, innovation)
-
-    return Estimator(init_fn, step_fn)
+    if isinstance(params, LuenbergerParams):
+        rate, output, x0, m = luenberger_rate, luenberger_output, params.x0, params.B.shape[1]
+    elif isinstance(params, KalmanBucyParams):
+        rate, output, m = kalman_bucy_rate, kalman_bucy_output, params.B.shape[1]
+        x0 = KalmanBucyEstimate(params.x0, params.P0)
+    elif isinstance(params, OutputInjectionParams):
+        rate, output, x0, m = output_injection_rate, output_injection_output, params.x0, 0
+    else:
+        raise ValueError(
+            f"params must be LuenbergerParams, KalmanBucyParams or OutputInjectionParams, got {type(params).__name__}"
+        )
+    if n_inputs is not None and n_inputs != m and not isinstance(params, OutputInjectionParams):
+        raise ValueError(f"n_inputs must be {m}, the column count of B, got {n_inputs}")
+    bind = jax.tree_util.Partial
+    return make_continuous_observer(bind(rate, params), bind(output, params), x0=x0, dt=dt, t0=t0,
+                                    n_inputs=m if n_inputs is None else n_inputs, substeps=substeps, method=method,
+                                    measurement=measurement)  # fmt: skip
