@@ -1,0 +1,265 @@
+"""The modified high-gain observer of Grip 2010, ch. 6: an extended-state observer with a model-based perturbation.
+
+For ``x' = A x + B u + E phi``, ``y = C x`` with the perturbation ``phi = g(v, x, theta)``, ``v = col(u, y)``,
+the observer (6.3) is::
+
+    x_hat' = A x_hat + B u + E phi_hat + K_x(eps) (y - C x_hat)                                        (6.3a)
+    z'     = -dg/dtheta(v, x_hat, theta_hat) theta_hat' - dg/dx(v, x_hat, theta_hat) K_x(eps) (y - C x_hat)
+             + K_phi(eps) (y - C x_hat)                                                                (6.3b)
+    phi_hat = g(v, x_hat, theta_hat) + z                                                               (6.3c)
+
+with the gains ``K(eps) = [K_x; K_phi]`` of :func:`hgo_gains` (section 6.3, the special coordinate basis of the
+error system (6.4)) and ``theta_hat' = u_theta(v, x_hat, phi_hat, theta_hat)`` a pluggable update law
+(Propositions 6.1-6.4). The derivatives of ``g`` come from autodiff; the ``dg/dv v'`` term of ``phi_hat'`` is
+carried by the explicit dependence of ``g(v, x_hat, theta_hat)`` on the measured ``v``, so ``v'`` is never needed.
+With ``g`` linear and ``theta`` known the error ``col(x - x_hat, phi - phi_hat)`` follows (6.4) exactly.
+
+:func:`hgo_gains` is design-time (NumPy and :mod:`jaxobs.scb`); its result evaluates ``K(eps)`` for a traced
+``eps`` too (a polynomial in ``1/eps``), so ``eps`` can be tuned by gradient. The observer runs as a sampled
+estimator through :mod:`jaxobs.observers.continuous` (zero-order hold of ``u`` and ``y``, fixed RK4 substeps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from numbers import Real
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import _checks, scb as _scb
+from jaxobs.design import place
+
+__all__ = [
+    "HGOGains",
+    "hgo_gains",
+]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Gain design (section 6.3)
+
+
+@dataclasses.dataclass(frozen=True)
+class HGOGains:
+    """Result of :func:`hgo_gains`.
+
+    Fields:
+      K: (n + k, r) the gain ``[K_x; K_phi]`` at ``eps`` ((n, r) ``K_x`` alone when ``extended=False``).
+      terms: (q + 1, n + k, r) with ``K(eps) = sum_i terms[i] eps^-i`` (``q`` the longest chain); see :meth:`at`.
+      eps: the ``eps`` of ``K``.
+      poles: the eigenvalues of the error dynamics ``A_e - K C_e`` of the (true) system given to :func:`hgo_gains`.
+      zeros: the invariant zeros of the design error system (where ``n_a`` of the poles sit when the design and the
+        true system agree, Remark 6.2).
+      dims: ``(n_a, n_b, n_q)``, the dimensions of the zero dynamics, the x_b subsystem and the chains.
+      chain_lengths: the lengths of the integrator chains, in the order ``poles`` were assigned to them.
+      system: the :class:`jaxobs.scb.SCB` of the design error system, as float arrays.
+    """
+
+    K: np.ndarray
+    terms: np.ndarray
+    eps: float
+    poles: np.ndarray
+    zeros: np.ndarray
+    dims: tuple[int, int, int]
+    chain_lengths: tuple[int, ...]
+    system: _scb.SCB
+
+    def at(self, eps) -> jax.Array:
+        """``K(eps)`` for any ``0 < eps <= 1``, traced or not (``jit``/``grad`` in ``eps``)."""
+        terms = jnp.asarray(self.terms, jnp.result_type(eps, float))
+        powers = jnp.asarray(eps, terms.dtype) ** -jnp.arange(terms.shape[0], dtype=terms.dtype)
+        return jnp.tensordot(powers, terms, axes=1)
+
+
+def _real_matrix(name, value, shape):
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real numeric matrix, got {type(value).__name__}") from None
+    if a.ndim == 1 and shape[1] is not None and shape[1] == 1:
+        a = a[:, None]
+    _checks.matrix(name, a, shape=shape)
+    return a
+
+
+def _triple(A, E, C, prefix=""):
+    A = np.asarray(A, dtype=float) if not isinstance(A, np.ndarray) else A.astype(float)
+    A = _real_matrix(f"{prefix}A", A, (None, None))
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"{prefix}A must be square, got shape {A.shape}")
+    n = A.shape[0]
+    E = _real_matrix(f"{prefix}E", E, (n, None))
+    C = _real_matrix(f"{prefix}C", C, (None, n))
+    if np.linalg.matrix_rank(E) < E.shape[1]:
+        raise ValueError(f"{prefix}E must have full column rank {E.shape[1]} (remove dependent perturbations first)")
+    if np.linalg.matrix_rank(C) < C.shape[0]:
+        raise ValueError(f"{prefix}C must have full row rank {C.shape[0]} (remove dependent outputs first)")
+    return A, E, C
+
+
+def _error_system(A, E, C, extended):
+    """(A_e, B_e, C_e) of the error dynamics (6.4) with K = 0 (input d, output y), or of x' = A x + E g."""
+    if not extended:
+        return A, E, C
+    n, k = E.shape
+    Ae = np.block([[A, E], [np.zeros((k, n)), np.zeros((k, k))]])
+    return Ae, np.vstack([np.zeros((n, k)), np.eye(k)]), np.hstack([C, np.zeros((C.shape[0], k))])
+
+
+def _pole_groups(name, poles, sizes):
+    """``poles`` split into conjugation-closed groups of ``sizes`` (ValueError naming ``name`` otherwise)."""
+    total = int(sum(sizes))
+    try:
+        p = np.atleast_1d(np.asarray(poles, dtype=complex))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a vector of numbers, got {type(poles).__name__}") from None
+    if p.ndim != 1 or p.size != total:
+        raise ValueError(f"{name} must have {total} entries (groups of {tuple(sizes)}), got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite, got {p.tolist()}")
+    groups, start = [], 0
+    for size in sizes:
+        group = p[start : start + size]
+        start += size
+        scale = max(1.0, float(np.max(np.abs(group)))) if size else 1.0
+        if np.sort_complex(group).size and not np.allclose(
+            np.sort_complex(group), np.sort_complex(np.conj(group)), rtol=0, atol=1e-9 * scale
+        ):
+            raise ValueError(
+                f"{name}: complex poles must come in conjugate pairs within each group {tuple(sizes)}, got "
+                f"{group.tolist()}"
+            )
+        groups.append(group)
+    return groups
+
+
+def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, design=None,
+              corrected: bool = True, numeric: bool = False) -> HGOGains:  # fmt: skip
+    """Gains ``K(eps) = [K_x(eps); K_phi(eps)]`` of the modified high-gain observer (6.3) (Grip 2010, section 6.3).
+
+    The error dynamics (6.4) with input ``d`` and output ``y`` (``A_e = [[A, E], [0, 0]]``, ``B_e = [0; I_k]``,
+    ``C_e = [C, 0]``) are put in the special coordinate basis (:func:`jaxobs.scb.scb`, exact arithmetic by default)
+    ``chi = col(chi_a, chi_b, chi_q1, ..., chi_qk)``, ``gamma = col(gamma_q, gamma_b)``, and (sections 6.3.1-6.3.2)::
+
+        K_aq = L_aq,  K_ab = L_ab,  K_bq = L_bq,  eig(A_b - K_bb C_b) = poles_b,  K_qjb = 0,
+        K_qjq(eps) = [0, col(Kbar_qj1 / eps, ..., Kbar_qjn / eps^n), 0] + L_qjq     (author's corrigendum)
+
+    where ``Kbar_qj`` places the poles of ``H_j = A_qj - Kbar_qj C_qj`` (an integrator chain of length ``n =
+    n_qj``) and ``L_qjq`` is the output injection of the chain's upper rows (the entries of a chain's last row are
+    the ``D_qj`` couplings, matched with the input, and are not cancelled). Then ``K = Lambda_1 K_scb Lambda_2^-1``
+    (6.8). As ``eps -> 0``, ``n_a`` poles sit at the invariant zeros, ``n_b`` at ``poles_b`` and ``eps`` times the
+    ``n_q`` others tend to ``eig(H_j)`` (Remark 6.2).
+
+    Args:
+      A: (n, n), E: (n, k), C: (r, n): the plant ``x' = A x + B u + E phi``, ``y = C x`` (finite floats);
+        ``(C, A, E)`` must be left-invertible and minimum-phase (Assumption 6.1), else ``ValueError`` naming which
+        (with the offending zeros).
+      poles: (n_q,) the poles of the ``H_j``, the first ``n_q1`` for the first chain of ``chain_lengths`` and so
+        on (each group closed under conjugation); ``n_q = sum(chain_lengths)``.
+      eps: the high-gain parameter, ``0 < eps <= 1``.
+      poles_b: (n_b,) the eigenvalues of ``A_b - K_bb C_b``; required iff the error system has an x_b subsystem.
+      extended: design the extended observer (6.3) (True) or the state observer of the cascade redesign, section
+        6.6 (False: the SCB of ``x' = A x + E g``, input ``g``, and ``K`` is (n, r)).
+      design: ``(A0, E0, C0)``: design on these (unperturbed) matrices instead, section 6.7.1 (e.g. a small
+        parameter set to zero); ``poles`` of the result are still those of ``(A, E, C)``.
+      corrected: the corrigendum's ``K_qjq`` (True) or the one printed in section 6.3.2, with powers
+        ``eps^(nbar - n_qj + i)`` (False; wrong for chains of different lengths, kept to show it).
+      numeric: floating-point SCB (rank decisions by SVD, :func:`jaxobs.scb.scb`) instead of exact fractions.
+
+    Returns:
+      :class:`HGOGains`.
+
+    Example: the DC motor with LuGre friction of Grip 2010, section 6.8 (design system sigma_1 = 0).
+
+      >>> import numpy as np
+      >>> J, s0, a2 = 0.0023, 260.0, 0.176
+      >>> A = [[0, 1, 0], [0, -a2 / J, -s0 / J], [0, 1, 0]]
+      >>> gains = hgo_gains(A, [[0], [0], [-1]], [[1, 0, 0]], [-1 + 0.2j, -1 - 0.2j, -2 + 0.2j, -2 - 0.2j])
+      >>> np.round(gains.K[:, 0], 2).tolist()
+      [6.0, 13.08, -0.01, 13.09]
+    """
+    A, E, C = _triple(A, E, C)
+    if design is None:
+        A0, E0, C0 = A, E, C
+    else:
+        if not (isinstance(design, tuple | list) and len(design) == 3):
+            raise ValueError(f"design must be a triple (A0, E0, C0), got {type(design).__name__}")
+        A0, E0, C0 = _triple(*design, prefix="design ")
+        if (A0.shape, E0.shape, C0.shape) != (A.shape, E.shape, C.shape):
+            raise ValueError(
+                f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
+                f"{(A.shape, E.shape, C.shape)}"
+            )
+    if isinstance(eps, bool) or not isinstance(eps, Real | np.floating | np.integer) or not (
+        np.isfinite(float(eps)) and 0 < float(eps) <= 1
+    ):
+        raise ValueError(f"eps must be a number in (0, 1], got {eps!r}")
+    eps = float(eps)
+    triple = "(C, A, E)" if design is None else "the design triple (C0, A0, E0)"
+    s = _scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric)
+    if not _scb.is_left_invertible(s):
+        raise ValueError(f"{triple} must be left-invertible (Assumption 6.1), but its SCB has n_c = {s.dims[2]}")
+    zeros = np.asarray([complex(z) for z in _scb.invariant_zeros(s)], dtype=complex)
+    unstable = zeros[np.real(zeros) >= 0]
+    if unstable.size:
+        raise ValueError(
+            f"{triple} must be minimum-phase (Assumption 6.1), but has the invariant zeros {unstable.tolist()} in the "
+            "closed right half-plane"
+        )
+    f = _scb.scb_arrays(s)
+    n_a, n_b, _, n_q = f.dims
+    chains = f.chain_lengths
+    terms = _scb_gain_terms(f, _pole_groups("poles", poles, chains), poles_b, corrected)
+    K_terms = np.einsum("ij,qjk,kl->qil", f.Gamma1, terms, np.linalg.inv(f.Gamma2))
+    K = np.tensordot(eps ** -np.arange(K_terms.shape[0], dtype=float), K_terms, axes=1)
+    Ae, _, Ce = _error_system(A, E, C, extended)
+    return HGOGains(
+        K=K,
+        terms=K_terms,
+        eps=eps,
+        poles=np.linalg.eigvals(Ae - K @ Ce),
+        zeros=zeros,
+        dims=(n_a, n_b, n_q),
+        chain_lengths=chains,
+        system=f,
+    )
+
+
+def _scb_gain_terms(f: _scb.SCB, groups, poles_b, corrected: bool) -> np.ndarray:
+    """``K_scb(eps) = sum_i terms[i] eps^-i`` in SCB coordinates (sections 6.3.1-6.3.2)."""
+    n_a, n_b, _, n_q = f.dims
+    chains = f.chain_lengths
+    k = len(chains)
+    n_e, p = f.A.shape[0], f.C.shape[0]
+    a, b, d = slice(0, n_a), slice(n_a, n_a + n_b), slice(n_a + n_b, n_e)
+    C_d = f.C[:k, d]  # y_scb = col(y_d, y_b): y_d the first states of the chains
+    tops = np.concatenate([[0], np.cumsum(chains)[:-1]]).astype(int)
+    lasts = tops + np.asarray(chains, dtype=int) - 1
+    shift = np.zeros((n_q, n_q))
+    for top, q in zip(tops, chains, strict=True):
+        shift[top : top + q - 1, top + 1 : top + q] = np.eye(q - 1)
+    qbar = max(chains, default=0)
+    terms = np.zeros((qbar + 1, n_e, p))
+    # output injections L: they cancel the output terms of x_a, x_b and the upper rows of each chain
+    bd = slice(n_a, n_e)
+    terms[0, a, :] = f.A[a, bd] @ np.linalg.pinv(f.C[:, bd])
+    terms[0, b, :k] = f.A[b, d] @ np.linalg.pinv(C_d)
+    upper = np.setdiff1d(np.arange(n_q), lasts)
+    terms[0, n_a + n_b + upper, :k] = (f.A[d, d] - shift)[upper] @ np.linalg.pinv(C_d)
+    if n_b:
+        if poles_b is None:
+            raise ValueError(f"poles_b is required: the error system has an x_b subsystem of dimension {n_b}")
+        (pb,) = _pole_groups("poles_b", poles_b, (n_b,))
+        terms[0, b, k:] = place(f.A[b, b].T, f.C[k:, b].T, pb).T
+    elif poles_b is not None and np.size(poles_b):
+        raise ValueError(f"poles_b must be empty: the error system has no x_b subsystem, got {np.size(poles_b)} poles")
+    for j, (top, q, group) in enumerate(zip(tops, chains, groups, strict=True)):
+        coeffs = np.real(np.poly(group))[1:]  # Kbar_qj: H_j = A_qj - Kbar_qj C_qj has the poles ``group``
+        offset = 0 if corrected else qbar - q
+        for i in range(q):
+            terms[i + 1 + offset, n_a + n_b + top + i, j] += coeffs[i]
+    return terms
