@@ -12,7 +12,8 @@
   ``h(x)``), :data:`extended_kalman_filter` (:func:`make_ekf`), :data:`unscented_kalman_filter`
   (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
   ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
-  (:func:`make_continuous_observer`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
+  (:func:`make_continuous_observer`); the modified high-gain observer of Grip 2010, ch. 6: :func:`hgo_gains`,
+  :data:`hgo_observer` (:func:`make_hgo`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
 * closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
   :func:`closed_loop_matrix`, :func:`spectral_radius`;
 * jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
@@ -42,6 +43,7 @@ from jaxobs.observers import (
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
 from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
 from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
+from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
 from jaxobs.observers.kalman import kalman_filter, make_kalman
@@ -119,6 +121,9 @@ __all__ = [
     "make_ukf",
     "continuous_observer",
     "make_continuous_observer",
+    "hgo_gains",
+    "hgo_observer",
+    "make_hgo",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

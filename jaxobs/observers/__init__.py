@@ -5,7 +5,8 @@ a-posteriori H-infinity filter), ``inverse_dynamics`` (Liu & Peng's inverse-dyna
 observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman filter), ``ukf`` (unscented Kalman
 filter), ``continuous`` (continuous-time observers run as sampled estimators), ``pe_monitor``
 (persistency-of-excitation monitor: the windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time
-Luenberger, Kalman-Bucy and output-injection observers). ``feedback.observer_controller`` turns any of them into
+Luenberger, Kalman-Bucy and output-injection observers), ``hgo`` (the modified high-gain observer of Grip 2010,
+ch. 6, and its gains). ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
 
@@ -15,6 +16,7 @@ from jaxobs.observers import (
     ct_linear,
     ekf,
     feedback,
+    hgo,
     hinf,
     inverse_dynamics,
     kalman,
@@ -52,4 +54,5 @@ __all__ = [
     "ekf",
     "ukf",
     "continuous",
+    "hgo",
 ]

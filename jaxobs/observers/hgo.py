@@ -30,12 +30,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs import _checks, scb as _scb
+from jaxobs import _checks
+from jaxobs import scb as _scb
+from jaxobs.adaptive import _gain, project
 from jaxobs.design import place
+from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.continuous import ContinuousObserverParams, continuous_observer
 
 __all__ = [
     "HGOGains",
     "hgo_gains",
+    "smooth_abs",
+    "target_law",
+    "gradient_law",
+    "HGOParams",
+    "HGOOutputs",
+    "make_hgo",
+    "hgo_observer",
 ]
 
 
@@ -87,7 +98,6 @@ def _real_matrix(name, value, shape):
 
 
 def _triple(A, E, C, prefix=""):
-    A = np.asarray(A, dtype=float) if not isinstance(A, np.ndarray) else A.astype(float)
     A = _real_matrix(f"{prefix}A", A, (None, None))
     if A.shape[0] != A.shape[1]:
         raise ValueError(f"{prefix}A must be square, got shape {A.shape}")
@@ -194,8 +204,10 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
                 f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
                 f"{(A.shape, E.shape, C.shape)}"
             )
-    if isinstance(eps, bool) or not isinstance(eps, Real | np.floating | np.integer) or not (
-        np.isfinite(float(eps)) and 0 < float(eps) <= 1
+    if (
+        isinstance(eps, bool)
+        or not isinstance(eps, Real | np.floating | np.integer)
+        or not (np.isfinite(float(eps)) and 0 < float(eps) <= 1)
     ):
         raise ValueError(f"eps must be a number in (0, 1], got {eps!r}")
     eps = float(eps)
@@ -263,3 +275,248 @@ def _scb_gain_terms(f: _scb.SCB, groups, poles_b, corrected: bool) -> np.ndarray
         for i in range(q):
             terms[i + 1 + offset, n_a + n_b + top + i, j] += coeffs[i]
     return terms
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Parameter update laws u_theta (Propositions 6.1-6.4) and the smooth absolute value of section 6.8
+
+
+def smooth_abs(w, kappa):
+    """The C^1 absolute value of Grip 2010, section 6.8: ``w^2 / (2 kappa) + kappa / 2`` on ``[-kappa, kappa]``,
+    ``|w|`` outside (value and slope continuous at ``+-kappa``; ``>= kappa / 2 > 0``).
+
+    Args:
+      w: array.  kappa: positive half-width of the quadratic piece.
+
+    Example:
+      >>> round(float(smooth_abs(0.0, 0.1)), 6), round(float(smooth_abs(-0.3, 0.1)), 6)
+      (0.05, 0.3)
+    """
+    w = jnp.asarray(w, _checks.float_dtype(w=w, kappa=kappa))
+    _checks.positive_scalar("kappa", kappa)
+    inside = jnp.abs(w) <= kappa
+    return jnp.where(inside, w**2 / (2 * kappa) + kappa / 2, jnp.abs(jnp.where(inside, kappa, w)))
+
+
+def _projected(rate, theta_hat, Gamma, region, epsilon):
+    return rate if region is None else project(rate, theta_hat, Gamma, region, epsilon)
+
+
+def _target_law(theta_star, Gamma, threshold, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
+    active = jnp.linalg.norm(phi_hat) >= threshold
+    # theta_star never sees |phi_hat| < threshold (e.g. a division by phi_hat): a stand-in of norm threshold
+    safe = jnp.where(active, phi_hat, threshold / jnp.sqrt(phi_hat.shape[0]))
+    G = _gain(Gamma, theta_hat.shape[0], theta_hat.dtype)
+    rate = jnp.where(active, G @ (theta_star(v, x_hat, safe) - theta_hat), 0.0)
+    return _projected(rate, theta_hat, Gamma, region, epsilon)
+
+
+def target_law(theta_star, Gamma, *, threshold=0.0, region=None, epsilon=None) -> jax.tree_util.Partial:
+    """The law ``theta_hat' = Proj(l Gamma (theta*(v, x_hat, phi_hat) - theta_hat))`` of Propositions 6.1 (``l =
+    1``) and 6.2 (Grip 2010), with ``l = 1`` while ``|phi_hat| >= threshold`` and 0 below (section 6.8: the
+    update pauses while the perturbation is too small to invert for theta). Below the threshold ``theta_star`` is
+    evaluated at a stand-in ``phi_hat`` of norm ``threshold`` and the result discarded, so a ``theta_star`` that
+    divides by ``phi_hat`` produces no NaN, in values or gradients, for ``threshold > 0``.
+
+    Args:
+      theta_star: ``theta*(v, x_hat, phi_hat) -> (p,)``, the parameter solved from ``phi = g(v, x, theta)``.
+      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
+      threshold: ``>= 0``; 0 gives Proposition 6.1.
+      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
+
+    Returns:
+      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
+    """
+    _checks.positive_scalar("threshold", threshold, allow_zero=True)
+    if region is not None:
+        _checks.positive_scalar("epsilon", epsilon)
+    return jax.tree_util.Partial(
+        _target_law, _checks.function("theta_star", theta_star), Gamma, threshold, region, epsilon
+    )
+
+
+def _gradient_law(M, Gamma, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
+    residual = phi_hat - g(v, x_hat, theta_hat)
+    gain = jax.jacfwd(g, argnums=2)(v, x_hat, theta_hat).T if M is None else M(v, x_hat, theta_hat)
+    rate = _gain(Gamma, theta_hat.shape[0], theta_hat.dtype) @ (gain @ residual)
+    return _projected(rate, theta_hat, Gamma, region, epsilon)
+
+
+def gradient_law(Gamma, *, M=None, region=None, epsilon=None) -> jax.tree_util.Partial:
+    """The law ``theta_hat' = Proj(Gamma M(v, x_hat, theta_hat) (phi_hat - g(v, x_hat, theta_hat)))`` of
+    Propositions 6.3 and 6.4 (Grip 2010), by default the gradient search ``M = (dg/dtheta)'`` (autodiff).
+
+    Args:
+      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
+      M: ``M(v, x_hat, theta_hat) -> (p, k)`` satisfying (6.14) or (6.15); ``(dg/dtheta)'`` if None.
+      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
+
+    Returns:
+      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
+    """
+    if region is not None:
+        _checks.positive_scalar("epsilon", epsilon)
+    M = None if M is None else _checks.function("M", M)
+    return jax.tree_util.Partial(_gradient_law, M, Gamma, region, epsilon)
+
+
+def _no_update(g, v, x_hat, phi_hat, theta_hat):
+    return jnp.zeros_like(theta_hat)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The observer (6.3) as a sampled estimator
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HGOParams:
+    """The modified high-gain observer (6.3); build it with :func:`make_hgo`.
+
+    Attributes:
+      A: (n, n).  B: (n, m).  E: (n, k).  C: (r, n): the plant matrices.
+      K: (n + k, r) the gain ``[K_x; K_phi]`` (:func:`hgo_gains`).
+      g: ``g(v, x, theta) -> (k,)`` with ``v = col(u, y)``, a ``Partial``.
+      law: ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)``, a ``Partial`` (:func:`target_law`,
+        :func:`gradient_law`, or none: theta_hat stays at ``theta0``).
+      x0: (n,).  z0: (k,).  theta0: (p,): the initial ``x_hat``, ``z`` and ``theta_hat``.
+      dt: () sample period.  t0: () time of the first sample.
+      substeps: static RK4 (or Euler) steps per sample.  method: static ``"rk4"`` or ``"euler"``.
+    """
+
+    A: jax.Array
+    B: jax.Array
+    E: jax.Array
+    C: jax.Array
+    K: jax.Array
+    g: Callable
+    law: Callable
+    x0: jax.Array
+    z0: jax.Array
+    theta0: jax.Array
+    dt: jax.Array
+    t0: jax.Array
+    substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
+
+
+class HGOOutputs(NamedTuple):
+    x: jax.Array  # (n,) x_hat(t_k)
+    phi: jax.Array  # (k,) phi_hat(t_k) = g(v, x_hat, theta_hat) + z, v the (u, y) held over the last interval
+    theta: jax.Array  # (p,) theta_hat(t_k)
+    innovation: jax.Array  # (r,) y_k - C x_hat(t_k) (0 for missing components)
+
+
+def _split(params: HGOParams, xi):
+    n, k = params.E.shape
+    return xi[:n], xi[n : n + k], xi[n + k :]
+
+
+def _rhs(params: HGOParams, xi, u, y, t):
+    """d/dt col(x_hat, z, theta_hat), (6.3a)-(6.3b) and (6.9)."""
+    n = params.A.shape[0]
+    x_hat, z, theta_hat = _split(params, xi)
+    v = jnp.concatenate([u, y])
+    innovation = y - params.C @ x_hat
+    phi_hat = params.g(v, x_hat, theta_hat) + z
+    theta_dot = params.law(params.g, v, x_hat, phi_hat, theta_hat)
+    Kx_innov, Kphi_innov = params.K[:n] @ innovation, params.K[n:] @ innovation
+    # dg/dx K_x innovation + dg/dtheta theta_dot in one forward-mode product
+    _, along = jax.jvp(lambda x, th: params.g(v, x, th), (x_hat, theta_hat), (Kx_innov, theta_dot))
+    x_dot = params.A @ x_hat + params.B @ u + params.E @ phi_hat + Kx_innov
+    return jnp.concatenate([x_dot, Kphi_innov - along, theta_dot])
+
+
+def _output(C, n, xi):
+    return C @ xi[:n]
+
+
+def _continuous(params: HGOParams) -> ContinuousObserverParams:
+    x0 = jnp.concatenate([params.x0, params.z0, params.theta0])
+    F = jax.tree_util.Partial(_rhs, params)
+    h = jax.tree_util.Partial(_output, params.C, params.A.shape[0])
+    return ContinuousObserverParams(F, h, x0, params.dt, params.t0, params.B.shape[1], params.substeps, params.method)
+
+
+def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), dt, t0=0.0, substeps: int = 1,
+             method: str = "rk4") -> HGOParams:  # fmt: skip
+    """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
+
+    Args:
+      A: (n, n), B: (n, m), E: (n, k), C: (r, n): ``x' = A x + B u + E phi``, ``y = C x`` (B may be (n, 0)).
+      K: (n + k, r) the gain ``[K_x(eps); K_phi(eps)]`` (:func:`hgo_gains`, ``HGOGains.K`` or ``.at(eps)``).
+      g: the perturbation model ``g(v, x, theta) -> (k,)``, ``v = col(u, y)`` (m + r,), differentiable.
+      law: the parameter update ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)`` (:func:`target_law`,
+        :func:`gradient_law`); None keeps ``theta_hat = theta0`` (a known theta).
+      x0: (n,) initial ``x_hat`` (zeros if None).  z0: (k,) initial ``z`` (zeros if None).
+      theta0: (p,) initial ``theta_hat`` (inside the projection set of ``law``, if any).
+      dt: sample period (> 0).  t0: time of the first sample.
+      substeps: fixed steps per sample.  method: ``"rk4"`` or ``"euler"``.
+
+    Example: the extended-state observer of a double integrator with an unknown constant force (g = 0).
+
+      >>> import jax.numpy as jnp
+      >>> import jaxobs as jo
+      >>> from jaxobs.observers import hgo
+      >>> A, E, C = [[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]]
+      >>> gains = hgo.hgo_gains(A, E, C, [-2.0, -2.0, -2.0], 0.5)
+      >>> params = hgo.make_hgo(A, [[0.0], [1.0]], E, C, gains.K, lambda v, x, th: jnp.zeros(1), dt=0.01)
+      >>> t = 0.01 * jnp.arange(600)
+      >>> y = (0.5 * 0.3 * t**2)[:, None]  # x'' = 0.3
+      >>> _, out = jo.run(hgo.hgo_observer, params, jo.EstimatorInputs(y=y, u_prev=jnp.zeros((600, 1))))
+      >>> bool(jnp.abs(out.phi[-1, 0] - 0.3) < 1e-2)
+      True
+    """
+    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta0, dt=dt, t0=t0)
+    A, E, C = (jnp.asarray(M, dtype) for M in (A, E, C))
+    _checks.matrix("A", A, square=True)
+    n = A.shape[0]
+    _checks.matrix("E", E, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    k, r = E.shape[1], C.shape[0]
+    B = jnp.asarray(B, dtype).reshape((n, -1)) if np.size(B) == 0 else jnp.asarray(B, dtype)
+    _checks.matrix("B", B, shape=(n, None))
+    K = jnp.asarray(K, dtype)
+    _checks.matrix("K", K, shape=(n + k, r))
+    m = B.shape[1]
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
+    z0 = jnp.zeros((k,), dtype) if z0 is None else _checks.vector("z0", z0, k, dtype, what="one per perturbation")
+    theta0 = jnp.atleast_1d(jnp.asarray(theta0, dtype)) if np.size(theta0) else jnp.zeros((0,), dtype)
+    _checks.shape("theta0", theta0, (None,), "the initial parameter estimate, a vector")
+    _checks.finite("theta0", theta0)
+    _checks.positive_scalar("dt", dt)
+    g = _checks.function("g", g)
+    law = jax.tree_util.Partial(_no_update) if law is None else _checks.function("law", law)
+    v = jnp.zeros((m + r,), dtype)
+    _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    _checks.returns(
+        "law(g, v, x_hat, phi_hat, theta_hat)", lambda *a: law(g, *a), (v, x0, z0, theta0), theta0.shape,
+        "theta_hat_dot, one entry per entry of theta0",
+    )  # fmt: skip
+    substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
+    if method not in ("rk4", "euler"):
+        raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
+    t0 = jnp.asarray(t0, dtype)
+    _checks.shape("t0", t0, (), "a scalar time")
+    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, jnp.asarray(dt, dtype), t0, substeps, method)
+
+
+def _init(params: HGOParams):
+    return continuous_observer.init(_continuous(params))
+
+
+def _step(params: HGOParams, state, inputs: EstimatorInputs):
+    m = params.B.shape[1]
+    before = state.y  # y_{k-1}, held over the interval now integrated (NaN where missing)
+    state, out = continuous_observer.step(_continuous(params), state, inputs)
+    x_hat, z, theta_hat = _split(params, state.x)
+    u = jnp.zeros((0,), x_hat.dtype) if inputs.u_prev is None else jnp.reshape(inputs.u_prev, (m,))
+    y = jnp.where(jnp.isfinite(before), before, params.C @ x_hat)
+    phi_hat = params.g(jnp.concatenate([u, y]), x_hat, theta_hat) + z
+    return state, HGOOutputs(x_hat, phi_hat, theta_hat, out.innovation)
+
+
+hgo_observer = Estimator(_init, _step)
+"""The modified high-gain observer (6.3) as a sampled :class:`~jaxobs.observers.base.Estimator` over
+:class:`HGOParams` (run by :mod:`jaxobs.observers.continuous`: ``u_{k-1}``, ``y_{k-1}`` held over ``[t_{k-1},
+t_k]``). Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (r,) and (m,). Outputs: :class:`HGOOutputs`."""
