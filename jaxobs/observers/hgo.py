@@ -380,6 +380,8 @@ class HGOParams:
       law: ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)``, a ``Partial`` (:func:`target_law`,
         :func:`gradient_law`, or none: theta_hat stays at ``theta0``).
       x0: (n,).  z0: (k,).  theta0: (p,): the initial ``x_hat``, ``z`` and ``theta_hat``.
+      K2: (n, r) the gain of the cascaded state observer of section 6.6 (``hgo_gains(..., extended=False)``),
+        or an (n, 0) array for none.
       dt: () sample period.  t0: () time of the first sample.
       substeps: static RK4 (or Euler) steps per sample.  method: static ``"rk4"`` or ``"euler"``.
     """
@@ -394,6 +396,7 @@ class HGOParams:
     x0: jax.Array
     z0: jax.Array
     theta0: jax.Array
+    K2: jax.Array
     dt: jax.Array
     t0: jax.Array
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
@@ -404,18 +407,25 @@ class HGOOutputs(NamedTuple):
     x: jax.Array  # (n,) x_hat(t_k)
     phi: jax.Array  # (k,) phi_hat(t_k) = g(v, x_hat, theta_hat) + z, v the (u, y) held over the last interval
     theta: jax.Array  # (p,) theta_hat(t_k)
+    x2: jax.Array  # (n,) the cascaded state observer of section 6.6 (x_hat when there is none)
     innovation: jax.Array  # (r,) y_k - C x_hat(t_k) (0 for missing components)
 
 
 def _split(params: HGOParams, xi):
+    """``(x_hat, z, theta_hat, x2)`` from the stacked state (``x2`` empty without a cascade)."""
     n, k = params.E.shape
-    return xi[:n], xi[n : n + k], xi[n + k :]
+    p = params.theta0.shape[0]
+    return xi[:n], xi[n : n + k], xi[n + k : n + k + p], xi[n + k + p :]
+
+
+def _cascade(params: HGOParams) -> bool:
+    return params.K2.shape[1] > 0
 
 
 def _rhs(params: HGOParams, xi, u, y, t):
-    """d/dt col(x_hat, z, theta_hat), (6.3a)-(6.3b) and (6.9)."""
+    """d/dt col(x_hat, z, theta_hat, x2), (6.3a)-(6.3b), (6.9) and the cascade of section 6.6."""
     n = params.A.shape[0]
-    x_hat, z, theta_hat = _split(params, xi)
+    x_hat, z, theta_hat, x2 = _split(params, xi)
     v = jnp.concatenate([u, y])
     innovation = y - params.C @ x_hat
     phi_hat = params.g(v, x_hat, theta_hat) + z
@@ -424,7 +434,9 @@ def _rhs(params: HGOParams, xi, u, y, t):
     # dg/dx K_x innovation + dg/dtheta theta_dot in one forward-mode product
     _, along = jax.jvp(lambda x, th: params.g(v, x, th), (x_hat, theta_hat), (Kx_innov, theta_dot))
     x_dot = params.A @ x_hat + params.B @ u + params.E @ phi_hat + Kx_innov
-    return jnp.concatenate([x_dot, Kphi_innov - along, theta_dot])
+    if _cascade(params):  # x2' = A x2 + B u + E g(v, x2, theta_hat) + K2 (y - C x2)
+        x2 = params.A @ x2 + params.B @ u + params.E @ params.g(v, x2, theta_hat) + params.K2 @ (y - params.C @ x2)
+    return jnp.concatenate([x_dot, Kphi_innov - along, theta_dot, x2])
 
 
 def _output(C, n, xi):
@@ -432,14 +444,14 @@ def _output(C, n, xi):
 
 
 def _continuous(params: HGOParams) -> ContinuousObserverParams:
-    x0 = jnp.concatenate([params.x0, params.z0, params.theta0])
+    x0 = jnp.concatenate([params.x0, params.z0, params.theta0] + ([params.x0] if _cascade(params) else []))
     F = jax.tree_util.Partial(_rhs, params)
     h = jax.tree_util.Partial(_output, params.C, params.A.shape[0])
     return ContinuousObserverParams(F, h, x0, params.dt, params.t0, params.B.shape[1], params.substeps, params.method)
 
 
-def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), dt, t0=0.0, substeps: int = 1,
-             method: str = "rk4") -> HGOParams:  # fmt: skip
+def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None, dt, t0=0.0,
+             substeps: int = 1, method: str = "rk4") -> HGOParams:  # fmt: skip
     """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
 
     Args:
@@ -450,6 +462,9 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), dt, t0=
         :func:`gradient_law`); None keeps ``theta_hat = theta0`` (a known theta).
       x0: (n,) initial ``x_hat`` (zeros if None).  z0: (k,) initial ``z`` (zeros if None).
       theta0: (p,) initial ``theta_hat`` (inside the projection set of ``law``, if any).
+      K2: (n, r) gain of the cascaded state observer of section 6.6, ``x2' = A x2 + B u + E g(v, x2, theta_hat)
+        + K2 (y - C x2)`` with ``theta_hat`` from (6.3) (``hgo_gains(..., extended=False)``; output ``x2``, started at
+        ``x0``); None for none (``x2`` then repeats ``x_hat``).
       dt: sample period (> 0).  t0: time of the first sample.
       substeps: fixed steps per sample.  method: ``"rk4"`` or ``"euler"``.
 
@@ -479,6 +494,9 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), dt, t0=
     K = jnp.asarray(K, dtype)
     _checks.matrix("K", K, shape=(n + k, r))
     m = B.shape[1]
+    K2 = jnp.zeros((n, 0), dtype) if K2 is None else jnp.asarray(K2, dtype)
+    if K2.shape[1]:
+        _checks.matrix("K2", K2, shape=(n, r))
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     z0 = jnp.zeros((k,), dtype) if z0 is None else _checks.vector("z0", z0, k, dtype, what="one per perturbation")
     theta0 = jnp.atleast_1d(jnp.asarray(theta0, dtype)) if np.size(theta0) else jnp.zeros((0,), dtype)
@@ -498,7 +516,7 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), dt, t0=
         raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
     t0 = jnp.asarray(t0, dtype)
     _checks.shape("t0", t0, (), "a scalar time")
-    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, jnp.asarray(dt, dtype), t0, substeps, method)
+    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, jnp.asarray(dt, dtype), t0, substeps, method)
 
 
 def _init(params: HGOParams):
@@ -509,11 +527,12 @@ def _step(params: HGOParams, state, inputs: EstimatorInputs):
     m = params.B.shape[1]
     before = state.y  # y_{k-1}, held over the interval now integrated (NaN where missing)
     state, out = continuous_observer.step(_continuous(params), state, inputs)
-    x_hat, z, theta_hat = _split(params, state.x)
+    x_hat, z, theta_hat, x2 = _split(params, state.x)
     u = jnp.zeros((0,), x_hat.dtype) if inputs.u_prev is None else jnp.reshape(inputs.u_prev, (m,))
     y = jnp.where(jnp.isfinite(before), before, params.C @ x_hat)
     phi_hat = params.g(jnp.concatenate([u, y]), x_hat, theta_hat) + z
-    return state, HGOOutputs(x_hat, phi_hat, theta_hat, out.innovation)
+    x2 = x2 if _cascade(params) else x_hat
+    return state, HGOOutputs(x_hat, phi_hat, theta_hat, x2, out.innovation)
 
 
 hgo_observer = Estimator(_init, _step)
