@@ -30,6 +30,7 @@ def test_registry_names():
         "cortesao2006-example2",
         "liu-peng2002-vehicle",
         "grip2010-scb",
+        "grip2010-dc-motor",
     }
 
 

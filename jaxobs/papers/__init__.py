@@ -1,7 +1,14 @@
 """Reproductions of the source documents: one module per paper, each returning data and drawing
 figures. ``REPRODUCTIONS`` maps the names used by ``jaxobs reproduce`` to their entry points."""
 
-from jaxobs.papers import cortesao2006, cortesao_stochastic, grip2010_scb, liu_peng, steer_by_wire
+from jaxobs.papers import (
+    cortesao2006,
+    cortesao_stochastic,
+    grip2010_dc_motor,
+    grip2010_scb,
+    liu_peng,
+    steer_by_wire,
+)
 
 REPRODUCTIONS = {
     cortesao2006.NAME: cortesao2006.reproduce,
@@ -9,6 +16,7 @@ REPRODUCTIONS = {
     steer_by_wire.NAME: steer_by_wire.reproduce,
     liu_peng.NAME: liu_peng.reproduce,
     grip2010_scb.NAME: grip2010_scb.reproduce,
+    grip2010_dc_motor.NAME: grip2010_dc_motor.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]
