@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from _readme import pin
 
 pytest.importorskip("sympy")
 
@@ -25,6 +26,17 @@ def test_design_matches_the_printed_structure_and_gains():
     slow = np.asarray([np.asarray(p)[:, 0] for p in scaling["slow_poles"]])  # real parts of the slow pair
     np.testing.assert_allclose(slow[:, 0] * np.asarray(scaling["eps"]), slow[0, 0], rtol=0.01)  # ~ 1 / eps
     np.testing.assert_allclose(scaling["K"][2][0] * 0.2, scaling["K"][0][0], rtol=1e-12)  # K_1 = Kbar_1 / eps
+    row = r"`grip2010-dc-motor` \| Grip 2010 §6\.8 \|[^|]*"
+    pin(summary["true_error_system"]["A_aa"][0, 0], row + r"the zero (-[\d.]+)")
+    K1, K2 = summary["observer1"]["K"], summary["observer2"]["K"]
+    for i, value in enumerate(K1[1:]):
+        pin(value, row + r"observer 1 K = \[6" + ", [-\\d.]+" * i + r", ([-\d.]+)")
+    for i, value in enumerate(K2[1:]):
+        pin(value, row + r"observer 2 K = \[4" + ", [-\\d.]+" * i + r", ([-\d.]+)")
+    pin(poles[0, 0], row + r"true system (-[\d.]+) ± ([\d.]+)j")
+    pin(poles[0, 1], row + r"true system (-[\d.]+) ± ([\d.]+)j", 2)
+    pin(poles[2, 0], row + r"true system [^,]*, (-[\d.]+) ± ([\d.]+)j")
+    pin(poles[2, 1], row + r"true system [^,]*, (-[\d.]+) ± ([\d.]+)j", 2)
 
 
 @pytest.mark.slow
@@ -38,3 +50,10 @@ def test_reproduction_writes_every_key(tmp_path):
     for key in ("design_system", "true_error_system", "observer1", "observer2", "eps_scaling", "misprints"):
         assert key in data
     assert all((tmp_path / f).exists() for f in summary["figures"])
+    row = r"`grip2010-dc-motor` \| Grip 2010 §6\.8 \|[^|]*"
+    pin(sim["theta_hat_mean_t_gt_10"], row + r"theta_hat averages ([\d.]+)")
+    rms = sim["rms_omega_error"]
+    pin(rms["observer1"], row + r"observer 1 ([\d.]+),")
+    pin(rms["observer2"], row + r"observer 2 ([\d.]+),")
+    for i, eps in enumerate(("1.0", "0.5", "0.2", "0.1")):
+        pin(rms["pure_eso"][eps], row + r"same gains\) " + "[\\d.]+, " * i + r"([\d.]+)")
