@@ -70,9 +70,9 @@ def theta_star(v, x, phi):
     return jnp.atleast_1d(TABLE_6_1["sigma_0"] * x[2] * smooth_abs(x[1], KAPPA) / phi[0] - _zeta(x[1], 0.0))
 
 
-def _plant(x, u, t):
+def _plant(x, u, t, alpha_0):
     A, B, E, _ = (jnp.asarray(M) for M in matrices(TABLE_6_1["sigma_1"]))
-    phi = TABLE_6_1["sigma_0"] * x[2] * jnp.abs(x[1]) / _zeta(x[1], TABLE_6_1["alpha_0"])
+    phi = TABLE_6_1["sigma_0"] * x[2] * jnp.abs(x[1]) / _zeta(x[1], alpha_0)
     return A @ x + B[:, 0] * jnp.sin(jnp.pi * t) + E[:, 0] * phi
 
 
@@ -121,26 +121,41 @@ def _pairs(values):
     return [[float(np.real(z)), float(np.imag(z))] for z in values]
 
 
-def simulate(obs1_K, obs2_K, eso_Ks, sigma: float, seed: int = 0):
-    """Plant, measurement, observers 1 and 2 and the pure ESOs (stacked ``eso_Ks``) over ``DURATION``."""
-    steps = int(round(DURATION / DT))
+def truth(alpha_0, sigma, key, duration: float = DURATION):
+    """Plant from rest under u = sin(pi t) and its sampled, noisy measurement (traceable in ``alpha_0``, ``sigma``
+    and ``key``): ``(t, x, phi, inputs)`` at the ``duration / DT`` samples."""
+    steps = int(round(duration / DT))
     t = DT * jnp.arange(steps)
-    xs = ct.trajectory(_plant, jnp.zeros(3), jnp.zeros((steps, 0)), h=DT, substeps=SUBSTEPS)[:-1]
-    y = xs[:, :1] + sigma * jax.random.normal(jax.random.PRNGKey(seed), (steps, 1))
+    plant = lambda x, u, time: _plant(x, u, time, alpha_0)  # noqa: E731
+    xs = ct.trajectory(plant, jnp.zeros(3), jnp.zeros((steps, 0)), h=DT, substeps=SUBSTEPS)[:-1]
+    y = xs[:, :1] + sigma * jax.random.normal(key, (steps, 1), xs.dtype)
     inputs = EstimatorInputs(y=y, u_prev=jnp.sin(jnp.pi * (t - DT))[:, None])  # u_{k-1} = u(t_{k-1})
+    phi = TABLE_6_1["sigma_0"] * xs[:, 2] * jnp.abs(xs[:, 1]) / _zeta(xs[:, 1], alpha_0)
+    return t, xs, phi, inputs
+
+
+def observers(K1, K2, inputs):
+    """Observer 1 (6.3) with the Proposition 6.2 law and the cascaded observer 2 (section 6.6) on ``inputs``."""
     A, B, E, C = matrices(TABLE_6_1["sigma_1"])
-    law = target_law(theta_star, 1.0, threshold=THRESHOLD, region=Box(jnp.array([THETA_SET[0]]),
-                     jnp.array([THETA_SET[1]])), epsilon=0.05)  # fmt: skip
-    hgo = make_hgo(A, B, E, C, obs1_K, g_model, law=law, theta0=[1.0], K2=obs2_K, dt=DT, substeps=SUBSTEPS)
-    _, out = run(hgo_observer, hgo, inputs)
+    region = Box(jnp.array([THETA_SET[0]]), jnp.array([THETA_SET[1]]))
+    law = target_law(theta_star, 1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
+    params = make_hgo(A, B, E, C, K1, g_model, law=law, theta0=[1.0], K2=K2, dt=DT, substeps=SUBSTEPS)
+    return run(hgo_observer, params, inputs)[1]
 
-    def eso(K):
-        params = make_hgo(A, B, E, C, K, lambda v, x, th: jnp.zeros(1), dt=DT, substeps=SUBSTEPS)
-        return run(hgo_observer, params, inputs)[1].x
 
-    eso_x = jax.lax.map(eso, jnp.asarray(eso_Ks))
-    phi = TABLE_6_1["sigma_0"] * xs[:, 2] * jnp.abs(xs[:, 1]) / _zeta(xs[:, 1], TABLE_6_1["alpha_0"])
-    return {"t": t, "x": xs, "y": y, "phi": phi, "obs": out, "eso_x": eso_x}
+def pure_eso(K, inputs):
+    """The extended-state observer without the model (g = 0) with the gain ``K``: its state estimates."""
+    A, B, E, C = matrices(TABLE_6_1["sigma_1"])
+    params = make_hgo(A, B, E, C, K, lambda v, x, th: jnp.zeros(1), dt=DT, substeps=SUBSTEPS)
+    return run(hgo_observer, params, inputs)[1].x
+
+
+def simulate(obs1_K, obs2_K, eso_Ks, sigma: float, seed: int = 0, duration: float = DURATION):
+    """Plant, measurement, observers 1 and 2 and the pure ESOs (stacked ``eso_Ks``) over ``duration``."""
+    t, xs, phi, inputs = truth(TABLE_6_1["alpha_0"], sigma, jax.random.PRNGKey(seed), duration)
+    out = observers(obs1_K, obs2_K, inputs)
+    eso_x = jax.lax.map(lambda K: pure_eso(K, inputs), jnp.asarray(eso_Ks))
+    return {"t": t, "x": xs, "y": inputs.y, "phi": phi, "obs": out, "eso_x": eso_x}
 
 
 def _rms(err, t):
@@ -225,4 +240,5 @@ def _figures(out_dir: Path, sim) -> list[str]:
     return names
 
 
-__all__ = ["NAME", "TABLE_6_1", "matrices", "g_model", "theta_star", "design", "simulate", "reproduce"]
+__all__ = ["NAME", "TABLE_6_1", "matrices", "g_model", "theta_star", "design", "truth", "observers", "pure_eso",
+           "simulate", "reproduce"]  # fmt: skip
