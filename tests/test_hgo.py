@@ -162,3 +162,17 @@ def test_make_hgo_bad_inputs(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         hgo.make_hgo(**args)
+
+
+def test_missing_measurements_are_skipped():
+    """A NaN sample is replaced by the observer's own prediction over the next interval: the estimates stay finite,
+    the innovation of that sample is 0 and the run differs from the complete one only after it."""
+    params, inputs = _estimation_problem(None, steps=60)
+    y = np.asarray(inputs.y).copy()
+    y[30] = np.nan
+    _, full = jo.run(hgo.hgo_observer, params, inputs)
+    state, gap = jo.run(hgo.hgo_observer, params, inputs._replace(y=y))
+    assert np.all(np.isfinite(gap.x)) and np.all(np.isfinite(gap.phi))
+    assert gap.innovation[30, 0] == 0.0 and int(state.missing) == 1
+    np.testing.assert_array_equal(gap.x[:31], full.x[:31])
+    assert not np.allclose(gap.x[31:], full.x[31:])

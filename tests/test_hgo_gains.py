@@ -141,3 +141,10 @@ def test_bad_inputs(kwargs, match):
         args["poles"] = [-1.0, -2.0, -3.0]
     with pytest.raises(ValueError, match=match):
         hgo_gains(**args)
+
+
+def test_numeric_scb_gives_the_same_gains():
+    """The floating-point SCB (rank decisions by SVD) designs the same gains as the exact one on the DC motor."""
+    exact = hgo_gains(*_motor(S1), H1, design=_motor(0.0))
+    numeric = hgo_gains(*_motor(S1), H1, design=_motor(0.0), numeric=True)
+    np.testing.assert_allclose(numeric.K, exact.K, rtol=1e-8)
