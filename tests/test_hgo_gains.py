@@ -123,6 +123,7 @@ def test_gain_is_a_polynomial_in_one_over_eps_under_jit_and_grad():
         (dict(eps=1.5), "eps"),
         (dict(eps=float("nan")), "eps"),
         (dict(eps=True), "eps"),
+        (dict(eps=0.5j), "eps"),
         (dict(poles=[-1.0, -2.0, -3.0]), "poles must have 4 entries"),
         (dict(poles=[-1 + 1j, -1 - 2j, -2.0, -3.0]), "conjugate pairs"),
         (dict(poles=[-1.0, -2.0, -3.0, np.nan]), "poles must be finite"),

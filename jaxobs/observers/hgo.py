@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from numbers import Real
 from typing import NamedTuple
 
 import jax
@@ -91,8 +90,6 @@ def _real_matrix(name, value, shape):
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a real numeric matrix, got {type(value).__name__}") from None
-    if a.ndim == 1 and shape[1] is not None and shape[1] == 1:
-        a = a[:, None]
     _checks.matrix(name, a, shape=shape)
     return a
 
@@ -136,9 +133,7 @@ def _pole_groups(name, poles, sizes):
         group = p[start : start + size]
         start += size
         scale = max(1.0, float(np.max(np.abs(group)))) if size else 1.0
-        if np.sort_complex(group).size and not np.allclose(
-            np.sort_complex(group), np.sort_complex(np.conj(group)), rtol=0, atol=1e-9 * scale
-        ):
+        if size and not np.allclose(np.sort_complex(group), np.sort_complex(np.conj(group)), rtol=0, atol=1e-9 * scale):
             raise ValueError(
                 f"{name}: complex poles must come in conjugate pairs within each group {tuple(sizes)}, got "
                 f"{group.tolist()}"
@@ -204,12 +199,12 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
                 f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
                 f"{(A.shape, E.shape, C.shape)}"
             )
-    if (
-        isinstance(eps, bool)
-        or not isinstance(eps, Real | np.floating | np.integer)
-        or not (np.isfinite(float(eps)) and 0 < float(eps) <= 1)
-    ):
-        raise ValueError(f"eps must be a number in (0, 1], got {eps!r}")
+    concrete = _checks.is_concrete(eps) and np.ndim(eps) == 0 and not isinstance(eps, bool | np.bool_)
+    real = concrete and (
+        np.issubdtype(np.asarray(eps).dtype, np.integer) or np.issubdtype(np.asarray(eps).dtype, np.floating)
+    )
+    if not (real and 0 < float(eps) <= 1):
+        raise ValueError(f"eps must be a number in (0, 1] (for a traced eps use HGOGains.at), got {eps!r}")
     eps = float(eps)
     triple = "(C, A, E)" if design is None else "the design triple (C0, A0, E0)"
     s = _scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric)
