@@ -124,7 +124,7 @@ def peer(noise, K1, K2, sigma, alpha_0, duration: float, rms_start: float):
         kx = K1[:, :3] * innov[:, None]
         dxh = lin(xh, u, phi) + kx
         dz = K1[:, 3] * innov - gth * rate - np.sum(gx * kx, axis=1)
-        g2 = g_and_grads(x2, th)[0]
+        g2 = s0 * x2[:, 2] * np.abs(x2[:, 1]) / zeta(x2[:, 1], th)  # observer 2: the exact |omega|
         dx2 = lin(x2, u, g2) + K2 * (y - x2[:, 0])[:, None]
         ie = y - xe[:, 0]
         dxe = lin(xe, u, ze) + K1[:, :3] * ie[:, None]

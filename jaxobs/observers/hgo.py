@@ -377,6 +377,7 @@ class HGOParams:
       x0: (n,).  z0: (k,).  theta0: (p,): the initial ``x_hat``, ``z`` and ``theta_hat``.
       K2: (n, r) the gain of the cascaded state observer of section 6.6 (``hgo_gains(..., extended=False)``),
         or an (n, 0) array for none.
+      g2: the perturbation model of the cascaded observer, a ``Partial`` (``g`` unless another was given).
       dt: () sample period.  t0: () time of the first sample.
       substeps: static RK4 (or Euler) steps per sample.  method: static ``"rk4"`` or ``"euler"``.
     """
@@ -392,6 +393,7 @@ class HGOParams:
     z0: jax.Array
     theta0: jax.Array
     K2: jax.Array
+    g2: Callable
     dt: jax.Array
     t0: jax.Array
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
@@ -429,8 +431,8 @@ def _rhs(params: HGOParams, xi, u, y, t):
     # dg/dx K_x innovation + dg/dtheta theta_dot in one forward-mode product
     _, along = jax.jvp(lambda x, th: params.g(v, x, th), (x_hat, theta_hat), (Kx_innov, theta_dot))
     x_dot = params.A @ x_hat + params.B @ u + params.E @ phi_hat + Kx_innov
-    if _cascade(params):  # x2' = A x2 + B u + E g(v, x2, theta_hat) + K2 (y - C x2)
-        x2 = params.A @ x2 + params.B @ u + params.E @ params.g(v, x2, theta_hat) + params.K2 @ (y - params.C @ x2)
+    if _cascade(params):  # x2' = A x2 + B u + E g2(v, x2, theta_hat) + K2 (y - C x2)
+        x2 = params.A @ x2 + params.B @ u + params.E @ params.g2(v, x2, theta_hat) + params.K2 @ (y - params.C @ x2)
     return jnp.concatenate([x_dot, Kphi_innov - along, theta_dot, x2])
 
 
@@ -445,7 +447,7 @@ def _continuous(params: HGOParams) -> ContinuousObserverParams:
     return ContinuousObserverParams(F, h, x0, params.dt, params.t0, params.B.shape[1], params.substeps, params.method)
 
 
-def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None, dt, t0=0.0,
+def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None, g2=None, dt, t0=0.0,
              substeps: int = 1, method: str = "rk4") -> HGOParams:  # fmt: skip
     """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
 
@@ -460,6 +462,8 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
       K2: (n, r) gain of the cascaded state observer of section 6.6, ``x2' = A x2 + B u + E g(v, x2, theta_hat)
         + K2 (y - C x2)`` with ``theta_hat`` from (6.3) (``hgo_gains(..., extended=False)``; output ``x2``, started at
         ``x0``); None for none (``x2`` then repeats ``x_hat``).
+      g2: the cascaded observer's perturbation model, ``g`` if None (section 6.8 gives it the exact ``|omega|``,
+        as it needs only g, not its derivative, to be Lipschitz).
       dt: sample period (> 0).  t0: time of the first sample.
       substeps: fixed steps per sample.  method: ``"rk4"`` or ``"euler"``.
 
@@ -511,7 +515,10 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
         raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
     t0 = jnp.asarray(t0, dtype)
     _checks.shape("t0", t0, (), "a scalar time")
-    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, jnp.asarray(dt, dtype), t0, substeps, method)
+    g2 = g if g2 is None else _checks.function("g2", g2)
+    _checks.returns("g2(v, x, theta)", g2, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    dt = jnp.asarray(dt, dtype)
+    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, g2, dt, t0, substeps, method)
 
 
 def _init(params: HGOParams):
