@@ -33,6 +33,7 @@ def test_registry_names():
         "grip2010-example1.1",
         "grip2010-example5.6",
         "grip2010-drilling",
+        "grip2010-dc-motor",
     }
 
 

@@ -6,7 +6,8 @@ observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman fi
 filter), ``continuous`` (continuous-time observers run as sampled estimators), ``pe_monitor``
 (persistency-of-excitation monitor: the windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time
 Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
-estimator of Grip 2010 ch. 5). ``feedback.observer_controller`` turns any of them into
+estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains).
+``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
 
@@ -16,6 +17,7 @@ from jaxobs.observers import (
     ct_linear,
     ekf,
     feedback,
+    hgo,
     hinf,
     inverse_dynamics,
     kalman,
@@ -55,4 +57,5 @@ __all__ = [
     "ukf",
     "continuous",
     "modular",
+    "hgo",
 ]

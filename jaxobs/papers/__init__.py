@@ -1,7 +1,15 @@
 """Reproductions of the source documents: one module per paper, each returning data and drawing
 figures. ``REPRODUCTIONS`` maps the names used by ``jaxobs reproduce`` to their entry points."""
 
-from jaxobs.papers import cortesao2006, cortesao_stochastic, grip2010_adaptive, grip2010_scb, liu_peng, steer_by_wire
+from jaxobs.papers import (
+    cortesao2006,
+    cortesao_stochastic,
+    grip2010_adaptive,
+    grip2010_dc_motor,
+    grip2010_scb,
+    liu_peng,
+    steer_by_wire,
+)
 
 REPRODUCTIONS = {
     cortesao2006.NAME: cortesao2006.reproduce,
@@ -12,6 +20,7 @@ REPRODUCTIONS = {
     grip2010_adaptive.NAME_EXAMPLE_1_1: grip2010_adaptive.reproduce_example_1_1,
     grip2010_adaptive.NAME_EXAMPLE_5_6: grip2010_adaptive.reproduce_example_5_6,
     grip2010_adaptive.NAME_DRILLING: grip2010_adaptive.reproduce_drilling,
+    grip2010_dc_motor.NAME: grip2010_dc_motor.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]

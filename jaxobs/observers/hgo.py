@@ -1,0 +1,544 @@
+"""The modified high-gain observer of Grip 2010, ch. 6: an extended-state observer with a model-based perturbation.
+
+For ``x' = A x + B u + E phi``, ``y = C x`` with the perturbation ``phi = g(v, x, theta)``, ``v = col(u, y)``,
+the observer (6.3) is::
+
+    x_hat' = A x_hat + B u + E phi_hat + K_x(eps) (y - C x_hat)                                        (6.3a)
+    z'     = -dg/dtheta(v, x_hat, theta_hat) theta_hat' - dg/dx(v, x_hat, theta_hat) K_x(eps) (y - C x_hat)
+             + K_phi(eps) (y - C x_hat)                                                                (6.3b)
+    phi_hat = g(v, x_hat, theta_hat) + z                                                               (6.3c)
+
+with the gains ``K(eps) = [K_x; K_phi]`` of :func:`hgo_gains` (section 6.3, the special coordinate basis of the
+error system (6.4)) and ``theta_hat' = u_theta(v, x_hat, phi_hat, theta_hat)`` a pluggable update law
+(Propositions 6.1-6.4). The derivatives of ``g`` come from autodiff; the ``dg/dv v'`` term of ``phi_hat'`` is
+carried by the explicit dependence of ``g(v, x_hat, theta_hat)`` on the measured ``v``, so ``v'`` is never needed.
+With ``g`` linear and ``theta`` known the error ``col(x - x_hat, phi - phi_hat)`` follows (6.4) exactly.
+
+:func:`hgo_gains` is design-time (NumPy and :mod:`jaxobs.scb`); its result evaluates ``K(eps)`` for a traced
+``eps`` too (a polynomial in ``1/eps``), so ``eps`` can be tuned by gradient. The observer runs as a sampled
+estimator through :mod:`jaxobs.observers.continuous` (zero-order hold of ``u`` and ``y``, fixed RK4 substeps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import _checks
+from jaxobs import scb as _scb
+from jaxobs.adaptive import project
+from jaxobs.design import place
+from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.continuous import ContinuousObserverParams, continuous_observer
+
+__all__ = [
+    "HGOGains",
+    "hgo_gains",
+    "smooth_abs",
+    "target_law",
+    "gradient_law",
+    "HGOParams",
+    "HGOOutputs",
+    "make_hgo",
+    "hgo_observer",
+]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Gain design (section 6.3)
+
+
+@dataclasses.dataclass(frozen=True)
+class HGOGains:
+    """Result of :func:`hgo_gains`.
+
+    Fields:
+      K: (n + k, r) the gain ``[K_x; K_phi]`` at ``eps`` ((n, r) ``K_x`` alone when ``extended=False``).
+      terms: (q + 1, n + k, r) with ``K(eps) = sum_i terms[i] eps^-i`` (``q`` the longest chain); see :meth:`at`.
+      eps: the ``eps`` of ``K``.
+      poles: the eigenvalues of the error dynamics ``A_e - K C_e`` of the (true) system given to :func:`hgo_gains`.
+      zeros: the invariant zeros of the design error system (where ``n_a`` of the poles sit when the design and the
+        true system agree, Remark 6.2).
+      dims: ``(n_a, n_b, n_q)``, the dimensions of the zero dynamics, the x_b subsystem and the chains.
+      chain_lengths: the lengths of the integrator chains, in the order ``poles`` were assigned to them.
+      system: the :class:`jaxobs.scb.SCB` of the design error system, as float arrays.
+    """
+
+    K: np.ndarray
+    terms: np.ndarray
+    eps: float
+    poles: np.ndarray
+    zeros: np.ndarray
+    dims: tuple[int, int, int]
+    chain_lengths: tuple[int, ...]
+    system: _scb.SCB
+
+    def at(self, eps) -> jax.Array:
+        """``K(eps)`` for any ``0 < eps <= 1``, traced or not (``jit``/``grad`` in ``eps``)."""
+        terms = jnp.asarray(self.terms, jnp.result_type(eps, float))
+        powers = jnp.asarray(eps, terms.dtype) ** -jnp.arange(terms.shape[0], dtype=terms.dtype)
+        return jnp.tensordot(powers, terms, axes=1)
+
+
+def _real_matrix(name, value, shape):
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real numeric matrix, got {type(value).__name__}") from None
+    _checks.matrix(name, a, shape=shape)
+    return a
+
+
+def _triple(A, E, C, prefix=""):
+    A = _real_matrix(f"{prefix}A", A, (None, None))
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"{prefix}A must be square, got shape {A.shape}")
+    n = A.shape[0]
+    E = _real_matrix(f"{prefix}E", E, (n, None))
+    C = _real_matrix(f"{prefix}C", C, (None, n))
+    if np.linalg.matrix_rank(E) < E.shape[1]:
+        raise ValueError(f"{prefix}E must have full column rank {E.shape[1]} (remove dependent perturbations first)")
+    if np.linalg.matrix_rank(C) < C.shape[0]:
+        raise ValueError(f"{prefix}C must have full row rank {C.shape[0]} (remove dependent outputs first)")
+    return A, E, C
+
+
+def _error_system(A, E, C, extended):
+    """(A_e, B_e, C_e) of the error dynamics (6.4) with K = 0 (input d, output y), or of x' = A x + E g."""
+    if not extended:
+        return A, E, C
+    n, k = E.shape
+    Ae = np.block([[A, E], [np.zeros((k, n)), np.zeros((k, k))]])
+    return Ae, np.vstack([np.zeros((n, k)), np.eye(k)]), np.hstack([C, np.zeros((C.shape[0], k))])
+
+
+def _pole_groups(name, poles, sizes):
+    """``poles`` split into conjugation-closed groups of ``sizes`` (ValueError naming ``name`` otherwise)."""
+    total = int(sum(sizes))
+    try:
+        p = np.atleast_1d(np.asarray(poles, dtype=complex))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a vector of numbers, got {type(poles).__name__}") from None
+    if p.ndim != 1 or p.size != total:
+        raise ValueError(f"{name} must have {total} entries (groups of {tuple(sizes)}), got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite, got {p.tolist()}")
+    groups, start = [], 0
+    for size in sizes:
+        group = p[start : start + size]
+        start += size
+        scale = max(1.0, float(np.max(np.abs(group)))) if size else 1.0
+        if size and not np.allclose(np.sort_complex(group), np.sort_complex(np.conj(group)), rtol=0, atol=1e-9 * scale):
+            raise ValueError(
+                f"{name}: complex poles must come in conjugate pairs within each group {tuple(sizes)}, got "
+                f"{group.tolist()}"
+            )
+        groups.append(group)
+    return groups
+
+
+def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, design=None,
+              corrected: bool = True, numeric: bool = False) -> HGOGains:  # fmt: skip
+    """Gains ``K(eps) = [K_x(eps); K_phi(eps)]`` of the modified high-gain observer (6.3) (Grip 2010, section 6.3).
+
+    The error dynamics (6.4) with input ``d`` and output ``y`` (``A_e = [[A, E], [0, 0]]``, ``B_e = [0; I_k]``,
+    ``C_e = [C, 0]``) are put in the special coordinate basis (:func:`jaxobs.scb.scb`, exact arithmetic by default)
+    ``chi = col(chi_a, chi_b, chi_q1, ..., chi_qk)``, ``gamma = col(gamma_q, gamma_b)``, and (sections 6.3.1-6.3.2)::
+
+        K_aq = L_aq,  K_ab = L_ab,  K_bq = L_bq,  eig(A_b - K_bb C_b) = poles_b,  K_qjb = 0,
+        K_qjq(eps) = [0, col(Kbar_qj1 / eps, ..., Kbar_qjn / eps^n), 0] + L_qjq     (author's corrigendum)
+
+    where ``Kbar_qj`` places the poles of ``H_j = A_qj - Kbar_qj C_qj`` (an integrator chain of length ``n =
+    n_qj``) and ``L_qjq`` is the output injection of the chain's upper rows (the entries of a chain's last row are
+    the ``D_qj`` couplings, matched with the input, and are not cancelled). Then ``K = Lambda_1 K_scb Lambda_2^-1``
+    (6.8). As ``eps -> 0``, ``n_a`` poles sit at the invariant zeros, ``n_b`` at ``poles_b`` and ``eps`` times the
+    ``n_q`` others tend to ``eig(H_j)`` (Remark 6.2).
+
+    Args:
+      A: (n, n), E: (n, k), C: (r, n): the plant ``x' = A x + B u + E phi``, ``y = C x`` (finite floats);
+        ``(C, A, E)`` must be left-invertible and minimum-phase (Assumption 6.1), else ``ValueError`` naming which
+        (with the offending zeros).
+      poles: (n_q,) the poles of the ``H_j``, the first ``n_q1`` for the first chain of ``chain_lengths`` and so
+        on (each group closed under conjugation); ``n_q = sum(chain_lengths)``.
+      eps: the high-gain parameter, ``0 < eps <= 1``.
+      poles_b: (n_b,) the eigenvalues of ``A_b - K_bb C_b``; required iff the error system has an x_b subsystem.
+      extended: design the extended observer (6.3) (True) or the state observer of the cascade redesign, section
+        6.6 (False: the SCB of ``x' = A x + E g``, input ``g``, and ``K`` is (n, r)).
+      design: ``(A0, E0, C0)``: design on these (unperturbed) matrices instead, section 6.7.1 (e.g. a small
+        parameter set to zero); ``poles`` of the result are still those of ``(A, E, C)``.
+      corrected: the corrigendum's ``K_qjq`` (True) or the one printed in section 6.3.2, with powers
+        ``eps^(nbar - n_qj + i)`` (False; wrong for chains of different lengths, kept to show it).
+      numeric: floating-point SCB (rank decisions by SVD, :func:`jaxobs.scb.scb`) instead of exact fractions.
+
+    Returns:
+      :class:`HGOGains`.
+
+    Example: the DC motor with LuGre friction of Grip 2010, section 6.8 (design system sigma_1 = 0).
+
+      >>> import numpy as np
+      >>> J, s0, a2 = 0.0023, 260.0, 0.176
+      >>> A = [[0, 1, 0], [0, -a2 / J, -s0 / J], [0, 1, 0]]
+      >>> gains = hgo_gains(A, [[0], [0], [-1]], [[1, 0, 0]], [-1 + 0.2j, -1 - 0.2j, -2 + 0.2j, -2 - 0.2j])
+      >>> np.round(gains.K[:, 0], 2).tolist()
+      [6.0, 13.08, -0.01, 13.09]
+    """
+    A, E, C = _triple(A, E, C)
+    if design is None:
+        A0, E0, C0 = A, E, C
+    else:
+        if not (isinstance(design, tuple | list) and len(design) == 3):
+            raise ValueError(f"design must be a triple (A0, E0, C0), got {type(design).__name__}")
+        A0, E0, C0 = _triple(*design, prefix="design ")
+        if (A0.shape, E0.shape, C0.shape) != (A.shape, E.shape, C.shape):
+            raise ValueError(
+                f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
+                f"{(A.shape, E.shape, C.shape)}"
+            )
+    concrete = _checks.is_concrete(eps) and np.ndim(eps) == 0 and not isinstance(eps, bool | np.bool_)
+    real = concrete and (
+        np.issubdtype(np.asarray(eps).dtype, np.integer) or np.issubdtype(np.asarray(eps).dtype, np.floating)
+    )
+    if not (real and 0 < float(eps) <= 1):
+        raise ValueError(f"eps must be a number in (0, 1] (for a traced eps use HGOGains.at), got {eps!r}")
+    eps = float(eps)
+    triple = "(C, A, E)" if design is None else "the design triple (C0, A0, E0)"
+    s = _scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric)
+    if not _scb.is_left_invertible(s):
+        raise ValueError(f"{triple} must be left-invertible (Assumption 6.1), but its SCB has n_c = {s.dims[2]}")
+    zeros = np.asarray([complex(z) for z in _scb.invariant_zeros(s)], dtype=complex)
+    unstable = zeros[np.real(zeros) >= 0]
+    if unstable.size:
+        raise ValueError(
+            f"{triple} must be minimum-phase (Assumption 6.1), but has the invariant zeros {unstable.tolist()} in the "
+            "closed right half-plane"
+        )
+    f = _scb.scb_arrays(s)
+    n_a, n_b, _, n_q = f.dims
+    chains = f.chain_lengths
+    terms = _scb_gain_terms(f, _pole_groups("poles", poles, chains), poles_b, corrected)
+    K_terms = np.einsum("ij,qjk,kl->qil", f.Gamma1, terms, np.linalg.inv(f.Gamma2))
+    K = np.tensordot(eps ** -np.arange(K_terms.shape[0], dtype=float), K_terms, axes=1)
+    Ae, _, Ce = _error_system(A, E, C, extended)
+    return HGOGains(
+        K=K,
+        terms=K_terms,
+        eps=eps,
+        poles=np.linalg.eigvals(Ae - K @ Ce),
+        zeros=zeros,
+        dims=(n_a, n_b, n_q),
+        chain_lengths=chains,
+        system=f,
+    )
+
+
+def _scb_gain_terms(f: _scb.SCB, groups, poles_b, corrected: bool) -> np.ndarray:
+    """``K_scb(eps) = sum_i terms[i] eps^-i`` in SCB coordinates (sections 6.3.1-6.3.2)."""
+    n_a, n_b, _, n_q = f.dims
+    chains = f.chain_lengths
+    k = len(chains)
+    n_e, p = f.A.shape[0], f.C.shape[0]
+    a, b, d = slice(0, n_a), slice(n_a, n_a + n_b), slice(n_a + n_b, n_e)
+    C_d = f.C[:k, d]  # y_scb = col(y_d, y_b): y_d the first states of the chains
+    tops = np.concatenate([[0], np.cumsum(chains)[:-1]]).astype(int)
+    lasts = tops + np.asarray(chains, dtype=int) - 1
+    shift = np.zeros((n_q, n_q))
+    for top, q in zip(tops, chains, strict=True):
+        shift[top : top + q - 1, top + 1 : top + q] = np.eye(q - 1)
+    qbar = max(chains, default=0)
+    terms = np.zeros((qbar + 1, n_e, p))
+    # output injections L: they cancel the output terms of x_a, x_b and the upper rows of each chain
+    bd = slice(n_a, n_e)
+    terms[0, a, :] = f.A[a, bd] @ np.linalg.pinv(f.C[:, bd])
+    terms[0, b, :k] = f.A[b, d] @ np.linalg.pinv(C_d)
+    upper = np.setdiff1d(np.arange(n_q), lasts)
+    terms[0, n_a + n_b + upper, :k] = (f.A[d, d] - shift)[upper] @ np.linalg.pinv(C_d)
+    if n_b:
+        if poles_b is None:
+            raise ValueError(f"poles_b is required: the error system has an x_b subsystem of dimension {n_b}")
+        (pb,) = _pole_groups("poles_b", poles_b, (n_b,))
+        terms[0, b, k:] = place(f.A[b, b].T, f.C[k:, b].T, pb).T
+    elif poles_b is not None and np.size(poles_b):
+        raise ValueError(f"poles_b must be empty: the error system has no x_b subsystem, got {np.size(poles_b)} poles")
+    for j, (top, q, group) in enumerate(zip(tops, chains, groups, strict=True)):
+        coeffs = np.real(np.poly(group))[1:]  # Kbar_qj: H_j = A_qj - Kbar_qj C_qj has the poles ``group``
+        offset = 0 if corrected else qbar - q
+        for i in range(q):
+            terms[i + 1 + offset, n_a + n_b + top + i, j] += coeffs[i]
+    return terms
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Parameter update laws u_theta (Propositions 6.1-6.4) and the smooth absolute value of section 6.8
+
+
+def smooth_abs(w, kappa):
+    """The C^1 absolute value of Grip 2010, section 6.8: ``w^2 / (2 kappa) + kappa / 2`` on ``[-kappa, kappa]``,
+    ``|w|`` outside (value and slope continuous at ``+-kappa``; ``>= kappa / 2 > 0``).
+
+    Args:
+      w: array.  kappa: positive half-width of the quadratic piece.
+
+    Example:
+      >>> round(float(smooth_abs(0.0, 0.1)), 6), round(float(smooth_abs(-0.3, 0.1)), 6)
+      (0.05, 0.3)
+    """
+    w = jnp.asarray(w, _checks.float_dtype(w=w, kappa=kappa))
+    _checks.positive_scalar("kappa", kappa)
+    inside = jnp.abs(w) <= kappa
+    return jnp.where(inside, w**2 / (2 * kappa) + kappa / 2, jnp.abs(jnp.where(inside, kappa, w)))
+
+
+def _projected(rate, theta_hat, Gamma, region, epsilon):
+    return rate if region is None else project(rate, theta_hat, Gamma, region, epsilon)
+
+
+def _target_law(theta_star, Gamma, threshold, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
+    active = jnp.linalg.norm(phi_hat) >= threshold
+    # theta_star never sees |phi_hat| < threshold (e.g. a division by phi_hat): a stand-in of norm threshold
+    safe = jnp.where(active, phi_hat, threshold / jnp.sqrt(phi_hat.shape[0]))
+    G = _checks.gain("Gamma", Gamma, theta_hat.shape[0], theta_hat.dtype)
+    rate = jnp.where(active, G @ (theta_star(v, x_hat, safe) - theta_hat), 0.0)
+    return _projected(rate, theta_hat, Gamma, region, epsilon)
+
+
+def target_law(theta_star, Gamma, *, threshold=0.0, region=None, epsilon=None) -> jax.tree_util.Partial:
+    """The law ``theta_hat' = Proj(l Gamma (theta*(v, x_hat, phi_hat) - theta_hat))`` of Propositions 6.1 (``l =
+    1``) and 6.2 (Grip 2010), with ``l = 1`` while ``|phi_hat| >= threshold`` and 0 below (section 6.8: the
+    update pauses while the perturbation is too small to invert for theta). Below the threshold ``theta_star`` is
+    evaluated at a stand-in ``phi_hat`` of norm ``threshold`` and the result discarded, so a ``theta_star`` that
+    divides by ``phi_hat`` produces no NaN, in values or gradients, for ``threshold > 0``.
+
+    Args:
+      theta_star: ``theta*(v, x_hat, phi_hat) -> (p,)``, the parameter solved from ``phi = g(v, x, theta)``.
+      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
+      threshold: ``>= 0``; 0 gives Proposition 6.1.
+      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
+
+    Returns:
+      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
+    """
+    _checks.positive_scalar("threshold", threshold, allow_zero=True)
+    if region is not None:
+        _checks.positive_scalar("epsilon", epsilon)
+    return jax.tree_util.Partial(
+        _target_law, _checks.function("theta_star", theta_star), Gamma, threshold, region, epsilon
+    )
+
+
+def _gradient_law(M, Gamma, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
+    residual = phi_hat - g(v, x_hat, theta_hat)
+    gain = jax.jacfwd(g, argnums=2)(v, x_hat, theta_hat).T if M is None else M(v, x_hat, theta_hat)
+    rate = _checks.gain("Gamma", Gamma, theta_hat.shape[0], theta_hat.dtype) @ (gain @ residual)
+    return _projected(rate, theta_hat, Gamma, region, epsilon)
+
+
+def gradient_law(Gamma, *, M=None, region=None, epsilon=None) -> jax.tree_util.Partial:
+    """The law ``theta_hat' = Proj(Gamma M(v, x_hat, theta_hat) (phi_hat - g(v, x_hat, theta_hat)))`` of
+    Propositions 6.3 and 6.4 (Grip 2010), by default the gradient search ``M = (dg/dtheta)'`` (autodiff).
+
+    Args:
+      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
+      M: ``M(v, x_hat, theta_hat) -> (p, k)`` satisfying (6.14) or (6.15); ``(dg/dtheta)'`` if None.
+      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
+
+    Returns:
+      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
+    """
+    if region is not None:
+        _checks.positive_scalar("epsilon", epsilon)
+    M = None if M is None else _checks.function("M", M)
+    return jax.tree_util.Partial(_gradient_law, M, Gamma, region, epsilon)
+
+
+def _no_update(g, v, x_hat, phi_hat, theta_hat):
+    return jnp.zeros_like(theta_hat)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The observer (6.3) as a sampled estimator
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HGOParams:
+    """The modified high-gain observer (6.3); build it with :func:`make_hgo`.
+
+    Attributes:
+      A: (n, n).  B: (n, m).  E: (n, k).  C: (r, n): the plant matrices.
+      K: (n + k, r) the gain ``[K_x; K_phi]`` (:func:`hgo_gains`).
+      g: ``g(v, x, theta) -> (k,)`` with ``v = col(u, y)``, a ``Partial``.
+      law: ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)``, a ``Partial`` (:func:`target_law`,
+        :func:`gradient_law`, or none: theta_hat stays at ``theta0``).
+      x0: (n,).  z0: (k,).  theta0: (p,): the initial ``x_hat``, ``z`` and ``theta_hat``.
+      K2: (n, r) the gain of the cascaded state observer of section 6.6 (``hgo_gains(..., extended=False)``),
+        or an (n, 0) array for none.
+      g2: the perturbation model of the cascaded observer, a ``Partial`` (``g`` unless another was given).
+      dt: () sample period.  t0: () time of the first sample.
+      substeps: static RK4 (or Euler) steps per sample.  method: static ``"rk4"`` or ``"euler"``.
+    """
+
+    A: jax.Array
+    B: jax.Array
+    E: jax.Array
+    C: jax.Array
+    K: jax.Array
+    g: Callable
+    law: Callable
+    x0: jax.Array
+    z0: jax.Array
+    theta0: jax.Array
+    K2: jax.Array
+    g2: Callable
+    dt: jax.Array
+    t0: jax.Array
+    substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
+
+
+class HGOOutputs(NamedTuple):
+    x: jax.Array  # (n,) x_hat(t_k)
+    phi: jax.Array  # (k,) phi_hat(t_k) = g(v, x_hat, theta_hat) + z, v the (u, y) held over the last interval
+    theta: jax.Array  # (p,) theta_hat(t_k)
+    x2: jax.Array  # (n,) the cascaded state observer of section 6.6 (x_hat when there is none)
+    innovation: jax.Array  # (r,) y_k - C x_hat(t_k) (0 for missing components)
+
+
+def _split(params: HGOParams, xi):
+    """``(x_hat, z, theta_hat, x2)`` from the stacked state (``x2`` empty without a cascade)."""
+    n, k = params.E.shape
+    p = params.theta0.shape[0]
+    return xi[:n], xi[n : n + k], xi[n + k : n + k + p], xi[n + k + p :]
+
+
+def _cascade(params: HGOParams) -> bool:
+    return params.K2.shape[1] > 0
+
+
+def _rhs(params: HGOParams, xi, u, y, t):
+    """d/dt col(x_hat, z, theta_hat, x2), (6.3a)-(6.3b), (6.9) and the cascade of section 6.6."""
+    n = params.A.shape[0]
+    x_hat, z, theta_hat, x2 = _split(params, xi)
+    v = jnp.concatenate([u, y])
+    innovation = y - params.C @ x_hat
+    phi_hat = params.g(v, x_hat, theta_hat) + z
+    theta_dot = params.law(params.g, v, x_hat, phi_hat, theta_hat)
+    Kx_innov, Kphi_innov = params.K[:n] @ innovation, params.K[n:] @ innovation
+    # dg/dx K_x innovation + dg/dtheta theta_dot in one forward-mode product
+    _, along = jax.jvp(lambda x, th: params.g(v, x, th), (x_hat, theta_hat), (Kx_innov, theta_dot))
+    x_dot = params.A @ x_hat + params.B @ u + params.E @ phi_hat + Kx_innov
+    if _cascade(params):  # x2' = A x2 + B u + E g2(v, x2, theta_hat) + K2 (y - C x2)
+        x2 = params.A @ x2 + params.B @ u + params.E @ params.g2(v, x2, theta_hat) + params.K2 @ (y - params.C @ x2)
+    return jnp.concatenate([x_dot, Kphi_innov - along, theta_dot, x2])
+
+
+def _output(C, n, xi, u):
+    del u  # y = C x: no feedthrough
+    return C @ xi[:n]
+
+
+def _continuous(params: HGOParams) -> ContinuousObserverParams:
+    x0 = jnp.concatenate([params.x0, params.z0, params.theta0] + ([params.x0] if _cascade(params) else []))
+    F = jax.tree_util.Partial(_rhs, params)
+    h = jax.tree_util.Partial(_output, params.C, params.A.shape[0])
+    return ContinuousObserverParams(F, h, x0, params.dt, params.t0, params.B.shape[1], params.substeps, params.method)
+
+
+def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None, g2=None, dt, t0=0.0,
+             substeps: int = 1, method: str = "rk4") -> HGOParams:  # fmt: skip
+    """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
+
+    Args:
+      A: (n, n), B: (n, m), E: (n, k), C: (r, n): ``x' = A x + B u + E phi``, ``y = C x`` (B may be (n, 0)).
+      K: (n + k, r) the gain ``[K_x(eps); K_phi(eps)]`` (:func:`hgo_gains`, ``HGOGains.K`` or ``.at(eps)``).
+      g: the perturbation model ``g(v, x, theta) -> (k,)``, ``v = col(u, y)`` (m + r,), differentiable.
+      law: the parameter update ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)`` (:func:`target_law`,
+        :func:`gradient_law`); None keeps ``theta_hat = theta0`` (a known theta).
+      x0: (n,) initial ``x_hat`` (zeros if None).  z0: (k,) initial ``z`` (zeros if None).
+      theta0: (p,) initial ``theta_hat`` (inside the projection set of ``law``, if any).
+      K2: (n, r) gain of the cascaded state observer of section 6.6, ``x2' = A x2 + B u + E g(v, x2, theta_hat)
+        + K2 (y - C x2)`` with ``theta_hat`` from (6.3) (``hgo_gains(..., extended=False)``; output ``x2``, started at
+        ``x0``); None for none (``x2`` then repeats ``x_hat``).
+      g2: the cascaded observer's perturbation model, ``g`` if None (section 6.8 gives it the exact ``|omega|``,
+        as it needs only g, not its derivative, to be Lipschitz).
+      dt: sample period (> 0).  t0: time of the first sample.
+      substeps: fixed steps per sample.  method: ``"rk4"`` or ``"euler"``.
+
+    Example: the extended-state observer of a double integrator with an unknown constant force (g = 0).
+
+      >>> import jax.numpy as jnp
+      >>> import jaxobs as jo
+      >>> from jaxobs.observers import hgo
+      >>> A, E, C = [[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]]
+      >>> gains = hgo.hgo_gains(A, E, C, [-2.0, -2.0, -2.0], 0.5)
+      >>> params = hgo.make_hgo(A, [[0.0], [1.0]], E, C, gains.K, lambda v, x, th: jnp.zeros(1), dt=0.01)
+      >>> t = 0.01 * jnp.arange(600)
+      >>> y = (0.5 * 0.3 * t**2)[:, None]  # x'' = 0.3
+      >>> _, out = jo.run(hgo.hgo_observer, params, jo.EstimatorInputs(y=y, u_prev=jnp.zeros((600, 1))))
+      >>> bool(jnp.abs(out.phi[-1, 0] - 0.3) < 1e-2)
+      True
+    """
+    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta0, dt=dt, t0=t0)
+    A, E, C = (jnp.asarray(M, dtype) for M in (A, E, C))
+    _checks.matrix("A", A, square=True)
+    n = A.shape[0]
+    _checks.matrix("E", E, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    k, r = E.shape[1], C.shape[0]
+    B = jnp.asarray(B, dtype).reshape((n, -1)) if np.size(B) == 0 else jnp.asarray(B, dtype)
+    _checks.matrix("B", B, shape=(n, None))
+    K = jnp.asarray(K, dtype)
+    _checks.matrix("K", K, shape=(n + k, r))
+    m = B.shape[1]
+    K2 = jnp.zeros((n, 0), dtype) if K2 is None else jnp.asarray(K2, dtype)
+    if K2.shape[1]:
+        _checks.matrix("K2", K2, shape=(n, r))
+    x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
+    z0 = jnp.zeros((k,), dtype) if z0 is None else _checks.vector("z0", z0, k, dtype, what="one per perturbation")
+    theta0 = jnp.atleast_1d(jnp.asarray(theta0, dtype)) if np.size(theta0) else jnp.zeros((0,), dtype)
+    _checks.shape("theta0", theta0, (None,), "the initial parameter estimate, a vector")
+    _checks.finite("theta0", theta0)
+    _checks.positive_scalar("dt", dt)
+    g = _checks.function("g", g)
+    law = jax.tree_util.Partial(_no_update) if law is None else _checks.function("law", law)
+    v = jnp.zeros((m + r,), dtype)
+    _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    _checks.returns(
+        "law(g, v, x_hat, phi_hat, theta_hat)", lambda *a: law(g, *a), (v, x0, z0, theta0), theta0.shape,
+        "theta_hat_dot, one entry per entry of theta0",
+    )  # fmt: skip
+    substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
+    if method not in ("rk4", "euler"):
+        raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
+    t0 = jnp.asarray(t0, dtype)
+    _checks.shape("t0", t0, (), "a scalar time")
+    g2 = g if g2 is None else _checks.function("g2", g2)
+    _checks.returns("g2(v, x, theta)", g2, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    dt = jnp.asarray(dt, dtype)
+    return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, g2, dt, t0, substeps, method)
+
+
+def _init(params: HGOParams):
+    return continuous_observer.init(_continuous(params))
+
+
+def _step(params: HGOParams, state, inputs: EstimatorInputs):
+    m = params.B.shape[1]
+    before = state.y  # y_{k-1}, held over the interval now integrated (NaN where missing)
+    state, out = continuous_observer.step(_continuous(params), state, inputs)
+    x_hat, z, theta_hat, x2 = _split(params, state.x)
+    u = jnp.zeros((0,), x_hat.dtype) if inputs.u_prev is None else jnp.reshape(inputs.u_prev, (m,))
+    y = jnp.where(jnp.isfinite(before), before, params.C @ x_hat)
+    phi_hat = params.g(jnp.concatenate([u, y]), x_hat, theta_hat) + z
+    x2 = x2 if _cascade(params) else x_hat
+    return state, HGOOutputs(x_hat, phi_hat, theta_hat, x2, out.innovation)
+
+
+hgo_observer = Estimator(_init, _step)
+"""The modified high-gain observer (6.3) as a sampled :class:`~jaxobs.observers.base.Estimator` over
+:class:`HGOParams` (run by :mod:`jaxobs.observers.continuous`: ``u_{k-1}``, ``y_{k-1}`` held over ``[t_{k-1},
+t_k]``). Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (r,) and (m,). Outputs: :class:`HGOOutputs`."""
