@@ -41,9 +41,7 @@ def test_library_module_does_not_import_the_paper_layer(path):
 @pytest.mark.parametrize("family", sorted(FAMILIES))
 def test_no_estimator_family_imports_another(family):
     imported = _imported_modules(PACKAGE / "observers" / f"{family}.py")
-    others = sorted(
-        f"jaxobs.observers.{f}" for f in FAMILIES - {family} if f"jaxobs.observers.{f}" in imported
-    )
+    others = sorted(f"jaxobs.observers.{f}" for f in FAMILIES - {family} if f"jaxobs.observers.{f}" in imported)
     assert not others, f"observers/{family}.py imports {others}: families share base, kalman_steps and the atoms only"
 
 
