@@ -71,12 +71,13 @@ def _config(args, validate):
 def _sweep_module(given: dict, source: str):
     """The sweep named by the config's ``scenario`` key (default: the force-control sweep)."""
     from jaxobs._config import fail
-    from jaxobs.papers import force_robustness, liu_peng_sweep, sbw_robustness
+    from jaxobs.papers import force_robustness, grip_example56_sweep, liu_peng_sweep, sbw_robustness
 
     sweeps = {
         "force-control": force_robustness,
         sbw_robustness.NAME: sbw_robustness,
         liu_peng_sweep.NAME: liu_peng_sweep,
+        grip_example56_sweep.NAME: grip_example56_sweep,
     }
     name = given.get("scenario", "force-control")
     if name not in sweeps:
@@ -141,7 +142,7 @@ def main(argv=None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     for name, func, help_text, config_help in (
         ("sweep", _sweep, "Monte-Carlo robustness sweep (resumable; rerun to continue)",
-         "its 'scenario' key picks the sweep: force-control (default), steer_by_wire, liu_peng"),
+         "its 'scenario' key picks the sweep: force-control (default), steer_by_wire, liu_peng, grip-example56"),
         ("tune", _tune, "tune an observer's Q/R by gradient descent against MJX rollouts (resumable)",
          "its 'problem' key picks the problem: force_1dof (default), peg_on_hole"),
     ):  # fmt: skip
