@@ -143,8 +143,8 @@ def main(argv=None) -> int:
     for name, func, help_text, config_help in (
         ("sweep", _sweep, "Monte-Carlo robustness sweep (resumable; rerun to continue)",
          "its 'scenario' key picks the sweep: force-control (default), steer_by_wire, liu_peng, grip-example56"),
-        ("tune", _tune, "tune an observer's Q/R by gradient descent against MJX rollouts (resumable)",
-         "its 'problem' key picks the problem: force_1dof (default), peg_on_hole"),
+        ("tune", _tune, "tune an observer's Q/R (or gains) by gradient descent against rollouts (resumable)",
+         "its 'problem' key picks the problem: force_1dof (default), peg_on_hole, grip-example56"),
     ):  # fmt: skip
         run = commands.add_parser(name, help=help_text)
         run.add_argument("--config", help=f"TOML file overriding the embedded default; {config_help}")
