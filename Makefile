@@ -40,6 +40,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/nonlinear.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/ct_integration.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/ct_estimation.py --out $(OUT)/bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
