@@ -67,3 +67,27 @@ def test_small_run_end_to_end(tmp_path):
     for name in ("loss_curves.png", "parameters.png", "responses.png"):
         assert (out / name).is_file()
     assert np.isfinite(summary["heldout"]["tuned"]["objective"])
+
+
+@pytest.mark.slow
+def test_readme_table_row(tmp_path):
+    """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
+    held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,
+    so reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    from _readme import pin
+
+    out = tmp_path / "grip"
+    assert main(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    row = (
+        r"\| Grip 2010 Example 5\.6, [^|]*\\\|theta_tilde\\\|[^|]*\| ([0-9.]+) \(10, 3\) \| ([0-9.]+) \(-([0-9.]+) %\) "
+        r"at \(([0-9.]+), ([0-9.]+)\) \| ([0-9.]+) \(-([0-9.]+) %\)"
+    )
+    held = summary["heldout"]
+    pin(held["hand-set"]["objective"], row, 1)
+    pin(held["tuned"]["objective"], row, 2)
+    pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
+    pin(summary["parameters"]["tuned"]["K_phi"], row, 4)
+    pin(summary["parameters"]["tuned"]["Gamma"], row, 5)
+    pin(held["random search, equal rollouts"]["objective"], row, 6)
+    pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 7)
