@@ -58,12 +58,10 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
         values = config["grid"][key]
         if not isinstance(values, list) or not values:
             fail(source, f"grid.{key}", f"must be a non-empty list of numbers, got {values!r}")
-        low = 0.0 if key == "noise_variance" else None
-        if any(not isinstance(v, int | float) or isinstance(v, bool) for v in values) or (
-            min(values) < 0 if low == 0.0 else min(values) <= 0
-        ):
-            fail(source, f"grid.{key}", f"must hold {'non-negative' if low == 0.0 else 'positive'} numbers, "
-                 f"got {values!r}")  # fmt: skip
+        positive = key != "noise_variance"  # the gains must be positive, a variance may be 0
+        if any(isinstance(v, bool) or not isinstance(v, int | float) or v < 0 or (positive and v == 0) for v in values):
+            kind = "positive" if positive else "non-negative"
+            fail(source, f"grid.{key}", f"must hold {kind} numbers, got {values!r}")
     for key, low, strict in (("seed", 0, False), ("chunk_size", 1, False), ("grid.seeds", 1, False),
                              ("gradient.Gamma", 0, True), ("scenario_timing.segment_s", 0, True),
                              ("scenario_timing.window_s", 0, True)):  # fmt: skip
