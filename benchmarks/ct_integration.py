@@ -58,7 +58,8 @@ def ours(substeps: int, checkpoint: bool = False):
     return trajectory
 
 
-def diffrax_rk4(substeps: int):
+def diffrax_rk4_solver():
+    """The classical RK4 rule as a diffrax solver (raises :class:`Skipped` without diffrax)."""
     try:
         import diffrax
     except ImportError as exc:
@@ -79,7 +80,12 @@ def diffrax_rk4(substeps: int):
         def order(self, terms):
             return 4
 
-    solver = RK4()
+    return RK4()
+
+
+def diffrax_rk4(substeps: int):
+    solver = diffrax_rk4_solver()
+    import diffrax
 
     def trajectory(mu, x0s, u):
         term = diffrax.ODETerm(lambda t, x, u: van_der_pol(x, u, t, mu))

@@ -55,9 +55,10 @@ def _print_list(registry: dict) -> None:
 
 def _sweeps() -> dict:
     """Sweep modules by scenario name; the first is the default."""
-    from jaxobs.papers import dc_motor_hgo_sweep, force_robustness, liu_peng_sweep, sbw_robustness
+    from jaxobs.papers import dc_motor_hgo_sweep, force_robustness, grip_example56_sweep, liu_peng_sweep, sbw_robustness
 
-    return {m.NAME: m for m in (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep)}
+    sweeps = (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep, grip_example56_sweep)
+    return {m.NAME: m for m in sweeps}
 
 
 def _problems() -> dict:

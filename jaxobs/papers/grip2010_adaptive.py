@@ -166,20 +166,23 @@ def example_5_6_model(K_phi=K_PHI, Gamma=GAMMA_MODULAR):
                         M=lambda t, x, th: jnp.sin(t)[None, None], region=box, epsilon=EPSILON).model  # fmt: skip
 
 
-def _schedule(dt=DT):
+def theta_schedule(dt=DT, segment_s=SEGMENT_S):
     """``theta`` per step (held over each step) and per sample (the value of the segment the sample ends)."""
-    per_segment = round(SEGMENT_S / dt)
+    per_segment = round(segment_s / dt)
     per_step = np.repeat(np.asarray(SEGMENT_THETAS), per_segment)
     return per_step, np.concatenate([[SEGMENT_THETAS[0]], per_step]), per_segment
 
 
-def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_GRADIENT, dt=DT):
-    """Both closed loops of Example 5.6 over the whole scenario, RK4 with ``noise`` (steps,) and ``theta`` held
-    over each step. Returns per sample ``(x_modular, theta_hat_modular, x_gradient, theta_hat_gradient)`` and per
-    step ``(projection_changed_rate, limit_bound)``."""
+def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_GRADIENT, dt=DT, segment_s=SEGMENT_S,
+                 integrate=ct.integrate):  # fmt: skip
+    """Both closed loops of Example 5.6 over the whole scenario (five segments of ``segment_s``), RK4 with ``noise``
+    (steps,) and ``theta`` held over each step; the gains may be traced. ``integrate(f, x, u, t, h)``, one step of
+    ``x' = f(x, u, t)`` with ``u`` held (default :func:`jaxobs.ct.integrate`), is there for peer integrators in
+    benchmarks. Returns per sample ``(x_modular, theta_hat_modular, x_gradient, theta_hat_gradient)`` and per step
+    ``(projection_changed_rate, limit_bound)``."""
     model = example_5_6_model(K_phi, Gamma)
     raw = dataclasses.replace(model, region=None)  # the same law without projection
-    theta_steps, _, _ = _schedule(dt)
+    theta_steps, _, _ = theta_schedule(dt, segment_s)
     bound = THETA_BOUND
 
     def modular(s, inputs, t):
@@ -201,8 +204,8 @@ def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_G
         phi_hat = perturbation_estimate(model, est, t, xm + n)
         projected = parameter_rate(model, t, xm + n, phi_hat, est.theta_hat)
         changed = jnp.any(projected != parameter_rate(raw, t, xm + n, phi_hat, est.theta_hat))
-        xm, est = ct.integrate(modular, (xm, est), (theta, n), t, dt)
-        xg, th_raw = ct.integrate(gradient, (xg, thg), (theta, n), t, dt)
+        xm, est = integrate(modular, (xm, est), (theta, n), t, dt)
+        xg, th_raw = integrate(gradient, (xg, thg), (theta, n), t, dt)
         thg = jnp.clip(th_raw, -bound, bound)
         limited = jnp.any(thg != th_raw)
         return ((xm, est), (xg, thg)), (xm[0], est.theta_hat[0], xg[0], thg[0], changed, limited)
@@ -217,14 +220,15 @@ def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_G
     return (cat(xm), cat(thm), cat(xg), cat(thg)), (changed, limited)
 
 
-def _segments_summary(x, theta_hat, dt=DT):
-    """Per segment: the parameter error at its end, peak |x|, the last time after the step with |theta_tilde| >
-    0.6, and the mean |theta_tilde| over its last 5 s (arrays over segments; x, theta_hat per sample)."""
-    _, theta_samples, per = _schedule(dt)
+def segment_metrics(x, theta_hat, dt=DT, segment_s=SEGMENT_S, window_s=LAST_WINDOW_S):
+    """Per segment of :func:`simulate_5_6`'s run: the parameter error at its end, peak |x|, the last time after the
+    step with |theta_tilde| > 0.6, and the mean |theta_tilde| over its last ``window_s`` (arrays over segments; x,
+    theta_hat per sample)."""
+    _, theta_samples, per = theta_schedule(dt, segment_s)
     err = jnp.asarray(theta_samples) - theta_hat
     n_seg = len(SEGMENT_THETAS)
     idx = lambda i: slice(i * per + 1, (i + 1) * per + 1)  # samples after step i*per up to the segment's end
-    last_window = round(LAST_WINDOW_S / dt)
+    last_window = round(window_s / dt)
     ends, peaks, exits, means = [], [], [], []
     for i in range(n_seg):
         e, seg_x = err[idx(i)], x[idx(i)]
@@ -241,7 +245,7 @@ def _segments_summary(x, theta_hat, dt=DT):
 def _noise_free():
     steps = len(SEGMENT_THETAS) * round(SEGMENT_S / DT)
     (xm, thm, xg, thg), (changed, limited) = simulate_5_6(jnp.zeros(steps))
-    return (xm, thm, xg, thg), (changed, limited), _segments_summary(xm, thm), _segments_summary(xg, thg)
+    return (xm, thm, xg, thg), (changed, limited), segment_metrics(xm, thm), segment_metrics(xg, thg)
 
 
 @jax.jit
@@ -254,7 +258,7 @@ def _noisy(keys):
         noise = jax.random.normal(key, (steps,), dtype=jnp.result_type(float))
         (xm, thm, xg, thg), (changed, limited) = simulate_5_6(noise)
         traces = tuple(a[::10] for a in (xm, thm, xg, thg))
-        return _segments_summary(xm, thm)[3], _segments_summary(xg, thg)[3], jnp.any(changed), jnp.any(limited), traces
+        return segment_metrics(xm, thm)[3], segment_metrics(xg, thg)[3], jnp.any(changed), jnp.any(limited), traces
 
     return jax.vmap(one)(keys)
 
@@ -305,7 +309,7 @@ def example_5_6() -> tuple[dict, dict]:
 
 def _figures_5_6(data: dict, out_dir: Path) -> list[str]:
     plt = pyplot()
-    _, theta_samples, _ = _schedule()
+    _, theta_samples, _ = theta_schedule()
     names = []
     for key, label, stride in (("noise_free", "noise-free", 1), ("noisy_seed0", "noisy, seed 0 of 64", 10)):
         xm, thm, xg, thg = data[key]
@@ -550,6 +554,8 @@ __all__ = [
     "example_5_6",
     "example_5_6_model",
     "simulate_5_6",
+    "segment_metrics",
+    "theta_schedule",
     "reproduce_example_1_1",
     "reproduce_example_5_6",
 ]
