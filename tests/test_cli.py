@@ -23,7 +23,7 @@ from jaxobs.cli import main
 from jaxobs.papers import REPRODUCTIONS
 
 COMMANDS = {"sweep": ("scenario", cli._sweeps), "tune": ("problem", cli._problems)}
-NAME_STYLE = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+(\.[0-9]+)*)*")  # lower-case words joined by hyphens (numbers as 5.6)
+NAME_STYLE = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+(\.[0-9]+)*)*")  # lower-case words, hyphens (numbers as 5.6)
 
 
 def test_version(capsys):
