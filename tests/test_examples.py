@@ -16,7 +16,8 @@ import pytest
 
 ROOT = Path(__file__).parents[1]
 EXAMPLES = ROOT / "examples"
-SCRIPTS = sorted(EXAMPLES.glob("*.py"))
+CHECKED_BY = re.compile(r"^# checked by: (tests/\S+\.py)", re.M)  # a script with its own test, which asserts on
+SCRIPTS = sorted(s for s in EXAMPLES.glob("*.py") if not CHECKED_BY.search(s.read_text()))  # what it measures
 PRINTS = re.compile(r"#\s*prints:\s?(.*)$")
 IMPORT_NOISE = re.compile(r"Failed to import (mujoco_)?warp: ")  # mujoco.mjx 3.17 prints this on import (stdout)
 
@@ -40,6 +41,13 @@ def test_every_guide_snippet_comes_from_an_example():
             assert target.is_file(), f"{page.name}: {path} does not exist"
             if section:
                 assert f"[start:{section}]" in target.read_text(), f"{page.name}: {path} has no section {section}"
+
+
+def test_an_example_checked_elsewhere_names_an_existing_test():
+    for script in EXAMPLES.glob("*.py"):
+        if match := CHECKED_BY.search(script.read_text()):
+            test = ROOT / match.group(1)
+            assert test.is_file() and script.name in test.read_text(), f"{script.name}: {match.group(1)}"
 
 
 @pytest.mark.parametrize("script", [_param(s) for s in SCRIPTS])
