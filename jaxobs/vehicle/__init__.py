@@ -4,6 +4,7 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``tyres``: Magic Formula and Burckhardt tyre curves with combined slip in the friction ellipse.
 ``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
 :func:`lateral_acceleration`).
+``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
 
 Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
@@ -26,6 +27,7 @@ from jaxobs.vehicle.model import (
     steady_state,
     wheel_kinematics,
 )
+from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements, SensorParams, low_pass, measure
 from jaxobs.vehicle.simulate import PLANT_STEP, Command, Manoeuvre, Trajectory, driver, simulate
 from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
 
@@ -54,4 +56,9 @@ __all__ = [
     "Trajectory",
     "driver",
     "simulate",
+    "SENSOR_RATE",
+    "Measurements",
+    "SensorParams",
+    "low_pass",
+    "measure",
 ]

@@ -120,7 +120,7 @@ class VehicleParams:
             _checks.positive(name, getattr(self, name), allow_zero=True)
         for name in ("roll_share_front", "brake_share_front"):
             _checks.positive(name, getattr(self, name), allow_zero=True, what="a share in [0, 1]")
-            _checks.positive(name, 1.0 - jnp.asarray(getattr(self, name)), allow_zero=True, what="a share <= 1")
+            _checks.positive(name, 1.0 - getattr(self, name), allow_zero=True, what="a share <= 1")
         self.tyre_front.validate()
         self.tyre_rear.validate()
 

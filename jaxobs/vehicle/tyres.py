@@ -74,9 +74,9 @@ class TyreParams:
             _checks.positive(name, getattr(self, name))
         for name in ("shape_y", "shape_x"):
             _checks.positive(name, getattr(self, name), what="a Magic Formula shape factor in (0, 2)")
-            _checks.positive(name, 2.0 - jnp.asarray(getattr(self, name)), what="a shape factor below 2")
+            _checks.positive(name, 2.0 - getattr(self, name), what="a shape factor below 2")
         for name in ("curvature_y", "curvature_x"):
-            _checks.positive(name, 1.0 - jnp.asarray(getattr(self, name)), what="1 - E: a curvature factor below 1")
+            _checks.positive(name, 1.0 - getattr(self, name), what="1 - E: a curvature factor below 1")
 
 
 BURCKHARDT_SURFACES = {
