@@ -5,6 +5,7 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
 :func:`lateral_acceleration`).
 ``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
+``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
 
 Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
@@ -12,6 +13,7 @@ Every parameter set is a registered dataclass pytree, so a batch of vehicles is 
 this package.
 """
 
+from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
 from jaxobs.vehicle.model import (
     GRAVITY,
     MIN_SPEED,
@@ -56,6 +58,8 @@ __all__ = [
     "Trajectory",
     "driver",
     "simulate",
+    "MANOEUVRES",
+    "manoeuvre",
     "SENSOR_RATE",
     "Measurements",
     "SensorParams",

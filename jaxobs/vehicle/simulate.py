@@ -4,10 +4,13 @@ A manoeuvre is a pure function ``command(t) -> Command`` (traceable in ``t``) wi
 speed (:class:`Manoeuvre`). The driver turns the command and the state into plant inputs:
 
 * steering wheel ``= command.steering_wheel + steering_ratio * curvature_gain * (curvature - r / vx)``
-  (open loop when ``curvature_gain = 0``, path-curvature tracking otherwise);
+  (open loop when ``curvature_gain = 0``, path-curvature tracking otherwise), clipped to the steering lock
+  ``steering_ratio * STEERING_LOCK``;
 * total wheel torque ``= R (m (acceleration + SPEED_GAIN (speed - vx) - g sin(Theta)) + drag)``: driving torque
   split between the rear wheels (rear-wheel drive, as the car of Grip 2010), braking torque between the axles
-  by ``brake_share_front``.
+  by ``brake_share_front``; each wheel's torque is scaled by ``1 - max(kappa_i sign(T_i), 0) / SLIP_LIMIT``
+  (clipped to [0, 1]), a proportional stand-in for traction control and ABS that keeps the wheels from
+  spinning up or locking.
 
 :func:`simulate` integrates ``x' = dynamics(driver(x, command(t)))`` with :func:`jaxobs.ct.trajectory` (RK4,
 :data:`PLANT_STEP`) in one ``lax.scan`` and returns the states with the specific forces ``a_x``, ``a_y`` and the
@@ -33,14 +36,29 @@ from jaxobs.vehicle.model import (
     dynamics,
     forces,
     steady_state,
+    wheel_kinematics,
 )
 
-__all__ = ["PLANT_STEP", "SPEED_GAIN", "Command", "Manoeuvre", "Trajectory", "driver", "simulate"]
+__all__ = [
+    "PLANT_STEP",
+    "SPEED_GAIN",
+    "SLIP_LIMIT",
+    "STEERING_LOCK",
+    "Command",
+    "Manoeuvre",
+    "Trajectory",
+    "driver",
+    "simulate",
+]
 
 PLANT_STEP = 1e-3
 """Default plant step (s): 10 RK4 steps per 100 Hz sensor sample."""
 SPEED_GAIN = 1.0
 """Driver's speed-tracking gain (1/s)."""
+SLIP_LIMIT = 0.15
+"""Slip at which the driver's traction and anti-lock limiter has removed a wheel's whole torque (assumed)."""
+STEERING_LOCK = 0.6
+"""Largest road-wheel angle the driver applies (rad, about 34 deg; assumed)."""
 
 
 class Command(NamedTuple):
@@ -86,6 +104,7 @@ def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
     """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (module docstring)."""
     curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
     steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
+    steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)
     drag = 0.5 * AIR_DENSITY * p.drag_area * x.vx * jnp.abs(x.vx)
     accel = c.acceleration + SPEED_GAIN * (c.speed - x.vx) - GRAVITY * jnp.sin(c.inclination)
     total = p.wheel_radius * (p.mass * accel + drag)
@@ -93,7 +112,10 @@ def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
     front = brake * p.brake_share_front / 2
     rear = (drive + brake * (1 - p.brake_share_front)) / 2
     torque = jnp.stack([front, front, rear, rear])
-    return Inputs(steering, torque, c.bank, c.inclination, c.friction)
+    v_l, _, _ = wheel_kinematics(p, x.vx, x.vy, x.r, steering)
+    kappa = (x.omega * p.wheel_radius - v_l) / jnp.maximum(jnp.abs(v_l), MIN_SPEED)
+    limiter = jnp.clip(1.0 - jnp.maximum(jnp.sign(torque) * kappa, 0.0) / SLIP_LIMIT, 0.0, 1.0)
+    return Inputs(steering, torque * limiter, c.bank, c.inclination, c.friction)
 
 
 def _command(manoeuvre: Manoeuvre, t) -> Command:
@@ -113,6 +135,10 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
     Returns:
       a :class:`Trajectory` with ``round(duration / dt) + 1`` samples.
     """
+    if isinstance(manoeuvre, str):
+        from jaxobs.vehicle.manoeuvres import manoeuvre as by_name
+
+        manoeuvre = by_name(manoeuvre)
     params.validate()
     _checks.positive_scalar("dt", dt)
     duration = manoeuvre.duration if duration is None else duration
