@@ -98,6 +98,24 @@ def test_vehicle_parameters_batch_under_vmap():
         np.testing.assert_allclose(batched[i], run(single), rtol=1e-10)
 
 
+@pytest.mark.parametrize("mode", [jax.jacfwd, pytest.param(jax.grad, marks=pytest.mark.slow)], ids=["fwd", "rev"])
+def test_gradient_through_a_simulation_matches_central_differences(mode):
+    """d v_y(0.2 s) / d mass and / d front cornering stiffness through the RK4 scan, forward and reverse mode,
+    against central differences."""
+    m = Manoeuvre("s", lambda t: Command(steering_wheel=0.5 * jnp.sin(4.0 * t), speed=15.0), 0.2, 15.0)
+
+    def vy(z):
+        tyre = dataclasses.replace(P.tyre_front, cornering_stiffness=z[1])
+        return simulate(m, dataclasses.replace(P, mass=z[0], tyre_front=tyre)).state.vy[-1]
+
+    z = jnp.array([1600.0, 15.0])
+    grad = jax.jit(mode(vy))(z)
+    f = jax.jit(vy)
+    for i, h in enumerate((1.0, 0.01)):
+        e = jnp.zeros(2).at[i].set(h)
+        np.testing.assert_allclose(grad[i], (f(z + e) - f(z - e)) / (2 * h), rtol=1e-5)
+
+
 @pytest.mark.parametrize(
     "field, value",
     [
