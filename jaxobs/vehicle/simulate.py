@@ -128,7 +128,9 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
     initial speed.
 
     Args:
-      manoeuvre: the test drive.  params: the vehicle (fields may be traced, e.g. under ``vmap``).
+      manoeuvre: the test drive, or the name of one of :data:`jaxobs.vehicle.MANOEUVRES` (``ValueError`` listing
+        them for another name).  params: the vehicle (validated when concrete; fields may be traced, e.g. under
+        ``vmap``).
       duration: simulated time (s, default the manoeuvre's); rounded to whole plant steps.
       dt: plant step (s, > 0, static).
 
