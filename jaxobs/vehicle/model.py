@@ -11,7 +11,7 @@ the sums of the tyre forces in the body frame, ``M`` their yaw moment and the ro
     vy'  = a_y - r vx - g cos(Theta) sin(Phi),   a_y = F_y / m
     r'   = M / I_z
     J omega_i' = T_i - R F_xw,i                                      (driving / braking torque T_i)
-    tan_alpha_i' = (|v_l,i| / l_relax) (tan_alpha_ss,i - tan_alpha_i)  (first-order relaxation, Pacejka 2006 §7.2)
+    tan_alpha_i' = (|v_l,i| / l_relax) (tan_alpha_ss,i - tan_alpha_i)  (first-order relaxation, Pacejka 2006)
     ax_lt' = (a_x - ax_lt) / tau,   ay_lt' = (a_y - ay_lt) / tau
 
 ``a_x``, ``a_y`` are the specific forces an accelerometer at the centre of gravity reads (tyre and drag forces
@@ -77,8 +77,7 @@ class VehicleParams:
       wheel_radius: rolling radius ``R`` (m, > 0); 0.32 assumed (a 225/45 R18 tyre).
       wheel_inertia: spin inertia ``J`` of a wheel with its share of the drive line (kg m^2, > 0); 1.2 assumed.
       steering_ratio: steering-wheel angle over road-wheel angle (> 0); 15.5 assumed.
-      relaxation_length: lateral relaxation length ``l_relax`` (m, > 0); 0.5 assumed (Pacejka 2006 ch. 7 gives
-        about 0.5-1 times the wheel radius to 2 for passenger-car tyres).
+      relaxation_length: lateral relaxation length ``l_relax`` (m, > 0); 0.5 assumed.
       load_time_constant: lag ``tau`` of the load transfer (s, > 0); 0.05 assumed.
       drag_area: ``c_d A`` (m^2, >= 0); 0.65 assumed (``c_d`` 0.29, frontal area 2.25 m^2).
       roll_gradient: roll angle per lateral acceleration ``p_phi`` (rad per m/s^2, >= 0); 0.0085 assumed (about

@@ -1,6 +1,6 @@
 """Tyre forces: the Magic Formula with a friction-dependent curve shape, the Burckhardt curve, combined slip.
 
-Slips (Pacejka 2006, §2.2 and §4.3.2). A wheel whose centre moves at ``v_l`` along and ``v_s`` across its plane
+Slips (Pacejka 2006). A wheel whose centre moves at ``v_l`` along and ``v_s`` across its plane
 (wheel frame, ``v_s`` positive to the left), spinning at ``omega`` with rolling radius ``R``, has the longitudinal
 slip ``kappa = (omega R - v_l) / |v_l|`` and the slip angle ``alpha = -arctan(v_s / v_l)`` (positive clockwise,
 the convention of Grip 2010 ch. 2, so a positive ``alpha`` gives a positive, leftward lateral force). The
@@ -15,7 +15,7 @@ where ``F_x0`` and ``F_y0`` are the pure-slip curves, odd and bounded by the pea
 
 Pure-slip curves of two families:
 
-* :class:`TyreParams`, the Magic Formula (Pacejka 2006, eq. 4.49):
+* :class:`TyreParams`, the Magic Formula (Pacejka 2006):
   ``F0(s) = D sin(C arctan(B s - E (B s - arctan(B s))))`` with ``D = mu F_z`` and ``B = c F_z / (C D)
   = c / (C mu)``, where ``c`` is the slip (cornering) stiffness per unit load. The slope at zero slip,
   ``B C D = c F_z``, does not depend on the friction ``mu`` while the peak does, so the slip at the peak
@@ -44,12 +44,11 @@ __all__ = ["TyreParams", "BurckhardtTyre", "BURCKHARDT_SURFACES", "tyre_forces",
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class TyreParams:
-    """Magic Formula tyre (Pacejka 2006, eq. 4.49) with the friction-dependent stiffness factor ``B = c / (C mu)``.
+    """Magic Formula tyre (Pacejka 2006) with the friction-dependent stiffness factor ``B = c / (C mu)``.
 
     Defaults (assumed, a summer tyre of a mid-size passenger car on dry asphalt): peak friction 1.0; cornering
-    stiffness 20 per rad of ``tan(alpha)`` per unit load (80 kN/rad at 4 kN, within the 40-100 kN/rad of
-    passenger-car tyres, Pacejka 2006 ch. 1); longitudinal slip stiffness 20 per unit slip per unit load;
-    shape factors 1.3 (lateral) and 1.65 (longitudinal) and curvature -0.5, Pacejka's typical values. On
+    stiffness 20 per rad of ``tan(alpha)`` per unit load (80 kN/rad at 4 kN); longitudinal slip stiffness 20
+    per unit slip per unit load; shape factors 1.3 (lateral) and 1.65 (longitudinal) and curvature -0.5. On
     dry asphalt the lateral peak lies at ``alpha`` of about 8 deg, the longitudinal one at ``kappa`` of about 0.1.
 
     Attributes:
