@@ -11,6 +11,7 @@ import pytest
 from jaxobs.vehicle import (
     GRAVITY,
     MIN_SPEED,
+    BurckhardtTyre,
     Command,
     Inputs,
     Manoeuvre,
@@ -72,6 +73,16 @@ def test_lateral_acceleration_decreases_in_vy_unless_all_four_tyres_are_past_the
     assert below.sum() > 20 and above.sum() > 100
     assert float(slope[below].max()) < -0.2
     assert float(slope[above].min()) > 0.0
+
+
+def test_burckhardt_tyres_on_the_vehicle_scale_exactly_with_road_friction():
+    """Road friction scales c1 and c3, so every Burckhardt force, hence a_y, scales by it; a_y falls in v_y."""
+    p = dataclasses.replace(P, tyre_front=BurckhardtTyre.surface("snow"), tyre_rear=BurckhardtTyre.surface("snow"))
+    args = (15.0, 0.3, 0.1, 0.5, jnp.full(4, 15.0 / P.wheel_radius), 0.0, 1.0)
+    full = lateral_acceleration(p, *args)
+    np.testing.assert_allclose(lateral_acceleration(p, *args, friction=0.4), 0.4 * full, rtol=1e-12)
+    slope = jax.grad(lambda vy: lateral_acceleration(p, 15.0, vy, *args[2:]))(0.0)
+    assert np.isfinite(slope) and slope < 0
 
 
 def test_standstill_is_guarded_under_jit_and_grad():
