@@ -366,8 +366,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--states", type=int, nargs="+", default=[2, 10, 32])
     parser.add_argument("--lengths", type=int, nargs="+", default=[100, 10_000])
     parser.add_argument("--workloads", nargs="+", choices=WORKLOADS, default=list(WORKLOADS))
-    parser.add_argument("--budget", type=float, default=2e8,
-                        help="skip cells whose work WEIGHT * B * T * n^3 exceeds this (listed as skipped)")
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=2e8,
+        help="skip cells whose work WEIGHT * B * T * n^3 exceeds this (listed as skipped)",
+    )
     parser.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
     args = parser.parse_args(argv)
     results, skipped = [], []
