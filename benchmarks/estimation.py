@@ -338,13 +338,13 @@ def targets(results: list[dict]) -> dict:
 
 
 def table(results: list[dict], skipped: list[str]) -> str:
-    head = (f"{'cell':<24} {'jaxobs [ms]':<26} " + " ".join(f"{p + ' / jaxobs':<22}" for p in PEERS)
+    head = (f"{'cell':<24} {'jaxobs [ms]':<30} " + " ".join(f"{p + ' / jaxobs':<22}" for p in PEERS)
             + " compile j/d/c [s]    max rel diff d, c")  # fmt: skip
     lines = [head]
     for r in results:
         rec = r["record"]
         ms = {k: rec["jaxobs"]["seconds"][k] * 1e3 for k in ("median", "min", "max")}
-        row = f"{r['cell']:<24} {format_range(ms):<26} "
+        row = f"{r['cell']:<24} {format_range(ms):<30} "
         compiles, diffs = [f"{rec['jaxobs']['compile_s']:.1f}"], []
         for peer in PEERS:
             p = rec["peers"][peer]
