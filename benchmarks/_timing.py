@@ -9,11 +9,25 @@ the times, by the median and the [min, max] range over the rounds.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import statistics
 import time
 from collections.abc import Callable
 
 import jax
+
+
+def optional_import(name: str):
+    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported. JAX's matmul precision is
+    restored afterwards: dynamax sets ``jax_default_matmul_precision`` when imported, which would change the
+    programs of every library timed after it."""
+    precision = jax.config.jax_default_matmul_precision
+    try:
+        return importlib.import_module(name), None
+    except Exception as exc:  # any import-time failure means "skip this peer"
+        return None, f"{type(exc).__name__}: {exc}"
+    finally:
+        jax.config.update("jax_default_matmul_precision", precision)
 
 
 class Skipped(Exception):

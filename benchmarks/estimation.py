@@ -1,29 +1,46 @@
-"""Estimation over a record: sequential against parallel-in-time filtering and smoothing, and the float32 drift of
-the covariance and square-root Kalman filters.
+"""Estimation from data against dynamax and cuthbert: filter, filter + smoother, log-likelihood gradient, EKF, UKF.
 
-1. ``timing``: for T in {100, 10000} samples of a random stable model (n = 3 states, p = 2 outputs, one input,
-   float64, on the default JAX device), the wall time of
+What is measured (float64, the default JAX device), for every ``B`` (sequences), ``n`` (states) and ``T``
+(samples) of the grid and every workload:
 
-   * ``filter``: ``run(kalman_filter, ...)`` (``jax.lax.scan``, depth T) / ``parallel_filter`` (Särkkä &
-     García-Fernández 2021, ``jax.lax.associative_scan``, depth O(log T));
-   * ``smooth``: ``smooth(kalman_filter, ..., parallel=False)`` / ``parallel=True`` (filter and RTS smoother);
+* ``filter``: the Kalman filter over ``B`` independent random stable models (each its own ``Phi, C, Q, R``;
+  ``p = 2`` outputs, no inputs) and their simulated records: ``jaxobs.run(kalman_filter, ...)`` (with the
+  per-step covariances, as the peers return them), dynamax ``lgssm_filter``, cuthbert's square-root
+  ``gaussian.kalman`` filter (``cuthbert.filter``);
+* ``smooth``: filter + Rauch-Tung-Striebel smoother: ``jaxobs.smooth``, dynamax ``lgssm_smoother``, cuthbert
+  ``filter`` + ``smoother``;
+* ``grad``: the gradient of the summed log-likelihood with respect to ``(Phi, C, Q, R)``: ``jax.grad`` of
+  ``jaxobs.log_likelihood``, of dynamax's ``marginal_loglik``, of cuthbert's final ``log_normalizing_constant``;
+* ``ekf``: one nonlinear model (``f(x) = Phi x + 0.1 sin(x)``, ``h(x) = C x + 0.5 sin(C x)``) and ``B``
+  simulated records: ``make_ekf``, dynamax ``extended_kalman_filter``, cuthbert's moment-linearised filter
+  (``gaussian.moments``, linearised at the filtered / predicted mean: the EKF);
+* ``ukf``: the same model: ``make_ukf``, dynamax ``unscented_kalman_filter``, both with dynamax's default
+  ``(alpha, beta, kappa) = (sqrt 3, 2, 1)``. cuthbert 0.1 has no sigma-point filter (only quadrature rules in
+  cuthbertlib): listed as skipped.
 
-   each compiled ahead of time (the compile time is reported apart) and timed in interleaved rounds
-   (``benchmarks/_timing.py``: median and [min, max]; the speed-up parallel / sequential paired round by round).
+Every entry is ``jit(vmap(...))`` over the ``B`` sequences. Same prior on every side: cuthbert takes the prior of
+``x_{-1}`` (mean 0, covariance I) and predicts before its first update; jaxobs and dynamax take the prior of
+``x_0`` (no prediction first), computed inside the timed function as that one (EKF) prediction, so the three
+filters, likelihoods and gradients are the same numbers. Agreement (max relative difference to jaxobs of the
+filtered means, smoothed means, gradients) is computed on the benchmark data and must be below ``AGREE_RTOL``
+(dynamax adds 1e-9 I to the matrices it inverts, so about 1e-9 is expected from it).
 
-2. ``float32_drift``: the AOB-2 of Cortesão 2006 Example 1 (the delay-augmented force plant, 9 states, its tiny
-   plant noise ``q_plant = 1e-12`` making the covariance nearly singular) as the Kalman filter of its augmented
-   model, run over ``--drift-steps`` samples of a recorded-like random-walk measurement in float32, in covariance
-   form (``kalman_filter``) and square-root form (``square_root_kalman_filter``), against the float64 covariance
-   form: the largest error of the estimate relative to the largest float64 estimate, the largest relative error of
-   the summed log-likelihood, the most negative eigenvalue of any a-posteriori covariance relative to its largest
-   one (negative = definiteness lost), and the number of non-finite estimates.
+Timing (``benchmarks/_timing.py``): each function is compiled first (the first-call compile time is reported
+apart), then ``--rounds`` interleaved rounds; times are the median [min, max] over the rounds and each ratio
+``peer time / jaxobs time`` is taken round by round. Targets on every batched cell (``B > 1``): at least 1.5x
+dynamax and 10x cuthbert, jaxobs compile time no worse than dynamax's.
+
+The whole grid (B in {1, 64, 1024}, n in {2, 10, 32}, T in {100, 10^4}) is heavy on a small CPU: a cell whose work
+``B T n^3`` times the workload's weight (``WEIGHT``) exceeds ``--budget`` is skipped and listed as skipped (the
+default, 3e7, runs 45 of the 90 cells, all five workloads at (B, n, T) = (1, any, 100), (64, 2 or 10, 100),
+(1024, 2, 100), (1, 2 or 10, 10^4), (64, 2, 10^4)).
 
 Run (``make bench`` does it with ``--out out/bench``)::
 
-    python benchmarks/estimation.py --out DIR [--rounds 7] [--drift-steps 20000]
+    python benchmarks/estimation.py --out DIR [--batches 1 64 1024] [--states 2 10 32] [--lengths 100 10000]
+        [--workloads filter smooth grad ekf ukf] [--budget 3e7] [--rounds 5]
 
-Writes ``DIR/estimation.json`` and prints a table.
+Writes ``DIR/estimation.json`` and prints the table.
 """
 
 from __future__ import annotations
@@ -33,7 +50,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import argparse  # noqa: E402
-import dataclasses  # noqa: E402
+import itertools  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
@@ -43,116 +60,350 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import format_range, paired_ratio, time_interleaved  # noqa: E402
+from _models import random_models  # noqa: E402
+from _timing import Skipped, format_range, optional_import, paired_ratio, time_interleaved  # noqa: E402
 
-from jaxobs.observers import EstimatorInputs, active, run  # noqa: E402
-from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1, nominal_design  # noqa: E402
-from jaxobs.smoothing import parallel_filter, smooth  # noqa: E402
+import jaxobs as jo  # noqa: E402
+from jaxobs.observers.kalman import KalmanParams  # noqa: E402
+
+dynamax_lgssm, DYNAMAX_MISSING = optional_import("dynamax.linear_gaussian_ssm")
+dynamax_nlgssm, _ = optional_import("dynamax.nonlinear_gaussian_ssm")
+cuthbert, CUTHBERT_MISSING = optional_import("cuthbert")
+cuthbert_moments, _ = optional_import("cuthbert.gaussian.moments")
+
+WORKLOADS = ("filter", "smooth", "grad", "ekf", "ukf")
+WEIGHT = {"filter": 1, "smooth": 2, "grad": 3, "ekf": 1, "ukf": 3}  # rough cost per B T n^3 (for --budget)
+PEERS = ("dynamax", "cuthbert")
+TARGETS = {"dynamax": 1.5, "cuthbert": 10.0}  # min peer time / jaxobs time on batched cells
+AGREE_RTOL = 1e-6
+N_OUTPUTS = 2
+UKF = dict(alpha=float(np.sqrt(3.0)), beta=2.0, kappa=1.0)  # dynamax's default UKFHyperParams
 
 
-def random_problem(T: int, seed: int = 0):
-    """A random stable model (n = 3, p = 2, m = 1) and T samples simulated from it."""
+# ---------------------------------------------------------------------------------------------
+# Models and data
+
+
+def linear_problem(B: int, n: int, T: int, seed: int = 0):
+    """B random stable models (stacked ``Phi, C, Q, R``) and a (B, T, p) record simulated from each,
+    started from ``x_{-1} ~ N(0, I)``."""
     rng = np.random.default_rng(seed)
-    n, p, m = 3, 2, 1
-    Phi = rng.normal(size=(n, n))
-    Phi *= 0.97 / np.max(np.abs(np.linalg.eigvals(Phi)))
-    Gamma, C, G = rng.normal(size=(n, m)), rng.normal(size=(p, n)), 0.3 * rng.normal(size=(n, n))
-    Q, R = G @ G.T + 0.01 * np.eye(n), np.array([[0.5, 0.2], [0.2, 0.3]])
-    u, x, ys = rng.normal(size=(T, m)), np.zeros(n), []
-    for u_k in u:
-        x = Phi @ x + Gamma @ u_k + np.linalg.cholesky(Q) @ rng.normal(size=n)
-        ys.append(C @ x + np.linalg.cholesky(R) @ rng.normal(size=p))
-    params = make_kalman(Phi, C, Q, R, Gamma=Gamma, P0=np.eye(n))
-    return params, EstimatorInputs(y=jnp.asarray(np.array(ys)), u_prev=jnp.asarray(u))
+    Phi, C, Q, R = (jnp.asarray(M) for M in random_models(rng, B, n, N_OUTPUTS))
+    key = jax.random.PRNGKey(seed)
+
+    def simulate(Phi, C, Q, R, key):
+        k0, kw, kv = jax.random.split(key, 3)
+        w = jax.random.normal(kw, (T, n)) @ jnp.linalg.cholesky(Q).T
+        v = jax.random.normal(kv, (T, N_OUTPUTS)) @ jnp.linalg.cholesky(R).T
+        step = lambda x, wv: (Phi @ x + wv[0], C @ (Phi @ x + wv[0]) + wv[1])
+        return jax.lax.scan(step, jax.random.normal(k0, (n,)), (w, v))[1]
+
+    Y = jax.jit(jax.vmap(simulate))(Phi, C, Q, R, jax.random.split(key, B))
+    return (Phi, C, Q, R), Y
 
 
-def with_covariances(params):
-    return dataclasses.replace(params, output_covariance=True)
+def nonlinear_functions(Phi, C):
+    f = lambda x: Phi @ x + 0.1 * jnp.sin(x)
+    h = lambda x: C @ x + 0.5 * jnp.sin(C @ x)
+    return f, h
 
 
-def timing(T: int, rounds: int) -> dict:
-    params, inputs = random_problem(T)
-    sequential_filter = lambda p, i: run(kalman_filter, p, i)
-    entries = {
-        "filter/sequential": (lambda: (sequential_filter, (params, inputs)), True, 1.0),
-        "filter/parallel": (lambda: (parallel_filter, (params, inputs)), True, 1.0),
-        "smooth/sequential": (lambda: (lambda p, i: smooth(kalman_filter, p, i), (params, inputs)), True, 1.0),
-        "smooth/parallel": (
-            lambda: (lambda p, i: smooth(kalman_filter, p, i, parallel=True), (params, inputs)),
-            True,
-            1.0,
-        ),
-    }
-    timings, problems = time_interleaved(entries, rounds, required=tuple(entries))
-    assert not problems, problems
-    seq, par = timings["filter/sequential"].result[1], timings["filter/parallel"].result[1]
-    agreement = float(jnp.max(jnp.abs(seq.x - par.x)) / jnp.max(jnp.abs(seq.x)))
-    out = {name: t.record(T, "samples/s") for name, t in timings.items()}
-    for what in ("filter", "smooth"):
-        out[f"{what}/speedup_parallel"] = paired_ratio(timings[f"{what}/parallel"], timings[f"{what}/sequential"])
-    out["filter/max_relative_difference_of_x"] = agreement
+def nonlinear_problem(B: int, n: int, T: int, seed: int = 0):
+    """One random nonlinear model ``(Phi, C, Q, R)`` (spectral radius of Phi 0.85, so ``f`` is a contraction)
+    and (B, T, p) records simulated from it, started from ``x_{-1} ~ N(0, I)``."""
+    rng = np.random.default_rng(seed)
+    Phi, C, Q, R = (jnp.asarray(M[0]) for M in random_models(rng, 1, n, N_OUTPUTS, spectral_radius=0.85))
+    f, h = nonlinear_functions(Phi, C)
+
+    def simulate(key):
+        k0, kw, kv = jax.random.split(key, 3)
+        w = jax.random.normal(kw, (T, n)) @ jnp.linalg.cholesky(Q).T
+        v = jax.random.normal(kv, (T, N_OUTPUTS)) @ jnp.linalg.cholesky(R).T
+        step = lambda x, wv: (f(x) + wv[0], h(f(x) + wv[0]) + wv[1])
+        return jax.lax.scan(step, jax.random.normal(k0, (n,)), (w, v))[1]
+
+    Y = jax.jit(jax.vmap(simulate))(jax.random.split(jax.random.PRNGKey(seed), B))
+    return (Phi, C, Q, R), Y
+
+
+def prior_of_x0(Phi, Q, f=None):
+    """Mean and covariance of ``x_0``: one (EKF) prediction from ``x_{-1} ~ N(0, I)`` (cuthbert's prior)."""
+    n = Phi.shape[-1]
+    if f is None:
+        return jnp.zeros(n), Phi @ Phi.T + Q
+    F = jax.jacfwd(f)(jnp.zeros(n))
+    return f(jnp.zeros(n)), F @ F.T + Q
+
+
+def symmetric(Phi, C, Q, R):
+    """``(Phi, C, sym Q, sym R)``: the likelihood as a function of the symmetric part of ``Q`` and ``R``, so that
+    its gradient is the same symmetric matrix whichever triangle a library reads (cuthbert's Cholesky factor
+    reads one, dynamax's solves both)."""
+    sym = lambda M: 0.5 * (M + M.T)
+    return Phi, C, sym(Q), sym(R)
+
+
+# ---------------------------------------------------------------------------------------------
+# The entries: each ``prepare`` returns ``(fn, args)``; ``fn`` is vmapped over the B sequences.
+
+
+def jaxobs_linear(workload: str, model, Y):
+    def params(Phi, C, Q, R, output_covariance=False):
+        x0, P0 = prior_of_x0(Phi, Q)
+        return KalmanParams(Phi=Phi, Gamma=jnp.zeros((Phi.shape[0], 0)), C=C, Q=Q, R=R, x0=x0, P0=P0,
+                            output_covariance=output_covariance)  # fmt: skip
+
+    def one(Phi, C, Q, R, y):
+        inputs = jo.EstimatorInputs(y=y)
+        if workload == "filter":
+            out = jo.run(jo.kalman_filter, params(Phi, C, Q, R, True), inputs)[1]
+            return out.x, out.P, jnp.sum(out.log_likelihood)
+        if workload == "smooth":
+            smoothed = jo.smooth(jo.kalman_filter, params(Phi, C, Q, R), inputs)[1]
+            return smoothed.x, smoothed.P
+        ll = lambda *M: jo.log_likelihood(jo.kalman_filter, params(*symmetric(*M)), inputs)
+        return jax.grad(ll, argnums=(0, 1, 2, 3))(Phi, C, Q, R)
+
+    return jax.vmap(one), (*model, Y)
+
+
+def dynamax_linear(workload: str, model, Y):
+    if dynamax_lgssm is None:
+        raise Skipped(DYNAMAX_MISSING)
+    lg = dynamax_lgssm
+
+    def params(Phi, C, Q, R):
+        n, p = Phi.shape[0], C.shape[0]
+        x0, P0 = prior_of_x0(Phi, Q)
+        return lg.ParamsLGSSM(
+            initial=lg.ParamsLGSSMInitial(mean=x0, cov=P0),
+            dynamics=lg.ParamsLGSSMDynamics(weights=Phi, bias=jnp.zeros(n), input_weights=jnp.zeros((n, 0)), cov=Q),
+            emissions=lg.ParamsLGSSMEmissions(weights=C, bias=jnp.zeros(p), input_weights=jnp.zeros((p, 0)), cov=R),
+        )
+
+    def one(Phi, C, Q, R, y):
+        if workload == "filter":
+            post = lg.lgssm_filter(params(Phi, C, Q, R), y)
+            return post.filtered_means, post.filtered_covariances, post.marginal_loglik
+        if workload == "smooth":
+            post = lg.lgssm_smoother(params(Phi, C, Q, R), y)
+            return post.smoothed_means, post.smoothed_covariances
+        ll = lambda *M: lg.lgssm_filter(params(*symmetric(*M)), y).marginal_loglik
+        return jax.grad(ll, argnums=(0, 1, 2, 3))(Phi, C, Q, R)
+
+    return jax.vmap(one), (*model, Y)
+
+
+def cuthbert_linear(workload: str, model, Y):
+    if cuthbert is None:
+        raise Skipped(CUTHBERT_MISSING)
+    kalman = cuthbert.gaussian.kalman
+
+    def filtered(Phi, C, Q, R, y):
+        n, p = Phi.shape[0], C.shape[0]
+        chol_Q, chol_R = jnp.linalg.cholesky(Q), jnp.linalg.cholesky(R)
+        dynamics = lambda _: (Phi, jnp.zeros(n), chol_Q)
+        filt = kalman.build_filter(m0=jnp.zeros(n), chol_P0=jnp.eye(n), get_dynamics_params=dynamics,
+                                   get_observation_params=lambda y_k: (C, jnp.zeros(p), chol_R, y_k))  # fmt: skip
+        return cuthbert.filter(filt, y, filt.init_prepare()), dynamics
+
+    def one(Phi, C, Q, R, y):
+        if workload == "filter":
+            states = filtered(Phi, C, Q, R, y)[0]
+            return states.mean[1:], states.chol_cov[1:], states.log_normalizing_constant[-1]
+        if workload == "smooth":
+            states, dynamics = filtered(Phi, C, Q, R, y)
+            smoothed = cuthbert.smoother(kalman.build_smoother(dynamics), states, y)
+            return smoothed.mean[1:], smoothed.chol_cov[1:]
+        ll = lambda *M: filtered(*symmetric(*M), y)[0].log_normalizing_constant[-1]
+        return jax.grad(ll, argnums=(0, 1, 2, 3))(Phi, C, Q, R)
+
+    return jax.vmap(one), (*model, Y)
+
+
+def jaxobs_nonlinear(workload: str, model, Y):
+    Phi, C, Q, R = model
+    f, h = nonlinear_functions(Phi, C)
+    x0, P0 = prior_of_x0(Phi, Q, f)
+    nl = jo.nonlinear_model(lambda x, u, t: f(x), h, Q, R, x0=x0, P0=P0)
+    params = jo.make_ekf(nl) if workload == "ekf" else jo.make_ukf(nl, **UKF)
+    estimator = jo.extended_kalman_filter if workload == "ekf" else jo.unscented_kalman_filter
+
+    def one(y):
+        out = jo.run(estimator, params, jo.EstimatorInputs(y=y))[1]
+        return out.x, out.P
+
+    return jax.vmap(one), (Y,)
+
+
+def dynamax_nonlinear(workload: str, model, Y):
+    if dynamax_nlgssm is None:
+        raise Skipped(DYNAMAX_MISSING)
+    nlg = dynamax_nlgssm
+    Phi, C, Q, R = model
+    f, h = nonlinear_functions(Phi, C)
+    x0, P0 = prior_of_x0(Phi, Q, f)
+    params = nlg.ParamsNLGSSM(x0, P0, f, Q, h, R)
+
+    def one(y):
+        if workload == "ekf":
+            post = nlg.extended_kalman_filter(params, y)
+        else:
+            post = nlg.unscented_kalman_filter(params, y, nlg.UKFHyperParams(**UKF))
+        return post.filtered_means, post.filtered_covariances
+
+    return jax.vmap(one), (Y,)
+
+
+def cuthbert_nonlinear(workload: str, model, Y):
+    if cuthbert is None:
+        raise Skipped(CUTHBERT_MISSING)
+    if workload == "ukf":
+        raise Skipped("cuthbert 0.1 has no sigma-point (unscented) filter")
+    Phi, C, Q, R = model
+    f, h = nonlinear_functions(Phi, C)
+    n = Phi.shape[0]
+    chol_Q, chol_R = jnp.linalg.cholesky(Q), jnp.linalg.cholesky(R)
+    filt = cuthbert_moments.build_filter(
+        m0=jnp.zeros(n), chol_P0=jnp.eye(n),
+        get_dynamics_params=lambda state, _: (lambda x: (f(x), chol_Q), state.mean),
+        get_observation_params=lambda state, y_k: (lambda x: (h(x), chol_R), state.mean, y_k),
+    )  # fmt: skip
+
+    def one(y):
+        states = cuthbert.filter(filt, y, filt.init_prepare())
+        return states.mean[1:], states.chol_cov[1:]
+
+    return jax.vmap(one), (Y,)
+
+
+ENTRIES = {
+    "jaxobs": (jaxobs_linear, jaxobs_nonlinear),
+    "dynamax": (dynamax_linear, dynamax_nonlinear),
+    "cuthbert": (cuthbert_linear, cuthbert_nonlinear),
+}
+
+
+def primary(workload: str, result) -> np.ndarray:
+    """The compared output, flattened: filtered / smoothed means, or the four gradients."""
+    parts = result if workload == "grad" else result[:1]
+    return np.concatenate([np.ravel(np.asarray(a)) for a in parts])
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def cell(workload: str, B: int, n: int, T: int, rounds: int) -> dict:
+    """Time one workload on one (B, n, T): every entry, paired ratios, compile times, agreement."""
+    linear = workload in ("filter", "smooth", "grad")
+    model, Y = (linear_problem if linear else nonlinear_problem)(B, n, T)
+    entries = {name: (lambda make=make[0 if linear else 1]: make(workload, model, Y), True, 1.0)
+               for name, make in ENTRIES.items()}  # fmt: skip
+    timings, problems = time_interleaved(entries, rounds, required=("jaxobs",))
+    ours = timings["jaxobs"]
+    record = {"jaxobs": ours.record(B * T, "steps/s"), "peers": {}}
+    reference = primary(workload, ours.result)
+    scale = np.max(np.abs(reference))
+    for peer in PEERS:
+        if peer in problems:
+            record["peers"][peer] = problems[peer]
+            continue
+        theirs = timings[peer]
+        difference = float(np.max(np.abs(primary(workload, theirs.result) - reference)) / scale)
+        record["peers"][peer] = {
+            **theirs.record(B * T, "steps/s"),
+            "ratio": paired_ratio(ours, theirs),
+            "max_relative_difference": difference,
+            "agrees": difference < AGREE_RTOL,
+        }
+    return record
+
+
+def work(workload: str, B: int, n: int, T: int) -> float:
+    return WEIGHT[workload] * B * T * n**3
+
+
+def targets(results: list[dict]) -> dict:
+    """Per peer: the batched cells that miss the throughput target, and the cells where jaxobs compiles slower
+    than dynamax."""
+    out = {}
+    for peer, minimum in TARGETS.items():
+        cells = [r for r in results if r["B"] > 1 and r["record"]["peers"].get(peer, {}).get("status") == "ok"]
+        missed = [r["cell"] for r in cells if r["record"]["peers"][peer]["ratio"]["median"] < minimum]
+        out[peer] = {"min_ratio": minimum, "batched_cells": len(cells), "missed": missed, "met": not missed}
+    slow = [r["cell"] for r in results if r["record"]["peers"].get("dynamax", {}).get("status") == "ok"
+            and r["record"]["jaxobs"]["compile_s"] > r["record"]["peers"]["dynamax"]["compile_s"]]  # fmt: skip
+    out["compile_vs_dynamax"] = {"slower_cells": slow, "met": not slow}
     return out
 
 
-def float32_drift(steps: int) -> dict:
-    plant, _ = nominal_design(EXAMPLE1)
-    aob = active.make_aob(plant, 2, EXAMPLE1.R, q_plant=EXAMPLE1.q_plant, q_active=EXAMPLE1.sigma2_active)
-    k1, k2 = jax.random.split(jax.random.PRNGKey(0))
-    y = jnp.cumsum(jax.random.normal(k1, (steps, 1)), axis=0) * 0.1
-    u_prev = jax.random.normal(k2, (steps, 1))
-    model = lambda dtype: make_kalman(*(jnp.asarray(M, dtype) for M in (aob.Phi, aob.C, aob.Q, aob.R)),
-                                      Gamma=jnp.asarray(aob.Gamma, dtype), P0=jnp.asarray(aob.P0, dtype))  # fmt: skip
-    inputs = lambda dtype: EstimatorInputs(y=y.astype(dtype), u_prev=u_prev.astype(dtype))
-    run_jit = jax.jit(run, static_argnums=0)
-    reference = run_jit(kalman_filter, with_covariances(model(jnp.float64)), inputs(jnp.float64))[1]
-    results = {}
-    for name, estimator, params in (
-        ("covariance form", kalman_filter, model(jnp.float32)),
-        ("square-root form", square_root_kalman_filter, square_root_form(model(jnp.float32))),
-    ):
-        out = run_jit(estimator, with_covariances(params), inputs(jnp.float32))[1]
-        x, P = np.asarray(out.x, np.float64), np.asarray(out.P, np.float64)
-        eig = np.linalg.eigvalsh(0.5 * (P + np.swapaxes(P, -1, -2)))
-        finite = np.isfinite(x).all(axis=1)
-        err = np.abs(x - np.asarray(reference.x))[finite]
-        ll, ll_ref = float(np.sum(np.asarray(out.log_likelihood, np.float64))), float(jnp.sum(reference.log_likelihood))
-        results[name] = {
-            "max_error_x_relative": float(err.max() / np.abs(np.asarray(reference.x)).max()) if err.size else None,
-            "error_x_relative_last_1000": float(
-                np.abs(x[-1000:] - np.asarray(reference.x[-1000:])).max() / np.abs(np.asarray(reference.x)).max()
-            ),
-            "log_likelihood_relative_error": abs(ll - ll_ref) / abs(ll_ref),
-            "min_eigenvalue_of_P_relative": float(np.nanmin(eig[:, 0] / eig[:, -1])),
-            "non_finite_estimates": int((~finite).sum()),
-        }
-    return results
+def table(results: list[dict], skipped: list[str]) -> str:
+    head = (f"{'cell':<24} {'jaxobs [ms]':<30} " + " ".join(f"{p + ' / jaxobs':<22}" for p in PEERS)
+            + " compile j/d/c [s]    max rel diff d, c")  # fmt: skip
+    lines = [head]
+    for r in results:
+        rec = r["record"]
+        ms = {k: rec["jaxobs"]["seconds"][k] * 1e3 for k in ("median", "min", "max")}
+        row = f"{r['cell']:<24} {format_range(ms):<30} "
+        compiles, diffs = [f"{rec['jaxobs']['compile_s']:.1f}"], []
+        for peer in PEERS:
+            p = rec["peers"][peer]
+            if p["status"] != "ok":
+                row += f"{p['status']:<22} "
+                compiles.append("-")
+                diffs.append("-")
+                continue
+            row += f"{format_range(p['ratio'], '.2f', 'x'):<22} "
+            compiles.append(f"{p['compile_s']:.1f}")
+            diffs.append(f"{p['max_relative_difference']:.0e}" + ("" if p["agrees"] else "!"))
+        lines.append(row + f"{'/'.join(compiles):<20} {', '.join(diffs)}")
+    lines += [f"skipped (over --budget): {', '.join(skipped)}"] if skipped else []
+    return "\n".join(lines)
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="output directory for estimation.json")
-    parser.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds")
-    parser.add_argument("--drift-steps", type=int, default=20000, help="samples of the float32 drift runs")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    parser.add_argument("--states", type=int, nargs="+", default=[2, 10, 32])
+    parser.add_argument("--lengths", type=int, nargs="+", default=[100, 10_000])
+    parser.add_argument("--workloads", nargs="+", choices=WORKLOADS, default=list(WORKLOADS))
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=3e7,
+        help="skip cells whose work WEIGHT * B * T * n^3 exceeds this (listed as skipped)",
+    )
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
     args = parser.parse_args(argv)
-    meta = {"device": str(jax.devices()[0]), "platform": platform.platform(), "processor": platform.processor(),
-            "jax": jax.__version__, "rounds": args.rounds}  # fmt: skip
-    results = {"timing": {str(T): timing(T, args.rounds) for T in (100, 10_000)},
-               "float32_drift": float32_drift(args.drift_steps)}  # fmt: skip
+    results, skipped = [], []
+    for T, B, n, workload in itertools.product(args.lengths, args.batches, args.states, args.workloads):
+        name = f"{workload} B={B} n={n} T={T}"
+        if work(workload, B, n, T) > args.budget:
+            skipped.append(name)
+            continue
+        record = cell(workload, B, n, T, args.rounds)
+        results.append({"cell": name, "workload": workload, "B": B, "n": n, "T": T, "record": record})
+        print(table(results[-1:], []).splitlines()[-1], flush=True)
+    summary = targets(results)
+    meta = {"device": str(jax.devices()[0]), "platform": platform.platform(), "jax": jax.__version__,
+            "rounds": args.rounds, "budget": args.budget, "agree_rtol": AGREE_RTOL}  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "estimation.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2))
-    print(f"{'T':>6} {'entry':<20} {'time [s]':<34} {'compile [s]':>11}")
-    for T, r in results["timing"].items():
-        for name in ("filter/sequential", "filter/parallel", "smooth/sequential", "smooth/parallel"):
-            print(f"{T:>6} {name:<20} {format_range(r[name]['seconds']):<34} {r[name]['compile_s']:>11.2f}")
-        for what in ("filter", "smooth"):
-            print(f"{T:>6} {what + ' speed-up':<20} {format_range(r[what + '/speedup_parallel'], suffix='x')}")
-    for name, r in results["float32_drift"].items():
-        print(f"float32 {name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
-                                              for k, v in r.items()))  # fmt: skip
+    (args.out / "estimation.json").write_text(
+        json.dumps({"meta": meta, "results": results, "skipped": skipped, "targets": summary}, indent=1)
+    )
+    print(f"\nfloat64 on {meta['device']}, {args.rounds} interleaved rounds, median [min, max]; ratio = peer time / "
+          "jaxobs time (paired by round); ! = disagrees beyond " + f"{AGREE_RTOL:g}")  # fmt: skip
+    print(table(results, skipped))
+    for peer, t in summary.items():
+        if peer in TARGETS:
+            print(f"target >= {t['min_ratio']:g}x {peer} on {t['batched_cells']} batched cells: "
+                  + ("met" if t["met"] else f"MISSED on {', '.join(t['missed'])}"))  # fmt: skip
+    slow = summary["compile_vs_dynamax"]["slower_cells"]
+    print("compile time no worse than dynamax: " + ("met" if not slow else f"MISSED on {', '.join(slow)}"))
     print(f"wrote {args.out / 'estimation.json'}")
-    return 0
+    return {"results": results, "skipped": skipped, "targets": summary}
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

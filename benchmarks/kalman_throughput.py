@@ -60,7 +60,8 @@ from pathlib import Path  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
-from _timing import Skipped, format_range, paired_ratio, time_interleaved  # noqa: E402
+from _models import random_models  # noqa: E402
+from _timing import Skipped, format_range, optional_import, paired_ratio, time_interleaved  # noqa: E402
 
 from jaxobs.observers import EstimatorInputs, run  # noqa: E402
 from jaxobs.observers.kalman import (  # noqa: E402
@@ -87,22 +88,9 @@ TARGETS = {
 SWEEP_BATCHES = (1_000, 10_000, 100_000)
 
 
-def _optional_import(name: str):
-    """``(module, None)``, or ``(None, reason)`` when ``name`` cannot be imported. JAX's matmul precision is
-    restored afterwards: dynamax sets ``jax_default_matmul_precision`` when imported, which would change the
-    programs of every library timed after it."""
-    precision = jax.config.jax_default_matmul_precision
-    try:
-        return importlib.import_module(name), None
-    except Exception as exc:  # any import-time failure means "skip this peer"
-        return None, f"{type(exc).__name__}: {exc}"
-    finally:
-        jax.config.update("jax_default_matmul_precision", precision)
-
-
-dynamax_lgssm, DYNAMAX_MISSING = _optional_import("dynamax.linear_gaussian_ssm")
-simdkalman, SIMDKALMAN_MISSING = _optional_import("simdkalman")
-filterpy_kalman, FILTERPY_MISSING = _optional_import("filterpy.kalman")
+dynamax_lgssm, DYNAMAX_MISSING = optional_import("dynamax.linear_gaussian_ssm")
+simdkalman, SIMDKALMAN_MISSING = optional_import("simdkalman")
+filterpy_kalman, FILTERPY_MISSING = optional_import("filterpy.kalman")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -143,22 +131,10 @@ class Workload:
         return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
-def random_models(rng: np.random.Generator, count: int, n: int = N_STATES, m: int = N_OUTPUTS):
-    """``count`` stable random models ``(Phi, C, Q, R)``, each stacked on a leading axis."""
-    Phi = rng.standard_normal((count, n, n))
-    Phi *= SPECTRAL_RADIUS / np.abs(np.linalg.eigvals(Phi)).max(axis=-1)[:, None, None]
-    G = rng.standard_normal((count, n, n))
-    Q = 0.1 * G @ np.swapaxes(G, -1, -2) / n + 1e-3 * np.eye(n)
-    C = rng.standard_normal((count, m, n))
-    H = rng.standard_normal((count, m, m))
-    R = 0.5 * H @ np.swapaxes(H, -1, -2) / m + 0.5 * np.eye(m)
-    return Phi, C, Q, R
-
-
 def make_workload(seed: int, batch: int, steps: int, shared: bool) -> Workload:
     """Random models (one shared, or one per sequence) and ``batch`` simulated measurement sequences."""
     rng = np.random.default_rng(seed)
-    Phi, C, Q, R = random_models(rng, 1 if shared else batch)
+    Phi, C, Q, R = random_models(rng, 1 if shared else batch, N_STATES, N_OUTPUTS, SPECTRAL_RADIUS)
     chol_Q, chol_R = np.linalg.cholesky(Q), np.linalg.cholesky(R)
     x = np.zeros((batch, N_STATES))
     Y = np.empty((batch, steps, N_OUTPUTS))

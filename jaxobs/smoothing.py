@@ -21,7 +21,7 @@ For the linear-Gaussian model of :mod:`jaxobs.kalman_steps` and a record ``y_0 .
   (Särkkä & García-Fernández 2021, Lemmas 7-10): ``O(log T)`` sequential depth instead of ``T``, for ``O(n^3)``
   more work per sample. It pays where a device runs the ``T`` elements at once; on a 2-core CPU the parallel
   filter is slower at T = 100 and 10^4, the smoother breaks even at 10^4, and the parallel programs compile 10-20
-  times longer (``docs/estimation.md``, ``benchmarks/estimation.py``). The results equal the sequential ones to
+  times longer (``docs/estimation.md``, ``benchmarks/parallel_in_time.py``). The results equal the sequential ones to
   rounding.
 """
 

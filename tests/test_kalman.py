@@ -520,7 +520,7 @@ def test_float32_square_root_form_drifts_less_than_covariance_form():
     """The AOB-2 of Cortesão 2006 Example 1 (9 states, q_plant = 1e-12: a nearly singular covariance) as the Kalman
     filter of its augmented model over 5000 float32 samples: both forms stay finite, and the square-root form's
     largest error of the estimate against the float64 run is under half the covariance form's (measured with
-    benchmarks/estimation.py over 20000 samples: 1.3e-5 against 4.6e-5 relative)."""
+    benchmarks/parallel_in_time.py over 20000 samples: 1.3e-5 against 4.6e-5 relative)."""
     from jaxobs.observers import active
     from jaxobs.papers.force_control import EXAMPLE1, nominal_design
 

@@ -343,4 +343,4 @@ lower-triangular factor of the covariance (:class:`SquareRootKalmanState`), pred
 ``[Phi P_sqrt, Q_sqrt]`` and updates with that of the pre-array of :func:`jaxobs.kalman_steps.square_root_update`,
 so covariances stay positive semidefinite in any precision. Outputs: :class:`KalmanOutputs` (the covariances
 ``S``, ``P``, ``P_prior`` as products of the factors). Costs about twice the covariance form per step
-(``benchmarks/estimation.py``)."""
+(``benchmarks/parallel_in_time.py``)."""

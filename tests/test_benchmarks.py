@@ -1,0 +1,56 @@
+"""Smoke tests of benchmarks/estimation.py on its smallest grid: it runs, every peer that is installed returns the
+same numbers as jaxobs (the agreement check of the benchmark), and cells over the work budget are listed as
+skipped, never dropped silently. The speed targets themselves are measured by the benchmark, not tested."""
+
+import importlib.util
+import json
+import pathlib
+
+import pytest
+
+SCRIPT = pathlib.Path(__file__).parents[1] / "benchmarks" / "estimation.py"
+
+
+@pytest.fixture(scope="module")
+def estimation():
+    pytest.importorskip("dynamax")
+    pytest.importorskip("cuthbert")
+    spec = importlib.util.spec_from_file_location("estimation_benchmark", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(estimation, tmp_path, workloads, budget=1e9):
+    argv = ["--out", str(tmp_path), "--batches", "2", "--states", "2", "--lengths", "12", "--rounds", "1",
+            "--budget", str(budget), "--workloads", *workloads]  # fmt: skip
+    summary = estimation.main(argv)
+    assert json.loads((tmp_path / "estimation.json").read_text())["targets"] == summary["targets"]
+    return summary
+
+
+def _check_agreement(summary, workloads):
+    assert [r["workload"] for r in summary["results"]] == list(workloads)
+    for r in summary["results"]:
+        for peer, record in r["record"]["peers"].items():
+            if peer == "cuthbert" and r["workload"] == "ukf":
+                assert record["status"] == "skipped"  # cuthbert has no unscented filter
+                continue
+            assert record["status"] == "ok", (r["cell"], peer, record)
+            assert record["agrees"], (r["cell"], peer, record["max_relative_difference"])
+
+
+def test_linear_and_nonlinear_smallest_grid(estimation, tmp_path):
+    """The Kalman filter and the EKF against dynamax and cuthbert (a linear and a nonlinear path)."""
+    _check_agreement(_run(estimation, tmp_path, ["filter", "ekf"]), ["filter", "ekf"])
+
+
+@pytest.mark.slow
+def test_every_workload_smallest_grid(estimation, tmp_path):
+    _check_agreement(_run(estimation, tmp_path, list(estimation.WORKLOADS)), estimation.WORKLOADS)
+
+
+def test_over_budget_cells_are_listed_as_skipped(estimation, tmp_path):
+    summary = _run(estimation, tmp_path, ["filter", "ukf"], budget=1.0)
+    assert summary["results"] == []
+    assert summary["skipped"] == ["filter B=2 n=2 T=12", "ukf B=2 n=2 T=12"]
