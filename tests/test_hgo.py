@@ -118,6 +118,25 @@ def test_target_law_pauses_below_threshold_without_nan():
     assert np.all(np.isfinite(out.x))
 
 
+def test_target_law_weight_l_of_proposition_6_2():
+    """A weight l(v, x_hat, phi_hat) scales the update (Proposition 6.2); l = 0 stops it; with the threshold, l is
+    never evaluated at a phi_hat below it (the stand-in), so an l that divides by phi_hat stays finite."""
+    theta_star = lambda v, x, phi: jnp.array([1.0 / phi[0]])  # noqa: E731
+    g = lambda v, x, th: th * x[:1]  # noqa: E731
+    args, phi, theta_hat = (jnp.zeros(2), jnp.ones(2)), jnp.array([2.0]), jnp.array([0.3])
+    plain = hgo.target_law(theta_star, 1.0)(g, *args, phi, theta_hat)
+    for weight in (0.0, 0.25, 1.0):
+        law = hgo.target_law(theta_star, 1.0, l=lambda v, x, p, w=weight: jnp.asarray(w))
+        np.testing.assert_allclose(law(g, *args, phi, theta_hat), weight * plain, rtol=1e-15)
+    law = hgo.target_law(theta_star, 1.0, threshold=1.0, l=lambda v, x, p: 1.0 / p[0] ** 2)
+    rate = jax.jit(lambda p: law(g, *args, p, theta_hat))
+    np.testing.assert_allclose(rate(phi), (0.5 - 0.3) / 4.0, rtol=1e-15)
+    np.testing.assert_array_equal(rate(jnp.zeros(1)), [0.0])
+    assert np.isfinite(jax.grad(lambda p: rate(p)[0])(jnp.zeros(1))).all()
+    with pytest.raises(ValueError, match="^l must be a function"):
+        hgo.target_law(theta_star, 1.0, l=0.5)
+
+
 def test_jit_vmap_grad():
     """vmap over the initial estimate; grad of the phi error through K(eps) (HGOGains.at) is finite and matches a
     central difference."""

@@ -297,26 +297,29 @@ def _projected(rate, theta_hat, Gamma, region, epsilon):
     return rate if region is None else project(rate, theta_hat, Gamma, region, epsilon)
 
 
-def _target_law(theta_star, Gamma, threshold, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
+def _target_law(theta_star, Gamma, threshold, l, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
     active = jnp.linalg.norm(phi_hat) >= threshold
     # theta_star never sees |phi_hat| < threshold (e.g. a division by phi_hat): a stand-in of norm threshold
     safe = jnp.where(active, phi_hat, threshold / jnp.sqrt(phi_hat.shape[0]))
     G = _checks.gain("Gamma", Gamma, theta_hat.shape[0], theta_hat.dtype)
-    rate = jnp.where(active, G @ (theta_star(v, x_hat, safe) - theta_hat), 0.0)
+    weight = 1.0 if l is None else l(v, x_hat, safe)
+    rate = jnp.where(active, weight * (G @ (theta_star(v, x_hat, safe) - theta_hat)), 0.0)
     return _projected(rate, theta_hat, Gamma, region, epsilon)
 
 
-def target_law(theta_star, Gamma, *, threshold=0.0, region=None, epsilon=None) -> jax.tree_util.Partial:
+def target_law(theta_star, Gamma, *, threshold=0.0, l=None, region=None, epsilon=None) -> jax.tree_util.Partial:
     """The law ``theta_hat' = Proj(l Gamma (theta*(v, x_hat, phi_hat) - theta_hat))`` of Propositions 6.1 (``l =
-    1``) and 6.2 (Grip 2010), with ``l = 1`` while ``|phi_hat| >= threshold`` and 0 below (section 6.8: the
-    update pauses while the perturbation is too small to invert for theta). Below the threshold ``theta_star`` is
-    evaluated at a stand-in ``phi_hat`` of norm ``threshold`` and the result discarded, so a ``theta_star`` that
-    divides by ``phi_hat`` produces no NaN, in values or gradients, for ``threshold > 0``.
+    1``) and 6.2 (Grip 2010: a weight ``l(v, x_hat, phi_hat) >= 0`` whose integral over every window of some length
+    T stays above a sigma > 0), here ``l`` times the indicator of ``|phi_hat| >= threshold`` (section 6.8: the
+    update pauses while the perturbation is too small to invert for theta). Below the threshold ``theta_star`` and
+    ``l`` are evaluated at a stand-in ``phi_hat`` of norm ``threshold`` and the result discarded, so a
+    ``theta_star`` that divides by ``phi_hat`` produces no NaN, in values or gradients, for ``threshold > 0``.
 
     Args:
       theta_star: ``theta*(v, x_hat, phi_hat) -> (p,)``, the parameter solved from ``phi = g(v, x, theta)``.
       Gamma: positive scalar or (p, p) symmetric positive-definite gain.
-      threshold: ``>= 0``; 0 gives Proposition 6.1.
+      threshold: ``>= 0``; 0 (and ``l`` None) gives Proposition 6.1.
+      l: the weight ``l(v, x_hat, phi_hat) -> ()`` of Proposition 6.2 (None: 1).
       region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
 
     Returns:
@@ -325,8 +328,9 @@ def target_law(theta_star, Gamma, *, threshold=0.0, region=None, epsilon=None) -
     _checks.positive_scalar("threshold", threshold, allow_zero=True)
     if region is not None:
         _checks.positive_scalar("epsilon", epsilon)
+    l = None if l is None else _checks.function("l", l)
     return jax.tree_util.Partial(
-        _target_law, _checks.function("theta_star", theta_star), Gamma, threshold, region, epsilon
+        _target_law, _checks.function("theta_star", theta_star), Gamma, threshold, l, region, epsilon
     )
 
 
