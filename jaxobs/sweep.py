@@ -56,11 +56,18 @@ estimate for the compiled program, plus the host copy of its output) is checked 
 before the first step runs. Ctrl-C raises :class:`jaxobs._resources.Interrupted` (a ``KeyboardInterrupt``)
 saying how many chunks are done; rerun the same call to resume.
 
-Multi-host (not tested here: it needs several machines). Call ``jax.distributed.initialize()`` first and run
-the same command in every process, with ``out_dir`` on a filesystem all processes see. The mesh then spans the
-devices of all processes; the list of chunks to compute is taken from process 0 (``broadcast_one_to_all``),
-each chunk's rows are gathered with ``jax.experimental.multihost_utils.process_allgather``, and only
-``jax.process_index() == 0`` writes files and shows progress.
+Several processes (hosts, or local processes; tests/test_multiprocess.py runs 2 and 4 on one machine). Call
+``jax.distributed.initialize(...)`` first (before any JAX computation; on CPU the processes exchange data through
+gloo) and make the same call in every process, with ``out_dir`` on a filesystem all processes see. The mesh spans
+the devices of all processes and each process places and computes its own devices' chunks. Process 0 alone takes
+the lock, reads the manifest, decides which chunks to compute and writes files and progress; the others follow
+(``broadcast_one_to_all``) and each step's rows reach process 0 through ``multihost_utils.process_allgather``.
+Before anything is computed the processes compare a digest of their sweep (program fingerprint, config, seed,
+chunk size, ``num_configs``): processes that run different sweeps, or a process that fails (a locked or
+different ``out_dir`` in process 0, a step that cannot fit), stop every process with :class:`SweepError` instead
+of leaving the others waiting. The rows are those of one process, bit for bit; the manifest records
+``process_count`` per chunk, and a run killed in any process resumes when all are rerun, with any process count.
+The LAPACK guard above keeps one device per process.
 
 Precision: the engine never touches ``jax_enable_x64``; enable it in your entry point for float64 columns.
 """
@@ -522,7 +529,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
             padded = group + group[-1:] * (ndev - len(group))  # one chunk per device
             starts = np.repeat(np.array(padded) * chunk_size, chunk_size) + np.tile(np.arange(chunk_size), ndev)
             indices = np.minimum(starts, num_configs - 1).astype(np.int32)  # each process places its devices' part
-            outputs = compiled(jax.make_array_from_callback(indices.shape, sharding, lambda ix: indices[ix]))
+            outputs = compiled(jax.make_array_from_callback(indices.shape, sharding, indices.__getitem__))
             if jax.process_count() > 1:
                 outputs = multihost_utils.process_allgather(outputs, tiled=True)
             leaves = [np.asarray(x).reshape(ndev, chunk_size, -1) for x in jax.tree_util.tree_leaves(outputs)]

@@ -44,7 +44,8 @@ def _launch(processes: int, *args, devices=1, env=None, nums=None):
     for pid in range(processes):
         num = N if nums is None else nums[pid]
         cmd = [sys.executable, str(SCRIPT), *map(str, args), "--num", str(num), "--chunk", str(CHUNK),
-               "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes), "--process-id", str(pid)]  # fmt: skip
+               "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes),
+               "--process-id", str(pid)]  # fmt: skip
         procs.append(subprocess.Popen(cmd, env=_env(devices, env), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                       text=True))  # fmt: skip
     return procs

@@ -28,8 +28,8 @@ adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
 import math
+from functools import partial
 from math import comb
 from typing import NamedTuple
 

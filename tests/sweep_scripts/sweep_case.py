@@ -4,8 +4,8 @@
 JSON line per run (the SweepResult). ``--coordinator HOST:PORT --num-processes N --process-id I`` first joins a
 multi-process run (``jax.distributed.initialize``); ``--lapack`` adds a metric computed with ``jnp.linalg.solve``
 (jaxlib's batched LAPACK kernel, which makes the engine compute on one CPU device per process). The last line
-counts the files this process wrote through the engine (``files_written``). ``SWEEP_SLEEP`` (seconds, read at run time) slows every chunk down so that
-a test can kill the process mid-sweep; the sleep is an identity callback, so the numbers do not depend on it.
+counts the files this process wrote through the engine (``files_written``). ``SWEEP_SLEEP`` (seconds, read at
+run time) slows every chunk down so that a test can kill the process mid-sweep; the sleep is an identity callback, so the numbers do not depend on it.
 """
 
 import argparse
@@ -94,7 +94,16 @@ def main():
     for out in args.out_dirs:
         res = run_sweep(sampler, fn, args.num, out, chunk_size=args.chunk, config=CONFIG, progress=False)
         print(json.dumps({k: str(v) if k == "out_dir" else v for k, v in dataclasses.asdict(res).items()}))
-    print(json.dumps({"devices": len(jax.devices()), "processes": jax.process_count(), "files_written": len(WRITES), "x64": bool(np.asarray(jnp.zeros(())).dtype == np.float64)}))
+    print(
+        json.dumps(
+            {
+                "devices": len(jax.devices()),
+                "processes": jax.process_count(),
+                "files_written": len(WRITES),
+                "x64": bool(np.asarray(jnp.zeros(())).dtype == np.float64),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":
