@@ -569,13 +569,17 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
 
 def run_configured_sweep(
     config: dict, sampler, evaluate, num_configs: int, out_dir, *, size_key: str | None = None,
-    progress: bool = True, overwrite: bool = False,
-) -> SweepResult:  # fmt: skip
+    progress: bool = True, overwrite: bool = False, report=None,
+):  # fmt: skip
     """:func:`run_sweep` with ``seed`` and ``chunk_size`` read from ``config`` (a scenario's validated
     configuration), which is also stored in the manifest, less the dotted ``size_key`` that sets ``num_configs``
     if given: then the same configuration with more configurations extends the sweep in ``out_dir``. A
     scenario's report loads every row, so the rows must fit in memory (:class:`jaxobs._resources.JobError`
-    before anything is computed otherwise)."""
+    before anything is computed otherwise).
+
+    Returns the :class:`SweepResult`, or with ``report`` (a function of it that writes the scenario's report into
+    ``out_dir``) what ``report`` returns: in process 0 only, as only process 0 writes; ``None`` in the others of a
+    multi-process run."""
     _check_args(sampler, evaluate, num_configs, config["chunk_size"], config["seed"], config)
     layout = _row(sampler, evaluate, config["seed"])[1]
     check_memory(2 * num_configs * _row_nbytes(layout), f"the report of {num_configs} configurations",
@@ -587,10 +591,13 @@ def run_configured_sweep(
         for part in parents:
             table = table[part]
         del table[last]
-    return run_sweep(
+    result = run_sweep(
         sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
         config=identity, progress=progress, overwrite=overwrite,
     )  # fmt: skip
+    if report is None:
+        return result
+    return report(result) if jax.process_index() == 0 else None
 
 
 def load_results(out_dir) -> dict[str, np.ndarray]:

@@ -162,3 +162,38 @@ def test_lapack_guard_computes_on_one_device_per_process(tmp_path):
     assert "one per process, instead of 4" in results[0][2]
     _assert_same(load_results(out), want)
     assert (_manifest(out)["device_count"], _manifest(out)["process_count"]) == (2, 2)
+
+
+@pytest.mark.slow
+def test_cli_sweep_in_two_processes_matches_one_process(tmp_path):
+    """``jaxobs sweep --coordinator ... --num-processes 2 --process-id I``, one CPU device each: the rows and the
+    report of one process with two CPU devices (the same mesh). (This scenario's rows on one device differ from
+    those on two in the last bit of two RMS columns, in one process as well.)"""
+    config = tmp_path / "hgo.toml"
+    config.write_text(
+        'scenario = "dc-motor-hgo"\nchunk_size = 2\n[grid]\neps = [1.0, 0.2]\nsigma = [0.0, 1e-2]\n'
+        "alpha_0 = [0.28]\nseeds = 1\n[simulation]\nduration = 2.0\nrms_start = 1.0\n"
+    )
+    one, two = tmp_path / "one", tmp_path / "two"
+    cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--config", str(config), "--no-progress", "--no-cache"]
+    subprocess.run([*cmd, "--out", str(one)], env=_env(2), check=True, capture_output=True, timeout=300)
+    cmd += ["--out", str(two), "--coordinator", f"127.0.0.1:{_free_port()}", "--num-processes", "2"]
+    procs = [subprocess.Popen([*cmd, "--process-id", str(pid)], env=_env(1), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for pid in range(2)]  # fmt: skip
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
+    assert "4 configurations" in outs[0][0] and "4 configurations" not in outs[1][0]
+    assert "process 1 of 2: done" in outs[1][0]
+    _assert_same(load_results(two), load_results(one))
+    summary = [json.loads((out / "summary.json").read_text()) for out in (one, two)]
+    for s in summary:  # wall times differ
+        s.pop("seconds", None), s.pop("configs_per_second", None)
+    assert summary[0] == summary[1]
+    assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in one.iterdir())
+
+
+def test_cli_without_a_coordinator_exits_2(capsys):
+    from jaxobs import cli
+
+    assert cli.main(["sweep", "--num-processes", "2", "--process-id", "0"]) == 2
+    assert "cannot join the multi-process run (ValueError: coordinator_address" in capsys.readouterr().err

@@ -5,7 +5,8 @@ JSON line per run (the SweepResult). ``--coordinator HOST:PORT --num-processes N
 multi-process run (``jax.distributed.initialize``); ``--lapack`` adds a metric computed with ``jnp.linalg.solve``
 (jaxlib's batched LAPACK kernel, which makes the engine compute on one CPU device per process). The last line
 counts the files this process wrote through the engine (``files_written``). ``SWEEP_SLEEP`` (seconds, read at
-run time) slows every chunk down so that a test can kill the process mid-sweep; the sleep is an identity callback, so the numbers do not depend on it.
+run time) slows every chunk down so that a test can kill the process mid-sweep; the sleep is an identity
+callback, so the numbers do not depend on it.
 """
 
 import argparse
