@@ -192,8 +192,9 @@ def test_cli_sweep_in_two_processes_matches_one_process(tmp_path):
     assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in one.iterdir())
 
 
-def test_cli_without_a_coordinator_exits_2(capsys):
-    from jaxobs import cli
-
-    assert cli.main(["sweep", "--num-processes", "2", "--process-id", "0"]) == 2
-    assert "cannot join the multi-process run (ValueError: coordinator_address" in capsys.readouterr().err
+def test_cli_without_a_coordinator_exits_2():
+    """A launch that names no coordinator (and no cluster environment to find one) is a user error."""
+    cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--num-processes", "2", "--process-id", "0", "--no-cache"]
+    done = subprocess.run(cmd, env=_env(1), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "cannot join the multi-process run (ValueError: coordinator_address" in done.stderr
