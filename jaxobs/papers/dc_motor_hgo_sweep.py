@@ -122,7 +122,8 @@ def make_sweep(config: dict):
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``tradeoff.png``."""
+    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``tradeoff.png``;
+    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
     return run_configured_sweep(
         config,
         *make_sweep(config),

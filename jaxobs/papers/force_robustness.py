@@ -259,7 +259,8 @@ def make_sweep(config: dict):
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report."""
+    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report; returns its summary
+    (process 0 writes it: None in the other processes of a multi-process run)."""
     sampler, evaluate, num_configs, designs = make_sweep(config)
     return run_configured_sweep(
         config,
