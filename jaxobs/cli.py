@@ -3,6 +3,7 @@
 Usage::
 
     jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
+                 [--coordinator HOST:PORT --num-processes N --process-id I | --distributed]
     jaxobs sweep --list                      the scenarios, one line each
     jaxobs sweep --print-config [SCENARIO]   its full default config as TOML, every key commented
     jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
@@ -18,6 +19,19 @@ the merged result). Scenario, problem and reproduction names are lower case with
 Run as the command, it keeps JAX's persistent compilation cache in ``$JAXOBS_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/jaxobs/jax-cache``, else ``~/.cache/jaxobs/jax-cache`` (``--no-cache``: off), so a second run of
 the same command skips most of the compilation; ``JAX_COMPILATION_CACHE_DIR`` set by the user wins.
+
+Several processes (hosts, or processes on one machine) run one sweep together when each runs the same ``jaxobs
+sweep`` command with ``--coordinator HOST:PORT --num-processes N --process-id I`` (HOST:PORT where process 0
+listens), or with ``--distributed`` alone under a cluster scheduler whose environment ``jax.distributed.initialize``
+reads (SLURM, Open MPI, ...). The output directory must be on a filesystem all of them see; process 0 writes it
+and prints the summary (see :mod:`jaxobs.sweep`). On a SLURM cluster, for example::
+
+    srun --nodes 4 --ntasks-per-node 1 jaxobs sweep --config big.toml --out /shared/sweep --distributed
+
+and on one machine, two processes with two CPU devices each::
+
+    JAX_NUM_CPU_DEVICES=2 jaxobs sweep --coordinator 127.0.0.1:1234 --num-processes 2 --process-id 0 &
+    JAX_NUM_CPU_DEVICES=2 jaxobs sweep --coordinator 127.0.0.1:1234 --num-processes 2 --process-id 1
 
 A user error (a bad config file or key, an output directory that cannot be written or is held by another
 jaxobs process, a run that cannot fit in memory, a sweep or checkpoint of something else in DIR) prints one
@@ -142,12 +156,18 @@ def _sweep(args) -> int:
         return 0
     if args.print_config is not None:
         return _print_config(args, registry, "scenario")
+    import jax
+
     module, config, _ = _scenario(args, registry, "scenario")
     out = Path(args.out)
-    with locked_out_dir(out):
-        if not args.overwrite:
+    alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
+    with locked_out_dir(out) if alone else contextlib.nullcontext():
+        if alone and not args.overwrite:
             read_manifest(out)  # a damaged manifest is reported before the sweep is built
         result = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+    if result is None:  # not process 0
+        print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
+        return 0
     print(
         f"{result['num_configs']} configurations in {result.get('seconds', 0.0):.1f} s; "
         f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(result['figures'])}"
@@ -189,6 +209,19 @@ def _tune(args) -> int:
         note = "" if change is None or name == "hand-set" else f"  ({abs(100 * change):.1f} % {side} than hand-set)"
         print(f"  held-out {name:30s} objective {s['objective']:.4g}  finite {s['finite_fraction']:.3f}{note}")
     return 0
+
+
+def _join(args) -> None:
+    """Join a multi-process run (``jax.distributed.initialize``) if the command line asks for one."""
+    import jax
+
+    given = (args.coordinator, args.num_processes, args.process_id)
+    if not args.distributed and given == (None, None, None):
+        return
+    try:
+        jax.distributed.initialize(*given)
+    except (ValueError, RuntimeError) as exc:
+        raise JobError(f"cannot join the multi-process run ({type(exc).__name__}: {exc})") from exc
 
 
 def cache_dir() -> Path:
@@ -238,6 +271,15 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"print the full config of {what.upper()} (default: the default {what}; with "
                               f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
         run.set_defaults(func=func)
+    launch = commands.choices["sweep"].add_argument_group(
+        "multi-process run", "every process runs the same command; process 0 writes (see jaxobs.sweep)"
+    )
+    launch.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordinator")
+    launch.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
+    launch.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 .. N-1")
+    launch.add_argument("--distributed", action="store_true",
+                        help="join a multi-process run; values not given come from the cluster environment "
+                             "(SLURM, Open MPI, ...) that jax.distributed.initialize detects")  # fmt: skip
     rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures",
                               description="reproduce a paper's numbers and figures")  # fmt: skip
     rep.add_argument("names", nargs="*", metavar="NAME", help="reproduction name(s), or 'all'")
@@ -262,6 +304,8 @@ def main(argv=None) -> int:
     from jaxobs.tuning import CheckpointError, TuningError
 
     try:
+        if args.command == "sweep":
+            _join(args)
         return args.func(args)
     except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped
         resumable = args.command != "reproduce"

@@ -56,11 +56,18 @@ estimate for the compiled program, plus the host copy of its output) is checked 
 before the first step runs. Ctrl-C raises :class:`jaxobs._resources.Interrupted` (a ``KeyboardInterrupt``)
 saying how many chunks are done; rerun the same call to resume.
 
-Multi-host (not tested here: it needs several machines). Call ``jax.distributed.initialize()`` first and run
-the same command in every process, with ``out_dir`` on a filesystem all processes see. The mesh then spans the
-devices of all processes; the list of chunks to compute is taken from process 0 (``broadcast_one_to_all``),
-each chunk's rows are gathered with ``jax.experimental.multihost_utils.process_allgather``, and only
-``jax.process_index() == 0`` writes files and shows progress.
+Several processes (hosts, or local processes; tests/test_multiprocess.py runs 2 and 4 on one machine). Call
+``jax.distributed.initialize(...)`` first (before any JAX computation; on CPU the processes exchange data through
+gloo) and make the same call in every process, with ``out_dir`` on a filesystem all processes see. The mesh spans
+the devices of all processes and each process places and computes its own devices' chunks. Process 0 alone takes
+the lock, reads the manifest, decides which chunks to compute and writes files and progress; the others follow
+(``broadcast_one_to_all``) and each step's rows reach process 0 through ``multihost_utils.process_allgather``.
+Before anything is computed the processes compare a digest of their sweep (program fingerprint, config, seed,
+chunk size, ``num_configs``): processes that run different sweeps, or a process that fails (a locked or
+different ``out_dir`` in process 0, a step that cannot fit), stop every process with :class:`SweepError` instead
+of leaving the others waiting. The rows are those of one process, bit for bit; the manifest records
+``process_count`` per chunk, and a run killed in any process resumes when all are rerun, with any process count.
+The LAPACK guard above keeps one device per process.
 
 Precision: the engine never touches ``jax_enable_x64``; enable it in your entry point for float64 columns.
 """
@@ -353,6 +360,21 @@ def _check_step_memory(compiled, devices, chunk_size: int, row_nbytes: int) -> N
         check_memory(host, f"the host copy of {what}", hint="lower chunk_size")
 
 
+def _check_same_sweep(out_dir: Path, old: dict | None, identity: dict, columns: dict, fingerprint: str) -> None:
+    """Refuse (:class:`SweepError`) a manifest ``old`` of another sweep than ``identity``, ``columns``,
+    ``fingerprint``."""
+    if old is None:
+        return
+    diff = [k for k in identity if old[k] != identity[k]] or (["columns"] if old["columns"] != columns else [])
+    if diff:
+        raise SweepError(f"{out_dir} holds a different sweep ({', '.join(diff)} differ); {_REPLACE}")
+    if old["fingerprint"] != fingerprint:
+        raise SweepError(
+            f"{out_dir} holds chunks computed by other code (the lowered sampler/evaluate program or the "
+            f"jax/jaxlib versions differ from this call's); {_REPLACE}"
+        )
+
+
 def _reusable(out_dir: Path, old: dict | None, num_configs: int, chunk_size: int) -> dict:
     """The manifest entries of ``old`` to keep: the chunks of this sweep whose file matches its checksum and
     holds the rows it must hold now, and any chunks past its end (kept for a later extension)."""
@@ -412,28 +434,49 @@ def run_sweep(
     row, layout = _row(sampler, evaluate, seed)
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0
-    with locked_out_dir(out_dir) if writer else contextlib.nullcontext():
-        return _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer)
+    with contextlib.ExitStack() as held:
+        return _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer,
+                           held)  # fmt: skip
 
 
-def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer):
-    """:func:`run_sweep` once its arguments are checked and ``out_dir`` is held."""
+def _agree(out_dir: Path, error: Exception | None, digest: bytes = b"") -> None:
+    """Raise in every process if one process failed (``error``) or, given the ``digest`` of its sweep, runs a
+    different sweep from process 0's; a no-op in a single process apart from raising ``error``."""
+    if jax.process_count() > 1:
+        mine = np.append(np.frombuffer(digest.ljust(16, b"\0")[:16], np.int32), int(error is not None))
+        table = np.asarray(multihost_utils.process_allgather(mine.astype(np.int32)))  # (processes, 5)
+        failed = np.flatnonzero(table[:, -1]).tolist()
+        other = np.flatnonzero((table[:, :-1] != table[0, :-1]).any(axis=1)).tolist()
+        if error is None and failed:
+            raise SweepError(f"process(es) {failed} could not run the sweep in {out_dir} (see their error)")
+        if error is None and other:
+            raise SweepError(
+                f"process(es) {other} run a different sweep from process 0's (sampler, evaluate, num_configs, "
+                "chunk_size, seed or config differ); run the same call in every process"
+            )
+    if error is not None:
+        raise error
+
+
+def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer, held):
+    """:func:`run_sweep` once its arguments are checked: process 0 (the ``writer``) takes the lock of ``out_dir``
+    into ``held`` and decides which chunks to compute, the others follow."""
     columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
     num_chunks = math.ceil(num_configs / chunk_size)
     identity = {"config": config, "seed": seed, "chunk_size": chunk_size}
     fingerprint = _fingerprint(row, chunk_size)
-    old = None if overwrite else read_manifest(out_dir)
-    if old is not None:
-        diff = [k for k in identity if old[k] != identity[k]] or (["columns"] if old["columns"] != columns else [])
-        if diff:
-            raise SweepError(f"{out_dir} holds a different sweep ({', '.join(diff)} differ); {_REPLACE}")
-        if old["fingerprint"] != fingerprint:
-            raise SweepError(
-                f"{out_dir} holds chunks computed by other code (the lowered sampler/evaluate program or the "
-                f"jax/jaxlib versions differ from this call's); {_REPLACE}"
-            )
-    completed = _reusable(out_dir, old, num_configs, chunk_size)
-    todo = np.array([str(c) not in completed for c in range(num_chunks)])
+    old, completed, todo, error = None, {}, np.zeros(num_chunks, bool), None
+    try:
+        if writer:
+            held.enter_context(locked_out_dir(out_dir))
+            old = None if overwrite else read_manifest(out_dir)
+            _check_same_sweep(out_dir, old, identity, columns, fingerprint)
+            completed = _reusable(out_dir, old, num_configs, chunk_size)
+            todo = np.array([str(c) not in completed for c in range(num_chunks)])
+    except JobError as exc:  # SweepError included
+        error = exc
+    digest = hashlib.sha256(json.dumps([identity, columns, fingerprint, num_configs]).encode()).digest()
+    _agree(out_dir, error, digest)
     if jax.process_count() > 1:  # every process must compute the same chunks: process 0 decides
         todo = np.asarray(multihost_utils.broadcast_one_to_all(todo))
     completed = {c: e for c, e in completed.items() if int(c) >= num_chunks or not todo[int(c)]}
@@ -444,7 +487,11 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     if todo.any():  # compile and size the step before writing anything
         compiled, sharding, devices = _compile(row, devices, chunk_size)
         compile_seconds = time.perf_counter() - start
-        _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
+        try:
+            _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
+        except JobError as exc:
+            error = exc
+        _agree(out_dir, error)
     manifest = {
         "format_version": FORMAT_VERSION,
         **identity,
@@ -452,6 +499,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
         "num_chunks": num_chunks,
         "fingerprint": fingerprint,
         "device_count": len(devices),
+        "process_count": jax.process_count(),
         "platform": devices[0].platform,
         "device_kind": devices[0].device_kind,
         "versions": _versions(),
@@ -480,7 +528,8 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
             group = todo_chunks[first : first + ndev]
             padded = group + group[-1:] * (ndev - len(group))  # one chunk per device
             starts = np.repeat(np.array(padded) * chunk_size, chunk_size) + np.tile(np.arange(chunk_size), ndev)
-            outputs = compiled(jax.device_put(np.minimum(starts, num_configs - 1).astype(np.int32), sharding))
+            indices = np.minimum(starts, num_configs - 1).astype(np.int32)  # each process places its devices' part
+            outputs = compiled(jax.make_array_from_callback(indices.shape, sharding, indices.__getitem__))
             if jax.process_count() > 1:
                 outputs = multihost_utils.process_allgather(outputs, tiled=True)
             leaves = [np.asarray(x).reshape(ndev, chunk_size, -1) for x in jax.tree_util.tree_leaves(outputs)]
@@ -490,7 +539,9 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
                     indices = np.arange(chunk * chunk_size, chunk * chunk_size + rows)
                     table = _table(indices, [leaf[j, :rows] for leaf in leaves], layout)
                     sha = _write_chunk(_chunk_path(out_dir, chunk), table)
-                    manifest["completed"][str(chunk)] = {"rows": rows, "sha256": sha, "device_count": ndev}
+                    manifest["completed"][str(chunk)] = {
+                        "rows": rows, "sha256": sha, "device_count": ndev, "process_count": jax.process_count(),
+                    }  # fmt: skip
                     manifest["seconds"] = previous_seconds + time.perf_counter() - start
                     _write_manifest(out_dir, manifest)
                 done_chunks += 1
@@ -518,13 +569,17 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
 
 def run_configured_sweep(
     config: dict, sampler, evaluate, num_configs: int, out_dir, *, size_key: str | None = None,
-    progress: bool = True, overwrite: bool = False,
-) -> SweepResult:  # fmt: skip
+    progress: bool = True, overwrite: bool = False, report=None,
+):  # fmt: skip
     """:func:`run_sweep` with ``seed`` and ``chunk_size`` read from ``config`` (a scenario's validated
     configuration), which is also stored in the manifest, less the dotted ``size_key`` that sets ``num_configs``
     if given: then the same configuration with more configurations extends the sweep in ``out_dir``. A
     scenario's report loads every row, so the rows must fit in memory (:class:`jaxobs._resources.JobError`
-    before anything is computed otherwise)."""
+    before anything is computed otherwise).
+
+    Returns the :class:`SweepResult`, or with ``report`` (a function of it that writes the scenario's report into
+    ``out_dir``) what ``report`` returns: in process 0 only, as only process 0 writes; ``None`` in the others of a
+    multi-process run."""
     _check_args(sampler, evaluate, num_configs, config["chunk_size"], config["seed"], config)
     layout = _row(sampler, evaluate, config["seed"])[1]
     check_memory(2 * num_configs * _row_nbytes(layout), f"the report of {num_configs} configurations",
@@ -536,10 +591,13 @@ def run_configured_sweep(
         for part in parents:
             table = table[part]
         del table[last]
-    return run_sweep(
+    result = run_sweep(
         sampler, evaluate, num_configs, out_dir, seed=config["seed"], chunk_size=config["chunk_size"],
         config=identity, progress=progress, overwrite=overwrite,
     )  # fmt: skip
+    if report is None:
+        return result
+    return report(result) if jax.process_index() == 0 else None
 
 
 def load_results(out_dir) -> dict[str, np.ndarray]:

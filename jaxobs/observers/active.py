@@ -28,6 +28,7 @@ adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
 from __future__ import annotations
 
 import dataclasses
+import math
 from functools import partial
 from math import comb
 from typing import NamedTuple
@@ -544,7 +545,7 @@ def _steady_state_gains(Phi, C, Q, R, P0, *, n_plant: int):
 # --------------------------------------------------------------------------------------------
 # Stochastic design of Q (Cortesão, Koeppe, Nunes & Hirzinger, stochastic AOB paper §3)
 
-BETA_ONE_SIGMA = float(1.0 - erf(np.sqrt(2.0) / 2.0))
+BETA_ONE_SIGMA = 1.0 - math.erf(math.sqrt(2.0) / 2.0)  # plain Python: importing jaxobs starts no JAX backend
 """The stochastic AOB paper eq. 47: the probability of a deviation larger than one standard deviation (0.3173)."""
 
 

@@ -259,12 +259,20 @@ def make_sweep(config: dict):
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report."""
+    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report; returns its summary
+    (process 0 writes it: None in the other processes of a multi-process run)."""
     sampler, evaluate, num_configs, designs = make_sweep(config)
-    result = run_configured_sweep(
-        config, sampler, evaluate, num_configs, out_dir, size_key=SIZE_KEY, progress=progress, overwrite=overwrite
+    return run_configured_sweep(
+        config,
+        sampler,
+        evaluate,
+        num_configs,
+        out_dir,
+        size_key=SIZE_KEY,
+        progress=progress,
+        overwrite=overwrite,
+        report=lambda result: report(config, Path(out_dir), result, designs),
     )
-    return report(config, Path(out_dir), result, designs)
 
 
 # --------------------------------------------------------------------------------------------

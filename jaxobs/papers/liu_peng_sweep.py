@@ -170,11 +170,17 @@ def make_sweep(config: dict):
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``estimators.png``."""
-    result = run_configured_sweep(
-        config, *make_sweep(config), out_dir, size_key="vehicle.count", progress=progress, overwrite=overwrite
+    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``estimators.png``;
+    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
+    return run_configured_sweep(
+        config,
+        *make_sweep(config),
+        out_dir,
+        size_key="vehicle.count",
+        progress=progress,
+        overwrite=overwrite,
+        report=lambda result: report(config, Path(out_dir), result),
     )
-    return report(config, Path(out_dir), result)
 
 
 QUANTILES = (("p10", 0.1), ("median", 0.5), ("p90", 0.9), ("max", 1.0))

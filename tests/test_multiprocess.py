@@ -1,0 +1,200 @@
+"""Multi-process runs on JAX's distributed runtime, on one machine: N local processes (each with its own CPU
+devices, collectives through gloo) joined by ``jax.distributed.initialize`` with a coordinator on 127.0.0.1.
+
+``run_sweep`` in 2 and 4 processes gives the one-process rows bit for bit, only process 0 writes, a run killed in
+one process resumes when all are rerun (with another process count, too), processes that run different sweeps
+are refused in every process, and the LAPACK guard computes on one device per process. The sweep is the one of
+tests/test_sweep.py (tests/sweep_scripts/sweep_case.py).
+"""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxobs.sweep import load_results, run_sweep
+
+SCRIPT = Path(__file__).parent / "sweep_scripts" / "sweep_case.py"
+N, CHUNK = 1000, 128  # 8 chunks, the last one partial
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env(devices: int, extra=None) -> dict:
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAX_NUM_CPU_DEVICES": str(devices), **(extra or {})}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    return env
+
+
+def _launch(processes: int, *args, devices=1, env=None, nums=None):
+    """Start ``processes`` copies of the sweep script joined on a free local port (``nums``: per-process N)."""
+    port, procs = _free_port(), []
+    for pid in range(processes):
+        num = N if nums is None else nums[pid]
+        cmd = [sys.executable, str(SCRIPT), *map(str, args), "--num", str(num), "--chunk", str(CHUNK),
+               "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes),
+               "--process-id", str(pid)]  # fmt: skip
+        procs.append(subprocess.Popen(cmd, env=_env(devices, env), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      text=True))  # fmt: skip
+    return procs
+
+
+def _finish(procs, timeout=240, ok=True):
+    """Each process's (return code, JSON lines of stdout, stderr)."""
+    results = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=timeout)
+        assert (proc.returncode == 0) == ok, err[-3000:]
+        results.append((proc.returncode, [json.loads(x) for x in out.splitlines() if x.startswith("{")], err))
+    return results
+
+
+def _one_process(out, evaluate="evaluate"):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("sweep_case", SCRIPT)
+    case = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(case)
+    run_sweep(case.sampler, getattr(case, evaluate), N, out, chunk_size=CHUNK, config=case.CONFIG, progress=False)
+    return load_results(out)
+
+
+def _assert_same(got, want):
+    assert list(got) == list(want)
+    for name in want:
+        assert got[name].dtype == want[name].dtype and np.array_equal(got[name], want[name]), name
+
+
+def _manifest(out):
+    return json.loads((Path(out) / "manifest.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    return _one_process(tmp_path_factory.mktemp("mp") / "reference")
+
+
+def test_importing_jaxobs_starts_no_backend():
+    """``jax.distributed.initialize`` must come before any backend starts; importing jaxobs (and its command's
+    scenarios) must not start one."""
+    code = (
+        "import jax._src.xla_bridge as xb\n"
+        "xb.backends = lambda *a, **k: (_ for _ in ()).throw(AssertionError('a backend started at import'))\n"
+        "import jaxobs, jaxobs.cli, jaxobs.sweep, jaxobs.tuning, jaxobs.papers.tuning\n"
+        "from jaxobs.cli import _sweeps\n_sweeps()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], env=_env(1), check=True, timeout=120, capture_output=True)
+
+
+def test_two_processes_match_one_process_and_only_process_0_writes(reference, tmp_path):
+    out = tmp_path / "sweep"
+    results = _finish(_launch(2, out, devices=2))
+    for pid, (_, lines, _) in enumerate(results):
+        sweep, info = lines
+        assert (sweep["chunks_computed"], sweep["chunks_reused"]) == (8, 0)
+        assert (info["devices"], info["processes"]) == (4, 2)
+        assert (info["files_written"] > 0) == (pid == 0), f"process {pid} wrote {info['files_written']} files"
+    _assert_same(load_results(out), reference)
+    m = _manifest(out)
+    assert (m["device_count"], m["process_count"]) == (4, 2)
+    assert {(e["device_count"], e["process_count"]) for e in m["completed"].values()} == {(4, 2)}
+
+
+@pytest.mark.slow
+def test_four_processes_killed_in_one_resume_in_two(reference, tmp_path):
+    """SIGKILL one of 4 processes mid-sweep (then the rest, as a scheduler does), rerun in 2 processes: the chunks
+    done are reused and the rows equal the one-process sweep."""
+    out = tmp_path / "sweep"
+    procs = _launch(4, out, env={"SWEEP_SLEEP": "0.5"})  # every chunk sleeps in a host callback
+    deadline, done = time.monotonic() + 180, 0
+    try:
+        while done < 2:
+            assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
+            assert time.monotonic() < deadline, "the sweep made no progress"
+            time.sleep(0.05)
+            if (out / "manifest.json").exists():
+                done = len(_manifest(out)["completed"])
+        procs[2].send_signal(signal.SIGKILL)
+        procs[2].communicate()
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.communicate()
+    done = len(_manifest(out)["completed"])
+    assert 2 <= done < 8, "the processes were not killed mid-sweep"
+
+    results = _finish(_launch(2, out))
+    for _, (sweep, info), _ in results:
+        assert sweep["chunks_reused"] >= done and sweep["chunks_reused"] + sweep["chunks_computed"] == 8
+        assert (info["devices"], info["processes"]) == (2, 2)
+    _assert_same(load_results(out), reference)
+    counts = {e["process_count"] for e in _manifest(out)["completed"].values()}
+    assert counts == {4, 2}
+
+
+@pytest.mark.slow
+def test_processes_running_different_sweeps_all_stop(tmp_path):
+    results = _finish(_launch(2, tmp_path / "sweep", nums=[N, N + 1]), ok=False)
+    for returncode, _, err in results:
+        assert returncode != 0 and "run a different sweep from process 0's" in err, err[-2000:]
+    assert not (tmp_path / "sweep" / "manifest.json").exists()
+
+
+@pytest.mark.slow
+def test_lapack_guard_computes_on_one_device_per_process(tmp_path):
+    """2 processes x 2 CPU devices: an evaluation with a batched LAPACK solve runs on 2 devices, one per
+    process, and gives the one-process rows."""
+    want = _one_process(tmp_path / "one", evaluate="evaluate_lapack")
+    out = tmp_path / "sweep"
+    results = _finish(_launch(2, out, "--lapack", devices=2))
+    assert "one per process, instead of 4" in results[0][2]
+    _assert_same(load_results(out), want)
+    assert (_manifest(out)["device_count"], _manifest(out)["process_count"]) == (2, 2)
+
+
+@pytest.mark.slow
+def test_cli_sweep_in_two_processes_matches_one_process(tmp_path):
+    """``jaxobs sweep --coordinator ... --num-processes 2 --process-id I``, one CPU device each: the rows and the
+    report of one process with two CPU devices (the same mesh). (This scenario's rows on one device differ from
+    those on two in the last bit of two RMS columns, in one process as well.)"""
+    config = tmp_path / "hgo.toml"
+    config.write_text(
+        'scenario = "dc-motor-hgo"\nchunk_size = 2\n[grid]\neps = [1.0, 0.2]\nsigma = [0.0, 1e-2]\n'
+        "alpha_0 = [0.28]\nseeds = 1\n[simulation]\nduration = 2.0\nrms_start = 1.0\n"
+    )
+    one, two = tmp_path / "one", tmp_path / "two"
+    cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--config", str(config), "--no-progress", "--no-cache"]
+    subprocess.run([*cmd, "--out", str(one)], env=_env(2), check=True, capture_output=True, timeout=300)
+    cmd += ["--out", str(two), "--coordinator", f"127.0.0.1:{_free_port()}", "--num-processes", "2"]
+    procs = [subprocess.Popen([*cmd, "--process-id", str(pid)], env=_env(1), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for pid in range(2)]  # fmt: skip
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
+    assert "4 configurations" in outs[0][0] and "4 configurations" not in outs[1][0]
+    assert "process 1 of 2: done" in outs[1][0]
+    _assert_same(load_results(two), load_results(one))
+    summary = [json.loads((out / "summary.json").read_text()) for out in (one, two)]
+    for s in summary:  # wall times differ
+        s.pop("seconds", None), s.pop("configs_per_second", None)
+    assert summary[0] == summary[1]
+    assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in one.iterdir())
+
+
+def test_cli_without_a_coordinator_exits_2():
+    """A launch that names no coordinator (and no cluster environment to find one) is a user error."""
+    cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--num-processes", "2", "--process-id", "0", "--no-cache"]
+    done = subprocess.run(cmd, env=_env(1), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "cannot join the multi-process run (ValueError: coordinator_address" in done.stderr
