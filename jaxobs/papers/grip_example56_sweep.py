@@ -136,9 +136,16 @@ def make_sweep(config: dict):
 
 
 def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``grid.png``."""
-    result = run_configured_sweep(config, *make_sweep(config), out_dir, progress=progress, overwrite=overwrite)
-    return report(config, Path(out_dir), result)
+    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``grid.png``; returns the summary
+    (process 0 writes: None in the other processes of a multi-process run)."""
+    return run_configured_sweep(
+        config,
+        *make_sweep(config),
+        out_dir,
+        progress=progress,
+        overwrite=overwrite,
+        report=lambda result: report(config, Path(out_dir), result),
+    )
 
 
 def _columns(cols: dict, law: str, metric: str) -> np.ndarray:
