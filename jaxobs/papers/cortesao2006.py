@@ -4,7 +4,7 @@ AOB-1/2/3 under the nonlinear input disturbance of eq. 81-82.
 Reported: the state-feedback gain ``L_r`` (eq. 83), the steady-state Kalman gains of Table I (with R as
 printed, and with sigma^2/R scaled by a factor fitted to the table: :data:`SIGMA2_OVER_R_FIT`), and
 the closed loop of §7.2 (force tracking error of AOB-1/2/3 and a CKF against the desired closed-loop
-response). See ``shared/notes/aob_paper_conventions.md`` for the conventions that reproduce the
+response). See ``docs/reproductions.md`` for the conventions that reproduce the
 printed numbers.
 """
 

@@ -5,7 +5,7 @@ Bicycle model (eq. 31), state ``x = [v_y, r]`` (m/s, rad/s), steering ``u`` (rad
 
     x' = [[a1, a2], [a3, a4]] x + B_u u + [1, 0]' d,    B_u = [2 C_f / m, 2 a C_f / I_z]'
 
-Two models are run (``shared/notes/aob_paper_conventions.md``, "Liu & Peng §4.2"):
+Two models are run (``docs/reproductions.md``, "Liu & Peng §4.2"):
 
 * ``"parameters"``: the a_i from the printed vehicle parameters, a1..a4 = -7.686, -14.362, 0.3388, -6.655.
   Eq. 31 prints ``a4 = (-2 a^2 C_f + 2 b^2 C_r) / (I_z v_x)`` (= +1.132, an unstable yaw mode); the bicycle

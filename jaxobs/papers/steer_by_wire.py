@@ -14,7 +14,7 @@ it behave like a conventional (steering-column) car, the target of eq. 90-94, wh
   pre-amplification ``r_k = L_c [T_h; F_r]`` (eq. 106) or through the actuators (eq. 107);
 * an AOB-1 with one active state per input, ``Q_p = diag(0, 1e-1, 0, 1e3)`` (eq. 108-110).
 
-Sign convention for ``F_r`` (see ``shared/notes/aob_paper_conventions.md``): the transfer functions
+Sign convention for ``F_r`` (see ``docs/reproductions.md``): the transfer functions
 are used as printed (``road_force_sign=+1``): a positive rack force moves the rack in the negative
 direction both in the target (``T_23(0) < 0``) and in the SBW plant (``y_r(0) < 0``). The printed
 ``L_c`` (eq. 105) and the printed active state ``p_4 -> 0.61`` (eq. 114) correspond to the opposite
