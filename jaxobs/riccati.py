@@ -556,15 +556,21 @@ def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSo
       >>> bool(sol.converged), bool(np.allclose(sol.X, X))
       (True, True)
     """
-    n = A.shape[-1]
+    A, B, Q, R, tol = _riccati_arguments(A, B, Q, R, tol)
+    return _solve(A, B, Q, R, max_iters=int(max_iters), tol=tol)
+
+
+def _riccati_arguments(A, B, Q, R, tol):
+    """``(A, B, Q, R, tol)`` of :func:`dare` and :func:`care`, checked (shapes at trace time, definiteness when
+    concrete) and cast to one floating dtype; ``tol`` defaults to the square root of its machine epsilon."""
+    n = jnp.shape(A)[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.covariance("Q", Q, definite=False, size=n)
-    _checks.covariance("R", R, definite=True, size=B.shape[-1])
+    _checks.covariance("R", R, definite=True, size=jnp.shape(B)[-1])
     dtype = jnp.result_type(A, B, Q, R, float)
     A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
-    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
-    return _solve(A, B, Q, R, max_iters=int(max_iters), tol=tol)
+    return A, B, Q, R, float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
 
 
 def filter_dare(Phi, C, Q, R, *, what: str = "the filter DARE") -> DareSolution:
@@ -924,14 +930,7 @@ def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSo
       >>> bool(sol.converged), bool(np.allclose(sol.X, X))
       (True, True)
     """
-    n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
-    _checks.matrix("B", B, shape=(n, None))
-    _checks.covariance("Q", Q, definite=False, size=n)
-    _checks.covariance("R", R, definite=True, size=B.shape[-1])
-    dtype = jnp.result_type(A, B, Q, R, float)
-    A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
-    tol = float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
+    A, B, Q, R, tol = _riccati_arguments(A, B, Q, R, tol)
     return _solve_care_jit(A, B, Q, R, max_iters=int(max_iters), tol=tol)
 
 
