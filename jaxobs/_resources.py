@@ -12,6 +12,9 @@ output directory held by one process at a time, atomic writes, and enough memory
   ``MemAvailable``, capped by a cgroup limit; a GPU's free memory), naming the estimate, before anything is
   allocated; :func:`program_nbytes` is XLA's estimate for a compiled program, and :func:`compile_checked`
   compiles a lowered function and checks that estimate before it ever runs.
+* :class:`InterruptWatch` notes every Ctrl-C while a job runs, so that one whose ``KeyboardInterrupt`` was lost
+  (raised inside a garbage-collection callback, such as XLA's, Python prints it as "Exception ignored" and goes
+  on) still stops the job at its next check.
 
 POSIX only (``fcntl``).
 """
@@ -22,11 +25,14 @@ import contextlib
 import fcntl
 import os
 import secrets
+import signal
+import threading
 from pathlib import Path
 
 __all__ = [
     "JobError",
     "Interrupted",
+    "InterruptWatch",
     "LOCK_NAME",
     "locked_out_dir",
     "atomic_write",
@@ -48,6 +54,40 @@ class JobError(ValueError):
 
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C during a resumable job; the message says where it stopped and how to resume."""
+
+
+class InterruptWatch:
+    """A context manager that notes Ctrl-C (SIGINT) while it is entered; :meth:`check` raises
+    ``KeyboardInterrupt`` once one arrived, even if the ``KeyboardInterrupt`` the signal raised at the time was
+    swallowed. Python's own handler still runs, so Ctrl-C interrupts at once wherever it can. Installed only in
+    the main thread and over Python's default handler (a caller's own handler is left alone).
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._installed = False
+
+    def __enter__(self) -> InterruptWatch:
+        if threading.current_thread() is threading.main_thread() and (
+            signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        ):
+            signal.signal(signal.SIGINT, self._note)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._installed:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            self._installed = False
+
+    def _note(self, signum, frame) -> None:
+        self.requested = True
+        signal.default_int_handler(signum, frame)
+
+    def check(self) -> None:
+        """Raise ``KeyboardInterrupt`` if Ctrl-C arrived since the watch was entered."""
+        if self.requested:
+            raise KeyboardInterrupt
 
 
 def _check_writable(path: Path) -> None:

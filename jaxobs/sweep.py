@@ -98,7 +98,15 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from jaxobs._resources import Interrupted, JobError, atomic_write, check_memory, locked_out_dir, program_nbytes
+from jaxobs._resources import (
+    Interrupted,
+    InterruptWatch,
+    JobError,
+    atomic_write,
+    check_memory,
+    locked_out_dir,
+    program_nbytes,
+)
 
 __all__ = [
     "SweepError",
@@ -461,6 +469,7 @@ def _agree(out_dir: Path, error: Exception | None, digest: bytes = b"") -> None:
 def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer, held):
     """:func:`run_sweep` once its arguments are checked: process 0 (the ``writer``) takes the lock of ``out_dir``
     into ``held`` and decides which chunks to compute, the others follow."""
+    watch = held.enter_context(InterruptWatch())
     columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
     num_chunks = math.ceil(num_configs / chunk_size)
     identity = {"config": config, "seed": seed, "chunk_size": chunk_size}
@@ -524,6 +533,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
         bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer))
         todo_chunks = [int(c) for c in np.flatnonzero(todo)]
         for first in range(0, len(todo_chunks), ndev):
+            watch.check()
             t0 = time.perf_counter()
             group = todo_chunks[first : first + ndev]
             padded = group + group[-1:] * (ndev - len(group))  # one chunk per device
@@ -549,6 +559,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
                 bar.update(rows)
             compute_seconds += time.perf_counter() - t0
             bar.set_postfix({"configs/s": f"{computed_rows / compute_seconds:.0f}"})
+        watch.check()
     except KeyboardInterrupt as exc:
         raise Interrupted(
             f"interrupted after {done_chunks} of {num_chunks} chunks; rerun the same command to resume"

@@ -59,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxobs._resources import Interrupted, compile_checked, temporary_path
+from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
 
 __all__ = [
     "cholesky_covariance",
@@ -496,80 +496,82 @@ def tune(
     stopped = "steps"
     bar = tqdm(total=settings.steps, initial=meta["evaluations"], desc="tune", disable=not progress, unit="eval")
     saved = (dict(trees), dict(meta), len(history))
-    try:
-        while meta["evaluations"] < settings.steps and meta["since_best"] < settings.patience:
-            saved = (dict(trees), dict(meta), len(history))  # a consistent state for Ctrl-C
-            step_start = time.perf_counter()
-            (value, failed), grad = evaluate_with_grad(trees["theta"])
-            if sound_gradient is not None and 0 < np.sum(failed) < batch and not _finite(grad):
-                grad = sound_gradient(trees["theta"], failed)
-            first = meta["evaluations"] == 0
-            meta["evaluations"] += 1
-            count = int(np.sum(np.asarray(failed)))
-            reason = _failure(value, grad, failed, batch - 1 if first else meta["diverged"])
-            record = {
-                "evaluation": meta["evaluations"],
-                "objective": float(value) if np.isfinite(float(value)) else None,
-                "diverged": count,
-                "accepted": reason is None,
-                "reason": reason,
-                "scale": meta["scale"],
-                "grad_norm": float(optax.tree.norm(grad)) if reason is None else None,
-                "theta": _as_numpy(trees["theta"]),
-            }
-            if reason is not None:
-                if first:
-                    raise TuningError(f"the initial parameters fail on the training batch: {reason}")
-                meta["rejections"] += 1
-                meta["scale"] /= 2
-                logger.warning(
-                    "evaluation %d: step rejected: %s; retrying from the last accepted point with step scale %g",
-                    meta["evaluations"], reason, meta["scale"],
-                )  # fmt: skip
-                if meta["rejections"] > settings.max_rejections:
-                    save(trees, meta, history + [record])
-                    raise TuningError(
-                        f"{meta['rejections']} consecutive steps rejected (last: {reason}); lower the learning rate"
-                    )
-                trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["anchor"], trees["update"])
-            else:
-                if first and count:
+    with InterruptWatch() as watch:
+        try:
+            while meta["evaluations"] < settings.steps and meta["since_best"] < settings.patience:
+                watch.check()
+                saved = (dict(trees), dict(meta), len(history))  # a consistent state for Ctrl-C
+                step_start = time.perf_counter()
+                (value, failed), grad = evaluate_with_grad(trees["theta"])
+                if sound_gradient is not None and 0 < np.sum(failed) < batch and not _finite(grad):
+                    grad = sound_gradient(trees["theta"], failed)
+                first = meta["evaluations"] == 0
+                meta["evaluations"] += 1
+                count = int(np.sum(np.asarray(failed)))
+                reason = _failure(value, grad, failed, batch - 1 if first else meta["diverged"])
+                record = {
+                    "evaluation": meta["evaluations"],
+                    "objective": float(value) if np.isfinite(float(value)) else None,
+                    "diverged": count,
+                    "accepted": reason is None,
+                    "reason": reason,
+                    "scale": meta["scale"],
+                    "grad_norm": float(optax.tree.norm(grad)) if reason is None else None,
+                    "theta": _as_numpy(trees["theta"]),
+                }
+                if reason is not None:
+                    if first:
+                        raise TuningError(f"the initial parameters fail on the training batch: {reason}")
+                    meta["rejections"] += 1
+                    meta["scale"] /= 2
                     logger.warning(
-                        "%d of %d training plants diverge under the initial design; each counts as at least %g "
-                        "times the largest loss of the others", count, batch, settings.divergence_factor,
+                        "evaluation %d: step rejected: %s; retrying from the last accepted point with step scale %g",
+                        meta["evaluations"], reason, meta["scale"],
                     )  # fmt: skip
-                meta["rejections"], meta["diverged"] = 0, count
-                value = float(value)
-                improved = count < meta["best_diverged"] or value < meta["best_objective"] * (
-                    1 - settings.min_improvement
+                    if meta["rejections"] > settings.max_rejections:
+                        save(trees, meta, history + [record])
+                        raise TuningError(
+                            f"{meta['rejections']} consecutive steps rejected (last: {reason}); lower the learning rate"
+                        )
+                    trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["anchor"], trees["update"])
+                else:
+                    if first and count:
+                        logger.warning(
+                            "%d of %d training plants diverge under the initial design; each counts as at least %g "
+                            "times the largest loss of the others", count, batch, settings.divergence_factor,
+                        )  # fmt: skip
+                    meta["rejections"], meta["diverged"] = 0, count
+                    value = float(value)
+                    improved = count < meta["best_diverged"] or value < meta["best_objective"] * (
+                        1 - settings.min_improvement
+                    )
+                    meta["since_best"] = 0 if improved else meta["since_best"] + 1
+                    if (count, value) < (meta["best_diverged"], meta["best_objective"]):
+                        meta["best_diverged"], meta["best_objective"], trees["best"] = count, value, trees["theta"]
+                    update, trees["opt"] = optimizer.update(grad, trees["opt"], trees["theta"])
+                    meta["scale"] = min(1.0, 2 * meta["scale"])
+                    trees["anchor"], trees["update"] = trees["theta"], update
+                    trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["theta"], update)
+                record["seconds"] = time.perf_counter() - step_start
+                history.append(record)
+                bar.update(1)
+                bar.set_postfix(
+                    objective=f"{value:.4g}" if reason is None else "rejected", best=f"{meta['best_objective']:.4g}"
                 )
-                meta["since_best"] = 0 if improved else meta["since_best"] + 1
-                if (count, value) < (meta["best_diverged"], meta["best_objective"]):
-                    meta["best_diverged"], meta["best_objective"], trees["best"] = count, value, trees["theta"]
-                update, trees["opt"] = optimizer.update(grad, trees["opt"], trees["theta"])
-                meta["scale"] = min(1.0, 2 * meta["scale"])
-                trees["anchor"], trees["update"] = trees["theta"], update
-                trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["theta"], update)
-            record["seconds"] = time.perf_counter() - step_start
-            history.append(record)
-            bar.update(1)
-            bar.set_postfix(
-                objective=f"{value:.4g}" if reason is None else "rejected", best=f"{meta['best_objective']:.4g}"
-            )
-            if meta["evaluations"] % settings.checkpoint_every == 0:
-                save(trees, meta, history)
-    except KeyboardInterrupt as exc:
-        trees, meta, done = saved
-        where = ""
-        if meta["evaluations"] > 0 and path is not None:
-            save(trees, meta, history[:done])
-            where = f"; checkpoint saved to {path}"
-        raise Interrupted(
-            f"interrupted after {meta['evaluations']} of {settings.steps} evaluations{where}; "
-            "rerun the same command to resume"
-        ) from exc
-    finally:
-        bar.close()
+                if meta["evaluations"] % settings.checkpoint_every == 0:
+                    save(trees, meta, history)
+        except KeyboardInterrupt as exc:
+            trees, meta, done = saved
+            where = ""
+            if meta["evaluations"] > 0 and path is not None:
+                save(trees, meta, history[:done])
+                where = f"; checkpoint saved to {path}"
+            raise Interrupted(
+                f"interrupted after {meta['evaluations']} of {settings.steps} evaluations{where}; "
+                "rerun the same command to resume"
+            ) from exc
+        finally:
+            bar.close()
     if meta["since_best"] >= settings.patience:
         stopped = "early stopping"
     save(trees, meta, history)

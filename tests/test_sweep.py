@@ -201,6 +201,27 @@ def test_keyboard_interrupt_leaves_a_resumable_sweep(reference, tmp_path, monkey
     _assert_same(load_results(tmp_path), reference[1])
 
 
+def test_a_ctrl_c_whose_keyboard_interrupt_was_swallowed_still_stops_the_sweep(tmp_path, monkeypatch):
+    """Python prints a KeyboardInterrupt raised in a garbage-collection callback (XLA has one) as "Exception
+    ignored" and goes on; the sweep still stops before its next chunk."""
+    write, calls = sweep._write_chunk, []
+
+    def write_then_lose_a_ctrl_c(path, table):
+        calls.append(path)
+        if len(calls) == 2:
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1)  # the handler runs here
+            except KeyboardInterrupt:
+                pass  # swallowed, as in a gc callback
+        return write(path, table)
+
+    monkeypatch.setattr(sweep, "_write_chunk", write_then_lose_a_ctrl_c)
+    with pytest.raises(Interrupted, match="interrupted after 2 of 8 chunks; rerun"):
+        _run(tmp_path)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_a_different_sweep_is_refused_unless_overwrite(reference, tmp_path):
     out = tmp_path / "sweep"
     shutil.copytree(reference[0], out)
@@ -353,3 +374,26 @@ def test_an_unwritable_out_dir_is_refused_before_compiling(tmp_path):
                          (tmp_path / "file" / "sub", "cannot write to .*: Not a directory")]:  # fmt: skip
         with pytest.raises(JobError, match=message):
             run_sweep(_scalar_sampler, lambda p: {"y": p["a"]}, 10, out, progress=False)
+
+
+def test_interrupt_watch_notes_ctrl_c_and_leaves_other_handlers_alone():
+    from jaxobs._resources import InterruptWatch
+
+    with InterruptWatch() as watch:
+        watch.check()  # nothing yet
+        with pytest.raises(KeyboardInterrupt):  # Python's handler still raises at once
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        with pytest.raises(KeyboardInterrupt):
+            watch.check()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    own = []
+    previous = signal.signal(signal.SIGINT, lambda *_: own.append(1))
+    try:
+        with InterruptWatch() as watch:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+            watch.check()  # a caller's own handler is not replaced
+        assert own == [1] and not watch.requested
+    finally:
+        signal.signal(signal.SIGINT, previous)
