@@ -4,6 +4,7 @@ x64 is switched on here (the entry point of the test run), never on import of th
 ``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
 """
 
+import gc
 import os
 
 import jax
@@ -28,6 +29,17 @@ def _restore_jax_config():
     for name, value in _jax_config().items():
         if name in _SESSION_CONFIG and value != _SESSION_CONFIG[name]:
             jax.config.update(name, _SESSION_CONFIG[name])
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Drop JAX's caches of compiled programs after each test file. The suite runs ~1100 tests in one process;
+    kept alive, their XLA executables grew it past 60 000 memory mappings (Linux's default ``vm.max_map_count``
+    is 65 530) and XLA's compiler then crashed (SIGSEGV) late in the run. Files share few programs, so this
+    costs little recompilation."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 settings.register_profile(

@@ -47,3 +47,19 @@ def write_reproduction(out_dir: Path, name: str, summary: dict, figures: list[st
     summary = {**summary, "figures": figures}
     (out_dir / f"{name}.json").write_text(json.dumps(to_builtin(summary), indent=2) + "\n")
     return summary
+
+
+def write_sweep_report(out_dir: Path, summary: dict, config: dict, result, figures: list[str], markdown) -> dict:
+    """Finish the ``summary`` of a sweep scenario and write it: the run's timing when the sweep ran in this call
+    (``result``, a :class:`jaxobs.sweep.SweepResult`, else ``None``), the ``config`` and the ``figures``' names go
+    in; ``out_dir/summary.json`` and ``out_dir/report.md`` (``markdown(summary)``) are written; returns it."""
+    if result is not None:
+        summary["seconds"] = result.seconds
+        summary["configs_per_second"] = result.configs_per_second
+        summary["chunks_computed"] = result.chunks_computed
+        summary["chunks_reused"] = result.chunks_reused
+    summary["config"] = config
+    summary["figures"] = figures
+    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
+    (out_dir / "report.md").write_text(markdown(summary))
+    return summary

@@ -11,7 +11,6 @@ stayed finite. ``jaxobs sweep --config tuning/dc_motor_hgo_sweep.toml``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -21,7 +20,7 @@ import numpy as np
 from jaxobs._config import check_at_least, check_choice, fail, merge
 from jaxobs.observers.hgo import hgo_gains
 from jaxobs.papers import grip2010_dc_motor as dc
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.sweep import load_results, run_configured_sweep
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
@@ -156,14 +155,7 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
         "median_rms_omega_error": table,
         "median_theta_hat_mean_by_alpha_0": theta,
     }
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-    summary["config"] = config
-    summary["figures"] = [_plot(table, g, out_dir)]
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    return write_sweep_report(out_dir, summary, config, result, [_plot(table, g, out_dir)], _markdown)
 
 
 def _plot(table: dict, grid: dict, out_dir: Path) -> str:

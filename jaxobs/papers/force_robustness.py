@@ -32,7 +32,7 @@ from jaxobs.lti import n_delay_slots
 from jaxobs.observers import active
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.observers.linear import linear_controller
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
 from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
@@ -328,7 +328,6 @@ def _worst_cases(cols: dict, orders) -> dict:
 
 def report(config: dict, out_dir: Path, result=None, designs: Designs | None = None) -> dict:
     """Write ``summary.json``, ``report.md`` and the figures for the sweep in ``out_dir``."""
-    import json
 
     cols = load_results(out_dir)
     orders = config["controllers"]["orders"]
@@ -337,22 +336,13 @@ def report(config: dict, out_dir: Path, result=None, designs: Designs | None = N
         "stable_fraction": float(cols["metric.stable"].mean()),
         "controllers": summarize(config, cols),
         "worst_cases": _worst_cases(cols, orders),
-        "config": config,
     }
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-        summary["chunks_computed"] = result.chunks_computed
-        summary["chunks_reused"] = result.chunks_reused
     figures = [
         _plot_stability_maps(cols, orders, out_dir),
         _plot_distributions(cols, orders, out_dir),
         _plot_worst_cases(config, designs or build_designs(config), summary["worst_cases"], out_dir),
     ]
-    summary["figures"] = figures
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    return write_sweep_report(out_dir, summary, config, result, figures, _markdown)
 
 
 def _plot_stability_maps(cols, orders, out_dir: Path) -> str:

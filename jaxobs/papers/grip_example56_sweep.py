@@ -14,7 +14,6 @@ tuning/grip_example56_sweep.toml``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -23,7 +22,7 @@ import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, fail, merge
 from jaxobs.papers import grip2010_adaptive as grip
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.sweep import load_results, run_configured_sweep
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
@@ -209,14 +208,7 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
             "K_phi": g["K_phi"][i], "Gamma": g["Gamma"][j], "median_mean_abs_theta_error": float(med[i, j]),
             "gradient_median_mean_abs_theta_error": float(np.median(t["gradient"]["mean"][0, 0, v])),
         }  # fmt: skip
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-    summary["config"] = config
-    summary["figures"] = [_plot(config, t, out_dir)]
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    return write_sweep_report(out_dir, summary, config, result, [_plot(config, t, out_dir)], _markdown)
 
 
 def _plot(config: dict, t: dict, out_dir: Path) -> str:

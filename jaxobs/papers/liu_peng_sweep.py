@@ -21,7 +21,6 @@ m, I_z, C_f, C_r has no meaning for them). ``jaxobs sweep --config tuning/liu_pe
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -31,7 +30,7 @@ import numpy as np
 from jaxobs._config import check_at_least, check_choice, check_range, merge
 from jaxobs.lti import c2d, ss
 from jaxobs.papers import liu_peng as lp
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.sweep import load_results, run_configured_sweep
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
@@ -209,14 +208,7 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
                 "best_fraction": float(np.mean(best == j)),
             }
         summary[f"{e}_rms"] = per_method
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-    summary["config"] = config
-    summary["figures"] = [_plot(errors, out_dir)]
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    return write_sweep_report(out_dir, summary, config, result, [_plot(errors, out_dir)], _markdown)
 
 
 def _plot(errors: dict, out_dir: Path) -> str:

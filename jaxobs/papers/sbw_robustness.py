@@ -22,7 +22,6 @@ evaluated program, so a sweep with another ``plants.count`` is a different sweep
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -36,7 +35,7 @@ from jaxobs.observers.base import LinearObserver
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.observers.linear import linear_controller
 from jaxobs.papers import steer_by_wire as sbw
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.sweep import config_key, load_results, run_configured_sweep
 
@@ -201,15 +200,8 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
         "steering_rms_rel": quantiles(cols["metric.steering_rms_rel"][stable]),
         "rack_rms_rel": quantiles(cols["metric.rack_rms_rel"][stable]),
         "rack_final_error_m": quantiles(cols["metric.rack_final_error"][stable]),
-        "config": config,
     }
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-    summary["figures"] = [_plot(cols, stable, largest, out_dir)]
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    return write_sweep_report(out_dir, summary, config, result, [_plot(cols, stable, largest, out_dir)], _markdown)
 
 
 def _plot(cols, stable, pct, out_dir: Path) -> str:
