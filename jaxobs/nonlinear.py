@@ -236,7 +236,8 @@ def gaussian_step(
         lin = linearize(model.h, x, P)
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
         R = model.R if lin.Omega is None else model.R + lin.Omega
-        result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)  # the correction of m_prior, error-state form
+        # the correction of m_prior, error-state form
+        result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)
         x, P = m_prior + result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation
