@@ -48,6 +48,7 @@ __all__ = [
     "forces",
     "dynamics",
     "steady_state",
+    "friction_model",
     "lateral_acceleration",
     "broadcast",
 ]
@@ -260,12 +261,19 @@ def steady_state(p: VehicleParams, vx, vy=0.0, r=0.0, steering_wheel=0.0, ax=0.0
     )
 
 
-def lateral_acceleration(p: VehicleParams, vx, vy, r, steering_wheel, omega, ax, ay, friction=1.0):
-    """The friction model's ``a_y`` (m/s^2) with steady-state (unrelaxed) slips and loads from the given ``ax``,
-    ``ay``: the ``a_y(v_y)`` of Grip 2010 §2.2 whose strict decrease in ``v_y`` the sideslip observer relies on."""
+def friction_model(p: VehicleParams, vx, vy, r, steering_wheel, omega, ax, ay, friction=1.0) -> Forces:
+    """The road-tyre friction model an observer evaluates (Grip 2010 §2.2, §2.8): the :class:`Forces` of the
+    velocities ``vx``, ``vy``, yaw rate ``r``, steering-wheel angle and wheel speeds ``omega`` (4,) with
+    steady-state (unrelaxed) slips and the normal loads of the given (measured) ``ax``, ``ay``."""
     v_l, v_s, _ = wheel_kinematics(p, vx, vy, r, steering_wheel)
     x = VehicleState(vx, vy, r, omega, -v_s / jnp.maximum(jnp.abs(v_l), MIN_SPEED), ax, ay)
-    return forces(p, x, Inputs(steering_wheel, jnp.zeros(4), friction=friction)).ay
+    return forces(p, x, Inputs(steering_wheel, jnp.zeros(4), friction=friction))
+
+
+def lateral_acceleration(p: VehicleParams, vx, vy, r, steering_wheel, omega, ax, ay, friction=1.0):
+    """The friction model's ``a_y`` (m/s^2, :func:`friction_model`): the ``a_y(v_y)`` of Grip 2010 §2.2 whose
+    strict decrease in ``v_y`` the sideslip observer relies on."""
+    return friction_model(p, vx, vy, r, steering_wheel, omega, ax, ay, friction).ay
 
 
 def broadcast(params, n: int):
