@@ -7,6 +7,7 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
 ``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
+``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
 
 Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
 ``vmap``; everything is pure and works under ``jit``, ``vmap`` and ``grad``. ``import jaxobs`` does not import
@@ -30,6 +31,7 @@ from jaxobs.vehicle.model import (
     steady_state,
     wheel_kinematics,
 )
+from jaxobs.vehicle.nvso import N_SENSORS, NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso, sensor_inputs
 from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements, SensorParams, low_pass, measure
 from jaxobs.vehicle.simulate import PLANT_STEP, Command, Manoeuvre, Trajectory, driver, simulate
 from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
@@ -67,4 +69,11 @@ __all__ = [
     "SensorParams",
     "low_pass",
     "measure",
+    "N_SENSORS",
+    "NVSOOutputs",
+    "NVSOParams",
+    "NVSOState",
+    "make_nvso",
+    "nvso",
+    "sensor_inputs",
 ]

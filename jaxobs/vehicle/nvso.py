@@ -23,23 +23,25 @@ Switching logic (§2.5), evaluated at every sample from the estimates and the he
 estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (``HP`` a high-pass of time constant
 ``high_pass_time``, 10 s) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear single
 track (``K_us = (1/c_f - 1/c_r) / g`` from the tyres' cornering stiffnesses per unit load, by autodiff) exceeds
-``yaw_rate_threshold``, or (ii) the car oversteers, ``r r_ref > 0`` and ``(|r| - |r_ref|) v_x >
-oversteer_threshold``; it turns off ``off_delay`` seconds after the last sample with (i) or (ii). The thesis's
+``yaw_rate_threshold``, or (ii) the car oversteers, ``r`` and ``r_ref`` of the same sign and ``(|r| - |r_ref|) v_x >
+oversteer_threshold``; it turns off ``off_delay`` seconds (rounded to whole samples) after the last sample with (i)
+or (ii). "Same sign" is ``r r_ref > (yaw_rate_threshold / 10)^2`` (a dead band: ``r_ref = 0`` has no sign). The thesis's
 third condition (the ESC system active) has no counterpart in the simulator. ``K_theta_b(t)`` is
 ``K_theta_b * theta_b_reduction`` when (1) ``|e| > c1``, (2) ``|r' - theta r'*| > c2`` (``r'`` by differencing the
-yaw rate, ``r'*`` the friction model's yaw acceleration) or (3) ``r r_ref > 0`` and ``(|r_ref| - |r|) v_x > c3``
+yaw rate, ``r'*`` the friction model's yaw acceleration) or (3) the same sign and ``(|r_ref| - |r|) v_x > c3``
 (§2.7). ``K_vx(t) = max(K_vx_min, K_vx / (1 + (s / wheel_spread)^2))`` with ``s`` the standard deviation of the four
 wheel-speed velocities (the thesis reduces the nominal gain by their variance; its algorithm is not published).
 These switches are the thesis's practical stand-in for its excitation condition (2.10), which involves the
 unknown errors.
 
 ``smooth``: ``None`` for the exact logic; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
-``sigmoid(k (x - c) / scale)`` (``scale = c``, or the squared yaw-rate threshold for the sign tests, or
-``min_speed``), so that gains and thresholds get gradients; the gates tend to the exact logic as ``k`` grows.
+``sigmoid(k (x - c) / scale)`` (``scale = c``, or ``min_speed`` for the standstill guard), so that gains and
+thresholds get gradients; the gates tend to the exact logic as ``k`` grows (away from ties ``x = c``).
 
 Standstill guard: below ``min_speed`` (default :data:`jaxobs.vehicle.MIN_SPEED`, 3 m/s) the slip angles carry no
 information: the ``a_y`` injections and the friction and bank adaptation are switched off, ``theta`` is drawn to
-``theta*`` and ``v_y`` decays to 0 at the rate ``K_vx``. Missing data: a non-finite sensor sample is replaced by the
+``theta*`` and ``v_y`` decays to 0 at the rate ``K_vx``; the sideslip output is ``arctan(v_y / max(v_x,
+min_speed))`` (finite, with finite gradients, at rest). Missing data: a non-finite sensor sample is replaced by the
 channel's last finite one (zero-order hold) and counted in ``state.missing``.
 
 Not modelled (documented departures from §2.8): the tyre-relaxation filter of the friction model, the caster
@@ -185,7 +187,7 @@ class NVSOState(NamedTuple):
 
 class NVSOOutputs(NamedTuple):
     x: jax.Array  # (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
+    beta: jax.Array  # () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
     mode: jax.Array  # () the mode used over the interval
     innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
     xi: jax.Array  # () d a_y* / d v_y (1/s)
@@ -267,7 +269,8 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     r_ref = vx * delta / (v.wheelbase + _understeer_gradient(v) * vx**2)
     vy_dot = ay - r * vx
     high_pass = vy_dot - state.low_pass
-    same_sign = _gate(params, r * r_ref, 0.0, params.yaw_rate_threshold**2)
+    dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
+    same_sign = _gate(params, r * r_ref, dead_band, dead_band)
     excited = _gate(params, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * _gate(
         params, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
     )
@@ -301,7 +304,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
 
     # the mode of the next interval: on while (i) or (ii) holds and off_delay after
     timer = (1.0 - on) * (state.off_timer + dt)
-    next_mode = _gate(params, params.off_delay - timer, 0.0, params.off_delay)
+    next_mode = _gate(params, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)  # no tie at k dt
     low_pass = state.low_pass + dt / params.high_pass_time * high_pass
 
     first = ~state.started
@@ -311,7 +314,8 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     timer = jnp.where(first, state.off_timer, timer)
     low_pass = jnp.where(first, y_now[_AY] / roll - y_now[_R] * y_now[_VREF], low_pass)  # HP starts at 0
     new_state = NVSOState(x, next_mode, timer, low_pass, y_now, jnp.ones((), bool), missing)
-    outputs = NVSOOutputs(x, jnp.arctan2(x[1], x[0]), mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
+    beta = jnp.arctan2(x[1], jnp.maximum(x[0], params.min_speed))
+    outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
     return new_state, outputs
 
 
