@@ -8,12 +8,14 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
 ``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
+``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
 
 Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
 ``vmap``; everything is pure and works under ``jit``, ``vmap`` and ``grad``. ``import jaxobs`` does not import
 this package.
 """
 
+from jaxobs.vehicle.ekf import VehicleEKFOutputs, VehicleEKFParams, VehicleEKFState, make_vehicle_ekf, vehicle_ekf
 from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
 from jaxobs.vehicle.model import (
     GRAVITY,
@@ -76,4 +78,9 @@ __all__ = [
     "make_nvso",
     "nvso",
     "sensor_inputs",
+    "VehicleEKFOutputs",
+    "VehicleEKFParams",
+    "VehicleEKFState",
+    "make_vehicle_ekf",
+    "vehicle_ekf",
 ]
