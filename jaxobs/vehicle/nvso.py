@@ -69,6 +69,8 @@ __all__ = [
     "NVSOOutputs",
     "make_nvso",
     "nvso",
+    "Switching",
+    "switching",
     "sensor_inputs",
 ]
 
@@ -223,6 +225,41 @@ def _understeer_gradient(vehicle: VehicleParams):
     return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY
 
 
+class Switching(NamedTuple):
+    """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
+    yaw rate with the "same sign" test it used."""
+
+    mode: jax.Array  # () 1: friction estimation on (a gate value when smooth)
+    off_timer: jax.Array  # () time since the conditions last held (s)
+    low_pass: jax.Array  # () the high-pass filter's low-pass state
+    r_ref: jax.Array  # () reference yaw rate of the linear single track (rad/s)
+    same_sign: jax.Array  # () r and r_ref of the same sign (outside the dead band)
+
+
+def switching(params: NVSOParams, off_timer, low_pass, vx, r, ay, steering_wheel) -> Switching:
+    """The friction-estimation switch of Grip 2010 §2.5 (module docstring), shared by the NVSO and the EKF baseline
+    of §2.9: from the timer and high-pass states of the last sample, the estimated ``vx``, the measured yaw rate
+    ``r``, roll-corrected ``ay`` and steering-wheel angle, with the thresholds (and ``smooth``) of ``params``."""
+    v, dt = params.vehicle, params.dt
+    delta = steering_wheel / v.steering_ratio
+    r_ref = vx * delta / (v.wheelbase + _understeer_gradient(v) * vx**2)
+    high_pass = ay - r * vx - low_pass
+    dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
+    same_sign = _gate(params, r * r_ref, dead_band, dead_band)
+    excited = _gate(params, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * _gate(
+        params, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
+    )
+    oversteer = same_sign * _gate(
+        params, (jnp.abs(r) - jnp.abs(r_ref)) * vx, params.oversteer_threshold, params.oversteer_threshold
+    )
+    on = _either(excited, oversteer)
+    # on while (i) or (ii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
+    timer = (1.0 - on) * (off_timer + dt)
+    mode = _gate(params, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)
+    low_pass = low_pass + dt / params.high_pass_time * high_pass
+    return Switching(mode, timer, low_pass, r_ref, same_sign)
+
+
 def _init(params: NVSOParams) -> NVSOState:
     dtype = jnp.result_type(params.vx0, params.theta_default, float)
     v = params.vehicle
@@ -266,18 +303,8 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     K_vx = jnp.maximum(params.K_vx_min, params.K_vx / (1.0 + (spread / params.wheel_spread) ** 2))
 
     # switching logic (§2.5) and the K_theta_b reductions (§2.7)
-    r_ref = vx * delta / (v.wheelbase + _understeer_gradient(v) * vx**2)
-    vy_dot = ay - r * vx
-    high_pass = vy_dot - state.low_pass
-    dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
-    same_sign = _gate(params, r * r_ref, dead_band, dead_band)
-    excited = _gate(params, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * _gate(
-        params, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
-    )
-    oversteer = same_sign * _gate(
-        params, (jnp.abs(r) - jnp.abs(r_ref)) * vx, params.oversteer_threshold, params.oversteer_threshold
-    )
-    on = _either(excited, oversteer)
+    switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw)
+    r_ref, same_sign = switch.r_ref, switch.same_sign
     yaw_acc = (y_now[_R] - r) / dt
     reduce = _either(
         _gate(params, jnp.abs(e), params.c1, params.c1),
@@ -302,10 +329,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     lower = jnp.maximum(params.theta_min, jnp.hypot(ax, ay) / (params.accel_margin * GRAVITY))
     x = x.at[2].set(jnp.clip(x[2], jnp.minimum(lower, params.theta_max), params.theta_max))
 
-    # the mode of the next interval: on while (i) or (ii) holds and off_delay after
-    timer = (1.0 - on) * (state.off_timer + dt)
-    next_mode = _gate(params, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)  # no tie at k dt
-    low_pass = state.low_pass + dt / params.high_pass_time * high_pass
+    next_mode, timer, low_pass = switch.mode, switch.off_timer, switch.low_pass
 
     first = ~state.started
     x0 = state.x.at[0].set(y_now[_VREF])
