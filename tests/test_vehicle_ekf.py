@@ -27,7 +27,8 @@ def lane_change():
 def test_sideslip_error_on_the_double_lane_change_and_bierman_equals_joseph(lane_change):
     """Peak sideslip 3.9 deg at 0.92 g: the EKF's sideslip error stays below 0.45 deg (measured 0.34 deg max, 0.15
     rms), the friction estimate within [0.9, 1.05] of the true 1 (measured 0.93 at its lowest), the bank within
-    0.15 deg of 0.5 deg at the end (measured 0.46); Bierman's U-D update gives the same estimates to 1e-9."""
+    0.15 deg of 0.5 deg at the end (measured 0.46); fast friction estimation (the NVSO's switching rule) is on for
+    part of the drive; Bierman's U-D update gives the same estimates to 1e-9."""
     meas, beta = lane_change
     inputs = sensor_inputs(meas)
     vx0 = float(meas.vx_ref[0])
@@ -37,6 +38,7 @@ def test_sideslip_error_on_the_double_lane_change_and_bierman_equals_joseph(lane
     assert np.abs(error).max() < 0.45
     assert 0.9 <= float(joseph.x[:, 4].min()) and float(joseph.x[:, 4].max()) <= 1.05
     assert abs(np.rad2deg(float(joseph.x[-1, 3])) - 0.5) < 0.15
+    assert 0.1 < float(joseph.mode.mean()) < 0.95
     np.testing.assert_allclose(bierman.x, joseph.x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(bierman.P, joseph.P, rtol=0, atol=1e-9)
 
@@ -65,5 +67,7 @@ def test_bad_settings_raise():
         make_vehicle_ekf(q_v=0.0)
     with pytest.raises(ValueError, match="vehicle must be a VehicleParams"):
         make_vehicle_ekf("car")
+    with pytest.raises(ValueError, match="switching must be NVSOParams"):
+        make_vehicle_ekf(switching={"off_delay": 0.5})
     with pytest.raises(ValueError, match="bierman must be a bool"):
         make_vehicle_ekf(bierman=1)
