@@ -16,9 +16,16 @@ sensor period (§2.9): ``x_k = x_{k-1} + dt f(x_{k-1}, u_{k-1})``, ``Q = dt diag
 
 Measurements (4,): ``a_x``, the roll-corrected ``a_y``, the yaw acceleration ``r'`` (the difference of two yaw-rate
 samples over ``dt``) and ``v_x,ref``; the model is the friction model (:func:`jaxobs.vehicle.friction_model`) at the
-estimated ``v_x``, ``v_y`` and friction ``mu`` (clipped to ``mu_bounds``), evaluated with the current steering
+estimated ``v_x``, ``v_y`` and friction ``mu``, evaluated with the current steering
 angle, wheel speeds, yaw rate and the loads of the measured accelerations (force and moment balances: ``a_x = F_x /
 m``, ``a_y = F_y / m``, ``r' = M / I_z``), and ``v_x`` for ``v_x,ref``.
+
+After each update the estimate of ``mu`` is projected onto ``[max(lo, |(a_x, a_y)| / (accel_margin g)), hi]``
+(``mu_bounds = (lo, hi)``, ``accel_margin`` of the switching params: the bounds the NVSO clips its friction estimate
+to, §2.8): below the acceleration bound the friction model cannot produce the measured acceleration, and outside
+``mu_bounds`` the friction model carries no information on ``mu`` and a large early
+innovation (e.g. from tyre relaxation, which the filter's steady-state friction model lacks) would otherwise leave
+``mu`` stranded there.
 
 Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:func:`jaxobs.vehicle.nvso.switching`,
 Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode 0
@@ -204,6 +211,12 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     Q = model.Q.at[7, 7].set(model.dt * q_mu)
     ekf = dataclasses.replace(params.ekf, model=dataclasses.replace(model, h=h, Q=Q))
     filt, out = extended_kalman_filter.step(ekf, state.filter, EstimatorInputs(y=z, u_prev=u_prev))
+    # projection onto [max(lo, |(a_x, a_y)| / (accel_margin g)), hi] (the NVSO's bounds, Grip 2010 §2.8)
+    lower = jnp.maximum(
+        params.mu_bounds[0], jnp.hypot(sensors[_AX], sensors[_AY] / roll) / (params.switching.accel_margin * GRAVITY)
+    )
+    x = out.x.at[4].set(jnp.clip(out.x[4], jnp.minimum(lower, params.mu_bounds[1]), params.mu_bounds[1]))
+    filt, out = filt._replace(x=x), out._replace(x=x)
     switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[_R], sensors[_AY] / roll,
                        sensors[_SW])  # fmt: skip
     first = ~state.filter.started
