@@ -155,6 +155,21 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
         raise ValueError(f"{name} must be a finite {bound} number, got {float(a)}")
 
 
+def positive(name: str, value, *, allow_zero: bool = False, what: str = "") -> None:
+    """Check that every entry of a concrete real array (any shape, e.g. a batch of parameters) is finite and
+    positive (or non-negative); skipped on tracers. ``what`` ends the message."""
+    if not is_concrete(value):
+        return
+    a = np.asarray(value)
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+        raise ValueError(f"{name} must be real, got {value!r}")
+    bad = ~np.isfinite(a) | ((a < 0) if allow_zero else (a <= 0))
+    if np.any(bad):
+        bound = "non-negative" if allow_zero else "positive"
+        hint = f" ({what})" if what else ""
+        raise ValueError(f"{name} must be finite and {bound}{hint}, got {a[bad].ravel()[0]!r}")
+
+
 def gain(name: str, value, size: int, dtype) -> jax.Array:
     """A gain as a (size, size) matrix: a positive scalar (times the identity) or a symmetric positive-definite
     matrix; ``ValueError`` naming ``name`` otherwise (values checked when concrete)."""

@@ -33,6 +33,8 @@ __all__ = [
     "Update",
     "predict",
     "update",
+    "bierman_update",
+    "ud_factor",
     "observed",
     "observed_model",
     "innovation_log_likelihood",
@@ -129,6 +131,89 @@ def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
             S_full = jnp.linalg.solve(jnp.eye(C.shape[-2], dtype=R.dtype) - C @ gain, R)
             S = symmetrize(S_full) * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
     ll = None if S is None else innovation_log_likelihood(innovation, S, jnp.sum(mask))
+    return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
+
+
+# --------------------------------------------------------------------------------------------
+# U-D factorised form: P = U diag(d) U', U unit upper triangular (Bierman 1977)
+
+
+def ud_factor(P):
+    """``(U, d)`` with ``P = U diag(d) U'`` for a symmetric positive semidefinite ``P`` (n, n): ``U`` unit upper
+    triangular, ``d`` (n,) >= 0 (Bierman 1977, §III.2, columns from the last). A zero pivot (a singular ``P``)
+    gives a zero column above the unit diagonal, so the product is still ``P``."""
+    n = P.shape[-1]
+    index = jnp.arange(n)
+
+    def column(k, carry):
+        A, U, d = carry
+        j = n - 1 - k
+        pivot = jnp.maximum(A[j, j], 0.0)
+        positive = pivot > 0
+        u = jnp.where((index < j) & positive, A[:, j] / jnp.where(positive, pivot, 1.0), 0.0)
+        A = A - pivot * jnp.outer(u, u)
+        return A, U.at[:, j].set(u.at[j].set(1.0)), d.at[j].set(pivot)
+
+    init = (symmetrize(P), jnp.zeros_like(P), jnp.zeros(P.shape[:-1], P.dtype))
+    _, U, d = jax.lax.fori_loop(0, n, column, init)
+    return U, d
+
+
+def _bierman_scalar(U, d, h, r):
+    """Bierman's update of ``(U, d)`` with one scalar measurement ``z = h x + v``, ``var v = r > 0``: returns
+    ``(U, d, k, alpha)`` with the gain ``k`` (n,) and the innovation variance ``alpha = h P h' + r``. Every new
+    ``d_j = d_j alpha_{j-1} / alpha_j`` with ``0 < alpha_{j-1} <= alpha_j``, so the factors stay positive
+    semidefinite however small ``r`` is."""
+    n = d.shape[-1]
+    index = jnp.arange(n)
+    f = U.T @ h
+    v = d * f
+
+    def column(j, carry):
+        U, d, b, alpha = carry
+        new_alpha = alpha + f[j] * v[j]
+        above = index < j
+        u_old = U[:, j]
+        U = U.at[:, j].set(jnp.where(above, u_old - (f[j] / alpha) * b, u_old))
+        b = jnp.where(above, b + u_old * v[j], b).at[j].set(v[j])
+        return U, d.at[j].set(d[j] * alpha / new_alpha), b, new_alpha
+
+    U, d, b, alpha = jax.lax.fori_loop(0, n, column, (U, d, jnp.zeros_like(v), r))
+    return U, d, b / alpha, alpha
+
+
+def bierman_update(x_prior, P_prior, C, R, y) -> Update:
+    """:func:`update` by Bierman's U-D algorithm (Bierman 1977; the EKF of Grip 2010 §2.9 uses it): the same
+    :class:`Update` fields, equal to the Joseph form in exact arithmetic.
+
+    ``P_prior`` is factorised as ``U diag(d) U'`` (:func:`ud_factor`), the measurement is whitened with the
+    Cholesky factor ``L`` of ``R`` (``L^{-1} y = L^{-1} C x + e``, ``var e = I``; missing components removed as in
+    :func:`update`) and its components are processed one at a time, each a scalar update of ``(U, d)`` that keeps
+    ``d >= 0``: the a-posteriori covariance ``U diag(d) U'`` stays positive semidefinite as ``R -> 0``, where the
+    standard form ``(I - K C) P_prior`` loses definiteness in floating point. The reported gain is that of the
+    whole sequence, ``x = x_prior + K (y - C x_prior)``. Shapes as in :func:`update` (``R`` (p, p) positive
+    definite).
+    """
+    mask, y_observed = observed(y, x_prior.dtype)
+    innovation = (y_observed - C @ x_prior) * mask
+    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
+    C_o, R_o = observed_model(C, R, mask)
+    L = jnp.linalg.cholesky(symmetrize(R_o))
+    H = solve_triangular(L, C_o, lower=True)  # whitened rows, unit variances
+    p, n = C.shape[-2], x_prior.shape[-1]
+    U, d = ud_factor(P_prior)
+
+    def scalar(carry, i):
+        U, d, G = carry  # G: the correction so far, G e, for the whitened innovations e
+        U, d, k, _ = _bierman_scalar(U, d, H[i], jnp.ones((), x_prior.dtype))
+        G = G - jnp.outer(k, H[i] @ G) + jnp.outer(k, jnp.eye(p, dtype=G.dtype)[i])
+        return (U, d, G), None
+
+    (U, d, G), _ = jax.lax.scan(scalar, (U, d, jnp.zeros((n, p), x_prior.dtype)), jnp.arange(p))
+    K = solve_triangular(L, G.T, lower=True, trans=1).T  # G L^{-1}
+    S = symmetrize(C_o @ P_prior @ C_o.T + R_o)
+    ll = innovation_log_likelihood(innovation, S, jnp.sum(mask))
+    P = symmetrize((U * d) @ U.T)
     return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
 
 

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import update
+from jaxobs.kalman_steps import bierman_update, update
 from jaxobs.riccati import predict_covariance, symmetrize
 
 __all__ = [
@@ -210,11 +210,15 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
     return m, symmetrize(P)
 
 
-def gaussian_step(linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs):
+def gaussian_step(
+    linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *, bierman: bool = False
+):
     """One step of the Gaussian filter with ``linearize`` (the equations of this module).
 
     Args:
       linearize: ``(g, m, P) -> Linearization``.  iterations: static number of updates (1: no iteration).
+      bierman: static; the measurement update by Bierman's U-D algorithm
+        (:func:`jaxobs.kalman_steps.bierman_update`) instead of the Joseph form.
       model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
@@ -232,7 +236,8 @@ def gaussian_step(linearize: Linearize, iterations: int, model: NonlinearModel, 
         lin = linearize(model.h, x, P)
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
         R = model.R if lin.Omega is None else model.R + lin.Omega
-        result = update(zero, P_prior, lin.G, R, y - h_bar)  # the correction of m_prior, error-state form
+        # the correction of m_prior, error-state form
+        result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)
         x, P = m_prior + result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation

@@ -44,10 +44,13 @@ def test_equals_dynamax_ekf(make_problem, monkeypatch):
     assert np.sqrt(np.mean((out.x[-30:] - problem.x[-30:]) ** 2)) < 0.5
 
 
-def test_linear_model_equals_the_kalman_filter():
-    """On a linear model the EKF is the Kalman filter, missing components included (to rounding)."""
+@pytest.mark.parametrize("bierman", [False, True], ids=["joseph", "bierman"])
+def test_linear_model_equals_the_kalman_filter(bierman):
+    """On a linear model the EKF is the Kalman filter, missing components included (to rounding), with the Joseph
+    and with Bierman's U-D measurement update."""
     problem, A, B, C = linear_problem()
-    state, out = jo.run(jo.extended_kalman_filter, jo.make_ekf(problem.model()), problem.inputs())
+    params = jo.make_ekf(problem.model(), bierman=bierman)
+    state, out = jo.run(jo.extended_kalman_filter, params, problem.inputs())
     kf = jo.make_kalman(A, C, problem.Q, problem.R, Gamma=B, x0=problem.x0, P0=problem.P0)
     kf_state, kf_out = jo.run(jo.kalman_filter, kf, problem.inputs())
     for name in ("x", "x_prior", "innovation", "gain"):
@@ -211,6 +214,8 @@ def test_bad_inputs_raise_naming_the_argument():
     model = problem.model()
     with pytest.raises(ValueError, match="iterations must be an integer >= 1"):
         jo.make_ekf(model, iterations=0)
+    with pytest.raises(ValueError, match="bierman must be a bool"):
+        jo.make_ekf(model, bierman="yes")
     with pytest.raises(ValueError, match="model must be a NonlinearModel"):
         jo.make_ekf(problem)
     params = jo.make_ekf(model)

@@ -7,7 +7,9 @@ is replaced by its first-order Taylor series around the current mean, the Jacobi
     F = df/dx (x_hat_{k-1}, u_{k-1}, t_{k-1}),   x_prior = f(x_hat_{k-1}, u_{k-1}, t_{k-1}),   P_prior = F P F' + Q
     H = dh/dx (x_prior),   K = P_prior H' (H P_prior H' + R)^{-1},   x_hat_k = x_prior + K (y_k - h(x_prior))
 
-and ``P_k`` by the Joseph form (:mod:`jaxobs.kalman_steps`). Continuous-discrete (``model.continuous``): the
+and ``P_k`` by the Joseph form (:mod:`jaxobs.kalman_steps`), or with ``bierman=True`` by Bierman's U-D update
+(:func:`jaxobs.kalman_steps.bierman_update`: scalar components in sequence, the covariance factors kept positive
+semidefinite as ``R -> 0``; Grip 2010 §2.9). Continuous-discrete (``model.continuous``): the
 mean and the covariance follow ``dm/dt = f(m, u, t)``, ``dP/dt = F P + P F' + Q`` over each sample, integrated by
 :mod:`jaxobs.ct`. ``iterations > 1``: the Gauss-Newton iterated update (Bell & Cathey 1993) relinearises ``h``
 around the latest estimate, ``x_{i+1} = x_prior + K_i (y_k - h(x_i) - H_i (x_prior - x_i))``.
@@ -39,18 +41,22 @@ class EKFParams:
     Attributes:
       model: the :class:`~jaxobs.nonlinear.NonlinearModel`.
       iterations: static number of Gauss-Newton updates per sample (1: the plain EKF).
+      bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
     """
 
     model: NonlinearModel
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
+    bierman: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
-def make_ekf(model: NonlinearModel, *, iterations: int = 1) -> EKFParams:
+def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False) -> EKFParams:
     """The extended Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
 
     Args:
       model: a :class:`~jaxobs.nonlinear.NonlinearModel`, discrete or continuous.
       iterations: number of Gauss-Newton updates per sample (an integer >= 1; 1 is the plain EKF).
+      bierman: use Bierman's U-D measurement update (:func:`jaxobs.kalman_steps.bierman_update`); equal to the
+        default Joseph form in exact arithmetic, positive semidefinite as ``R -> 0``.
 
     Example:
       >>> import jax.numpy as jnp
@@ -64,7 +70,9 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1) -> EKFParams:
     if not isinstance(model, NonlinearModel):
         raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
-    return EKFParams(model, iterations)
+    if not isinstance(bierman, bool):
+        raise ValueError(f"bierman must be a bool, got {bierman!r}")
+    return EKFParams(model, iterations, bierman)
 
 
 def taylor(g, m, P) -> Linearization:
@@ -81,7 +89,7 @@ def taylor(g, m, P) -> Linearization:
 
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
-    return gaussian_step(taylor, params.iterations, params.model, state, inputs)
+    return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman)
 
 
 extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)

@@ -1,0 +1,86 @@
+"""A planar vehicle simulator for the sideslip observers of Grip 2010 (ch. 2-4): tyres, a two-track model,
+ESC-type sensors and manoeuvres modelled on the thesis's test drives.
+
+``tyres``: Magic Formula and Burckhardt tyre curves with combined slip in the friction ellipse.
+``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
+:func:`lateral_acceleration`).
+``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
+``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
+``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
+``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
+``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
+
+Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
+``vmap``; everything is pure and works under ``jit``, ``vmap`` and ``grad``. ``import jaxobs`` does not import
+this package.
+"""
+
+from jaxobs.vehicle.ekf import VehicleEKFOutputs, VehicleEKFParams, VehicleEKFState, make_vehicle_ekf, vehicle_ekf
+from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
+from jaxobs.vehicle.model import (
+    GRAVITY,
+    MIN_SPEED,
+    Forces,
+    Inputs,
+    VehicleParams,
+    VehicleState,
+    broadcast,
+    dynamics,
+    forces,
+    friction_model,
+    lateral_acceleration,
+    normal_loads,
+    steady_state,
+    wheel_kinematics,
+)
+from jaxobs.vehicle.nvso import N_SENSORS, NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso, sensor_inputs
+from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements, SensorParams, low_pass, measure
+from jaxobs.vehicle.simulate import PLANT_STEP, Command, Manoeuvre, Trajectory, driver, simulate
+from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
+
+__all__ = [
+    "BURCKHARDT_SURFACES",
+    "BurckhardtTyre",
+    "TyreParams",
+    "pure_force",
+    "tyre_forces",
+    "GRAVITY",
+    "MIN_SPEED",
+    "Forces",
+    "Inputs",
+    "VehicleParams",
+    "VehicleState",
+    "broadcast",
+    "dynamics",
+    "forces",
+    "friction_model",
+    "lateral_acceleration",
+    "normal_loads",
+    "steady_state",
+    "wheel_kinematics",
+    "PLANT_STEP",
+    "Command",
+    "Manoeuvre",
+    "Trajectory",
+    "driver",
+    "simulate",
+    "MANOEUVRES",
+    "manoeuvre",
+    "SENSOR_RATE",
+    "Measurements",
+    "SensorParams",
+    "low_pass",
+    "measure",
+    "N_SENSORS",
+    "NVSOOutputs",
+    "NVSOParams",
+    "NVSOState",
+    "make_nvso",
+    "nvso",
+    "sensor_inputs",
+    "VehicleEKFOutputs",
+    "VehicleEKFParams",
+    "VehicleEKFState",
+    "make_vehicle_ekf",
+    "vehicle_ekf",
+]

@@ -1,0 +1,235 @@
+"""The extended Kalman filter baseline of Grip 2010 §2.9 for vehicle sideslip, on the toolkit's EKF
+(:mod:`jaxobs.observers.ekf`), with Bierman's U-D measurement update as an option.
+
+State (8,): ``v_x``, ``v_y`` (m/s), the inclination ``theta_i = sin(Theta)``, the bank ``theta_b = cos(Theta)
+sin(Phi)``, the road friction ``mu`` (the scale of the tyres' peak friction, 1 = their own) and the time
+derivatives ``d_i``, ``d_b``, ``d_mu`` of the last three, each a first-order filtered white noise (§2.9: "the
+derivatives of mu_H, inclination and bank are modelled as filtered white noise")::
+
+    v_x' = a_x + r v_y + g theta_i,    v_y' = a_y - r v_x - g theta_b                     (2.11)-(2.12)
+    theta_i' = d_i,  theta_b' = d_b,  mu' = d_mu,    d' = -d / tau + w,   var w = q_d^2
+
+with the measured ``a_x``, the roll-corrected ``a_y`` and the yaw rate ``r`` of the previous sample as known inputs
+(the yaw rate as a known time-varying signal makes the process model linear time-varying, as in the thesis), and
+white process noise ``q_v`` (m/s^2) on the two velocity equations (the accelerometer noise). Forward Euler at the
+sensor period (§2.9): ``x_k = x_{k-1} + dt f(x_{k-1}, u_{k-1})``, ``Q = dt diag(q_v^2, q_v^2, 0, 0, 0, q_d^2)``.
+
+Measurements (4,): ``a_x``, the roll-corrected ``a_y``, the yaw acceleration ``r'`` (the difference of two yaw-rate
+samples over ``dt``) and ``v_x,ref``; the model is the friction model (:func:`jaxobs.vehicle.friction_model`) at the
+estimated ``v_x``, ``v_y`` and friction ``mu``, evaluated with the current steering
+angle, wheel speeds, yaw rate and the loads of the measured accelerations (force and moment balances: ``a_x = F_x /
+m``, ``a_y = F_y / m``, ``r' = M / I_z``), and ``v_x`` for ``v_x,ref``.
+
+After each update the estimate of ``mu`` is projected onto ``[max(lo, |(a_x, a_y)| / (accel_margin g)), hi]``
+(``mu_bounds = (lo, hi)``, ``accel_margin`` of the switching params: the bounds the NVSO clips its friction estimate
+to, §2.8): below the acceleration bound the friction model cannot produce the measured acceleration, and outside
+``mu_bounds`` the friction model carries no information on ``mu`` and a large early
+innovation (e.g. from tyre relaxation, which the filter's steady-state friction model lacks) would otherwise leave
+``mu`` stranded there.
+
+Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:func:`jaxobs.vehicle.nvso.switching`,
+Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode 0
+and ``q_mu_fast`` in mode 1 (blended by a smooth gate when the switching params are ``smooth``).
+
+Assumptions (the thesis gives no numbers): the noise intensities, the thresholds and the prior are assumed
+defaults (:func:`make_vehicle_ekf`). Missing data: a non-finite sensor sample is
+held at the channel's last finite value in the model and the measurements built from it are skipped by the EKF;
+both are counted (``state.missing`` counts the non-finite sensor entries).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.tree_util import Partial
+
+from jaxobs import _checks
+from jaxobs.nonlinear import GaussianState, nonlinear_model
+from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.ekf import EKFParams, extended_kalman_filter, make_ekf
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
+from jaxobs.vehicle.nvso import N_SENSORS, NVSOParams, make_nvso, switching
+from jaxobs.vehicle.sensors import SENSOR_RATE
+
+__all__ = ["VehicleEKFParams", "VehicleEKFState", "VehicleEKFOutputs", "make_vehicle_ekf", "vehicle_ekf"]
+
+_AX, _AY, _R, _SW, _OMEGA, _VREF = 0, 1, 2, 3, slice(4, 8), 8
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class VehicleEKFParams:
+    """The vehicle EKF; build with :func:`make_vehicle_ekf`.
+
+    Attributes:
+      vehicle: the :class:`~jaxobs.vehicle.VehicleParams` of the friction model.
+      ekf: the :class:`~jaxobs.observers.ekf.EKFParams` of the state-space model (its measurement function is
+        rebound to the current sensors at every step); ``ekf.bierman`` selects Bierman's update.
+      mu_bounds: (2,) the range of ``mu`` the friction model is evaluated at.
+      switching: the :class:`~jaxobs.vehicle.NVSOParams` whose switching thresholds (and ``smooth``) select slow or
+        fast friction estimation.
+      q_mu: (2,) the intensities of the noise that drives ``d_mu`` in slow and fast friction estimation.
+    """
+
+    vehicle: VehicleParams
+    ekf: EKFParams
+    mu_bounds: jax.Array
+    switching: NVSOParams
+    q_mu: jax.Array
+
+
+class VehicleEKFState(NamedTuple):
+    filter: GaussianState  # the EKF's state
+    mode: jax.Array  # () fast friction estimation (1) or slow (0), for the next interval
+    off_timer: jax.Array  # () the switching logic's timer (s)
+    low_pass: jax.Array  # () its high-pass filter's state
+    sensors: jax.Array  # (N_SENSORS,) last finite sensor sample
+    missing: jax.Array  # () int32, non-finite sensor entries so far
+
+
+class VehicleEKFOutputs(NamedTuple):
+    x: jax.Array  # (8,) a-posteriori state (v_x, v_y, theta_i, theta_b, mu, d_i, d_b, d_mu)
+    P: jax.Array  # (8, 8) its covariance
+    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
+    mode: jax.Array  # () the friction-estimation mode of the interval (1 fast)
+    innovation: jax.Array  # (4,) (a_x, a_y, r', v_x,ref) minus the model at the prior (0 where skipped)
+
+
+def _process(constants, x, u, t):
+    """The Euler map ``x + dt f(x, u)`` of the process model (module docstring); ``constants = (dt, tau)``."""
+    dt, tau = constants
+    ax, ay, r = u
+    vx, vy, _, _, _, d_i, d_b, d_mu = x
+    rate = jnp.stack([ax + r * vy + GRAVITY * x[2], ay - r * vx - GRAVITY * x[3], d_i, d_b, d_mu,
+                      -d_i / tau, -d_b / tau, -d_mu / tau])  # fmt: skip
+    return x + dt * rate
+
+
+def _measurement(vehicle, mu_bounds, sensors, x):
+    """``(a_x, a_y, r', v_x)`` of the friction model at the state ``x`` and the current ``sensors``."""
+    ax, ay = sensors[_AX], sensors[_AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
+    mu = jnp.clip(x[4], mu_bounds[0], mu_bounds[1])
+    f = friction_model(vehicle, x[0], x[1], sensors[_R], sensors[_SW], sensors[_OMEGA], ax, ay, mu)
+    return jnp.stack([f.ax, f.ay, f.yaw_moment / vehicle.yaw_inertia, x[0]])
+
+
+def make_vehicle_ekf(
+    vehicle: VehicleParams | None = None,
+    *,
+    bierman: bool = False,
+    q_v: float = 0.3,
+    q_d=(0.005, 0.005),
+    q_mu=(0.005, 0.1),
+    tau: float = 1.0,
+    r_std=(0.3, 0.3, 0.3, 0.1),
+    vx0: float = 20.0,
+    P0_diag=(1.0, 1.0, 1e-3, 1e-3, 0.05, 1e-5, 1e-5, 1e-3),
+    mu0: float = 1.0,
+    mu_bounds=(0.05, 1.5),
+    dt: float = 1.0 / SENSOR_RATE,
+    switching: NVSOParams | None = None,
+) -> VehicleEKFParams:
+    """The EKF of Grip 2010 §2.9 for ``vehicle`` (default :class:`~jaxobs.vehicle.VehicleParams`).
+
+    Args:
+      vehicle: the vehicle whose friction model the filter uses.
+      bierman: Bierman's U-D measurement update (:func:`jaxobs.kalman_steps.bierman_update`) instead of Joseph.
+      q_v: process noise of the velocity equations (m/s^2, > 0).  q_d: (2,) intensities of the white noises that
+        drive ``d_i``, ``d_b`` (> 0).  q_mu: (2,) that of ``d_mu`` in slow and in fast friction estimation (> 0).
+        tau: the noise filters' time constant (s, > 0).
+      r_std: (4,) measurement standard deviations of ``a_x``, ``a_y`` (m/s^2), ``r'`` (rad/s^2), ``v_x,ref``
+        (m/s) (> 0; they include the friction model's error).
+      vx0: prior mean of ``v_x`` (m/s); the other means are 0 and ``mu0``.  P0_diag: (8,) prior variances (>= 0).
+      mu_bounds: (lo, hi) with ``0 < lo < hi``: the friction range the model is evaluated at.
+      dt: sample period (s, > 0).
+      switching: the :class:`~jaxobs.vehicle.NVSOParams` of the switching rule (default ``make_nvso(vehicle)``;
+        its ``dt`` must be this ``dt``).
+
+    Example:
+      >>> from jaxobs.vehicle.ekf import make_vehicle_ekf
+      >>> params = make_vehicle_ekf(bierman=True)
+      >>> params.ekf.bierman, params.ekf.model.x0.shape
+      (True, (8,))
+    """
+    vehicle = VehicleParams() if vehicle is None else vehicle
+    if not isinstance(vehicle, VehicleParams):
+        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    vehicle.validate()
+    for name, value in (("q_v", q_v), ("q_d", q_d), ("q_mu", q_mu), ("tau", tau), ("r_std", r_std), ("dt", dt)):
+        _checks.positive(name, value)
+    _checks.positive("P0_diag", P0_diag, allow_zero=True)
+    _checks.positive("mu0", mu0)
+    q_d, r_std, P0_diag = jnp.asarray(q_d, float), jnp.asarray(r_std, float), jnp.asarray(P0_diag, float)
+    _checks.shape("q_d", q_d, (2,), "one intensity per angle derivative")
+    q_mu = jnp.asarray(q_mu, float)
+    _checks.shape("q_mu", q_mu, (2,), "(slow, fast)")
+    switching = make_nvso(vehicle, dt=dt) if switching is None else switching
+    if not isinstance(switching, NVSOParams):
+        raise ValueError(f"switching must be NVSOParams (jaxobs.vehicle.make_nvso), got {type(switching).__name__}")
+    _checks.shape("r_std", r_std, (4,), "one per measurement (a_x, a_y, r', v_x,ref)")
+    _checks.shape("P0_diag", P0_diag, (8,), "one variance per state")
+    mu_bounds = jnp.asarray(mu_bounds, float)
+    _checks.shape("mu_bounds", mu_bounds, (2,), "(lo, hi)")
+    _checks.positive("mu_bounds", mu_bounds)
+    if _checks.is_concrete(mu_bounds) and not bool(mu_bounds[0] < mu_bounds[1]):
+        raise ValueError(f"mu_bounds must have lo < hi, got {mu_bounds.tolist()}")
+    Q = dt * jnp.diag(jnp.concatenate([jnp.full(2, q_v**2), jnp.zeros(3), q_d**2, q_mu[:1] ** 2]))
+    x0 = jnp.zeros(8).at[0].set(vx0).at[4].set(mu0)
+    f = Partial(_process, (jnp.asarray(dt, float), jnp.asarray(tau, float)))
+    h = Partial(_measurement, vehicle, mu_bounds, jnp.zeros(N_SENSORS))
+    model = nonlinear_model(f, h, Q, jnp.diag(r_std**2), x0=x0, P0=jnp.diag(P0_diag), n_inputs=3, dt=dt)
+    return VehicleEKFParams(vehicle, make_ekf(model, bierman=bierman), mu_bounds, switching, q_mu)
+
+
+def _init(params: VehicleEKFParams) -> VehicleEKFState:
+    model = params.ekf.model
+    sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[_VREF].set(model.x0[0])
+    sensors = sensors.at[_OMEGA].set(model.x0[0] / params.vehicle.wheel_radius)
+    zero = jnp.zeros((), model.x0.dtype)
+    timer = jnp.asarray(params.switching.off_delay, model.x0.dtype)
+    return VehicleEKFState(extended_kalman_filter.init(params.ekf), zero, timer, zero, sensors,
+                           jnp.zeros((), jnp.int32))  # fmt: skip
+
+
+def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInputs):
+    model, vehicle = params.ekf.model, params.vehicle
+    dtype = model.x0.dtype
+    y = _checks.vector("inputs.y", inputs.y, N_SENSORS, dtype, what="the vehicle's sensors", check_finite=False)
+    finite = jnp.isfinite(y)
+    sensors = jnp.where(finite, y, state.sensors)
+    previous = state.sensors
+    roll = 1.0 + vehicle.roll_gradient * GRAVITY
+    u_prev = jnp.stack([previous[_AX], previous[_AY] / roll, previous[_R]])
+    # r' needs two finite yaw-rate samples; NaN (skipped by the EKF) otherwise and at the first sample
+    yaw_acc = jnp.where(state.filter.started & finite[_R], (y[_R] - previous[_R]) / model.dt, jnp.nan)
+    z = jnp.stack([y[_AX], y[_AY] / roll, yaw_acc, y[_VREF]])
+    h = Partial(_measurement, vehicle, params.mu_bounds, sensors)
+    q_mu = (1.0 - state.mode) * params.q_mu[0] ** 2 + state.mode * params.q_mu[1] ** 2
+    Q = model.Q.at[7, 7].set(model.dt * q_mu)
+    ekf = dataclasses.replace(params.ekf, model=dataclasses.replace(model, h=h, Q=Q))
+    filt, out = extended_kalman_filter.step(ekf, state.filter, EstimatorInputs(y=z, u_prev=u_prev))
+    # projection onto [max(lo, |(a_x, a_y)| / (accel_margin g)), hi] (the NVSO's bounds, Grip 2010 §2.8)
+    lower = jnp.maximum(
+        params.mu_bounds[0], jnp.hypot(sensors[_AX], sensors[_AY] / roll) / (params.switching.accel_margin * GRAVITY)
+    )
+    x = out.x.at[4].set(jnp.clip(out.x[4], jnp.minimum(lower, params.mu_bounds[1]), params.mu_bounds[1]))
+    filt, out = filt._replace(x=x), out._replace(x=x)
+    switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[_R], sensors[_AY] / roll,
+                       sensors[_SW])  # fmt: skip
+    first = ~state.filter.started
+    mode = jnp.where(first, state.mode, switch.mode)
+    timer = jnp.where(first, state.off_timer, switch.off_timer)
+    low_pass = jnp.where(first, sensors[_AY] / roll - sensors[_R] * out.x[0], switch.low_pass)  # HP starts at 0
+    missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
+    beta = jnp.arctan2(out.x[1], out.x[0])
+    new_state = VehicleEKFState(filt, mode, timer, low_pass, sensors, missing)
+    return new_state, VehicleEKFOutputs(out.x, out.P, beta, state.mode, out.innovation)
+
+
+vehicle_ekf = Estimator(_init, _step)
+"""The vehicle EKF (module docstring) as an :class:`~jaxobs.observers.base.Estimator` over
+:class:`VehicleEKFParams`. Inputs: ``EstimatorInputs(y)`` with the sensors ``y`` (:data:`jaxobs.vehicle.N_SENSORS`,)
+(:func:`jaxobs.vehicle.sensor_inputs`). State: :class:`VehicleEKFState`. Outputs: :class:`VehicleEKFOutputs`."""

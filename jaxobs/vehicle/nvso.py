@@ -1,0 +1,350 @@
+"""The nonlinear vehicle sideslip observer (NVSO) of Grip 2010 ch. 2 (Grip, Imsland, Johansen, Kalkkuhl & Suissa
+2009), run on the ESC sensors of :mod:`jaxobs.vehicle.sensors` as an :class:`~jaxobs.observers.base.Estimator`.
+
+States ``v_x``, ``v_y`` (m/s), the friction scale ``theta`` (``a_y = theta a_y*``, Grip 2010 §2.4), the inclination
+``theta_i = sin(Theta)`` and the bank ``theta_b = cos(Theta) sin(Phi)``. With the residual ``e = a_y - theta a_y*``,
+``a_y*`` the friction model (:func:`jaxobs.vehicle.friction_model`) at the nominal friction ``mu_H* = 1`` (the
+tyres' own), ``xi = d a_y* / d v_y`` (forward-mode autodiff) and ``Lambda = (xi^2 + a_y*^2)^(-1/2)``, the two
+modes are (2.18)-(2.27)::
+
+    v_x'     = a_x + r v_y + g theta_i + K_vx(t) (v_x,ref - v_x)                     (2.18), (2.23)
+    v_y'     = a_y - r v_x - g theta_b - K_vy e           | + K_vy Lambda xi e        (2.19) | (2.24)
+    theta'   = K_e (theta* - theta)                     | K_theta Lambda a_y* e       (2.20) | (2.25)
+    theta_i' = K_theta_i K_vx(t) (v_x,ref - v_x)         (K_theta_i_on in mode 2)     (2.21), (2.26)
+    theta_b' = K_theta_b(t) e                            | -K_theta_b(t) Lambda xi e  (2.22) | (2.27)
+
+mode 1 (friction estimation off) left, mode 2 (on) right; the right-hand side is ``(1 - m) f_1 + m f_2`` with the
+mode ``m``. Discretised by forward Euler at the sensor period (Grip 2010 §2.8): step ``k`` integrates over
+``[t_{k-1}, t_k]`` with the measurement ``y_{k-1}`` held and outputs the estimate at ``t_k`` (the first step outputs
+the initial estimate with ``v_x = v_x,ref``); ``theta`` is then clipped to ``[max(theta_min, |(a_x, a_y)| /
+(accel_margin g)), theta_max]`` (§2.8: the clip bounds and ``1.2 g theta >= |(a_x, a_y)|``).
+
+Switching logic (§2.5), evaluated at every sample from the estimates and the held measurements: friction
+estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (``HP`` a high-pass of time constant
+``high_pass_time``, 10 s) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear single
+track (``K_us = (1/c_f - 1/c_r) / g`` from the tyres' cornering stiffnesses per unit load, by autodiff) exceeds
+``yaw_rate_threshold``, or (ii) the car oversteers, ``r`` and ``r_ref`` of the same sign and ``(|r| - |r_ref|) v_x >
+oversteer_threshold``; it turns off ``off_delay`` seconds (rounded to whole samples) after the last sample with (i)
+or (ii). "Same sign" is ``r r_ref > (yaw_rate_threshold / 10)^2`` (a dead band: ``r_ref = 0`` has no sign). The thesis's
+third condition (the ESC system active) has no counterpart in the simulator. ``K_theta_b(t)`` is
+``K_theta_b * theta_b_reduction`` when (1) ``|e| > c1``, (2) ``|r' - theta r'*| > c2`` (``r'`` by differencing the
+yaw rate, ``r'*`` the friction model's yaw acceleration) or (3) the same sign and ``(|r_ref| - |r|) v_x > c3``
+(§2.7). ``K_vx(t) = max(K_vx_min, K_vx / (1 + (s / wheel_spread)^2))`` with ``s`` the standard deviation of the four
+wheel-speed velocities (the thesis reduces the nominal gain by their variance; its algorithm is not published).
+These switches are the thesis's practical stand-in for its excitation condition (2.10), which involves the
+unknown errors.
+
+``smooth``: ``None`` for the exact logic; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
+``sigmoid(k (x - c) / scale)`` (``scale = c``, or ``min_speed`` for the standstill guard), so that gains and
+thresholds get gradients; the gates tend to the exact logic as ``k`` grows (away from ties ``x = c``).
+
+Standstill guard: below ``min_speed`` (default :data:`jaxobs.vehicle.MIN_SPEED`, 3 m/s) the slip angles carry no
+information: the ``a_y`` injections and the friction and bank adaptation are switched off, ``theta`` is drawn to
+``theta*`` and ``v_y`` decays to 0 at the rate ``K_vx``; the sideslip output is ``arctan(v_y / max(v_x,
+min_speed))`` (finite, with finite gradients, at rest). Missing data: a non-finite sensor sample is replaced by the
+channel's last finite one (zero-order hold) and counted in ``state.missing``.
+
+Not modelled (documented departures from §2.8): the tyre-relaxation filter of the friction model, the caster
+correction of the steering angle and the roll-dependent wheel loads beyond those from the measured ``a_x``,
+``a_y``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks
+from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.vehicle.model import GRAVITY, MIN_SPEED, VehicleParams, friction_model
+from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements
+from jaxobs.vehicle.tyres import pure_force
+
+__all__ = [
+    "N_SENSORS",
+    "NVSOParams",
+    "NVSOState",
+    "NVSOOutputs",
+    "make_nvso",
+    "nvso",
+    "Switching",
+    "switching",
+    "sensor_inputs",
+]
+
+N_SENSORS = 9
+"""Entries of the NVSO's measurement vector: ``a_x``, ``a_y``, yaw rate, steering-wheel angle, the four wheel
+speeds (FL, FR, RL, RR) and ``v_x,ref`` (:func:`sensor_inputs`)."""
+_AX, _AY, _R, _SW, _OMEGA, _VREF = 0, 1, 2, 3, slice(4, 8), 8
+
+
+class NVSOParams(NamedTuple):
+    """Gains, thresholds and bounds of the NVSO (module docstring); build with :func:`make_nvso`. Every field is a
+    leaf (``smooth=None`` has none), so the params can be batched, differentiated and tuned.
+
+    Attributes:
+      vehicle: the :class:`~jaxobs.vehicle.VehicleParams` of the friction model.
+      K_vx, K_vx_min: nominal and least longitudinal gain (1/s).  wheel_spread: the wheel-velocity spread that
+        halves ``K_vx`` (m/s).
+      K_vy: lateral injection gain.  K_theta: friction adaptation gain (1/(m/s^2 s)).  K_e: attraction of
+        ``theta`` to ``theta_default`` in mode 1 (1/s).
+      K_theta_i, K_theta_i_on: inclination gains of modes 1 and 2 (dimensionless, times ``K_vx``).
+      K_theta_b: bank gain (rad / (m/s^2 s)).  theta_b_reduction: factor on ``K_theta_b`` when a reduction holds.
+      c1 (m/s^2), c2 (rad/s^2), c3 (m/s^2): the ``K_theta_b`` reduction thresholds.
+      theta_default: ``theta*``.  theta_min, theta_max: the clip bounds.  accel_margin: the 1.2 of
+        ``accel_margin g theta >= |(a_x, a_y)|``.
+      vy_dot_threshold (m/s^2), yaw_rate_threshold (rad/s), oversteer_threshold (m/s^2), off_delay (s),
+        high_pass_time (s): the switching logic.
+      min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
+        finite ``v_x,ref`` (m/s).
+      smooth: ``None`` (exact switches) or the gate sharpness (> 0).
+    """
+
+    vehicle: VehicleParams
+    K_vx: jax.Array = 1.0
+    K_vx_min: jax.Array = 0.3
+    wheel_spread: jax.Array = 0.5
+    K_vy: jax.Array = 1.0
+    K_theta: jax.Array = 1.0
+    K_e: jax.Array = 0.5
+    K_theta_i: jax.Array = 0.02
+    K_theta_i_on: jax.Array = 0.005
+    K_theta_b: jax.Array = 0.05
+    theta_b_reduction: jax.Array = 0.1
+    c1: jax.Array = 1.0
+    c2: jax.Array = 0.5
+    c3: jax.Array = 1.0
+    theta_default: jax.Array = 1.0
+    theta_min: jax.Array = 0.05
+    theta_max: jax.Array = 1.1
+    accel_margin: jax.Array = 1.2
+    vy_dot_threshold: jax.Array = 1.0
+    yaw_rate_threshold: jax.Array = 0.1
+    oversteer_threshold: jax.Array = 1.0
+    off_delay: jax.Array = 0.5
+    high_pass_time: jax.Array = 10.0
+    min_speed: jax.Array = MIN_SPEED
+    dt: jax.Array = 1.0 / SENSOR_RATE
+    vx0: jax.Array = 20.0
+    smooth: jax.Array | None = None
+
+
+_POSITIVE = (
+    "K_vx", "K_vx_min", "wheel_spread", "K_vy", "K_theta", "K_e", "c1", "c2", "c3", "theta_default", "theta_max",
+    "accel_margin", "vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold", "off_delay", "high_pass_time",
+    "min_speed", "dt",
+)  # fmt: skip
+_NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0")
+
+
+def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
+    """The NVSO for ``vehicle`` (default :class:`~jaxobs.vehicle.VehicleParams`) with the defaults of
+    :class:`NVSOParams` (assumed: Grip 2010 ch. 2 gives no values) overridden by ``settings``.
+
+    Args:
+      vehicle: the vehicle whose friction model the observer uses.
+      settings: any field of :class:`NVSOParams` (``ValueError`` for an unknown one). Concrete values are checked:
+        gains, thresholds and times positive (``ValueError`` naming the field); ``theta_min < theta_max``;
+        ``smooth`` ``None`` or positive.
+
+    Example:
+      >>> from jaxobs.vehicle import make_nvso
+      >>> params = make_nvso(K_vy=0.8, smooth=50.0)
+      >>> float(params.K_vy), float(params.smooth)
+      (0.8, 50.0)
+    """
+    vehicle = VehicleParams() if vehicle is None else vehicle
+    if not isinstance(vehicle, VehicleParams):
+        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    unknown = sorted(set(settings) - set(NVSOParams._fields[1:]))
+    if unknown:
+        raise ValueError(f"unknown NVSO settings {unknown}; the fields are {list(NVSOParams._fields[1:])}")
+    vehicle.validate()
+    for name in _POSITIVE:
+        if name in settings:
+            _checks.positive(name, settings[name])
+    for name in _NON_NEGATIVE:
+        if name in settings:
+            _checks.positive(name, settings[name], allow_zero=True)
+    params = NVSOParams(vehicle, **settings)
+    lo, hi = params.theta_min, params.theta_max
+    if _checks.is_concrete(lo, hi) and not bool(jnp.all(jnp.asarray(lo) < jnp.asarray(hi))):
+        raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
+    if params.smooth is not None:
+        _checks.positive("smooth", params.smooth)
+    return params
+
+
+class NVSOState(NamedTuple):
+    x: jax.Array  # (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
+    mode: jax.Array  # () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
+    off_timer: jax.Array  # () time since the switching conditions last held (s)
+    low_pass: jax.Array  # () the low-pass part of the high-pass filter of a_y - r v_x
+    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
+    started: jax.Array  # () bool
+    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+
+
+class NVSOOutputs(NamedTuple):
+    x: jax.Array  # (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
+    beta: jax.Array  # () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
+    mode: jax.Array  # () the mode used over the interval
+    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
+    xi: jax.Array  # () d a_y* / d v_y (1/s)
+    K_theta_b: jax.Array  # () the bank gain used (after reductions)
+
+
+def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
+    """The NVSO's inputs from :class:`~jaxobs.vehicle.Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`)."""
+    m = measurements
+    columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
+    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None]], axis=1))
+
+
+def _gate(params: NVSOParams, x, threshold, scale):
+    """``x > threshold`` as 0/1, or its sigmoid of sharpness ``params.smooth`` on the given ``scale``."""
+    if params.smooth is None:
+        return (x > threshold).astype(jnp.result_type(x, float))
+    return jax.nn.sigmoid(params.smooth * (x - threshold) / scale)
+
+
+def _either(*gates):
+    """Logical or of 0/1 values (or gates): ``1 - prod(1 - g)``."""
+    out = 1.0 - gates[0]
+    for g in gates[1:]:
+        out = out * (1.0 - g)
+    return 1.0 - out
+
+
+def _understeer_gradient(vehicle: VehicleParams):
+    """``(1/c_f - 1/c_r) / g`` with ``c`` the slope of each axle's pure lateral force per unit load at zero slip."""
+    fz = vehicle.mass * GRAVITY / 4
+    stiffness = lambda tyre: jax.grad(lambda s: pure_force(tyre, s, fz))(jnp.zeros((), jnp.result_type(fz))) / fz
+    return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY
+
+
+class Switching(NamedTuple):
+    """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
+    yaw rate with the "same sign" test it used."""
+
+    mode: jax.Array  # () 1: friction estimation on (a gate value when smooth)
+    off_timer: jax.Array  # () time since the conditions last held (s)
+    low_pass: jax.Array  # () the high-pass filter's low-pass state
+    r_ref: jax.Array  # () reference yaw rate of the linear single track (rad/s)
+    same_sign: jax.Array  # () r and r_ref of the same sign (outside the dead band)
+
+
+def switching(params: NVSOParams, off_timer, low_pass, vx, r, ay, steering_wheel) -> Switching:
+    """The friction-estimation switch of Grip 2010 §2.5 (module docstring), shared by the NVSO and the EKF baseline
+    of §2.9: from the timer and high-pass states of the last sample, the estimated ``vx``, the measured yaw rate
+    ``r``, roll-corrected ``ay`` and steering-wheel angle, with the thresholds (and ``smooth``) of ``params``."""
+    v, dt = params.vehicle, params.dt
+    delta = steering_wheel / v.steering_ratio
+    r_ref = vx * delta / (v.wheelbase + _understeer_gradient(v) * vx**2)
+    high_pass = ay - r * vx - low_pass
+    dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
+    same_sign = _gate(params, r * r_ref, dead_band, dead_band)
+    excited = _gate(params, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * _gate(
+        params, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
+    )
+    oversteer = same_sign * _gate(
+        params, (jnp.abs(r) - jnp.abs(r_ref)) * vx, params.oversteer_threshold, params.oversteer_threshold
+    )
+    on = _either(excited, oversteer)
+    # on while (i) or (ii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
+    timer = (1.0 - on) * (off_timer + dt)
+    mode = _gate(params, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)
+    low_pass = low_pass + dt / params.high_pass_time * high_pass
+    return Switching(mode, timer, low_pass, r_ref, same_sign)
+
+
+def _init(params: NVSOParams) -> NVSOState:
+    dtype = jnp.result_type(params.vx0, params.theta_default, float)
+    v = params.vehicle
+    vx0 = jnp.asarray(params.vx0, dtype)
+    y = jnp.zeros((N_SENSORS,), dtype).at[_OMEGA].set(vx0 / v.wheel_radius).at[_VREF].set(vx0)
+    x = jnp.stack([vx0, 0.0 * vx0, jnp.asarray(params.theta_default, dtype), 0.0 * vx0, 0.0 * vx0])
+    zero = jnp.zeros((), dtype)
+    return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, y, jnp.zeros((), bool),
+                     jnp.zeros((), jnp.int32))  # fmt: skip
+
+
+def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
+    v, dt = params.vehicle, params.dt
+    dtype = state.x.dtype
+    y = _checks.vector("inputs.y", inputs.y, N_SENSORS, dtype, what="the NVSO's sensors", check_finite=False)
+    finite = jnp.isfinite(y)
+    y_now = jnp.where(finite, y, state.y)
+    missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
+
+    m = state.y  # the measurement held over [t_{k-1}, t_k]
+    ax, ay, r, sw, omega, vref = m[_AX], m[_AY], m[_R], m[_SW], m[_OMEGA], m[_VREF]
+    roll = 1.0 + v.roll_gradient * GRAVITY
+    ay = ay / roll  # roll correction, Grip 2010 §2.2
+    vx, vy, theta, theta_i, theta_b = state.x
+
+    def model(vy):
+        f = friction_model(v, vx, vy, r, sw, omega, ax, ay)
+        return jnp.stack([f.ay, f.yaw_moment / v.yaw_inertia])
+
+    (ay_star, yaw_acc_star), (xi, _) = jax.jvp(model, (vy,), (jnp.ones_like(vy),))
+    lam = jax.lax.rsqrt(jnp.maximum(xi**2 + ay_star**2, 1e-12))
+    e = ay - theta * ay_star
+
+    # longitudinal gain from the spread of the four wheel velocities
+    delta = sw / v.steering_ratio
+    half_f, half_r = v.track_front / 2, v.track_rear / 2
+    lateral = jnp.stack(jnp.broadcast_arrays(half_f, -half_f, half_r, -half_r))
+    steer = jnp.stack([jnp.cos(delta), jnp.cos(delta), jnp.ones_like(delta), jnp.ones_like(delta)])
+    wheel_vx = omega * v.wheel_radius / steer + r * lateral
+    spread = jnp.sqrt(jnp.mean((wheel_vx - jnp.mean(wheel_vx)) ** 2) + 1e-12)
+    K_vx = jnp.maximum(params.K_vx_min, params.K_vx / (1.0 + (spread / params.wheel_spread) ** 2))
+
+    # switching logic (§2.5) and the K_theta_b reductions (§2.7)
+    switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw)
+    r_ref, same_sign = switch.r_ref, switch.same_sign
+    yaw_acc = (y_now[_R] - r) / dt
+    reduce = _either(
+        _gate(params, jnp.abs(e), params.c1, params.c1),
+        _gate(params, jnp.abs(yaw_acc - theta * yaw_acc_star), params.c2, params.c2),
+        same_sign * _gate(params, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.c3, params.c3),
+    )
+    K_theta_b = params.K_theta_b * (1.0 - reduce * (1.0 - params.theta_b_reduction))
+    moving = _gate(params, vx, params.min_speed, params.min_speed)
+
+    # the two modes (2.18)-(2.27), blended by the mode of the interval
+    mode = state.mode
+    kinematic_x = ax + r * vy + GRAVITY * theta_i + K_vx * (vref - vx)
+    kinematic_y = ay - r * vx - GRAVITY * theta_b
+    injection = (1.0 - mode) * (-params.K_vy * e) + mode * params.K_vy * lam * xi * e
+    d_vy = moving * (kinematic_y + injection) - (1.0 - moving) * K_vx * vy
+    d_theta_off = params.K_e * (params.theta_default - theta)
+    d_theta = (1.0 - moving * mode) * d_theta_off + moving * mode * params.K_theta * lam * ay_star * e
+    K_theta_i = (1.0 - mode) * params.K_theta_i + mode * params.K_theta_i_on
+    d_theta_i = K_theta_i * K_vx * (vref - vx)
+    d_theta_b = moving * K_theta_b * ((1.0 - mode) * e - mode * lam * xi * e)
+    x = state.x + dt * jnp.stack([kinematic_x, d_vy, d_theta, d_theta_i, d_theta_b])
+    lower = jnp.maximum(params.theta_min, jnp.hypot(ax, ay) / (params.accel_margin * GRAVITY))
+    x = x.at[2].set(jnp.clip(x[2], jnp.minimum(lower, params.theta_max), params.theta_max))
+
+    next_mode, timer, low_pass = switch.mode, switch.off_timer, switch.low_pass
+
+    first = ~state.started
+    x0 = state.x.at[0].set(y_now[_VREF])
+    x = jnp.where(first, x0, x)
+    next_mode = jnp.where(first, state.mode, next_mode)
+    timer = jnp.where(first, state.off_timer, timer)
+    low_pass = jnp.where(first, y_now[_AY] / roll - y_now[_R] * y_now[_VREF], low_pass)  # HP starts at 0
+    new_state = NVSOState(x, next_mode, timer, low_pass, y_now, jnp.ones((), bool), missing)
+    beta = jnp.arctan2(x[1], jnp.maximum(x[0], params.min_speed))
+    outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
+    return new_state, outputs
+
+
+nvso = Estimator(_init, _step)
+"""The NVSO (module docstring) as an :class:`~jaxobs.observers.base.Estimator` over :class:`NVSOParams`.
+
+Inputs: ``EstimatorInputs(y)`` with ``y`` (:data:`N_SENSORS`,) (:func:`sensor_inputs`); ``u_prev`` is unused.
+State: :class:`NVSOState`. Outputs: :class:`NVSOOutputs`."""

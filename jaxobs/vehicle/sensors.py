@@ -1,0 +1,165 @@
+"""ESC-type sensors (Grip 2010 §2.1, §2.8): accelerometers, yaw-rate gyro, steering-wheel angle, wheel speeds and
+a longitudinal reference velocity, sampled at 100 Hz with bias, drift, noise and the 15 Hz low-pass.
+
+For a channel with true value ``s_k`` at the sample times ``t_k = k T_s``:
+
+    y_k = LP(s_k + bias + w_k + n_k),   w_k = w_{k-1} + drift sqrt(T_s) e_k  (w_0 = 0),   n_k ~ N(0, noise^2)
+
+with ``e_k`` standard normal (the drift is a random walk whose standard deviation grows as ``drift sqrt(t)``)
+and ``LP`` the first-order discrete low-pass ``y_k = y_{k-1} + a (x_k - y_{k-1})``, ``a = 1 - exp(-2 pi f_c T_s)``,
+``y_0 = x_0`` (``f_c = inf`` turns it off). The lateral accelerometer rolls with the body: it reads
+``(1 + p_phi g) a_y`` (Grip 2010 §2.2, ``p_phi`` the vehicle's ``roll_gradient``). Wheel speeds are the wheels'
+angular speeds. The reference velocity ``v_x,ref`` is the mean over the (non-driven) front wheels of
+``omega_i R / cos(delta) + r y_i`` from the measured wheel speeds, steering angle and yaw rate: exact for
+free-rolling wheels without side slip, biased by braking slip (a stand-in for the manufacturers' algorithms
+that Grip 2010 §2.3 assumes given).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import _checks
+from jaxobs.vehicle.model import GRAVITY, VehicleParams
+from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory
+
+__all__ = ["SENSOR_RATE", "SensorParams", "Measurements", "measure", "low_pass"]
+
+SENSOR_RATE = 100.0
+"""ESC sensor rate (Hz), the 10 ms sample time of Grip 2010 §2.8."""
+
+_CHANNELS = ("ax", "ay", "yaw_rate", "steering_wheel", "wheel_speed")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SensorParams:
+    """Errors of the ESC sensors (defaults assumed for automotive-grade sensors: white noise only; Grip 2010
+    §2.8 gives bias + drift maxima of 1.0 m/s^2 (0.6 on low friction) for the accelerometers and 3.5 deg/s for
+    the yaw rate, to be set per experiment).
+
+    Attributes:
+      bias_ax, bias_ay: accelerometer biases (m/s^2).  bias_yaw_rate: gyro bias (rad/s).
+      bias_steering: steering-wheel angle offset (rad).
+      drift_acc: random-walk intensity of both accelerometers (m/s^2 per sqrt(s), >= 0).
+      drift_yaw_rate: of the gyro (rad/s per sqrt(s), >= 0).
+      noise_acc: white-noise standard deviation of the accelerometers (m/s^2, >= 0); 0.05 assumed.
+      noise_yaw_rate: of the gyro (rad/s, >= 0); 0.002 assumed (0.1 deg/s).
+      noise_steering: of the steering-wheel angle (rad, >= 0); 0.002 assumed.
+      noise_wheel: of each wheel speed (rad/s, >= 0); 0.1 assumed.
+      cutoff: corner frequency ``f_c`` of the low-pass (Hz, > 0; ``inf`` for none); 15 Hz (Grip 2010 §2.8).
+    """
+
+    bias_ax: float = 0.0
+    bias_ay: float = 0.0
+    bias_yaw_rate: float = 0.0
+    bias_steering: float = 0.0
+    drift_acc: float = 0.0
+    drift_yaw_rate: float = 0.0
+    noise_acc: float = 0.05
+    noise_yaw_rate: float = 0.002
+    noise_steering: float = 0.002
+    noise_wheel: float = 0.1
+    cutoff: float = 15.0
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
+        for name in ("bias_ax", "bias_ay", "bias_yaw_rate", "bias_steering"):
+            _checks.finite(name, getattr(self, name))
+        for name in ("drift_acc", "drift_yaw_rate", "noise_acc", "noise_yaw_rate", "noise_steering", "noise_wheel"):
+            _checks.positive(name, getattr(self, name), allow_zero=True)
+        if _checks.is_concrete(self.cutoff) and not np.all(np.asarray(self.cutoff) > 0):
+            raise ValueError(f"cutoff must be positive (Hz, inf for no low-pass), got {self.cutoff!r}")
+
+
+class Measurements(NamedTuple):
+    """Sensor samples at ``time`` (K,): ``ax``, ``ay`` (m/s^2), ``yaw_rate`` (rad/s), ``steering_wheel`` (rad),
+    ``wheel_speed`` (K, 4) (rad/s, FL, FR, RL, RR), ``vx_ref`` (m/s)."""
+
+    time: jax.Array
+    ax: jax.Array
+    ay: jax.Array
+    yaw_rate: jax.Array
+    steering_wheel: jax.Array
+    wheel_speed: jax.Array
+    vx_ref: jax.Array
+
+
+def low_pass(x, cutoff, period):
+    """First-order discrete low-pass along the leading axis of ``x`` (module docstring), ``y_0 = x_0``."""
+    a = 1.0 - jnp.exp(-2.0 * jnp.pi * cutoff * period)
+
+    def step(y, xk):
+        y = y + a * (xk - y)
+        return y, y
+
+    return jax.lax.scan(step, x[0], x)[1]
+
+
+def _period_ratio(rate, dt) -> int:
+    """Plant steps per sensor sample; ``ValueError`` unless ``1 / (rate dt)`` is a whole number >= 1."""
+    _checks.positive_scalar("rate", rate)
+    _checks.positive_scalar("dt", dt)
+    ratio = 1.0 / (float(rate) * float(dt))
+    n = round(ratio)
+    if n < 1 or not math.isclose(ratio, n, rel_tol=1e-9):
+        raise ValueError(
+            f"rate must make the sensor period a whole multiple of the plant step dt = {dt} s: got rate = {rate} Hz, "
+            f"a period of {ratio:g} plant steps"
+        )
+    return n
+
+
+def measure(
+    trajectory: Trajectory,
+    params: VehicleParams,
+    sensors: SensorParams,
+    key,
+    *,
+    rate: float = SENSOR_RATE,
+    dt: float = PLANT_STEP,
+) -> Measurements:
+    """ESC measurements of a simulated drive.
+
+    Args:
+      trajectory: the drive (:func:`jaxobs.vehicle.simulate`) at the plant step ``dt``.
+      params: the vehicle that drove it (roll gradient, wheel radius, geometry, steering ratio).
+      sensors: the sensor errors (:class:`SensorParams`).  key: a ``jax.random`` key for drift and noise.
+      rate: sensor rate (Hz, static); ``1 / (rate dt)`` must be a whole number.  dt: the plant step (s, static).
+
+    Returns:
+      :class:`Measurements` at every ``1 / (rate dt)``-th plant sample, starting at the first.
+    """
+    sensors.validate()
+    n = _period_ratio(rate, dt)
+    period = n * dt
+    tr = jax.tree_util.tree_map(lambda a: a[::n], trajectory)
+    keys = jax.random.split(key, 10)
+    dtype = tr.ax.dtype
+
+    def channel(truth, bias, drift, noise, k_drift, k_noise):
+        steps = jax.random.normal(k_drift, truth.shape, dtype).at[0].set(0.0)
+        walk = drift * jnp.sqrt(period) * jnp.cumsum(steps, axis=0)
+        return truth + bias + walk + noise * jax.random.normal(k_noise, truth.shape, dtype)
+
+    roll = 1.0 + params.roll_gradient * GRAVITY
+    s = sensors
+    raw = {
+        "ax": channel(tr.ax, s.bias_ax, s.drift_acc, s.noise_acc, keys[0], keys[1]),
+        "ay": channel(roll * tr.ay, s.bias_ay, s.drift_acc, s.noise_acc, keys[2], keys[3]),
+        "yaw_rate": channel(tr.state.r, s.bias_yaw_rate, s.drift_yaw_rate, s.noise_yaw_rate, keys[4], keys[5]),
+        "steering_wheel": channel(tr.inputs.steering_wheel, s.bias_steering, 0.0, s.noise_steering, keys[6], keys[7]),
+        "wheel_speed": channel(tr.state.omega, 0.0, 0.0, s.noise_wheel, keys[8], keys[9]),
+    }
+    out = {name: low_pass(raw[name], s.cutoff, period) for name in _CHANNELS}
+    delta = out["steering_wheel"] / params.steering_ratio
+    half = params.track_front / 2
+    front = out["wheel_speed"][:, :2] * params.wheel_radius / jnp.cos(delta)[:, None]
+    vx_ref = jnp.mean(front + out["yaw_rate"][:, None] * jnp.stack([half, -half]), axis=1)
+    return Measurements(time=tr.time, vx_ref=vx_ref, **out)

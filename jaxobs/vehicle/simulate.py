@@ -1,0 +1,163 @@
+"""Simulating the two-track model under a driver: a :class:`Command` per time, RK4 at a fixed plant step.
+
+A manoeuvre is a pure function ``command(t) -> Command`` (traceable in ``t``) with a duration and an initial
+speed (:class:`Manoeuvre`). The driver turns the command and the state into plant inputs:
+
+* steering wheel ``= command.steering_wheel + steering_ratio * curvature_gain * (curvature - r / vx)``
+  (open loop when ``curvature_gain = 0``, path-curvature tracking otherwise), clipped to the steering lock
+  ``steering_ratio * STEERING_LOCK``;
+* total wheel torque ``= R (m (acceleration + SPEED_GAIN (speed - vx) - g sin(Theta)) + drag)``: driving torque
+  split between the rear wheels (rear-wheel drive, as the car of Grip 2010), braking torque between the axles
+  by ``brake_share_front``; each wheel's torque is scaled by ``1 - max(kappa_i sign(T_i), 0) / SLIP_LIMIT``
+  (clipped to [0, 1]), a proportional stand-in for traction control and ABS that keeps the wheels from
+  spinning up or locking.
+
+:func:`simulate` integrates ``x' = dynamics(driver(x, command(t)))`` with :func:`jaxobs.ct.trajectory` (RK4,
+:data:`PLANT_STEP`) in one ``lax.scan`` and returns the states with the specific forces ``a_x``, ``a_y`` and the
+sideslip ``beta = arctan(vy / vx)`` (Grip 2010 ch. 2 convention) at every plant step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxobs import _checks, ct
+from jaxobs.vehicle.model import (
+    AIR_DENSITY,
+    GRAVITY,
+    MIN_SPEED,
+    Inputs,
+    VehicleParams,
+    VehicleState,
+    dynamics,
+    forces,
+    steady_state,
+    wheel_kinematics,
+)
+
+__all__ = [
+    "PLANT_STEP",
+    "SPEED_GAIN",
+    "SLIP_LIMIT",
+    "STEERING_LOCK",
+    "Command",
+    "Manoeuvre",
+    "Trajectory",
+    "driver",
+    "simulate",
+]
+
+PLANT_STEP = 1e-3
+"""Default plant step (s): 10 RK4 steps per 100 Hz sensor sample."""
+SPEED_GAIN = 1.0
+"""Driver's speed-tracking gain (1/s)."""
+SLIP_LIMIT = 0.15
+"""Slip at which the driver's traction and anti-lock limiter has removed a wheel's whole torque (assumed)."""
+STEERING_LOCK = 0.6
+"""Largest road-wheel angle the driver applies (rad, about 34 deg; assumed)."""
+
+
+class Command(NamedTuple):
+    """What the driver is asked to do at one time (all scalars). ``steering_wheel`` (rad, feed-forward),
+    ``curvature`` (1/m) and ``curvature_gain`` (rad of road-wheel angle per 1/m of curvature error; 0 = open
+    loop), ``speed`` (m/s) and ``acceleration`` (m/s^2, feed-forward), the road's ``bank`` and ``inclination``
+    (rad) and ``friction`` (scale of the tyres' peak friction)."""
+
+    steering_wheel: jax.Array = 0.0
+    curvature: jax.Array = 0.0
+    curvature_gain: jax.Array = 0.0
+    speed: jax.Array = 20.0
+    acceleration: jax.Array = 0.0
+    bank: jax.Array = 0.0
+    inclination: jax.Array = 0.0
+    friction: jax.Array = 1.0
+
+
+class Manoeuvre(NamedTuple):
+    """A test drive: ``command(t) -> Command`` (traceable), its ``duration`` (s) and ``initial_speed`` (m/s)."""
+
+    name: str
+    command: Callable
+    duration: float
+    initial_speed: float
+
+
+class Trajectory(NamedTuple):
+    """A simulated drive at the plant step: ``time`` (T+1,), ``state`` (a :class:`VehicleState` of stacked
+    arrays), the plant ``inputs`` (an :class:`Inputs` of stacked arrays), the specific forces ``ax``, ``ay``
+    (m/s^2), the sideslip ``beta`` (rad) and the normal loads ``fz`` (T+1, 4)."""
+
+    time: jax.Array
+    state: VehicleState
+    inputs: Inputs
+    ax: jax.Array
+    ay: jax.Array
+    beta: jax.Array
+    fz: jax.Array
+
+
+def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
+    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (module docstring)."""
+    curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
+    steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
+    steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)
+    drag = 0.5 * AIR_DENSITY * p.drag_area * x.vx * jnp.abs(x.vx)
+    accel = c.acceleration + SPEED_GAIN * (c.speed - x.vx) - GRAVITY * jnp.sin(c.inclination)
+    total = p.wheel_radius * (p.mass * accel + drag)
+    drive, brake = jnp.maximum(total, 0.0), jnp.minimum(total, 0.0)
+    front = brake * p.brake_share_front / 2
+    rear = (drive + brake * (1 - p.brake_share_front)) / 2
+    torque = jnp.stack([front, front, rear, rear])
+    v_l, _, _ = wheel_kinematics(p, x.vx, x.vy, x.r, steering)
+    kappa = (x.omega * p.wheel_radius - v_l) / jnp.maximum(jnp.abs(v_l), MIN_SPEED)
+    limiter = jnp.clip(1.0 - jnp.maximum(jnp.sign(torque) * kappa, 0.0) / SLIP_LIMIT, 0.0, 1.0)
+    return Inputs(steering, torque * limiter, c.bank, c.inclination, c.friction)
+
+
+def _command(manoeuvre: Manoeuvre, t) -> Command:
+    c = manoeuvre.command(t)
+    return Command(*(jnp.asarray(v, jnp.result_type(t)) for v in c))
+
+
+def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: float = PLANT_STEP) -> Trajectory:
+    """Simulate ``manoeuvre`` (a :class:`Manoeuvre`) with the vehicle ``params`` from a straight run at its
+    initial speed.
+
+    Args:
+      manoeuvre: the test drive, or the name of one of :data:`jaxobs.vehicle.MANOEUVRES` (``ValueError`` listing
+        them for another name).  params: the vehicle (validated when concrete; fields may be traced, e.g. under
+        ``vmap``).
+      duration: simulated time (s, default the manoeuvre's); rounded to whole plant steps.
+      dt: plant step (s, > 0, static).
+
+    Returns:
+      a :class:`Trajectory` with ``round(duration / dt) + 1`` samples.
+    """
+    if isinstance(manoeuvre, str):
+        from jaxobs.vehicle.manoeuvres import manoeuvre as by_name
+
+        manoeuvre = by_name(manoeuvre)
+    params.validate()
+    _checks.positive_scalar("dt", dt)
+    duration = manoeuvre.duration if duration is None else duration
+    _checks.positive_scalar("duration", duration)
+    steps = max(int(round(duration / dt)), 1)
+    x0 = steady_state(params, jnp.asarray(manoeuvre.initial_speed, float))
+
+    def f(x, _, t):
+        return dynamics(params, x, driver(params, x, _command(manoeuvre, t)))
+
+    states = ct.trajectory(f, x0, jnp.zeros(steps), h=dt)
+    time = dt * jnp.arange(steps + 1, dtype=states.vx.dtype)
+
+    def outputs(x, t):
+        u = driver(params, x, _command(manoeuvre, t))
+        f = forces(params, x, u)
+        return u, f.ax, f.ay, f.fz
+
+    inputs, ax, ay, fz = jax.vmap(outputs)(states, time)
+    return Trajectory(time, states, inputs, ax, ay, jnp.arctan2(states.vy, states.vx), fz)
