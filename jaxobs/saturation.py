@@ -287,3 +287,370 @@ def simulate_saturated_outputs(
     zeros = jnp.zeros(n, dtype)
     carry = (x0, zeros, jnp.eye(n, dtype=dtype), jnp.zeros(p, dtype), zeros, jnp.zeros((n, n), dtype))
     return jax.lax.scan(interval, carry, jnp.arange(num_intervals, dtype=dtype))[1]
+
+
+# ---------------------------------------------------------------------------------------------------- chapter 9
+
+
+def forced_response(F, Bf, u, h):
+    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the input ``u`` sampled at
+    ``tau_j`` (``u``: (N + 1, m)) and linear in between: exact for piecewise-linear inputs (one matrix exponential,
+    then a ``lax.scan``); ``u_s*`` of (9.4) for a constant input, ``u_0*`` of §9.3.1 for the plant's input."""
+    nf, m = F.shape[0], Bf.shape[1]
+    Z = jnp.zeros((nf + 2 * m, nf + 2 * m), F.dtype)
+    Z = Z.at[:nf, :nf].set(F).at[:nf, nf : nf + m].set(Bf).at[nf : nf + m, nf + m :].set(jnp.eye(m, dtype=F.dtype))
+    E = jax.scipy.linalg.expm(Z * h)
+    Phi, G0, G1 = E[:nf, :nf], E[:nf, nf : nf + m], E[:nf, nf + m :]
+
+    def step(v, pair):
+        u0, u1 = pair
+        v = Phi @ v + G0 @ u0 + G1 @ ((u1 - u0) / h)
+        return v, v
+
+    _, vs = jax.lax.scan(step, jnp.zeros(nf, F.dtype), (u[:-1], u[1:]))
+    return jnp.concatenate([jnp.zeros((1, nf), F.dtype), vs])
+
+
+def _adjugate(D):
+    """``det(D)`` and ``adj(D)`` of a symmetric positive semidefinite ``D`` from its eigenvalues (exact when ``D`` is
+    singular, where ``det(D) D^{-1}`` is not defined)."""
+    s, V = jnp.linalg.eigh((D + D.T) / 2)
+    k = s.shape[0]
+    others = jnp.where(jnp.eye(k, dtype=bool), 1, s[None, :])  # row i: s with s_i replaced by 1
+    cof = jnp.prod(others, axis=1)
+    return jnp.prod(s), (V * cof) @ V.T
+
+
+class Residual(NamedTuple):
+    statistic: jax.Array  # () int_0^T ||r(tau)|| dtau (trapezoid)
+    scale: jax.Array  # () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
+    norms: jax.Array  # (N + 1,) ||r(tau_j)||
+    w0: jax.Array  # (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
+    w_end: jax.Array  # (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
+    condition: jax.Array  # () condition number of D(T)
+
+
+def hypothesis_residual(F, Bf, H, y, u, h) -> Residual:
+    """The consistency statistic of Grip (2010) (9.6)-(9.8) for the hypothesis "over this window
+    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u`` through
+    ``Bf`` (:func:`forced_response`)::
+
+        r(tau) = det(D(tau)) (y(tau) - H v(tau)) - H exp(F tau) adj(D(tau)) (xi(tau) - S(tau))
+        D(tau) = int_0^tau exp(F' g) H' H exp(F g) dg,  xi(tau) - S(tau) = int_0^tau exp(F' g) H' (y - H v)(g) dg
+
+    Both integrals are taken with the same cumulative trapezoid rule over the samples, so ``xi - S = D w0`` holds
+    exactly at every sample when the samples are consistent with the hypothesis: ``r`` is then zero up to the error
+    of the samples themselves and of ``v`` (exact for a piecewise-linear ``u``), and ``w0`` is the exact
+    least-squares reconstruction even when ``D`` is poorly conditioned (a short window). Theorem 9.1 needs
+    ``(H, F)`` observable.
+
+    Args:
+      F: (nf, nf).  Bf: (nf, m).  H: (p, nf).  y: (N + 1, p) outputs at ``tau_j = j h``.
+      u: (N + 1, m) the hypothesis's input at the same times.  h: () sample step.
+    """
+    nf = F.shape[0]
+    v = forced_response(F, Bf, u, h)
+    e = y - v @ H.T
+    Eh = jax.scipy.linalg.expm(F * h)
+
+    def step(carry, e_pair):
+        E, D, xs = carry
+        E1 = E @ Eh
+        HE0, HE1 = H @ E, H @ E1
+        D1 = D + h / 2 * (HE0.T @ HE0 + HE1.T @ HE1)
+        xs1 = xs + h / 2 * (HE0.T @ e_pair[0] + HE1.T @ e_pair[1])
+        return (E1, D1, xs1), (E1, D1, xs1)
+
+    zero = jnp.zeros((nf, nf), F.dtype)
+    init = (jnp.eye(nf, dtype=F.dtype), zero, jnp.zeros(nf, F.dtype))
+    _, (Es, Ds, xss) = jax.lax.scan(step, init, (e[:-1], e[1:]))
+    Es = jnp.concatenate([init[0][None], Es])
+    Ds = jnp.concatenate([zero[None], Ds])
+    xss = jnp.concatenate([init[2][None], xss])
+    det, adj = jax.vmap(_adjugate)(Ds)
+    first = det[:, None] * e
+    second = jnp.einsum("pi,jik,jkl,jl->jp", H, Es, adj, xss)
+    norms = jnp.linalg.norm(first - second, axis=1)
+    trap = lambda f: h * (jnp.sum(f) - (f[0] + f[-1]) / 2)
+    scale = trap(jnp.abs(det) * (jnp.linalg.norm(y, axis=1) + jnp.linalg.norm(v @ H.T, axis=1))
+                 + jnp.linalg.norm(second, axis=1))
+    D_T = (Ds[-1] + Ds[-1].T) / 2
+    w0 = jnp.linalg.solve(D_T, xss[-1])
+    condition, _ = _condition(D_T)
+    return Residual(trap(norms), scale, norms, w0, Es[-1] @ w0 + v[-1], condition)
+
+
+def explains(F, Bf, H, y, u, h, *, ratio=3.0, rtol=1e-9, rounding=64.0):
+    """Whether the hypothesis of :func:`hypothesis_residual` explains the window, relative to the quadrature
+    accuracy. The statistic is computed at step ``h`` (``e_h``) and from every other sample (``e_2h``): for a true
+    hypothesis it is pure quadrature error, ``e_h ~ c h^2``, so halving the step divides it by 4; for a false one it
+    tends to a positive limit and halving the step changes it little. The hypothesis is accepted when
+    ``e_2h >= ratio e_h`` (default 3), or when ``e_h`` is at the precision to which it can vanish: below
+    ``max(rtol, rounding eps cond(D(T)))`` times the size of the data in the same integral (``eps`` the machine
+    epsilon; ``adj(D) xi`` loses ``cond(D)`` in rounding, and a short window has a poorly conditioned ``D``). ``N`` must be even.
+
+    Returns ``(accepted, e_h, e_2h, residual)`` with ``residual`` the :class:`Residual` at step ``h``.
+    """
+    if y.shape[0] % 2 != 1 or y.shape[0] < 5:
+        raise ValueError(f"y must have an odd number N + 1 >= 5 of samples (N even), got {y.shape[0]}")
+    fine = hypothesis_residual(F, Bf, H, y, u, h)
+    coarse = hypothesis_residual(F, Bf, H, y[::2], u[::2], 2 * h)
+    floor = jnp.maximum(rtol, rounding * jnp.finfo(y.dtype).eps * fine.condition) * fine.scale
+    accepted = (coarse.statistic >= ratio * fine.statistic) | (fine.statistic <= floor)
+    return accepted, fine.statistic, coarse.statistic, fine
+
+
+CLASSES = ("positive", "negative", "linear", "mixed")
+"""Window classes of Theorem 9.1: ``z >= 1`` on the whole window, ``z <= -1``, ``|z| <= 1`` with ``|z| < 1``
+somewhere, and none of these (the saturation both active and inactive)."""
+
+
+class DetectorResult(NamedTuple):
+    """The three detectors of Grip (2010) §9.3.1 on one window.
+
+    Attributes:
+      e_plus, e_minus, e_zero: () the statistics ``e_k+``, ``e_k-``, ``e_k0``.
+      coarse: (3,) the same statistics from every other sample (:func:`explains` compares them).
+      cls: () int index into :data:`CLASSES`.
+      chi_end: (n + m,) the deadbeat estimate (9.11b) of ``chi`` at the window end (valid when ``cls`` is linear).
+    """
+
+    e_plus: jax.Array
+    e_minus: jax.Array
+    e_zero: jax.Array
+    coarse: jax.Array
+    cls: jax.Array
+    chi_end: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SandwichDesign:
+    """The sandwich system (9.1) and the three-stage controller of §9.4; build with :func:`sandwich_design`.
+
+    Attributes:
+      A: (n, n).  B: (n, 1).  C: (1, n): ``L1``.  M: (m, m).  N: (m, 1).  G: (p, m): ``L2``.
+      AA: (n + m, n + m).  BB: (n + m, 1).  CC: (p, n + m): the merged model (9.2).
+      T: () detection interval.  alpha: () the stage-2 growth ``alpha > exp(2 Tbar ||A||)``.
+      h: (n,) stage-2 direction (``C h > 0``).  beta_inv: (n, n) ``beta(Tbar)^{-1}``.  expATbar: (n, n).
+      K: (1, n + m) the stage-3 gain ``[F, 0] - BB' P_eps`` (9.12).  P: (n + m, n + m) ``P_eps``.
+      q: static number of detection intervals per stage-2 interval (``Tbar = q T``).
+    """
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array
+    M: jax.Array
+    N: jax.Array
+    G: jax.Array
+    AA: jax.Array
+    BB: jax.Array
+    CC: jax.Array
+    T: jax.Array
+    alpha: jax.Array
+    h: jax.Array
+    beta_inv: jax.Array
+    expATbar: jax.Array
+    K: jax.Array
+    P: jax.Array
+    q: int = dataclasses.field(metadata=dict(static=True))
+
+
+def _merged(A, B, C, M, N, G):
+    n, m = A.shape[0], M.shape[0]
+    AA = jnp.block([[A, jnp.zeros((n, m), A.dtype)], [N @ C, M]])
+    BB = jnp.concatenate([B, jnp.zeros((m, B.shape[1]), A.dtype)])
+    CC = jnp.concatenate([jnp.zeros((G.shape[0], n), A.dtype), G], axis=1)
+    return AA, BB, CC
+
+
+def low_gain_are(A, B, C, M, N, F, eps):
+    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009)::
+
+        AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
+
+    solved by :func:`jaxobs.riccati.care` (``Q = eps I``, ``R = 1``). Returns the :class:`jaxobs.riccati.CareSolution`
+    ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0`` (linearly when ``AF`` is Hurwitz).
+
+    Args:
+      A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  F: (1, n) with ``A + B F`` Hurwitz.
+      eps: () ``> 0``.
+    """
+    _checks.positive_scalar("eps", eps)
+    dtype, (A, B, C, M, N, F) = _matrices(A=A, B=B, C=C, M=M, N=N, F=F)
+    AF, BB, _ = _merged(A + B @ F, B, C, M, N, jnp.zeros((1, M.shape[0]), dtype))
+    size = AF.shape[0]
+    return care(AF, BB, jnp.asarray(eps, dtype) * jnp.eye(size, dtype=dtype), jnp.eye(1, dtype=dtype))
+
+
+def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F, eps) -> SandwichDesign:
+    """Check Assumptions 9.1-9.2 and the design rules and precompute the three-stage controller of §9.4.
+
+    Args:
+      A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  G: (p, m): the sandwich system (9.1).
+      T: () detection interval ``> 0``.  Tbar_intervals: static ``q >= 1``, the stage-2 interval ``Tbar = q T``.
+      rho: () ``> 1``: ``alpha = rho exp(2 Tbar ||A||_2)``.  h: (n,) with ``C h > 0`` (default ``C'``).
+      F: (1, n) with ``A + B F`` Hurwitz.  eps: () ``> 0`` the low-gain parameter of (9.12).
+    """
+    dtype, (A, B, C, M, N, G, F) = _matrices(A=A, B=B, C=C, M=M, N=N, G=G, F=F)
+    n, m = A.shape[0], M.shape[0]
+    _checks.matrix("A", A, square=True)
+    _checks.matrix("B", B, shape=(n, 1))
+    _checks.matrix("C", C, shape=(1, n))
+    _checks.matrix("M", M, square=True)
+    _checks.matrix("N", N, shape=(m, 1))
+    _checks.matrix("G", G, shape=(None, m))
+    _checks.matrix("F", F, shape=(1, n))
+    _checks.positive_scalar("T", T)
+    q = _checks.count("Tbar_intervals", Tbar_intervals, minimum=1)
+    _checks.positive_scalar("rho", rho)
+    if _checks.is_concrete(rho) and float(rho) <= 1:
+        raise ValueError(f"rho must be > 1 (alpha must exceed exp(2 Tbar ||A||)), got {float(rho)}")
+    _checks.positive_scalar("eps", eps)
+    h = C[0] if h is None else _checks.vector("h", h, n, dtype)
+    AA, BB, CC = _merged(A, B, C, M, N, G)
+    require_controllable_observable(AA, BB, CC, names=("(AA, BB) of (9.2)", "(CC, AA) of (9.2)"))
+    if _checks.is_concrete(A, B, C, M, N, G, F, h):
+        if float(C[0] @ h) <= 0:
+            raise ValueError(f"h: C h must be > 0, got {float(C[0] @ h):.6g}")
+        if np.linalg.matrix_rank(np.asarray(G)) < G.shape[0]:
+            raise ValueError(f"G must have full row rank {G.shape[0]}, got rank {np.linalg.matrix_rank(np.asarray(G))}")
+        if np.max(np.linalg.eigvals(np.asarray(M)).real) > 1e-12:
+            raise ValueError("M must have its eigenvalues in the closed left half-plane (Assumption 9.2)")
+        rosenbrock = np.block([[np.asarray(M), np.asarray(N)], [np.asarray(G), np.zeros((G.shape[0], 1))]])
+        if np.linalg.matrix_rank(rosenbrock) < m + 1:
+            raise ValueError("(G, M, N) must have no invariant zero at the origin (Assumption 9.2): "
+                             f"rank [[M, N], [G, 0]] = {np.linalg.matrix_rank(rosenbrock)} < m + 1 = {m + 1}")
+        if np.max(np.linalg.eigvals(np.asarray(A + B @ F)).real) >= 0:
+            raise ValueError("F: A + B F must be Hurwitz")
+    T = jnp.asarray(T, dtype)
+    Tbar = q * T
+    alpha = jnp.asarray(rho, dtype) * jnp.exp(2 * Tbar * jnp.linalg.norm(A, 2))
+    beta = _van_loan(A, B @ B.T, Tbar)
+    sol = low_gain_are(A, B, C, M, N, F, eps)
+    K = jnp.concatenate([F, jnp.zeros((1, m), dtype)], axis=1) - BB.T @ sol.X
+    return SandwichDesign(A, B, C, M, N, G, AA, BB, CC, T, alpha, h, jnp.linalg.inv(beta),
+                          jax.scipy.linalg.expm(A * Tbar), K, sol.X, q)  # fmt: skip
+
+
+def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2) -> DetectorResult:
+    """The detectors ``e_k+``, ``e_k-``, ``e_k0`` of Grip (2010) §9.3.1 on one window and its class (Theorem 9.1).
+
+    Hypotheses (:func:`explains`): ``L2`` driven by the constant ``+1`` (positive saturation), by ``-1``, and the
+    merged linear model (9.2) driven by the plant's input ``u``. The class is positive or negative when that
+    hypothesis is accepted, linear when only the linear one is and its deadbeat reconstruction has ``|z| <= 1 +
+    z_margin`` at both ends of the window (part of the hypothesis; on a short window a barely crossing ``z`` can fit
+    the linear model to within the quadrature error, Grip 2010 §9.5, but not with a consistent ``z``), mixed when
+    none is.
+
+    Args:
+      design: :func:`sandwich_design`.  y: (N + 1, p) outputs at ``j h`` over the window.  u: (N + 1,) or
+        (N + 1, 1) the input at the same times.  h: () sample step (``N h = T``; ``N`` even).
+      z_margin: () tolerance of the consistency check ``|z| <= 1``.
+    """
+    y = jnp.asarray(y)
+    u = jnp.reshape(jnp.asarray(u, y.dtype), (y.shape[0], 1))
+    one = jnp.ones_like(u)
+    plus = explains(design.M, design.N, design.G, y, one, h)
+    minus = explains(design.M, design.N, design.G, y, -one, h)
+    zero = explains(design.AA, design.BB, design.CC, y, u, h)
+    # the linear hypothesis includes |z| <= 1: its reconstructed z at the window's ends must respect it
+    n = design.A.shape[0]
+    z_ends = jnp.stack([design.C[0] @ zero[3].w0[:n], design.C[0] @ zero[3].w_end[:n]])
+    linear = zero[0] & jnp.all(jnp.abs(z_ends) <= 1 + z_margin)
+    cls = jnp.where(plus[0], 0, jnp.where(minus[0], 1, jnp.where(linear, 2, 3)))
+    return DetectorResult(plus[1], minus[1], zero[1], jnp.stack([plus[2], minus[2], zero[2]]), cls, zero[3].w_end)
+
+
+STAGES = (1, 2, 3)
+
+
+class SandwichTrace(NamedTuple):
+    """One entry per detection interval ``(kT, kT + T]`` of :func:`simulate_sandwich` (leading axis ``K``).
+
+    Attributes:
+      stage: (K,) the stage applied on the interval.  cls: (K,) its detector class (:data:`CLASSES`).
+      e: (K, 3) ``(e_k+, e_k-, e_k0)``.  z_min, z_max: (K,) extremes of ``z = C x`` at the inner nodes.
+      chi_end: (K, n + m) the state at ``kT + T``.  chi_hat_end: (K, n + m) the stage-3 estimate (zeros before).
+      u_max: (K,) ``max |u|`` over the interval.
+    """
+
+    stage: jax.Array
+    cls: jax.Array
+    e: jax.Array
+    z_min: jax.Array
+    z_max: jax.Array
+    chi_end: jax.Array
+    chi_hat_end: jax.Array
+    u_max: jax.Array
+
+
+def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, substeps: int = 50) -> SandwichTrace:
+    """The sandwich system (9.1) under the three-stage controller of Grip (2010) §9.4.
+
+    Stage 1: ``u = 0`` until a window is classified (not mixed). Stage 2 (9.10): on intervals of ``Tbar = q T``,
+    ``u = -B' exp(-A' tau) U_j`` with ``U_j = alpha^j beta(Tbar)^{-1} (alpha h - exp(A Tbar) h) delta`` and ``delta``
+    the sign of the stage-1 window (+1, -1, or 0 if it was linear). Stage 3 from the first linear window: the deadbeat
+    estimate (9.11b) at its end, integrated with the model (9.1) (9.11a), and ``u = K chi_hat`` (9.12). Each window
+    is integrated with ``substeps`` RK4 steps (even); the detectors read ``y`` and ``u`` at those nodes.
+
+    Args:
+      design: :func:`sandwich_design`.  chi0: (n + m,) ``col(x(0), omega(0))``.
+      num_intervals: static ``K``.  substeps: static even number of RK4 steps per window.
+
+    Returns: a :class:`SandwichTrace`. Pure; ``jit`` and ``vmap`` over ``chi0``.
+    """
+    num_intervals = _checks.count("num_intervals", num_intervals, minimum=1)
+    substeps = _checks.count("substeps", substeps, minimum=4)
+    if substeps % 2:
+        raise ValueError(f"substeps must be even (the detectors halve the grid), got {substeps}")
+    A, B, C, M, N, G = design.A, design.B, design.C, design.M, design.N, design.G
+    n, m = A.shape[0], M.shape[0]
+    dtype = A.dtype
+    chi0 = _checks.vector("chi0", chi0, n + m, dtype)
+    d = design.T / substeps
+
+    def f(chi, u):
+        x, w = chi[:n], chi[n:]
+        return jnp.concatenate([A @ x + B[:, 0] * u, M @ w + N[:, 0] * sat(C[0] @ x)])
+
+    def control(z, stage):
+        _, chi_hat, v = z
+        return jnp.where(stage == 2, -B[:, 0] @ v, jnp.where(stage == 3, design.K[0] @ chi_hat, 0.0))
+
+    def interval(carry, k):
+        chi, chi_hat, v, stage, delta, k1 = carry
+        in_stage2 = k - k1
+        j = in_stage2 // design.q
+        U = design.alpha**j * (design.beta_inv @ (design.alpha * design.h - design.expATbar @ design.h)) * delta
+        v = jnp.where((stage == 2) & (in_stage2 % design.q == 0), U, v)
+
+        def rhs(z):
+            u = control(z, stage)
+            return (f(z[0], u), f(z[1], u), -A.T @ z[2])
+
+        def sub(z, _):
+            z1 = _rk4(rhs, z, d)
+            return z1, (C[0] @ z1[0][:n], G @ z1[0][n:], control(z1, stage))
+
+        z = (chi, chi_hat, v)
+        z_end, (zs, ys, us) = jax.lax.scan(sub, z, None, length=substeps)
+        zs = jnp.concatenate([(C[0] @ chi[:n])[None], zs])
+        ys = jnp.concatenate([(G @ chi[n:])[None], ys])
+        us = jnp.concatenate([control(z, stage)[None], us])
+        det = sandwich_detectors(design, ys, us, d)
+        chi1, chi_hat1, v1 = z_end
+        to3 = (stage < 3) & (det.cls == 2)
+        to2 = (stage == 1) & (det.cls < 2)
+        new_delta = jnp.where(to2, jnp.where(det.cls == 0, 1.0, -1.0), delta)
+        new_stage = jnp.where(to3, 3, jnp.where(to2, 2, stage))
+        chi_hat1 = jnp.where(to3, det.chi_end, chi_hat1)
+        k1 = jnp.where(to2, k + 1, k1)
+        out = SandwichTrace(stage, det.cls, jnp.stack([det.e_plus, det.e_minus, det.e_zero]), jnp.min(zs),
+                            jnp.max(zs), chi1, jnp.where(stage == 3, chi_hat1, jnp.where(to3, chi_hat1, 0)),
+                            jnp.max(jnp.abs(us)))  # fmt: skip
+        return (chi1, chi_hat1, v1, new_stage, new_delta, k1), out
+
+    carry = (chi0, jnp.zeros(n + m, dtype), jnp.zeros(n, dtype), jnp.asarray(1), jnp.asarray(0.0, dtype),
+             jnp.asarray(0, jnp.int32))  # fmt: skip
+    return jax.lax.scan(interval, carry, jnp.arange(num_intervals, dtype=jnp.int32))[1]
