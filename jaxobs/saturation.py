@@ -13,7 +13,7 @@ Chapter 9 (Grip, Saberi, Stoorvogel, Wang & Roy) detects, from the output of a l
 saturation, which input explains a window of output: :func:`hypothesis_residual` is the consistency statistic of
 (9.6)-(9.8) for any hypothesis "the window is the free response of ``(F, H)`` plus the response to the known input
 ``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
-``h`` against the one at ``2 h``). :func:`sandwich_detectors` applies it to the three hypotheses of Theorem 9.1,
+``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it to the three hypotheses of Theorem 9.1,
 :func:`low_gain_are` solves the family (9.12) with :func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs
 the three-stage controller of §9.4.
 """
@@ -38,9 +38,15 @@ __all__ = [
     "interval_map",
     "SaturatedOutputTrace",
     "simulate_saturated_outputs",
-    "hypothesis_residual",
-    "explains",
+    "WindowModel",
+    "window_model",
     "forced_response",
+    "Residual",
+    "hypothesis_residual",
+    "Hypothesis",
+    "hypothesis",
+    "explains",
+    "sandwich_hypotheses",
     "DetectorResult",
     "sandwich_detectors",
     "SandwichDesign",
@@ -292,23 +298,44 @@ def simulate_saturated_outputs(
 # ---------------------------------------------------------------------------------------------------- chapter 9
 
 
-def forced_response(F, Bf, u, h):
-    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the input ``u`` sampled at
-    ``tau_j`` (``u``: (N + 1, m)) and linear in between: exact for piecewise-linear inputs (one matrix exponential,
-    then a ``lax.scan``); ``u_s*`` of (9.4) for a constant input, ``u_0*`` of §9.3.1 for the plant's input."""
+class WindowModel(NamedTuple):
+    """The constants of one window hypothesis at one sample step (:func:`window_model`).
+
+    Attributes:
+      H: (p, nf) output matrix.  E: (nf, nf) ``exp(F h)``.  G0, G1: (nf, m) the response over one step to the
+      input at its start and to its slope (piecewise-linear input).  h: () the step.
+    """
+
+    H: jax.Array
+    E: jax.Array
+    G0: jax.Array
+    G1: jax.Array
+    h: jax.Array
+
+
+def window_model(F, Bf, H, h) -> WindowModel:
+    """The hypothesis "``y = H w``, ``w' = F w + Bf u``" sampled at step ``h``: one matrix exponential (computed once,
+    outside any loop over windows)."""
     nf, m = F.shape[0], Bf.shape[1]
     Z = jnp.zeros((nf + 2 * m, nf + 2 * m), F.dtype)
     Z = Z.at[:nf, :nf].set(F).at[:nf, nf : nf + m].set(Bf).at[nf : nf + m, nf + m :].set(jnp.eye(m, dtype=F.dtype))
-    E = jax.scipy.linalg.expm(Z * h)
-    Phi, G0, G1 = E[:nf, :nf], E[:nf, nf : nf + m], E[:nf, nf + m :]
+    X = jax.scipy.linalg.expm(Z * h)
+    return WindowModel(H, X[:nf, :nf], X[:nf, nf : nf + m], X[:nf, nf + m :], jnp.asarray(h, F.dtype))
+
+
+def forced_response(model: WindowModel, u):
+    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the input ``u`` (N + 1, m)
+    sampled at ``tau_j`` and linear in between (exact for piecewise-linear inputs): ``u_s*`` of (9.4) for a constant
+    input, ``u_0*`` of §9.3.1 for the plant's input. ``model``: :func:`window_model`."""
 
     def step(v, pair):
         u0, u1 = pair
-        v = Phi @ v + G0 @ u0 + G1 @ ((u1 - u0) / h)
+        v = model.E @ v + model.G0 @ u0 + model.G1 @ ((u1 - u0) / model.h)
         return v, v
 
-    _, vs = jax.lax.scan(step, jnp.zeros(nf, F.dtype), (u[:-1], u[1:]))
-    return jnp.concatenate([jnp.zeros((1, nf), F.dtype), vs])
+    zero = jnp.zeros(model.E.shape[0], model.E.dtype)
+    _, vs = jax.lax.scan(step, zero, (u[:-1], u[1:]))
+    return jnp.concatenate([zero[None], vs])
 
 
 def _adjugate(D):
@@ -317,8 +344,7 @@ def _adjugate(D):
     s, V = jnp.linalg.eigh((D + D.T) / 2)
     k = s.shape[0]
     others = jnp.where(jnp.eye(k, dtype=bool), 1, s[None, :])  # row i: s with s_i replaced by 1
-    cof = jnp.prod(others, axis=1)
-    return jnp.prod(s), (V * cof) @ V.T
+    return jnp.prod(s), (V * jnp.prod(others, axis=1)) @ V.T
 
 
 class Residual(NamedTuple):
@@ -330,10 +356,10 @@ class Residual(NamedTuple):
     condition: jax.Array  # () condition number of D(T)
 
 
-def hypothesis_residual(F, Bf, H, y, u, h) -> Residual:
+def hypothesis_residual(model: WindowModel, y, u) -> Residual:
     """The consistency statistic of Grip (2010) (9.6)-(9.8) for the hypothesis "over this window
-    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u`` through
-    ``Bf`` (:func:`forced_response`)::
+    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u``
+    (:func:`forced_response`)::
 
         r(tau) = det(D(tau)) (y(tau) - H v(tau)) - H exp(F tau) adj(D(tau)) (xi(tau) - S(tau))
         D(tau) = int_0^tau exp(F' g) H' H exp(F g) dg,  xi(tau) - S(tau) = int_0^tau exp(F' g) H' (y - H v)(g) dg
@@ -345,24 +371,24 @@ def hypothesis_residual(F, Bf, H, y, u, h) -> Residual:
     ``(H, F)`` observable.
 
     Args:
-      F: (nf, nf).  Bf: (nf, m).  H: (p, nf).  y: (N + 1, p) outputs at ``tau_j = j h``.
-      u: (N + 1, m) the hypothesis's input at the same times.  h: () sample step.
+      model: :func:`window_model` of ``(F, Bf, H)`` at the sample step ``h``.
+      y: (N + 1, p) outputs at ``tau_j = j h``.  u: (N + 1, m) the hypothesis's input at the same times.
     """
-    nf = F.shape[0]
-    v = forced_response(F, Bf, u, h)
+    H, h = model.H, model.h
+    nf = model.E.shape[0]
+    v = forced_response(model, u)
     e = y - v @ H.T
-    Eh = jax.scipy.linalg.expm(F * h)
 
     def step(carry, e_pair):
         E, D, xs = carry
-        E1 = E @ Eh
+        E1 = E @ model.E
         HE0, HE1 = H @ E, H @ E1
         D1 = D + h / 2 * (HE0.T @ HE0 + HE1.T @ HE1)
         xs1 = xs + h / 2 * (HE0.T @ e_pair[0] + HE1.T @ e_pair[1])
         return (E1, D1, xs1), (E1, D1, xs1)
 
-    zero = jnp.zeros((nf, nf), F.dtype)
-    init = (jnp.eye(nf, dtype=F.dtype), zero, jnp.zeros(nf, F.dtype))
+    zero = jnp.zeros((nf, nf), y.dtype)
+    init = (jnp.eye(nf, dtype=y.dtype), zero, jnp.zeros(nf, y.dtype))
     _, (Es, Ds, xss) = jax.lax.scan(step, init, (e[:-1], e[1:]))
     Es = jnp.concatenate([init[0][None], Es])
     Ds = jnp.concatenate([zero[None], Ds])
@@ -373,28 +399,57 @@ def hypothesis_residual(F, Bf, H, y, u, h) -> Residual:
     norms = jnp.linalg.norm(first - second, axis=1)
     trap = lambda f: h * (jnp.sum(f) - (f[0] + f[-1]) / 2)
     scale = trap(jnp.abs(det) * (jnp.linalg.norm(y, axis=1) + jnp.linalg.norm(v @ H.T, axis=1))
-                 + jnp.linalg.norm(second, axis=1))
+                 + jnp.linalg.norm(second, axis=1))  # fmt: skip
     D_T = (Ds[-1] + Ds[-1].T) / 2
     w0 = jnp.linalg.solve(D_T, xss[-1])
     condition, _ = _condition(D_T)
     return Residual(trap(norms), scale, norms, w0, Es[-1] @ w0 + v[-1], condition)
 
 
-def explains(F, Bf, H, y, u, h, *, ratio=3.0, rtol=1e-9, rounding=64.0):
-    """Whether the hypothesis of :func:`hypothesis_residual` explains the window, relative to the quadrature
-    accuracy. The statistic is computed at step ``h`` (``e_h``) and from every other sample (``e_2h``): for a true
-    hypothesis it is pure quadrature error, ``e_h ~ c h^2``, so halving the step divides it by 4; for a false one it
-    tends to a positive limit and halving the step changes it little. The hypothesis is accepted when
-    ``e_2h >= ratio e_h`` (default 3), or when ``e_h`` is at the precision to which it can vanish: below
-    ``max(rtol, rounding eps cond(D(T)))`` times the size of the data in the same integral (``eps`` the machine
-    epsilon; ``adj(D) xi`` loses ``cond(D)`` in rounding, and a short window has a poorly conditioned ``D``). ``N`` must be even.
+class Hypothesis(NamedTuple):
+    """A window hypothesis at the sample step ``h`` (``fine``) and ``2 h`` (``coarse``): :func:`hypothesis`."""
+
+    fine: WindowModel
+    coarse: WindowModel
+
+
+def hypothesis(F, Bf, H, h) -> Hypothesis:
+    """The hypothesis "the window's output is ``H w`` with ``w' = F w + Bf u``" for :func:`explains`.
+
+    Args:
+      F: (nf, nf).  Bf: (nf, m).  H: (p, nf), ``(H, F)`` observable.  h: () the sample step of the windows.
+    """
+    dtype = _checks.float_dtype(F=F, Bf=Bf, H=H)
+    F, Bf, H = (jnp.asarray(M, dtype) for M in (F, Bf, H))
+    _checks.matrix("F", F, square=True)
+    _checks.matrix("Bf", Bf, shape=(F.shape[0], None))
+    _checks.matrix("H", H, shape=(None, F.shape[0]))
+    _checks.positive_scalar("h", h)
+    return Hypothesis(window_model(F, Bf, H, h), window_model(F, Bf, H, 2 * jnp.asarray(h, dtype)))
+
+
+def explains(hyp: Hypothesis, y, u, *, ratio=3.0, rtol=1e-9, rounding=64.0):
+    """Whether the hypothesis explains the window, relative to the quadrature accuracy.
+
+    The statistic of :func:`hypothesis_residual` is computed at step ``h`` (``e_h``) and from every other sample
+    (``e_2h``). For a true hypothesis it is the error of the input's piecewise-linear interpolation, ``e_h ~ c h^2``,
+    so halving the step divides it by 4, or it is at rounding level; for a false one it tends to a positive limit
+    and halving the step changes it little. Accepted when ``e_2h >= ratio e_h`` (default 3), or when ``e_h`` is at the
+    precision to which it can vanish: below ``max(rtol, rounding eps cond(D(T)))`` times the size of the data in
+    the same integral (``eps`` the machine epsilon; ``adj(D) xi`` loses ``cond(D)`` in rounding, and a short window
+    has a poorly conditioned ``D``).
+
+    Args:
+      hyp: :func:`hypothesis`.  y: (N + 1, p) outputs at ``j h``, ``N`` even.  u: (N + 1, m) the input.
+      ratio, rtol, rounding: the acceptance rule above.
 
     Returns ``(accepted, e_h, e_2h, residual)`` with ``residual`` the :class:`Residual` at step ``h``.
     """
     if y.shape[0] % 2 != 1 or y.shape[0] < 5:
         raise ValueError(f"y must have an odd number N + 1 >= 5 of samples (N even), got {y.shape[0]}")
-    fine = hypothesis_residual(F, Bf, H, y, u, h)
-    coarse = hypothesis_residual(F, Bf, H, y[::2], u[::2], 2 * h)
+    _checks.shape("u", u, (y.shape[0], hyp.fine.G0.shape[1]), "the input at the samples of y")
+    fine = hypothesis_residual(hyp.fine, y, u)
+    coarse = hypothesis_residual(hyp.coarse, y[::2], u[::2])
     floor = jnp.maximum(rtol, rounding * jnp.finfo(y.dtype).eps * fine.condition) * fine.scale
     accepted = (coarse.statistic >= ratio * fine.statistic) | (fine.statistic <= floor)
     return accepted, fine.statistic, coarse.statistic, fine
@@ -533,28 +588,31 @@ def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F,
                           jax.scipy.linalg.expm(A * Tbar), K, sol.X, q)  # fmt: skip
 
 
-def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2) -> DetectorResult:
+def sandwich_hypotheses(design: SandwichDesign, h) -> tuple[Hypothesis, Hypothesis]:
+    """The two models of the detectors at sample step ``h``: ``L2`` alone (driven by ``+-1``) and the merged
+    linear model (9.2) driven by ``u``."""
+    return hypothesis(design.M, design.N, design.G, h), hypothesis(design.AA, design.BB, design.CC, h)
+
+
+def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2, hypotheses=None) -> DetectorResult:
     """The detectors ``e_k+``, ``e_k-``, ``e_k0`` of Grip (2010) §9.3.1 on one window and its class (Theorem 9.1).
 
     Hypotheses (:func:`explains`): ``L2`` driven by the constant ``+1`` (positive saturation), by ``-1``, and the
     merged linear model (9.2) driven by the plant's input ``u``. The class is positive or negative when that
     hypothesis is accepted, linear when only the linear one is and its deadbeat reconstruction has ``|z| <= 1 +
-    z_margin`` at both ends of the window (part of the hypothesis; on a short window a barely crossing ``z`` can fit
-    the linear model to within the quadrature error, Grip 2010 §9.5, but not with a consistent ``z``), mixed when
-    none is.
+    z_margin`` at both ends of the window (part of the hypothesis), mixed when none is.
 
     Args:
       design: :func:`sandwich_design`.  y: (N + 1, p) outputs at ``j h`` over the window.  u: (N + 1,) or
         (N + 1, 1) the input at the same times.  h: () sample step (``N h = T``; ``N`` even).
       z_margin: () tolerance of the consistency check ``|z| <= 1``.
+      hypotheses: :func:`sandwich_hypotheses` at ``h`` (computed when not given; give them inside a loop).
     """
     y = jnp.asarray(y)
     u = jnp.reshape(jnp.asarray(u, y.dtype), (y.shape[0], 1))
+    l2, merged = sandwich_hypotheses(design, h) if hypotheses is None else hypotheses
     one = jnp.ones_like(u)
-    plus = explains(design.M, design.N, design.G, y, one, h)
-    minus = explains(design.M, design.N, design.G, y, -one, h)
-    zero = explains(design.AA, design.BB, design.CC, y, u, h)
-    # the linear hypothesis includes |z| <= 1: its reconstructed z at the window's ends must respect it
+    plus, minus, zero = explains(l2, y, one), explains(l2, y, -one), explains(merged, y, u)
     n = design.A.shape[0]
     z_ends = jnp.stack([design.C[0] @ zero[3].w0[:n], design.C[0] @ zero[3].w_end[:n]])
     linear = zero[0] & jnp.all(jnp.abs(z_ends) <= 1 + z_margin)
@@ -609,6 +667,7 @@ def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, subst
     dtype = A.dtype
     chi0 = _checks.vector("chi0", chi0, n + m, dtype)
     d = design.T / substeps
+    hypotheses = sandwich_hypotheses(design, d)
 
     def f(chi, u):
         x, w = chi[:n], chi[n:]
@@ -638,7 +697,7 @@ def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, subst
         zs = jnp.concatenate([(C[0] @ chi[:n])[None], zs])
         ys = jnp.concatenate([(G @ chi[n:])[None], ys])
         us = jnp.concatenate([control(z, stage)[None], us])
-        det = sandwich_detectors(design, ys, us, d)
+        det = sandwich_detectors(design, ys, us, d, hypotheses=hypotheses)
         chi1, chi_hat1, v1 = z_end
         to3 = (stage < 3) & (det.cls == 2)
         to2 = (stage == 1) & (det.cls < 2)
