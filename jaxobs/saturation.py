@@ -13,8 +13,8 @@ Chapter 9 (Grip, Saberi, Stoorvogel, Wang & Roy) detects, from the output of a l
 saturation, which input explains a window of output: :func:`hypothesis_residual` is the consistency statistic of
 (9.6)-(9.8) for any hypothesis "the window is the free response of ``(F, H)`` plus the response to the known input
 ``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
-``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it to the three hypotheses of Theorem 9.1,
-:func:`low_gain_are` solves the family (9.12) with :func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs
+``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
+to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with :func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs
 the three-stage controller of §9.4.
 """
 
@@ -171,7 +171,9 @@ def saturated_output_design(A, B, C, *, T, rho, H=None, alpha_norm: str = "2") -
         ch = np.sum(np.asarray(C) * np.asarray(H), axis=1)
         bad = np.flatnonzero(ch <= 0)
         if bad.size:
-            raise ValueError(f"H: C_i h_i must be > 0 for every output, got C_i h_i = {ch[bad[0]]:.6g} for i = {bad[0]}")
+            raise ValueError(
+                f"H: C_i h_i must be > 0 for every output, got C_i h_i = {ch[bad[0]]:.6g} for i = {bad[0]}"
+            )
     T = jnp.asarray(T, dtype)
     expAT = jax.scipy.linalg.expm(A * T)
     alpha = jnp.asarray(rho, dtype) * jnp.linalg.norm(expAT, ord=ALPHA_NORMS[alpha_norm])
@@ -574,8 +576,10 @@ def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F,
             raise ValueError("M must have its eigenvalues in the closed left half-plane (Assumption 9.2)")
         rosenbrock = np.block([[np.asarray(M), np.asarray(N)], [np.asarray(G), np.zeros((G.shape[0], 1))]])
         if np.linalg.matrix_rank(rosenbrock) < m + 1:
-            raise ValueError("(G, M, N) must have no invariant zero at the origin (Assumption 9.2): "
-                             f"rank [[M, N], [G, 0]] = {np.linalg.matrix_rank(rosenbrock)} < m + 1 = {m + 1}")
+            raise ValueError(
+                "(G, M, N) must have no invariant zero at the origin (Assumption 9.2): "
+                f"rank [[M, N], [G, 0]] = {np.linalg.matrix_rank(rosenbrock)} < m + 1 = {m + 1}"
+            )
         if np.max(np.linalg.eigvals(np.asarray(A + B @ F)).real) >= 0:
             raise ValueError("F: A + B F must be Hurwitz")
     T = jnp.asarray(T, dtype)

@@ -114,8 +114,9 @@ def make_gramian(A, B, C, *, dt, forgetting=0.0, weights: str = "saturation", le
     big = jnp.zeros((n + m, n + m), dtype).at[:n, :n].set(A).at[:n, n:].set(B)
     E = jax.scipy.linalg.expm(big * dt)
     Phi, Gamma = E[:n, :n], E[:n, n:]
-    return GramianParams(Phi, jax.scipy.linalg.expm(-A * dt), Gamma, C, dt, jnp.exp(-jnp.asarray(forgetting, dtype) * dt),
-                         level, jnp.asarray(cond_max, dtype), x0, weights)  # fmt: skip
+    forget = jnp.exp(-jnp.asarray(forgetting, dtype) * dt)
+    Phi_inv = jax.scipy.linalg.expm(-A * dt)
+    return GramianParams(Phi, Phi_inv, Gamma, C, dt, forget, level, jnp.asarray(cond_max, dtype), x0, weights)
 
 
 def _init(params: GramianParams) -> GramianState:
