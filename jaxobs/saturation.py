@@ -14,8 +14,8 @@ saturation, which input explains a window of output: :func:`hypothesis_residual`
 (9.6)-(9.8) for any hypothesis "the window is the free response of ``(F, H)`` plus the response to the known input
 ``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
 ``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
-to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with :func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs
-the three-stage controller of §9.4.
+to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with
+:func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from jaxobs import _checks
 from jaxobs.riccati import care
 
 __all__ = [
+    "ALPHA_NORMS",
     "sat",
     "require_controllable_observable",
     "SaturatedOutputDesign",
