@@ -6,6 +6,7 @@ from jaxobs.papers import (
     cortesao_stochastic,
     grip2010_adaptive,
     grip2010_dc_motor,
+    grip2010_sandwich,
     grip2010_saturated_outputs,
     grip2010_scb,
     liu_peng,
@@ -23,6 +24,7 @@ REPRODUCTIONS = {
     grip2010_adaptive.NAME_DRILLING: grip2010_adaptive.reproduce_drilling,
     grip2010_dc_motor.NAME: grip2010_dc_motor.reproduce,
     grip2010_saturated_outputs.NAME: grip2010_saturated_outputs.reproduce,
+    grip2010_sandwich.NAME: grip2010_sandwich.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]
