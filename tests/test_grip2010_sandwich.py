@@ -5,10 +5,13 @@ import json
 
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers import grip2010_sandwich as g
 from jaxobs.saturation import sandwich_design
+
+ROW = r"`grip2010-sandwich` \| Grip 2010 ch\. 9 \|.*?"
 
 
 def test_detector_windows_are_classified_by_theorem_9_1():
@@ -21,6 +24,7 @@ def test_detector_windows_are_classified_by_theorem_9_1():
     crossing = windows[-1]
     assert crossing["z_min"] < 1 < crossing["z_max"]
     assert windows[2]["chi_end_error"] < 1e-9  # the deadbeat reconstruction (9.11b) on the linear window
+    pin(crossing["e_zero"], ROW + r"e_k0 = ([\d.e-]+)")
 
 
 def test_low_gain_are_family():
@@ -28,6 +32,8 @@ def test_low_gain_are_family():
     assert are["eps"] == [1e-1, 1e-2, 1e-3, 1e-4]
     assert all(e > 0 for e in are["P_min_eig"])
     np.testing.assert_allclose(are["P_norm_over_eps"][1:], are["P_norm_over_eps"][-1], rtol=0.03)
+    for i, value in enumerate(are["P_norm_over_eps"]):
+        pin(value, ROW + r"P_eps / eps = " + r"[\d.]+, " * i + r"([\d.]+)")
 
 
 @pytest.mark.slow
@@ -42,3 +48,6 @@ def test_reproduction_writes_every_key(tmp_path):
     assert loop["stage_switch_times"]["stage3_start_s"]["never"] == 0
     assert all(w["correct"] for w in data["detectors"])
     assert (tmp_path / data["figures"][0]).stat().st_size > 10_000
+    pin(loop["max_final_norm"], ROW + r"final \\\|chi\\\| ≤ ([\d.e-]+)")
+    pin(loop["stage_switch_times"]["stage3_start_s"]["max"], ROW + r"stage 3 reached by ([\d.]+) s")
+    pin(loop["n_initial_conditions"], ROW + r"stabilises all (\d+) grid states")

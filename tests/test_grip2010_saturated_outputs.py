@@ -4,6 +4,7 @@ norm in alpha, the other norms' patterns, exact reconstruction and rest at the o
 import json
 
 import numpy as np
+from _readme import pin
 
 from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers import grip2010_saturated_outputs as g
@@ -32,3 +33,12 @@ def test_reproduction_writes_every_key_and_matches_the_print(tmp_path):
     for other in data["alternative_norms"].values():  # no other norm reproduces the printed pattern
         assert other["deadbeat_interval"] != 6
     assert (tmp_path / data["figures"][0]).stat().st_size > 10_000
+    row = r"`grip2010-saturated-outputs` \| Grip 2010 §8\.5 \|.*?"
+    assert data["max_abs_x_after_deadbeat"] < 1e-11 and data["x0_reconstruction_error"] < 1e-11
+    assert data["interval_map_max_error"] < 1e-13
+    norms = [e["U_norm"] for e in data["intervals"][:6]]
+    for i, value in enumerate(norms):
+        pin(value, row + r"\\\|U_k\\\| = " + r"[\d.]+, " * i + r"([\d.]+)")
+    deadbeat = [data["alternative_norms"][n]["deadbeat_interval"] for n in ("1", "inf", "fro")]
+    for i, value in enumerate(deadbeat):
+        pin(value, row + r"deadbeat intervals " + r"\d, " * i + r"(\d)")
