@@ -1,5 +1,7 @@
 """Grip 2010, ch. 9: semiglobal stabilisation of a sandwich system by dynamic output feedback (Grip, Saberi,
-Stoorvogel, Wang & Roy). The chapter prints no example; the instance here is this project's choice:
+Stoorvogel, Wang & Roy), on an instance of this project's choice (the chapter prints no example).
+
+The instance:
 
 * ``L1``: the double integrator ``x1' = x2``, ``x2' = u``, ``z = x1``, with the pre-feedback ``F = [-1, -2]``
   (``A + B F`` has a double eigenvalue at -1);
