@@ -55,7 +55,6 @@ __all__ = [
     "low_gain_are",
     "SandwichTrace",
     "simulate_sandwich",
-    "STAGES",
     "CLASSES",
 ]
 
@@ -220,11 +219,10 @@ class SaturatedOutputTrace(NamedTuple):
 
 
 def _condition(D):
-    """Condition number of a symmetric positive semidefinite matrix (inf when singular), and its eigenvalues."""
+    """Condition number of a symmetric positive semidefinite matrix (inf when singular)."""
     eig = jnp.linalg.eigvalsh((D + D.T) / 2)
-    top = jnp.max(jnp.abs(eig))
     low = eig[0]
-    return jnp.where(low > 0, top / jnp.where(low > 0, low, 1), jnp.inf), eig
+    return jnp.where(low > 0, jnp.max(jnp.abs(eig)) / jnp.where(low > 0, low, 1), jnp.inf)
 
 
 def _rk4(f, z, d):
@@ -264,14 +262,14 @@ def simulate_saturated_outputs(
     def rhs(z):
         x, mu, v, Psi, sigma, xi, D = z
         u = -B.T @ v
-        w = 1 - jnp.abs(sat(C @ x))
         y = sat(C @ x)
+        w = 1 - jnp.abs(y)
         PC = Psi.T @ C.T  # exp(A' t) C'
         return (A @ x + B @ u, A @ mu + B @ u, -A.T @ v, A @ Psi, w, PC @ (w * (y - C @ mu)), (PC * w) @ PC.T)
 
     def interval(carry, k):
         x, mu, Psi, sigma, xi, D = carry
-        cond, _ = _condition(D)
+        cond = _condition(D)
         all_out = jnp.all(sigma > 0)
         ready = all_out & (cond <= cond_max) & jnp.all(jnp.isfinite(D))
         D_safe = jnp.where(ready, D, jnp.eye(n, dtype=dtype))
@@ -405,7 +403,7 @@ def hypothesis_residual(model: WindowModel, y, u) -> Residual:
                  + jnp.linalg.norm(second, axis=1))  # fmt: skip
     D_T = (Ds[-1] + Ds[-1].T) / 2
     w0 = jnp.linalg.solve(D_T, xss[-1])
-    condition, _ = _condition(D_T)
+    condition = _condition(D_T)
     return Residual(trap(norms), scale, norms, w0, Es[-1] @ w0 + v[-1], condition)
 
 
@@ -625,9 +623,6 @@ def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2, hypoth
     return DetectorResult(plus[1], minus[1], zero[1], jnp.stack([plus[2], minus[2], zero[2]]), cls, zero[3].w_end)
 
 
-STAGES = (1, 2, 3)
-
-
 class SandwichTrace(NamedTuple):
     """One entry per detection interval ``(kT, kT + T]`` of :func:`simulate_sandwich` (leading axis ``K``).
 
@@ -710,9 +705,9 @@ def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, subst
         new_stage = jnp.where(to3, 3, jnp.where(to2, 2, stage))
         chi_hat1 = jnp.where(to3, det.chi_end, chi_hat1)
         k1 = jnp.where(to2, k + 1, k1)
-        out = SandwichTrace(stage, det.cls, jnp.stack([det.e_plus, det.e_minus, det.e_zero]), jnp.min(zs),
-                            jnp.max(zs), chi1, jnp.where(stage == 3, chi_hat1, jnp.where(to3, chi_hat1, 0)),
-                            jnp.max(jnp.abs(us)))  # fmt: skip
+        e = jnp.stack([det.e_plus, det.e_minus, det.e_zero])
+        chi_hat_out = jnp.where((stage == 3) | to3, chi_hat1, 0)
+        out = SandwichTrace(stage, det.cls, e, jnp.min(zs), jnp.max(zs), chi1, chi_hat_out, jnp.max(jnp.abs(us)))
         return (chi1, chi_hat1, v1, new_stage, new_delta, k1), out
 
     carry = (chi0, jnp.zeros(n + m, dtype), jnp.zeros(n, dtype), jnp.asarray(1), jnp.asarray(0.0, dtype),
