@@ -13,7 +13,9 @@
   (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
   ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
   (:func:`make_continuous_observer`); the modified high-gain observer of Grip 2010, ch. 6: :func:`hgo_gains`,
-  :data:`hgo_observer` (:func:`make_hgo`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
+  :data:`hgo_observer` (:func:`make_hgo`); the masked observability-Gramian reconstruction of Grip 2010 ch. 8 for
+  saturated or clipped sensors: :data:`gramian_estimator` (:func:`make_gramian`; the chapter 8 and 9 controllers
+  and saturation detectors in :mod:`jaxobs.saturation`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
 * estimation over a record (:mod:`jaxobs.smoothing`): :func:`log_likelihood`, :func:`smooth` (Rauch-Tung-Striebel,
   for the Kalman filter and the active observer), :func:`rts_smoother`, :func:`parallel_filter` (parallel in time),
   and the square-root Kalman filter :data:`square_root_kalman_filter` (:func:`square_root_form`);
@@ -51,6 +53,7 @@ from jaxobs.observers import (
 from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
 from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
 from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
+from jaxobs.observers.gramian import gramian_estimator, make_gramian
 from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
 from jaxobs.observers.hinf import hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
@@ -124,6 +127,8 @@ __all__ = [
     "make_inverse_dynamics",
     "pe_monitor",
     "make_pe_monitor",
+    "gramian_estimator",
+    "make_gramian",
     "linear_observer",
     "NonlinearModel",
     "nonlinear_model",

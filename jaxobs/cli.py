@@ -69,9 +69,17 @@ def _print_list(registry: dict) -> None:
 
 def _sweeps() -> dict:
     """Sweep modules by scenario name; the first is the default."""
-    from jaxobs.papers import dc_motor_hgo_sweep, force_robustness, grip_example56_sweep, liu_peng_sweep, sbw_robustness
+    from jaxobs.papers import (
+        dc_motor_hgo_sweep,
+        force_robustness,
+        grip_example56_sweep,
+        liu_peng_sweep,
+        saturated_outputs_sweep,
+        sbw_robustness,
+    )
 
-    sweeps = (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep, grip_example56_sweep)
+    sweeps = (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep, grip_example56_sweep,
+              saturated_outputs_sweep)  # fmt: skip
     return {m.NAME: m for m in sweeps}
 
 

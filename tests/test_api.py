@@ -71,7 +71,7 @@ def test_exported_name_resolves_and_is_documented(name):
 MAIN_ENTRY_POINTS = ["c2d", "dare", "dlqr", "make_kalman", "make_aob", "run", "simulate", "observer_controller",
                      "stability_margins", "force_plant", "critically_damped_gain", "nonlinear_model", "make_ekf",
                      "make_ukf", "make_continuous_observer", "smooth", "log_likelihood", "fit", "em",
-                     "make_modular", "hgo_gains", "make_hgo"]  # fmt: skip
+                     "make_modular", "hgo_gains", "make_hgo", "make_gramian"]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", MAIN_ENTRY_POINTS)

@@ -34,6 +34,8 @@ def test_registry_names():
         "grip2010-example5.6",
         "grip2010-drilling",
         "grip2010-dc-motor",
+        "grip2010-saturated-outputs",
+        "grip2010-sandwich",
     }
 
 

@@ -6,7 +6,8 @@ observers), ``linear`` (fixed-gain linear observer), ``ekf`` (extended Kalman fi
 filter), ``continuous`` (continuous-time observers run as sampled estimators), ``pe_monitor``
 (persistency-of-excitation monitor: the windowed Gram matrix of the regressors), ``ct_linear`` (continuous-time
 Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
-estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains).
+estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains),
+``gramian`` (the masked observability-Gramian reconstruction of Grip 2010, ch. 8).
 ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
@@ -17,6 +18,7 @@ from jaxobs.observers import (
     ct_linear,
     ekf,
     feedback,
+    gramian,
     hgo,
     hinf,
     inverse_dynamics,
@@ -58,4 +60,5 @@ __all__ = [
     "continuous",
     "modular",
     "hgo",
+    "gramian",
 ]

@@ -6,6 +6,8 @@ from jaxobs.papers import (
     cortesao_stochastic,
     grip2010_adaptive,
     grip2010_dc_motor,
+    grip2010_sandwich,
+    grip2010_saturated_outputs,
     grip2010_scb,
     liu_peng,
     steer_by_wire,
@@ -21,6 +23,8 @@ REPRODUCTIONS = {
     grip2010_adaptive.NAME_EXAMPLE_5_6: grip2010_adaptive.reproduce_example_5_6,
     grip2010_adaptive.NAME_DRILLING: grip2010_adaptive.reproduce_drilling,
     grip2010_dc_motor.NAME: grip2010_dc_motor.reproduce,
+    grip2010_saturated_outputs.NAME: grip2010_saturated_outputs.reproduce,
+    grip2010_sandwich.NAME: grip2010_sandwich.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]

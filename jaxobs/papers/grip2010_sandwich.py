@@ -1,0 +1,180 @@
+"""Grip 2010, ch. 9: semiglobal stabilisation of a sandwich system by dynamic output feedback (Grip, Saberi,
+Stoorvogel, Wang & Roy), on an instance of this project's choice (the chapter prints no example).
+
+The instance:
+
+* ``L1``: the double integrator ``x1' = x2``, ``x2' = u``, ``z = x1``, with the pre-feedback ``F = [-1, -2]``
+  (``A + B F`` has a double eigenvalue at -1);
+* ``L2``: the lag ``w' = -w + sat(z)``, ``y = w`` (no invariant zero, ``M`` Hurwitz: Assumptions 9.1-9.3').
+
+Reported: (i) the detectors of §9.3.1 on four windows of T = 0.5 s with ``u = 0`` (``z >= 1``, ``z <= -1``,
+``|z| < 1``, ``z`` crossing 1), each simulated with RK4 at 0.5 ms and classified by Theorem 9.1
+(:func:`jaxobs.saturation.sandwich_detectors`); (ii) the low-gain ARE (9.12) for eps in {1e-1, 1e-2, 1e-3, 1e-4};
+(iii) the three-stage controller from the 5 x 5 x 5 grid of the box ``|x1| <= 5``, ``|x2| <= 5``, ``|w| <= 1``
+with the design chosen here: detection windows T = 0.05 s (50 RK4 steps of 1 ms each), stage-2 intervals
+Tbar = 4 T = 0.2 s, ``alpha = 1.1 exp(2 Tbar ||A||)``, ``h = C'``, eps = 1e-3, 40 s. A window of T = 0.1 s fails
+from this box: the stage-2 input then grows fast enough that ``z`` crosses the linear region within less than two
+windows and never spends a whole window there (Lemma 9.1 needs T small for the given box).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import ct
+from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.saturation import CLASSES, low_gain_are, sandwich_design, sandwich_detectors, simulate_sandwich
+
+NAME = "grip2010-sandwich"
+SYSTEM = dict(A=[[0.0, 1.0], [0.0, 0.0]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], M=[[-1.0]], N=[[1.0]], G=[[1.0]])
+F = [[-1.0, -2.0]]
+WINDOW_T, WINDOW_STEPS = 0.5, 1000
+WINDOWS = {  # case: (initial chi = (x1, x2, w), expected class)
+    "z >= 1": ([3.0, 1.0, 0.2], "positive"),
+    "z <= -1": ([-3.0, 1.0, 0.5], "negative"),
+    "|z| < 1": ([0.5, -1.0, 0.2], "linear"),
+    "z crossing 1": ([1.5, -2.0, 0.2], "mixed"),
+}
+EPS_FAMILY = (1e-1, 1e-2, 1e-3, 1e-4)
+DESIGN = dict(T=0.05, Tbar_intervals=4, rho=1.1, eps=1e-3)
+SUBSTEPS, INTERVALS, GRID = 50, 800, 5
+STABLE_NORM = 1e-6
+
+
+def _plant(chi, u, t):
+    return jnp.stack([chi[1], u, -chi[2] + jnp.clip(chi[0], -1.0, 1.0)])
+
+
+@jax.jit
+def _window(design, chi0):
+    """One window of ``u = 0`` (RK4 at ``WINDOW_T / WINDOW_STEPS``) and its detectors."""
+    h = WINDOW_T / WINDOW_STEPS
+    chi = ct.trajectory(_plant, chi0, jnp.zeros(WINDOW_STEPS), h=h, substeps=1)
+    return chi, sandwich_detectors(design, chi[:, 2:3], jnp.zeros(WINDOW_STEPS + 1), h)
+
+
+def windows(design) -> list[dict]:
+    """The four detector windows: simulated (``u = 0``), classified, compared with the true range of ``z``."""
+    out = []
+    for case, (chi0, expected) in WINDOWS.items():
+        chi, res = _window(design, jnp.asarray(chi0))
+        z = np.asarray(chi[:, 0])
+        out.append({
+            "case": case, "z_min": float(z.min()), "z_max": float(z.max()), "e_plus": float(res.e_plus),
+            "e_minus": float(res.e_minus), "e_zero": float(res.e_zero), "classified": CLASSES[int(res.cls)],
+            "expected": expected, "correct": CLASSES[int(res.cls)] == expected,
+            "e_at_2h": np.asarray(res.coarse),
+            "chi_end_error": float(np.max(np.abs(np.asarray(res.chi_end) - np.asarray(chi[-1]))))
+            if expected == "linear" else None,
+        })  # fmt: skip
+    return out
+
+
+def are_family() -> dict:
+    P = [np.asarray(low_gain_are(**{k: SYSTEM[k] for k in "ABCMN"}, F=F, eps=e).X) for e in EPS_FAMILY]
+    norms = [float(np.linalg.norm(p, 2)) for p in P]
+    return {
+        "eps": list(EPS_FAMILY),
+        "P_norm": norms,
+        "P_min_eig": [float(np.linalg.eigvalsh(p)[0]) for p in P],
+        "P_norm_over_eps": [n / e for n, e in zip(norms, EPS_FAMILY, strict=True)],
+    }
+
+
+def grid() -> np.ndarray:
+    g, gw = np.linspace(-5, 5, GRID), np.linspace(-1, 1, GRID)
+    return np.array(np.meshgrid(g, g, gw, indexing="ij")).reshape(3, -1).T
+
+
+def closed_loop(design):
+    chi0 = grid()
+    run = jax.jit(jax.vmap(lambda c: simulate_sandwich(design, c, INTERVALS, substeps=SUBSTEPS)))
+    return chi0, run(jnp.asarray(chi0))
+
+
+def reproduce(out_dir: Path) -> dict:
+    """Run the windows, the ARE family and the closed loop; write ``grip2010-sandwich.json`` and the figure."""
+    out_dir = Path(out_dir)
+    design = sandwich_design(**SYSTEM, F=F, **DESIGN)
+    chi0, trace = closed_loop(design)
+    stage = np.asarray(trace.stage)
+    T = DESIGN["T"]
+    final = np.linalg.norm(np.asarray(trace.chi_end)[:, -1], axis=1)
+    first = lambda s: np.where((stage == s).any(axis=1), np.argmax(stage == s, axis=1) * T, np.nan)
+    t2, t3 = first(2), first(3)
+    in3 = stage == 3
+    est = np.linalg.norm(np.asarray(trace.chi_end) - np.asarray(trace.chi_hat_end), axis=2)
+    summary = {
+        "system": SYSTEM,
+        "F": F,
+        "design": {
+            **DESIGN,
+            "Tbar": DESIGN["T"] * DESIGN["Tbar_intervals"],
+            "alpha": float(design.alpha),
+            "h": np.asarray(design.h),
+            "substeps": SUBSTEPS,
+            "horizon_s": INTERVALS * T,
+            "K": np.asarray(design.K),
+        },  # fmt: skip
+        "detectors": windows(design),
+        "low_gain_are": are_family(),
+        "closed_loop": {
+            "n_initial_conditions": int(chi0.shape[0]),
+            "box": "|x1| <= 5, |x2| <= 5, |w| <= 1 (5 x 5 x 5 grid)",
+            "stabilised_fraction": float(np.mean(final < STABLE_NORM)),
+            "stabilised_means": f"||chi|| < {STABLE_NORM} at t = {INTERVALS * T} s",
+            "max_final_norm": float(final.max()),
+            "stage_switch_times": {
+                "stage2_start_s": {
+                    "min": float(np.nanmin(t2)),
+                    "median": float(np.nanmedian(t2)),
+                    "max": float(np.nanmax(t2)),
+                    "never": int(np.isnan(t2).sum()),
+                },
+                "stage3_start_s": {
+                    "min": float(np.nanmin(t3)),
+                    "median": float(np.nanmedian(t3)),
+                    "max": float(np.nanmax(t3)),
+                    "never": int(np.isnan(t3).sum()),
+                },
+                "per_initial_condition": [[a, b] for a, b in zip(t2.tolist(), t3.tolist(), strict=True)],
+            },  # fmt: skip
+            "max_estimate_error_stage3": float(est[in3].max()) if in3.any() else None,
+            "max_abs_u": float(np.asarray(trace.u_max).max()),
+        },
+    }
+    worst = int(np.nanargmax(t3))
+    return write_reproduction(out_dir, NAME, summary, [_figure(out_dir, chi0[worst], trace, worst)])
+
+
+def _figure(out_dir: Path, chi0, trace, i: int) -> str:
+    plt = pyplot()
+    T = DESIGN["T"]
+    t = T * (np.arange(INTERVALS) + 1)
+    chi = np.asarray(trace.chi_end)[i]
+    fig, ax = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    ax[0].fill_between(t - T, np.asarray(trace.z_min)[i], np.asarray(trace.z_max)[i], step="post", alpha=0.8,
+                       label="z over the window")  # fmt: skip
+    ax[0].plot(t, chi[:, 2], label="y = w")
+    ax[0].axhline(1, color="k", lw=0.5, ls="--")
+    ax[0].axhline(-1, color="k", lw=0.5, ls="--")
+    ax[0].set_ylim(-8, 8)
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"chi(0) = {np.round(chi0, 2).tolist()}: stage and detector class per window", fontsize=10)
+    ax[1].step(t - T, np.asarray(trace.stage)[i], where="post", label="stage")
+    ax[1].step(t - T, np.asarray(trace.cls)[i], where="post", label="class (0 +, 1 -, 2 linear, 3 mixed)")
+    ax[1].legend(fontsize=8)
+    ax[2].semilogy(t, np.maximum(np.linalg.norm(chi, axis=1), 1e-16), label="||chi||")
+    ax[2].set_xlabel("t [s]")
+    ax[2].legend(fontsize=8)
+    for a in ax[:2]:
+        a.set_xlim(0, min(t[-1], 15))
+    return save_figure(fig, out_dir, "grip2010_sandwich")
+
+
+__all__ = ["NAME", "SYSTEM", "F", "WINDOWS", "EPS_FAMILY", "DESIGN", "windows", "are_family", "grid", "closed_loop",
+           "reproduce"]  # fmt: skip

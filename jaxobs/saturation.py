@@ -1,0 +1,715 @@
+"""Estimation and control through saturations (Grip 2010, ch. 8 and 9).
+
+Chapter 8 (Grip, Saberi & Wang) stabilises ``x' = A x + B u``, ``y = sat(C x)`` (8.1) globally by a sampled hybrid
+controller: on each interval ``(kT, kT + T]`` the input is ``u(kT + tau) = -B' exp(-A' tau) U_k`` (8.2), so that
+``x(kT + T) = exp(A T) x(kT) - Bbar U_k`` (8.7, :func:`interval_map`), with ``Bbar`` of (8.4). ``U_k`` (8.3) first
+drives each output out of saturation in turn with a geometrically growing push ``alpha^k`` along ``h_j``, using only
+the sign of ``y_j``; once every output has been unsaturated at least once, the masked observability Gramian ``D`` and
+data vector ``xi`` of (8.5) give ``x(0) = D^{-1} xi`` and the deadbeat command puts ``x`` at the origin one interval
+later. :func:`saturated_output_design` checks the assumptions and precomputes the constants,
+:func:`simulate_saturated_outputs` runs the loop (jit/vmap over initial states).
+
+Chapter 9 (Grip, Saberi, Stoorvogel, Wang & Roy) detects, from the output of a linear system ``L2`` driven through a
+saturation, which input explains a window of output: :func:`hypothesis_residual` is the consistency statistic of
+(9.6)-(9.8) for any hypothesis "the window is the free response of ``(F, H)`` plus the response to the known input
+``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
+``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
+to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with
+:func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs import _checks
+from jaxobs.riccati import care
+
+__all__ = [
+    "ALPHA_NORMS",
+    "sat",
+    "require_controllable_observable",
+    "SaturatedOutputDesign",
+    "saturated_output_design",
+    "interval_map",
+    "SaturatedOutputTrace",
+    "simulate_saturated_outputs",
+    "WindowModel",
+    "window_model",
+    "forced_response",
+    "Residual",
+    "hypothesis_residual",
+    "Hypothesis",
+    "hypothesis",
+    "explains",
+    "sandwich_hypotheses",
+    "DetectorResult",
+    "sandwich_detectors",
+    "SandwichDesign",
+    "sandwich_design",
+    "low_gain_are",
+    "SandwichTrace",
+    "simulate_sandwich",
+    "CLASSES",
+]
+
+
+def sat(v):
+    """The standard saturation ``sign(v) min(1, |v|)``, componentwise."""
+    return jnp.clip(v, -1.0, 1.0)
+
+
+def _pair_rank(A, B) -> int:
+    """Rank of the controllability matrix ``[B, AB, ..., A^{n-1} B]`` (NumPy, SVD with a relative tolerance)."""
+    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
+    blocks, block = [], B
+    for _ in range(A.shape[0]):
+        blocks.append(block)
+        block = A @ block
+    K = np.hstack(blocks)
+    s = np.linalg.svd(K, compute_uv=False)
+    return int(np.sum(s > 1e-10 * max(s[0], np.finfo(float).tiny))) if s.size else 0
+
+
+def require_controllable_observable(A, B, C, *, names: tuple[str, str] = ("(A, B)", "(C, A)")) -> None:
+    """Raise ``ValueError`` naming the pair and its rank when ``(A, B)`` is not controllable or ``(C, A)`` not
+    observable (Assumption 8.1, 9.1); eager (skipped on tracers)."""
+    if not _checks.is_concrete(A, B, C):
+        return
+    n = np.shape(A)[0]
+    for name, rank, what in ((names[0], _pair_rank(A, B), "controllable"),
+                             (names[1], _pair_rank(np.transpose(A), np.transpose(C)), "observable")):  # fmt: skip
+        if rank < n:
+            matrix = "controllability" if what == "controllable" else "observability"
+            raise ValueError(f"{name} must be {what}: its {matrix} matrix has rank {rank} < n = {n}")
+
+
+def _van_loan(F, Q, T):
+    """``int_0^T exp(F (T - s)) Q exp(-F' s) ds``: the top-right block of ``exp([[F, Q], [0, -F']] T)``."""
+    n = F.shape[-1]
+    top = jnp.concatenate([F, Q], axis=1)
+    bottom = jnp.concatenate([jnp.zeros_like(F), -F.T], axis=1)
+    return jax.scipy.linalg.expm(jnp.concatenate([top, bottom], axis=0) * T)[:n, n:]
+
+
+def _matrices(**named):
+    dtype = _checks.float_dtype(**named)
+    out = []
+    for name, value in named.items():
+        _checks.matrix(name, value)
+        out.append(jnp.asarray(value, dtype))
+    return dtype, out
+
+
+# ---------------------------------------------------------------------------------------------------- chapter 8
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SaturatedOutputDesign:
+    """The constants of the controller (8.2)-(8.5); build with :func:`saturated_output_design`.
+
+    Attributes:
+      A: (n, n).  B: (n, m).  C: (p, n).  T: () interval length.  alpha: () ``rho ||exp(A T)||``.
+      H: (p, n) the push directions, row ``i`` is ``h_i`` (``C_i h_i > 0``).
+      expAT: (n, n) ``exp(A T)``.  Bbar: (n, n) (8.4).  Bbar_inv: (n, n) its inverse.
+    """
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array
+    T: jax.Array
+    alpha: jax.Array
+    H: jax.Array
+    expAT: jax.Array
+    Bbar: jax.Array
+    Bbar_inv: jax.Array
+
+
+ALPHA_NORMS = {"2": 2, "1": 1, "inf": np.inf, "fro": "fro"}
+
+
+def saturated_output_design(A, B, C, *, T, rho, H=None, alpha_norm: str = "2") -> SaturatedOutputDesign:
+    """Check Assumption 8.1 and the design rules, and precompute ``alpha``, ``exp(A T)`` and ``Bbar`` (8.4).
+
+    Args:
+      A: (n, n).  B: (n, m).  C: (p, n): the plant (8.1), ``(A, B)`` controllable and ``(C, A)`` observable.
+      T: () interval length ``> 0``.  rho: () ``> 1``, ``alpha = rho ||exp(A T)||``.
+      H: (p, n) the vectors ``h_i`` as rows, each with ``C_i h_i > 0``; default ``C`` (``h_i = C_i'``, §8.4).
+      alpha_norm: the matrix norm of ``||exp(A T)||``: ``"2"`` (spectral, the default), ``"1"``, ``"inf"`` or
+        ``"fro"`` (the thesis does not say which; ``grip2010-saturated-outputs`` compares them).
+
+    ``Bbar`` is computed exactly as a block of one matrix exponential (Van Loan 1978). Eager: the assumptions are
+    checked on concrete values and raise ``ValueError`` naming the argument.
+
+    Example:
+      >>> import numpy as np
+      >>> d = saturated_output_design([[0.0]], [[1.0]], [[1.0]], T=0.5, rho=1.1)
+      >>> float(d.alpha), float(d.Bbar[0, 0])
+      (1.1, 0.5)
+    """
+    dtype, (A, B, C) = _matrices(A=A, B=B, C=C)
+    n = A.shape[0]
+    _checks.matrix("A", A, square=True)
+    _checks.matrix("B", B, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.positive_scalar("T", T)
+    _checks.positive_scalar("rho", rho)
+    if _checks.is_concrete(rho) and float(rho) <= 1:
+        raise ValueError(f"rho must be > 1 (alpha = rho ||exp(A T)|| must exceed ||exp(A T)||), got {float(rho)}")
+    if alpha_norm not in ALPHA_NORMS:
+        raise ValueError(f"alpha_norm must be one of {sorted(ALPHA_NORMS)}, got {alpha_norm!r}")
+    H = C if H is None else jnp.asarray(H, dtype)
+    _checks.matrix("H", H, shape=C.shape)
+    require_controllable_observable(A, B, C)
+    if _checks.is_concrete(H, C):
+        ch = np.sum(np.asarray(C) * np.asarray(H), axis=1)
+        bad = np.flatnonzero(ch <= 0)
+        if bad.size:
+            raise ValueError(
+                f"H: C_i h_i must be > 0 for every output, got C_i h_i = {ch[bad[0]]:.6g} for i = {bad[0]}"
+            )
+    T = jnp.asarray(T, dtype)
+    expAT = jax.scipy.linalg.expm(A * T)
+    alpha = jnp.asarray(rho, dtype) * jnp.linalg.norm(expAT, ord=ALPHA_NORMS[alpha_norm])
+    Bbar = _van_loan(A, B @ B.T, T)
+    return SaturatedOutputDesign(A, B, C, T, alpha, H, expAT, Bbar, jnp.linalg.inv(Bbar))
+
+
+def interval_map(design: SaturatedOutputDesign, x, U):
+    """``x(kT + T) = exp(A T) x(kT) - Bbar U_k`` (8.7): the exact state one interval later under (8.2)."""
+    return design.expAT @ x - design.Bbar @ U
+
+
+class SaturatedOutputTrace(NamedTuple):
+    """One entry per interval ``(kT, kT + T]`` (leading axis ``K``) of :func:`simulate_saturated_outputs`.
+
+    Attributes:
+      mode: (K,) int 0 while desaturating, 1 for the deadbeat command (the Gramian was ready at ``kT``).
+      j: (K,) int the output pushed out of saturation (``-1`` in deadbeat mode).
+      U: (K, n) the command ``U_k``.  x_start: (K, n) ``x(kT)``.  x_end: (K, n) ``x(kT + T)``.
+      unsaturated: (K, p) bool: output ``i`` was unsaturated somewhere in the interval (``sigma_i`` grew).
+      sigma: (K, p) ``sigma_i(kT + T)`` (8.5a).
+      condition: (K,) the condition number of ``D(kT)`` (inf while singular).
+      ill_conditioned: (K,) bool: every output had been unsaturated at ``kT`` but ``D(kT)`` was too
+        ill-conditioned to invert, so desaturation continued (pushing the least-unsaturated output).
+      x_hat: (K, n) ``exp(A kT) D^{-1} xi + mu`` at ``kT`` in deadbeat mode (zeros before).
+      x0_hat: (K, n) ``D^{-1}(kT) xi(kT)``, the reconstruction of ``x(0)`` (zeros while not ready).
+      xi: (K, n) ``xi(kT + T)``.  D: (K, n, n) ``D(kT + T)`` (8.5b, d).
+    """
+
+    mode: jax.Array
+    j: jax.Array
+    U: jax.Array
+    x_start: jax.Array
+    x_end: jax.Array
+    unsaturated: jax.Array
+    sigma: jax.Array
+    condition: jax.Array
+    ill_conditioned: jax.Array
+    x_hat: jax.Array
+    x0_hat: jax.Array
+    xi: jax.Array
+    D: jax.Array
+
+
+def _condition(D):
+    """Condition number of a symmetric positive semidefinite matrix (inf when singular)."""
+    eig = jnp.linalg.eigvalsh((D + D.T) / 2)
+    low = eig[0]
+    return jnp.where(low > 0, jnp.max(jnp.abs(eig)) / jnp.where(low > 0, low, 1), jnp.inf)
+
+
+def _rk4(f, z, d):
+    k1 = f(z)
+    k2 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k1))
+    k3 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k2))
+    k4 = f(jax.tree_util.tree_map(lambda a, b: a + d * b, z, k3))
+    return jax.tree_util.tree_map(lambda a, b, c, e, g: a + d / 6 * (b + 2 * c + 2 * e + g), z, k1, k2, k3, k4)
+
+
+def simulate_saturated_outputs(
+    design: SaturatedOutputDesign, x0, num_intervals: int, *, substeps: int = 200, cond_max: float = 1e12
+) -> SaturatedOutputTrace:
+    """Run the plant (8.1) under the controller (8.2)-(8.5) for ``num_intervals`` intervals.
+
+    Inside each interval the plant, ``mu`` (8.5c), ``exp(A' t)`` and the integrals ``sigma``, ``xi``, ``D`` (8.5a,
+    b, d) are integrated together with ``substeps`` classical RK4 steps (the input ``-B' exp(-A' tau) U_k`` as the
+    state ``v' = -A' v``, ``v(0) = U_k``); ``U_k`` is decided at ``kT`` by (8.3). The deadbeat branch is taken when
+    every ``sigma_i(kT) > 0`` *and* ``cond(D(kT)) <= cond_max``; otherwise (flagged in ``ill_conditioned``) the
+    desaturation goes on with the output of smallest ``sigma_i``, so the state never becomes NaN.
+
+    Args:
+      design: :func:`saturated_output_design`.  x0: (n,) the initial state.
+      num_intervals: static number of intervals ``K``.  substeps: static RK4 steps per interval.
+      cond_max: the largest condition number of ``D`` that is inverted.
+
+    Returns: a :class:`SaturatedOutputTrace`. Pure; works under ``jit`` and ``vmap`` over ``x0``.
+    """
+    num_intervals = _checks.count("num_intervals", num_intervals, minimum=1)
+    substeps = _checks.count("substeps", substeps, minimum=1)
+    A, B, C, H = design.A, design.B, design.C, design.H
+    n, p = A.shape[0], C.shape[0]
+    dtype = A.dtype
+    x0 = _checks.vector("x0", x0, n, dtype)
+    d = design.T / substeps
+
+    def rhs(z):
+        x, mu, v, Psi, sigma, xi, D = z
+        u = -B.T @ v
+        y = sat(C @ x)
+        w = 1 - jnp.abs(y)
+        PC = Psi.T @ C.T  # exp(A' t) C'
+        return (A @ x + B @ u, A @ mu + B @ u, -A.T @ v, A @ Psi, w, PC @ (w * (y - C @ mu)), (PC * w) @ PC.T)
+
+    def interval(carry, k):
+        x, mu, Psi, sigma, xi, D = carry
+        cond = _condition(D)
+        all_out = jnp.all(sigma > 0)
+        ready = all_out & (cond <= cond_max) & jnp.all(jnp.isfinite(D))
+        D_safe = jnp.where(ready, D, jnp.eye(n, dtype=dtype))
+        x0_hat = jnp.where(ready, jnp.linalg.solve(D_safe, xi), 0)
+        x_hat = jnp.where(ready, Psi @ x0_hat + mu, 0)
+        U_deadbeat = design.Bbar_inv @ (design.expAT @ x_hat)
+        j = jnp.where(jnp.any(sigma == 0), jnp.argmax(sigma == 0), jnp.argmin(sigma))
+        y_j = sat(C[j] @ x)
+        h = H[j]
+        U_push = design.Bbar_inv @ (design.alpha**k * (design.alpha * h - design.expAT @ h) * y_j)
+        U = jnp.where(ready, U_deadbeat, U_push)
+        z = (x, mu, U, Psi, sigma, xi, D)
+        z = jax.lax.fori_loop(0, substeps, lambda _, z: _rk4(rhs, z, d), z)
+        x1, mu1, _, Psi1, sigma1, xi1, D1 = z
+        out = SaturatedOutputTrace(
+            mode=ready.astype(jnp.int32), j=jnp.where(ready, -1, j).astype(jnp.int32), U=U, x_start=x, x_end=x1,
+            unsaturated=sigma1 > sigma, sigma=sigma1, condition=cond, ill_conditioned=all_out & ~ready,
+            x_hat=x_hat, x0_hat=x0_hat, xi=xi1, D=D1,
+        )  # fmt: skip
+        return (x1, mu1, Psi1, sigma1, xi1, D1), out
+
+    zeros = jnp.zeros(n, dtype)
+    carry = (x0, zeros, jnp.eye(n, dtype=dtype), jnp.zeros(p, dtype), zeros, jnp.zeros((n, n), dtype))
+    return jax.lax.scan(interval, carry, jnp.arange(num_intervals, dtype=dtype))[1]
+
+
+# ---------------------------------------------------------------------------------------------------- chapter 9
+
+
+class WindowModel(NamedTuple):
+    """The constants of one window hypothesis at one sample step (:func:`window_model`).
+
+    Attributes:
+      H: (p, nf) output matrix.  E: (nf, nf) ``exp(F h)``.  G0, G1: (nf, m) the response over one step to the
+      input at its start and to its slope (piecewise-linear input).  h: () the step.
+    """
+
+    H: jax.Array
+    E: jax.Array
+    G0: jax.Array
+    G1: jax.Array
+    h: jax.Array
+
+
+def window_model(F, Bf, H, h) -> WindowModel:
+    """The hypothesis "``y = H w``, ``w' = F w + Bf u``" sampled at step ``h``: one matrix exponential (computed once,
+    outside any loop over windows)."""
+    nf, m = F.shape[0], Bf.shape[1]
+    Z = jnp.zeros((nf + 2 * m, nf + 2 * m), F.dtype)
+    Z = Z.at[:nf, :nf].set(F).at[:nf, nf : nf + m].set(Bf).at[nf : nf + m, nf + m :].set(jnp.eye(m, dtype=F.dtype))
+    X = jax.scipy.linalg.expm(Z * h)
+    return WindowModel(H, X[:nf, :nf], X[:nf, nf : nf + m], X[:nf, nf + m :], jnp.asarray(h, F.dtype))
+
+
+def forced_response(model: WindowModel, u):
+    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the input ``u`` (N + 1, m)
+    sampled at ``tau_j`` and linear in between (exact for piecewise-linear inputs): ``u_s*`` of (9.4) for a constant
+    input, ``u_0*`` of §9.3.1 for the plant's input. ``model``: :func:`window_model`."""
+
+    def step(v, pair):
+        u0, u1 = pair
+        v = model.E @ v + model.G0 @ u0 + model.G1 @ ((u1 - u0) / model.h)
+        return v, v
+
+    zero = jnp.zeros(model.E.shape[0], model.E.dtype)
+    _, vs = jax.lax.scan(step, zero, (u[:-1], u[1:]))
+    return jnp.concatenate([zero[None], vs])
+
+
+def _adjugate(D):
+    """``det(D)`` and ``adj(D)`` of a symmetric positive semidefinite ``D`` from its eigenvalues (exact when ``D`` is
+    singular, where ``det(D) D^{-1}`` is not defined)."""
+    s, V = jnp.linalg.eigh((D + D.T) / 2)
+    k = s.shape[0]
+    others = jnp.where(jnp.eye(k, dtype=bool), 1, s[None, :])  # row i: s with s_i replaced by 1
+    return jnp.prod(s), (V * jnp.prod(others, axis=1)) @ V.T
+
+
+class Residual(NamedTuple):
+    statistic: jax.Array  # () int_0^T ||r(tau)|| dtau (trapezoid)
+    scale: jax.Array  # () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
+    norms: jax.Array  # (N + 1,) ||r(tau_j)||
+    w0: jax.Array  # (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
+    w_end: jax.Array  # (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
+    condition: jax.Array  # () condition number of D(T)
+
+
+def hypothesis_residual(model: WindowModel, y, u) -> Residual:
+    """The consistency statistic of Grip (2010) (9.6)-(9.8) for the hypothesis "over this window
+    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u``
+    (:func:`forced_response`)::
+
+        r(tau) = det(D(tau)) (y(tau) - H v(tau)) - H exp(F tau) adj(D(tau)) (xi(tau) - S(tau))
+        D(tau) = int_0^tau exp(F' g) H' H exp(F g) dg,  xi(tau) - S(tau) = int_0^tau exp(F' g) H' (y - H v)(g) dg
+
+    Both integrals are taken with the same cumulative trapezoid rule over the samples, so ``xi - S = D w0`` holds
+    exactly at every sample when the samples are consistent with the hypothesis: ``r`` is then zero up to the error
+    of the samples themselves and of ``v`` (exact for a piecewise-linear ``u``), and ``w0`` is the exact
+    least-squares reconstruction even when ``D`` is poorly conditioned (a short window). Theorem 9.1 needs
+    ``(H, F)`` observable.
+
+    Args:
+      model: :func:`window_model` of ``(F, Bf, H)`` at the sample step ``h``.
+      y: (N + 1, p) outputs at ``tau_j = j h``.  u: (N + 1, m) the hypothesis's input at the same times.
+    """
+    H, h = model.H, model.h
+    nf = model.E.shape[0]
+    v = forced_response(model, u)
+    e = y - v @ H.T
+
+    def step(carry, e_pair):
+        E, D, xs = carry
+        E1 = E @ model.E
+        HE0, HE1 = H @ E, H @ E1
+        D1 = D + h / 2 * (HE0.T @ HE0 + HE1.T @ HE1)
+        xs1 = xs + h / 2 * (HE0.T @ e_pair[0] + HE1.T @ e_pair[1])
+        return (E1, D1, xs1), (E1, D1, xs1)
+
+    zero = jnp.zeros((nf, nf), y.dtype)
+    init = (jnp.eye(nf, dtype=y.dtype), zero, jnp.zeros(nf, y.dtype))
+    _, (Es, Ds, xss) = jax.lax.scan(step, init, (e[:-1], e[1:]))
+    Es = jnp.concatenate([init[0][None], Es])
+    Ds = jnp.concatenate([zero[None], Ds])
+    xss = jnp.concatenate([init[2][None], xss])
+    det, adj = jax.vmap(_adjugate)(Ds)
+    first = det[:, None] * e
+    second = jnp.einsum("pi,jik,jkl,jl->jp", H, Es, adj, xss)
+    norms = jnp.linalg.norm(first - second, axis=1)
+    trap = lambda f: h * (jnp.sum(f) - (f[0] + f[-1]) / 2)
+    scale = trap(jnp.abs(det) * (jnp.linalg.norm(y, axis=1) + jnp.linalg.norm(v @ H.T, axis=1))
+                 + jnp.linalg.norm(second, axis=1))  # fmt: skip
+    D_T = (Ds[-1] + Ds[-1].T) / 2
+    w0 = jnp.linalg.solve(D_T, xss[-1])
+    condition = _condition(D_T)
+    return Residual(trap(norms), scale, norms, w0, Es[-1] @ w0 + v[-1], condition)
+
+
+class Hypothesis(NamedTuple):
+    """A window hypothesis at the sample step ``h`` (``fine``) and ``2 h`` (``coarse``): :func:`hypothesis`."""
+
+    fine: WindowModel
+    coarse: WindowModel
+
+
+def hypothesis(F, Bf, H, h) -> Hypothesis:
+    """The hypothesis "the window's output is ``H w`` with ``w' = F w + Bf u``" for :func:`explains`.
+
+    Args:
+      F: (nf, nf).  Bf: (nf, m).  H: (p, nf), ``(H, F)`` observable.  h: () the sample step of the windows.
+    """
+    dtype = _checks.float_dtype(F=F, Bf=Bf, H=H)
+    F, Bf, H = (jnp.asarray(M, dtype) for M in (F, Bf, H))
+    _checks.matrix("F", F, square=True)
+    _checks.matrix("Bf", Bf, shape=(F.shape[0], None))
+    _checks.matrix("H", H, shape=(None, F.shape[0]))
+    _checks.positive_scalar("h", h)
+    return Hypothesis(window_model(F, Bf, H, h), window_model(F, Bf, H, 2 * jnp.asarray(h, dtype)))
+
+
+def explains(hyp: Hypothesis, y, u, *, ratio=3.0, rtol=1e-9, rounding=64.0):
+    """Whether the hypothesis explains the window, relative to the quadrature accuracy.
+
+    The statistic of :func:`hypothesis_residual` is computed at step ``h`` (``e_h``) and from every other sample
+    (``e_2h``). For a true hypothesis it is the error of the input's piecewise-linear interpolation, ``e_h ~ c h^2``,
+    so halving the step divides it by 4, or it is at rounding level; for a false one it tends to a positive limit
+    and halving the step changes it little. Accepted when ``e_2h >= ratio e_h`` (default 3), or when ``e_h`` is at the
+    precision to which it can vanish: below ``max(rtol, rounding eps cond(D(T)))`` times the size of the data in
+    the same integral (``eps`` the machine epsilon; ``adj(D) xi`` loses ``cond(D)`` in rounding, and a short window
+    has a poorly conditioned ``D``).
+
+    Args:
+      hyp: :func:`hypothesis`.  y: (N + 1, p) outputs at ``j h``, ``N`` even.  u: (N + 1, m) the input.
+      ratio, rtol, rounding: the acceptance rule above.
+
+    Returns ``(accepted, e_h, e_2h, residual)`` with ``residual`` the :class:`Residual` at step ``h``.
+    """
+    if y.shape[0] % 2 != 1 or y.shape[0] < 5:
+        raise ValueError(f"y must have an odd number N + 1 >= 5 of samples (N even), got {y.shape[0]}")
+    _checks.shape("u", u, (y.shape[0], hyp.fine.G0.shape[1]), "the input at the samples of y")
+    fine = hypothesis_residual(hyp.fine, y, u)
+    coarse = hypothesis_residual(hyp.coarse, y[::2], u[::2])
+    floor = jnp.maximum(rtol, rounding * jnp.finfo(y.dtype).eps * fine.condition) * fine.scale
+    accepted = (coarse.statistic >= ratio * fine.statistic) | (fine.statistic <= floor)
+    return accepted, fine.statistic, coarse.statistic, fine
+
+
+CLASSES = ("positive", "negative", "linear", "mixed")
+"""Window classes of Theorem 9.1: ``z >= 1`` on the whole window, ``z <= -1``, ``|z| <= 1`` with ``|z| < 1``
+somewhere, and none of these (the saturation both active and inactive)."""
+
+
+class DetectorResult(NamedTuple):
+    """The three detectors of Grip (2010) §9.3.1 on one window.
+
+    Attributes:
+      e_plus, e_minus, e_zero: () the statistics ``e_k+``, ``e_k-``, ``e_k0``.
+      coarse: (3,) the same statistics from every other sample (:func:`explains` compares them).
+      cls: () int index into :data:`CLASSES`.
+      chi_end: (n + m,) the deadbeat estimate (9.11b) of ``chi`` at the window end (valid when ``cls`` is linear).
+    """
+
+    e_plus: jax.Array
+    e_minus: jax.Array
+    e_zero: jax.Array
+    coarse: jax.Array
+    cls: jax.Array
+    chi_end: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SandwichDesign:
+    """The sandwich system (9.1) and the three-stage controller of §9.4; build with :func:`sandwich_design`.
+
+    Attributes:
+      A: (n, n).  B: (n, 1).  C: (1, n): ``L1``.  M: (m, m).  N: (m, 1).  G: (p, m): ``L2``.
+      AA: (n + m, n + m).  BB: (n + m, 1).  CC: (p, n + m): the merged model (9.2).
+      T: () detection interval.  alpha: () the stage-2 growth ``alpha > exp(2 Tbar ||A||)``.
+      h: (n,) stage-2 direction (``C h > 0``).  beta_inv: (n, n) ``beta(Tbar)^{-1}``.  expATbar: (n, n).
+      K: (1, n + m) the stage-3 gain ``[F, 0] - BB' P_eps`` (9.12).  P: (n + m, n + m) ``P_eps``.
+      q: static number of detection intervals per stage-2 interval (``Tbar = q T``).
+    """
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array
+    M: jax.Array
+    N: jax.Array
+    G: jax.Array
+    AA: jax.Array
+    BB: jax.Array
+    CC: jax.Array
+    T: jax.Array
+    alpha: jax.Array
+    h: jax.Array
+    beta_inv: jax.Array
+    expATbar: jax.Array
+    K: jax.Array
+    P: jax.Array
+    q: int = dataclasses.field(metadata=dict(static=True))
+
+
+def _merged(A, B, C, M, N, G):
+    n, m = A.shape[0], M.shape[0]
+    AA = jnp.block([[A, jnp.zeros((n, m), A.dtype)], [N @ C, M]])
+    BB = jnp.concatenate([B, jnp.zeros((m, B.shape[1]), A.dtype)])
+    CC = jnp.concatenate([jnp.zeros((G.shape[0], n), A.dtype), G], axis=1)
+    return AA, BB, CC
+
+
+def low_gain_are(A, B, C, M, N, F, eps):
+    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009)::
+
+        AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
+
+    solved by :func:`jaxobs.riccati.care` (``Q = eps I``, ``R = 1``). Returns the :class:`jaxobs.riccati.CareSolution`
+    ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0`` (linearly when ``AF`` is Hurwitz).
+
+    Args:
+      A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  F: (1, n) with ``A + B F`` Hurwitz.
+      eps: () ``> 0``.
+    """
+    _checks.positive_scalar("eps", eps)
+    dtype, (A, B, C, M, N, F) = _matrices(A=A, B=B, C=C, M=M, N=N, F=F)
+    AF, BB, _ = _merged(A + B @ F, B, C, M, N, jnp.zeros((1, M.shape[0]), dtype))
+    size = AF.shape[0]
+    return care(AF, BB, jnp.asarray(eps, dtype) * jnp.eye(size, dtype=dtype), jnp.eye(1, dtype=dtype))
+
+
+def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F, eps) -> SandwichDesign:
+    """Check Assumptions 9.1-9.2 and the design rules and precompute the three-stage controller of §9.4.
+
+    Args:
+      A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  G: (p, m): the sandwich system (9.1).
+      T: () detection interval ``> 0``.  Tbar_intervals: static ``q >= 1``, the stage-2 interval ``Tbar = q T``.
+      rho: () ``> 1``: ``alpha = rho exp(2 Tbar ||A||_2)``.  h: (n,) with ``C h > 0`` (default ``C'``).
+      F: (1, n) with ``A + B F`` Hurwitz.  eps: () ``> 0`` the low-gain parameter of (9.12).
+    """
+    dtype, (A, B, C, M, N, G, F) = _matrices(A=A, B=B, C=C, M=M, N=N, G=G, F=F)
+    n, m = A.shape[0], M.shape[0]
+    _checks.matrix("A", A, square=True)
+    _checks.matrix("B", B, shape=(n, 1))
+    _checks.matrix("C", C, shape=(1, n))
+    _checks.matrix("M", M, square=True)
+    _checks.matrix("N", N, shape=(m, 1))
+    _checks.matrix("G", G, shape=(None, m))
+    _checks.matrix("F", F, shape=(1, n))
+    _checks.positive_scalar("T", T)
+    q = _checks.count("Tbar_intervals", Tbar_intervals, minimum=1)
+    _checks.positive_scalar("rho", rho)
+    if _checks.is_concrete(rho) and float(rho) <= 1:
+        raise ValueError(f"rho must be > 1 (alpha must exceed exp(2 Tbar ||A||)), got {float(rho)}")
+    _checks.positive_scalar("eps", eps)
+    h = C[0] if h is None else _checks.vector("h", h, n, dtype)
+    AA, BB, CC = _merged(A, B, C, M, N, G)
+    require_controllable_observable(AA, BB, CC, names=("(AA, BB) of (9.2)", "(CC, AA) of (9.2)"))
+    if _checks.is_concrete(A, B, C, M, N, G, F, h):
+        if float(C[0] @ h) <= 0:
+            raise ValueError(f"h: C h must be > 0, got {float(C[0] @ h):.6g}")
+        if np.linalg.matrix_rank(np.asarray(G)) < G.shape[0]:
+            raise ValueError(f"G must have full row rank {G.shape[0]}, got rank {np.linalg.matrix_rank(np.asarray(G))}")
+        if np.max(np.linalg.eigvals(np.asarray(M)).real) > 1e-12:
+            raise ValueError("M must have its eigenvalues in the closed left half-plane (Assumption 9.2)")
+        rosenbrock = np.block([[np.asarray(M), np.asarray(N)], [np.asarray(G), np.zeros((G.shape[0], 1))]])
+        if np.linalg.matrix_rank(rosenbrock) < m + 1:
+            raise ValueError(
+                "(G, M, N) must have no invariant zero at the origin (Assumption 9.2): "
+                f"rank [[M, N], [G, 0]] = {np.linalg.matrix_rank(rosenbrock)} < m + 1 = {m + 1}"
+            )
+        if np.max(np.linalg.eigvals(np.asarray(A + B @ F)).real) >= 0:
+            raise ValueError("F: A + B F must be Hurwitz")
+    T = jnp.asarray(T, dtype)
+    Tbar = q * T
+    alpha = jnp.asarray(rho, dtype) * jnp.exp(2 * Tbar * jnp.linalg.norm(A, 2))
+    beta = _van_loan(A, B @ B.T, Tbar)
+    sol = low_gain_are(A, B, C, M, N, F, eps)
+    K = jnp.concatenate([F, jnp.zeros((1, m), dtype)], axis=1) - BB.T @ sol.X
+    return SandwichDesign(A, B, C, M, N, G, AA, BB, CC, T, alpha, h, jnp.linalg.inv(beta),
+                          jax.scipy.linalg.expm(A * Tbar), K, sol.X, q)  # fmt: skip
+
+
+def sandwich_hypotheses(design: SandwichDesign, h) -> tuple[Hypothesis, Hypothesis]:
+    """The two models of the detectors at sample step ``h``: ``L2`` alone (driven by ``+-1``) and the merged
+    linear model (9.2) driven by ``u``."""
+    return hypothesis(design.M, design.N, design.G, h), hypothesis(design.AA, design.BB, design.CC, h)
+
+
+def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2, hypotheses=None) -> DetectorResult:
+    """The detectors ``e_k+``, ``e_k-``, ``e_k0`` of Grip (2010) §9.3.1 on one window and its class (Theorem 9.1).
+
+    Hypotheses (:func:`explains`): ``L2`` driven by the constant ``+1`` (positive saturation), by ``-1``, and the
+    merged linear model (9.2) driven by the plant's input ``u``. The class is positive or negative when that
+    hypothesis is accepted, linear when only the linear one is and its deadbeat reconstruction has ``|z| <= 1 +
+    z_margin`` at both ends of the window (part of the hypothesis), mixed when none is.
+
+    Args:
+      design: :func:`sandwich_design`.  y: (N + 1, p) outputs at ``j h`` over the window.  u: (N + 1,) or
+        (N + 1, 1) the input at the same times.  h: () sample step (``N h = T``; ``N`` even).
+      z_margin: () tolerance of the consistency check ``|z| <= 1``.
+      hypotheses: :func:`sandwich_hypotheses` at ``h`` (computed when not given; give them inside a loop).
+    """
+    y = jnp.asarray(y)
+    u = jnp.reshape(jnp.asarray(u, y.dtype), (y.shape[0], 1))
+    l2, merged = sandwich_hypotheses(design, h) if hypotheses is None else hypotheses
+    one = jnp.ones_like(u)
+    plus, minus, zero = explains(l2, y, one), explains(l2, y, -one), explains(merged, y, u)
+    n = design.A.shape[0]
+    z_ends = jnp.stack([design.C[0] @ zero[3].w0[:n], design.C[0] @ zero[3].w_end[:n]])
+    linear = zero[0] & jnp.all(jnp.abs(z_ends) <= 1 + z_margin)
+    cls = jnp.where(plus[0], 0, jnp.where(minus[0], 1, jnp.where(linear, 2, 3)))
+    return DetectorResult(plus[1], minus[1], zero[1], jnp.stack([plus[2], minus[2], zero[2]]), cls, zero[3].w_end)
+
+
+class SandwichTrace(NamedTuple):
+    """One entry per detection interval ``(kT, kT + T]`` of :func:`simulate_sandwich` (leading axis ``K``).
+
+    Attributes:
+      stage: (K,) the stage applied on the interval.  cls: (K,) its detector class (:data:`CLASSES`).
+      e: (K, 3) ``(e_k+, e_k-, e_k0)``.  z_min, z_max: (K,) extremes of ``z = C x`` at the inner nodes.
+      chi_end: (K, n + m) the state at ``kT + T``.  chi_hat_end: (K, n + m) the stage-3 estimate (zeros before).
+      u_max: (K,) ``max |u|`` over the interval.
+    """
+
+    stage: jax.Array
+    cls: jax.Array
+    e: jax.Array
+    z_min: jax.Array
+    z_max: jax.Array
+    chi_end: jax.Array
+    chi_hat_end: jax.Array
+    u_max: jax.Array
+
+
+def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, substeps: int = 50) -> SandwichTrace:
+    """The sandwich system (9.1) under the three-stage controller of Grip (2010) §9.4.
+
+    Stage 1: ``u = 0`` until a window is classified (not mixed). Stage 2 (9.10): on intervals of ``Tbar = q T``,
+    ``u = -B' exp(-A' tau) U_j`` with ``U_j = alpha^j beta(Tbar)^{-1} (alpha h - exp(A Tbar) h) delta`` and ``delta``
+    the sign of the stage-1 window (+1, -1, or 0 if it was linear). Stage 3 from the first linear window: the deadbeat
+    estimate (9.11b) at its end, integrated with the model (9.1) (9.11a), and ``u = K chi_hat`` (9.12). Each window
+    is integrated with ``substeps`` RK4 steps (even); the detectors read ``y`` and ``u`` at those nodes.
+
+    Args:
+      design: :func:`sandwich_design`.  chi0: (n + m,) ``col(x(0), omega(0))``.
+      num_intervals: static ``K``.  substeps: static even number of RK4 steps per window.
+
+    Returns: a :class:`SandwichTrace`. Pure; ``jit`` and ``vmap`` over ``chi0``.
+    """
+    num_intervals = _checks.count("num_intervals", num_intervals, minimum=1)
+    substeps = _checks.count("substeps", substeps, minimum=4)
+    if substeps % 2:
+        raise ValueError(f"substeps must be even (the detectors halve the grid), got {substeps}")
+    A, B, C, M, N, G = design.A, design.B, design.C, design.M, design.N, design.G
+    n, m = A.shape[0], M.shape[0]
+    dtype = A.dtype
+    chi0 = _checks.vector("chi0", chi0, n + m, dtype)
+    d = design.T / substeps
+    hypotheses = sandwich_hypotheses(design, d)
+
+    def f(chi, u):
+        x, w = chi[:n], chi[n:]
+        return jnp.concatenate([A @ x + B[:, 0] * u, M @ w + N[:, 0] * sat(C[0] @ x)])
+
+    def control(z, stage):
+        _, chi_hat, v = z
+        return jnp.where(stage == 2, -B[:, 0] @ v, jnp.where(stage == 3, design.K[0] @ chi_hat, 0.0))
+
+    def interval(carry, k):
+        chi, chi_hat, v, stage, delta, k1 = carry
+        in_stage2 = k - k1
+        j = in_stage2 // design.q
+        U = design.alpha**j * (design.beta_inv @ (design.alpha * design.h - design.expATbar @ design.h)) * delta
+        v = jnp.where((stage == 2) & (in_stage2 % design.q == 0), U, v)
+
+        def rhs(z):
+            u = control(z, stage)
+            return (f(z[0], u), f(z[1], u), -A.T @ z[2])
+
+        def sub(z, _):
+            z1 = _rk4(rhs, z, d)
+            return z1, (C[0] @ z1[0][:n], G @ z1[0][n:], control(z1, stage))
+
+        z = (chi, chi_hat, v)
+        z_end, (zs, ys, us) = jax.lax.scan(sub, z, None, length=substeps)
+        zs = jnp.concatenate([(C[0] @ chi[:n])[None], zs])
+        ys = jnp.concatenate([(G @ chi[n:])[None], ys])
+        us = jnp.concatenate([control(z, stage)[None], us])
+        det = sandwich_detectors(design, ys, us, d, hypotheses=hypotheses)
+        chi1, chi_hat1, v1 = z_end
+        to3 = (stage < 3) & (det.cls == 2)
+        to2 = (stage == 1) & (det.cls < 2)
+        new_delta = jnp.where(to2, jnp.where(det.cls == 0, 1.0, -1.0), delta)
+        new_stage = jnp.where(to3, 3, jnp.where(to2, 2, stage))
+        chi_hat1 = jnp.where(to3, det.chi_end, chi_hat1)
+        k1 = jnp.where(to2, k + 1, k1)
+        e = jnp.stack([det.e_plus, det.e_minus, det.e_zero])
+        chi_hat_out = jnp.where((stage == 3) | to3, chi_hat1, 0)
+        out = SandwichTrace(stage, det.cls, e, jnp.min(zs), jnp.max(zs), chi1, chi_hat_out, jnp.max(jnp.abs(us)))
+        return (chi1, chi_hat1, v1, new_stage, new_delta, k1), out
+
+    carry = (chi0, jnp.zeros(n + m, dtype), jnp.zeros(n, dtype), jnp.asarray(1), jnp.asarray(0.0, dtype),
+             jnp.asarray(0, jnp.int32))  # fmt: skip
+    return jax.lax.scan(interval, carry, jnp.arange(num_intervals, dtype=jnp.int32))[1]
