@@ -12,7 +12,6 @@ number of the masked Gramian ``D`` when the deadbeat command is decided, and ``|
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax
@@ -21,7 +20,7 @@ import numpy as np
 
 from jaxobs._config import check_at_least, check_choice, fail, merge
 from jaxobs.papers import grip2010_saturated_outputs as example
-from jaxobs.papers._output import pyplot, save_figure, to_builtin
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.saturation import saturated_output_design, simulate_saturated_outputs
 from jaxobs.sweep import load_results, run_configured_sweep
 
@@ -178,14 +177,8 @@ def report(config: dict, out_dir: Path, result=None) -> dict:
         },
         "grid": points,
     }
-    if result is not None:
-        summary["seconds"] = result.seconds
-        summary["configs_per_second"] = result.configs_per_second
-    summary["config"] = config
-    summary["figures"] = [_plot(config, radius, deadbeat, cond, out_dir)]
-    (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(_markdown(summary))
-    return summary
+    figures = [_plot(config, radius, deadbeat, cond, out_dir)]
+    return write_sweep_report(out_dir, summary, config, result, figures, _markdown)
 
 
 def _plot(config: dict, radius, deadbeat, cond, out_dir: Path) -> str:
