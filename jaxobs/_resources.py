@@ -60,19 +60,26 @@ class InterruptWatch:
     """A context manager that notes Ctrl-C (SIGINT) while it is entered; :meth:`check` raises
     ``KeyboardInterrupt`` once one arrived, even if the ``KeyboardInterrupt`` the signal raised at the time was
     swallowed. Python's own handler still runs, so Ctrl-C interrupts at once wherever it can. Installed only in
-    the main thread and over Python's default handler (a caller's own handler is left alone).
+    the main thread over Python's default handler (a caller's own handler is left alone); a watch entered inside
+    another shares its record, so the command's watch sees a Ctrl-C from its first line on.
     """
 
     def __init__(self):
-        self.requested = False
+        self._record = {"requested": False}
         self._installed = False
 
+    @property
+    def requested(self) -> bool:
+        return self._record["requested"]
+
     def __enter__(self) -> InterruptWatch:
-        if threading.current_thread() is threading.main_thread() and (
-            signal.getsignal(signal.SIGINT) is signal.default_int_handler
-        ):
-            signal.signal(signal.SIGINT, self._note)
-            self._installed = True
+        if threading.current_thread() is threading.main_thread():
+            current = signal.getsignal(signal.SIGINT)
+            if current is signal.default_int_handler:
+                signal.signal(signal.SIGINT, self._note)
+                self._installed = True
+            elif isinstance(getattr(current, "__self__", None), InterruptWatch):
+                self._record = current.__self__._record
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -81,11 +88,11 @@ class InterruptWatch:
             self._installed = False
 
     def _note(self, signum, frame) -> None:
-        self.requested = True
+        self._record["requested"] = True
         signal.default_int_handler(signum, frame)
 
     def check(self) -> None:
-        """Raise ``KeyboardInterrupt`` if Ctrl-C arrived since the watch was entered."""
+        """Raise ``KeyboardInterrupt`` if Ctrl-C arrived since the (outermost) watch was entered."""
         if self.requested:
             raise KeyboardInterrupt
 

@@ -49,7 +49,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxobs._resources import JobError, locked_out_dir
+from jaxobs._resources import InterruptWatch, JobError, locked_out_dir
 
 RESUME_HINT = "rerun the same command to resume"
 CACHE_MIN_COMPILE_SECONDS = 0.2  # programs that compile faster are not worth a cache file
@@ -302,6 +302,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Run the command line ``argv`` (default: ``sys.argv[1:]``, as the ``jaxobs`` command); returns the exit
     status. Only the command (``argv`` omitted) turns the persistent compilation cache on."""
+    with InterruptWatch() as watch:  # from the first line: a Ctrl-C whose KeyboardInterrupt is lost still counts
+        return _run(argv, watch)
+
+
+def _run(argv, watch: InterruptWatch) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -314,7 +319,9 @@ def main(argv=None) -> int:
     try:
         if args.command == "sweep":
             _join(args)
-        return args.func(args)
+        status = args.func(args)
+        watch.check()
+        return status
     except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped
         resumable = args.command != "reproduce"
         message = str(exc) or ("interrupted; " + RESUME_HINT if resumable else "interrupted")

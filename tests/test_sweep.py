@@ -387,6 +387,16 @@ def test_interrupt_watch_notes_ctrl_c_and_leaves_other_handlers_alone():
         with pytest.raises(KeyboardInterrupt):
             watch.check()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with InterruptWatch():  # the command's watch, entered first: a watch entered later shares its record
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        except KeyboardInterrupt:
+            pass  # lost before the engine's watch existed
+        with InterruptWatch() as engine, pytest.raises(KeyboardInterrupt):
+            engine.check()
+    with InterruptWatch() as watch:
+        watch.check()  # a new command starts with a clean record
     own = []
     previous = signal.signal(signal.SIGINT, lambda *_: own.append(1))
     try:
