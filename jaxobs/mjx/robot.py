@@ -287,7 +287,8 @@ def _parse(model: mjx.Model, key: str) -> tuple[str, int | None]:
     i = mjx.name2id(model, obj, name)
     if i < 0:
         valid = [n for j in range(getattr(model, count)) if (n := mjx.id2name(model, obj, j))]
-        raise ValueError(f"mismatch key {key!r}: unknown {what} {name!r}; the model's {what}s are: "
+        plural = "bodies" if what == "body" else f"{what}s"
+        raise ValueError(f"mismatch key {key!r}: unknown {what} {name!r}; the model's {plural} are: "
                          f"{', '.join(map(repr, valid)) or 'none'}")  # fmt: skip
     return field, int(np.asarray(model.jnt_dofadr)[i]) if prefix == "dof_" else int(i)
 

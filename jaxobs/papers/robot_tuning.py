@@ -181,7 +181,7 @@ def build_problem(config: dict) -> TuningProblem:
     pad = lambda v: jnp.concatenate([jnp.asarray(v, float), jnp.zeros(n - n_x)])
     L, _, _ = design.dlqr(lin.A, lin.B, jnp.diag(pad(d["lqr_state"])), jnp.diag(jnp.asarray(d["lqr_input"], float)))
     rows = _tracked_rows(robot, config)
-    N = design.reference_gain(ss(lin.A, lin.B, lin.C[rows], dt=lin.dt), L)
+    N = design.reference_gain(ss(lin.A, lin.B, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
     steps = max(1, int(round(sc["duration"] / robot.period)))
     reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
     target = jnp.zeros(p).at[jnp.asarray(rows)].set(jnp.asarray(sc["reference"], float))
