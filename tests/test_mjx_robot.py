@@ -150,10 +150,18 @@ def test_reverse_mode_fails_with_the_constraint_solver_and_forward_mode_works():
     (as the module docstring says)."""
     xml = XML.read_text().replace('<flag contact="disable" constraint="disable"/>', "")
     xml = xml.replace('damping="0.5"/>', 'damping="0.5" range="-1 1" limited="true"/>')
-    cart = rb.make_robot(xml, ["push"], ["cart_position", "pole_angle"], substeps=2)
+    cart = rb.make_robot(xml, ["push"], ["cart_position", "pole_angle"], substeps=2, dead_time=1, sensor_noise=NOISE)
     params = _lqg(cart)
     cost = lambda g: _cost(cart, params, g)
     with pytest.raises(ValueError, match="Reverse-mode differentiation does not work for lax.while_loop"):
         jax.grad(cost)(1.0)
     _, tangent = jax.jit(lambda g: jax.jvp(cost, (g,), (1.0,)))(1.0)
     assert np.isfinite(float(tangent)) and float(tangent) != 0
+
+
+@pytest.mark.slow
+def test_docstring_examples_run():
+    import doctest
+
+    result = doctest.testmod(rb, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted >= 2 and result.failed == 0
