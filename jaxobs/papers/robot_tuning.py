@@ -12,9 +12,11 @@ hand-set ``design.q`` and ``R = diag(sensor_noise^2)``.
 Plants: the nominal model with named fields scaled by factors drawn uniformly from ``plants.mismatch`` (e.g. the
 payload mass, ``body_mass[payload] = [0.25, 2.0]``; :func:`jaxobs.mjx.robot.mismatch`), each with its own sensor
 noise seed; training and held-out plants from independent keys. The per-plant loss is the mean over the rollout
-of ``sum_i w_i (y_i - y_target_i)^2 + input_weight |u|^2`` on the noise-free measured entries (target: the
-reference on the tracked sensors, the operating point elsewhere); a rollout that is not finite or leaves
-``scenario.state_limit`` of the operating point counts as diverged.
+of ``sum_i w_i (y_i - y_desired_i)^2 + input_weight |u|^2`` on the noise-free measured entries, ``y_desired`` being
+the response of the desired closed loop, the LQR with the true state on the nominal linear model
+(:func:`jaxobs.closed_loop.ideal_response`; as in the force problem, after Cortesão 2006 eq. 43): what is left is
+the observer's share, the noise it lets through and the error of its model on the mismatched plant. A rollout
+that is not finite or leaves ``scenario.state_limit`` of the operating point counts as diverged.
 
 The shipped example (``examples/robots/cartpole_payload.xml``, ``tuning/cartpole_payload.toml``) is a cart
 carrying a hanging pole with a payload of unknown mass (a gantry crane) moved 0.5 m with its pole kept still.
@@ -28,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import check_at_least, fail, merge
+from jaxobs.closed_loop import ideal_response
 from jaxobs.observers import feedback, kalman
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
@@ -64,7 +67,7 @@ DEFAULT_CONFIG = {
         "tracked": ["cart_position"],
         "reference": [0.5],
         "output_weights": [1.0, 1.0],
-        "input_weight": 1e-4,
+        "input_weight": 0.0,
         "state_limit": 10.0,
     },
     "design": {"q": [1e-6, 1e-6, 1e-4, 1e-4], "lqr_state": [10.0, 10.0, 1.0, 1.0], "lqr_input": [0.01]},
@@ -94,7 +97,7 @@ CONFIG_NOTES = {
     "scenario.duration": "rollout length (s)",
     "scenario.tracked": "sensors (one per actuator) whose values follow the reference",
     "scenario.reference": "set-point of the tracked sensors (deviation from the operating point), from t = 0",
-    "scenario.output_weights": "loss weight of each measured entry's squared error",
+    "scenario.output_weights": "loss weight of each measured entry's squared error to the desired closed loop's",
     "scenario.input_weight": "loss weight of the squared command",
     "scenario.state_limit": "a rollout whose (qpos, qvel) leaves the operating point by more counts as diverged",
     "design": "the LQG controller on the linearised nominal model; the Kalman filter's Q and R are tuned",
@@ -137,8 +140,9 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     for key in ("design.q", "design.lqr_input", "robot.sensor_noise"):
         if any(v <= 0 for v in config[key.split(".")[0]][key.split(".")[1]]):
             fail(source, key, "must be positive")
-    if any(v < 0 for v in d["lqr_state"] + sc["output_weights"]):
-        fail(source, "design.lqr_state", "weights must be >= 0")
+    for key, weights in (("design.lqr_state", d["lqr_state"]), ("scenario.output_weights", sc["output_weights"])):
+        if any(v < 0 for v in weights):
+            fail(source, key, "weights must be >= 0")
     check_common(config, source)
     return config
 
@@ -184,7 +188,7 @@ def build_problem(config: dict) -> TuningProblem:
     N = design.reference_gain(ss(lin.A, lin.B, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
     steps = max(1, int(round(sc["duration"] / robot.period)))
     reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
-    target = jnp.zeros(p).at[jnp.asarray(rows)].set(jnp.asarray(sc["reference"], float))
+    desired = ideal_response(lin, L, reference @ N.T)  # (steps, p): the LQR with the true state, nominal model
     weights = jnp.asarray(sc["output_weights"], float)
     x_op = jnp.concatenate([robot.qpos0, robot.qvel0])
 
@@ -202,7 +206,7 @@ def build_problem(config: dict) -> TuningProblem:
 
     def losses(theta, plants):
         out = run(theta, plants)
-        error = jnp.sum(weights * (out.y_true - target) ** 2, axis=-1) + sc["input_weight"] * jnp.sum(out.u**2, -1)
+        error = jnp.sum(weights * (out.y_true - desired) ** 2, axis=-1) + sc["input_weight"] * jnp.sum(out.u**2, -1)
         loss = jnp.mean(error, axis=-1)
         excursion = jnp.max(jnp.abs(out.x - x_op), axis=(-2, -1))
         return loss, ~jnp.isfinite(loss) | ~(excursion < sc["state_limit"])
@@ -222,7 +226,7 @@ def build_problem(config: dict) -> TuningProblem:
         return {
             "t": robot.period * np.arange(steps),
             "output": traces(theta, plants),
-            "desired": np.asarray(reference[:, 0]),
+            "desired": np.asarray(desired[:, first]),
             "labels": [
                 ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items())
                 for i in range(len(plants["key"]))
