@@ -78,3 +78,21 @@ def test_small_run_end_to_end(tmp_path):
     assert summary["parameters"]["hand-set"]["R_diagonal"] == pytest.approx([0.002**2, 0.005**2])
     for name in ("loss_curves.png", "parameters.png", "responses.png"):
         assert (out / name).is_file()
+
+
+@pytest.mark.slow
+def test_readme_table_row(tmp_path):
+    """The README's tuning-table row of ``jaxobs tune --config tuning/cartpole_payload.toml`` from a fresh run: the
+    held-out objectives of the hand-set filter, the tuned one and the random search at equal rollouts (seeded, so
+    reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    from _readme import pin
+
+    out = tmp_path / "robot"
+    assert main(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"]) == 0
+    held = json.loads((out / "tuned.json").read_text())["heldout"]
+    row = r"\| Own robot, [^|]*\| ([0-9.e-]+) \| ([0-9.e-]+) \(-([0-9.]+) %\) \| ([0-9.e-]+) \(-([0-9.]+) %\)"
+    pin(held["hand-set"]["objective"], row, 1)
+    pin(held["tuned"]["objective"], row, 2)
+    pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
+    pin(held["random search, equal rollouts"]["objective"], row, 4)
+    pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 5)
