@@ -62,6 +62,7 @@ class Robot:
       sensors: static, the ``sensordata`` indices it measures (``p`` of them).
       substeps: static, physics steps per control period (``h = substeps * model.opt.timestep``).
       dead_time: static, command dead time in control periods (``u_k`` acts during period ``k + d``).
+      timestep: static, the model's physics time step in seconds (so the period is known under tracing).
     """
 
     model: mjx.Model
@@ -73,11 +74,12 @@ class Robot:
     sensors: tuple = dataclasses.field(metadata=dict(static=True))
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
     dead_time: int = dataclasses.field(default=0, metadata=dict(static=True))
+    timestep: float = dataclasses.field(default=0.002, metadata=dict(static=True))
 
     @property
     def period(self) -> float:
-        """The control period ``h`` in seconds."""
-        return estimation.sample_period(self.model, self.substeps)
+        """The control period ``h = substeps * timestep`` in seconds."""
+        return self.timestep * self.substeps
 
 
 def load_mjcf(mjcf) -> mujoco.MjModel:
@@ -170,7 +172,8 @@ def make_robot(
     noise = _checks.per_entry("sensor_noise", sensor_noise, len(rows), dtype, "one per measured sensordata entry")
     if np.any(np.asarray(noise) < 0):
         raise ValueError(f"sensor_noise must be >= 0, got {np.asarray(noise)}")
-    return Robot(model, values["qpos0"], values["qvel0"], values["ctrl0"], noise, act, tuple(rows), substeps, dead_time)
+    return Robot(model, values["qpos0"], values["qvel0"], values["ctrl0"], noise, act, tuple(rows), substeps, dead_time,
+                 float(m.opt.timestep))  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,8 +221,9 @@ def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
 
     Returns:
       :class:`jaxobs.lti.StateSpace` with ``A = Phi``, ``B = Gamma``, ``C``, ``D = 0`` and ``dt`` the control
-      period; the nominal model a linear controller is designed on. Pure (works under ``jit`` and ``vmap`` over
-      operating points, a mismatched model via ``dataclasses.replace(robot, model=...)``).
+      period; the nominal model a linear controller is designed on. Pure and traceable (a mismatched model:
+      ``dataclasses.replace(robot, model=mismatch(robot.model, scales))``); the Jacobians are compiled once per
+      robot structure, so later eager calls are one dispatch.
 
     Example:
       >>> from jaxobs.mjx import estimation, robot
@@ -374,7 +378,7 @@ def rollout(
         raise ValueError(f"reference must have shape (steps, q) = ({steps}, q), got {reference.shape}")
     noise = robot.sensor_noise * jax.random.normal(key, (steps, p), dtype)
     y_op = _sense(robot, robot.model, x_op)
-    h = robot.model.opt.timestep * robot.substeps  # traced when the robot is a jit argument
+    h = robot.period
 
     def control_step(carry, inputs):
         k, r_k, v_k = inputs
