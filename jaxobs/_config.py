@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 import textwrap
 from pathlib import Path
 
@@ -57,8 +58,18 @@ def load_toml(path) -> dict:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
 
 
-def merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
-    """``given`` over ``default``; unknown keys, type mismatches and non-finite numbers are errors."""
+def _is_names(value) -> bool:
+    return isinstance(value, list) and bool(value) and all(isinstance(v, str) for v in value)
+
+
+def _is_numbers(value) -> bool:
+    return isinstance(value, list) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+
+
+def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tables: tuple = ()) -> dict:
+    """``given`` over ``default``; unknown keys, type mismatches and non-finite numbers are errors. A list default
+    of strings takes a list of strings, any other list default a list of numbers. The tables named (dotted) in
+    ``open_tables`` take keys of the user's choosing, each a list of numbers: a given one replaces the default's."""
     merged = copy.deepcopy(default)
     for key, value in given.items():
         name = f"{prefix}{key}"
@@ -68,12 +79,23 @@ def merge(default: dict, given: dict, source: str, prefix: str = "") -> dict:
         if key not in default:
             fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
         expected = default[key]
-        if isinstance(expected, dict):
+        if name in open_tables:
             if not isinstance(value, dict):
                 fail(source, name, "must be a table")
-            merged[key] = merge(expected, value, source, name + ".")
+            for entry, numbers in value.items():
+                if not _is_numbers(numbers) or not all(math.isfinite(v) for v in numbers):
+                    fail(source, f"{name}.{entry}", f"must be a list of finite numbers, got {numbers!r}")
+            merged[key] = dict(value)
+        elif isinstance(expected, dict):
+            if not isinstance(value, dict):
+                fail(source, name, "must be a table")
+            merged[key] = merge(expected, value, source, name + ".", open_tables=open_tables)
+        elif _is_names(expected):
+            if not _is_names(value):
+                fail(source, name, f"must be a non-empty list of strings, got {value!r}")
+            merged[key] = value
         elif isinstance(expected, list):
-            if not isinstance(value, list) or not all(isinstance(v, int | float) for v in value):
+            if not _is_numbers(value):
                 fail(source, name, f"must be a list of numbers, got {value!r}")
             merged[key] = value
         elif isinstance(expected, bool) != isinstance(value, bool):
@@ -163,7 +185,11 @@ def to_toml(config: dict, notes: dict, header: str = "", width: int = 100) -> st
         lines = []
         for key, value in values.items():
             if not isinstance(value, dict):
-                lines += [*comment(notes.get(prefix + key, "")), f"{key} = {_toml_value(value)}"]
+                bare = re.fullmatch(r"[A-Za-z0-9_-]+", key)
+                lines += [
+                    *comment(notes.get(prefix + key, "")),
+                    f"{key if bare else json.dumps(key)} = {_toml_value(value)}",
+                ]
         for key, value in values.items():
             if isinstance(value, dict):
                 name = prefix + key

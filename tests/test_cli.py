@@ -54,6 +54,15 @@ def _scenarios():
     return [(command, name) for command, (_, registry) in COMMANDS.items() for name in registry()]
 
 
+def _tables(config: dict, prefix: str = "") -> set:
+    """The dotted names of the tables (nested ones too) of ``config``."""
+    names = set()
+    for key, value in config.items():
+        if isinstance(value, dict):
+            names |= {prefix + key} | _tables(value, f"{prefix}{key}.")
+    return names
+
+
 @pytest.mark.parametrize("command, name", _scenarios())
 def test_print_config_is_the_full_default_every_key_commented(tmp_path, capsys, command, name):
     """The TOML parses back to the scenario's complete default config, every value has a comment line above it,
@@ -64,10 +73,10 @@ def test_print_config_is_the_full_default_every_key_commented(tmp_path, capsys, 
     text = capsys.readouterr().out
     assert tomllib.loads(text) == module.validate_config({key: name})
     assert set(leaf_keys(module.DEFAULT_CONFIG)) <= set(module.CONFIG_NOTES)  # every key documented ...
-    tables = {k for k, v in module.DEFAULT_CONFIG.items() if isinstance(v, dict)}
+    tables = _tables(module.DEFAULT_CONFIG)
     assert set(module.CONFIG_NOTES) <= set(leaf_keys(module.DEFAULT_CONFIG)) | tables  # ... and no stale note
     lines = text.splitlines()
-    values = [i for i, line in enumerate(lines) if re.match(r"\w+ = ", line)]
+    values = [i for i, line in enumerate(lines) if re.match(r'(\w+|"[^"]+") = ', line)]  # bare or quoted keys
     assert len(values) == len(leaf_keys(module.DEFAULT_CONFIG))
     assert all(lines[i - 1].startswith("# ") for i in values)
     path = tmp_path / "printed.toml"

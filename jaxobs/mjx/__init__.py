@@ -13,10 +13,15 @@ alignment scenario with its contact moment coupled to the alignment rotation).
 the state ``(qpos, qvel)``, the transition ``mjx.step``, the measurement ``sensordata``; the shipped cart-pole
 with sensors (``examples/mjx_state_estimation.py``).
 
+``robot`` (a submodule): your own robot from any MJCF: the actuators a controller drives, the sensors it
+measures, the control period and dead time (``make_robot``), its linearisation by ``jax.jacfwd`` of ``mjx.step``
+(``linearize``), named model mismatch such as ``body_mass[payload]`` (``mismatch``) and the closed loop of any
+controller (``rollout``); ``jaxobs tune``'s ``own-robot`` problem tunes an observer on it.
+
 Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.
 """
 
-from jaxobs.mjx import compliant_6dof, estimation
+from jaxobs.mjx import compliant_6dof, estimation, robot
 from jaxobs.mjx.force_1dof import (
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -33,6 +38,7 @@ from jaxobs.mjx.force_1dof import (
 __all__ = [
     "compliant_6dof",
     "estimation",
+    "robot",
     "CONTROL_PERIOD",
     "SUBSTEPS",
     "ForcePlantParams",

@@ -22,7 +22,7 @@ import numpy as np
 
 from jaxobs._config import ConfigError, fail
 from jaxobs._resources import LOCK_NAME, atomic_write, locked_out_dir
-from jaxobs.papers import force_tuning, grip_tuning, peg_tuning
+from jaxobs.papers import force_tuning, grip_tuning, peg_tuning, robot_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
@@ -30,7 +30,12 @@ from jaxobs.tuning import evaluate, random_search, tune
 
 __all__ = ["PROBLEMS", "validate_config", "run"]
 
-PROBLEMS = {force_tuning.NAME: force_tuning, peg_tuning.NAME: peg_tuning, grip_tuning.NAME: grip_tuning}
+PROBLEMS = {
+    force_tuning.NAME: force_tuning,
+    peg_tuning.NAME: peg_tuning,
+    grip_tuning.NAME: grip_tuning,
+    robot_tuning.NAME: robot_tuning,
+}
 """Problem modules by the config's ``problem`` name; the first is the default."""
 
 

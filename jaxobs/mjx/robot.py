@@ -1,0 +1,397 @@
+"""Your own robot in MuJoCo MJX: a closed loop over any MJCF, its linearisation, and named model mismatch.
+
+A :class:`Robot` (built by :func:`make_robot` from an MJCF) names what a controller sees of the model: the
+actuators it drives (``ctrl`` entries), the sensors it measures (slices of ``sensordata``), the control period in
+physics steps, the command dead time in control periods, the sensor noise, and an operating point
+``(qpos0, qvel0, ctrl0)``. The controller works in deviations from that operating point, so a linear design on
+:func:`linearize`'s model runs unchanged on the nonlinear plant::
+
+    y_k = sensordata_sel(x(k h)) - sensordata_sel(x0) + v_k,      ctrl = ctrl0 + [u_{k-d} on the named actuators]
+
+:func:`linearize` differentiates the control-period transition (``substeps`` ``mjx.step`` calls with the command
+held) with ``jax.jacfwd`` about the operating point: the discrete ``(Phi, Gamma, C)`` of the state
+``x = (qpos, qvel)``, augmented with the dead-time slots. :func:`mismatch` scales named model fields
+(``body_mass[payload]``, ``dof_damping[hinge]``, ``actuator_gear``, ``geom_friction[foot]``, ...) by a dict of
+factors: a pure function, so ``vmap`` over a batch of factors gives a batch of plants. :func:`rollout` runs any
+:class:`~jaxobs.observers.base.Controller` on the (mismatched) robot in one ``lax.scan``.
+
+Requirements (checked with :func:`jaxobs.mjx.estimation.check_model`): hinge and slide joints only (``nq ==
+nv``; a free or ball joint's quaternion is refused: the linearisation and the additive deviations above need a
+vector state), no actuator activations, and sensors of the position and velocity stages only (an acceleration-
+stage sensor would depend on the command being chosen).
+
+Differentiation. The rollouts are differentiable in the controller's parameters and in the mismatch factors in
+forward mode always. Reverse mode (``jax.grad``) works when the model's constraint solver is off
+(``<flag constraint="disable"/>``, as in the shipped example): MJX's solver iterates in a ``lax.while_loop``,
+which JAX cannot differentiate in reverse, so with constraints (contacts, joint limits, equalities) enabled use
+forward mode (``jax.jvp`` / ``jax.jacfwd``, ``gradient = "forward"`` in ``jaxobs tune``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from jaxobs import _checks
+from jaxobs.lti import StateSpace, ss
+from jaxobs.mjx import estimation
+from jaxobs.mjx.force_1dof import _dead_time
+from jaxobs.observers.base import Controller, ControllerInputs
+
+__all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """What a controller sees of an MJX model (build it with :func:`make_robot`).
+
+    Attributes:
+      model: the nominal ``mjx.Model``.
+      qpos0: (nq,) operating-point positions.  qvel0: (nv,) operating-point velocities.
+      ctrl0: (nu,) operating-point control of every actuator.
+      sensor_noise: (p,) standard deviation of the noise on each measured ``sensordata`` entry.
+      actuators: static, the ``ctrl`` indices the controller drives (``m`` of them, in the given order).
+      sensors: static, the ``sensordata`` indices it measures (``p`` of them).
+      substeps: static, physics steps per control period (``h = substeps * model.opt.timestep``).
+      dead_time: static, command dead time in control periods (``u_k`` acts during period ``k + d``).
+      timestep: static, the model's physics time step in seconds (so the period is known under tracing).
+    """
+
+    model: mjx.Model
+    qpos0: jax.Array
+    qvel0: jax.Array
+    ctrl0: jax.Array
+    sensor_noise: jax.Array
+    actuators: tuple = dataclasses.field(metadata=dict(static=True))
+    sensors: tuple = dataclasses.field(metadata=dict(static=True))
+    substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    dead_time: int = dataclasses.field(default=0, metadata=dict(static=True))
+    timestep: float = dataclasses.field(default=0.002, metadata=dict(static=True))
+
+    @property
+    def period(self) -> float:
+        """The control period ``h = substeps * timestep`` in seconds."""
+        return self.timestep * self.substeps
+
+
+def load_mjcf(mjcf) -> mujoco.MjModel:
+    """An ``MjModel`` from ``mjcf``: a path to an MJCF file, the XML text, or an ``MjModel`` (returned as is);
+    ``ValueError`` naming the file for an unreadable or invalid one."""
+    if isinstance(mjcf, mujoco.MjModel):
+        return mjcf
+    text, source = str(mjcf), "<string>"
+    if not text.lstrip().startswith("<"):
+        source = text
+        try:
+            return mujoco.MjModel.from_xml_path(str(Path(text)))
+        except ValueError as exc:  # mujoco reports missing files, XML and schema errors as ValueError
+            raise ValueError(f"MJCF {source}: cannot load it ({exc})") from exc
+    try:
+        return mujoco.MjModel.from_xml_string(text)
+    except ValueError as exc:
+        raise ValueError(f"MJCF {source}: invalid model ({exc})") from exc
+
+
+def _names(model, obj: mujoco.mjtObj, count: int) -> list[str]:
+    return [mujoco.mj_id2name(model, obj, i) or f"#{i}" for i in range(count)]
+
+
+def _index(model, what: str, obj: mujoco.mjtObj, count: int, name: str) -> int:
+    """The id of the ``what`` named ``name``; ``ValueError`` listing the valid names."""
+    i = mujoco.mj_name2id(model, obj, name)
+    if i < 0:
+        valid = ", ".join(repr(n) for n in _names(model, obj, count)) or "none"
+        raise ValueError(f"unknown {what} {name!r}; the model's {what}s are: {valid}")
+    return int(i)
+
+
+def make_robot(
+    mjcf,
+    actuators,
+    sensors,
+    *,
+    substeps: int = 1,
+    dead_time: int = 0,
+    sensor_noise=0.0,
+    qpos0=None,
+    qvel0=None,
+    ctrl0=None,
+) -> Robot:
+    """A :class:`Robot` of ``mjcf`` (see :func:`load_mjcf`).
+
+    Args:
+      mjcf: path, XML text or ``mujoco.MjModel``.
+      actuators: names of the actuators the controller drives (its ``u`` has one entry per name, in order).
+      sensors: names of the sensors it measures (its ``y`` holds their ``sensordata`` entries, in order).
+      substeps: physics steps per control period (int >= 1).  dead_time: command dead time in control periods.
+      sensor_noise: standard deviation of the measurement noise: a scalar or one per measured entry (p,).
+      qpos0, qvel0, ctrl0: the operating point (defaults: the model's ``qpos0``, zero velocity, zero control).
+
+    Example:
+      >>> from jaxobs.mjx import estimation, robot
+      >>> mj_model, _ = estimation.load_cartpole()
+      >>> arm = robot.make_robot(mj_model, ["push"], ["cart_position"], substeps=2, sensor_noise=0.005)
+      >>> arm.actuators, arm.sensors, round(arm.period, 3)
+      ((0,), (0,), 0.02)
+    """
+    m = load_mjcf(mjcf)
+    estimation.check_model(m, sensors=False)
+    if isinstance(actuators, str) or isinstance(sensors, str):
+        raise ValueError("actuators and sensors must be lists of names, not one string")
+    if not actuators:
+        raise ValueError("actuators: name at least one actuator the controller drives")
+    if not sensors:
+        raise ValueError("sensors: name at least one sensor the controller measures")
+    act = tuple(_index(m, "actuator", mujoco.mjtObj.mjOBJ_ACTUATOR, m.nu, a) for a in actuators)
+    rows = []
+    for s in sensors:
+        i = _index(m, "sensor", mujoco.mjtObj.mjOBJ_SENSOR, m.nsensor, s)
+        if m.sensor_needstage[i] == mujoco.mjtStage.mjSTAGE_ACC:
+            raise ValueError(f"sensor {s!r} is of the acceleration stage (it depends on the command being chosen); "
+                             "measure position- or velocity-stage sensors")  # fmt: skip
+        rows += range(m.sensor_adr[i], m.sensor_adr[i] + m.sensor_dim[i])
+    for name, given, ids in (("actuators", actuators, act), ("sensors", sensors, tuple(rows))):
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"{name}: each may be named once, got {list(given)}")
+    substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
+    dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
+    model = mjx.put_model(m)
+    dtype = model.body_mass.dtype
+    point = {"qpos0": (qpos0, m.qpos0, m.nq), "qvel0": (qvel0, np.zeros(m.nv), m.nv),
+             "ctrl0": (ctrl0, np.zeros(m.nu), m.nu)}  # fmt: skip
+    values = {k: _checks.vector(k, d if v is None else v, n, dtype, what=f"{n} entries")
+              for k, (v, d, n) in point.items()}  # fmt: skip
+    noise = _checks.per_entry("sensor_noise", sensor_noise, len(rows), dtype, "one per measured sensordata entry")
+    if np.any(np.asarray(noise) < 0):
+        raise ValueError(f"sensor_noise must be >= 0, got {np.asarray(noise)}")
+    return Robot(model, values["qpos0"], values["qvel0"], values["ctrl0"], noise, act, tuple(rows), substeps, dead_time,
+                 float(m.opt.timestep))  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Transition and measurement in the controller's coordinates
+
+
+def _step(robot: Robot, model: mjx.Model, x, applied, t):
+    """The state after one control period from ``x = (qpos, qvel)`` with ``applied`` (m,) on the named actuators."""
+    ctrl = robot.ctrl0.at[jnp.asarray(robot.actuators)].add(applied)
+    return estimation.transition(model, substeps=robot.substeps)(x, ctrl, t)
+
+
+def _sense(robot: Robot, model: mjx.Model, x):
+    """The measured ``sensordata`` entries (p,) of the state ``x``."""
+    return estimation._measurement(model, x)[jnp.asarray(robot.sensors)]
+
+
+def _operating_state(robot: Robot, qpos0=None, qvel0=None):
+    qpos = robot.qpos0 if qpos0 is None else jnp.asarray(qpos0, robot.qpos0.dtype)
+    qvel = robot.qvel0 if qvel0 is None else jnp.asarray(qvel0, robot.qvel0.dtype)
+    _checks.shape("qpos0", qpos, robot.qpos0.shape, "one entry per qpos")
+    _checks.shape("qvel0", qvel, robot.qvel0.shape, "one entry per qvel")
+    return jnp.concatenate([qpos, qvel])
+
+
+@jax.jit
+def _jacobians(robot: Robot, x0):
+    """``(Phi, Gamma, C)`` of one control period at ``x0`` (compiled once per robot structure)."""
+    u0 = jnp.zeros(len(robot.actuators), x0.dtype)
+    both = lambda x, u: (_step(robot, robot.model, x, u, jnp.zeros((), x0.dtype)), _sense(robot, robot.model, x))
+    (Phi, Gamma), (C, _) = jax.jacfwd(both, argnums=(0, 1))(x0, u0)  # one forward pass: x and u tangents
+    return Phi, Gamma, C
+
+
+def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
+    """The discrete linear model of ``robot`` over one control period about an operating point (default: the
+    robot's), by ``jax.jacfwd`` of the transition (``substeps`` ``mjx.step`` calls, command held)::
+
+        dx_{k+1} = Phi dx_k + Gamma du_{k-d},   dy_k = C dx_k,   dx = (qpos, qvel) - (qpos0, qvel0)
+
+    With a dead time ``d > 0`` the state is augmented with the commands in flight, ``[dx, u_{k-d}, ...,
+    u_{k-1}]`` (oldest first, as :func:`jaxobs.lti.c2d`): ``n = nq + nv + d m``. The operating point should be
+    an equilibrium (the transition's constant term is dropped). ``ctrl0`` (nu,) replaces the robot's operating
+    control.
+
+    Returns:
+      :class:`jaxobs.lti.StateSpace` with ``A = Phi``, ``B = Gamma``, ``C``, ``D = 0`` and ``dt`` the control
+      period; the nominal model a linear controller is designed on. Pure and traceable (a mismatched model:
+      ``dataclasses.replace(robot, model=mismatch(robot.model, scales))``); the Jacobians are compiled once per
+      robot structure, so later eager calls are one dispatch.
+
+    Example:
+      >>> from jaxobs.mjx import estimation, robot
+      >>> arm = robot.make_robot(estimation.load_cartpole()[0], ["push"], ["cart_position"], substeps=2, dead_time=1)
+      >>> lin = robot.linearize(arm)
+      >>> lin.A.shape, lin.B.shape, lin.C.shape
+      ((5, 5), (5, 1), (1, 5))
+    """
+    if ctrl0 is not None:
+        ctrl0 = _checks.vector("ctrl0", ctrl0, robot.ctrl0.shape[0], robot.ctrl0.dtype, what="one entry per actuator")
+        robot = dataclasses.replace(robot, ctrl0=ctrl0)
+    x0 = _operating_state(robot, qpos0, qvel0)
+    Phi, Gamma, C = _jacobians(robot, x0)
+    d, (n, m) = robot.dead_time, Gamma.shape
+    if d:
+        slots = d * m
+        Phi = jnp.block([[Phi, Gamma, jnp.zeros((n, slots - m), x0.dtype)],
+                         [jnp.zeros((slots, n), x0.dtype), jnp.eye(slots, k=m, dtype=x0.dtype)]])  # fmt: skip
+        Gamma = jnp.concatenate([jnp.zeros((n + slots - m, m), x0.dtype), jnp.eye(m, dtype=x0.dtype)])
+        C = jnp.concatenate([C, jnp.zeros((C.shape[0], slots), x0.dtype)], axis=1)
+    return ss(Phi, Gamma, C, dt=robot.period)
+
+
+# --------------------------------------------------------------------------------------------
+# Named mismatch
+
+_OBJECTS = {  # field prefix -> (object type, count attribute)
+    "body_": (mujoco.mjtObj.mjOBJ_BODY, "nbody"),
+    "jnt_": (mujoco.mjtObj.mjOBJ_JOINT, "njnt"),
+    "dof_": (mujoco.mjtObj.mjOBJ_JOINT, "njnt"),  # named by the joint (hinge and slide joints have one dof)
+    "geom_": (mujoco.mjtObj.mjOBJ_GEOM, "ngeom"),
+    "site_": (mujoco.mjtObj.mjOBJ_SITE, "nsite"),
+    "actuator_": (mujoco.mjtObj.mjOBJ_ACTUATOR, "nu"),
+    "tendon_": (mujoco.mjtObj.mjOBJ_TENDON, "ntendon"),
+}
+
+
+def _scalable_fields(model: mjx.Model) -> list[str]:
+    """The model's floating-point array fields (leaves of the pytree) with a per-object first axis."""
+    fields = []
+    for f in dataclasses.fields(model):
+        value = getattr(model, f.name)
+        prefix = next((p for p in _OBJECTS if f.name.startswith(p)), None)
+        if prefix and isinstance(value, jax.Array) and jnp.issubdtype(value.dtype, jnp.floating):
+            fields.append(f.name)
+    return fields
+
+
+def _parse(model: mjx.Model, key: str) -> tuple[str, int | None]:
+    """``"field[name]"`` -> (field, row) and ``"field"`` -> (field, None); ``ValueError`` listing valid names."""
+    field, _, rest = key.partition("[")
+    name = rest[:-1].strip().strip("'\"") if rest else None
+    if rest and not rest.endswith("]"):
+        raise ValueError(f"mismatch key {key!r}: expected 'field' or 'field[name]'")
+    fields = _scalable_fields(model)
+    if field not in fields:
+        raise ValueError(f"mismatch key {key!r}: {field!r} is not a scalable model field; valid fields: "
+                         f"{', '.join(fields)}")  # fmt: skip
+    if name is None:
+        return field, None
+    prefix = next(p for p in _OBJECTS if field.startswith(p))
+    obj, count = _OBJECTS[prefix]
+    what = {"body_": "body", "jnt_": "joint", "dof_": "joint", "geom_": "geom", "site_": "site",
+            "actuator_": "actuator", "tendon_": "tendon"}[prefix]  # fmt: skip
+    i = mjx.name2id(model, obj, name)
+    if i < 0:
+        valid = [n for j in range(getattr(model, count)) if (n := mjx.id2name(model, obj, j))]
+        plural = "bodies" if what == "body" else f"{what}s"
+        raise ValueError(f"mismatch key {key!r}: unknown {what} {name!r}; the model's {plural} are: "
+                         f"{', '.join(map(repr, valid)) or 'none'}")  # fmt: skip
+    return field, int(np.asarray(model.jnt_dofadr)[i]) if prefix == "dof_" else int(i)
+
+
+def mismatch(model: mjx.Model, scales: dict) -> mjx.Model:
+    """``model`` with named fields multiplied by factors: ``scales = {"body_mass[payload]": 1.5,
+    "dof_damping[hinge]": 0.8, "actuator_gear": 0.9}``. ``field[name]`` scales the row of the named object (a
+    body, joint, geom, site, actuator or tendon by the field's prefix; ``dof_*`` fields are named by their hinge
+    or slide joint; a row such as ``body_inertia`` or ``geom_friction`` scales as a whole); ``field`` alone
+    scales every entry. Keys are static, factors may be traced: ``jax.vmap(lambda s: mismatch(model, s))`` over
+    a dict of (B,) factors gives B plants.
+
+    Derived constants that MuJoCo computes at load time (``body_subtreemass``, ``dof_invweight0``,
+    ``actuator_acc0``, ...) keep their nominal values: they enter only the constraint solver's regularisation.
+    A body's mass and inertia are separate fields (scale both for a uniformly denser body).
+    """
+    updates: dict[str, Any] = {}
+    for key, factor in scales.items():
+        field, row = _parse(model, key)
+        value = updates.get(field, getattr(model, field))
+        factor = jnp.asarray(factor, value.dtype)
+        _checks.shape(f"scales[{key!r}]", factor, (), "one factor per key")
+        updates[field] = value * factor if row is None else value.at[row].multiply(factor)
+    return model.replace(**updates)
+
+
+# --------------------------------------------------------------------------------------------
+# Closed loop
+
+
+class RobotRollout(NamedTuple):
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time)."""
+
+    x: jax.Array  # (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
+    y: jax.Array  # (T, p) measurement the controller read: deviation from the operating point plus noise
+    y_true: jax.Array  # (T, p) the noise-free deviation
+    u: jax.Array  # (T, m) the controller's command u_k
+    applied: jax.Array  # (T, m) the command acting during period k, u_{k-d}
+    controller: Any  # the controller's outputs per step
+
+
+def rollout(
+    robot: Robot,
+    controller: Controller,
+    params,
+    scales: dict | None,
+    key,
+    steps: int,
+    *,
+    dx0=None,
+    reference=None,
+) -> RobotRollout:
+    """``robot`` (with the mismatch ``scales``, see :func:`mismatch`) under ``controller`` for ``steps`` control
+    periods, in one ``lax.scan``. At control step ``k`` (time ``k h``)::
+
+        y_k      = s(x(k h)) - s(x0) + v_k,  v_k ~ N(0, diag(sensor_noise^2))     measured sensordata entries
+        state, o = controller.step(params, state, ControllerInputs(y_k, r_k))
+        FIFO    <- o.u (m,); pop u_{k-d}                                         dead time d periods
+        plant   <- substeps mjx.step calls with ctrl = ctrl0 + u_{k-d} on the named actuators (held)
+
+    Args:
+      robot: the :class:`Robot`.  controller: any :class:`~jaxobs.observers.base.Controller` whose ``u`` has one
+        entry per named actuator.  params: its params.
+      scales: mismatch factors by field key (:func:`mismatch`), or None for the nominal model.
+      key: PRNG key of the sensor noise.  steps: control periods (static int >= 1).
+      dx0: (nq + nv,) initial deviation of ``(qpos, qvel)`` from the operating point (default zero).
+      reference: ``r_k``, shape (steps, q) (default zeros of shape (steps, m)).
+
+    Returns:
+      :class:`RobotRollout`. Pure: ``jit``, ``vmap`` (over scales, keys, params), ``jax.jvp`` / ``jacfwd``, and
+      ``grad`` where the model's constraint solver is off (module docstring).
+    """
+    steps = _checks.count("steps", steps, minimum=1, hint="control periods")
+    model = robot.model if not scales else mismatch(robot.model, scales)
+    x_op = _operating_state(robot)
+    dtype = x_op.dtype
+    n, m, p = x_op.shape[0], len(robot.actuators), len(robot.sensors)
+    x0 = x_op if dx0 is None else x_op + _checks.vector("dx0", dx0, n, dtype, what="one entry per qpos and qvel")
+    if reference is None:
+        reference = jnp.zeros((steps, m), dtype)
+    reference = jnp.asarray(reference, dtype)
+    if reference.ndim != 2 or reference.shape[0] != steps:
+        raise ValueError(f"reference must have shape (steps, q) = ({steps}, q), got {reference.shape}")
+    noise = robot.sensor_noise * jax.random.normal(key, (steps, p), dtype)
+    y_op = _sense(robot, robot.model, x_op)
+    h = robot.period
+
+    def control_step(carry, inputs):
+        k, r_k, v_k = inputs
+        x, fifo, state = carry
+        y_true = _sense(robot, model, x) - y_op
+        y = y_true + v_k
+        state, out = controller.step(params, state, ControllerInputs(y, r_k))
+        _checks.shape("params", out.u, (m,), f"the controller's command u needs one entry per named actuator ({m})")
+        u = out.u.astype(dtype)
+        applied, fifo = _dead_time(fifo, u, robot.dead_time)
+        x_next = _step(robot, model, x, applied, k * h)
+        return (x_next, fifo, state), RobotRollout(x, y, y_true, u, applied, out)
+
+    carry = (x0, jnp.zeros((robot.dead_time, m), dtype), controller.init(params))
+    _, out = jax.lax.scan(control_step, carry, (jnp.arange(steps, dtype=dtype), reference, noise))
+    return out

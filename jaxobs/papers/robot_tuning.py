@@ -1,0 +1,265 @@
+"""Tuning the Kalman filter of an LQG controller against MJX rollouts of your own robot (any MJCF).
+
+The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with the actuators the controller drives, the
+sensors it measures, the control period in physics steps, the dead time and the sensor noise. The controller is
+designed on the nominal model linearised about the operating point (:func:`jaxobs.mjx.robot.linearize`, dead-time
+slots included): a steady-state Kalman filter with the noise covariances ``Q`` (the plant states; the dead-time
+slots are known exactly, so zero) and ``R`` being tuned, the LQR state feedback of ``design.lqr_state`` and
+``design.lqr_input``, and a reference pre-gain so the ``scenario.tracked`` sensors follow ``scenario.reference``.
+Tuned: ``log_q`` (the diagonal of ``Q`` over ``(qpos, qvel)``) and ``log_r`` (the diagonal of ``R``), from the
+hand-set ``design.q`` and ``R = diag(sensor_noise^2)``.
+
+Plants: the nominal model with named fields scaled by factors drawn uniformly from ``plants.mismatch`` (e.g. the
+payload mass, ``body_mass[payload] = [0.25, 2.0]``; :func:`jaxobs.mjx.robot.mismatch`), each with its own sensor
+noise seed; training and held-out plants from independent keys. The per-plant loss is the mean over the rollout
+of ``sum_i w_i (y_i - y_desired_i)^2 + input_weight |u|^2`` on the noise-free measured entries, ``y_desired`` being
+the response of the desired closed loop, the LQR with the true state on the nominal linear model
+(:func:`jaxobs.closed_loop.ideal_response`; as in the force problem, after Cortesão 2006 eq. 43): what is left is
+the observer's share, the noise it lets through and the error of its model on the mismatched plant. A rollout
+that is not finite or leaves ``scenario.state_limit`` of the operating point counts as diverged.
+
+The shipped example (``examples/robots/cartpole_payload.xml``, ``tuning/cartpole_payload.toml``) is a cart
+carrying a hanging pole with a payload of unknown mass (a gantry crane) moved 0.5 m with its pole kept still.
+Relative MJCF paths are read from the current directory.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs._config import check_at_least, fail, merge
+from jaxobs.closed_loop import ideal_response
+from jaxobs.observers import feedback, kalman
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    COMMON_NOTES,
+    check_common,
+    optimizer_defaults,
+    search_box,
+)
+from jaxobs.tuning import TuningProblem
+
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "validate_config", "build_problem", "lqg_params"]
+
+NAME = "own-robot"
+
+LQG = feedback.observer_controller(kalman.kalman_filter)
+"""The controller: a Kalman filter with the state feedback ``u = N r - L x_hat`` (params: :func:`lqg_params`)."""
+
+DEFAULT_CONFIG = {
+    "problem": NAME,
+    "seed": 0,
+    "robot": {
+        "mjcf": "examples/robots/cartpole_payload.xml",
+        "actuators": ["push"],
+        "sensors": ["cart_position", "pole_angle"],
+        "substeps": 2,
+        "dead_time": 1,
+        "sensor_noise": [0.002, 0.005],
+        "qpos0": [],
+        "ctrl0": [],
+    },
+    "plants": {"train": 8, "heldout": 32, "mismatch": {"body_mass[payload]": [0.25, 2.0]}},
+    "scenario": {
+        "duration": 3.0,
+        "tracked": ["cart_position"],
+        "reference": [0.5],
+        "output_weights": [1.0, 1.0],
+        "input_weight": 0.0,
+        "state_limit": 10.0,
+    },
+    "design": {"q": [1e-6, 1e-6, 1e-4, 1e-4], "lqr_state": [10.0, 10.0, 1.0, 1.0], "lqr_input": [0.01]},
+    "optimizer": optimizer_defaults(learning_rate=0.2, steps=20, clip_norm=5.0, patience=8, checkpoint_every=5),
+    "baseline": dict(BASELINE_DEFAULTS),
+}
+"""Tune the Kalman filter of the cart with a hanging payload of unknown mass (0.25x to 2x the nominal 0.5 kg)."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": "the tuning problem ('jaxobs tune --list')",
+    "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
+    "robot.mjcf": "path of the MJCF file (relative paths: from the current directory)",
+    "robot.actuators": "names of the actuators the controller drives",
+    "robot.sensors": "names of the sensors it measures (position or velocity stage)",
+    "robot.substeps": "physics steps per control period",
+    "robot.dead_time": "command dead time in control periods",
+    "robot.sensor_noise": "standard deviation of the true sensors' noise, one per measured sensordata entry",
+    "robot.qpos0": "operating point (qpos) to linearise about and regulate around; empty: the model's qpos0",
+    "robot.ctrl0": "operating-point control of every actuator; empty: zero",
+    "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
+    "plants.train": "training plants (one rollout each per gradient evaluation)",
+    "plants.heldout": "held-out plants, never used in training, that score the designs",
+    "plants.mismatch": "'field[name]' = [low, high]: a factor on a model field, uniform (jaxobs.mjx.robot.mismatch)",
+    "plants.mismatch.body_mass[payload]": "factor on the mass of the body 'payload' (the shipped example's)",
+    "scenario": "the rollout every plant runs, and its loss",
+    "scenario.duration": "rollout length (s)",
+    "scenario.tracked": "sensors (one per actuator) whose values follow the reference",
+    "scenario.reference": "set-point of the tracked sensors (deviation from the operating point), from t = 0",
+    "scenario.output_weights": "loss weight of each measured entry's squared error to the desired closed loop's",
+    "scenario.input_weight": "loss weight of the squared command",
+    "scenario.state_limit": "a rollout whose (qpos, qvel) leaves the operating point by more counts as diverged",
+    "design": "the LQG controller on the linearised nominal model; the Kalman filter's Q and R are tuned",
+    "design.q": "hand-set process noise variances of (qpos, qvel) (R starts at sensor_noise^2)",
+    "design.lqr_state": "LQR state weights of (qpos, qvel)",
+    "design.lqr_input": "LQR input weights, one per actuator",
+}
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    """The complete configuration (defaults filled in), or :class:`jaxobs._config.ConfigError`."""
+    config = merge(DEFAULT_CONFIG, given or {}, source, open_tables=("plants.mismatch",))
+    if config["problem"] != NAME:
+        fail(source, "problem", f"must be {NAME!r}")
+    rb, sc, d = config["robot"], config["scenario"], config["design"]
+    for key in ("robot.substeps", "plants.train", "plants.heldout"):
+        check_at_least(config, source, key, 1)
+    check_at_least(config, source, "robot.dead_time", 0)
+    for key in ("scenario.duration", "scenario.state_limit"):
+        check_at_least(config, source, key, 0, strict=True)
+    check_at_least(config, source, "scenario.input_weight", 0)
+    if not config["plants"]["mismatch"]:
+        fail(source, "plants.mismatch", "name at least one model field to mismatch")
+    for key, bounds in config["plants"]["mismatch"].items():
+        if len(bounds) != 2 or not 0 < bounds[0] <= bounds[1]:
+            fail(
+                source,
+                f"plants.mismatch.{key}",
+                f"must be a range [low, high] of factors, 0 < low <= high, got {bounds}",
+            )
+    n_act = len(rb["actuators"])
+    if len(sc["tracked"]) != n_act or len(sc["reference"]) != n_act:
+        fail(source, "scenario.tracked", f"needs one tracked sensor and one reference per actuator ({n_act})")
+    if not set(sc["tracked"]) <= set(rb["sensors"]):
+        fail(source, "scenario.tracked", f"must name measured sensors ({', '.join(rb['sensors'])})")
+    if len(d["lqr_input"]) != n_act:
+        fail(source, "design.lqr_input", f"needs one weight per actuator ({n_act})")
+    if len(d["q"]) != len(d["lqr_state"]):
+        fail(source, "design.q", "needs as many entries as design.lqr_state (one per qpos and qvel)")
+    for key in ("design.q", "design.lqr_input", "robot.sensor_noise"):
+        if any(v <= 0 for v in config[key.split(".")[0]][key.split(".")[1]]):
+            fail(source, key, "must be positive")
+    for key, weights in (("design.lqr_state", d["lqr_state"]), ("scenario.output_weights", sc["output_weights"])):
+        if any(v < 0 for v in weights):
+            fail(source, key, "weights must be >= 0")
+    check_common(config, source)
+    return config
+
+
+def lqg_params(lin, Q, R, L, N):
+    """The params of :data:`LQG`: the steady-state Kalman filter of the linear model ``lin`` (a
+    :class:`jaxobs.lti.StateSpace`) with the noise covariances ``Q``, ``R``, and the state feedback ``L`` with the
+    reference pre-gain ``N``."""
+    est = kalman.make_kalman(lin.A, lin.C, Q, R, Gamma=lin.B, steady_state=True)
+    return feedback.FeedbackParams(est, L, N)
+
+
+def _robot(config: dict):
+    from jaxobs.mjx.robot import make_robot
+
+    rb = config["robot"]
+    timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"]}
+    point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None}
+    return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point)
+
+
+def build_problem(config: dict) -> TuningProblem:
+    """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
+    from jaxobs import design
+    from jaxobs.lti import ss
+    from jaxobs.mjx.robot import linearize, mismatch, rollout
+
+    robot = _robot(config)
+    sc, d = config["scenario"], config["design"]
+    n_x, p = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors)
+    for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),
+                            ("design.q", n_x, "qpos and qvel entry")):  # fmt: skip
+        section, name = key.split(".")
+        if len(config[section][name]) != size:
+            raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
+    for key in config["plants"]["mismatch"]:
+        mismatch(robot.model, {key: 1.0})  # names checked before any compilation
+    lin = linearize(robot)
+    n = lin.n_states
+    pad = lambda v: jnp.concatenate([jnp.asarray(v, float), jnp.zeros(n - n_x)])
+    L, _, _ = design.dlqr(lin.A, lin.B, jnp.diag(pad(d["lqr_state"])), jnp.diag(jnp.asarray(d["lqr_input"], float)))
+    rows = _tracked_rows(robot, config)
+    N = design.reference_gain(ss(lin.A, lin.B, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
+    steps = max(1, int(round(sc["duration"] / robot.period)))
+    reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
+    desired = ideal_response(lin, L, reference @ N.T)  # (steps, p): the LQR with the true state, nominal model
+    weights = jnp.asarray(sc["output_weights"], float)
+    x_op = jnp.concatenate([robot.qpos0, robot.qvel0])
+
+    def controller(theta):
+        Q = jnp.diag(pad(jnp.exp(theta["log_q"])))
+        return lqg_params(lin, Q, jnp.diag(jnp.exp(theta["log_r"])), L, N)
+
+    def run(theta, plants):
+        params = controller(theta)
+
+        def one(scales, key):
+            return rollout(robot, LQG, params, scales, key, steps, reference=reference)
+
+        return jax.vmap(one)(plants["scales"], plants["key"])
+
+    def losses(theta, plants):
+        out = run(theta, plants)
+        error = jnp.sum(weights * (out.y_true - desired) ** 2, axis=-1) + sc["input_weight"] * jnp.sum(out.u**2, -1)
+        loss = jnp.mean(error, axis=-1)
+        excursion = jnp.max(jnp.abs(out.x - x_op), axis=(-2, -1))
+        return loss, ~jnp.isfinite(loss) | ~(excursion < sc["state_limit"])
+
+    def sample(which):
+        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+        count, ranges = config["plants"][which], config["plants"]["mismatch"]
+        keys = jax.random.split(key, len(ranges) + 1)
+        scales = {k: jax.random.uniform(kk, (count,), minval=lo, maxval=hi)
+                  for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
+        return {"scales": scales, "key": jax.random.split(keys[0], count)}
+
+    first = rows[0]
+    traces = jax.jit(lambda theta, plants: run(theta, plants).y_true[..., first])
+
+    def responses(theta, plants):
+        return {
+            "t": robot.period * np.arange(steps),
+            "output": traces(theta, plants),
+            "desired": np.asarray(desired[:, first]),
+            "labels": [
+                ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items())
+                for i in range(len(plants["key"]))
+            ],  # fmt: skip
+            "ylabel": f"{sc['tracked'][0]} (deviation)",
+        }
+
+    def describe(theta):
+        params = controller(theta)
+        return {
+            "Q_diagonal": np.exp(np.asarray(theta["log_q"])).tolist(),
+            "R_diagonal": np.exp(np.asarray(theta["log_r"])).tolist(),
+            "kalman_gain": np.asarray(params.estimator.gain).tolist(),
+        }
+
+    theta0 = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
+              "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
+    return TuningProblem(
+        theta0=theta0,
+        losses=losses,
+        train=sample("train"),
+        heldout=sample("heldout"),
+        describe=describe,
+        responses=responses,
+        search_box=search_box(config, theta0),
+    )
+
+
+def _tracked_rows(robot, config: dict) -> list[int]:
+    """The measured entry (row of ``y``) of each tracked sensor (its first ``sensordata`` entry)."""
+    import mujoco
+    from mujoco import mjx
+
+    adr = np.asarray(robot.model.sensor_adr)
+    return [robot.sensors.index(int(adr[mjx.name2id(robot.model, mujoco.mjtObj.mjOBJ_SENSOR, name)]))
+            for name in config["scenario"]["tracked"]]  # fmt: skip
