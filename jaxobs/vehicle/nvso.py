@@ -95,8 +95,8 @@ class NVSOParams(NamedTuple):
       c1 (m/s^2), c2 (rad/s^2), c3 (m/s^2): the ``K_theta_b`` reduction thresholds.
       theta_default: ``theta*``.  theta_min, theta_max: the clip bounds.  accel_margin: the 1.2 of
         ``accel_margin g theta >= |(a_x, a_y)|``.
-      vy_dot_threshold (m/s^2), yaw_rate_threshold (rad/s), oversteer_threshold (m/s^2), off_delay (s),
-        high_pass_time (s): the switching logic.
+      vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time: the switching logic
+        (m/s^2, rad/s, m/s^2, s, s).
       min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
         finite ``v_x,ref`` (m/s).
       smooth: ``None`` (exact switches) or the gate sharpness (> 0).
