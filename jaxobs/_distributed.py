@@ -4,8 +4,8 @@ devices of one process.
 
 * :func:`agree` stops every process with the same kind of error when one of them cannot run the job or runs a
   different one (processes that went on alone would wait forever in the job's first collective).
-* :func:`from_process_0` gives every process process 0's value (a decision, a loaded state): process 0 alone reads
-  and writes files, the others follow.
+* :func:`from_process_0` and :func:`json_from_process_0` give every process process 0's value (a decision, a
+  loaded state): process 0 alone reads and writes files, the others follow.
 * :func:`lapack_guard`: jaxlib's batched LAPACK kernels on CPU (LU, eigenvalues, Cholesky, ...; triangular
   solves are plain loops) split their batch over XLA's intra-op thread pool and block a pool thread until the
   parts are done. Several CPU devices of one process running such kernels at once can take every pool thread and
@@ -27,7 +27,7 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-__all__ = ["agree", "from_process_0", "lapack_guard"]
+__all__ = ["agree", "from_process_0", "json_from_process_0", "lapack_guard"]
 
 _BLOCKING_LAPACK = re.compile(r'custom_call_target="lapack_(?!\w*trsm)\w+"')
 
@@ -58,18 +58,22 @@ def agree(error: Exception | None, digest: bytes = b"", *, job: str, kind: str, 
         raise error
 
 
-def from_process_0(value):
-    """Process 0's ``value`` in every process (the identity in a single process): a ``str``, ``dict``, ``list``
-    or ``None`` travels as JSON (the other processes' values may differ in anything), any other value must be a
-    pytree of arrays of the same shapes and dtypes in every process (NumPy arrays come back)."""
+def from_process_0(tree):
+    """Process 0's ``tree`` (a pytree of arrays of the same shapes and dtypes in every process) in every process, as
+    NumPy arrays; the identity in a single process."""
+    if jax.process_count() == 1:
+        return tree
+    return jax.tree.map(np.asarray, multihost_utils.broadcast_one_to_all(tree))
+
+
+def json_from_process_0(value):
+    """Process 0's ``value`` (anything JSON can hold; the other processes' values may differ in anything) in every
+    process; the identity in a single process."""
     if jax.process_count() == 1:
         return value
-    if value is None or isinstance(value, str | dict | list):
-        data = np.frombuffer(json.dumps(value).encode(), np.uint8) if jax.process_index() == 0 else np.zeros(0)
-        size = int(multihost_utils.broadcast_one_to_all(np.int64(data.size)))
-        data = np.zeros(size, np.uint8) if data.size != size else data
-        return json.loads(np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes().decode())
-    return jax.tree.map(np.asarray, multihost_utils.broadcast_one_to_all(value))
+    data = np.frombuffer(json.dumps(value).encode(), np.uint8) if jax.process_index() == 0 else np.zeros(0, np.uint8)
+    size = int(from_process_0(np.int64(data.size)))
+    return json.loads(from_process_0(np.resize(data, size)).tobytes().decode())
 
 
 def lapack_guard(compiled, devices: list, log: logging.Logger) -> list | None:

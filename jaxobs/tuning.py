@@ -61,7 +61,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxobs._distributed import agree, from_process_0, lapack_guard
+from jaxobs._distributed import agree, from_process_0, json_from_process_0, lapack_guard
 from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
 
 __all__ = [
@@ -574,7 +574,7 @@ def tune(
             "to start over"
         )
     _agree(error, bytes.fromhex(fingerprint))
-    trees, meta = jax.tree.map(jnp.asarray, from_process_0(trees)), from_process_0(meta)
+    trees, meta = jax.tree.map(jnp.asarray, from_process_0(trees)), json_from_process_0(meta)
     history = meta.pop("history", [])
     if resume:
         logger.info("resuming from %s at evaluation %d", path, meta["evaluations"])
