@@ -6,9 +6,10 @@ one process resumes when all are rerun (with another process count, too), proces
 are refused in every process, and the LAPACK guard computes on one device per process. The sweep is the one of
 tests/test_sweep.py (tests/sweep_scripts/sweep_case.py).
 
-``tune`` (tests/sweep_scripts/tune_case.py: the default 1-DOF force problem at tiny sizes) in 2 and 4 processes,
-and in one process with 4 CPU devices, gives one device's parameter history and objective, only process 0 writes
-the checkpoint, a killed run resumes in another process count, and ``jaxobs tune`` runs in 2 processes.
+``tune`` (tests/sweep_scripts/tune_case.py: an analytic problem, and the shipped 1-DOF force problem on MJX at tiny
+sizes) in 2 and 4 processes, and in one process with 4 CPU devices, gives one device's parameter history and
+objective up to the order of the gradient's sums, only process 0 writes the checkpoint, a killed run resumes in
+another process count, and ``jaxobs tune`` runs in 2 processes.
 """
 
 import json
@@ -227,12 +228,17 @@ random_search = false
 """
 
 
-def _tune(processes: int, tmp_path, name: str, *args, devices=1, env=None, ok=True):
-    """Run tune_case.py in ``processes`` processes with the checkpoint ``tmp_path/name.npz``; each one's JSON."""
+def _tune(processes: int, checkpoint, *args, devices=1, env=None):
+    """Run tune_case.py in ``processes`` processes with ``checkpoint``; each one's JSON line."""
+    procs = _start(TUNE_SCRIPT, processes, lambda pid: [checkpoint, *args], devices, env)
+    return [lines[-1] for _, lines, _ in _finish(procs, timeout=900)]
+
+
+def _tiny_config(tmp_path) -> list:
+    """``--config`` of the default (1-DOF force, MJX) tuning problem at tiny sizes."""
     config = tmp_path / "tiny.toml"
     config.write_text(TINY_TUNE)
-    procs = _start(TUNE_SCRIPT, processes, lambda pid: [config, tmp_path / f"{name}.npz", *args], devices, env)
-    return [lines[-1] if lines else None for _, lines, _ in _finish(procs, timeout=600, ok=ok)]
+    return ["--config", config]
 
 
 def _assert_same_tuning(got, want, rtol=1e-12):
@@ -244,44 +250,62 @@ def _assert_same_tuning(got, want, rtol=1e-12):
         np.testing.assert_allclose(mine["objective"], theirs["objective"], rtol=rtol, atol=0)
         for key, value in theirs["theta"].items():
             np.testing.assert_allclose(mine["theta"][key], value, rtol=rtol, atol=0, err_msg=key)
+    if "heldout" in want:
+        np.testing.assert_allclose(got["heldout"], want["heldout"], rtol=rtol, atol=0)
 
 
 @pytest.fixture(scope="module")
 def tuned(tmp_path_factory):
-    """The tiny tuning in one process on one CPU device."""
-    (result,) = _tune(1, tmp_path_factory.mktemp("tune"), "one", "--evaluate")
+    """The analytic problem of tune_case.py tuned in one process on one CPU device."""
+    (result,) = _tune(1, tmp_path_factory.mktemp("tune") / "one.npz", "--evaluate")
+    assert (result["devices"], result["processes"], len(result["history"])) == (1, 1, 5)
+    return result
+
+
+@pytest.fixture(scope="module")
+def tuned_mjx(tmp_path_factory):
+    """The tiny MJX problem tuned in one process on one CPU device."""
+    tmp = tmp_path_factory.mktemp("tune_mjx")
+    (result,) = _tune(1, tmp / "one.npz", *_tiny_config(tmp))
     assert (result["devices"], result["processes"], len(result["history"])) == (1, 1, 3)
     return result
 
 
 def test_tune_in_two_processes_matches_one_process(tuned, tmp_path):
-    results = _tune(2, tmp_path, "two")
+    """2 processes of one CPU device (3 training plants padded to 4 rows): the parameter history, objectives and
+    held-out losses of one device; only process 0 writes the checkpoint."""
+    results = _tune(2, tmp_path / "two.npz", "--evaluate")
     for pid, result in enumerate(results):
         assert (result["devices"], result["processes"]) == (2, 2)
         assert (result["checkpoints_written"] > 0) == (pid == 0)
         _assert_same_tuning(result, tuned)
-    assert (tmp_path / "two.npz").exists()
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("processes, devices", [(4, 1), (1, 4)])
 def test_tune_on_four_devices_matches_one_device(tuned, tmp_path, processes, devices):
-    """4 processes of one CPU device, or one process of 4: the batch of 3 training plants is padded to 4 rows
-    (the padding is left out of the objective); the held-out losses of ``evaluate`` too."""
-    for result in _tune(processes, tmp_path, "four", "--evaluate", devices=devices):
+    """4 processes of one CPU device, or one process of 4 (3 plants padded to 4 rows)."""
+    for result in _tune(processes, tmp_path / "four.npz", "--evaluate", devices=devices):
         assert (result["devices"], result["processes"]) == (4, processes)
         _assert_same_tuning(result, tuned)
-        np.testing.assert_allclose(result["heldout"], tuned["heldout"], rtol=1e-12, atol=0)
+
+
+@pytest.mark.slow
+def test_tune_of_the_mjx_problem_in_two_processes_matches_one_process(tuned_mjx, tmp_path):
+    """The shipped 1-DOF force problem (MJX rollouts) at tiny sizes."""
+    results = _tune(2, tmp_path / "two.npz", *_tiny_config(tmp_path))
+    for pid, result in enumerate(results):
+        assert (result["devices"], result["processes"], result["checkpoints_written"] > 0) == (2, 2, pid == 0)
+        _assert_same_tuning(result, tuned_mjx)
 
 
 @pytest.mark.slow
 def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
     """SIGKILL both processes once process 0 has written a checkpoint (each write sleeps first), then rerun in one
     process: it resumes where process 0 stopped and ends where the uninterrupted run ended."""
-    config, checkpoint = tmp_path / "tiny.toml", tmp_path / "killed.npz"
-    config.write_text(TINY_TUNE)
-    procs = _start(TUNE_SCRIPT, 2, lambda pid: [config, checkpoint], env={"TUNE_SLEEP": "2"})
-    deadline = time.monotonic() + 500
+    checkpoint = tmp_path / "killed.npz"
+    procs = _start(TUNE_SCRIPT, 2, lambda pid: [checkpoint], env={"TUNE_SLEEP": "2"})
+    deadline = time.monotonic() + 300
     try:
         while not checkpoint.exists():
             assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
@@ -291,17 +315,16 @@ def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
         for proc in procs:
             proc.kill()
             proc.communicate()
-    (result,) = _tune(1, tmp_path, "killed")
-    assert result["checkpoints_written"] > 0
+    (result,) = _tune(1, checkpoint, "--evaluate")
+    assert 0 < result["checkpoints_written"] < 6  # resumed, not restarted (6 writes from the start)
     _assert_same_tuning(result, tuned)
 
 
 @pytest.mark.slow
-def test_cli_tune_in_two_processes(tuned, tmp_path):
-    """``jaxobs tune --coordinator ... --num-processes 2 --process-id I``: process 0 writes tuned.json (the
-    one-process held-out losses) and prints the summary, process 1 writes nothing into its own --out."""
-    config = tmp_path / "tiny.toml"
-    config.write_text(TINY_TUNE)
+def test_cli_tune_in_two_processes(tuned_mjx, tmp_path):
+    """``jaxobs tune --coordinator ... --num-processes 2 --process-id I``: process 0 writes tuned.json and prints the
+    summary, process 1 writes nothing (not even its own --out)."""
+    config = _tiny_config(tmp_path)[1]
     cmd = [sys.executable, "-m", "jaxobs.cli", "tune", "--config", str(config), "--no-progress", "--no-cache",
            "--coordinator", f"127.0.0.1:{_free_port()}", "--num-processes", "2"]  # fmt: skip
     procs = [
@@ -309,10 +332,10 @@ def test_cli_tune_in_two_processes(tuned, tmp_path):
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         for pid in range(2)
     ]  # fmt: skip
-    outs = [p.communicate(timeout=600) for p in procs]
+    outs = [p.communicate(timeout=900) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
     assert "3 gradient evaluations" in outs[0][0] and "process 1 of 2: done" in outs[1][0]
     assert not (tmp_path / "out1").exists()
     summary = json.loads((tmp_path / "out0" / "tuned.json").read_text())
     assert summary["evaluations"] == 3
-    np.testing.assert_allclose(summary["train_objective"]["tuned"], tuned["objective"], rtol=1e-12)
+    np.testing.assert_allclose(summary["train_objective"]["tuned"], tuned_mjx["objective"], rtol=1e-12)

@@ -1,8 +1,9 @@
-"""A small ``jaxobs.tuning.tune`` run of a shipped tuning problem, runnable as a subprocess of a multi-process test.
+"""A small ``jaxobs.tuning.tune`` run, runnable as a subprocess of a multi-process test.
 
-``python tune_case.py CONFIG.toml CHECKPOINT [--evaluate] [--coordinator HOST:PORT --num-processes N --process-id I]``
-builds the problem of the ``jaxobs tune`` config file CONFIG.toml (over its defaults), tunes it with the checkpoint
-CHECKPOINT (resumed when it exists) and prints one JSON line: each evaluation's objective, diverged count and
+``python tune_case.py CHECKPOINT [--config CONFIG.toml] [--evaluate] [--coordinator HOST:PORT --num-processes N
+--process-id I]`` builds the problem of the ``jaxobs tune`` config file CONFIG.toml (over its defaults), or without
+``--config`` a cheap analytic problem (:func:`analytic_problem`), tunes it with the checkpoint CHECKPOINT (resumed
+when it exists) and prints one JSON line: each evaluation's objective, diverged count and
 ``theta``, the best objective and ``theta``, the wall time, the device and process counts, and how many
 checkpoint files this process wrote; ``--evaluate`` adds the held-out losses of the tuned ``theta``
 (:func:`jaxobs.tuning.evaluate`). ``TUNE_SLEEP`` (seconds) makes every checkpoint write sleep first, so that a
@@ -15,12 +16,13 @@ import os
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import jaxobs.tuning
 from jaxobs._config import load_toml
 from jaxobs.papers import tuning as papers
-from jaxobs.papers._tuning_config import config_tag, settings
+from jaxobs.papers._tuning_config import settings
 
 WRITES = []
 
@@ -34,10 +36,34 @@ def _counted_save(path, trees, meta, *, _save=jaxobs.tuning._save_checkpoint):
 jaxobs.tuning._save_checkpoint = _counted_save
 
 
+def analytic_problem() -> jaxobs.tuning.TuningProblem:
+    """A first-order loop ``x <- a x + g (target - x)`` over 40 steps per plant (pole ``a``, target), the loss its
+    mean squared tracking error plus ``1e-3 g^2``, tuned in ``log g``; 3 training and 3 held-out plants."""
+
+    def losses(theta, plants):
+        gain = jnp.exp(theta["log_gain"])
+
+        def one(a, target):
+            def step(x, _):
+                x = a * x + gain * (target - x)
+                return x, (x - target) ** 2
+
+            return jnp.mean(jax.lax.scan(step, 0.0 * target, None, length=40)[1]) + 1e-3 * gain**2
+
+        loss = jax.vmap(one)(plants["a"], plants["target"])
+        return loss, loss > 1e6
+
+    def plants(a, target):
+        return {"a": jnp.asarray(a), "target": jnp.asarray(target)}
+
+    train, heldout = plants([0.5, 0.8, 0.95], [1.0, -2.0, 0.5]), plants([0.6, 0.9, 0.7], [2.0, 1.0, -1.0])
+    return jaxobs.tuning.TuningProblem({"log_gain": jnp.asarray(-2.0)}, losses, train, heldout)
+
+
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("config")
     parser.add_argument("checkpoint")
+    parser.add_argument("--config")
     parser.add_argument("--evaluate", action="store_true")
     parser.add_argument("--coordinator")
     parser.add_argument("--num-processes", type=int)
@@ -46,10 +72,13 @@ def main():
     jax.config.update("jax_enable_x64", True)
     if args.coordinator:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    config = papers.validate_config(load_toml(args.config), args.config)
-    problem = papers.PROBLEMS[config["problem"]].build_problem(config)
-    tuned = settings(config)
-    result = jaxobs.tuning.tune(problem, tuned, checkpoint=args.checkpoint, progress=False, tag=config_tag(config))
+    if args.config:
+        config = papers.validate_config(load_toml(args.config), args.config)
+        problem, tuned, tag = papers.PROBLEMS[config["problem"]].build_problem(config), settings(config), "tiny"
+    else:
+        problem, tag = analytic_problem(), "analytic"
+        tuned = jaxobs.tuning.TuneSettings(steps=5, learning_rate=0.3, checkpoint_every=1)
+    result = jaxobs.tuning.tune(problem, tuned, checkpoint=args.checkpoint, progress=False, tag=tag)
     out = {
         "history": [{k: h[k] for k in ("objective", "diverged", "accepted", "theta")} for h in result.history],
         "objective": result.objective,
