@@ -291,6 +291,18 @@ def test_tune_on_four_devices_matches_one_device(tuned, tmp_path, processes, dev
 
 
 @pytest.mark.slow
+def test_tune_lapack_guard_computes_on_one_device_per_process(tuned, tmp_path):
+    """2 processes x 2 CPU devices, an evaluation with a batched LAPACK solve: computed on 2 devices, one per
+    process (logged), with the one-device numbers."""
+    procs = _start(TUNE_SCRIPT, 2, lambda pid: [tmp_path / "lapack.npz", "--evaluate", "--lapack"], devices=2)
+    results = _finish(procs, timeout=900)
+    for _, lines, err in results:
+        assert "computing on 2 device(s), one per process, instead of 4" in err
+        assert (lines[-1]["devices"], lines[-1]["processes"]) == (4, 2)
+        _assert_same_tuning(lines[-1], tuned)
+
+
+@pytest.mark.slow
 def test_tune_of_the_mjx_problem_in_two_processes_matches_one_process(tuned_mjx, tmp_path):
     """The shipped 1-DOF force problem (MJX rollouts) at tiny sizes."""
     results = _tune(2, tmp_path / "two.npz", *_tiny_config(tmp_path))
