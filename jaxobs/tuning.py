@@ -39,6 +39,18 @@ objective; checkpoints every ``checkpoint_every`` evaluations and on Ctrl-C, fro
 corrupt, damaged or foreign checkpoint is an error, never silently ignored: the checkpoint records a
 fingerprint of the settings, the tag and the lowered program of the evaluation). The compiled evaluation's
 memory (XLA's estimate) is checked against the memory available before it first runs.
+
+Devices and processes. Every batch of rollouts (an evaluation with its gradient, a random-search candidate, the
+held-out scores) runs on a 1-D mesh over every device of every process (after ``jax.distributed.initialize``, with
+the same call in every process): the batch is padded to a multiple of the device count with copies of its last
+plant, placed with ``NamedSharding(mesh, PartitionSpec("plants"))`` and each device runs its rows
+(``jax.shard_map``). The padding rows' losses are dropped before the objective, so the objective is the one-device
+objective and the gradient differs from it only in the order of its sums; both come out replicated, so every
+process takes the same step (``losses`` must treat the plants independently, as a ``vmap`` does). Process 0 alone
+reads and writes the checkpoint and the others receive its state; processes whose runs differ (program, training
+plants, settings, tag), or a checkpoint process 0 cannot use, stop every process (:class:`CheckpointError`). On
+CPU, a program with jaxlib's blocking LAPACK kernels runs on one device per process
+(:func:`jaxobs._distributed.lapack_guard`).
 """
 
 from __future__ import annotations
@@ -170,7 +182,8 @@ class TuningProblem:
     Attributes:
       theta0: unconstrained initial parameters, a dict of arrays (the hand-set design, usually).
       losses: ``(theta, batch) -> (losses, diverged)``, one loss and one divergence flag per plant of the
-        batch (shape ``(B,)`` each); pure and differentiable in ``theta``. A flagged plant (e.g. a force
+        batch (shape ``(B,)`` each); pure and differentiable in ``theta``, each plant's independent of the others
+        (the batch is split over devices). A flagged plant (e.g. a force
         beyond the sensor's range) is penalised like a non-finite loss (see the module docstring).
       train, heldout: batches of mismatched plants (pytrees with a leading batch axis), any structure that
         ``losses`` understands.
