@@ -261,10 +261,10 @@ def check_memory(nbytes: int | None, what: str, device=None, hint: str = "") -> 
 
 
 def compile_checked(lowered, what: str, hint: str = ""):
-    """Compile ``lowered`` (a ``jax.jit(f).lower(...)``) after checking that one run fits in the memory of the
-    default device (:class:`JobError` otherwise)."""
+    """Compile ``lowered`` (a ``jax.jit(f).lower(...)``) after checking that one run fits in the memory of this
+    process's first device (:class:`JobError` otherwise)."""
     import jax
 
     compiled = lowered.compile()
-    check_memory(program_nbytes(compiled), what, device=jax.devices()[0], hint=hint)
+    check_memory(program_nbytes(compiled), what, device=jax.local_devices()[0], hint=hint)
     return compiled

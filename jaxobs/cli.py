@@ -7,6 +7,7 @@ Usage::
     jaxobs sweep --list                      the scenarios, one line each
     jaxobs sweep --print-config [SCENARIO]   its full default config as TOML, every key commented
     jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
+                [--coordinator HOST:PORT --num-processes N --process-id I | --distributed]
     jaxobs tune --list | --print-config [PROBLEM]
     jaxobs reproduce --list
     jaxobs reproduce NAME [NAME ...] [--out DIR] [--no-cache]     (NAME "all" runs every reproduction)
@@ -20,11 +21,12 @@ Run as the command, it keeps JAX's persistent compilation cache in ``$JAXOBS_CAC
 ``$XDG_CACHE_HOME/jaxobs/jax-cache``, else ``~/.cache/jaxobs/jax-cache`` (``--no-cache``: off), so a second run of
 the same command skips most of the compilation; ``JAX_COMPILATION_CACHE_DIR`` set by the user wins.
 
-Several processes (hosts, or processes on one machine) run one sweep together when each runs the same ``jaxobs
-sweep`` command with ``--coordinator HOST:PORT --num-processes N --process-id I`` (HOST:PORT where process 0
-listens), or with ``--distributed`` alone under a cluster scheduler whose environment ``jax.distributed.initialize``
-reads (SLURM, Open MPI, ...). The output directory must be on a filesystem all of them see; process 0 writes it
-and prints the summary (see :mod:`jaxobs.sweep`). On a SLURM cluster, for example::
+Several processes (hosts, or processes on one machine) run one sweep or tuning together when each runs the same
+``jaxobs sweep`` (``jaxobs tune``) command with ``--coordinator HOST:PORT --num-processes N --process-id I``
+(HOST:PORT where process 0 listens), or with ``--distributed`` alone under a cluster scheduler whose environment
+``jax.distributed.initialize`` reads (SLURM, Open MPI, ...). Process 0 writes the output directory and prints the
+summary (see :mod:`jaxobs.sweep` and :mod:`jaxobs.tuning`); a sweep's must be on a filesystem all of them see.
+On a SLURM cluster, for example::
 
     srun --nodes 4 --ntasks-per-node 1 jaxobs sweep --config big.toml --out /shared/sweep --distributed
 
@@ -202,10 +204,16 @@ def _tune(args) -> int:
     logging.getLogger("jaxobs").addHandler(handler)
     logging.getLogger("jaxobs").setLevel(logging.INFO)
     logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
+    import jax
+
     _, config, _ = _scenario(args, registry, "problem")
     out = Path(args.out)
-    with locked_out_dir(out):
+    alone = jax.process_count() == 1  # else process 0 checks and locks out_dir with every process's agreement
+    with locked_out_dir(out) if alone else contextlib.nullcontext():
         result = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+    if result is None:  # not process 0
+        print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
+        return 0
     print(
         f"{result['problem']}: {result['evaluations']} gradient evaluations ({result['rollouts']} rollouts, "
         f"{result['seconds_tune']:.1f} s, stopped: {result['stopped']}); wrote {out / 'tuned.json'} and "
@@ -279,15 +287,16 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"print the full config of {what.upper()} (default: the default {what}; with "
                               f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
         run.set_defaults(func=func)
-    launch = commands.choices["sweep"].add_argument_group(
-        "multi-process run", "every process runs the same command; process 0 writes (see jaxobs.sweep)"
-    )
-    launch.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordinator")
-    launch.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
-    launch.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 .. N-1")
-    launch.add_argument("--distributed", action="store_true",
-                        help="join a multi-process run; values not given come from the cluster environment "
-                             "(SLURM, Open MPI, ...) that jax.distributed.initialize detects")  # fmt: skip
+    for name, engine in (("sweep", "jaxobs.sweep"), ("tune", "jaxobs.tuning")):
+        launch = commands.choices[name].add_argument_group(
+            "multi-process run", f"every process runs the same command; process 0 writes (see {engine})"
+        )
+        launch.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordinator")
+        launch.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
+        launch.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 .. N-1")
+        launch.add_argument("--distributed", action="store_true",
+                            help="join a multi-process run; values not given come from the cluster environment "
+                                 "(SLURM, Open MPI, ...) that jax.distributed.initialize detects")  # fmt: skip
     rep = commands.add_parser("reproduce", help="reproduce a paper's numbers and figures",
                               description="reproduce a paper's numbers and figures")  # fmt: skip
     rep.add_argument("names", nargs="*", metavar="NAME", help="reproduction name(s), or 'all'")
@@ -317,7 +326,7 @@ def _run(argv, watch: InterruptWatch) -> int:
     from jaxobs.tuning import CheckpointError, TuningError
 
     try:
-        if args.command == "sweep":
+        if args.command in ("sweep", "tune"):
             _join(args)
         status = args.func(args)
         watch.check()

@@ -83,7 +83,6 @@ import json
 import logging
 import math
 import platform
-import re
 import shutil
 import time
 from dataclasses import dataclass
@@ -98,6 +97,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from jaxobs._distributed import agree, from_process_0, lapack_guard
 from jaxobs._resources import (
     Interrupted,
     InterruptWatch,
@@ -281,19 +281,11 @@ def _check_args(sampler, evaluate, num_configs, chunk_size, seed, config) -> Non
         raise ValueError(f"config must be a JSON-serialisable dict (it is stored in the manifest): {e}") from e
 
 
-# jaxlib's batched LAPACK kernels on CPU (LU, eigenvalues, Cholesky, ...; triangular solves are plain loops)
-# split their batch over XLA's intra-op thread pool and block a pool thread until the parts are done.
-# Several CPU devices running such kernels at once can take every pool thread and then wait forever
-# (seen with jaxlib 0.10.2: 2 cores, 2 forced host devices, a batched jnp.linalg.solve or eigvals).
-_BLOCKING_LAPACK = re.compile(r'custom_call_target="lapack_(?!\w*trsm)\w+"')
-
-
 def _compile(row, devices, chunk_size: int):
     """``(compiled step, input sharding, devices used)`` for ``vmap(row)`` over one chunk per device.
 
-    On CPU, a program with blocking LAPACK kernels (see ``_BLOCKING_LAPACK``) is run on one device per
-    process instead: the forced host devices share the same cores, and jaxlib already spreads each
-    LAPACK batch over all of them.
+    On CPU, a program with blocking LAPACK kernels is run on one device per process instead
+    (:func:`jaxobs._distributed.lapack_guard`).
     """
     while True:
         mesh = Mesh(np.array(devices), ("configs",))
@@ -302,20 +294,10 @@ def _compile(row, devices, chunk_size: int):
         step = jax.shard_map(jax.vmap(row), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
         batch = jax.ShapeDtypeStruct((len(devices) * chunk_size,), jnp.int32, sharding=sharding)
         compiled = jax.jit(step).lower(batch).compile()
-        one_per_process = [next(d for d in devices if d.process_index == p) for p in range(jax.process_count())]
-        if len(devices) == len(one_per_process) or devices[0].platform != "cpu":
+        fewer = lapack_guard(compiled, devices, _log)
+        if fewer is None:
             return compiled, sharding, devices
-        kernels = sorted(set(_BLOCKING_LAPACK.findall(compiled.as_text())))
-        if not kernels:
-            return compiled, sharding, devices
-        _log.warning(
-            "the evaluation calls jaxlib's batched CPU LAPACK kernels (%s), which can deadlock when several CPU "
-            "devices run them at once; computing on %d device(s), one per process, instead of %d",
-            ", ".join(k.split('"')[1] for k in kernels),
-            len(one_per_process),
-            len(devices),
-        )
-        devices = one_per_process
+        devices = fewer
 
 
 def _row(sampler, evaluate, seed: int):
@@ -448,22 +430,9 @@ def run_sweep(
 
 
 def _agree(out_dir: Path, error: Exception | None, digest: bytes = b"") -> None:
-    """Raise in every process if one process failed (``error``) or, given the ``digest`` of its sweep, runs a
-    different sweep from process 0's; a no-op in a single process apart from raising ``error``."""
-    if jax.process_count() > 1:
-        mine = np.append(np.frombuffer(digest.ljust(16, b"\0")[:16], np.int32), int(error is not None))
-        table = np.asarray(multihost_utils.process_allgather(mine.astype(np.int32)))  # (processes, 5)
-        failed = np.flatnonzero(table[:, -1]).tolist()
-        other = np.flatnonzero((table[:, :-1] != table[0, :-1]).any(axis=1)).tolist()
-        if error is None and failed:
-            raise SweepError(f"process(es) {failed} could not run the sweep in {out_dir} (see their error)")
-        if error is None and other:
-            raise SweepError(
-                f"process(es) {other} run a different sweep from process 0's (sampler, evaluate, num_configs, "
-                "chunk_size, seed or config differ); run the same call in every process"
-            )
-    if error is not None:
-        raise error
+    """:func:`jaxobs._distributed.agree` for the sweep into ``out_dir``."""
+    agree(error, digest, job=f"the sweep in {out_dir}", kind="sweep", error_type=SweepError,
+          differs="sampler, evaluate, num_configs, chunk_size, seed or config differ")  # fmt: skip
 
 
 def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer, held):
@@ -486,8 +455,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
         error = exc
     digest = hashlib.sha256(json.dumps([identity, columns, fingerprint, num_configs]).encode()).digest()
     _agree(out_dir, error, digest)
-    if jax.process_count() > 1:  # every process must compute the same chunks: process 0 decides
-        todo = np.asarray(multihost_utils.broadcast_one_to_all(todo))
+    todo = from_process_0(todo)  # every process must compute the same chunks: process 0 decides
     completed = {c: e for c, e in completed.items() if int(c) >= num_chunks or not todo[int(c)]}
     reused_rows = sum(e["rows"] for c, e in completed.items() if int(c) < num_chunks)
 

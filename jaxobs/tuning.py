@@ -39,11 +39,24 @@ objective; checkpoints every ``checkpoint_every`` evaluations and on Ctrl-C, fro
 corrupt, damaged or foreign checkpoint is an error, never silently ignored: the checkpoint records a
 fingerprint of the settings, the tag and the lowered program of the evaluation). The compiled evaluation's
 memory (XLA's estimate) is checked against the memory available before it first runs.
+
+Devices and processes. Every batch of rollouts (an evaluation with its gradient, a random-search candidate, the
+held-out scores) runs on a 1-D mesh over every device of every process (after ``jax.distributed.initialize``, with
+the same call in every process): the batch is padded to a multiple of the device count with copies of its last
+plant, placed with ``NamedSharding(mesh, PartitionSpec("plants"))`` and each device runs its rows
+(``jax.shard_map``). The padding rows' losses are dropped before the objective, so the objective is the one-device
+objective and the gradient differs from it only in the order of its sums; both come out replicated, so every
+process takes the same step (``losses`` must treat the plants independently, as a ``vmap`` does). Process 0 alone
+reads and writes the checkpoint and the others receive its state; processes whose runs differ (program, training
+plants, settings, tag), or a checkpoint process 0 cannot use, stop every process (:class:`CheckpointError`). On
+CPU, a program with jaxlib's blocking LAPACK kernels runs on one device per process
+(:func:`jaxobs._distributed.lapack_guard`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -58,7 +71,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxobs._distributed import agree, from_process_0, json_from_process_0, lapack_guard
 from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
 
 __all__ = [
@@ -167,7 +182,8 @@ class TuningProblem:
     Attributes:
       theta0: unconstrained initial parameters, a dict of arrays (the hand-set design, usually).
       losses: ``(theta, batch) -> (losses, diverged)``, one loss and one divergence flag per plant of the
-        batch (shape ``(B,)`` each); pure and differentiable in ``theta``. A flagged plant (e.g. a force
+        batch (shape ``(B,)`` each); pure and differentiable in ``theta``, each plant's independent of the others
+        (the batch is split over devices). A flagged plant (e.g. a force
         beyond the sensor's range) is penalised like a non-finite loss (see the module docstring).
       train, heldout: batches of mismatched plants (pytrees with a leading batch axis), any structure that
         ``losses`` understands.
@@ -268,13 +284,13 @@ class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used (corrupt, damaged, or written for another problem or configuration)."""
 
 
-def _objective_fn(problem: TuningProblem, settings: TuneSettings):
+def _objective_fn(problem: TuningProblem, settings: TuneSettings, losses_fn: Callable):
     """``(theta, batch, replaced=None) -> (objective, failed)``: the robust objective of the penalised losses
-    (plus the problem's penalty); ``replaced`` (B,) marks plants whose inputs were replaced, which count as failed
-    without a loss of their own."""
+    ``losses_fn(theta, batch)`` (plus the problem's penalty); ``replaced`` (B,) marks plants whose inputs were
+    replaced, which count as failed without a loss of their own."""
 
     def objective(theta, batch, replaced=None):
-        losses, diverged = problem.losses(theta, batch)
+        losses, diverged = losses_fn(theta, batch)
         failed, own = jnp.asarray(diverged) | ~jnp.isfinite(losses), None
         if replaced is not None:
             failed, own = failed | replaced, ~replaced
@@ -308,19 +324,94 @@ def value_and_grad(objective: Callable, mode: str = "reverse") -> Callable:
     return forward
 
 
-def _evaluations(problem: TuningProblem, settings: TuneSettings):
-    """``(evaluation, sound_gradient)`` on the training batch: ``theta -> ((objective, failed), grad)``, and
-    ``(theta, failed) -> grad`` with the failed plants' inputs replaced by the first sound plant's (so without
-    their own gradient terms), for a reverse-mode gradient that a diverged rollout made non-finite (None in
-    forward mode, where a failed plant's tangents stay in its own lane)."""
-    objective, batch = _objective_fn(problem, settings), problem.train
-    size = problem.batch_size(batch)
+# --------------------------------------------------------------------------------------------
+# Rollouts spread over devices and processes
 
-    def evaluation(theta):
+_AXIS = "plants"
+
+
+def _mesh(devices: list) -> Mesh | None:
+    """A 1-D mesh (axis "plants") over ``devices``; None for a single device."""
+    return None if len(devices) == 1 else Mesh(np.array(devices), (_AXIS,))
+
+
+def _place(batch, mesh: Mesh | None):
+    """``batch`` padded to a multiple of the mesh's size with copies of its last plant, each process placing its
+    own devices' rows (``NamedSharding`` over the batch axis); ``batch`` itself without a mesh."""
+    if mesh is None:
+        return batch
+    size = int(jax.tree.leaves(batch)[0].shape[0])
+    rows = np.minimum(np.arange(-(-size // mesh.size) * mesh.size), size - 1)
+    sharding = NamedSharding(mesh, PartitionSpec(_AXIS))
+
+    def put(leaf):
+        padded = np.asarray(leaf)[rows]
+        return jax.make_array_from_callback(padded.shape, sharding, padded.__getitem__)
+
+    return jax.tree.map(put, batch)
+
+
+@functools.lru_cache(maxsize=8)  # the same function for the same problem: jax.jit's caches hold across calls
+def _spread(losses: Callable, mesh: Mesh | None, size: int) -> Callable:
+    """``losses`` over a batch of ``size`` plants placed by :func:`_place`: each device runs the rollouts of its
+    own rows (``jax.shard_map``), and the padding rows' losses are dropped, so that what follows (the objective,
+    its gradient) is that of ``losses`` on the batch itself; the gradient's terms are summed across devices.
+    ``losses`` itself without a mesh. ``losses`` must treat the plants independently (as a ``vmap`` does)."""
+    if mesh is None:
+        return losses
+    spec = PartitionSpec(_AXIS)  # check_vma=False: rollouts may scan from constant carries
+    per_device = jax.shard_map(losses, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec, check_vma=False)
+    return lambda theta, batch: jax.tree.map(lambda x: x[:size], per_device(theta, batch))
+
+
+def _jit(fn: Callable, mesh: Mesh | None, rows: tuple[bool, ...]) -> Callable:
+    """``jax.jit(fn)``; over a mesh, the arguments flagged in ``rows`` are batches placed by :func:`_place`, the
+    others (and the outputs) replicated, so every process gets the whole result."""
+    if mesh is None:
+        return jax.jit(fn)
+    replicated, placed = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec(_AXIS))
+    return jax.jit(fn, in_shardings=tuple(placed if r else replicated for r in rows), out_shardings=replicated)
+
+
+def _host(tree):
+    """``tree``'s leaves as NumPy arrays (a replicated result of every process, or the arguments of a call)."""
+    return jax.tree.map(np.asarray, tree)
+
+
+def _compile_spread(build: Callable, batch, theta, what: str, hint: str, alone=None):
+    """``(compiled, placed batch, mesh)``: ``build(mesh) -> fn(theta, batch)`` compiled over every device of every
+    process (:func:`_jit`, memory checked by :func:`jaxobs._resources.compile_checked`), or over one device per
+    process when the program calls blocking CPU LAPACK kernels (:func:`jaxobs._distributed.lapack_guard`).
+    ``alone``: the program already lowered for a single device, used when there is one."""
+    devices = jax.devices()
+    while True:
+        mesh = _mesh(devices)
+        placed = _place(batch, mesh)
+        if mesh is None and alone is not None:
+            lowered = alone
+        else:
+            lowered = _jit(build(mesh), mesh, (False, True)).lower(_host(theta), placed)
+        compiled = compile_checked(lowered, what, hint=hint)
+        fewer = lapack_guard(compiled, devices, logger)
+        if fewer is None:
+            return compiled, placed, mesh
+        devices = fewer
+
+
+def _evaluations(problem: TuningProblem, settings: TuneSettings, mesh: Mesh | None):
+    """``(evaluation, sound_gradient)`` on the training batch placed by :func:`_place`: ``(theta, batch) ->
+    ((objective, failed), grad)``, and ``(theta, batch, failed) -> grad`` with the failed plants' inputs replaced
+    by the first sound plant's (so without their own gradient terms), for a reverse-mode gradient that a diverged
+    rollout made non-finite (None in forward mode, where a failed plant's tangents stay in its own lane)."""
+    size = problem.batch_size(problem.train)
+    objective = _objective_fn(problem, settings, _spread(problem.losses, mesh, size))
+
+    def evaluation(theta, batch):
         return value_and_grad(lambda th: objective(th, batch), settings.gradient)(theta)
 
-    def sound_gradient(theta, failed):
+    def sound_gradient(theta, batch, failed):
         keep = jnp.where(failed, jnp.argmin(failed), jnp.arange(size))
+        keep = keep[np.minimum(np.arange(problem.batch_size(batch)), size - 1)]  # the padding rows copy the last
         sound = jax.tree.map(lambda x: x[keep], batch)
         return value_and_grad(lambda th: objective(th, sound, failed), settings.gradient)(theta)[1]
 
@@ -347,6 +438,12 @@ def _failure(value, grad, failed, allowed: int) -> str | None:
     return None
 
 
+def _agree(error: Exception | None, digest: bytes = b"") -> None:
+    """:func:`jaxobs._distributed.agree` for a tuning run."""
+    agree(error, digest, job="the tuning", kind="tuning", error_type=CheckpointError,
+          differs="problem, training plants, settings or tag differ")  # fmt: skip
+
+
 def _strong(theta: dict) -> dict:
     """``theta`` as JAX arrays of fixed (not weak) dtypes, the types the compiled evaluation is called with."""
     return {k: jnp.asarray(v).astype(jnp.asarray(v).dtype) for k, v in theta.items()}
@@ -364,10 +461,16 @@ _META = {"evaluations": int, "scale": float, "best_objective": float, "best_dive
 
 
 def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str, program: str) -> str:
+    """What a checkpoint was written for: the settings (but ``steps``), ``tag``, ``theta``'s shapes, the ``program``
+    of one evaluation on one device (lowered text) and the training batch's values (an argument of it)."""
     shapes = {k: list(np.shape(v)) for k, v in problem.theta0.items()}
     fixed = {k: v for k, v in dataclasses.asdict(settings).items() if k != "steps"}  # more steps may continue a run
     text = json.dumps({"tag": tag, "settings": fixed, "theta": shapes, "jax": jax.__version__}, sort_keys=True)
-    return hashlib.sha256((text + program).encode()).hexdigest()[:16]
+    digest = hashlib.sha256((text + program).encode())
+    for leaf in jax.tree.leaves(problem.train):
+        leaf = np.asarray(leaf)
+        digest.update(f"{leaf.dtype}{leaf.shape}".encode() + np.ascontiguousarray(leaf).tobytes())
+    return digest.hexdigest()[:16]
 
 
 def _save_checkpoint(path: Path, trees: dict, meta: dict) -> None:
@@ -467,34 +570,44 @@ def tune(
             "since_best": 0, "rejections": 0, "seconds": 0.0}  # fmt: skip
     history: list = []
     path = Path(checkpoint) if checkpoint is not None else None
-    resume = path is not None and path.exists()
+    writer = jax.process_index() == 0  # process 0 alone reads and writes the checkpoint; the others follow it
+    resume, error = writer and path is not None and path.exists(), None
     if resume:  # a damaged checkpoint is reported before the evaluation is traced
-        trees, meta = _load_checkpoint(path, trees)
-        history = meta.pop("history")
-    evaluation, sound_gradient = _evaluations(problem, settings)
-    lowered = jax.jit(evaluation).lower(theta0)
-    sound_gradient = sound_gradient and jax.jit(sound_gradient)  # compiled only if ever needed
+        try:
+            trees, meta = _load_checkpoint(path, trees)
+        except CheckpointError as exc:
+            error = exc
+    _agree(error)
+    evaluation = _evaluations(problem, settings, None)[0]
+    lowered = jax.jit(evaluation).lower(_host(theta0), problem.train)  # on one device: the fingerprint's program
     fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
+    if resume and meta.pop("fingerprint") != fingerprint:
+        error = CheckpointError(
+            f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
+            "to start over"
+        )
+    _agree(error, bytes.fromhex(fingerprint))
+    trees, meta = jax.tree.map(jnp.asarray, from_process_0(trees)), json_from_process_0(meta)
+    history = meta.pop("history", [])
     if resume:
-        if meta.pop("fingerprint") != fingerprint:
-            raise CheckpointError(
-                f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
-                "to start over"
-            )
         logger.info("resuming from %s at evaluation %d", path, meta["evaluations"])
-    evaluate_with_grad = compile_checked(
-        lowered, f"one evaluation of the {batch} training rollouts",
-        hint="use fewer training plants, shorter rollouts or a gradient_horizon",
+    evaluate_with_grad, train, mesh = _compile_spread(
+        lambda mesh: _evaluations(problem, settings, mesh)[0], problem.train, theta0,
+        f"one evaluation of the {batch} training rollouts",
+        hint="use fewer training plants, shorter rollouts or a gradient_horizon", alone=lowered,
     )  # fmt: skip
+    sound_gradient = _evaluations(problem, settings, mesh)[1]
+    sound_gradient = sound_gradient and _jit(sound_gradient, mesh, (False, True, False))  # compiled if ever needed
     previous_seconds = meta["seconds"]
 
     def save(trees, meta, history):
         meta["seconds"] = previous_seconds + time.perf_counter() - start
-        if path is not None:
+        if path is not None and writer:
             _save_checkpoint(path, trees, {**meta, "fingerprint": fingerprint, "history": history})
 
     stopped = "steps"
-    bar = tqdm(total=settings.steps, initial=meta["evaluations"], desc="tune", disable=not progress, unit="eval")
+    bar = tqdm(total=settings.steps, initial=meta["evaluations"], desc="tune", disable=not (progress and writer),
+               unit="eval")  # fmt: skip
     saved = (dict(trees), dict(meta), len(history))
     with InterruptWatch() as watch:
         try:
@@ -502,9 +615,9 @@ def tune(
                 watch.check()
                 saved = (dict(trees), dict(meta), len(history))  # a consistent state for Ctrl-C
                 step_start = time.perf_counter()
-                (value, failed), grad = evaluate_with_grad(trees["theta"])
+                (value, failed), grad = _host(evaluate_with_grad(_host(trees["theta"]), train))
                 if sound_gradient is not None and 0 < np.sum(failed) < batch and not _finite(grad):
-                    grad = sound_gradient(trees["theta"], failed)
+                    grad = _host(sound_gradient(_host(trees["theta"]), train, failed))
                 first = meta["evaluations"] == 0
                 meta["evaluations"] += 1
                 count = int(np.sum(np.asarray(failed)))
@@ -563,7 +676,7 @@ def tune(
         except KeyboardInterrupt as exc:
             trees, meta, done = saved
             where = ""
-            if meta["evaluations"] > 0 and path is not None:
+            if meta["evaluations"] > 0 and path is not None and writer:
                 save(trees, meta, history[:done])
                 where = f"; checkpoint saved to {path}"
             raise Interrupted(
@@ -635,20 +748,24 @@ def random_search(
     if num_candidates < 1:
         raise ValueError(f"num_candidates must be >= 1, got {num_candidates}")
     start = time.perf_counter()
-    objective = _objective_fn(problem, settings)
-    score = jax.jit(lambda theta: objective(theta, problem.train))
+    size = problem.batch_size(problem.train)
+    score, train, _ = _compile_spread(
+        lambda mesh: _objective_fn(problem, settings, _spread(problem.losses, mesh, size)), problem.train,
+        problem.theta0, f"one random-search candidate's {size} training rollouts", hint="use fewer training plants",
+    )  # fmt: skip
     box = _search_box(problem, spread)
     theta0 = _strong(problem.theta0)
     key = jax.random.PRNGKey(seed)
     candidates, values, diverged, elapsed = [], [], [], []
-    bar = tqdm(total=num_candidates, desc="random search", disable=not progress, unit="eval")
-    while len(candidates) < num_candidates or elapsed[-1] < seconds:
+    bar = tqdm(total=num_candidates, desc="random search", disable=not (progress and jax.process_index() == 0),
+               unit="eval")  # fmt: skip
+    while len(candidates) < num_candidates or from_process_0(np.bool_(elapsed[-1] < seconds)):  # process 0's clock
         key, sub = jax.random.split(key)
         keys = dict(zip(theta0, jax.random.split(sub, len(theta0)), strict=True))
         candidate = theta0 if not candidates else {
             k: jax.random.uniform(keys[k], v.shape, v.dtype, box[k][0], box[k][1]) for k, v in theta0.items()
         }  # fmt: skip
-        value, failed = score(candidate)
+        value, failed = _host(score(_host(candidate), train))
         count = int(np.sum(np.asarray(failed)))
         candidates.append(candidate)
         values.append(float(value) if count < np.size(failed) and np.isfinite(float(value)) else math.inf)
@@ -668,8 +785,12 @@ def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneS
     quantiles ``p50``, ``p90``, ``max`` of the finite losses (None if there are none), and ``losses`` (inf where
     diverged)."""
     batch = problem.heldout if batch is None else batch
-    losses, diverged = jax.jit(problem.losses)(theta, batch)
-    losses = np.asarray(losses)
+    size = problem.batch_size(batch)
+    compiled, placed, _ = _compile_spread(
+        lambda mesh: _spread(problem.losses, mesh, size), batch, theta, f"the {size} rollouts of an evaluation",
+        hint="use fewer plants",
+    )  # fmt: skip
+    losses, diverged = _host(compiled(_host(theta), placed))
     failed = np.asarray(diverged) | ~np.isfinite(losses)
     penalised = penalise_diverged(jnp.asarray(losses), jnp.asarray(failed), settings.divergence_factor)
     finite = losses[~failed]

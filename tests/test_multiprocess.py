@@ -5,6 +5,11 @@ devices, collectives through gloo) joined by ``jax.distributed.initialize`` with
 one process resumes when all are rerun (with another process count, too), processes that run different sweeps
 are refused in every process, and the LAPACK guard computes on one device per process. The sweep is the one of
 tests/test_sweep.py (tests/sweep_scripts/sweep_case.py).
+
+``tune`` (tests/sweep_scripts/tune_case.py: an analytic problem, and the shipped 1-DOF force problem on MJX at tiny
+sizes) in 2 and 4 processes, and in one process with 4 CPU devices, gives one device's parameter history and
+objective up to the order of the gradient's sums, only process 0 writes the checkpoint, a killed run resumes in
+another process count, and ``jaxobs tune`` runs in 2 processes.
 """
 
 import json
@@ -38,17 +43,22 @@ def _env(devices: int, extra=None) -> dict:
     return env
 
 
-def _launch(processes: int, *args, devices=1, env=None, nums=None):
-    """Start ``processes`` copies of the sweep script joined on a free local port (``nums``: per-process N)."""
+def _start(script: Path, processes: int, args, devices=1, env=None):
+    """Start ``processes`` copies of ``script`` with ``args(pid)`` joined on a free local port (one process alone
+    joins nothing)."""
     port, procs = _free_port(), []
     for pid in range(processes):
-        num = N if nums is None else nums[pid]
-        cmd = [sys.executable, str(SCRIPT), *map(str, args), "--num", str(num), "--chunk", str(CHUNK),
-               "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes),
-               "--process-id", str(pid)]  # fmt: skip
+        join = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes), "--process-id", str(pid)]
+        cmd = [sys.executable, str(script), *map(str, args(pid)), *(join if processes > 1 else [])]
         procs.append(subprocess.Popen(cmd, env=_env(devices, env), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                       text=True))  # fmt: skip
     return procs
+
+
+def _launch(processes: int, *args, devices=1, env=None, nums=None):
+    """Start ``processes`` copies of the sweep script (``nums``: per-process N)."""
+    return _start(SCRIPT, processes, lambda pid: [*args, "--num", N if nums is None else nums[pid], "--chunk", CHUNK],
+                  devices, env)  # fmt: skip
 
 
 def _finish(procs, timeout=240, ok=True):
@@ -198,3 +208,146 @@ def test_cli_without_a_coordinator_exits_2():
     done = subprocess.run(cmd, env=_env(1), capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert "cannot join the multi-process run (ValueError: coordinator_address" in done.stderr
+
+
+# --------------------------------------------------------------------------------------------
+# tune
+
+TUNE_SCRIPT = Path(__file__).parent / "sweep_scripts" / "tune_case.py"
+TINY_TUNE = """
+[plants]
+train = 3
+heldout = 2
+[scenario]
+duration = 0.4
+[optimizer]
+steps = 3
+checkpoint_every = 1
+[baseline]
+random_search = false
+"""
+
+
+def _tune(processes: int, checkpoint, *args, devices=1, env=None):
+    """Run tune_case.py in ``processes`` processes with ``checkpoint``; each one's JSON line."""
+    procs = _start(TUNE_SCRIPT, processes, lambda pid: [checkpoint, *args], devices, env)
+    return [lines[-1] for _, lines, _ in _finish(procs, timeout=900)]
+
+
+def _tiny_config(tmp_path) -> list:
+    """``--config`` of the default (1-DOF force, MJX) tuning problem at tiny sizes."""
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TUNE)
+    return ["--config", config]
+
+
+def _assert_same_tuning(got, want, rtol=1e-12):
+    """The same evaluations, objectives and parameters up to ``rtol`` (the order of the gradient's sums)."""
+    assert [(h["accepted"], h["diverged"]) for h in got["history"]] == [
+        (h["accepted"], h["diverged"]) for h in want["history"]
+    ]
+    for mine, theirs in zip(got["history"] + [got], want["history"] + [want], strict=True):
+        np.testing.assert_allclose(mine["objective"], theirs["objective"], rtol=rtol, atol=0)
+        for key, value in theirs["theta"].items():
+            np.testing.assert_allclose(mine["theta"][key], value, rtol=rtol, atol=0, err_msg=key)
+    if "heldout" in want:
+        np.testing.assert_allclose(got["heldout"], want["heldout"], rtol=rtol, atol=0)
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory):
+    """The analytic problem of tune_case.py tuned in one process on one CPU device."""
+    (result,) = _tune(1, tmp_path_factory.mktemp("tune") / "one.npz", "--evaluate")
+    assert (result["devices"], result["processes"], len(result["history"])) == (1, 1, 5)
+    return result
+
+
+@pytest.fixture(scope="module")
+def tuned_mjx(tmp_path_factory):
+    """The tiny MJX problem tuned in one process on one CPU device."""
+    tmp = tmp_path_factory.mktemp("tune_mjx")
+    (result,) = _tune(1, tmp / "one.npz", *_tiny_config(tmp))
+    assert (result["devices"], result["processes"], len(result["history"])) == (1, 1, 3)
+    return result
+
+
+def test_tune_in_two_processes_matches_one_process(tuned, tmp_path):
+    """2 processes of one CPU device (3 training plants padded to 4 rows): the parameter history, objectives and
+    held-out losses of one device; only process 0 writes the checkpoint."""
+    results = _tune(2, tmp_path / "two.npz", "--evaluate")
+    for pid, result in enumerate(results):
+        assert (result["devices"], result["processes"]) == (2, 2)
+        assert (result["checkpoints_written"] > 0) == (pid == 0)
+        _assert_same_tuning(result, tuned)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("processes, devices", [(4, 1), (1, 4)])
+def test_tune_on_four_devices_matches_one_device(tuned, tmp_path, processes, devices):
+    """4 processes of one CPU device, or one process of 4 (3 plants padded to 4 rows)."""
+    for result in _tune(processes, tmp_path / "four.npz", "--evaluate", devices=devices):
+        assert (result["devices"], result["processes"]) == (4, processes)
+        _assert_same_tuning(result, tuned)
+
+
+@pytest.mark.slow
+def test_tune_lapack_guard_computes_on_one_device_per_process(tuned, tmp_path):
+    """2 processes x 2 CPU devices, an evaluation with a batched LAPACK solve: computed on 2 devices, one per
+    process (logged), with the one-device numbers."""
+    procs = _start(TUNE_SCRIPT, 2, lambda pid: [tmp_path / "lapack.npz", "--evaluate", "--lapack"], devices=2)
+    results = _finish(procs, timeout=900)
+    for _, lines, err in results:
+        assert "computing on 2 device(s), one per process, instead of 4" in err
+        assert (lines[-1]["devices"], lines[-1]["processes"]) == (4, 2)
+        _assert_same_tuning(lines[-1], tuned)
+
+
+@pytest.mark.slow
+def test_tune_of_the_mjx_problem_in_two_processes_matches_one_process(tuned_mjx, tmp_path):
+    """The shipped 1-DOF force problem (MJX rollouts) at tiny sizes."""
+    results = _tune(2, tmp_path / "two.npz", *_tiny_config(tmp_path))
+    for pid, result in enumerate(results):
+        assert (result["devices"], result["processes"], result["checkpoints_written"] > 0) == (2, 2, pid == 0)
+        _assert_same_tuning(result, tuned_mjx)
+
+
+@pytest.mark.slow
+def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
+    """SIGKILL both processes once process 0 has written a checkpoint (each write sleeps first), then rerun in one
+    process: it resumes where process 0 stopped and ends where the uninterrupted run ended."""
+    checkpoint = tmp_path / "killed.npz"
+    procs = _start(TUNE_SCRIPT, 2, lambda pid: [checkpoint], env={"TUNE_SLEEP": "2"})
+    deadline = time.monotonic() + 300
+    try:
+        while not checkpoint.exists():
+            assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
+            assert time.monotonic() < deadline, "no checkpoint was written"
+            time.sleep(0.05)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.communicate()
+    (result,) = _tune(1, checkpoint, "--evaluate")
+    assert 0 < result["checkpoints_written"] < 6  # resumed, not restarted (6 writes from the start)
+    _assert_same_tuning(result, tuned)
+
+
+@pytest.mark.slow
+def test_cli_tune_in_two_processes(tuned_mjx, tmp_path):
+    """``jaxobs tune --coordinator ... --num-processes 2 --process-id I``: process 0 writes tuned.json and prints the
+    summary, process 1 writes nothing (not even its own --out)."""
+    config = _tiny_config(tmp_path)[1]
+    cmd = [sys.executable, "-m", "jaxobs.cli", "tune", "--config", str(config), "--no-progress", "--no-cache",
+           "--coordinator", f"127.0.0.1:{_free_port()}", "--num-processes", "2"]  # fmt: skip
+    procs = [
+        subprocess.Popen([*cmd, "--out", str(tmp_path / f"out{pid}"), "--process-id", str(pid)], env=_env(1),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for pid in range(2)
+    ]  # fmt: skip
+    outs = [p.communicate(timeout=900) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
+    assert "3 gradient evaluations" in outs[0][0] and "process 1 of 2: done" in outs[1][0]
+    assert not (tmp_path / "out1").exists()
+    summary = json.loads((tmp_path / "out0" / "tuned.json").read_text())
+    assert summary["evaluations"] == 3
+    np.testing.assert_allclose(summary["train_objective"]["tuned"], tuned_mjx["objective"], rtol=1e-12)

@@ -203,8 +203,8 @@ def test_a_diverged_rollout_does_not_poison_the_gradient(mode):
 
     batch = {"t": jnp.array([0.0, 3.0, 0.0]), "s": jnp.array([0.0, 0.0, 800.0])}
     problem = TuningProblem({"x": jnp.asarray(1.0)}, losses, batch, batch)
-    plain = jax.jit(tuning._evaluations(problem, TuneSettings(gradient=mode))[0])
-    grad = plain({"x": jnp.asarray(1.0)})[1]["x"]
+    plain = jax.jit(tuning._evaluations(problem, TuneSettings(gradient=mode), None)[0])  # one device
+    grad = plain({"x": jnp.asarray(1.0)}, batch)[1]["x"]
     assert bool(jnp.isnan(grad)) == (mode == "reverse")
     result = tune(problem, TuneSettings(gradient=mode, steps=1), progress=False)
     first = result.history[0]

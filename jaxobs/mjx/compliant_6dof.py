@@ -98,7 +98,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _check_timing, _dead_time, _initial_data, _series
+from jaxobs.mjx.force_1dof import _check_timing, _dead_time, _initial_data, _put_model, _series
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -292,7 +292,7 @@ def load_model(params: Compliant6Params | None = None) -> tuple[mujoco.MjModel, 
     assert layout == (list(range(6)), list(range(6)), list(range(6)), list(range(6)), 0, 1, 6), (
         "compliant_6dof.xml layout changed; update with_params"
     )
-    mx = with_params(mjx.put_model(m), params)
+    mx = with_params(_put_model(m), params)
     for field in ("jnt_stiffness", "dof_damping", "dof_armature", "actuator_gainprm", "actuator_biasprm", "site_pos"):
         getattr(m, field)[...] = np.asarray(getattr(mx, field))
     return m, mx

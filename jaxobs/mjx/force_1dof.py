@@ -217,7 +217,7 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv
     m.actuator_biasprm[0, 2] = -kv
-    return m, mjx.put_model(m)
+    return m, _put_model(m)
 
 
 def _is_int_at_least(value, minimum: int) -> bool:
@@ -251,6 +251,12 @@ def _dead_time(fifo: jax.Array, u_k: jax.Array, d: int):
     if d == 0:
         return u_k, fifo
     return fifo[0], jnp.concatenate([fifo[1:], u_k[None]])
+
+
+def _put_model(m: mujoco.MjModel) -> mjx.Model:
+    """``mjx.put_model`` on this process's first device (its default, ``jax.devices()[0]``, is process 0's in a
+    multi-process run, which the other processes cannot use)."""
+    return mjx.put_model(m, device=jax.local_devices()[0])
 
 
 def _initial_data(model: mjx.Model, dtype) -> mjx.Data:

@@ -8,11 +8,12 @@ rollouts and as much wall time as the tuning took, scores the hand-set, tuned an
 equal rollouts, best at equal wall time) on the held-out plants, and writes ``tuned.json`` and three figures:
 ``loss_curves.png``, ``responses.png`` (before/after on held-out plants) and ``parameters.png`` (trajectories of
 the unconstrained parameters). The output directory is locked for the run
-(:func:`jaxobs._resources.locked_out_dir`).
+(:func:`jaxobs._resources.locked_out_dir`). Several processes may run it together (:func:`run`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 from pathlib import Path
@@ -21,7 +22,8 @@ import jax
 import numpy as np
 
 from jaxobs._config import ConfigError, fail
-from jaxobs._resources import LOCK_NAME, atomic_write, locked_out_dir
+from jaxobs._distributed import agree
+from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
 from jaxobs.papers import force_tuning, grip_tuning, peg_tuning, robot_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
@@ -80,16 +82,29 @@ def _box_position(theta: dict, box: dict) -> dict:
     return position
 
 
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures."""
-    with locked_out_dir(out_dir) as out:
-        return _run(config, out, progress, overwrite)
+def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+    """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures.
 
-
-def _run(config: dict, out: Path, progress: bool, overwrite: bool) -> dict:
-    module = PROBLEMS[config["problem"]]
+    In a multi-process run (``jax.distributed.initialize``) every process makes the same call and computes its
+    devices' share of every batch of rollouts; process 0 alone locks and writes ``out_dir`` and returns the
+    summary, the others return None (and need not see ``out_dir``)."""
+    writer = jax.process_index() == 0
     tag = config_tag(config)
-    _prepare(out, tag, config, overwrite)
+    with contextlib.ExitStack() as held:
+        out, error = Path(out_dir), None
+        try:
+            if writer:
+                out = held.enter_context(locked_out_dir(out_dir))
+                _prepare(out, tag, config, overwrite)
+        except JobError as exc:  # ConfigError included
+            error = exc
+        agree(error, bytes.fromhex(tag), job=f"the tuning run in {out_dir}", kind="tuning run",
+              differs="their config files differ", error_type=ConfigError)  # fmt: skip
+        return _run(config, out, tag, progress, writer)
+
+
+def _run(config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
+    module = PROBLEMS[config["problem"]]
     try:
         problem = module.build_problem(config)
     except ValueError as exc:  # e.g. an invalid MJCF
@@ -129,6 +144,8 @@ def _run(config: dict, out: Path, progress: bool, overwrite: bool) -> dict:
                 "train_diverged": diverged,
             }
     scores = {name: evaluate(problem, theta, settings) for name, theta in designs.items()}
+    if not writer:
+        return None
     hand = scores["hand-set"]["objective"]
     summary["heldout"] = {
         name: {
