@@ -42,7 +42,7 @@ from mujoco import mjx
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
-from jaxobs.mjx.force_1dof import _dead_time
+from jaxobs.mjx.force_1dof import _dead_time, _put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
@@ -163,7 +163,7 @@ def make_robot(
             raise ValueError(f"{name}: each may be named once, got {list(given)}")
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
     dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
-    model = mjx.put_model(m)
+    model = _put_model(m)
     dtype = model.body_mass.dtype
     point = {"qpos0": (qpos0, m.qpos0, m.nq), "qvel0": (qvel0, np.zeros(m.nv), m.nv),
              "ctrl0": (ctrl0, np.zeros(m.nu), m.nu)}  # fmt: skip
