@@ -163,14 +163,23 @@ def _figure(out_dir: Path, chi0, trace, i: int) -> str:
     ax[0].axhline(1, color="k", lw=0.5, ls="--")
     ax[0].axhline(-1, color="k", lw=0.5, ls="--")
     ax[0].set_ylim(-8, 8)
+    ax[0].set_ylabel("z, y")
     ax[0].legend(fontsize=8)
-    ax[0].set_title(f"chi(0) = {np.round(chi0, 2).tolist()}: stage and detector class per window", fontsize=10)
-    ax[1].step(t - T, np.asarray(trace.stage)[i], where="post", label="stage")
-    ax[1].step(t - T, np.asarray(trace.cls)[i], where="post", label="class (0 +, 1 -, 2 linear, 3 mixed)")
-    ax[1].legend(fontsize=8)
+    ax[0].set_title(f"chi(0) = {np.round(chi0, 2).tolist()}: detector class per window and stage switches",
+                    fontsize=10)  # fmt: skip
+    ax[1].step(t - T, np.asarray(trace.cls)[i], where="post", color="C1")
+    ax[1].set_yticks(range(4), ["z >= 1", "z <= -1", "linear", "mixed"])
+    ax[1].set_ylim(-0.5, 3.5)
+    ax[1].set_ylabel("detector class")
     ax[2].semilogy(t, np.maximum(np.linalg.norm(chi, axis=1), 1e-16), label="||chi||")
     ax[2].set_xlabel("t [s]")
-    ax[2].legend(fontsize=8)
+    ax[2].set_ylabel("||chi||")
+    stage = np.asarray(trace.stage)[i]
+    for j, k in enumerate(np.flatnonzero(np.diff(stage)) + 1):  # the window after which the stage changed
+        for a in ax:
+            a.axvline(t[k] - T, color="0.4", lw=0.8, ls=":")
+        ax[1].annotate(f"stage {int(stage[k])}", (t[k] - T, 3.5), xytext=(3, -10 - 11 * j), textcoords="offset points",
+                       fontsize=8)  # fmt: skip
     for a in ax[:2]:
         a.set_xlim(0, min(t[-1], 15))
     return save_figure(fig, out_dir, "grip2010_sandwich")
