@@ -145,3 +145,11 @@ def test_bad_settings_and_inputs_raise():
         make_nvso("car")
     with pytest.raises(ValueError, match=r"inputs.y must have shape \(9,\)"):
         _run(make_nvso(), EstimatorInputs(y=jnp.zeros((5, 8))))
+
+
+def test_make_nvso_under_jit_equals_eager():
+    """The params can be built inside a jitted function (e.g. from traced gains); their leaves equal the eager ones."""
+    built = jax.jit(lambda k: make_nvso(P, K_vy=k, theta_min=0.1, theta_max=1.2))(2.0)
+    eager = make_nvso(P, K_vy=2.0, theta_min=0.1, theta_max=1.2)
+    for a, b in zip(jax.tree_util.tree_leaves(built), jax.tree_util.tree_leaves(eager), strict=True):
+        np.testing.assert_allclose(a, b)
