@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from _readme import pin
 
 from jaxobs.papers import REPRODUCTIONS, grip2010_sideslip
 from jaxobs.vehicle import MANOEUVRES, VehicleParams
@@ -67,6 +68,8 @@ def test_known_friction_on_a_flat_road(reduced):
     known = s["checks"]["known_friction_flat"]
     assert known["max_abs_beta_error_deg"] < 0.2
     assert known["rms_beta_error_deg"] < 0.09
+    pin(known["max_abs_beta_error_deg"], r"known friction on a flat road ([0-9.]+) deg max")
+    pin(known["rms_beta_error_deg"], r"known friction on a flat road [0-9.]+ deg max, ([0-9.]+) deg rms")
 
 
 def test_accelerometer_bias_goes_into_the_bank_estimate(reduced):
@@ -103,6 +106,7 @@ def test_friction_adaptation_on_low_friction(reduced):
     assert c["theta_hat_final"] == pytest.approx(0.851, abs=0.01)  # not 0.3: the documented gap
     errors = c["max_abs_beta_error_deg"]
     assert errors["mode2"] < errors["mode1"] < 0.5
+    pin(c["theta_hat_final"], r"on friction 0.3 theta goes from 1 to ([0-9.]+) \(")
 
 
 def test_no_friction_convergence_without_excitation(reduced):
@@ -126,6 +130,9 @@ def test_lane_change_nvso_and_ekf(reduced):
     assert m["ekf"]["max_abs_beta_error_deg"] < 0.4
     for observer in ("nvso", "ekf"):
         assert abs(m[observer]["bank_estimate_deg"] - 0.5) < 0.1
+    pin(m["peak_ay_g"], r"double lane change at ([0-9.]+) g")
+    pin(m["nvso"]["max_abs_beta_error_deg"], r"sideslip error NVSO ([0-9.]+) deg, EKF")
+    pin(m["ekf"]["max_abs_beta_error_deg"], r"sideslip error NVSO [0-9.]+ deg, EKF ([0-9.]+) deg \(max\)")
 
 
 def test_unknown_manoeuvre_raises():
@@ -151,4 +158,4 @@ def test_full_reproduction(tmp_path):
     assert m["step_steer_200kmh"]["nvso"]["bank_estimate_deg"] == pytest.approx(1.5, abs=0.1)
     for name in ("circle_40m_ramp", "ice_lake_circles"):
         assert m[name]["nvso"]["rms_beta_error_deg"] < m[name]["ekf"]["rms_beta_error_deg"]
-    assert m["ice_lake_circles"]["nvso"]["rms_beta_error_deg"] == pytest.approx(10.5, abs=1.0)  # the gap to < 3 deg
+    pin(m["ice_lake_circles"]["nvso"]["rms_beta_error_deg"], r"ice lake ([0-9.]+) deg rms NVSO error")  # the gap
