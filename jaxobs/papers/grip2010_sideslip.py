@@ -1,6 +1,8 @@
-"""Grip 2010, ch. 2: the nonlinear vehicle sideslip observer (NVSO) against its EKF baseline (§2.9) on simulated test
-drives, and the chapter's claims on synthetic data (the thesis's experiments used test-vehicle data that are not
-published, so no number of §2.10 can be reproduced; §2.12 lists the qualitative claims checked here).
+"""Grip 2010, ch. 2: the nonlinear vehicle sideslip observer (NVSO) against its EKF baseline (§2.9) on simulated
+test drives, and the chapter's claims as checks.
+
+The thesis's experiments used test-vehicle data that are not published, so no number of §2.10 can be reproduced;
+§2.12 lists the qualitative claims checked here.
 
 The drives are :data:`jaxobs.vehicle.MANOEUVRES` (modelled on Figs. 2.4-2.8) plus five drives for the checks, all
 simulated in one ``vmap`` (the command picked by ``lax.switch``, every drive run to the longest duration and cut to
