@@ -43,6 +43,8 @@ from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.vehicle import (
     GRAVITY,
     MANOEUVRES,
+    PLANT_STEP,
+    SENSOR_RATE,
     Command,
     Manoeuvre,
     Measurements,
@@ -61,6 +63,7 @@ from jaxobs.vehicle import (
 )
 
 NAME = "grip2010-sideslip"
+PERIOD = 1.0 / SENSOR_RATE  # s, the observers' and sensors' sample period (Grip 2010 §2.8)
 DEG = np.pi / 180
 BIAS_AY = 0.5  # m/s^2, half the 1.0 m/s^2 bias + drift maximum of Grip 2010 §2.8
 BANK_DEG, INCLINATION_DEG = 3.0, 5.0
@@ -71,6 +74,9 @@ CHECK_DURATION = 30.0  # s, the straight check drives
 NEVER = 1e6  # a switching threshold / off delay no signal reaches: friction estimation never on / never off
 EXACT = SensorParams(noise_acc=0.0, noise_yaw_rate=0.0, noise_steering=0.0, noise_wheel=0.0)
 COST_REPEATS = 5
+
+
+_LANE, _SINE = MANOEUVRES["double_lane_change_120kmh"], MANOEUVRES["sine_steer"]
 
 
 def _straight(bank=0.0, inclination=0.0):
@@ -89,7 +95,6 @@ def _sine_low_friction(t):
                                      friction=LOW_FRICTION)  # fmt: skip
 
 
-_LANE, _SINE = MANOEUVRES["double_lane_change_120kmh"], MANOEUVRES["sine_steer"]
 CHECK_DRIVES = {
     "lane_change_flat": Manoeuvre("lane_change_flat", _flat(_LANE), _LANE.duration, _LANE.initial_speed),
     "straight_flat": Manoeuvre("straight_flat", _straight(), CHECK_DURATION, 100 / 3.6),
@@ -143,7 +148,7 @@ NVSO_RUNS = {
 THETA0_STRAIGHT``, ``v_y = -VY0_ERROR`` (true 0) and never leaves it."""
 
 
-def simulate_drives(vehicle: VehicleParams, names, dt: float = 1e-3):
+def simulate_drives(vehicle: VehicleParams, names, dt: float = PLANT_STEP):
     """The drives ``names`` (keys of :data:`DRIVES`) simulated in one ``vmap`` up to the longest duration and kept
     at the 100 Hz sensor samples: a :class:`~jaxobs.vehicle.Trajectory` with a leading drive axis."""
     return _simulator(tuple(names), dt)(vehicle)
@@ -155,7 +160,7 @@ def _simulator(names: tuple, dt: float):
     drives = [DRIVES[n] for n in names]
     horizon = max(d.duration for d in drives)
     branches = [_typed(d.command) for d in drives]
-    every = round(0.01 / dt)
+    every = round(PERIOD / dt)
     speeds = jnp.asarray([d.initial_speed for d in drives])
 
     def one(vehicle, i, speed):
@@ -170,7 +175,7 @@ def _simulator(names: tuple, dt: float):
 def _measure_all(vehicle, trajectories, drive_index, sensors, seeds):
     def one(i, s, seed):
         tr = jax.tree_util.tree_map(lambda a: a[i], trajectories)
-        return measure(tr, vehicle, s, jax.random.PRNGKey(seed), dt=0.01)
+        return measure(tr, vehicle, s, jax.random.PRNGKey(seed), dt=PERIOD)
 
     return jax.vmap(one)(drive_index, sensors, seeds)
 
@@ -203,10 +208,10 @@ def estimate(vehicle: VehicleParams | None = None, manoeuvres=None) -> Estimates
     """Simulate, measure and estimate the ``manoeuvres`` (names; default all of :data:`jaxobs.vehicle.MANOEUVRES`)
     and the checks' drives: one ``vmap`` per stage, all at the 100 Hz samples up to the longest drive."""
     vehicle = VehicleParams() if vehicle is None else vehicle
-    manoeuvres = list(MANOEUVRES) if manoeuvres is None else list(manoeuvres)
-    unknown = sorted(set(manoeuvres) - set(MANOEUVRES))
-    if unknown or not manoeuvres:
-        raise ValueError(f"manoeuvres must be a non-empty subset of {sorted(MANOEUVRES)}, got {manoeuvres!r}")
+    requested = list(MANOEUVRES) if manoeuvres is None else list(manoeuvres)
+    if not requested or set(requested) - set(MANOEUVRES):
+        raise ValueError(f"manoeuvres must be a non-empty subset of {sorted(MANOEUVRES)}, got {requested!r}")
+    manoeuvres = [k for k in MANOEUVRES if k in requested]  # the order of MANOEUVRES, the first rows below
     keep = lambda table: [k for k in table if k not in MANOEUVRES or k in manoeuvres]
     drives, names, runs = keep(DRIVES), keep(MEASUREMENTS), keep(NVSO_RUNS)
     tr = simulate_drives(vehicle, drives)
@@ -240,7 +245,7 @@ def _angle_deg(s):
 
 
 def _samples(duration):
-    return int(round(duration / 0.01)) + 1
+    return int(round(duration / PERIOD)) + 1
 
 
 def manoeuvre_table(est: Estimates) -> dict:
@@ -359,7 +364,7 @@ def assumed(vehicle: VehicleParams) -> dict:
             "ay_bias": BIAS_AY,
             "seeds": "the index of the measured drive in MEASUREMENTS",
         },
-        "plant": {"integrator": "RK4", "step_s": 1e-3, "sensor_rate_hz": 100.0},
+        "plant": {"integrator": "RK4", "step_s": PLANT_STEP, "sensor_rate_hz": SENSOR_RATE},
         "observers": "forward Euler at the 10 ms sensor period (Grip 2010 §2.8)",
         "manoeuvres": "jaxobs.vehicle.MANOEUVRES (amplitudes chosen for the default vehicle)",
         "checks": {
