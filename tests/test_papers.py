@@ -36,6 +36,7 @@ def test_registry_names():
         "grip2010-dc-motor",
         "grip2010-saturated-outputs",
         "grip2010-sandwich",
+        "grip2010-sideslip",
     }
 
 

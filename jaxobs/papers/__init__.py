@@ -9,6 +9,7 @@ from jaxobs.papers import (
     grip2010_sandwich,
     grip2010_saturated_outputs,
     grip2010_scb,
+    grip2010_sideslip,
     liu_peng,
     steer_by_wire,
 )
@@ -25,6 +26,7 @@ REPRODUCTIONS = {
     grip2010_dc_motor.NAME: grip2010_dc_motor.reproduce,
     grip2010_saturated_outputs.NAME: grip2010_saturated_outputs.reproduce,
     grip2010_sandwich.NAME: grip2010_sandwich.reproduce,
+    grip2010_sideslip.NAME: grip2010_sideslip.reproduce,
 }
 
 __all__ = ["REPRODUCTIONS"]
