@@ -9,6 +9,8 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
 ``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
 ``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
+``lateral``: the friction-adaptive observers (3.4) and (3.14) of Grip 2010 ch. 3 (:func:`make_adaptive_lateral`,
+:data:`lateral_observer`, :data:`full_observer`, :func:`lyapunov_3_1`).
 ``road_angles``: the inclination and bank estimators of Grip 2010 ch. 4 (:func:`make_road_angles`,
 :data:`road_angles`, :data:`road_angles_adaptive`) and the gain bounds of its Lemmas 4.1-4.2 (:func:`lemma_check`).
 
@@ -18,6 +20,16 @@ this package.
 """
 
 from jaxobs.vehicle.ekf import VehicleEKFOutputs, VehicleEKFParams, VehicleEKFState, make_vehicle_ekf, vehicle_ekf
+from jaxobs.vehicle.lateral import (
+    AdaptiveLateralOutputs,
+    AdaptiveLateralParams,
+    AdaptiveLateralState,
+    full_observer,
+    lateral_observer,
+    lyapunov_3_1,
+    make_adaptive_lateral,
+    vehicle_model,
+)
 from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
 from jaxobs.vehicle.model import (
     GRAVITY,
@@ -99,6 +111,14 @@ __all__ = [
     "VehicleEKFState",
     "make_vehicle_ekf",
     "vehicle_ekf",
+    "AdaptiveLateralParams",
+    "AdaptiveLateralState",
+    "AdaptiveLateralOutputs",
+    "vehicle_model",
+    "make_adaptive_lateral",
+    "lateral_observer",
+    "full_observer",
+    "lyapunov_3_1",
     "RoadAnglesParams",
     "RoadAnglesState",
     "RoadAnglesOutputs",
