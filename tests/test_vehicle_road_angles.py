@@ -13,6 +13,7 @@ from jaxobs.vehicle import GRAVITY, SensorParams, VehicleParams, measure, sensor
 from jaxobs.vehicle.road_angles import (
     bank_error_system,
     bank_gain_bound,
+    final_angles,
     inclination_error_system,
     inclination_gain_bound,
     lemma_check,
@@ -108,6 +109,12 @@ def test_known_friction_estimator_on_the_mountain_road(mountain):
     _, out = _run(make_road_angles(P, vx0=vx0, friction=0.4, **GAINS), inputs)
     final_i, final_b, rms_i, rms_b = _errors(out, inclination, bank)
     assert abs(final_i) < 0.45 and abs(final_b) < 1.35
+    final = final_angles(out, inclination, bank)
+    assert float(final.inclination_error) == pytest.approx(final_i) and float(final.bank_error) == pytest.approx(
+        final_b
+    )
+    assert float(final.theta_b_expected) == pytest.approx(np.sin(float(bank[-1])) * np.cos(float(inclination[-1])))
+    assert float(final.theta_i_final) == pytest.approx(float(out.x[-1, 2]))
     assert rms_i < 0.35 and rms_b < 1.0
     assert np.rad2deg(float(jnp.max(jnp.abs(out.beta - beta)))) < 0.3
     incl = lemma_check("4.1", a=A_LEMMA_4_1)

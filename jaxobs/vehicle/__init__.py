@@ -10,7 +10,7 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
 ``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
 ``lateral``: the friction-adaptive observers (3.4) and (3.14) of Grip 2010 ch. 3 (:func:`make_adaptive_lateral`,
-:data:`lateral_observer`, :data:`full_observer`, :func:`lyapunov_3_1`).
+:data:`lateral_observer`, :data:`full_observer`, :func:`lyapunov_3_1`, :func:`lemma_3_1_check`).
 ``road_angles``: the inclination and bank estimators of Grip 2010 ch. 4 (:func:`make_road_angles`,
 :data:`road_angles`, :data:`road_angles_adaptive`) and the gain bounds of its Lemmas 4.1-4.2 (:func:`lemma_check`).
 
@@ -24,8 +24,10 @@ from jaxobs.vehicle.lateral import (
     AdaptiveLateralOutputs,
     AdaptiveLateralParams,
     AdaptiveLateralState,
+    Lemma31Check,
     full_observer,
     lateral_observer,
+    lemma_3_1_check,
     lyapunov_3_1,
     make_adaptive_lateral,
     vehicle_model,
@@ -49,12 +51,14 @@ from jaxobs.vehicle.model import (
 )
 from jaxobs.vehicle.nvso import N_SENSORS, NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso, sensor_inputs
 from jaxobs.vehicle.road_angles import (
+    FinalAngles,
     LemmaCheck,
     RoadAnglesOutputs,
     RoadAnglesParams,
     RoadAnglesState,
     bank_error_system,
     bank_gain_bound,
+    final_angles,
     inclination_error_system,
     inclination_gain_bound,
     lemma_check,
@@ -119,6 +123,8 @@ __all__ = [
     "lateral_observer",
     "full_observer",
     "lyapunov_3_1",
+    "Lemma31Check",
+    "lemma_3_1_check",
     "RoadAnglesParams",
     "RoadAnglesState",
     "RoadAnglesOutputs",
@@ -131,4 +137,6 @@ __all__ = [
     "bank_gain_bound",
     "LemmaCheck",
     "lemma_check",
+    "FinalAngles",
+    "final_angles",
 ]

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.observers.base import Estimator, EstimatorInputs
+from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.pe_monitor import PEMonitorParams, PEMonitorState, pe_monitor
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
 from jaxobs.vehicle.nvso import _AX, _AY, _OMEGA, _R, _SW, _VREF, N_SENSORS
@@ -65,6 +65,8 @@ __all__ = [
     "lateral_observer",
     "full_observer",
     "lyapunov_3_1",
+    "Lemma31Check",
+    "lemma_3_1_check",
 ]
 
 
@@ -287,3 +289,62 @@ def lyapunov_3_1(params: AdaptiveLateralParams, vy, theta, vy_hat, theta_hat):
     """Lemma 3.1's ``V = (theta Gamma (v_y - v_y^)^2 + (theta - theta^)^2) / (2 m^2)`` (any shapes that
     broadcast)."""
     return (theta * params.Gamma * (vy - vy_hat) ** 2 + (theta - theta_hat) ** 2) / (2 * params.mass**2)
+
+
+class Lemma31Check(NamedTuple):
+    """:func:`lemma_3_1_check`'s result."""
+
+    max_relative_V_increase: jax.Array  # () max over steps of (V_{k+1} - V_k) / V_k (negative: V decreases always)
+    final_V_ratio: jax.Array  # () V at the end over V(0)
+    V: jax.Array  # (K,) V along the run
+    decrease_ratio: jax.Array  # (K - 1,) (V_k - V_{k+1}) / (dt Gamma K_vy Lambda a_y~^2): 1 in continuous time
+
+
+_C_Y, _D_Y = 3.0e4, 2.0e4  # the check plant's cornering stiffness (N s/m) and steering gain (N/rad)
+
+
+def _check_model(v, y):
+    return jnp.stack([-_C_Y * v[1] + _D_Y * y[_SW], jnp.zeros_like(v[1])])
+
+
+def lemma_3_1_check(n_steps: int = 3000, dt: float = 0.01, theta: float = 0.6, vy0: float = 0.5) -> Lemma31Check:
+    """Lemma 3.1 along a run of (3.4) on a plant that meets its assumptions: ``m a_y = theta f_y*(v_y, delta)`` with
+    ``f_y* = -C v_y + D delta`` (``C = 3e4`` N s/m, ``D = 2e4`` N/rad, ``m = 1600`` kg; its tangent is the exact
+    secant of (3.3)), ``v_y' = a_y - r v_x``, ``v_x = 20`` m/s, ``r = 0.2 sin(0.5 t)``, ``delta = 0.3 sin(0.7 t) +
+    0.2 sin(1.9 t)``, Euler on the observer's grid. The observer: Vehicle A's gains, ``xi_rule="tangent"``, no
+    high-pass, monitor or active projection, from ``v_y = 0``, ``theta = 1``.
+
+    Args:
+      n_steps: samples (static).  dt: sample period (s).  theta: the plant's friction scale.  vy0: its initial
+        ``v_y`` (m/s).
+
+    Example:
+      >>> from jaxobs.vehicle.lateral import lemma_3_1_check
+      >>> check = lemma_3_1_check(500)         # float64 (jax_enable_x64) resolves V's per-step decrease
+      >>> bool(check.final_V_ratio < 0.5)
+      True
+    """
+    n = _checks.count("n_steps", n_steps, minimum=2)
+    _checks.positive_scalar("dt", dt)
+    _checks.positive_scalar("theta", theta)
+    mass = 1600.0
+    params = make_adaptive_lateral(
+        model=_check_model, mass=mass, xi_rule="tangent", high_pass=False, theta_min=1e-3, theta_max=10.0,
+        vx0=20.0, dt=dt,
+    )  # fmt: skip
+    dtype = params.dt.dtype
+    t = jnp.asarray(dt, dtype) * jnp.arange(n, dtype=dtype)
+    y = jnp.zeros((n, N_SENSORS), dtype)
+    y = y.at[:, _R].set(0.2 * jnp.sin(0.5 * t)).at[:, _VREF].set(20.0)
+    y = y.at[:, _SW].set(0.3 * jnp.sin(0.7 * t) + 0.2 * jnp.sin(1.9 * t))
+    ay = lambda vy, yk: theta * _check_model(jnp.stack([yk[_VREF], vy, yk[_R]]), yk)[0] / mass
+
+    def plant(vy, yk):
+        return vy + dt * (ay(vy, yk) - yk[_R] * yk[_VREF]), vy
+
+    _, vy = jax.lax.scan(plant, jnp.asarray(vy0, dtype), y)
+    y = y.at[:, _AY].set(jax.vmap(ay)(vy, y))
+    _, out = run(lateral_observer, params, EstimatorInputs(y=y))
+    V = lyapunov_3_1(params, vy, theta, out.x[:, 1], out.x[:, 3])
+    predicted = dt * params.Gamma * params.K_vy * out.Lambda[1:] * (out.innovation[1:, 0] / mass) ** 2
+    return Lemma31Check(jnp.max(jnp.diff(V) / V[:-1]), V[-1] / V[0], V, -jnp.diff(V) / predicted)

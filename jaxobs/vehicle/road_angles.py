@@ -70,6 +70,8 @@ __all__ = [
     "bank_gain_bound",
     "LemmaCheck",
     "lemma_check",
+    "FinalAngles",
+    "final_angles",
 ]
 
 
@@ -280,3 +282,27 @@ State: :class:`RoadAnglesState`. Outputs: :class:`RoadAnglesOutputs` (``theta`` 
 road_angles_adaptive = Estimator(_init, functools.partial(_step, adaptive=True))
 """The friction-adaptive inclination and bank estimator (4.6), (4.7), (4.13), (4.12b), (4.14) of Grip 2010 ch. 4
 (module docstring); as :data:`road_angles` otherwise."""
+
+
+class FinalAngles(NamedTuple):
+    """:func:`final_angles`' result: the estimated and the true parameters at the last sample and their errors in
+    degrees of the angles."""
+
+    theta_i_final: jax.Array  # () estimated sin(Theta)
+    theta_i_expected: jax.Array  # () true sin(Theta)
+    theta_b_final: jax.Array  # () estimated cos(Theta) sin(Phi)
+    theta_b_expected: jax.Array  # () true cos(Theta) sin(Phi)
+    inclination_error: jax.Array  # () estimated minus true inclination (deg)
+    bank_error: jax.Array  # () estimated minus true bank (deg)
+
+
+def final_angles(outputs: RoadAnglesOutputs, inclination, bank) -> FinalAngles:
+    """The final inclination and bank estimates of a run (``outputs`` of :data:`road_angles` or
+    :data:`road_angles_adaptive`, stacked over K samples) against the road's true ``inclination`` and ``bank``
+    (K,) (rad, e.g. a :class:`~jaxobs.vehicle.Trajectory`'s ``inputs.inclination`` at the sensor samples)."""
+    Theta, Phi = jnp.asarray(inclination)[-1], jnp.asarray(bank)[-1]
+    deg = 180.0 / jnp.pi
+    return FinalAngles(
+        outputs.x[-1, 2], jnp.sin(Theta), outputs.x[-1, 3], jnp.cos(Theta) * jnp.sin(Phi),
+        deg * (outputs.inclination[-1] - Theta), deg * (outputs.bank[-1] - Phi),
+    )  # fmt: skip
