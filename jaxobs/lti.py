@@ -371,7 +371,7 @@ def is_spr(A, B, C, D=None, *, rtol: float = 1e-10) -> bool:
     ``-M^T (C A B + (C A B)^T) M`` when ``M^T (C B - (C B)^T) M = 0`` and diverges otherwise.
 
     Args:
-      A: (n, n).  B: (n, m).  C: (m, n).  D: (m, m), default zeros.
+      A: (n, n).  B: (n, m).  C: (m, n).  D: (m, m), or a scalar ``d`` for ``d I``; default zeros.
       rtol: relative tolerance of the strict inequalities (scaled by the norms of the matrices); a zero ``z`` of
         ``Phi`` counts as on the imaginary axis when ``|Re z| <= sqrt(rtol) max(1, |z|)`` (the eigensolver does not
         keep the zeros' symmetry about the axis, so the axis test is looser than the inequalities).
@@ -393,7 +393,8 @@ def is_spr(A, B, C, D=None, *, rtol: float = 1e-10) -> bool:
     _checks.matrix("B", B, shape=(n, None))
     m = B.shape[1]
     _checks.matrix("C", C, shape=(m, n))
-    D = np.zeros((m, m)) if D is None else np.atleast_2d(np.asarray(D, dtype=float))
+    D = np.zeros((m, m)) if D is None else np.asarray(D, dtype=float)
+    D = D * np.eye(m) if D.ndim == 0 else D
     _checks.matrix("D", D, shape=(m, m))
     for name, M in (("A", A), ("B", B), ("C", C), ("D", D)):
         _checks.finite(name, M)

@@ -434,6 +434,8 @@ def test_is_spr_mimo():
     """``diag(1/(s+1), 2/(s+3))`` is SPR; ``C / (s + 1)`` with a non-symmetric ``C B`` is not (``G + G^*`` has
     eigenvalues ``(2 +- 2 w) / (1 + w^2)``)."""
     assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), np.diag([1.0, 2.0]))
+    assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), -np.diag([0.5, 2.0]), 1.0)  # 1 - c/(s+p): Re >= 1 - c/p > 0
+    assert not is_spr(-np.diag([1.0, 3.0]), np.eye(2), -np.diag([1.0, 4.0]), 1.0)  # 1 - 4/(s+3): Re G(0) < 0
     assert not is_spr(-np.eye(2), np.eye(2), np.array([[1.0, 1.0], [-1.0, 1.0]]))
 
 
