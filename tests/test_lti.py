@@ -431,7 +431,8 @@ def test_is_spr_sees_a_dip_between_zero_and_infinity(c, expected):
 
 
 def test_is_spr_mimo():
-    """``diag(1/(s+1), 2/(s+3))`` is SPR; ``C / (s + 1)`` with a non-symmetric ``C B`` is not (``G + G^*`` has
+    """``diag(1/(s+1), 2/(s+3))`` and ``I - diag(0.5/(s+1), 2/(s+3))`` are SPR, ``I - diag(1/(s+1), 4/(s+3))``
+    is not (``G(0)`` singular, indefinite); ``C / (s + 1)`` with a non-symmetric ``C B`` is not (``G + G^*`` has
     eigenvalues ``(2 +- 2 w) / (1 + w^2)``)."""
     assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), np.diag([1.0, 2.0]))
     assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), -np.diag([0.5, 2.0]), 1.0)  # 1 - c/(s+p): Re >= 1 - c/p > 0
