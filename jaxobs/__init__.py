@@ -38,7 +38,7 @@ from importlib.metadata import PackageNotFoundError, version
 from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
 from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
-from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
+from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
 from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
     Controller,
@@ -92,6 +92,7 @@ __all__ = [
     "ctrb",
     "obsv",
     "dcgain",
+    "is_spr",
     "dare",
     "dlqr",
     "dlqe",

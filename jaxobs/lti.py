@@ -21,10 +21,11 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 
 from jaxobs import _checks
 
-__all__ = ["StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "dcgain"]
+__all__ = ["StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "dcgain", "is_spr"]
 
 
 @jax.tree_util.register_dataclass
@@ -354,3 +355,78 @@ def dcgain(sys: StateSpace) -> jax.Array:
     n = sys.A.shape[-1]
     M = jnp.eye(n, dtype=sys.A.dtype) - sys.A if sys.is_discrete else -sys.A
     return sys.C @ jnp.linalg.solve(M, sys.B) + sys.D
+
+
+def is_spr(A, B, C, D=None, *, rtol: float = 1e-10) -> bool:
+    """Whether ``G(s) = C (sI - A)^{-1} B + D`` (square, continuous time) is strictly positive real (design time,
+    NumPy; concrete arrays only).
+
+    The frequency-domain characterisation (Khalil 2002, Lemma 6.1): ``A`` Hurwitz, ``G(jw) + G(jw)^* > 0`` for
+    every real ``w``, and at infinity either ``R = D + D^T > 0`` or, on the null space ``M`` of ``R``,
+    ``lim_{w -> inf} w^2 M^T (G(jw) + G(jw)^*) M > 0``. No frequency grid: ``G(jw) + G(jw)^*`` is the value on the
+    imaginary axis of ``Phi(s) = G(s) + G^T(-s)``, realised by ``(diag(A, -A^T), [B; -C^T], [C, B^T], R)``; it is
+    positive at ``w = 0`` and has no zero ``s = jw`` (a finite generalised eigenvalue of the Rosenbrock pencil of
+    that realisation on the imaginary axis) exactly when it is positive for every ``w`` (the Hamiltonian test,
+    which the pencil reduces to when ``R`` is invertible). At infinity, ``w^2 M^T (G + G^*) M`` tends to
+    ``-M^T (C A B + (C A B)^T) M`` when ``M^T (C B - (C B)^T) M = 0`` and diverges otherwise.
+
+    Args:
+      A: (n, n).  B: (n, m).  C: (m, n).  D: (m, m), or a scalar ``d`` for ``d I``; default zeros.
+      rtol: relative tolerance of the strict inequalities (scaled by the norms of the matrices); a zero ``z`` of
+        ``Phi`` counts as on the imaginary axis when ``|Re z| <= sqrt(rtol) max(1, |z|)`` (the eigensolver does not
+        keep the zeros' symmetry about the axis, so the axis test is looser than the inequalities).
+
+    Returns:
+      a Python ``bool``.
+
+    Example:
+      >>> is_spr([[-1.0]], [[1.0]], [[1.0]])                      # 1 / (s + 1)
+      True
+      >>> is_spr([[0.0, 1.0], [-1.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])  # 1 / (s^2 + s + 1)
+      False
+    """
+    if not _checks.is_concrete(A, B, C, D):
+        raise ValueError("is_spr is a design-time check: A, B, C and D must be concrete arrays, not traced")
+    A, B, C = (np.asarray(M, dtype=float) for M in (A, B, C))
+    _checks.matrix("A", A, square=True)
+    n = A.shape[0]
+    _checks.matrix("B", B, shape=(n, None))
+    m = B.shape[1]
+    _checks.matrix("C", C, shape=(m, n))
+    D = np.zeros((m, m)) if D is None else np.asarray(D, dtype=float)
+    D = D * np.eye(m) if D.ndim == 0 else D
+    _checks.matrix("D", D, shape=(m, m))
+    for name, M in (("A", A), ("B", B), ("C", C), ("D", D)):
+        _checks.finite(name, M)
+    norm = lambda M: np.linalg.norm(M, 2) if M.size else 0.0
+    if n and np.max(np.linalg.eigvals(A).real) >= -rtol * norm(A):
+        return False
+    R = D + D.T
+
+    def hermitian_part(w):
+        G = C @ np.linalg.solve(1j * w * np.eye(n) - A, B) + D if n else D.astype(complex)
+        return G + G.conj().T
+
+    phi0 = hermitian_part(0.0)
+    if np.min(np.linalg.eigvalsh(phi0)) <= rtol * norm(phi0):
+        return False
+    r_eig, r_vec = np.linalg.eigh(R)
+    M = r_vec[:, r_eig <= rtol * norm(R)]  # directions in which G + G^* vanishes at infinity
+    if M.shape[1]:
+        CB, CAB = C @ B, C @ A @ B
+        if np.linalg.norm(M.T @ (CB - CB.T) @ M) > rtol * norm(C) * norm(B) or np.min(
+            np.linalg.eigvalsh(-M.T @ (CAB + CAB.T) @ M)
+        ) <= rtol * norm(C) * norm(A) * norm(B):
+            return False
+    if not n:
+        return True
+    # zeros of Phi(s): finite generalised eigenvalues of [[Ah - s I, Bh], [Ch, R]]
+    Ah = scipy.linalg.block_diag(A, -A.T)
+    Bh = np.vstack([B, -C.T])
+    Ch = np.hstack([C, B.T])
+    pencil = np.block([[Ah, Bh], [Ch, R]])
+    E = scipy.linalg.block_diag(np.eye(2 * n), np.zeros((m, m)))
+    alpha, beta = scipy.linalg.eigvals(pencil, E, homogeneous_eigvals=True)
+    finite = np.abs(beta) > 1e3 * np.finfo(float).eps * np.abs(alpha)
+    zeros = alpha[finite] / beta[finite]
+    return not bool(np.any(np.abs(zeros.real) <= np.sqrt(rtol) * np.maximum(1.0, np.abs(zeros))))

@@ -9,7 +9,7 @@ import pytest
 import scipy.linalg
 import scipy.signal
 
-from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, obsv, ss, tf2ss
+from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
 
 # Example 1 force plant (the MRAC chapter eq. 57-61, Cortesão 2006 §7): G(s) = k1 / (s (s + p1)) e^{-s Td}
 KS, TP = 3.0, 0.032
@@ -394,3 +394,72 @@ def test_dcgain_against_numpy_and_python_control():
     # the ZOH discretisation preserves the DC gain (no delay effect at DC)
     stable = ss(A, B, C, D)
     np.testing.assert_allclose(dcgain(c2d(stable, 0.05, 0.12)), want_c, rtol=1e-10)
+
+
+# --- is_spr (Khalil 2002, Lemma 6.1) ------------------------------------------------------------------------------
+
+
+def _tf(num, den):
+    sys = tf2ss(num, den)
+    return sys.A, sys.B, sys.C, sys.D
+
+
+@pytest.mark.parametrize(
+    "num, den, expected",
+    [
+        ([1.0], [1.0, 1.0], True),  # 1 / (s + 1)
+        ([1.0], [1.0, 0.0], False),  # 1 / s: positive real, not strictly (pole on the axis)
+        ([1.0], [1.0, 1.0, 1.0], False),  # relative degree 2: Re G < 0 at high frequency
+        ([1.0, 2.0], [1.0, 3.0, 1.0], True),  # (s + a) / (s^2 + b s + c) with a < b: SPR
+        ([1.0, 1.0], [1.0, 1.0, 1.0], False),  # a = b: Re G = 1 / |den|^2, w^2 Re G -> 0 (boundary)
+        ([1.0, 4.0], [1.0, 3.0, 1.0], False),  # a > b: Re G < 0 at high frequency
+        ([1.0, 2.0], [1.0, 1.0], True),  # (s + 2) / (s + 1): biproper, Re G >= 1
+        ([1.0, -1.0], [1.0, 1.0], False),  # (s - 1) / (s + 1): Re G(0) = -1
+        ([1.0], [1.0, -1.0], False),  # unstable pole
+    ],
+)
+def test_is_spr_textbook_cases(num, den, expected):
+    assert is_spr(*_tf(num, den)) is expected
+
+
+@pytest.mark.parametrize("c, expected", [(0.05, True), (0.2, False)])
+def test_is_spr_sees_a_dip_between_zero_and_infinity(c, expected):
+    """``G = 1 - c s / (s^2 + 0.1 s + 1)``: ``Re G = 1`` at 0 and infinity, ``1 - 10 c`` at ``w = 1`` (the
+    Hamiltonian/pencil part of the test, not the end points)."""
+    A = [[0.0, 1.0], [-1.0, -0.1]]
+    assert is_spr(A, [[0.0], [1.0]], [[0.0, -c]], [[1.0]]) is expected
+
+
+def test_is_spr_mimo():
+    """``diag(1/(s+1), 2/(s+3))`` and ``I - diag(0.5/(s+1), 2/(s+3))`` are SPR, ``I - diag(1/(s+1), 4/(s+3))``
+    is not (``G(0)`` singular, indefinite); ``C / (s + 1)`` with a non-symmetric ``C B`` is not (``G + G^*`` has
+    eigenvalues ``(2 +- 2 w) / (1 + w^2)``)."""
+    assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), np.diag([1.0, 2.0]))
+    assert is_spr(-np.diag([1.0, 3.0]), np.eye(2), -np.diag([0.5, 2.0]), 1.0)  # 1 - c/(s+p): Re >= 1 - c/p > 0
+    assert not is_spr(-np.diag([1.0, 3.0]), np.eye(2), -np.diag([1.0, 4.0]), 1.0)  # 1 - 4/(s+3): Re G(0) < 0
+    assert not is_spr(-np.eye(2), np.eye(2), np.array([[1.0, 1.0], [-1.0, 1.0]]))
+
+
+def test_is_spr_agrees_with_a_frequency_grid():
+    """Random stable biproper SISO systems: the verdict equals ``min Re G(jw) > 0`` on a dense grid wherever the
+    grid's minimum is clear of 0."""
+    rng = np.random.default_rng(0)
+    w = np.concatenate([[0.0], np.logspace(-3, 3, 4000)])
+    checked = 0
+    for _ in range(40):
+        A = rng.normal(size=(3, 3))
+        A -= (np.max(np.linalg.eigvals(A).real) + rng.uniform(0.1, 1.0)) * np.eye(3)
+        B, C, D = rng.normal(size=(3, 1)), rng.normal(size=(1, 3)), rng.uniform(0.2, 2.0, size=(1, 1))
+        G = np.array([(C @ np.linalg.solve(1j * wk * np.eye(3) - A, B) + D)[0, 0] for wk in w])
+        low = G.real.min()
+        if abs(low) > 1e-2:
+            checked += 1
+            assert is_spr(A, B, C, D) is bool(low > 0)
+    assert checked > 20
+
+
+def test_is_spr_rejects_bad_input():
+    with pytest.raises(ValueError, match="C"):
+        is_spr([[-1.0]], [[1.0]], [[1.0, 2.0]])
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda a: is_spr(a, [[1.0]], [[1.0]]))(jnp.array([[-1.0]]))
