@@ -42,7 +42,14 @@ def test_registered_and_written_with_every_key(reduced):
     assert set(data["manoeuvres"]) == {"double_lane_change_120kmh"}
     _check_manoeuvre_keys(data["manoeuvres"]["double_lane_change_120kmh"])
     assert set(data["checks"]) == {"known_friction_flat", "ay_bias", "bank", "inclination", "friction_adaptation",
-                                   "straight_no_excitation"}  # fmt: skip
+                                   "straight_no_excitation", "lemma_4_1", "lemma_4_2", "lemma_3_1"}  # fmt: skip
+    assert data["checks"]["lemma_4_1"] == {"a": 4.0, "bound": pytest.approx(4.0 / 9.81), "spr_below": True,
+                                           "spr_above": False}  # fmt: skip
+    lemma_4_2 = data["checks"]["lemma_4_2"]
+    assert lemma_4_2["bound"] == pytest.approx(10.0**2 * 0.8995 / 9.81)
+    assert (lemma_4_2["K_vy"], lemma_4_2["delta_min"], lemma_4_2["spr_below"], lemma_4_2["spr_above"]) == (
+        10.0, 0.8995, True, False)  # fmt: skip
+    assert data["checks"]["lemma_3_1"]["max_relative_V_increase"] < 0  # V decreases at every step
     assert {"max_abs_beta_error_deg", "rms_beta_error_deg"} <= set(data["checks"]["known_friction_flat"])
     assert {"bias", "theta_b_final", "expected"} <= set(data["checks"]["ay_bias"])
     assert {"bank_deg", "theta_b_final", "expected"} <= set(data["checks"]["bank"])

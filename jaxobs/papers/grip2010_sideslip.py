@@ -21,6 +21,11 @@ its own), measured with the ESC sensors of :mod:`jaxobs.vehicle.sensors` and est
   ``theta`` drawn to ``theta* = 1``) and with the switching logic of §2.5 (mode 2 when excited);
 * ``straight_no_excitation``: the straight drive with friction estimation held on (mode 2) from ``theta = 0.5``
   (true 1) and a ``v_y`` error of 0.5 m/s: ``v_y`` converges, ``theta`` does not move (§2.4, Grip et al. 2008);
+* ``lemma_4_1``, ``lemma_4_2``: the gain bounds of the chapter 4 estimators (Lemmas 4.1, 4.2), with
+  :func:`jaxobs.lti.is_spr` of the error systems just below and above each (:func:`jaxobs.vehicle.road_angles.
+  lemma_check`) at the design of the mountain-road test (``a = 4``, ``K_vy = 10``, ``delta_min = 0.90``);
+* ``lemma_3_1``: the largest relative per-step increase of Lemma 3.1's Lyapunov function along a run of (3.4)
+  (:func:`jaxobs.vehicle.lateral.lemma_3_1_check`; negative: it decreases at every step);
 * ``cost``: one NVSO step and one EKF step per drive (the batched runs timed again); the thesis: NVSO about a
   third of the EKF.
 """
@@ -61,6 +66,8 @@ from jaxobs.vehicle import (
     simulate,
     vehicle_ekf,
 )
+from jaxobs.vehicle.lateral import lemma_3_1_check
+from jaxobs.vehicle.road_angles import lemma_check
 
 NAME = "grip2010-sideslip"
 PERIOD = 1.0 / SENSOR_RATE  # s, the observers' and sensors' sample period (Grip 2010 §2.8)
@@ -68,6 +75,10 @@ DEG = np.pi / 180
 BIAS_AY = 0.5  # m/s^2, half the 1.0 m/s^2 bias + drift maximum of Grip 2010 §2.8
 BANK_DEG, INCLINATION_DEG = 3.0, 5.0
 LOW_FRICTION = 0.3
+# The gain-bound checks of Lemmas 4.1 and 4.2 at the design of the chapter 4 estimators' mountain-road test:
+# K_vx = 5 (so a = 4 < K_vx,min), K_vy = 10 and delta_min = min(-xi) = 0.90 measured along that run.
+LEMMA_4_1_A = 4.0
+LEMMA_4_2_K_VY, LEMMA_4_2_DELTA_MIN = 10.0, 0.8995
 SINE_AMPLITUDE_DEG = 25.0  # steering wheel; the sine_steer manoeuvre's 45 deg spins the car on friction 0.3
 THETA0_STRAIGHT, VY0_ERROR = 0.5, 0.5  # straight_no_excitation: initial theta (true 1) and v_y error (m/s)
 CHECK_DURATION = 30.0  # s, the straight check drives
@@ -326,8 +337,13 @@ def checks(vehicle: VehicleParams, est: Estimates) -> dict:
         "vy_error_initial": float(tr.state.vy[d, 0] - nv.x[r, 0, 1]),
         "mode_on_fraction": float(np.asarray(nv.mode[r, :n]).mean()),
     }
+    lemma_4_1 = lemma_check("4.1", a=LEMMA_4_1_A)
+    lemma_4_2 = lemma_check("4.2", K_vy=LEMMA_4_2_K_VY, delta_min=LEMMA_4_2_DELTA_MIN)
     return {"known_friction_flat": known, "ay_bias": ay_bias, "bank": bank, "inclination": incl,
-            "friction_adaptation": friction, "straight_no_excitation": straight}  # fmt: skip
+            "friction_adaptation": friction, "straight_no_excitation": straight,
+            "lemma_4_1": {"a": LEMMA_4_1_A, **lemma_4_1._asdict()},
+            "lemma_4_2": {"K_vy": LEMMA_4_2_K_VY, "delta_min": LEMMA_4_2_DELTA_MIN, **lemma_4_2._asdict()},
+            "lemma_3_1": {"max_relative_V_increase": float(lemma_3_1_check().max_relative_V_increase)}}  # fmt: skip
 
 
 def cost(est: Estimates, repeats: int = COST_REPEATS) -> dict:
