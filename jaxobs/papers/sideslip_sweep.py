@@ -43,7 +43,10 @@ from jaxobs.vehicle import (
     vehicle_ekf,
 )
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
+__all__ = [
+    "NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "drive", "mismatched_vehicle", "make_sweep", "run",
+    "report",
+]  # fmt: skip
 
 NAME = "sideslip"
 OBSERVERS = ("nvso", "ekf")
@@ -112,8 +115,9 @@ def _grid(config: dict):
     return [jnp.asarray(a, float) for a in axes], tuple(len(a) for a in axes)
 
 
-def _drive(names, index, friction):
-    """The manoeuvre ``names[index]`` (``index`` traced) with its road friction scaled by ``friction``."""
+def drive(names, index, friction) -> Manoeuvre:
+    """The manoeuvre ``names[index]`` (``names`` keys of :data:`jaxobs.vehicle.MANOEUVRES`, ``index`` may be traced)
+    with its road friction scaled by ``friction``."""
     drives = [MANOEUVRES[n] for n in names]
 
     def branch(m):
@@ -127,7 +131,8 @@ def _drive(names, index, friction):
     return Manoeuvre("sweep", command, 0.0, speed)
 
 
-def _vehicle(mass, stiffness) -> VehicleParams:
+def mismatched_vehicle(mass, stiffness) -> VehicleParams:
+    """The default vehicle with its ``mass`` and the cornering stiffness of all four tyres scaled (``stiffness``)."""
     v = VehicleParams()
     scale = lambda tyre: dataclasses.replace(tyre, cornering_stiffness=tyre.cornering_stiffness * stiffness)  # noqa: E731
     return dataclasses.replace(v, mass=v.mass * mass, tyre_front=scale(v.tyre_front), tyre_rear=scale(v.tyre_rear))
@@ -148,8 +153,8 @@ def make_sweep(config: dict):
         return {"manoeuvre": idx[0].astype(jnp.int32), **drawn, "noise_seed": seed}
 
     def evaluate(p):
-        truth = _vehicle(p["mass"], p["cornering_stiffness"])
-        tr = simulate(_drive(names, p["manoeuvre"], p["friction"]), truth, duration=duration)
+        truth = mismatched_vehicle(p["mass"], p["cornering_stiffness"])
+        tr = simulate(drive(names, p["manoeuvre"], p["friction"]), truth, duration=duration)
         sensors = SensorParams(bias_ax=p["acc_bias"], bias_ay=p["acc_bias"], drift_acc=p["drift"])
         meas = measure(tr, truth, sensors, jax.random.key(p["noise_seed"]))
         inputs = sensor_inputs(meas)
