@@ -145,3 +145,12 @@ def test_bad_settings_and_inputs_raise():
         make_nvso("car")
     with pytest.raises(ValueError, match=r"inputs.y must have shape \(9,\)"):
         _run(make_nvso(), EstimatorInputs(y=jnp.zeros((5, 8))))
+
+
+def test_make_nvso_and_the_ekf_build_under_jit():
+    """The makers work inside a traced function (a traced setting, the concrete bounds still checked): the NVSO's
+    theta bound check once turned its Python constants into tracers under jit."""
+    from jaxobs.vehicle import make_vehicle_ekf
+
+    assert float(jax.jit(lambda k: make_nvso(K_vy=k).K_vy)(0.8)) == 0.8
+    assert float(jax.jit(lambda v: make_vehicle_ekf(vx0=v).ekf.model.x0[0])(12.0)) == 12.0

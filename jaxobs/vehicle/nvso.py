@@ -55,6 +55,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs
@@ -170,7 +171,7 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
             _checks.positive(name, settings[name], allow_zero=True)
     params = NVSOParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
-    if _checks.is_concrete(lo, hi) and not bool(jnp.all(jnp.asarray(lo) < jnp.asarray(hi))):
+    if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
         raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
     if params.smooth is not None:
         _checks.positive("smooth", params.smooth)
