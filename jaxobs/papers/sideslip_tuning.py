@@ -59,7 +59,7 @@ DEFAULT_CONFIG = {
     "plants": {
         "train": 36,
         "heldout": 36,
-        "friction": [0.8, 1.0],  # scale on the drive's road friction, uniform
+        "friction": [0.9, 1.2],  # scale on the drive's road friction, uniform
         "mass": [0.9, 1.2],  # true / nominal, uniform
         "cornering_stiffness": [0.85, 1.1],  # true / nominal, uniform
         "acc_bias_std": 0.1,  # m/s^2
@@ -82,7 +82,8 @@ CONFIG_NOTES = {
     "plants": "the mismatched vehicles, drawn per plant (training and held-out sets from independent keys)",
     "plants.train": "training vehicles (one NVSO rollout each per gradient evaluation)",
     "plants.heldout": "held-out vehicles, never used in training, that score the designs",
-    "plants.friction": "scale on the drive's road friction, uniform in [low, high] (> 0)",
+    "plants.friction": "scale on the drive's road friction, uniform in [low, high] (> 0; below about 0.85 the lane "
+    "change and the mountain road spin the car, true sideslip 60 to 170 deg)",
     "plants.mass": "true mass / the observer's nominal, uniform in [low, high] (> 0)",
     "plants.cornering_stiffness": "true cornering stiffness of the four tyres / nominal, uniform in [low, high] (> 0)",
     "plants.acc_bias_std": "standard deviation of the bias on both accelerometers (m/s^2, >= 0)",
