@@ -10,8 +10,10 @@ apart). Interleaved rounds (benchmarks/_timing.py): per-step cost (the run's tim
 vehicle-step, and the paired EKF / NVSO cost ratio. The sideslip RMS errors of both (against the simulated
 sideslip) are stored as a check that both did the work.
 
-Not measured: a NumPy peer (the friction model with the combined-slip Magic Formula and the EKF's Jacobians would
-have to be written out by hand).
+NumPy peer: the NVSO (exact switching) written out in NumPy, every operation on (V, ...) arrays of all the vehicles
+and one Python loop over the samples (``d a_y* / d v_y`` by a central difference where jaxobs uses forward-mode
+autodiff); its sideslip is compared with jaxobs' (stored in the JSON). Not measured: a NumPy EKF (its Jacobians and
+Joseph update would have to be written out by hand as well).
 
     python benchmarks/sideslip.py --out DIR [--vehicles 1024] [--samples 800] [--rounds 5]
 
@@ -47,8 +49,121 @@ from jaxobs.vehicle import (  # noqa: E402
     simulate,
     vehicle_ekf,
 )
+from jaxobs.vehicle.model import GRAVITY, MIN_SPEED  # noqa: E402
 
 MANOEUVRE = "double_lane_change_120kmh"
+
+
+def _magic_ratio(s, stiffness, shape, curvature, mu, fz):
+    small = s < 1e-12
+    s_safe = np.where(small, 1.0, s)
+    bs = stiffness / (shape * mu) * s_safe
+    force = mu * fz * np.sin(shape * np.arctan(bs - curvature * (bs - np.arctan(bs))))
+    return np.where(small, stiffness * fz, force / s_safe)
+
+
+def _friction_model(v, vx, vy, r, sw, omega, ax, ay):
+    """(a_y*, yaw moment) of the friction model, batched: scalars (V,), omega (V, 4)."""
+    gx = np.array([v.lf, v.lf, -v.lr, -v.lr])
+    gy = np.array([v.track_front / 2, -v.track_front / 2, v.track_rear / 2, -v.track_rear / 2])
+    d = (sw / v.steering_ratio)[:, None]
+    delta = np.concatenate([d, d, 0 * d, 0 * d], axis=1)
+    vwx, vwy = vx[:, None] - r[:, None] * gy, vy[:, None] + r[:, None] * gx
+    c, s = np.cos(delta), np.sin(delta)
+    v_l, v_s = vwx * c + vwy * s, -vwx * s + vwy * c
+    speed = np.maximum(np.abs(v_l), MIN_SPEED)
+    tan_alpha, kappa = -v_s / speed, (omega * v.wheel_radius - v_l) / speed
+    L, m, h = v.lf + v.lr, v.mass, v.cg_height
+    w = m * GRAVITY
+    front = (w * v.lr / L - m * ax * h / L) / 2
+    rear = (w * v.lf / L + m * ax * h / L) / 2
+    dyf = m * ay * h * v.roll_share_front / v.track_front
+    dyr = m * ay * h * (1 - v.roll_share_front) / v.track_rear
+    fz = np.maximum(np.stack([front - dyf / 2, front + dyf / 2, rear - dyr / 2, rear + dyr / 2], axis=1), 0.0)
+    denom = 1.0 + np.maximum(kappa, -0.99)
+    sx, sy = kappa / denom, tan_alpha / denom
+    s2 = sx**2 + sy**2
+    sl = np.where(s2 < 1e-24, 0.0, np.sqrt(np.where(s2 < 1e-24, 1.0, s2)))
+    fxw, fyw = np.empty_like(sx), np.empty_like(sy)
+    for axle, tyre in ((slice(0, 2), v.tyre_front), (slice(2, 4), v.tyre_rear)):
+        fxw[:, axle] = (
+            _magic_ratio(sl[:, axle], tyre.slip_stiffness, tyre.shape_x, tyre.curvature_x, tyre.mu, fz[:, axle])
+            * sx[:, axle]
+        )
+        fyw[:, axle] = (
+            _magic_ratio(sl[:, axle], tyre.cornering_stiffness, tyre.shape_y, tyre.curvature_y, tyre.mu, fz[:, axle])
+            * sy[:, axle]
+        )
+    fx, fy = fxw * c - fyw * s, fxw * s + fyw * c
+    return np.sum(fy, axis=1) / m, np.sum(gx * fy - gy * fx, axis=1)
+
+
+def numpy_nvso(p, y):
+    """The NVSO (exact switching) in NumPy over V vehicles at once, a Python loop over the K samples:
+    y (V, K, 9) finite -> sideslip (V, K)."""
+    v, dt, g = p.vehicle, p.dt, GRAVITY
+    f = lambda name: float(getattr(p, name))  # noqa: E731
+    V, K, _ = y.shape
+    roll = 1.0 + v.roll_gradient * g
+    L = v.lf + v.lr
+    K_us = (1 / v.tyre_front.cornering_stiffness - 1 / v.tyre_rear.cornering_stiffness) / g
+    lateral = np.array([v.track_front / 2, -v.track_front / 2, v.track_rear / 2, -v.track_rear / 2])
+    dead = (f("yaw_rate_threshold") / 10) ** 2
+    out = np.empty((V, K))
+    y0 = y[:, 0]
+    x = np.zeros((V, 5))
+    x[:, 0], x[:, 2] = y0[:, 8], f("theta_default")
+    mode, timer = np.zeros(V), np.full(V, f("off_delay"))
+    low_pass = y0[:, 1] / roll - y0[:, 2] * y0[:, 8]
+    out[:, 0] = np.arctan2(x[:, 1], np.maximum(x[:, 0], f("min_speed")))
+    held = y0
+    for k in range(1, K):
+        now = y[:, k]
+        ax, ay, r, sw, omega, vref = held[:, 0], held[:, 1] / roll, held[:, 2], held[:, 3], held[:, 4:8], held[:, 8]
+        vx, vy, theta, ti, tb = x.T
+        ay_star, moment = _friction_model(v, vx, vy, r, sw, omega, ax, ay)
+        hstep = 1e-6
+        xi = (
+            _friction_model(v, vx, vy + hstep, r, sw, omega, ax, ay)[0]
+            - _friction_model(v, vx, vy - hstep, r, sw, omega, ax, ay)[0]
+        ) / (2 * hstep)
+        lam = 1.0 / np.sqrt(np.maximum(xi**2 + ay_star**2, 1e-12))
+        e = ay - theta * ay_star
+        delta = sw / v.steering_ratio
+        steer = np.stack([np.cos(delta), np.cos(delta), np.ones(V), np.ones(V)], axis=1)
+        wheel_vx = omega * v.wheel_radius / steer + r[:, None] * lateral
+        spread = np.sqrt(np.mean((wheel_vx - wheel_vx.mean(axis=1, keepdims=True)) ** 2, axis=1) + 1e-12)
+        K_vx = np.maximum(f("K_vx_min"), f("K_vx") / (1.0 + (spread / f("wheel_spread")) ** 2))
+        r_ref = vx * delta / (L + K_us * vx**2)
+        high_pass = ay - r * vx - low_pass
+        same = r * r_ref > dead
+        excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
+        over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+        timer = np.where(excited | over, 0.0, timer + dt)
+        next_mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
+        low_pass = low_pass + dt / f("high_pass_time") * high_pass
+        yaw_acc = (now[:, 2] - r) / dt
+        reduce = (
+            (np.abs(e) > f("c1"))
+            | (np.abs(yaw_acc - theta * moment / v.yaw_inertia) > f("c2"))
+            | (same & ((np.abs(r_ref) - np.abs(r)) * vx > f("c3")))
+        )
+        K_theta_b = f("K_theta_b") * np.where(reduce, f("theta_b_reduction"), 1.0)
+        moving = (vx > f("min_speed")).astype(float)
+        kin_x = ax + r * vy + g * ti + K_vx * (vref - vx)
+        injection = (1 - mode) * (-f("K_vy") * e) + mode * f("K_vy") * lam * xi * e
+        d_vy = moving * (ay - r * vx - g * tb + injection) - (1 - moving) * K_vx * vy
+        d_theta = (1 - moving * mode) * f("K_e") * (f("theta_default") - theta) + moving * mode * f(
+            "K_theta"
+        ) * lam * ay_star * e
+        d_ti = ((1 - mode) * f("K_theta_i") + mode * f("K_theta_i_on")) * K_vx * (vref - vx)
+        d_tb = moving * K_theta_b * ((1 - mode) * e - mode * lam * xi * e)
+        x = x + dt * np.stack([kin_x, d_vy, d_theta, d_ti, d_tb], axis=1)
+        lower = np.maximum(f("theta_min"), np.hypot(ax, ay) / (f("accel_margin") * g))
+        x[:, 2] = np.clip(x[:, 2], np.minimum(lower, f("theta_max")), f("theta_max"))
+        mode, held = next_mode, now
+        out[:, k] = np.arctan2(x[:, 1], np.maximum(x[:, 0], f("min_speed")))
+    return out
 
 
 def workload(vehicles: int, samples: int):
@@ -76,7 +191,9 @@ def measure_costs(vehicles: int, samples: int, rounds: int) -> dict:
         "ekf_bierman": batched(vehicle_ekf, make_vehicle_ekf(vx0=vx0, bierman=True)),
     }
     entries = {name: ((lambda f=f: (f, (inputs,))), True, 1.0) for name, f in observers.items()}
-    timings, problems = time_interleaved(entries, rounds, required=tuple(observers))
+    y, nvso_params = np.asarray(inputs.y), make_nvso(vx0=vx0)
+    entries["nvso_numpy"] = ((lambda: ((lambda: numpy_nvso(nvso_params, y)), ())), False, 1.0)
+    timings, problems = time_interleaved(entries, rounds, required=(*observers, "nvso_numpy"))
     results = {}
     for name, t in timings.items():
         rms = np.sqrt(np.mean(np.asarray(t.result - beta[None]) ** 2, axis=1))
@@ -94,6 +211,10 @@ def measure_costs(vehicles: int, samples: int, rounds: int) -> dict:
         "observers": results,
         "ekf_over_nvso": paired_ratio(timings["nvso"], timings["ekf"]),
         "ekf_bierman_over_nvso": paired_ratio(timings["nvso"], timings["ekf_bierman"]),
+        "numpy_over_nvso": paired_ratio(timings["nvso"], timings["nvso_numpy"]),
+        "nvso_numpy_max_difference_deg": float(
+            np.rad2deg(np.max(np.abs(np.asarray(timings["nvso"].result) - timings["nvso_numpy"].result)))
+        ),
         "problems": problems,
     }
 
@@ -104,10 +225,13 @@ def report(r: dict) -> str:
         lines.append(
             f"  {name:12s} {format_range(o['step_seconds'], '.3g', ' s')} per step of the batch, "
             f"{format_range(o['vehicle_step_seconds'], '.3g', ' s')} per vehicle-step "
-            f"(compile {o['compile_s']:.1f} s); sideslip RMS {o['beta_rms_deg_median']:.3f} deg (median)"
+            + ("(no compile)" if o["compile_s"] is None else f"(compile {o['compile_s']:.1f} s)")
+            + f"; sideslip RMS {o['beta_rms_deg_median']:.3f} deg (median)"
         )
     lines.append(f"  EKF / NVSO cost {format_range(r['ekf_over_nvso'])}; "
                  f"EKF (Bierman) / NVSO {format_range(r['ekf_bierman_over_nvso'])}")  # fmt: skip
+    lines.append(f"  NVSO NumPy loop / jaxobs {format_range(r['numpy_over_nvso'])}; "
+                 f"largest sideslip difference {r['nvso_numpy_max_difference_deg']:.1e} deg")  # fmt: skip
     return "\n".join(lines)
 
 
