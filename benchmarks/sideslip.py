@@ -10,10 +10,10 @@ apart). Interleaved rounds (benchmarks/_timing.py): per-step cost (the run's tim
 vehicle-step, and the paired EKF / NVSO cost ratio. The sideslip RMS errors of both (against the simulated
 sideslip) are stored as a check that both did the work.
 
-NumPy peer: the NVSO (exact switching) written out in NumPy, every operation on (V, ...) arrays of all the vehicles
-and one Python loop over the samples (``d a_y* / d v_y`` by a central difference where jaxobs uses forward-mode
-autodiff); its sideslip is compared with jaxobs' (stored in the JSON). Not measured: a NumPy EKF (its Jacobians and
-Joseph update would have to be written out by hand as well).
+NumPy peers: the NVSO (exact switching) and the EKF (Joseph update) written out in NumPy, every operation on
+(V, ...) arrays of all the vehicles and one Python loop over the samples (``d a_y* / d v_y`` and the EKF's
+measurement Jacobian by central differences where jaxobs uses autodiff); their sideslip is compared with jaxobs'
+(stored in the JSON), and the paired NumPy / jaxobs cost ratios are reported.
 
     python benchmarks/sideslip.py --out DIR [--vehicles 1024] [--samples 800] [--rounds 5]
 
@@ -49,7 +49,7 @@ from jaxobs.vehicle import (  # noqa: E402
     simulate,
     vehicle_ekf,
 )
-from jaxobs.vehicle.model import GRAVITY, MIN_SPEED  # noqa: E402
+from jaxobs.vehicle.model import AIR_DENSITY, GRAVITY, MIN_SPEED  # noqa: E402
 
 MANOEUVRE = "double_lane_change_120kmh"
 
@@ -62,8 +62,8 @@ def _magic_ratio(s, stiffness, shape, curvature, mu, fz):
     return np.where(small, stiffness * fz, force / s_safe)
 
 
-def _friction_model(v, vx, vy, r, sw, omega, ax, ay):
-    """(a_y*, yaw moment) of the friction model, batched: scalars (V,), omega (V, 4)."""
+def _forces(v, vx, vy, r, sw, omega, ax, ay, friction=1.0):
+    """(a_x, a_y, yaw moment) of the friction model at the road ``friction``, batched: scalars (V,), omega (V, 4)."""
     gx = np.array([v.lf, v.lf, -v.lr, -v.lr])
     gy = np.array([v.track_front / 2, -v.track_front / 2, v.track_rear / 2, -v.track_rear / 2])
     d = (sw / v.steering_ratio)[:, None]
@@ -85,17 +85,21 @@ def _friction_model(v, vx, vy, r, sw, omega, ax, ay):
     s2 = sx**2 + sy**2
     sl = np.where(s2 < 1e-24, 0.0, np.sqrt(np.where(s2 < 1e-24, 1.0, s2)))
     fxw, fyw = np.empty_like(sx), np.empty_like(sy)
+    scale = np.asarray(friction, float)[..., None]  # (V, 1) or (1,)
     for axle, tyre in ((slice(0, 2), v.tyre_front), (slice(2, 4), v.tyre_rear)):
         fxw[:, axle] = (
-            _magic_ratio(sl[:, axle], tyre.slip_stiffness, tyre.shape_x, tyre.curvature_x, tyre.mu, fz[:, axle])
+            _magic_ratio(sl[:, axle], tyre.slip_stiffness, tyre.shape_x, tyre.curvature_x, tyre.mu * scale, fz[:, axle])
             * sx[:, axle]
         )
         fyw[:, axle] = (
-            _magic_ratio(sl[:, axle], tyre.cornering_stiffness, tyre.shape_y, tyre.curvature_y, tyre.mu, fz[:, axle])
+            _magic_ratio(
+                sl[:, axle], tyre.cornering_stiffness, tyre.shape_y, tyre.curvature_y, tyre.mu * scale, fz[:, axle]
+            )
             * sy[:, axle]
         )
     fx, fy = fxw * c - fyw * s, fxw * s + fyw * c
-    return np.sum(fy, axis=1) / m, np.sum(gx * fy - gy * fx, axis=1)
+    drag = 0.5 * AIR_DENSITY * v.drag_area * vx * np.abs(vx)
+    return (np.sum(fx, axis=1) - drag) / m, np.sum(fy, axis=1) / m, np.sum(gx * fy - gy * fx, axis=1)
 
 
 def numpy_nvso(p, y):
@@ -121,11 +125,10 @@ def numpy_nvso(p, y):
         now = y[:, k]
         ax, ay, r, sw, omega, vref = held[:, 0], held[:, 1] / roll, held[:, 2], held[:, 3], held[:, 4:8], held[:, 8]
         vx, vy, theta, ti, tb = x.T
-        ay_star, moment = _friction_model(v, vx, vy, r, sw, omega, ax, ay)
+        _, ay_star, moment = _forces(v, vx, vy, r, sw, omega, ax, ay)
         hstep = 1e-6
         xi = (
-            _friction_model(v, vx, vy + hstep, r, sw, omega, ax, ay)[0]
-            - _friction_model(v, vx, vy - hstep, r, sw, omega, ax, ay)[0]
+            _forces(v, vx, vy + hstep, r, sw, omega, ax, ay)[1] - _forces(v, vx, vy - hstep, r, sw, omega, ax, ay)[1]
         ) / (2 * hstep)
         lam = 1.0 / np.sqrt(np.maximum(xi**2 + ay_star**2, 1e-12))
         e = ay - theta * ay_star
@@ -166,6 +169,87 @@ def numpy_nvso(p, y):
     return out
 
 
+def numpy_ekf(params, y):
+    """The vehicle EKF (Joseph update) in NumPy over V vehicles at once, a Python loop over the K samples:
+    y (V, K, 9) finite -> sideslip (V, K). The measurement Jacobian by central differences (jaxobs: autodiff)."""
+    v, model, sw_p = params.vehicle, params.ekf.model, params.switching
+    dt, tau = (float(c) for c in model.f.args[0])
+    g = GRAVITY
+    f = lambda name: float(getattr(sw_p, name))  # noqa: E731
+    Q0, R = np.asarray(model.Q), np.asarray(model.R)
+    q_mu, (lo, hi) = np.asarray(params.q_mu), np.asarray(params.mu_bounds)
+    V, K, _ = y.shape
+    roll = 1.0 + v.roll_gradient * g
+    L = v.lf + v.lr
+    K_us = (1 / v.tyre_front.cornering_stiffness - 1 / v.tyre_rear.cornering_stiffness) / g
+    dead = (f("yaw_rate_threshold") / 10) ** 2
+    x = np.tile(np.asarray(model.x0), (V, 1))
+    P = np.tile(np.asarray(model.P0), (V, 1, 1))
+    sensors = np.zeros((V, 9))
+    sensors[:, 8], sensors[:, 4:8] = x[:, 0:1].T[0], (x[:, 0] / v.wheel_radius)[:, None]
+    mode, timer, low_pass = np.zeros(V), np.full(V, f("off_delay")), np.zeros(V)
+    eye = np.eye(8)
+    out = np.empty((V, K))
+
+    def h(x, s):
+        mu = np.clip(x[:, 4], lo, hi)
+        ax, ay, moment = _forces(v, x[:, 0], x[:, 1], s[:, 2], s[:, 3], s[:, 4:8], s[:, 0], s[:, 1] / roll, mu)
+        return np.stack([ax, ay, moment / v.yaw_inertia, x[:, 0]], axis=1)
+
+    for k in range(K):
+        now, previous = y[:, k], sensors
+        if k:  # prediction (none before the first update: x0, P0 are the prior of x_0)
+            ax, ay, r = previous[:, 0], previous[:, 1] / roll, previous[:, 2]
+            vx, vy, d_i, d_b, d_mu = x[:, 0], x[:, 1], x[:, 5], x[:, 6], x[:, 7]
+            rate = np.stack([ax + r * vy + g * x[:, 2], ay - r * vx - g * x[:, 3], d_i, d_b, d_mu,
+                             -d_i / tau, -d_b / tau, -d_mu / tau], axis=1)  # fmt: skip
+            F = np.tile(eye, (V, 1, 1))
+            F[:, 0, 1], F[:, 0, 2], F[:, 1, 0], F[:, 1, 3] = dt * r, dt * g, -dt * r, -dt * g
+            for i in range(3):
+                F[:, 2 + i, 5 + i] = dt
+                F[:, 5 + i, 5 + i] = 1 - dt / tau
+            Q = np.tile(Q0, (V, 1, 1))
+            Q[:, 7, 7] = dt * ((1 - mode) * q_mu[0] ** 2 + mode * q_mu[1] ** 2)
+            x = x + dt * rate
+            P = F @ P @ F.transpose(0, 2, 1) + Q
+        z = np.stack([now[:, 0], now[:, 1] / roll, (now[:, 2] - previous[:, 2]) / dt, now[:, 8]], axis=1)
+        h0 = h(x, now)
+        H = np.zeros((V, 4, 8))
+        for j in (0, 1, 4):
+            step = np.zeros(8)
+            step[j] = 1e-6
+            H[:, :, j] = (h(x + step, now) - h(x - step, now)) / 2e-6
+        innovation = z - h0
+        if k == 0:  # no yaw acceleration from a single yaw-rate sample: skipped
+            H[:, 2, :], innovation[:, 2] = 0.0, 0.0
+        CP = H @ P
+        S = CP @ H.transpose(0, 2, 1) + R
+        S = (S + S.transpose(0, 2, 1)) / 2
+        Kg = np.linalg.solve(S, CP).transpose(0, 2, 1)
+        IKC = eye - Kg @ H
+        P = IKC @ P @ IKC.transpose(0, 2, 1) + Kg @ R @ Kg.transpose(0, 2, 1)
+        P = (P + P.transpose(0, 2, 1)) / 2
+        x = x + np.einsum("vij,vj->vi", Kg, innovation)
+        ax, ay, r, sw = now[:, 0], now[:, 1] / roll, now[:, 2], now[:, 3]
+        lower = np.maximum(lo, np.hypot(ax, ay) / (f("accel_margin") * g))
+        x[:, 4] = np.clip(x[:, 4], np.minimum(lower, hi), hi)
+        vx = x[:, 0]
+        if k == 0:
+            low_pass = ay - r * vx
+        else:
+            r_ref = vx * (sw / v.steering_ratio) / (L + K_us * vx**2)
+            high_pass = ay - r * vx - low_pass
+            same = r * r_ref > dead
+            excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
+            over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+            timer = np.where(excited | over, 0.0, timer + dt)
+            mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
+            low_pass = low_pass + dt / f("high_pass_time") * high_pass
+        sensors = now
+        out[:, k] = np.arctan2(x[:, 1], x[:, 0])
+    return out
+
+
 def workload(vehicles: int, samples: int):
     """``(inputs, true sideslip, vx0)``: ``vehicles`` noisy measurements of one simulated drive, (V, K, ...)."""
     p = VehicleParams()
@@ -192,8 +276,10 @@ def measure_costs(vehicles: int, samples: int, rounds: int) -> dict:
     }
     entries = {name: ((lambda f=f: (f, (inputs,))), True, 1.0) for name, f in observers.items()}
     y, nvso_params = np.asarray(inputs.y), make_nvso(vx0=vx0)
+    ekf_params = make_vehicle_ekf(vx0=vx0)
     entries["nvso_numpy"] = ((lambda: ((lambda: numpy_nvso(nvso_params, y)), ())), False, 1.0)
-    timings, problems = time_interleaved(entries, rounds, required=(*observers, "nvso_numpy"))
+    entries["ekf_numpy"] = ((lambda: ((lambda: numpy_ekf(ekf_params, y)), ())), False, 1.0)
+    timings, problems = time_interleaved(entries, rounds, required=tuple(entries))
     results = {}
     for name, t in timings.items():
         rms = np.sqrt(np.mean(np.asarray(t.result - beta[None]) ** 2, axis=1))
@@ -212,9 +298,11 @@ def measure_costs(vehicles: int, samples: int, rounds: int) -> dict:
         "ekf_over_nvso": paired_ratio(timings["nvso"], timings["ekf"]),
         "ekf_bierman_over_nvso": paired_ratio(timings["nvso"], timings["ekf_bierman"]),
         "numpy_over_nvso": paired_ratio(timings["nvso"], timings["nvso_numpy"]),
-        "nvso_numpy_max_difference_deg": float(
-            np.rad2deg(np.max(np.abs(np.asarray(timings["nvso"].result) - timings["nvso_numpy"].result)))
-        ),
+        "numpy_over_ekf": paired_ratio(timings["ekf"], timings["ekf_numpy"]),
+        "numpy_max_difference_deg": {
+            name: float(np.rad2deg(np.max(np.abs(np.asarray(timings[name].result) - timings[f"{name}_numpy"].result))))
+            for name in ("nvso", "ekf")
+        },
         "problems": problems,
     }
 
@@ -230,8 +318,10 @@ def report(r: dict) -> str:
         )
     lines.append(f"  EKF / NVSO cost {format_range(r['ekf_over_nvso'])}; "
                  f"EKF (Bierman) / NVSO {format_range(r['ekf_bierman_over_nvso'])}")  # fmt: skip
-    lines.append(f"  NVSO NumPy loop / jaxobs {format_range(r['numpy_over_nvso'])}; "
-                 f"largest sideslip difference {r['nvso_numpy_max_difference_deg']:.1e} deg")  # fmt: skip
+    diff = r["numpy_max_difference_deg"]
+    lines.append(f"  NumPy loop / jaxobs: NVSO {format_range(r['numpy_over_nvso'])}, "
+                 f"EKF {format_range(r['numpy_over_ekf'])}; "
+                 f"largest sideslip differences {diff['nvso']:.1e} and {diff['ekf']:.1e} deg")  # fmt: skip
     return "\n".join(lines)
 
 
