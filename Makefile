@@ -46,6 +46,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/hgo.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/ct_estimation.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/saturated_outputs.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/sideslip.py --out $(OUT)/bench
 
 # The documentation site (MkDocs, Material theme, API reference from the docstrings) into site/; --strict: any
 # warning (a broken link or cross-reference, an example that no longer exists) fails the build.

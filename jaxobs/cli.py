@@ -78,10 +78,11 @@ def _sweeps() -> dict:
         liu_peng_sweep,
         saturated_outputs_sweep,
         sbw_robustness,
+        sideslip_sweep,
     )
 
     sweeps = (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep, grip_example56_sweep,
-              saturated_outputs_sweep)  # fmt: skip
+              saturated_outputs_sweep, sideslip_sweep)  # fmt: skip
     return {m.NAME: m for m in sweeps}
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from jaxobs._config import ConfigError, fail
 from jaxobs._distributed import agree
 from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
-from jaxobs.papers import force_tuning, grip_tuning, peg_tuning, robot_tuning
+from jaxobs.papers import force_tuning, grip_tuning, peg_tuning, robot_tuning, sideslip_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
@@ -37,6 +37,7 @@ PROBLEMS = {
     peg_tuning.NAME: peg_tuning,
     grip_tuning.NAME: grip_tuning,
     robot_tuning.NAME: robot_tuning,
+    sideslip_tuning.NAME: sideslip_tuning,
 }
 """Problem modules by the config's ``problem`` name; the first is the default."""
 

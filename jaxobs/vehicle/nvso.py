@@ -171,7 +171,7 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
             _checks.positive(name, settings[name], allow_zero=True)
     params = NVSOParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
-    if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):
+    if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
         raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
     if params.smooth is not None:
         _checks.positive("smooth", params.smooth)
