@@ -56,10 +56,24 @@ class Interrupted(KeyboardInterrupt):
     """Ctrl-C during a resumable job; the message says where it stopped and how to resume."""
 
 
+_FINALISERS = frozenset({"_xla_gc_callback", "__del__"})
+
+
+def _in_finaliser(frame) -> bool:
+    """True when ``frame`` runs inside a garbage-collection callback or a ``__del__`` (XLA frees buffers from one):
+    an exception raised there is printed with its traceback and dropped."""
+    while frame is not None:
+        if frame.f_code.co_name in _FINALISERS:
+            return True
+        frame = frame.f_back
+    return False
+
+
 class InterruptWatch:
     """A context manager that notes Ctrl-C (SIGINT) while it is entered; :meth:`check` raises
     ``KeyboardInterrupt`` once one arrived, even if the ``KeyboardInterrupt`` the signal raised at the time was
-    swallowed. Python's own handler still runs, so Ctrl-C interrupts at once wherever it can. Installed only in
+    swallowed. Python's own handler still runs, so Ctrl-C interrupts at once wherever it can, except inside a
+    garbage-collection callback or ``__del__``, where it is left to the next :meth:`check`. Installed only in
     the main thread over Python's default handler (a caller's own handler is left alone); a watch entered inside
     another shares its record, so the command's watch sees a Ctrl-C from its first line on.
     """
@@ -89,7 +103,8 @@ class InterruptWatch:
 
     def _note(self, signum, frame) -> None:
         self._record["requested"] = True
-        signal.default_int_handler(signum, frame)
+        if not _in_finaliser(frame):  # there Python would print the KeyboardInterrupt as "Exception ignored"
+            signal.default_int_handler(signum, frame)
 
     def check(self) -> None:
         """Raise ``KeyboardInterrupt`` if Ctrl-C arrived since the (outermost) watch was entered."""

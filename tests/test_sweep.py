@@ -407,3 +407,24 @@ def test_interrupt_watch_notes_ctrl_c_and_leaves_other_handlers_alone():
         assert own == [1] and not watch.requested
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_a_ctrl_c_inside_a_finaliser_is_left_to_the_next_check(monkeypatch):
+    """A KeyboardInterrupt raised in a gc callback or __del__ would be printed with its traceback and dropped; the
+    watch raises none there, and its next check does."""
+    from jaxobs._resources import InterruptWatch
+
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+
+    class Buffer:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)  # the handler runs here, inside __del__
+
+    with InterruptWatch() as watch:
+        buffer = Buffer()
+        del buffer
+        assert unraisable == [] and watch.requested
+        with pytest.raises(KeyboardInterrupt):
+            watch.check()
