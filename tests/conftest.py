@@ -31,15 +31,27 @@ def _restore_jax_config():
             jax.config.update(name, _SESSION_CONFIG[name])
 
 
+MAX_MAPPINGS = 20_000  # before the next test file; one file adds at most ~8 000
+
+
+def _mappings() -> int:
+    try:
+        with open("/proc/self/maps") as maps:
+            return sum(1 for _ in maps)
+    except OSError:  # not Linux: no count, always free
+        return MAX_MAPPINGS
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
-    """Drop JAX's caches of compiled programs after each test file. The suite runs ~1100 tests in one process;
-    kept alive, their XLA executables grew it past 60 000 memory mappings (Linux's default ``vm.max_map_count``
-    is 65 530) and XLA's compiler then crashed (SIGSEGV) late in the run. Files share few programs, so this
-    costs little recompilation."""
+    """Drop JAX's caches of compiled programs after a test file once the process holds ``MAX_MAPPINGS`` memory
+    mappings. A worker runs hundreds of tests; kept alive, their XLA executables grew one process past 60 000
+    mappings (Linux's default ``vm.max_map_count`` is 65 530) and XLA's compiler then crashed (SIGSEGV) late in
+    the run. Below the threshold the files keep sharing their compiled programs."""
     yield
-    jax.clear_caches()
-    gc.collect()
+    if _mappings() >= MAX_MAPPINGS:
+        jax.clear_caches()
+        gc.collect()
 
 
 settings.register_profile(

@@ -14,6 +14,7 @@ from jaxobs.saturation import sandwich_design
 ROW = r"`grip2010-sandwich` \| Grip 2010 ch\. 9 \|.*?"
 
 
+@pytest.mark.slow  # Theorem 9.1 on the instance: tests/test_saturation.py in the default set
 def test_detector_windows_are_classified_by_theorem_9_1():
     design = sandwich_design(**g.SYSTEM, F=g.F, **g.DESIGN)
     windows = g.windows(design)

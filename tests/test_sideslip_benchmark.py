@@ -6,9 +6,12 @@ import importlib.util
 import json
 import pathlib
 
+import pytest
+
 SCRIPT = pathlib.Path(__file__).parents[1] / "benchmarks" / "sideslip.py"
 
 
+@pytest.mark.slow  # runs the benchmark script end to end
 def test_tiny_batch_agrees_with_numpy(tmp_path):
     """2 vehicles x 60 samples of the lane change: the NumPy peers' sideslip matches jaxobs' within 1e-8 deg (their
     derivatives by central differences; measured 5e-12 deg for the NVSO and 1e-9 for the EKF on 800 samples)."""

@@ -35,6 +35,7 @@ def test_bad_config_names_the_key(given, key):
         sideslip_tuning.validate_config({"problem": sideslip_tuning.NAME, **given})
 
 
+@pytest.mark.slow  # the NVSO's gradient is checked in the default set by tests/test_vehicle_nvso.py
 def test_gradient_matches_finite_differences():
     """d (mean RMS sideslip error) / d (log gains, log thresholds) on two 3 s drives (the lane change and the sine
     steer), reverse mode through the 300 smooth-gated NVSO steps against a central difference (step 1e-6: the
