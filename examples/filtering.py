@@ -1,3 +1,4 @@
+# slow: compiles several filters and a gradient through one (about 14 s)
 """Filtering guide: time-varying and steady-state Kalman gains, missing data, gradients through the filter."""
 
 # --8<-- [start:model]

@@ -28,6 +28,7 @@ SMALL = {
 }
 
 
+@pytest.mark.slow  # compiles the sweep's full step
 def test_padded_linear_controller_is_the_steady_state_aob():
     """The sweep's stacked controllers (zero-padded to a common size) run exactly like the AOB."""
     plant, L_r = nominal_design()

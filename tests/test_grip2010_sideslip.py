@@ -35,6 +35,7 @@ def _check_manoeuvre_keys(entry):
         assert all(np.isfinite(entry[observer][k]) for k in ESTIMATE_KEYS)
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_registered_and_written_with_every_key(reduced):
     out, summary = reduced
     assert REPRODUCTIONS["grip2010-sideslip"] is grip2010_sideslip.reproduce
@@ -66,6 +67,7 @@ def test_registered_and_written_with_every_key(reduced):
     assert (out / "grip2010_sideslip.png").stat().st_size > 20_000
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_known_friction_on_a_flat_road(reduced):
     """Grip 2010 §2.3: with known friction on a horizontal road the basic observer (2.3), (2.5) is GES. On the double
     lane change with a flat road (peak 0.92 g) and exact sensors the sideslip error is 0.18 deg at most, 0.080 deg
@@ -79,6 +81,7 @@ def test_known_friction_on_a_flat_road(reduced):
     pin(known["rms_beta_error_deg"], r"known friction on a flat road [0-9.]+ deg max, ([0-9.]+) deg rms")
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_accelerometer_bias_goes_into_the_bank_estimate(reduced):
     """Grip 2010 §2.6: an a_y bias b only biases the bank estimate: theta_b -> b / g on a flat straight road, with
     the roll correction of §2.2 ``b / (g (1 + p_phi g))`` (0.04705; b / g = 0.05097); measured equal to 5e-9."""
@@ -88,6 +91,7 @@ def test_accelerometer_bias_goes_into_the_bank_estimate(reduced):
     assert abs(c["theta_b_final"] - c["expected"]) < 1e-7
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_bank_and_inclination_are_estimated(reduced):
     """Grip 2010 §2.6: theta_b -> cos(Theta) sin(Phi) and theta_i -> sin(Theta) on straight drives of 30 s on a
     3 deg bank (measured 1.6e-8 off) and a 5 deg slope (4.5e-5 off, still converging at the slow pole of
@@ -100,6 +104,7 @@ def test_bank_and_inclination_are_estimated(reduced):
     assert abs(incl["theta_i_final"] - incl["expected"]) < 1e-4
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_friction_adaptation_on_low_friction(reduced):
     """Grip 2010 §2.4-2.5 on friction 0.3 (a 25 deg sine steer at 80 km/h, peak 0.27 g, sideslip 0.87 deg): with
     friction estimation (on 90 % of the time) theta moves from 1 to 0.85 and the sideslip error drops from
@@ -116,6 +121,7 @@ def test_friction_adaptation_on_low_friction(reduced):
     pin(c["theta_hat_final"], r"on friction 0.3 theta goes from 1 to ([0-9.]+) \(")
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_no_friction_convergence_without_excitation(reduced):
     """Grip 2010 §2.4: on a straight drive (no lateral excitation) in mode 2 the velocity error converges (0.5 m/s
     to 3e-10 m/s in 30 s) but theta does not: from 0.5 (true 1) it moves only during the v_y transient, to 0.37
@@ -127,6 +133,7 @@ def test_no_friction_convergence_without_excitation(reduced):
     assert abs(c["theta_hat_initial"] + c["theta_hat_change"] - c["theta_true"]) > 0.4
 
 
+@pytest.mark.slow  # shares a 25 s reproduction run
 def test_lane_change_nvso_and_ekf(reduced):
     """The double lane change (0.92 g, 3.9 deg, default sensor noise and 15 Hz low-pass): NVSO error 0.24 deg max,
     0.11 rms; EKF 0.34 deg max, 0.15 rms; both bank estimates within 0.1 deg of the road's 0.5 deg."""

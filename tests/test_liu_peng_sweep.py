@@ -19,6 +19,7 @@ def test_default_config_file_validates():
     assert config == liu_peng_sweep.DEFAULT_CONFIG
 
 
+@pytest.mark.slow  # the ideal case is checked on the reproduction in tests/test_liu_peng.py
 def test_no_mismatch_no_noise_reproduces_the_ideal_case():
     """Nominal truth, no noise, no low-pass: every per-method RMS equals liu_peng's ideal case (the truth here is
     simulated with 100 Hz steps of 1 ms scans instead of a NumPy loop, so agreement is to rounding, 1e-9)."""

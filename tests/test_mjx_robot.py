@@ -104,6 +104,7 @@ def _runs(cart, params, payload, keys):
     return jax.vmap(one)(payload, keys)
 
 
+@pytest.mark.slow  # MJX closed-loop compile; the linearisation is checked in the default set
 def test_lqg_on_the_linearisation_moves_the_cart_for_any_payload(cart):
     """The LQG designed on the nominal linearisation (0.5 kg payload, one period of dead time) brings the cart to
     the 0.5 m set-point with the pole still for a 4x lighter and a 2x heavier payload; the sensor noise the

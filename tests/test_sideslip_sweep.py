@@ -31,6 +31,7 @@ def test_bad_config_names_the_key(given, key):
         sweep.validate_config(given, "test.toml")
 
 
+@pytest.mark.slow  # end to end through the CLI, like the other sweeps' runs
 def test_cli_sweep_small_grid(tmp_path):
     """Rows in grid order (manoeuvre slowest), all finite. The traced manoeuvre switch drives each test drive (the
     lane change reaches a true sideslip above 3 deg, the sine steer stays below 1.5 deg) and the friction scale

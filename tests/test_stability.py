@@ -331,6 +331,7 @@ def test_aob_relative_stability_decreases_with_the_order():
     assert all(float(m.spectral_radius) < 1 for m in margins)
 
 
+@pytest.mark.slow  # a special case of test_closed_loop_matrix_is_what_the_simulated_aob_does
 def test_switched_off_active_state_is_the_ckf_loop():
     plant, L_r = nominal_design()
     aob = with_feedback(active.set_active(aob_params(plant, 2), 0.0), L_r)
