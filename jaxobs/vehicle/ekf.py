@@ -40,8 +40,8 @@ front slip while the simulated tyres have none yet: the model predicted ``a_x = 
 the measured 3.9 and 1.2. With a wide prior (variances 1 on ``v_x``, ``v_y``, 0.05 on ``mu``) the linearised first
 update took this as a low friction (``mu`` 1 -> 0.35 in one sample); at ``mu`` near ``|a| / g`` every model tyre
 saturates, where ``a_y`` and ``r'`` no longer depend on ``v_y`` (and fall with it past the tyre's peak), so ``v_y``
-ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg against the true 1.5 deg, innovations
-0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x`` from
+ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg where the true one stayed within
++-1.6 deg, innovations 0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x`` from
 ``v_x,ref``, ``mu`` near the nominal), the gate rejects what the model cannot explain (4 sigma outliers such as
 those start-up samples, counted in ``state.filter.gated``) and the attraction keeps ``mu`` at the high default
 where nothing excites the tyres, where the friction model carries little information on ``mu`` and its small
