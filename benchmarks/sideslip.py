@@ -141,7 +141,10 @@ def numpy_nvso(p, y):
         high_pass = ay - r * vx - low_pass
         same = r * r_ref > dead
         excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-        over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+        opposite = -r * r_ref > dead  # counter-steering
+        over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
+            opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
+        )
         timer = np.where(excited | over, 0.0, timer + dt)
         next_mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
         low_pass = low_pass + dt / f("high_pass_time") * high_pass
@@ -252,7 +255,10 @@ def numpy_ekf(params, y):
             high_pass = ay - r * vx - low_pass
             same = r * r_ref > dead
             excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-            over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+            opposite = -r * r_ref > dead  # counter-steering
+            over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
+                opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
+            )
             timer = np.where(excited | over, 0.0, timer + dt)
             mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
             low_pass = low_pass + dt / f("high_pass_time") * high_pass
