@@ -40,12 +40,13 @@ front slip while the simulated tyres have none yet: the model predicted ``a_x = 
 the measured 3.9 and 1.2. With a wide prior (variances 1 on ``v_x``, ``v_y``, 0.05 on ``mu``) the linearised first
 update took this as a low friction (``mu`` 1 -> 0.35 in one sample); at ``mu`` near ``|a| / g`` every model tyre
 saturates, where ``a_y`` and ``r'`` no longer depend on ``v_y`` (and fall with it past the tyre's peak), so ``v_y``
-ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg where the true one stayed within
-+-1.6 deg, innovations 0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x`` from
-``v_x,ref``, ``mu`` near the nominal), the gate rejects what the model cannot explain (4 sigma outliers such as
+ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg where the true one stayed within +-1.6 deg,
+innovations 0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x``
+from ``v_x,ref``, ``mu`` near the nominal), the gate rejects what the model cannot explain (4 sigma outliers such as
 those start-up samples, counted in ``state.filter.gated``) and the attraction keeps ``mu`` at the high default
 where nothing excites the tyres, where the friction model carries little information on ``mu`` and its small
-errors would otherwise walk the estimate down into the saturated region.
+errors would otherwise walk the estimate down into the saturated region. The price is the NVSO's: on a low-friction
+road without excitation the friction estimate stays near ``mu0``.
 
 Assumptions (the thesis gives no numbers): the noise intensities, the thresholds, the gate, the attraction and the
 prior are assumed defaults (:func:`make_vehicle_ekf`). Missing data: a non-finite sensor sample is
@@ -165,8 +166,8 @@ def make_vehicle_ekf(
         prior mean is that ``v_x,ref``, as the NVSO starts); the other means are 0 and ``mu0``.
       P0_diag: (8,) prior variances (>= 0). Default: ``v_x`` 0.01 (the ``v_x,ref`` it starts from, ``r_std``
         0.1 m/s), ``v_y`` 0.1 (0.3 m/s), the angles 1e-3 (1.8 deg), ``mu`` 0.01 (0.1 about the nominal
-        surface), the derivatives 1e-5, 1e-5, 1e-4. A wide prior (the former 1, 1, ..., 0.05, ..., 1e-3) lets
-        the first updates take a start-up transient for a low friction (module docstring).
+        surface), the derivatives 1e-5, 1e-5, 1e-4. A wide prior (variances 1 on ``v_x`` and ``v_y``, 0.05 on
+        ``mu``) lets the first updates take a start-up transient for a low friction (module docstring).
       mu_bounds: (lo, hi) with ``0 < lo < hi``: the friction range the model is evaluated at.
       dt: sample period (s, > 0).
       switching: the :class:`~jaxobs.vehicle.NVSOParams` of the switching rule (default ``make_nvso(vehicle)``;
