@@ -141,7 +141,10 @@ def numpy_nvso(p, y):
         high_pass = ay - r * vx - low_pass
         same = r * r_ref > dead
         excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-        over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+        opposite = -r * r_ref > dead  # counter-steering
+        over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
+            opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
+        )
         timer = np.where(excited | over, 0.0, timer + dt)
         next_mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
         low_pass = low_pass + dt / f("high_pass_time") * high_pass
@@ -173,7 +176,8 @@ def numpy_ekf(params, y):
     """The vehicle EKF (Joseph update) in NumPy over V vehicles at once, a Python loop over the K samples:
     y (V, K, 9) finite -> sideslip (V, K). The measurement Jacobian by central differences (jaxobs: autodiff)."""
     v, model, sw_p = params.vehicle, params.ekf.model, params.switching
-    dt, tau = (float(c) for c in model.f.args[0])
+    dt, tau, k_mu, mu0 = (float(c) for c in model.f.args[0])
+    gate = np.inf if params.ekf.gate is None else float(params.ekf.gate)
     g = GRAVITY
     f = lambda name: float(getattr(sw_p, name))  # noqa: E731
     Q0, R = np.asarray(model.Q), np.asarray(model.R)
@@ -201,10 +205,13 @@ def numpy_ekf(params, y):
         if k:  # prediction (none before the first update: x0, P0 are the prior of x_0)
             ax, ay, r = previous[:, 0], previous[:, 1] / roll, previous[:, 2]
             vx, vy, d_i, d_b, d_mu = x[:, 0], x[:, 1], x[:, 5], x[:, 6], x[:, 7]
-            rate = np.stack([ax + r * vy + g * x[:, 2], ay - r * vx - g * x[:, 3], d_i, d_b, d_mu,
+            attraction = (1 - mode) * k_mu  # slow friction estimation draws mu to mu0
+            d_mu_total = d_mu - attraction * (x[:, 4] - mu0)
+            rate = np.stack([ax + r * vy + g * x[:, 2], ay - r * vx - g * x[:, 3], d_i, d_b, d_mu_total,
                              -d_i / tau, -d_b / tau, -d_mu / tau], axis=1)  # fmt: skip
             F = np.tile(eye, (V, 1, 1))
             F[:, 0, 1], F[:, 0, 2], F[:, 1, 0], F[:, 1, 3] = dt * r, dt * g, -dt * r, -dt * g
+            F[:, 4, 4] = 1 - dt * attraction
             for i in range(3):
                 F[:, 2 + i, 5 + i] = dt
                 F[:, 5 + i, 5 + i] = 1 - dt / tau
@@ -212,6 +219,8 @@ def numpy_ekf(params, y):
             Q[:, 7, 7] = dt * ((1 - mode) * q_mu[0] ** 2 + mode * q_mu[1] ** 2)
             x = x + dt * rate
             P = F @ P @ F.transpose(0, 2, 1) + Q
+        else:  # the prior mean of v_x is the first v_x,ref
+            x[:, 0] = now[:, 8]
         z = np.stack([now[:, 0], now[:, 1] / roll, (now[:, 2] - previous[:, 2]) / dt, now[:, 8]], axis=1)
         h0 = h(x, now)
         H = np.zeros((V, 4, 8))
@@ -222,6 +231,11 @@ def numpy_ekf(params, y):
         innovation = z - h0
         if k == 0:  # no yaw acceleration from a single yaw-rate sample: skipped
             H[:, 2, :], innovation[:, 2] = 0.0, 0.0
+        # innovation gate: a component beyond gate standard deviations is skipped (R is diagonal: a zero row of H
+        # and a zero innovation remove it exactly)
+        spread = np.sqrt(np.einsum("vij,vjk,vik->vi", H, P, H) + np.diagonal(R))
+        outlier = np.abs(innovation) > gate * spread
+        H[outlier], innovation[outlier] = 0.0, 0.0
         CP = H @ P
         S = CP @ H.transpose(0, 2, 1) + R
         S = (S + S.transpose(0, 2, 1)) / 2
@@ -241,7 +255,10 @@ def numpy_ekf(params, y):
             high_pass = ay - r * vx - low_pass
             same = r * r_ref > dead
             excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-            over = same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))
+            opposite = -r * r_ref > dead  # counter-steering
+            over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
+                opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
+            )
             timer = np.where(excited | over, 0.0, timer + dt)
             mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
             low_pass = low_pass + dt / f("high_pass_time") * high_pass

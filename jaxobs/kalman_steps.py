@@ -33,6 +33,7 @@ __all__ = [
     "Update",
     "predict",
     "update",
+    "innovation_gate",
     "bierman_update",
     "ud_factor",
     "observed",
@@ -132,6 +133,17 @@ def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
             S = symmetrize(S_full) * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
     ll = None if S is None else innovation_log_likelihood(innovation, S, jnp.sum(mask))
     return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
+
+
+def innovation_gate(innovation, C, P_prior, R, threshold):
+    """The innovation test of a measurement update: a (p,) bool, true for each component whose innovation lies
+    within ``threshold`` standard deviations of its prediction, ``|e_i| <= threshold sqrt(S_ii)`` with ``S = C
+    P_prior C' + R`` (a per-component validation gate on the normalised innovation, as tracking, navigation and
+    vehicle filters reject outliers; Bar-Shalom, Li & Kirubarajan 2001). A filter skips the other components like
+    missing ones.
+    Shapes: ``innovation`` (p,), ``C`` (p, n), ``P_prior`` (n, n), ``R`` (p, p); ``threshold`` () > 0."""
+    S_diag = jnp.sum((C @ P_prior) * C, axis=-1) + jnp.diagonal(R)
+    return ~(jnp.abs(innovation) > threshold * jnp.sqrt(S_diag))  # NaN (missing) innovations pass
 
 
 # --------------------------------------------------------------------------------------------

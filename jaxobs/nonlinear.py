@@ -25,6 +25,8 @@ linear Kalman step of :mod:`jaxobs.kalman_steps` and :mod:`jaxobs.riccati`::
 
 (the continuous moment equations: Jazwinski 1970 for the Taylor form, Särkkä 2007 for sigma points).
 Missing data: non-finite components of ``y_k`` are skipped exactly and counted, as in the linear filter.
+Innovation gate (``gate``, optional): a component whose innovation around the prior exceeds ``gate`` standard
+deviations (:func:`jaxobs.kalman_steps.innovation_gate`) is skipped like a missing one and counted apart.
 Iterated update (``iterations > 1``): ``h`` is linearised again around the current posterior and the update
 redone from the prior, ``x_{i+1} = m_prior + K_i (y - h_bar_i - H_i (m_prior - x_i))``: the Gauss-Newton iterated
 EKF (Bell & Cathey 1993) for the Taylor form, the iterated posterior linearisation filter (García-Fernández,
@@ -41,7 +43,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import bierman_update, update
+from jaxobs.kalman_steps import bierman_update, innovation_gate, update
 from jaxobs.riccati import predict_covariance, symmetrize
 
 __all__ = [
@@ -166,7 +168,8 @@ class GaussianState(NamedTuple):
     P: jax.Array  # (n, n) its covariance
     t: jax.Array  # () its time
     started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    missing: jax.Array  # () int32, measurement components skipped so far (missing or gated)
+    gated: jax.Array  # () int32, of those, finite components rejected by the innovation gate
 
 
 class GaussianOutputs(NamedTuple):
@@ -179,7 +182,8 @@ class GaussianOutputs(NamedTuple):
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
     """The state before the first measurement: the prior ``(x0, P0)`` at ``t0``."""
-    return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    zero = jnp.zeros((), jnp.int32)
+    return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), zero, zero)
 
 
 def _inputs(model: NonlinearModel, inputs):
@@ -211,14 +215,16 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
 
 
 def gaussian_step(
-    linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *, bierman: bool = False
-):
+    linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *,
+    bierman: bool = False, gate=None,
+):  # fmt: skip
     """One step of the Gaussian filter with ``linearize`` (the equations of this module).
 
     Args:
       linearize: ``(g, m, P) -> Linearization``.  iterations: static number of updates (1: no iteration).
       bierman: static; the measurement update by Bierman's U-D algorithm
         (:func:`jaxobs.kalman_steps.bierman_update`) instead of the Joseph form.
+      gate: ``None`` or the innovation gate (standard deviations, > 0; the first linearisation's innovation).
       model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
@@ -231,16 +237,20 @@ def gaussian_step(
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
     t = jnp.where(first, state.t, state.t + model.dt)
     x, P, zero = m_prior, P_prior, jnp.zeros_like(m_prior)
-    innovation = None
+    innovation, gated = None, jnp.zeros((), jnp.int32)
     for i in range(iterations):
         lin = linearize(model.h, x, P)
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
         R = model.R if lin.Omega is None else model.R + lin.Omega
+        if i == 0 and gate is not None:
+            accepted = innovation_gate(y - h_bar, lin.G, P_prior, R, gate)
+            gated = jnp.sum(jnp.isfinite(y) & ~accepted).astype(jnp.int32)
+            y = jnp.where(accepted, y, jnp.nan)
         # the correction of m_prior, error-state form
         result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)
         x, P = m_prior + result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation
     missing = state.missing + result.n_missing.astype(jnp.int32)
-    new_state = GaussianState(x, P, t, jnp.ones((), bool), missing)
+    new_state = GaussianState(x, P, t, jnp.ones((), bool), missing, state.gated + gated)
     return new_state, GaussianOutputs(x, P, m_prior, innovation, result.K)

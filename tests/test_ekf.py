@@ -136,6 +136,27 @@ def test_missing_component_equals_the_model_without_it():
     assert int(state.missing) == 30
 
 
+def test_innovation_gate_skips_outliers_like_missing_samples():
+    """With ``gate=4`` two outliers (30 rad added to a bearing at samples 10 and 20) are skipped: the filter equals
+    the ungated one on the data with those components NaN, and ``state.gated`` counts them (``state.missing`` too).
+    Without a gate, and with a gate so wide nothing fails it, the outliers enter the estimate."""
+    problem = bearings(T=30)
+    y = problem.y.copy()
+    y[[10, 20], 0] += 30.0
+    holes = y.copy()
+    holes[[10, 20], 0] = np.nan
+    model = problem.model()
+    filter_ = jax.jit(lambda params, y: jo.run(jo.extended_kalman_filter, params, jo.EstimatorInputs(y)))  # 2 compiles
+    gated_state, gated = filter_(jo.make_ekf(model, gate=4.0), y)
+    _, skipped = filter_(jo.make_ekf(model), holes)
+    np.testing.assert_allclose(gated.x, skipped.x, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(gated.P, skipped.P, rtol=1e-12, atol=1e-14)
+    assert int(gated_state.gated) == 2 and int(gated_state.missing) == 2
+    for params in (jo.make_ekf(model), jo.make_ekf(model, gate=1e6)):
+        state, out = filter_(params, y)
+        assert int(state.gated) == 0 and np.abs(np.asarray(out.x[10] - skipped.x[10])).max() > 0.1
+
+
 def test_eager_steps_jit_and_vmap_agree():
     """Step by step in Python (eager) = run (one scan) = the same under jit; vmap over three measurement sequences
     = a loop over them."""
@@ -218,6 +239,8 @@ def test_bad_inputs_raise_naming_the_argument():
         jo.make_ekf(model, bierman="yes")
     with pytest.raises(ValueError, match="model must be a NonlinearModel"):
         jo.make_ekf(problem)
+    with pytest.raises(ValueError, match="gate must be finite and positive"):
+        jo.make_ekf(model, gate=0.0)
     params = jo.make_ekf(model)
     step = jax.jit(jo.extended_kalman_filter.step)
     state = jo.extended_kalman_filter.init(params)

@@ -38,7 +38,7 @@ def test_cli_sweep_small_grid(tmp_path):
     reaches the plant (the lane change on 0.7 of the friction slides more: measured 6.1 against 3.5 deg). At the
     nominal friction both observers keep the sideslip RMS error below 0.3 deg (measured 0.10 to 0.16), and on the
     lane change, which saturates the tyres, both end with the road friction within 0.15 (measured errors 0.04 and
-    0.09 for the NVSO, 0.014 and 0.001 for the EKF)."""
+    0.09 for the NVSO, 0.015 and 0.0002 for the EKF)."""
     config = tmp_path / "sideslip.toml"
     config.write_text(
         'scenario = "sideslip"\nchunk_size = 4\n[grid]\nmanoeuvre = ["double_lane_change_120kmh", "sine_steer"]\n'

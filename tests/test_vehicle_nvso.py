@@ -1,6 +1,7 @@
 """The NVSO of jaxobs.vehicle.nvso (Grip 2010 ch. 2) on the simulated ISO double lane change: the sideslip error with
-known friction and exact sensors, the smooth gates against the exact switching logic, batching over vehicles, a
-gradient w.r.t. a gain, missing sensor samples, the standstill guard and bad settings."""
+known friction and exact sensors, the smooth gates against the exact switching logic, the oversteer condition of the
+switch (counter-steering included), batching over vehicles, a gradient w.r.t. a gain, missing sensor samples, the
+standstill guard and bad settings."""
 
 import dataclasses
 
@@ -11,7 +12,7 @@ import pytest
 
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.vehicle import SensorParams, VehicleParams, measure, simulate
-from jaxobs.vehicle.nvso import N_SENSORS, make_nvso, nvso, sensor_inputs
+from jaxobs.vehicle.nvso import N_SENSORS, make_nvso, nvso, sensor_inputs, switching
 
 P = VehicleParams()
 EXACT_SENSORS = SensorParams(noise_acc=0.0, noise_yaw_rate=0.0, noise_steering=0.0, noise_wheel=0.0)
@@ -58,6 +59,22 @@ def test_smooth_gates_tend_to_the_exact_logic(lane_change):
     gap = np.rad2deg(np.asarray(jnp.max(jnp.abs(smooth.beta - exact.beta[None]), axis=1)))
     assert np.all(np.diff(gap) < 0), gap
     assert gap[-1] < 1e-9, gap
+
+
+def test_oversteer_turns_friction_estimation_on_also_when_counter_steering():
+    """Condition (ii) of the switch (Grip 2010 §2.5) at 5 m/s with the high-pass at zero, so only (ii) can act: a
+    yaw rate of 0.4 rad/s with the steering wheel turned the other way (a counter-steered drift, ``r_ref`` -0.45
+    rad/s) and one with the reference yaw rate of the same sign at 0.09 rad/s turn friction estimation on; the
+    same yaw rate with a larger same-sign reference (understeer) and a straight car do not. Exact and smooth gates
+    (sharpness 1e4) agree."""
+    params = make_nvso(P)
+    cases = [(0.4, -4.0, 1.0), (0.4, 0.8, 1.0), (0.4, 8.0, 0.0), (0.0, 0.0, 0.0)]  # (r, steering wheel, expected)
+    for settings in ({}, {"smooth": 1e4}):
+        params = make_nvso(P, **settings)
+        for r, wheel, expected in cases:
+            ay = r * 5.0  # a_y - r v_x = 0: nothing for the high-pass
+            result = switching(params, 1.0, 0.0, 5.0, r, ay, wheel)
+            assert float(result.mode) == pytest.approx(expected, abs=1e-6), (settings, r, wheel)
 
 
 def test_jit_vmap_over_vehicles_equals_each_run(lane_change):

@@ -16,7 +16,9 @@ around the latest estimate, ``x_{i+1} = x_prior + K_i (y_k - h(x_i) - H_i (x_pri
 
 Prior and missing data as in the Kalman filter (:mod:`jaxobs.nonlinear`): the first step updates the prior of
 ``x_0`` without a prediction; non-finite measurement components are skipped and counted (``state.missing``).
-On a linear model the EKF is the Kalman filter.
+On a linear model the EKF is the Kalman filter. ``gate``: an innovation gate (off by default) skips each
+measurement component whose innovation exceeds ``gate`` standard deviations of its prediction
+(:func:`jaxobs.kalman_steps.innovation_gate`), counted in ``state.gated`` (and ``state.missing``).
 """
 
 from __future__ import annotations
@@ -42,14 +44,16 @@ class EKFParams:
       model: the :class:`~jaxobs.nonlinear.NonlinearModel`.
       iterations: static number of Gauss-Newton updates per sample (1: the plain EKF).
       bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
+      gate: ``None`` (no gate) or the innovation gate in standard deviations (a leaf).
     """
 
     model: NonlinearModel
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
     bierman: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    gate: jax.Array | None = None
 
 
-def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False) -> EKFParams:
+def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False, gate=None) -> EKFParams:
     """The extended Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
 
     Args:
@@ -57,6 +61,9 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
       iterations: number of Gauss-Newton updates per sample (an integer >= 1; 1 is the plain EKF).
       bierman: use Bierman's U-D measurement update (:func:`jaxobs.kalman_steps.bierman_update`); equal to the
         default Joseph form in exact arithmetic, positive semidefinite as ``R -> 0``.
+      gate: ``None`` (default, every finite measurement is used) or a threshold (> 0, in standard deviations):
+        a component whose innovation exceeds ``gate sqrt(S_ii)``, ``S = H P_prior H' + R``, is skipped as an
+        outlier (:func:`jaxobs.kalman_steps.innovation_gate`) and counted in ``state.gated``.
 
     Example:
       >>> import jax.numpy as jnp
@@ -72,7 +79,9 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
     if not isinstance(bierman, bool):
         raise ValueError(f"bierman must be a bool, got {bierman!r}")
-    return EKFParams(model, iterations, bierman)
+    if gate is not None:
+        _checks.positive("gate", gate, what="an innovation gate in standard deviations")
+    return EKFParams(model, iterations, bierman, gate)
 
 
 def taylor(g, m, P) -> Linearization:
@@ -89,7 +98,9 @@ def taylor(g, m, P) -> Linearization:
 
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
-    return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman)
+    return gaussian_step(
+        taylor, params.iterations, params.model, state, inputs, bierman=params.bierman, gate=params.gate
+    )
 
 
 extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)

@@ -7,7 +7,7 @@ derivatives ``d_i``, ``d_b``, ``d_mu`` of the last three, each a first-order fil
 derivatives of mu_H, inclination and bank are modelled as filtered white noise")::
 
     v_x' = a_x + r v_y + g theta_i,    v_y' = a_y - r v_x - g theta_b                     (2.11)-(2.12)
-    theta_i' = d_i,  theta_b' = d_b,  mu' = d_mu,    d' = -d / tau + w,   var w = q_d^2
+    theta_i' = d_i,  theta_b' = d_b,  mu' = d_mu - (1 - m) k_mu (mu - mu0),    d' = -d / tau + w,   var w = q_d^2
 
 with the measured ``a_x``, the roll-corrected ``a_y`` and the yaw rate ``r`` of the previous sample as known inputs
 (the yaw rate as a known time-varying signal makes the process model linear time-varying, as in the thesis), and
@@ -23,16 +23,33 @@ m``, ``a_y = F_y / m``, ``r' = M / I_z``), and ``v_x`` for ``v_x,ref``.
 After each update the estimate of ``mu`` is projected onto ``[max(lo, |(a_x, a_y)| / (accel_margin g)), hi]``
 (``mu_bounds = (lo, hi)``, ``accel_margin`` of the switching params: the bounds the NVSO clips its friction estimate
 to, §2.8): below the acceleration bound the friction model cannot produce the measured acceleration, and outside
-``mu_bounds`` the friction model carries no information on ``mu`` and a large early
-innovation (e.g. from tyre relaxation, which the filter's steady-state friction model lacks) would otherwise leave
-``mu`` stranded there.
+``mu_bounds`` the friction model carries no information on ``mu``.
 
 Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:func:`jaxobs.vehicle.nvso.switching`,
-Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode 0
-and ``q_mu_fast`` in mode 1 (blended by a smooth gate when the switching params are ``smooth``).
+Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode
+``m = 0`` and ``q_mu_fast`` in mode 1 (blended by a smooth gate when the switching params are ``smooth``), and in
+slow estimation ``mu`` is drawn to its default ``mu0`` at the rate ``k_mu`` (``mu_attraction``), as the NVSO draws
+its friction estimate to ``theta*`` in its mode 1 ((2.20), §2.5: a high default, because high friction is the
+common case and a too-low friction gives too-high sideslip estimates).
 
-Assumptions (the thesis gives no numbers): the noise intensities, the thresholds and the prior are assumed
-defaults (:func:`make_vehicle_ekf`). Missing data: a non-finite sensor sample is
+Why the attraction, the innovation gate (``gate``) and the prior (``P0_diag``; ``v_x`` from the first
+``v_x,ref``): without them the filter diverged on the 40 m circle and the ice lake from their first samples. A
+drive that starts with the steering wheel already turned (the circle's driver steers 18 deg of road-wheel angle at
+8 m/s from a straight run) meets the friction model, which has no tyre relaxation, with 18 deg of steady-state
+front slip while the simulated tyres have none yet: the model predicted ``a_x = -5.7``, ``a_y = 4.0`` m/s^2 against
+the measured 3.9 and 1.2. With a wide prior (variances 1 on ``v_x``, ``v_y``, 0.05 on ``mu``) the linearised first
+update took this as a low friction (``mu`` 1 -> 0.35 in one sample); at ``mu`` near ``|a| / g`` every model tyre
+saturates, where ``a_y`` and ``r'`` no longer depend on ``v_y`` (and fall with it past the tyre's peak), so ``v_y``
+ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg where the true one stayed within +-1.6 deg,
+innovations 0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x``
+from ``v_x,ref``, ``mu`` near the nominal), the gate rejects what the model cannot explain (4 sigma outliers such as
+those start-up samples, counted in ``state.filter.gated``) and the attraction keeps ``mu`` at the high default
+where nothing excites the tyres, where the friction model carries little information on ``mu`` and its small
+errors would otherwise walk the estimate down into the saturated region. The price is the NVSO's: on a low-friction
+road without excitation the friction estimate stays near ``mu0``.
+
+Assumptions (the thesis gives no numbers): the noise intensities, the thresholds, the gate, the attraction and the
+prior are assumed defaults (:func:`make_vehicle_ekf`). Missing data: a non-finite sensor sample is
 held at the channel's last finite value in the model and the measurements built from it are skipped by the EKF;
 both are counted (``state.missing`` counts the non-finite sensor entries).
 """
@@ -99,12 +116,13 @@ class VehicleEKFOutputs(NamedTuple):
 
 
 def _process(constants, x, u, t):
-    """The Euler map ``x + dt f(x, u)`` of the process model (module docstring); ``constants = (dt, tau)``."""
-    dt, tau = constants
-    ax, ay, r = u
-    vx, vy, _, _, _, d_i, d_b, d_mu = x
-    rate = jnp.stack([ax + r * vy + GRAVITY * x[2], ay - r * vx - GRAVITY * x[3], d_i, d_b, d_mu,
-                      -d_i / tau, -d_b / tau, -d_mu / tau])  # fmt: skip
+    """The Euler map ``x + dt f(x, u)`` of the process model (module docstring); ``constants = (dt, tau, k_mu,
+    mu0)``, ``u = (a_x, a_y, r, 1 - m)`` with the friction-estimation mode ``m`` of the interval."""
+    dt, tau, k_mu, mu0 = constants
+    ax, ay, r, slow = u
+    vx, vy, _, _, mu, d_i, d_b, d_mu = x
+    rate = jnp.stack([ax + r * vy + GRAVITY * x[2], ay - r * vx - GRAVITY * x[3], d_i, d_b,
+                      d_mu - slow * k_mu * (mu - mu0), -d_i / tau, -d_b / tau, -d_mu / tau])  # fmt: skip
     return x + dt * rate
 
 
@@ -126,11 +144,13 @@ def make_vehicle_ekf(
     tau: float = 1.0,
     r_std=(0.3, 0.3, 0.3, 0.1),
     vx0: float = 20.0,
-    P0_diag=(1.0, 1.0, 1e-3, 1e-3, 0.05, 1e-5, 1e-5, 1e-3),
+    P0_diag=(0.01, 0.1, 1e-3, 1e-3, 0.01, 1e-5, 1e-5, 1e-4),
     mu0: float = 1.0,
     mu_bounds=(0.05, 1.5),
     dt: float = 1.0 / SENSOR_RATE,
     switching: NVSOParams | None = None,
+    gate: float | None = 4.0,
+    mu_attraction: float = 0.5,
 ) -> VehicleEKFParams:
     """The EKF of Grip 2010 §2.9 for ``vehicle`` (default :class:`~jaxobs.vehicle.VehicleParams`).
 
@@ -142,11 +162,22 @@ def make_vehicle_ekf(
         tau: the noise filters' time constant (s, > 0).
       r_std: (4,) measurement standard deviations of ``a_x``, ``a_y`` (m/s^2), ``r'`` (rad/s^2), ``v_x,ref``
         (m/s) (> 0; they include the friction model's error).
-      vx0: prior mean of ``v_x`` (m/s); the other means are 0 and ``mu0``.  P0_diag: (8,) prior variances (>= 0).
+      vx0: prior mean of ``v_x`` (m/s), used only when the first sample has no finite ``v_x,ref`` (otherwise the
+        prior mean is that ``v_x,ref``, as the NVSO starts); the other means are 0 and ``mu0``.
+      P0_diag: (8,) prior variances (>= 0). Default: ``v_x`` 0.01 (the ``v_x,ref`` it starts from, ``r_std``
+        0.1 m/s), ``v_y`` 0.1 (0.3 m/s), the angles 1e-3 (1.8 deg), ``mu`` 0.01 (0.1 about the nominal
+        surface), the derivatives 1e-5, 1e-5, 1e-4. A wide prior (variances 1 on ``v_x`` and ``v_y``, 0.05 on
+        ``mu``) lets the first updates take a start-up transient for a low friction (module docstring).
       mu_bounds: (lo, hi) with ``0 < lo < hi``: the friction range the model is evaluated at.
       dt: sample period (s, > 0).
       switching: the :class:`~jaxobs.vehicle.NVSOParams` of the switching rule (default ``make_nvso(vehicle)``;
         its ``dt`` must be this ``dt``).
+      gate: innovation gate in standard deviations (> 0; default 4, ``None`` for none): a measurement component
+        whose innovation exceeds ``gate`` times its predicted standard deviation is skipped as an outlier
+        (:func:`jaxobs.kalman_steps.innovation_gate`) and counted in ``state.filter.gated``; it keeps transients
+        the friction model cannot explain (no tyre relaxation) out of the friction estimate.
+      mu_attraction: rate ``k_mu`` (1/s, >= 0; default 0.5, the NVSO's ``K_e``) at which ``mu`` is drawn to
+        ``mu0`` in slow friction estimation (the NVSO's (2.20)); 0 for the pure filtered-white-noise model.
 
     Example:
       >>> from jaxobs.vehicle.ekf import make_vehicle_ekf
@@ -161,6 +192,7 @@ def make_vehicle_ekf(
     for name, value in (("q_v", q_v), ("q_d", q_d), ("q_mu", q_mu), ("tau", tau), ("r_std", r_std), ("dt", dt)):
         _checks.positive(name, value)
     _checks.positive("P0_diag", P0_diag, allow_zero=True)
+    _checks.positive("mu_attraction", mu_attraction, allow_zero=True)
     _checks.positive("mu0", mu0)
     q_d, r_std, P0_diag = jnp.asarray(q_d, float), jnp.asarray(r_std, float), jnp.asarray(P0_diag, float)
     _checks.shape("q_d", q_d, (2,), "one intensity per angle derivative")
@@ -178,10 +210,11 @@ def make_vehicle_ekf(
         raise ValueError(f"mu_bounds must have lo < hi, got {mu_bounds.tolist()}")
     Q = dt * jnp.diag(jnp.concatenate([jnp.full(2, q_v**2), jnp.zeros(3), q_d**2, q_mu[:1] ** 2]))
     x0 = jnp.zeros(8).at[0].set(vx0).at[4].set(mu0)
-    f = Partial(_process, (jnp.asarray(dt, float), jnp.asarray(tau, float)))
+    constants = tuple(jnp.asarray(c, float) for c in (dt, tau, mu_attraction, mu0))
+    f = Partial(_process, constants)
     h = Partial(_measurement, vehicle, mu_bounds, jnp.zeros(N_SENSORS))
-    model = nonlinear_model(f, h, Q, jnp.diag(r_std**2), x0=x0, P0=jnp.diag(P0_diag), n_inputs=3, dt=dt)
-    return VehicleEKFParams(vehicle, make_ekf(model, bierman=bierman), mu_bounds, switching, q_mu)
+    model = nonlinear_model(f, h, Q, jnp.diag(r_std**2), x0=x0, P0=jnp.diag(P0_diag), n_inputs=4, dt=dt)
+    return VehicleEKFParams(vehicle, make_ekf(model, bierman=bierman, gate=gate), mu_bounds, switching, q_mu)
 
 
 def _init(params: VehicleEKFParams) -> VehicleEKFState:
@@ -202,7 +235,11 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     sensors = jnp.where(finite, y, state.sensors)
     previous = state.sensors
     roll = 1.0 + vehicle.roll_gradient * GRAVITY
-    u_prev = jnp.stack([previous[_AX], previous[_AY] / roll, previous[_R]])
+    u_prev = jnp.stack([previous[_AX], previous[_AY] / roll, previous[_R], 1.0 - state.mode])
+    first = ~state.filter.started
+    # the prior mean of v_x is the first finite v_x,ref (the NVSO's start); vx0 only without one
+    start = state.filter.x.at[0].set(jnp.where(finite[_VREF], y[_VREF], state.filter.x[0]))
+    filt = state.filter._replace(x=jnp.where(first, start, state.filter.x))
     # r' needs two finite yaw-rate samples; NaN (skipped by the EKF) otherwise and at the first sample
     yaw_acc = jnp.where(state.filter.started & finite[_R], (y[_R] - previous[_R]) / model.dt, jnp.nan)
     z = jnp.stack([y[_AX], y[_AY] / roll, yaw_acc, y[_VREF]])
@@ -210,7 +247,7 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     q_mu = (1.0 - state.mode) * params.q_mu[0] ** 2 + state.mode * params.q_mu[1] ** 2
     Q = model.Q.at[7, 7].set(model.dt * q_mu)
     ekf = dataclasses.replace(params.ekf, model=dataclasses.replace(model, h=h, Q=Q))
-    filt, out = extended_kalman_filter.step(ekf, state.filter, EstimatorInputs(y=z, u_prev=u_prev))
+    filt, out = extended_kalman_filter.step(ekf, filt, EstimatorInputs(y=z, u_prev=u_prev))
     # projection onto [max(lo, |(a_x, a_y)| / (accel_margin g)), hi] (the NVSO's bounds, Grip 2010 §2.8)
     lower = jnp.maximum(
         params.mu_bounds[0], jnp.hypot(sensors[_AX], sensors[_AY] / roll) / (params.switching.accel_margin * GRAVITY)
@@ -219,7 +256,6 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     filt, out = filt._replace(x=x), out._replace(x=x)
     switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[_R], sensors[_AY] / roll,
                        sensors[_SW])  # fmt: skip
-    first = ~state.filter.started
     mode = jnp.where(first, state.mode, switch.mode)
     timer = jnp.where(first, state.off_timer, switch.off_timer)
     low_pass = jnp.where(first, sensors[_AY] / roll - sensors[_R] * out.x[0], switch.low_pass)  # HP starts at 0
