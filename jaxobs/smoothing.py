@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
+from jaxobs._linalg import solve_spd
 from jaxobs.kalman_steps import observed, observed_model, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter
@@ -70,7 +71,7 @@ def _smoother_element(Phi, x, P, x_prior_next, P_prior_next) -> _SmootherElement
     A state without a-priori variance (a zero diagonal entry of ``P_prior_next``, e.g. an active state switched
     off) gets a unit placeholder in the solve: ``Phi P`` has a zero row there, so its gain column is zero."""
     unit = jnp.diag((jnp.diagonal(P_prior_next) == 0).astype(P.dtype))
-    E = jnp.linalg.solve(P_prior_next + unit, Phi @ P).T  # P_prior symmetric: (P_prior^-1 Phi P)'
+    E = solve_spd(P_prior_next + unit, Phi @ P).T  # P_prior symmetric: (P_prior^-1 Phi P)'
     return _SmootherElement(E, x - E @ x_prior_next, symmetrize(P - E @ P_prior_next @ E.T))
 
 
