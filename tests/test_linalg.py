@@ -55,6 +55,7 @@ def test_gradient_of_log_det_and_solve_equals_the_lapack_path(n):
         def f(S):
             L = factor(S)
             return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L))) + jnp.sum(solve(L, b))
+
         return f
 
     ours = jax.grad(objective(cholesky, cho_solve))(S)
