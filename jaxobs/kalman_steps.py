@@ -106,10 +106,11 @@ def _log_normal(innovation, S_sqrt, n_observed):
     return -0.5 * (n_observed * math.log(2.0 * math.pi) + log_det + z @ z)
 
 
-def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
+def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True) -> Update:
     """Measurement update of ``(x_prior, P_prior)`` with ``y`` (p,); non-finite components are missing.
 
-    With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form updates the covariance; with a
+    With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form (``joseph=False``: the standard form,
+    see :func:`jaxobs.riccati.update_covariance_factors`) updates the covariance; with a
     fixed ``gain`` (n, p) the covariance is returned unchanged and the innovation of missing components is
     zero (so they do not move the estimate).
 
@@ -123,7 +124,7 @@ def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
     n_missing = jnp.sum(1 - mask.astype(jnp.int32))
     S = ll = None
     if gain is None:
-        P, K, S, S_chol = update_covariance_factors(P_prior, *observed_model(C, R, mask))
+        P, K, S, S_chol = update_covariance_factors(P_prior, *observed_model(C, R, mask), joseph=joseph)
         ll = _log_normal(innovation, S_chol, jnp.sum(mask))
     else:
         P, K = P_prior, gain

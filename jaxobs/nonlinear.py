@@ -211,7 +211,8 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
 
 
 def gaussian_step(
-    linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *, bierman: bool = False
+    linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *,
+    bierman: bool = False, joseph: bool = True,
 ):
     """One step of the Gaussian filter with ``linearize`` (the equations of this module).
 
@@ -219,6 +220,7 @@ def gaussian_step(
       linearize: ``(g, m, P) -> Linearization``.  iterations: static number of updates (1: no iteration).
       bierman: static; the measurement update by Bierman's U-D algorithm
         (:func:`jaxobs.kalman_steps.bierman_update`) instead of the Joseph form.
+      joseph: static; ``False``: the standard-form covariance update (:func:`jaxobs.kalman_steps.update`).
       model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
@@ -237,7 +239,10 @@ def gaussian_step(
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
         R = model.R if lin.Omega is None else model.R + lin.Omega
         # the correction of m_prior, error-state form
-        result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)
+        if bierman:
+            result = bierman_update(zero, P_prior, lin.G, R, y - h_bar)
+        else:
+            result = update(zero, P_prior, lin.G, R, y - h_bar, joseph=joseph)
         x, P = m_prior + result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation

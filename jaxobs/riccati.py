@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import cho_solve, cholesky, small_solve, solve_spd
+from jaxobs._linalg import cho_solve, cholesky, small_solve, solve_lower, solve_spd
 
 __all__ = [
     "symmetrize",
@@ -70,25 +70,32 @@ def kalman_gain(P1, C, R):
 class CovarianceUpdate(NamedTuple):
     """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs)."""
 
-    P: jax.Array  # (n, n) a-posteriori covariance (Joseph form)
+    P: jax.Array  # (n, n) a-posteriori covariance
     K: jax.Array  # (n, p) Kalman gain
     S: jax.Array  # (p, p) innovation covariance C P1 C' + R
     S_chol: jax.Array  # (p, p) its lower Cholesky factor
 
 
-def update_covariance_factors(P1, C, R) -> CovarianceUpdate:
-    """Measurement update in Joseph form with the innovation covariance and its Cholesky factor (eq. 27 and 29).
+def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
+    """Measurement update with the innovation covariance and its Cholesky factor (eq. 27 and 29).
 
     ``S = C P1 C' + R`` is factored once (``S = L L'``) and the factor serves the gain ``K = P1 C' S^{-1}`` and
-    the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``). ``P = (I - K C) P1 (I - K C)' + K R K'``:
-    a congruence plus a PSD term, so ``P`` stays symmetric positive semidefinite in floating point even for very
-    precise measurements (the expanded form ``P1 - K C P1 - ...`` cancels at the scale of ``P1`` and can turn
-    indefinite). With fewer outputs than half the states, each factor is applied as a rank-m correction,
-    ``(I - K C) X = X - K (C X)``: the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``.
+    the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``).
+
+    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'``, a congruence plus a PSD term, so ``P``
+    stays symmetric positive semidefinite in floating point even for very precise measurements. With fewer
+    outputs than half the states, each factor is applied as a rank-m correction, ``(I - K C) X = X - K (C X)``:
+    the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
+    ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
+    symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
+    the prior, where it can lose definiteness.
     """
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
     S_chol = cholesky(S)
+    if not joseph:
+        W = solve_lower(S_chol, CP1)
+        return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
     K = cho_solve(S_chol, CP1).T
     n, m = C.shape[-1], C.shape[-2]
     if 2 * m < n:

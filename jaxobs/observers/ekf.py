@@ -42,14 +42,17 @@ class EKFParams:
       model: the :class:`~jaxobs.nonlinear.NonlinearModel`.
       iterations: static number of Gauss-Newton updates per sample (1: the plain EKF).
       bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
+      joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
+        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
     """
 
     model: NonlinearModel
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
     bierman: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
 
-def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False) -> EKFParams:
+def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False, joseph: bool = True) -> EKFParams:
     """The extended Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
 
     Args:
@@ -57,6 +60,8 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
       iterations: number of Gauss-Newton updates per sample (an integer >= 1; 1 is the plain EKF).
       bierman: use Bierman's U-D measurement update (:func:`jaxobs.kalman_steps.bierman_update`); equal to the
         default Joseph form in exact arithmetic, positive semidefinite as ``R -> 0``.
+      joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
+        step, positive semidefinite only to rounding. Not with ``bierman``.
 
     Example:
       >>> import jax.numpy as jnp
@@ -70,9 +75,12 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
     if not isinstance(model, NonlinearModel):
         raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
-    if not isinstance(bierman, bool):
-        raise ValueError(f"bierman must be a bool, got {bierman!r}")
-    return EKFParams(model, iterations, bierman)
+    for name, flag in (("bierman", bierman), ("joseph", joseph)):
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name} must be a bool, got {flag!r}")
+    if bierman and not joseph:
+        raise ValueError("bierman=True and joseph=False: choose one covariance update (Bierman's keeps its factors)")
+    return EKFParams(model, iterations, bierman, joseph)
 
 
 def taylor(g, m, P) -> Linearization:
@@ -89,7 +97,8 @@ def taylor(g, m, P) -> Linearization:
 
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
-    return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman)
+    return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman,
+                         joseph=params.joseph)  # fmt: skip
 
 
 extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
