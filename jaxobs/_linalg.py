@@ -55,7 +55,7 @@ def cholesky(S):
     where ``S`` is not positive definite, as ``jnp.linalg.cholesky``."""
     p = S.shape[-1]
     if p > FACTOR_UNROLL_MAX:
-        return jnp.linalg.cholesky(S)
+        return jax.lax.linalg.cholesky(S, symmetrize_input=False)  # LAPACK's potrf reads the lower triangle too
     L = [[None] * p for _ in range(p)]
     for j in range(p):
         for i in range(j, p):
