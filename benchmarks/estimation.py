@@ -18,6 +18,10 @@ What is measured (float64, the default JAX device), for every ``B`` (sequences),
   ``(alpha, beta, kappa) = (sqrt 3, 2, 1)``. cuthbert 0.1 has no sigma-point filter (only quadrature rules in
   cuthbertlib): listed as skipped.
 
+jaxobs runs twice: with the standard covariance update ``P1 - K S K'`` (``joseph=False``), the update dynamax
+computes, which is the ``jaxobs`` entry the ratios and targets refer to, and with its default Joseph form
+(``jaxobs_joseph``, positive semidefinite by construction), reported as the cost ``Joseph / standard``.
+
 Every entry is ``jit(vmap(...))`` over the ``B`` sequences. Same prior on every side: cuthbert takes the prior of
 ``x_{-1}`` (mean 0, covariance I) and predicts before its first update; jaxobs and dynamax take the prior of
 ``x_0`` (no prediction first), computed inside the timed function as that one (EKF) prediction, so the three
@@ -54,6 +58,7 @@ import itertools  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
@@ -147,11 +152,11 @@ def symmetric(Phi, C, Q, R):
 # The entries: each ``prepare`` returns ``(fn, args)``; ``fn`` is vmapped over the B sequences.
 
 
-def jaxobs_linear(workload: str, model, Y):
+def jaxobs_linear(workload: str, model, Y, joseph: bool = False):
     def params(Phi, C, Q, R, output_covariance=False):
         x0, P0 = prior_of_x0(Phi, Q)
         return KalmanParams(Phi=Phi, Gamma=jnp.zeros((Phi.shape[0], 0)), C=C, Q=Q, R=R, x0=x0, P0=P0,
-                            output_covariance=output_covariance)  # fmt: skip
+                            output_covariance=output_covariance, joseph=joseph)  # fmt: skip
 
     def one(Phi, C, Q, R, y):
         inputs = jo.EstimatorInputs(y=y)
@@ -221,12 +226,12 @@ def cuthbert_linear(workload: str, model, Y):
     return jax.vmap(one), (*model, Y)
 
 
-def jaxobs_nonlinear(workload: str, model, Y):
+def jaxobs_nonlinear(workload: str, model, Y, joseph: bool = False):
     Phi, C, Q, R = model
     f, h = nonlinear_functions(Phi, C)
     x0, P0 = prior_of_x0(Phi, Q, f)
     nl = jo.nonlinear_model(lambda x, u, t: f(x), h, Q, R, x0=x0, P0=P0)
-    params = jo.make_ekf(nl) if workload == "ekf" else jo.make_ukf(nl, **UKF)
+    params = jo.make_ekf(nl, joseph=joseph) if workload == "ekf" else jo.make_ukf(nl, **UKF, joseph=joseph)
     estimator = jo.extended_kalman_filter if workload == "ekf" else jo.unscented_kalman_filter
 
     def one(y):
@@ -279,6 +284,7 @@ def cuthbert_nonlinear(workload: str, model, Y):
 
 ENTRIES = {
     "jaxobs": (jaxobs_linear, jaxobs_nonlinear),
+    "jaxobs_joseph": (partial(jaxobs_linear, joseph=True), partial(jaxobs_nonlinear, joseph=True)),
     "dynamax": (dynamax_linear, dynamax_nonlinear),
     "cuthbert": (cuthbert_linear, cuthbert_nonlinear),
 }
@@ -299,9 +305,10 @@ def cell(workload: str, B: int, n: int, T: int, rounds: int) -> dict:
     model, Y = (linear_problem if linear else nonlinear_problem)(B, n, T)
     entries = {name: (lambda make=make[0 if linear else 1]: make(workload, model, Y), True, 1.0)
                for name, make in ENTRIES.items()}  # fmt: skip
-    timings, problems = time_interleaved(entries, rounds, required=("jaxobs",))
-    ours = timings["jaxobs"]
-    record = {"jaxobs": ours.record(B * T, "steps/s"), "peers": {}}
+    timings, problems = time_interleaved(entries, rounds, required=("jaxobs", "jaxobs_joseph"))
+    ours, joseph = timings["jaxobs"], timings["jaxobs_joseph"]
+    record = {"jaxobs": ours.record(B * T, "steps/s"), "peers": {},
+              "joseph": {**joseph.record(B * T, "steps/s"), "cost": paired_ratio(ours, joseph)}}  # fmt: skip
     reference = primary(workload, ours.result)
     scale = np.max(np.abs(reference))
     for peer in PEERS:
@@ -339,7 +346,7 @@ def targets(results: list[dict]) -> dict:
 
 def table(results: list[dict], skipped: list[str]) -> str:
     head = (f"{'cell':<24} {'jaxobs [ms]':<30} " + " ".join(f"{p + ' / jaxobs':<22}" for p in PEERS)
-            + " compile j/d/c [s]    max rel diff d, c")  # fmt: skip
+            + f" {'Joseph / standard':<22} compile j/d/c [s]    max rel diff d, c")  # fmt: skip
     lines = [head]
     for r in results:
         rec = r["record"]
@@ -356,6 +363,7 @@ def table(results: list[dict], skipped: list[str]) -> str:
             row += f"{format_range(p['ratio'], '.2f', 'x'):<22} "
             compiles.append(f"{p['compile_s']:.1f}")
             diffs.append(f"{p['max_relative_difference']:.0e}" + ("" if p["agrees"] else "!"))
+        row += f"{format_range(rec['joseph']['cost'], '.2f', 'x'):<22} "
         lines.append(row + f"{'/'.join(compiles):<20} {', '.join(diffs)}")
     lines += [f"skipped (over --budget): {', '.join(skipped)}"] if skipped else []
     return "\n".join(lines)

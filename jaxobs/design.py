@@ -14,11 +14,11 @@ import numpy as np
 import scipy.signal
 
 from jaxobs import _checks
+from jaxobs._linalg import solve_spd
 from jaxobs.lti import StateSpace, ctrb, dcgain
 from jaxobs.riccati import (
     _pbh_deficient_eigenvalues,
     _require_care_converged,
-    _solve_spd,
     care,
     dare,
     filter_dare,
@@ -173,7 +173,7 @@ def dlqr(A, B, Q, R):
     sol = dare(A, B, Q, R)
     require_converged(sol, A, B, Q, R, what="dlqr's DARE")
     R = jnp.asarray(R, sol.X.dtype)
-    K = _solve_spd(symmetrize(B.T @ sol.X @ B + R), B.T @ sol.X @ A)
+    K = solve_spd(symmetrize(B.T @ sol.X @ B + R), B.T @ sol.X @ A)
     K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, S, jnp.linalg.eigvals(A - B @ K)
 
@@ -212,7 +212,7 @@ def dlqe(A, G, C, QN, RN):
     sol = filter_dare(A, C, G @ QN @ G.T, RN, what="dlqe's DARE")
     RN = jnp.asarray(RN, sol.X.dtype)
     CP = C @ sol.X
-    K = _solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
+    K = solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, P, jnp.linalg.eigvals(A - K @ C)
 
@@ -246,7 +246,7 @@ def lqr(A, B, Q, R):
     sol = care(A, B, Q, R)
     _require_care_converged(sol, A, B, Q, what="lqr's CARE")
     R = jnp.asarray(R, sol.X.dtype)
-    K = _solve_spd(symmetrize(R), B.T @ sol.X)
+    K = solve_spd(symmetrize(R), B.T @ sol.X)
     K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, S, jnp.linalg.eigvals(A - B @ K)
 
@@ -286,7 +286,7 @@ def lqe(A, G, C, QN, RN):
     sol = care(A.T, C.T, W, RN)
     _require_care_converged(sol, A.T, C.T, W, what="lqe's CARE", estimation=True)
     RN = jnp.asarray(RN, sol.X.dtype)
-    K = _solve_spd(symmetrize(RN), C @ sol.X).T
+    K = solve_spd(symmetrize(RN), C @ sol.X).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, P, jnp.linalg.eigvals(A - K @ C)
 

@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-from jaxobs.riccati import predict_covariance, symmetrize, update_covariance
+from jaxobs._linalg import cholesky, solve_lower
+from jaxobs.riccati import predict_covariance, symmetrize, update_covariance_factors
 
 __all__ = [
     "Update",
@@ -96,20 +97,21 @@ def innovation_log_likelihood(innovation, S, n_observed):
     """``log N(innovation; 0, S)`` over ``n_observed`` components: ``-(n log 2 pi + log det S + e' S^{-1} e) / 2``
     with a Cholesky factor of ``S`` (p, p). Components with ``innovation`` 0 and a unit row and column of ``S``
     (missing ones, see :func:`update`) add exactly 0."""
-    return _log_normal(innovation, jnp.linalg.cholesky(S), n_observed)
+    return _log_normal(innovation, cholesky(S), n_observed)
 
 
 def _log_normal(innovation, S_sqrt, n_observed):
     """:func:`innovation_log_likelihood` from a triangular factor ``S_sqrt`` of ``S`` (diagonal of either sign)."""
-    z = solve_triangular(S_sqrt, innovation, lower=True)
+    z = solve_lower(S_sqrt, innovation)
     log_det = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(S_sqrt))))
     return -0.5 * (n_observed * math.log(2.0 * math.pi) + log_det + z @ z)
 
 
-def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
+def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True) -> Update:
     """Measurement update of ``(x_prior, P_prior)`` with ``y`` (p,); non-finite components are missing.
 
-    With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form updates the covariance; with a
+    With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form (``joseph=False``: the standard form,
+    see :func:`jaxobs.riccati.update_covariance_factors`) updates the covariance; with a
     fixed ``gain`` (n, p) the covariance is returned unchanged and the innovation of missing components is
     zero (so they do not move the estimate).
 
@@ -121,17 +123,16 @@ def update(x_prior, P_prior, C, R, y, gain=None) -> Update:
     mask, y_observed = observed(y, x_prior.dtype)
     innovation = (y_observed - C @ x_prior) * mask  # y masked before the subtraction: no NaN reaches a gradient
     n_missing = jnp.sum(1 - mask.astype(jnp.int32))
-    S = None
+    S = ll = None
     if gain is None:
-        C_o, R_o = observed_model(C, R, mask)
-        P, K = update_covariance(P_prior, C_o, R_o)
-        S = symmetrize(C_o @ P_prior @ C_o.T + R_o)
+        P, K, S, S_chol = update_covariance_factors(P_prior, *observed_model(C, R, mask), joseph=joseph)
+        ll = _log_normal(innovation, S_chol, jnp.sum(mask))
     else:
         P, K = P_prior, gain
         if R is not None:
             S_full = jnp.linalg.solve(jnp.eye(C.shape[-2], dtype=R.dtype) - C @ gain, R)
             S = symmetrize(S_full) * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
-    ll = None if S is None else innovation_log_likelihood(innovation, S, jnp.sum(mask))
+            ll = innovation_log_likelihood(innovation, S, jnp.sum(mask))
     return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
 
 

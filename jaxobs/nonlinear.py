@@ -216,7 +216,7 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
 
 def gaussian_step(
     linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *,
-    bierman: bool = False, gate=None,
+    bierman: bool = False, gate=None, joseph: bool = True,
 ):  # fmt: skip
     """One step of the Gaussian filter with ``linearize`` (the equations of this module).
 
@@ -225,6 +225,7 @@ def gaussian_step(
       bierman: static; the measurement update by Bierman's U-D algorithm
         (:func:`jaxobs.kalman_steps.bierman_update`) instead of the Joseph form.
       gate: ``None`` or the innovation gate (standard deviations, > 0; the first linearisation's innovation).
+      joseph: static; ``False``: the standard-form covariance update (:func:`jaxobs.kalman_steps.update`).
       model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
@@ -247,7 +248,10 @@ def gaussian_step(
             gated = jnp.sum(jnp.isfinite(y) & ~accepted).astype(jnp.int32)
             y = jnp.where(accepted, y, jnp.nan)
         # the correction of m_prior, error-state form
-        result = (bierman_update if bierman else update)(zero, P_prior, lin.G, R, y - h_bar)
+        if bierman:
+            result = bierman_update(zero, P_prior, lin.G, R, y - h_bar)
+        else:
+            result = update(zero, P_prior, lin.G, R, y - h_bar, joseph=joseph)
         x, P = m_prior + result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation

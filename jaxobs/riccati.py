@@ -21,11 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs._linalg import cho_solve, cholesky, small_solve, solve_lower, solve_spd
 
 __all__ = [
     "symmetrize",
     "predict_covariance",
     "update_covariance",
+    "update_covariance_factors",
+    "CovarianceUpdate",
     "riccati_step",
     "covariance_sequence",
     "kalman_gain",
@@ -46,69 +49,13 @@ def symmetrize(P):
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))
 
 
-# Sizes up to which ``_small_matmul`` and ``_small_solve`` unroll into fused elementwise loops.
-_UNROLL_MAX = 16
-
-
-def _small_matmul(a, b):
-    """``a @ b``; for an inner dimension of at most 16, as a sum of broadcast outer products.
-
-    XLA on CPU runs a batch of small dot products (what ``vmap`` makes of ``Phi @ P``) as one
-    library call per matrix; the sum of ``k`` outer products fuses into one elementwise loop over
-    the whole batch, about 1.5x faster for a batch of 10 x 10 matrices
-    (``benchmarks/kalman_throughput.py``, scenario ``independent``). The result is materialised
-    (an optimisation barrier): fused into a consumer, such as a second product, it would be
-    recomputed for every element of that consumer.
-    """
-    k = a.shape[-1]
-    if k > _UNROLL_MAX:
-        return a @ b
-    terms = (a[..., :, j, None] * b[..., None, j, :] for j in range(k))
-    total = next(terms)
-    for term in terms:
-        total = total + term
-    return jax.lax.optimization_barrier(total)
-
-
 def predict_covariance(P, Phi, Q):
     """A-priori covariance ``Phi P Phi' + Q`` (eq. 28).
 
     Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
     (a batched transpose costs XLA on CPU as much as a matrix product).
     """
-    return _small_matmul(_small_matmul(Phi, P), jnp.swapaxes(Phi, -1, -2)) + Q
-
-
-def _solve_spd(S, B):
-    """``S^{-1} B`` for a symmetric positive definite ``S``: a division for one output, else Cholesky."""
-    if S.shape[-1] == 1:
-        return B / S[..., :1, :1]
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(S), B)
-
-
-def _small_solve(W, X):
-    """``W^{-1} X`` for a square ``W``: LU with partial pivoting (LAPACK), then, for at most 16
-    unknowns, the two triangular solves as unrolled substitution sweeps over the whole batch.
-
-    XLA's CPU triangular solve costs about 3x the LU itself for a batch of 10 x 10 systems; the
-    sweeps fuse into one elementwise loop per unknown (``benchmarks/kalman_throughput.py``,
-    scenario ``dare``).
-    """
-    n = W.shape[-1]
-    if n > _UNROLL_MAX:
-        return jnp.linalg.solve(W, X)
-    lu, _, permutation = jax.lax.linalg.lu(W)
-    Y = jnp.take_along_axis(X, permutation[..., :, None], axis=-2)
-    rows = jnp.arange(n)[:, None]
-    lower = jnp.where(rows > rows.T, lu, 0.0)  # unit lower triangular factor, diagonal dropped
-    pivots = jnp.diagonal(lu, axis1=-2, axis2=-1)[..., :, None]
-    upper = jnp.where(rows < rows.T, lu, 0.0) / pivots  # U = diag(pivots) (I + upper)
-    for k in range(n - 1):  # L y = P X
-        Y = Y - lower[..., :, k, None] * Y[..., k, None, :]
-    Y = Y / pivots
-    for k in reversed(range(1, n)):  # (I + upper) x = diag(pivots)^-1 y
-        Y = Y - upper[..., :, k, None] * Y[..., k, None, :]
-    return Y
+    return Phi @ P @ jnp.swapaxes(Phi, -1, -2) + Q
 
 
 def kalman_gain(P1, C, R):
@@ -117,21 +64,39 @@ def kalman_gain(P1, C, R):
     With the DARE solution ``P`` (a-priori, see :func:`dare`) this is the steady-state gain.
     """
     CP1 = C @ P1
-    return _solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
+    return solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
 
 
-def update_covariance(P1, C, R):
-    """Measurement update in Joseph form: returns ``(P, K)`` (eq. 27 and 29).
+class CovarianceUpdate(NamedTuple):
+    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs)."""
 
-    ``P = (I - K C) P1 (I - K C)' + K R K'``: a congruence plus a PSD term, so ``P`` stays symmetric
-    positive semidefinite in floating point even for very precise measurements (the expanded
-    form ``P1 - K C P1 - ...`` cancels at the scale of ``P1`` and can turn indefinite). With fewer
-    outputs than half the states, each factor is applied as a rank-m correction,
-    ``(I - K C) X = X - K (C X)``: the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``.
+    P: jax.Array  # (n, n) a-posteriori covariance
+    K: jax.Array  # (n, p) Kalman gain
+    S: jax.Array  # (p, p) innovation covariance C P1 C' + R
+    S_chol: jax.Array  # (p, p) its lower Cholesky factor
+
+
+def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
+    """Measurement update with the innovation covariance and its Cholesky factor (eq. 27 and 29).
+
+    ``S = C P1 C' + R`` is factored once (``S = L L'``) and the factor serves the gain ``K = P1 C' S^{-1}`` and
+    the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``).
+
+    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'``, a congruence plus a PSD term, so ``P``
+    stays symmetric positive semidefinite in floating point even for very precise measurements. With fewer
+    outputs than half the states, each factor is applied as a rank-m correction, ``(I - K C) X = X - K (C X)``:
+    the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
+    ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
+    symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
+    the prior, where it can lose definiteness.
     """
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
-    K = _solve_spd(S, CP1).T
+    S_chol = cholesky(S)
+    if not joseph:
+        W = solve_lower(S_chol, CP1)
+        return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
+    K = cho_solve(S_chol, CP1).T
     n, m = C.shape[-1], C.shape[-2]
     if 2 * m < n:
         left = P1 - K @ CP1  # (I - K C) P1
@@ -139,7 +104,14 @@ def update_covariance(P1, C, R):
     else:
         IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
         congruence = IKC @ P1 @ IKC.T
-    return symmetrize(congruence + K @ R @ K.T), K
+    return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)
+
+
+def update_covariance(P1, C, R):
+    """Measurement update in Joseph form: returns ``(P, K)`` (eq. 27 and 29); see
+    :func:`update_covariance_factors`."""
+    P, K, _, _ = update_covariance_factors(P1, C, R)
+    return P, K
 
 
 def riccati_step(P_prev, Phi, C, Q, R):
@@ -287,7 +259,7 @@ def _doubling(A, G, H, max_iters):
 
     def body(carry):
         A, G, H, it = carry
-        X = _small_solve(eye + G @ H, jnp.concatenate([A, G], axis=1))  # W^-1 [A, G]
+        X = small_solve(eye + G @ H, jnp.concatenate([A, G], axis=1))  # W^-1 [A, G]
         AX = A @ X
         A_new = AX[:, :n]
         G_new = symmetrize(G + AX[:, n:] @ A.T)
@@ -392,7 +364,7 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     dtype = A.dtype
     eps = jnp.finfo(dtype).eps
     q_scale = jnp.max(jnp.abs(Q))
-    g_scale = jnp.max(jnp.abs(B @ _solve_spd(R, B.T)))
+    g_scale = jnp.max(jnp.abs(B @ solve_spd(R, B.T)))
     scale = jnp.where(q_scale > 0, q_scale, jnp.where(g_scale > 0, 1.0 / g_scale, 1.0))
     H = symmetrize(Q) + 4 * n * eps * scale * jnp.eye(n, dtype=dtype)
     bq = jnp.max(jnp.abs(B.T @ B)) * q_scale
@@ -427,7 +399,7 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     def attempt(carry):
         *_, j = carry
         R_reg = R + jnp.where(j > 0, bq / jnp.asarray((1.0,) + _KAPPAS, dtype)[j], 0.0) * jnp.eye(m, dtype=dtype)
-        X = _doubling(A, B @ _solve_spd(R_reg, B.T), H, max_iters)
+        X = _doubling(A, B @ solve_spd(R_reg, B.T), H, max_iters)
         inf, nan, zero = jnp.asarray(jnp.inf, dtype), jnp.asarray(jnp.nan, dtype), jnp.asarray(0)
         c = _Newton(X, jnp.zeros_like(X), inf, inf, nan, zero, jnp.asarray(False), zero, R_reg)
         c = jax.lax.while_loop(another_round, newton_round, c)
@@ -455,7 +427,7 @@ def _stalled(size, previous):
 def _gain(A, B, R, X):
     """``K = (R + B'XB)^{-1} B'XA``."""
     XB = X @ B
-    return _solve_spd(symmetrize(R + B.T @ XB), XB.T @ A)
+    return solve_spd(symmetrize(R + B.T @ XB), XB.T @ A)
 
 
 def _next_residual(B, R, F, X_new, N, rounding, K, Ac, dR):
@@ -473,7 +445,7 @@ def _next_residual(B, R, F, X_new, N, rounding, K, Ac, dR):
     D = B.T @ N @ Ac + dR @ K
     S = symmetrize(R + B.T @ X_new @ B)
     smith_error = F - (N - Ac.T @ N @ Ac)
-    return symmetrize(smith_error - D.T @ _solve_spd(S, D) + (rounding - Ac.T @ rounding @ Ac))
+    return symmetrize(smith_error - D.T @ solve_spd(S, D) + (rounding - Ac.T @ rounding @ Ac))
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(4,))
@@ -680,7 +652,7 @@ def _cayley(A, gamma):
     inside the unit circle for ``Re mu < 0``, near its centre for ``|mu|`` near ``gamma``)."""
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
-    M = _small_solve(A - gamma * eye, eye)
+    M = small_solve(A - gamma * eye, eye)
     return eye + 2 * gamma * M, M
 
 
@@ -759,7 +731,7 @@ def _care_terms(A, B, Q, R, X):
     ``K = R^{-1} B' X``: ``F = A_c' X + X A_c + K' R K + Q`` with ``A_c = A - B K``; its terms cancel to ``|F|``, so it
     is evaluated in double-word arithmetic (:func:`_dot2`) and rounded once. Returns ``(F, K, A_c, size)``, ``size``
     the largest of the terms ``max|Q|``, ``2 max|XA|``, ``max|XGX|`` (the scale of the relative residual)."""
-    K = _solve_spd(symmetrize(R), B.T @ X)
+    K = solve_spd(symmetrize(R), B.T @ X)
     BK, BK_lo = _dot2(B, K)
     Ac, t = _two_sum(A, -BK)
     Ac, Ac_lo = _two_sum(Ac, t - BK_lo)  # A - B K, double-word
@@ -791,7 +763,7 @@ def _care_to_dare(A, B, Q, R, gamma):
     Z = M @ B
     QM = Q @ M  # Q A_g^{-1}
     Rd = symmetrize(R + Z.T @ Q @ Z)
-    W = _solve_spd(Rd, Z.T @ QM)  # R_d^{-1} Z' Q A_g^{-1}
+    W = solve_spd(Rd, Z.T @ QM)  # R_d^{-1} Z' Q A_g^{-1}
     Qd = symmetrize(2 * gamma * (M.T @ QM - QM.T @ Z @ W))
     Ad = Ad0 - 2 * gamma * Z @ W
     return Ad, jnp.sqrt(2 * gamma) * Z, Qd, Rd
@@ -825,7 +797,7 @@ def _solve_care(A, B, Q, R, max_iters):
     """
     dtype = A.dtype
     eps = jnp.finfo(dtype).eps
-    G = B @ _solve_spd(symmetrize(R), B.T)
+    G = B @ solve_spd(symmetrize(R), B.T)
     gamma = _care_shift(A, G, Q)
     X0 = symmetrize(_solve_control_dare(*_care_to_dare(A, B, Q, R, gamma), max_iters, _NEWTON_STEPS)[0])
     q_scale = jnp.max(jnp.abs(Q))
@@ -870,7 +842,7 @@ def _care_jvp(max_iters, primals, tangents):
     A, B, Q, R = primals
     dA, dB, dQ, dR = tangents
     X, residual, found = _care(A, B, Q, R, max_iters)
-    K = _solve_spd(symmetrize(R), B.T @ X)
+    K = solve_spd(symmetrize(R), B.T @ X)
     Ac = A - B @ K
     M = X @ (dA - dB @ K)
     E = M + M.T + K.T @ dR @ K + dQ

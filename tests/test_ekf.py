@@ -237,6 +237,10 @@ def test_bad_inputs_raise_naming_the_argument():
         jo.make_ekf(model, iterations=0)
     with pytest.raises(ValueError, match="bierman must be a bool"):
         jo.make_ekf(model, bierman="yes")
+    with pytest.raises(ValueError, match="joseph must be a bool"):
+        jo.make_ekf(model, joseph=1)
+    with pytest.raises(ValueError, match="choose one covariance update"):
+        jo.make_ekf(model, bierman=True, joseph=False)
     with pytest.raises(ValueError, match="model must be a NonlinearModel"):
         jo.make_ekf(problem)
     with pytest.raises(ValueError, match="gate must be finite and positive"):

@@ -488,7 +488,29 @@ def test_make_kalman_rejects_bad_input():
         make_kalman(model["Phi"], np.ones((2, 4)), model["Q"], model["R"], Gamma=model["Gamma"])
     with pytest.raises(ValueError, match=r"^Phi\b.*\(3, 2\)"):
         make_kalman(np.ones((3, 2)), model["C"], model["Q"], model["R"], Gamma=model["Gamma"])
+    with pytest.raises(ValueError, match="joseph must be a bool"):
+        params_of(model, joseph="no")
     assert isinstance(params_of(model), KalmanParams)
+
+
+def test_standard_form_filter_equals_the_joseph_filter_under_jit_vmap_grad():
+    """``joseph=False`` runs the same filter (means, covariances, log-likelihood to 1e-10), eagerly, vmapped over
+    two noise scales, and its log-likelihood gradient in a Q scale equals the Joseph filter's."""
+    model, u, y, _ = make_problem(12, T=25)
+    inputs = inputs_of(u, y)
+
+    def log_likelihood(q, joseph):
+        params = params_of(dict(model, Q=q * model["Q"]), joseph=joseph)
+        return jnp.sum(run(kalman_filter, params, inputs)[1].log_likelihood)
+
+    joseph, standard = (run(kalman_filter, params_of(model, joseph=j), inputs)[1] for j in (True, False))
+    for name in ("x", "S", "log_likelihood"):
+        np.testing.assert_allclose(getattr(standard, name), getattr(joseph, name), rtol=1e-10, atol=1e-12)
+    scales = jnp.array([0.5, 2.0])
+    batched = {j: jax.jit(jax.vmap(lambda q, j=j: log_likelihood(q, j)))(scales) for j in (True, False)}
+    np.testing.assert_allclose(batched[False], batched[True], rtol=1e-10)
+    grads = {j: jax.grad(log_likelihood)(1.3, j) for j in (True, False)}
+    np.testing.assert_allclose(grads[False], grads[True], rtol=1e-8)
 
 
 def test_square_root_filter_gradients_finite_with_singular_covariances():

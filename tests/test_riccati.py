@@ -315,23 +315,6 @@ def test_covariance_sequence_converges_to_dare():
     np.testing.assert_allclose(seq.P_prior[0], Phi @ Q @ Phi.T + Q, rtol=1e-13)
 
 
-@pytest.mark.parametrize("n", [1, 3, 10, 16, 17])
-def test_small_matmul_and_solve_equal_numpy_on_both_sides_of_the_unrolling_limit(n):
-    """The batched products and solves of the filter and the SDA (fused outer-product sums and substitution
-    sweeps up to 16 unknowns, ``@`` and ``jnp.linalg.solve`` above) equal NumPy's, eagerly, under jit and vmap."""
-    from jaxobs.riccati import _small_matmul, _small_solve
-
-    rng = np.random.default_rng(n)
-    A, B = rng.normal(size=(2, 5, n, n))
-    W = rng.normal(size=(5, n, n)) + n * np.eye(n) * rng.choice([-1.0, 1.0], size=(5, 1, 1))
-    W = W[:, rng.permutation(n)]  # rows out of order: partial pivoting matters
-    X = rng.normal(size=(5, n, 2 * n))
-    for matmul in (_small_matmul, jax.jit(_small_matmul), jax.vmap(_small_matmul)):
-        np.testing.assert_allclose(matmul(A, B), A @ B, rtol=1e-12, atol=1e-12)
-    for solve in (_small_solve, jax.jit(_small_solve), jax.vmap(_small_solve)):
-        np.testing.assert_allclose(solve(W, X), np.linalg.solve(W, X), rtol=1e-10, atol=1e-12)
-
-
 @given(
     n=st.sampled_from([2, 3, 6]),
     m=st.sampled_from([1, 2]),

@@ -45,15 +45,18 @@ def test_equals_dynamax_ukf(make_problem, monkeypatch):
 
 def test_linear_model_equals_the_kalman_filter():
     """The unscented transform is exact for linear maps: on a linear model the UKF is the Kalman filter, missing
-    components included (to rounding)."""
+    components included (to rounding), in both covariance forms."""
     problem, A, B, C = linear_problem()
-    state, out = jo.run(jo.unscented_kalman_filter, jo.make_ukf(problem.model()), problem.inputs())
-    kf = jo.make_kalman(A, C, problem.Q, problem.R, Gamma=B, x0=problem.x0, P0=problem.P0)
-    kf_state, kf_out = jo.run(jo.kalman_filter, kf, problem.inputs())
-    for name in ("x", "x_prior", "innovation", "gain"):
-        np.testing.assert_allclose(getattr(out, name), getattr(kf_out, name), rtol=1e-10, atol=1e-12, err_msg=name)
-    np.testing.assert_allclose(state.P, kf_state.P, rtol=1e-10, atol=1e-13)
-    assert int(state.missing) == int(kf_state.missing) == 4
+    for joseph in (True, False):
+        params = jo.make_ukf(problem.model(), joseph=joseph)
+        state, out = jo.run(jo.unscented_kalman_filter, params, problem.inputs())
+        kf = jo.make_kalman(A, C, problem.Q, problem.R, Gamma=B, x0=problem.x0, P0=problem.P0)
+        kf_state, kf_out = jo.run(jo.kalman_filter, kf, problem.inputs())
+        for name in ("x", "x_prior", "innovation", "gain"):
+            np.testing.assert_allclose(getattr(out, name), getattr(kf_out, name), rtol=1e-10, atol=1e-12,
+                                       err_msg=name)  # fmt: skip
+        np.testing.assert_allclose(state.P, kf_state.P, rtol=1e-10, atol=1e-13)
+        assert int(state.missing) == int(kf_state.missing) == 4
 
 
 def test_continuous_discrete_linear_model_equals_the_exact_discretisation():
@@ -179,5 +182,7 @@ def test_bad_inputs_raise_naming_the_argument():
                                        P0=np.diag([1.0, 0.0]), n_inputs=1))  # fmt: skip
     with pytest.raises(ValueError, match="iterations must be an integer >= 1"):
         jo.make_ukf(model, iterations=0)
+    with pytest.raises(ValueError, match="joseph must be a bool"):
+        jo.make_ukf(model, joseph=0)
     with pytest.raises(ValueError, match="model must be a NonlinearModel"):
         jo.make_ukf(problem)

@@ -45,15 +45,19 @@ class EKFParams:
       iterations: static number of Gauss-Newton updates per sample (1: the plain EKF).
       bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
       gate: ``None`` (no gate) or the innovation gate in standard deviations (a leaf).
+      joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
+        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
     """
 
     model: NonlinearModel
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
     bierman: bool = dataclasses.field(default=False, metadata=dict(static=True))
     gate: jax.Array | None = None
+    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
 
-def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False, gate=None) -> EKFParams:
+def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False, gate=None,
+             joseph: bool = True) -> EKFParams:  # fmt: skip
     """The extended Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
 
     Args:
@@ -64,6 +68,8 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
       gate: ``None`` (default, every finite measurement is used) or a threshold (> 0, in standard deviations):
         a component whose innovation exceeds ``gate sqrt(S_ii)``, ``S = H P_prior H' + R``, is skipped as an
         outlier (:func:`jaxobs.kalman_steps.innovation_gate`) and counted in ``state.gated``.
+      joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
+        step, positive semidefinite only to rounding. Not with ``bierman``.
 
     Example:
       >>> import jax.numpy as jnp
@@ -77,11 +83,14 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
     if not isinstance(model, NonlinearModel):
         raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
-    if not isinstance(bierman, bool):
-        raise ValueError(f"bierman must be a bool, got {bierman!r}")
+    for name, flag in (("bierman", bierman), ("joseph", joseph)):
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name} must be a bool, got {flag!r}")
+    if bierman and not joseph:
+        raise ValueError("bierman=True and joseph=False: choose one covariance update (Bierman's keeps its factors)")
     if gate is not None:
         _checks.positive("gate", gate, what="an innovation gate in standard deviations")
-    return EKFParams(model, iterations, bierman, gate)
+    return EKFParams(model, iterations, bierman, gate, joseph)
 
 
 def taylor(g, m, P) -> Linearization:
@@ -98,9 +107,8 @@ def taylor(g, m, P) -> Linearization:
 
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
-    return gaussian_step(
-        taylor, params.iterations, params.model, state, inputs, bierman=params.bierman, gate=params.gate
-    )
+    return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman,
+                         gate=params.gate, joseph=params.joseph)  # fmt: skip
 
 
 extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)

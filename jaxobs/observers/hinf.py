@@ -59,9 +59,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs._linalg import solve_spd
 from jaxobs.kalman_steps import predict, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import _solve_spd, is_stable, predict_covariance, symmetrize, update_covariance
+from jaxobs.riccati import is_stable, predict_covariance, symmetrize, update_covariance
 
 __all__ = [
     "HinfParams",
@@ -218,7 +219,7 @@ def hinf_correction(P, Cz, gamma):
     margin = jnp.linalg.eigvalsh(jax.lax.stop_gradient(M))[0]
     ok = margin > 0
     M_safe = jnp.where(ok, M, eye)
-    correction = theta * (LP.T @ _solve_spd(M_safe, LP))
+    correction = theta * (LP.T @ solve_spd(M_safe, LP))
     Pb = symmetrize(P + jnp.where(ok, correction, jnp.zeros_like(correction)))
     return Pb, margin, ok
 

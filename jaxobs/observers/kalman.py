@@ -63,6 +63,8 @@ class KalmanParams:
       output_covariance: static; every step also outputs the a-posteriori and a-priori covariances ``P``,
         ``P_prior`` (what the smoothers need): ``2 T n^2`` more numbers over ``T`` steps (16 MB for ``n = 10``,
         ``T = 10^4`` in float64). Time-varying gain only (a fixed gain propagates no covariance).
+      joseph: static; the covariance update in Joseph form (default), else the standard form, faster and
+        positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
     """
 
     Phi: jax.Array
@@ -75,6 +77,7 @@ class KalmanParams:
     gain: jax.Array | None = None
     gain_converged: jax.Array | None = None
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
 
 class KalmanState(NamedTuple):
@@ -96,7 +99,8 @@ class KalmanOutputs(NamedTuple):
     P_prior: jax.Array | None = None  # (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
 
 
-def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False) -> KalmanParams:
+def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False,
+                joseph: bool = True) -> KalmanParams:  # fmt: skip
     """Build and check :class:`KalmanParams`.
 
     Args:
@@ -104,6 +108,8 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       Gamma: (n, m) input matrix; ``None`` for a model without inputs.
       x0: (n,) prior mean of ``x_0`` (default zeros).  P0: (n, n) prior covariance of ``x_0`` (default ``Q``).
       steady_state: use the steady-state gain (:func:`with_steady_state_gain`).
+      joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
+        step, positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
 
     All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
     becomes float64), so the filter's state keeps one dtype over a run.
@@ -127,7 +133,9 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
     _checks.covariance("R", R, definite=True, size=C.shape[0])
     _checks.covariance("P0", P0, definite=False, size=n)
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
-    params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype))
+    if not isinstance(joseph, bool):
+        raise ValueError(f"joseph must be a bool, got {joseph!r}")
+    params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype), joseph=joseph)
     return with_steady_state_gain(params) if steady_state else params
 
 
@@ -167,7 +175,8 @@ def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
     if gain is not None:
         _require_time_varying(params, "a fixed-gain filter")
     x_prior, P_prior = predict(state.x, P, params.Phi, params.Q, params.Gamma, u_prev, skip=~state.started)
-    result = update(x_prior, state.P if P_prior is None else P_prior, params.C, params.R, y, gain)
+    result = update(x_prior, state.P if P_prior is None else P_prior, params.C, params.R, y, gain,
+                    joseph=params.joseph)  # fmt: skip
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = KalmanState(result.x, result.P, jnp.ones((), bool), missing)
     converged = jnp.asarray(True) if params.gain_converged is None else params.gain_converged
@@ -278,6 +287,7 @@ class SquareRootKalmanParams:
     x0: jax.Array
     P0_sqrt: jax.Array
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
 
 class SquareRootKalmanState(NamedTuple):

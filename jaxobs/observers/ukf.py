@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
+from jaxobs._linalg import cho_solve, cholesky
 from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.riccati import symmetrize
@@ -48,6 +49,8 @@ class UKFParams:
         (2 is optimal for a Gaussian).  kappa: () secondary scaling (``n + kappa > 0``). The three are leaves:
         they may be traced, batched or differentiated.
       iterations: static number of updates per sample (1: the plain UKF).
+      joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
+        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
     """
 
     model: NonlinearModel
@@ -55,10 +58,11 @@ class UKFParams:
     beta: jax.Array
     kappa: jax.Array
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
+    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
 
 def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta=None, kappa=None,
-             iterations: int = 1) -> UKFParams:  # fmt: skip
+             iterations: int = 1, joseph: bool = True) -> UKFParams:  # fmt: skip
     """The unscented Kalman filter of ``model`` (:func:`jaxobs.nonlinear.nonlinear_model`).
 
     Args:
@@ -67,6 +71,8 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
       alpha: sigma-point spread (> 0).  beta: centre weight correction.  kappa: secondary scaling
         (``n + kappa > 0``); each ``None`` for the rule's default.
       iterations: number of updates per sample (an integer >= 1; 1 is the plain UKF).
+      joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
+        step, positive semidefinite only to rounding.
 
     Example:
       >>> import jax.numpy as jnp
@@ -100,7 +106,9 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
                              f"got {float(values['kappa'])}")  # fmt: skip
     _checks.covariance("model.P0", model.P0, definite=True)
     iterations = _checks.count("iterations", iterations, minimum=1, hint="updates per sample")
-    return UKFParams(model, values["alpha"], values["beta"], values["kappa"], iterations)
+    if not isinstance(joseph, bool):
+        raise ValueError(f"joseph must be a bool, got {joseph!r}")
+    return UKFParams(model, values["alpha"], values["beta"], values["kappa"], iterations, joseph)
 
 
 def sigma_points(m, P, alpha, beta, kappa):
@@ -111,7 +119,7 @@ def sigma_points(m, P, alpha, beta, kappa):
       (n, n) lower Cholesky factor of ``P``.
     """
     n = m.shape[0]
-    L = jnp.linalg.cholesky(P)
+    L = cholesky(P)
     c2 = alpha**2 * (n + kappa)
     offsets = jnp.sqrt(c2) * jnp.concatenate([jnp.zeros((1, n), m.dtype), L.T, -L.T])
     wm = jnp.concatenate([jnp.reshape(1 - n / c2, (1,)), jnp.full((2 * n,), 1 / (2 * c2))]).astype(m.dtype)
@@ -127,7 +135,7 @@ def unscented(g, m, P, alpha, beta, kappa) -> Linearization:
     dX, dY = X - m, Y - mean
     C = (wc[:, None] * dX).T @ dY  # (n, k) cross-covariance
     cov = (wc[:, None] * dY).T @ dY  # (k, k)
-    G = jax.scipy.linalg.cho_solve((L, True), C).T
+    G = cho_solve(L, C).T
     return Linearization(mean, G, symmetrize(cov - G @ C))
 
 
@@ -135,7 +143,7 @@ def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
     def linearize(g, m, P):
         return unscented(g, m, P, params.alpha, params.beta, params.kappa)
 
-    return gaussian_step(linearize, params.iterations, params.model, state, inputs)
+    return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph)
 
 
 unscented_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
