@@ -40,11 +40,6 @@ def _check_agreement(summary, workloads):
             assert record["agrees"], (r["cell"], peer, record["max_relative_difference"])
 
 
-def test_linear_and_nonlinear_smallest_grid(estimation, tmp_path):
-    """The Kalman filter and the EKF against dynamax and cuthbert (a linear and a nonlinear path)."""
-    _check_agreement(_run(estimation, tmp_path, ["filter", "ekf"]), ["filter", "ekf"])
-
-
 @pytest.mark.slow
 def test_every_workload_smallest_grid(estimation, tmp_path):
     _check_agreement(_run(estimation, tmp_path, list(estimation.WORKLOADS)), estimation.WORKLOADS)

@@ -493,9 +493,10 @@ def test_make_kalman_rejects_bad_input():
     assert isinstance(params_of(model), KalmanParams)
 
 
-def test_standard_form_filter_equals_the_joseph_filter_under_jit_vmap_grad():
-    """``joseph=False`` runs the same filter (means, covariances, log-likelihood to 1e-10), eagerly, vmapped over
-    two noise scales, and its log-likelihood gradient in a Q scale equals the Joseph filter's."""
+def test_standard_form_filter_equals_the_joseph_filter_under_jit_and_grad():
+    """``joseph=False`` runs the same filter (means, innovation covariances, log-likelihood to 1e-10), and under
+    jit its log-likelihood gradient in a Q scale equals the Joseph filter's (a static flag: the transformations
+    are those of the default filter, tested above)."""
     model, u, y, _ = make_problem(12, T=25)
     inputs = inputs_of(u, y)
 
@@ -506,10 +507,7 @@ def test_standard_form_filter_equals_the_joseph_filter_under_jit_vmap_grad():
     joseph, standard = (run(kalman_filter, params_of(model, joseph=j), inputs)[1] for j in (True, False))
     for name in ("x", "S", "log_likelihood"):
         np.testing.assert_allclose(getattr(standard, name), getattr(joseph, name), rtol=1e-10, atol=1e-12)
-    scales = jnp.array([0.5, 2.0])
-    batched = {j: jax.jit(jax.vmap(lambda q, j=j: log_likelihood(q, j)))(scales) for j in (True, False)}
-    np.testing.assert_allclose(batched[False], batched[True], rtol=1e-10)
-    grads = {j: jax.grad(log_likelihood)(1.3, j) for j in (True, False)}
+    grads = {j: jax.jit(jax.grad(log_likelihood), static_argnums=1)(1.3, j) for j in (True, False)}
     np.testing.assert_allclose(grads[False], grads[True], rtol=1e-8)
 
 

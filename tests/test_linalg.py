@@ -24,7 +24,7 @@ def test_small_solve_equals_numpy(n):
         np.testing.assert_allclose(solve(W, X), np.linalg.solve(W, X), rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("n", [1, 2, FACTOR_UNROLL_MAX, FACTOR_UNROLL_MAX + 1])
+@pytest.mark.parametrize("n", [1, FACTOR_UNROLL_MAX, FACTOR_UNROLL_MAX + 1])
 def test_cholesky_and_solves_equal_numpy(n):
     rng = np.random.default_rng(n)
     S = _spd(rng, 4, n)

@@ -74,6 +74,7 @@ def test_mismatch_scales_the_named_rows_and_vmaps(cart):
     np.testing.assert_allclose(batch.actuator_gear, scales[:, None, None] * model.actuator_gear[None])
 
 
+@pytest.mark.slow
 def test_linearize_matches_mujoco_finite_differences(cart):
     """Phi, Gamma, C by jax.jacfwd of mjx.step against MuJoCo's own centred finite differences
     (mjd_transitionFD) chained over the two physics steps, at a point off the equilibrium."""

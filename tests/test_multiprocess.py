@@ -271,6 +271,7 @@ def tuned_mjx(tmp_path_factory):
     return result
 
 
+@pytest.mark.slow
 def test_tune_in_two_processes_matches_one_process(tuned, tmp_path):
     """2 processes of one CPU device (3 training plants padded to 4 rows): the parameter history, objectives and
     held-out losses of one device; only process 0 writes the checkpoint."""

@@ -40,6 +40,7 @@ def test_registry_names():
     }
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_example1_outputs_written(example1):
     out, summary = example1
     data = json.loads((out / "cortesao2006-example1.json").read_text())
@@ -50,12 +51,14 @@ def test_example1_outputs_written(example1):
     assert (out / "cortesao2006-example1.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_eq83_state_feedback_gain_all_seven_to_4_decimals(example1):
     """Cortesão 2006 eq. 83: L_r = [0.1148 -0.0717 -0.0615 -0.0797 -0.1031 -0.1332 -0.1718]."""
     _, summary = example1
     np.testing.assert_array_equal(np.round(summary["L_r"], 4), cortesao2006.PRINTED_L_R)
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_table1_kalman_gains_nominal_within_1e_3(example1):
     """Cortesão 2006 Table I with R = 2.1e-2 as printed: max abs error 9.9e-4 (about 0.1 %), the README's figure."""
     _, summary = example1
@@ -65,6 +68,7 @@ def test_table1_kalman_gains_nominal_within_1e_3(example1):
     pin(summary["kalman_gains_max_abs_error"], r"Table I steady-state gains within ([0-9.e-]+) \(max abs\)")
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_table1_kalman_gains_with_the_fitted_sigma2_over_r(example1):
     """A fit, not a reproduction: sigma^2/R scaled by SIGMA2_OVER_R_FIT = 0.99795 (R = 0.021043 unrounded), the
     factor that minimises the max abs error against the printed Table I (moving it by 1e-4 either way raises the
@@ -90,6 +94,7 @@ def test_table1_kalman_gains_with_the_fitted_sigma2_over_r(example1):
     pin(fit["gains"]["AOB-2"][5], r"rounding boundary, ([0-9.]+) vs printed 0\.4643")
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_force_tracking_improves_with_aob_order(example1):
     """Cortesão 2006 §7.2: "the improvement of the force response as the AOB order increases" under D(t)
     of eq. 81-82, and every AOB beats the sensor-based CKF. The RMS errors the README prints are regression
@@ -103,6 +108,7 @@ def test_force_tracking_improves_with_aob_order(example1):
         pin(e[name], pattern, group)
 
 
+@pytest.mark.slow  # the reproduction's shared run (~30 s)
 def test_noise_sensitivity_grows_with_order(example1):
     """Cortesão 2006 §7.2: the gains increase with the order, 'being more sensitive to noise'."""
     _, summary = example1

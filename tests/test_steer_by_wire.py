@@ -50,6 +50,7 @@ def test_sbw_realisation_equals_eq95_99():
     np.testing.assert_allclose(got, printed, rtol=4e-15, atol=1e-15 * np.max(np.abs(printed)))
 
 
+@pytest.mark.slow
 def test_readme_realisation_figure(results):
     """The README's "transfer functions equal to 4e-16": the reproduction's max relative error of both models."""
     realisation = results["realisation"]
