@@ -31,7 +31,7 @@ def _restore_jax_config():
             jax.config.update(name, _SESSION_CONFIG[name])
 
 
-MAX_MAPPINGS = 20_000  # before the next test file; one file adds at most ~8 000
+MAX_MAPPINGS = 35_000  # before the next test file; one file adds at most ~8 000, the limit is 65 530
 
 
 def _mappings() -> int:

@@ -108,6 +108,7 @@ def test_importing_jaxobs_starts_no_backend():
     subprocess.run([sys.executable, "-c", code], env=_env(1), check=True, timeout=120, capture_output=True)
 
 
+@pytest.mark.slow  # ~11 s: three processes
 def test_two_processes_match_one_process_and_only_process_0_writes(reference, tmp_path):
     out = tmp_path / "sweep"
     results = _finish(_launch(2, out, devices=2))

@@ -87,6 +87,7 @@ def _aob3_loop(Ks, Tp, dead_time):
     return true, _aob(plant, L_r, 3)
 
 
+@pytest.mark.slow  # ~10 s of compilation
 def test_closed_loop_matrix_is_what_the_simulated_aob_does():
     """The [x; x_hat] recursion of the simulated AOB-3 (closed_loop.simulate) is the matrix of eq. 59,
     also for a true plant with a longer, fractional dead time than the nominal one."""
@@ -199,6 +200,7 @@ def test_gain_margin_puts_a_closed_loop_pole_on_the_unit_circle():
     assert checked > 30
 
 
+@pytest.mark.slow  # ~13 s; the margins are checked in the default set on the other loops
 def test_phase_margin_matches_its_definition():
     """|H(w_gc)| = 1 and angle(-H(w_gc)) = phase margin at the reported gain crossover."""
     for A, B, C, _ in _random_loops(15, seed=6):

@@ -72,6 +72,7 @@ def test_traced_steady_state_flag_is_stored_and_reported_by_every_step():
     assert bool(np.all(out.converged))
 
 
+@pytest.mark.slow  # ~10 s: float32 and float64 designs
 def test_make_aob_float32_raises_and_float64_matches():
     """The AOB designs of Cortesão 2006 Example 1 (Q entries 1e-12 next to 1e-3): AOB-3 built in float32 raises
     ValueError telling to enable float64 (before, it silently got gains of 1e-10 instead of 0.17, 1.95, ...); AOB-1

@@ -138,6 +138,7 @@ def test_resume_recomputes_missing_truncated_and_corrupt_chunks(reference, tmp_p
     assert _run(out).chunks_computed == 0
 
 
+@pytest.mark.slow  # ~12 s: two CLI processes
 def test_sigkill_mid_sweep_then_resume_is_bit_identical(reference, tmp_path):
     out = tmp_path / "sweep"
     proc = _subprocess(out, env={"SWEEP_SLEEP": "0.4"})  # every chunk sleeps in a host callback

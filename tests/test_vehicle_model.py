@@ -109,7 +109,8 @@ def test_vehicle_parameters_batch_under_vmap():
         np.testing.assert_allclose(batched[i], run(single), rtol=1e-10)
 
 
-@pytest.mark.parametrize("mode", [jax.jacfwd, pytest.param(jax.grad, marks=pytest.mark.slow)], ids=["fwd", "rev"])
+@pytest.mark.slow  # ~12 s per mode: the vehicle observers' gradient tests run in the default set
+@pytest.mark.parametrize("mode", [jax.jacfwd, jax.grad], ids=["fwd", "rev"])
 def test_gradient_through_a_simulation_matches_central_differences(mode):
     """d v_y(0.2 s) / d mass and / d front cornering stiffness through the RK4 scan, forward and reverse mode,
     against central differences."""
