@@ -74,7 +74,7 @@ def test_mismatch_scales_the_named_rows_and_vmaps(cart):
     np.testing.assert_allclose(batch.actuator_gear, scales[:, None, None] * model.actuator_gear[None])
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # ~15 s: MJX derivatives in both libraries
 def test_linearize_matches_mujoco_finite_differences(cart):
     """Phi, Gamma, C by jax.jacfwd of mjx.step against MuJoCo's own centred finite differences
     (mjd_transitionFD) chained over the two physics steps, at a point off the equilibrium."""
@@ -105,7 +105,7 @@ def _runs(cart, params, payload, keys):
     return jax.vmap(one)(payload, keys)
 
 
-@pytest.mark.slow  # MJX closed-loop compile; the linearisation is checked in the default set
+@pytest.mark.slow  # MJX closed-loop compile
 def test_lqg_on_the_linearisation_moves_the_cart_for_any_payload(cart):
     """The LQG designed on the nominal linearisation (0.5 kg payload, one period of dead time) brings the cart to
     the 0.5 m set-point with the pole still for a 4x lighter and a 2x heavier payload; the sensor noise the

@@ -200,7 +200,7 @@ def test_gain_margin_puts_a_closed_loop_pole_on_the_unit_circle():
     assert checked > 30
 
 
-@pytest.mark.slow  # ~13 s; the margins are checked in the default set on the other loops
+@pytest.mark.slow  # ~13 s of compilation
 def test_phase_margin_matches_its_definition():
     """|H(w_gc)| = 1 and angle(-H(w_gc)) = phase margin at the reported gain crossover."""
     for A, B, C, _ in _random_loops(15, seed=6):
