@@ -240,7 +240,7 @@ def estimate(vehicle: VehicleParams | None = None, manoeuvres=None) -> Estimates
                            x=state.x.at[j, 2].set(THETA0_STRAIGHT).at[j, 1].set(-VY0_ERROR))  # fmt: skip
     _, nv = _run_nvso(params, state, y[jnp.asarray(rows)])
     m = len(manoeuvres)
-    ekf_params = _stack([make_vehicle_ekf(vehicle, vx0=float(v)) for v in vx0[:m]])
+    ekf_params = _stack([make_vehicle_ekf(vehicle)] * m)  # its v_x starts from the first v_x,ref
     _, ekf = _run_ekf(ekf_params, y[:m])
     inputs = {"nvso": (params, state, y[jnp.asarray(rows)]), "ekf": (ekf_params, y[:m])}
     return Estimates(manoeuvres, drives, names, runs, tr, meas, nv, ekf, inputs)
@@ -368,7 +368,7 @@ def assumed(vehicle: VehicleParams) -> dict:
     return {
         "vehicle": dataclasses.asdict(vehicle),
         "nvso": {k: v for k, v in make_nvso(vehicle)._asdict().items() if k not in ("vehicle", "vx0")},
-        "nvso_vx0": "the first v_x,ref sample of each drive",
+        "nvso_vx0": "the first v_x,ref sample of each drive (the EKF starts from it by itself)",
         "ekf": {**{k: p.default for k, p in inspect.signature(make_vehicle_ekf).parameters.items()
                     if k not in ("vehicle", "vx0", "switching")},
                 "update": "Joseph (bierman = False)",

@@ -158,11 +158,8 @@ def make_sweep(config: dict):
         sensors = SensorParams(bias_ax=p["acc_bias"], bias_ay=p["acc_bias"], drift_acc=p["drift"])
         meas = measure(tr, truth, sensors, jax.random.key(p["noise_seed"]))
         inputs = sensor_inputs(meas)
-        vx0 = meas.vx_ref[0]
-        _, out_n = run_observer(nvso, nvso_params._replace(vx0=vx0), inputs)
-        model = dataclasses.replace(ekf_params.ekf.model, x0=ekf_params.ekf.model.x0.at[0].set(vx0))
-        ekf = dataclasses.replace(ekf_params, ekf=dataclasses.replace(ekf_params.ekf, model=model))
-        _, out_e = run_observer(vehicle_ekf, ekf, inputs)
+        _, out_n = run_observer(nvso, nvso_params._replace(vx0=meas.vx_ref[0]), inputs)
+        _, out_e = run_observer(vehicle_ekf, ekf_params, inputs)  # starts from the first v_x,ref itself
         samples = jax.tree_util.tree_map(lambda a: a[::10], tr)  # the plant at the sensor times
         beta = samples.beta
         bank = jnp.cos(samples.inputs.inclination) * jnp.sin(samples.inputs.bank)
