@@ -107,8 +107,11 @@ def _log_normal(innovation, S_sqrt, n_observed):
     return -0.5 * (n_observed * math.log(2.0 * math.pi) + log_det + z @ z)
 
 
-def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True) -> Update:
+def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predicted=None) -> Update:
     """Measurement update of ``(x_prior, P_prior)`` with ``y`` (p,); non-finite components are missing.
+
+    ``predicted`` (p,): the predicted measurement, ``C x_prior`` by default; a nonlinear filter passes its
+    linearisation's ``h_bar`` (the innovation is then ``y - h_bar`` and ``C`` the linearised measurement map).
 
     With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form (``joseph=False``: the standard form,
     see :func:`jaxobs.riccati.update_covariance_factors`) updates the covariance; with a
@@ -121,7 +124,8 @@ def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True) -> Upda
     its ``P_prior``; they are ``None`` when ``R`` is ``None`` (an observer without a noise model).
     """
     mask, y_observed = observed(y, x_prior.dtype)
-    innovation = (y_observed - C @ x_prior) * mask  # y masked before the subtraction: no NaN reaches a gradient
+    predicted = C @ x_prior if predicted is None else predicted
+    innovation = (y_observed - predicted) * mask  # y masked before the subtraction: no NaN reaches a gradient
     n_missing = jnp.sum(1 - mask.astype(jnp.int32))
     S = ll = None
     if gain is None:
@@ -195,7 +199,7 @@ def _bierman_scalar(U, d, h, r):
     return U, d, b / alpha, alpha
 
 
-def bierman_update(x_prior, P_prior, C, R, y) -> Update:
+def bierman_update(x_prior, P_prior, C, R, y, *, predicted=None) -> Update:
     """:func:`update` by Bierman's U-D algorithm (Bierman 1977; the EKF of Grip 2010 §2.9 uses it): the same
     :class:`Update` fields, equal to the Joseph form in exact arithmetic.
 
@@ -204,11 +208,12 @@ def bierman_update(x_prior, P_prior, C, R, y) -> Update:
     :func:`update`) and its components are processed one at a time, each a scalar update of ``(U, d)`` that keeps
     ``d >= 0``: the a-posteriori covariance ``U diag(d) U'`` stays positive semidefinite as ``R -> 0``, where the
     standard form ``(I - K C) P_prior`` loses definiteness in floating point. The reported gain is that of the
-    whole sequence, ``x = x_prior + K (y - C x_prior)``. Shapes as in :func:`update` (``R`` (p, p) positive
-    definite).
+    whole sequence, ``x = x_prior + K (y - C x_prior)``. Shapes and ``predicted`` as in :func:`update` (``R``
+    (p, p) positive definite).
     """
     mask, y_observed = observed(y, x_prior.dtype)
-    innovation = (y_observed - C @ x_prior) * mask
+    predicted = C @ x_prior if predicted is None else predicted
+    innovation = (y_observed - predicted) * mask
     n_missing = jnp.sum(1 - mask.astype(jnp.int32))
     C_o, R_o = observed_model(C, R, mask)
     L = jnp.linalg.cholesky(symmetrize(R_o))

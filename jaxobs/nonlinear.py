@@ -237,7 +237,7 @@ def gaussian_step(
     first = ~state.started  # the prior is that of x_0: no prediction before the first update
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
     t = jnp.where(first, state.t, state.t + model.dt)
-    x, P, zero = m_prior, P_prior, jnp.zeros_like(m_prior)
+    x, P = m_prior, P_prior
     innovation, gated = None, jnp.zeros((), jnp.int32)
     for i in range(iterations):
         lin = linearize(model.h, x, P)
@@ -247,12 +247,11 @@ def gaussian_step(
             accepted = innovation_gate(y - h_bar, lin.G, P_prior, R, gate)
             gated = jnp.sum(jnp.isfinite(y) & ~accepted).astype(jnp.int32)
             y = jnp.where(accepted, y, jnp.nan)
-        # the correction of m_prior, error-state form
         if bierman:
-            result = bierman_update(zero, P_prior, lin.G, R, y - h_bar)
+            result = bierman_update(m_prior, P_prior, lin.G, R, y, predicted=h_bar)
         else:
-            result = update(zero, P_prior, lin.G, R, y - h_bar, joseph=joseph)
-        x, P = m_prior + result.x, result.P
+            result = update(m_prior, P_prior, lin.G, R, y, joseph=joseph, predicted=h_bar)
+        x, P = result.x, result.P
         if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
             innovation = result.innovation
     missing = state.missing + result.n_missing.astype(jnp.int32)
