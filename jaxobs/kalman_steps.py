@@ -28,12 +28,13 @@ import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
 from jaxobs._linalg import cholesky, solve_lower
-from jaxobs.riccati import predict_covariance, symmetrize, update_covariance_factors
+from jaxobs.riccati import predict_covariance, symmetrize, update_covariance_factors, update_covariance_moments
 
 __all__ = [
     "Update",
     "predict",
     "update",
+    "moment_update",
     "innovation_gate",
     "bierman_update",
     "ud_factor",
@@ -138,6 +139,20 @@ def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predict
             S = symmetrize(S_full) * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
             ll = innovation_log_likelihood(innovation, S, jnp.sum(mask))
     return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
+
+
+def moment_update(x_prior, P_prior, cross, cov, R, y, predicted) -> Update:
+    """:func:`update` in standard form from the moments of the predicted measurement ``h(x)``, ``x ~ N(x_prior,
+    P_prior)``: its mean ``predicted`` (p,), its covariance with the state ``cross`` (n, p) and its own ``cov``
+    (p, p), so that ``S = cov + R`` and ``K = cross S^{-1}`` (the sigma-point update, Särkkä 2013 §5.5). With the
+    moments of a linear map, ``cross = P_prior C'`` and ``cov = C P_prior C'``, it is ``update(..., joseph=False)``.
+    Missing components of ``y`` are removed as in :func:`update`."""
+    mask, y_observed = observed(y, x_prior.dtype)
+    innovation = (y_observed - predicted) * mask
+    S = (cov + R) * (mask[:, None] * mask[None, :]) + jnp.diag(1.0 - mask)
+    P, K, S, S_chol = update_covariance_moments(P_prior, cross.T * mask[:, None], symmetrize(S))
+    ll = _log_normal(innovation, S_chol, jnp.sum(mask))
+    return Update(x_prior + K @ innovation, P, K, innovation, jnp.sum(1 - mask.astype(jnp.int32)), S, ll)
 
 
 def innovation_gate(innovation, C, P_prior, R, threshold):

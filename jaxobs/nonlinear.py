@@ -24,6 +24,10 @@ linear Kalman step of :mod:`jaxobs.kalman_steps` and :mod:`jaxobs.riccati`::
     update:                Joseph-form update with C = H and R + Omega_h on the innovation y_k - h_bar
 
 (the continuous moment equations: Jazwinski 1970 for the Taylor form, Särkkä 2007 for sigma points).
+A sigma-point rule also returns the moments it regresses on, ``Cov f`` and ``Cov(x, h)``, ``Cov h``: the discrete
+prediction is then ``P_prior = Cov f + Q`` (equal to the line above) and the standard-form update
+(``joseph=False``, one iteration) ``K = Cov(x, h) (Cov h + R)^{-1}`` (:func:`jaxobs.kalman_steps.moment_update`):
+no solve with ``P`` to form ``G``.
 Missing data: non-finite components of ``y_k`` are skipped exactly and counted, as in the linear filter.
 Innovation gate (``gate``, optional): a component whose innovation around the prior exceeds ``gate`` standard
 deviations (:func:`jaxobs.kalman_steps.innovation_gate`) is skipped like a missing one and counted apart.
@@ -43,7 +47,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import bierman_update, innovation_gate, update
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, update
 from jaxobs.riccati import predict_covariance, symmetrize
 
 __all__ = [
@@ -151,11 +155,17 @@ def nonlinear_model(
 
 
 class Linearization(NamedTuple):
-    """``g(x) ~ mean + G (x - m) + e``, ``e ~ N(0, Omega)``, around ``N(m, P)`` (shapes for ``g: (n,) -> (k,)``)."""
+    """``g(x) ~ mean + G (x - m) + e``, ``e ~ N(0, Omega)``, around ``N(m, P)`` (shapes for ``g: (n,) -> (k,)``).
+
+    ``cross`` and ``cov``, when given, are the moments the linearisation implies, computed directly: a
+    sigma-point rule has them without ``G`` (``cross = P G'``, ``cov = G P G' + Omega``); the prediction and the
+    standard-form update then use them and need no solve with ``P``."""
 
     mean: jax.Array  # (k,) g_bar
     G: jax.Array  # (k, n) Jacobian (Taylor) or regression matrix (sigma points)
     Omega: jax.Array | None  # (k, k) covariance of the linearisation error; None when zero (Taylor)
+    cross: jax.Array | None = None  # (n, k) covariance of x and g(x)
+    cov: jax.Array | None = None  # (k, k) covariance of g(x)
 
 
 class Linearize(Protocol):
@@ -201,6 +211,8 @@ def _inputs(model: NonlinearModel, inputs):
 def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
     if not model.continuous:
         lin = linearize(lambda x: model.f(x, u, t), m, P)
+        if lin.cov is not None:
+            return lin.mean, lin.cov + model.Q
         Q = model.Q if lin.Omega is None else model.Q + lin.Omega
         return lin.mean, predict_covariance(P, lin.G, Q)
 
@@ -249,6 +261,8 @@ def gaussian_step(
             y = jnp.where(accepted, y, jnp.nan)
         if bierman:
             result = bierman_update(m_prior, P_prior, lin.G, R, y, predicted=h_bar)
+        elif lin.cov is not None and not joseph and iterations == 1:
+            result = moment_update(m_prior, P_prior, lin.cross, lin.cov, model.R, y, h_bar)
         else:
             result = update(m_prior, P_prior, lin.G, R, y, joseph=joseph, predicted=h_bar)
         x, P = result.x, result.P

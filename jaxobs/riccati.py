@@ -28,6 +28,7 @@ __all__ = [
     "predict_covariance",
     "update_covariance",
     "update_covariance_factors",
+    "update_covariance_moments",
     "CovarianceUpdate",
     "riccati_step",
     "covariance_sequence",
@@ -92,10 +93,9 @@ def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpd
     """
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
-    S_chol = cholesky(S)
     if not joseph:
-        W = solve_lower(S_chol, CP1)
-        return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
+        return update_covariance_moments(P1, CP1, S)
+    S_chol = cholesky(S)
     K = cho_solve(S_chol, CP1).T
     n, m = C.shape[-1], C.shape[-2]
     if 2 * m < n:
@@ -105,6 +105,16 @@ def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpd
         IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
         congruence = IKC @ P1 @ IKC.T
     return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)
+
+
+def update_covariance_moments(P1, CP1, S) -> CovarianceUpdate:
+    """The standard-form update of :func:`update_covariance_factors` from the moments of the predicted measurement:
+    ``CP1`` (p, n) its covariance with the state (``C P1``) and ``S`` (p, p) the innovation covariance
+    (``C P1 C' + R``), read from its lower triangle. A sigma-point filter has both without a matrix ``C``.
+    ``P = P1 - W' W``, ``W = L^{-1} CP1``, ``K = L'^{-1} W``."""
+    S_chol = cholesky(S)
+    W = solve_lower(S_chol, CP1)
+    return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
 
 
 def update_covariance(P1, C, R):

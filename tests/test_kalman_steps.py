@@ -15,6 +15,7 @@ from jaxobs.kalman_steps import (
     Update,
     bierman_update,
     innovation_log_likelihood,
+    moment_update,
     predict,
     square_root_predict,
     square_root_update,
@@ -265,6 +266,22 @@ def test_standard_form_update_equals_the_joseph_update(missing):
     for name in Update._fields:
         a, b = np.asarray(getattr(joseph, name)), np.asarray(getattr(standard, name))
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * max(np.abs(a).max(), 1.0), err_msg=name)
+
+
+@pytest.mark.parametrize("missing", [False, True], ids=["all", "one_missing"])
+def test_moment_update_is_the_standard_form_update_of_a_linear_map(missing):
+    """The moments of ``C x``, ``x ~ N(x1, P1)`` (``cross = P1 C'``, ``cov = C P1 C'``, mean ``C x1``): every field of
+    :class:`Update` equals ``update(..., joseph=False)``, with and without a missing component; under vmap too."""
+    P1, C, R, x1 = _problem(n=3, p=2)
+    y = np.array([0.7, np.nan if missing else -0.4])
+    moments = jax.jit(moment_update)(x1, P1, P1 @ C.T, C @ P1 @ C.T, R, y, C @ x1)
+    standard = _standard(x1, P1, C, R, y)
+    for name in Update._fields:
+        a, b = np.asarray(getattr(standard, name)), np.asarray(getattr(moments, name))
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * max(np.abs(a).max(), 1.0), err_msg=name)
+    ys = np.stack([y, -y])
+    batched = jax.vmap(moment_update, in_axes=(None,) * 5 + (0, None))(x1, P1, P1 @ C.T, C @ P1 @ C.T, R, ys, C @ x1)
+    np.testing.assert_allclose(batched.x[0], moments.x, atol=1e-14)
 
 
 def test_standard_form_loses_definiteness_where_the_joseph_form_keeps_it():

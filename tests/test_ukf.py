@@ -3,6 +3,8 @@ unscented rule and the cubature rule), the Kalman filter on linear models (discr
 the sigma-point moments, the iterated posterior linearisation, missing measurements, jit/vmap/grad and bad
 inputs."""
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,17 +32,19 @@ RULES = {"dynamax default": dict(alpha=float(np.sqrt(3.0)), beta=2.0, kappa=1.0)
 def test_equals_dynamax_ukf(make_problem, monkeypatch):
     """dynamax's unscented_kalman_filter on the same data and prior, with its default (alpha, beta, kappa) =
     (sqrt 3, 2, 1) and with (1, 0, 0), the cubature rule; its 1e-9 I regularisation removed: means and covariances
-    agree to 1e-9 relative (measured 2e-15 / 3e-15 on the pendulum; 2.8e-9 / 1.2e-8 with the regularisation)."""
+    agree to 1e-9 relative (measured 2e-15 / 3e-15 on the pendulum; 2.8e-9 / 1.2e-8 with the regularisation), in
+    both covariance forms (the standard form updates from the sigma points' moments)."""
     nlgssm = pytest.importorskip("dynamax.nonlinear_gaussian_ssm")
     without_dynamax_regularisation(monkeypatch)
     problem = make_problem()
     inputs = None if problem.u_prev is None else jnp.asarray(problem.u_prev)
     hyper = {"dynamax default": nlgssm.UKFHyperParams(), "cubature": nlgssm.UKFHyperParams(1.0, 0.0, 0.0)}
-    for name, rule in RULES.items():
-        _, out = jo.run(jo.unscented_kalman_filter, jo.make_ukf(problem.model(), **rule), problem.inputs())
+    for (name, rule), joseph in itertools.product(RULES.items(), (True, False)):
+        params = jo.make_ukf(problem.model(), **rule, joseph=joseph)
+        _, out = jo.run(jo.unscented_kalman_filter, params, problem.inputs())
         post = nlgssm.unscented_kalman_filter(dynamax_params(problem), jnp.asarray(problem.y), hyper[name], inputs)
-        assert relative_error(out.x, post.filtered_means) < 1e-9, name
-        assert relative_error(out.P, post.filtered_covariances) < 1e-9, name
+        assert relative_error(out.x, post.filtered_means) < 1e-9, (name, joseph)
+        assert relative_error(out.P, post.filtered_covariances) < 1e-9, (name, joseph)
 
 
 def test_linear_model_equals_the_kalman_filter():
@@ -124,14 +128,17 @@ def test_missing_component_equals_the_model_without_it():
     problem = bearings(T=30)
     y = problem.y.copy()
     y[:, 1] = np.nan
-    state, out = jo.run(jo.unscented_kalman_filter, jo.make_ukf(problem.model()), jo.EstimatorInputs(jnp.asarray(y)))
     reduced = jo.nonlinear_model(problem.f, lambda x: bearings_h(x)[:1], problem.Q, problem.R[:1, :1],
                                  x0=problem.x0, P0=problem.P0)  # fmt: skip
-    _, ref = jo.run(jo.unscented_kalman_filter, jo.make_ukf(reduced), jo.EstimatorInputs(jnp.asarray(y[:, :1])))
-    np.testing.assert_allclose(out.x, ref.x, rtol=1e-11, atol=1e-13)
-    np.testing.assert_allclose(out.P, ref.P, rtol=1e-11, atol=1e-13)
-    np.testing.assert_array_equal(out.innovation[:, 1], 0.0)
-    assert int(state.missing) == 30
+    for joseph in (True, False):
+        params = jo.make_ukf(problem.model(), joseph=joseph)
+        state, out = jo.run(jo.unscented_kalman_filter, params, jo.EstimatorInputs(jnp.asarray(y)))
+        _, ref = jo.run(jo.unscented_kalman_filter, jo.make_ukf(reduced, joseph=joseph),
+                        jo.EstimatorInputs(jnp.asarray(y[:, :1])))  # fmt: skip
+        np.testing.assert_allclose(out.x, ref.x, rtol=1e-11, atol=1e-13)
+        np.testing.assert_allclose(out.P, ref.P, rtol=1e-11, atol=1e-13)
+        np.testing.assert_array_equal(out.innovation[:, 1], 0.0)
+        assert int(state.missing) == 30
 
 
 def _sigma_point_error():

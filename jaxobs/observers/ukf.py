@@ -136,7 +136,7 @@ def unscented(g, m, P, alpha, beta, kappa) -> Linearization:
     C = (wc[:, None] * dX).T @ dY  # (n, k) cross-covariance
     cov = (wc[:, None] * dY).T @ dY  # (k, k)
     G = cho_solve(L, C).T
-    return Linearization(mean, G, symmetrize(cov - G @ C))
+    return Linearization(mean, G, symmetrize(cov - G @ C), C, symmetrize(cov))
 
 
 def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
