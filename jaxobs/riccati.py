@@ -54,9 +54,11 @@ def predict_covariance(P, Phi, Q):
     """A-priori covariance ``Phi P Phi' + Q`` (eq. 28).
 
     Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
-    (a batched transpose costs XLA on CPU as much as a matrix product).
+    (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
+    optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
+    kernel 3x slower for a batch of 10 x 10 matrices (``benchmarks/estimation.py``, ``filter``, n = 10).
     """
-    return Phi @ P @ jnp.swapaxes(Phi, -1, -2) + Q
+    return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
 
 
 def kalman_gain(P1, C, R):
