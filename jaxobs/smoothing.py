@@ -66,18 +66,21 @@ class _SmootherElement(NamedTuple):
 
 
 def _smoother_gain(Phi, P, P_prior_next):
-    """The gain ``E_k = P_k Phi' P_prior_{k+1}^{-1}`` of sample ``k``.
+    """The gain ``E_k = P_k Phi' P_prior_{k+1}^{-1}`` of sample ``k`` and its transpose, both row-major: ``E A E'``
+    is computed as ``(E A) E_t`` (a transposed operand sends XLA's CPU backend to a kernel 3x slower for a batch of
+    10 x 10 products, ``benchmarks/estimation.py``, ``smooth``).
 
     A state without a-priori variance (a zero diagonal entry of ``P_prior_next``, e.g. an active state switched
     off) gets a unit placeholder in the solve: ``Phi P`` has a zero row there, so its gain column is zero."""
     unit = jnp.diag((jnp.diagonal(P_prior_next) == 0).astype(P.dtype))
-    return solve_spd(P_prior_next + unit, Phi @ P).T  # P_prior symmetric: (P_prior^-1 Phi P)'
+    E_t = solve_spd(P_prior_next + unit, Phi @ P)  # P_prior symmetric: E' = P_prior^-1 Phi P
+    return jax.lax.optimization_barrier(E_t.T), E_t
 
 
 def _smoother_element(Phi, x, P, x_prior_next, P_prior_next) -> _SmootherElement:
     """The element of sample ``k`` from its a-posteriori ``(x, P)`` and the a-priori moments of ``k + 1``."""
-    E = _smoother_gain(Phi, P, P_prior_next)
-    return _SmootherElement(E, x - E @ x_prior_next, symmetrize(P - E @ P_prior_next @ E.T))
+    E, E_t = _smoother_gain(Phi, P, P_prior_next)
+    return _SmootherElement(E, x - E @ x_prior_next, symmetrize(P - E @ P_prior_next @ E_t))
 
 
 def _smoother_combine(earlier: _SmootherElement, later: _SmootherElement) -> _SmootherElement:
@@ -132,8 +135,8 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     def body(later, sample):
         x_later, P_later = later
         x_k, P_k, x_prior_next, P_prior_next = sample
-        E_k = _smoother_gain(Phi, P_k, P_prior_next)
-        smoothed = (x_k + E_k @ (x_later - x_prior_next), symmetrize(P_k + E_k @ (P_later - P_prior_next) @ E_k.T))
+        E_k, E_k_t = _smoother_gain(Phi, P_k, P_prior_next)
+        smoothed = (x_k + E_k @ (x_later - x_prior_next), symmetrize(P_k + E_k @ (P_later - P_prior_next) @ E_k_t))
         return smoothed, (*smoothed, E_k)
 
     _, (xs, Ps, E) = jax.lax.scan(body, (x[-1], P[-1]), (x[:-1], P[:-1], x_prior[1:], P_prior[1:]), reverse=True)
