@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import multiprocessing
+import os
+import queue
 import statistics
 import time
+import traceback
 from collections.abc import Callable
 
 import jax
@@ -73,16 +77,19 @@ def compile_jax(fn: Callable, *args):
     return compiled, time.perf_counter() - start
 
 
-def time_interleaved(entries: dict, rounds: int, *, required: tuple = ()) -> tuple[dict, dict]:
+def time_interleaved(entries: dict, rounds: int, *, required: tuple = (), progress=None) -> tuple[dict, dict]:
     """Time every entry of ``{name: (prepare, jit, scale)}`` in ``rounds`` interleaved rounds.
 
     ``prepare()`` returns ``(fn, args)`` (or raises :class:`Skipped`); ``jit`` compiles ``fn`` first;
     ``scale`` multiplies each measured time (an entry timed on part of the workload and extrapolated).
     Returns ``(timings {name: Timed}, problems {name: {"status", "reason"}})``; an entry in ``required`` that
-    fails raises, any other is recorded and left out.
+    fails raises, any other is recorded and left out. ``progress(name)``, if given, is called before each
+    preparation and each call of an entry, and ``progress(None)`` after it (a watchdog's heartbeat).
     """
+    progress = progress or (lambda name: None)
     ready, problems = {}, {}
     for name, (prepare, jit, scale) in entries.items():
+        progress(name)
         try:
             fn, args = prepare()
             compile_s = None
@@ -95,13 +102,16 @@ def time_interleaved(entries: dict, rounds: int, *, required: tuple = ()) -> tup
             if name in required:
                 raise
             problems[name] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+        progress(None)
     seconds = {name: [] for name in ready}
     results = {}
     for _ in range(rounds):
         for name, (fn, args, scale, _) in ready.items():
+            progress(name)
             start = time.perf_counter()
             results[name] = jax.block_until_ready(fn(*args))
             seconds[name].append((time.perf_counter() - start) * scale)
+            progress(None)
     timings = {name: Timed(seconds[name], ready[name][3], results[name]) for name in ready}
     return timings, problems
 
@@ -115,3 +125,75 @@ def paired_ratio(numerator: Timed, denominator: Timed) -> dict:
 def format_range(s: dict, fmt: str = ".3g", suffix: str = "") -> str:
     """``median [min, max]`` of a :func:`summary`."""
     return f"{s['median']:{fmt}}{suffix} [{s['min']:{fmt}}, {s['max']:{fmt}}]"
+
+
+class Hung(Exception):
+    """A watched child stopped making progress; ``entry`` names the entry it was running (``None`` between
+    entries), ``what`` says how."""
+
+    def __init__(self, entry, what: str):
+        super().__init__(f"{entry or 'the benchmark'} {what}")
+        self.entry = entry
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of process ``pid`` (all its threads), from ``/proc``; ``None`` where unavailable."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _watched_child(messages, target, args):
+    try:
+        result = target(*args, progress=lambda name: messages.put(("progress", name)))
+        messages.put(("result", result))
+    except BaseException:  # the parent re-raises it with the child's traceback
+        messages.put(("error", traceback.format_exc()))
+
+
+def run_watched(target: Callable, args: tuple, *, idle_timeout: float):
+    """``target(*args, progress=...)`` in a spawned child process; returns its (picklable) result.
+
+    XLA's CPU runtime can wedge, every thread parked on a condition variable, and never return (measured here:
+    cuthbert's log-likelihood gradient over 1024 sequences of 10 states). The child reports which entry it runs
+    through ``progress``; when it neither reports nor uses CPU time for ``idle_timeout`` seconds, it is killed
+    and :class:`Hung` names that entry. An entry that computes is killed only after ``10 idle_timeout`` seconds
+    in one call. Needs ``/proc`` (Linux) to tell idle from slow; elsewhere the child is killed after
+    ``idle_timeout`` seconds without progress.
+    """
+    context = multiprocessing.get_context("spawn")
+    messages = context.Queue()
+    child = context.Process(target=_watched_child, args=(messages, target, args), daemon=True)
+    child.start()
+    current, quiet_since, cpu = None, time.monotonic(), None
+    reported = quiet_since
+    try:
+        while True:
+            try:
+                kind, payload = messages.get(timeout=1.0)
+            except queue.Empty:
+                if not child.is_alive():
+                    raise RuntimeError(f"the benchmark's child process died (exit code {child.exitcode})") from None
+                now_cpu = _cpu_seconds(child.pid)
+                if now_cpu is not None and now_cpu != cpu:
+                    cpu, quiet_since = now_cpu, time.monotonic()
+                now = time.monotonic()
+                if now - quiet_since > idle_timeout:
+                    raise Hung(current, f"made no progress and used no CPU for {idle_timeout:g} s") from None
+                if now - reported > 10 * idle_timeout:
+                    raise Hung(current, f"computed {10 * idle_timeout:g} s without finishing a call") from None
+                continue
+            quiet_since = reported = time.monotonic()
+            if kind == "progress":
+                current = payload
+            elif kind == "result":
+                return payload
+            else:
+                raise RuntimeError("the benchmark's child process failed:\n" + payload)
+    finally:
+        if child.is_alive():
+            child.kill()
+        child.join()
