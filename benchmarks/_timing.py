@@ -146,6 +146,11 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
+IDLE_CPU_SHARE = 0.02
+"""A child that used less CPU time than this share of the wall time is idle (a wedged XLA runtime still wakes
+now and then: its slow-operation alarm and thread pool use a few milliseconds a minute)."""
+
+
 def _watched_child(messages, target, args):
     try:
         result = target(*args, progress=lambda name: messages.put(("progress", name)))
@@ -159,7 +164,8 @@ def run_watched(target: Callable, args: tuple, *, idle_timeout: float):
 
     XLA's CPU runtime can wedge, every thread parked on a condition variable, and never return (measured here:
     cuthbert's log-likelihood gradient over 1024 sequences of 10 states). The child reports which entry it runs
-    through ``progress``; when it neither reports nor uses CPU time for ``idle_timeout`` seconds, it is killed
+    through ``progress``; when it neither reports nor uses CPU time (under ``IDLE_CPU_SHARE`` of the wall time)
+    for ``idle_timeout`` seconds, it is killed
     and :class:`Hung` names that entry. An entry that computes is killed only after ``10 idle_timeout`` seconds
     in one call. Needs ``/proc`` (Linux) to tell idle from slow; elsewhere the child is killed after
     ``idle_timeout`` seconds without progress.
@@ -168,8 +174,8 @@ def run_watched(target: Callable, args: tuple, *, idle_timeout: float):
     messages = context.Queue()
     child = context.Process(target=_watched_child, args=(messages, target, args), daemon=True)
     child.start()
-    current, quiet_since, cpu = None, time.monotonic(), None
-    reported = quiet_since
+    current, reported = None, time.monotonic()
+    window = (reported, _cpu_seconds(child.pid))  # start of the current idle window: (time, CPU seconds)
     try:
         while True:
             try:
@@ -177,16 +183,16 @@ def run_watched(target: Callable, args: tuple, *, idle_timeout: float):
             except queue.Empty:
                 if not child.is_alive():
                     raise RuntimeError(f"the benchmark's child process died (exit code {child.exitcode})") from None
-                now_cpu = _cpu_seconds(child.pid)
-                if now_cpu is not None and now_cpu != cpu:
-                    cpu, quiet_since = now_cpu, time.monotonic()
-                now = time.monotonic()
-                if now - quiet_since > idle_timeout:
-                    raise Hung(current, f"made no progress and used no CPU for {idle_timeout:g} s") from None
+                now, cpu = time.monotonic(), _cpu_seconds(child.pid)
+                if now - window[0] > idle_timeout:
+                    if cpu is None or window[1] is None or cpu - window[1] < IDLE_CPU_SHARE * (now - window[0]):
+                        raise Hung(current, f"made no progress and used no CPU for {idle_timeout:g} s") from None
+                    window = (now, cpu)  # computing: a new window
                 if now - reported > 10 * idle_timeout:
                     raise Hung(current, f"computed {10 * idle_timeout:g} s without finishing a call") from None
                 continue
-            quiet_since = reported = time.monotonic()
+            reported = time.monotonic()
+            window = (reported, _cpu_seconds(child.pid))
             if kind == "progress":
                 current = payload
             elif kind == "result":

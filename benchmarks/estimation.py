@@ -22,6 +22,11 @@ jaxobs runs twice: with the standard covariance update ``P1 - K S K'`` (``joseph
 computes, which is the ``jaxobs`` entry the ratios and targets refer to, and with its default Joseph form
 (``jaxobs_joseph``, positive semidefinite by construction), reported as the cost ``Joseph / standard``.
 
+``floor`` (filter and smoother): only the kernels every Kalman filter (RTS smoother) on XLA's batched product and
+LAPACK runs, the covariance prediction products and, for the smoother, the gain's factor and solves and the
+smoothed covariance's products, with their outputs (:func:`floor_linear`). ``dynamax / floor`` is therefore an
+upper bound on the ratio to dynamax that any such implementation can reach on that cell.
+
 Every entry is ``jit(vmap(...))`` over the ``B`` sequences. Same prior on every side: cuthbert takes the prior of
 ``x_{-1}`` (mean 0, covariance I) and predicts before its first update; jaxobs and dynamax take the prior of
 ``x_0`` (no prediction first), computed inside the timed function as that one (EKF) prediction, so the three
@@ -296,11 +301,40 @@ def cuthbert_nonlinear(workload: str, model, Y):
     return jax.vmap(one), (Y,)
 
 
+def floor_linear(workload: str, model, Y):
+    """The kernels no Kalman filter (RTS smoother) built on XLA's batched matrix product and LAPACK can skip, and
+    nothing else: per sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out, and for the
+    smoother, backwards, the gain ``P_prior^{-1} Phi P`` (Cholesky factor, two triangular solves) and
+    ``E D E'`` (two products) written out. No measurement update: with p = 2 outputs its products are O(n^2 p)
+    against O(n^3). ``dynamax / floor`` bounds the ratio any such implementation reaches against dynamax."""
+    if workload == "grad":
+        raise Skipped("no floor for the gradient")
+
+    def one(Phi, C, Q, R, y):
+        predict = lambda P, _: (Phi @ P @ Phi.T + Q,) * 2
+        _, P_prior = jax.lax.scan(predict, Q, None, length=y.shape[0])
+        if workload == "filter":
+            return P_prior
+
+        def backward(P_later, P_prior_k):
+            E_t = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(P_prior_k), True), Phi @ P_later)
+            return (P_later + (E_t.T @ (P_later - P_prior_k)) @ E_t,) * 2
+
+        return jax.lax.scan(backward, P_prior[-1], P_prior, reverse=True)[1]
+
+    return jax.vmap(one), (*model, Y)
+
+
+def floor_nonlinear(workload: str, model, Y):
+    raise Skipped("no floor for the nonlinear filters")
+
+
 ENTRIES = {
     "jaxobs": (jaxobs_linear, jaxobs_nonlinear),
     "jaxobs_joseph": (partial(jaxobs_linear, joseph=True), partial(jaxobs_nonlinear, joseph=True)),
     "dynamax": (dynamax_linear, dynamax_nonlinear),
     "cuthbert": (cuthbert_linear, cuthbert_nonlinear),
+    "floor": (floor_linear, floor_nonlinear),
 }
 
 
@@ -340,6 +374,11 @@ def cell(workload: str, B: int, n: int, T: int, rounds: int, hung=None, progress
             "max_relative_difference": difference,
             "agrees": difference < AGREE_RTOL,
         }
+    if "floor" in timings:
+        floor = timings["floor"]
+        record["floor"] = {**floor.record(B * T, "steps/s"), "jaxobs_over_floor": paired_ratio(floor, ours)}
+        if "dynamax" in timings:
+            record["floor"]["dynamax_over_floor"] = paired_ratio(floor, timings["dynamax"])
     return record
 
 
@@ -381,7 +420,7 @@ def targets(results: list[dict]) -> dict:
 
 def table(results: list[dict], skipped: list[str]) -> str:
     head = (f"{'cell':<24} {'jaxobs [ms]':<30} " + " ".join(f"{p + ' / jaxobs':<22}" for p in PEERS)
-            + f" {'Joseph / standard':<22} compile j/d/c [s]    max rel diff d, c")  # fmt: skip
+            + f" {'Joseph / standard':<22} {'dynamax / floor':<22} compile j/d/c [s]    max rel diff d, c")  # fmt: skip
     lines = [head]
     for r in results:
         rec = r["record"]
@@ -399,6 +438,8 @@ def table(results: list[dict], skipped: list[str]) -> str:
             compiles.append(f"{p['compile_s']:.1f}")
             diffs.append(f"{p['max_relative_difference']:.0e}" + ("" if p["agrees"] else "!"))
         row += f"{format_range(rec['joseph']['cost'], '.2f', 'x'):<22} "
+        ceiling = rec.get("floor", {}).get("dynamax_over_floor")
+        row += f"{format_range(ceiling, '.2f', 'x') if ceiling else '-':<22} "
         lines.append(row + f"{'/'.join(compiles):<20} {', '.join(diffs)}")
     lines += [f"skipped (over --budget): {', '.join(skipped)}"] if skipped else []
     return "\n".join(lines)

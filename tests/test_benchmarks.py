@@ -1,10 +1,14 @@
 """Smoke tests of benchmarks/estimation.py on its smallest grid: it runs, every peer that is installed returns the
 same numbers as jaxobs (the agreement check of the benchmark), and cells over the work budget are listed as
-skipped, never dropped silently. The speed targets themselves are measured by the benchmark, not tested."""
+skipped, never dropped silently, and the watchdog that lists a wedged peer as hung. The speed targets themselves
+are measured by the benchmark, not tested."""
 
+import functools
 import importlib.util
 import json
 import pathlib
+import sys
+import time
 
 import pytest
 
@@ -49,3 +53,33 @@ def test_over_budget_cells_are_listed_as_skipped(estimation, tmp_path):
     summary = _run(estimation, tmp_path, ["filter", "ukf"], budget=1.0)
     assert summary["results"] == []
     assert summary["skipped"] == ["filter B=2 n=2 T=12", "ukf B=2 n=2 T=12"]
+
+
+def _wedged(progress, *, done: int):
+    """A watched target: ``done`` entries finish, then ``"wedged"`` sleeps without using CPU (as XLA does when
+    its CPU runtime wedges)."""
+    for i in range(done):
+        progress(f"entry {i}")
+        progress(None)
+    progress("wedged")
+    time.sleep(600)
+
+
+def _finishes(progress):
+    progress("only")
+    progress(None)
+    return {"answer": 42}
+
+
+def test_watchdog_kills_an_idle_entry_and_names_it():
+    """``run_watched`` returns a child's result, and kills a child that stops reporting and computing, naming the
+    entry it was in (the mechanism that lists a wedged peer as hung instead of hanging ``make bench``)."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    from _timing import Hung, run_watched
+
+    assert run_watched(_finishes, (), idle_timeout=30) == {"answer": 42}
+    start = time.monotonic()
+    with pytest.raises(Hung, match="wedged made no progress and used no CPU for 2 s") as caught:
+        run_watched(functools.partial(_wedged, done=2), (), idle_timeout=2)
+    assert caught.value.entry == "wedged"
+    assert time.monotonic() - start < 60
