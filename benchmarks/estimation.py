@@ -22,10 +22,10 @@ jaxobs runs twice: with the standard covariance update ``P1 - K S K'`` (``joseph
 computes, which is the ``jaxobs`` entry the ratios and targets refer to, and with its default Joseph form
 (``jaxobs_joseph``, positive semidefinite by construction), reported as the cost ``Joseph / standard``.
 
-``floor`` (filter and smoother): only the kernels every Kalman filter (RTS smoother) on XLA's batched product and
-LAPACK runs, the covariance prediction products and, for the smoother, the gain's factor and solves and the
-smoothed covariance's products, with their outputs (:func:`floor_linear`). ``dynamax / floor`` is therefore an
-upper bound on the ratio to dynamax that any such implementation can reach on that cell.
+``floor`` (filter and smoother): only the kernels every Kalman filter (RTS smoother) runs, by the fastest
+implementation measured here: the covariance prediction products and, for the smoother, the gain's factor and
+solves and the smoothed covariance's products, with their outputs (:func:`floor_linear`). ``dynamax / floor`` is
+therefore an upper bound on the ratio to dynamax that any implementation on these kernels can reach on that cell.
 
 Every entry is ``jit(vmap(...))`` over the ``B`` sequences. Same prior on every side: cuthbert takes the prior of
 ``x_{-1}`` (mean 0, covariance I) and predicts before its first update; jaxobs and dynamax take the prior of
@@ -87,6 +87,7 @@ from _timing import (  # noqa: E402
 )
 
 import jaxobs as jo  # noqa: E402
+from jaxobs._linalg import solve_spd  # noqa: E402
 from jaxobs.observers.kalman import KalmanParams  # noqa: E402
 
 dynamax_lgssm, DYNAMAX_MISSING = optional_import("dynamax.linear_gaussian_ssm")
@@ -302,11 +303,12 @@ def cuthbert_nonlinear(workload: str, model, Y):
 
 
 def floor_linear(workload: str, model, Y):
-    """The kernels no Kalman filter (RTS smoother) built on XLA's batched matrix product and LAPACK can skip, and
-    nothing else: per sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out, and for the
-    smoother, backwards, the gain ``P_prior^{-1} Phi P`` (Cholesky factor, two triangular solves) and
-    ``E D E'`` (two products) written out. No measurement update: with p = 2 outputs its products are O(n^2 p)
-    against O(n^3). ``dynamax / floor`` bounds the ratio any such implementation reaches against dynamax."""
+    """The kernels no Kalman filter (RTS smoother) can skip, and nothing else, each by the fastest implementation
+    measured here (XLA's batched product; ``jaxobs._linalg.solve_spd``: the Cholesky factor and solves unrolled up
+    to 8 states, LAPACK above): per sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out,
+    and for the smoother, backwards, the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out.
+    No measurement update: with p = 2 outputs its products are O(n^2 p) against O(n^3). ``dynamax / floor``
+    bounds the ratio any implementation on these kernels reaches against dynamax."""
     if workload == "grad":
         raise Skipped("no floor for the gradient")
 
@@ -317,7 +319,7 @@ def floor_linear(workload: str, model, Y):
             return P_prior
 
         def backward(P_later, P_prior_k):
-            E_t = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(P_prior_k), True), Phi @ P_later)
+            E_t = solve_spd(P_prior_k, Phi @ P_later)
             return (P_later + (E_t.T @ (P_later - P_prior_k)) @ E_t,) * 2
 
         return jax.lax.scan(backward, P_prior[-1], P_prior, reverse=True)[1]
