@@ -71,6 +71,7 @@ def _finishes(progress):
     return {"answer": 42}
 
 
+@pytest.mark.slow  # ~10 s: two spawned interpreters import JAX
 def test_watchdog_kills_an_idle_entry_and_names_it():
     """``run_watched`` returns a child's result, and kills a child that stops reporting and computing, naming the
     entry it was in (the mechanism that lists a wedged peer as hung instead of hanging ``make bench``)."""
