@@ -27,7 +27,8 @@ def estimation():
 
 def _run(estimation, tmp_path, workloads, budget=1e9):
     argv = ["--out", str(tmp_path), "--batches", "2", "--states", "2", "--lengths", "12", "--rounds", "1",
-            "--budget", str(budget), "--workloads", *workloads]  # fmt: skip
+            "--budget", str(budget), "--idle-timeout", "0", "--workloads", *workloads]  # fmt: skip
+    # --idle-timeout 0: in this process (the module is loaded from its path, which a spawned child cannot import)
     summary = estimation.main(argv)
     assert json.loads((tmp_path / "estimation.json").read_text())["targets"] == summary["targets"]
     return summary
