@@ -90,6 +90,7 @@ from _timing import (  # noqa: E402
 import jaxobs as jo  # noqa: E402
 from jaxobs._linalg import cholesky, solve_lower, solve_spd  # noqa: E402
 from jaxobs.observers.kalman import KalmanParams  # noqa: E402
+from jaxobs.riccati import predict_covariance  # noqa: E402
 
 dynamax_lgssm, DYNAMAX_MISSING = optional_import("dynamax.linear_gaussian_ssm")
 dynamax_nlgssm, _ = optional_import("dynamax.nonlinear_gaussian_ssm")
@@ -305,23 +306,25 @@ def cuthbert_nonlinear(workload: str, model, Y):
 
 def floor_linear(workload: str, model, Y):
     """The kernels no Kalman filter (RTS smoother) can skip, and nothing else, each by the fastest implementation
-    measured here (XLA's batched product; ``jaxobs._linalg.solve_spd``: the Cholesky factor and solves unrolled up
-    to 8 states, LAPACK above): per sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out,
-    and for the smoother, backwards, the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out.
-    No measurement update: with p = 2 outputs its products are O(n^2 p) against O(n^3). ``dynamax / floor``
-    bounds the ratio any implementation on these kernels reaches against dynamax."""
+    measured here (XLA's batched product with row-major operands, as ``jaxobs.riccati.predict_covariance``;
+    ``jaxobs._linalg.solve_spd``: the Cholesky factor and solves unrolled up to 8 states, LAPACK above): per
+    sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out, and for the smoother, backwards,
+    the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out. No measurement update: with p = 2
+    outputs its products are O(n^2 p) against O(n^3). ``dynamax / floor`` bounds the ratio any implementation on
+    these kernels reaches against dynamax."""
     if workload == "grad":
         raise Skipped("no floor for the gradient")
 
     def one(Phi, C, Q, R, y):
-        predict = lambda P, _: (Phi @ P @ Phi.T + Q,) * 2
+        predict = lambda P, _: (predict_covariance(P, Phi, Q),) * 2
         _, P_prior = jax.lax.scan(predict, Q, None, length=y.shape[0])
         if workload == "filter":
             return P_prior
 
         def backward(P_later, P_prior_k):
             E_t = solve_spd(P_prior_k, Phi @ P_later)
-            return (P_later + (E_t.T @ (P_later - P_prior_k)) @ E_t,) * 2
+            E = jax.lax.optimization_barrier(E_t.T)  # row-major, as jaxobs' smoother
+            return (P_later + (E @ (P_later - P_prior_k)) @ E_t,) * 2
 
         return jax.lax.scan(backward, P_prior[-1], P_prior, reverse=True)[1]
 
@@ -342,10 +345,10 @@ def floor_nonlinear(workload: str, model, Y):
     def one(y):
         def step(carry, y_k):
             x, P, first = carry
-            F = jax.jacfwd(f)(x)
+            F = jax.lax.optimization_barrier(jax.jacfwd(f)(x))  # row-major, as jaxobs' EKF
             x_prior = jnp.where(first, x, f(x))
-            P_prior = jnp.where(first, P, F @ P @ F.T + Q)
-            H = jax.jacfwd(h)(x_prior)
+            P_prior = jnp.where(first, P, predict_covariance(P, F, Q))
+            H = jax.lax.optimization_barrier(jax.jacfwd(h)(x_prior))
             HP = H @ P_prior
             S_chol = cholesky(HP @ H.T + R)
             W = solve_lower(S_chol, HP)
