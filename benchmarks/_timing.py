@@ -80,28 +80,36 @@ def compile_jax(fn: Callable, *args):
 def time_interleaved(entries: dict, rounds: int, *, required: tuple = (), progress=None) -> tuple[dict, dict]:
     """Time every entry of ``{name: (prepare, jit, scale)}`` in ``rounds`` interleaved rounds.
 
-    ``prepare()`` returns ``(fn, args)`` (or raises :class:`Skipped`); ``jit`` compiles ``fn`` first;
+    ``prepare()`` returns ``(fn, args)`` (or raises :class:`Skipped`); ``jit`` compiles ``fn`` first, twice: once
+    for every entry, then, after ``jax.clear_caches()``, again, timed (the compile time each entry reports), so
+    that the entry compiled first does not pay the process's one-time costs for all;
     ``scale`` multiplies each measured time (an entry timed on part of the workload and extrapolated).
     Returns ``(timings {name: Timed}, problems {name: {"status", "reason"}})``; an entry in ``required`` that
     fails raises, any other is recorded and left out. ``progress(name)``, if given, is called before each
     preparation and each call of an entry, and ``progress(None)`` after it (a watchdog's heartbeat).
     """
     progress = progress or (lambda name: None)
-    ready, problems = {}, {}
+    prepared, problems = {}, {}
     for name, (prepare, jit, scale) in entries.items():
         progress(name)
         try:
             fn, args = prepare()
-            compile_s = None
             if jit:
-                fn, compile_s = compile_jax(fn, *args)
-            ready[name] = (fn, args, scale, compile_s)
+                compile_jax(fn, *args)  # untimed: a process's first compilations pay one-time costs
+            prepared[name] = (fn, args, jit, scale)
         except Skipped as exc:
             problems[name] = {"status": "skipped", "reason": str(exc)}
         except Exception as exc:  # a broken peer must not abort the other measurements
             if name in required:
                 raise
             problems[name] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+        progress(None)
+    jax.clear_caches()  # every entry compiles again from scratch, in a process warmed alike for all
+    ready = {}
+    for name, (fn, args, jit, scale) in prepared.items():
+        progress(name)
+        compiled, compile_s = compile_jax(fn, *args) if jit else (fn, None)
+        ready[name] = (compiled, args, scale, compile_s)
         progress(None)
     seconds = {name: [] for name in ready}
     results = {}

@@ -35,8 +35,9 @@ filters, likelihoods and gradients are the same numbers. Agreement (max relative
 filtered means, smoothed means, gradients) is computed on the benchmark data and must be below ``AGREE_RTOL``
 (dynamax adds 1e-9 I to the matrices it inverts, so about 1e-9 is expected from it).
 
-Timing (``benchmarks/_timing.py``): each function is compiled first (the first-call compile time is reported
-apart), then ``--rounds`` interleaved rounds; times are the median [min, max] over the rounds and each ratio
+Timing (``benchmarks/_timing.py``): each function is compiled first (every entry once, then, after clearing
+JAX's caches, again: that compile time is reported, so the entry compiled first does not pay the process's
+one-time costs), then ``--rounds`` interleaved rounds; times are the median [min, max] over the rounds and each ratio
 ``peer time / jaxobs time`` is taken round by round. Targets on every batched cell (``B > 1``): at least 1.5x
 dynamax and 10x cuthbert, jaxobs compile time no worse than dynamax's.
 
