@@ -173,10 +173,9 @@ def run_watched(target: Callable, args: tuple, *, idle_timeout: float):
     XLA's CPU runtime can wedge, every thread parked on a condition variable, and never return (measured here:
     cuthbert's log-likelihood gradient over 1024 sequences of 10 states). The child reports which entry it runs
     through ``progress``; when it neither reports nor uses CPU time (under ``IDLE_CPU_SHARE`` of the wall time)
-    for ``idle_timeout`` seconds, it is killed
-    and :class:`Hung` names that entry. An entry that computes is killed only after ``10 idle_timeout`` seconds
-    in one call. Needs ``/proc`` (Linux) to tell idle from slow; elsewhere the child is killed after
-    ``idle_timeout`` seconds without progress.
+    for ``idle_timeout`` seconds, it is killed and :class:`Hung` names that entry. An entry that computes is killed
+    only after ``10 idle_timeout`` seconds in one call. Needs ``/proc`` (Linux) to tell idle from slow; elsewhere
+    the child is killed after ``idle_timeout`` seconds without progress.
     """
     context = multiprocessing.get_context("spawn")
     messages = context.Queue()

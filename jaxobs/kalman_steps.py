@@ -108,6 +108,13 @@ def _log_normal(innovation, S_sqrt, n_observed):
     return -0.5 * (n_observed * math.log(2.0 * math.pi) + log_det + z @ z)
 
 
+def _innovation(y, predicted):
+    """``(mask, innovation, n_missing)`` of a measurement ``y`` (p,) against its prediction (p,): the innovation is
+    0 on missing components, and ``y`` is masked before the subtraction, so no NaN reaches a gradient."""
+    mask, y_observed = observed(y, predicted.dtype)
+    return mask, (y_observed - predicted) * mask, jnp.sum(1 - mask.astype(jnp.int32))
+
+
 def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predicted=None) -> Update:
     """Measurement update of ``(x_prior, P_prior)`` with ``y`` (p,); non-finite components are missing.
 
@@ -124,10 +131,7 @@ def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predict
     ``C K = I - R S^{-1}`` (eq. 27), so ``S = (I - C K)^{-1} R`` is the steady-state ``C P_prior C' + R`` without
     its ``P_prior``; they are ``None`` when ``R`` is ``None`` (an observer without a noise model).
     """
-    mask, y_observed = observed(y, x_prior.dtype)
-    predicted = C @ x_prior if predicted is None else predicted
-    innovation = (y_observed - predicted) * mask  # y masked before the subtraction: no NaN reaches a gradient
-    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
+    mask, innovation, n_missing = _innovation(y, C @ x_prior if predicted is None else predicted)
     S = ll = None
     if gain is None:
         P, K, S, S_chol = update_covariance_factors(P_prior, *observed_model(C, R, mask), joseph=joseph)
@@ -147,12 +151,11 @@ def moment_update(x_prior, P_prior, cross, cov, R, y, predicted) -> Update:
     (p, p), so that ``S = cov + R`` and ``K = cross S^{-1}`` (the sigma-point update, Särkkä 2013 §5.5). With the
     moments of a linear map, ``cross = P_prior C'`` and ``cov = C P_prior C'``, it is ``update(..., joseph=False)``.
     Missing components of ``y`` are removed as in :func:`update`."""
-    mask, y_observed = observed(y, x_prior.dtype)
-    innovation = (y_observed - predicted) * mask
+    mask, innovation, n_missing = _innovation(y, predicted)
     S = (cov + R) * (mask[:, None] * mask[None, :]) + jnp.diag(1.0 - mask)
     P, K, S, S_chol = update_covariance_moments(P_prior, cross.T * mask[:, None], symmetrize(S))
     ll = _log_normal(innovation, S_chol, jnp.sum(mask))
-    return Update(x_prior + K @ innovation, P, K, innovation, jnp.sum(1 - mask.astype(jnp.int32)), S, ll)
+    return Update(x_prior + K @ innovation, P, K, innovation, n_missing, S, ll)
 
 
 def innovation_gate(innovation, C, P_prior, R, threshold):
@@ -226,10 +229,7 @@ def bierman_update(x_prior, P_prior, C, R, y, *, predicted=None) -> Update:
     whole sequence, ``x = x_prior + K (y - C x_prior)``. Shapes and ``predicted`` as in :func:`update` (``R``
     (p, p) positive definite).
     """
-    mask, y_observed = observed(y, x_prior.dtype)
-    predicted = C @ x_prior if predicted is None else predicted
-    innovation = (y_observed - predicted) * mask
-    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
+    mask, innovation, n_missing = _innovation(y, C @ x_prior if predicted is None else predicted)
     C_o, R_o = observed_model(C, R, mask)
     L = jnp.linalg.cholesky(symmetrize(R_o))
     H = solve_triangular(L, C_o, lower=True)  # whitened rows, unit variances
@@ -321,8 +321,7 @@ def square_root_update(x_prior, P_sqrt, C, R_sqrt, y) -> SquareRootUpdate:
     with the rows of missing components of ``C`` and ``R_sqrt`` zeroed and ``D`` the unit placeholder on their
     diagonal (as in :func:`update`).
     """
-    mask, y_observed = observed(y, x_prior.dtype)
-    innovation = (y_observed - C @ x_prior) * mask
+    mask, innovation, n_missing = _innovation(y, C @ x_prior)
     p, n = C.shape[-2], P_sqrt.shape[-1]
     dtype = x_prior.dtype
     top = jnp.concatenate([(C * mask[:, None]) @ P_sqrt, R_sqrt * mask[:, None], jnp.diag(1.0 - mask)], axis=-1)
@@ -331,5 +330,4 @@ def square_root_update(x_prior, P_sqrt, C, R_sqrt, y) -> SquareRootUpdate:
     S_sqrt, G, P_post = post[:p, :p], post[p:, :p], post[p:, p:]
     K = _transpose(solve_triangular(_transpose(S_sqrt), _transpose(G), lower=False))  # G S_sqrt^{-1}
     ll = _log_normal(innovation, S_sqrt, jnp.sum(mask))
-    n_missing = jnp.sum(1 - mask.astype(jnp.int32))
     return SquareRootUpdate(x_prior + K @ innovation, P_post, K, innovation, n_missing, S_sqrt, ll)
