@@ -130,6 +130,7 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
         combine = jax.vmap(lambda later, earlier: _smoother_combine(earlier, later))
         combined = jax.lax.associative_scan(combine, elements, reverse=True)
         return Smoothed(combined.g, combined.L, elements.E)
+
     # the sequential recursion in its classic form, 2 n^3 per sample (the elements' form costs twice that):
     # x_{k|T} = x_k + E_k (x_{k+1|T} - x_prior_{k+1}),  P_{k|T} = P_k + E_k (P_{k+1|T} - P_prior_{k+1}) E_k'
     # The scan runs over the whole records (slicing them and joining the last sample back costs a copy of each
