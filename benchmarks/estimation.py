@@ -22,10 +22,11 @@ jaxobs runs twice: with the standard covariance update ``P1 - K S K'`` (``joseph
 computes, which is the ``jaxobs`` entry the ratios and targets refer to, and with its default Joseph form
 (``jaxobs_joseph``, positive semidefinite by construction), reported as the cost ``Joseph / standard``.
 
-``floor`` (filter, smoother, EKF): only the operations every Kalman filter (RTS smoother, EKF) runs, by the
-fastest implementation measured here: the covariance prediction products and, for the smoother, the gain's factor
-and solves and the smoothed covariance's products, with their outputs (:func:`floor_linear`); for the EKF its
-Jacobians, prediction and standard-form update without missing data or symmetrisation (:func:`floor_nonlinear`).
+``floor`` (filter, smoother, gradient, EKF): only the operations every Kalman filter (RTS smoother, likelihood
+gradient, EKF) runs, by the fastest implementation measured here: the covariance prediction products and, for the
+smoother, the gain's factor and solves and the smoothed covariance's products, with their outputs; for the
+gradient, the prediction and its reverse-mode adjoint (:func:`floor_linear`); for the EKF its Jacobians,
+prediction and standard-form update without missing data or symmetrisation (:func:`floor_nonlinear`).
 ``peer / floor`` therefore bounds the ratio to that peer any implementation on these kernels can reach.
 
 Every entry is ``jit(vmap(...))`` over the ``B`` sequences. Same prior on every side: cuthbert takes the prior of
@@ -310,13 +311,15 @@ def floor_linear(workload: str, model, Y):
     measured here (XLA's batched product with row-major operands, as ``jaxobs.riccati.predict_covariance``;
     ``jaxobs._linalg.solve_spd``: the Cholesky factor and solves unrolled up to 8 states, LAPACK above): per
     sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out, and for the smoother, backwards,
-    the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out. No measurement update: with p = 2
-    outputs its products are O(n^2 p) against O(n^3). ``dynamax / floor`` bounds the ratio any implementation on
-    these kernels reaches against dynamax."""
-    if workload == "grad":
-        raise Skipped("no floor for the gradient")
+    the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out; for the gradient, the prediction
+    forwards and its adjoint backwards, ``dPhi += 2 G Phi P``, ``dQ += G`` and ``Phi' G Phi`` (three products, by a
+    hand-scheduled reverse pass whose operands are all row-major). No measurement update: with p = 2 outputs its
+    products are O(n^2 p) against O(n^3). ``dynamax / floor`` bounds the ratio any implementation on these kernels
+    reaches against dynamax."""
 
     def one(Phi, C, Q, R, y):
+        if workload == "grad":
+            return gradient(Phi, Q, y.shape[0])
         predict = lambda P, _: (predict_covariance(P, Phi, Q),) * 2
         _, P_prior = jax.lax.scan(predict, Q, None, length=y.shape[0])
         if workload == "filter":
@@ -328,6 +331,24 @@ def floor_linear(workload: str, model, Y):
             return (P_later + (E @ (P_later - P_prior_k)) @ E_t,) * 2
 
         return jax.lax.scan(backward, P_prior[-1], P_prior, reverse=True)[1]
+
+    def gradient(Phi, Q, T):
+        # the gradient of sum_k trace(P_prior_k), P_prior_k = Phi P_prior_{k-1} Phi' + Q from P_prior_{-1} = Q, in
+        # reverse mode: forward, Phi P (kept) and its product with Phi'; backward, the cotangent G of P_prior_k
+        # gives dPhi += 2 G (Phi P), dQ += G and, plus the identity (the trace's own cotangent, standing for the
+        # likelihood's), Phi' G Phi to the step before (G symmetric)
+        Phi_t = jax.lax.optimization_barrier(Phi.T)
+        forward = lambda P, _: ((Phi_P := Phi @ P) @ Phi_t + Q, Phi_P)
+        _, Phi_P = jax.lax.scan(forward, Q, None, length=T)
+        unit = jnp.eye(Phi.shape[-1], dtype=Phi.dtype)
+
+        def backward(carry, Phi_P_k):
+            G, dPhi, dQ = carry
+            return (Phi_t @ G @ Phi + unit, dPhi + 2.0 * G @ Phi_P_k, dQ + G), None
+
+        zero = jnp.zeros_like(Phi)
+        G, dPhi, dQ = jax.lax.scan(backward, (unit, zero, zero), Phi_P, reverse=True)[0]
+        return dPhi, dQ + G - unit  # G - unit: the cotangent of the initial Q
 
     return jax.vmap(one), (*model, Y)
 
