@@ -63,3 +63,18 @@ def test_gradient_of_log_det_and_solve_equals_the_lapack_path(n):
     # ours reads the lower triangle, LAPACK's path the symmetric part: fold each onto the lower triangle
     fold = lambda G: np.tril(G) + np.triu(G, 1).T
     np.testing.assert_allclose(fold(ours), fold(lapack), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_solve_lower_derivatives(transpose):
+    """The substitution's own derivative rule: forward and reverse mode to second order, and no derivative in the
+    upper triangle, which the solve does not read."""
+    from jax.test_util import check_grads
+
+    rng = np.random.default_rng(3)
+    L = np.linalg.cholesky(_spd(rng, 2, 3))
+    B = rng.normal(size=(2, 3, 2))
+    solve = lambda L, B: solve_lower(L, B, transpose=transpose)
+    check_grads(solve, (L, B), order=2, modes=("fwd", "rev"))
+    upper = jax.grad(lambda L: jnp.sum(jnp.sin(solve(L, B))))(L + np.triu(np.ones(3), 1))
+    assert np.all(np.triu(upper, 1) == 0)
