@@ -10,6 +10,9 @@ import pathlib
 import sys
 import time
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 SCRIPT = pathlib.Path(__file__).parents[1] / "benchmarks" / "estimation.py"
@@ -59,9 +62,6 @@ def test_over_budget_cells_are_listed_as_skipped(estimation, tmp_path):
 def test_gradient_floor_is_a_true_gradient(estimation):
     """The floor's hand-scheduled reverse pass equals jax.grad of what it differentiates (its timing bounds a
     gradient, so it must compute one)."""
-    import jax
-    import jax.numpy as jnp
-
     (Phi, C, Q, R), Y = estimation.linear_problem(2, 3, 7)
     floor, args = estimation.floor_linear("grad", (Phi, C, Q, R), Y)
     dPhi, dQ = floor(*args)
@@ -71,7 +71,8 @@ def test_gradient_floor_is_a_true_gradient(estimation):
         return jnp.sum(jnp.trace(jax.lax.scan(step, Q, None, length=Y.shape[1])[1], axis1=1, axis2=2))
 
     expected = jax.vmap(jax.grad(traces, argnums=(0, 1)))(Phi, Q)
-    assert jnp.allclose(dPhi, expected[0], rtol=1e-12) and jnp.allclose(dQ, expected[1], rtol=1e-12)
+    np.testing.assert_allclose(dPhi, expected[0], rtol=1e-12)
+    np.testing.assert_allclose(dQ, expected[1], rtol=1e-12)
 
 
 def _wedged(progress, *, done: int):

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 from jaxobs._linalg import FACTOR_UNROLL_MAX, UNROLL_MAX, cho_solve, cholesky, small_solve, solve_lower, solve_spd
 
@@ -69,8 +70,6 @@ def test_gradient_of_log_det_and_solve_equals_the_lapack_path(n):
 def test_solve_lower_derivatives(transpose):
     """The substitution's own derivative rule: forward and reverse mode to second order, and no derivative in the
     upper triangle, which the solve does not read."""
-    from jax.test_util import check_grads
-
     rng = np.random.default_rng(3)
     L = np.linalg.cholesky(_spd(rng, 2, 3))
     B = rng.normal(size=(2, 3, 2))
