@@ -1,12 +1,12 @@
 """Speed of the batched, jitted Example 5.6 of Grip 2010 (modular estimator and gradient-type law in closed loop)
 against NumPy RK4 loops and diffrax, forward and for the gradient with respect to the gains.
 
-What is measured (float64): :func:`jaxobs.papers.grip2010_adaptive.simulate_5_6`, both closed loops over the five
+What is measured (float64): :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6`, both closed loops over the five
 segments of ``--segment-s`` seconds at 1 ms (RK4, ``theta`` and the noise held over each step), for ``B`` noise
 seeds (N(0, 1) per sample) at the printed gains (K_phi, Gamma) = (10, 3):
 
 * ``jaxobs_forward``: ``jit(vmap(simulate_5_6))`` over the seeds, returning every seed's per-segment mean
-  |theta_tilde| over each segment's last half (:func:`~jaxobs.papers.grip2010_adaptive.segment_metrics`);
+  |theta_tilde| over each segment's last half (:func:`~jaxobs.papers.grip2010.adaptive.segment_metrics`);
 * ``jaxobs_gradient``: the derivative of the mean of those (over seeds and segments, modular law) with respect to
   ``(log K_phi, log Gamma)``, forward mode (``jax.jacfwd``: two parameters, no stored trajectory);
 * ``diffrax_forward``: the same ``simulate_5_6`` with each 1 ms step taken by ``diffrax.diffeqsolve`` (the
@@ -49,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _timing import format_range, paired_ratio, time_interleaved  # noqa: E402
 from ct_integration import diffrax_rk4_solver  # noqa: E402
 
-from jaxobs.papers import grip2010_adaptive as grip  # noqa: E402
+from jaxobs.papers.grip2010 import adaptive as grip  # noqa: E402
 
 ENTRIES = ("jaxobs_forward", "jaxobs_gradient", "diffrax_forward", "numpy_vectorised", "numpy_per_seed")
 

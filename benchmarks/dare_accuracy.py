@@ -14,7 +14,7 @@ Both answers are measured against a reference: Newton's method started from SciP
 fails) with the residual evaluated exactly in rational arithmetic (``tests/darex.py``). Errors are relative
 Frobenius errors of the solution ``X`` and of the gain ``K = (R + B'XB)^{-1} B'XA`` computed from it. ``floor``:
 what no float64 answer can be expected to beat (the effect of rounding the exact solution to float64). The test
-``tests/test_dare_accuracy.py`` asserts ``ours <= 10 * scipy + floor`` on every case.
+``tests/benchmarks/test_dare_accuracy.py`` asserts ``ours <= 10 * scipy + floor`` on every case.
 
 Run::
 

@@ -38,9 +38,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _timing import format_range, paired_ratio, time_interleaved  # noqa: E402
 
 from jaxobs.observers.hgo import hgo_gains  # noqa: E402
-from jaxobs.papers import dc_motor_hgo_sweep as sweep  # noqa: E402
-from jaxobs.papers import grip2010_dc_motor as dc  # noqa: E402
-from jaxobs.papers import grip2010_scb  # noqa: E402
+from jaxobs.papers.grip2010 import dc_motor as dc  # noqa: E402
+from jaxobs.papers.grip2010 import dc_motor_sweep as sweep  # noqa: E402
+from jaxobs.papers.grip2010 import scb as grip_scb  # noqa: E402
 from jaxobs.scb import scb  # noqa: E402
 from jaxobs.sweep import config_key  # noqa: E402
 
@@ -192,15 +192,15 @@ def throughput(n: int, duration: float, rounds: int) -> dict:
 
 
 def scb_timings(rounds: int) -> dict:
-    systems = grip2010_scb.systems()
-    entries = {name: ((lambda s=systems[name]: (lambda: scb(*s), ())), False, 1.0) for name in grip2010_scb.CASES}
-    timings, _ = time_interleaved(entries, rounds, required=tuple(grip2010_scb.CASES))
+    systems = grip_scb.systems()
+    entries = {name: ((lambda s=systems[name]: (lambda: scb(*s), ())), False, 1.0) for name in grip_scb.CASES}
+    timings, _ = time_interleaved(entries, rounds, required=tuple(grip_scb.CASES))
     return {
         name: {
             "seconds": timings[name].record(1, "calls/s")["seconds"],
-            "maple_printed_s": grip2010_scb.MAPLE_SECONDS[name],
+            "maple_printed_s": grip_scb.MAPLE_SECONDS[name],
         }
-        for name in grip2010_scb.CASES
+        for name in grip_scb.CASES
     }
 
 

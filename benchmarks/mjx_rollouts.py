@@ -4,7 +4,8 @@ step for batches of 1, 64 and 1024 mismatched plants, against CPU MuJoCo steppin
 
 Plant: the 1-DOF force plant of :mod:`jaxobs.mjx` (1 ms physics, ``SUBSTEPS = 8`` physics steps per 8 ms
 control step, 5-sample command dead time), under the Example 1 AOB-1 with steady-state gains and its state
-feedback ``L`` (``jaxobs.papers.cortesao2006.aob_params`` with ``jaxobs.papers.force_control.with_feedback``),
+feedback ``L`` (``jaxobs.papers.cortesao.example1.aob_params`` with
+``jaxobs.papers.cortesao.force_control.with_feedback``),
 tracking a 10 N force step for ``T`` control steps (default 250 = 2 s = 2000 physics steps) with the Example 1
 input disturbance and sensor noise ``sqrt(R) * normal`` (one noise draw per plant). The batch spreads the sensor
 stiffness ``ks`` over [1.5, 4.5] N/mm (nominal 3) with :func:`jaxobs.mjx.with_params`.
@@ -63,8 +64,8 @@ from mujoco import rollout as mj_rollout  # noqa: E402
 from jaxobs.closed_loop import ideal_response  # noqa: E402
 from jaxobs.mjx import SUBSTEPS, ForcePlantParams, closed_loop_rollout, load_model, with_params  # noqa: E402
 from jaxobs.observers.active import active_observer_controller, make_aob  # noqa: E402
-from jaxobs.papers.cortesao2006 import aob_params  # noqa: E402
-from jaxobs.papers.force_control import (  # noqa: E402
+from jaxobs.papers.cortesao.example1 import aob_params  # noqa: E402
+from jaxobs.papers.cortesao.force_control import (  # noqa: E402
     EXAMPLE1,
     example1_disturbance,
     nominal_design,

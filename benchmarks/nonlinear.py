@@ -10,8 +10,8 @@ dynamax its filtered means and covariances (and the marginal log-likelihood). Th
 (dynamax's convention and ours agree: no prediction before the first update).
 
 Agreement: the filtered means of both libraries on the benchmark data (max relative difference; dynamax adds
-1e-9 I to every matrix it inverts, so about 1e-9 is expected here, 1e-15 without it: tests/test_ekf.py and
-tests/test_ukf.py).
+1e-9 I to every matrix it inverts, so about 1e-9 is expected here, 1e-15 without it: tests/observers/test_ekf.py and
+tests/observers/test_ukf.py).
 
 Timing (``benchmarks/_timing.py``): every function is compiled first (the compile time is reported apart);
 then ``--rounds`` interleaved rounds run every entry once; times are the median [min, max] over the rounds,

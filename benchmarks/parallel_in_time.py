@@ -47,7 +47,7 @@ from _timing import format_range, paired_ratio, time_interleaved  # noqa: E402
 
 from jaxobs.observers import EstimatorInputs, active, run  # noqa: E402
 from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1, nominal_design  # noqa: E402
+from jaxobs.papers.cortesao.force_control import EXAMPLE1, nominal_design  # noqa: E402
 from jaxobs.smoothing import parallel_filter, smooth  # noqa: E402
 
 

@@ -33,8 +33,8 @@ import scipy.linalg  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 from _timing import format_range, paired_ratio, time_interleaved  # noqa: E402
 
-from jaxobs.papers import grip2010_saturated_outputs as ex  # noqa: E402
-from jaxobs.papers import saturated_outputs_sweep as sweep  # noqa: E402
+from jaxobs.papers.grip2010 import saturated_outputs as ex  # noqa: E402
+from jaxobs.papers.grip2010 import saturated_outputs_sweep as sweep  # noqa: E402
 from jaxobs.sweep import config_key  # noqa: E402
 
 

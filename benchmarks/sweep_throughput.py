@@ -56,8 +56,8 @@ import scipy.linalg  # noqa: E402
 from _timing import Timed, format_range, paired_ratio, summary, time_interleaved  # noqa: E402
 
 from jaxobs.observers.linear import linear_controller  # noqa: E402
-from jaxobs.papers import force_robustness as fr  # noqa: E402
-from jaxobs.papers.force_control import EXAMPLE1  # noqa: E402
+from jaxobs.papers.cortesao import force_sweep as fr  # noqa: E402
+from jaxobs.papers.cortesao.force_control import EXAMPLE1  # noqa: E402
 from jaxobs.plants import force_plant  # noqa: E402
 from jaxobs.stability import closed_loop_matrix, spectral_radius  # noqa: E402
 from jaxobs.sweep import config_key  # noqa: E402

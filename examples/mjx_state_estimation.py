@@ -1,4 +1,4 @@
-# checked by: tests/test_mjx_estimation.py (slow: it asserts on the RMS errors this script measures)
+# checked by: tests/mjx/test_estimation.py (slow: it asserts on the RMS errors this script measures)
 """Estimate the state of a MuJoCo MJX cart-pole from noisy sensors with the EKF and the UKF, with the true model
 and with a mismatched one (the filter believes the pole is 30 % heavier than it is).
 

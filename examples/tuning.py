@@ -5,7 +5,8 @@
 import jax
 
 import jaxobs as jo
-from jaxobs.papers import force_tuning, tuning
+from jaxobs.papers import tuning
+from jaxobs.papers.cortesao import force_tuning
 from jaxobs.tuning import evaluate
 
 jax.config.update("jax_enable_x64", True)

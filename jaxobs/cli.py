@@ -71,17 +71,11 @@ def _print_list(registry: dict) -> None:
 
 def _sweeps() -> dict:
     """Sweep modules by scenario name; the first is the default."""
-    from jaxobs.papers import (
-        dc_motor_hgo_sweep,
-        force_robustness,
-        grip_example56_sweep,
-        liu_peng_sweep,
-        saturated_outputs_sweep,
-        sbw_robustness,
-        sideslip_sweep,
-    )
+    from jaxobs.papers.cortesao import force_sweep, steer_by_wire_sweep
+    from jaxobs.papers.grip2010 import dc_motor_sweep, example56_sweep, saturated_outputs_sweep, sideslip_sweep
+    from jaxobs.papers.liu_peng import vehicle_lateral_sweep
 
-    sweeps = (force_robustness, sbw_robustness, liu_peng_sweep, dc_motor_hgo_sweep, grip_example56_sweep,
+    sweeps = (force_sweep, steer_by_wire_sweep, vehicle_lateral_sweep, dc_motor_sweep, example56_sweep,
               saturated_outputs_sweep, sideslip_sweep)  # fmt: skip
     return {m.NAME: m for m in sweeps}
 

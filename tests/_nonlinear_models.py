@@ -1,4 +1,5 @@
-"""Nonlinear test models shared by tests/test_ekf.py and tests/test_ukf.py, with data simulated from them.
+"""Nonlinear test models shared by tests/observers/test_ekf.py and tests/observers/test_ukf.py, with data simulated from
+them.
 
 * ``pendulum``: the sampled pendulum of Särkkä 2013 (here with a torque input), state (angle, rate),
   ``x_{k+1} = (a + w dt, w - g sin(a) dt + u dt)``, measured ``sin(a)``.

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import re
 from decimal import Decimal
-from pathlib import Path
 
-README = Path(__file__).parents[1] / "README.md"
+from tests import ROOT
+
+README = ROOT / "README.md"
 
 
 def _text() -> str:

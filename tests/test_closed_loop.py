@@ -22,7 +22,7 @@ from jaxobs.observers import (
     run,
 )
 from jaxobs.observers.active import active_observer_controller
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
+from jaxobs.papers.cortesao.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
 from jaxobs.plants import force_plant
 
 H = EXAMPLE1.h

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).parents[1]
+from tests import ROOT
+
 EXAMPLES = ROOT / "examples"
 CHECKED_BY = re.compile(r"^# checked by: (tests/\S+\.py)", re.M)  # a script with its own test, which asserts on
 SCRIPTS = sorted(s for s in EXAMPLES.glob("*.py") if not CHECKED_BY.search(s.read_text()))  # what it measures

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "jaxobs"
+from tests import ROOT
+
+PACKAGE = ROOT / "jaxobs"
 FAMILIES = {p.stem for p in (PACKAGE / "observers").glob("*.py")} - {"__init__", "base", "feedback", "continuous"}
 
 
@@ -48,5 +50,5 @@ def test_no_estimator_family_imports_another(family):
 def test_the_checker_sees_an_arrow(tmp_path):
     """The parser catches both spellings of an import of the paper layer (the test is not vacuous)."""
     module = tmp_path / "m.py"
-    module.write_text("from jaxobs.papers import force_control\nimport jaxobs.papers.liu_peng as lp\n")
-    assert {"jaxobs.papers", "jaxobs.papers.liu_peng"} <= _imported_modules(module)
+    module.write_text("from jaxobs.papers import force_control\nimport jaxobs.papers.liu_peng.vehicle_lateral as lp\n")
+    assert {"jaxobs.papers", "jaxobs.papers.liu_peng.vehicle_lateral"} <= _imported_modules(module)

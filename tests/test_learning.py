@@ -7,7 +7,6 @@ several seeds) is benchmarks/learning.py, run by the slow test at the end."""
 import dataclasses
 import importlib.util
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +18,7 @@ from jaxobs.observers import EstimatorInputs, run
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.smoothing import log_likelihood
 from jaxobs.tuning import cholesky_covariance, cholesky_parameters, unit_interval, unit_interval_parameters
+from tests import ROOT
 
 TRUE_SCALAR = dict(Phi=0.8, Q=0.5, R=0.3)  # x_k = 0.8 x_{k-1} + w, y = x + v
 B, T = 4, 250
@@ -278,7 +278,7 @@ def test_errors_shrink_as_one_over_root_T(tmp_path):
     RMS relative errors of Q and R fall with a log-log slope between -0.8 and -0.3 (theory -0.5), the gradient fit
     and EM agree to 1e-3, and on fresh data the fitted filter's one-step prediction error is within 2 standard
     errors of the true model's in every case."""
-    spec = importlib.util.spec_from_file_location("bench_learning", Path(__file__).parents[1] / "benchmarks" /
+    spec = importlib.util.spec_from_file_location("bench_learning", ROOT / "benchmarks" /
                                                   "learning.py")  # fmt: skip
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 from jaxobs.sweep import load_results, run_sweep
+from tests import ROOT
 
 SCRIPT = Path(__file__).parent / "sweep_scripts" / "sweep_case.py"
 N, CHUNK = 1000, 128  # 8 chunks, the last one partial
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _free_port() -> int:

@@ -2,14 +2,15 @@
 through tests/_readme.py.)"""
 
 import re
-from pathlib import Path
 
 import pytest
+
+from tests import ROOT
 
 
 @pytest.mark.slow
 def test_readme_tour_runs(capsys):
-    text = (Path(__file__).parents[1] / "README.md").read_text()
+    text = (ROOT / "README.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     assert blocks, "README has no python example"
     for code in blocks:

@@ -96,7 +96,7 @@ def test_update_covariance_is_joseph_form_eq29(n, m):
 def test_dare_matches_scipy(n, m):
     """dare(Phi.T, C.T, Q, R).X = scipy.linalg.solve_discrete_are(Phi', C', Q, R) (filter DARE) to 1e-9 relative, with
     converged True and a small residual, on random stabilisable/detectable systems (some unstable). The systematic
-    comparison against an exact reference is tests/test_dare_accuracy.py."""
+    comparison against an exact reference is tests/benchmarks/test_dare_accuracy.py."""
     Phi, C, Q, R = random_system(np.random.default_rng(1000 * n + m), n, m)
     sol = dare(Phi.T, C.T, Q, R)
     want = scipy.linalg.solve_discrete_are(Phi.T, C.T, Q, R)

@@ -10,7 +10,7 @@ from sympy.polys.matrices import DomainMatrix
 sp = pytest.importorskip("sympy")
 
 from jaxobs import scb as scbmod  # noqa: E402
-from jaxobs.papers import grip2010_scb  # noqa: E402
+from jaxobs.papers.grip2010 import scb as grip_scb  # noqa: E402
 from jaxobs.scb import (  # noqa: E402
     infinite_zero_structure,
     invariant_zeros,
@@ -100,8 +100,8 @@ def _check_residuals(s, A, B, C, D=None):
 
 # ---------------------------------------------------------------------------------------------------- printed cases
 
-SYSTEMS = grip2010_scb.systems()
-PRINTED = grip2010_scb.printed()
+SYSTEMS = grip_scb.systems()
+PRINTED = grip_scb.printed()
 T_A, T_B, T_C = (np.array(M.tolist(), dtype=int) for M in SYSTEMS["tenth_order"])
 
 

@@ -4,7 +4,7 @@ with gradients, transformations and the errors of the entry points.
 
 Prior conventions: jaxobs, dynamax take the prior of x_0 (the state at the first measurement); filterpy and cuthbert
 start one step earlier (they predict before the first update), so they are given the prior of x_{-1} and jaxobs its
-prediction (as in tests/test_kalman.py)."""
+prediction (as in tests/observers/test_kalman.py)."""
 
 import dataclasses
 from functools import partial
@@ -15,15 +15,15 @@ import numpy as np
 import pytest
 import scipy.stats
 from jax.test_util import check_grads
-from test_kalman import make_problem, params_of, peer_problem
 
 from jaxobs.closed_loop import simulate
 from jaxobs.observers import EstimatorInputs, LinearObserver, active, run
 from jaxobs.observers.active import active_observer, active_observer_controller
 from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
 from jaxobs.observers.linear import linear_observer
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
+from jaxobs.papers.cortesao.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
 from jaxobs.smoothing import log_likelihood, parallel_filter, rts_smoother, smooth
+from tests.observers.test_kalman import make_problem, params_of, peer_problem
 
 
 def dense_posterior(model, x0, P0, u, y):

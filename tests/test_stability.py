@@ -14,8 +14,8 @@ from jaxobs.lti import ss
 from jaxobs.observers import FeedbackParams, LinearObserver, active
 from jaxobs.observers.active import active_observer_controller
 from jaxobs.observers.linear import linear_controller
-from jaxobs.papers.cortesao2006 import aob_params
-from jaxobs.papers.force_control import EXAMPLE1, nominal_design, with_feedback
+from jaxobs.papers.cortesao.example1 import aob_params
+from jaxobs.papers.cortesao.force_control import EXAMPLE1, nominal_design, with_feedback
 from jaxobs.plants import force_plant
 from jaxobs.stability import (
     closed_loop_matrix,

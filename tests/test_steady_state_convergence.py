@@ -13,7 +13,7 @@ from jaxobs.design import dlqr
 from jaxobs.observers import EstimatorInputs, run
 from jaxobs.observers.active import active_observer_controller, make_aob, make_ckf
 from jaxobs.observers.kalman import kalman_filter, make_kalman
-from jaxobs.papers.force_control import EXAMPLE1, nominal_design, with_feedback
+from jaxobs.papers.cortesao.force_control import EXAMPLE1, nominal_design, with_feedback
 
 R1 = np.eye(1)
 

@@ -18,7 +18,13 @@ from jaxobs import tuning
 from jaxobs._resources import Interrupted
 from jaxobs.closed_loop import ideal_response, simulate
 from jaxobs.observers import active
-from jaxobs.papers.force_control import EXAMPLE1, example1_disturbance, nominal_design, reference_gain, with_feedback
+from jaxobs.papers.cortesao.force_control import (
+    EXAMPLE1,
+    example1_disturbance,
+    nominal_design,
+    reference_gain,
+    with_feedback,
+)
 from jaxobs.plants import force_plant
 from jaxobs.tuning import (
     CheckpointError,

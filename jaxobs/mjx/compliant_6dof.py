@@ -49,7 +49,7 @@ per-DOF controllers it is an equivalent input disturbance, the thing the AOB est
 Controllers: any controller of the jaxobs protocol, one per DOF, stacked on a leading axis of size 6
 (:func:`stack_controllers`); :func:`closed_loop_rollout` steps them with one ``jax.vmap`` over DOF. The velocity
 feedforward ``v_d`` enters at the plant input, outside the observers' models. The six per-DOF AOBs of the MRAC
-chapter (§7.3, eq. 62-68) and its peg-on-hole scenario are in :mod:`jaxobs.papers.cortesao_mrac`.
+chapter (§7.3, eq. 62-68) and its peg-on-hole scenario are in :mod:`jaxobs.papers.cortesao.mrac`.
 
 Simplifications against the real Manutec R2 / DLR setup (quote them with any result):
 
@@ -78,7 +78,7 @@ Parameters map to model fields only in :func:`with_params`, so mismatched batche
 Precision. Float32 is adequate for the plant (the open-loop wrench of the 4 s scenario stays within 5e-5 N of
 float64); the AOB designs with ``Q`` entries of 1e-12 need float64. Tests run in float64.
 
-Checked in ``tests/test_mjx_6dof.py``: with the coupling off each DOF's closed-loop wrench equals
+Checked in ``tests/mjx/test_compliant_6dof.py``: with the coupling off each DOF's closed-loop wrench equals
 :func:`jaxobs.closed_loop.simulate` on :func:`jaxobs.plants.force_plant` to 0.04-0.07 % RMS of the step; the
 alignment rotation loads the contact as the formulas above say (1e-4 relative); jit equals eager; ``vmap`` over
 mismatched models and noise seeds equals single calls; reverse-mode and ``jacfwd`` gradients through the loop
@@ -451,7 +451,7 @@ def closed_loop_rollout(
       controller: any :class:`~jaxobs.observers.base.Controller` of one DOF (one output, one input), e.g.
         :data:`jaxobs.observers.active.active_observer_controller`.
       params: six per-DOF controller parameters stacked on a leading axis of size 6 (all the same shape), e.g.
-        from :func:`stack_controllers` or :func:`jaxobs.papers.cortesao_mrac.design`.
+        from :func:`stack_controllers` or :func:`jaxobs.papers.cortesao.mrac.design`.
       reference: controller references ``r_k`` (T, 6), e.g. ``L_1 f_d`` per DOF.
       dead_time_samples, substeps: as in :func:`rollout`.
       feedforward: velocity feedforward ``v_d`` (T, 6) in mm/s and rad/s, or None.
@@ -502,7 +502,7 @@ def stack_controllers(controllers):
 
     An AOB-1 and a CKF of the same plant differ in state size: build the CKF as the AOB-1 with
     ``set_active(params, 0.0)`` (and a fixed gain in ``gain``/``gain_passive`` for the SBA), as
-    :func:`jaxobs.papers.cortesao_mrac.design` does, so that the six stack."""
+    :func:`jaxobs.papers.cortesao.mrac.design` does, so that the six stack."""
     controllers = list(controllers)
     if len(controllers) != N_DOF:
         raise ValueError(

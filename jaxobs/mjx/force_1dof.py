@@ -7,7 +7,7 @@ interface at ``h = 8 ms`` and an input dead time of 5 samples; a compliant force
 response is ``Gp(s) = e^{-s Td} / (1 + Tp s)`` (eq. 56) and the plant input ``u`` is a **velocity** command
 in mm/s (eq. 59): the position interface integrates it, ``x_c = ∫ u dt``. With ``F = Ks x`` this gives the
 analytic plant ``F(s) / u(s) = Ks / (s (1 + Tp s)) e^{-s Td}`` (eq. 57) of
-:func:`jaxobs.papers.force_control.force_plant`.
+:func:`jaxobs.papers.cortesao.force_control.force_plant`.
 
 MJCF model (``assets/force_1dof.xml``, units mm, N, s, so masses in tonnes and ``Ks`` in N/mm as printed):
 

@@ -24,10 +24,12 @@ import numpy as np
 from jaxobs._config import ConfigError, fail
 from jaxobs._distributed import agree
 from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
-from jaxobs.papers import force_tuning, grip_tuning, peg_tuning, robot_tuning, sideslip_tuning
+from jaxobs.papers import robot_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
+from jaxobs.papers.cortesao import force_tuning, peg_tuning
+from jaxobs.papers.grip2010 import example56_tuning, sideslip_tuning
 from jaxobs.tuning import evaluate, random_search, tune
 
 __all__ = ["PROBLEMS", "validate_config", "run"]
@@ -35,7 +37,7 @@ __all__ = ["PROBLEMS", "validate_config", "run"]
 PROBLEMS = {
     force_tuning.NAME: force_tuning,
     peg_tuning.NAME: peg_tuning,
-    grip_tuning.NAME: grip_tuning,
+    example56_tuning.NAME: example56_tuning,
     robot_tuning.NAME: robot_tuning,
     sideslip_tuning.NAME: sideslip_tuning,
 }

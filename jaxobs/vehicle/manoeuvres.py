@@ -3,7 +3,7 @@
 
 Each is a :class:`~jaxobs.vehicle.Manoeuvre`, looked up by name with :func:`manoeuvre` or passed by name to
 :func:`~jaxobs.vehicle.simulate`; the peaks below were measured with the default vehicle
-(``tests/test_vehicle_manoeuvres.py`` pins them):
+(``tests/vehicle/test_manoeuvres.py`` pins them):
 
 * ``straight``: 100 km/h straight ahead on a flat road, 10 s (no lateral excitation).
 * ``sine_steer``: 80 km/h, steering-wheel sine of 45 deg at 0.5 Hz, 10 s: peak 0.58 g, sideslip 0.85 deg.

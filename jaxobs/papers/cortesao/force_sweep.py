@@ -1,0 +1,481 @@
+"""Robustness sweep of the Example 1 force controllers (Cortesão 2006 §6-7): the default ``jaxobs sweep``.
+
+AOB-1, AOB-2, AOB-3 and a CKF, each designed on the nominal plant (Ks = 3 N/mm, Tp = 32 ms, 5 samples
+of dead time) for a grid of Q/R strategies, run against true plants with stiffness, time-constant
+and (fractional) dead-time mismatch. Per configuration: the spectral radius of the closed loop
+(eq. 59) and the margins of the loop transfer function (eq. 65), and a 20 s closed-loop run under
+the disturbance of eq. 81-82 with sensor noise, scored by the RMS force error against the desired
+response (as in §7.2).
+
+The strategy grid: the variance ``sigma^2`` of the active-state noise (eq. 55, with Example 1's
+``c = 1/500``) times ``R``. The CKF has no active state, so for it the first axis is the plant-state
+variance ``Q_xr``. By Q/R scale invariance (the MRAC chapter Proposition 1) the gains depend mostly on
+``sigma^2 / R``, the axis of the stability maps.
+
+Configuration ``i`` uses design ``i mod D`` (so every design gets the same number of plants) and
+samples its plant from its own key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs._config import ConfigError, check_at_least, check_choice, check_range, fail, merge
+from jaxobs._resources import compile_checked
+from jaxobs.closed_loop import ideal_response, rms, simulate
+from jaxobs.lti import n_delay_slots
+from jaxobs.observers import active
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.observers.linear import linear_controller
+from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
+from jaxobs.papers.cortesao.force_control import (
+    EXAMPLE1,
+    example1_disturbance,
+    nominal_design,
+    reference_gain,
+    with_feedback,
+)
+from jaxobs.plants import force_plant
+from jaxobs.stability import loop_transfer, stability_margins
+from jaxobs.sweep import load_results, run_configured_sweep
+
+__all__ = [
+    "NAME",
+    "DEFAULT_CONFIG",
+    "CONFIG_NOTES",
+    "ConfigError",
+    "validate_config",
+    "build_designs",
+    "make_sweep",
+    "run",
+    "report",
+]
+
+NAME = "force-control"
+
+DEFAULT_CONFIG = {
+    "scenario": NAME,
+    "seed": 0,
+    "chunk_size": 2000,
+    "plant": {
+        "stiffness": [0.3, 30.0],
+        "time_constant_scale": [0.5, 1.5],
+        "dead_time_samples": [3.0, 8.0],
+    },
+    "controllers": {
+        "orders": [1, 2, 3, 0],
+        "active_variance": [1e-6, 1.0],
+        "R": [1e-3, 1.0],
+        "grid_points": 10,
+    },
+    "simulation": {
+        "configs_per_design": 250,
+        "duration": 20.0,
+        "force_step": 10.0,
+        "sensor_noise": EXAMPLE1.R,
+    },
+    "margins": {"num_points": 512},
+}
+"""The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
+
+CONFIG_NOTES = {
+    "scenario": f"the sweep ('jaxobs sweep --list'); {NAME!r} is the default",
+    "seed": "base of every configuration's random key (configuration i draws from its own key)",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+    "plant": "the true plants, drawn independently per configuration",
+    "plant.stiffness": "true sensor stiffness Ks (N/mm, nominal 3), log-uniform in [low, high]",
+    "plant.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
+    "plant.dead_time_samples": "true dead time in samples of h = 8 ms (nominal 5), uniform; fractions allowed",
+    "controllers": "the designs, all on the nominal plant: every order x grid_points x grid_points Q/R strategies",
+    "controllers.orders": "AOB-N orders to design; 0 is the CKF (no active state)",
+    "controllers.active_variance": "range of sigma^2 of eq. 55 (the CKF: its plant-state variance Q_xr), log grid",
+    "controllers.R": "range of the designs' measurement variance R (N^2), log grid",
+    "controllers.grid_points": "points of each log grid (one point: the geometric mean of the range)",
+    "simulation": "the closed-loop run of each configuration (eq. 81-82 disturbance at the plant input)",
+    "simulation.configs_per_design": "true plants per design; a larger value extends a sweep in the same directory",
+    "simulation.duration": "simulated time (s)",
+    "simulation.force_step": "force set-point (N) from t = 0",
+    "simulation.sensor_noise": "the true sensor's noise variance (N^2)",
+    "margins": "the loop transfer function's margins (eq. 65)",
+    "margins.num_points": "frequency points of the margin search (at least 16)",
+}
+
+SIZE_KEY = "simulation.configs_per_design"  # a larger value extends a sweep in the same directory
+MAX_DEAD_TIME_SAMPLES = 100
+MAX_ORDER = 5
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
+    config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_choice(config, source, "scenario", (NAME,))
+    check_range(config, source, "plant.stiffness", positive=True)
+    check_range(config, source, "plant.time_constant_scale", positive=True)
+    check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
+    check_range(config, source, "controllers.active_variance", positive=True)
+    check_range(config, source, "controllers.R", positive=True)
+    orders = config["controllers"]["orders"]
+    if not orders or any(not isinstance(n, int) or not 0 <= n <= MAX_ORDER for n in orders):
+        fail(source, "controllers.orders", f"must be a non-empty list of integers in 0..{MAX_ORDER}, got {orders!r}")
+    if len(set(orders)) != len(orders):
+        fail(source, "controllers.orders", f"has duplicates: {orders!r}")
+    for key, low in (
+        ("seed", 0),
+        ("chunk_size", 1),
+        ("controllers.grid_points", 1),
+        ("simulation.configs_per_design", 1),
+        ("margins.num_points", 16),
+    ):
+        check_at_least(config, source, key, low)
+    for key in ("duration", "force_step", "sensor_noise"):
+        check_at_least(config, source, f"simulation.{key}", 0, strict=True)
+    if config["simulation"]["duration"] < EXAMPLE1.h:
+        fail(source, "simulation.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
+    return config
+
+
+# --------------------------------------------------------------------------------------------
+# Designs and the per-configuration evaluation
+
+
+@dataclasses.dataclass(frozen=True)
+class Designs:
+    """Stacked controllers (leading axis: design), padded to a common observer size."""
+
+    controller: FeedbackParams  # params of jaxobs.observers.linear.linear_controller
+    order: np.ndarray  # 0 = CKF
+    active_variance: np.ndarray
+    R: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+
+def _log_grid(bounds, points: int) -> np.ndarray:
+    return np.geomspace(bounds[0], bounds[1], points) if points > 1 else np.array([np.sqrt(bounds[0] * bounds[1])])
+
+
+def build_designs(config: dict) -> Designs:
+    """Every (order, sigma^2, R) controller of the grid, with steady-state gains (batched DAREs)."""
+    plant, L_r = nominal_design()
+    ctl = config["controllers"]
+    variances, Rs = _log_grid(ctl["active_variance"], ctl["grid_points"]), _log_grid(ctl["R"], ctl["grid_points"])
+    V, R = (a.ravel() for a in np.meshgrid(variances, Rs, indexing="ij"))
+    n_obs = plant.n_states + max(ctl["orders"])
+    parts, orders = [], []
+    for order in ctl["orders"]:
+
+        def design(v, r, order=order):
+            if order == 0:
+                params = active.make_ckf(plant, r, q_plant=v, steady_state=True)
+            else:
+                q = active.evolution_variance(v, order, EXAMPLE1.c)
+                params = active.make_aob(plant, order, r, q_plant=EXAMPLE1.q_plant, q_active=q, steady_state=True)
+            return active.active_observer_controller.linear(with_feedback(params, L_r)).padded(n_obs)
+
+        V_, R_ = jnp.asarray(V), jnp.asarray(R)
+        build = compile_checked(jax.jit(jax.vmap(design)).lower(V_, R_), f"the {V.size} designs of order {order}",
+                                hint="lower controllers.grid_points")  # fmt: skip
+        parts.append(build(V_, R_))
+        orders.append(np.full(V.size, order))
+    stacked = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    count = len(ctl["orders"])
+    return Designs(stacked, np.concatenate(orders), np.tile(V, count), np.tile(R, count))
+
+
+def _scenario(config: dict):
+    """``(steps, n_delay, reference, desired force, disturbance)`` shared by every configuration."""
+    h, sim = EXAMPLE1.h, config["simulation"]
+    steps = int(round(sim["duration"] / h))
+    nominal, L_r = nominal_design()
+    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
+    desired = ideal_response(nominal, L_r, reference)[:, 0]
+    disturbance = example1_disturbance(jnp.arange(steps) * h)
+    return steps, n_delay_slots(config["plant"]["dead_time_samples"][1] * h, h), reference, desired, disturbance
+
+
+def tracking(config: dict):
+    """``(true plant, controller, noise seed) -> (force, RMS force error, peak |force|)``: the closed loop of
+    the scenario (the two scores are inf where it diverges)."""
+    steps, _, reference, desired, disturbance = _scenario(config)
+    std = jnp.sqrt(config["simulation"]["sensor_noise"])
+
+    def run(true, ctrl, noise_seed):
+        noise = std * jax.random.normal(jax.random.PRNGKey(noise_seed), (steps,))
+        trace = simulate(true, linear_controller, ctrl, reference, disturbance=disturbance, noise=noise)
+        force = trace.y_true[:, 0]
+        error, peak = rms(force - desired), jnp.max(jnp.where(jnp.isfinite(force), jnp.abs(force), jnp.inf))
+        return force, jnp.where(jnp.isfinite(error), error, jnp.inf), peak
+
+    return run
+
+
+def make_sweep(config: dict):
+    """``(sampler, evaluate, num_configs, designs)`` for :func:`jaxobs.sweep.run_sweep`."""
+    designs = build_designs(config)
+    plant_cfg, h = config["plant"], EXAMPLE1.h
+    n_delay = _scenario(config)[1]
+    closed_loop = tracking(config)
+    table = designs.controller
+    order, variance, R = (jnp.asarray(a) for a in (designs.order, designs.active_variance, designs.R))
+    log_ks = np.log(plant_cfg["stiffness"])
+    count = len(designs)
+
+    def sampler(key, index):
+        k_ks, k_tp, k_dead, k_noise = jax.random.split(key, 4)
+        design = index % count
+        return {
+            "design": design,
+            "order": order[design],
+            "active_variance": variance[design],
+            "R": R[design],
+            "stiffness": jnp.exp(jax.random.uniform(k_ks, (), minval=log_ks[0], maxval=log_ks[1])),
+            "time_constant": EXAMPLE1.Tp * jax.random.uniform(k_tp, (), minval=plant_cfg["time_constant_scale"][0],
+                                                              maxval=plant_cfg["time_constant_scale"][1]),
+            "dead_time_samples": jax.random.uniform(k_dead, (), minval=plant_cfg["dead_time_samples"][0],
+                                                    maxval=plant_cfg["dead_time_samples"][1]),
+            "noise_seed": jax.random.bits(k_noise, (), jnp.uint32),
+        }  # fmt: skip
+
+    def evaluate(p):
+        ctrl = jax.tree.map(lambda M: M[p["design"]], table)
+        true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
+        margins = stability_margins(
+            loop_transfer(true, linear_controller, ctrl),
+            num_points=config["margins"]["num_points"],
+        )
+        _, error, peak = closed_loop(true, ctrl, p["noise_seed"])
+        return {
+            "spectral_radius": margins.spectral_radius,
+            "stable": margins.spectral_radius < 1.0,
+            "gain_margin": margins.gain_margin,
+            "phase_margin": margins.phase_margin,
+            "delay_margin": margins.delay_margin,
+            "stability_margin": margins.stability_margin,
+            "rms_force_error": error,
+            "peak_force": peak,
+        }
+
+    return sampler, evaluate, count * config["simulation"]["configs_per_design"], designs
+
+
+def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
+    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report; returns its summary
+    (process 0 writes it: None in the other processes of a multi-process run)."""
+    sampler, evaluate, num_configs, designs = make_sweep(config)
+    return run_configured_sweep(
+        config,
+        sampler,
+        evaluate,
+        num_configs,
+        out_dir,
+        size_key=SIZE_KEY,
+        progress=progress,
+        overwrite=overwrite,
+        report=lambda result: report(config, Path(out_dir), result, designs),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Report: summary.json, report.md, figures
+
+NAMES = {0: "CKF"}
+
+
+def _name(order: int) -> str:
+    return NAMES.get(order, f"AOB-{order}")
+
+
+def _quantiles(values: np.ndarray) -> dict:
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return {"count": 0}
+    q = np.quantile(values, [0.05, 0.5, 0.95])
+    return {"count": int(values.size), "p05": float(q[0]), "median": float(q[1]), "p95": float(q[2])}
+
+
+def summarize(config: dict, cols: dict) -> dict:
+    """Per-controller statistics of a completed sweep."""
+    stable = cols["metric.stable"].astype(bool)
+    ks_ratio = cols["param.stiffness"] / EXAMPLE1.Ks
+    per = {}
+    for order in config["controllers"]["orders"]:
+        sel = cols["param.order"] == order
+        s = sel & stable
+        near = sel & (np.abs(np.log(ks_ratio)) < np.log(1.5))
+        per[_name(order)] = {
+            "configs": int(sel.sum()),
+            "stable_fraction": float(stable[sel].mean()),
+            "stable_fraction_within_50pct_stiffness": float(stable[near].mean()) if near.any() else None,
+            "rms_force_error_stable": _quantiles(cols["metric.rms_force_error"][s]),
+            "gain_margin_stable": _quantiles(cols["metric.gain_margin"][s]),
+            "phase_margin_stable": _quantiles(cols["metric.phase_margin"][s]),
+            "delay_margin_stable_s": _quantiles(cols["metric.delay_margin"][s]),
+        }
+    return per
+
+
+def _worst_cases(cols: dict, orders) -> dict:
+    """Per controller, the stable configuration with the largest RMS force error."""
+    worst = {}
+    for order in orders:
+        sel = np.flatnonzero((cols["param.order"] == order) & cols["metric.stable"].astype(bool))
+        if sel.size:
+            i = sel[np.argmax(cols["metric.rms_force_error"][sel])]
+            worst[_name(order)] = {k.split(".", 1)[1]: cols[k][i].item() for k in cols if k != "index"}
+            worst[_name(order)]["index"] = int(cols["index"][i])
+    return worst
+
+
+def report(config: dict, out_dir: Path, result=None, designs: Designs | None = None) -> dict:
+    """Write ``summary.json``, ``report.md`` and the figures for the sweep in ``out_dir``."""
+
+    cols = load_results(out_dir)
+    orders = config["controllers"]["orders"]
+    summary = {
+        "num_configs": int(cols["index"].size),
+        "stable_fraction": float(cols["metric.stable"].mean()),
+        "controllers": summarize(config, cols),
+        "worst_cases": _worst_cases(cols, orders),
+    }
+    figures = [
+        _plot_stability_maps(cols, orders, out_dir),
+        _plot_distributions(cols, orders, out_dir),
+        _plot_worst_cases(config, designs or build_designs(config), summary["worst_cases"], out_dir),
+    ]
+    return write_sweep_report(out_dir, summary, config, result, figures, _markdown)
+
+
+def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
+    plt = pyplot()
+    ks_ratio = np.log10(cols["param.stiffness"] / EXAMPLE1.Ks)
+    ratio = np.log10(cols["param.active_variance"] / cols["param.R"])
+    x_edges = np.linspace(ks_ratio.min(), ks_ratio.max(), 13)
+    y_edges = np.linspace(ratio.min() - 1e-9, ratio.max() + 1e-9, 11)
+    fig, axes = plt.subplots(1, len(orders), figsize=(3.6 * len(orders), 3.6), squeeze=False, layout="constrained")
+    for ax, order in zip(axes[0], orders, strict=True):
+        sel = cols["param.order"] == order
+        total, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges])
+        stable, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges], weights=cols["metric.stable"][sel])
+        with np.errstate(invalid="ignore"):
+            frac = stable / total
+        mesh = ax.pcolormesh(x_edges, y_edges, frac.T, vmin=0, vmax=1, cmap="RdYlGn")
+        ax.set_title(_name(order))
+        ax.set_xlabel("log10 Ks_true / Ks_nominal")
+        ax.axvline(0.0, color="k", lw=0.6)
+    axes[0, 0].set_ylabel("log10 sigma^2 / R" + (" (CKF: Q_xr / R)" if 0 in orders else ""))
+    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction")
+    fig.suptitle("Stable fraction vs stiffness mismatch and Q/R strategy")
+    return save_figure(fig, out_dir, "stability_maps")
+
+
+def _plot_distributions(cols, orders, out_dir: Path) -> str:
+    """Histograms of the stable configurations' margins and RMS errors, in report.md's units; the quantities that
+    span decades on log axes (log-spaced bins shared by the controllers)."""
+    plt = pyplot()
+    stable = cols["metric.stable"].astype(bool)
+    panels = [  # key, label, scale to report.md's unit, log axis
+        ("metric.gain_margin", "gain margin (factor)", 1.0, True),
+        ("metric.phase_margin", "phase margin (deg)", 1.0, False),
+        ("metric.delay_margin", "delay margin (ms)", 1e3, True),
+        ("metric.rms_force_error", "RMS force error (N)", 1.0, True),
+    ]
+    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6), layout="constrained")
+    for ax, (key, label, scale, log) in zip(axes, panels, strict=True):
+        values = {}
+        for order in orders:
+            v = scale * cols[key][(cols["param.order"] == order) & stable]
+            values[order] = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
+        pooled = np.concatenate(list(values.values()))
+        if not pooled.size:
+            continue
+        low, high = pooled.min(), pooled.max()
+        bins = np.geomspace(low, high * (1 + 1e-9), 41) if log and high > low else 40
+        for order, v in values.items():
+            if v.size:
+                ax.hist(v, bins=bins, histtype="step", label=_name(order), color=_colour(order))
+        if log:
+            ax.set_xscale("log")
+        ax.set_xlabel(label)
+    axes[0].set_ylabel("stable configurations")
+    if axes[0].get_legend_handles_labels()[0]:  # not for a sweep without a stable configuration
+        axes[0].legend()
+    fig.suptitle("Margins and tracking error over the stable configurations (infinite margins left out)")
+    return save_figure(fig, out_dir, "distributions")
+
+
+def _colour(order: int) -> str:
+    """One colour per controller in every figure (AOB-1, AOB-2, AOB-3, CKF)."""
+    return {1: "C0", 2: "C1", 3: "C2", 0: "C3"}.get(order, "C4")
+
+
+def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
+    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired, one panel (and one
+    force scale) per controller."""
+    plt = pyplot()
+    steps, n_delay, _, desired, _ = _scenario(config)
+    closed_loop = tracking(config)
+    t = np.arange(steps) * EXAMPLE1.h
+    orders = {_name(order): order for order in config["controllers"]["orders"]}
+    rows = max(len(worst), 1)  # a sweep without a stable configuration still gets its (empty) figure
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.4 * rows + 0.6), sharex=True, squeeze=False,
+                             layout="constrained")  # fmt: skip
+    if not worst:
+        axes[0, 0].plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        axes[0, 0].set(title="no stable configuration", ylabel="force (N)")
+    for ax, (name, case) in zip(axes[: len(worst), 0], worst.items(), strict=True):
+        ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
+        true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
+                           n_delay=n_delay)  # fmt: skip
+        force = closed_loop(true, ctrl, case["noise_seed"])[0]
+        ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
+        ax.plot(t, np.asarray(force), lw=0.8, color=_colour(orders[name]), label=name)
+        ax.set_title(f"{name}: Ks = {case['stiffness']:.2g} N/mm, Tp = {case['time_constant'] * 1e3:.0f} ms, "
+                     f"dead time {case['dead_time_samples']:.1f} samples; RMS error {case['rms_force_error']:.2f} N",
+                     fontsize=9)  # fmt: skip
+        ax.set_ylabel("force (N)")
+        ax.legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle("Worst stable case per controller (largest RMS force error)")
+    return save_figure(fig, out_dir, "worst_cases")
+
+
+def _markdown(summary: dict) -> str:
+    lines = [
+        "# Robustness sweep: Example 1 force controllers",
+        "",
+        f"{summary['num_configs']} configurations; overall stable fraction {summary['stable_fraction']:.3f}.",
+    ]
+    if "seconds" in summary:
+        lines.append(
+            f"This run: {summary['seconds']:.1f} s, {summary['configs_per_second']:.0f} configurations/s "
+            f"({summary['chunks_computed']} chunks computed, {summary['chunks_reused']} reused)."
+        )
+    lines += [
+        "",
+        "| controller | stable | stable, Ks within x1.5 | median RMS force error (N) | median GM | median PM (deg) "
+        "| median delay margin (ms) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    fmt = lambda q, scale=1.0: f"{q['median'] * scale:.3g}" if q.get("count") else "-"
+    for name, s in summary["controllers"].items():
+        near = s["stable_fraction_within_50pct_stiffness"]
+        lines.append(
+            f"| {name} | {s['stable_fraction']:.3f} | {'-' if near is None else f'{near:.3f}'} "
+            f"| {fmt(s['rms_force_error_stable'])} | {fmt(s['gain_margin_stable'])} | {fmt(s['phase_margin_stable'])} "
+            f"| {fmt(s['delay_margin_stable_s'], 1e3)} |"
+        )
+    lines += ["", "Worst stable case per controller (largest RMS force error):", ""]
+    for name, case in summary["worst_cases"].items():
+        lines.append(
+            f"- {name}: config {case['index']}, Ks = {case['stiffness']:.3g} N/mm, Tp = {case['time_constant']:.4f} s, "
+            f"dead time {case['dead_time_samples']:.2f} samples, sigma^2 = {case['active_variance']:.2g}, "
+            f"R = {case['R']:.2g}: RMS {case['rms_force_error']:.3g} N, spectral radius {case['spectral_radius']:.4f}"
+        )
+    lines += [""] + [f"![{f}]({f})" for f in summary["figures"]] + [""]
+    return "\n".join(lines)

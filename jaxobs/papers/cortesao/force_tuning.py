@@ -1,0 +1,325 @@
+"""Tuning the AOB of the 1-DOF force plant against MJX rollouts: the default ``jaxobs tune`` problem.
+
+The controller is the AOB-N of Cortesão 2006 and the MRAC chapter designed on the nominal analytic plant (Ks = 3 N/mm,
+Tp = 32 ms, 5 samples of dead time; ``L_r`` for tau_c = 10 Tp, eq. 68) with steady-state gains. The
+hand-set design it starts from is the MRAC chapter eq. 62-64: ``Q = diag(1e-12, ..., 1e-12, 1e-5)``,
+``R = 2.1e-2``. It runs against the MJX force plant (:mod:`jaxobs.mjx.force_1dof`) with mismatched
+stiffness (+-50 % by default), time constant and damping, under the papers' disturbances: a 10 N
+force step at t = 0, the input disturbance of Cortesão 2006 eq. 81-82 (a window of it, crossing its 8 s
+step) and the receding surface of the stochastic AOB paper §4 (2 mm/s). The per-plant loss is the mean squared
+force tracking error against the desired closed loop (Cortesão 2006 eq. 43, the nominal ``Phi - Gamma L``
+response), in N^2; sensor noise of the printed variance is drawn per plant with a fixed seed (common
+random numbers, so the objective is deterministic).
+
+Parameterisations (``design.parameterisation``) of the unconstrained ``theta``:
+
+* ``"diagonal"``: ``log_q`` (every diagonal entry of ``Q``) and ``log_r``;
+* ``"cholesky"``: ``q_cholesky`` (:func:`jaxobs.tuning.cholesky_covariance`) and ``log_r``;
+* ``"structured"``: the papers' design space, ``log_q_plant`` (``Q_xr = q I``), ``log_sigma2`` and
+  ``logit_c`` (the active-state variance of eq. 53-55) and ``log_r``.
+
+By Q/R scale invariance (the MRAC chapter Proposition 1) the steady-state gains, hence the losses, do not
+change when ``Q`` and ``R`` are scaled together: one direction of ``theta`` is flat.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs.closed_loop import ideal_response
+from jaxobs.lti import StateSpace
+from jaxobs.observers import active
+from jaxobs.observers.feedback import FeedbackParams
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    COMMON_NOTES,
+    check_common,
+    check_plant_memory,
+    optimizer_defaults,
+    search_box,
+)
+from jaxobs.papers.cortesao.force_control import (
+    EXAMPLE1,
+    example1_disturbance,
+    nominal_design,
+    reference_gain,
+    with_feedback,
+)
+from jaxobs.plants import force_plant
+from jaxobs.stability import closed_loop_matrix, spectral_radius
+from jaxobs.tuning import (
+    TuningProblem,
+    cholesky_covariance,
+    cholesky_parameters,
+    unit_interval,
+    unit_interval_parameters,
+)
+
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
+
+NAME = "force-1dof"
+HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # The MRAC chapter eq. 62 and 64
+PARAMETERISATIONS = ("diagonal", "cholesky", "structured")
+MAX_ORDER = 3
+
+DEFAULT_CONFIG = {
+    "problem": NAME,
+    "seed": 0,
+    "plants": {
+        "stiffness_scale": [0.5, 1.5],
+        "time_constant_scale": [1.0, 1.0],
+        "damping": [0.0, 0.0],
+        "train": 16,
+        "heldout": 64,
+        "mjcf": "",
+    },
+    "scenario": {
+        "duration": 2.0,
+        "force_step": 10.0,
+        "sensor_noise": EXAMPLE1.R,
+        "disturbance_window": 7.0,
+        "disturbance_scale": 1.0,
+        "surface_speed": 2.0,
+        "surface_start": 1.5,
+        "force_limit": 1000.0,
+        "gradient_horizon": 0,
+    },
+    "design": {
+        "order": 1,
+        "parameterisation": "diagonal",
+        "q_plant": HAND_SET["q_plant"],
+        "q_active": HAND_SET["q_active"],
+        "R": HAND_SET["R"],
+        "spectral_radius_limit": 0.995,
+    },
+    "optimizer": optimizer_defaults(learning_rate=0.2, steps=40, clip_norm=5.0, patience=12, checkpoint_every=5),
+    "baseline": dict(BASELINE_DEFAULTS),
+}
+"""Tune the AOB-1 of the 1-DOF MJX force plant across +-50 % stiffness mismatch (16 training plants,
+64 held-out plants, 2 s rollouts)."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": f"the tuning problem ('jaxobs tune --list'); {NAME!r} is the default",
+    "plants": "the mismatched MJX plants, drawn per plant (training and held-out sets from independent keys)",
+    "plants.stiffness_scale": "true Ks / nominal Ks (3 N/mm), uniform",
+    "plants.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
+    "plants.damping": "sensor + environment damping (N s/mm), uniform",
+    "plants.train": "training plants (one rollout each per gradient evaluation)",
+    "plants.heldout": "held-out plants, never used in training, that score the designs",
+    "plants.mjcf": "a user's MJCF of the plant (same joint, body and actuator names); empty: the packaged model",
+    "scenario": "the rollout every plant runs",
+    "scenario.duration": "rollout length (s)",
+    "scenario.force_step": "force set-point (N) from t = 0",
+    "scenario.sensor_noise": "the true sensor's noise variance (N^2), drawn per plant with a fixed seed",
+    "scenario.disturbance_window": "the plant sees D(t + window) of eq. 81-82 (s; 7: its 8 s step at t = 1 s)",
+    "scenario.disturbance_scale": "factor on the eq. 81-82 input disturbance",
+    "scenario.surface_speed": "receding contact surface speed (mm/s; the stochastic AOB paper §4)",
+    "scenario.surface_start": "time the surface starts moving (s)",
+    "scenario.force_limit": "a rollout whose force exceeds it (N) counts as diverged",
+    "scenario.gradient_horizon": "control steps of truncated backpropagation; 0: the whole rollout",
+    "design": "the AOB and its hand-set starting point (the MRAC chapter eq. 62-64)",
+    "design.order": "AOB-N order (1 to 3)",
+    "design.parameterisation": "'diagonal' (log Q diagonal), 'cholesky' (full Q) or 'structured' (eq. 53-55)",
+    "design.q_plant": "hand-set plant-state variance Q_xr",
+    "design.q_active": "hand-set active-state variance",
+    "design.R": "hand-set measurement variance (N^2)",
+    "design.spectral_radius_limit": "threshold of the spectral-radius penalty (enabled by optimizer.penalty_weight)",
+}
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    """The complete configuration (defaults filled in), or :class:`jaxobs._config.ConfigError`."""
+    config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_choice(config, source, "problem", (NAME,))
+    for key in ("plants.stiffness_scale", "plants.time_constant_scale"):
+        check_range(config, source, key, positive=True, allow_point=True)
+    check_range(config, source, "plants.damping", minimum=0.0, allow_point=True)
+    for key, low in (("plants.train", 1), ("plants.heldout", 1), ("scenario.gradient_horizon", 0)):
+        check_at_least(config, source, key, low)
+    for key in ("duration", "force_step", "sensor_noise", "force_limit"):
+        check_at_least(config, source, f"scenario.{key}", 0, strict=True)
+    if config["scenario"]["duration"] < EXAMPLE1.h:
+        fail(source, "scenario.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
+    order = config["design"]["order"]
+    if not 1 <= order <= MAX_ORDER:
+        fail(source, "design.order", f"must be an AOB order in 1..{MAX_ORDER}, got {order!r}")
+    check_choice(config, source, "design.parameterisation", PARAMETERISATIONS)
+    for key in ("q_plant", "q_active", "R", "spectral_radius_limit"):
+        check_at_least(config, source, f"design.{key}", 0, strict=True)
+    check_common(config, source)
+    check_plant_memory(config, source, int(round(config["scenario"]["duration"] / EXAMPLE1.h)), 1)
+    return config
+
+
+# --------------------------------------------------------------------------------------------
+# Controller from theta
+
+
+def _hand_set_q(config: dict, n_plant: int, order: int):
+    d = config["design"]
+    return active.aob_noise_covariance(n_plant, order, 1, d["q_plant"], d["q_active"])
+
+
+def initial_theta(config: dict, plant: StateSpace) -> dict:
+    """The unconstrained ``theta`` of the hand-set design (``design.q_plant``, ``q_active``, ``R``)."""
+    d, order = config["design"], config["design"]["order"]
+    log_r = jnp.log(jnp.asarray(d["R"], float))
+    kind = d["parameterisation"]
+    if kind == "diagonal":
+        return {"log_q": jnp.log(jnp.diagonal(_hand_set_q(config, plant.n_states, order))), "log_r": log_r}
+    if kind == "cholesky":
+        return {"q_cholesky": cholesky_parameters(_hand_set_q(config, plant.n_states, order)), "log_r": log_r}
+    c = EXAMPLE1.c
+    sigma2 = d["q_active"] / float(active.evolution_variance(1.0, order, c))  # so that Q is eq. 62's
+    return {
+        "log_q_plant": jnp.log(jnp.asarray(d["q_plant"], float)),
+        "log_sigma2": jnp.log(jnp.asarray(sigma2, float)),
+        "logit_c": unit_interval_parameters(c),
+        "log_r": log_r,
+    }
+
+
+def covariances(theta: dict, n_plant: int, order: int):
+    """``(Q, R)`` of ``theta`` under its parameterisation (told apart by its keys)."""
+    R = jnp.exp(theta["log_r"]).reshape(1, 1)
+    if "log_q" in theta:
+        return jnp.diag(jnp.exp(theta["log_q"])), R
+    if "q_cholesky" in theta:
+        return cholesky_covariance(theta["q_cholesky"]), R
+    q_active = active.evolution_variance(jnp.exp(theta["log_sigma2"]), order, unit_interval(theta["logit_c"]))
+    return active.aob_noise_covariance(n_plant, order, 1, jnp.exp(theta["log_q_plant"]), q_active), R
+
+
+def controller(theta: dict, base: active.ActiveObserverParams, L_r, n_plant: int, order: int) -> FeedbackParams:
+    """The steady-state AOB of ``theta`` with the state feedback ``L_r`` (``base`` supplies the model)."""
+    Q, R = covariances(theta, n_plant, order)
+    return with_feedback(active.with_steady_state_gains(dataclasses.replace(base, Q=Q, R=R, P0=Q)), L_r)
+
+
+# --------------------------------------------------------------------------------------------
+# Plants, scenario, losses
+
+
+def sample_plants(config: dict, which: str) -> dict:
+    """``which`` = "train" or "heldout": stiffness, time constant, damping and sensor noise per plant
+    (independent keys for the two sets)."""
+    p, sc = config["plants"], config["scenario"]
+    count = p[which]
+    steps = int(round(sc["duration"] / EXAMPLE1.h))
+    key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+    k_ks, k_tp, k_d, k_noise = jax.random.split(key, 4)
+
+    def uniform(k, bounds, scale=1.0):
+        return scale * jax.random.uniform(k, (count,), minval=bounds[0], maxval=bounds[1])
+
+    return {
+        "ks": uniform(k_ks, p["stiffness_scale"], EXAMPLE1.Ks),
+        "tp": uniform(k_tp, p["time_constant_scale"], EXAMPLE1.Tp),
+        "damping": uniform(k_d, p["damping"]),
+        "noise": jnp.sqrt(sc["sensor_noise"]) * jax.random.normal(k_noise, (count, steps)),
+    }
+
+
+def scenario(config: dict) -> dict:
+    """The inputs shared by every plant: time, reference, desired force, input disturbance, surface speed."""
+    sc, h = config["scenario"], EXAMPLE1.h
+    steps = int(round(sc["duration"] / h))
+    t = jnp.arange(steps) * h
+    plant, L = nominal_design(EXAMPLE1)
+    reference = jnp.full((steps,), reference_gain(L) * sc["force_step"])
+    return {
+        "t": t,
+        "reference": reference,
+        "desired": ideal_response(plant, L, reference)[:, 0],
+        "disturbance": sc["disturbance_scale"] * example1_disturbance(t + sc["disturbance_window"]),
+        "surface_velocity": jnp.where(t >= sc["surface_start"], sc["surface_speed"], 0.0),
+    }
+
+
+def build_problem(config: dict) -> TuningProblem:
+    """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
+    from jaxobs.mjx import ForcePlantParams, closed_loop_rollout, load_model, with_params
+
+    order, sc = config["design"]["order"], config["scenario"]
+    plant, L = nominal_design(EXAMPLE1)
+    base = active.make_aob(plant, order, config["design"]["R"])
+    model = load_model(xml=config["plants"]["mjcf"] or None)[1]
+    inputs = scenario(config)
+    horizon = sc["gradient_horizon"] or None
+    n_plant = plant.n_states
+
+    def rollout(theta, plants):
+        ctrl = controller(theta, base, L, n_plant, order)
+
+        def one(ks, tp, damping, noise):
+            true = with_params(model, ForcePlantParams(stiffness=ks, time_constant=tp, damping=damping))
+            return closed_loop_rollout(
+                true, active.active_observer_controller, ctrl, inputs["reference"], noise=noise,
+                disturbance=inputs["disturbance"],
+                surface_velocity=inputs["surface_velocity"], gradient_horizon=horizon,
+            ).force_true  # fmt: skip
+
+        return jax.vmap(one)(plants["ks"], plants["tp"], plants["damping"], plants["noise"])
+
+    def losses(theta, plants):
+        force = rollout(theta, plants)
+        loss = jnp.mean((force - inputs["desired"]) ** 2, axis=-1)
+        peak = jnp.max(jnp.abs(force), axis=-1)
+        diverged = ~jnp.isfinite(loss) | ~(peak < sc["force_limit"])
+        return loss, diverged
+
+    train = sample_plants(config, "train")
+    limit = config["design"]["spectral_radius_limit"]
+    h, dead_time = EXAMPLE1.h, EXAMPLE1.dead_time_samples * EXAMPLE1.h
+
+    def penalty(theta):
+        """Mean squared excess of the closed-loop spectral radius (analytic true plants, eq. 59) over the limit."""
+        ctrl = controller(theta, base, L, n_plant, order)
+
+        def radius(ks, tp):
+            plant = force_plant(ks, tp, h, dead_time)
+            return spectral_radius(closed_loop_matrix(plant, active.active_observer_controller, ctrl))
+
+        rho = jax.vmap(radius)(train["ks"], train["tp"])
+        return jnp.mean(jnp.maximum(rho - limit, 0.0) ** 2)
+
+    def describe(theta):
+        Q, R = covariances(theta, n_plant, order)
+        aob = controller(theta, base, L, n_plant, order).estimator
+        return {
+            "Q_diagonal": np.asarray(jnp.diagonal(Q)).tolist(),
+            "q_active": float(Q[-1, -1]),
+            "R": float(R[0, 0]),
+            "q_active_over_R": float(Q[-1, -1] / R[0, 0]),
+            "kalman_gain": np.asarray(aob.gain).ravel().tolist(),
+            "strategy": active.classify_strategy(np.asarray(aob.gain), np.asarray(aob.C)),
+        }
+
+    rollout_jit = jax.jit(rollout)
+
+    def responses(theta, plants):
+        return {
+            "t": inputs["t"],
+            "output": rollout_jit(theta, plants),
+            "desired": inputs["desired"],
+            "labels": [f"Ks = {float(k):.2f} N/mm" for k in plants["ks"]],
+            "ylabel": "force (N)",
+        }
+
+    theta0 = initial_theta(config, plant)
+    return TuningProblem(
+        theta0=theta0,
+        losses=losses,
+        train=train,
+        heldout=sample_plants(config, "heldout"),
+        penalty=penalty,
+        describe=describe,
+        responses=responses,
+        search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
+    )

@@ -1,0 +1,196 @@
+"""Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (the MRAC chapter §7) against MJX rollouts.
+
+The task of :func:`jaxobs.papers.cortesao.mrac.peg_on_hole_scenario`: three-point contact kept by ``f_x < 0``
+and ``f_z > 0`` while the alignment velocity ``w_y`` uprights the tilted peg (its contact moment couples
+into ``f_x``, ``f_z`` and ``m_y``) and ``v_z`` carries a feedforward bias. The hand-set design is eq. 62-68:
+AOB-1 HBA on x, y, rx, ry, rz with ``Q = a_i diag(1e-12, ..., 1e-5)``, ``a_i = R_i / R(f_x)``, CKF SBA on z,
+the ``m_y`` feedback off during the alignment.
+
+Tuned: ``log_q_active`` of the four DOF whose AOB acts (x, y, rx, rz; ``R_i`` stays the measured sensor
+variance, so by scale invariance this sets each DOF's ``q/R``). The z CKF's gain is the fixed sensor-based
+one, and ``m_y`` has no feedback, so their Q has no effect and is not tuned. Mismatched plants: every
+stiffness scaled independently (+-50 % by default), the peg's tilt and the contact lever varied. The
+per-plant loss is the mean over time and the four tuned DOF of the squared error between the measured-free
+wrench and each DOF's desired closed-loop response (eq. 43), in units of that DOF's sensor noise variance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs.closed_loop import ideal_response
+from jaxobs.observers.active import active_observer_controller
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    COMMON_NOTES,
+    check_common,
+    check_plant_memory,
+    optimizer_defaults,
+    search_box,
+)
+from jaxobs.plants import force_plant
+from jaxobs.tuning import TuningProblem
+
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
+
+NAME = "peg-on-hole"
+
+DEFAULT_CONFIG = {
+    "problem": NAME,
+    "seed": 0,
+    "plants": {
+        "stiffness_scale": [0.5, 1.5],
+        "tilt": [0.02, 0.06],
+        "contact_radius": [10.0, 13.0],
+        "train": 8,
+        "heldout": 32,
+    },
+    "scenario": {
+        "duration": 3.0,
+        "alignment_start": 1.0,
+        "alignment_end": 2.5,
+        "insertion_velocity_bias": 0.05,
+        "force_limit": 1000.0,
+    },
+    "optimizer": optimizer_defaults(learning_rate=0.3, steps=20, gradient="forward", patience=8, checkpoint_every=5),
+    "baseline": dict(BASELINE_DEFAULTS),
+}
+"""Tune the x, y, rx, rz active-state variances over +-50 % stiffness mismatch (8 training, 32 held-out plants)."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": "the tuning problem ('jaxobs tune --list')",
+    "plants": "the mismatched 6-DOF MJX plants (training and held-out sets from independent keys)",
+    "plants.stiffness_scale": "true / nominal stiffness, each of the six DOF drawn independently, uniform",
+    "plants.tilt": "initial peg tilt (rad), uniform",
+    "plants.contact_radius": "contact lever (mm; the peg radius is 11.5 mm), uniform",
+    "plants.train": "training plants (one rollout each per gradient evaluation)",
+    "plants.heldout": "held-out plants, never used in training, that score the designs",
+    "scenario": "the alignment task every plant runs (the MRAC chapter §7)",
+    "scenario.duration": "rollout length (s)",
+    "scenario.alignment_start": "start of the alignment rotation w_y (s)",
+    "scenario.alignment_end": "end of the alignment rotation (s), at most the duration",
+    "scenario.insertion_velocity_bias": "feedforward bias on v_z (mm/s)",
+    "scenario.force_limit": "a rollout whose force (N) or moment (N m) exceeds it counts as diverged",
+}
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_choice(config, source, "problem", (NAME,))
+    check_range(config, source, "plants.stiffness_scale", positive=True, allow_point=True)
+    check_range(config, source, "plants.tilt", allow_point=True, minimum=-0.3, maximum=0.3)
+    check_range(config, source, "plants.contact_radius", positive=True, allow_point=True)
+    for key in ("plants.train", "plants.heldout"):
+        check_at_least(config, source, key, 1)
+    for key in ("duration", "force_limit"):
+        check_at_least(config, source, f"scenario.{key}", 0, strict=True)
+    check_at_least(config, source, "scenario.alignment_start", 0.0)
+    check_at_least(config, source, "scenario.alignment_end", config["scenario"]["alignment_start"], strict=True)
+    if config["scenario"]["alignment_end"] > config["scenario"]["duration"]:
+        fail(source, "scenario.alignment_end", "must not exceed scenario.duration")
+    check_common(config, source)
+    from jaxobs.mjx.compliant_6dof import CONTROL_PERIOD
+
+    check_plant_memory(config, source, int(round(config["scenario"]["duration"] / CONTROL_PERIOD)), 6)
+    return config
+
+
+def build_problem(config: dict) -> TuningProblem:
+    from jaxobs.mjx import compliant_6dof as c6
+    from jaxobs.papers.cortesao import mrac
+
+    sc, pl = config["scenario"], config["plants"]
+    nominal = c6.Compliant6Params()
+    scenario = mrac.peg_on_hole_scenario(
+        nominal, duration=sc["duration"], alignment=(sc["alignment_start"], sc["alignment_end"]),
+        insertion_velocity_bias=sc["insertion_velocity_bias"],
+    )  # fmt: skip
+    tuned = np.array([c6.X, c6.Y, c6.RX, c6.RZ])
+    hand_set = scenario.controllers
+    noise_variance = jnp.asarray(mrac.SENSOR_NOISE_VARIANCE)
+    q_hand = mrac.Q_ACTIVE_FX * noise_variance / noise_variance[c6.X]  # eq. 62, 65
+    h, d = c6.CONTROL_PERIOD, 5
+    stiffness = nominal.per_dof("stiffness", float)
+
+    def desired_one(ks, L, r):
+        plant = force_plant(ks, nominal.time_constant, h, d * h)
+        return ideal_response(plant, L[:, : plant.n_states], r)[:, 0]
+
+    desired = jax.vmap(desired_one, in_axes=(0, 0, 1), out_axes=1)(stiffness, hand_set.L, scenario.reference)
+    model = c6.load_model()[1]
+    steps = scenario.t.shape[0]
+
+    def controllers(theta):
+        q = q_hand.at[tuned].set(jnp.exp(theta["log_q_active"]))
+        return mrac.design(nominal, q_active=q, feedback_off=(c6.RY,))
+
+    def rollout(theta, plants):
+        ctrl = controllers(theta)
+
+        def one(scale, tilt, radius, noise):
+            true = dataclasses.replace(
+                scenario.plant, stiffness=scenario.plant.per_dof("stiffness", float) * scale, tilt=tilt,
+                contact_radius=radius,
+            )  # fmt: skip
+            return c6.closed_loop_rollout(
+                c6.with_params(model, true), active_observer_controller, ctrl, scenario.reference,
+                feedforward=scenario.feedforward, noise=noise,
+            ).wrench_true  # fmt: skip
+
+        return jax.vmap(one)(plants["stiffness_scale"], plants["tilt"], plants["contact_radius"], plants["noise"])
+
+    def losses(theta, plants):
+        wrench = rollout(theta, plants)
+        error = (wrench - desired)[..., tuned] ** 2 / noise_variance[tuned]
+        loss = jnp.mean(error, axis=(-2, -1))
+        peak = jnp.max(jnp.abs(wrench), axis=(-2, -1))
+        return loss, ~jnp.isfinite(loss) | ~(peak < sc["force_limit"])
+
+    def sample(which):
+        count = pl[which]
+        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+        k_s, k_t, k_r, k_n = jax.random.split(key, 4)
+        lo, hi = pl["stiffness_scale"]
+        return {
+            "stiffness_scale": jax.random.uniform(k_s, (count, 6), minval=lo, maxval=hi),
+            "tilt": jax.random.uniform(k_t, (count,), minval=pl["tilt"][0], maxval=pl["tilt"][1]),
+            "contact_radius": jax.random.uniform(
+                k_r, (count,), minval=pl["contact_radius"][0], maxval=pl["contact_radius"][1]
+            ),
+            "noise": jnp.sqrt(noise_variance) * jax.random.normal(k_n, (count, steps, 6)),
+        }
+
+    def describe(theta):
+        q = np.exp(np.asarray(theta["log_q_active"]))
+        r = np.asarray(noise_variance)[tuned]
+        names = [c6.DOF_NAMES[i] for i in tuned]
+        return {"q_active": dict(zip(names, q.tolist(), strict=True)),
+                "q_active_over_R": dict(zip(names, (q / r).tolist(), strict=True))}  # fmt: skip
+
+    rollout_jit = jax.jit(rollout)
+
+    def responses(theta, plants):
+        return {
+            "t": scenario.t,
+            "output": rollout_jit(theta, plants)[..., c6.X],
+            "desired": desired[:, c6.X],
+            "labels": [f"Kx = {float(stiffness[c6.X] * s[c6.X]):.2f} N/mm" for s in plants["stiffness_scale"]],
+            "ylabel": "f_x (N)",
+        }
+
+    theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
+    return TuningProblem(
+        theta0=theta0,
+        losses=losses,
+        train=sample("train"),
+        heldout=sample("heldout"),
+        describe=describe,
+        responses=responses,
+        search_box=search_box(config, theta0),
+    )

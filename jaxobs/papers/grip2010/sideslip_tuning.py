@@ -1,0 +1,205 @@
+"""Tuning the gains and switching thresholds of the NVSO of Grip 2010 ch. 2 on mismatched vehicles.
+
+Tuned (log scale, from the hand-set defaults of :class:`jaxobs.vehicle.NVSOParams`): the gains ``K_vx``, ``K_vy``,
+``K_theta``, ``K_theta_b`` (``log_gains``) and the thresholds of the friction-estimation switch
+``vy_dot_threshold``, ``yaw_rate_threshold``, ``oversteer_threshold`` (``log_thresholds``, §2.5). The observer runs
+with sigmoid gates of sharpness ``scenario.smooth`` (``NVSOParams.smooth``), so that the thresholds have
+gradients; the held-out scores use the same gates.
+
+Each plant is a vehicle driving one test drive (``scenario.manoeuvres`` in turn, all for ``scenario.duration``),
+drawn like a point of the ``sideslip`` sweep (:mod:`jaxobs.papers.grip2010.sideslip_sweep`): the road friction of
+the drive
+scaled, the true mass and the cornering stiffness of all four tyres scaled by factors drawn uniformly from
+``plants.friction``, ``plants.mass``, ``plants.cornering_stiffness``, a bias on both accelerometers drawn from
+``N(0, plants.acc_bias_std^2)`` and the ESC sensor noise of its own seed; training and held-out plants from
+independent keys. The drives and the sensors do not depend on the gains: they are simulated once, and every
+rollout is the NVSO (on the nominal vehicle) over a plant's recorded sensors. The per-plant loss is the RMS
+sideslip error (deg) over ``t >= scenario.error_start``; a non-finite one counts as diverged.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs.observers.base import EstimatorInputs
+from jaxobs.observers.base import run as run_observer
+from jaxobs.papers._tuning_config import (
+    BASELINE_DEFAULTS,
+    COMMON_NOTES,
+    check_common,
+    optimizer_defaults,
+    search_box,
+)
+from jaxobs.papers.grip2010.sideslip_sweep import drive, mismatched_vehicle
+from jaxobs.tuning import TuningProblem
+from jaxobs.vehicle import (
+    MANOEUVRES,
+    NVSOParams,
+    SensorParams,
+    VehicleParams,
+    make_nvso,
+    measure,
+    nvso,
+    sensor_inputs,
+    simulate,
+)
+
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "GAINS", "THRESHOLDS", "validate_config", "build_problem"]
+
+NAME = "sideslip"
+GAINS = ("K_vx", "K_vy", "K_theta", "K_theta_b")
+THRESHOLDS = ("vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold")
+_DEFAULTS = NVSOParams._field_defaults
+
+DEFAULT_CONFIG = {
+    "problem": NAME,
+    "seed": 0,
+    "plants": {
+        "train": 36,
+        "heldout": 36,
+        "friction": [0.9, 1.2],  # scale on the drive's road friction, uniform
+        "mass": [0.9, 1.2],  # true / nominal, uniform
+        "cornering_stiffness": [0.85, 1.1],  # true / nominal, uniform
+        "acc_bias_std": 0.1,  # m/s^2
+    },
+    "scenario": {
+        "manoeuvres": ["sine_steer", "double_lane_change_120kmh", "mountain_road"],
+        "duration": 10.0,
+        "error_start": 1.0,
+        "smooth": 50.0,
+    },
+    "design": {name: float(_DEFAULTS[name]) for name in (*GAINS, *THRESHOLDS)},
+    "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, patience=8, checkpoint_every=5),
+    "baseline": dict(BASELINE_DEFAULTS),
+}
+"""Tune 4 gains and 3 thresholds of the NVSO from its hand-set defaults on 36 training / 36 held-out vehicles."""
+
+CONFIG_NOTES = {
+    **COMMON_NOTES,
+    "problem": "the tuning problem ('jaxobs tune --list')",
+    "plants": "the mismatched vehicles, drawn per plant (training and held-out sets from independent keys)",
+    "plants.train": "training vehicles (one NVSO rollout each per gradient evaluation)",
+    "plants.heldout": "held-out vehicles, never used in training, that score the designs",
+    "plants.friction": "scale on the drive's road friction, uniform in [low, high] (> 0; below about 0.85 the lane "
+    "change and the mountain road spin the car, true sideslip 60 to 170 deg)",
+    "plants.mass": "true mass / the observer's nominal, uniform in [low, high] (> 0)",
+    "plants.cornering_stiffness": "true cornering stiffness of the four tyres / nominal, uniform in [low, high] (> 0)",
+    "plants.acc_bias_std": "standard deviation of the bias on both accelerometers (m/s^2, >= 0)",
+    "scenario": "the drive of every vehicle and the loss",
+    "scenario.manoeuvres": "test drives (Grip 2010 §2.10) taken in turn by the plants, each one of "
+    + ", ".join(MANOEUVRES),
+    "scenario.duration": "simulated time of every drive (s; a shorter drive continues with its last command)",
+    "scenario.error_start": "the loss is the RMS sideslip error (deg) over t >= error_start (s)",
+    "scenario.smooth": "sharpness of the NVSO's sigmoid switching gates (NVSOParams.smooth, > 0)",
+    "design": "the NVSO's hand-set gains and thresholds (NVSOParams defaults), the tuner's start",
+    **{f"design.{name}": f"{name} (> 0)" for name in (*GAINS, *THRESHOLDS)},
+}
+
+
+def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
+    config = merge(DEFAULT_CONFIG, given or {}, source)
+    check_choice(config, source, "problem", (NAME,))
+    for key in ("plants.train", "plants.heldout"):
+        check_at_least(config, source, key, 1)
+    for key in ("plants.friction", "plants.mass", "plants.cornering_stiffness"):
+        check_range(config, source, key, positive=True, allow_point=True)
+    check_at_least(config, source, "plants.acc_bias_std", 0)
+    unknown = [m for m in config["scenario"]["manoeuvres"] if m not in MANOEUVRES]
+    if unknown:
+        fail(source, "scenario.manoeuvres", f"unknown {unknown}; choose from {', '.join(MANOEUVRES)}")
+    for key in ("scenario.duration", "scenario.smooth", *(f"design.{n}" for n in (*GAINS, *THRESHOLDS))):
+        check_at_least(config, source, key, 0, strict=True)
+    sc = config["scenario"]
+    if not 0 <= sc["error_start"] < sc["duration"]:
+        fail(source, "scenario.error_start", f"must be in [0, duration = {sc['duration']}), got {sc['error_start']}")
+    check_common(config, source)
+    return config
+
+
+def _plants(config: dict):
+    """``(train, heldout)``, each ``{"y": (B, K, 9), "beta": (B, K), "vx0": (B,), "manoeuvre": (B,)}``: the simulated
+    drives' sensors and true sideslip at the sensor samples (both sets in one compiled batch)."""
+    p, sc = config["plants"], config["scenario"]
+    names = tuple(sc["manoeuvres"])
+
+    def draw(which):
+        count = p[which]
+        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+        keys = jax.random.split(key, 5)
+        uniform = lambda k, bounds: jax.random.uniform(k, (count,), minval=bounds[0], maxval=bounds[1])  # noqa: E731
+        return {
+            "manoeuvre": jnp.arange(count) % len(names),
+            "friction": uniform(keys[0], p["friction"]),
+            "mass": uniform(keys[1], p["mass"]),
+            "cornering_stiffness": uniform(keys[2], p["cornering_stiffness"]),
+            "acc_bias": p["acc_bias_std"] * jax.random.normal(keys[3], (count,)),
+            "noise": jax.random.split(keys[4], count),
+        }
+
+    def one(d):
+        truth = mismatched_vehicle(d["mass"], d["cornering_stiffness"])
+        tr = simulate(drive(names, d["manoeuvre"], d["friction"]), truth, duration=float(sc["duration"]))
+        meas = measure(tr, truth, SensorParams(bias_ax=d["acc_bias"], bias_ay=d["acc_bias"]), d["noise"])
+        return {"y": sensor_inputs(meas).y, "beta": tr.beta[::10], "vx0": meas.vx_ref[0], "manoeuvre": d["manoeuvre"]}
+
+    both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), draw("train"), draw("heldout"))
+    plants = jax.jit(jax.vmap(one))(both)
+    n = p["train"]
+    return jax.tree.map(lambda a: a[:n], plants), jax.tree.map(lambda a: a[n:], plants)
+
+
+def build_problem(config: dict) -> TuningProblem:
+    sc = config["scenario"]
+    base = make_nvso(VehicleParams(), smooth=float(sc["smooth"]))
+    late = base.dt * np.arange(round(float(sc["duration"]) / float(base.dt)) + 1) >= float(sc["error_start"])
+
+    def params(theta):
+        values = jnp.exp(jnp.concatenate([theta["log_gains"], theta["log_thresholds"]]))
+        return base._replace(**dict(zip((*GAINS, *THRESHOLDS), values, strict=True)))
+
+    def sideslip(theta, plant):
+        _, out = run_observer(nvso, params(theta)._replace(vx0=plant["vx0"]), EstimatorInputs(y=plant["y"]))
+        return out.beta
+
+    def losses(theta, plants):
+        def one(plant):
+            error = jnp.where(late, sideslip(theta, plant) - plant["beta"], 0.0)
+            return jnp.rad2deg(jnp.sqrt(jnp.sum(error**2) / np.sum(late)))
+
+        loss = jax.vmap(one)(plants)
+        return loss, ~jnp.isfinite(loss)
+
+    errors = jax.jit(jax.vmap(lambda theta, plant: jnp.rad2deg(sideslip(theta, plant) - plant["beta"]),
+                              in_axes=(None, 0)))  # fmt: skip
+
+    def responses(theta, plants):
+        names = config["scenario"]["manoeuvres"]
+        return {
+            "t": np.asarray(base.dt * np.arange(late.size)),
+            "output": errors(theta, plants),
+            "desired": np.zeros(late.size),
+            "labels": [names[int(m)] for m in np.asarray(plants["manoeuvre"])],
+            "ylabel": "NVSO sideslip error (deg)",
+        }
+
+    def describe(theta):
+        return {name: float(v) for name, v in params(theta)._asdict().items() if name in (*GAINS, *THRESHOLDS)}
+
+    design = config["design"]
+    theta0 = {
+        "log_gains": jnp.log(jnp.asarray([float(design[n]) for n in GAINS])),
+        "log_thresholds": jnp.log(jnp.asarray([float(design[n]) for n in THRESHOLDS])),
+    }
+    train, heldout = _plants(config)
+    return TuningProblem(
+        theta0=theta0,
+        losses=losses,
+        train=train,
+        heldout=heldout,
+        describe=describe,
+        responses=responses,
+        search_box=search_box(config, theta0),
+    )

@@ -1,0 +1,1 @@
+"""Liu & Peng 2002: the inverse-dynamics observers' vehicle example and its sweep."""

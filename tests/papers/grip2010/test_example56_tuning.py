@@ -1,0 +1,94 @@
+"""The Example 5.6 gain-tuning problem (jaxobs.papers.grip2010.example56_tuning)."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaxobs._config import ConfigError, load_toml
+from jaxobs.cli import main
+from jaxobs.papers import tuning
+from jaxobs.papers.grip2010 import example56_tuning
+
+
+def test_default_config_file_validates():
+    path = "tuning/grip_example56.toml"
+    assert tuning.validate_config(load_toml(path), path) == example56_tuning.DEFAULT_CONFIG
+
+
+@pytest.mark.parametrize(
+    "given, key",
+    [
+        ({"seeds": {"heldout": 0}}, "seeds.heldout"),
+        ({"scenario": {"noise_variance": -1.0}}, "scenario.noise_variance"),
+        ({"scenario": {"segment_s": 2.0, "window_s": 3.0}}, "scenario.window_s"),
+        ({"design": {"Gamma": 0.0}}, "design.Gamma"),
+        ({"optimizer": {"learning_rate": 0.0}}, "optimizer"),
+    ],
+)
+def test_bad_config_names_the_key(given, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        example56_tuning.validate_config({"problem": example56_tuning.NAME, **given})
+
+
+def test_gradient_matches_finite_differences():
+    """d loss / d (log K_phi, log Gamma) through the 5000 RK4 steps of a 1 s-segment run, forward mode against a
+    central difference (step 1e-5: truncation about 1e-10 relative; the loss is smooth away from theta_tilde = 0)."""
+    config = example56_tuning.validate_config({"seeds": {"train": 1}, "scenario": {"segment_s": 1.0, "window_s": 0.5}})
+    problem = example56_tuning.build_problem(config)
+    loss = jax.jit(lambda theta: problem.losses(theta, problem.train)[0][0])
+    grad = jax.jit(jax.jacfwd(loss))(problem.theta0)
+    for name in problem.theta0:
+        h = 1e-5
+        up = {**problem.theta0, name: problem.theta0[name] + h}
+        down = {**problem.theta0, name: problem.theta0[name] - h}
+        fd = (float(loss(up)) - float(loss(down))) / (2 * h)
+        assert float(grad[name]) == pytest.approx(fd, rel=1e-5)
+        assert abs(fd) > 1e-3  # both gains matter
+
+
+@pytest.mark.slow
+def test_small_run_end_to_end(tmp_path):
+    """2 training and 3 held-out seeds, 2 s segments, 3 adam steps: every output; the tuned gains lower the
+    training objective."""
+    config, out = tmp_path / "grip.toml", tmp_path / "out"
+    config.write_text(
+        'problem = "grip-example56"\n[seeds]\ntrain = 2\nheldout = 3\n[scenario]\nsegment_s = 2.0\nwindow_s = 1.0\n'
+        "[optimizer]\nsteps = 3\n"
+    )
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    assert summary["evaluations"] == 3 and summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
+    assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
+    assert summary["parameters"]["hand-set"] == pytest.approx({"K_phi": 10.0, "Gamma": 3.0})
+    searched = {"random search, equal rollouts", "random search, equal time"}
+    assert set(summary["heldout"]) == {"hand-set", "tuned", *searched}
+    assert summary["random_search"]["equal rollouts"]["rollouts"] == 6
+    for name in ("loss_curves.png", "parameters.png", "responses.png"):
+        assert (out / name).is_file()
+    assert np.isfinite(summary["heldout"]["tuned"]["objective"])
+
+
+@pytest.mark.slow
+def test_readme_table_row(tmp_path):
+    """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
+    held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,
+    so reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    from tests._readme import pin
+
+    out = tmp_path / "grip"
+    assert main(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    row = (
+        r"\| Grip 2010 Example 5\.6, [^|]*\\\|theta_tilde\\\|[^|]*\| ([0-9.]+) \(10, 3\) \| ([0-9.]+) \(-([0-9.]+) %\) "
+        r"at \(([0-9.]+), ([0-9.]+)\) \| ([0-9.]+) \(-([0-9.]+) %\)"
+    )
+    held = summary["heldout"]
+    pin(held["hand-set"]["objective"], row, 1)
+    pin(held["tuned"]["objective"], row, 2)
+    pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
+    pin(summary["parameters"]["tuned"]["K_phi"], row, 4)
+    pin(summary["parameters"]["tuned"]["Gamma"], row, 5)
+    pin(held["random search, equal rollouts"]["objective"], row, 6)
+    pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 7)

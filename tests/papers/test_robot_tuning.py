@@ -1,0 +1,80 @@
+"""The own-robot tuning problem (jaxobs.papers.robot_tuning): its config (TOML of any MJCF), and a slow end-to-end
+run of the shipped payload-cart example that pins its README row."""
+
+import json
+
+import pytest
+
+from jaxobs._config import ConfigError, load_toml
+from jaxobs.cli import main
+from jaxobs.papers import robot_tuning, tuning
+
+
+def test_shipped_config_file_validates_to_the_default():
+    path = "tuning/cartpole_payload.toml"
+    assert tuning.validate_config(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
+
+
+@pytest.mark.parametrize(
+    "given, key",
+    [
+        ({"robot": {"actuators": [1]}}, "robot.actuators"),
+        ({"robot": {"dead_time": -1}}, "robot.dead_time"),
+        ({"plants": {"mismatch": {"body_mass[payload]": [0.0, 2.0]}}}, r"plants.mismatch.body_mass\[payload\]"),
+        ({"plants": {"mismatch": {"body_mass[payload]": ["heavy"]}}}, r"plants.mismatch.body_mass\[payload\]"),
+        ({"plants": {"mismatch": {}}}, "plants.mismatch"),
+        ({"scenario": {"tracked": ["pole_tip"]}}, "scenario.tracked"),
+        ({"scenario": {"reference": [0.5, 0.1]}}, "scenario.tracked"),
+        ({"design": {"lqr_input": [0.01, 0.01]}}, "design.lqr_input"),
+        ({"design": {"q": [1e-6, 1e-6, 1e-4]}}, "design.q"),
+        ({"robot": {"sensor_noise": [0.0, 0.1]}}, "robot.sensor_noise"),
+    ],
+)
+def test_bad_config_names_the_key(given, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        robot_tuning.validate_config({"problem": robot_tuning.NAME, **given})
+
+
+@pytest.mark.parametrize(
+    "toml, message",
+    [
+        ('[robot]\nmjcf = "no/such/robot.xml"\n', "MJCF no/such/robot.xml: cannot load it"),
+        ('[robot]\nactuators = ["motor"]\n', "unknown actuator 'motor'; the model's actuators are: 'push'"),
+        ('[plants.mismatch]\n"body_mass[load]" = [0.5, 2.0]\n', "unknown body 'load'; the model's bodies are: "),
+        ('[plants.mismatch]\n"dof_dampin[hinge]" = [0.5, 2.0]\n', "'dof_dampin' is not a scalable model field"),
+    ],
+)
+def test_robot_errors_exit_2_with_the_reason(tmp_path, capsys, toml, message):
+    """Checked before anything compiles: the MJCF, the names in it and the mismatched fields."""
+    path = tmp_path / "robot.toml"
+    path.write_text('problem = "own-robot"\n' + toml)
+    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_readme_table_row(tmp_path):
+    """``jaxobs tune --config tuning/cartpole_payload.toml`` end to end: every output, in the report format of the
+    other problems, the tuned filter lowers the training objective, and the README's tuning-table row: the held-out
+    objectives of the hand-set filter, the tuned one and the random search at equal rollouts (seeded, so
+    reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    from tests._readme import pin
+
+    out = tmp_path / "robot"
+    assert main(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "tuned.json").read_text())
+    assert summary["evaluations"] == 20 and summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
+    assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
+    searched = {"random search, equal rollouts", "random search, equal time"}
+    assert set(summary["heldout"]) == {"hand-set", "tuned", *searched}
+    assert summary["parameters"]["hand-set"]["R_diagonal"] == pytest.approx([0.002**2, 0.005**2])
+    for name in ("loss_curves.png", "parameters.png", "responses.png"):
+        assert (out / name).is_file()
+    held = summary["heldout"]
+    row = r"\| Own robot, [^|]*\| ([0-9.e-]+) \| ([0-9.e-]+) \(-([0-9.]+) %\) \| ([0-9.e-]+) \(-([0-9.]+) %\)"
+    pin(held["hand-set"]["objective"], row, 1)
+    pin(held["tuned"]["objective"], row, 2)
+    pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
+    pin(held["random search, equal rollouts"]["objective"], row, 4)
+    pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 5)
