@@ -46,18 +46,18 @@ from jaxobs.sweep import config_key  # noqa: E402
 
 
 def _config(duration: float) -> dict:
-    return sweep.validate_config({"simulation": {"duration": duration, "rms_start": duration / 2}})
+    return sweep.SCENARIO.validate({"simulation": {"duration": duration, "rms_start": duration / 2}})
 
 
 def _draws(config: dict, n: int):
     """The first ``n`` configurations of the sweep (the sampler's draws, the same on both sides)."""
-    sampler, _, total = sweep.make_sweep(config)
+    sampler, _, total, _ = sweep.make_sweep(config)
     rows = [sampler(config_key(config["seed"], i % total), i % total) for i in range(n)]
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *rows)
 
 
 def ours(config: dict):
-    _, evaluate, _ = sweep.make_sweep(config)
+    _, evaluate, _, _ = sweep.make_sweep(config)
     return jax.vmap(evaluate)
 
 

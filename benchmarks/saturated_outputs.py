@@ -39,7 +39,7 @@ from jaxobs.sweep import config_key  # noqa: E402
 
 
 def _draws(config: dict, n: int):
-    sampler, _, total = sweep.make_sweep(config)
+    sampler, _, total, _ = sweep.make_sweep(config)
     rows = [sampler(config_key(config["seed"], i % total), i % total) for i in range(n)]
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *rows)
 
@@ -101,9 +101,9 @@ def peer(T, rho, h_scale, x0, intervals: int, substeps: int, cond_max: float):
 
 
 def throughput(n: int, rounds: int) -> dict:
-    config = sweep.validate_config()
+    config = sweep.SCENARIO.validate()
     draws = _draws(config, n)
-    _, evaluate, _ = sweep.make_sweep(config)
+    _, evaluate, _, _ = sweep.make_sweep(config)
     run = config["run"]
     args = tuple(np.asarray(draws[k]) for k in ("T", "rho", "h_scale", "x0"))
     entries = {

@@ -130,7 +130,7 @@ def engine_rate(configs: int, chunk: int, workload: str, rounds: int) -> dict:
     "simulation") over ``configs`` configurations, ``rounds`` passes after one compilation (no Parquet)."""
     from jaxobs.sweep import _compile
 
-    config = fr.validate_config({"chunk_size": chunk})
+    config = fr.SCENARIO.validate({"chunk_size": chunk})
     if workload == "default":
         sampler, evaluate, _, _ = fr.make_sweep(config)
     else:
@@ -307,7 +307,7 @@ def agreement(config: dict, evaluate, peer: NumpyPeer, params: dict, count: int 
 
 
 def measure(configs: int, rounds: int, margin_configs: int) -> dict:
-    config = fr.validate_config()
+    config = fr.SCENARIO.validate()
     _, evaluate, designs, params = _sampled(config, configs)
     peer = NumpyPeer(config, designs)
     check = agreement(config, evaluate, peer, params)

@@ -5,7 +5,6 @@
 import jax
 
 import jaxobs as jo
-from jaxobs.papers import tuning
 from jaxobs.papers.cortesao import force_tuning
 from jaxobs.tuning import evaluate
 
@@ -13,8 +12,8 @@ jax.config.update("jax_enable_x64", True)
 
 # the packaged 1-DOF problem ('jaxobs tune --list'), made small: any key of 'jaxobs tune --print-config'
 small = {"plants": {"train": 4, "heldout": 8}, "scenario": {"duration": 0.5}, "optimizer": {"steps": 5}}
-config = tuning.validate_config(small)
-problem = force_tuning.build_problem(config)  # a jo.TuningProblem: theta0, per-plant losses, train/held-out plants
+config = force_tuning.PROBLEM.validate(small)
+problem = force_tuning.PROBLEM.build(config)  # a jo.TuningProblem: theta0, per-plant losses, train/held-out plants
 print(sorted(problem.theta0), problem.batch_size(problem.train), problem.batch_size(problem.heldout))
 # prints: ['log_q', 'log_r'] 4 8
 # --8<-- [end:problem]

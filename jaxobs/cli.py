@@ -57,71 +57,47 @@ RESUME_HINT = "rerun the same command to resume"
 CACHE_MIN_COMPILE_SECONDS = 0.2  # programs that compile faster are not worth a cache file
 
 
-def summary(module) -> str:
-    """The first paragraph of ``module``'s docstring on one line (the description ``--list`` prints)."""
-    first = (module.__doc__ or "").strip().split("\n\n")[0]
-    return " ".join(first.replace("``", "").split())
-
-
 def _print_list(registry: dict) -> None:
     width = max(map(len, registry))
-    for name, module in registry.items():
-        print(f"{name:{width}s}  {summary(module)}")
-
-
-def _sweeps() -> dict:
-    """Sweep modules by scenario name; the first is the default."""
-    from jaxobs.papers.cortesao import force_sweep, steer_by_wire_sweep
-    from jaxobs.papers.grip2010 import dc_motor_sweep, example56_sweep, saturated_outputs_sweep, sideslip_sweep
-    from jaxobs.papers.liu_peng import vehicle_lateral_sweep
-
-    sweeps = (force_sweep, steer_by_wire_sweep, vehicle_lateral_sweep, dc_motor_sweep, example56_sweep,
-              saturated_outputs_sweep, sideslip_sweep)  # fmt: skip
-    return {m.NAME: m for m in sweeps}
-
-
-def _problems() -> dict:
-    """Tuning problem modules by problem name; the first is the default."""
-    from jaxobs.papers.tuning import PROBLEMS
-
-    return PROBLEMS
+    for name, entry in registry.items():
+        print(f"{name:{width}s}  {entry.summary}")
 
 
 def _reproduce(args) -> int:
-    from jaxobs.papers import REPRODUCTIONS
+    from jaxobs.papers.registry import reproductions
 
+    registry = reproductions()
     if args.list or not args.names:
-        _print_list({name: sys.modules[fn.__module__] for name, fn in REPRODUCTIONS.items()})
+        _print_list(registry)
         return 0
-    names = list(REPRODUCTIONS) if args.names == ["all"] else args.names
-    unknown = [n for n in names if n not in REPRODUCTIONS]
+    names = list(registry) if args.names == ["all"] else args.names
+    unknown = [n for n in names if n not in registry]
     if unknown:
-        print(f"unknown reproduction {', '.join(unknown)}; choose from: {', '.join(REPRODUCTIONS)}", file=sys.stderr)
+        print(f"unknown reproduction {', '.join(unknown)}; choose from: {', '.join(registry)}", file=sys.stderr)
         return 2
     out = Path(args.out)
     with locked_out_dir(out):
         for name in names:
-            _reproduce_one(name, REPRODUCTIONS[name], out)
+            _reproduce_one(registry[name], out)
     return 0
 
 
-def _reproduce_one(name: str, reproduction, out: Path) -> None:
+def _reproduce_one(reproduction, out: Path) -> None:
     start = time.perf_counter()
-    result = reproduction(out)
+    result = reproduction.reproduce(out)
     print(
-        f"{name}: wrote {out / (name + '.json')} and {', '.join(result['figures']) or 'no figures'} "
-        f"in {time.perf_counter() - start:.1f} s"
+        f"{reproduction.name}: wrote {out / (reproduction.name + '.json')} and "
+        f"{', '.join(result['figures']) or 'no figures'} in {time.perf_counter() - start:.1f} s"
     )
-    for key, value in result.items():
-        if key.startswith(("rms_", "delta_f_ss", "kalman_gains_", "L_r_max")) and not isinstance(value, dict | list):
-            print(f"  {key} = {value:.6g}")
-        elif key == "rms_force_error":
-            print("  rms_force_error = " + ", ".join(f"{k}: {v:.4f}" for k, v in value.items()))
+    for key in reproduction.headline:
+        value = result[key]
+        shown = ", ".join(f"{k}: {v:.4g}" for k, v in value.items()) if isinstance(value, dict) else f"{value:.6g}"
+        print(f"  {key} = {shown}")
 
 
 def _scenario(args, registry: dict, key: str):
-    """``(module, complete config, source)``: ``--config``'s TOML (or nothing) over the defaults of the scenario its
-    ``key`` names, or ``--print-config``'s, or the default one; raises :class:`jaxobs._config.ConfigError`."""
+    """``(scenario, complete config, source)``: ``--config``'s TOML (or nothing) over the defaults of the scenario
+    its ``key`` names, or ``--print-config``'s, or the default one; raises :class:`jaxobs._config.ConfigError`."""
     from jaxobs._config import fail, load_toml
 
     given = load_toml(args.config) if args.config else {}
@@ -133,29 +109,29 @@ def _scenario(args, registry: dict, key: str):
     if name not in registry:
         fail(source if key in given else "--print-config", key,
              f"must be one of {', '.join(map(repr, registry))}, got {name!r}")  # fmt: skip
-    module = registry[name]
-    return module, module.validate_config({**given, key: name}, source), source
+    scenario = registry[name]
+    return scenario, scenario.validate({**given, key: name}, source), source
 
 
 def _print_config(args, registry: dict, key: str) -> int:
     from jaxobs._config import to_toml
 
     with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only (mujoco.mjx prints on import)
-        module, config, source = _scenario(args, registry, key)
-    name = config[key]
+        scenario, config, source = _scenario(args, registry, key)
     where = f"{source}'s values over the defaults of" if args.config else "the defaults of"
     header = (
-        f"jaxobs {args.command} --config FILE: {where} {key} {name!r}. {summary(module)}\n"
+        f"jaxobs {args.command} --config FILE: {where} {key} {scenario.name!r}. {scenario.summary}\n"
         "A config file needs only the keys it changes; the others keep these values."
     )
-    print(to_toml(config, module.CONFIG_NOTES, header), end="")
+    print(to_toml(config, scenario.config_notes(), header), end="")
     return 0
 
 
 def _sweep(args) -> int:
+    from jaxobs.papers.registry import sweep_scenarios
     from jaxobs.sweep import read_manifest
 
-    registry = _sweeps()
+    registry = sweep_scenarios()
     if args.list:
         _print_list(registry)
         return 0
@@ -163,13 +139,13 @@ def _sweep(args) -> int:
         return _print_config(args, registry, "scenario")
     import jax
 
-    module, config, _ = _scenario(args, registry, "scenario")
+    scenario, config, _ = _scenario(args, registry, "scenario")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
         if alone and not args.overwrite:
             read_manifest(out)  # a damaged manifest is reported before the sweep is built
-        result = module.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = scenario.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
@@ -186,9 +162,9 @@ def _sweep(args) -> int:
 def _tune(args) -> int:
     import logging
 
-    from jaxobs.papers import tuning
+    from jaxobs.papers.registry import tuning_problems
 
-    registry = _problems()
+    registry = tuning_problems()
     if args.list:
         _print_list(registry)
         return 0
@@ -201,11 +177,11 @@ def _tune(args) -> int:
     logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     import jax
 
-    _, config, _ = _scenario(args, registry, "problem")
+    problem, config, _ = _scenario(args, registry, "problem")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else process 0 checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
-        result = tuning.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = problem.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0

@@ -20,9 +20,9 @@ except ModuleNotFoundError:  # Python 3.10
 from jaxobs import __version__, cli
 from jaxobs._config import leaf_keys
 from jaxobs.cli import main
-from jaxobs.papers import REPRODUCTIONS
+from jaxobs.papers.registry import reproductions, sweep_scenarios, tuning_problems
 
-COMMANDS = {"sweep": ("scenario", cli._sweeps), "tune": ("problem", cli._problems)}
+COMMANDS = {"sweep": ("scenario", sweep_scenarios), "tune": ("problem", tuning_problems)}
 NAME_STYLE = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+(\.[0-9]+)*)*")  # lower-case words, hyphens (numbers as 5.6)
 
 
@@ -34,20 +34,19 @@ def test_version(capsys):
 
 
 def test_every_name_has_one_style():
-    names = [*REPRODUCTIONS, *cli._sweeps(), *cli._problems()]
+    names = [*reproductions(), *sweep_scenarios(), *tuning_problems()]
     assert [n for n in names if not NAME_STYLE.fullmatch(n)] == []
 
 
 @pytest.mark.parametrize("command", ["sweep", "tune", "reproduce"])
 def test_list_prints_every_name_with_its_description(capsys, command):
-    registry = cli._sweeps() if command == "sweep" else cli._problems() if command == "tune" else {
-        name: sys.modules[fn.__module__] for name, fn in REPRODUCTIONS.items()}  # fmt: skip
+    registry = {"sweep": sweep_scenarios, "tune": tuning_problems, "reproduce": reproductions}[command]()
     assert main([command, "--list"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert [line.split()[0] for line in lines] == list(registry)
-    for line, module in zip(lines, registry.values(), strict=True):
+    for line, entry in zip(lines, registry.values(), strict=True):
         description = line.split(maxsplit=1)[1]
-        assert description == cli.summary(module) and len(description) > 20 and "``" not in description
+        assert description == entry.summary and len(description) > 20 and "``" not in description
 
 
 def _scenarios():
@@ -68,16 +67,16 @@ def test_print_config_is_the_full_default_every_key_commented(tmp_path, capsys, 
     """The TOML parses back to the scenario's complete default config, every value has a comment line above it,
     and it runs as a config file (a round trip through --config)."""
     key, registry = COMMANDS[command]
-    module = registry()[name]
+    scenario = registry()[name]
     assert main([command, "--print-config", name]) == 0
     text = capsys.readouterr().out
-    assert tomllib.loads(text) == module.validate_config({key: name})
-    assert set(leaf_keys(module.DEFAULT_CONFIG)) <= set(module.CONFIG_NOTES)  # every key documented ...
-    tables = _tables(module.DEFAULT_CONFIG)
-    assert set(module.CONFIG_NOTES) <= set(leaf_keys(module.DEFAULT_CONFIG)) | tables  # ... and no stale note
+    assert tomllib.loads(text) == scenario.validate({key: name})
+    notes = scenario.config_notes()
+    assert set(leaf_keys(scenario.defaults)) <= set(notes)  # every key documented ...
+    assert set(notes) <= set(leaf_keys(scenario.defaults)) | _tables(scenario.defaults)  # ... and no stale note
     lines = text.splitlines()
     values = [i for i, line in enumerate(lines) if re.match(r'(\w+|"[^"]+") = ', line)]  # bare or quoted keys
-    assert len(values) == len(leaf_keys(module.DEFAULT_CONFIG))
+    assert len(values) == len(leaf_keys(scenario.defaults))
     assert all(lines[i - 1].startswith("# ") for i in values)
     path = tmp_path / "printed.toml"
     path.write_text(text)
@@ -91,9 +90,9 @@ def test_print_config_of_a_file_merges_it_over_its_scenario(tmp_path, capsys):
     assert main(["sweep", "--config", str(path), "--print-config"]) == 0
     printed = tomllib.loads(capsys.readouterr().out)
     assert printed["scenario"] == "liu-peng" and printed["vehicle"]["count"] == 7
-    assert printed["noise"] == cli._sweeps()["liu-peng"].DEFAULT_CONFIG["noise"]
+    assert printed["noise"] == sweep_scenarios()["liu-peng"].defaults["noise"]
     assert main(["sweep", "--print-config"]) == 0  # no name, no file: the default scenario
-    assert tomllib.loads(capsys.readouterr().out)["scenario"] == next(iter(cli._sweeps()))
+    assert tomllib.loads(capsys.readouterr().out)["scenario"] == next(iter(sweep_scenarios()))
 
 
 @pytest.mark.parametrize(

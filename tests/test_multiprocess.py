@@ -102,8 +102,8 @@ def test_importing_jaxobs_starts_no_backend():
     code = (
         "import jax._src.xla_bridge as xb\n"
         "xb.backends = lambda *a, **k: (_ for _ in ()).throw(AssertionError('a backend started at import'))\n"
-        "import jaxobs, jaxobs.cli, jaxobs.sweep, jaxobs.tuning, jaxobs.papers.tuning\n"
-        "from jaxobs.cli import _sweeps\n_sweeps()\n"
+        "import jaxobs, jaxobs.cli, jaxobs.sweep, jaxobs.tuning\n"
+        "from jaxobs.papers.registry import sweep_scenarios\nsweep_scenarios()\n"
     )
     subprocess.run([sys.executable, "-c", code], env=_env(1), check=True, timeout=120, capture_output=True)
 

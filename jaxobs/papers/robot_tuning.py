@@ -29,19 +29,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.observers import feedback, kalman
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
-    COMMON_NOTES,
-    check_common,
     optimizer_defaults,
     search_box,
 )
+from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "validate_config", "build_problem", "lqg_params"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]
 
 NAME = "own-robot"
 
@@ -77,8 +76,6 @@ DEFAULT_CONFIG = {
 """Tune the Kalman filter of the cart with a hanging payload of unknown mass (0.25x to 2x the nominal 0.5 kg)."""
 
 CONFIG_NOTES = {
-    **COMMON_NOTES,
-    "problem": "the tuning problem ('jaxobs tune --list')",
     "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
     "robot.mjcf": "path of the MJCF file (relative paths: from the current directory)",
     "robot.actuators": "names of the actuators the controller drives",
@@ -107,11 +104,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    """The complete configuration (defaults filled in), or :class:`jaxobs._config.ConfigError`."""
-    config = merge(DEFAULT_CONFIG, given or {}, source, open_tables=("plants.mismatch",))
-    if config["problem"] != NAME:
-        fail(source, "problem", f"must be {NAME!r}")
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     rb, sc, d = config["robot"], config["scenario"], config["design"]
     for key in ("robot.substeps", "plants.train", "plants.heldout"):
         check_at_least(config, source, key, 1)
@@ -143,8 +137,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     for key, weights in (("design.lqr_state", d["lqr_state"]), ("scenario.output_weights", sc["output_weights"])):
         if any(v < 0 for v in weights):
             fail(source, key, "weights must be >= 0")
-    check_common(config, source)
-    return config
 
 
 def lqg_params(lin, Q, R, L, N):
@@ -263,3 +255,14 @@ def _tracked_rows(robot, config: dict) -> list[int]:
     adr = np.asarray(robot.model.sensor_adr)
     return [robot.sensors.index(int(adr[mjx.name2id(robot.model, mujoco.mjtObj.mjOBJ_SENSOR, name)]))
             for name in config["scenario"]["tracked"]]  # fmt: skip
+
+
+PROBLEM = TuningScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=build_problem,
+    open_tables=("plants.mismatch",),
+)

@@ -7,12 +7,12 @@ import pytest
 
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
-from jaxobs.papers import robot_tuning, tuning
+from jaxobs.papers import robot_tuning
 
 
 def test_shipped_config_file_validates_to_the_default():
     path = "tuning/cartpole_payload.toml"
-    assert tuning.validate_config(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
+    assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -32,7 +32,7 @@ def test_shipped_config_file_validates_to_the_default():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        robot_tuning.validate_config({"problem": robot_tuning.NAME, **given})
+        robot_tuning.PROBLEM.validate({"problem": robot_tuning.NAME, **given})
 
 
 @pytest.mark.parametrize(

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from jaxobs.cli import main
-from jaxobs.papers import _tuning_config, tuning
-from jaxobs.papers.cortesao import force_tuning
+from jaxobs.papers import _tuning_config, tune_job
+from jaxobs.papers.cortesao import force_tuning, peg_tuning
 
 
 def test_default_config_is_the_one_dof_stiffness_problem():
-    config = tuning.validate_config()
+    config = force_tuning.PROBLEM.validate()
     assert config["problem"] == "force-1dof"
     assert config["plants"]["stiffness_scale"] == [0.5, 1.5]  # +-50 % stiffness mismatch
     assert config["design"]["order"] == 1
@@ -117,7 +117,7 @@ def test_spectral_radius_penalty():
     from jaxobs.plants import force_plant
     from jaxobs.stability import closed_loop_matrix
 
-    config = tuning.validate_config(
+    config = force_tuning.PROBLEM.validate(
         {"plants": {"train": 3, "heldout": 1}, "scenario": {"duration": 0.1}, "design": {"spectral_radius_limit": 0.9}}
     )
     problem = force_tuning.build_problem(config)
@@ -135,11 +135,12 @@ def test_spectral_radius_penalty():
     assert float(problem.penalty(theta)) == pytest.approx(expected, rel=1e-9)
     grad = jax.grad(problem.penalty)(theta)
     assert np.all(np.isfinite(grad["log_q"])) and float(jnp.abs(grad["log_q"][-1])) > 0
-    assert max(rho) < tuning.validate_config()["design"]["spectral_radius_limit"]  # the default limit: no penalty
+    default_limit = force_tuning.PROBLEM.validate()["design"]["spectral_radius_limit"]
+    assert max(rho) < default_limit  # the default limit: no penalty
 
 
 def test_peg_config_is_validated(tmp_path, capsys):
-    config = tuning.validate_config({"problem": "peg-on-hole"})
+    config = peg_tuning.PROBLEM.validate({"problem": "peg-on-hole"})
     assert config["problem"] == "peg-on-hole" and config["optimizer"]["gradient"] == "forward"
     path = tmp_path / "bad.toml"
     path.write_text('problem = "peg-on-hole"\n[scenario]\nalignment_end = 9.0\n')
@@ -177,15 +178,15 @@ def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
 def test_the_random_search_box_is_the_tuners_reach():
     """Default ``baseline.spread = 0``: theta0 +- steps x learning_rate on every log coordinate; the off-diagonal
     entries of a Cholesky factor (not log-scaled) stay at theta0; an explicit spread is used as given."""
-    config = tuning.validate_config({"design": {"parameterisation": "cholesky"}})
+    config = force_tuning.PROBLEM.validate({"design": {"parameterisation": "cholesky"}})
     assert _tuning_config.search_spread(config) == 40 * 0.2
     theta0 = {"q_cholesky": np.diag([1.0, 2.0]), "log_r": np.asarray(-3.0)}
     box = _tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
     np.testing.assert_array_equal(box["q_cholesky"][0], [[-7.0, 0.0], [0.0, -6.0]])
     np.testing.assert_array_equal(box["q_cholesky"][1], [[9.0, 0.0], [0.0, 10.0]])
     assert (float(box["log_r"][0]), float(box["log_r"][1])) == (-11.0, 5.0)
-    assert _tuning_config.search_spread(tuning.validate_config({"baseline": {"spread": 2.5}})) == 2.5
-    position = tuning._box_position({"q_cholesky": np.diag([1.0, 10.0]), "log_r": np.asarray(-11.0)}, box)
+    assert _tuning_config.search_spread(force_tuning.PROBLEM.validate({"baseline": {"spread": 2.5}})) == 2.5
+    position = tune_job._box_position({"q_cholesky": np.diag([1.0, 10.0]), "log_r": np.asarray(-11.0)}, box)
     assert position == {"q_cholesky": [0.5, 1.0], "log_r": [0.0]}
 
 

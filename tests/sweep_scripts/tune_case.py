@@ -21,8 +21,8 @@ import numpy as np
 
 import jaxobs.tuning
 from jaxobs._config import load_toml
-from jaxobs.papers import tuning as papers
 from jaxobs.papers._tuning_config import settings
+from jaxobs.papers.registry import tuning_problems
 
 WRITES = []
 
@@ -79,8 +79,10 @@ def main():
     if args.coordinator:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.config:
-        config = papers.validate_config(load_toml(args.config), args.config)
-        problem, tuned, tag = papers.PROBLEMS[config["problem"]].build_problem(config), settings(config), "tiny"
+        given = load_toml(args.config)
+        scenario = tuning_problems()[given["problem"]]
+        config = scenario.validate(given, args.config)
+        problem, tuned, tag = scenario.build(config), settings(config), "tiny"
     else:
         problem, tag = analytic_problem(args.lapack), "analytic"
         tuned = jaxobs.tuning.TuneSettings(steps=5, learning_rate=0.3, checkpoint_every=1)

@@ -28,6 +28,7 @@ from jaxobs.papers.cortesao.force_control import (
     reference_gain,
     with_feedback,
 )
+from jaxobs.papers.scenarios import Reproduction
 
 NAME = "cortesao2006-example1"
 
@@ -158,3 +159,11 @@ def reproduce(out_dir: Path) -> dict:
     summary = {k: v for k, v in results.items() if k != "closed_loop"}
     summary["closed_loop"] = {k: results["closed_loop"][k] for k in ("rms_force_error", "force_jitter", "force_step")}
     return write_reproduction(out_dir, NAME, summary, [figure])
+
+
+REPRODUCTION = Reproduction(
+    name=NAME,
+    summary=__doc__,
+    reproduce=reproduce,
+    headline=("L_r_max_abs_error", "kalman_gains_max_abs_error", "kalman_gains_fit_max_abs_error", "rms_force_error"),
+)

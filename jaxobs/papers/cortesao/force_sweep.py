@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import ConfigError, check_at_least, check_choice, check_range, fail, merge
+from jaxobs._config import check_at_least, check_range, fail
 from jaxobs._resources import compile_checked
 from jaxobs.closed_loop import ideal_response, rms, simulate
 from jaxobs.lti import n_delay_slots
@@ -40,21 +40,12 @@ from jaxobs.papers.cortesao.force_control import (
     reference_gain,
     with_feedback,
 )
+from jaxobs.papers.scenarios import Sweep, SweepScenario
 from jaxobs.plants import force_plant
 from jaxobs.stability import loop_transfer, stability_margins
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.sweep import load_results
 
-__all__ = [
-    "NAME",
-    "DEFAULT_CONFIG",
-    "CONFIG_NOTES",
-    "ConfigError",
-    "validate_config",
-    "build_designs",
-    "make_sweep",
-    "run",
-    "report",
-]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "build_designs", "make_sweep", "report"]
 
 NAME = "force-control"
 
@@ -84,7 +75,6 @@ DEFAULT_CONFIG = {
 """The embedded default: 4 controllers x 10 x 10 strategies x 250 plants = 100 000 configurations."""
 
 CONFIG_NOTES = {
-    "scenario": f"the sweep ('jaxobs sweep --list'); {NAME!r} is the default",
     "seed": "base of every configuration's random key (configuration i draws from its own key)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "plant": "the true plants, drawn independently per configuration",
@@ -105,15 +95,12 @@ CONFIG_NOTES = {
     "margins.num_points": "frequency points of the margin search (at least 16)",
 }
 
-SIZE_KEY = "simulation.configs_per_design"  # a larger value extends a sweep in the same directory
 MAX_DEAD_TIME_SAMPLES = 100
 MAX_ORDER = 5
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    """The complete configuration (defaults filled in), or :class:`ConfigError` naming the key."""
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     check_range(config, source, "plant.stiffness", positive=True)
     check_range(config, source, "plant.time_constant_scale", positive=True)
     check_range(config, source, "plant.dead_time_samples", minimum=0.0, maximum=MAX_DEAD_TIME_SAMPLES)
@@ -136,7 +123,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
         check_at_least(config, source, f"simulation.{key}", 0, strict=True)
     if config["simulation"]["duration"] < EXAMPLE1.h:
         fail(source, "simulation.duration", f"must be at least one sample ({EXAMPLE1.h} s)")
-    return config
 
 
 # --------------------------------------------------------------------------------------------
@@ -216,7 +202,7 @@ def tracking(config: dict):
 
 
 def make_sweep(config: dict):
-    """``(sampler, evaluate, num_configs, designs)`` for :func:`jaxobs.sweep.run_sweep`."""
+    """The sweep of ``config``: its context is the :class:`Designs`."""
     designs = build_designs(config)
     plant_cfg, h = config["plant"], EXAMPLE1.h
     n_delay = _scenario(config)[1]
@@ -261,24 +247,7 @@ def make_sweep(config: dict):
             "peak_force": peak,
         }
 
-    return sampler, evaluate, count * config["simulation"]["configs_per_design"], designs
-
-
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resuming if ``out_dir`` holds a partial run of it) and write the report; returns its summary
-    (process 0 writes it: None in the other processes of a multi-process run)."""
-    sampler, evaluate, num_configs, designs = make_sweep(config)
-    return run_configured_sweep(
-        config,
-        sampler,
-        evaluate,
-        num_configs,
-        out_dir,
-        size_key=SIZE_KEY,
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result, designs),
-    )
+    return Sweep(sampler, evaluate, count * config["simulation"]["configs_per_design"], designs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -479,3 +448,15 @@ def _markdown(summary: dict) -> str:
         )
     lines += [""] + [f"![{f}]({f})" for f in summary["figures"]] + [""]
     return "\n".join(lines)
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+    size_key="simulation.configs_per_design",
+)

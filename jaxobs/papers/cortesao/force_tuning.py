@@ -30,15 +30,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs._config import check_at_least, check_choice, check_range, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
-    COMMON_NOTES,
-    check_common,
     check_plant_memory,
     optimizer_defaults,
     search_box,
@@ -50,6 +48,7 @@ from jaxobs.papers.cortesao.force_control import (
     reference_gain,
     with_feedback,
 )
+from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.plants import force_plant
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.tuning import (
@@ -60,7 +59,7 @@ from jaxobs.tuning import (
     unit_interval_parameters,
 )
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]
 
 NAME = "force-1dof"
 HAND_SET = {"q_plant": 1e-12, "q_active": 1e-5, "R": 2.1e-2}  # The MRAC chapter eq. 62 and 64
@@ -104,8 +103,6 @@ DEFAULT_CONFIG = {
 64 held-out plants, 2 s rollouts)."""
 
 CONFIG_NOTES = {
-    **COMMON_NOTES,
-    "problem": f"the tuning problem ('jaxobs tune --list'); {NAME!r} is the default",
     "plants": "the mismatched MJX plants, drawn per plant (training and held-out sets from independent keys)",
     "plants.stiffness_scale": "true Ks / nominal Ks (3 N/mm), uniform",
     "plants.time_constant_scale": "true Tp / nominal Tp (32 ms), uniform",
@@ -133,10 +130,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    """The complete configuration (defaults filled in), or :class:`jaxobs._config.ConfigError`."""
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "problem", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for key in ("plants.stiffness_scale", "plants.time_constant_scale"):
         check_range(config, source, key, positive=True, allow_point=True)
     check_range(config, source, "plants.damping", minimum=0.0, allow_point=True)
@@ -152,9 +147,7 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     check_choice(config, source, "design.parameterisation", PARAMETERISATIONS)
     for key in ("q_plant", "q_active", "R", "spectral_radius_limit"):
         check_at_least(config, source, f"design.{key}", 0, strict=True)
-    check_common(config, source)
     check_plant_memory(config, source, int(round(config["scenario"]["duration"] / EXAMPLE1.h)), 1)
-    return config
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,3 +316,13 @@ def build_problem(config: dict) -> TuningProblem:
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
     )
+
+
+PROBLEM = TuningScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=build_problem,
+)

@@ -22,21 +22,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs._config import check_at_least, check_range, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.observers.active import active_observer_controller
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
-    COMMON_NOTES,
-    check_common,
     check_plant_memory,
     optimizer_defaults,
     search_box,
 )
+from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.plants import force_plant
 from jaxobs.tuning import TuningProblem
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]
 
 NAME = "peg-on-hole"
 
@@ -63,8 +62,6 @@ DEFAULT_CONFIG = {
 """Tune the x, y, rx, rz active-state variances over +-50 % stiffness mismatch (8 training, 32 held-out plants)."""
 
 CONFIG_NOTES = {
-    **COMMON_NOTES,
-    "problem": "the tuning problem ('jaxobs tune --list')",
     "plants": "the mismatched 6-DOF MJX plants (training and held-out sets from independent keys)",
     "plants.stiffness_scale": "true / nominal stiffness, each of the six DOF drawn independently, uniform",
     "plants.tilt": "initial peg tilt (rad), uniform",
@@ -80,9 +77,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "problem", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     check_range(config, source, "plants.stiffness_scale", positive=True, allow_point=True)
     check_range(config, source, "plants.tilt", allow_point=True, minimum=-0.3, maximum=0.3)
     check_range(config, source, "plants.contact_radius", positive=True, allow_point=True)
@@ -94,11 +90,9 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     check_at_least(config, source, "scenario.alignment_end", config["scenario"]["alignment_start"], strict=True)
     if config["scenario"]["alignment_end"] > config["scenario"]["duration"]:
         fail(source, "scenario.alignment_end", "must not exceed scenario.duration")
-    check_common(config, source)
     from jaxobs.mjx.compliant_6dof import CONTROL_PERIOD
 
     check_plant_memory(config, source, int(round(config["scenario"]["duration"] / CONTROL_PERIOD)), 6)
-    return config
 
 
 def build_problem(config: dict) -> TuningProblem:
@@ -194,3 +188,13 @@ def build_problem(config: dict) -> TuningProblem:
         responses=responses,
         search_box=search_box(config, theta0),
     )
+
+
+PROBLEM = TuningScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=build_problem,
+)

@@ -36,6 +36,7 @@ from jaxobs.observers.active import active_observer_controller, feedback_gain, m
 from jaxobs.observers.base import ControllerInputs
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 
 NAME = "cortesao2006-example2"
 
@@ -583,3 +584,6 @@ def reproduce(out_dir: Path) -> dict:
     figures = plot(results, out_dir)
     summary = {k: v for k, v in results.items() if k != "series"}
     return write_reproduction(out_dir, NAME, summary, figures)
+
+
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)

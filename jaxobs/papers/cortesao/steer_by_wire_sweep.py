@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, merge
+from jaxobs._config import check_at_least, check_range
 from jaxobs.lti import StateSpace, c2d
 from jaxobs.observers.active import active_observer_controller, with_steady_state_gains
 from jaxobs.observers.base import LinearObserver
@@ -36,10 +36,11 @@ from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.observers.linear import linear_controller
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.cortesao import steer_by_wire as sbw
+from jaxobs.papers.scenarios import Sweep, SweepScenario
 from jaxobs.stability import closed_loop_matrix, spectral_radius
-from jaxobs.sweep import config_key, load_results, run_configured_sweep
+from jaxobs.sweep import config_key, load_results
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep"]
 
 NAME = "steer-by-wire"
 FACTORS = tuple(f"{model}_{kind}" for model in sbw.ACTUATOR_MODELS for kind in ("gain", "pole"))
@@ -57,7 +58,6 @@ DEFAULT_CONFIG = {
 """1000 SBW plants with every gain and pole of eq. 95-98 off by up to +-30 %."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "base of every configuration's random key",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "plants": "the true SBW plants: the four identified actuator models of eq. 95-98, each factor drawn independently",
@@ -67,14 +67,12 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     check_range(config, source, "plants.gain_scale", positive=True, allow_point=True)
     check_range(config, source, "plants.pole_scale", positive=True, allow_point=True)
     for key, low in (("seed", 0), ("chunk_size", 1), ("plants.count", 1)):
         check_at_least(config, source, key, low)
-    return config
 
 
 def _sampler(config: dict):
@@ -157,23 +155,10 @@ def make_sweep(config: dict):
             "rack_final_error": jnp.where(jnp.isfinite(final), final, jnp.inf),
         }
 
-    return sampler, evaluate, config["plants"]["count"]
+    return Sweep(sampler, evaluate, config["plants"]["count"])
 
 
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``robustness.png``;
-    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(
-        config,
-        *make_sweep(config),
-        out_dir,
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result),
-    )
-
-
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     cols = load_results(out_dir)
     stable = cols["metric.stable"].astype(bool)
     largest = 100 * np.max(np.abs(np.stack([cols[f"param.{f}"] for f in FACTORS], axis=1) - 1), axis=1)
@@ -243,3 +228,14 @@ def _markdown(summary: dict) -> str:
             lines.append(f"| {key} | {q['median']:.3g} | {q['p90']:.3g} | {q['max']:.3g} |")
     lines += ["", *(f"![{f}]({f})" for f in summary["figures"])]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+)

@@ -21,6 +21,7 @@ from jaxobs.observers import active
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.cortesao.example1 import sensor_based_ckf
 from jaxobs.papers.cortesao.force_control import EXAMPLE1, nominal_design, reference_gain, with_feedback
+from jaxobs.papers.scenarios import Reproduction
 
 NAME = "cortesao-stochastic-ramp"
 
@@ -143,3 +144,17 @@ def reproduce(out_dir: Path) -> dict:
     summary["adaptive_strategy"] = {k: v for k, v in results["adaptive_strategy"].items() if not k.endswith("trace")}
     summary["fixed_q_strategy"] = {"q": Q_ACTIVE}
     return write_reproduction(out_dir, NAME, summary, [figure])
+
+
+REPRODUCTION = Reproduction(
+    name=NAME,
+    summary=__doc__,
+    reproduce=reproduce,
+    headline=(
+        "delta_f_ss_ckf",
+        "delta_f_ss_ckf_printed",
+        "delta_f_ss_coefficient",
+        "delta_f_ss_aob",
+        "delta_f_ss_aob_adaptive",
+    ),
+)

@@ -44,6 +44,7 @@ from jaxobs.observers.modular import (
     perturbation_estimate,
 )
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 
 NAME_EXAMPLE_1_1 = "grip2010-example1.1"
 NAME_EXAMPLE_5_6 = "grip2010-example5.6"
@@ -543,8 +544,21 @@ def reproduce_drilling(out_dir: Path) -> dict:
     return write_reproduction(out_dir, NAME_DRILLING, summary, _figures_drilling(traces, out_dir))
 
 
+REPRODUCTION_1_1 = Reproduction(
+    name=NAME_EXAMPLE_1_1, summary=reproduce_example_1_1.__doc__, reproduce=reproduce_example_1_1
+)
+REPRODUCTION_5_6 = Reproduction(
+    name=NAME_EXAMPLE_5_6, summary=reproduce_example_5_6.__doc__, reproduce=reproduce_example_5_6
+)
+REPRODUCTION_DRILLING = Reproduction(
+    name=NAME_DRILLING, summary=reproduce_drilling.__doc__, reproduce=reproduce_drilling
+)
+
 __all__ = [
     "NAME_EXAMPLE_1_1",
+    "REPRODUCTION_1_1",
+    "REPRODUCTION_5_6",
+    "REPRODUCTION_DRILLING",
     "NAME_EXAMPLE_5_6",
     "NAME_DRILLING",
     "DRILLING",

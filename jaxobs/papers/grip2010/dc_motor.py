@@ -33,6 +33,7 @@ from jaxobs.adaptive import Box
 from jaxobs.observers import EstimatorInputs, run
 from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs, target_law
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 from jaxobs.scb import scb, scb_arrays
 
 NAME = "grip2010-dc-motor"
@@ -245,5 +246,19 @@ def _figures(out_dir: Path, sim) -> list[str]:
     return names
 
 
-__all__ = ["NAME", "TABLE_6_1", "matrices", "g_model", "theta_star", "design", "truth", "observers", "pure_eso",
-           "simulate", "reproduce"]  # fmt: skip
+__all__ = [
+    "NAME",
+    "REPRODUCTION",
+    "TABLE_6_1",
+    "matrices",
+    "g_model",
+    "theta_star",
+    "design",
+    "truth",
+    "observers",
+    "pure_eso",
+    "simulate",
+    "reproduce",
+]
+
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)

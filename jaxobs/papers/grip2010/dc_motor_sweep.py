@@ -17,13 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.observers.hgo import hgo_gains
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.grip2010 import dc_motor as dc
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.papers.scenarios import Sweep, SweepScenario
+from jaxobs.sweep import load_results
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep", "report"]
 
 NAME = "dc-motor-hgo"
 OBSERVERS = ("observer1", "observer2", "pure_eso")
@@ -42,7 +43,6 @@ DEFAULT_CONFIG = {
 """4 eps x 3 sigma x 3 alpha_0 x 2 seeds = 72 configurations of 20 s."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "base of every configuration's random key (noise seeds are drawn from it)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "grid": "the configurations: every combination of eps, sigma, alpha_0 and noise seed",
@@ -56,9 +56,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     grid = config["grid"]
     low, high = dc.THETA_SET
     rules = (
@@ -77,7 +76,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     sim = config["simulation"]
     if not 0 <= sim["rms_start"] < sim["duration"]:
         fail(source, "simulation.rms_start", f"must be in [0, duration = {sim['duration']}), got {sim['rms_start']}")
-    return config
 
 
 def _grid(config: dict):
@@ -117,23 +115,10 @@ def make_sweep(config: dict):
         finite = jnp.all(jnp.stack([jnp.isfinite(v) for v in (*errors.values(), theta_mean)]))
         return {"rms_omega": errors, "theta_hat_mean": theta_mean, "finite": finite}
 
-    return sampler, evaluate, int(np.prod(shape))
+    return Sweep(sampler, evaluate, int(np.prod(shape)))
 
 
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``tradeoff.png``;
-    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(
-        config,
-        *make_sweep(config),
-        out_dir,
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result),
-    )
-
-
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     """Median RMS omega errors per (eps, sigma) and observer, theta_hat means per alpha_0, and the figure."""
     cols = load_results(out_dir)
     g = config["grid"]
@@ -183,12 +168,30 @@ def _markdown(summary: dict) -> str:
     ]
     for obs, per in summary["median_rms_omega_error"].items():
         eps = list(next(iter(per.values())))
-        lines += [f"## {obs}", "", "| sigma | " + " | ".join(f"eps = {e}" for e in eps) + " |",
-                  "| --- |" + " --- |" * len(eps)]  # fmt: skip
+        lines += [
+            f"## {obs}",
+            "",
+            "| sigma | " + " | ".join(f"eps = {e}" for e in eps) + " |",
+            "| --- |" + " --- |" * len(eps),
+        ]
         lines += [f"| {s} | " + " | ".join(f"{v:.3g}" for v in row.values()) + " |" for s, row in per.items()]
         lines.append("")
     theta = summary["median_theta_hat_mean_by_alpha_0"]
-    lines += ["Median theta_hat over the window, by the true alpha_0: "
-              + ", ".join(f"{a}: {v:.4g}" for a, v in theta.items()), ""]  # fmt: skip
+    lines += [
+        "Median theta_hat over the window, by the true alpha_0: "
+        + ", ".join(f"{a}: {v:.4g}" for a, v in theta.items()),
+        "",
+    ]
     lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+)

@@ -20,12 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.grip2010 import adaptive as grip
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.papers.scenarios import Sweep, SweepScenario
+from jaxobs.sweep import load_results
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep", "report"]
 
 NAME = "grip-example56"
 LAWS = ("modular", "gradient")
@@ -50,7 +51,6 @@ DEFAULT_CONFIG = {
 """4 K_phi x 4 Gamma x 3 noise variances x 4 seeds = 192 configurations of the 100 s scenario."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "base of the noise keys (seed s is the same at every grid point, so both laws see the same noise)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "grid": "the configurations: every combination of K_phi, Gamma, noise variance and seed",
@@ -66,9 +66,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for key in GRID:
         values = config["grid"][key]
         if not isinstance(values, list) or not values:
@@ -84,7 +83,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     timing = config["scenario_timing"]
     if timing["window_s"] > timing["segment_s"]:
         fail(source, "scenario_timing.window_s", f"must not exceed segment_s = {timing['segment_s']}")
-    return config
 
 
 def _num_configs(config: dict) -> int:
@@ -131,20 +129,7 @@ def make_sweep(config: dict):
                         "projection_active": jnp.any(active)}  # fmt: skip
         return out
 
-    return sampler, evaluate, _num_configs(config)
-
-
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``grid.png``; returns the summary
-    (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(
-        config,
-        *make_sweep(config),
-        out_dir,
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result),
-    )
+    return Sweep(sampler, evaluate, _num_configs(config))
 
 
 def _columns(cols: dict, law: str, metric: str) -> np.ndarray:
@@ -167,7 +152,7 @@ def _grid_table(config: dict, cols: dict) -> dict:
     return table
 
 
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     cols = load_results(out_dir)
     g = config["grid"]
     t = _grid_table(config, cols)
@@ -285,3 +270,14 @@ def _markdown(summary: dict) -> str:
         lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.2f} configurations/s).", ""]
     lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+)

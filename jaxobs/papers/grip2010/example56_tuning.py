@@ -15,20 +15,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
-    COMMON_NOTES,
-    check_common,
     optimizer_defaults,
     search_box,
 )
 from jaxobs.papers.grip2010 import adaptive as grip
+from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]
 
-NAME = "grip-example56"
+NAME = "grip-example56-gains"
 
 DEFAULT_CONFIG = {
     "problem": NAME,
@@ -46,8 +45,6 @@ DEFAULT_CONFIG = {
 """Tune log K_phi, log Gamma of Example 5.6 from the printed (10, 3) with unit noise variance (8 / 32 seeds)."""
 
 CONFIG_NOTES = {
-    **COMMON_NOTES,
-    "problem": "the tuning problem ('jaxobs tune --list')",
     "seeds": "noise seeds of the Example 5.6 runs (training and held-out sets are disjoint)",
     "seeds.train": "training seeds (one rollout each per gradient evaluation)",
     "seeds.heldout": "held-out seeds, never used in training, that score the designs",
@@ -61,9 +58,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "problem", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for key in ("seeds.train", "seeds.heldout"):
         check_at_least(config, source, key, 1)
     check_at_least(config, source, "scenario.noise_variance", 0)
@@ -71,8 +67,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
         check_at_least(config, source, key, 0, strict=True)
     if config["scenario"]["window_s"] > config["scenario"]["segment_s"]:
         fail(source, "scenario.window_s", f"must not exceed segment_s = {config['scenario']['segment_s']}")
-    check_common(config, source)
-    return config
 
 
 def build_problem(config: dict) -> TuningProblem:
@@ -126,3 +120,13 @@ def build_problem(config: dict) -> TuningProblem:
         responses=responses,
         search_box=search_box(config, theta0),
     )
+
+
+PROBLEM = TuningScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=build_problem,
+)

@@ -27,6 +27,7 @@ import numpy as np
 
 from jaxobs import ct
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 from jaxobs.saturation import CLASSES, low_gain_are, sandwich_design, sandwich_detectors, simulate_sandwich
 
 NAME = "grip2010-sandwich"
@@ -185,5 +186,19 @@ def _figure(out_dir: Path, chi0, trace, i: int) -> str:
     return save_figure(fig, out_dir, "grip2010_sandwich")
 
 
-__all__ = ["NAME", "SYSTEM", "F", "WINDOWS", "EPS_FAMILY", "DESIGN", "windows", "are_family", "grid", "closed_loop",
-           "reproduce"]  # fmt: skip
+__all__ = [
+    "NAME",
+    "REPRODUCTION",
+    "SYSTEM",
+    "F",
+    "WINDOWS",
+    "EPS_FAMILY",
+    "DESIGN",
+    "windows",
+    "are_family",
+    "grid",
+    "closed_loop",
+    "reproduce",
+]
+
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)

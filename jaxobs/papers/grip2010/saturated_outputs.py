@@ -21,6 +21,7 @@ import numpy as np
 import scipy.linalg
 
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 from jaxobs.saturation import ALPHA_NORMS, saturated_output_design, simulate_saturated_outputs
 
 NAME = "grip2010-saturated-outputs"
@@ -135,4 +136,6 @@ def _figure(out_dir: Path, design, trace) -> str:
     return save_figure(fig, out_dir, "grip2010_saturated_outputs")
 
 
-__all__ = ["NAME", "A", "B", "C", "T", "RHO", "X0", "PRINTED", "run", "pattern", "inside", "reproduce"]
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)
+
+__all__ = ["NAME", "REPRODUCTION", "A", "B", "C", "T", "RHO", "X0", "PRINTED", "run", "pattern", "inside", "reproduce"]

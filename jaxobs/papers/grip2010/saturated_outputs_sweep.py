@@ -18,13 +18,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.grip2010 import saturated_outputs as example
+from jaxobs.papers.scenarios import Sweep, SweepScenario
 from jaxobs.saturation import saturated_output_design, simulate_saturated_outputs
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.sweep import load_results
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep", "report"]
 
 NAME = "saturated-outputs"
 GRID = ("T", "rho", "h_scale")
@@ -45,7 +46,6 @@ DEFAULT_CONFIG = {
 """3 T x 3 rho x 3 h scalings x 64 initial states = 1728 configurations."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "key of the random initial states (the same states at every grid point)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "grid": "the configurations: every combination of T, rho, h_scale and initial state",
@@ -63,9 +63,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for key in GRID:
         values = config["grid"][key]
         low = 1.0 if key == "rho" else 0.0
@@ -78,7 +77,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
         check_at_least(config, source, key, low, strict=strict)
     if config["initial"]["radius_max"] < config["initial"]["radius_min"]:
         fail(source, "initial.radius_max", f"must be >= radius_min = {config['initial']['radius_min']}")
-    return config
 
 
 def _num_configs(config: dict) -> int:
@@ -130,17 +128,10 @@ def make_sweep(config: dict):
             "ill_conditioned_intervals": jnp.sum(trace.ill_conditioned),
         }
 
-    return sampler, evaluate, _num_configs(config)
+    return Sweep(sampler, evaluate, _num_configs(config))
 
 
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``grid.png``; returns the summary
-    (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(config, *make_sweep(config), out_dir, progress=progress, overwrite=overwrite,
-                                report=lambda result: report(config, Path(out_dir), result))  # fmt: skip
-
-
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     cols = load_results(out_dir)
     g = config["grid"]
     shape = (len(g["T"]), len(g["rho"]), len(g["h_scale"]), g["initial_states"])
@@ -219,3 +210,14 @@ def _markdown(summary: dict) -> str:
         lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.1f} configurations/s).", ""]
     lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+)

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from jaxobs.papers._output import write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 from jaxobs.scb import (
     SCB,
     invariant_zeros,
@@ -476,4 +477,17 @@ def reproduce(out_dir: Path) -> dict:
     return write_reproduction(Path(out_dir), NAME, summary, [])
 
 
-__all__ = ["NAME", "CASES", "systems", "printed", "printed_check", "case", "misprints", "random_systems", "reproduce"]
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)
+
+__all__ = [
+    "NAME",
+    "REPRODUCTION",
+    "CASES",
+    "systems",
+    "printed",
+    "printed_check",
+    "case",
+    "misprints",
+    "random_systems",
+    "reproduce",
+]

@@ -45,6 +45,7 @@ import numpy as np
 
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 from jaxobs.vehicle import (
     GRAVITY,
     MANOEUVRES,
@@ -430,8 +431,10 @@ def reproduce(out_dir: Path, *, manoeuvres=None, cost_repeats: int = COST_REPEAT
 def _figure(out_dir: Path, est: Estimates) -> str:
     plt = pyplot()
     drives, runs, tr, nv = est.drives, est.runs, est.trajectory, est.nvso
-    panels = [(n, MANOEUVRES[n].duration, [("NVSO", nv.beta[runs.index(n)], "C3"), ("EKF", est.ekf.beta[k], "C2")])
-              for k, n in enumerate(est.manoeuvres)]  # fmt: skip
+    panels = [
+        (n, MANOEUVRES[n].duration, [("NVSO", nv.beta[runs.index(n)], "C3"), ("EKF", est.ekf.beta[k], "C2")])
+        for k, n in enumerate(est.manoeuvres)
+    ]
     panels.append(("sine_steer_low_friction (friction 0.3)", DRIVES["sine_steer_low_friction"].duration,
                    [("NVSO, mode 1 only", nv.beta[runs.index("friction_mode1")], "C1"),
                     ("NVSO, switching", nv.beta[runs.index("friction_mode2")], "C3")]))  # fmt: skip
@@ -454,5 +457,22 @@ def _figure(out_dir: Path, est: Estimates) -> str:
     return save_figure(fig, out_dir, "grip2010_sideslip")
 
 
-__all__ = ["NAME", "Estimates", "DRIVES", "CHECK_DRIVES", "MEASUREMENTS", "NVSO_RUNS", "MISPRINTS",
-           "simulate_drives", "estimate", "manoeuvre_table", "checks", "cost", "assumed", "reproduce"]  # fmt: skip
+__all__ = [
+    "NAME",
+    "REPRODUCTION",
+    "Estimates",
+    "DRIVES",
+    "CHECK_DRIVES",
+    "MEASUREMENTS",
+    "NVSO_RUNS",
+    "MISPRINTS",
+    "simulate_drives",
+    "estimate",
+    "manoeuvre_table",
+    "checks",
+    "cost",
+    "assumed",
+    "reproduce",
+]
+
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)

@@ -24,10 +24,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, fail, merge
+from jaxobs._config import check_at_least, fail
 from jaxobs.observers.base import run as run_observer
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.papers.scenarios import Sweep, SweepScenario
+from jaxobs.sweep import load_results
 from jaxobs.vehicle import (
     MANOEUVRES,
     Command,
@@ -43,10 +44,7 @@ from jaxobs.vehicle import (
     vehicle_ekf,
 )
 
-__all__ = [
-    "NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "drive", "mismatched_vehicle", "make_sweep", "run",
-    "report",
-]  # fmt: skip
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "drive", "mismatched_vehicle", "make_sweep", "report"]
 
 NAME = "sideslip"
 OBSERVERS = ("nvso", "ekf")
@@ -69,7 +67,6 @@ DEFAULT_CONFIG = {
 """3 manoeuvres x 2 frictions x 2 biases x 2 drifts x 2 masses x 2 stiffnesses x 1 seed = 96 configurations."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "base of every configuration's random key (sensor noise and drift seeds are drawn from it)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "grid": "the configurations: every combination of the lists below and the noise seeds",
@@ -86,9 +83,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     grid = config["grid"]
     unknown = [m for m in grid["manoeuvre"] if m not in MANOEUVRES]
     if unknown:
@@ -106,7 +102,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     if not 0 <= sim["error_start"] < sim["duration"]:
         duration = sim["duration"]
         fail(source, "simulation.error_start", f"must be in [0, duration = {duration}), got {sim['error_start']}")
-    return config
 
 
 def _grid(config: dict):
@@ -186,27 +181,14 @@ def make_sweep(config: dict):
         return {**metrics, "true_beta_max_deg": jnp.rad2deg(jnp.max(jnp.abs(beta))),
                 "finite": jnp.all(jnp.isfinite(values))}  # fmt: skip
 
-    return sampler, evaluate, int(np.prod(shape))
-
-
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``sideslip.png``;
-    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(
-        config,
-        *make_sweep(config),
-        out_dir,
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result),
-    )
+    return Sweep(sampler, evaluate, int(np.prod(shape)))
 
 
 _METRICS = ("beta_rms_deg", "beta_max_deg", "friction_error", "bank_rms_deg", "inclination_rms_deg",
             "excited_fraction")  # fmt: skip
 
 
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     """Medians of every metric per observer by manoeuvre, and by each other grid axis; the figure."""
     cols = load_results(out_dir)
     g = config["grid"]
@@ -276,3 +258,14 @@ def _markdown(summary: dict) -> str:
     lines += ["", "Largest true sideslip (deg, median): " + ", ".join(f"{k}: {v:.2f}" for k, v in peaks.items()), ""]
     lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+)

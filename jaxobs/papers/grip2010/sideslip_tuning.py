@@ -23,17 +23,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, fail, merge
+from jaxobs._config import check_at_least, check_range, fail
 from jaxobs.observers.base import EstimatorInputs
 from jaxobs.observers.base import run as run_observer
 from jaxobs.papers._tuning_config import (
     BASELINE_DEFAULTS,
-    COMMON_NOTES,
-    check_common,
     optimizer_defaults,
     search_box,
 )
 from jaxobs.papers.grip2010.sideslip_sweep import drive, mismatched_vehicle
+from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 from jaxobs.vehicle import (
     MANOEUVRES,
@@ -47,9 +46,9 @@ from jaxobs.vehicle import (
     simulate,
 )
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "GAINS", "THRESHOLDS", "validate_config", "build_problem"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "GAINS", "THRESHOLDS", "PROBLEM", "build_problem"]
 
-NAME = "sideslip"
+NAME = "sideslip-gains"
 GAINS = ("K_vx", "K_vy", "K_theta", "K_theta_b")
 THRESHOLDS = ("vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold")
 _DEFAULTS = NVSOParams._field_defaults
@@ -78,8 +77,6 @@ DEFAULT_CONFIG = {
 """Tune 4 gains and 3 thresholds of the NVSO from its hand-set defaults on 36 training / 36 held-out vehicles."""
 
 CONFIG_NOTES = {
-    **COMMON_NOTES,
-    "problem": "the tuning problem ('jaxobs tune --list')",
     "plants": "the mismatched vehicles, drawn per plant (training and held-out sets from independent keys)",
     "plants.train": "training vehicles (one NVSO rollout each per gradient evaluation)",
     "plants.heldout": "held-out vehicles, never used in training, that score the designs",
@@ -99,9 +96,8 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "problem", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for key in ("plants.train", "plants.heldout"):
         check_at_least(config, source, key, 1)
     for key in ("plants.friction", "plants.mass", "plants.cornering_stiffness"):
@@ -115,8 +111,6 @@ def validate_config(given: dict | None = None, source: str = "<default>") -> dic
     sc = config["scenario"]
     if not 0 <= sc["error_start"] < sc["duration"]:
         fail(source, "scenario.error_start", f"must be in [0, duration = {sc['duration']}), got {sc['error_start']}")
-    check_common(config, source)
-    return config
 
 
 def _plants(config: dict):
@@ -203,3 +197,13 @@ def build_problem(config: dict) -> TuningProblem:
         responses=responses,
         search_box=search_box(config, theta0),
     )
+
+
+PROBLEM = TuningScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=build_problem,
+)

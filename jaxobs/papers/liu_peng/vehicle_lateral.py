@@ -55,6 +55,7 @@ from jaxobs.observers.hinf import gamma_bisection, hinf_filter, make_hinf
 from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
 from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
+from jaxobs.papers.scenarios import Reproduction
 
 NAME = "liu-peng2002-vehicle"
 
@@ -419,3 +420,6 @@ def reproduce(out_dir: Path) -> dict:
     summary["units"] = {"v_y": "m/s", "d": "m/s^2"}
     summary["assumed"] = ASSUMED
     return write_reproduction(Path(out_dir), NAME, summary, figures)
+
+
+REPRODUCTION = Reproduction(name=NAME, summary=__doc__, reproduce=reproduce)

@@ -28,13 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, merge
+from jaxobs._config import check_at_least, check_range
 from jaxobs.lti import c2d, ss
 from jaxobs.papers._output import pyplot, save_figure, write_sweep_report
 from jaxobs.papers.liu_peng import vehicle_lateral as lp
-from jaxobs.sweep import load_results, run_configured_sweep
+from jaxobs.papers.scenarios import Sweep, SweepScenario
+from jaxobs.sweep import load_results
 
-__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "validate_config", "make_sweep", "run", "report"]
+__all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep", "report"]
 
 NAME = "liu-peng"
 SCALES = ("mass_scale", "inertia_scale", "front_stiffness_scale", "rear_stiffness_scale")
@@ -64,7 +65,6 @@ DEFAULT_CONFIG = {
 """500 vehicles: m, I_z +-20 %, C_f, C_r -30..+10 %, steering offset +-0.02 deg, the §4.2 robustness noise."""
 
 CONFIG_NOTES = {
-    "scenario": "the sweep ('jaxobs sweep --list')",
     "seed": "base of every configuration's random key",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
     "vehicle": "the true vehicles, every factor drawn independently and uniformly per configuration",
@@ -82,15 +82,13 @@ CONFIG_NOTES = {
 }
 
 
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    config = merge(DEFAULT_CONFIG, given or {}, source)
-    check_choice(config, source, "scenario", (NAME,))
+def _check(config: dict, source: str) -> None:
+    """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
     for name in SCALES:
         check_range(config, source, f"vehicle.{name}", positive=True, allow_point=True)
     check_range(config, source, "vehicle.steer_offset_deg", allow_point=True)
     for key, low in (("seed", 0), ("chunk_size", 1), ("vehicle.count", 1), ("noise.std", 0), ("noise.sine", 0)):
         check_at_least(config, source, key, low)
-    return config
 
 
 def _sampler(config: dict):
@@ -166,27 +164,13 @@ def make_sweep(config: dict):
             for i, err in enumerate(ERRORS)
         }
 
-    return _sampler(config), evaluate, config["vehicle"]["count"]
-
-
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict:
-    """Run the sweep (resumable) and write ``summary.json``, ``report.md`` and ``estimators.png``;
-    returns the summary (process 0 writes: None in the other processes of a multi-process run)."""
-    return run_configured_sweep(
-        config,
-        *make_sweep(config),
-        out_dir,
-        size_key="vehicle.count",
-        progress=progress,
-        overwrite=overwrite,
-        report=lambda result: report(config, Path(out_dir), result),
-    )
+    return Sweep(_sampler(config), evaluate, config["vehicle"]["count"])
 
 
 QUANTILES = (("p10", 0.1), ("median", 0.5), ("p90", 0.9), ("max", 1.0))
 
 
-def report(config: dict, out_dir: Path, result=None) -> dict:
+def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     cols = load_results(out_dir)
     errors = {e: np.stack([cols[f"metric.{e}_rms.{m}"] for m in lp.METHODS], axis=1) for e in ERRORS}
     finite = np.all(np.isfinite(np.concatenate(list(errors.values()), axis=1)), axis=1)
@@ -265,3 +249,15 @@ def _markdown(summary: dict) -> str:
         lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.1f} configurations/s).", ""]
     lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
+
+
+SCENARIO = SweepScenario(
+    name=NAME,
+    summary=__doc__,
+    defaults=DEFAULT_CONFIG,
+    notes=CONFIG_NOTES,
+    check=_check,
+    build=make_sweep,
+    report=report,
+    size_key="vehicle.count",
+)

@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.cortesao import example1 as example1_module
 from jaxobs.papers.cortesao import stochastic
 from jaxobs.papers.cortesao.force_control import nominal_design
+from jaxobs.papers.registry import reproductions
 from tests._readme import pin
 
 
@@ -26,7 +26,7 @@ def ramp(tmp_path_factory):
 
 
 def test_registry_names():
-    assert set(REPRODUCTIONS) == {
+    assert set(reproductions()) == {
         "cortesao2006-example1",
         "cortesao-stochastic-ramp",
         "cortesao2006-example2",

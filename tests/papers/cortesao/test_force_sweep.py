@@ -43,7 +43,7 @@ def test_padded_linear_controller_is_the_steady_state_aob():
 
 
 def test_default_config_is_at_least_1e5_configurations():
-    config = fr.validate_config()
+    config = fr.SCENARIO.validate()
     ctl = config["controllers"]
     count = len(ctl["orders"]) * ctl["grid_points"] ** 2 * config["simulation"]["configs_per_design"]
     assert count >= 100_000

@@ -9,7 +9,6 @@ import jax
 import numpy as np
 import pytest
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.grip2010 import adaptive
 from tests._readme import pin
 
@@ -22,21 +21,21 @@ ISSUE_KEYS_5_6 = {
 @pytest.fixture(scope="module")
 def example_1_1(tmp_path_factory):
     out = tmp_path_factory.mktemp("grip2010_example1_1")
-    REPRODUCTIONS[adaptive.NAME_EXAMPLE_1_1](out)
+    adaptive.reproduce_example_1_1(out)
     return out, json.loads((out / f"{adaptive.NAME_EXAMPLE_1_1}.json").read_text())
 
 
 @pytest.fixture(scope="module")
 def example_5_6(tmp_path_factory):
     out = tmp_path_factory.mktemp("grip2010_example5_6")
-    REPRODUCTIONS[adaptive.NAME_EXAMPLE_5_6](out)
+    adaptive.reproduce_example_5_6(out)
     return out, json.loads((out / f"{adaptive.NAME_EXAMPLE_5_6}.json").read_text())
 
 
 @pytest.fixture(scope="module")
 def drilling(tmp_path_factory):
     out = tmp_path_factory.mktemp("grip2010_drilling")
-    REPRODUCTIONS[adaptive.NAME_DRILLING](out)
+    adaptive.reproduce_drilling(out)
     return out, json.loads((out / f"{adaptive.NAME_DRILLING}.json").read_text())
 
 

@@ -10,7 +10,6 @@ from tests._readme import pin
 
 pytest.importorskip("sympy")
 
-from jaxobs.papers import REPRODUCTIONS  # noqa: E402
 from jaxobs.papers.grip2010 import dc_motor
 
 
@@ -43,7 +42,7 @@ def test_design_matches_the_printed_structure_and_gains():
 
 @pytest.mark.slow
 def test_reproduction_writes_every_key(tmp_path):
-    summary = REPRODUCTIONS[dc_motor.NAME](tmp_path)
+    summary = dc_motor.reproduce(tmp_path)
     data = json.loads((tmp_path / f"{dc_motor.NAME}.json").read_text())
     sim = data["simulation"]
     assert set(sim["rms_omega_error"]["pure_eso"]) == {"1.0", "0.5", "0.2", "0.1"}

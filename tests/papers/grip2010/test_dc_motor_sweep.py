@@ -16,7 +16,7 @@ def test_default_config_file_validates():
     from jaxobs._config import load_toml
 
     path = "tuning/dc_motor_hgo_sweep.toml"
-    assert sweep.validate_config(load_toml(path), path) == sweep.DEFAULT_CONFIG
+    assert sweep.SCENARIO.validate(load_toml(path), path) == sweep.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -32,19 +32,19 @@ def test_default_config_file_validates():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
-        sweep.validate_config(given, "test.toml")
+        sweep.SCENARIO.validate(given, "test.toml")
 
 
 def test_one_configuration_matches_the_reproduction():
     """The sweep's row at eps = 1, sigma = 0, alpha_0 = 0.28 equals the reproduction's noise-free simulation over the
     same (short) horizon: the traced K(eps) = HGOGains.at(eps) gives the eager gains."""
-    config = sweep.validate_config(
+    config = sweep.SCENARIO.validate(
         {
             "grid": {"eps": [1.0], "sigma": [0.0], "alpha_0": [0.28], "seeds": 1},
             "simulation": {"duration": 1.0, "rms_start": 0.5},
         }  # fmt: skip
     )
-    sampler, evaluate, n = sweep.make_sweep(config)
+    sampler, evaluate, n, _ = sweep.make_sweep(config)
     assert n == 1
     metrics = jax.jit(evaluate)(sampler(config_key(0, 0), 0))
     _, obs1, obs2 = dc.design()

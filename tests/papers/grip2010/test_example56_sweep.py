@@ -21,7 +21,7 @@ TINY = {
 
 def test_default_config_file_validates():
     path = "tuning/grip_example56_sweep.toml"
-    assert sweep.validate_config(load_toml(path), path) == sweep.DEFAULT_CONFIG
+    assert sweep.SCENARIO.validate(load_toml(path), path) == sweep.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -37,13 +37,13 @@ def test_default_config_file_validates():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        sweep.validate_config(given)
+        sweep.SCENARIO.validate(given)
 
 
 def test_index_runs_over_the_grid_seeds_fastest():
     grid = {"K_phi": [1.0, 2.0], "Gamma": [3.0, 4.0, 5.0], "noise_variance": [0.0, 1.0], "seeds": 2}
-    config = sweep.validate_config({"grid": grid})
-    sampler, _, n = sweep.make_sweep(config)
+    config = sweep.SCENARIO.validate({"grid": grid})
+    sampler, _, n, _ = sweep.make_sweep(config)
     assert n == 24
     p = jax.vmap(lambda i: sampler(config_key(0, i), i))(jnp.arange(n))
     rows = np.stack([np.asarray(p[k], float) for k in (*sweep.GRID, "noise_seed")], axis=1)
@@ -63,7 +63,7 @@ def test_cli_sweep_end_to_end(tmp_path):
     assert cli.main(["sweep", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     cols = load_results(out)
     assert cols["index"].tolist() == list(range(8))
-    t = sweep._grid_table(sweep.validate_config(TINY), cols)
+    t = sweep._grid_table(sweep.SCENARIO.validate(TINY), cols)
     for law in sweep.LAWS:
         assert np.all(np.isfinite(t[law]["mean"])) and np.all(t[law]["peak"] > 0)
         np.testing.assert_array_equal(t[law]["mean"][:, :, 0, 0], t[law]["mean"][:, :, 0, 1])  # no noise: seeds agree

@@ -8,13 +8,12 @@ import pytest
 
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
-from jaxobs.papers import tuning
 from jaxobs.papers.grip2010 import example56_tuning
 
 
 def test_default_config_file_validates():
     path = "tuning/grip_example56.toml"
-    assert tuning.validate_config(load_toml(path), path) == example56_tuning.DEFAULT_CONFIG
+    assert example56_tuning.PROBLEM.validate(load_toml(path), path) == example56_tuning.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -29,13 +28,13 @@ def test_default_config_file_validates():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        example56_tuning.validate_config({"problem": example56_tuning.NAME, **given})
+        example56_tuning.PROBLEM.validate({"problem": example56_tuning.NAME, **given})
 
 
 def test_gradient_matches_finite_differences():
     """d loss / d (log K_phi, log Gamma) through the 5000 RK4 steps of a 1 s-segment run, forward mode against a
     central difference (step 1e-5: truncation about 1e-10 relative; the loss is smooth away from theta_tilde = 0)."""
-    config = example56_tuning.validate_config({"seeds": {"train": 1}, "scenario": {"segment_s": 1.0, "window_s": 0.5}})
+    config = example56_tuning.PROBLEM.validate({"seeds": {"train": 1}, "scenario": {"segment_s": 1.0, "window_s": 0.5}})
     problem = example56_tuning.build_problem(config)
     loss = jax.jit(lambda theta: problem.losses(theta, problem.train)[0][0])
     grad = jax.jit(jax.jacfwd(loss))(problem.theta0)
@@ -54,7 +53,8 @@ def test_small_run_end_to_end(tmp_path):
     training objective."""
     config, out = tmp_path / "grip.toml", tmp_path / "out"
     config.write_text(
-        'problem = "grip-example56"\n[seeds]\ntrain = 2\nheldout = 3\n[scenario]\nsegment_s = 2.0\nwindow_s = 1.0\n'
+        'problem = "grip-example56-gains"\n[seeds]\ntrain = 2\nheldout = 3\n'
+        "[scenario]\nsegment_s = 2.0\nwindow_s = 1.0\n"
         "[optimizer]\nsteps = 3\n"
     )
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0

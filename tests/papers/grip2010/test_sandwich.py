@@ -6,7 +6,6 @@ import json
 import numpy as np
 import pytest
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.grip2010 import sandwich as g
 from jaxobs.saturation import sandwich_design
 from tests._readme import pin
@@ -39,7 +38,7 @@ def test_low_gain_are_family():
 
 @pytest.mark.slow
 def test_reproduction_writes_every_key(tmp_path):
-    REPRODUCTIONS[g.NAME](tmp_path)
+    g.reproduce(tmp_path)
     data = json.loads((tmp_path / f"{g.NAME}.json").read_text())
     assert set(data["low_gain_are"]) >= {"eps", "P_norm", "P_min_eig"}
     loop = data["closed_loop"]

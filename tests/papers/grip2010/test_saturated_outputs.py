@@ -5,13 +5,12 @@ import json
 
 import numpy as np
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.grip2010 import saturated_outputs as g
 from tests._readme import pin
 
 
 def test_reproduction_writes_every_key_and_matches_the_print(tmp_path):
-    REPRODUCTIONS[g.NAME](tmp_path)
+    g.reproduce(tmp_path)
     data = json.loads((tmp_path / f"{g.NAME}.json").read_text())
     keys = ("T", "rho", "x0", "alpha", "alpha_norm", "Bbar", "intervals", "first_unsaturated_interval",
             "deadbeat_interval", "x0_reconstruction_error", "max_abs_x_after_deadbeat",

@@ -13,7 +13,7 @@ from jaxobs.sweep import load_results
 
 def test_default_config_file_validates():
     path = "tuning/saturated_outputs_sweep.toml"
-    assert sweep.validate_config(load_toml(path), path) == sweep.DEFAULT_CONFIG
+    assert sweep.SCENARIO.validate(load_toml(path), path) == sweep.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -29,7 +29,7 @@ def test_default_config_file_validates():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        sweep.validate_config(given)
+        sweep.SCENARIO.validate(given)
 
 
 def test_cli_sweep_end_to_end(tmp_path):

@@ -10,14 +10,13 @@ from tests._readme import printed
 
 sp = pytest.importorskip("sympy")
 
-from jaxobs.papers import REPRODUCTIONS  # noqa: E402
 from jaxobs.papers.grip2010 import scb  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     out = tmp_path_factory.mktemp("grip2010_scb")
-    summary = REPRODUCTIONS[scb.NAME](out)
+    summary = scb.reproduce(out)
     return summary, json.loads((out / f"{scb.NAME}.json").read_text())
 
 

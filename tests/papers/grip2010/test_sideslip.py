@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.grip2010 import sideslip
+from jaxobs.papers.registry import reproductions
 from jaxobs.vehicle import MANOEUVRES, VehicleParams
 from tests._readme import pin
 
@@ -39,7 +39,7 @@ def _check_manoeuvre_keys(entry):
 @pytest.mark.slow  # shares a 25 s reproduction run
 def test_registered_and_written_with_every_key(reduced):
     out, summary = reduced
-    assert REPRODUCTIONS["grip2010-sideslip"] is sideslip.reproduce
+    assert reproductions()["grip2010-sideslip"] is sideslip.REPRODUCTION
     data = json.loads((out / "grip2010-sideslip.json").read_text())
     assert set(data["manoeuvres"]) == {"double_lane_change_120kmh"}
     _check_manoeuvre_keys(data["manoeuvres"]["double_lane_change_120kmh"])

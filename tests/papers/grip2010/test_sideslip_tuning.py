@@ -10,13 +10,12 @@ import pytest
 
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
-from jaxobs.papers import tuning
 from jaxobs.papers.grip2010 import sideslip_tuning
 
 
 def test_default_config_file_validates():
     path = "tuning/sideslip.toml"
-    assert tuning.validate_config(load_toml(path), path) == sideslip_tuning.DEFAULT_CONFIG
+    assert sideslip_tuning.PROBLEM.validate(load_toml(path), path) == sideslip_tuning.DEFAULT_CONFIG
 
 
 @pytest.mark.parametrize(
@@ -34,7 +33,7 @@ def test_default_config_file_validates():
 )
 def test_bad_config_names_the_key(given, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        sideslip_tuning.validate_config({"problem": sideslip_tuning.NAME, **given})
+        sideslip_tuning.PROBLEM.validate({"problem": sideslip_tuning.NAME, **given})
 
 
 @pytest.mark.slow  # the NVSO's gradient is checked in the default set by tests/vehicle/test_nvso.py
@@ -46,7 +45,7 @@ def test_gradient_matches_finite_differences():
     threshold, whose gate seldom sits near its switching point on these drives) to 7e-2 (K_vy)."""
     plants = {"train": 2, "heldout": 1, "friction": [0.9, 1.2], "mass": [0.9, 1.2], "cornering_stiffness": [0.85, 1.1]}
     scenario = {"duration": 3.0, "error_start": 0.5, "manoeuvres": ["double_lane_change_120kmh", "sine_steer"]}
-    config = sideslip_tuning.validate_config({"plants": plants, "scenario": scenario})
+    config = sideslip_tuning.PROBLEM.validate({"plants": plants, "scenario": scenario})
     problem = sideslip_tuning.build_problem(config)
     loss = jax.jit(lambda theta: problem.losses(theta, problem.train)[0].mean())
     grad = jax.jit(jax.grad(loss))(problem.theta0)

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from jaxobs.papers import REPRODUCTIONS
 from jaxobs.papers.liu_peng import vehicle_lateral
+from jaxobs.papers.registry import reproductions
 from tests._readme import pin
 
 
@@ -66,7 +66,7 @@ def test_printed_design_is_not_the_minimiser():
 @pytest.mark.slow
 def test_reproduce_writes_json_and_figures(reproduced):
     out, summary = reproduced
-    assert vehicle_lateral.NAME in REPRODUCTIONS
+    assert vehicle_lateral.NAME in reproductions()
     data = json.loads((out / f"{vehicle_lateral.NAME}.json").read_text())
     assert set(data["rms"]) == set(vehicle_lateral.MODELS)
     for model in vehicle_lateral.MODELS:

@@ -16,7 +16,7 @@ def test_default_config_file_validates():
     from jaxobs._config import load_toml
 
     path = "tuning/liu_peng_sweep.toml"
-    config = vehicle_lateral_sweep.validate_config(load_toml(path), path)
+    config = vehicle_lateral_sweep.SCENARIO.validate(load_toml(path), path)
     assert config == vehicle_lateral_sweep.DEFAULT_CONFIG
 
 
@@ -25,14 +25,14 @@ def test_no_mismatch_no_noise_reproduces_the_ideal_case():
     """Nominal truth, no noise, no low-pass: every per-method RMS equals liu_peng's ideal case (the truth here is
     simulated with 100 Hz steps of 1 ms scans instead of a NumPy loop, so agreement is to rounding, 1e-9)."""
     point = {name: [1.0, 1.0] for name in vehicle_lateral_sweep.SCALES}
-    config = vehicle_lateral_sweep.validate_config(
+    config = vehicle_lateral_sweep.SCENARIO.validate(
         {
             "vehicle": {**point, "steer_offset_deg": [0.0, 0.0], "count": 1},
             "noise": {"std": 0.0, "sine": 0.0},
             "estimators": {"lowpass": False},
         }
     )
-    sampler, evaluate, _ = vehicle_lateral_sweep.make_sweep(config)
+    sampler, evaluate, _, _ = vehicle_lateral_sweep.make_sweep(config)
     metrics = jax.jit(evaluate)(sampler(config_key(0, 0), 0))
     reference = vehicle_lateral.run_case("parameters", "ideal")["rms"]
     for method in vehicle_lateral.METHODS:

@@ -1,14 +1,12 @@
 """``jaxobs tune``: run a tuning problem end to end and report it.
 
-The config's ``problem`` key picks the problem module (``PROBLEMS``; each has ``DEFAULT_CONFIG``,
-``validate_config`` and ``build_problem``; the shared tables are in ``_tuning_config``). :func:`run` tunes from the
-problem's hand-set design with :func:`jaxobs.tuning.tune` (checkpointed, resumable), runs the random-search
-baseline in the problem's search box (:func:`jaxobs.papers._tuning_config.search_box`) for at least as many
-rollouts and as much wall time as the tuning took, scores the hand-set, tuned and random-search designs (best at
-equal rollouts, best at equal wall time) on the held-out plants, and writes ``tuned.json`` and three figures:
-``loss_curves.png``, ``responses.png`` (before/after on held-out plants) and ``parameters.png`` (trajectories of
-the unconstrained parameters). The output directory is locked for the run
-(:func:`jaxobs._resources.locked_out_dir`). Several processes may run it together (:func:`run`).
+:func:`run` tunes a :class:`~jaxobs.papers.scenarios.TuningScenario`'s problem from its hand-set design with
+:func:`jaxobs.tuning.tune` (checkpointed, resumable), runs the random-search baseline in the problem's search box
+(:func:`jaxobs.papers._tuning_config.search_box`) for at least as many rollouts and as much wall time as the tuning
+took, scores the hand-set, tuned and random-search designs (best at equal rollouts, best at equal wall time) on the
+held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png`` (before/after
+on held-out plants) and ``parameters.png`` (trajectories of the unconstrained parameters). The output directory is
+locked for the run (:func:`jaxobs._resources.locked_out_dir`). Several processes may run it together.
 """
 
 from __future__ import annotations
@@ -21,36 +19,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxobs._config import ConfigError, fail
+from jaxobs._config import ConfigError
 from jaxobs._distributed import agree
 from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
-from jaxobs.papers import robot_tuning
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers._tuning_config import config_tag, search_spread
 from jaxobs.papers._tuning_config import settings as tuning_settings
-from jaxobs.papers.cortesao import force_tuning, peg_tuning
-from jaxobs.papers.grip2010 import example56_tuning, sideslip_tuning
 from jaxobs.tuning import evaluate, random_search, tune
 
-__all__ = ["PROBLEMS", "validate_config", "run"]
-
-PROBLEMS = {
-    force_tuning.NAME: force_tuning,
-    peg_tuning.NAME: peg_tuning,
-    example56_tuning.NAME: example56_tuning,
-    robot_tuning.NAME: robot_tuning,
-    sideslip_tuning.NAME: sideslip_tuning,
-}
-"""Problem modules by the config's ``problem`` name; the first is the default."""
-
-
-def validate_config(given: dict | None = None, source: str = "<default>") -> dict:
-    """Dispatch on ``given["problem"]`` (default: the 1-DOF force problem) to its module's validator."""
-    given = given or {}
-    name = given.get("problem", next(iter(PROBLEMS)))
-    if name not in PROBLEMS:
-        fail(source, "problem", f"must be one of {', '.join(map(repr, PROBLEMS))}, got {name!r}")
-    return PROBLEMS[name].validate_config(given, source)
+__all__ = ["run"]
 
 
 def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
@@ -85,8 +62,9 @@ def _box_position(theta: dict, box: dict) -> dict:
     return position
 
 
-def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
-    """Tune, run the baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures.
+def run(scenario, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+    """Tune ``scenario`` (a :class:`~jaxobs.papers.scenarios.TuningScenario`) with its validated ``config``, run the
+    baseline, evaluate on the held-out plants, write ``tuned.json`` and the figures.
 
     In a multi-process run (``jax.distributed.initialize``) every process makes the same call and computes its
     devices' share of every batch of rollouts; process 0 alone locks and writes ``out_dir`` and returns the
@@ -103,13 +81,12 @@ def run(config: dict, out_dir, *, progress: bool = True, overwrite: bool = False
             error = exc
         agree(error, bytes.fromhex(tag), job=f"the tuning run in {out_dir}", kind="tuning run",
               differs="their config files differ", error_type=ConfigError)  # fmt: skip
-        return _run(config, out, tag, progress, writer)
+        return _run(scenario, config, out, tag, progress, writer)
 
 
-def _run(config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
-    module = PROBLEMS[config["problem"]]
+def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
     try:
-        problem = module.build_problem(config)
+        problem = scenario.build(config)
     except ValueError as exc:  # e.g. an invalid MJCF
         raise ConfigError(f"{config['problem']}: {exc}") from exc
     settings = tuning_settings(config)

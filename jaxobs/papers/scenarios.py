@@ -1,0 +1,158 @@
+"""What the paper layer registers: reproductions, sweep scenarios and tuning problems, as description objects.
+
+Each is defined beside its code (``REPRODUCTION = Reproduction(...)``, ``SCENARIO = SweepScenario(...)``,
+``PROBLEM = TuningScenario(...)``) and listed once in :mod:`jaxobs.papers.registry`; the ``jaxobs`` command lists,
+validates and runs them through these objects only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+from jaxobs._config import check_choice, merge
+from jaxobs.papers import _tuning_config, tune_job
+from jaxobs.sweep import run_configured_sweep
+
+__all__ = ["first_paragraph", "Reproduction", "Sweep", "SweepScenario", "TuningScenario"]
+
+
+def first_paragraph(text: str | None) -> str:
+    """The first paragraph of ``text`` on one line, without reST literals (the description ``--list`` prints)."""
+    first = (text or "").strip().split("\n\n")[0]
+    return " ".join(first.replace("``", "").split())
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Reproduction:
+    """A source's numbers and figures, written by ``jaxobs reproduce NAME``.
+
+    Attributes:
+      name: the command-line name (lower case with hyphens).
+      summary: what it reproduces (a docstring: its first paragraph is kept).
+      reproduce: ``reproduce(out_dir) -> dict`` writes ``out_dir/NAME.json`` and the figures and returns the summary
+        (with its ``"figures"``).
+      headline: keys of the summary the command prints after the run (scalars, or dicts of scalars).
+    """
+
+    name: str
+    summary: str
+    reproduce: Callable[[Path], dict]
+    headline: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "summary", first_paragraph(self.summary))
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Configured:
+    """A job driven by a TOML config: its defaults, the notes ``--print-config`` writes, its checks."""
+
+    key: ClassVar[str]  # the config key that names the job
+
+    name: str
+    summary: str
+    defaults: dict
+    notes: dict
+    check: Callable[[dict, str], None]
+    open_tables: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "summary", first_paragraph(self.summary))
+        if self.defaults.get(self.key) != self.name:
+            raise ValueError(f"{self.name}: defaults[{self.key!r}] must be {self.name!r}")
+        undocumented = [k for k in self.defaults if k not in self.config_notes()]
+        if undocumented:
+            raise ValueError(f"{self.name}: config keys without a note: {undocumented}")
+
+    def config_notes(self) -> dict:
+        """``{dotted key: note}`` of every key, for ``--print-config``."""
+        return {self.key: f"the {self.key} (list them with --list)", **self.notes}
+
+    def validate(self, given: dict | None = None, source: str = "<default>") -> dict:
+        """The complete configuration (``given`` over the defaults), or a :class:`jaxobs._config.ConfigError`
+        naming ``source`` and the key."""
+        config = merge(self.defaults, given or {}, source, open_tables=self.open_tables)
+        check_choice(config, source, self.key, (self.name,))
+        self.check(config, source)
+        return config
+
+
+class Sweep(NamedTuple):
+    """What a sweep scenario builds from its config, for :func:`jaxobs.sweep.run_configured_sweep`.
+
+    Attributes:
+      sampler: ``sampler(key, index) -> dict`` of one configuration's parameters.
+      evaluate: ``evaluate(params) -> dict`` of its metrics.
+      num_configs: how many configurations.
+      context: whatever the report needs besides the rows (e.g. the designs), or None.
+    """
+
+    sampler: Callable
+    evaluate: Callable
+    num_configs: int
+    context: Any = None
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SweepScenario(_Configured):
+    """A Monte-Carlo sweep run by ``jaxobs sweep`` (the config's ``scenario`` key names it).
+
+    Attributes:
+      name, summary, defaults, notes, check, open_tables: the config (``check(config, source)`` raises a
+        :class:`jaxobs._config.ConfigError` for a bad value).
+      build: ``build(config) -> Sweep``.
+      report: ``report(config, out_dir, result, context) -> dict`` writes ``summary.json``, ``report.md`` and the
+        figures from the finished sweep in ``out_dir`` (``result``: this call's
+        :class:`jaxobs.sweep.SweepResult`, or None) and returns the summary (with ``num_configs`` and
+        ``figures``).
+      size_key: the dotted key that sets the number of configurations: raising it extends a finished sweep in the
+        same directory (None: any change starts over).
+    """
+
+    key: ClassVar[str] = "scenario"
+
+    build: Callable[[dict], Sweep]
+    report: Callable[..., dict]
+    size_key: str | None = None
+
+    def run(self, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+        """Run the sweep (resuming a partial run in ``out_dir``) and write its report; returns the report's summary
+        in process 0, None in the other processes of a multi-process run (process 0 writes)."""
+        sweep = self.build(config)
+        return run_configured_sweep(
+            config, sweep.sampler, sweep.evaluate, sweep.num_configs, out_dir, size_key=self.size_key,
+            progress=progress, overwrite=overwrite,
+            report=lambda result: self.report(config, Path(out_dir), result, sweep.context),
+        )  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TuningScenario(_Configured):
+    """A tuning problem run by ``jaxobs tune`` (the config's ``problem`` key names it); the config's
+    ``[optimizer]`` and ``[baseline]`` tables and ``seed`` are common to every problem
+    (:mod:`jaxobs.papers._tuning_config`) and checked here.
+
+    Attributes:
+      name, summary, defaults, notes, check, open_tables: the config.
+      build: ``build(config) -> jaxobs.tuning.TuningProblem``; a ``ValueError`` (e.g. an invalid MJCF) is reported
+        as a config error.
+    """
+
+    key: ClassVar[str] = "problem"
+
+    build: Callable[[dict], Any]
+
+    def config_notes(self) -> dict:
+        return {**super().config_notes(), **_tuning_config.COMMON_NOTES}
+
+    def validate(self, given: dict | None = None, source: str = "<default>") -> dict:
+        config = super().validate(given, source)
+        _tuning_config.check_common(config, source)
+        return config
+
+    def run(self, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+        """Tune, run the baselines and score on the held-out plants (:func:`jaxobs.papers.tune_job.run`)."""
+        return tune_job.run(self, config, out_dir, progress=progress, overwrite=overwrite)
