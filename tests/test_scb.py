@@ -309,3 +309,17 @@ def test_queries_reject_other_objects():
     with pytest.raises(ValueError, match="system"):
         invariant_zeros("ABC")
     assert scbmod.SCB is type(scb([[0]], [[1]], [[1]]))
+
+
+@pytest.mark.parametrize("numeric", [False, True], ids=["exact", "numeric"])
+def test_zeros_on_the_imaginary_axis_are_not_minimum_phase(numeric):
+    """The boundary belongs to the non-minimum-phase side (section 7.3: A_aa Hurwitz): a zero at s = 0
+    (-s / ((s + 1)(s + 2))) and a pair at s = +-j ((s^2 + 1) / ((s + 1)(s + 2)(s + 3)), by partial fractions)."""
+    for A, B, C, want in [
+        (np.diag([-1, -2]), np.ones((2, 1), int), np.array([[1, -2]]), [0]),
+        (np.diag([-1, -2, -3]), np.ones((3, 1), int), np.array([[1, -5, 5]]), [1j, -1j]),
+    ]:
+        s = scb(*(M.astype(float) for M in (A, B, C)), numeric=True) if numeric else scb(A, B, C)
+        zeros = np.array(invariant_zeros(s), dtype=complex)
+        np.testing.assert_allclose(sorted(zeros, key=np.imag), sorted(want, key=np.imag), atol=1e-9)
+        assert not is_minimum_phase(s)
