@@ -29,13 +29,21 @@ __all__ = ["ClosedLoopTrace", "simulate", "ideal_response", "measurement_noise",
 
 
 class ClosedLoopTrace(NamedTuple):
-    """Time series of a closed-loop run (leading axis: time)."""
+    """Time series of a closed-loop run (leading axis: time).
 
-    y: jax.Array  # (T, p) noisy measurements y_k
-    y_true: jax.Array  # (T, p) noise-free outputs C x_k
-    u: jax.Array  # (T, m) commands u_k
-    x: jax.Array  # (T, n) true plant states x_k
-    controller: object  # the controller's outputs stacked over time (e.g. FeedbackOutputs)
+    Attributes:
+      y: (T, p) noisy measurements y_k
+      y_true: (T, p) noise-free outputs C x_k
+      u: (T, m) commands u_k
+      x: (T, n) true plant states x_k
+      controller: the controller's outputs stacked over time (e.g. FeedbackOutputs)
+    """
+
+    y: jax.Array
+    y_true: jax.Array
+    u: jax.Array
+    x: jax.Array
+    controller: object
 
 
 def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str) -> jax.Array:

@@ -207,6 +207,7 @@ class FitSettings:
     patience: int = 10
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid setting."""
         if self.optimizer != "lbfgs" and self.optimizer not in OPTIMIZERS:
             raise ValueError(f"settings.optimizer must be 'lbfgs' or one of {', '.join(OPTIMIZERS)}, "
                              f"got {self.optimizer!r}")  # fmt: skip
@@ -219,12 +220,23 @@ class FitSettings:
 
 
 class FitResult(NamedTuple):
-    theta: Any  # the best parameters found (lowest loss)
-    params: Any  # build_params(theta)
-    loss: np.ndarray  # (steps taken,) the loss at each iterate, the loss curve (nats per observed component)
-    grad_norm: np.ndarray  # (steps taken,) the gradient's global norm at each iterate
-    stopped: str  # "converged" (no improvement for settings.patience steps), "steps", or "non-finite"
-    best_loss: float  # the loss of theta
+    """Result of :func:`fit`.
+
+    Attributes:
+      theta: the best parameters found (lowest loss)
+      params: build_params(theta)
+      loss: (steps taken,) the loss at each iterate, the loss curve (nats per observed component)
+      grad_norm: (steps taken,) the gradient's global norm at each iterate
+      stopped: "converged" (no improvement for settings.patience steps), "steps", or "non-finite"
+      best_loss: the loss of theta
+    """
+
+    theta: Any
+    params: Any
+    loss: np.ndarray
+    grad_norm: np.ndarray
+    stopped: str
+    best_loss: float
 
 
 @lru_cache(maxsize=64)
@@ -331,10 +343,19 @@ def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, set
 
 
 class EMResult(NamedTuple):
-    params: KalmanParams  # after the last update
-    log_likelihood: jax.Array  # (iterations,) log p(Y) of the params before each update (NaN after the last)
-    iterations: jax.Array  # () updates made
-    converged: jax.Array  # () the relative log-likelihood change fell below the tolerance
+    """Result of :func:`em`.
+
+    Attributes:
+      params: after the last update
+      log_likelihood: (iterations,) log p(Y) of the params before each update (NaN after the last)
+      iterations: () updates made
+      converged: () the relative log-likelihood change fell below the tolerance
+    """
+
+    params: KalmanParams
+    log_likelihood: jax.Array
+    iterations: jax.Array
+    converged: jax.Array
 
 
 class _Statistics(NamedTuple):

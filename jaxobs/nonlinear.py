@@ -174,20 +174,41 @@ class Linearize(Protocol):
 
 
 class GaussianState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori mean x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) its covariance
-    t: jax.Array  # () its time
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far (missing or gated)
-    gated: jax.Array  # () int32, of those, finite components rejected by the innovation gate
+    """State of a Gaussian filter (EKF, UKF) between steps.
+
+    Attributes:
+      x: (n,) a-posteriori mean x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) its covariance
+      t: () its time
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far (missing or gated)
+      gated: () int32, of those, finite components rejected by the innovation gate
+    """
+
+    x: jax.Array
+    P: jax.Array
+    t: jax.Array
+    started: jax.Array
+    missing: jax.Array
+    gated: jax.Array
 
 
 class GaussianOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori mean x_hat_{k|k}
-    P: jax.Array  # (n, n) its covariance
-    x_prior: jax.Array  # (n,) a-priori mean x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - h_bar around the prior (0 for missing components)
-    gain: jax.Array  # (n, p) gain of the (last) update (zero columns for missing components)
+    """Outputs of one step of a Gaussian filter (EKF, UKF).
+
+    Attributes:
+      x: (n,) a-posteriori mean x_hat_{k|k}
+      P: (n, n) its covariance
+      x_prior: (n,) a-priori mean x_hat_{k|k-1}
+      innovation: (p,) y_k - h_bar around the prior (0 for missing components)
+      gain: (n, p) gain of the (last) update (zero columns for missing components)
+    """
+
+    x: jax.Array
+    P: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
 
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:

@@ -145,7 +145,8 @@ class Margins(NamedTuple):
     the smallest ``|margin|`` (inf if none); ``delay_margin``: seconds, the smallest extra input delay
     that destabilises a stable loop, ``min_i mod(pm_i, 360) / w_i`` over all gain crossovers (inf if
     none), at most one sample ``dt`` when ``|H(-1)| > 1`` (one sample of delay flips the sign of
-    ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; frequencies in rad/s (nan if none);
+    ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; ``phase_crossover``, ``gain_crossover``,
+    ``stability_margin_frequency``: the frequencies of those margins in rad/s (nan if none);
     ``spectral_radius`` of the closed loop (the margins mean something only when it is below 1).
     ``truncated``: more crossings than ``max_crossings`` were seen (margins may be optimistic).
     """
@@ -207,8 +208,8 @@ def _crossings(f, theta, values, max_crossings: int, iters: int):
 def _exact_with_slope(sys: StateSpace, theta):
     """Exact ``H`` and ``dH/dtheta`` at the (held constant) frequencies ``theta``, in one batched
     solve: Newton steps from them give first-order values whose gradients follow the implicit
-    function theorem through the crossover frequencies. (One solve call on purpose: see the
-    eigenvalue call in :func:`stability_margins`.)"""
+    function theorem through the crossover frequencies (one solve call on purpose: see the
+    eigenvalue call in :func:`stability_margins`)."""
     theta = jax.lax.stop_gradient(theta)
     one = jax.vmap(lambda t: jax.jvp(lambda s: _resolvent_response(sys, s), (t,), (jnp.ones_like(t),)))
     return one(theta)

@@ -132,8 +132,12 @@ class SweepError(JobError):
 class SweepResult:
     """Summary of one ``run_sweep`` call (the data itself is read with ``load_results``).
 
-    ``seconds`` is this call's wall time (compilation included); ``configs_per_second`` counts the configurations
-    computed in this call over the time spent computing and writing them (compilation excluded; 0 if none).
+    Attributes:
+      out_dir: the directory holding the results.  num_configs: configurations in the sweep.
+      chunks_computed, chunks_reused: chunks computed in this call and found already written.
+      seconds: this call's wall time (compilation included).
+      configs_per_second: configurations computed in this call over the time spent computing and writing them
+        (compilation excluded; 0 if none).
     """
 
     out_dir: Path

@@ -205,6 +205,7 @@ class TuningProblem:
     search_box: dict | None = None
 
     def batch_size(self, batch) -> int:
+        """Number of plants in ``batch`` (the leading axis of its leaves)."""
         return int(jax.tree.leaves(batch)[0].shape[0])
 
 
@@ -243,6 +244,7 @@ class TuneSettings:
     checkpoint_every: int = 10
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid setting."""
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
         if self.gradient not in GRADIENT_MODES:
@@ -260,19 +262,33 @@ class TuneSettings:
                 raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
 
     def optax_transform(self) -> optax.GradientTransformation:
+        """The optimiser, after gradient clipping by global norm when ``clip_norm > 0``."""
         base = OPTIMIZERS[self.optimizer](self.learning_rate)
         return optax.chain(optax.clip_by_global_norm(self.clip_norm), base) if self.clip_norm > 0 else base
 
 
 class TuneResult(NamedTuple):
-    theta: dict  # the best accepted parameters (fewest diverged training plants, then lowest objective)
-    objective: float  # their training objective
-    history: list  # one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
-    stopped: str  # why the loop ended: "steps", "early stopping"
-    evaluations: int  # gradient evaluations (each is one rollout per training plant)
-    rollouts: int  # evaluations x training batch size
-    diverged: int  # diverged training plants of the best theta
-    seconds: float  # wall time of the tuning over all runs that built this checkpoint, compilation included
+    """Result of :func:`tune`.
+
+    Attributes:
+      theta: the best accepted parameters (fewest diverged training plants, then lowest objective)
+      objective: their training objective
+      history: one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
+      stopped: why the loop ended: "steps", "early stopping"
+      evaluations: gradient evaluations (each is one rollout per training plant)
+      rollouts: evaluations x training batch size
+      diverged: diverged training plants of the best theta
+      seconds: wall time of the tuning over all runs that built this checkpoint, compilation included
+    """
+
+    theta: dict
+    objective: float
+    history: list
+    stopped: str
+    evaluations: int
+    rollouts: int
+    diverged: int
+    seconds: float
 
 
 class TuningError(RuntimeError):
@@ -695,10 +711,20 @@ def tune(
 
 
 class SearchResult(NamedTuple):
-    candidates: list  # every candidate theta, the first being theta0
-    objectives: np.ndarray  # training objective per candidate (inf where every plant diverged)
-    diverged: np.ndarray  # diverged training plants per candidate
-    elapsed: np.ndarray  # wall time (s) when each candidate was scored, compilation included
+    """Result of :func:`random_search`.
+
+    Attributes:
+      candidates: every candidate theta, the first being theta0
+      objectives: training objective per candidate (inf where every plant diverged)
+      diverged: diverged training plants per candidate
+      elapsed: wall time (s) when each candidate was scored, compilation included
+      rollouts_per_candidate: training plants each candidate was rolled out on
+    """
+
+    candidates: list
+    objectives: np.ndarray
+    diverged: np.ndarray
+    elapsed: np.ndarray
     rollouts_per_candidate: int
 
     def best(self, count: int | None = None) -> tuple[dict, float, int]:

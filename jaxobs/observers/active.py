@@ -200,34 +200,63 @@ class ActiveObserverParams:
 
     @property
     def n_inputs(self) -> int:
+        """Number of plant inputs ``m``."""
         return self.Gamma.shape[-1]
 
     @property
     def n_active(self) -> int:
+        """Number of active states ``q`` (order times channels)."""
         return self.order * self.n_channels
 
 
 class ActiveObserverState(NamedTuple):
-    x: jax.Array  # (n_aug,) a-posteriori estimate [x_r, p] (the prior mean before the first step)
-    P: jax.Array  # (n_aug, n_aug) its covariance
-    evolution: jax.Array  # (q,) last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`active_observer` between steps (``n_aug = n + q`` states: the plant's and the active states).
+
+    Attributes:
+      x: (n_aug,) a-posteriori estimate [x_r, p] (the prior mean before the first step)
+      P: (n_aug, n_aug) its covariance
+      evolution: (q,) last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    evolution: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class ActiveObserverOutputs(NamedTuple):
-    x: jax.Array  # (n_aug,) a-posteriori estimate
-    d: jax.Array  # (q,) newest active state p_hat_k: the equivalent input disturbance (zeros for a CKF)
-    x_prior: jax.Array  # (n_aug,) a-priori estimate
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n_aug, p) K_k
-    q_active: jax.Array  # (q,) variance used for the newest active state at this step
-    alpha: jax.Array  # (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
-    converged: jax.Array  # () the steady-state gains' DAREs converged (True for time-varying gains)
-    S: jax.Array  # (p, p) innovation covariance of the observed components (1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) under the active-state model (0 when all are missing)
-    P: jax.Array | None = None  # (n_aug, n_aug) a-posteriori covariance (with output_covariance, else None)
-    P_prior: jax.Array | None = None  # (n_aug, n_aug) a-priori covariance (with output_covariance, else None)
+    """Outputs of one step of :data:`active_observer`.
+
+    Attributes:
+      x: (n_aug,) a-posteriori estimate
+      d: (q,) newest active state p_hat_k: the equivalent input disturbance (zeros for a CKF)
+      x_prior: (n_aug,) a-priori estimate
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n_aug, p) K_k
+      q_active: (q,) variance used for the newest active state at this step
+      alpha: (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
+      converged: () the steady-state gains' DAREs converged (True for time-varying gains)
+      S: (p, p) innovation covariance of the observed components (1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) under the active-state model (0 when all are missing)
+      P: (n_aug, n_aug) a-posteriori covariance (with output_covariance, else None)
+      P_prior: (n_aug, n_aug) a-priori covariance (with output_covariance, else None)
+    """
+
+    x: jax.Array
+    d: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    q_active: jax.Array
+    alpha: jax.Array
+    converged: jax.Array
+    S: jax.Array
+    log_likelihood: jax.Array
+    P: jax.Array | None = None
+    P_prior: jax.Array | None = None
 
 
 def _active_slice(params: ActiveObserverParams):

@@ -112,7 +112,9 @@ class Controller(NamedTuple):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class LinearObserver:
-    """A fixed-gain linear observer (predictor-corrector form, Cortesão 2006 eq. 26)::
+    """A fixed-gain linear observer (predictor-corrector form, Cortesão 2006 eq. 26).
+
+    Each step computes::
 
         x_prior = Phi x_hat_{k-1} + Gamma u_{k-1}
         x_hat_k = x_prior + K (y_k - C x_prior)

@@ -63,24 +63,43 @@ class ContinuousObserverParams:
 
     @property
     def dtype(self):
+        """The floating dtype of the estimate."""
         return jnp.result_type(*jax.tree_util.tree_leaves(self.x0))
 
     @property
     def n_outputs(self) -> int:
+        """Number of measured outputs ``p`` (from the shape of ``h``)."""
         return jax.eval_shape(self.h, self.x0, jnp.zeros((self.n_inputs,), self.dtype)).shape[0]
 
 
 class ContinuousObserverState(NamedTuple):
-    x: jax.Array  # estimate x_hat(t_{k-1}) (the pytree of x0)
-    y: jax.Array  # (p,) measurement y_{k-1} (NaN where missing)
-    t: jax.Array  # () t_{k-1}
-    started: jax.Array  # () bool: a sample has been processed (the next step integrates)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of a continuous-time observer run as a sampled estimator.
+
+    Attributes:
+      x: estimate x_hat(t_{k-1}) (the pytree of x0)
+      y: (p,) measurement y_{k-1} (NaN where missing)
+      t: () t_{k-1}
+      started: () bool: a sample has been processed (the next step integrates)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    y: jax.Array
+    t: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class ContinuousObserverOutputs(NamedTuple):
-    x: jax.Array  # estimate x_hat(t_k) (the pytree of x0)
-    innovation: jax.Array  # (p,) y_k - h(x_hat(t_k), u_{k-1}) (0 for missing components)
+    """Outputs of one sample of a continuous-time observer.
+
+    Attributes:
+      x: estimate x_hat(t_k) (the pytree of x0)
+      innovation: (p,) y_k - h(x_hat(t_k), u_{k-1}) (0 for missing components)
+    """
+
+    x: jax.Array
+    innovation: jax.Array
 
 
 def make_continuous_observer(F, h, *, x0, dt, t0=0.0, n_inputs: int = 0, substeps: int = 1, method: str = "rk4",

@@ -44,6 +44,7 @@ class FeedbackParams:
 
     @property
     def n_inputs(self) -> int:
+        """Number of plant inputs ``m``."""
         return self.L.shape[-2]
 
     def padded(self, n: int) -> FeedbackParams:
@@ -56,14 +57,29 @@ class FeedbackParams:
 
 
 class FeedbackState(NamedTuple):
-    estimator: Any  # the estimator's state
-    u: jax.Array  # (m,) the last command u_{k-1}
+    """State of :func:`observer_controller` between steps.
+
+    Attributes:
+      estimator: the estimator's state
+      u: (m,) the last command u_{k-1}
+    """
+
+    estimator: Any
+    u: jax.Array
 
 
 class FeedbackOutputs(NamedTuple):
-    u: jax.Array  # (m,) command u_k = N r_k - L x_hat_k
-    x: jax.Array  # (n,) the estimate x_hat_k used
-    estimator: Any  # the estimator's outputs at sample k
+    """Outputs of one step of :func:`observer_controller`.
+
+    Attributes:
+      u: (m,) command u_k = N r_k - L x_hat_k
+      x: (n,) the estimate x_hat_k used
+      estimator: the estimator's outputs at sample k
+    """
+
+    u: jax.Array
+    x: jax.Array
+    estimator: Any
 
 
 def _reference(params: FeedbackParams, r):

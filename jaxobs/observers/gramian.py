@@ -62,17 +62,35 @@ class GramianParams:
 
 
 class GramianState(NamedTuple):
-    Y: jax.Array  # (n, n) information matrix (masked Gramian in current-state coordinates)
-    q: jax.Array  # (n,) information vector, Y x = q for consistent data
-    x: jax.Array  # (n,) the last estimate
+    """State of :data:`gramian_estimator` between steps.
+
+    Attributes:
+      Y: (n, n) information matrix (masked Gramian in current-state coordinates)
+      q: (n,) information vector, Y x = q for consistent data
+      x: (n,) the last estimate
+    """
+
+    Y: jax.Array
+    q: jax.Array
+    x: jax.Array
 
 
 class GramianOutputs(NamedTuple):
-    x: jax.Array  # (n,) Y^{-1} q when ready, else the open-loop prediction
-    innovation: jax.Array  # (p,) y - C x_prior (0 for a missing entry)
-    ready: jax.Array  # () bool: cond(Y) <= cond_max
-    condition: jax.Array  # () condition number of Y (inf while singular)
-    weights: jax.Array  # (p,) the weights w_i of this sample
+    """Outputs of one step of :data:`gramian_estimator`.
+
+    Attributes:
+      x: (n,) Y^{-1} q when ready, else the open-loop prediction
+      innovation: (p,) y - C x_prior (0 for a missing entry)
+      ready: () bool: cond(Y) <= cond_max
+      condition: () condition number of Y (inf while singular)
+      weights: (p,) the weights w_i of this sample
+    """
+
+    x: jax.Array
+    innovation: jax.Array
+    ready: jax.Array
+    condition: jax.Array
+    weights: jax.Array
 
 
 def make_gramian(A, B, C, *, dt, forgetting=0.0, weights: str = "saturation", level=1.0, cond_max=1e10, x0=None):

@@ -111,22 +111,45 @@ class HinfParams:
 
 
 class HinfState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) H-infinity Riccati matrix Pb_{k-1} (the prior P0 before the first step)
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    violations: jax.Array  # () steps so far at which the existence condition failed
-    missing: jax.Array  # () measurement components skipped so far
+    """State of :data:`hinf_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) H-infinity Riccati matrix Pb_{k-1} (the prior P0 before the first step)
+      started: () bool: a measurement has been processed (the next step predicts)
+      violations: () steps so far at which the existence condition failed
+      missing: () measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    started: jax.Array
+    violations: jax.Array
+    missing: jax.Array
 
 
 class HinfOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k|k}
-    z: jax.Array  # (q,) z_hat_k = Cz x_hat_{k|k}
-    d: jax.Array  # (r,) disturbance estimate Cd x_hat_{k|k}
-    x_prior: jax.Array  # (n,) x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n, p) K_k
-    feasible: jax.Array  # () existence condition held at this step
-    margin: jax.Array  # () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required)
+    """Outputs of one step of :data:`hinf_filter`.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k|k}
+      z: (q,) z_hat_k = Cz x_hat_{k|k}
+      d: (r,) disturbance estimate Cd x_hat_{k|k}
+      x_prior: (n,) x_hat_{k|k-1}
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n, p) K_k
+      feasible: () existence condition held at this step
+      margin: () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required)
+    """
+
+    x: jax.Array
+    z: jax.Array
+    d: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    feasible: jax.Array
+    margin: jax.Array
 
 
 def _check_gamma(gamma):
@@ -234,13 +257,21 @@ def hinf_riccati_step(Pb_prev, Phi, C, Cz, Q, R, gamma, *, first=False):
 
 
 class HinfSequence(NamedTuple):
-    """Stacked over time (leading axis ``num_steps``)."""
+    """Stacked over time (leading axis ``num_steps``).
 
-    P: jax.Array  # (T, n, n) Pb_k
-    K: jax.Array  # (T, n, p) gains K_k
-    P_prior: jax.Array  # (T, n, n) P1_k
-    margin: jax.Array  # (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
-    feasible: jax.Array  # (T,) the existence condition held at step k
+    Attributes:
+      P: (T, n, n) Pb_k
+      K: (T, n, p) gains K_k
+      P_prior: (T, n, n) P1_k
+      margin: (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
+      feasible: (T,) the existence condition held at step k
+    """
+
+    P: jax.Array
+    K: jax.Array
+    P_prior: jax.Array
+    margin: jax.Array
+    feasible: jax.Array
 
 
 def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSequence:
@@ -260,12 +291,23 @@ def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSe
 
 
 class HinfSteadyState(NamedTuple):
-    P_prior: jax.Array  # (n, n) steady P1
-    P: jax.Array  # (n, n) steady Pb
-    gain: jax.Array  # (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
-    margin: jax.Array  # () smallest margin met along the iteration
-    converged: jax.Array  # () last relative change below tol, finite, and the steady filter stable
-    feasible: jax.Array  # () existence condition held at every iteration
+    """Steady state of the H-infinity Riccati recursion (:func:`hinf_steady_state`).
+
+    Attributes:
+      P_prior: (n, n) steady P1
+      P: (n, n) steady Pb
+      gain: (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
+      margin: () smallest margin met along the iteration
+      converged: () last relative change below tol, finite, and the steady filter stable
+      feasible: () existence condition held at every iteration
+    """
+
+    P_prior: jax.Array
+    P: jax.Array
+    gain: jax.Array
+    margin: jax.Array
+    converged: jax.Array
+    feasible: jax.Array
 
 
 def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 1000, tol: float | None = None):
@@ -368,10 +410,19 @@ checks them against the params while tracing and casts them to the params' dtype
 
 
 class GammaSearch(NamedTuple):
-    gamma: jax.Array  # () smallest level found feasible (upper end of the final bracket)
-    lower: jax.Array  # () largest level found infeasible
-    found: jax.Array  # () gamma is feasible and (gamma - lower) <= rtol * gamma
-    iterations: jax.Array  # () recursions evaluated
+    """Result of the bisection over the attenuation level (:func:`gamma_bisection`).
+
+    Attributes:
+      gamma: () smallest level found feasible (upper end of the final bracket)
+      lower: () largest level found infeasible
+      found: () gamma is feasible and (gamma - lower) <= rtol * gamma
+      iterations: () recursions evaluated
+    """
+
+    gamma: jax.Array
+    lower: jax.Array
+    found: jax.Array
+    iterations: jax.Array
 
 
 def gamma_bisection(Phi, C, Q, R, *, Cz=None, P0=None, num_steps: int = 200, rtol: float = 1e-6,

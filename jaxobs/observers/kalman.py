@@ -81,22 +81,45 @@ class KalmanParams:
 
 
 class KalmanState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) its covariance
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`kalman_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) its covariance
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class KalmanOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k|k}
-    x_prior: jax.Array  # (n,) a-priori estimate x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n, p) gain K_k used at this step
-    converged: jax.Array  # () the steady-state gain's DARE converged (True for time-varying gains)
-    S: jax.Array  # (p, p) innovation covariance C P_prior C' + R of the observed components (1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components (0 when all are missing)
-    P: jax.Array | None = None  # (n, n) a-posteriori covariance P_{k|k} (with output_covariance, else None)
-    P_prior: jax.Array | None = None  # (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
+    """Outputs of one step of :data:`kalman_filter`.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k|k}
+      x_prior: (n,) a-priori estimate x_hat_{k|k-1}
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n, p) gain K_k used at this step
+      converged: () the steady-state gain's DARE converged (True for time-varying gains)
+      S: (p, p) innovation covariance C P_prior C' + R of the observed components (1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components (0 when all are missing)
+      P: (n, n) a-posteriori covariance P_{k|k} (with output_covariance, else None)
+      P_prior: (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
+    """
+
+    x: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    converged: jax.Array
+    S: jax.Array
+    log_likelihood: jax.Array
+    P: jax.Array | None = None
+    P_prior: jax.Array | None = None
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False,
@@ -277,6 +300,7 @@ class SquareRootKalmanParams:
         measurement noise covariance.  P0_sqrt: (n, n) factor of the prior covariance of ``x_0``.
       output_covariance: static; outputs ``P = P_sqrt P_sqrt'`` and ``P_prior`` at every step (see
         :class:`KalmanParams`).
+      joseph: static; the covariance update in Joseph form (see :class:`KalmanParams`).
     """
 
     Phi: jax.Array
@@ -291,10 +315,19 @@ class SquareRootKalmanParams:
 
 
 class SquareRootKalmanState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P_sqrt: jax.Array  # (n, n) lower-triangular factor of its covariance
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`square_root_kalman_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P_sqrt: (n, n) lower-triangular factor of its covariance
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P_sqrt: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 def _factor(M):

@@ -303,7 +303,6 @@ def _worst_cases(cols: dict, orders) -> dict:
 
 def report(config: dict, out_dir: Path, result=None, designs: Designs | None = None) -> dict:
     """Write ``summary.json``, ``report.md`` and the figures for the sweep in ``out_dir``."""
-
     cols = load_results(out_dir)
     orders = config["controllers"]["orders"]
     summary = {

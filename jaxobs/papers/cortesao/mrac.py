@@ -70,14 +70,23 @@ __all__ = [
 
 
 class PegOnHoleScenario(NamedTuple):
-    """The alignment phase of §7.4 (:func:`peg_on_hole_scenario`); series have shape (T, 6)."""
+    """The alignment phase of §7.4 (:func:`peg_on_hole_scenario`); series have shape (T, 6).
 
-    t: jax.Array  # (T,) time (s)
-    force_setpoint: jax.Array  # f_d (N, N·m)
-    feedforward: jax.Array  # v_d (mm/s, rad/s): w_y alignment velocity, v_z feedforward bias
-    reference: jax.Array  # controller reference r = L_1 f_d
-    plant: Compliant6Params  # the alignment-phase plant (K_ry = 0: the peg pivots on the contact)
-    controllers: FeedbackParams  # the six per-DOF AOB controllers, stacked (m_y feedback off)
+    Attributes:
+      t: (T,) time (s)
+      force_setpoint: f_d (N, N·m)
+      feedforward: v_d (mm/s, rad/s): w_y alignment velocity, v_z feedforward bias
+      reference: controller reference r = L_1 f_d
+      plant: the alignment-phase plant (K_ry = 0: the peg pivots on the contact)
+      controllers: the six per-DOF AOB controllers, stacked (m_y feedback off)
+    """
+
+    t: jax.Array
+    force_setpoint: jax.Array
+    feedforward: jax.Array
+    reference: jax.Array
+    plant: Compliant6Params
+    controllers: FeedbackParams
 
 
 TABLE1_STIFFNESS = NOMINAL_STIFFNESS

@@ -96,6 +96,7 @@ def _check(config: dict, source: str) -> None:
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     from jaxobs.mjx import compliant_6dof as c6
     from jaxobs.papers.cortesao import mrac
 

@@ -72,7 +72,8 @@ def g_exact(v, x, theta):
 
 
 def theta_star(v, x, phi):
-    """theta solved from phi = g: ``sigma_0 eta a(omega) / phi - alpha_1 exp(-(omega / omega_0)^2)``."""
+    """The parameter ``theta`` solved from ``phi = g``:
+    ``sigma_0 eta a(omega) / phi - alpha_1 exp(-(omega / omega_0)^2)``."""
     return jnp.atleast_1d(TABLE_6_1["sigma_0"] * x[2] * smooth_abs(x[1], KAPPA) / phi[0] - _zeta(x[1], 0.0))
 
 

@@ -76,6 +76,7 @@ def windows(design) -> list[dict]:
 
 
 def are_family() -> dict:
+    """Norm and smallest eigenvalue of the low-gain ARE solution ``P(eps)`` over :data:`EPS_FAMILY`."""
     P = [np.asarray(low_gain_are(**{k: SYSTEM[k] for k in "ABCMN"}, F=F, eps=e).X) for e in EPS_FAMILY]
     norms = [float(np.linalg.norm(p, 2)) for p in P]
     return {
@@ -87,11 +88,13 @@ def are_family() -> dict:
 
 
 def grid() -> np.ndarray:
+    """(GRID**3, 3) initial states ``chi_0``: a regular grid over ``[-5, 5]^2 x [-1, 1]``."""
     g, gw = np.linspace(-5, 5, GRID), np.linspace(-1, 1, GRID)
     return np.array(np.meshgrid(g, g, gw, indexing="ij")).reshape(3, -1).T
 
 
 def closed_loop(design):
+    """The initial states of :func:`grid` and the sandwich closed loop simulated from each (one ``vmap``)."""
     chi0 = grid()
     run = jax.jit(jax.vmap(lambda c: simulate_sandwich(design, c, INTERVALS, substeps=SUBSTEPS)))
     return chi0, run(jnp.asarray(chi0))

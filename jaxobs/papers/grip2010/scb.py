@@ -342,7 +342,8 @@ def printed_check(name: str, system=None) -> dict:
 
 
 def _export(M):
-    """sympy srepr strings for symbolic matrices, numbers (int, else float) for rational ones."""
+    """The entries of ``M`` for JSON: sympy srepr strings for symbolic matrices, numbers (int, else float) for
+    rational ones."""
     import sympy as sp
 
     if any(e.free_symbols for e in M):

@@ -203,17 +203,29 @@ def _run_ekf(params, y):
 
 
 class Estimates(NamedTuple):
-    """Result of :func:`estimate`: the names along each leading axis and the batched results."""
+    """Result of :func:`estimate`: the names along each leading axis and the batched results.
 
-    manoeuvres: list  # the manoeuvres (keys of jaxobs.vehicle.MANOEUVRES), the EKF's batch
-    drives: list  # keys of DRIVES, the batch of ``trajectory``
-    measurements: list  # keys of MEASUREMENTS, the batch of ``measurements``
-    runs: list  # keys of NVSO_RUNS, the NVSO's batch
+    Attributes:
+      manoeuvres: the manoeuvres (keys of jaxobs.vehicle.MANOEUVRES), the EKF's batch
+      drives: keys of DRIVES, the batch of ``trajectory``
+      measurements: keys of MEASUREMENTS, the batch of ``measurements``
+      runs: keys of NVSO_RUNS, the NVSO's batch
+      trajectory: the simulated drives, batched over ``drives``
+      measurements_data: the sensor signals, batched over ``measurements``
+      nvso: the NVSO's outputs over time, batched over ``runs``
+      ekf: the vehicle EKF's outputs over time, batched over ``manoeuvres``
+      inputs: "nvso": (params, initial states, sensors), "ekf": (params, sensors) of the batched runs
+    """
+
+    manoeuvres: list
+    drives: list
+    measurements: list
+    runs: list
     trajectory: Trajectory
     measurements_data: Measurements
     nvso: NVSOOutputs
     ekf: VehicleEKFOutputs
-    inputs: dict  # "nvso": (params, initial states, sensors), "ekf": (params, sensors) of the batched runs
+    inputs: dict
 
 
 def estimate(vehicle: VehicleParams | None = None, manoeuvres=None) -> Estimates:

@@ -146,6 +146,7 @@ def _plants(config: dict):
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     sc = config["scenario"]
     base = make_nvso(VehicleParams(), smooth=float(sc["smooth"]))
     late = base.dt * np.arange(round(float(sc["duration"]) / float(base.dt)) + 1) >= float(sc["error_start"])

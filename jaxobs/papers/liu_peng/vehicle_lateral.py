@@ -72,7 +72,13 @@ CASES = ("ideal", "robustness")
 
 @dataclasses.dataclass(frozen=True)
 class Vehicle:
-    """Printed §4.2 parameters (SI units, per-tyre cornering stiffness, eq. 31 uses 2 C)."""
+    """Printed §4.2 parameters (SI units, per-tyre cornering stiffness, eq. 31 uses 2 C).
+
+    Attributes:
+      Cf, Cr: front and rear cornering stiffness (N/rad).  m: mass (kg).
+      a, b: distances of the front and rear axles from the centre of mass (m).
+      Iz: yaw moment of inertia (kg m^2).  vx: longitudinal speed (m/s).
+    """
 
     Cf: float = 51000.0
     Cr: float = 47000.0
@@ -233,13 +239,19 @@ def _advanced(Phi, Q, P):
 
 
 class Estimators(NamedTuple):
-    """The four estimators designed on the nominal model (a pytree; :func:`run_estimators` is traceable)."""
+    """The four estimators designed on the nominal model (a pytree; :func:`run_estimators` is traceable).
+
+    Attributes:
+      inverse_dynamics, aob, hinf, kalman: each estimator's parameters.
+      G_d_pinv: the Kalman filter's least-squares disturbance from its state correction.
+      hinf_gamma: the H-infinity filter's attenuation level (from the bisection).
+    """
 
     inverse_dynamics: Any
     aob: Any
     hinf: Any
     kalman: Any
-    G_d_pinv: jax.Array  # CKF: least-squares disturbance from the state correction
+    G_d_pinv: jax.Array
     hinf_gamma: float
 
 

@@ -171,6 +171,7 @@ QUANTILES = (("p10", 0.1), ("median", 0.5), ("p90", 0.9), ("max", 1.0))
 
 
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
+    """Summarise the sweep's results in ``out_dir`` (``summary.json``, ``report.md``); returns the summary."""
     cols = load_results(out_dir)
     errors = {e: np.stack([cols[f"metric.{e}_rms.{m}"] for m in lp.METHODS], axis=1) for e in ERRORS}
     finite = np.all(np.isfinite(np.concatenate(list(errors.values()), axis=1)), axis=1)
