@@ -1,28 +1,11 @@
 """Learning a model from recorded data: maximum likelihood by gradient (optax) for any estimator with a
 log-likelihood, and expectation-maximisation for the linear-Gaussian model.
 
-Data are ``B`` recorded sequences of ``T`` samples, ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components
-missing) and ``u_prev`` (B, T, m) or ``None``; one sequence may be given as (T, p).
-
-* :func:`fit` minimises the negative log-likelihood per observed measurement component
-  (:func:`negative_log_likelihood`, the sum over sequences of :func:`jaxobs.smoothing.log_likelihood`, exact with
-  missing data) over unconstrained parameters ``theta`` mapped to the estimator's params by ``build_params``, so
-  ``Q``, ``R`` and any model parameter can be learned. Constraints come from the tuner's parameterisations
-  (:func:`jaxobs.tuning.cholesky_covariance` for covariances, ``exp`` for positive scalars,
-  :func:`jaxobs.tuning.unit_interval`); :func:`covariance_model` builds the usual case, full ``Q`` and ``R``. The
-  loop takes optax steps (L-BFGS with a zoom line search by default: the objective is deterministic and smooth;
-  or a first-order optimizer of the tuner), shows a progress bar, stops early once the loss stops improving and
-  returns the best parameters and the loss curve.
-* :func:`em` is the EM algorithm of the linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani & Hinton 1996):
-  the E-step is the Rauch-Tung-Striebel smoother (:func:`jaxobs.smoothing.smooth`) with the lag-one
-  cross-covariances ``Cov(x_k, x_{k-1} | Y) = P_{k|T-1} E_{k-1}'`` (de Jong 1989; ``E`` the smoother gains), the
-  M-step the closed-form maximiser of the expected complete-data log-likelihood over any of ``Phi``, ``Gamma``,
-  ``C``, ``Q``, ``R``, ``x0``, ``P0``. Missing measurement components are latent in the complete data: given
-  ``x_k`` and the observed components ``o``, the noise is ``v_k | x_k, y_o ~ N(G (y_o - C_o x_k), R - G R_o.)``
-  with ``G = R_.o R_oo^{-1}``, which makes every iteration an exact EM step for any ``R``, so the log-likelihood
-  never decreases.
-* :func:`sample` draws records from a linear-Gaussian model (the data of the tests and of
-  ``benchmarks/learning.py``).
+Data are ``B`` sequences of ``T`` samples: ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components missing) and
+``u_prev`` (B, T, m) or ``None``. :func:`fit` minimises :func:`negative_log_likelihood` over unconstrained
+``theta`` (:func:`covariance_model` for full ``Q``, ``R``); :func:`em` is EM for the linear-Gaussian model (Shumway
+& Stoffer 1982; Ghahramani & Hinton 1996), exact with missing data; :func:`sample` draws records.
+The algorithms: docs/learning.md and docs/theory/jobs.md.
 """
 
 from __future__ import annotations

@@ -1,28 +1,11 @@
 """Estimation over a whole record: the log-likelihood of a record, Rauch-Tung-Striebel smoothing for every
 Kalman-type estimator, and the parallel-in-time filter and smoother (Särkkä & García-Fernández 2021).
 
-For the linear-Gaussian model of :mod:`jaxobs.kalman_steps` and a record ``y_0 .. y_{T-1}``:
-
-* the **log-likelihood** ``log p(y_0 .. y_{T-1}) = sum_k log p(y_k | y_0 .. y_{k-1})`` is the sum of the filter's
-  ``log_likelihood`` outputs (:func:`log_likelihood`), exact with missing components;
-* the **smoother** (Rauch, Tung & Striebel 1965) gives ``x_{k|T-1}``, ``P_{k|T-1}`` from the filter's
-  a-posteriori and a-priori means and covariances, backwards from the last sample::
-
-      E_k = P_k Phi' P_prior_{k+1}^{-1}
-      x_{k|T-1} = x_k + E_k (x_{k+1|T-1} - x_prior_{k+1})
-      P_{k|T-1} = P_k + E_k (P_{k+1|T-1} - P_prior_{k+1}) E_k'
-
-  It reads only the filter's outputs, so it serves every Kalman-type estimator that outputs its covariances
-  (``output_covariance``): the Kalman filter and the Kalman Active Observer, whose smoothed newest active state
-  is the offline reconstruction of the input disturbance (:func:`jaxobs.observers.active.disturbance`), with the
-  adaptive strategy too (its a-priori covariances carry the variance it used). Missing data need nothing: the
-  filter skipped them.
-* **parallel in time**: the filter and the smoother as ``jax.lax.associative_scan`` over per-sample elements
-  (Särkkä & García-Fernández 2021, Lemmas 7-10): ``O(log T)`` sequential depth instead of ``T``, for ``O(n^3)``
-  more work per sample. It pays where a device runs the ``T`` elements at once; on a 2-core CPU the parallel
-  filter is slower at T = 100 and 10^4, the smoother breaks even at 10^4, and the parallel programs compile 10-20
-  times longer (``docs/estimation.md``, ``benchmarks/parallel_in_time.py``). The results equal the sequential ones to
-  rounding.
+:func:`log_likelihood` sums the filter's per-step log-likelihoods (exact with missing data); :func:`smooth` and
+:func:`rts_smoother` run the smoother (Rauch, Tung & Striebel 1965) from the outputs of any filter that outputs
+its covariances; :func:`parallel_filter` and the parallel smoother use ``jax.lax.associative_scan``
+(Lemmas 7-10). The equations: docs/estimation.md and docs/theory/jobs.md; speed:
+``benchmarks/parallel_in_time.py``.
 """
 
 from __future__ import annotations

@@ -1,28 +1,11 @@
 """Kalman Active Observer AOB-N (Cortesão 2006 §2-5; Cortesão, Koeppe, Nunes & Hirzinger, "Stochastic
 Active Observers"; Cortesão, MRAC chapter §5-6) as an estimator.
 
-A Kalman filter on the plant model augmented with an *active state* ``p_k``: an equivalent input
-disturbance modelled as an order-N auto-regressive process (Cortesão 2006 eq. 10, 37) whose newest value
-``p_hat_k`` is the observer's disturbance estimate ``d`` (one entry per plant input). With the active state
-removed it is the classical Kalman filter (CKF).
-
-State order (eq. 18, 40): ``x = [x_{r,k}, p_{k-N+1}, ..., p_k]`` where each ``p`` block has one entry
-per plant input (footnote 3 of Cortesão 2006), so ``n_active = N * m``.
-
-The estimator step (eq. 47) with the command ``u_{k-1}`` actually applied::
-
-    x_prior = Phi_n x_hat_{k-1} + Gamma_n u_{k-1}
-    x_hat_k = x_prior + K_k (y_k - C x_prior)                 (K_k from eq. 27-29 with the open-loop Phi_n)
-
-As a controller (:func:`jaxobs.observers.feedback.observer_controller` with :func:`feedback_gain`) it commands
-``u_k = r_k - L_r x_hat_{r,k} - p_hat_k`` (eq. 20, 49-50): :data:`active_observer_controller`.
-
-Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0`` (as in :mod:`jaxobs.observers.kalman`); the
-papers' ``P_{-1} = Q_0`` (Cortesão 2006 §7.2) is the default, advanced one step: ``P0 = Phi_n Q Phi_n' + Q``.
-
-Run-time switches, all traced values (no recompilation): ``active`` (1 = AOB, 0 = CKF: the active
-state is locked at 0 and its Q entry zeroed; Cortesão et al., stochastic AOB §2.1; MRAC chapter §6.3), and the
-adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
+A Kalman filter on the plant model augmented with an *active state*: an equivalent input disturbance modelled as
+an order-N auto-regressive process (eq. 10, 37) whose newest value ``p_hat_k`` is the disturbance estimate ``d``.
+With the active state removed (``active = 0``) it is the classical Kalman filter (CKF). :func:`make_aob`,
+:func:`make_ckf` and :data:`active_observer`; as a controller :data:`active_observer_controller` with
+:func:`feedback_gain` (eq. 20, 49-50). State order, prior and run-time switches: docs/theory/estimators.md.
 """
 
 from __future__ import annotations

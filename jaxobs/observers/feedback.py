@@ -1,16 +1,10 @@
 """Observer-based state feedback: the combinator that turns any estimator into a controller.
 
 Like ``optax.chain``, :func:`observer_controller` takes an :class:`~jaxobs.observers.base.Estimator` and
-returns a :class:`~jaxobs.observers.base.Controller`. At sample ``k`` the controller feeds the estimator the
-measurement ``y_k`` and its own previous command ``u_{k-1}``, then commands (Cortesão 2006 eq. 49-50)::
-
-    u_k = N r_k - L x_hat_k
-
-``L`` acts on the estimator's whole state: for an AOB it is ``[L_r, 0, ..., 0, I]``
-(:func:`jaxobs.observers.active.feedback_gain`), which adds the active-state compensation ``- p_hat_k`` to
-the plant's state feedback ``- L_r x_hat_r``. ``N`` is an optional reference pre-gain (e.g.
-:func:`jaxobs.design.reference_gain`) so that ``r`` can be given in output units; without it ``r`` is in
-input units.
+returns a :class:`~jaxobs.observers.base.Controller` that commands ``u_k = N r_k - L x_hat_k`` (Cortesão 2006
+eq. 49-50), feeding the estimator ``y_k`` and its own previous command. For an AOB, ``L = [L_r, 0, ..., 0, I]``
+(:func:`jaxobs.observers.active.feedback_gain`) adds the active-state compensation. Details:
+docs/theory/estimators.md.
 """
 
 from __future__ import annotations

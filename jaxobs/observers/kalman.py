@@ -1,22 +1,10 @@
 """The Kalman filter: time-varying gain (Riccati recursion) or a fixed steady-state gain.
 
-Model (Cortesão 2006 eq. 27-29; the steps are those of :mod:`jaxobs.kalman_steps`)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    E[w w'] = Q,  E[v v'] = R
-
-Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0``, the state at the first measurement ``y_0``
-(the convention of dynamax and cuthbert): the first step updates the prior with ``y_0`` without a prediction,
-and every later step predicts with ``u_{k-1}`` and updates with ``y_k``. A model without inputs needs no
-``Gamma`` and no ``u_prev``.
-
-Missing data: non-finite measurement components are skipped exactly and counted in ``state.missing``.
-
-Every step also gives the innovation covariance ``S_k`` and the log-likelihood ``log p(y_k | y_0..y_{k-1})`` of the
-observed components (their sum over a record is the model's log marginal likelihood, exact with missing data;
-:func:`jaxobs.smoothing.log_likelihood`); with ``output_covariance`` the a-posteriori and a-priori covariances,
-which the smoothers of :mod:`jaxobs.smoothing` read. :data:`square_root_kalman_filter` is the same filter with
-Cholesky factors of the covariances (Bierman 1977): for long float32 runs, and with gradients that stay finite
-where a covariance is singular.
+Model (Cortesão 2006 eq. 27-29; the steps are those of :mod:`jaxobs.kalman_steps`): ``x_k = Phi x_{k-1} + Gamma
+u_{k-1} + w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = Q``, ``E[v v'] = R``, with the prior ``x0``, ``P0`` of ``x_0``,
+the state at the first measurement. :func:`make_kalman`, :data:`kalman_filter`; non-finite measurement components
+are skipped and counted. :data:`square_root_kalman_filter` (:func:`square_root_form`) is the same filter with
+factors of the covariances (Bierman 1977). Prior convention and outputs: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
