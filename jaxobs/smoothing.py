@@ -50,8 +50,8 @@ class _SmootherElement(NamedTuple):
 
 def _smoother_gain(Phi, P, P_prior_next):
     """The gain ``E_k = P_k Phi' P_prior_{k+1}^{-1}`` of sample ``k`` and its transpose, both row-major: ``E A E'``
-    is computed as ``(E A) E_t`` (a transposed operand sends XLA's CPU backend to a kernel 3x slower for a batch of
-    10 x 10 products, ``benchmarks/estimation.py``, ``smooth``).
+    is computed as ``(E A) E_t`` (a transposed operand sends XLA's CPU backend to a slower kernel for a batch of
+    small products, ``benchmarks/estimation.py``, ``smooth``).
 
     A state without a-priori variance (a zero diagonal entry of ``P_prior_next``, e.g. an active state switched
     off) gets a unit placeholder in the solve: ``Phi P`` has a zero row there, so its gain column is zero."""
@@ -117,7 +117,7 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     # the sequential recursion in its classic form, 2 n^3 per sample (the elements' form costs twice that):
     # x_{k|T} = x_k + E_k (x_{k+1|T} - x_prior_{k+1}),  P_{k|T} = P_k + E_k (P_{k+1|T} - P_prior_{k+1}) E_k'
     # The scan runs over the whole records (slicing them and joining the last sample back costs a copy of each
-    # (T, n, n) array, a fifth of the smoother's time at n = 32, benchmarks/estimation.py, smooth): at the last
+    # (T, n, n) array, benchmarks/estimation.py, smooth): at the last
     # sample the carry holds a "later" sample equal to its own prediction (x = x_prior = 0, P = P_prior = I), so
     # the correction is exactly zero and the smoothed moments are the filtered ones.
     def body(later, sample):

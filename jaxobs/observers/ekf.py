@@ -90,8 +90,8 @@ def taylor(g, m, P) -> Linearization:
 
     G, mean = jax.jacfwd(value_twice, has_aux=True)(m)
     # jacfwd stacks the Jacobian's columns; without the barrier XLA folds that transpose into the products
-    # F P F' and H P, whose transposed operands its CPU backend multiplies by a slower kernel (EKF, n = 10,
-    # 64 sequences: 1.4x the time; benchmarks/estimation.py)
+    # F P F' and H P, whose transposed operands its CPU backend multiplies by a slower kernel
+    # (benchmarks/estimation.py)
     G = jax.lax.optimization_barrier(jnp.reshape(G, (mean.shape[0], m.shape[0])))
     return Linearization(mean, G, None)
 

@@ -373,5 +373,5 @@ square_root_kalman_filter = Estimator(_square_root_init, _square_root_step)
 lower-triangular factor of the covariance (:class:`SquareRootKalmanState`), predicts with the triangularisation of
 ``[Phi P_sqrt, Q_sqrt]`` and updates with that of the pre-array of :func:`jaxobs.kalman_steps.square_root_update`,
 so covariances stay positive semidefinite in any precision. Outputs: :class:`KalmanOutputs` (the covariances
-``S``, ``P``, ``P_prior`` as products of the factors). Costs about twice the covariance form per step
+``S``, ``P``, ``P_prior`` as products of the factors). Costs more per step than the covariance form
 (``benchmarks/parallel_in_time.py``)."""
