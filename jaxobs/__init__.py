@@ -8,7 +8,8 @@ a record (:mod:`jaxobs.smoothing`), learning from data (:mod:`jaxobs.learning`),
 (:func:`simulate`, :func:`stability_margins`), and the jobs :func:`run_sweep` and :func:`tune`.
 
 MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
-enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``).
+enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``). A map of the
+API by task: docs/theory/api-map.md.
 """
 
 from importlib.metadata import PackageNotFoundError, version

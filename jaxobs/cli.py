@@ -4,7 +4,7 @@
 ``--out DIR``; several processes with ``--coordinator HOST:PORT --num-processes N --process-id I`` or
 ``--distributed``). This module maps strings and TOML to the objects of :mod:`jaxobs.papers.registry` and holds no
 logic. A user error prints one line and exits with status 2, Ctrl-C exits with status 130; only a bug shows a
-traceback. Usage, caching and multi-process runs: docs/cli.md and docs/theory/jobs.md.
+traceback. Usage, caching and multi-process runs: docs/cli.md and docs/guides/multi-process.md.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ Data are ``B`` sequences of ``T`` samples: ``EstimatorInputs`` with ``y`` (B, T,
 ``u_prev`` (B, T, m) or ``None``. :func:`fit` minimises :func:`negative_log_likelihood` over unconstrained
 ``theta`` (:func:`covariance_model` for full ``Q``, ``R``); :func:`em` is EM for the linear-Gaussian model (Shumway
 & Stoffer 1982; Ghahramani & Hinton 1996), exact with missing data; :func:`sample` draws records.
-The algorithms: docs/learning.md and docs/theory/jobs.md.
+The algorithms: docs/learning.md.
 """
 
 from __future__ import annotations

@@ -4,8 +4,7 @@ Kalman-type estimator, and the parallel-in-time filter and smoother (Särkkä & 
 :func:`log_likelihood` sums the filter's per-step log-likelihoods (exact with missing data); :func:`smooth` and
 :func:`rts_smoother` run the smoother (Rauch, Tung & Striebel 1965) from the outputs of any filter that outputs
 its covariances; :func:`parallel_filter` and the parallel smoother use ``jax.lax.associative_scan``
-(Lemmas 7-10). The equations: docs/estimation.md and docs/theory/jobs.md; speed:
-``benchmarks/parallel_in_time.py``.
+(Lemmas 7-10). The equations and measurements: docs/estimation.md (``benchmarks/parallel_in_time.py``).
 """
 
 from __future__ import annotations
