@@ -35,16 +35,16 @@ class ForceControlSetup:
     """Nominal parameters (Cortesão 2006 §7.2, the MRAC chapter Table 1).
 
     Attributes:
-      Ks: N/mm
-      Tp: s, position response time constant
-      h: s, sample time
-      dead_time_samples: Td = 5 h
-      tau_c_over_Tp: closed-loop time constant tau_c = 10 Tp (the MRAC chapter eq. 68)
-      R: N^2, force sensor noise (Cortesão 2006 §7.2, the MRAC chapter eq. 64)
-      q_plant: Q_xr(i, i)
-      sigma2_active: variance of xi_p
-      c: eq. 55 factor
-      duration: s
+      Ks: environment stiffness (N/mm).
+      Tp: position response time constant (s).
+      h: sample time (s).
+      dead_time_samples: dead time in samples (Td = 5 h).
+      tau_c_over_Tp: closed-loop time constant over ``Tp`` (tau_c = 10 Tp, the MRAC chapter eq. 68).
+      R: force sensor noise variance (N^2; Cortesão 2006 §7.2, the MRAC chapter eq. 64).
+      q_plant: process noise of each plant state, ``Q_xr(i, i)``.
+      sigma2_active: variance of the active-state noise ``xi_p``.
+      c: the factor of eq. 55.
+      duration: length of a run (s).
     """
 
     Ks: float = 3.0
