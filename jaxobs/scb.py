@@ -1,28 +1,10 @@
 """Special coordinate basis (SCB) of a linear multivariable system (Grip 2010, ch. 7; Sannuti & Saberi 1987).
 
-A design-time module: it runs on NumPy and sympy, not JAX (the decomposition is a sequence of rank decisions whose
-outcomes fix the dimensions of the result, so it cannot be traced), and it is the only jaxobs module that imports
-sympy. :func:`scb` transforms ``x' = A x + B u``, ``y = C x + D u`` to the form (7.4)-(7.6) of Grip 2010:
-
-    x = Gamma1 x_scb,  y = Gamma2 y_scb,  u = Gamma3 u_scb  (after the pre-transformation U, Y of section 7.2.4),
-    x_scb = col(x_a, x_b, x_c, x_d),  y_scb = col(y_0, y_d, y_b),  u_scb = col(u_0, u_d, u_c),
-
-where x_a are the zero dynamics (invariant zeros = eig(A_aa)), x_b is observable from y_b and unaffected by inputs,
-x_c is controllable from u_c, and x_d is a set of integrator chains (the infinite zeros). The construction is the
-modified Silverman algorithm (section 7.4): output sequences are differentiated until an input appears (a chain of
-x_d) or the derivative depends on the states already found (an x_b sequence); the remaining states x_s are made
-free of u_d and of all but the outputs of x_b, x_d, and are split into x_a and x_c by the same procedure on the
-transposed pair (A_ss^T, B_sc^T). As in the thesis, null spaces are put in reduced row echelon form and
-complements are rows of the identity, so the result is deterministic and changes few original states.
-
-Arithmetic. By default everything is exact: entries may be integers, fractions or sympy expressions in symbols
-(rational functions over the rationals or an algebraic extension such as QQ<sqrt(2)>; rank decisions are then
-generic, i.e. valid except on a proper algebraic set of parameter values, which is how the structure of the DC
-motor of Grip 2010, section 7.5.2, changes at sigma_1 = 0; transcendental expressions such as sin(theta) act as
-independent generators, so identities like sin^2 + cos^2 = 1 are not used). A float entry is replaced by the
-fraction of its shortest decimal form (0.0023 -> 23/10000). ``numeric=True`` runs the same algorithm in floating
-point with rank decisions by singular values against a tolerance: faster on large floating models, but rank
-decisions near the tolerance may identify a different structure (section 7.6).
+A design-time module on NumPy and sympy, not JAX (rank decisions fix the dimensions of the result), and the only
+one that imports sympy. :func:`scb` transforms ``x' = A x + B u``, ``y = C x + D u`` to the form (7.4)-(7.6) by
+the modified Silverman algorithm (section 7.4), exactly by default (integers, fractions, sympy expressions) or in
+floating point with ``numeric=True``; :func:`scb_residuals` checks the identities (7.6). The construction and
+its arithmetic: docs/theory/analysis.md.
 """
 
 from __future__ import annotations

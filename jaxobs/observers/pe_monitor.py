@@ -44,19 +44,39 @@ class PEMonitorParams:
 
 
 class PEMonitorState(NamedTuple):
-    regressors: jax.Array  # (N, p) the last N regressors (a ring buffer; zero rows before the window fills)
-    targets: jax.Array  # (N,) their targets
-    count: jax.Array  # () int32 samples seen (the next one goes to row count mod N)
-    theta: jax.Array  # (p,) the last least-squares estimate of an exciting window (zero before)
-    missing: jax.Array  # () int32 samples skipped for non-finite entries
+    """State of :data:`pe_monitor` between samples (``N`` samples in the window, ``p`` regressors).
+
+    Attributes:
+      regressors: (N, p) the last N regressors (a ring buffer; zero rows before the window fills)
+      targets: (N,) their targets
+      count: () int32 samples seen (the next one goes to row count mod N)
+      theta: (p,) the last least-squares estimate of an exciting window (zero before)
+      missing: () int32 samples skipped for non-finite entries
+    """
+
+    regressors: jax.Array
+    targets: jax.Array
+    count: jax.Array
+    theta: jax.Array
+    missing: jax.Array
 
 
 class PEMonitorOutputs(NamedTuple):
-    x: jax.Array  # (p,) least-squares theta of the window (held while it is not exciting)
-    innovation: jax.Array  # (1,) z - omega' theta_previous (0 for a missing sample)
-    gram: jax.Array  # (p, p) dt sum of omega omega' over the window
-    lambda_min: jax.Array  # () its smallest eigenvalue
-    excited: jax.Array  # () bool: the window is full and lambda_min >= threshold
+    """Outputs of one sample of :data:`pe_monitor`.
+
+    Attributes:
+      x: (p,) least-squares theta of the window (held while it is not exciting)
+      innovation: (1,) z - omega' theta_previous (0 for a missing sample)
+      gram: (p, p) dt sum of omega omega' over the window
+      lambda_min: () its smallest eigenvalue
+      excited: () bool: the window is full and lambda_min >= threshold
+    """
+
+    x: jax.Array
+    innovation: jax.Array
+    gram: jax.Array
+    lambda_min: jax.Array
+    excited: jax.Array
 
 
 def make_pe_monitor(n_regressors, window, dt, threshold) -> PEMonitorParams:

@@ -1,27 +1,10 @@
 """Grip 2010, ch. 1 and 5: Lyapunov-based adaptation (Example 1.1), the modular estimator against a gradient law
 (Example 5.6), and the modular estimator of the downhole pressure during managed-pressure drilling (§5.6).
 
-``grip2010-example1.1``: ``x' = omega(t)' theta + u``, ``u = -x - omega' theta_hat``, ``theta_hat' = Gamma omega x``
-(eqs. 1.11-1.12, :func:`jaxobs.adaptive.lyapunov_law`), with a constant ``omega = [1, 2]`` (``Gamma = diag(1, 2)``:
-``theta_tilde`` converges to ``(I - Gamma w w' / (w' Gamma w)) theta_tilde(0)``, not to 0) and ``omega = [sin t,
-cos t]`` (``Gamma = I``: persistently exciting, ``theta_tilde -> 0``); the Lyapunov identity ``W(t) - W(0) =
--int_0^t x^2`` is checked along both runs (the integral is integrated with the state).
-
-``grip2010-example5.6``: ``x' = -x + exp(sin(t) theta) + u`` (5.20) with the compensation ``u = -exp(sin(t)
-theta_hat)`` (5.15), the modular estimator (5.21)-(5.22) (:mod:`jaxobs.observers.modular`, ``K_phi = 10``, ``Gamma =
-3``, ``M = sin t``, projection onto ``[-5, 5]``) against the gradient-type law ``theta_hat' = Gamma sin(t) exp(sin(t)
-theta_hat) x`` (``Gamma = 1``, ``theta_hat`` limited to ``[-5, 5]``), each in its own closed loop. The thesis shows
-the response only in its Fig. 5.1 and prints no scenario; the scenario of ``assumed`` is fixed here: ``theta`` =
--2, 4, -2, 4, -2 on consecutive 20 s segments, RK4 at 1 ms with the noise and ``theta`` held over each step, a
-noise-free run and 64 noisy ones (N(0, 1) per 1 ms sample added to the ``x`` both laws use), vmapped and jitted.
-
-``grip2010-drilling``: the drilling estimator (5.23)-(5.27) on a synthetic well (the field data and the simulator
-are not available; every value is in ``assumed``): ``x = [V_d / beta_d p_p, V_a / beta_a p_c]``, ``theta = [q_r,
-F_a]``, ``f = [q_p, q_a - q_c]``, ``B = [[-1, 0], [1, 1]]``, ``g = [q_b, q_r]`` with the bit flow ``q_b`` the
-positive root of the momentum balance (5.25); the update laws (5.26) (inversion for ``q_r``) and (5.27) as the
-modular estimator's custom law, with projection and ``phi_hat`` saturation; the downhole pressure ``p_b = p_c +
-F_a (q_b + q_r)^2 + rho_a g h_b``. A step in the reservoir inflow ``q_r`` and a change of the annulus friction
-``F_a`` are identified.
+Three reproductions: ``grip2010-example1.1`` (eqs. 1.11-1.12, constant and persistently exciting regressors, the
+Lyapunov identity checked), ``grip2010-example5.6`` (the modular estimator (5.21)-(5.22) against a gradient law on
+a scenario fixed here) and ``grip2010-drilling`` (the estimator (5.23)-(5.27) on a synthetic well; every chosen
+value in ``assumed``). The scenarios: docs/theory/papers.md.
 """
 
 from __future__ import annotations

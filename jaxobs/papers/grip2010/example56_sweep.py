@@ -153,6 +153,7 @@ def _grid_table(config: dict, cols: dict) -> dict:
 
 
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
+    """Summarise the sweep's results in ``out_dir`` (``summary.json``, ``report.md``); returns the summary."""
     cols = load_results(out_dir)
     g = config["grid"]
     t = _grid_table(config, cols)

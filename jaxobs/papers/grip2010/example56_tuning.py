@@ -70,6 +70,7 @@ def _check(config: dict, source: str) -> None:
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     sc = config["scenario"]
     seg, window, std = float(sc["segment_s"]), float(sc["window_s"]), float(np.sqrt(sc["noise_variance"]))
     steps = len(grip.SEGMENT_THETAS) * round(seg / grip.DT)

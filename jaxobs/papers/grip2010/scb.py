@@ -1,23 +1,9 @@
 """Grip 2010, ch. 7 (section 7.5): the special coordinate basis of the five worked examples, exactly.
 
-Cases: the linear single-track vehicle model with front steering (``single_track``) and with front and rear
-steering (``single_track_rear``), the DC motor with LuGre friction (7.8) (``dc_motor``) and with sigma_1 = 0
-(``dc_motor_sigma1_zero``), and the tenth-order system of Sannuti & Saberi 1987 (``tenth_order``). For each,
-:func:`jaxobs.scb.scb` is run in exact arithmetic (symbols for the vehicle and motor parameters) and compared
-with what the thesis prints:
-
-* ``residuals``: the identities (7.6) ``Gamma1 A = A_hat Gamma1``, ``Gamma1 B = B_hat Gamma3``,
-  ``Gamma2 C = C_hat Gamma1``, ``Gamma2 D = D_hat Gamma3`` of the computed SCB: ``0`` when the residual matrix is
-  exactly zero, else the list of non-zero entries;
-* ``printed_check``: the printed SCB matrices against the original system. Where the thesis prints Gamma1,
-  Gamma2, Gamma3 they are used and every entry of a printed matrix that differs from the value the identities
-  imply is listed; in every case the identities are also solved for (Gamma1, Gamma2, Gamma3) as a linear system
-  with the printed A, B, C, and a nonsingular solution (an exhibited one is a proof that the printed matrices are
-  a valid SCB of the system) is searched for in the solution space;
-* ``misprints``: the discrepancies that these checks prove, with the corrected values.
-
-Symbolic matrices are written as sympy ``srepr`` strings, exact rational ones as numbers (integers, or floats
-for non-integer fractions, with the exact ``p/q`` strings under ``*_exact``).
+For the single-track vehicle (front, and front and rear steering), the DC motor with LuGre friction (7.8) (and with
+sigma_1 = 0) and the tenth-order system of Sannuti & Saberi 1987, :func:`jaxobs.scb.scb` runs in exact arithmetic
+and is compared with the thesis: ``residuals`` of the identities (7.6), ``printed_check`` of the printed matrices
+and the ``misprints`` these checks prove. The checks and the output format: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -342,7 +328,8 @@ def printed_check(name: str, system=None) -> dict:
 
 
 def _export(M):
-    """sympy srepr strings for symbolic matrices, numbers (int, else float) for rational ones."""
+    """The entries of ``M`` for JSON: sympy srepr strings for symbolic matrices, numbers (int, else float) for
+    rational ones."""
     import sympy as sp
 
     if any(e.free_symbols for e in M):
