@@ -17,7 +17,7 @@ with an error term, its *linearisation* (Särkkä 2013, ch. 5-6)::
 
 the first-order Taylor series (``g_bar = g(m)``, ``G = dg/dx (m)``, ``Omega = 0``: the extended Kalman filter) or a
 statistical linear regression on sigma points (the unscented and cubature filters). With it, one step is the
-linear Kalman step of :mod:`jaxobs.kalman_steps` and :mod:`jaxobs.riccati`::
+linear Kalman step of :mod:`jaxobs.kalman_steps`::
 
     predict (discrete):    m_prior = f_bar,   P_prior = F P F' + Q + Omega_f
     predict (continuous):  dm/dt = f_bar(m, P),   dP/dt = F P + P F' + Q   over [t_{k-1}, t_k] (jaxobs.ct)
@@ -47,8 +47,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, update
-from jaxobs.riccati import predict_covariance, symmetrize
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, update
 
 __all__ = [
     "NonlinearModel",

@@ -15,7 +15,7 @@ saturation, which input explains a window of output: :func:`hypothesis_residual`
 ``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
 ``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
 to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with
-:func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
+:func:`jaxobs.matrix_equations.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs.riccati import care
+from jaxobs.matrix_equations import care
 
 __all__ = [
     "ALPHA_NORMS",
@@ -525,8 +525,9 @@ def low_gain_are(A, B, C, M, N, F, eps):
 
         AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
 
-    solved by :func:`jaxobs.riccati.care` (``Q = eps I``, ``R = 1``). Returns the :class:`jaxobs.riccati.CareSolution`
-    ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0`` (linearly when ``AF`` is Hurwitz).
+    solved by :func:`jaxobs.matrix_equations.care` (``Q = eps I``, ``R = 1``). Returns the
+    :class:`jaxobs.matrix_equations.CareSolution` ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0``
+    (linearly when ``AF`` is Hurwitz).
 
     Args:
       A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  F: (1, n) with ``A + B F`` Hurwitz.

@@ -21,9 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs._linalg import symmetrize
 from jaxobs.design import _char_poly_coefficients, is_detectable, lqe
+from jaxobs.lti import unobservable_modes
 from jaxobs.observers.continuous import ContinuousObserverParams, make_continuous_observer
-from jaxobs.riccati import _pbh_deficient_eigenvalues, symmetrize
 
 __all__ = [
     "LuenbergerParams",
@@ -100,7 +101,7 @@ def make_luenberger(A, B, C, K, *, D=None, x0=None) -> LuenbergerParams:
 def _require_detectable(A, C) -> None:
     """Eager PBH check of ``(C, A)`` (Grip 2010 §1.1.1): ``ValueError`` naming the unobservable unstable mode."""
     if _checks.is_concrete(A, C) and not is_detectable(A, C):
-        modes = _pbh_deficient_eigenvalues(A, C, lambda lam: lam.real >= 0)
+        modes = unobservable_modes(A, C, lambda lam: lam.real >= 0)
         raise ValueError(
             f"(C, A) is not detectable (PBH): the mode at eigenvalue {modes[0]:.6g} has real part >= 0 and is not "
             "seen by C, so no observer gain stabilises the error"
