@@ -19,6 +19,7 @@ from jaxobs.lti import StateSpace, ctrb, dcgain, unobservable_modes
 from jaxobs.matrix_equations import care, dare, filter_dare, require_care_converged, require_converged
 
 __all__ = [
+    "characteristic_polynomial",
     "acker",
     "place",
     "dlqr",
@@ -33,9 +34,10 @@ __all__ = [
 ]
 
 
-def _char_poly_coefficients(poles, dtype):
-    """Real coefficients ``[1, a_1, ..., a_n]`` of ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate
-    pairs; the product is formed in the complex type of ``poles`` and ``dtype``)."""
+def characteristic_polynomial(poles, dtype):
+    """The monic polynomial with roots ``poles`` (n,): real coefficients ``[1, a_1, ..., a_n]`` of
+    ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate pairs; the product is formed in the complex type of
+    ``poles`` and ``dtype``)."""
     poles = jnp.asarray(poles)
     coeffs = jnp.ones((1,), jnp.result_type(poles, dtype, jnp.complex64))
     for i in range(poles.shape[-1]):
@@ -85,7 +87,7 @@ def _ackermann(Phi, Gamma, poles):
     """``(L, W_c)`` of :func:`acker` (compiled once per shape: eager calls cost one dispatch)."""
     n = Phi.shape[-1]
     Wc = ctrb(Phi, Gamma)
-    a = _char_poly_coefficients(poles, Phi.dtype)
+    a = characteristic_polynomial(poles, Phi.dtype)
     P_Phi = jnp.zeros_like(Phi)
     for coefficient in a:  # Horner: P(Phi) = Phi^n + a_1 Phi^{n-1} + ... + a_n I
         P_Phi = P_Phi @ Phi + coefficient * jnp.eye(n, dtype=Phi.dtype)

@@ -22,7 +22,7 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs._linalg import symmetrize
-from jaxobs.design import _char_poly_coefficients, is_detectable, lqe
+from jaxobs.design import characteristic_polynomial, is_detectable, lqe
 from jaxobs.lti import unobservable_modes
 from jaxobs.observers.continuous import ContinuousObserverParams, make_continuous_observer
 
@@ -247,7 +247,7 @@ def make_output_injection(gamma: Callable, n, *, l=None, poles=None, x0=None) ->
         _checks.finite("poles", poles)
         if _checks.is_concrete(poles) and np.max(np.real(np.asarray(poles))) >= 0:
             raise ValueError(f"poles must have negative real parts, got {np.asarray(poles).tolist()}")
-        l = _char_poly_coefficients(poles, _checks.float_dtype(poles=jnp.real(poles)))[1:]
+        l = characteristic_polynomial(poles, _checks.float_dtype(poles=jnp.real(poles)))[1:]
     dtype = _checks.float_dtype(l=l)
     l = _checks.vector("l", l, n, dtype)
     x0 = jnp.zeros(n, dtype) if x0 is None else _checks.vector("x0", x0, n, dtype)
