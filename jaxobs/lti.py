@@ -25,7 +25,19 @@ import scipy.linalg
 
 from jaxobs import _checks
 
-__all__ = ["StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "unobservable_modes", "dcgain", "is_spr"]
+__all__ = [
+    "StateSpace",
+    "ss",
+    "c2d",
+    "tf2ss",
+    "ctrb",
+    "obsv",
+    "controllability_rank",
+    "observability_rank",
+    "unobservable_modes",
+    "dcgain",
+    "is_spr",
+]
 
 
 @jax.tree_util.register_dataclass
@@ -344,6 +356,24 @@ def obsv(A, C) -> jax.Array:
     _checks.matrix("A", A, square=True, batch=True)
     _checks.matrix("C", C, shape=(None, A.shape[-1]), batch=True)
     return jnp.swapaxes(ctrb(jnp.swapaxes(A, -1, -2), jnp.swapaxes(C, -1, -2)), -1, -2)
+
+
+def controllability_rank(A, B, *, rtol: float = 1e-10) -> int:
+    """Rank of the controllability matrix ``[B, A B, ..., A^{n-1} B]`` of ``A`` (n, n), ``B`` (n, m): its singular
+    values above ``rtol`` times the largest (eager, NumPy in float64)."""
+    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
+    blocks, block = [], B
+    for _ in range(A.shape[0]):
+        blocks.append(block)
+        block = A @ block
+    s = np.linalg.svd(np.hstack(blocks), compute_uv=False)
+    return int(np.sum(s > rtol * max(s[0], np.finfo(float).tiny))) if s.size else 0
+
+
+def observability_rank(A, C, *, rtol: float = 1e-10) -> int:
+    """Rank of the observability matrix ``[C; C A; ...; C A^{n-1}]`` of ``A`` (n, n), ``C`` (p, n) (eager, NumPy):
+    :func:`controllability_rank` of ``(A', C')``."""
+    return controllability_rank(np.transpose(A), np.transpose(C), rtol=rtol)
 
 
 def unobservable_modes(A, C, region, tol: float = 1e-9) -> list[complex]:

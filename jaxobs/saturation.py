@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs import _checks
+from jaxobs import _checks, ct
+from jaxobs.lti import controllability_rank, observability_rank
 from jaxobs.matrix_equations import care
 
 __all__ = [
@@ -64,26 +65,14 @@ def sat(v):
     return jnp.clip(v, -1.0, 1.0)
 
 
-def _pair_rank(A, B) -> int:
-    """Rank of the controllability matrix ``[B, AB, ..., A^{n-1} B]`` (NumPy, SVD with a relative tolerance)."""
-    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
-    blocks, block = [], B
-    for _ in range(A.shape[0]):
-        blocks.append(block)
-        block = A @ block
-    K = np.hstack(blocks)
-    s = np.linalg.svd(K, compute_uv=False)
-    return int(np.sum(s > 1e-10 * max(s[0], np.finfo(float).tiny))) if s.size else 0
-
-
 def require_controllable_observable(A, B, C, *, names: tuple[str, str] = ("(A, B)", "(C, A)")) -> None:
     """Raise ``ValueError`` naming the pair and its rank when ``(A, B)`` is not controllable or ``(C, A)`` not
     observable (Assumption 8.1, 9.1); eager (skipped on tracers)."""
     if not _checks.is_concrete(A, B, C):
         return
     n = np.shape(A)[0]
-    for name, rank, what in ((names[0], _pair_rank(A, B), "controllable"),
-                             (names[1], _pair_rank(np.transpose(A), np.transpose(C)), "observable")):  # fmt: skip
+    for name, rank, what in ((names[0], controllability_rank(A, B), "controllable"),
+                             (names[1], observability_rank(A, C), "observable")):  # fmt: skip
         if rank < n:
             matrix = "controllability" if what == "controllable" else "observability"
             raise ValueError(f"{name} must be {what}: its {matrix} matrix has rank {rank} < n = {n}")
@@ -225,12 +214,9 @@ def _condition(D):
     return jnp.where(low > 0, jnp.max(jnp.abs(eig)) / jnp.where(low > 0, low, 1), jnp.inf)
 
 
-def _rk4(f, z, d):
-    k1 = f(z)
-    k2 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k1))
-    k3 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k2))
-    k4 = f(jax.tree_util.tree_map(lambda a, b: a + d * b, z, k3))
-    return jax.tree_util.tree_map(lambda a, b, c, e, g: a + d / 6 * (b + 2 * c + 2 * e + g), z, k1, k2, k3, k4)
+def _rk4(rhs, z, d):
+    """One classical RK4 step of the autonomous ``z' = rhs(z)`` (a pytree) over ``d`` (:func:`jaxobs.ct.rk4_step`)."""
+    return ct.rk4_step(lambda z, _u, _t: rhs(z), z, None, 0.0, d)
 
 
 def simulate_saturated_outputs(
