@@ -1,6 +1,7 @@
-"""The Kalman building blocks every Kalman-type estimator shares: prediction, the Joseph-form measurement
-update with missing data, the innovation, its covariance and the log-likelihood, and the same steps in
-square-root (Cholesky factor) form.
+"""The Kalman building blocks every Kalman-type estimator shares: the covariance recursion (gain, Riccati step
+and its sequence over time), prediction, the Joseph-form measurement update with missing data, the innovation,
+its covariance and the log-likelihood, and the same steps in U-D and square-root (Cholesky factor) form. The
+steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`.
 
 Model (Cortesão 2006 eq. 27-29)::
 
