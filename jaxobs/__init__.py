@@ -18,6 +18,7 @@ from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
 from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
+from jaxobs.matrix_equations import care, dare
 from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
     Controller,
@@ -42,7 +43,6 @@ from jaxobs.observers.modular import make_modular, modular_estimator
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
 from jaxobs.plants import force_plant
-from jaxobs.riccati import care, dare
 from jaxobs.scb import (
     SCB,
     infinite_zero_structure,

@@ -17,7 +17,16 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-__all__ = ["UNROLL_MAX", "FACTOR_UNROLL_MAX", "small_solve", "cholesky", "solve_lower", "cho_solve", "solve_spd"]
+__all__ = [
+    "UNROLL_MAX",
+    "FACTOR_UNROLL_MAX",
+    "small_solve",
+    "cholesky",
+    "solve_lower",
+    "cho_solve",
+    "solve_spd",
+    "symmetrize",
+]
 
 UNROLL_MAX = 16
 """Largest system that :func:`small_solve` solves by unrolled substitution sweeps."""
@@ -121,3 +130,8 @@ def solve_spd(S, B):
     if S.shape[-1] == 1:
         return B / S[..., :1, :1]
     return cho_solve(cholesky(S), B)
+
+
+def symmetrize(P):
+    """``(P + P') / 2``."""
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))

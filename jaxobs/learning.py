@@ -21,9 +21,9 @@ import numpy as np
 import optax
 
 from jaxobs import _checks
+from jaxobs._linalg import symmetrize
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.kalman import KalmanParams, kalman_filter
-from jaxobs.riccati import symmetrize
 from jaxobs.smoothing import log_likelihood, smooth
 from jaxobs.tuning import OPTIMIZERS, cholesky_covariance, cholesky_parameters
 

@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, update
-from jaxobs.riccati import predict_covariance, symmetrize
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, update
 
 __all__ = [
     "NonlinearModel",

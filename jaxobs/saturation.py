@@ -15,7 +15,7 @@ saturation, which input explains a window of output: :func:`hypothesis_residual`
 ``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
 ``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
 to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with
-:func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
+:func:`jaxobs.matrix_equations.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs import _checks
-from jaxobs.riccati import care
+from jaxobs import _checks, ct
+from jaxobs.lti import controllability_rank, observability_rank
+from jaxobs.matrix_equations import care
 
 __all__ = [
     "ALPHA_NORMS",
@@ -64,26 +65,14 @@ def sat(v):
     return jnp.clip(v, -1.0, 1.0)
 
 
-def _pair_rank(A, B) -> int:
-    """Rank of the controllability matrix ``[B, AB, ..., A^{n-1} B]`` (NumPy, SVD with a relative tolerance)."""
-    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
-    blocks, block = [], B
-    for _ in range(A.shape[0]):
-        blocks.append(block)
-        block = A @ block
-    K = np.hstack(blocks)
-    s = np.linalg.svd(K, compute_uv=False)
-    return int(np.sum(s > 1e-10 * max(s[0], np.finfo(float).tiny))) if s.size else 0
-
-
 def require_controllable_observable(A, B, C, *, names: tuple[str, str] = ("(A, B)", "(C, A)")) -> None:
     """Raise ``ValueError`` naming the pair and its rank when ``(A, B)`` is not controllable or ``(C, A)`` not
     observable (Assumption 8.1, 9.1); eager (skipped on tracers)."""
     if not _checks.is_concrete(A, B, C):
         return
     n = np.shape(A)[0]
-    for name, rank, what in ((names[0], _pair_rank(A, B), "controllable"),
-                             (names[1], _pair_rank(np.transpose(A), np.transpose(C)), "observable")):  # fmt: skip
+    for name, rank, what in ((names[0], controllability_rank(A, B), "controllable"),
+                             (names[1], observability_rank(A, C), "observable")):  # fmt: skip
         if rank < n:
             matrix = "controllability" if what == "controllable" else "observability"
             raise ValueError(f"{name} must be {what}: its {matrix} matrix has rank {rank} < n = {n}")
@@ -225,12 +214,9 @@ def _condition(D):
     return jnp.where(low > 0, jnp.max(jnp.abs(eig)) / jnp.where(low > 0, low, 1), jnp.inf)
 
 
-def _rk4(f, z, d):
-    k1 = f(z)
-    k2 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k1))
-    k3 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k2))
-    k4 = f(jax.tree_util.tree_map(lambda a, b: a + d * b, z, k3))
-    return jax.tree_util.tree_map(lambda a, b, c, e, g: a + d / 6 * (b + 2 * c + 2 * e + g), z, k1, k2, k3, k4)
+def _rk4(rhs, z, d):
+    """One classical RK4 step of the autonomous ``z' = rhs(z)`` (a pytree) over ``d`` (:func:`jaxobs.ct.rk4_step`)."""
+    return ct.rk4_step(lambda z, _u, _t: rhs(z), z, None, 0.0, d)
 
 
 def simulate_saturated_outputs(
@@ -525,8 +511,9 @@ def low_gain_are(A, B, C, M, N, F, eps):
 
         AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
 
-    solved by :func:`jaxobs.riccati.care` (``Q = eps I``, ``R = 1``). Returns the :class:`jaxobs.riccati.CareSolution`
-    ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0`` (linearly when ``AF`` is Hurwitz).
+    solved by :func:`jaxobs.matrix_equations.care` (``Q = eps I``, ``R = 1``). Returns the
+    :class:`jaxobs.matrix_equations.CareSolution` ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0``
+    (linearly when ``AF`` is Hurwitz).
 
     Args:
       A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  F: (1, n) with ``A + B F`` Hurwitz.

@@ -17,11 +17,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd
-from jaxobs.kalman_steps import observed, observed_model, update
+from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs.kalman_steps import observed, observed_model, predict_covariance, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter
-from jaxobs.riccati import predict_covariance, symmetrize
 
 __all__ = ["Smoothed", "rts_smoother", "smooth", "log_likelihood", "parallel_filter"]
 

@@ -18,10 +18,13 @@ measures, the control period and dead time (``make_robot``), its linearisation b
 (``linearize``), named model mismatch such as ``body_mass[payload]`` (``mismatch``) and the closed loop of any
 controller (``rollout``); ``jaxobs tune``'s ``own-robot`` problem tunes an observer on it.
 
+``common`` (a submodule): the parts the plants share (device placement of a model, initial data, the dead-time
+FIFO, per-step input series, timing checks).
+
 Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.
 """
 
-from jaxobs.mjx import compliant_6dof, estimation, robot
+from jaxobs.mjx import common, compliant_6dof, estimation, robot
 from jaxobs.mjx.force_1dof import (
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -36,6 +39,7 @@ from jaxobs.mjx.force_1dof import (
 )
 
 __all__ = [
+    "common",
     "compliant_6dof",
     "estimation",
     "robot",

@@ -98,7 +98,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _check_timing, _dead_time, _initial_data, _put_model, _series
+from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -108,6 +108,7 @@ __all__ = [
     "CONTROL_PERIOD",
     "SUBSTEPS",
     "Compliant6Params",
+    "check_per_dof",
     "WrenchRollout",
     "Compliant6Rollout",
     "load_model",
@@ -172,10 +173,10 @@ class Compliant6Params:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        _per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
-        _per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
-        _per_dof("damping", self.damping, minimum=0.0, strict=False)
-        _per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
+        check_per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
+        check_per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
+        check_per_dof("damping", self.damping, minimum=0.0, strict=False)
+        check_per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
         for name in ("contact_radius", "contact_depth", "tilt", "coupling"):
             value = getattr(self, name)
             if np.shape(value) != ():
@@ -188,7 +189,9 @@ class Compliant6Params:
         return jnp.broadcast_to(jnp.asarray(getattr(self, name), dtype), (N_DOF,))
 
 
-def _per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
+def check_per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
+    """``ValueError`` unless ``value`` is a scalar or (6,) per-DOF value, and where concrete finite and above
+    ``minimum`` (``strict``) or at least ``minimum``."""
     shape = np.shape(value)
     if shape not in ((), (N_DOF,)):
         raise ValueError(f"{name} must be a scalar or have shape ({N_DOF},) (x, y, z, rx, ry, rz), got {shape}")
@@ -292,7 +295,7 @@ def load_model(params: Compliant6Params | None = None) -> tuple[mujoco.MjModel, 
     assert layout == (list(range(6)), list(range(6)), list(range(6)), list(range(6)), 0, 1, 6), (
         "compliant_6dof.xml layout changed; update with_params"
     )
-    mx = with_params(_put_model(m), params)
+    mx = with_params(put_model(m), params)
     for field in ("jnt_stiffness", "dof_damping", "dof_armature", "actuator_gainprm", "actuator_biasprm", "site_pos"):
         getattr(m, field)[...] = np.asarray(getattr(mx, field))
     return m, mx
@@ -353,7 +356,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     """One control step: push ``u_k`` (6,) into the dead-time FIFO (d, 6), pop ``u_{k-d}`` and hold it (ZOH) for
     ``substeps`` physics steps, each with the coupling force of its start state in ``qfrc_applied``.
     Returns ``(data, fifo, applied)``; shared by :func:`rollout` and :func:`closed_loop_rollout`."""
-    applied, fifo = _dead_time(fifo, u_k, d)
+    applied, fifo = dead_time_step(fifo, u_k, d)
     data = data.replace(ctrl=applied)
 
     def substep(_, data):
@@ -373,7 +376,7 @@ def _leading(name: str, value, what: str) -> jax.Array:
 
 
 def _start(model: mjx.Model, dtype) -> mjx.Data:
-    data = _initial_data(model, dtype)
+    data = initial_data(model, dtype)
     return data.replace(qfrc_applied=data.qfrc_applied.astype(dtype))
 
 
@@ -393,11 +396,11 @@ def rollout(model: mjx.Model, commands, *, dead_time_samples: int = 5, substeps:
     Returns:
       :class:`WrenchRollout`; pure (``jit``, ``vmap``, ``grad``, ``jacfwd``).
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     commands = _leading("commands", commands, "one velocity command")
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
-    noise = _series("noise", noise, (commands.shape[0], N_DOF), dtype, "commands")
+    noise = input_series("noise", noise, (commands.shape[0], N_DOF), dtype, "commands")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
@@ -462,15 +465,15 @@ def closed_loop_rollout(
       :class:`Compliant6Rollout`; pure: ``jit``, ``vmap`` (over models from :func:`with_params`, noise,
       controller parameters), ``grad`` and ``jacfwd`` work through it.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_controllers(params)
     reference = _leading("reference", reference, "one controller reference")
     dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
     reference = reference.astype(dtype)
     n_steps = reference.shape[0]
-    feedforward = _series("feedforward", feedforward, (n_steps, N_DOF), dtype, "reference")
-    noise = _series("noise", noise, (n_steps, N_DOF), dtype, "reference")
-    disturbance = _series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
+    feedforward = input_series("feedforward", feedforward, (n_steps, N_DOF), dtype, "reference")
+    noise = input_series("noise", noise, (n_steps, N_DOF), dtype, "reference")
+    disturbance = input_series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
     d = int(dead_time_samples)
     step = jax.vmap(controller.step)
 

@@ -29,7 +29,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _put_model
+from jaxobs.mjx.common import put_model
 
 __all__ = ["CARTPOLE", "load_cartpole", "check_model", "state", "transition", "measurement", "sample_period"]
 
@@ -40,7 +40,7 @@ def load_cartpole() -> tuple[mujoco.MjModel, mjx.Model]:
     """The shipped cart-pole with sensors (``jaxobs/mjx/assets/cartpole_sensors.xml``): ``(mj_model, mjx_model)``."""
     text = importlib.resources.files("jaxobs.mjx").joinpath("assets", CARTPOLE).read_text()
     m = mujoco.MjModel.from_xml_string(text)
-    return m, _put_model(m)
+    return m, put_model(m)
 
 
 def check_model(model, *, sensors: bool = True) -> None:

@@ -67,6 +67,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
+from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, is_int_at_least, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -217,58 +218,7 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv
     m.actuator_biasprm[0, 2] = -kv
-    return m, _put_model(m)
-
-
-def _is_int_at_least(value, minimum: int) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= minimum
-
-
-def _check_timing(dead_time_samples, substeps) -> None:
-    if not _is_int_at_least(dead_time_samples, 0):
-        raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
-    if not _is_int_at_least(substeps, 1):
-        raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
-
-
-def _series(name: str, value, shape, dtype, like: str) -> jax.Array:
-    """A per-step input of shape ``shape`` (an int: ``(shape,)``), zeros for None; finite where concrete.
-    ``like`` names what fixes the shape. Shared with :mod:`jaxobs.mjx.compliant_6dof`."""
-    shape = (shape,) if isinstance(shape, int) else tuple(shape)
-    if value is None:
-        return jnp.zeros(shape, dtype)
-    value = jnp.asarray(value, dtype)
-    if value.shape != shape:
-        raise ValueError(f"{name} must have the shape of {like} {shape}, got {value.shape}")
-    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
-        raise ValueError(f"{name} contains NaN or infinite entries")
-    return value
-
-
-def _dead_time(fifo: jax.Array, u_k: jax.Array, d: int):
-    """The command FIFO of a ``d``-sample dead time (oldest first): push ``u_k``, pop ``u_{k-d}``.
-    Returns ``(applied, fifo)``; shared with :mod:`jaxobs.mjx.compliant_6dof`."""
-    if d == 0:
-        return u_k, fifo
-    return fifo[0], jnp.concatenate([fifo[1:], u_k[None]])
-
-
-def _put_model(m: mujoco.MjModel) -> mjx.Model:
-    """``mjx.put_model`` on this process's first device (its default, ``jax.devices()[0]``, is process 0's in a
-    multi-process run, which the other processes cannot use)."""
-    return mjx.put_model(m, device=jax.local_devices()[0])
-
-
-def _initial_data(model: mjx.Model, dtype) -> mjx.Data:
-    """At rest at the contact point (``F = 0``), state arrays in ``dtype``."""
-    data = mjx.make_data(model)
-    return data.replace(
-        qpos=data.qpos.astype(dtype),
-        qvel=data.qvel.astype(dtype),
-        ctrl=data.ctrl.astype(dtype),
-        act=data.act.astype(dtype),
-        time=jnp.asarray(data.time, dtype),
-    )
+    return m, put_model(m)
 
 
 def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
@@ -292,7 +242,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, 
     (ZOH) for ``substeps`` ``mjx.step`` calls while the surface moves from ``surface`` at
     ``surface_velocity`` mm/s (one position per physics step). Returns ``(data, fifo, applied, surface)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
-    applied, fifo = _dead_time(fifo, u_k, d)
+    applied, fifo = dead_time_step(fifo, u_k, d)
     data = data.replace(ctrl=data.ctrl.at[0].set(applied))
     dx = surface_velocity * model.opt.timestep
 
@@ -314,7 +264,7 @@ def _truncate(carry, k, horizon: int | None):
 
 
 def _check_horizon(gradient_horizon) -> None:
-    if gradient_horizon is not None and not _is_int_at_least(gradient_horizon, 1):
+    if gradient_horizon is not None and not is_int_at_least(gradient_horizon, 1):
         raise ValueError(f"gradient_horizon must be None or a Python int >= 1, got {gradient_horizon!r}")
 
 
@@ -355,7 +305,7 @@ def rollout(
       :class:`ForceRollout` of arrays of shape ``(T,)``. Pure: works under ``jit``, ``vmap``, ``grad``,
       ``jacfwd``.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_horizon(gradient_horizon)
     commands = jnp.asarray(commands)
     if commands.ndim != 1:
@@ -365,10 +315,10 @@ def rollout(
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
     n_steps = commands.shape[0]
-    noise = _series("noise", noise, n_steps, dtype, "commands")
+    noise = input_series("noise", noise, n_steps, dtype, "commands")
     d = int(dead_time_samples)
-    fifo = _series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
-    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "commands")
+    fifo = input_series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
+    v_e = input_series("surface_velocity", surface_velocity, n_steps, dtype, "commands")
 
     def control_step(carry, inputs):
         k, u_k, noise_k, v_k = inputs
@@ -379,7 +329,7 @@ def rollout(
         out = ForceRollout(force + noise_k, force, position, velocity, applied, surface)
         return (data, fifo, surface_next), out
 
-    carry = (_initial_data(model, dtype), fifo, jnp.zeros((), dtype))
+    carry = (initial_data(model, dtype), fifo, jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), commands, noise, v_e))
     return out
 
@@ -444,7 +394,7 @@ def closed_loop_rollout(
       :class:`ClosedLoopRollout`; pure: works under ``jit``, ``vmap`` (over models from
       :func:`with_params`, noise, controller parameters), ``grad`` and ``jacfwd``.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_horizon(gradient_horizon)
     reference = jnp.asarray(reference)
     if reference.ndim != 1:
@@ -452,9 +402,9 @@ def closed_loop_rollout(
     dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
     reference = reference.astype(dtype)
     n_steps = reference.shape[0]
-    noise = _series("noise", noise, n_steps, dtype, "reference")
-    disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
-    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "reference")
+    noise = input_series("noise", noise, n_steps, dtype, "reference")
+    disturbance = input_series("disturbance", disturbance, n_steps, dtype, "reference")
+    v_e = input_series("surface_velocity", surface_velocity, n_steps, dtype, "reference")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
@@ -471,6 +421,6 @@ def closed_loop_rollout(
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)
         return (data, fifo, ctrl_state, surface_next), out
 
-    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
+    carry = (initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), reference, noise, disturbance, v_e))
     return out

@@ -42,7 +42,7 @@ from mujoco import mjx
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
-from jaxobs.mjx.force_1dof import _dead_time, _put_model
+from jaxobs.mjx.common import dead_time_step, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
@@ -163,7 +163,7 @@ def make_robot(
             raise ValueError(f"{name}: each may be named once, got {list(given)}")
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
     dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
-    model = _put_model(m)
+    model = put_model(m)
     dtype = model.body_mass.dtype
     point = {"qpos0": (qpos0, m.qpos0, m.nq), "qvel0": (qvel0, np.zeros(m.nv), m.nv),
              "ctrl0": (ctrl0, np.zeros(m.nu), m.nu)}  # fmt: skip
@@ -188,7 +188,7 @@ def _step(robot: Robot, model: mjx.Model, x, applied, t):
 
 def _sense(robot: Robot, model: mjx.Model, x):
     """The measured ``sensordata`` entries (p,) of the state ``x``."""
-    return estimation._measurement(model, x)[jnp.asarray(robot.sensors)]
+    return estimation.measurement(model)(x)[jnp.asarray(robot.sensors)]
 
 
 def _operating_state(robot: Robot, qpos0=None, qvel0=None):
@@ -388,7 +388,7 @@ def rollout(
         state, out = controller.step(params, state, ControllerInputs(y, r_k))
         _checks.shape("params", out.u, (m,), f"the controller's command u needs one entry per named actuator ({m})")
         u = out.u.astype(dtype)
-        applied, fifo = _dead_time(fifo, u, robot.dead_time)
+        applied, fifo = dead_time_step(fifo, u, robot.dead_time)
         x_next = _step(robot, model, x, applied, k * h)
         return (x_next, fifo, state), RobotRollout(x, y, y_true, u, applied, out)
 

@@ -22,11 +22,12 @@ import numpy as np
 from jax.scipy.special import erf, erfinv
 
 from jaxobs import _checks
-from jaxobs.kalman_steps import predict, update
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import kalman_gain, predict, update
 from jaxobs.lti import StateSpace
+from jaxobs.matrix_equations import dare, require_converged
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
-from jaxobs.riccati import dare, kalman_gain, require_converged, symmetrize
 
 __all__ = [
     "ActiveObserverParams",

@@ -21,9 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs.design import _char_poly_coefficients, is_detectable, lqe
+from jaxobs._linalg import symmetrize
+from jaxobs.design import characteristic_polynomial, is_detectable, lqe
+from jaxobs.lti import unobservable_modes
 from jaxobs.observers.continuous import ContinuousObserverParams, make_continuous_observer
-from jaxobs.riccati import _pbh_deficient_eigenvalues, symmetrize
 
 __all__ = [
     "LuenbergerParams",
@@ -100,7 +101,7 @@ def make_luenberger(A, B, C, K, *, D=None, x0=None) -> LuenbergerParams:
 def _require_detectable(A, C) -> None:
     """Eager PBH check of ``(C, A)`` (Grip 2010 §1.1.1): ``ValueError`` naming the unobservable unstable mode."""
     if _checks.is_concrete(A, C) and not is_detectable(A, C):
-        modes = _pbh_deficient_eigenvalues(A, C, lambda lam: lam.real >= 0)
+        modes = unobservable_modes(A, C, lambda lam: lam.real >= 0)
         raise ValueError(
             f"(C, A) is not detectable (PBH): the mode at eigenvalue {modes[0]:.6g} has real part >= 0 and is not "
             "seen by C, so no observer gain stabilises the error"
@@ -257,7 +258,7 @@ def make_output_injection(gamma: Callable, n, *, l=None, poles=None, x0=None) ->
         _checks.finite("poles", poles)
         if _checks.is_concrete(poles) and np.max(np.real(np.asarray(poles))) >= 0:
             raise ValueError(f"poles must have negative real parts, got {np.asarray(poles).tolist()}")
-        l = _char_poly_coefficients(poles, _checks.float_dtype(poles=jnp.real(poles)))[1:]
+        l = characteristic_polynomial(poles, _checks.float_dtype(poles=jnp.real(poles)))[1:]
     dtype = _checks.float_dtype(l=l)
     l = _checks.vector("l", l, n, dtype)
     x0 = jnp.zeros(n, dtype) if x0 is None else _checks.vector("x0", x0, n, dtype)

@@ -32,7 +32,7 @@ class EKFParams:
       bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
       gate: ``None`` (no gate) or the innovation gate in standard deviations (a leaf).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
-        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
+        rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     model: NonlinearModel

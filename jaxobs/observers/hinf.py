@@ -19,10 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd
-from jaxobs.kalman_steps import predict, update
+from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs.kalman_steps import predict, predict_covariance, update, update_covariance
+from jaxobs.matrix_equations import is_stable
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import is_stable, predict_covariance, symmetrize, update_covariance
 
 __all__ = [
     "HinfParams",

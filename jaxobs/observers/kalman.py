@@ -16,9 +16,18 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.kalman_steps import predict, square_root_predict, square_root_update, tria, update
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import (
+    covariance_sequence,
+    predict,
+    square_root_predict,
+    square_root_update,
+    tria,
+    update,
+    update_covariance,
+)
+from jaxobs.matrix_equations import filter_dare
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import covariance_sequence, filter_dare, symmetrize, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -52,7 +61,7 @@ class KalmanParams:
         ``P_prior`` (what the smoothers need): ``2 T n^2`` more numbers over ``T`` steps (16 MB for ``n = 10``,
         ``T = 10^4`` in float64). Time-varying gain only (a fixed gain propagates no covariance).
       joseph: static; the covariance update in Joseph form (default), else the standard form, faster and
-        positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
+        positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     Phi: jax.Array
@@ -120,7 +129,7 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       x0: (n,) prior mean of ``x_0`` (default zeros).  P0: (n, n) prior covariance of ``x_0`` (default ``Q``).
       steady_state: use the steady-state gain (:func:`with_steady_state_gain`).
       joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
-        step, positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
+        step, positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
 
     All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
     becomes float64), so the filter's state keeps one dtype over a run.
@@ -152,10 +161,10 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
 
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}``, ``P`` the a-priori
-    solution of the filter DARE (:func:`jaxobs.riccati.filter_dare`); ``P0`` becomes the steady-state a-posteriori
-    covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution or did
-    not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and reported by every
-    step (``KalmanOutputs.converged``).
+    solution of the filter DARE (:func:`jaxobs.matrix_equations.filter_dare`); ``P0`` becomes the steady-state
+    a-posteriori covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising
+    solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
+    reported by every step (``KalmanOutputs.converged``).
     """
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
     P, gain = update_covariance(sol.X, params.C, params.R)
@@ -224,7 +233,7 @@ checks them against the params while tracing and casts them to the params' dtype
 
 def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     """Filter a batch of sequences with one model: the Riccati recursion runs once
-    (:func:`jaxobs.riccati.covariance_sequence`) and only the means are batched, the fast path for Monte-Carlo
+    (:func:`jaxobs.kalman_steps.covariance_sequence`) and only the means are batched, the fast path for Monte-Carlo
     runs over noise seeds.
 
     Args:

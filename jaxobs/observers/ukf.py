@@ -15,10 +15,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import cho_solve, cholesky
+from jaxobs._linalg import cho_solve, cholesky, symmetrize
 from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
 from jaxobs.observers.base import Estimator, EstimatorInputs
-from jaxobs.riccati import symmetrize
 
 __all__ = ["UKFParams", "make_ukf", "unscented_kalman_filter", "sigma_points", "unscented", "RULES"]
 
@@ -38,7 +37,7 @@ class UKFParams:
         they may be traced, batched or differentiated.
       iterations: static number of updates per sample (1: the plain UKF).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
-        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
+        rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     model: NonlinearModel

@@ -4,9 +4,12 @@ ESC-type sensors and manoeuvres modelled on the thesis's test drives.
 ``tyres``: Magic Formula and Burckhardt tyre curves with combined slip in the friction ellipse.
 ``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
 :func:`lateral_acceleration`).
-``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
+``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`), and
+the sensor vector the observers take (:data:`N_SENSORS`, :func:`sensor_inputs`).
 ``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
 ``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
+``switching``: the friction-estimation switch of Grip 2010 §2.5 that the NVSO and its EKF baseline share
+(:func:`make_switching`).
 ``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
 ``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
 ``lateral``: the friction-adaptive observers (3.4) and (3.14) of Grip 2010 ch. 3 (:func:`make_adaptive_lateral`,
@@ -32,7 +35,7 @@ from jaxobs.vehicle.lateral import (
     make_adaptive_lateral,
     vehicle_model,
 )
-from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
+from jaxobs.vehicle.manoeuvres import MANOEUVRES, Command, Manoeuvre, manoeuvre
 from jaxobs.vehicle.model import (
     GRAVITY,
     MIN_SPEED,
@@ -49,7 +52,7 @@ from jaxobs.vehicle.model import (
     steady_state,
     wheel_kinematics,
 )
-from jaxobs.vehicle.nvso import N_SENSORS, NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso, sensor_inputs
+from jaxobs.vehicle.nvso import NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso
 from jaxobs.vehicle.road_angles import (
     FinalAngles,
     LemmaCheck,
@@ -66,8 +69,9 @@ from jaxobs.vehicle.road_angles import (
     road_angles,
     road_angles_adaptive,
 )
-from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements, SensorParams, low_pass, measure
-from jaxobs.vehicle.simulate import PLANT_STEP, Command, Manoeuvre, Trajectory, driver, simulate
+from jaxobs.vehicle.sensors import N_SENSORS, SENSOR_RATE, Measurements, SensorParams, low_pass, measure, sensor_inputs
+from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory, driver, simulate
+from jaxobs.vehicle.switching import SwitchingParams, make_switching
 from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
 
 __all__ = [
@@ -110,6 +114,8 @@ __all__ = [
     "make_nvso",
     "nvso",
     "sensor_inputs",
+    "SwitchingParams",
+    "make_switching",
     "VehicleEKFOutputs",
     "VehicleEKFParams",
     "VehicleEKFState",

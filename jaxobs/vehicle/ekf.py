@@ -25,7 +25,7 @@ After each update the estimate of ``mu`` is projected onto ``[max(lo, |(a_x, a_y
 to, §2.8): below the acceleration bound the friction model cannot produce the measured acceleration, and outside
 ``mu_bounds`` the friction model carries no information on ``mu``.
 
-Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:func:`jaxobs.vehicle.nvso.switching`,
+Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:mod:`jaxobs.vehicle.switching`,
 Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode
 ``m = 0`` and ``q_mu_fast`` in mode 1 (blended by a smooth gate when the switching params are ``smooth``), and in
 slow estimation ``mu`` is drawn to its default ``mu0`` at the rate ``k_mu`` (``mu_attraction``), as the NVSO draws
@@ -68,12 +68,10 @@ from jaxobs.nonlinear import GaussianState, nonlinear_model
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.ekf import EKFParams, extended_kalman_filter, make_ekf
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import N_SENSORS, NVSOParams, make_nvso, switching
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
+from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
 __all__ = ["VehicleEKFParams", "VehicleEKFState", "VehicleEKFOutputs", "make_vehicle_ekf", "vehicle_ekf"]
-
-_AX, _AY, _R, _SW, _OMEGA, _VREF = 0, 1, 2, 3, slice(4, 8), 8
 
 
 @jax.tree_util.register_dataclass
@@ -86,15 +84,15 @@ class VehicleEKFParams:
       ekf: the :class:`~jaxobs.observers.ekf.EKFParams` of the state-space model (its measurement function is
         rebound to the current sensors at every step); ``ekf.bierman`` selects Bierman's update.
       mu_bounds: (2,) the range of ``mu`` the friction model is evaluated at.
-      switching: the :class:`~jaxobs.vehicle.NVSOParams` whose switching thresholds (and ``smooth``) select slow or
-        fast friction estimation.
+      switching: the :class:`~jaxobs.vehicle.switching.SwitchingParams` whose thresholds (and ``smooth``) select
+        slow or fast friction estimation.
       q_mu: (2,) the intensities of the noise that drives ``d_mu`` in slow and fast friction estimation.
     """
 
     vehicle: VehicleParams
     ekf: EKFParams
     mu_bounds: jax.Array
-    switching: NVSOParams
+    switching: SwitchingParams
     q_mu: jax.Array
 
 
@@ -128,9 +126,10 @@ def _process(constants, x, u, t):
 
 def _measurement(vehicle, mu_bounds, sensors, x):
     """``(a_x, a_y, r', v_x)`` of the friction model at the state ``x`` and the current ``sensors``."""
-    ax, ay = sensors[_AX], sensors[_AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
+    ax, ay = sensors[AX], sensors[AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
     mu = jnp.clip(x[4], mu_bounds[0], mu_bounds[1])
-    f = friction_model(vehicle, x[0], x[1], sensors[_R], sensors[_SW], sensors[_OMEGA], ax, ay, mu)
+    r, steering_wheel, wheel_speed = sensors[YAW_RATE], sensors[STEERING_WHEEL], sensors[WHEEL_SPEED]
+    f = friction_model(vehicle, x[0], x[1], r, steering_wheel, wheel_speed, ax, ay, mu)
     return jnp.stack([f.ax, f.ay, f.yaw_moment / vehicle.yaw_inertia, x[0]])
 
 
@@ -148,7 +147,7 @@ def make_vehicle_ekf(
     mu0: float = 1.0,
     mu_bounds=(0.05, 1.5),
     dt: float = 1.0 / SENSOR_RATE,
-    switching: NVSOParams | None = None,
+    switching: SwitchingParams | None = None,
     gate: float | None = 4.0,
     mu_attraction: float = 0.5,
 ) -> VehicleEKFParams:
@@ -170,8 +169,8 @@ def make_vehicle_ekf(
         ``mu``) lets the first updates take a start-up transient for a low friction (module docstring).
       mu_bounds: (lo, hi) with ``0 < lo < hi``: the friction range the model is evaluated at.
       dt: sample period (s, > 0).
-      switching: the :class:`~jaxobs.vehicle.NVSOParams` of the switching rule (default ``make_nvso(vehicle)``;
-        its ``dt`` must be this ``dt``).
+      switching: the :class:`~jaxobs.vehicle.switching.SwitchingParams` of the switching rule (default
+        ``make_switching(vehicle, dt=dt)``, the NVSO's thresholds; its ``dt`` must be this ``dt``).
       gate: innovation gate in standard deviations (> 0; default 4, ``None`` for none): a measurement component
         whose innovation exceeds ``gate`` times its predicted standard deviation is skipped as an outlier
         (:func:`jaxobs.kalman_steps.innovation_gate`) and counted in ``state.filter.gated``; it keeps transients
@@ -198,9 +197,10 @@ def make_vehicle_ekf(
     _checks.shape("q_d", q_d, (2,), "one intensity per angle derivative")
     q_mu = jnp.asarray(q_mu, float)
     _checks.shape("q_mu", q_mu, (2,), "(slow, fast)")
-    switching = make_nvso(vehicle, dt=dt) if switching is None else switching
-    if not isinstance(switching, NVSOParams):
-        raise ValueError(f"switching must be NVSOParams (jaxobs.vehicle.make_nvso), got {type(switching).__name__}")
+    switching = make_switching(vehicle, dt=dt) if switching is None else switching
+    if not isinstance(switching, SwitchingParams):
+        kind = type(switching).__name__
+        raise ValueError(f"switching must be SwitchingParams (jaxobs.vehicle.make_switching), got {kind}")
     _checks.shape("r_std", r_std, (4,), "one per measurement (a_x, a_y, r', v_x,ref)")
     _checks.shape("P0_diag", P0_diag, (8,), "one variance per state")
     mu_bounds = jnp.asarray(mu_bounds, float)
@@ -219,8 +219,8 @@ def make_vehicle_ekf(
 
 def _init(params: VehicleEKFParams) -> VehicleEKFState:
     model = params.ekf.model
-    sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[_VREF].set(model.x0[0])
-    sensors = sensors.at[_OMEGA].set(model.x0[0] / params.vehicle.wheel_radius)
+    sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[VX_REF].set(model.x0[0])
+    sensors = sensors.at[WHEEL_SPEED].set(model.x0[0] / params.vehicle.wheel_radius)
     zero = jnp.zeros((), model.x0.dtype)
     timer = jnp.asarray(params.switching.off_delay, model.x0.dtype)
     return VehicleEKFState(extended_kalman_filter.init(params.ekf), zero, timer, zero, sensors,
@@ -235,14 +235,14 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     sensors = jnp.where(finite, y, state.sensors)
     previous = state.sensors
     roll = 1.0 + vehicle.roll_gradient * GRAVITY
-    u_prev = jnp.stack([previous[_AX], previous[_AY] / roll, previous[_R], 1.0 - state.mode])
+    u_prev = jnp.stack([previous[AX], previous[AY] / roll, previous[YAW_RATE], 1.0 - state.mode])
     first = ~state.filter.started
     # the prior mean of v_x is the first finite v_x,ref (the NVSO's start); vx0 only without one
-    start = state.filter.x.at[0].set(jnp.where(finite[_VREF], y[_VREF], state.filter.x[0]))
+    start = state.filter.x.at[0].set(jnp.where(finite[VX_REF], y[VX_REF], state.filter.x[0]))
     filt = state.filter._replace(x=jnp.where(first, start, state.filter.x))
     # r' needs two finite yaw-rate samples; NaN (skipped by the EKF) otherwise and at the first sample
-    yaw_acc = jnp.where(state.filter.started & finite[_R], (y[_R] - previous[_R]) / model.dt, jnp.nan)
-    z = jnp.stack([y[_AX], y[_AY] / roll, yaw_acc, y[_VREF]])
+    yaw_acc = jnp.where(state.filter.started & finite[YAW_RATE], (y[YAW_RATE] - previous[YAW_RATE]) / model.dt, jnp.nan)
+    z = jnp.stack([y[AX], y[AY] / roll, yaw_acc, y[VX_REF]])
     h = Partial(_measurement, vehicle, params.mu_bounds, sensors)
     q_mu = (1.0 - state.mode) * params.q_mu[0] ** 2 + state.mode * params.q_mu[1] ** 2
     Q = model.Q.at[7, 7].set(model.dt * q_mu)
@@ -250,15 +250,15 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     filt, out = extended_kalman_filter.step(ekf, filt, EstimatorInputs(y=z, u_prev=u_prev))
     # projection onto [max(lo, |(a_x, a_y)| / (accel_margin g)), hi] (the NVSO's bounds, Grip 2010 §2.8)
     lower = jnp.maximum(
-        params.mu_bounds[0], jnp.hypot(sensors[_AX], sensors[_AY] / roll) / (params.switching.accel_margin * GRAVITY)
+        params.mu_bounds[0], jnp.hypot(sensors[AX], sensors[AY] / roll) / (params.switching.accel_margin * GRAVITY)
     )
     x = out.x.at[4].set(jnp.clip(out.x[4], jnp.minimum(lower, params.mu_bounds[1]), params.mu_bounds[1]))
     filt, out = filt._replace(x=x), out._replace(x=x)
-    switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[_R], sensors[_AY] / roll,
-                       sensors[_SW])  # fmt: skip
+    switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[YAW_RATE],
+                       sensors[AY] / roll, sensors[STEERING_WHEEL])  # fmt: skip
     mode = jnp.where(first, state.mode, switch.mode)
     timer = jnp.where(first, state.off_timer, switch.off_timer)
-    low_pass = jnp.where(first, sensors[_AY] / roll - sensors[_R] * out.x[0], switch.low_pass)  # HP starts at 0
+    low_pass = jnp.where(first, sensors[AY] / roll - sensors[YAW_RATE] * out.x[0], switch.low_pass)  # HP starts at 0
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
     beta = jnp.arctan2(out.x[1], out.x[0])
     new_state = VehicleEKFState(filt, mode, timer, low_pass, sensors, missing)

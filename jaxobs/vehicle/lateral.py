@@ -53,8 +53,7 @@ from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.pe_monitor import PEMonitorParams, PEMonitorState, pe_monitor
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import _AX, _AY, _OMEGA, _R, _SW, _VREF, N_SENSORS
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
     "AdaptiveLateralParams",
@@ -71,8 +70,8 @@ __all__ = [
 
 
 def _vehicle_forces(vehicle: VehicleParams, v, y):
-    ay = y[_AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
-    f = friction_model(vehicle, v[0], v[1], v[2], y[_SW], y[_OMEGA], y[_AX], ay)
+    ay = y[AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
+    f = friction_model(vehicle, v[0], v[1], v[2], y[STEERING_WHEEL], y[WHEEL_SPEED], y[AX], ay)
     return jnp.stack([vehicle.mass * f.ay, f.yaw_moment])
 
 
@@ -205,7 +204,7 @@ class AdaptiveLateralOutputs(NamedTuple):
 def _init(params: AdaptiveLateralParams) -> AdaptiveLateralState:
     dtype = params.dt.dtype
     vx0 = params.vx0
-    y = jnp.zeros((N_SENSORS,), dtype).at[_VREF].set(vx0)
+    y = jnp.zeros((N_SENSORS,), dtype).at[VX_REF].set(vx0)
     x = jnp.stack([vx0, jnp.zeros((), dtype), jnp.zeros((), dtype), params.theta_default])
     monitor = None if params.monitor is None else pe_monitor.init(params.monitor)
     zero = jnp.zeros((), jnp.int32)
@@ -220,13 +219,13 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
 
     m = state.y  # held over [t_{k-1}, t_k]
-    ax, r, vref = m[_AX], m[_R], m[_VREF]
+    ax, r, vref = m[AX], m[YAW_RATE], m[VX_REF]
     _, vy, r_hat, theta = state.x
     vx = state.x[0] if full else vref
     r_model = r_hat if full else r
     forces = lambda vy: params.model(jnp.stack([vx, vy, r_model]), m)
     (f_y, f_r), (slope, zeta) = jax.jvp(forces, (vy,), (jnp.ones_like(vy),))
-    ay = m[_AY] * params.ay_scale
+    ay = m[AY] * params.ay_scale
     may = params.mass * ay
 
     tiny = 1.0 / params.Lambda_max  # keeps 1 / norm and its derivative finite where f_y* and xi vanish
@@ -264,10 +263,10 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
     x = state.x + dt * jnp.stack([d_vx, d_vy, d_r, d_theta])
     x = x.at[3].set(jnp.clip(x[3], params.theta_min, params.theta_max))
     if not full:
-        x = x.at[0].set(y_now[_VREF]).at[2].set(y_now[_R])
+        x = x.at[0].set(y_now[VX_REF]).at[2].set(y_now[YAW_RATE])
 
     first = ~state.started
-    start = state.x.at[0].set(y_now[_VREF]).at[2].set(y_now[_R])
+    start = state.x.at[0].set(y_now[VX_REF]).at[2].set(y_now[YAW_RATE])
     x = jnp.where(first, start, x)
     filters = jnp.where(first, jnp.zeros_like(filters), filters)
     beta = jnp.arctan2(x[1], x[0])
@@ -304,7 +303,7 @@ _C_Y, _D_Y = 3.0e4, 2.0e4  # the check plant's cornering stiffness (N s/m) and s
 
 
 def _check_model(v, y):
-    return jnp.stack([-_C_Y * v[1] + _D_Y * y[_SW], jnp.zeros_like(v[1])])
+    return jnp.stack([-_C_Y * v[1] + _D_Y * y[STEERING_WHEEL], jnp.zeros_like(v[1])])
 
 
 def lemma_3_1_check(n_steps: int = 3000, dt: float = 0.01, theta: float = 0.6, vy0: float = 0.5) -> Lemma31Check:
@@ -335,15 +334,15 @@ def lemma_3_1_check(n_steps: int = 3000, dt: float = 0.01, theta: float = 0.6, v
     dtype = params.dt.dtype
     t = jnp.asarray(dt, dtype) * jnp.arange(n, dtype=dtype)
     y = jnp.zeros((n, N_SENSORS), dtype)
-    y = y.at[:, _R].set(0.2 * jnp.sin(0.5 * t)).at[:, _VREF].set(20.0)
-    y = y.at[:, _SW].set(0.3 * jnp.sin(0.7 * t) + 0.2 * jnp.sin(1.9 * t))
-    ay = lambda vy, yk: theta * _check_model(jnp.stack([yk[_VREF], vy, yk[_R]]), yk)[0] / mass
+    y = y.at[:, YAW_RATE].set(0.2 * jnp.sin(0.5 * t)).at[:, VX_REF].set(20.0)
+    y = y.at[:, STEERING_WHEEL].set(0.3 * jnp.sin(0.7 * t) + 0.2 * jnp.sin(1.9 * t))
+    ay = lambda vy, yk: theta * _check_model(jnp.stack([yk[VX_REF], vy, yk[YAW_RATE]]), yk)[0] / mass
 
     def plant(vy, yk):
-        return vy + dt * (ay(vy, yk) - yk[_R] * yk[_VREF]), vy
+        return vy + dt * (ay(vy, yk) - yk[YAW_RATE] * yk[VX_REF]), vy
 
     _, vy = jax.lax.scan(plant, jnp.asarray(vy0, dtype), y)
-    y = y.at[:, _AY].set(jax.vmap(ay)(vy, y))
+    y = y.at[:, AY].set(jax.vmap(ay)(vy, y))
     _, out = run(lateral_observer, params, EstimatorInputs(y=y))
     V = lyapunov_3_1(params, vy, theta, out.x[:, 1], out.x[:, 3])
     predicted = dt * params.Gamma * params.K_vy * out.Lambda[1:] * (out.innovation[1:, 0] / mass) ** 2

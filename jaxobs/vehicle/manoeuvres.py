@@ -1,7 +1,8 @@
 """Test drives modelled on those of Grip 2010 §2.10 (Figs. 2.4-2.8), with amplitudes chosen for the default
 :class:`~jaxobs.vehicle.VehicleParams` (the thesis's drives used a test vehicle whose data are not published).
 
-Each is a :class:`~jaxobs.vehicle.Manoeuvre`, looked up by name with :func:`manoeuvre` or passed by name to
+A test drive is a :class:`Manoeuvre`: a :class:`Command` per time (what the driver is asked to do), a duration and an
+initial speed. Each below is one, looked up by name with :func:`manoeuvre` or passed by name to
 :func:`~jaxobs.vehicle.simulate`; the peaks below were measured with the default vehicle
 (``tests/vehicle/test_manoeuvres.py`` pins them):
 
@@ -27,11 +28,39 @@ surfaces.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
 import jax.numpy as jnp
 
-from jaxobs.vehicle.simulate import Command, Manoeuvre
+__all__ = ["Command", "Manoeuvre", "MANOEUVRES", "manoeuvre"]
 
-__all__ = ["MANOEUVRES", "manoeuvre"]
+
+class Command(NamedTuple):
+    """What the driver is asked to do at one time (all scalars). ``steering_wheel`` (rad, feed-forward),
+    ``curvature`` (1/m) and ``curvature_gain`` (rad of road-wheel angle per 1/m of curvature error; 0 = open
+    loop), ``speed`` (m/s) and ``acceleration`` (m/s^2, feed-forward), the road's ``bank`` and ``inclination``
+    (rad) and ``friction`` (scale of the tyres' peak friction)."""
+
+    steering_wheel: jax.Array = 0.0
+    curvature: jax.Array = 0.0
+    curvature_gain: jax.Array = 0.0
+    speed: jax.Array = 20.0
+    acceleration: jax.Array = 0.0
+    bank: jax.Array = 0.0
+    inclination: jax.Array = 0.0
+    friction: jax.Array = 1.0
+
+
+class Manoeuvre(NamedTuple):
+    """A test drive: ``command(t) -> Command`` (traceable), its ``duration`` (s) and ``initial_speed`` (m/s)."""
+
+    name: str
+    command: Callable
+    duration: float
+    initial_speed: float
+
 
 _DEG = jnp.pi / 180
 _L, _RATIO = 2.8, 15.5  # the default vehicle's wheelbase and steering ratio (feed-forward of the circle drives)

@@ -54,8 +54,7 @@ from jaxobs import _checks
 from jaxobs.lti import StateSpace, is_spr, ss
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import _AX, _AY, _OMEGA, _R, _SW, _VREF, N_SENSORS
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
     "RoadAnglesParams",
@@ -224,7 +223,7 @@ class RoadAnglesOutputs(NamedTuple):
 def _init(params: RoadAnglesParams) -> RoadAnglesState:
     dtype = jnp.result_type(params.vx0, params.friction, float)
     vx0 = jnp.asarray(params.vx0, dtype)
-    y = jnp.zeros((N_SENSORS,), dtype).at[_OMEGA].set(vx0 / params.vehicle.wheel_radius).at[_VREF].set(vx0)
+    y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / params.vehicle.wheel_radius).at[VX_REF].set(vx0)
     zero = jnp.zeros((), dtype)
     x = jnp.stack([vx0, zero, zero, zero, jnp.asarray(params.friction, dtype)])
     return RoadAnglesState(x, y, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
@@ -238,8 +237,8 @@ def _step(params: RoadAnglesParams, state: RoadAnglesState, inputs: EstimatorInp
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
 
     m = state.y  # the measurement held over [t_{k-1}, t_k]
-    ax, r, sw, omega, vref = m[_AX], m[_R], m[_SW], m[_OMEGA], m[_VREF]
-    ay = m[_AY] / (1.0 + v.roll_gradient * g)  # roll correction, Grip 2010 §2.2
+    ax, r, sw, omega, vref = m[AX], m[YAW_RATE], m[STEERING_WHEEL], m[WHEEL_SPEED], m[VX_REF]
+    ay = m[AY] / (1.0 + v.roll_gradient * g)  # roll correction, Grip 2010 §2.2
     vx, vy, theta_i, theta_b, theta = state.x
     friction = 1.0 if adaptive else params.friction
     ay_model = lambda vy: friction_model(v, vx, vy, r, sw, omega, ax, ay, friction).ay
@@ -265,7 +264,7 @@ def _step(params: RoadAnglesParams, state: RoadAnglesState, inputs: EstimatorInp
         x = x.at[4].set(jnp.clip(x[4], params.theta_min, params.theta_max))
 
     first = ~state.started
-    x = jnp.where(first, state.x.at[0].set(y_now[_VREF]), x)
+    x = jnp.where(first, state.x.at[0].set(y_now[VX_REF]), x)
     inclination = jnp.arcsin(jnp.clip(x[2], -1.0, 1.0))
     bank = jnp.arcsin(jnp.clip(x[3] / jnp.cos(inclination), -1.0, 1.0))
     beta = jnp.arctan2(x[1], x[0])

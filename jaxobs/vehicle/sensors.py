@@ -26,13 +26,34 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs.observers.base import EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, VehicleParams
 from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory
 
-__all__ = ["SENSOR_RATE", "SensorParams", "Measurements", "measure", "low_pass"]
+__all__ = [
+    "SENSOR_RATE",
+    "N_SENSORS",
+    "AX",
+    "AY",
+    "YAW_RATE",
+    "STEERING_WHEEL",
+    "WHEEL_SPEED",
+    "VX_REF",
+    "SensorParams",
+    "Measurements",
+    "measure",
+    "low_pass",
+    "sensor_inputs",
+]
 
 SENSOR_RATE = 100.0
 """ESC sensor rate (Hz), the 10 ms sample time of Grip 2010 §2.8."""
+
+N_SENSORS = 9
+"""Entries of the sensor vector the vehicle observers take: ``a_x``, ``a_y``, yaw rate, steering-wheel angle, the
+four wheel speeds (FL, FR, RL, RR) and ``v_x,ref`` (:func:`sensor_inputs`)."""
+AX, AY, YAW_RATE, STEERING_WHEEL, WHEEL_SPEED, VX_REF = 0, 1, 2, 3, slice(4, 8), 8
+"""Where each measurement sits in the sensor vector (``WHEEL_SPEED`` a slice of the four wheels)."""
 
 _CHANNELS = ("ax", "ay", "yaw_rate", "steering_wheel", "wheel_speed")
 
@@ -163,3 +184,11 @@ def measure(
     front = out["wheel_speed"][:, :2] * params.wheel_radius / jnp.cos(delta)[:, None]
     vx_ref = jnp.mean(front + out["yaw_rate"][:, None] * jnp.stack([half, -half]), axis=1)
     return Measurements(time=tr.time, vx_ref=vx_ref, **out)
+
+
+def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
+    """The vehicle observers' inputs from :class:`Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`) in the
+    layout of :data:`AX` ... :data:`VX_REF`."""
+    m = measurements
+    columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
+    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None]], axis=1))

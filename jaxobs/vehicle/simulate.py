@@ -19,13 +19,14 @@ sideslip ``beta = arctan(vy / vx)`` (Grip 2010 ch. 2 convention) at every plant 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
+from jaxobs.vehicle import manoeuvres
+from jaxobs.vehicle.manoeuvres import Command, Manoeuvre
 from jaxobs.vehicle.model import (
     AIR_DENSITY,
     GRAVITY,
@@ -44,8 +45,6 @@ __all__ = [
     "SPEED_GAIN",
     "SLIP_LIMIT",
     "STEERING_LOCK",
-    "Command",
-    "Manoeuvre",
     "Trajectory",
     "driver",
     "simulate",
@@ -59,31 +58,6 @@ SLIP_LIMIT = 0.15
 """Slip at which the driver's traction and anti-lock limiter has removed a wheel's whole torque (assumed)."""
 STEERING_LOCK = 0.6
 """Largest road-wheel angle the driver applies (rad, about 34 deg; assumed)."""
-
-
-class Command(NamedTuple):
-    """What the driver is asked to do at one time (all scalars). ``steering_wheel`` (rad, feed-forward),
-    ``curvature`` (1/m) and ``curvature_gain`` (rad of road-wheel angle per 1/m of curvature error; 0 = open
-    loop), ``speed`` (m/s) and ``acceleration`` (m/s^2, feed-forward), the road's ``bank`` and ``inclination``
-    (rad) and ``friction`` (scale of the tyres' peak friction)."""
-
-    steering_wheel: jax.Array = 0.0
-    curvature: jax.Array = 0.0
-    curvature_gain: jax.Array = 0.0
-    speed: jax.Array = 20.0
-    acceleration: jax.Array = 0.0
-    bank: jax.Array = 0.0
-    inclination: jax.Array = 0.0
-    friction: jax.Array = 1.0
-
-
-class Manoeuvre(NamedTuple):
-    """A test drive: ``command(t) -> Command`` (traceable), its ``duration`` (s) and ``initial_speed`` (m/s)."""
-
-    name: str
-    command: Callable
-    duration: float
-    initial_speed: float
 
 
 class Trajectory(NamedTuple):
@@ -138,9 +112,7 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
       a :class:`Trajectory` with ``round(duration / dt) + 1`` samples.
     """
     if isinstance(manoeuvre, str):
-        from jaxobs.vehicle.manoeuvres import manoeuvre as by_name
-
-        manoeuvre = by_name(manoeuvre)
+        manoeuvre = manoeuvres.manoeuvre(manoeuvre)
     params.validate()
     _checks.positive_scalar("dt", dt)
     duration = manoeuvre.duration if duration is None else duration

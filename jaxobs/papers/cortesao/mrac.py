@@ -28,7 +28,7 @@ from jaxobs.mjx.compliant_6dof import (
     Compliant6Params,
     X,
     Z,
-    _per_dof,
+    check_per_dof,
 )
 from jaxobs.observers.active import feedback_gain, make_aob, sensor_based_gain
 from jaxobs.observers.feedback import FeedbackParams
@@ -118,9 +118,9 @@ def design(
             f"stiffness must be > 0 in every DOF for a design (Ks/(s(1+Tp s)) is uncontrollable at Ks = 0), "
             f"got {np.asarray(params.stiffness).tolist()}"
         )
-    _per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
+    check_per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
     if q_active is not None:
-        _per_dof("q_active", q_active, minimum=0.0, strict=False)
+        check_per_dof("q_active", q_active, minimum=0.0, strict=False)
     for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
         if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
             raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
