@@ -1,5 +1,5 @@
 """The README's tour runs as printed. (The README's other numbers are pinned by the tests that compute them,
-through tests/_readme.py.)"""
+through tests/_published.py.)"""
 
 import re
 
