@@ -83,7 +83,7 @@ def test_readme_sweep_figures(tmp_path):
     from a fresh run of that command: at the printed gains with unit noise variance, both laws' median errors and
     the modular estimator's share of better seed x segment pairs; the best grid point's error. Regression snapshots
     of this implementation (seeded noise), pinned to their printed digits."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "grip"
     path = "tuning/grip_example56_sweep.toml"

@@ -75,7 +75,7 @@ def test_readme_table_row(tmp_path):
     """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
     held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,
     so reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "grip"
     assert main(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"]) == 0

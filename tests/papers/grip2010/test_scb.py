@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from tests._readme import printed
+from tests._published import printed
 
 sp = pytest.importorskip("sympy")
 
