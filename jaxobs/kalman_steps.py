@@ -85,12 +85,19 @@ def kalman_gain(P1, C, R):
 
 
 class CovarianceUpdate(NamedTuple):
-    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs)."""
+    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs).
 
-    P: jax.Array  # (n, n) a-posteriori covariance
-    K: jax.Array  # (n, p) Kalman gain
-    S: jax.Array  # (p, p) innovation covariance C P1 C' + R
-    S_chol: jax.Array  # (p, p) its lower Cholesky factor
+    Attributes:
+      P: (n, n) a-posteriori covariance
+      K: (n, p) Kalman gain
+      S: (p, p) innovation covariance C P1 C' + R
+      S_chol: (p, p) its lower Cholesky factor
+    """
+
+    P: jax.Array
+    K: jax.Array
+    S: jax.Array
+    S_chol: jax.Array
 
 
 def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
@@ -148,11 +155,17 @@ def riccati_step(P_prev, Phi, C, Q, R):
 
 
 class CovarianceSequence(NamedTuple):
-    """Stacked over time (leading axis ``num_steps``)."""
+    """Result of :func:`covariance_sequence`, stacked over time (leading axis ``T = num_steps``).
 
-    P: jax.Array  # (T, n, n) a-posteriori covariances P_k
-    K: jax.Array  # (T, n, p) Kalman gains K_k
-    P_prior: jax.Array  # (T, n, n) a-priori covariances P1_k
+    Attributes:
+      P: (T, n, n) a-posteriori covariances P_k
+      K: (T, n, p) Kalman gains K_k
+      P_prior: (T, n, n) a-priori covariances P1_k
+    """
+
+    P: jax.Array
+    K: jax.Array
+    P_prior: jax.Array
 
 
 def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
@@ -180,15 +193,25 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 
 
 class Update(NamedTuple):
-    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs)."""
+    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs).
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P: jax.Array  # (n, n) a-posteriori covariance (the given one when a fixed gain is used)
-    K: jax.Array  # (n, p) gain used (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S: jax.Array | None = None  # (p, p) innovation covariance of the observed components, 1 on a missing diagonal
-    log_likelihood: jax.Array | None = None  # () log p(y_k | y_0..y_{k-1}) of the observed components
+    Attributes:
+      x: (n,) a-posteriori mean
+      P: (n, n) a-posteriori covariance (the given one when a fixed gain is used)
+      K: (n, p) gain used (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S: (p, p) innovation covariance of the observed components, 1 on a missing diagonal
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S: jax.Array | None = None
+    log_likelihood: jax.Array | None = None
 
 
 def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
@@ -421,15 +444,25 @@ def _tria_jvp(primals, tangents):
 
 
 class SquareRootUpdate(NamedTuple):
-    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs)."""
+    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs).
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P_sqrt: jax.Array  # (n, n) lower-triangular factor of the a-posteriori covariance
-    K: jax.Array  # (n, p) gain (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S_sqrt: jax.Array  # (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components
+    Attributes:
+      x: (n,) a-posteriori mean
+      P_sqrt: (n, n) lower-triangular factor of the a-posteriori covariance
+      K: (n, p) gain (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S_sqrt: (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P_sqrt: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S_sqrt: jax.Array
+    log_likelihood: jax.Array
 
 
 def square_root_predict(x, P_sqrt, Phi, Q_sqrt, Gamma=None, u_prev=None, *, skip=None):

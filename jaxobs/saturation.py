@@ -335,18 +335,30 @@ def _adjugate(D):
 
 
 class Residual(NamedTuple):
-    statistic: jax.Array  # () int_0^T ||r(tau)|| dtau (trapezoid)
-    scale: jax.Array  # () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
-    norms: jax.Array  # (N + 1,) ||r(tau_j)||
-    w0: jax.Array  # (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
-    w_end: jax.Array  # (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
-    condition: jax.Array  # () condition number of D(T)
+    """Result of :func:`hypothesis_residual`.
+
+    Attributes:
+      statistic: () int_0^T ||r(tau)|| dtau (trapezoid)
+      scale: () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
+      norms: (N + 1,) ||r(tau_j)||
+      w0: (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
+      w_end: (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
+      condition: () condition number of D(T)
+    """
+
+    statistic: jax.Array
+    scale: jax.Array
+    norms: jax.Array
+    w0: jax.Array
+    w_end: jax.Array
+    condition: jax.Array
 
 
 def hypothesis_residual(model: WindowModel, y, u) -> Residual:
-    """The consistency statistic of Grip (2010) (9.6)-(9.8) for the hypothesis "over this window
-    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u``
-    (:func:`forced_response`)::
+    """The consistency statistic of Grip (2010) (9.6)-(9.8) for one hypothesis on a window.
+
+    The hypothesis is "over this window ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the
+    response to the known input ``u`` (:func:`forced_response`)::
 
         r(tau) = det(D(tau)) (y(tau) - H v(tau)) - H exp(F tau) adj(D(tau)) (xi(tau) - S(tau))
         D(tau) = int_0^tau exp(F' g) H' H exp(F g) dg,  xi(tau) - S(tau) = int_0^tau exp(F' g) H' (y - H v)(g) dg
@@ -507,7 +519,9 @@ def _merged(A, B, C, M, N, G):
 
 
 def low_gain_are(A, B, C, M, N, F, eps):
-    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009)::
+    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009).
+
+    It solves::
 
         AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
 

@@ -207,25 +207,43 @@ def check_per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
 
 
 class WrenchRollout(NamedTuple):
-    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis time, then the 6 DOF)."""
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis time, then the 6 DOF).
 
-    wrench: jax.Array  # measured wrench (N, N·m): simulated sensor wrench plus noise
-    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
-    position: jax.Array  # joint coordinates q (mm, rad past the untensioned contact)
-    velocity: jax.Array  # qdot (mm/s, rad/s)
-    applied: jax.Array  # plant input during step k (mm/s, rad/s): the command d samples earlier
+    Attributes:
+      wrench: (T, 6) measured wrench (N, N·m): simulated sensor wrench plus noise
+      wrench_true: (T, 6) noise-free sensor wrench (N, N·m)
+      position: (T, 6) joint coordinates q (mm, rad past the untensioned contact)
+      velocity: (T, 6) qdot (mm/s, rad/s)
+      applied: (T, 6) plant input during step k (mm/s, rad/s): the command d samples earlier
+    """
+
+    wrench: jax.Array
+    wrench_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    applied: jax.Array
 
 
 class Compliant6Rollout(NamedTuple):
-    """Per control step ``k`` of :func:`closed_loop_rollout` (leading axis time, then the 6 DOF)."""
+    """Per control step ``k`` of :func:`closed_loop_rollout` (leading axis time, then the 6 DOF).
 
-    wrench: jax.Array  # measured wrench y_k (N, N·m): sensor wrench plus noise, what the controllers read
-    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
-    position: jax.Array  # joint coordinates q (mm, rad)
-    velocity: jax.Array  # qdot (mm/s, rad/s)
-    command: jax.Array  # controller commands u_k = r_k - L x_hat_k (mm/s, rad/s)
-    applied: jax.Array  # plant input during step k: (u + v_d + d)_{k-d}
-    controller: object  # per-DOF controller outputs (e.g. FeedbackOutputs), leading axes (T, 6)
+    Attributes:
+      wrench: (T, 6) measured wrench y_k (N, N·m): sensor wrench plus noise, what the controllers read
+      wrench_true: (T, 6) noise-free sensor wrench (N, N·m)
+      position: (T, 6) joint coordinates q (mm, rad)
+      velocity: (T, 6) qdot (mm/s, rad/s)
+      command: (T, 6) controller commands u_k = r_k - L x_hat_k (mm/s, rad/s)
+      applied: (T, 6) plant input during step k: (u + v_d + d)_{k-d}
+      controller: per-DOF controller outputs (e.g. FeedbackOutputs), leading axes (T, 6)
+    """
+
+    wrench: jax.Array
+    wrench_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    command: jax.Array
+    applied: jax.Array
+    controller: object
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,7 +343,9 @@ def _contact(model: mjx.Model, qpos: jax.Array):
 
 
 def coupling_force(model: mjx.Model, qpos: jax.Array) -> jax.Array:
-    """The peg-on-hole coupling as a generalized force (6,) in model units (N, N·mm), ``-dV_c/dq``::
+    """The peg-on-hole coupling as a generalized force (6,) in model units (N, N·mm).
+
+    It is ``-dV_c/dq``::
 
         (-K_x s_x, 0, -K_z s_z, 0, -(p_z f_x - p_x f_z), 0)
 

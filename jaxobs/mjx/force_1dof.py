@@ -120,14 +120,23 @@ class ForcePlantParams:
 
 
 class ForceRollout(NamedTuple):
-    """Per control step ``k`` (at time ``k h``, before the step's command acts)."""
+    """Per control step ``k`` (at time ``k h``, before the step's command acts).
 
-    force: jax.Array  # measured force (N): simulated sensor force plus noise
-    force_true: jax.Array  # noise-free sensor force (N)
-    position: jax.Array  # tool position x (mm past the contact point)
-    velocity: jax.Array  # tool velocity (mm/s)
-    applied: jax.Array  # command applied during step k (mm/s), i.e. u_{k-d}
-    surface: jax.Array  # environment surface position x_e at k h (mm)
+    Attributes:
+      force: (T,) measured force (N): simulated sensor force plus noise
+      force_true: (T,) noise-free sensor force (N)
+      position: (T,) tool position x (mm past the contact point)
+      velocity: (T,) tool velocity (mm/s)
+      applied: (T,) command applied during step k (mm/s), i.e. u_{k-d}
+      surface: (T,) environment surface position x_e at k h (mm)
+    """
+
+    force: jax.Array
+    force_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    applied: jax.Array
+    surface: jax.Array
 
 
 def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
@@ -335,16 +344,27 @@ def rollout(
 
 
 class ClosedLoopRollout(NamedTuple):
-    """Per control step ``k`` of :func:`closed_loop_rollout` (time ``k h``; leading axis: time)."""
+    """Per control step ``k`` of :func:`closed_loop_rollout` (time ``k h``; leading axis: time).
 
-    force: jax.Array  # measured force y_k (N): sensor force plus noise, what the controller reads
-    force_true: jax.Array  # noise-free sensor force (N)
-    position: jax.Array  # tool position x (mm past the contact point)
-    velocity: jax.Array  # tool velocity (mm/s)
-    command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
-    applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
-    controller: object  # the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
-    surface: jax.Array  # environment surface position x_e at k h (mm)
+    Attributes:
+      force: (T,) measured force y_k (N): sensor force plus noise, what the controller reads
+      force_true: (T,) noise-free sensor force (N)
+      position: (T,) tool position x (mm past the contact point)
+      velocity: (T,) tool velocity (mm/s)
+      command: (T,) controller command u_k = r_k - L x_hat_k (mm/s)
+      applied: (T,) plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
+      controller: the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
+      surface: (T,) environment surface position x_e at k h (mm)
+    """
+
+    force: jax.Array
+    force_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    command: jax.Array
+    applied: jax.Array
+    controller: object
+    surface: jax.Array
 
 
 def closed_loop_rollout(

@@ -209,8 +209,10 @@ def _jacobians(robot: Robot, x0):
 
 
 def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
-    """The discrete linear model of ``robot`` over one control period about an operating point (default: the
-    robot's), by ``jax.jacfwd`` of the transition (``substeps`` ``mjx.step`` calls, command held)::
+    """The discrete linear model of ``robot`` over one control period about an operating point.
+
+    The operating point defaults to the robot's; the model is ``jax.jacfwd`` of the transition (``substeps``
+    ``mjx.step`` calls, command held)::
 
         dx_{k+1} = Phi dx_k + Gamma du_{k-d},   dy_k = C dx_k,   dx = (qpos, qvel) - (qpos0, qvel0)
 
@@ -324,14 +326,23 @@ def mismatch(model: mjx.Model, scales: dict) -> mjx.Model:
 
 
 class RobotRollout(NamedTuple):
-    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time)."""
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time).
 
-    x: jax.Array  # (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
-    y: jax.Array  # (T, p) measurement the controller read: deviation from the operating point plus noise
-    y_true: jax.Array  # (T, p) the noise-free deviation
-    u: jax.Array  # (T, m) the controller's command u_k
-    applied: jax.Array  # (T, m) the command acting during period k, u_{k-d}
-    controller: Any  # the controller's outputs per step
+    Attributes:
+      x: (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
+      y: (T, p) measurement the controller read: deviation from the operating point plus noise
+      y_true: (T, p) the noise-free deviation
+      u: (T, m) the controller's command u_k
+      applied: (T, m) the command acting during period k, u_{k-d}
+      controller: the controller's outputs per step
+    """
+
+    x: jax.Array
+    y: jax.Array
+    y_true: jax.Array
+    u: jax.Array
+    applied: jax.Array
+    controller: Any
 
 
 def rollout(
@@ -345,8 +356,9 @@ def rollout(
     dx0=None,
     reference=None,
 ) -> RobotRollout:
-    """``robot`` (with the mismatch ``scales``, see :func:`mismatch`) under ``controller`` for ``steps`` control
-    periods, in one ``lax.scan``. At control step ``k`` (time ``k h``)::
+    """``robot`` under ``controller`` for ``steps`` control periods, in one ``lax.scan``.
+
+    The robot carries the mismatch ``scales`` (:func:`mismatch`). At control step ``k`` (time ``k h``)::
 
         y_k      = s(x(k h)) - s(x0) + v_k,  v_k ~ N(0, diag(sensor_noise^2))     measured sensordata entries
         state, o = controller.step(params, state, ControllerInputs(y_k, r_k))

@@ -97,20 +97,41 @@ class VehicleEKFParams:
 
 
 class VehicleEKFState(NamedTuple):
-    filter: GaussianState  # the EKF's state
-    mode: jax.Array  # () fast friction estimation (1) or slow (0), for the next interval
-    off_timer: jax.Array  # () the switching logic's timer (s)
-    low_pass: jax.Array  # () its high-pass filter's state
-    sensors: jax.Array  # (N_SENSORS,) last finite sensor sample
-    missing: jax.Array  # () int32, non-finite sensor entries so far
+    """State of :data:`vehicle_ekf` between samples.
+
+    Attributes:
+      filter: the EKF's state
+      mode: () fast friction estimation (1) or slow (0), for the next interval
+      off_timer: () the switching logic's timer (s)
+      low_pass: () its high-pass filter's state
+      sensors: (N_SENSORS,) last finite sensor sample
+      missing: () int32, non-finite sensor entries so far
+    """
+
+    filter: GaussianState
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    sensors: jax.Array
+    missing: jax.Array
 
 
 class VehicleEKFOutputs(NamedTuple):
-    x: jax.Array  # (8,) a-posteriori state (v_x, v_y, theta_i, theta_b, mu, d_i, d_b, d_mu)
-    P: jax.Array  # (8, 8) its covariance
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
-    mode: jax.Array  # () the friction-estimation mode of the interval (1 fast)
-    innovation: jax.Array  # (4,) (a_x, a_y, r', v_x,ref) minus the model at the prior (0 where skipped)
+    """Outputs of one sample of :data:`vehicle_ekf`.
+
+    Attributes:
+      x: (8,) a-posteriori state (v_x, v_y, theta_i, theta_b, mu, d_i, d_b, d_mu)
+      P: (8, 8) its covariance
+      beta: () sideslip arctan(v_y / v_x) (rad)
+      mode: () the friction-estimation mode of the interval (1 fast)
+      innovation: (4,) (a_x, a_y, r', v_x,ref) minus the model at the prior (0 where skipped)
+    """
+
+    x: jax.Array
+    P: jax.Array
+    beta: jax.Array
+    mode: jax.Array
+    innovation: jax.Array
 
 
 def _process(constants, x, u, t):

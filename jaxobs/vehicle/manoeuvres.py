@@ -54,7 +54,14 @@ class Command(NamedTuple):
 
 
 class Manoeuvre(NamedTuple):
-    """A test drive: ``command(t) -> Command`` (traceable), its ``duration`` (s) and ``initial_speed`` (m/s)."""
+    """A test drive.
+
+    Attributes:
+      name: the manoeuvre's name
+      command: ``command(t) -> Command`` (traceable)
+      duration: its duration (s)
+      initial_speed: the vehicle's speed at ``t = 0`` (m/s)
+    """
 
     name: str
     command: Callable

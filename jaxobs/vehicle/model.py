@@ -126,25 +126,42 @@ class VehicleParams:
 
     @property
     def wheelbase(self):
+        """Wheelbase ``lf + lr`` (m)."""
         return self.lf + self.lr
 
 
 class VehicleState(NamedTuple):
-    """State of the two-track model (see the module docstring); wheels ordered FL, FR, RL, RR."""
+    """State of the two-track model (see the module docstring); wheels ordered FL, FR, RL, RR.
+
+    Attributes:
+      vx: () longitudinal velocity at the centre of gravity (m/s, body frame)
+      vy: () lateral velocity at the centre of gravity (m/s, body frame, positive to the left)
+      r: () yaw rate (rad/s, counter-clockwise)
+      omega: (4,) wheel angular speeds (rad/s)
+      tan_alpha: (4,) relaxed lateral slips tan(alpha)
+      ax_lt: () lagged a_x of the load transfer (m/s^2)
+      ay_lt: () lagged a_y of the load transfer (m/s^2)
+    """
 
     vx: jax.Array
     vy: jax.Array
     r: jax.Array
-    omega: jax.Array  # (4,) wheel angular speeds (rad/s)
-    tan_alpha: jax.Array  # (4,) relaxed lateral slips tan(alpha)
-    ax_lt: jax.Array  # lagged a_x of the load transfer (m/s^2)
-    ay_lt: jax.Array  # lagged a_y of the load transfer (m/s^2)
+    omega: jax.Array
+    tan_alpha: jax.Array
+    ax_lt: jax.Array
+    ay_lt: jax.Array
 
 
 class Inputs(NamedTuple):
-    """Plant inputs: steering-wheel angle (rad), wheel torques (4,) (N m, driving > 0), road bank ``Phi`` and
-    inclination ``Theta`` (rad, signs of Grip 2010 (2.11)-(2.12)), and a friction scale of the road (1 = the
-    tyre's own ``mu``; it multiplies the tyre's peak friction)."""
+    """Plant inputs at one instant.
+
+    Attributes:
+      steering_wheel: () steering-wheel angle (rad)
+      torque: (4,) wheel torques (N m, driving > 0)
+      bank: () road bank ``Phi`` (rad, sign of Grip 2010 (2.12))
+      inclination: () road inclination ``Theta`` (rad, sign of Grip 2010 (2.11))
+      friction: () friction scale of the road (1 = the tyre's own ``mu``; it multiplies the tyre's peak friction)
+    """
 
     steering_wheel: jax.Array
     torque: jax.Array
@@ -154,17 +171,29 @@ class Inputs(NamedTuple):
 
 
 class Forces(NamedTuple):
-    """Per-wheel quantities (4,) and body-frame sums at one instant."""
+    """Per-wheel quantities (4,) and body-frame sums at one instant.
 
-    fx_wheel: jax.Array  # tyre forces in the wheel frames (N)
+    Attributes:
+      fx_wheel: (4,) longitudinal tyre forces in the wheel frames (N)
+      fy_wheel: (4,) lateral tyre forces in the wheel frames (N)
+      fz: (4,) normal loads (N)
+      kappa: (4,) longitudinal slips
+      tan_alpha_ss: (4,) steady-state lateral slips
+      v_long: (4,) wheel-centre speeds along the wheel planes (m/s)
+      ax: () specific force a_x (m/s^2)
+      ay: () specific force a_y (m/s^2)
+      yaw_moment: () yaw moment of the tyre forces (N m)
+    """
+
+    fx_wheel: jax.Array
     fy_wheel: jax.Array
-    fz: jax.Array  # normal loads (N)
-    kappa: jax.Array  # longitudinal slips
-    tan_alpha_ss: jax.Array  # steady-state lateral slips
-    v_long: jax.Array  # wheel-centre speeds along the wheel planes (m/s)
-    ax: jax.Array  # specific forces a_x, a_y (m/s^2)
+    fz: jax.Array
+    kappa: jax.Array
+    tan_alpha_ss: jax.Array
+    v_long: jax.Array
+    ax: jax.Array
     ay: jax.Array
-    yaw_moment: jax.Array  # (N m)
+    yaw_moment: jax.Array
 
 
 def _geometry(p: VehicleParams):

@@ -171,22 +171,45 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
 
 
 class NVSOState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
-    mode: jax.Array  # () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
-    off_timer: jax.Array  # () time since the switching conditions last held (s)
-    low_pass: jax.Array  # () the low-pass part of the high-pass filter of a_y - r v_x
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`nvso` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
+      mode: () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
+      off_timer: () time since the switching conditions last held (s)
+      low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class NVSOOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
-    beta: jax.Array  # () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
-    mode: jax.Array  # () the mode used over the interval
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s)
-    K_theta_b: jax.Array  # () the bank gain used (after reductions)
+    """Outputs of one sample of :data:`nvso`.
+
+    Attributes:
+      x: (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
+      beta: () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
+      mode: () the mode used over the interval
+      innovation: (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
+      xi: () d a_y* / d v_y (1/s)
+      K_theta_b: () the bank gain used (after reductions)
+    """
+
+    x: jax.Array
+    beta: jax.Array
+    mode: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
+    K_theta_b: jax.Array
 
 
 def _init(params: NVSOParams) -> NVSOState:

@@ -205,19 +205,39 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
 
 
 class RoadAnglesState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`road_angles` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class RoadAnglesOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
-    inclination: jax.Array  # () arcsin(theta_i) (rad)
-    bank: jax.Array  # () arcsin(theta_b / cos(inclination)) (rad)
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s) over the interval
+    """Outputs of one sample of :data:`road_angles`.
+
+    Attributes:
+      x: (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
+      inclination: () arcsin(theta_i) (rad)
+      bank: () arcsin(theta_b / cos(inclination)) (rad)
+      beta: () sideslip arctan(v_y / v_x) (rad)
+      innovation: (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
+      xi: () d a_y* / d v_y (1/s) over the interval
+    """
+
+    x: jax.Array
+    inclination: jax.Array
+    bank: jax.Array
+    beta: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
 
 
 def _init(params: RoadAnglesParams) -> RoadAnglesState:
@@ -285,14 +305,23 @@ road_angles_adaptive = Estimator(_init, functools.partial(_step, adaptive=True))
 
 class FinalAngles(NamedTuple):
     """:func:`final_angles`' result: the estimated and the true parameters at the last sample and their errors in
-    degrees of the angles."""
+    degrees of the angles.
 
-    theta_i_final: jax.Array  # () estimated sin(Theta)
-    theta_i_expected: jax.Array  # () true sin(Theta)
-    theta_b_final: jax.Array  # () estimated cos(Theta) sin(Phi)
-    theta_b_expected: jax.Array  # () true cos(Theta) sin(Phi)
-    inclination_error: jax.Array  # () estimated minus true inclination (deg)
-    bank_error: jax.Array  # () estimated minus true bank (deg)
+    Attributes:
+      theta_i_final: () estimated sin(Theta)
+      theta_i_expected: () true sin(Theta)
+      theta_b_final: () estimated cos(Theta) sin(Phi)
+      theta_b_expected: () true cos(Theta) sin(Phi)
+      inclination_error: () estimated minus true inclination (deg)
+      bank_error: () estimated minus true bank (deg)
+    """
+
+    theta_i_final: jax.Array
+    theta_i_expected: jax.Array
+    theta_b_final: jax.Array
+    theta_b_expected: jax.Array
+    inclination_error: jax.Array
+    bank_error: jax.Array
 
 
 def final_angles(outputs: RoadAnglesOutputs, inclination, bank) -> FinalAngles:
