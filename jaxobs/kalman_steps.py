@@ -1,24 +1,11 @@
-"""The Kalman building blocks every Kalman-type estimator shares: the covariance recursion (gain, Riccati step
-and its sequence over time), prediction, the Joseph-form measurement update with missing data, the innovation,
-its covariance and the log-likelihood, and the same steps in U-D and square-root (Cholesky factor) form. The
-steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`.
+"""The Kalman building blocks every Kalman-type estimator shares (Cortesão 2006 eq. 27-29).
 
-Model (Cortesão 2006 eq. 27-29)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    E[w w'] = Q,  E[v v'] = R
-
-    x_prior = Phi x_{k-1} + Gamma u_{k-1}            P_prior = Phi P_{k-1} Phi' + Q          (predict)
-    K_k     = P_prior C' S_k^{-1},  S_k = C P_prior C' + R                                   (gain)
-    x_k     = x_prior + K_k (y_k - C x_prior)                                                (update)
-    P_k     = (I - K_k C) P_prior (I - K_k C)' + K_k R K_k'                                  (Joseph form)
-    log p(y_k | y_0..y_{k-1}) = -(p log 2 pi + log det S_k + e_k' S_k^{-1} e_k) / 2,  e_k = y_k - C x_prior
-
-Missing data: a non-finite component of ``y_k`` is missing. Its row of ``C`` and its correlations in ``R``
-are removed for that step, an exact marginalisation, so the update and the log-likelihood use only the finite
-components; when all are missing the update leaves the prediction unchanged and the log-likelihood is 0.
-The covariance algebra writes ``P1`` for ``P_prior`` (Cortesão's symbol).
-
-Every function here is pure and works eagerly, under ``jit``, ``vmap`` and ``grad``.
+The covariance recursion (:func:`kalman_gain`, :func:`riccati_step`, :func:`covariance_sequence`),
+:func:`predict`, the Joseph-form :func:`update` with missing data (a non-finite component of ``y_k`` is
+marginalised out), the innovation, its covariance and :func:`innovation_log_likelihood`, and the same steps in
+U-D (:func:`bierman_update`) and square-root form (:func:`square_root_predict`, :func:`square_root_update`). The
+steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`. Every function is
+pure (eager, ``jit``, ``vmap``, ``grad``). The equations: docs/theory/estimators.md.
 """
 
 from __future__ import annotations

@@ -1,28 +1,10 @@
 """Planar two-track vehicle model: body velocities, yaw rate, wheel spin, tyre relaxation, load transfer.
 
-State (:class:`VehicleState`): ``vx``, ``vy`` (m/s, body frame at the centre of gravity, ``vy`` positive to the
-left), yaw rate ``r`` (rad/s, counter-clockwise), wheel angular speeds ``omega`` (4,), the relaxed lateral slips
-``tan_alpha`` (4,) and the accelerations ``ax_lt``, ``ay_lt`` that set the load transfer. Wheels are ordered
-front-left, front-right, rear-left, rear-right. The right-hand side (:func:`dynamics`) is, with ``F_x``, ``F_y``
-the sums of the tyre forces in the body frame, ``M`` their yaw moment and the road inclination ``Theta``, bank
-``Phi`` as in Grip 2010 (2.11)-(2.12):
-
-    vx'  = a_x + r vy + g sin(Theta),     a_x = (F_x - drag) / m
-    vy'  = a_y - r vx - g cos(Theta) sin(Phi),   a_y = F_y / m
-    r'   = M / I_z
-    J omega_i' = T_i - R F_xw,i                                      (driving / braking torque T_i)
-    tan_alpha_i' = (|v_l,i| / l_relax) (tan_alpha_ss,i - tan_alpha_i)  (first-order relaxation, Pacejka 2006)
-    ax_lt' = (a_x - ax_lt) / tau,   ay_lt' = (a_y - ay_lt) / tau
-
-``a_x``, ``a_y`` are the specific forces an accelerometer at the centre of gravity reads (tyre and drag forces
-over the mass). The normal loads are quasi-static in the lagged accelerations (the lag ``tau`` stands for the
-roll and pitch motion and breaks the algebraic loop between loads and forces): static axle loads
-``m g cos(Theta) cos(Phi) l_{r,f} / L``, longitudinal transfer ``m ax_lt h / L`` from front to rear and
-lateral transfer ``m ay_lt h chi_{f,r} / t_{f,r}`` per axle to the outer wheels (``chi``: roll-stiffness share).
-Front wheels steer by ``steering_wheel / steering_ratio`` (parallel steering, no Ackermann or compliance).
-
-Standstill guard: slips and relaxation rates divide by ``max(|v_l|, MIN_SPEED)``; below :data:`MIN_SPEED` the
-model is not meant to be used (manoeuvres stay above it).
+:class:`VehicleState` holds ``vx``, ``vy``, the yaw rate ``r``, the wheel speeds, the relaxed lateral slips and the
+lagged accelerations of the load transfer; wheels are ordered FL, FR, RL, RR. :func:`dynamics` is the right-hand
+side (road inclination and bank as in Grip 2010 (2.11)-(2.12)), :func:`forces` the tyre forces and their sums,
+:func:`friction_model` and :func:`lateral_acceleration` the observers' friction model. Below :data:`MIN_SPEED`
+the model is not meant to be used. The equations and the load transfer: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -131,7 +113,7 @@ class VehicleParams:
 
 
 class VehicleState(NamedTuple):
-    """State of the two-track model (see the module docstring); wheels ordered FL, FR, RL, RR.
+    """State of the two-track model (docs/theory/vehicle.md); wheels ordered FL, FR, RL, RR.
 
     Attributes:
       vx: () longitudinal velocity at the centre of gravity (m/s, body frame)
@@ -257,7 +239,7 @@ def forces(p: VehicleParams, x: VehicleState, u: Inputs) -> Forces:
 
 
 def dynamics(p: VehicleParams, x: VehicleState, u: Inputs) -> VehicleState:
-    """The time derivative of the state (module docstring) under the inputs ``u``."""
+    """The time derivative of the state (docs/theory/vehicle.md) under the inputs ``u``."""
     f = forces(p, x, u)
     speed = jnp.maximum(jnp.abs(f.v_long), MIN_SPEED)
     return VehicleState(

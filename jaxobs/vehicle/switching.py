@@ -5,7 +5,7 @@ Friction estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (
 constant ``high_pass_time``) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear
 single track exceeds ``yaw_rate_threshold``, or (ii) the car oversteers (``(|r| -+ |r_ref|) v_x >
 oversteer_threshold`` for ``r`` and ``r_ref`` of the same or of opposite signs); it turns off ``off_delay`` seconds
-after the last sample with (i) or (ii). The NVSO's module docstring gives the details.
+after the last sample with (i) or (ii). The details: docs/theory/vehicle.md (the NVSO).
 
 ``smooth``: ``None`` for exact switches; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
 ``sigmoid(k (x - c) / scale)``, so that thresholds get gradients.
