@@ -57,7 +57,7 @@ def predict_covariance(P, Phi, Q):
     Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
     (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
     optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
-    kernel 3x slower for a batch of 10 x 10 matrices (``benchmarks/estimation.py``, ``filter``, n = 10).
+    slower kernel (``benchmarks/estimation.py``, ``filter``; the numbers in docs/theory/measurements.md).
     """
     return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
 
