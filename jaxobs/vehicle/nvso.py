@@ -134,7 +134,7 @@ class NVSOState(NamedTuple):
       off_timer: () time since the switching conditions last held (s)
       low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
       y: (N_SENSORS,) last finite measurement (held over the next interval)
-      started: () bool
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
       missing: () int32, non-finite sensor samples skipped so far
     """
 

@@ -177,7 +177,7 @@ class RoadAnglesState(NamedTuple):
     Attributes:
       x: (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
       y: (N_SENSORS,) last finite measurement (held over the next interval)
-      started: () bool
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
       missing: () int32, non-finite sensor samples skipped so far
     """
 
