@@ -57,6 +57,7 @@ def acker(Phi, Gamma, poles):
 
     Args:
       Phi: (n, n) state matrix.  Gamma: (n, 1) input matrix.  poles: (n,) desired poles.
+
     Returns:
       (1, n) gain ``L``.
     """
@@ -106,6 +107,7 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
         for the design only and their rows of the returned gain are zero (Cortesão 2006 §8.4: "the first
         and third columns of Gamma_r should be set to zero").
       method: "YT" (Tits-Yang, robust) or "KNV0", as in SciPy.
+
     Returns:
       (m, n) gain ``L`` with ``eig(Phi - Gamma L) = poles``.
 

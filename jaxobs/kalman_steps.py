@@ -1,24 +1,11 @@
-"""The Kalman building blocks every Kalman-type estimator shares: the covariance recursion (gain, Riccati step
-and its sequence over time), prediction, the Joseph-form measurement update with missing data, the innovation,
-its covariance and the log-likelihood, and the same steps in U-D and square-root (Cholesky factor) form. The
-steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`.
+"""The Kalman building blocks every Kalman-type estimator shares (Cortesão 2006 eq. 27-29).
 
-Model (Cortesão 2006 eq. 27-29)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    E[w w'] = Q,  E[v v'] = R
-
-    x_prior = Phi x_{k-1} + Gamma u_{k-1}            P_prior = Phi P_{k-1} Phi' + Q          (predict)
-    K_k     = P_prior C' S_k^{-1},  S_k = C P_prior C' + R                                   (gain)
-    x_k     = x_prior + K_k (y_k - C x_prior)                                                (update)
-    P_k     = (I - K_k C) P_prior (I - K_k C)' + K_k R K_k'                                  (Joseph form)
-    log p(y_k | y_0..y_{k-1}) = -(p log 2 pi + log det S_k + e_k' S_k^{-1} e_k) / 2,  e_k = y_k - C x_prior
-
-Missing data: a non-finite component of ``y_k`` is missing. Its row of ``C`` and its correlations in ``R``
-are removed for that step, an exact marginalisation, so the update and the log-likelihood use only the finite
-components; when all are missing the update leaves the prediction unchanged and the log-likelihood is 0.
-The covariance algebra writes ``P1`` for ``P_prior`` (Cortesão's symbol).
-
-Every function here is pure and works eagerly, under ``jit``, ``vmap`` and ``grad``.
+The covariance recursion (:func:`kalman_gain`, :func:`riccati_step`, :func:`covariance_sequence`),
+:func:`predict`, the Joseph-form :func:`update` with missing data (a non-finite component of ``y_k`` is
+marginalised out), the innovation, its covariance and :func:`innovation_log_likelihood`, and the same steps in
+U-D (:func:`bierman_update`) and square-root form (:func:`square_root_predict`, :func:`square_root_update`). The
+steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`. Every function is
+pure (eager, ``jit``, ``vmap``, ``grad``). The equations: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -70,7 +57,7 @@ def predict_covariance(P, Phi, Q):
     Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
     (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
     optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
-    kernel 3x slower for a batch of 10 x 10 matrices (``benchmarks/estimation.py``, ``filter``, n = 10).
+    slower kernel (``benchmarks/estimation.py``, ``filter``; the numbers in docs/theory/measurements.md).
     """
     return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
 
@@ -85,12 +72,19 @@ def kalman_gain(P1, C, R):
 
 
 class CovarianceUpdate(NamedTuple):
-    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs)."""
+    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs).
 
-    P: jax.Array  # (n, n) a-posteriori covariance
-    K: jax.Array  # (n, p) Kalman gain
-    S: jax.Array  # (p, p) innovation covariance C P1 C' + R
-    S_chol: jax.Array  # (p, p) its lower Cholesky factor
+    Attributes:
+      P: (n, n) a-posteriori covariance
+      K: (n, p) Kalman gain
+      S: (p, p) innovation covariance C P1 C' + R
+      S_chol: (p, p) its lower Cholesky factor
+    """
+
+    P: jax.Array
+    K: jax.Array
+    S: jax.Array
+    S_chol: jax.Array
 
 
 def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
@@ -148,11 +142,17 @@ def riccati_step(P_prev, Phi, C, Q, R):
 
 
 class CovarianceSequence(NamedTuple):
-    """Stacked over time (leading axis ``num_steps``)."""
+    """Result of :func:`covariance_sequence`, stacked over time (leading axis ``T = num_steps``).
 
-    P: jax.Array  # (T, n, n) a-posteriori covariances P_k
-    K: jax.Array  # (T, n, p) Kalman gains K_k
-    P_prior: jax.Array  # (T, n, n) a-priori covariances P1_k
+    Attributes:
+      P: (T, n, n) a-posteriori covariances P_k
+      K: (T, n, p) Kalman gains K_k
+      P_prior: (T, n, n) a-priori covariances P1_k
+    """
+
+    P: jax.Array
+    K: jax.Array
+    P_prior: jax.Array
 
 
 def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
@@ -180,15 +180,25 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 
 
 class Update(NamedTuple):
-    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs)."""
+    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs).
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P: jax.Array  # (n, n) a-posteriori covariance (the given one when a fixed gain is used)
-    K: jax.Array  # (n, p) gain used (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S: jax.Array | None = None  # (p, p) innovation covariance of the observed components, 1 on a missing diagonal
-    log_likelihood: jax.Array | None = None  # () log p(y_k | y_0..y_{k-1}) of the observed components
+    Attributes:
+      x: (n,) a-posteriori mean
+      P: (n, n) a-posteriori covariance (the given one when a fixed gain is used)
+      K: (n, p) gain used (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S: (p, p) innovation covariance of the observed components, 1 on a missing diagonal
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S: jax.Array | None = None
+    log_likelihood: jax.Array | None = None
 
 
 def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
@@ -421,15 +431,25 @@ def _tria_jvp(primals, tangents):
 
 
 class SquareRootUpdate(NamedTuple):
-    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs)."""
+    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs).
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P_sqrt: jax.Array  # (n, n) lower-triangular factor of the a-posteriori covariance
-    K: jax.Array  # (n, p) gain (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S_sqrt: jax.Array  # (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components
+    Attributes:
+      x: (n,) a-posteriori mean
+      P_sqrt: (n, n) lower-triangular factor of the a-posteriori covariance
+      K: (n, p) gain (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S_sqrt: (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P_sqrt: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S_sqrt: jax.Array
+    log_likelihood: jax.Array
 
 
 def square_root_predict(x, P_sqrt, Phi, Q_sqrt, Gamma=None, u_prev=None, *, skip=None):

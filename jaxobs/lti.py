@@ -62,18 +62,22 @@ class StateSpace:
 
     @property
     def n_states(self) -> int:
+        """Number of states ``n``."""
         return self.A.shape[-1]
 
     @property
     def n_inputs(self) -> int:
+        """Number of inputs ``m``."""
         return self.B.shape[-1]
 
     @property
     def n_outputs(self) -> int:
+        """Number of outputs ``p``."""
         return self.C.shape[-2]
 
     @property
     def is_discrete(self) -> bool:
+        """Whether the model is discrete-time (it has a sample time ``dt``)."""
         return self.dt is not None
 
 

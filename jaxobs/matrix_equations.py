@@ -41,11 +41,17 @@ __all__ = [
 
 
 class DareSolution(NamedTuple):
-    """Stabilising solution of a DARE and how well it solves it."""
+    """Stabilising solution of a DARE and how well it solves it.
 
-    X: jax.Array  # (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
-    residual: jax.Array  # () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
-    converged: jax.Array  # () the stabilising solution was found: X finite, closed loop stable, residual small
+    Attributes:
+      X: (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
+      residual: () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
+      converged: () the stabilising solution was found: X finite, closed loop stable, residual small
+    """
+
+    X: jax.Array
+    residual: jax.Array
+    converged: jax.Array
 
 
 # Double-word arithmetic for the DARE residual, whose terms cancel to many digits: a value is the
@@ -380,8 +386,9 @@ def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
 
 
 def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
-    """Stabilising solution ``X`` of the discrete algebraic Riccati equation, as
-    ``scipy.linalg.solve_discrete_are(A, B, Q, R)``::
+    """Stabilising solution ``X`` of the discrete algebraic Riccati equation.
+
+    As ``scipy.linalg.solve_discrete_are(A, B, Q, R)``::
 
         X = A' X A - A' X B (R + B' X B)^{-1} B' X A + Q
 
@@ -520,12 +527,18 @@ _KAPPAS = (1e4, 1.0)
 
 
 class CareSolution(NamedTuple):
-    """Stabilising solution of a CARE and how well it solves it."""
+    """Stabilising solution of a CARE and how well it solves it.
 
-    X: jax.Array  # (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
-    residual: jax.Array  # () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B')
-    # (floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift)
-    converged: jax.Array  # () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+    Attributes:
+      X: (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
+      residual: () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B'),
+        floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift
+      converged: () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+    """
+
+    X: jax.Array
+    residual: jax.Array
+    converged: jax.Array
 
 
 def _norm_bound(A):
@@ -636,8 +649,10 @@ def _care_terms(A, B, Q, R, X):
 
 
 def _care_to_dare(A, B, Q, R, gamma):
-    """The DARE ``(A_d, B_d, Q_d, R_d)`` whose stabilising solution is the CARE's, by the Cayley transform of the
-    Hamiltonian with shift ``gamma`` (Chu, Fan & Lin 2005, the initial step of their doubling for the CARE). With
+    """The DARE ``(A_d, B_d, Q_d, R_d)`` whose stabilising solution is the CARE's.
+
+    By the Cayley transform of the Hamiltonian with shift ``gamma`` (Chu, Fan & Lin 2005, the initial step of
+    their doubling for the CARE). With
     ``A_g = A - gamma I``, ``Z = A_g^{-1} B``, ``Y = A_g^{-T} Q A_g^{-1}``::
 
         R_d = R + Z' Q Z,   B_d = sqrt(2 gamma) Z,   Q_d = 2 gamma (Y - A_g^{-T} Q Z R_d^{-1} Z' Q A_g^{-1}),
@@ -756,8 +771,9 @@ def _solve_care_jit(A, B, Q, R, *, max_iters: int, tol: float) -> CareSolution:
 
 
 def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSolution:
-    """Stabilising solution ``X`` of the continuous algebraic Riccati equation, as
-    ``scipy.linalg.solve_continuous_are(A, B, Q, R)``::
+    """Stabilising solution ``X`` of the continuous algebraic Riccati equation.
+
+    As ``scipy.linalg.solve_continuous_are(A, B, Q, R)``::
 
         A' X + X A - X B R^{-1} B' X + Q = 0
 

@@ -1,25 +1,13 @@
-"""A planar vehicle simulator for the sideslip observers of Grip 2010 (ch. 2-4): tyres, a two-track model,
-ESC-type sensors and manoeuvres modelled on the thesis's test drives.
+"""A planar vehicle simulator for the sideslip observers of Grip 2010 (ch. 2-4).
 
-``tyres``: Magic Formula and Burckhardt tyre curves with combined slip in the friction ellipse.
-``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
-:func:`lateral_acceleration`).
-``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`), and
-the sensor vector the observers take (:data:`N_SENSORS`, :func:`sensor_inputs`).
-``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
-``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
-``switching``: the friction-estimation switch of Grip 2010 §2.5 that the NVSO and its EKF baseline share
-(:func:`make_switching`).
-``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
-``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
-``lateral``: the friction-adaptive observers (3.4) and (3.14) of Grip 2010 ch. 3 (:func:`make_adaptive_lateral`,
-:data:`lateral_observer`, :data:`full_observer`, :func:`lyapunov_3_1`, :func:`lemma_3_1_check`).
-``road_angles``: the inclination and bank estimators of Grip 2010 ch. 4 (:func:`make_road_angles`,
-:data:`road_angles`, :data:`road_angles_adaptive`) and the gain bounds of its Lemmas 4.1-4.2 (:func:`lemma_check`).
+``tyres`` (Magic Formula and Burckhardt curves, combined slip), ``model`` (the two-track model, the friction
+model), ``sensors`` (ESC-type measurements and the observers' sensor vector), ``manoeuvres`` (test drives modelled
+on Grip 2010 §2.10), ``simulate`` (a driver and RK4 in one ``lax.scan``), ``switching`` (the friction-estimation
+switch of §2.5); the observers ``nvso`` (Grip 2010 ch. 2), ``ekf`` (its EKF baseline, §2.9), ``lateral`` (the
+friction-adaptive observers of ch. 3) and ``road_angles`` (inclination and bank, ch. 4).
 
-Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
-``vmap``; everything is pure and works under ``jit``, ``vmap`` and ``grad``. ``import jaxobs`` does not import
-this package.
+Parameters are registered dataclass pytrees (a batch of vehicles is a ``vmap``); everything is pure under ``jit``,
+``vmap`` and ``grad``. ``import jaxobs`` does not import this package. Design notes: docs/theory/vehicle.md.
 """
 
 from jaxobs.vehicle.ekf import VehicleEKFOutputs, VehicleEKFParams, VehicleEKFState, make_vehicle_ekf, vehicle_ekf

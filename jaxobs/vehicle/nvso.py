@@ -1,56 +1,11 @@
 """The nonlinear vehicle sideslip observer (NVSO) of Grip 2010 ch. 2 (Grip, Imsland, Johansen, Kalkkuhl & Suissa
 2009), run on the ESC sensors of :mod:`jaxobs.vehicle.sensors` as an :class:`~jaxobs.observers.base.Estimator`.
 
-States ``v_x``, ``v_y`` (m/s), the friction scale ``theta`` (``a_y = theta a_y*``, Grip 2010 §2.4), the inclination
-``theta_i = sin(Theta)`` and the bank ``theta_b = cos(Theta) sin(Phi)``. With the residual ``e = a_y - theta a_y*``,
-``a_y*`` the friction model (:func:`jaxobs.vehicle.friction_model`) at the nominal friction ``mu_H* = 1`` (the
-tyres' own), ``xi = d a_y* / d v_y`` (forward-mode autodiff) and ``Lambda = (xi^2 + a_y*^2)^(-1/2)``, the two
-modes are (2.18)-(2.27)::
-
-    v_x'     = a_x + r v_y + g theta_i + K_vx(t) (v_x,ref - v_x)                     (2.18), (2.23)
-    v_y'     = a_y - r v_x - g theta_b - K_vy e           | + K_vy Lambda xi e        (2.19) | (2.24)
-    theta'   = K_e (theta* - theta)                     | K_theta Lambda a_y* e       (2.20) | (2.25)
-    theta_i' = K_theta_i K_vx(t) (v_x,ref - v_x)         (K_theta_i_on in mode 2)     (2.21), (2.26)
-    theta_b' = K_theta_b(t) e                            | -K_theta_b(t) Lambda xi e  (2.22) | (2.27)
-
-mode 1 (friction estimation off) left, mode 2 (on) right; the right-hand side is ``(1 - m) f_1 + m f_2`` with the
-mode ``m``. Discretised by forward Euler at the sensor period (Grip 2010 §2.8): step ``k`` integrates over
-``[t_{k-1}, t_k]`` with the measurement ``y_{k-1}`` held and outputs the estimate at ``t_k`` (the first step outputs
-the initial estimate with ``v_x = v_x,ref``); ``theta`` is then clipped to ``[max(theta_min, |(a_x, a_y)| /
-(accel_margin g)), theta_max]`` (§2.8: the clip bounds and ``1.2 g theta >= |(a_x, a_y)|``).
-
-Switching logic (§2.5), evaluated at every sample from the estimates and the held measurements: friction
-estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (``HP`` a high-pass of time constant
-``high_pass_time``, 10 s) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear single
-track (``K_us = (1/c_f - 1/c_r) / g`` from the tyres' cornering stiffnesses per unit load, by autodiff) exceeds
-``yaw_rate_threshold``, or (ii) the car oversteers: the yaw rate exceeds the reference in the direction the car
-turns, ``(|r| - |r_ref|) v_x > oversteer_threshold`` with ``r`` and ``r_ref`` of the same sign, or ``(|r| + |r_ref|)
-v_x > oversteer_threshold`` with opposite signs (the driver counter-steers a drift: the car yaws against the steering
-wheel, the strongest oversteer; on the ice lake the drift kept (i) below its threshold and a same-sign-only test
-turned friction estimation off for 2.3 s at the drift's peak, 10.5 against 7.6 deg rms sideslip error); it turns off
-``off_delay`` seconds (rounded to whole samples) after the last sample with (i) or (ii). "Same sign" is ``r r_ref >
-(yaw_rate_threshold / 10)^2`` and "opposite signs" ``-r r_ref >`` the same (a dead band: ``r_ref = 0`` has no
-sign). The thesis's third condition (the ESC system active) has no counterpart in the simulator. ``K_theta_b(t)`` is
-``K_theta_b * theta_b_reduction`` when (1) ``|e| > c1``, (2) ``|r' - theta r'*| > c2`` (``r'`` by differencing the
-yaw rate, ``r'*`` the friction model's yaw acceleration) or (3) the same sign and ``(|r_ref| - |r|) v_x > c3``
-(§2.7). ``K_vx(t) = max(K_vx_min, K_vx / (1 + (s / wheel_spread)^2))`` with ``s`` the standard deviation of the four
-wheel-speed velocities (the thesis reduces the nominal gain by their variance; its algorithm is not published).
-These switches are the thesis's practical stand-in for its excitation condition (2.10), which involves the
-unknown errors.
-
-``smooth``: ``None`` for the exact logic; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
-``sigmoid(k (x - c) / scale)`` (``scale = c``, or ``min_speed`` for the standstill guard), so that gains and
-thresholds get gradients; the gates tend to the exact logic as ``k`` grows (away from ties ``x = c``).
-
-Standstill guard: below ``min_speed`` (default :data:`jaxobs.vehicle.MIN_SPEED`, 3 m/s) the slip angles carry no
-information: the ``a_y`` injections and the friction and bank adaptation are switched off, ``theta`` is drawn to
-``theta*`` and ``v_y`` decays to 0 at the rate ``K_vx``; the sideslip output is ``arctan(v_y / max(v_x,
-min_speed))`` (finite, with finite gradients, at rest). Missing data: a non-finite sensor sample is replaced by the
-channel's last finite one (zero-order hold) and counted in ``state.missing``.
-
-Not modelled (documented departures from §2.8): the tyre-relaxation filter of the friction model, the caster
-correction of the steering angle and the roll-dependent wheel loads beyond those from the measured ``a_x``,
-``a_y``.
+It estimates ``v_x``, ``v_y``, the friction scale ``theta``, the inclination and the bank with two modes, friction
+estimation off and on (2.18)-(2.27), switched by the logic of §2.5 (:mod:`jaxobs.vehicle.switching`), discretised
+by forward Euler at the sensor period (§2.8). ``smooth`` replaces every switch by a sigmoid gate so that gains and
+thresholds get gradients. :func:`make_nvso`, :data:`nvso`. The equations, the switches, the standstill guard and
+the departures from §2.8: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -73,7 +28,7 @@ __all__ = ["NVSOParams", "NVSOState", "NVSOOutputs", "make_nvso", "nvso"]
 
 
 class NVSOParams(NamedTuple):
-    """Gains, thresholds and bounds of the NVSO (module docstring); build with :func:`make_nvso`. Every field is a
+    """Gains, thresholds and bounds of the NVSO (docs/theory/vehicle.md); build with :func:`make_nvso`. Every field is a
     leaf (``smooth=None`` has none), so the params can be batched, differentiated and tuned.
 
     Attributes:
@@ -171,22 +126,45 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
 
 
 class NVSOState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
-    mode: jax.Array  # () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
-    off_timer: jax.Array  # () time since the switching conditions last held (s)
-    low_pass: jax.Array  # () the low-pass part of the high-pass filter of a_y - r v_x
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`nvso` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
+      mode: () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
+      off_timer: () time since the switching conditions last held (s)
+      low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class NVSOOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
-    beta: jax.Array  # () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
-    mode: jax.Array  # () the mode used over the interval
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s)
-    K_theta_b: jax.Array  # () the bank gain used (after reductions)
+    """Outputs of one sample of :data:`nvso`.
+
+    Attributes:
+      x: (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
+      beta: () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
+      mode: () the mode used over the interval
+      innovation: (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
+      xi: () d a_y* / d v_y (1/s)
+      K_theta_b: () the bank gain used (after reductions)
+    """
+
+    x: jax.Array
+    beta: jax.Array
+    mode: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
+    K_theta_b: jax.Array
 
 
 def _init(params: NVSOParams) -> NVSOState:
@@ -273,7 +251,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
 
 
 nvso = Estimator(_init, _step)
-"""The NVSO (module docstring) as an :class:`~jaxobs.observers.base.Estimator` over :class:`NVSOParams`.
+"""The NVSO (docs/theory/vehicle.md) as an :class:`~jaxobs.observers.base.Estimator` over :class:`NVSOParams`.
 
 Inputs: ``EstimatorInputs(y)`` with ``y`` (:data:`~jaxobs.vehicle.N_SENSORS`,) (:func:`~jaxobs.vehicle.sensor_inputs`);
 ``u_prev`` is unused.

@@ -1,45 +1,12 @@
 """The road inclination and bank estimators of Grip 2010 ch. 4 (Grip, Imsland, Johansen, Kalkkuhl & Suissa 2009,
 ACC) and the positive-realness gain bounds of its Lemmas 4.1 and 4.2.
 
-On a slanted road ``v_x' = a_x + r v_y + g sin(Theta)``, ``v_y' = a_y - r v_x - g cos(Theta) sin(Phi)`` (4.5);
-the estimators treat ``theta_i = sin(Theta)`` and ``theta_b = cos(Theta) sin(Phi)`` as constants and estimate
-them by integral action on the two velocity residuals. With the held ESC measurements (``r`` the yaw rate, ``a_y``
-roll-corrected as in Grip 2010 §2.2), ``a_y* = a_y*(v_x, v_y)`` the friction model
-(:func:`jaxobs.vehicle.friction_model`) and ``xi = d a_y* / d v_y`` (forward-mode autodiff)::
-
-    v_x'     = a_x + r v_y + g theta_i + K_vx (v_x,ref - v_x)                                   (4.6)
-    theta_i' = K_theta_i K_vx (v_x,ref - v_x)                                                   (4.7)
-
-and, for the lateral part, either the known-friction estimator :data:`road_angles` (``a_y^ = a_y*`` at the known
-road ``friction``, Theorem 4.1: GES under the bounds below and a large enough ``K_vx``)::
-
-    v_y'     = a_y - r v_x - g theta_b - K_vy (a_y - a_y^)                                      (4.9)
-    theta_b' = K_theta_b (a_y - a_y^)                                                           (4.10)
-
-or the friction-adaptive :data:`road_angles_adaptive` (``a_y^ = theta a_y*`` with ``a_y*`` at the nominal friction
-1, ``Lambda = (xi^2 + a_y*^2)^(-1/2)``; no stability guarantee, Grip 2010 §4.5.2)::
-
-    v_y'     = a_y - r v_x - g theta_b + K_vy Lambda xi (a_y - theta a_y*)                      (4.13)
-    theta'   = K_theta Lambda a_y* (a_y - theta a_y*),  theta clipped to [theta_min, theta_max]  (4.12b)
-    theta_b' = -K_theta_b Lambda xi (a_y - theta a_y*)                                          (4.14)
-
-(the source prints ``g theta_b'`` in (4.9) and ``g theta_i`` in (4.13); both mean ``g theta_b``). ``K_vx`` is a
-constant here (Theorem 4.1 allows any ``K_vx(t) >= K_vx,min``); the thesis's final observer, which switches
-between the two lateral parts, schedules ``K_vx`` on the wheel-speed quality and reduces ``K_theta_b``
-heuristically, is :mod:`jaxobs.vehicle.nvso`. Discretisation and missing data as the NVSO: forward Euler at the
-sensor period, step ``k`` integrates over ``[t_{k-1}, t_k]`` with ``y_{k-1}`` held and outputs the estimate at
-``t_k`` (the first step outputs the initial estimate with ``v_x = v_x,ref``); a non-finite sensor sample is
-replaced by the channel's last finite one and counted. The outputs convert the parameters to angles,
-``Theta = arcsin(theta_i)`` and ``Phi = arcsin(theta_b / cos(Theta))``.
-
-Error systems and gain bounds. With ``K_vx(t) = a + (K_vx(t) - a)``, ``0 < a < K_vx,min``, the inclination error
-``(v_x~, theta_i~)`` is the linear system (4.8) in feedback with a sector ``[0, inf]`` nonlinearity; the origin is
-GES when its transfer function ``G(s) = (s + g K_theta_i) / (s^2 + a s + g K_theta_i a)`` is strictly positive
-real, i.e. ``K_theta_i < a / g`` (Lemma 4.1). Likewise the bank error (4.11) with ``a_y~ = -delta(t) v_y~``,
-``delta >= delta_min > 0``: ``G(s) = (K_vy s + g K_theta_b) / (s^2 + K_vy delta_min s + g K_theta_b delta_min)``,
-SPR iff ``K_theta_b < K_vy^2 delta_min / g`` (Lemma 4.2; the thesis's statement prints the gain as "K_theta1").
-:func:`inclination_error_system`, :func:`bank_error_system` give the linear parts, :func:`inclination_gain_bound`,
-:func:`bank_gain_bound` the bounds, and :func:`lemma_check` evaluates :func:`jaxobs.lti.is_spr` on either side.
+:data:`road_angles` is the known-friction estimator (4.6)-(4.10) (Theorem 4.1), :data:`road_angles_adaptive` the
+friction-adaptive one (4.12)-(4.14); both treat ``sin(Theta)`` and ``cos(Theta) sin(Phi)`` as constants estimated
+by integral action, discretised as the NVSO. :func:`inclination_error_system`, :func:`bank_error_system`,
+:func:`inclination_gain_bound`, :func:`bank_gain_bound` and :func:`lemma_check` give the error systems and the SPR
+bounds; :func:`final_angles` reads a run's final estimates. The equations and the source's misprints:
+docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -144,7 +111,7 @@ def lemma_check(lemma: str, *, a=None, K_vy=None, delta_min=None, g=GRAVITY, rel
 
 
 class RoadAnglesParams(NamedTuple):
-    """Gains of the chapter 4 estimators (module docstring); build with :func:`make_road_angles`. Every field is a
+    """Gains of the chapter 4 estimators (docs/theory/vehicle.md); build with :func:`make_road_angles`. Every field is a
     leaf (batchable, differentiable).
 
     Attributes:
@@ -205,19 +172,39 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
 
 
 class RoadAnglesState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`road_angles` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class RoadAnglesOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
-    inclination: jax.Array  # () arcsin(theta_i) (rad)
-    bank: jax.Array  # () arcsin(theta_b / cos(inclination)) (rad)
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s) over the interval
+    """Outputs of one sample of :data:`road_angles`.
+
+    Attributes:
+      x: (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
+      inclination: () arcsin(theta_i) (rad)
+      bank: () arcsin(theta_b / cos(inclination)) (rad)
+      beta: () sideslip arctan(v_y / v_x) (rad)
+      innovation: (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
+      xi: () d a_y* / d v_y (1/s) over the interval
+    """
+
+    x: jax.Array
+    inclination: jax.Array
+    bank: jax.Array
+    beta: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
 
 
 def _init(params: RoadAnglesParams) -> RoadAnglesState:
@@ -280,19 +267,28 @@ State: :class:`RoadAnglesState`. Outputs: :class:`RoadAnglesOutputs` (``theta`` 
 
 road_angles_adaptive = Estimator(_init, functools.partial(_step, adaptive=True))
 """The friction-adaptive inclination and bank estimator (4.6), (4.7), (4.13), (4.12b), (4.14) of Grip 2010 ch. 4
-(module docstring); as :data:`road_angles` otherwise."""
+(docs/theory/vehicle.md); as :data:`road_angles` otherwise."""
 
 
 class FinalAngles(NamedTuple):
     """:func:`final_angles`' result: the estimated and the true parameters at the last sample and their errors in
-    degrees of the angles."""
+    degrees of the angles.
 
-    theta_i_final: jax.Array  # () estimated sin(Theta)
-    theta_i_expected: jax.Array  # () true sin(Theta)
-    theta_b_final: jax.Array  # () estimated cos(Theta) sin(Phi)
-    theta_b_expected: jax.Array  # () true cos(Theta) sin(Phi)
-    inclination_error: jax.Array  # () estimated minus true inclination (deg)
-    bank_error: jax.Array  # () estimated minus true bank (deg)
+    Attributes:
+      theta_i_final: () estimated sin(Theta)
+      theta_i_expected: () true sin(Theta)
+      theta_b_final: () estimated cos(Theta) sin(Phi)
+      theta_b_expected: () true cos(Theta) sin(Phi)
+      inclination_error: () estimated minus true inclination (deg)
+      bank_error: () estimated minus true bank (deg)
+    """
+
+    theta_i_final: jax.Array
+    theta_i_expected: jax.Array
+    theta_b_final: jax.Array
+    theta_b_expected: jax.Array
+    inclination_error: jax.Array
+    bank_error: jax.Array
 
 
 def final_angles(outputs: RoadAnglesOutputs, inclination, bank) -> FinalAngles:

@@ -1,20 +1,10 @@
 """Simulating the two-track model under a driver: a :class:`Command` per time, RK4 at a fixed plant step.
 
-A manoeuvre is a pure function ``command(t) -> Command`` (traceable in ``t``) with a duration and an initial
-speed (:class:`Manoeuvre`). The driver turns the command and the state into plant inputs:
-
-* steering wheel ``= command.steering_wheel + steering_ratio * curvature_gain * (curvature - r / vx)``
-  (open loop when ``curvature_gain = 0``, path-curvature tracking otherwise), clipped to the steering lock
-  ``steering_ratio * STEERING_LOCK``;
-* total wheel torque ``= R (m (acceleration + SPEED_GAIN (speed - vx) - g sin(Theta)) + drag)``: driving torque
-  split between the rear wheels (rear-wheel drive, as the car of Grip 2010), braking torque between the axles
-  by ``brake_share_front``; each wheel's torque is scaled by ``1 - max(kappa_i sign(T_i), 0) / SLIP_LIMIT``
-  (clipped to [0, 1]), a proportional stand-in for traction control and ABS that keeps the wheels from
-  spinning up or locking.
-
-:func:`simulate` integrates ``x' = dynamics(driver(x, command(t)))`` with :func:`jaxobs.ct.trajectory` (RK4,
-:data:`PLANT_STEP`) in one ``lax.scan`` and returns the states with the specific forces ``a_x``, ``a_y`` and the
-sideslip ``beta = arctan(vy / vx)`` (Grip 2010 ch. 2 convention) at every plant step.
+:func:`driver` turns the command and the state into plant inputs (open-loop or curvature-tracking steering,
+speed-tracking wheel torques with a proportional stand-in for traction control and ABS); :func:`simulate`
+integrates the model under it with :func:`jaxobs.ct.trajectory` (RK4, :data:`PLANT_STEP`) in one ``lax.scan`` and
+returns the states, the specific forces and the sideslip at every plant step. The driver's laws:
+docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -75,7 +65,7 @@ class Trajectory(NamedTuple):
 
 
 def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
-    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (module docstring)."""
+    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (docs/theory/vehicle.md)."""
     curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
     steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
     steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)

@@ -5,7 +5,7 @@ Friction estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (
 constant ``high_pass_time``) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear
 single track exceeds ``yaw_rate_threshold``, or (ii) the car oversteers (``(|r| -+ |r_ref|) v_x >
 oversteer_threshold`` for ``r`` and ``r_ref`` of the same or of opposite signs); it turns off ``off_delay`` seconds
-after the last sample with (i) or (ii). The NVSO's module docstring gives the details.
+after the last sample with (i) or (ii). The details: docs/theory/vehicle.md (the NVSO).
 
 ``smooth``: ``None`` for exact switches; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
 ``sigmoid(k (x - c) / scale)``, so that thresholds get gradients.
@@ -92,13 +92,21 @@ def understeer_gradient(vehicle: VehicleParams):
 
 class Switching(NamedTuple):
     """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
-    yaw rate with the "same sign" test it used."""
+    yaw rate with the "same sign" test it used.
 
-    mode: jax.Array  # () 1: friction estimation on (a gate value when smooth)
-    off_timer: jax.Array  # () time since the conditions last held (s)
-    low_pass: jax.Array  # () the high-pass filter's low-pass state
-    r_ref: jax.Array  # () reference yaw rate of the linear single track (rad/s)
-    same_sign: jax.Array  # () r and r_ref of the same sign (outside the dead band)
+    Attributes:
+      mode: () 1: friction estimation on (a gate value when smooth)
+      off_timer: () time since the conditions last held (s)
+      low_pass: () the high-pass filter's low-pass state
+      r_ref: () reference yaw rate of the linear single track (rad/s)
+      same_sign: () r and r_ref of the same sign (outside the dead band)
+    """
+
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    r_ref: jax.Array
+    same_sign: jax.Array
 
 
 def switching(params, off_timer, low_pass, vx, r, ay, steering_wheel) -> Switching:
