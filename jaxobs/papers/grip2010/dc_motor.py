@@ -7,11 +7,11 @@ Plant (Table 6.1), x = (Omega, omega, eta), y = Omega, phi = sigma_0 eta |omega|
 
     Omega' = omega,  J omega' = u - (alpha_2 + sigma_1) omega - sigma_0 eta + sigma_1 phi,  eta' = omega - phi
 
-Gains are designed on the unperturbed matrices (sigma_1 = 0, section 6.7.1) with eps = 1: observer 1 with the
-poles of H at -1 +- 0.2j, -2 +- 0.2j, observer 2 (the cascade) at -1 +- 0.2j, -2. The parameter law is that of
-Proposition 6.2 with Gamma = 1 and l = 1{|phi_hat| >= 1}; observer 1's g uses the C^1 absolute value with
-kappa = 0.1, observer 2's the exact |omega| (as in the thesis), and the estimate is projected onto Theta =
-[0.05, 1] (the thesis's example ignores the projection, Remark 6.5).
+Gains are designed on the unperturbed matrices (sigma_1 = 0, section 6.7.1) with eps = 1: observer 1 with the poles of H
+at -1 +- 0.2j, -2 +- 0.2j, observer 2 (the cascade) at -1 +- 0.2j, -2. The parameter law is that of Proposition 6.2 with
+the adaptation gain Gamma = 1 and l = 1{|phi_hat| >= 1} (:class:`jaxobs.adaptive.InversionLaw`); observer 1's g uses the
+C^1 absolute value with kappa = 0.1, observer 2's the exact |omega| (as in the thesis), and the estimate is projected
+onto Theta = [0.05, 1] (the thesis's example ignores the projection, Remark 6.5).
 
 The thesis prints no simulation inputs. Used here: u = sin(pi t) Nm for 20 s, theta_hat(0) = 1.0, zero initial
 states (plant and observers), y sampled and held at 1 kHz with N(0, sigma^2) noise (sigma in {0, 1e-3} rad, seed
@@ -29,9 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import ct
-from jaxobs.adaptive import Box
+from jaxobs.adaptive import Box, InversionLaw
 from jaxobs.observers import EstimatorInputs, run
-from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs, target_law
+from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.scenarios import Reproduction
 from jaxobs.scb import scb, scb_arrays
@@ -144,7 +144,7 @@ def observers(K1, K2, inputs):
     """Observer 1 (6.3) with the Proposition 6.2 law and the cascaded observer 2 (section 6.6) on ``inputs``."""
     A, B, E, C = matrices(TABLE_6_1["sigma_1"])
     region = Box(jnp.array([THETA_SET[0]]), jnp.array([THETA_SET[1]]))
-    law = target_law(theta_star, 1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
+    law = InversionLaw(theta_star, adaptation_gain=1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
     params = make_hgo(A, B, E, C, K1, g_model, law=law, theta0=[1.0], K2=K2, g2=g_exact, dt=DT, substeps=SUBSTEPS)
     return run(hgo_observer, params, inputs)[1]
 
