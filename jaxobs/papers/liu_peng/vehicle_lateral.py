@@ -16,7 +16,7 @@ Two models are run (``docs/reproductions.md``, "Liu & Peng §4.2"):
 Estimators, all at h = 10 ms, all on the nominal model and the measured steering:
 
 * ``"inverse_dynamics"``: :func:`jaxobs.observers.inverse_dynamics.make_inverse_dynamics`, Case 2, ``rho = 0``,
-  ``K = [47, 10]'``, ``F1 = -10``, ``F2 = 1`` (§4.2), ``Gamma = B_u u_k``; backward-difference ``y'``.
+  ``K = [47, 10]'``, ``F1 = -10``, ``F2 = 1`` (§4.2), ``known(u, y) = B_u u_k``; backward-difference ``y'``.
 * ``"hinf"``: the a-posteriori H-infinity filter (:mod:`jaxobs.observers.hinf`) on the ZOH model augmented with a
   random-walk disturbance state ``[v_y, r, d]``, estimating ``z = [v_y, d]`` at ``HINF_GAMMA_FACTOR`` times the
   optimal level over the run (:func:`~jaxobs.observers.hinf.gamma_bisection`). The paper used MATLAB's
