@@ -385,8 +385,10 @@ def _wrap_functions(law, *names):
             object.__setattr__(law, name, _checks.function(name, fn))
 
 
-def _projected(law, tau, theta_hat) -> jax.Array:
-    """``Proj(tau)`` onto the law's ``region`` (``tau`` as is without one)."""
+def _rate(law, direction, theta_hat) -> jax.Array:
+    """``Proj(Gamma direction)`` with the law's adaptation gain ``Gamma`` and projection set (none without a
+    ``region``)."""
+    tau = _checks.gain("adaptation_gain", law.adaptation_gain, theta_hat.shape[0], theta_hat.dtype) @ direction
     if law.region is None:
         return tau
     return project(tau, theta_hat, law.adaptation_gain, law.region, law.epsilon)
@@ -427,13 +429,12 @@ class InversionLaw:
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
         del g  # the inverse theta* already encodes the model
-        gain = _checks.gain("adaptation_gain", self.adaptation_gain, theta_hat.shape[0], theta_hat.dtype)
         above = jnp.linalg.norm(phi_hat) >= self.threshold
         safe = jnp.where(above, phi_hat, self.threshold / jnp.sqrt(phi_hat.shape[0]))
         weight = 1.0 if self.weight is None else self.weight(*args, safe)
         active = above & (weight > 0)
-        rate = jnp.where(active, weight * (gain @ (self.theta_star(*args, safe) - theta_hat)), 0.0)
-        return _projected(self, rate, theta_hat)
+        direction = jnp.where(active, weight * (self.theta_star(*args, safe) - theta_hat), 0.0)
+        return _rate(self, direction, theta_hat)
 
 
 @jax.tree_util.register_dataclass
@@ -462,12 +463,11 @@ class PerturbationGradientLaw:
         _wrap_functions(self, "M")
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
-        gain = _checks.gain("adaptation_gain", self.adaptation_gain, theta_hat.shape[0], theta_hat.dtype)
         if self.M is None:
             M = jax.jacfwd(lambda th: g(*args, th))(theta_hat).T
         else:
             M = self.M(*args, theta_hat)
-        return _projected(self, gain @ (M @ (phi_hat - g(*args, theta_hat))), theta_hat)
+        return _rate(self, M @ (phi_hat - g(*args, theta_hat)), theta_hat)
 
 
 @jax.tree_util.register_dataclass
@@ -493,8 +493,7 @@ class CustomLaw:
         _wrap_functions(self, "direction")
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
-        gain = _checks.gain("adaptation_gain", self.adaptation_gain, theta_hat.shape[0], theta_hat.dtype)
-        return _projected(self, gain @ self.direction(g, args, phi_hat, theta_hat), theta_hat)
+        return _rate(self, self.direction(g, args, phi_hat, theta_hat), theta_hat)
 
 
 def check_law(law, theta0) -> None:
