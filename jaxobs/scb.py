@@ -160,7 +160,7 @@ class _Exact:
         return self.rref(basis)[0]
 
     def dependencies(self, source, M, y):
-        """Rows [phi, phi_y] with phi (source M) + phi_y y = 0 (y of full row rank), phi in reduced row echelon
+        """Rows [dep, dep_y] with dep (source M) + dep_y y = 0 (y of full row rank), dep in reduced row echelon
         form."""
         x = self.mul(source, M)
         return self.left_null(self.vstack([x, y]) if y.shape[0] else x)
@@ -255,19 +255,19 @@ class _Float:
         """As the exact one. The rows of x = source M are expressed in an orthonormal basis of the complement of
         the rows of y (so at most ``columns - rows(y)`` of them can be independent), scaled by ``|source_i| |M|``
         (a row that is small on that scale is numerically zero) and get their rank decided by singular values;
-        phi_y comes from least squares."""
+        dep_y comes from least squares."""
         x = source @ M
         if x.shape[1] == 0:
             return self.left_null(x)
         scale = np.linalg.norm(source, axis=1) * max(np.linalg.norm(M, 2), np.finfo(float).tiny)
         scale[scale == 0] = 1.0
         complement = np.linalg.svd(y)[2][y.shape[0] :].T if y.shape[0] else np.eye(x.shape[1])
-        phi = self.left_null((x @ complement) / scale[:, None]) if complement.shape[1] else np.eye(x.shape[0])
-        if phi.shape[0] == 0:
+        dep = self.left_null((x @ complement) / scale[:, None]) if complement.shape[1] else np.eye(x.shape[0])
+        if dep.shape[0] == 0:
             return np.zeros((0, x.shape[0] + y.shape[0]))
-        phi = self.rref(phi / scale[None, :])[0]
+        dep = self.rref(dep / scale[None, :])[0]
         coeffs = np.linalg.lstsq(y.T, x.T, rcond=None)[0].T if y.shape[0] else np.zeros((x.shape[0], 0))
-        return np.hstack([phi, -phi @ coeffs])
+        return np.hstack([dep, -dep @ coeffs])
 
     def is_zero(self, x):
         return not x.size or float(np.max(np.abs(x))) <= self.tol
@@ -352,10 +352,10 @@ def _structure(bk, A, B, C):
                 "scb: inconsistent rank decisions (ill-conditioned for numeric=True at this tol; use exact arithmetic)"
             )
         for k in range(null.shape[0]):
-            phi, phi_b = null[k : k + 1, :q], null[k : k + 1, q:]
-            seq = [_combine(bk, phi, [s[lev] for s in combos], n) for lev in range(depth)]
+            dep, dep_b = null[k : k + 1, :q], null[k : k + 1, q:]
+            seq = [_combine(bk, dep, [s[lev] for s in combos], n) for lev in range(depth)]
             for t, (other, lev) in enumerate(tagged):
-                coeff = phi_b[:, t : t + 1]  # the derivative has the term -coeff * other[lev]
+                coeff = dep_b[:, t : t + 1]  # the derivative has the term -coeff * other[lev]
                 if lev == 0 or bk.is_zero(coeff):
                     continue
                 for s_lev in range(depth):
