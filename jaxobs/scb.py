@@ -4,7 +4,8 @@ A design-time module: it runs on NumPy and sympy, not JAX (the decomposition is 
 outcomes fix the dimensions of the result, so it cannot be traced), and it is the only jaxobs module that imports
 sympy. :func:`scb` transforms ``x' = A x + B u``, ``y = C x + D u`` to the form (7.4)-(7.6) of Grip 2010:
 
-    x = Gamma1 x_scb,  y = Gamma2 y_scb,  u = Gamma3 u_scb  (after the pre-transformation U, Y of section 7.2.4),
+    x = state_transform x_scb,  y = output_transform y_scb,  u = input_transform u_scb
+    (the thesis's Gamma1, Gamma2, Gamma3, after the pre-transformation U, Y of section 7.2.4),
     x_scb = col(x_a, x_b, x_c, x_d),  y_scb = col(y_0, y_d, y_b),  u_scb = col(u_0, u_d, u_c),
 
 where x_a are the zero dynamics (invariant zeros = eig(A_aa)), x_b is observable from y_b and unaffected by inputs,
@@ -52,9 +53,9 @@ class SCB:
 
     Fields:
       A, B, C, D: the SCB matrices (7.6), shapes (n, n), (n, m), (p, n), (p, m).
-      Gamma1, Gamma2, Gamma3: the state (n, n), output (p, p) and input (m, m) transformations,
-        ``x = Gamma1 x_scb``, ``y = Gamma2 y_scb``, ``u = Gamma3 u_scb``, of the pre-transformed system
-        ``(A, B U, Y^-1 C, Y^-1 D U)``.
+      state_transform, output_transform, input_transform: the state (n, n), output (p, p) and input (m, m)
+        transformations, ``x = state_transform x_scb``, ``y = output_transform y_scb``, ``u = input_transform
+        u_scb``, of the pre-transformed system ``(A, B U, Y^-1 C, Y^-1 D U)``.
       U, Y: the pre-transformation (m, m), (p, p) of section 7.2.4 (identities for D = 0).
       dims: ``(n_a, n_b, n_c, n_d)``.
       chain_lengths: the lengths q_i of the integrator chains of x_d, in their order in x_d (nondecreasing).
@@ -67,9 +68,9 @@ class SCB:
     B: Any
     C: Any
     D: Any
-    Gamma1: Any
-    Gamma2: Any
-    Gamma3: Any
+    state_transform: Any
+    output_transform: Any
+    input_transform: Any
     U: Any
     Y: Any
     dims: tuple[int, int, int, int]
@@ -395,7 +396,8 @@ def _eliminate(bk, A, Ts, sequences, bottoms):
 
 
 def _scb_sp(bk, A, B, C):
-    """SCB of a strictly proper system: (T = Gamma1^-1, Gamma2^-1 rows, Gamma3, dims, chain lengths)."""
+    """SCB of a strictly proper system: (T = state_transform^-1, output_transform^-1 rows, input_transform, dims,
+    chain lengths)."""
     n, m = B.shape
     chains, inputs, xb = _structure(bk, A, B, C)
     m_d = len(chains)
@@ -435,7 +437,7 @@ def _scb_sp(bk, A, B, C):
 
 
 def _output_rows(bk, tops, C):
-    """G with G C = tops (C of full row rank): the rows of Gamma2^-1."""
+    """G with G C = tops (C of full row rank): the rows of output_transform^-1."""
     right = bk.mul(C.transpose(), bk.inv(bk.mul(C, C.transpose())))
     return bk.mul(tops, right)
 
@@ -520,17 +522,18 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       B: (n, m) input matrix; ``[B; D]`` must have full column rank.
       C: (p, n) output matrix; ``[C, D]`` must have full row rank.
       D: (p, m) feedthrough, zero if None.
-      numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact
-        fractions / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A,
-        r A^2, ...), so long sequences give ill-conditioned Gammas (cond(Gamma1) ~ 1e40 for a 17-state x_b of a
-        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions
-        and the matrices are not; use the exact variant for them.
+      numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact fractions
+        / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A, r A^2, ...), so
+        long sequences give ill-conditioned transformations (cond(state_transform) ~ 1e40 for a 17-state x_b of a
+        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions and the
+        matrices are not; use the exact variant for them.
       tol: relative rank tolerance of the numeric variant, in (0, 1).
 
     Returns:
-      :class:`SCB`. With ``Ah = A - B_0 C_0`` of the pre-transformed system (section 7.2.4),
-      ``SCB.A = Gamma1^-1 Ah Gamma1``, ``SCB.B = Gamma1^-1 (B U) Gamma3``, ``SCB.C = Gamma2^-1 (Y^-1 C) Gamma1``,
-      ``SCB.D = Gamma2^-1 (Y^-1 D U) Gamma3 = diag(I_m0, 0)`` hold exactly in the exact variant.
+      :class:`SCB`. With ``Ah = A - B_0 C_0`` of the pre-transformed system (section 7.2.4), ``SCB.A =
+      state_transform^-1 Ah state_transform``, ``SCB.B = state_transform^-1 (B U) input_transform``, ``SCB.C =
+      output_transform^-1 (Y^-1 C) state_transform``, ``SCB.D = output_transform^-1 (Y^-1 D U) input_transform =
+      diag(I_m0, 0)`` hold exactly in the exact variant.
 
     Example:
       >>> from jaxobs.scb import scb
@@ -586,9 +589,9 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
         B=out(bk.mul(bk.mul(T, Bh), G3)),
         C=out(bk.mul(bk.mul(bk.inv(G2), Ch), G1)),
         D=out(bk.mul(bk.mul(bk.inv(G2), Dh), G3)),
-        Gamma1=out(G1),
-        Gamma2=out(G2),
-        Gamma3=out(G3),
+        state_transform=out(G1),
+        output_transform=out(G2),
+        input_transform=out(G3),
         U=out(U),
         Y=out(Y),
         dims=dims,
@@ -613,8 +616,9 @@ def _system(system) -> SCB:
 
 def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     """Residuals of the identities relating ``system`` to the original ``(A, B, C, D)`` (section 7.2.3), in the
-    inverse-free form ``Gamma1 A_scb - Ah Gamma1``, ``Gamma1 B_scb - (B U) Gamma3``, ``Gamma2 C_scb - (Y^-1 C)
-    Gamma1``, ``Gamma2 D_scb - (Y^-1 D U) Gamma3`` with ``Ah = A - (B U)_0 (Y^-1 C)_0``.
+    inverse-free form ``state_transform A_scb - Ah state_transform``, ``state_transform B_scb - (B U) input_transform``,
+    ``output_transform C_scb - (Y^-1 C) state_transform``, ``output_transform D_scb - (Y^-1 D U) input_transform`` with
+    ``Ah = A - (B U)_0 (Y^-1 C)_0``.
 
     Args:
       system: an :class:`SCB` (from :func:`scb`, or built from printed matrices to check them).
@@ -641,10 +645,10 @@ def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     Bh, Ch, Dh = M["B"] @ s.U, Yinv @ M["C"], Yinv @ M["D"] @ s.U
     Ah = M["A"] - Bh[:, :m0] @ Ch[:m0, :]
     return {
-        "A": simplify(s.Gamma1 @ s.A - Ah @ s.Gamma1),
-        "B": simplify(s.Gamma1 @ s.B - Bh @ s.Gamma3),
-        "C": simplify(s.Gamma2 @ s.C - Ch @ s.Gamma1),
-        "D": simplify(s.Gamma2 @ s.D - Dh @ s.Gamma3),
+        "A": simplify(s.state_transform @ s.A - Ah @ s.state_transform),
+        "B": simplify(s.state_transform @ s.B - Bh @ s.input_transform),
+        "C": simplify(s.output_transform @ s.C - Ch @ s.state_transform),
+        "D": simplify(s.output_transform @ s.D - Dh @ s.input_transform),
     }
 
 
@@ -756,7 +760,7 @@ def scb_arrays(system: SCB, values: dict | None = None) -> SCB:
         raise ValueError(f"values must give every symbol, missing {missing}")
     subs = {x: _exact_entry(by_name[str(x)], f"values[{x}]") for x in system.symbols}
     fields = {}
-    for name in ("A", "B", "C", "D", "Gamma1", "Gamma2", "Gamma3", "U", "Y"):
+    for name in ("A", "B", "C", "D", "state_transform", "output_transform", "input_transform", "U", "Y"):
         M = getattr(system, name).xreplace(subs).applyfunc(sp.cancel)
         if any(e.has(sp.zoo, sp.nan, sp.oo) for e in M):
             raise ValueError(f"values: {name} is singular at {by_name}")

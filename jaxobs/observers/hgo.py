@@ -220,7 +220,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
     n_a, n_b, _, n_q = f.dims
     chains = f.chain_lengths
     terms = _scb_gain_terms(f, _pole_groups("poles", poles, chains), poles_b, corrected)
-    K_terms = np.einsum("ij,qjk,kl->qil", f.Gamma1, terms, np.linalg.inv(f.Gamma2))
+    K_terms = np.einsum("ij,qjk,kl->qil", f.state_transform, terms, np.linalg.inv(f.output_transform))
     K = np.tensordot(eps ** -np.arange(K_terms.shape[0], dtype=float), K_terms, axes=1)
     Ae, _, Ce = _error_system(A, E, C, extended)
     return HGOGains(
