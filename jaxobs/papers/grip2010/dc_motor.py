@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import ct
-from jaxobs.adaptive import Box
+from jaxobs.adaptive import Box, InversionLaw
 from jaxobs.observers import EstimatorInputs, run
-from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs, target_law
+from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.scenarios import Reproduction
 from jaxobs.scb import scb, scb_arrays
@@ -133,7 +133,7 @@ def observers(K1, K2, inputs):
     """Observer 1 (6.3) with the Proposition 6.2 law and the cascaded observer 2 (section 6.6) on ``inputs``."""
     A, B, E, C = matrices(TABLE_6_1["sigma_1"])
     region = Box(jnp.array([THETA_SET[0]]), jnp.array([THETA_SET[1]]))
-    law = target_law(theta_star, 1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
+    law = InversionLaw(theta_star, adaptation_gain=1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
     params = make_hgo(A, B, E, C, K1, g_model, law=law, theta0=[1.0], K2=K2, g2=g_exact, dt=DT, substeps=SUBSTEPS)
     return run(hgo_observer, params, inputs)[1]
 
