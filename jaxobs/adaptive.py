@@ -121,8 +121,9 @@ def lyapunov_law(omega, x, adaptation_gain) -> jax.Array:
 
 
 def regression_gradient_law(theta_hat, omega, z, adaptation_gain, *, normalized: bool = False) -> jax.Array:
-    """The gradient law for the linear regression ``z = omega' theta`` (Grip 2010 §1.3.1, after eq. 1.10), with
-    ``Gamma`` the adaptation gain::
+    """The gradient law for the linear regression ``z = omega' theta`` (Grip 2010 §1.3.1, after eq. 1.10).
+
+    With ``Gamma`` the adaptation gain::
 
         theta_hat_dot = Gamma omega e                        (descent on J = |e|^2 / 2, e = z - omega' theta_hat)
         theta_hat_dot = Gamma omega e / (1 + |omega|^2)      (normalized; |omega|^2 = trace omega' omega)
@@ -149,7 +150,9 @@ def regression_gradient_law(theta_hat, omega, z, adaptation_gain, *, normalized:
 
 def rls_update(theta_hat, P, omega, z, forgetting=1.0):
     """One step of recursive least squares with forgetting factor ``lambda`` (Grip 2010 §1.3.1; Åström &
-    Wittenmark 1995, Ch. 2)::
+    Wittenmark 1995, Ch. 2).
+
+    It computes::
 
         K = P omega (lambda I + omega' P omega)^{-1}
         theta_hat+ = theta_hat + K (z - omega' theta_hat),    P+ = (P - K omega' P) / lambda
@@ -200,7 +203,9 @@ def _forgetting_factor(forgetting, dtype):
 
 def rls_rate(theta_hat, P, omega, z, forgetting=0.0):
     """Continuous-time recursive least squares with forgetting rate ``beta >= 0`` (Grip 2010 §1.3.1; Ioannou & Sun
-    1996, Ch. 4)::
+    1996, Ch. 4).
+
+    It returns the rates of::
 
         theta_hat_dot = P omega e,    P_dot = beta P - P omega omega' P        (e = z - omega' theta_hat)
 
@@ -255,11 +260,12 @@ class Ball:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Box:
-    """The box ``lower <= theta <= upper`` as the set ``Pi = {P(theta) <= 0}`` of :func:`project`, through the smooth
-    convex ``P(theta) = sum_i u_i^(2 order) - 1``, ``u = (2 theta - lower - upper) / (upper - lower)``: exact for
-    one parameter; for several, a superellipse inside the box that touches its faces and rounds its corners
-    (``order`` sets how closely it fills them). ``Theta = {P <= epsilon}`` is ``(1 + epsilon)^(1 / (2 order))``
-    times larger about the centre. (For exact boxes in discrete time, see :func:`clip_step`.)
+    """The box ``lower <= theta <= upper`` as the set ``Pi = {P(theta) <= 0}`` of :func:`project`.
+
+    ``P`` is the smooth convex ``P(theta) = sum_i u_i^(2 order) - 1``, ``u = (2 theta - lower - upper) / (upper -
+    lower)``: exact for one parameter; for several, a superellipse inside the box that touches its faces and rounds
+    its corners (``order`` sets how closely it fills them). ``Theta = {P <= epsilon}`` is ``(1 + epsilon)^(1 / (2
+    order))`` times larger about the centre. (For exact boxes in discrete time, see :func:`clip_step`.)
 
     Attributes:
       lower: (n_theta,) lower bounds.  upper: (n_theta,) upper bounds, ``> lower``.  order: static positive integer.
@@ -276,18 +282,19 @@ class Box:
 
 
 def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.Array:
-    """The parameter projection ``Proj(tau)`` of Grip 2010 App. 5.A (Krstić, Kanellakopoulos & Kokotović 1995,
-    App. E): the update law ``theta_hat_dot = Proj(tau)`` keeps ``theta_hat`` in ``Theta = {P(theta_hat) <=
+    r"""The parameter projection ``Proj(tau)`` of Grip 2010 App. 5.A (Krstić, Kanellakopoulos & Kokotović 1995,
+    App. E).
+
+    The update law ``theta_hat_dot = Proj(tau)`` keeps ``theta_hat`` in ``Theta = {P(theta_hat) <=
     epsilon}``, a boundary layer ``epsilon`` around the parameter set ``Pi = {P <= 0}`` of the smooth convex
     ``region`` function ``P``::
 
         Proj(tau) = tau                                          if P(theta_hat) < 0 or grad P' tau <= 0
-        Proj(tau) = (I - c Gamma grad P grad P' / |grad P|_Gamma^2) tau     otherwise, in Theta \\ Pi°
+        Proj(tau) = (I - c Gamma grad P grad P' / |grad P|_Gamma^2) tau     otherwise, in Theta \ Pi°
 
     with ``c = min(1, P(theta_hat) / epsilon)``, ``Gamma`` the adaptation gain and ``|g|_Gamma^2 = g' Gamma g``. It is
-    Lipschitz in ``tau`` and
-    ``theta_hat`` and, for every ``theta`` in ``Pi``, ``theta_hat`` in ``Theta`` (App. 5.A, Krstić et al. Lemma E.1):
-    ``-theta_tilde' Gamma^{-1} Proj(tau) <= -theta_tilde' Gamma^{-1} tau`` and
+    Lipschitz in ``tau`` and ``theta_hat`` and, for every ``theta`` in ``Pi``, ``theta_hat`` in ``Theta`` (App.
+    5.A, Krstić et al. Lemma E.1): ``-theta_tilde' Gamma^{-1} Proj(tau) <= -theta_tilde' Gamma^{-1} tau`` and
     ``Proj(tau)' Gamma^{-1} Proj(tau) <= tau' Gamma^{-1} tau``; on the outer boundary ``P = epsilon`` the projected
     rate is tangent or inward, so a solution that starts in ``Theta`` stays there. (A discretised solution leaves it
     by the integrator's error, second order in the step for RK4 as ``Proj`` is Lipschitz but not smooth; for hard
@@ -336,8 +343,9 @@ def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.A
 
 
 def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
-    """The discrete-time form of a projected update that the thesis's implementations use (Grip 2010 Ch. 2 and 3:
-    forward Euler, then clipping to the parameter bounds)::
+    """The discrete-time form of a projected update that the thesis's implementations use (Grip 2010 Ch. 2 and 3).
+
+    Forward Euler, then clipping to the parameter bounds::
 
         theta_hat_{k+1} = min(max(theta_hat_k + dt rate_k, lower), upper)
 
@@ -425,9 +433,11 @@ class InversionLaw:
     epsilon: jax.Array = 0.1
 
     def __post_init__(self):
+        """Store ``theta_star`` and ``weight`` as ``Partial``s."""
         _wrap_functions(self, "theta_star", "weight")
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        """``theta_hat'`` (n_theta,); ``g`` is unused, as ``theta_star`` encodes the model."""
         del g  # the inverse theta* already encodes the model
         above = jnp.linalg.norm(phi_hat) >= self.threshold
         safe = jnp.where(above, phi_hat, self.threshold / jnp.sqrt(phi_hat.shape[0]))
@@ -441,9 +451,11 @@ class InversionLaw:
 @dataclasses.dataclass(frozen=True)
 class PerturbationGradientLaw:
     """The gradient-type law ``theta_hat' = Proj(Gamma M(*args, theta_hat) (phi_hat - g(*args, theta_hat)))``
-    (Grip 2010 Props. 5.3, 5.4, 6.3 and 6.4), by default the gradient search ``M = (dg/dtheta)'`` (autodiff;
-    Remark 5.1: steepest descent of ``|g(theta) - g(theta_hat)|^2``). Called as every law: ``law(g, args, phi_hat,
-    theta_hat) -> theta_hat'`` (see :class:`InversionLaw`). (The gradient law of a linear regression ``z = omega'
+    (Grip 2010 Props. 5.3, 5.4, 6.3 and 6.4).
+
+    By default ``M`` is the gradient search ``M = (dg/dtheta)'`` (autodiff; Remark 5.1: steepest descent of
+    ``|g(theta) - g(theta_hat)|^2``). Called as every law: ``law(g, args, phi_hat, theta_hat) -> theta_hat'`` (see
+    :class:`InversionLaw`). (The gradient law of a linear regression ``z = omega'
     theta`` is :func:`regression_gradient_law`.)
 
     Attributes:
@@ -460,9 +472,11 @@ class PerturbationGradientLaw:
     epsilon: jax.Array = 0.1
 
     def __post_init__(self):
+        """Store ``M`` as a ``Partial``."""
         _wrap_functions(self, "M")
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        """``theta_hat'`` (n_theta,) along ``M (phi_hat - g(*args, theta_hat))``."""
         if self.M is None:
             M = jax.jacfwd(lambda th: g(*args, th))(theta_hat).T
         else:
@@ -490,9 +504,11 @@ class CustomLaw:
     epsilon: jax.Array = 0.1
 
     def __post_init__(self):
+        """Store ``direction`` as a ``Partial``."""
         _wrap_functions(self, "direction")
 
     def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        """``theta_hat'`` (n_theta,) along the user's ``direction``."""
         return _rate(self, self.direction(g, args, phi_hat, theta_hat), theta_hat)
 
 

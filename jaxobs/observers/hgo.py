@@ -335,11 +335,21 @@ class HGOParams:
 
 
 class HGOOutputs(NamedTuple):
-    x: jax.Array  # (n,) x_hat(t_k)
-    phi: jax.Array  # (k,) phi_hat(t_k) = g(v, x_hat, theta_hat) + z, v the (u, y) held over the last interval
-    theta: jax.Array  # (n_theta,) theta_hat(t_k)
-    x2: jax.Array  # (n,) the cascaded state observer of section 6.6 (x_hat when there is none)
-    innovation: jax.Array  # (p,) y_k - C x_hat(t_k) (0 for missing components)
+    """Per-sample outputs of :data:`hgo_observer`.
+
+    Attributes:
+      x: (n,) ``x_hat(t_k)``.
+      phi: (k,) ``phi_hat(t_k) = g(v, x_hat, theta_hat) + z``, ``v`` the ``(u, y)`` held over the last interval.
+      theta: (n_theta,) ``theta_hat(t_k)``.
+      x2: (n,) the cascaded state observer of section 6.6 (``x_hat`` when there is none).
+      innovation: (p,) ``y_k - C x_hat(t_k)`` (0 for missing components).
+    """
+
+    x: jax.Array
+    phi: jax.Array
+    theta: jax.Array
+    x2: jax.Array
+    innovation: jax.Array
 
 
 def _split(params: HGOParams, xi):

@@ -144,18 +144,30 @@ def error_dynamics(A, B, C, K, G1, G2):
 
 
 class Fact35(NamedTuple):
-    """Stability of ``M_e e' = A_e e`` through the SVD of ``M_e`` (eq. 19-26, Fact 3.5)."""
+    """Stability of ``M_e e' = A_e e`` through the SVD of ``M_e`` (eq. 19-26, Fact 3.5); ``n`` states, ``n_M`` the
+    rank of ``M_e``.
 
-    stable: jax.Array  # exact: A22 nonsingular and sigma_M^{-1} S Hurwitz (finite poles in the open LHP)
-    printed_stable: jax.Array  # Fact 3.5 as printed: A22 and S Hurwitz
-    rank: int  # n_M = rank M_e
+    Attributes:
+      stable: () bool, exact: ``A22`` nonsingular and ``sigma_M^{-1} S`` Hurwitz (finite poles in the open LHP).
+      printed_stable: () bool, Fact 3.5 as printed: ``A22`` and ``S`` Hurwitz.
+      rank: int, ``n_M = rank M_e``.
+      A11, A12, A21, A22: (n_M, n_M), (n_M, n - n_M), (n - n_M, n_M), (n - n_M, n - n_M), the blocks of ``A_e``
+        in the SVD bases of ``M_e``.
+      S: (n_M, n_M) ``A11 - A12 A22^{-1} A21``.
+      poles: (n_M,) complex, the eigenvalues of ``sigma_M^{-1} S``: the finite poles of the error dynamics.
+      fast: (n - n_M,) complex, the eigenvalues of ``A22`` (the "fast" part of Fact 3.4).
+    """
+
+    stable: jax.Array
+    printed_stable: jax.Array
+    rank: int
     A11: jax.Array
     A12: jax.Array
     A21: jax.Array
     A22: jax.Array
-    S: jax.Array  # A11 - A12 A22^{-1} A21
-    poles: jax.Array  # eigenvalues of sigma_M^{-1} S: the finite poles of the error dynamics
-    fast: jax.Array  # eigenvalues of A22 (the "fast" part of Fact 3.4)
+    S: jax.Array
+    poles: jax.Array
+    fast: jax.Array
 
 
 def fact35(M_e, A_e, *, rank: int | None = None, U=None, V=None, tol: float = 1e-9) -> Fact35:
@@ -247,18 +259,37 @@ class InverseDynamicsParams:
 
 
 class InverseDynamicsState(NamedTuple):
-    x: jax.Array  # (n,) x_hat_{k-1}
-    y_prev: jax.Array  # (n_y,) (filtered) y_{k-1}
-    lowpass: jax.Array  # (lowpass_order, n_y) filter sections
-    count: jax.Array  # () samples seen
+    """State of :data:`inverse_dynamics_observer` between samples.
+
+    Attributes:
+      x: (n,) ``x_hat_{k-1}``.
+      y_prev: (n_y,) the (filtered) ``y_{k-1}``.
+      lowpass: (lowpass_order, n_y) the low-pass filter's sections.
+      count: () int32, samples seen.
+    """
+
+    x: jax.Array
+    y_prev: jax.Array
+    lowpass: jax.Array
+    count: jax.Array
 
 
 class InverseDynamicsOutputs(NamedTuple):
-    x: jax.Array  # (n,) x_hat_k
-    d: jax.Array  # (n_d,) d_hat_k (eq. 4)
-    innovation: jax.Array  # (n_y,) output error y_k - C x_hat_k (the term K acts on in eq. 2)
-    y_dot: jax.Array  # (n_y,) backward-difference y'_k
-    x_dot: jax.Array  # (n,) (x_hat_k - x_hat_{k-1}) / h
+    """Per-sample outputs of :data:`inverse_dynamics_observer`.
+
+    Attributes:
+      x: (n,) ``x_hat_k``.
+      d: (n_d,) ``d_hat_k`` (eq. 4).
+      innovation: (n_y,) the output error ``y_k - C x_hat_k`` (the term ``K`` acts on in eq. 2).
+      y_dot: (n_y,) the backward difference ``y'_k``.
+      x_dot: (n,) ``(x_hat_k - x_hat_{k-1}) / h``.
+    """
+
+    x: jax.Array
+    d: jax.Array
+    innovation: jax.Array
+    y_dot: jax.Array
+    x_dot: jax.Array
 
 
 def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
@@ -449,10 +480,19 @@ def _check_error_dynamics(case: int, M_e, A_e):
 
 
 class DesignResult(NamedTuple):
-    gains: dict  # K, F1, F2 (and rho in Case 2) as NumPy arrays
-    poles: np.ndarray  # finite poles of the error dynamics at the result
-    objective: float  # user objective at the result (0 without one)
-    feasible: bool  # every pole has real part <= max_real_part and the box bounds hold
+    """Result of :func:`design_gains`.
+
+    Attributes:
+      gains: dict of ``K``, ``F1``, ``F2`` (and ``rho`` in Case 2) as NumPy arrays.
+      poles: (n_poles,) complex, the finite poles of the error dynamics at the result.
+      objective: float, the user objective at the result (0 without one).
+      feasible: bool, every pole has real part ``<= max_real_part`` and the box bounds hold.
+    """
+
+    gains: dict
+    poles: np.ndarray
+    objective: float
+    feasible: bool
 
 
 def _finite_poles(A, B, C, case: int, rank: int | None, g: dict):

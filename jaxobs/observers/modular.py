@@ -107,15 +107,31 @@ class ModularParams:
 
 
 class ModularState(NamedTuple):
-    z: jax.Array  # (n,) the perturbation estimator's state of (5.8)
-    theta_hat: jax.Array  # (n_theta,) parameter estimate
+    """The continuous state of the modular estimator.
+
+    Attributes:
+      z: (n,) the perturbation estimator's state of (5.8).
+      theta_hat: (n_theta,) the parameter estimate.
+    """
+
+    z: jax.Array
+    theta_hat: jax.Array
 
 
 class ModularOutputs(NamedTuple):
-    x: jax.Array  # (n,) x_hat = -K_phi^{-1} z at the sample
-    theta_hat: jax.Array  # (n_theta,) parameter estimate
-    phi_hat: jax.Array  # (n,) perturbation estimate (5.8c), unsaturated
-    innovation: jax.Array  # (n,) x_k - x_hat (0 for missing components)
+    """Per-sample outputs of :data:`modular_estimator`.
+
+    Attributes:
+      x: (n,) ``x_hat = -K_phi^{-1} z`` at the sample.
+      theta_hat: (n_theta,) the parameter estimate.
+      phi_hat: (n,) the perturbation estimate (5.8c), unsaturated.
+      innovation: (n,) ``x_k - x_hat`` (0 for missing components).
+    """
+
+    x: jax.Array
+    theta_hat: jax.Array
+    phi_hat: jax.Array
+    innovation: jax.Array
 
 
 def _phi_hat(model: ModularModel, state: ModularState, t, x):

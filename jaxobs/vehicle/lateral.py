@@ -187,21 +187,43 @@ def make_adaptive_lateral(
 
 
 class AdaptiveLateralState(NamedTuple):
-    x: jax.Array  # (4,) estimate (v_x, v_y, r, theta) at t_{k-1} (v_x, r are the measured ones for (3.4))
-    filters: jax.Array  # (2,) low-pass parts of the residual's and the monitor signal's high-pass filters
-    monitor: PEMonitorState | None  # the excitation monitor's state
-    y: jax.Array  # (N_SENSORS,) last finite measurement
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32
+    """State of :data:`lateral_observer` and :data:`full_observer` between samples.
+
+    Attributes:
+      x: (4,) the estimate ``(v_x, v_y, r, theta)`` at ``t_{k-1}`` (``v_x``, ``r`` are the measured ones for (3.4)).
+      filters: (2,) the low-pass parts of the residual's and the monitor signal's high-pass filters.
+      monitor: the excitation monitor's :class:`~jaxobs.observers.pe_monitor.PEMonitorState`, or None.
+      y: (N_SENSORS,) the last finite measurement.
+      started: () bool, whether a sample has been taken (the first one sets the measured states).
+      missing: () int32, non-finite measurement components skipped.
+    """
+
+    x: jax.Array
+    filters: jax.Array
+    monitor: PEMonitorState | None
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class AdaptiveLateralOutputs(NamedTuple):
-    x: jax.Array  # (4,) (v_x, v_y, r, theta) at t_k
-    beta: jax.Array  # () arctan(v_y / v_x) (rad)
-    innovation: jax.Array  # (2,) (m a_y - theta f_y^*, r - r^) that drove the interval
-    xi: jax.Array  # () the xi used
-    Lambda: jax.Array  # () the Lambda used
-    excited: jax.Array  # () bool, the monitor's verdict (True without a monitor)
+    """Per-sample outputs of :data:`lateral_observer` and :data:`full_observer`.
+
+    Attributes:
+      x: (4,) ``(v_x, v_y, r, theta)`` at ``t_k``.
+      beta: () the sideslip ``arctan(v_y / v_x)`` (rad).
+      innovation: (2,) ``(m a_y - theta f_y^*, r - r^)`` that drove the interval.
+      xi: () the ``xi`` used.
+      Lambda: () the ``Lambda`` used.
+      excited: () bool, the monitor's verdict (True without a monitor).
+    """
+
+    x: jax.Array
+    beta: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
+    Lambda: jax.Array
+    excited: jax.Array
 
 
 def _init(params: AdaptiveLateralParams) -> AdaptiveLateralState:
@@ -294,12 +316,20 @@ def lyapunov_3_1(params: AdaptiveLateralParams, vy, theta, vy_hat, theta_hat):
 
 
 class Lemma31Check(NamedTuple):
-    """:func:`lemma_3_1_check`'s result."""
+    """Result of :func:`lemma_3_1_check` over a run of ``K`` samples.
 
-    max_relative_V_increase: jax.Array  # () max over steps of (V_{k+1} - V_k) / V_k (negative: V decreases always)
-    final_V_ratio: jax.Array  # () V at the end over V(0)
-    V: jax.Array  # (K,) V along the run
-    decrease_ratio: jax.Array  # (K - 1,) (V_k - V_{k+1}) / (dt Gamma K_vy Lambda a_y~^2): 1 in continuous time
+    Attributes:
+      max_relative_V_increase: () the max over steps of ``(V_{k+1} - V_k) / V_k`` (negative: ``V`` always
+        decreases).
+      final_V_ratio: () ``V`` at the end over ``V(0)``.
+      V: (K,) ``V`` along the run.
+      decrease_ratio: (K - 1,) ``(V_k - V_{k+1}) / (dt Gamma K_vy Lambda a_y~^2)``: 1 in continuous time.
+    """
+
+    max_relative_V_increase: jax.Array
+    final_V_ratio: jax.Array
+    V: jax.Array
+    decrease_ratio: jax.Array
 
 
 _C_Y, _D_Y = 3.0e4, 2.0e4  # the check plant's cornering stiffness (N s/m) and steering gain (N/rad)
