@@ -1,29 +1,13 @@
 """Parameter update laws, parameter projection and the excitation measure: the one home of adaptation in jaxobs.
 
-Notation (Grip 2010 §1.3.1): unknown constant parameters ``theta`` (n_theta,), estimate ``theta_hat``, error
-``theta_tilde = theta - theta_hat``; the linear regression model ``z = omega' theta`` with regressor ``omega``
-(n_theta,) and target ``z`` (), or ``omega`` (n_theta, q) and ``z`` (q,) for ``q`` equations at once; the prediction
-error ``e = z - omega' theta_hat``. The adaptation gain ``adaptation_gain`` (the thesis's ``Gamma``) is a positive
-scalar or a symmetric positive-definite (n_theta, n_theta) matrix; ``phi`` is always a perturbation, never a
-regressor.
-
-Continuous-time laws return the derivative ``theta_hat_dot`` (and ``P_dot``): integrate them with any fixed-step
-method, e.g. as part of a continuous-time observer's right-hand side. Discrete-time laws return the next value.
-Every function is pure and works under ``jit``, ``vmap`` and ``grad``; concrete arguments are validated eagerly
-(``ValueError`` naming the argument), traced ones are not.
-
-* :func:`regression_gradient_law`: gradient and normalised-gradient laws for a linear regression.
-* :func:`lyapunov_law`: the Lyapunov-based law of Grip 2010 Example 1.1.
-* :func:`rls_update` (discrete, forgetting factor) and :func:`rls_rate` (continuous, forgetting rate): recursive
-  least squares.
-* the laws of the perturbation-based observers (:mod:`jaxobs.observers.modular`, :mod:`jaxobs.observers.hgo`),
-  objects with one call ``law(g, args, phi_hat, theta_hat) -> theta_hat_dot``: :class:`InversionLaw` (Grip 2010
-  Props. 5.1, 5.2, 6.1, 6.2), :class:`PerturbationGradientLaw` (Props. 5.3, 5.4, 6.3, 6.4) and :class:`CustomLaw`.
-* :func:`project` with the sets :class:`Ball` and :class:`Box` (or any smooth convex function): the parameter
-  projection of Grip 2010 App. 5.A (after Krstić, Kanellakopoulos & Kokotović 1995, App. E); :func:`clip_step`,
-  the Euler step with clipping that the thesis's discrete-time implementations use.
-* :func:`excitation`: the Gram matrix of a window of regressors and its smallest eigenvalue (the persistency of
-  excitation condition); :mod:`jaxobs.observers.pe_monitor` runs it over time as an estimator.
+Gradient and Lyapunov laws for a linear regression ``z = omega' theta`` (:func:`regression_gradient_law`,
+:func:`lyapunov_law`), recursive least squares (:func:`rls_update`, :func:`rls_rate`), the laws of the
+perturbation-based observers (:class:`InversionLaw`, :class:`PerturbationGradientLaw`, :class:`CustomLaw`), the
+parameter projection (:func:`project` with :class:`Ball`, :class:`Box`; :func:`clip_step`) and the excitation
+measure (:func:`excitation`), after Grip 2010 §1.3.1 and App. 5.A. The adaptation gain ``adaptation_gain`` (the
+thesis's ``Gamma``) is a positive scalar or a symmetric positive-definite (n_theta, n_theta) matrix. Continuous-time
+laws return ``theta_hat_dot``, discrete-time ones the next value. Notation and equations:
+docs/theory/adaptive.md.
 """
 
 from __future__ import annotations

@@ -499,7 +499,7 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
     """Special coordinate basis (7.4)-(7.6) of ``x' = A x + B u``, ``y = C x + D u`` (Grip 2010, section 7.4).
 
     Args:
-      A: (n, n) state matrix; entries numbers or sympy expressions (see the module docstring).
+      A: (n, n) state matrix; entries numbers or sympy expressions (docs/theory/analysis.md, "Arithmetic").
       B: (n, m) input matrix; ``[B; D]`` must have full column rank.
       C: (p, n) output matrix; ``[C, D]`` must have full row rank.
       D: (p, m) feedthrough, zero if None.

@@ -1,24 +1,10 @@
 """The modified high-gain observer of Grip 2010, ch. 6: an extended-state observer with a model-based perturbation.
 
-For ``x' = A x + B u + E phi``, ``y = C x`` with the perturbation ``phi = g(v, x, theta)``, ``v = col(u, y)``,
-the observer (6.3) is::
-
-    x_hat' = A x_hat + B u + E phi_hat + K_x(eps) (y - C x_hat)                                        (6.3a)
-    z'     = -dg/dtheta(v, x_hat, theta_hat) theta_hat' - dg/dx(v, x_hat, theta_hat) K_x(eps) (y - C x_hat)
-             + K_phi(eps) (y - C x_hat)                                                                (6.3b)
-    phi_hat = g(v, x_hat, theta_hat) + z                                                               (6.3c)
-
-with the gains ``K(eps) = [K_x; K_phi]`` of :func:`hgo_gains` (section 6.3, the special coordinate basis of the
-error system (6.4)) and ``theta_hat' = u_theta(v, x_hat, phi_hat, theta_hat)`` an update law of
-:mod:`jaxobs.adaptive` (Propositions 6.1 and 6.2: :class:`~jaxobs.adaptive.InversionLaw`; 6.3 and 6.4:
-:class:`~jaxobs.adaptive.PerturbationGradientLaw`), called with ``args = (v, x_hat)``. The derivatives of ``g``
-come from autodiff; the ``dg/dv v'`` term of ``phi_hat'`` is carried by the explicit dependence of ``g(v, x_hat,
-theta_hat)`` on the measured ``v``, so ``v'`` is never needed.
-With ``g`` linear and ``theta`` known the error ``col(x - x_hat, phi - phi_hat)`` follows (6.4) exactly.
-
-:func:`hgo_gains` is design-time (NumPy and :mod:`jaxobs.scb`); its result evaluates ``K(eps)`` for a traced
-``eps`` too (a polynomial in ``1/eps``), so ``eps`` can be tuned by gradient. The observer runs as a sampled
-estimator through :mod:`jaxobs.observers.continuous` (zero-order hold of ``u`` and ``y``, fixed RK4 substeps).
+For ``x' = A x + B u + E phi``, ``y = C x`` with the perturbation ``phi = g(v, x, theta)``, ``v = col(u, y)``, the
+observer (6.3) estimates ``x``, ``phi`` and, with an update law of :mod:`jaxobs.adaptive`, ``theta``.
+:func:`hgo_gains` designs the gains ``K(eps)`` (section 6.3, through :mod:`jaxobs.scb`; design time, NumPy, its
+result traceable in ``eps``); :func:`make_hgo` builds the parameters and :data:`hgo_observer` runs it on samples
+through :mod:`jaxobs.observers.continuous`. The equations: docs/theory/adaptive.md.
 """
 
 from __future__ import annotations

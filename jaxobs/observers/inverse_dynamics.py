@@ -1,56 +1,12 @@
-"""Inverse-dynamics state and disturbance observer (Liu & Peng, Liu & Peng 2002, §2-3).
+"""Inverse-dynamics state and disturbance observer (Liu & Peng 2002, §2-3).
 
-Plant (eq. 1, continuous time)::
-
-    x' = A x + known(u, y) + B d,    y = C x
-
-with ``B`` of full column rank and ``(A, C)`` observable (Assumption 2.1). ``known(u, y)`` (the paper's
-``Gamma(u, y)``; in jaxobs ``Gamma`` is the discrete input matrix) is a known (possibly nonlinear) term; the user
-evaluates it and passes its value. The observer (eq. 2, 4)::
-
-    x_hat' = A x_hat + known(u, y) + B d_hat + K (y - C x_hat)                          (2)
-    d_hat  = F1 y + F2 y' + G1 x_hat + G2 x_hat' + G3 known(u, y)                       (4)
-
-Case 1 (Lemma 3.1, eq. 5-8): some ``F2`` has ``F2 C B = I`` (relative degree one); then
-``G1 = -(F1 C + F2 C A)``, ``G2 = 0``, ``G3 = -F2 C`` and the errors ``e = x_hat - x``, ``e_d = d_hat - d``
-obey ``e' = (A - B (F1 C + F2 C A) - K C) e`` (8), ``e_d = -(F1 C + F2 C A) e`` (7). Lemma 3.2: the
-zeros of ``(A, B, C, 0)`` are eigenvalues of that matrix.
-
-Case 2 (Lemma 3.3, eq. 10-18): with a left inverse ``B+`` of ``B``, ``G1 = -(F1 C + B+ A)`` (12),
-``G2 = -(F2 C - B+)`` (13), ``G3 = -B+`` (14), and ``M_e e' = A_e e`` (16) with
-``M_e = I + B (F2 C - B+)`` (17), ``A_e = A - K C - B (F1 C + B+ A)`` (18). Here every left inverse is
-``B+ = B^dagger + rho (I - B B^dagger)`` with ``B^dagger = (B'B)^{-1} B'`` and a free ``rho`` of shape
-``(n_d, n)`` (for §4.1, ``B = [1, 0]'``: ``B+ = [1, rho[0, 1]]``, the paper's ``[1 rho]``).
-
-Singular ``M_e`` (eq. 19-26, Fact 3.5): with ``M_e = U Sigma V'`` and ``U' A_e V = [[A11, A12], [A21, A22]]``
-the paper states stability iff ``A22`` and ``A11 - A12 A22^{-1} A21`` are Hurwitz. The exact condition for
-the descriptor system (16) is that ``A22`` is nonsingular and ``sigma_M^{-1} (A11 - A12 A22^{-1} A21)``
-(whose eigenvalues are the finite generalised eigenvalues of ``(A_e, M_e)``) is Hurwitz; the two agree
-when ``rank M_e = 1`` (the §4.1 example) but not in general, since a positive diagonal scaling need not
-preserve Hurwitz stability. :func:`fact35` returns both flags. Note ``det M_e = det(F2 C B)`` (``B+ B = I``),
-so ``M_e`` is nonsingular (Lemma 3.6) only for plants that also satisfy the Case 1 rank condition.
-
-The general form used here: for any ``G1, G2, G3`` of either case the observer is the descriptor system
-``M_e x_hat' = A_e x_hat + (I + B G3) known + (B F1 + K) y + B F2 y'`` with ``M_e = I - B G2`` and
-``A_e = A - K C + B G1`` (these reduce to eq. 8 and eq. 17-18).
-
-Discrete time (the run-time observer, :data:`inverse_dynamics_observer`). The paper runs the
-continuous-time algorithm on 100 Hz samples with ``y'`` from a backward difference and an optional
-low-pass filter on ``y`` (§4.2). Here, with sample time ``h``:
-
-* ``y`` is optionally passed through ``lowpass_order`` identical first-order sections
-  ``s_k = p s_{k-1} + (1 - p) y_k`` (``p = lowpass_pole``), started at the first sample;
-* ``y'_k = (y_k - y_{k-1}) / h`` (backward difference; 0 at the first sample);
-* ``x_hat`` is advanced by backward Euler on the descriptor form,
-  ``(M_e - h A_e) x_hat_k = M_e x_hat_{k-1} + h N w_k``, which needs no inverse of ``M_e`` and is exactly
-  eq. 2 with ``x_hat'_k = (x_hat_k - x_hat_{k-1}) / h``; ``d_hat_k`` is then eq. 4 with the same derivative.
-  The homogeneous discrete error maps each finite pole ``lambda`` of (16) to ``1 / (1 - h lambda)`` and the
-  infinite ones (singular ``M_e``) to 0, so the discrete observer is stable whenever (16) is.
-
-Design-time checks (rank, observability, Case 1 feasibility, Hurwitz, Fact 3.5) use NumPy on concrete
-arrays and raise ``ValueError`` naming the argument; under ``jit``/``vmap``/``grad`` they are skipped and
-:func:`fact35` (with a given ``rank``) returns flags instead. Tested in float64; float32 is fine for the
-run-time step when ``h |lambda|`` is not tiny.
+For ``x' = A x + known(u, y) + B d``, ``y = C x`` (eq. 1) the observer (eq. 2, 4) estimates ``x`` and ``d``; its
+gains follow Case 1 (:func:`case1_gains`) or Case 2 (:func:`case2_gains`), its error dynamics
+(:func:`error_dynamics`) are a descriptor system whose stability :func:`fact35` tests (Fact 3.5, with the exact
+condition), and :func:`design_gains` places its poles. :func:`make_inverse_dynamics` builds the parameters and
+:data:`inverse_dynamics_observer` runs it on samples (backward Euler on the descriptor form). Design-time checks
+use NumPy on concrete arrays and raise ``ValueError``; under ``jit``/``vmap``/``grad`` they are skipped. The
+equations: docs/theory/estimators.md.
 """
 
 from __future__ import annotations

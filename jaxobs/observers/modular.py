@@ -1,40 +1,11 @@
-"""The modular parameter and perturbation estimator of Grip 2010 ch. 5 (Grip, Johansen, Imsland & Kaasa 2010) for
-systems with nonlinearly parameterised perturbations and a measured state::
+"""The modular parameter and perturbation estimator of Grip 2010 ch. 5 (Grip, Johansen, Imsland & Kaasa 2010).
 
-    x' = f(t, x) + B(t, x) (g(t, x, theta) + v(t, x))                                   (5.1)
-
-with ``x`` (n,) measured, ``B`` (n, m), ``g`` (m,) known up to the constant ``theta`` (n_theta,), ``v`` (m,) a known
-input.
-Two modules: a parameter update law ``theta_hat' = u_theta(t, x, phi_hat, theta_hat)`` (5.2), designed as if the
-full perturbation ``phi = B g(t, x, theta)`` were measured, and the perturbation estimator (5.8)::
-
-    z'      = -K_phi (f + B v + phi_hat) - B (dg/dtheta)(t, x, theta_hat) u_theta          (5.8a, b)
-    phi_hat = z + K_phi x + B g(t, x, theta_hat)                                          (5.8c)
-
-equivalently, with ``x_hat = -K_phi^{-1} z`` (Grip 2010 §5.7), a state observer ``x_hat' = f + B v + phi_hat +
-K_phi^{-1} B (dg/dtheta) u_theta`` with ``phi_hat = K_phi (x - x_hat) + B g(t, x, theta_hat)``. Its errors
-``phi_tilde = phi - phi_hat``, ``theta_tilde = theta - theta_hat`` obey (5.11)::
-
-    phi_tilde'   = -K_phi phi_tilde + d(t, x, theta_tilde),   d = d/dt [B (g(theta) - g(theta_hat))]|theta_hat fixed
-    theta_tilde' = -u_theta(t, x, phi_hat, theta_hat)                                      (5.10, 5.11)
-
-The update law ``law`` is a law object of :mod:`jaxobs.adaptive`, called as ``law(B g, (t, x), phi_hat,
-theta_hat)`` with the perturbation model ``B g`` (n,) and with ``phi_hat`` saturated to known bounds (Remark 5.2); its
-projection is that of App. 5.A (:func:`jaxobs.adaptive.project`):
-
-* :class:`~jaxobs.adaptive.InversionLaw` (Prop. 5.1): ``Proj(Gamma (theta*(t, x, phi_hat) - theta_hat))``,
-  ``theta*`` the user's inverse of ``phi = B g(t, x, theta)``; with a ``weight`` ``l(t, x, phi_hat)`` in [0, 1]
-  (Prop. 5.2) ``theta*`` needs to exist only where ``l > 0``;
-* :class:`~jaxobs.adaptive.PerturbationGradientLaw` (Props. 5.3, 5.4): ``Proj(Gamma M(t, x, theta_hat) (phi_hat - B
-  g(t, x, theta_hat)))``, ``M`` (n_theta, n) by default ``(dg/dtheta)' B'`` (Remark 5.1: steepest descent of ``|B
-  (g(theta) - g(theta_hat))|^2``);
-* :class:`~jaxobs.adaptive.CustomLaw`: ``Proj(Gamma direction(B g, (t, x), phi_hat, theta_hat))`` for laws that
-  combine the above per parameter (Example 5.5) or are designed by hand (the drilling estimator's (5.26)-(5.27)).
-
-``dg/dtheta`` and ``d`` come from automatic differentiation. The compensation ``v = -g(t, x, theta_hat)`` (5.15) is
-:func:`compensation`. The estimator runs on sampled measurements through :mod:`jaxobs.observers.continuous`
-(``x`` and the applied input held over each sample); a non-finite component of ``x`` is replaced by the estimate
-``x_hat`` (no injection in that channel), skipped and counted.
+For ``x' = f(t, x) + B(t, x) (g(t, x, theta) + v(t, x))`` (5.1) with ``x`` measured, a parameter update law of
+:mod:`jaxobs.adaptive` (5.2) and the perturbation estimator (5.8) estimate ``theta`` and ``phi = B g``. Build it
+with :func:`make_modular`, run it as :data:`modular_estimator` on samples (through
+:mod:`jaxobs.observers.continuous`); :func:`modular_rate`, :func:`parameter_rate`, :func:`perturbation_estimate`
+and :func:`perturbation_error_rate` expose its equations and :func:`compensation` the input ``v = -g`` (5.15).
+The equations: docs/theory/adaptive.md.
 """
 
 from __future__ import annotations

@@ -1,44 +1,11 @@
 """The friction-adaptive sideslip observers of Grip 2010 ch. 3 (Grip, Imsland, Johansen, Fossen, Kalkkuhl & Suissa
-2008, Automatica): the lateral observer (3.4) and the full observer (3.14), with the practical ``xi``/``Lambda``
-rule, excitation monitor and high-pass of §3.7.
+2008, Automatica).
 
-The friction forces are ``theta`` times a nominal model: ``m a_y = theta f_y*`` (3.2) and, for (3.14), the yaw
-moment ``theta f_r*``. With the held ESC measurements (roll-corrected ``a_y``, yaw rate ``r``, ``v_x,ref``),
-``f^* = f*(v_x, v_y, r)`` evaluated at the estimates and the residual ``e = m a_y - theta f_y^*``::
-
-    v_y'   = a_y - r v_x + K_vy Lambda xi e                                    (3.4a)
-    theta' = Gamma K_vy Lambda f_y^* e                                         (3.4b)
-
-with ``v_x = v_x,ref`` measured and the adaptation gain ``Gamma`` (``adaptation_gain``), and the full observer
-(``Gamma_1 = adaptation_gain``, ``Gamma_2 = yaw_adaptation_gain``)::
-
-    v_x'   = a_x + r v_y + K_vx (v_x,ref - v_x)                                (3.14a)
-    v_y'   = a_y - r v_x + K_vy Lambda xi e + (Gamma_2 / Gamma_1) zeta (r - r^)  (3.14b)
-    r^'    = theta f_r^* / J + K_r (r - r^)                                    (3.14c)
-    theta' = Gamma_1 K_vy Lambda f_y^* e + Gamma_2 f_r^* (r - r^)              (3.14d)
-
-where ``sum_i K_i(t) (v_x,i - v_x)`` of (3.14a) is ``K_vx (v_x,ref - v_x)`` with ``v_x,ref`` their weighted mean
-(the proofs' assumption), and ``f^*`` of (3.14) is evaluated at ``(v_x^, v_y^, r^)``. ``xi`` approximates the
-secant slope of (3.3)/(3.12), ``zeta = d f_r^* / d v_y`` (the Taylor choice of §3.5), both by forward-mode autodiff.
-
-``xi_rule="grip"`` (§3.7.2): ``xi = d f_y^* / d v_y`` and ``Lambda = 1 / |(xi, f_y^*)|``, except when ``|m a_y| <
-|theta f_y^*|`` and ``d f_y^* / d v_y > -|f_y^*|``: then ``xi = -|f_y^*|`` and ``Lambda = 1 / (2 |f_y^*|)``;
-``Lambda`` is clipped to ``[Lambda_min, Lambda_max]`` (1e-6, 1e6). ``"tangent"``: no exception (Lemma 3.1 holds
-whenever the tangent equals the secant). ``high_pass``: ``e`` in the update laws of ``theta`` is filtered by
-``s / (s + high_pass_corner)`` (0.25 rad/s, §3.7.4). Excitation monitor (§3.7.3): ``f_y^* / |(xi, f_y^*)|`` is
-high-pass filtered (time constant ``monitor_time``), and :data:`jaxobs.observers.pe_monitor.pe_monitor` (given as
-``monitor``) squares it and integrates it over its window (the low-pass); when it is not ``excited`` the update
-laws of ``theta`` are replaced by ``theta' = K_c (theta* - theta)`` (the thesis draws ``theta`` exponentially to
-``theta* = 1``). ``theta`` is clipped to ``[theta_min, theta_max]`` after each step (the projection, as
-clipping). Discretisation and missing data as :mod:`jaxobs.vehicle.nvso`: forward Euler at the sensor period (§3.7:
-0.01 s) with ``y_{k-1}`` held over ``[t_{k-1}, t_k]``.
-
-The nominal model is ``model(v, y) -> (f_y*, f_r*)`` with ``v = (v_x, v_y, r)`` and ``y`` the sensor vector;
-:func:`vehicle_model` gives the friction model of :func:`jaxobs.vehicle.friction_model` at unit friction (``f_y* =
-m a_y*``, ``f_r*`` its yaw moment); any traceable function (a ``jax.tree_util.Partial`` for bound parameters)
-can replace it. Lemma 3.1: along (3.4) with the exact secant ``xi`` and no projection, high-pass or monitor,
-``V = (theta Gamma v_y~^2 + theta~^2) / (2 m^2)`` has ``V' = -Gamma K_vy Lambda a_y~^2`` (:func:`lyapunov_3_1`).
-The sideslip output uses ch. 2's sign, ``beta = arctan(v_y / v_x)`` (ch. 3 prints ``-arctan``).
+The lateral observer (3.4) (:data:`lateral_observer`) and the full observer (3.14) (:data:`full_observer`) scale a
+nominal tyre-force model (:func:`vehicle_model`) by the adapted friction ``theta``, with the practical
+``xi``/``Lambda`` rule, excitation monitor and high-pass of §3.7; build their parameters with
+:func:`make_adaptive_lateral`. :func:`lyapunov_3_1` and :func:`lemma_3_1_check` check Lemma 3.1. The sideslip
+output uses ch. 2's sign, ``beta = arctan(v_y / v_x)``. The equations and the rules: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -86,7 +53,7 @@ def vehicle_model(vehicle: VehicleParams) -> jax.tree_util.Partial:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class AdaptiveLateralParams:
-    """Parameters of :data:`lateral_observer` and :data:`full_observer` (module docstring); build with
+    """Parameters of :data:`lateral_observer` and :data:`full_observer` (docs/theory/vehicle.md); build with
     :func:`make_adaptive_lateral`.
 
     Attributes:
@@ -300,12 +267,12 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
 
 
 lateral_observer = Estimator(_init, functools.partial(_step, full=False))
-"""The lateral observer (3.4) of Grip 2010 ch. 3 (module docstring) over :class:`AdaptiveLateralParams`: state
-``(v_y, theta)`` with ``v_x = v_x,ref`` and ``r`` measured (reported in ``out.x[0]``, ``out.x[2]``). Inputs:
+"""The lateral observer (3.4) of Grip 2010 ch. 3 (docs/theory/vehicle.md) over :class:`AdaptiveLateralParams`:
+state ``(v_y, theta)`` with ``v_x = v_x,ref`` and ``r`` measured (reported in ``out.x[0]``, ``out.x[2]``). Inputs:
 ``EstimatorInputs(y)`` with ``y`` (:data:`~jaxobs.vehicle.N_SENSORS`,) (:func:`~jaxobs.vehicle.sensor_inputs`)."""
 
 full_observer = Estimator(_init, functools.partial(_step, full=True))
-"""The full observer (3.14) of Grip 2010 ch. 3 (module docstring): state ``(v_x, v_y, r, theta)``; as
+"""The full observer (3.14) of Grip 2010 ch. 3 (docs/theory/vehicle.md): state ``(v_x, v_y, r, theta)``; as
 :data:`lateral_observer` otherwise."""
 
 
