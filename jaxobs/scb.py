@@ -505,9 +505,9 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       D: (p, m) feedthrough, zero if None.
       numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact fractions
         / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A, r A^2, ...), so
-        long sequences give ill-conditioned transformations (cond(state_transform) ~ 1e40 for a 17-state x_b of a
-        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions and the
-        matrices are not; use the exact variant for them.
+        long sequences give ill-conditioned transformations (the numbers in docs/theory/measurements.md): the
+        structure (dims, chains) is then reliable only through its rank decisions and the matrices are not; use the
+        exact variant for them.
       tol: relative rank tolerance of the numeric variant, in (0, 1).
 
     Returns:
