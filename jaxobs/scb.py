@@ -32,17 +32,18 @@ __all__ = [
 class SCB:
     """Result of :func:`scb`.
 
-    Fields:
+    Attributes:
       A, B, C, D: the SCB matrices (7.6), shapes (n, n), (n, m), (p, n), (p, m).
       state_transform, output_transform, input_transform: the state (n, n), output (p, p) and input (m, m)
         transformations, ``x = state_transform x_scb``, ``y = output_transform y_scb``, ``u = input_transform
         u_scb``, of the pre-transformed system ``(A, B U, Y^-1 C, Y^-1 D U)``.
       U, Y: the pre-transformation (m, m), (p, p) of section 7.2.4 (identities for D = 0).
-      dims: ``(n_a, n_b, n_c, n_d)``.
-      chain_lengths: the lengths q_i of the integrator chains of x_d, in their order in x_d (nondecreasing).
-      m0: the rank of D (the dimension of y_0 and u_0).
-      exact: sympy matrices (True) or NumPy arrays (False).
-      symbols: the free symbols of the input matrices, sorted by name.
+      dims: ``(n_a, n_b, n_c, n_d)``, the dimensions of x_a, x_b, x_c and x_d.
+      chain_lengths: tuple of ints, the lengths q_i of the integrator chains of x_d, in their order in x_d
+        (nondecreasing).
+      m0: int, the rank of D (the dimension of y_0 and u_0).
+      exact: bool, sympy matrices (True) or NumPy arrays (False).
+      symbols: tuple of the free symbols of the input matrices, sorted by name.
     """
 
     A: Any

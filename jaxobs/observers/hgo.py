@@ -42,15 +42,17 @@ __all__ = [
 class HGOGains:
     """Result of :func:`hgo_gains`.
 
-    Fields:
+    Attributes:
       K: (n + k, p) the gain ``[K_x; K_phi]`` at ``eps`` ((n, p) ``K_x`` alone when ``extended=False``).
       terms: (q + 1, n + k, p) with ``K(eps) = sum_i terms[i] eps^-i`` (``q`` the longest chain); see :meth:`at`.
-      eps: the ``eps`` of ``K``.
-      poles: the eigenvalues of the error dynamics ``A_e - K C_e`` of the (true) system given to :func:`hgo_gains`.
-      zeros: the invariant zeros of the design error system (where ``n_a`` of the poles sit when the design and the
-        true system agree, Remark 6.2).
+      eps: float, the ``eps`` of ``K``.
+      poles: (n + k,) complex, the eigenvalues of the error dynamics ``A_e - K C_e`` of the (true) system given to
+        :func:`hgo_gains`.
+      zeros: (n_a,) complex, the invariant zeros of the design error system (where ``n_a`` of the poles sit when
+        the design and the true system agree, Remark 6.2).
       dims: ``(n_a, n_b, n_q)``, the dimensions of the zero dynamics, the x_b subsystem and the chains.
-      chain_lengths: the lengths of the integrator chains, in the order ``poles`` were assigned to them.
+      chain_lengths: tuple of ints, the lengths of the integrator chains, in the order ``poles`` were assigned to
+        them.
       system: the :class:`jaxobs.scb.SCB` of the design error system, as float arrays.
     """
 
