@@ -117,8 +117,7 @@ class RoadAnglesParams(NamedTuple):
     Attributes:
       vehicle: the :class:`~jaxobs.vehicle.VehicleParams` of the friction model.
       K_vx: longitudinal gain (1/s).  K_vy: lateral gain.  K_theta_i: inclination gain (times ``K_vx``).
-      K_theta_b: bank gain (rad / (m/s^2 s)).  adaptation_gain: the friction adaptation gain ``Gamma`` of (4.12b)
-        (the thesis's ``K_theta``; :data:`road_angles_adaptive`).
+      K_theta_b: bank gain (rad / (m/s^2 s)).  K_theta: friction adaptation gain (:data:`road_angles_adaptive`).
       friction: the known road friction (scale of the tyres' peak, :data:`road_angles`) or the initial ``theta``
         (:data:`road_angles_adaptive`).  theta_min, theta_max: the clip of ``theta``.
       dt: sample period (s).  vx0: initial ``v_x`` before the first finite ``v_x,ref`` (m/s).
@@ -129,7 +128,7 @@ class RoadAnglesParams(NamedTuple):
     K_vy: jax.Array = 1.0
     K_theta_i: jax.Array = 0.02
     K_theta_b: jax.Array = 0.05
-    adaptation_gain: jax.Array = 1.0
+    K_theta: jax.Array = 1.0
     friction: jax.Array = 1.0
     theta_min: jax.Array = 0.05
     theta_max: jax.Array = 1.1
@@ -240,7 +239,7 @@ def _step(params: RoadAnglesParams, state: RoadAnglesState, inputs: EstimatorInp
         e_y = ay - theta * ay_star
         lam = jax.lax.rsqrt(jnp.maximum(xi**2 + ay_star**2, 1e-12))
         d_vy = kinematic_y + params.K_vy * lam * xi * e_y  # (4.13)
-        d_theta = params.adaptation_gain * lam * ay_star * e_y  # (4.12b)
+        d_theta = params.K_theta * lam * ay_star * e_y  # (4.12b)
         d_theta_b = -params.K_theta_b * lam * xi * e_y  # (4.14)
     else:
         e_y = ay - ay_star
