@@ -52,7 +52,8 @@ def write_reproduction(out_dir: Path, name: str, summary: dict, figures: list[st
 def write_sweep_report(out_dir: Path, summary: dict, config: dict, result, figures: list[str], markdown) -> dict:
     """Finish the ``summary`` of a sweep scenario and write it: the run's timing when the sweep ran in this call
     (``result``, a :class:`jaxobs.sweep.SweepResult`, else ``None``), the ``config`` and the ``figures``' names go
-    in; ``out_dir/summary.json`` and ``out_dir/report.md`` (``markdown(summary)``) are written; returns it."""
+    in; ``out_dir/summary.json`` and ``out_dir/report.md`` (``markdown(summary)``, then the run time and the
+    figures) are written; returns it."""
     if result is not None:
         summary["seconds"] = result.seconds
         summary["configs_per_second"] = result.configs_per_second
@@ -61,5 +62,18 @@ def write_sweep_report(out_dir: Path, summary: dict, config: dict, result, figur
     summary["config"] = config
     summary["figures"] = figures
     (out_dir / "summary.json").write_text(json.dumps(to_builtin(summary), indent=2, allow_nan=True) + "\n")
-    (out_dir / "report.md").write_text(markdown(summary))
+    (out_dir / "report.md").write_text(markdown(summary).rstrip("\n") + "\n\n" + _report_footer(summary))
     return summary
+
+
+def _report_footer(summary: dict) -> str:
+    """The end every sweep report shares: this call's run time (when the sweep ran in it) and the figures."""
+    lines = []
+    if "seconds" in summary:
+        lines += [
+            f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.3g} configurations/s; "
+            f"{summary['chunks_computed']} chunks computed, {summary['chunks_reused']} reused).",
+            "",
+        ]
+    lines += [f"![{f}]({f})" for f in summary["figures"]]
+    return "\n".join(lines) + "\n"

@@ -409,11 +409,6 @@ def _markdown(summary: dict) -> str:
         "",
         f"{summary['num_configs']} configurations; overall stable fraction {summary['stable_fraction']:.3f}.",
     ]
-    if "seconds" in summary:
-        lines.append(
-            f"This run: {summary['seconds']:.1f} s, {summary['configs_per_second']:.0f} configurations/s "
-            f"({summary['chunks_computed']} chunks computed, {summary['chunks_reused']} reused)."
-        )
     lines += [
         "",
         "| controller | stable | stable, Ks within x1.5 | median RMS force error (N) | median GM | median PM (deg) "
@@ -435,8 +430,7 @@ def _markdown(summary: dict) -> str:
             f"dead time {case['dead_time_samples']:.2f} samples, sigma^2 = {case['active_variance']:.2g}, "
             f"R = {case['R']:.2g}: RMS {case['rms_force_error']:.3g} N, spectral radius {case['spectral_radius']:.4f}"
         )
-    lines += [""] + [f"![{f}]({f})" for f in summary["figures"]] + [""]
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n"
 
 
 SCENARIO = SweepScenario(

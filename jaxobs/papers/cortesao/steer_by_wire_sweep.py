@@ -213,7 +213,6 @@ def _markdown(summary: dict) -> str:
         q = summary[key]
         if q:
             lines.append(f"| {key} | {q['median']:.3g} | {q['p90']:.3g} | {q['max']:.3g} |")
-    lines += ["", *(f"![{f}]({f})" for f in summary["figures"])]
     return "\n".join(lines) + "\n"
 
 

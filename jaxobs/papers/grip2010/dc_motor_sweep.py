@@ -182,7 +182,6 @@ def _markdown(summary: dict) -> str:
         + ", ".join(f"{a}: {v:.4g}" for a, v in theta.items()),
         "",
     ]
-    lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
 
 

@@ -269,10 +269,6 @@ def _markdown(summary: dict) -> str:
         lines.append(f"- variance {variance}: K_phi = {b['K_phi']:g}, adaptation_gain = {b['adaptation_gain']:g}: "
                      f"{b['median_mean_abs_theta_error']:.3g} "
                      f"(gradient law {b['gradient_median_mean_abs_theta_error']:.3g})")  # fmt: skip
-    lines.append("")
-    if "seconds" in summary:
-        lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.2f} configurations/s).", ""]
-    lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
 
 

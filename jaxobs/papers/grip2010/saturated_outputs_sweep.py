@@ -206,10 +206,6 @@ def _markdown(summary: dict) -> str:
         cond = "-" if p["median_gramian_condition"] is None else f"{p['median_gramian_condition']:.3g}"
         lines.append(f"| {p['T']:g} | {p['rho']:g} | {p['h_scale']:g} | {100 * p['deadbeat_fraction']:.0f} % | {med} | "
                      f"{p['max_deadbeat_interval']} | {cond} | {100 * p['stabilised_fraction']:.0f} % |")  # fmt: skip
-    lines.append("")
-    if "seconds" in summary:
-        lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.1f} configurations/s).", ""]
-    lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
 
 

@@ -247,7 +247,6 @@ def _markdown(summary: dict) -> str:
             lines.append(f"| {label} | {obs} | " + " | ".join(f"{m[k]:.3g}" for k in _METRICS) + " |")
     peaks = summary["true_beta_max_deg_by_manoeuvre"]
     lines += ["", "Largest true sideslip (deg, median): " + ", ".join(f"{k}: {v:.2f}" for k, v in peaks.items()), ""]
-    lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
 
 

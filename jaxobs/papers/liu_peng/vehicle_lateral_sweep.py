@@ -233,9 +233,6 @@ def _markdown(summary: dict) -> str:
             vals = " | ".join(f"{q[k]:.3g}" if k in q else "-" for k, _ in QUANTILES)
             lines.append(f"| {lp.LABELS[m]} | {vals} | {100 * q['best_fraction']:.1f} % | {q['non_finite']} |")
         lines.append("")
-    if "seconds" in summary:
-        lines += [f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.1f} configurations/s).", ""]
-    lines += [f"![{f}]({f})" for f in summary["figures"]]
     return "\n".join(lines) + "\n"
 
 
