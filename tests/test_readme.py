@@ -7,6 +7,8 @@ import pytest
 
 from tests import ROOT
 
+pytestmark = pytest.mark.published
+
 
 @pytest.mark.slow
 def test_readme_tour_runs(capsys):

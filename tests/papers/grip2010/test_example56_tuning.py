@@ -71,6 +71,7 @@ def test_small_run_end_to_end(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_table_row(tmp_path):
     """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
     held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,

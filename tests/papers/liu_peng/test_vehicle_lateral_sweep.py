@@ -66,6 +66,7 @@ def test_cli_sweep_end_to_end(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_sweep_figures(tmp_path):
     """The README's figures of ``jaxobs sweep --config tuning/liu_peng_sweep.toml`` (500 vehicles), from a fresh run
     of that command: median RMS v_y error per estimator, the 90th percentiles, the Kalman filter's share of best
