@@ -9,16 +9,17 @@ compiling. ``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more exa
 
 import gc
 import os
-from pathlib import Path
 
 import jax
 import pytest
 from hypothesis import HealthCheck, settings
 
+from tests import ROOT
+
 jax.config.update("jax_enable_x64", True)
 
-CACHE_DIR = os.environ.get("JAXOBS_TEST_CACHE") or str(Path(__file__).resolve().parents[1] / ".jax_cache")
-CACHE_MIN_COMPILE_SECONDS = 0.05  # most of the suite's programs compile in 0.05 to 1 s: cache them all but the tiniest
+CACHE_DIR = os.environ.get("JAXOBS_TEST_CACHE") or str(ROOT / ".jax_cache")
+CACHE_MIN_COMPILE_SECONDS = 0.05  # every program but the tiniest (single eager operations): the suite's are small
 os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE_DIR  # read by JAX on import in the subprocesses
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(CACHE_MIN_COMPILE_SECONDS)
 jax.config.update("jax_compilation_cache_dir", CACHE_DIR)
