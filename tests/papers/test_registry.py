@@ -3,7 +3,8 @@ runs (``scenario.validate`` then ``scenario.run``): its report and figures are w
 
 The paper-specific properties of each run (common random numbers, deadbeat, a published figure) are checked beside
 the paper's other tests; this file keeps one tiny configuration per registered name, so a new scenario or problem
-without one fails :func:`test_every_registered_name_has_a_tiny_config`.
+without one fails :func:`test_every_registered_name_has_a_tiny_config`. The runs whose compilation is long are
+``slow``.
 """
 
 import json
@@ -68,6 +69,13 @@ TINY_TUNING = {
 }
 
 
+SLOW = {"force-1dof", "peg-on-hole", "own-robot", "sideslip-gains"}  # MJX rollouts and the NVSO: long compiles
+
+
+def _names(tiny: dict) -> list:
+    return [pytest.param(name, marks=pytest.mark.slow if name in SLOW else ()) for name in tiny]
+
+
 def test_every_registered_name_has_a_tiny_config():
     assert list(TINY_SWEEPS) == list(registry.sweep_scenarios())
     assert list(TINY_TUNING) == list(registry.tuning_problems())
@@ -88,7 +96,7 @@ def _assert_written(out, summary: dict, summary_file: str) -> None:
         assert (out / name).stat().st_size > 0, name
 
 
-@pytest.mark.parametrize("name", list(TINY_SWEEPS))
+@pytest.mark.parametrize("name", _names(TINY_SWEEPS))
 def test_sweep_scenario_runs_end_to_end(name, tmp_path):
     scenario = registry.sweep_scenarios()[name]
     config = scenario.validate({"scenario": name, **TINY_SWEEPS[name]}, "tiny")
@@ -100,7 +108,7 @@ def test_sweep_scenario_runs_end_to_end(name, tmp_path):
     assert written["num_configs"] == summary["num_configs"] and _finite_numbers(written)
 
 
-@pytest.mark.parametrize("name", list(TINY_TUNING))
+@pytest.mark.parametrize("name", _names(TINY_TUNING))
 def test_tuning_problem_runs_end_to_end(name, tmp_path):
     problem = registry.tuning_problems()[name]
     given = {"problem": name, "optimizer": TINY_OPTIMIZER, "baseline": {"random_search": False}, **TINY_TUNING[name]}
