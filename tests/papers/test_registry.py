@@ -69,7 +69,7 @@ TINY_TUNING = {
 }
 
 
-SLOW = {"force-1dof", "peg-on-hole", "own-robot", "sideslip-gains"}  # MJX rollouts and the NVSO: long compiles
+SLOW = {"sideslip", "force-1dof", "peg-on-hole", "own-robot", "sideslip-gains"}  # NVSO, MJX: long compiles
 
 
 def _names(tiny: dict) -> list:
