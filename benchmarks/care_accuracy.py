@@ -1,4 +1,4 @@
-"""Accuracy of ``jaxobs.riccati.care`` against ``scipy.linalg.solve_continuous_are``.
+"""Accuracy of ``jaxobs.matrix_equations.care`` against ``scipy.linalg.solve_continuous_are``.
 
 Seeded random problems: ``A`` Gaussian plus ``shift I`` (shift -2, 0, +2: stable to unstable), ``(A, B)`` with a
 controllability matrix of condition below 1e3, ``Q > 0``, ``R = r H H'`` for ``r`` from 1 down to 1e-12 (precise
@@ -32,7 +32,7 @@ import mpmath  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 
-from jaxobs.riccati import care  # noqa: E402
+from jaxobs.matrix_equations import care  # noqa: E402
 
 
 def exact_care(A, B, Q, R, digits: int = 50):

@@ -3,12 +3,12 @@ against NumPy RK4 loops and diffrax, forward and for the gradient with respect t
 
 What is measured (float64): :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6`, both closed loops over the five
 segments of ``--segment-s`` seconds at 1 ms (RK4, ``theta`` and the noise held over each step), for ``B`` noise
-seeds (N(0, 1) per sample) at the printed gains (K_phi, Gamma) = (10, 3):
+seeds (N(0, 1) per sample) at the printed gains (K_phi, adaptation_gain) = (10, 3):
 
 * ``jaxobs_forward``: ``jit(vmap(simulate_5_6))`` over the seeds, returning every seed's per-segment mean
   |theta_tilde| over each segment's last half (:func:`~jaxobs.papers.grip2010.adaptive.segment_metrics`);
 * ``jaxobs_gradient``: the derivative of the mean of those (over seeds and segments, modular law) with respect to
-  ``(log K_phi, log Gamma)``, forward mode (``jax.jacfwd``: two parameters, no stored trajectory);
+  ``(log K_phi, log adaptation_gain)``, forward mode (``jax.jacfwd``: two parameters, no stored trajectory);
 * ``diffrax_forward``: the same ``simulate_5_6`` with each 1 ms step taken by ``diffrax.diffeqsolve`` (the
   classical RK4 tableau, one ``StepTo`` step) instead of :func:`jaxobs.ct.integrate`, so only the integrator
   differs; skipped without diffrax;
@@ -93,7 +93,7 @@ def numpy_closed_loops(noise: np.ndarray, K: float, G: float, seg: float) -> tup
     theta_hat'``; the gradient law limited to [-5, 5]. Returns ``(x_m, z, theta_hat_m, x_g, theta_hat_g)``."""
     B, steps = noise.shape
     theta_steps = grip.theta_schedule(grip.DT, seg)[0][:steps]
-    bound, eps, order, gg, dt = grip.THETA_BOUND, grip.EPSILON, grip.BOX_ORDER, grip.GAMMA_GRADIENT, grip.DT
+    bound, eps, order, gg, dt = grip.THETA_BOUND, grip.EPSILON, grip.BOX_ORDER, grip.ADAPTATION_GAIN_GRADIENT, grip.DT
 
     def modular(xm, z, th, theta, n, t):
         s = np.sin(t)
@@ -137,7 +137,7 @@ def numpy_closed_loops(noise: np.ndarray, K: float, G: float, seg: float) -> tup
 def _entries(noise: np.ndarray, log_gains, seg: float, numpy_steps: int, per_seed: int) -> dict:
     """The entries of :func:`_timing.time_interleaved` for ``noise`` (B, steps)."""
     B, steps = noise.shape
-    K, G = grip.K_PHI, grip.GAMMA_MODULAR
+    K, G = grip.K_PHI, grip.ADAPTATION_GAIN_MODULAR
     prefix = noise[:, :numpy_steps]
     args = (jnp.asarray(noise), log_gains)
 
@@ -160,7 +160,7 @@ def _entries(noise: np.ndarray, log_gains, seg: float, numpy_steps: int, per_see
 def measure(batches, seg: float, rounds: int, numpy_steps: int, numpy_seeds: int) -> dict:
     steps = len(grip.SEGMENT_THETAS) * round(seg / grip.DT)
     numpy_steps = min(numpy_steps, steps)
-    log_gains = jnp.log(jnp.array([grip.K_PHI, grip.GAMMA_MODULAR]))
+    log_gains = jnp.log(jnp.array([grip.K_PHI, grip.ADAPTATION_GAIN_MODULAR]))
     results = {}
     for B in batches:
         noise = np.asarray(jax.random.normal(jax.random.PRNGKey(B), (B, steps)))
@@ -182,7 +182,7 @@ def measure(batches, seg: float, rounds: int, numpy_steps: int, numpy_seeds: int
         padded = np.zeros((m, steps))
         padded[:, :numpy_steps] = noise[:m, :numpy_steps]
         ours = np.stack([np.asarray(a)[:, numpy_steps] for a in sim(jnp.asarray(padded))], axis=1)
-        xm, _, thm, xg, thg = numpy_closed_loops(noise[:m, :numpy_steps], grip.K_PHI, grip.GAMMA_MODULAR, seg)
+        xm, _, thm, xg, thg = numpy_closed_loops(noise[:m, :numpy_steps], grip.K_PHI, grip.ADAPTATION_GAIN_MODULAR, seg)
         record["max_abs_difference_numpy"] = float(np.max(np.abs(ours - np.stack([xm, thm, xg, thg], axis=1))))
         record["gradient"] = np.asarray(timings["jaxobs_gradient"].result).tolist()
         results[f"B={B}"] = record

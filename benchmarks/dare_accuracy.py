@@ -1,4 +1,4 @@
-"""Accuracy of ``jaxobs.riccati.dare`` against ``scipy.linalg.solve_discrete_are``.
+"""Accuracy of ``jaxobs.matrix_equations.dare`` against ``scipy.linalg.solve_discrete_are``.
 
 Case families (``tests/darex.py``):
 

@@ -91,8 +91,8 @@ from _timing import (  # noqa: E402
 
 import jaxobs as jo  # noqa: E402
 from jaxobs._linalg import cholesky, solve_lower, solve_spd  # noqa: E402
+from jaxobs.kalman_steps import predict_covariance  # noqa: E402
 from jaxobs.observers.kalman import KalmanParams  # noqa: E402
-from jaxobs.riccati import predict_covariance  # noqa: E402
 
 dynamax_lgssm, DYNAMAX_MISSING = optional_import("dynamax.linear_gaussian_ssm")
 dynamax_nlgssm, _ = optional_import("dynamax.nonlinear_gaussian_ssm")
@@ -308,7 +308,7 @@ def cuthbert_nonlinear(workload: str, model, Y):
 
 def floor_linear(workload: str, model, Y):
     """The kernels no Kalman filter (RTS smoother) can skip, and nothing else, each by the fastest implementation
-    measured here (XLA's batched product with row-major operands, as ``jaxobs.riccati.predict_covariance``;
+    measured here (XLA's batched product with row-major operands, as ``jaxobs.kalman_steps.predict_covariance``;
     ``jaxobs._linalg.solve_spd``: the Cholesky factor and solves unrolled up to 8 states, LAPACK above): per
     sample the prediction ``Phi P Phi' + Q`` (two n x n products) written out, and for the smoother, backwards,
     the gain ``P_prior^{-1} Phi P`` and ``E D E'`` (two products) written out; for the gradient, the prediction

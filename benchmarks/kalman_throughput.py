@@ -15,7 +15,7 @@ What is measured (float64; n = 10 states, m = 1 output; defaults B = 1024 sequen
    jaxobs ``with_steady_state_gain`` and ``numpy_schedule`` with SciPy's DARE gain do the same work (no
    covariance propagation); dynamax (one time-varying recursion), simdkalman and filterpy (B recursions) do
    more: an algorithmic difference, labelled so.
-4. ``dare``: B filter DAREs, ``jit(vmap(jaxobs.riccati.dare))`` against a Python loop of
+4. ``dare``: B filter DAREs, ``jit(vmap(jaxobs.matrix_equations.dare))`` against a Python loop of
    ``scipy.linalg.solve_discrete_are`` (SciPy has no batched DARE).
 
 Scenarios 1-3 also time ``write_floor``, a function that only writes an array of the filtered means'
@@ -63,6 +63,7 @@ import scipy.linalg  # noqa: E402
 from _models import random_models  # noqa: E402
 from _timing import Skipped, format_range, optional_import, paired_ratio, time_interleaved  # noqa: E402
 
+from jaxobs.matrix_equations import dare  # noqa: E402
 from jaxobs.observers import EstimatorInputs, run  # noqa: E402
 from jaxobs.observers.kalman import (  # noqa: E402
     KalmanParams,
@@ -71,7 +72,6 @@ from jaxobs.observers.kalman import (  # noqa: E402
     make_kalman,
     with_steady_state_gain,
 )
-from jaxobs.riccati import dare  # noqa: E402
 
 N_STATES, N_OUTPUTS = 10, 1
 SPECTRAL_RADIUS = 0.95
@@ -441,7 +441,7 @@ def dare_scenario(work: Workload, *, rounds: int) -> dict:
     rel = np.abs(P - P_ref).max(axis=(-2, -1)) / np.abs(P_ref).max(axis=(-2, -1))
     scenario = {
         "description": f"{work.batch} filter DAREs (n={N_STATES}, m={N_OUTPUTS}): "
-        "jit(vmap(jaxobs.riccati.dare)) vs a loop of scipy.linalg.solve_discrete_are",
+        "jit(vmap(jaxobs.matrix_equations.dare)) vs a loop of scipy.linalg.solve_discrete_are",
         "unit": "DAREs/s",
         "batch": work.batch,
         "peers": records,

@@ -1,36 +1,15 @@
 """jaxobs: differentiable, batched state and disturbance observers in JAX.
 
-``import jaxobs as jo`` gives the main entry points; the modules hold the rest:
-
-* models and design: :func:`ss`, :func:`c2d` (zero-order hold with dead time), :func:`dare`, :func:`dlqr`,
-  :func:`dlqe`, :func:`care`, :func:`lqr`, :func:`lqe`, :func:`acker`, :func:`place`, :func:`reference_gain`,
-  :func:`critically_damped_gain`, :func:`force_plant`;
-* estimators and controllers (one protocol, :mod:`jaxobs.observers`): :data:`kalman_filter`,
-  :data:`active_observer` (the Kalman Active Observer), :data:`hinf_filter`, :data:`inverse_dynamics_observer`,
-  :data:`linear_observer`, the combinator :func:`observer_controller`, and :func:`run`;
-* nonlinear models and filters: :func:`nonlinear_model` (discrete or continuous-discrete ``f(x, u, t)``,
-  ``h(x)``), :data:`extended_kalman_filter` (:func:`make_ekf`), :data:`unscented_kalman_filter`
-  (:func:`make_ukf`); continuous-time integration in :mod:`jaxobs.ct`, and a continuous-time observer
-  ``x_hat' = F(x_hat, u, y, t)`` run as a sampled estimator: :data:`continuous_observer`
-  (:func:`make_continuous_observer`); the modified high-gain observer of Grip 2010, ch. 6: :func:`hgo_gains`,
-  :data:`hgo_observer` (:func:`make_hgo`); the masked observability-Gramian reconstruction of Grip 2010 ch. 8 for
-  saturated or clipped sensors: :data:`gramian_estimator` (:func:`make_gramian`; the chapter 8 and 9 controllers
-  and saturation detectors in :mod:`jaxobs.saturation`); MJX models as ``f``, ``h`` in :mod:`jaxobs.mjx.estimation`;
-* estimation over a record (:mod:`jaxobs.smoothing`): :func:`log_likelihood`, :func:`smooth` (Rauch-Tung-Striebel,
-  for the Kalman filter and the active observer), :func:`rts_smoother`, :func:`parallel_filter` (parallel in time),
-  and the square-root Kalman filter :data:`square_root_kalman_filter` (:func:`square_root_form`);
-* learning from data (:mod:`jaxobs.learning`): maximum likelihood of ``Q``, ``R`` or any model parameter with optax
-  (:func:`fit`, :class:`FitSettings`, :func:`covariance_model`), EM for the linear-Gaussian model (:func:`em`), and
-  :func:`sample` to draw records of it;
-* closed loops and robustness: :func:`simulate`, :func:`measurement_noise`, :func:`stability_margins`,
-  :func:`closed_loop_matrix`, :func:`spectral_radius`;
-* jobs: :func:`run_sweep` (Monte-Carlo sweeps), :func:`tune` (optax tuning);
-* adaptation: :mod:`jaxobs.adaptive` (update laws, parameter projection, excitation); the modular parameter and
-  perturbation estimator of Grip 2010 ch. 5: :data:`modular_estimator` (:func:`make_modular`); continuous-time
-  linear observers: :mod:`jaxobs.observers.ct_linear`.
+``import jaxobs as jo`` gives the main entry points; the modules hold the rest: models and design
+(:func:`ss`, :func:`c2d`, :func:`dare`, :func:`dlqr`, :func:`place`, ...), estimators and controllers in one
+protocol (:mod:`jaxobs.observers`: :data:`kalman_filter`, :data:`active_observer`, :data:`hinf_filter`, the
+combinator :func:`observer_controller`, :func:`run`), nonlinear filters (:mod:`jaxobs.nonlinear`), estimation over
+a record (:mod:`jaxobs.smoothing`), learning from data (:mod:`jaxobs.learning`), closed loops and robustness
+(:func:`simulate`, :func:`stability_margins`), and the jobs :func:`run_sweep` and :func:`tune`.
 
 MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
-enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``).
+enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``). A map of the
+API by task: docs/theory/api-map.md.
 """
 
 from importlib.metadata import PackageNotFoundError, version
@@ -39,6 +18,7 @@ from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
 from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
 from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
 from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
+from jaxobs.matrix_equations import care, dare
 from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 from jaxobs.observers import (
     Controller,
@@ -63,7 +43,6 @@ from jaxobs.observers.modular import make_modular, modular_estimator
 from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
 from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
 from jaxobs.plants import force_plant
-from jaxobs.riccati import care, dare
 from jaxobs.scb import (
     SCB,
     infinite_zero_structure,

@@ -40,6 +40,7 @@ class ConfigError(JobError):
 
 
 def fail(source: str, key: str, message: str):
+    """Raise :class:`ConfigError` for ``key`` of ``source`` (a file name or "defaults")."""
     raise ConfigError(f"{source}: {key}: {message}")
 
 
@@ -143,6 +144,7 @@ def check_at_least(config: dict, source: str, key: str, low, *, strict: bool = F
 
 
 def check_choice(config: dict, source: str, key: str, choices):
+    """The value of ``key`` (dotted) must be one of ``choices``, else a :class:`ConfigError`."""
     value = get(config, key)
     if value not in choices:
         fail(source, key, f"must be one of {', '.join(map(repr, choices))}, got {value!r}")

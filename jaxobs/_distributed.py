@@ -1,20 +1,10 @@
 """What the jobs (``jaxobs.sweep``, ``jaxobs.tuning``) need to run in several processes on JAX's distributed runtime
-(``jax.distributed.initialize``; on CPU the processes exchange data through gloo), and to run on several CPU
-devices of one process.
+(``jax.distributed.initialize``), and on several CPU devices of one process.
 
-* :func:`agree` stops every process with the same kind of error when one of them cannot run the job or runs a
-  different one (processes that went on alone would wait forever in the job's first collective).
-* :func:`from_process_0` and :func:`json_from_process_0` give every process process 0's value (a decision, a
-  loaded state): process 0 alone reads and writes files, the others follow.
-* :func:`lapack_guard`: jaxlib's batched LAPACK kernels on CPU (LU, eigenvalues, Cholesky, ...; triangular
-  solves are plain loops) split their batch over XLA's intra-op thread pool and block a pool thread until the
-  parts are done. Several CPU devices of one process running such kernels at once can take every pool thread and
-  then wait forever (seen with jaxlib 0.10.2: 2 cores, 2 forced host devices, a batched ``jnp.linalg.solve`` or
-  ``eigvals``). A program that calls them is run on one device per process instead: the forced host devices
-  share the same cores, and jaxlib already spreads each LAPACK batch over all of them. Each process has its own
-  pool, so across processes the guard keeps one device in every process.
-
-All are no-ops (or the identity) in a single process.
+:func:`agree` stops every process with the same error when one cannot run the job; :func:`from_process_0` and
+:func:`json_from_process_0` give every process process 0's value; :func:`lapack_guard` runs programs with jaxlib's
+blocking LAPACK kernels on one CPU device per process. All are no-ops (or the identity) in a single process.
+Details: the "Jobs" page of the design notes (docs/theory/jobs.md).
 """
 
 from __future__ import annotations

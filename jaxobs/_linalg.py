@@ -1,12 +1,12 @@
 """Small dense linear algebra for batches of matrices: solves and Cholesky factors that XLA fuses.
 
 XLA on CPU runs a ``vmap``-ed batch of small LAPACK calls (Cholesky, triangular and LU solves) as one library call
-per matrix, plus layout copies around each: for the 2 x 2 innovation covariance of a filter over 64 sequences,
-those calls cost more than the rest of the step (``benchmarks/estimation.py``: the filter at n = 2 ran 3x faster
-once they were unrolled). Up to a size limit, the functions here unroll the algorithm into elementwise operations
-on whole batches, which XLA fuses into a few loops; above it they call ``jax.numpy``/``jax.scipy``. Matrix products
-are left to XLA (its batched dot beat an unrolled sum of outer products at n = 10). Every function takes a
-leading batch of any shape (``...``), is pure and works eagerly, under ``jit``, ``vmap`` and ``grad``.
+per matrix, plus layout copies around each: for a filter's small innovation covariance those calls cost more than
+the rest of the step. Up to a size limit, the functions here unroll the algorithm into elementwise operations on
+whole batches, which XLA fuses into a few loops; above it they call ``jax.numpy``/``jax.scipy``. Matrix products
+are left to XLA's batched dot. Every function takes a leading batch of any shape (``...``), is pure and works
+eagerly, under ``jit``, ``vmap`` and ``grad``. Measured by ``benchmarks/estimation.py`` and
+``benchmarks/kalman_throughput.py`` (docs/theory/measurements.md).
 """
 
 from __future__ import annotations
@@ -17,21 +17,31 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-__all__ = ["UNROLL_MAX", "FACTOR_UNROLL_MAX", "small_solve", "cholesky", "solve_lower", "cho_solve", "solve_spd"]
+__all__ = [
+    "UNROLL_MAX",
+    "FACTOR_UNROLL_MAX",
+    "small_solve",
+    "cholesky",
+    "solve_lower",
+    "cho_solve",
+    "solve_spd",
+    "symmetrize",
+]
 
 UNROLL_MAX = 16
 """Largest system that :func:`small_solve` solves by unrolled substitution sweeps."""
 
 FACTOR_UNROLL_MAX = 8
-"""Largest factor (Cholesky, triangular solve) that is unrolled: the unrolled 10 x 10 Cholesky of the smoother's
-gain compiles in 4x the time and runs no faster than LAPACK's (``benchmarks/estimation.py``, ``smooth``)."""
+"""Largest factor (Cholesky, triangular solve) that is unrolled: a larger unrolled factor, such as the 10 x 10
+Cholesky of the smoother's gain, compiles longer and runs no faster than LAPACK's (``benchmarks/estimation.py``,
+``smooth``)."""
 
 
 def small_solve(W, X):
     """``W^{-1} X`` for a square ``W`` (..., n, n): LU with partial pivoting (LAPACK), then, for at most
     ``UNROLL_MAX`` unknowns, the two triangular solves as unrolled substitution sweeps over the whole batch.
 
-    XLA's CPU triangular solve costs about 3x the LU itself for a batch of 10 x 10 systems; the sweeps fuse into
+    XLA's CPU triangular solve of a batch of small systems costs more than the LU itself; the sweeps fuse into
     one elementwise loop per unknown (``benchmarks/kalman_throughput.py``, scenario ``dare``).
     """
     n = W.shape[-1]
@@ -101,9 +111,8 @@ def _substitution(L, B, transpose):
 @_substitution.defjvp
 def _substitution_jvp(transpose, primals, tangents):
     """``dX = L^{-1} (dB - dL X)`` (``L'`` for ``transpose``), one more substitution: differentiating the unrolled
-    one entry by entry instead made the log-likelihood gradient's program a fifth larger (3088 against 2561 HLO
-    lines at n = 2), slower to compile (its excess over dynamax's on the gradient cells: median 0.39 s against
-    0.26 s) and no faster to run (``benchmarks/estimation.py``, ``grad``)."""
+    one entry by entry instead makes the log-likelihood gradient's program larger, slower to compile and no faster
+    to run (``benchmarks/estimation.py``, ``grad``)."""
     (L, B), (dL, dB) = primals, tangents
     X = _substitution(L, B, transpose)
     dL = jnp.tril(dL)  # the upper triangle is not read
@@ -121,3 +130,8 @@ def solve_spd(S, B):
     if S.shape[-1] == 1:
         return B / S[..., :1, :1]
     return cho_solve(cholesky(S), B)
+
+
+def symmetrize(P):
+    """``(P + P') / 2``."""
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))

@@ -1,22 +1,10 @@
 """What the jobs (``jaxobs.sweep``, ``jaxobs.tuning`` and the ``jaxobs`` command) need from the machine: a writable
 output directory held by one process at a time, atomic writes, and enough memory.
 
-* :func:`locked_out_dir` checks that a directory can be written (it exists or can be created, is a directory,
-  accepts a file: this catches a regular file, a missing permission and a read-only file system) and holds an
-  exclusive ``flock`` on ``.jaxobs.lock`` inside it, with the holder's pid written in the file. The lock is
-  re-entrant within a process (the command takes it before building anything, the engine again inside) and the
-  operating system releases it when the process dies, so a crash never leaves a stale lock.
-* :func:`atomic_write` writes through a temporary file named after the process and a random token, so that two
-  writers never share a temporary file.
-* :func:`check_memory` refuses an allocation larger than the memory available (``/proc/meminfo``'s
-  ``MemAvailable``, capped by a cgroup limit; a GPU's free memory), naming the estimate, before anything is
-  allocated; :func:`program_nbytes` is XLA's estimate for a compiled program, and :func:`compile_checked`
-  compiles a lowered function and checks that estimate before it ever runs.
-* :class:`InterruptWatch` notes every Ctrl-C while a job runs, so that one whose ``KeyboardInterrupt`` was lost
-  (raised inside a garbage-collection callback, such as XLA's, Python prints it as "Exception ignored" and goes
-  on) still stops the job at its next check.
-
-POSIX only (``fcntl``).
+:func:`locked_out_dir` (a re-entrant ``flock`` on ``.jaxobs.lock``), :func:`atomic_write`, :func:`check_memory`,
+:func:`program_nbytes` and :func:`compile_checked` (XLA's memory estimate checked before a program runs), and
+:class:`InterruptWatch` (Ctrl-C noted even when its ``KeyboardInterrupt`` was lost). POSIX only (``fcntl``).
+Details: docs/theory/jobs.md.
 """
 
 from __future__ import annotations

@@ -1,19 +1,24 @@
 """Parameter update laws, parameter projection and the excitation measure: the one home of adaptation in jaxobs.
 
-Notation (Grip 2010 §1.3.1): unknown constant parameters ``theta`` (p,), estimate ``theta_hat``, error
-``theta_tilde = theta - theta_hat``; the linear regression model ``z = phi' theta`` with regressor ``phi`` (p,) and
-target ``z`` (), or ``phi`` (p, q) and ``z`` (q,) for ``q`` equations at once; the prediction error
-``e = z - phi' theta_hat``. Gains ``Gamma`` are a positive scalar or a symmetric positive-definite (p, p) matrix.
+Notation (Grip 2010 §1.3.1): unknown constant parameters ``theta`` (n_theta,), estimate ``theta_hat``, error
+``theta_tilde = theta - theta_hat``; the linear regression model ``z = omega' theta`` with regressor ``omega``
+(n_theta,) and target ``z`` (), or ``omega`` (n_theta, q) and ``z`` (q,) for ``q`` equations at once; the prediction
+error ``e = z - omega' theta_hat``. The adaptation gain ``adaptation_gain`` (the thesis's ``Gamma``) is a positive
+scalar or a symmetric positive-definite (n_theta, n_theta) matrix; ``phi`` is always a perturbation, never a
+regressor.
 
 Continuous-time laws return the derivative ``theta_hat_dot`` (and ``P_dot``): integrate them with any fixed-step
 method, e.g. as part of a continuous-time observer's right-hand side. Discrete-time laws return the next value.
 Every function is pure and works under ``jit``, ``vmap`` and ``grad``; concrete arguments are validated eagerly
 (``ValueError`` naming the argument), traced ones are not.
 
-* :func:`gradient_law`: gradient and normalised-gradient laws.
+* :func:`regression_gradient_law`: gradient and normalised-gradient laws for a linear regression.
 * :func:`lyapunov_law`: the Lyapunov-based law of Grip 2010 Example 1.1.
 * :func:`rls_update` (discrete, forgetting factor) and :func:`rls_rate` (continuous, forgetting rate): recursive
   least squares.
+* the laws of the perturbation-based observers (:mod:`jaxobs.observers.modular`, :mod:`jaxobs.observers.hgo`),
+  objects with one call ``law(g, args, phi_hat, theta_hat) -> theta_hat_dot``: :class:`InversionLaw` (Grip 2010
+  Props. 5.1, 5.2, 6.1, 6.2), :class:`PerturbationGradientLaw` (Props. 5.3, 5.4, 6.3, 6.4) and :class:`CustomLaw`.
 * :func:`project` with the sets :class:`Ball` and :class:`Box` (or any smooth convex function): the parameter
   projection of Grip 2010 App. 5.A (after Krstić, Kanellakopoulos & Kokotović 1995, App. E); :func:`clip_step`,
   the Euler step with clipping that the thesis's discrete-time implementations use.
@@ -33,7 +38,7 @@ import numpy as np
 from jaxobs import _checks
 
 __all__ = [
-    "gradient_law",
+    "regression_gradient_law",
     "lyapunov_law",
     "rls_update",
     "rls_rate",
@@ -41,6 +46,10 @@ __all__ = [
     "Ball",
     "Box",
     "clip_step",
+    "InversionLaw",
+    "PerturbationGradientLaw",
+    "CustomLaw",
+    "check_law",
     "excitation",
 ]
 
@@ -49,22 +58,22 @@ __all__ = [
 # validation and shapes
 
 
-def _regression(theta_hat, phi, z):
-    """``(theta_hat (p,), phi (p, q), z (q,), dtype)`` with the shapes checked at trace time: ``phi`` (p,) with
-    ``z`` () is the scalar regression ``q = 1``."""
-    dtype = _checks.float_dtype(theta_hat=theta_hat, phi=phi, z=z)
+def _regression(theta_hat, omega, z):
+    """``(theta_hat (n_theta,), omega (n_theta, q), z (q,), dtype)`` with the shapes checked at trace time:
+    ``omega`` (n_theta,) with ``z`` () is the scalar regression ``q = 1``."""
+    dtype = _checks.float_dtype(theta_hat=theta_hat, omega=omega, z=z)
     theta_hat = jnp.asarray(theta_hat, dtype)
     if theta_hat.ndim != 1:
-        raise ValueError(f"theta_hat must be a (p,) vector, got shape {theta_hat.shape}")
-    p = theta_hat.shape[0]
-    phi, z = jnp.asarray(phi, dtype), jnp.asarray(z, dtype)
-    if phi.ndim == 1:
-        _checks.shape("phi", phi, (p,), "one entry per parameter")
-        _checks.shape("z", z, (), "a scalar target for a (p,) regressor")
-        return theta_hat, phi[:, None], z[None], dtype
-    _checks.shape("phi", phi, (p, None), "one row per parameter")
-    _checks.shape("z", z, (phi.shape[1],), "one target per column of phi")
-    return theta_hat, phi, z, dtype
+        raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    n_theta = theta_hat.shape[0]
+    omega, z = jnp.asarray(omega, dtype), jnp.asarray(z, dtype)
+    if omega.ndim == 1:
+        _checks.shape("omega", omega, (n_theta,), "one entry per parameter")
+        _checks.shape("z", z, (), "a scalar target for a (n_theta,) regressor")
+        return theta_hat, omega[:, None], z[None], dtype
+    _checks.shape("omega", omega, (n_theta, None), "one row per parameter")
+    _checks.shape("z", z, (omega.shape[1],), "one target per column of omega")
+    return theta_hat, omega, z, dtype
 
 
 def _positive(name: str, value, dtype) -> jax.Array:
@@ -76,20 +85,21 @@ def _positive(name: str, value, dtype) -> jax.Array:
 # gradient, Lyapunov and least-squares laws
 
 
-def lyapunov_law(omega, x, Gamma) -> jax.Array:
-    """The Lyapunov-based update law ``theta_hat_dot = Gamma omega x`` (Grip 2010 Example 1.1).
+def lyapunov_law(omega, x, adaptation_gain) -> jax.Array:
+    """The Lyapunov-based update law ``theta_hat_dot = Gamma omega x`` (Grip 2010 Example 1.1, ``Gamma`` the
+    adaptation gain).
 
     For ``x_dot = f(t, x) + omega' theta_tilde`` with ``x_dot = f`` stable (Example 1.1: ``x_dot = -x +
     omega'(t) theta_tilde``, eq. 1.12), the law cancels the sign-indefinite term of the derivative of
     ``W = |x|^2 / 2 + theta_tilde' Gamma^{-1} theta_tilde / 2``, which leaves ``W_dot = -|x|^2``.
 
     Args:
-      omega: (p,) regressor for a scalar ``x``, or (p, n) for ``x`` of size n.
+      omega: (n_theta,) regressor for a scalar ``x``, or (n_theta, n) for ``x`` of size n.
       x: () or (n,) the error that the parameter error drives.
-      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
+      adaptation_gain: positive scalar or (n_theta, n_theta) symmetric positive-definite ``Gamma``.
 
     Returns:
-      (p,) ``theta_hat_dot``.
+      (n_theta,) ``theta_hat_dot``.
 
     Example:
       >>> import numpy as np
@@ -98,56 +108,61 @@ def lyapunov_law(omega, x, Gamma) -> jax.Array:
     """
     omega = jnp.asarray(omega)
     if omega.ndim not in (1, 2):
-        raise ValueError(f"omega must be a (p,) or (p, n) array, got shape {omega.shape}")
+        raise ValueError(f"omega must be a (n_theta,) or (n_theta, n) array, got shape {omega.shape}")
     dtype = _checks.float_dtype(omega=omega, x=x)
-    p = omega.shape[0]
+    n_theta = omega.shape[0]
     omega, x = omega.astype(dtype), jnp.asarray(x, dtype)
     if omega.ndim == 1:
-        _checks.shape("x", x, (), "a scalar for a (p,) omega")
+        _checks.shape("x", x, (), "a scalar for a (n_theta,) omega")
     else:
         _checks.shape("x", x, (omega.shape[1],), "one entry per column of omega")
-    return _checks.gain("Gamma", Gamma, p, dtype) @ (omega * x if omega.ndim == 1 else omega @ x)
+    gain = _checks.gain("adaptation_gain", adaptation_gain, n_theta, dtype)
+    return gain @ (omega * x if omega.ndim == 1 else omega @ x)
 
 
-def gradient_law(theta_hat, phi, z, Gamma, *, normalized: bool = False) -> jax.Array:
-    """The gradient law for the regression ``z = phi' theta`` (Grip 2010 §1.3.1, after eq. 1.10)::
+def regression_gradient_law(theta_hat, omega, z, adaptation_gain, *, normalized: bool = False) -> jax.Array:
+    """The gradient law for the linear regression ``z = omega' theta`` (Grip 2010 §1.3.1, after eq. 1.10), with
+    ``Gamma`` the adaptation gain::
 
-        theta_hat_dot = Gamma phi e                      (descent on J = |e|^2 / 2, e = z - phi' theta_hat)
-        theta_hat_dot = Gamma phi e / (1 + |phi|^2)      (normalized; |phi|^2 = trace phi' phi)
+        theta_hat_dot = Gamma omega e                        (descent on J = |e|^2 / 2, e = z - omega' theta_hat)
+        theta_hat_dot = Gamma omega e / (1 + |omega|^2)      (normalized; |omega|^2 = trace omega' omega)
 
     Args:
-      theta_hat: (p,) estimate.  phi: (p,) regressor, or (p, q) for q equations.  z: () target, or (q,).
-      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
-      normalized: divide by ``1 + |phi|^2`` (bounded rate for unbounded regressors).
+      theta_hat: (n_theta,) estimate.  omega: (n_theta,) regressor, or (n_theta, q) for q equations.
+      z: () target, or (q,).
+      adaptation_gain: positive scalar or (n_theta, n_theta) symmetric positive-definite ``Gamma``.
+      normalized: divide by ``1 + |omega|^2`` (bounded rate for unbounded regressors).
 
     Returns:
-      (p,) ``theta_hat_dot``.
+      (n_theta,) ``theta_hat_dot``.
 
     Example:
       >>> import numpy as np
-      >>> gradient_law(np.zeros(2), np.array([1.0, 1.0]), 2.0, 1.0, normalized=True).tolist()
+      >>> regression_gradient_law(np.zeros(2), np.array([1.0, 1.0]), 2.0, 1.0, normalized=True).tolist()
       [0.6666666666666666, 0.6666666666666666]
     """
-    theta_hat, phi, z, dtype = _regression(theta_hat, phi, z)
-    rate = _checks.gain("Gamma", Gamma, theta_hat.shape[0], dtype) @ (phi @ (z - phi.T @ theta_hat))
-    return rate / (1 + jnp.sum(phi**2)) if normalized else rate
+    theta_hat, omega, z, dtype = _regression(theta_hat, omega, z)
+    gain = _checks.gain("adaptation_gain", adaptation_gain, theta_hat.shape[0], dtype)
+    rate = gain @ (omega @ (z - omega.T @ theta_hat))
+    return rate / (1 + jnp.sum(omega**2)) if normalized else rate
 
 
-def rls_update(theta_hat, P, phi, z, forgetting=1.0):
+def rls_update(theta_hat, P, omega, z, forgetting=1.0):
     """One step of recursive least squares with forgetting factor ``lambda`` (Grip 2010 §1.3.1; Åström &
     Wittenmark 1995, Ch. 2)::
 
-        K = P phi (lambda I + phi' P phi)^{-1}
-        theta_hat+ = theta_hat + K (z - phi' theta_hat),    P+ = (P - K phi' P) / lambda
+        K = P omega (lambda I + omega' P omega)^{-1}
+        theta_hat+ = theta_hat + K (z - omega' theta_hat),    P+ = (P - K omega' P) / lambda
 
-    After ``k + 1`` steps from ``(theta_0, P_0)``, ``theta_hat`` minimises ``sum_i lambda^(k-i) |z_i - phi_i'
+    After ``k + 1`` steps from ``(theta_0, P_0)``, ``theta_hat`` minimises ``sum_i lambda^(k-i) |z_i - omega_i'
     theta|^2 + lambda^(k+1) (theta - theta_0)' P_0^{-1} (theta - theta_0)``: the batch least-squares estimate with
     exponentially fading memory (``lambda = 1``: ordinary least squares, regularised by the prior). Non-finite
     entries of ``z`` are missing: their equations are dropped (``P`` is still divided by ``lambda``).
 
     Args:
-      theta_hat: (p,) estimate.  P: (p, p) symmetric positive-definite matrix (``P_0``: large for a vague prior).
-      phi: (p,) regressor, or (p, q).  z: () target, or (q,).  forgetting: ``lambda`` in (0, 1].
+      theta_hat: (n_theta,) estimate.  P: (n_theta, n_theta) symmetric positive-definite matrix (``P_0``: large
+        for a vague prior).  omega: (n_theta,) regressor, or (n_theta, q).  z: () target, or (q,).
+      forgetting: ``lambda`` in (0, 1].
 
     Returns:
       ``(theta_hat, P)`` after the step.
@@ -155,23 +170,23 @@ def rls_update(theta_hat, P, phi, z, forgetting=1.0):
     Example:
       >>> import numpy as np
       >>> theta, P = np.zeros(1), 1e6 * np.eye(1)
-      >>> for phi, z in [(1.0, 2.0), (2.0, 4.0)]:
-      ...     theta, P = rls_update(theta, P, np.array([phi]), z)
+      >>> for omega, z in [(1.0, 2.0), (2.0, 4.0)]:
+      ...     theta, P = rls_update(theta, P, np.array([omega]), z)
       >>> round(float(theta[0]), 6)
       2.0
     """
-    theta_hat, phi, z, dtype = _regression(theta_hat, phi, z)
-    p = theta_hat.shape[0]
-    _checks.covariance("P", P, definite=True, size=p)
+    theta_hat, omega, z, dtype = _regression(theta_hat, omega, z)
+    n_theta = theta_hat.shape[0]
+    _checks.covariance("P", P, definite=True, size=n_theta)
     P = jnp.asarray(P, dtype)
     lam = _forgetting_factor(forgetting, dtype)
     seen = jnp.isfinite(z)
-    phi = jnp.where(seen[None, :], phi, 0)  # a missing equation carries no information
-    e = jnp.where(seen, z - phi.T @ theta_hat, 0)
-    Pphi = P @ phi
-    S = lam * jnp.eye(phi.shape[1], dtype=dtype) + phi.T @ Pphi
-    K = jnp.linalg.solve(S, Pphi.T).T  # S is symmetric
-    P_next = (P - K @ Pphi.T) / lam
+    omega = jnp.where(seen[None, :], omega, 0)  # a missing equation carries no information
+    e = jnp.where(seen, z - omega.T @ theta_hat, 0)
+    P_omega = P @ omega
+    S = lam * jnp.eye(omega.shape[1], dtype=dtype) + omega.T @ P_omega
+    K = jnp.linalg.solve(S, P_omega.T).T  # S is symmetric
+    P_next = (P - K @ P_omega.T) / lam
     return theta_hat + K @ e, (P_next + P_next.T) / 2
 
 
@@ -183,18 +198,18 @@ def _forgetting_factor(forgetting, dtype):
     return jnp.asarray(forgetting, dtype)
 
 
-def rls_rate(theta_hat, P, phi, z, forgetting=0.0):
+def rls_rate(theta_hat, P, omega, z, forgetting=0.0):
     """Continuous-time recursive least squares with forgetting rate ``beta >= 0`` (Grip 2010 §1.3.1; Ioannou & Sun
     1996, Ch. 4)::
 
-        theta_hat_dot = P phi e,    P_dot = beta P - P phi phi' P        (e = z - phi' theta_hat)
+        theta_hat_dot = P omega e,    P_dot = beta P - P omega omega' P        (e = z - omega' theta_hat)
 
-    ``P^{-1}`` then integrates ``phi phi'`` with the fading memory ``exp(-beta t)``, and ``theta_hat`` is the
+    ``P^{-1}`` then integrates ``omega omega'`` with the fading memory ``exp(-beta t)``, and ``theta_hat`` is the
     corresponding weighted least-squares estimate of the continuous-time regression.
 
     Args:
-      theta_hat: (p,) estimate.  P: (p, p) symmetric positive-definite matrix.  phi: (p,) regressor, or (p, q).
-      z: () target, or (q,).  forgetting: ``beta >= 0``.
+      theta_hat: (n_theta,) estimate.  P: (n_theta, n_theta) symmetric positive-definite matrix.
+      omega: (n_theta,) regressor, or (n_theta, q).  z: () target, or (q,).  forgetting: ``beta >= 0``.
 
     Returns:
       ``(theta_hat_dot, P_dot)``.
@@ -205,13 +220,13 @@ def rls_rate(theta_hat, P, phi, z, forgetting=0.0):
       >>> rate.tolist(), P_dot.tolist()
       ([2.0], [[-1.0]])
     """
-    theta_hat, phi, z, dtype = _regression(theta_hat, phi, z)
+    theta_hat, omega, z, dtype = _regression(theta_hat, omega, z)
     _checks.covariance("P", P, definite=True, size=theta_hat.shape[0])
     _checks.positive_scalar("forgetting", forgetting, allow_zero=True)
     P = jnp.asarray(P, dtype)
-    Pphi = P @ phi
-    P_dot = jnp.asarray(forgetting, dtype) * P - Pphi @ Pphi.T
-    return Pphi @ (z - phi.T @ theta_hat), (P_dot + P_dot.T) / 2
+    P_omega = P @ omega
+    P_dot = jnp.asarray(forgetting, dtype) * P - P_omega @ P_omega.T
+    return P_omega @ (z - omega.T @ theta_hat), (P_dot + P_dot.T) / 2
 
 
 # --------------------------------------------------------------------------------------------
@@ -226,7 +241,7 @@ class Ball:
     radius ``radius sqrt(1 + epsilon)``.
 
     Attributes:
-      center: (p,) centre.  radius: () positive radius.
+      center: (n_theta,) centre.  radius: () positive radius.
     """
 
     center: jax.Array
@@ -247,7 +262,7 @@ class Box:
     times larger about the centre. (For exact boxes in discrete time, see :func:`clip_step`.)
 
     Attributes:
-      lower: (p,) lower bounds.  upper: (p,) upper bounds, ``> lower``.  order: static positive integer.
+      lower: (n_theta,) lower bounds.  upper: (n_theta,) upper bounds, ``> lower``.  order: static positive integer.
     """
 
     lower: jax.Array
@@ -260,7 +275,7 @@ class Box:
         return jnp.sum(u ** (2 * self.order)) - 1
 
 
-def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
+def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.Array:
     """The parameter projection ``Proj(tau)`` of Grip 2010 App. 5.A (Krstić, Kanellakopoulos & Kokotović 1995,
     App. E): the update law ``theta_hat_dot = Proj(tau)`` keeps ``theta_hat`` in ``Theta = {P(theta_hat) <=
     epsilon}``, a boundary layer ``epsilon`` around the parameter set ``Pi = {P <= 0}`` of the smooth convex
@@ -269,7 +284,8 @@ def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
         Proj(tau) = tau                                          if P(theta_hat) < 0 or grad P' tau <= 0
         Proj(tau) = (I - c Gamma grad P grad P' / |grad P|_Gamma^2) tau     otherwise, in Theta \\ Pi°
 
-    with ``c = min(1, P(theta_hat) / epsilon)`` and ``|g|_Gamma^2 = g' Gamma g``. It is Lipschitz in ``tau`` and
+    with ``c = min(1, P(theta_hat) / epsilon)``, ``Gamma`` the adaptation gain and ``|g|_Gamma^2 = g' Gamma g``. It is
+    Lipschitz in ``tau`` and
     ``theta_hat`` and, for every ``theta`` in ``Pi``, ``theta_hat`` in ``Theta`` (App. 5.A, Krstić et al. Lemma E.1):
     ``-theta_tilde' Gamma^{-1} Proj(tau) <= -theta_tilde' Gamma^{-1} tau`` and
     ``Proj(tau)' Gamma^{-1} Proj(tau) <= tau' Gamma^{-1} tau``; on the outer boundary ``P = epsilon`` the projected
@@ -278,14 +294,16 @@ def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
     bounds in discrete time use :func:`clip_step`.)
 
     Args:
-      tau: (p,) the unprojected rate, e.g. ``Gamma M (phi_hat - B g)`` (Grip 2010 Prop. 5.3).
-      theta_hat: (p,) estimate, in ``Theta`` (checked when concrete).
-      Gamma: the gain of the law (positive scalar or (p, p) symmetric positive definite).
-      region: smooth convex ``P: (p,) -> ()``, e.g. :class:`Ball` or :class:`Box` (differentiated with ``jax.grad``).
+      tau: (n_theta,) the unprojected rate, e.g. ``Gamma M (phi_hat - B g)`` (Grip 2010 Prop. 5.3).
+      theta_hat: (n_theta,) estimate, in ``Theta`` (checked when concrete).
+      adaptation_gain: ``Gamma``, the gain of the law (positive scalar or (n_theta, n_theta) symmetric positive
+        definite).
+      region: smooth convex ``P: (n_theta,) -> ()``, e.g. :class:`Ball` or :class:`Box` (differentiated with
+        ``jax.grad``).
       epsilon: positive width of the boundary layer, in the units of ``P``.
 
     Returns:
-      (p,) ``Proj(tau)``.
+      (n_theta,) ``Proj(tau)``.
 
     Example:
       >>> import numpy as np
@@ -298,10 +316,10 @@ def project(tau, theta_hat, Gamma, region: Callable, epsilon) -> jax.Array:
     dtype = _checks.float_dtype(tau=tau, theta_hat=theta_hat)
     theta_hat = jnp.asarray(theta_hat, dtype)
     if theta_hat.ndim != 1:
-        raise ValueError(f"theta_hat must be a (p,) vector, got shape {theta_hat.shape}")
-    p = theta_hat.shape[0]
-    tau = _checks.vector("tau", tau, p, dtype, what="one entry per parameter")
-    G = _checks.gain("Gamma", Gamma, p, dtype)
+        raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    n_theta = theta_hat.shape[0]
+    tau = _checks.vector("tau", tau, n_theta, dtype, what="one entry per parameter")
+    G = _checks.gain("adaptation_gain", adaptation_gain, n_theta, dtype)
     epsilon = _positive("epsilon", epsilon, dtype)
     value, grad = jax.value_and_grad(lambda t: jnp.asarray(region(t), dtype))(theta_hat)
     if _checks.is_concrete(value, epsilon) and not float(value) <= float(epsilon) * (1 + 1e-9):
@@ -324,11 +342,11 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
         theta_hat_{k+1} = min(max(theta_hat_k + dt rate_k, lower), upper)
 
     Args:
-      theta_hat: (p,) estimate in ``[lower, upper]`` (checked when concrete).  rate: (p,) ``theta_hat_dot``.
-      dt: positive step.  lower: (p,) or () lower bounds.  upper: (p,) or () upper bounds, ``>= lower``.
+      theta_hat: (n_theta,) estimate in ``[lower, upper]`` (checked when concrete).  rate: (n_theta,) ``theta_hat_dot``.
+      dt: positive step.  lower: (n_theta,) or () lower bounds.  upper: (n_theta,) or () upper bounds, ``>= lower``.
 
     Returns:
-      (p,) ``theta_hat_{k+1}``.
+      (n_theta,) ``theta_hat_{k+1}``.
 
     Example:
       >>> import numpy as np
@@ -338,12 +356,12 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
     dtype = _checks.float_dtype(theta_hat=theta_hat, rate=rate, lower=lower, upper=upper)
     theta_hat = jnp.asarray(theta_hat, dtype)
     if theta_hat.ndim != 1:
-        raise ValueError(f"theta_hat must be a (p,) vector, got shape {theta_hat.shape}")
-    p = theta_hat.shape[0]
-    rate = _checks.vector("rate", rate, p, dtype, what="one entry per parameter")
+        raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    n_theta = theta_hat.shape[0]
+    rate = _checks.vector("rate", rate, n_theta, dtype, what="one entry per parameter")
     dt = _positive("dt", dt, dtype)
-    lower = _checks.per_entry("lower", lower, p, dtype)
-    upper = _checks.per_entry("upper", upper, p, dtype)
+    lower = _checks.per_entry("lower", lower, n_theta, dtype)
+    upper = _checks.per_entry("upper", upper, n_theta, dtype)
     if _checks.is_concrete(lower, upper, theta_hat):
         if np.any(np.asarray(upper) < np.asarray(lower)):
             raise ValueError(f"upper must be >= lower, got lower {np.asarray(lower)}, upper {np.asarray(upper)}")
@@ -356,6 +374,157 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
 
 
 # --------------------------------------------------------------------------------------------
+# update laws of the perturbation-based observers
+
+
+def _wrap_functions(law, *names):
+    """Store the named callables of a law as ``Partial``s (bound arguments become pytree leaves)."""
+    for name in names:
+        fn = getattr(law, name)
+        if fn is not None:
+            object.__setattr__(law, name, _checks.function(name, fn))
+
+
+def _rate(law, direction, theta_hat) -> jax.Array:
+    """``Proj(Gamma direction)`` with the law's adaptation gain ``Gamma`` and projection set (none without a
+    ``region``)."""
+    tau = _checks.gain("adaptation_gain", law.adaptation_gain, theta_hat.shape[0], theta_hat.dtype) @ direction
+    if law.region is None:
+        return tau
+    return project(tau, theta_hat, law.adaptation_gain, law.region, law.epsilon)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class InversionLaw:
+    """The inversion law ``theta_hat' = Proj(l Gamma (theta*(*args, phi_hat) - theta_hat))`` (Grip 2010 Props. 5.1
+    and 6.1 with ``l = 1``; Props. 5.2 and 6.2 with a weight ``l >= 0`` whose integral over every window of some
+    length stays above a positive bound), times the indicator of ``|phi_hat| >= threshold`` (§6.8: the update
+    pauses while the perturbation is too small to invert for ``theta``). Where the update pauses (``l = 0`` or
+    ``|phi_hat| < threshold``), ``theta_star`` and ``weight`` see a stand-in ``phi_hat`` of norm ``threshold`` and
+    their results are discarded, so an inverse that divides by ``phi_hat`` gives no NaN, in values or gradients.
+
+    Called as every law: ``law(g, args, phi_hat, theta_hat) -> theta_hat'`` (n_theta,), with ``phi_hat`` (k,) the
+    perturbation estimate and ``args`` the observer's arguments of ``g`` (``(t, x)`` in
+    :mod:`jaxobs.observers.modular`, ``(v, x_hat)`` in :mod:`jaxobs.observers.hgo`).
+
+    Attributes:
+      theta_star: ``theta*(*args, phi) -> (n_theta,)``, the parameter solved from ``phi = g(*args, theta)``.
+      adaptation_gain: ``Gamma``, a positive scalar or (n_theta, n_theta) symmetric positive-definite matrix.
+      weight: ``l(*args, phi) -> ()``, ``>= 0`` (Props. 5.2: in [0, 1], and 6.2), or None for ``l = 1``.
+      threshold: () ``>= 0``, the smallest ``|phi_hat|`` the law inverts.
+      region: the smooth convex ``P`` of the projection set (:class:`Ball`, :class:`Box`; :func:`project`), or None.
+      epsilon: () positive boundary-layer width of the projection.
+    """
+
+    theta_star: Callable
+    adaptation_gain: jax.Array
+    weight: Callable | None = None
+    threshold: jax.Array = 0.0
+    region: Callable | None = None
+    epsilon: jax.Array = 0.1
+
+    def __post_init__(self):
+        _wrap_functions(self, "theta_star", "weight")
+
+    def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        del g  # the inverse theta* already encodes the model
+        above = jnp.linalg.norm(phi_hat) >= self.threshold
+        safe = jnp.where(above, phi_hat, self.threshold / jnp.sqrt(phi_hat.shape[0]))
+        weight = 1.0 if self.weight is None else self.weight(*args, safe)
+        active = above & (weight > 0)
+        direction = jnp.where(active, weight * (self.theta_star(*args, safe) - theta_hat), 0.0)
+        return _rate(self, direction, theta_hat)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PerturbationGradientLaw:
+    """The gradient-type law ``theta_hat' = Proj(Gamma M(*args, theta_hat) (phi_hat - g(*args, theta_hat)))``
+    (Grip 2010 Props. 5.3, 5.4, 6.3 and 6.4), by default the gradient search ``M = (dg/dtheta)'`` (autodiff;
+    Remark 5.1: steepest descent of ``|g(theta) - g(theta_hat)|^2``). Called as every law: ``law(g, args, phi_hat,
+    theta_hat) -> theta_hat'`` (see :class:`InversionLaw`). (The gradient law of a linear regression ``z = omega'
+    theta`` is :func:`regression_gradient_law`.)
+
+    Attributes:
+      adaptation_gain: ``Gamma``, a positive scalar or (n_theta, n_theta) symmetric positive-definite matrix.
+      M: ``M(*args, theta_hat) -> (n_theta, k)`` satisfying (5.6) or (5.7) (modular estimator), (6.14) or (6.15)
+        (high-gain observer); None for ``(dg/dtheta)'``.
+      region: the smooth convex ``P`` of the projection set (:class:`Ball`, :class:`Box`; :func:`project`), or None.
+      epsilon: () positive boundary-layer width of the projection.
+    """
+
+    adaptation_gain: jax.Array
+    M: Callable | None = None
+    region: Callable | None = None
+    epsilon: jax.Array = 0.1
+
+    def __post_init__(self):
+        _wrap_functions(self, "M")
+
+    def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        if self.M is None:
+            M = jax.jacfwd(lambda th: g(*args, th))(theta_hat).T
+        else:
+            M = self.M(*args, theta_hat)
+        return _rate(self, M @ (phi_hat - g(*args, theta_hat)), theta_hat)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CustomLaw:
+    """A hand-made law ``theta_hat' = Proj(Gamma direction(g, args, phi_hat, theta_hat))``: laws that combine the
+    others per parameter (Grip 2010 Example 5.5) or are designed by hand (the drilling estimator's (5.26)-(5.27)).
+    Called as every law: ``law(g, args, phi_hat, theta_hat) -> theta_hat'`` (see :class:`InversionLaw`).
+
+    Attributes:
+      direction: ``direction(g, args, phi_hat, theta_hat) -> (n_theta,)``, the rate before the adaptation gain.
+      adaptation_gain: ``Gamma``, a positive scalar or (n_theta, n_theta) symmetric positive-definite matrix.
+      region: the smooth convex ``P`` of the projection set (:class:`Ball`, :class:`Box`; :func:`project`), or None.
+      epsilon: () positive boundary-layer width of the projection.
+    """
+
+    direction: Callable
+    adaptation_gain: jax.Array = 1.0
+    region: Callable | None = None
+    epsilon: jax.Array = 0.1
+
+    def __post_init__(self):
+        _wrap_functions(self, "direction")
+
+    def __call__(self, g, args, phi_hat, theta_hat) -> jax.Array:
+        return _rate(self, self.direction(g, args, phi_hat, theta_hat), theta_hat)
+
+
+def check_law(law, theta0) -> None:
+    """Check eagerly, naming the field, an update law for the start ``theta0`` (n_theta,): a positive-definite
+    ``adaptation_gain``, a positive ``epsilon``, a non-negative ``threshold`` and ``theta0`` inside the projection
+    set ``Theta = {P <= epsilon}`` (concrete values only); called by the observers' builders."""
+    if not isinstance(law, InversionLaw | PerturbationGradientLaw | CustomLaw):
+        raise ValueError(
+            f"law must be an update law (InversionLaw, PerturbationGradientLaw, CustomLaw), got {law!r} (a hand-made "
+            "law is a CustomLaw)"
+        )
+    theta0 = jnp.asarray(theta0)
+    dtype = _checks.float_dtype(theta0=theta0)
+    _checks.gain("adaptation_gain", law.adaptation_gain, theta0.shape[0], dtype)
+    _checks.positive_scalar("epsilon", law.epsilon)
+    if isinstance(law, InversionLaw):
+        _checks.positive_scalar("threshold", law.threshold, allow_zero=True)
+    if law.region is None:
+        return
+    if not callable(law.region):
+        raise ValueError(f"region must be a callable P(theta) -> (), e.g. jaxobs.adaptive.Box, got {law.region!r}")
+    _checks.returns("region(theta)", law.region, (theta0,), (), "the scalar P(theta) of the projection set")
+    value = law.region(theta0)
+    if _checks.is_concrete(value, law.epsilon) and not float(value) <= float(law.epsilon):
+        raise ValueError(
+            f"theta0 must lie in the projection set {{P(theta) <= epsilon = {float(law.epsilon):.6g}}}, got "
+            f"P(theta0) = {float(value):.6g}"
+        )
+
+
+# --------------------------------------------------------------------------------------------
 # persistency of excitation
 
 
@@ -365,12 +534,12 @@ def excitation(regressors, dt):
     Example 1.1 continued; Prop. 5.4's ``int S dtau``).
 
     Args:
-      regressors: (N, p) the regressors ``omega_k`` of the window (rows), or (N, p, q) for (p, q) regressors
-        (``sum_k omega_k omega_k'``).
+      regressors: (N, n_theta) the regressors ``omega_k`` of the window (rows), or (N, n_theta, q) for
+        (n_theta, q) regressors (``sum_k omega_k omega_k'``).
       dt: positive sample period (``T = N dt``).
 
     Returns:
-      ``(gram, lambda_min)``: (p, p) ``dt sum_k omega_k omega_k'`` and its smallest eigenvalue.
+      ``(gram, lambda_min)``: (n_theta, n_theta) ``dt sum_k omega_k omega_k'`` and its smallest eigenvalue.
 
     Example:
       >>> import numpy as np
@@ -383,7 +552,9 @@ def excitation(regressors, dt):
     if W.ndim == 2:
         W = W[..., None]
     if W.ndim != 3:
-        raise ValueError(f"regressors must be an (N, p) or (N, p, q) array, got shape {jnp.shape(regressors)}")
+        raise ValueError(
+            f"regressors must be an (N, n_theta) or (N, n_theta, q) array, got shape {jnp.shape(regressors)}"
+        )
     dtype = _checks.float_dtype(regressors=W, dt=dt)
     dt = _positive("dt", dt, dtype)
     W = W.astype(dtype)

@@ -1,45 +1,10 @@
 """The jaxobs command: robustness sweeps, tuning against MJX rollouts, reproductions of the papers.
 
-Usage::
-
-    jaxobs sweep [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
-                 [--coordinator HOST:PORT --num-processes N --process-id I | --distributed]
-    jaxobs sweep --list                      the scenarios, one line each
-    jaxobs sweep --print-config [SCENARIO]   its full default config as TOML, every key commented
-    jaxobs tune [--config FILE.toml] [--out DIR] [--overwrite] [--no-progress] [--no-cache]
-                [--coordinator HOST:PORT --num-processes N --process-id I | --distributed]
-    jaxobs tune --list | --print-config [PROBLEM]
-    jaxobs reproduce --list
-    jaxobs reproduce NAME [NAME ...] [--out DIR] [--no-cache]     (NAME "all" runs every reproduction)
-    jaxobs --version
-
-Without ``--config``, ``sweep`` and ``tune`` run their default scenario; a config file's ``scenario`` (``problem``)
-key picks another, its other keys override that scenario's defaults (``--print-config`` with ``--config`` prints
-the merged result). Scenario, problem and reproduction names are lower case with hyphens.
-
-Run as the command, it keeps JAX's persistent compilation cache in ``$JAXOBS_CACHE_DIR``, else
-``$XDG_CACHE_HOME/jaxobs/jax-cache``, else ``~/.cache/jaxobs/jax-cache`` (``--no-cache``: off), so a second run of
-the same command skips most of the compilation; ``JAX_COMPILATION_CACHE_DIR`` set by the user wins.
-
-Several processes (hosts, or processes on one machine) run one sweep or tuning together when each runs the same
-``jaxobs sweep`` (``jaxobs tune``) command with ``--coordinator HOST:PORT --num-processes N --process-id I``
-(HOST:PORT where process 0 listens), or with ``--distributed`` alone under a cluster scheduler whose environment
-``jax.distributed.initialize`` reads (SLURM, Open MPI, ...). Process 0 writes the output directory and prints the
-summary (see :mod:`jaxobs.sweep` and :mod:`jaxobs.tuning`); a sweep's must be on a filesystem all of them see.
-On a SLURM cluster, for example::
-
-    srun --nodes 4 --ntasks-per-node 1 jaxobs sweep --config big.toml --out /shared/sweep --distributed
-
-and on one machine, two processes with two CPU devices each::
-
-    JAX_NUM_CPU_DEVICES=2 jaxobs sweep --coordinator 127.0.0.1:1234 --num-processes 2 --process-id 0 &
-    JAX_NUM_CPU_DEVICES=2 jaxobs sweep --coordinator 127.0.0.1:1234 --num-processes 2 --process-id 1
-
-A user error (a bad config file or key, an output directory that cannot be written or is held by another
-jaxobs process, a run that cannot fit in memory, a sweep or checkpoint of something else in DIR) prints one
-line and exits with status 2; the output directory is checked and locked before anything is built or compiled.
-Ctrl-C prints where to resume and exits with status 130 (at once, skipping the interpreter's shutdown, when
-run as the command). Only a bug shows a traceback.
+``jaxobs sweep``, ``jaxobs tune`` and ``jaxobs reproduce`` (``--list``, ``--print-config``, ``--config FILE.toml``,
+``--out DIR``; several processes with ``--coordinator HOST:PORT --num-processes N --process-id I`` or
+``--distributed``). This module maps strings and TOML to the objects of :mod:`jaxobs.papers.registry` and holds no
+logic. A user error prints one line and exits with status 2, Ctrl-C exits with status 130; only a bug shows a
+traceback. Usage, caching and multi-process runs: docs/cli.md and docs/guides/multi-process.md.
 """
 
 from __future__ import annotations

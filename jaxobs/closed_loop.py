@@ -2,15 +2,9 @@
 model) under observer-based state feedback, with an input disturbance and measurement noise, in
 one ``lax.scan``. Batch it with ``vmap`` over plants, mismatches, Q/R settings and noise seeds.
 
-At each sample ``k``::
-
-    y_k     = C x_k + v_k                          (strictly proper plant: D = 0)
-    u_k     = controller(y_k, r_k)                 (any Controller, e.g. an AOB with state feedback)
-    x_{k+1} = A x_k + B (u_k + d_k)                (d_k: disturbance at the plant input, eq. 81)
-
-For a delay-augmented plant from :func:`jaxobs.lti.c2d` the disturbance enters with the command,
-before the dead time; the true plant's dead time may differ from the nominal one (pad with
-``n_delay``).
+:func:`simulate` runs the loop ``y_k = C x_k + v_k``, ``u_k = controller(y_k, r_k)``,
+``x_{k+1} = A x_k + B (u_k + d_k)`` (Cortesão 2006 eq. 81: ``d_k`` at the plant input); :func:`measurement_noise`
+draws the noise. Timing and dead time: docs/theory/analysis.md.
 """
 
 from __future__ import annotations
@@ -29,13 +23,21 @@ __all__ = ["ClosedLoopTrace", "simulate", "ideal_response", "measurement_noise",
 
 
 class ClosedLoopTrace(NamedTuple):
-    """Time series of a closed-loop run (leading axis: time)."""
+    """Time series of a closed-loop run (leading axis: time).
 
-    y: jax.Array  # (T, p) noisy measurements y_k
-    y_true: jax.Array  # (T, p) noise-free outputs C x_k
-    u: jax.Array  # (T, m) commands u_k
-    x: jax.Array  # (T, n) true plant states x_k
-    controller: object  # the controller's outputs stacked over time (e.g. FeedbackOutputs)
+    Attributes:
+      y: (T, p) noisy measurements y_k
+      y_true: (T, p) noise-free outputs C x_k
+      u: (T, m) commands u_k
+      x: (T, n) true plant states x_k
+      controller: the controller's outputs stacked over time (e.g. FeedbackOutputs)
+    """
+
+    y: jax.Array
+    y_true: jax.Array
+    u: jax.Array
+    x: jax.Array
+    controller: object
 
 
 def _series(name: str, value, num_steps: int | None, size: int, dtype, what: str) -> jax.Array:

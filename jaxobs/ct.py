@@ -1,25 +1,10 @@
 """Continuous-time models as sampled systems: fixed-step explicit integrators over pytrees.
 
-A continuous-time model is a function ``f(x, u, t) -> dx/dt`` of a state pytree ``x`` (arrays of any shapes),
-an input ``u`` and the time ``t``. Sampled with period ``h`` and the input held over each sample (zero-order
-hold), it becomes the discrete map ``x(t + h) = integrate(f, x(t), u, t, h)``, computed with ``substeps``
-fixed steps of the explicit Euler or the classical fourth-order Runge-Kutta rule (Kutta 1901) in one
-``lax.scan``:
-
-    euler:  x_{i+1} = x_i + d f(x_i, u, t_i)
-    rk4:    k1 = f(x_i, u, t_i),  k2 = f(x_i + d/2 k1, u, t_i + d/2),  k3 = f(x_i + d/2 k2, u, t_i + d/2),
-            k4 = f(x_i + d k3, u, t_i + d),  x_{i+1} = x_i + d/6 (k1 + 2 k2 + 2 k3 + k4)
-
-with ``d = h / substeps``. The global error of RK4 is ``O(d^4)``, of Euler ``O(d)``. Everything is pure and works
-under ``jit``, ``vmap`` and ``grad`` (forward and reverse mode); ``checkpoint=True`` stores only the state at
-each sample for reverse mode and recomputes the substeps (memory ``O(samples)`` instead of
-``O(samples x substeps x stages)`` over a long horizon). A sampled filter or controller integrates a short, known
-interval per sample, so fixed steps suffice; ``benchmarks/ct_integration.py`` measures this module against
-diffrax with the same steps, forward and in reverse mode.
-
-Models of this form are what the continuous-discrete filters of :mod:`jaxobs.observers` predict with, and
-:mod:`jaxobs.observers.continuous` runs a continuous-time observer ``x_hat' = F(x_hat, u, y, t)`` as an
-ordinary sampled estimator through this module.
+A model ``f(x, u, t) -> dx/dt`` sampled with period ``h`` and the input held over each sample becomes the discrete
+map ``x(t + h) = integrate(f, x(t), u, t, h)`` (:func:`integrate`; :func:`trajectory` over many samples), computed
+with ``substeps`` fixed steps of explicit Euler or classical Runge-Kutta 4 (Kutta 1901) in one ``lax.scan``; pure
+under ``jit``, ``vmap`` and ``grad``, with ``checkpoint=True`` to recompute the substeps in reverse mode.
+Derivation and error orders: docs/theory/nonlinear.md; speed against diffrax: ``benchmarks/ct_integration.py``.
 """
 
 from __future__ import annotations

@@ -14,19 +14,12 @@ import numpy as np
 import scipy.signal
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd
-from jaxobs.lti import StateSpace, ctrb, dcgain
-from jaxobs.riccati import (
-    _pbh_deficient_eigenvalues,
-    _require_care_converged,
-    care,
-    dare,
-    filter_dare,
-    require_converged,
-    symmetrize,
-)
+from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs.lti import StateSpace, ctrb, dcgain, unobservable_modes
+from jaxobs.matrix_equations import care, dare, filter_dare, require_care_converged, require_converged
 
 __all__ = [
+    "characteristic_polynomial",
     "acker",
     "place",
     "dlqr",
@@ -41,9 +34,10 @@ __all__ = [
 ]
 
 
-def _char_poly_coefficients(poles, dtype):
-    """Real coefficients ``[1, a_1, ..., a_n]`` of ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate
-    pairs; the product is formed in the complex type of ``poles`` and ``dtype``)."""
+def characteristic_polynomial(poles, dtype):
+    """The monic polynomial with roots ``poles`` (n,): real coefficients ``[1, a_1, ..., a_n]`` of
+    ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate pairs; the product is formed in the complex type of
+    ``poles`` and ``dtype``)."""
     poles = jnp.asarray(poles)
     coeffs = jnp.ones((1,), jnp.result_type(poles, dtype, jnp.complex64))
     for i in range(poles.shape[-1]):
@@ -63,6 +57,7 @@ def acker(Phi, Gamma, poles):
 
     Args:
       Phi: (n, n) state matrix.  Gamma: (n, 1) input matrix.  poles: (n,) desired poles.
+
     Returns:
       (1, n) gain ``L``.
     """
@@ -93,7 +88,7 @@ def _ackermann(Phi, Gamma, poles):
     """``(L, W_c)`` of :func:`acker` (compiled once per shape: eager calls cost one dispatch)."""
     n = Phi.shape[-1]
     Wc = ctrb(Phi, Gamma)
-    a = _char_poly_coefficients(poles, Phi.dtype)
+    a = characteristic_polynomial(poles, Phi.dtype)
     P_Phi = jnp.zeros_like(Phi)
     for coefficient in a:  # Horner: P(Phi) = Phi^n + a_1 Phi^{n-1} + ... + a_n I
         P_Phi = P_Phi @ Phi + coefficient * jnp.eye(n, dtype=Phi.dtype)
@@ -112,6 +107,7 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
         for the design only and their rows of the returned gain are zero (Cortesão 2006 §8.4: "the first
         and third columns of Gamma_r should be set to zero").
       method: "YT" (Tits-Yang, robust) or "KNV0", as in SciPy.
+
     Returns:
       (m, n) gain ``L`` with ``eig(Phi - Gamma L) = poles``.
 
@@ -153,7 +149,7 @@ def dlqr(A, B, Q, R):
 
     Returns:
       ``(K, S, E)``: the (m, n) gain ``K = (R + B'SB)^{-1} B'SA`` (a state feedback, ``L`` in jaxobs' own
-      notation), the solution ``S`` of :func:`jaxobs.riccati.dare` ``(A, B, Q, R)`` and the (n,) closed-loop
+      notation), the solution ``S`` of :func:`jaxobs.matrix_equations.dare` ``(A, B, Q, R)`` and the (n,) closed-loop
       eigenvalues ``E`` of ``A - B K``.
 
     Differentiable (implicit-function rule through the DARE). Eagerly, a DARE without a stabilising solution
@@ -189,9 +185,9 @@ def dlqe(A, G, C, QN, RN):
     Returns:
       ``(K, P, E)``: the (n, p) gain of the one-step predictor ``x_{k+1|k} = A x_{k|k-1} + B u_k + K (y_k -
       C x_{k|k-1})`` (python-control names it ``L``), ``K = A P C' (C P C' + RN)^{-1}``; the a-priori covariance
-      ``P`` (the filter DARE, :func:`jaxobs.riccati.filter_dare`); the (n,) eigenvalues ``E`` of ``A - K C``.
+      ``P`` (the filter DARE, :func:`jaxobs.matrix_equations.filter_dare`); the (n,) eigenvalues ``E`` of ``A - K C``.
       The gain of the filtered (a-posteriori) form that jaxobs' Kalman filter uses is
-      ``jaxobs.riccati.kalman_gain(P, C, RN)``.
+      ``jaxobs.kalman_steps.kalman_gain(P, C, RN)``.
 
     Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution; under ``jit`` the
     gain and ``P`` are NaN then.
@@ -226,12 +222,12 @@ def lqr(A, B, Q, R):
 
     Returns:
       ``(K, S, E)``: the (m, n) gain ``K = R^{-1} B' S`` (a state feedback, ``L`` in jaxobs' own notation), the
-      solution ``S`` of :func:`jaxobs.riccati.care` ``(A, B, Q, R)`` and the (n,) closed-loop eigenvalues ``E`` of
-      ``A - B K``.
+      solution ``S`` of :func:`jaxobs.matrix_equations.care` ``(A, B, Q, R)`` and the (n,) closed-loop eigenvalues
+      ``E`` of ``A - B K``.
 
     Differentiable (implicit-function rule through the CARE). Eagerly, a CARE without a stabilising solution raises
     ``ValueError`` with the reason (e.g. ``(A, B)`` not stabilisable); under ``jit`` the gain and ``S`` are NaN then
-    (the flag itself is ``jaxobs.riccati.care(A, B, Q, R).converged``).
+    (the flag itself is ``jaxobs.matrix_equations.care(A, B, Q, R).converged``).
 
     Example:
       >>> import numpy as np
@@ -244,7 +240,7 @@ def lqr(A, B, Q, R):
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     sol = care(A, B, Q, R)
-    _require_care_converged(sol, A, B, Q, what="lqr's CARE")
+    require_care_converged(sol, A, B, Q, what="lqr's CARE")
     R = jnp.asarray(R, sol.X.dtype)
     K = solve_spd(symmetrize(R), B.T @ sol.X)
     K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
@@ -263,8 +259,8 @@ def lqe(A, G, C, QN, RN):
     Returns:
       ``(K, P, E)``: the (n, p) observer gain ``K = P C' RN^{-1}`` of ``x_hat' = A x_hat + B u + K (y - C x_hat)``
       (python-control names it ``L``), the steady-state error covariance ``P``, the solution of the filter CARE
-      ``A P + P A' - P C' RN^{-1} C P + G QN G' = 0`` (:func:`jaxobs.riccati.care` of ``(A', C')``), and the (n,)
-      eigenvalues ``E`` of ``A - K C``.
+      ``A P + P A' - P C' RN^{-1} C P + G QN G' = 0`` (:func:`jaxobs.matrix_equations.care` of ``(A', C')``), and
+      the (n,) eigenvalues ``E`` of ``A - K C``.
 
     Eagerly, raises ``ValueError`` with the reason when the CARE has no stabilising solution (e.g. ``(A, C)`` not
     detectable); under ``jit`` the gain and ``P`` are NaN then.
@@ -284,7 +280,7 @@ def lqe(A, G, C, QN, RN):
     _checks.covariance("RN", RN, definite=True, size=C.shape[-2])
     W = symmetrize(G @ QN @ G.T)
     sol = care(A.T, C.T, W, RN)
-    _require_care_converged(sol, A.T, C.T, W, what="lqe's CARE", estimation=True)
+    require_care_converged(sol, A.T, C.T, W, what="lqe's CARE", estimation=True)
     RN = jnp.asarray(RN, sol.X.dtype)
     K = solve_spd(symmetrize(RN), C @ sol.X).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
@@ -308,7 +304,7 @@ def is_detectable(A, C, *, discrete: bool = False) -> bool:
     _checks.matrix("A", A, square=True)
     _checks.matrix("C", C, shape=(None, A.shape[-1]))
     unstable = (lambda lam: abs(lam) >= 1) if discrete else (lambda lam: lam.real >= 0)
-    return not _pbh_deficient_eigenvalues(A, C, unstable)
+    return not unobservable_modes(A, C, unstable)
 
 
 def critically_damped_poles(h: float, tau_c, n_fast: int):

@@ -1,21 +1,11 @@
-"""The Kalman building blocks every Kalman-type estimator shares: prediction, the Joseph-form measurement
-update with missing data, the innovation, its covariance and the log-likelihood, and the same steps in
-square-root (Cholesky factor) form.
+"""The Kalman building blocks every Kalman-type estimator shares (Cortesão 2006 eq. 27-29).
 
-Model (Cortesão 2006 eq. 27-29)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    E[w w'] = Q,  E[v v'] = R
-
-    x_prior = Phi x_{k-1} + Gamma u_{k-1}            P_prior = Phi P_{k-1} Phi' + Q          (predict)
-    K_k     = P_prior C' S_k^{-1},  S_k = C P_prior C' + R                                   (gain)
-    x_k     = x_prior + K_k (y_k - C x_prior)                                                (update)
-    P_k     = (I - K_k C) P_prior (I - K_k C)' + K_k R K_k'                                  (Joseph form)
-    log p(y_k | y_0..y_{k-1}) = -(p log 2 pi + log det S_k + e_k' S_k^{-1} e_k) / 2,  e_k = y_k - C x_prior
-
-Missing data: a non-finite component of ``y_k`` is missing. Its row of ``C`` and its correlations in ``R``
-are removed for that step, an exact marginalisation, so the update and the log-likelihood use only the finite
-components; when all are missing the update leaves the prediction unchanged and the log-likelihood is 0. The
-covariance algebra itself lives in :mod:`jaxobs.riccati`.
+The covariance recursion (:func:`kalman_gain`, :func:`riccati_step`, :func:`covariance_sequence`),
+:func:`predict`, the Joseph-form :func:`update` with missing data (a non-finite component of ``y_k`` is
+marginalised out), the innovation, its covariance and :func:`innovation_log_likelihood`, and the same steps in
+U-D (:func:`bierman_update`) and square-root form (:func:`square_root_predict`, :func:`square_root_update`). The
+steady state of the recursion, the filter DARE, is solved in :mod:`jaxobs.matrix_equations`. Every function is
+pure (eager, ``jit``, ``vmap``, ``grad``). The equations: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -27,10 +17,19 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-from jaxobs._linalg import cholesky, solve_lower
-from jaxobs.riccati import predict_covariance, symmetrize, update_covariance_factors, update_covariance_moments
+from jaxobs import _checks
+from jaxobs._linalg import cho_solve, cholesky, solve_lower, solve_spd, symmetrize
 
 __all__ = [
+    "predict_covariance",
+    "kalman_gain",
+    "CovarianceUpdate",
+    "update_covariance_factors",
+    "update_covariance_moments",
+    "update_covariance",
+    "riccati_step",
+    "CovarianceSequence",
+    "covariance_sequence",
     "Update",
     "predict",
     "update",
@@ -48,16 +47,158 @@ __all__ = [
 ]
 
 
-class Update(NamedTuple):
-    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs)."""
+# --------------------------------------------------------------------------------------------
+# Covariance algebra: the Riccati recursion of eq. 27-29
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P: jax.Array  # (n, n) a-posteriori covariance (the given one when a fixed gain is used)
-    K: jax.Array  # (n, p) gain used (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S: jax.Array | None = None  # (p, p) innovation covariance of the observed components, 1 on a missing diagonal
-    log_likelihood: jax.Array | None = None  # () log p(y_k | y_0..y_{k-1}) of the observed components
+
+def predict_covariance(P, Phi, Q):
+    """A-priori covariance ``Phi P Phi' + Q`` (eq. 28).
+
+    Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
+    (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
+    optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
+    slower kernel (``benchmarks/estimation.py``, ``filter``; the numbers in docs/theory/measurements.md).
+    """
+    return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
+
+
+def kalman_gain(P1, C, R):
+    """Kalman gain ``K = P1 C' (C P1 C' + R)^{-1}`` (eq. 27) by a linear solve, never an inverse.
+
+    With the DARE solution ``P`` (a-priori, see :func:`dare`) this is the steady-state gain.
+    """
+    CP1 = C @ P1
+    return solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
+
+
+class CovarianceUpdate(NamedTuple):
+    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs).
+
+    Attributes:
+      P: (n, n) a-posteriori covariance
+      K: (n, p) Kalman gain
+      S: (p, p) innovation covariance C P1 C' + R
+      S_chol: (p, p) its lower Cholesky factor
+    """
+
+    P: jax.Array
+    K: jax.Array
+    S: jax.Array
+    S_chol: jax.Array
+
+
+def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
+    """Measurement update with the innovation covariance and its Cholesky factor (eq. 27 and 29).
+
+    ``S = C P1 C' + R`` is factored once (``S = L L'``) and the factor serves the gain ``K = P1 C' S^{-1}`` and
+    the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``).
+
+    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'``, a congruence plus a PSD term, so ``P``
+    stays symmetric positive semidefinite in floating point even for very precise measurements. With fewer
+    outputs than half the states, each factor is applied as a rank-m correction, ``(I - K C) X = X - K (C X)``:
+    the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
+    ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
+    symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
+    the prior, where it can lose definiteness.
+    """
+    CP1 = C @ P1
+    S = symmetrize(CP1 @ C.T + R)
+    if not joseph:
+        return update_covariance_moments(P1, CP1, S)
+    S_chol = cholesky(S)
+    K = cho_solve(S_chol, CP1).T
+    n, m = C.shape[-1], C.shape[-2]
+    if 2 * m < n:
+        left = P1 - K @ CP1  # (I - K C) P1
+        congruence = left - (left @ C.T) @ K.T  # ((I - K C) P1) (I - K C)'
+    else:
+        IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
+        congruence = IKC @ P1 @ IKC.T
+    return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)
+
+
+def update_covariance_moments(P1, CP1, S) -> CovarianceUpdate:
+    """The standard-form update of :func:`update_covariance_factors` from the moments of the predicted measurement:
+    ``CP1`` (p, n) its covariance with the state (``C P1``) and ``S`` (p, p) the innovation covariance
+    (``C P1 C' + R``), read from its lower triangle. A sigma-point filter has both without a matrix ``C``.
+    ``P = P1 - W' W``, ``W = L^{-1} CP1``, ``K = L'^{-1} W``."""
+    S_chol = cholesky(S)
+    W = solve_lower(S_chol, CP1)
+    return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
+
+
+def update_covariance(P1, C, R):
+    """Measurement update in Joseph form: returns ``(P, K)`` (eq. 27 and 29); see
+    :func:`update_covariance_factors`."""
+    P, K, _, _ = update_covariance_factors(P1, C, R)
+    return P, K
+
+
+def riccati_step(P_prev, Phi, C, Q, R):
+    """One step of eq. 27-29: ``P_{k-1} -> (P_k, K_k, P1_k)``, all three exactly symmetric."""
+    P1 = predict_covariance(P_prev, Phi, Q)
+    P, K = update_covariance(P1, C, R)
+    return P, K, symmetrize(P1)
+
+
+class CovarianceSequence(NamedTuple):
+    """Result of :func:`covariance_sequence`, stacked over time (leading axis ``T = num_steps``).
+
+    Attributes:
+      P: (T, n, n) a-posteriori covariances P_k
+      K: (T, n, p) Kalman gains K_k
+      P_prior: (T, n, n) a-priori covariances P1_k
+    """
+
+    P: jax.Array
+    K: jax.Array
+    P_prior: jax.Array
+
+
+def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
+    """Gains and covariances of ``num_steps`` Riccati steps from ``P_{-1} = P_init`` (``lax.scan``).
+
+    The papers initialise with ``P_{-1} = Q_0`` (Cortesão 2006 §7.2).
+    """
+    n = Phi.shape[-1]
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.covariance("P_init", P_init, definite=False, size=n)
+    _checks.covariance("Q", Q, definite=False, size=n)
+    _checks.covariance("R", R, definite=True, size=C.shape[-2])
+
+    def body(P, _):
+        P, K, P1 = riccati_step(P, Phi, C, Q, R)
+        return P, CovarianceSequence(P, K, P1)
+
+    _, seq = jax.lax.scan(body, P_init, None, length=num_steps)
+    return seq
+
+
+# --------------------------------------------------------------------------------------------
+# Mean and covariance with missing data and the log-likelihood
+
+
+class Update(NamedTuple):
+    """Result of :func:`update` (shapes for ``n`` states and ``p`` outputs).
+
+    Attributes:
+      x: (n,) a-posteriori mean
+      P: (n, n) a-posteriori covariance (the given one when a fixed gain is used)
+      K: (n, p) gain used (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S: (p, p) innovation covariance of the observed components, 1 on a missing diagonal
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S: jax.Array | None = None
+    log_likelihood: jax.Array | None = None
 
 
 def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
@@ -122,7 +263,7 @@ def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predict
     linearisation's ``h_bar`` (the innovation is then ``y - h_bar`` and ``C`` the linearised measurement map).
 
     With ``gain=None`` the gain comes from ``P_prior`` and the Joseph form (``joseph=False``: the standard form,
-    see :func:`jaxobs.riccati.update_covariance_factors`) updates the covariance; with a
+    see :func:`update_covariance_factors`) updates the covariance; with a
     fixed ``gain`` (n, p) the covariance is returned unchanged and the innovation of missing components is
     zero (so they do not move the estimate).
 
@@ -290,15 +431,25 @@ def _tria_jvp(primals, tangents):
 
 
 class SquareRootUpdate(NamedTuple):
-    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs)."""
+    """Result of :func:`square_root_update` (shapes for ``n`` states and ``p`` outputs).
 
-    x: jax.Array  # (n,) a-posteriori mean
-    P_sqrt: jax.Array  # (n, n) lower-triangular factor of the a-posteriori covariance
-    K: jax.Array  # (n, p) gain (zero columns for missing components)
-    innovation: jax.Array  # (p,) y_k - C x_prior, 0 for missing components
-    n_missing: jax.Array  # () number of missing components
-    S_sqrt: jax.Array  # (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components
+    Attributes:
+      x: (n,) a-posteriori mean
+      P_sqrt: (n, n) lower-triangular factor of the a-posteriori covariance
+      K: (n, p) gain (zero columns for missing components)
+      innovation: (p,) y_k - C x_prior, 0 for missing components
+      n_missing: () number of missing components
+      S_sqrt: (p, p) lower-triangular factor of S (as in Update; 1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components
+    """
+
+    x: jax.Array
+    P_sqrt: jax.Array
+    K: jax.Array
+    innovation: jax.Array
+    n_missing: jax.Array
+    S_sqrt: jax.Array
+    log_likelihood: jax.Array
 
 
 def square_root_predict(x, P_sqrt, Phi, Q_sqrt, Gamma=None, u_prev=None, *, skip=None):

@@ -1,28 +1,11 @@
 """Learning a model from recorded data: maximum likelihood by gradient (optax) for any estimator with a
 log-likelihood, and expectation-maximisation for the linear-Gaussian model.
 
-Data are ``B`` recorded sequences of ``T`` samples, ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components
-missing) and ``u_prev`` (B, T, m) or ``None``; one sequence may be given as (T, p).
-
-* :func:`fit` minimises the negative log-likelihood per observed measurement component
-  (:func:`negative_log_likelihood`, the sum over sequences of :func:`jaxobs.smoothing.log_likelihood`, exact with
-  missing data) over unconstrained parameters ``theta`` mapped to the estimator's params by ``build_params``, so
-  ``Q``, ``R`` and any model parameter can be learned. Constraints come from the tuner's parameterisations
-  (:func:`jaxobs.tuning.cholesky_covariance` for covariances, ``exp`` for positive scalars,
-  :func:`jaxobs.tuning.unit_interval`); :func:`covariance_model` builds the usual case, full ``Q`` and ``R``. The
-  loop takes optax steps (L-BFGS with a zoom line search by default: the objective is deterministic and smooth;
-  or a first-order optimizer of the tuner), shows a progress bar, stops early once the loss stops improving and
-  returns the best parameters and the loss curve.
-* :func:`em` is the EM algorithm of the linear-Gaussian model (Shumway & Stoffer 1982; Ghahramani & Hinton 1996):
-  the E-step is the Rauch-Tung-Striebel smoother (:func:`jaxobs.smoothing.smooth`) with the lag-one
-  cross-covariances ``Cov(x_k, x_{k-1} | Y) = P_{k|T-1} E_{k-1}'`` (de Jong 1989; ``E`` the smoother gains), the
-  M-step the closed-form maximiser of the expected complete-data log-likelihood over any of ``Phi``, ``Gamma``,
-  ``C``, ``Q``, ``R``, ``x0``, ``P0``. Missing measurement components are latent in the complete data: given
-  ``x_k`` and the observed components ``o``, the noise is ``v_k | x_k, y_o ~ N(G (y_o - C_o x_k), R - G R_o.)``
-  with ``G = R_.o R_oo^{-1}``, which makes every iteration an exact EM step for any ``R``, so the log-likelihood
-  never decreases.
-* :func:`sample` draws records from a linear-Gaussian model (the data of the tests and of
-  ``benchmarks/learning.py``).
+Data are ``B`` sequences of ``T`` samples: ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components missing) and
+``u_prev`` (B, T, m) or ``None``. :func:`fit` minimises :func:`negative_log_likelihood` over unconstrained
+``theta`` (:func:`covariance_model` for full ``Q``, ``R``); :func:`em` is EM for the linear-Gaussian model (Shumway
+& Stoffer 1982; Ghahramani & Hinton 1996), exact with missing data; :func:`sample` draws records.
+The algorithms: docs/learning.md.
 """
 
 from __future__ import annotations
@@ -38,9 +21,9 @@ import numpy as np
 import optax
 
 from jaxobs import _checks
+from jaxobs._linalg import symmetrize
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.kalman import KalmanParams, kalman_filter
-from jaxobs.riccati import symmetrize
 from jaxobs.smoothing import log_likelihood, smooth
 from jaxobs.tuning import OPTIMIZERS, cholesky_covariance, cholesky_parameters
 
@@ -207,6 +190,7 @@ class FitSettings:
     patience: int = 10
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid setting."""
         if self.optimizer != "lbfgs" and self.optimizer not in OPTIMIZERS:
             raise ValueError(f"settings.optimizer must be 'lbfgs' or one of {', '.join(OPTIMIZERS)}, "
                              f"got {self.optimizer!r}")  # fmt: skip
@@ -219,12 +203,23 @@ class FitSettings:
 
 
 class FitResult(NamedTuple):
-    theta: Any  # the best parameters found (lowest loss)
-    params: Any  # build_params(theta)
-    loss: np.ndarray  # (steps taken,) the loss at each iterate, the loss curve (nats per observed component)
-    grad_norm: np.ndarray  # (steps taken,) the gradient's global norm at each iterate
-    stopped: str  # "converged" (no improvement for settings.patience steps), "steps", or "non-finite"
-    best_loss: float  # the loss of theta
+    """Result of :func:`fit`.
+
+    Attributes:
+      theta: the best parameters found (lowest loss)
+      params: build_params(theta)
+      loss: (steps taken,) the loss at each iterate, the loss curve (nats per observed component)
+      grad_norm: (steps taken,) the gradient's global norm at each iterate
+      stopped: "converged" (no improvement for settings.patience steps), "steps", or "non-finite"
+      best_loss: the loss of theta
+    """
+
+    theta: Any
+    params: Any
+    loss: np.ndarray
+    grad_norm: np.ndarray
+    stopped: str
+    best_loss: float
 
 
 @lru_cache(maxsize=64)
@@ -331,10 +326,19 @@ def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, set
 
 
 class EMResult(NamedTuple):
-    params: KalmanParams  # after the last update
-    log_likelihood: jax.Array  # (iterations,) log p(Y) of the params before each update (NaN after the last)
-    iterations: jax.Array  # () updates made
-    converged: jax.Array  # () the relative log-likelihood change fell below the tolerance
+    """Result of :func:`em`.
+
+    Attributes:
+      params: after the last update
+      log_likelihood: (iterations,) log p(Y) of the params before each update (NaN after the last)
+      iterations: () updates made
+      converged: () the relative log-likelihood change fell below the tolerance
+    """
+
+    params: KalmanParams
+    log_likelihood: jax.Array
+    iterations: jax.Array
+    converged: jax.Array
 
 
 class _Statistics(NamedTuple):

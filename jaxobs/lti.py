@@ -25,7 +25,19 @@ import scipy.linalg
 
 from jaxobs import _checks
 
-__all__ = ["StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "dcgain", "is_spr"]
+__all__ = [
+    "StateSpace",
+    "ss",
+    "c2d",
+    "tf2ss",
+    "ctrb",
+    "obsv",
+    "controllability_rank",
+    "observability_rank",
+    "unobservable_modes",
+    "dcgain",
+    "is_spr",
+]
 
 
 @jax.tree_util.register_dataclass
@@ -50,18 +62,22 @@ class StateSpace:
 
     @property
     def n_states(self) -> int:
+        """Number of states ``n``."""
         return self.A.shape[-1]
 
     @property
     def n_inputs(self) -> int:
+        """Number of inputs ``m``."""
         return self.B.shape[-1]
 
     @property
     def n_outputs(self) -> int:
+        """Number of outputs ``p``."""
         return self.C.shape[-2]
 
     @property
     def is_discrete(self) -> bool:
+        """Whether the model is discrete-time (it has a sample time ``dt``)."""
         return self.dt is not None
 
 
@@ -344,6 +360,42 @@ def obsv(A, C) -> jax.Array:
     _checks.matrix("A", A, square=True, batch=True)
     _checks.matrix("C", C, shape=(None, A.shape[-1]), batch=True)
     return jnp.swapaxes(ctrb(jnp.swapaxes(A, -1, -2), jnp.swapaxes(C, -1, -2)), -1, -2)
+
+
+def controllability_rank(A, B, *, rtol: float = 1e-10) -> int:
+    """Rank of the controllability matrix ``[B, A B, ..., A^{n-1} B]`` of ``A`` (n, n), ``B`` (n, m): its singular
+    values above ``rtol`` times the largest (eager, NumPy in float64)."""
+    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
+    blocks, block = [], B
+    for _ in range(A.shape[0]):
+        blocks.append(block)
+        block = A @ block
+    s = np.linalg.svd(np.hstack(blocks), compute_uv=False)
+    return int(np.sum(s > rtol * max(s[0], np.finfo(float).tiny))) if s.size else 0
+
+
+def observability_rank(A, C, *, rtol: float = 1e-10) -> int:
+    """Rank of the observability matrix ``[C; C A; ...; C A^{n-1}]`` of ``A`` (n, n), ``C`` (p, n) (eager, NumPy):
+    :func:`controllability_rank` of ``(A', C')``."""
+    return controllability_rank(np.transpose(A), np.transpose(C), rtol=rtol)
+
+
+def unobservable_modes(A, C, region, tol: float = 1e-9) -> list[complex]:
+    """Eigenvalues ``lam`` of ``A`` (n, n) in ``region`` (a predicate on a NumPy eigenvalue) whose PBH matrix
+    ``[lam I - A; C]`` loses rank (smallest singular value below ``tol`` times ``max(|A|, 1)``, ``C`` (p, n) scaled
+    to ``A``): the unobservable modes of ``(C, A)`` there (Hautus test; eager, NumPy). For the uncontrollable
+    modes of ``(A, B)`` pass ``(A', B')``."""
+    A, C = np.asarray(A, np.float64), np.asarray(C, np.float64)
+    n = A.shape[-1]
+    scale = max(float(np.max(np.abs(A))) if A.size else 0.0, 1.0)
+    C_scaled = C / max(float(np.max(np.abs(C))) if C.size else 0.0, np.finfo(float).tiny) * scale
+    deficient = []
+    for lam in np.linalg.eigvals(A):
+        if region(lam):
+            pbh = np.vstack([lam * np.eye(n) - A, C_scaled])
+            if np.linalg.svd(pbh, compute_uv=False)[-1] <= tol * scale:
+                deficient.append(complex(lam))
+    return deficient
 
 
 def dcgain(sys: StateSpace) -> jax.Array:

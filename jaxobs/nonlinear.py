@@ -1,40 +1,10 @@
 """Nonlinear Gaussian state-space models and the filter step the extended and unscented Kalman filters share.
 
-Model, discrete time (``t_k = t0 + k dt``)::
-
-    x_k = f(x_{k-1}, u_{k-1}, t_{k-1}) + w_k,    y_k = h(x_k) + v_k,    w_k ~ N(0, Q),  v_k ~ N(0, R)
-
-or continuous-discrete (``continuous=True``): ``dx/dt = f(x, u, t) + w(t)`` with white noise of spectral density
-``Q``, the input ``u_{k-1}`` held over ``[t_{k-1}, t_k]``, and the same measurements at the samples.
-
-Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0``, the state at the first measurement (as in
-:mod:`jaxobs.observers.kalman`, dynamax and cuthbert): the first step updates without a prediction.
-
-A Gaussian filter replaces each nonlinear map ``g`` (``f`` or ``h``) around a Gaussian ``N(m, P)`` by a linear one
-with an error term, its *linearisation* (Särkkä 2013, ch. 5-6)::
-
-    g(x) ~ g_bar + G (x - m) + e,    e ~ N(0, Omega)
-
-the first-order Taylor series (``g_bar = g(m)``, ``G = dg/dx (m)``, ``Omega = 0``: the extended Kalman filter) or a
-statistical linear regression on sigma points (the unscented and cubature filters). With it, one step is the
-linear Kalman step of :mod:`jaxobs.kalman_steps` and :mod:`jaxobs.riccati`::
-
-    predict (discrete):    m_prior = f_bar,   P_prior = F P F' + Q + Omega_f
-    predict (continuous):  dm/dt = f_bar(m, P),   dP/dt = F P + P F' + Q   over [t_{k-1}, t_k] (jaxobs.ct)
-    update:                Joseph-form update with C = H and R + Omega_h on the innovation y_k - h_bar
-
-(the continuous moment equations: Jazwinski 1970 for the Taylor form, Särkkä 2007 for sigma points).
-A sigma-point rule also returns the moments it regresses on, ``Cov f`` and ``Cov(x, h)``, ``Cov h``: the discrete
-prediction is then ``P_prior = Cov f + Q`` (equal to the line above) and the standard-form update
-(``joseph=False``, one iteration) ``K = Cov(x, h) (Cov h + R)^{-1}`` (:func:`jaxobs.kalman_steps.moment_update`):
-no solve with ``P`` to form ``G``.
-Missing data: non-finite components of ``y_k`` are skipped exactly and counted, as in the linear filter.
-Innovation gate (``gate``, optional): a component whose innovation around the prior exceeds ``gate`` standard
-deviations (:func:`jaxobs.kalman_steps.innovation_gate`) is skipped like a missing one and counted apart.
-Iterated update (``iterations > 1``): ``h`` is linearised again around the current posterior and the update
-redone from the prior, ``x_{i+1} = m_prior + K_i (y - h_bar_i - H_i (m_prior - x_i))``: the Gauss-Newton iterated
-EKF (Bell & Cathey 1993) for the Taylor form, the iterated posterior linearisation filter (García-Fernández,
-Svensson, Morelande & Särkkä 2015) for sigma points.
+:func:`nonlinear_model` builds a :class:`NonlinearModel`: discrete time ``x_k = f(x_{k-1}, u_{k-1}, t_{k-1}) + w_k``
+or continuous-discrete (``continuous=True``), with ``y_k = h(x_k) + v_k``. A Gaussian filter replaces each map by
+a :class:`Linearization` (Särkkä 2013, ch. 5-6) and takes the linear Kalman step of :mod:`jaxobs.kalman_steps`
+(:func:`gaussian_step`), with missing data, an optional innovation gate and iterated updates (Bell & Cathey 1993;
+García-Fernández et al. 2015). The equations: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -47,8 +17,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
-from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, update
-from jaxobs.riccati import predict_covariance, symmetrize
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, update
 
 __all__ = [
     "NonlinearModel",
@@ -174,20 +144,41 @@ class Linearize(Protocol):
 
 
 class GaussianState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori mean x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) its covariance
-    t: jax.Array  # () its time
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far (missing or gated)
-    gated: jax.Array  # () int32, of those, finite components rejected by the innovation gate
+    """State of a Gaussian filter (EKF, UKF) between steps.
+
+    Attributes:
+      x: (n,) a-posteriori mean x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) its covariance
+      t: () its time
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far (missing or gated)
+      gated: () int32, of those, finite components rejected by the innovation gate
+    """
+
+    x: jax.Array
+    P: jax.Array
+    t: jax.Array
+    started: jax.Array
+    missing: jax.Array
+    gated: jax.Array
 
 
 class GaussianOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori mean x_hat_{k|k}
-    P: jax.Array  # (n, n) its covariance
-    x_prior: jax.Array  # (n,) a-priori mean x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - h_bar around the prior (0 for missing components)
-    gain: jax.Array  # (n, p) gain of the (last) update (zero columns for missing components)
+    """Outputs of one step of a Gaussian filter (EKF, UKF).
+
+    Attributes:
+      x: (n,) a-posteriori mean x_hat_{k|k}
+      P: (n, n) its covariance
+      x_prior: (n,) a-priori mean x_hat_{k|k-1}
+      innovation: (p,) y_k - h_bar around the prior (0 for missing components)
+      gain: (n, p) gain of the (last) update (zero columns for missing components)
+    """
+
+    x: jax.Array
+    P: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
 
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:

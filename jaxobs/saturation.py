@@ -1,21 +1,11 @@
 """Estimation and control through saturations (Grip 2010, ch. 8 and 9).
 
-Chapter 8 (Grip, Saberi & Wang) stabilises ``x' = A x + B u``, ``y = sat(C x)`` (8.1) globally by a sampled hybrid
-controller: on each interval ``(kT, kT + T]`` the input is ``u(kT + tau) = -B' exp(-A' tau) U_k`` (8.2), so that
-``x(kT + T) = exp(A T) x(kT) - Bbar U_k`` (8.7, :func:`interval_map`), with ``Bbar`` of (8.4). ``U_k`` (8.3) first
-drives each output out of saturation in turn with a geometrically growing push ``alpha^k`` along ``h_j``, using only
-the sign of ``y_j``; once every output has been unsaturated at least once, the masked observability Gramian ``D`` and
-data vector ``xi`` of (8.5) give ``x(0) = D^{-1} xi`` and the deadbeat command puts ``x`` at the origin one interval
-later. :func:`saturated_output_design` checks the assumptions and precomputes the constants,
-:func:`simulate_saturated_outputs` runs the loop (jit/vmap over initial states).
-
-Chapter 9 (Grip, Saberi, Stoorvogel, Wang & Roy) detects, from the output of a linear system ``L2`` driven through a
-saturation, which input explains a window of output: :func:`hypothesis_residual` is the consistency statistic of
-(9.6)-(9.8) for any hypothesis "the window is the free response of ``(F, H)`` plus the response to the known input
-``u`` through ``Bf``", and :func:`explains` decides it relative to the quadrature accuracy (the statistic at step
-``h`` against the one at ``2 h``, and the precision to which it can vanish). :func:`sandwich_detectors` applies it
-to the three hypotheses of Theorem 9.1, :func:`low_gain_are` solves the family (9.12) with
-:func:`jaxobs.riccati.care`, and :func:`simulate_sandwich` runs the three-stage controller of §9.4.
+Chapter 8 (Grip, Saberi & Wang): the sampled hybrid controller that stabilises ``x' = A x + B u``,
+``y = sat(C x)`` globally (:func:`saturated_output_design`, :func:`interval_map`,
+:func:`simulate_saturated_outputs`). Chapter 9 (Grip, Saberi, Stoorvogel, Wang & Roy): which input explains a
+window of a saturated system's output (:func:`hypothesis_residual`, :func:`explains`,
+:func:`sandwich_detectors`), the low-gain ARE (:func:`low_gain_are`) and the three-stage controller of §9.4
+(:func:`simulate_sandwich`). The equations: docs/theory/analysis.md.
 """
 
 from __future__ import annotations
@@ -27,8 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs import _checks
-from jaxobs.riccati import care
+from jaxobs import _checks, ct
+from jaxobs.lti import controllability_rank, observability_rank
+from jaxobs.matrix_equations import care
 
 __all__ = [
     "ALPHA_NORMS",
@@ -64,26 +55,14 @@ def sat(v):
     return jnp.clip(v, -1.0, 1.0)
 
 
-def _pair_rank(A, B) -> int:
-    """Rank of the controllability matrix ``[B, AB, ..., A^{n-1} B]`` (NumPy, SVD with a relative tolerance)."""
-    A, B = np.asarray(A, np.float64), np.asarray(B, np.float64)
-    blocks, block = [], B
-    for _ in range(A.shape[0]):
-        blocks.append(block)
-        block = A @ block
-    K = np.hstack(blocks)
-    s = np.linalg.svd(K, compute_uv=False)
-    return int(np.sum(s > 1e-10 * max(s[0], np.finfo(float).tiny))) if s.size else 0
-
-
 def require_controllable_observable(A, B, C, *, names: tuple[str, str] = ("(A, B)", "(C, A)")) -> None:
     """Raise ``ValueError`` naming the pair and its rank when ``(A, B)`` is not controllable or ``(C, A)`` not
     observable (Assumption 8.1, 9.1); eager (skipped on tracers)."""
     if not _checks.is_concrete(A, B, C):
         return
     n = np.shape(A)[0]
-    for name, rank, what in ((names[0], _pair_rank(A, B), "controllable"),
-                             (names[1], _pair_rank(np.transpose(A), np.transpose(C)), "observable")):  # fmt: skip
+    for name, rank, what in ((names[0], controllability_rank(A, B), "controllable"),
+                             (names[1], observability_rank(A, C), "observable")):  # fmt: skip
         if rank < n:
             matrix = "controllability" if what == "controllable" else "observability"
             raise ValueError(f"{name} must be {what}: its {matrix} matrix has rank {rank} < n = {n}")
@@ -225,12 +204,9 @@ def _condition(D):
     return jnp.where(low > 0, jnp.max(jnp.abs(eig)) / jnp.where(low > 0, low, 1), jnp.inf)
 
 
-def _rk4(f, z, d):
-    k1 = f(z)
-    k2 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k1))
-    k3 = f(jax.tree_util.tree_map(lambda a, b: a + d / 2 * b, z, k2))
-    k4 = f(jax.tree_util.tree_map(lambda a, b: a + d * b, z, k3))
-    return jax.tree_util.tree_map(lambda a, b, c, e, g: a + d / 6 * (b + 2 * c + 2 * e + g), z, k1, k2, k3, k4)
+def _rk4(rhs, z, d):
+    """One classical RK4 step of the autonomous ``z' = rhs(z)`` (a pytree) over ``d`` (:func:`jaxobs.ct.rk4_step`)."""
+    return ct.rk4_step(lambda z, _u, _t: rhs(z), z, None, 0.0, d)
 
 
 def simulate_saturated_outputs(
@@ -349,18 +325,30 @@ def _adjugate(D):
 
 
 class Residual(NamedTuple):
-    statistic: jax.Array  # () int_0^T ||r(tau)|| dtau (trapezoid)
-    scale: jax.Array  # () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
-    norms: jax.Array  # (N + 1,) ||r(tau_j)||
-    w0: jax.Array  # (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
-    w_end: jax.Array  # (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
-    condition: jax.Array  # () condition number of D(T)
+    """Result of :func:`hypothesis_residual`.
+
+    Attributes:
+      statistic: () int_0^T ||r(tau)|| dtau (trapezoid)
+      scale: () the size of the data in the same integral: of det(D) (|y| + |H v|) and of the second term
+      norms: (N + 1,) ||r(tau_j)||
+      w0: (nf,) D^{-1}(T) (xi(T) - S(T)), the hypothesis's state at the window start (9.7)
+      w_end: (nf,) exp(F T) w0 + v(T), its state at the window end (9.11b)
+      condition: () condition number of D(T)
+    """
+
+    statistic: jax.Array
+    scale: jax.Array
+    norms: jax.Array
+    w0: jax.Array
+    w_end: jax.Array
+    condition: jax.Array
 
 
 def hypothesis_residual(model: WindowModel, y, u) -> Residual:
-    """The consistency statistic of Grip (2010) (9.6)-(9.8) for the hypothesis "over this window
-    ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the response to the known input ``u``
-    (:func:`forced_response`)::
+    """The consistency statistic of Grip (2010) (9.6)-(9.8) for one hypothesis on a window.
+
+    The hypothesis is "over this window ``y(tau) = H exp(F tau) w0 + H v(tau)`` for some ``w0``", ``v`` the
+    response to the known input ``u`` (:func:`forced_response`)::
 
         r(tau) = det(D(tau)) (y(tau) - H v(tau)) - H exp(F tau) adj(D(tau)) (xi(tau) - S(tau))
         D(tau) = int_0^tau exp(F' g) H' H exp(F g) dg,  xi(tau) - S(tau) = int_0^tau exp(F' g) H' (y - H v)(g) dg
@@ -521,12 +509,15 @@ def _merged(A, B, C, M, N, G):
 
 
 def low_gain_are(A, B, C, M, N, F, eps):
-    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009)::
+    """``P_eps`` of the low-gain ARE of Grip (2010) §9.4 (Wang et al. 2009).
+
+    It solves::
 
         AF' P + P AF - P diag(B B', 0) P + eps I = 0,   AF = [[A + B F, 0], [N C, M]]
 
-    solved by :func:`jaxobs.riccati.care` (``Q = eps I``, ``R = 1``). Returns the :class:`jaxobs.riccati.CareSolution`
-    ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0`` (linearly when ``AF`` is Hurwitz).
+    solved by :func:`jaxobs.matrix_equations.care` (``Q = eps I``, ``R = 1``). Returns the
+    :class:`jaxobs.matrix_equations.CareSolution` ``(X, residual, converged)``. ``P_eps -> 0`` as ``eps -> 0``
+    (linearly when ``AF`` is Hurwitz).
 
     Args:
       A: (n, n).  B: (n, 1).  C: (1, n).  M: (m, m).  N: (m, 1).  F: (1, n) with ``A + B F`` Hurwitz.

@@ -1,28 +1,10 @@
 """Special coordinate basis (SCB) of a linear multivariable system (Grip 2010, ch. 7; Sannuti & Saberi 1987).
 
-A design-time module: it runs on NumPy and sympy, not JAX (the decomposition is a sequence of rank decisions whose
-outcomes fix the dimensions of the result, so it cannot be traced), and it is the only jaxobs module that imports
-sympy. :func:`scb` transforms ``x' = A x + B u``, ``y = C x + D u`` to the form (7.4)-(7.6) of Grip 2010:
-
-    x = Gamma1 x_scb,  y = Gamma2 y_scb,  u = Gamma3 u_scb  (after the pre-transformation U, Y of section 7.2.4),
-    x_scb = col(x_a, x_b, x_c, x_d),  y_scb = col(y_0, y_d, y_b),  u_scb = col(u_0, u_d, u_c),
-
-where x_a are the zero dynamics (invariant zeros = eig(A_aa)), x_b is observable from y_b and unaffected by inputs,
-x_c is controllable from u_c, and x_d is a set of integrator chains (the infinite zeros). The construction is the
-modified Silverman algorithm (section 7.4): output sequences are differentiated until an input appears (a chain of
-x_d) or the derivative depends on the states already found (an x_b sequence); the remaining states x_s are made
-free of u_d and of all but the outputs of x_b, x_d, and are split into x_a and x_c by the same procedure on the
-transposed pair (A_ss^T, B_sc^T). As in the thesis, null spaces are put in reduced row echelon form and
-complements are rows of the identity, so the result is deterministic and changes few original states.
-
-Arithmetic. By default everything is exact: entries may be integers, fractions or sympy expressions in symbols
-(rational functions over the rationals or an algebraic extension such as QQ<sqrt(2)>; rank decisions are then
-generic, i.e. valid except on a proper algebraic set of parameter values, which is how the structure of the DC
-motor of Grip 2010, section 7.5.2, changes at sigma_1 = 0; transcendental expressions such as sin(theta) act as
-independent generators, so identities like sin^2 + cos^2 = 1 are not used). A float entry is replaced by the
-fraction of its shortest decimal form (0.0023 -> 23/10000). ``numeric=True`` runs the same algorithm in floating
-point with rank decisions by singular values against a tolerance: faster on large floating models, but rank
-decisions near the tolerance may identify a different structure (section 7.6).
+A design-time module on NumPy and sympy, not JAX (rank decisions fix the dimensions of the result), and the only
+one that imports sympy. :func:`scb` transforms ``x' = A x + B u``, ``y = C x + D u`` to the form (7.4)-(7.6) by
+the modified Silverman algorithm (section 7.4), exactly by default (integers, fractions, sympy expressions) or in
+floating point with ``numeric=True``; :func:`scb_residuals` checks the identities (7.6). The construction and
+its arithmetic: docs/theory/analysis.md.
 """
 
 from __future__ import annotations
@@ -52,9 +34,9 @@ class SCB:
 
     Fields:
       A, B, C, D: the SCB matrices (7.6), shapes (n, n), (n, m), (p, n), (p, m).
-      Gamma1, Gamma2, Gamma3: the state (n, n), output (p, p) and input (m, m) transformations,
-        ``x = Gamma1 x_scb``, ``y = Gamma2 y_scb``, ``u = Gamma3 u_scb``, of the pre-transformed system
-        ``(A, B U, Y^-1 C, Y^-1 D U)``.
+      state_transform, output_transform, input_transform: the state (n, n), output (p, p) and input (m, m)
+        transformations, ``x = state_transform x_scb``, ``y = output_transform y_scb``, ``u = input_transform
+        u_scb``, of the pre-transformed system ``(A, B U, Y^-1 C, Y^-1 D U)``.
       U, Y: the pre-transformation (m, m), (p, p) of section 7.2.4 (identities for D = 0).
       dims: ``(n_a, n_b, n_c, n_d)``.
       chain_lengths: the lengths q_i of the integrator chains of x_d, in their order in x_d (nondecreasing).
@@ -67,9 +49,9 @@ class SCB:
     B: Any
     C: Any
     D: Any
-    Gamma1: Any
-    Gamma2: Any
-    Gamma3: Any
+    state_transform: Any
+    output_transform: Any
+    input_transform: Any
     U: Any
     Y: Any
     dims: tuple[int, int, int, int]
@@ -160,7 +142,7 @@ class _Exact:
         return self.rref(basis)[0]
 
     def dependencies(self, source, M, y):
-        """Rows [phi, phi_y] with phi (source M) + phi_y y = 0 (y of full row rank), phi in reduced row echelon
+        """Rows [dep, dep_y] with dep (source M) + dep_y y = 0 (y of full row rank), dep in reduced row echelon
         form."""
         x = self.mul(source, M)
         return self.left_null(self.vstack([x, y]) if y.shape[0] else x)
@@ -255,19 +237,19 @@ class _Float:
         """As the exact one. The rows of x = source M are expressed in an orthonormal basis of the complement of
         the rows of y (so at most ``columns - rows(y)`` of them can be independent), scaled by ``|source_i| |M|``
         (a row that is small on that scale is numerically zero) and get their rank decided by singular values;
-        phi_y comes from least squares."""
+        dep_y comes from least squares."""
         x = source @ M
         if x.shape[1] == 0:
             return self.left_null(x)
         scale = np.linalg.norm(source, axis=1) * max(np.linalg.norm(M, 2), np.finfo(float).tiny)
         scale[scale == 0] = 1.0
         complement = np.linalg.svd(y)[2][y.shape[0] :].T if y.shape[0] else np.eye(x.shape[1])
-        phi = self.left_null((x @ complement) / scale[:, None]) if complement.shape[1] else np.eye(x.shape[0])
-        if phi.shape[0] == 0:
+        dep = self.left_null((x @ complement) / scale[:, None]) if complement.shape[1] else np.eye(x.shape[0])
+        if dep.shape[0] == 0:
             return np.zeros((0, x.shape[0] + y.shape[0]))
-        phi = self.rref(phi / scale[None, :])[0]
+        dep = self.rref(dep / scale[None, :])[0]
         coeffs = np.linalg.lstsq(y.T, x.T, rcond=None)[0].T if y.shape[0] else np.zeros((x.shape[0], 0))
-        return np.hstack([phi, -phi @ coeffs])
+        return np.hstack([dep, -dep @ coeffs])
 
     def is_zero(self, x):
         return not x.size or float(np.max(np.abs(x))) <= self.tol
@@ -352,10 +334,10 @@ def _structure(bk, A, B, C):
                 "scb: inconsistent rank decisions (ill-conditioned for numeric=True at this tol; use exact arithmetic)"
             )
         for k in range(null.shape[0]):
-            phi, phi_b = null[k : k + 1, :q], null[k : k + 1, q:]
-            seq = [_combine(bk, phi, [s[lev] for s in combos], n) for lev in range(depth)]
+            dep, dep_b = null[k : k + 1, :q], null[k : k + 1, q:]
+            seq = [_combine(bk, dep, [s[lev] for s in combos], n) for lev in range(depth)]
             for t, (other, lev) in enumerate(tagged):
-                coeff = phi_b[:, t : t + 1]  # the derivative has the term -coeff * other[lev]
+                coeff = dep_b[:, t : t + 1]  # the derivative has the term -coeff * other[lev]
                 if lev == 0 or bk.is_zero(coeff):
                     continue
                 for s_lev in range(depth):
@@ -395,7 +377,8 @@ def _eliminate(bk, A, Ts, sequences, bottoms):
 
 
 def _scb_sp(bk, A, B, C):
-    """SCB of a strictly proper system: (T = Gamma1^-1, Gamma2^-1 rows, Gamma3, dims, chain lengths)."""
+    """SCB of a strictly proper system: (T = state_transform^-1, output_transform^-1 rows, input_transform, dims,
+    chain lengths)."""
     n, m = B.shape
     chains, inputs, xb = _structure(bk, A, B, C)
     m_d = len(chains)
@@ -435,7 +418,7 @@ def _scb_sp(bk, A, B, C):
 
 
 def _output_rows(bk, tops, C):
-    """G with G C = tops (C of full row rank): the rows of Gamma2^-1."""
+    """G with G C = tops (C of full row rank): the rows of output_transform^-1."""
     right = bk.mul(C.transpose(), bk.inv(bk.mul(C, C.transpose())))
     return bk.mul(tops, right)
 
@@ -520,17 +503,18 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       B: (n, m) input matrix; ``[B; D]`` must have full column rank.
       C: (p, n) output matrix; ``[C, D]`` must have full row rank.
       D: (p, m) feedthrough, zero if None.
-      numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact
-        fractions / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A,
-        r A^2, ...), so long sequences give ill-conditioned Gammas (cond(Gamma1) ~ 1e40 for a 17-state x_b of a
-        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions
-        and the matrices are not; use the exact variant for them.
+      numeric: floating-point arithmetic with rank decisions by singular values (less exact) instead of exact fractions
+        / rational functions. The x_b, x_c and x_d coordinates are successive derivatives (rows r, r A, r A^2, ...), so
+        long sequences give ill-conditioned transformations (cond(state_transform) ~ 1e40 for a 17-state x_b of a
+        20-state integer system): the structure (dims, chains) is then reliable only through its rank decisions and the
+        matrices are not; use the exact variant for them.
       tol: relative rank tolerance of the numeric variant, in (0, 1).
 
     Returns:
-      :class:`SCB`. With ``Ah = A - B_0 C_0`` of the pre-transformed system (section 7.2.4),
-      ``SCB.A = Gamma1^-1 Ah Gamma1``, ``SCB.B = Gamma1^-1 (B U) Gamma3``, ``SCB.C = Gamma2^-1 (Y^-1 C) Gamma1``,
-      ``SCB.D = Gamma2^-1 (Y^-1 D U) Gamma3 = diag(I_m0, 0)`` hold exactly in the exact variant.
+      :class:`SCB`. With ``Ah = A - B_0 C_0`` of the pre-transformed system (section 7.2.4), ``SCB.A =
+      state_transform^-1 Ah state_transform``, ``SCB.B = state_transform^-1 (B U) input_transform``, ``SCB.C =
+      output_transform^-1 (Y^-1 C) state_transform``, ``SCB.D = output_transform^-1 (Y^-1 D U) input_transform =
+      diag(I_m0, 0)`` hold exactly in the exact variant.
 
     Example:
       >>> from jaxobs.scb import scb
@@ -586,9 +570,9 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
         B=out(bk.mul(bk.mul(T, Bh), G3)),
         C=out(bk.mul(bk.mul(bk.inv(G2), Ch), G1)),
         D=out(bk.mul(bk.mul(bk.inv(G2), Dh), G3)),
-        Gamma1=out(G1),
-        Gamma2=out(G2),
-        Gamma3=out(G3),
+        state_transform=out(G1),
+        output_transform=out(G2),
+        input_transform=out(G3),
         U=out(U),
         Y=out(Y),
         dims=dims,
@@ -613,8 +597,9 @@ def _system(system) -> SCB:
 
 def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     """Residuals of the identities relating ``system`` to the original ``(A, B, C, D)`` (section 7.2.3), in the
-    inverse-free form ``Gamma1 A_scb - Ah Gamma1``, ``Gamma1 B_scb - (B U) Gamma3``, ``Gamma2 C_scb - (Y^-1 C)
-    Gamma1``, ``Gamma2 D_scb - (Y^-1 D U) Gamma3`` with ``Ah = A - (B U)_0 (Y^-1 C)_0``.
+    inverse-free form ``state_transform A_scb - Ah state_transform``, ``state_transform B_scb - (B U) input_transform``,
+    ``output_transform C_scb - (Y^-1 C) state_transform``, ``output_transform D_scb - (Y^-1 D U) input_transform`` with
+    ``Ah = A - (B U)_0 (Y^-1 C)_0``.
 
     Args:
       system: an :class:`SCB` (from :func:`scb`, or built from printed matrices to check them).
@@ -641,10 +626,10 @@ def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     Bh, Ch, Dh = M["B"] @ s.U, Yinv @ M["C"], Yinv @ M["D"] @ s.U
     Ah = M["A"] - Bh[:, :m0] @ Ch[:m0, :]
     return {
-        "A": simplify(s.Gamma1 @ s.A - Ah @ s.Gamma1),
-        "B": simplify(s.Gamma1 @ s.B - Bh @ s.Gamma3),
-        "C": simplify(s.Gamma2 @ s.C - Ch @ s.Gamma1),
-        "D": simplify(s.Gamma2 @ s.D - Dh @ s.Gamma3),
+        "A": simplify(s.state_transform @ s.A - Ah @ s.state_transform),
+        "B": simplify(s.state_transform @ s.B - Bh @ s.input_transform),
+        "C": simplify(s.output_transform @ s.C - Ch @ s.state_transform),
+        "D": simplify(s.output_transform @ s.D - Dh @ s.input_transform),
     }
 
 
@@ -756,7 +741,7 @@ def scb_arrays(system: SCB, values: dict | None = None) -> SCB:
         raise ValueError(f"values must give every symbol, missing {missing}")
     subs = {x: _exact_entry(by_name[str(x)], f"values[{x}]") for x in system.symbols}
     fields = {}
-    for name in ("A", "B", "C", "D", "Gamma1", "Gamma2", "Gamma3", "U", "Y"):
+    for name in ("A", "B", "C", "D", "state_transform", "output_transform", "input_transform", "U", "Y"):
         M = getattr(system, name).xreplace(subs).applyfunc(sp.cancel)
         if any(e.has(sp.zoo, sp.nan, sp.oo) for e in M):
             raise ValueError(f"values: {name} is singular at {by_name}")

@@ -1,28 +1,10 @@
 """Estimation over a whole record: the log-likelihood of a record, Rauch-Tung-Striebel smoothing for every
 Kalman-type estimator, and the parallel-in-time filter and smoother (Särkkä & García-Fernández 2021).
 
-For the linear-Gaussian model of :mod:`jaxobs.kalman_steps` and a record ``y_0 .. y_{T-1}``:
-
-* the **log-likelihood** ``log p(y_0 .. y_{T-1}) = sum_k log p(y_k | y_0 .. y_{k-1})`` is the sum of the filter's
-  ``log_likelihood`` outputs (:func:`log_likelihood`), exact with missing components;
-* the **smoother** (Rauch, Tung & Striebel 1965) gives ``x_{k|T-1}``, ``P_{k|T-1}`` from the filter's
-  a-posteriori and a-priori means and covariances, backwards from the last sample::
-
-      E_k = P_k Phi' P_prior_{k+1}^{-1}
-      x_{k|T-1} = x_k + E_k (x_{k+1|T-1} - x_prior_{k+1})
-      P_{k|T-1} = P_k + E_k (P_{k+1|T-1} - P_prior_{k+1}) E_k'
-
-  It reads only the filter's outputs, so it serves every Kalman-type estimator that outputs its covariances
-  (``output_covariance``): the Kalman filter and the Kalman Active Observer, whose smoothed newest active state
-  is the offline reconstruction of the input disturbance (:func:`jaxobs.observers.active.disturbance`), with the
-  adaptive strategy too (its a-priori covariances carry the variance it used). Missing data need nothing: the
-  filter skipped them.
-* **parallel in time**: the filter and the smoother as ``jax.lax.associative_scan`` over per-sample elements
-  (Särkkä & García-Fernández 2021, Lemmas 7-10): ``O(log T)`` sequential depth instead of ``T``, for ``O(n^3)``
-  more work per sample. It pays where a device runs the ``T`` elements at once; on a 2-core CPU the parallel
-  filter is slower at T = 100 and 10^4, the smoother breaks even at 10^4, and the parallel programs compile 10-20
-  times longer (``docs/estimation.md``, ``benchmarks/parallel_in_time.py``). The results equal the sequential ones to
-  rounding.
+:func:`log_likelihood` sums the filter's per-step log-likelihoods (exact with missing data); :func:`smooth` and
+:func:`rts_smoother` run the smoother (Rauch, Tung & Striebel 1965) from the outputs of any filter that outputs
+its covariances; :func:`parallel_filter` and the parallel smoother use ``jax.lax.associative_scan``
+(Lemmas 7-10). The equations and measurements: docs/estimation.md (``benchmarks/parallel_in_time.py``).
 """
 
 from __future__ import annotations
@@ -35,11 +17,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd
-from jaxobs.kalman_steps import observed, observed_model, update
+from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs.kalman_steps import observed, observed_model, predict_covariance, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter
-from jaxobs.riccati import predict_covariance, symmetrize
 
 __all__ = ["Smoothed", "rts_smoother", "smooth", "log_likelihood", "parallel_filter"]
 
@@ -67,8 +48,8 @@ class _SmootherElement(NamedTuple):
 
 def _smoother_gain(Phi, P, P_prior_next):
     """The gain ``E_k = P_k Phi' P_prior_{k+1}^{-1}`` of sample ``k`` and its transpose, both row-major: ``E A E'``
-    is computed as ``(E A) E_t`` (a transposed operand sends XLA's CPU backend to a kernel 3x slower for a batch of
-    10 x 10 products, ``benchmarks/estimation.py``, ``smooth``).
+    is computed as ``(E A) E_t`` (a transposed operand sends XLA's CPU backend to a slower kernel for a batch of
+    small products, ``benchmarks/estimation.py``, ``smooth``).
 
     A state without a-priori variance (a zero diagonal entry of ``P_prior_next``, e.g. an active state switched
     off) gets a unit placeholder in the solve: ``Phi P`` has a zero row there, so its gain column is zero."""
@@ -134,7 +115,7 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     # the sequential recursion in its classic form, 2 n^3 per sample (the elements' form costs twice that):
     # x_{k|T} = x_k + E_k (x_{k+1|T} - x_prior_{k+1}),  P_{k|T} = P_k + E_k (P_{k+1|T} - P_prior_{k+1}) E_k'
     # The scan runs over the whole records (slicing them and joining the last sample back costs a copy of each
-    # (T, n, n) array, a fifth of the smoother's time at n = 32, benchmarks/estimation.py, smooth): at the last
+    # (T, n, n) array, benchmarks/estimation.py, smooth): at the last
     # sample the carry holds a "later" sample equal to its own prediction (x = x_prior = 0, P = P_prior = I), so
     # the correction is exactly zero and the smoothed moments are the filtered ones.
     def body(later, sample):

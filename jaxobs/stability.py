@@ -1,28 +1,10 @@
 """Stability of observer-based control with model errors (Cortesão 2006 §6): closed-loop matrices,
 spectral radius, the loop transfer function at the plant input, and discrete-time margins.
 
-The true plant ``x_k = Phi x_{k-1} + Gamma u_{k-1}``, ``y_k = C x_k`` (eq. 57-58) is controlled by
-an observer built on a nominal model ``(Phi_n, Gamma_n, C_n)`` with a steady-state gain ``K`` and
-state feedback ``u_k = r_k - L x_hat_k`` (eq. 61, 63). In the coordinates ``[x; x_hat]``::
-
-    x_k     = Phi x_{k-1} + Gamma u'_{k-1}
-    x_hat_k = (I - K C_n)(Phi_n - Gamma_n L) x_hat_{k-1} + K C (Phi x_{k-1} + Gamma u'_{k-1})
-
-Cutting the loop at the plant input (``u'`` in, ``L x_hat`` out) gives the loop transfer function
-of Theorem 3 (eq. 65); closing it with ``u' = -L x_hat`` gives the closed-loop matrix of Theorem 2.
-When the true and nominal models have the same state (``Phi = Phi_n + Delta Phi``,
-``Gamma = Gamma_n + Delta Gamma``), the similarity ``[x; e] = [x; x - x_hat]`` turns these into the
-printed eq. 59 and eq. 66 exactly (``tests/test_stability.py`` checks both). The ``[x; x_hat]``
-form also covers a true plant with a different state dimension, e.g. a longer dead time.
-
-For an AOB the true plant is the physical plant only: the active state lives in the observer. Taking
-``x_k = [x_r, p_k]`` (eq. 64) in eq. 59 would add the disturbance model's unit eigenvalues, which
-are not modes of the loop.
-
-Margins follow python-control's ``stability_margins`` conventions (gain margin closest to 1 in
-log scale, phase margin smallest in magnitude, stability margin ``min |1 + H|``) and add the delay
-margin. They are found on a frequency grid and refined by bisection, with a final Newton step on
-the exact resolvent so that they are differentiable where the crossover is simple.
+:func:`closed_loop_matrix` (Theorem 2, eq. 59) and :func:`spectral_radius`, the loop transfer function cut at the
+plant input (Theorem 3, eq. 65), and :func:`stability_margins` in python-control's conventions plus the delay
+margin, differentiable where the crossover is simple. The ``[x; x_hat]`` coordinates and how they map to the
+printed equations: docs/theory/analysis.md.
 """
 
 from __future__ import annotations
@@ -145,7 +127,8 @@ class Margins(NamedTuple):
     the smallest ``|margin|`` (inf if none); ``delay_margin``: seconds, the smallest extra input delay
     that destabilises a stable loop, ``min_i mod(pm_i, 360) / w_i`` over all gain crossovers (inf if
     none), at most one sample ``dt`` when ``|H(-1)| > 1`` (one sample of delay flips the sign of
-    ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; frequencies in rad/s (nan if none);
+    ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; ``phase_crossover``, ``gain_crossover``,
+    ``stability_margin_frequency``: the frequencies of those margins in rad/s (nan if none);
     ``spectral_radius`` of the closed loop (the margins mean something only when it is below 1).
     ``truncated``: more crossings than ``max_crossings`` were seen (margins may be optimistic).
     """
@@ -207,8 +190,8 @@ def _crossings(f, theta, values, max_crossings: int, iters: int):
 def _exact_with_slope(sys: StateSpace, theta):
     """Exact ``H`` and ``dH/dtheta`` at the (held constant) frequencies ``theta``, in one batched
     solve: Newton steps from them give first-order values whose gradients follow the implicit
-    function theorem through the crossover frequencies. (One solve call on purpose: see the
-    eigenvalue call in :func:`stability_margins`.)"""
+    function theorem through the crossover frequencies (one solve call on purpose: see the
+    eigenvalue call in :func:`stability_margins`)."""
     theta = jax.lax.stop_gradient(theta)
     one = jax.vmap(lambda t: jax.jvp(lambda s: _resolvent_response(sys, s), (t,), (jnp.ones_like(t),)))
     return one(theta)

@@ -1,75 +1,11 @@
 """Batched Monte-Carlo sweeps: chunked, sharded over devices, resumable, written to Parquet.
 
-A sweep evaluates ``num_configs`` configurations. Configuration ``i`` is sampled from its own key,
-``config_key(seed, i)``, so every number in the output depends only on ``(seed, i)``: never on the chunk size,
-the device count or whether the sweep was interrupted and resumed::
-
-    import jax, jax.numpy as jnp
-    from jaxobs.sweep import load_results, run_sweep
-
-    def sampler(key, index):                    # one configuration's parameters (a pytree of arrays)
-        return {"a": jax.random.uniform(key, minval=0.5, maxval=1.0)}
-
-    def evaluate(params):                       # one configuration's metrics (a pytree of arrays)
-        x = jax.lax.fori_loop(0, 50, lambda k, x: params["a"] * x + 1.0, 0.0)
-        return {"x50": x, "converged": jnp.abs(x - 1 / (1 - params["a"])) < 1e-3}
-
-    run_sweep(sampler, evaluate, 10_000, "out/sweep-demo", config={"steps": 50}, progress=False)
-    cols = load_results("out/sweep-demo")       # {"index", "param.a", "metric.converged", "metric.x50"}
-
-How it runs. ``row(i) = evaluate(sampler(config_key(seed, i), i))`` is ``vmap``ped over one chunk of
-``chunk_size`` indices per device inside ``jax.shard_map`` on a 1-D mesh over ``jax.devices()`` (axis
-"configs"; the index array is placed with ``NamedSharding(mesh, PartitionSpec("configs"))``), and the ``jax.jit``
-of that is compiled once, ahead of time (``compile_seconds`` in the manifest). Each step computes
-``device_count`` chunks, one per device; the last, partial chunk is padded with copies of the last index, a step
-short of chunks repeats its last chunk, and the padding is dropped before writing. Every device thus always runs
-the same program on ``chunk_size`` rows, which makes the results bit-for-bit identical on 1 and 4 devices (XLA
-may emit different code for a different per-device batch: on CPU a 50-term sum rounds differently for batches
-of 32 and 128). Different ``chunk_size`` values give the same numbers up to such rounding, usually bit for bit.
-``shard_map`` (with ``check_vma=False``, so that a ``scan`` may start from a constant carry) rather than ``jit``
-with ``in_shardings``: the per-device program is exactly ``vmap(row)``, and host callbacks run on each device
-instead of being funnelled through device 0. A chunk file holds ``chunk_size``
-rows (the last one fewer) whatever the device count, so a sweep may be resumed on another machine.
-On CPU, an evaluation that calls jaxlib's batched LAPACK kernels (``jnp.linalg.solve``, ``eigvals``,
-``cholesky``, ...) runs on one device per process (logged, and recorded as ``device_count``): with jaxlib
-0.10 several CPU devices running those kernels at once can deadlock its thread pool.
-
-Output (``out_dir``): ``chunks/chunk-00000.parquet``, ... and ``manifest.json``. Columns: ``index`` (int64),
-then ``param.<name>`` and ``metric.<name>``, where ``<name>`` is the leaf's pytree key path joined with "."
-(dict keys, dataclass / NamedTuple fields, list positions; a bare array has no suffix). A leaf with trailing
-dimensions becomes one column per entry, ``name[i]`` / ``name[i,j]`` (C order). Bool, integer and float dtypes
-are kept. Every file is written to a temporary file unique to the process, fsynced and moved into place with
-``os.replace``; the manifest records each completed chunk's row count and SHA-256.
-
-Resuming and extending. Rerunning the same call reuses the chunks whose checksum matches and recomputes the
-rest. The manifest records a fingerprint of the computation: the SHA-256 of the lowered (StableHLO) program of
-``vmap(row)`` over one chunk, which holds the traced sampler and evaluate with every constant they close over,
-plus the jax and jaxlib versions. A sweep whose fingerprint, ``config``, ``seed``, ``chunk_size`` or columns
-differ from the manifest's is refused (:class:`SweepError`) unless ``overwrite=True``: chunks computed by other
-code are never mixed in (host callbacks count by position only: the program does not see their Python code).
-``num_configs`` may change: a larger sweep reuses every full chunk it has and recomputes the last, partial one.
-
-One process at a time. The writer holds an exclusive lock on ``out_dir`` (``.jaxobs.lock``, with its pid) for
-the whole call; a second process is refused with a :class:`jaxobs._resources.JobError` naming the holder's pid.
-The directory is checked for writing before anything is compiled, and the memory one step needs (XLA's
-estimate for the compiled program, plus the host copy of its output) is checked against the memory available
-before the first step runs. Ctrl-C raises :class:`jaxobs._resources.Interrupted` (a ``KeyboardInterrupt``)
-saying how many chunks are done; rerun the same call to resume.
-
-Several processes (hosts, or local processes; tests/test_multiprocess.py runs 2 and 4 on one machine). Call
-``jax.distributed.initialize(...)`` first (before any JAX computation; on CPU the processes exchange data through
-gloo) and make the same call in every process, with ``out_dir`` on a filesystem all processes see. The mesh spans
-the devices of all processes and each process places and computes its own devices' chunks. Process 0 alone takes
-the lock, reads the manifest, decides which chunks to compute and writes files and progress; the others follow
-(``broadcast_one_to_all``) and each step's rows reach process 0 through ``multihost_utils.process_allgather``.
-Before anything is computed the processes compare a digest of their sweep (program fingerprint, config, seed,
-chunk size, ``num_configs``): processes that run different sweeps, or a process that fails (a locked or
-different ``out_dir`` in process 0, a step that cannot fit), stop every process with :class:`SweepError` instead
-of leaving the others waiting. The rows are those of one process, bit for bit; the manifest records
-``process_count`` per chunk, and a run killed in any process resumes when all are rerun, with any process count.
-The LAPACK guard above keeps one device per process.
-
-Precision: the engine never touches ``jax_enable_x64``; enable it in your entry point for float64 columns.
+:func:`run_sweep` evaluates ``num_configs`` configurations, configuration ``i`` sampled from its own key
+:func:`config_key` ``(seed, i)``, so every number depends only on ``(seed, i)``: never on the chunk size, the device
+count or an interruption. ``vmap`` over a chunk per device inside ``jax.shard_map``; chunks written atomically to
+``out_dir/chunks/*.parquet`` with a checksummed manifest; a rerun resumes, a different sweep is refused
+(:class:`SweepError`); several processes run one sweep after ``jax.distributed.initialize``. :func:`load_results`
+reads the columns. How it runs, the output format and resuming: docs/theory/jobs.md and docs/guides/sweeps.md.
 """
 
 from __future__ import annotations
@@ -132,8 +68,12 @@ class SweepError(JobError):
 class SweepResult:
     """Summary of one ``run_sweep`` call (the data itself is read with ``load_results``).
 
-    ``seconds`` is this call's wall time (compilation included); ``configs_per_second`` counts the configurations
-    computed in this call over the time spent computing and writing them (compilation excluded; 0 if none).
+    Attributes:
+      out_dir: the directory holding the results.  num_configs: configurations in the sweep.
+      chunks_computed, chunks_reused: chunks computed in this call and found already written.
+      seconds: this call's wall time (compilation included).
+      configs_per_second: configurations computed in this call over the time spent computing and writing them
+        (compilation excluded; 0 if none).
     """
 
     out_dir: Path

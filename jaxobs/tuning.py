@@ -1,56 +1,11 @@
 """Gradient-based tuning of observer designs with optax: parameterisations, robust objectives, the loop.
 
-A tuning problem (:class:`TuningProblem`) is a set of unconstrained parameters ``theta`` (a dict of arrays,
-e.g. the log-diagonal of ``Q`` and ``log R`` of an AOB), a function giving one loss per plant of a batch
-of mismatched plants (each a closed-loop rollout, e.g. in MuJoCo MJX), and a training and a held-out
-batch. :func:`tune` minimises a robust objective of the training losses with optax; :func:`random_search`
-is the gradient-free baseline (at equal rollouts, or for a given wall time); :func:`evaluate` scores any
-``theta`` on the held-out batch.
-
-Parameterisations (constrained values from unconstrained ``theta``; each with its inverse for starting
-from a hand-set design):
-
-* positive scalars and diagonals by ``exp`` (``log_q``, ``log_r``, ``log_sigma2``);
-* full covariances by a Cholesky factor with a log-diagonal (:func:`cholesky_covariance`), so every
-  ``theta`` gives a positive-definite ``Q`` and all correlations are reachable;
-* factors in ``(0, 1)`` such as ``c`` of Cortesão 2006 eq. 55 by the logistic function (:func:`unit_interval`).
-
-Robust objectives over the per-plant losses ``J_1..J_B``: the mean, and the conditional value at risk
-``CVaR_alpha`` (the mean of the worst ``ceil(alpha B)`` losses), plus an optional penalty (e.g. on the
-closed-loop spectral radius of :mod:`jaxobs.stability`).
-
-Diverged plants. A robust design must not ignore a plant whose rollout diverges (flagged by the problem, or a
-non-finite loss), but its loss is no measure of quality. In the objective it is replaced by a penalty
-(:func:`penalise_diverged`): with ``P = divergence_factor x`` the largest loss of the sound plants, a diverged
-plant with a finite loss ``L`` counts as ``P (1 + log(1 + L / P))``, one with a non-finite loss as ``P``. It thus
-counts as worse than every sound plant, and its own gradient (``P`` is held constant in derivatives) enters with
-a weight ``P / (P + L) <= 1`` that pulls it back without letting its blown-up scale dominate. In reverse mode
-a non-finite rollout can poison the gradient (a zero cotangent times an infinite derivative is NaN); the
-gradient is then recomputed with the diverged plants' inputs replaced by a sound plant's, which drops their own
-terms (the objective's value is the first one). A training set in which some plants diverge under the initial
-design is therefore a normal problem; only one in which every plant diverges is an error.
-
-The loop (:func:`tune`): optax (adam by default) after global-norm gradient clipping. An evaluation is
-rejected, logged, and retried from the last accepted point with half the step when its objective or gradient
-is not finite or when more training plants diverge than at the last accepted point (so accepted steps never
-lose a plant). The best design is the one with the fewest diverged plants, then the lowest objective. Early
-stopping when the objective has not improved for ``patience`` evaluations; a progress bar showing the
-objective; checkpoints every ``checkpoint_every`` evaluations and on Ctrl-C, from which a rerun resumes (a
-corrupt, damaged or foreign checkpoint is an error, never silently ignored: the checkpoint records a
-fingerprint of the settings, the tag and the lowered program of the evaluation). The compiled evaluation's
-memory (XLA's estimate) is checked against the memory available before it first runs.
-
-Devices and processes. Every batch of rollouts (an evaluation with its gradient, a random-search candidate, the
-held-out scores) runs on a 1-D mesh over every device of every process (after ``jax.distributed.initialize``, with
-the same call in every process): the batch is padded to a multiple of the device count with copies of its last
-plant, placed with ``NamedSharding(mesh, PartitionSpec("plants"))`` and each device runs its rows
-(``jax.shard_map``). The padding rows' losses are dropped before the objective, so the objective is the one-device
-objective and the gradient differs from it only in the order of its sums; both come out replicated, so every
-process takes the same step (``losses`` must treat the plants independently, as a ``vmap`` does). Process 0 alone
-reads and writes the checkpoint and the others receive its state; processes whose runs differ (program, training
-plants, settings, tag), or a checkpoint process 0 cannot use, stop every process (:class:`CheckpointError`). On
-CPU, a program with jaxlib's blocking LAPACK kernels runs on one device per process
-(:func:`jaxobs._distributed.lapack_guard`).
+A :class:`TuningProblem` is unconstrained parameters ``theta``, a function giving one loss per plant of a batch of
+mismatched plants, and a training and a held-out batch. :func:`tune` minimises a robust objective (mean or CVaR)
+of the training losses with optax, with diverged plants penalised (:func:`penalise_diverged`), checkpoints and
+early stopping; :func:`random_search` is the gradient-free baseline; :func:`evaluate` scores a ``theta`` on the
+held-out batch. Parameterisations: :func:`cholesky_covariance`, :func:`unit_interval`. The design of the loop:
+docs/theory/jobs.md and docs/guides/tuning.md.
 """
 
 from __future__ import annotations
@@ -205,6 +160,7 @@ class TuningProblem:
     search_box: dict | None = None
 
     def batch_size(self, batch) -> int:
+        """Number of plants in ``batch`` (the leading axis of its leaves)."""
         return int(jax.tree.leaves(batch)[0].shape[0])
 
 
@@ -243,6 +199,7 @@ class TuneSettings:
     checkpoint_every: int = 10
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid setting."""
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
         if self.gradient not in GRADIENT_MODES:
@@ -260,19 +217,33 @@ class TuneSettings:
                 raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
 
     def optax_transform(self) -> optax.GradientTransformation:
+        """The optimiser, after gradient clipping by global norm when ``clip_norm > 0``."""
         base = OPTIMIZERS[self.optimizer](self.learning_rate)
         return optax.chain(optax.clip_by_global_norm(self.clip_norm), base) if self.clip_norm > 0 else base
 
 
 class TuneResult(NamedTuple):
-    theta: dict  # the best accepted parameters (fewest diverged training plants, then lowest objective)
-    objective: float  # their training objective
-    history: list  # one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
-    stopped: str  # why the loop ended: "steps", "early stopping"
-    evaluations: int  # gradient evaluations (each is one rollout per training plant)
-    rollouts: int  # evaluations x training batch size
-    diverged: int  # diverged training plants of the best theta
-    seconds: float  # wall time of the tuning over all runs that built this checkpoint, compilation included
+    """Result of :func:`tune`.
+
+    Attributes:
+      theta: the best accepted parameters (fewest diverged training plants, then lowest objective)
+      objective: their training objective
+      history: one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
+      stopped: why the loop ended: "steps", "early stopping"
+      evaluations: gradient evaluations (each is one rollout per training plant)
+      rollouts: evaluations x training batch size
+      diverged: diverged training plants of the best theta
+      seconds: wall time of the tuning over all runs that built this checkpoint, compilation included
+    """
+
+    theta: dict
+    objective: float
+    history: list
+    stopped: str
+    evaluations: int
+    rollouts: int
+    diverged: int
+    seconds: float
 
 
 class TuningError(RuntimeError):
@@ -695,10 +666,20 @@ def tune(
 
 
 class SearchResult(NamedTuple):
-    candidates: list  # every candidate theta, the first being theta0
-    objectives: np.ndarray  # training objective per candidate (inf where every plant diverged)
-    diverged: np.ndarray  # diverged training plants per candidate
-    elapsed: np.ndarray  # wall time (s) when each candidate was scored, compilation included
+    """Result of :func:`random_search`.
+
+    Attributes:
+      candidates: every candidate theta, the first being theta0
+      objectives: training objective per candidate (inf where every plant diverged)
+      diverged: diverged training plants per candidate
+      elapsed: wall time (s) when each candidate was scored, compilation included
+      rollouts_per_candidate: training plants each candidate was rolled out on
+    """
+
+    candidates: list
+    objectives: np.ndarray
+    diverged: np.ndarray
+    elapsed: np.ndarray
     rollouts_per_candidate: int
 
     def best(self, count: int | None = None) -> tuple[dict, float, int]:

@@ -604,7 +604,7 @@ def floors(ex: Example, ref: Reference) -> tuple[float, float]:
 
 
 def compare(cases: list[Example]) -> list[dict]:
-    """Solve every case with ``jaxobs.riccati.dare`` (one ``jit(vmap(...))`` per shape, as the filter DARE of
+    """Solve every case with ``jaxobs.matrix_equations.dare`` (one ``jit(vmap(...))`` per shape, as the filter DARE of
     ``(A', B')``) and with SciPy, and measure both against :func:`reference_solution` (refined from SciPy's answer,
     or from ours where SciPy fails). One dict per case: errors of ``X`` and of the gain, floors, flags."""
     import warnings
@@ -613,7 +613,7 @@ def compare(cases: list[Example]) -> list[dict]:
     import jax
     import scipy.linalg
 
-    from jaxobs.riccati import dare
+    from jaxobs.matrix_equations import dare
 
     groups = defaultdict(list)
     for index, ex in enumerate(cases):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -56,11 +57,11 @@ MUTANTS = (
     Mutant("joseph-sign", "the Joseph-form update subtracts K R K'",
            "return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)",
            "return CovarianceUpdate(symmetrize(congruence - K @ R @ K.T), K, S, S_chol)",
-           ("tests/test_kalman_steps.py", "tests/test_riccati.py", "tests/test_matrix_equations.py")),
+           ("tests/test_kalman_steps.py",)),
     Mutant("dare-dq-sign", "the DARE's implicit derivative with the sign of dQ flipped",
            "M = Ac.T @ X @ (dA - dB @ K)\n    E = M + M.T + K.T @ dR @ K + dQ",
            "M = Ac.T @ X @ (dA - dB @ K)\n    E = M + M.T + K.T @ dR @ K - dQ",
-           ("tests/test_riccati.py", "tests/test_matrix_equations.py")),
+           ("tests/test_matrix_equations.py",)),
     Mutant("tyre-force-sign", "the pure-slip tyre force loses its sign for negative slip",
            "return _curve_ratio(tyre, jnp.abs(slip), fz, direction) * slip",
            "return _curve_ratio(tyre, jnp.abs(slip), fz, direction) * jnp.abs(slip)", ("tests/vehicle/test_tyres.py",)),
@@ -99,8 +100,8 @@ def run(mutant: Mutant, workers: int) -> tuple[bool, float, str]:
         raise SystemExit(f"{mutant.name}: none of its test files exist: {mutant.tests}")
     with tempfile.TemporaryDirectory(prefix=f"mutant-{mutant.name}-") as tmp:
         copy = Path(tmp) / "repo"
-        shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns(".git", ".venv", "out", "site", "__pycache__",
-                                                                     ".pytest_cache", ".hypothesis"))  # fmt: skip
+        skipped = (".git", ".venv", "out", "site", "__pycache__", ".pytest_cache", ".hypothesis", ".jax_cache")
+        shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns(*skipped))
         changed = _plant(copy, mutant)
         start = time.perf_counter()
         done = subprocess.run(
@@ -109,9 +110,10 @@ def run(mutant: Mutant, workers: int) -> tuple[bool, float, str]:
             cwd=copy, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(copy)},
         )  # fmt: skip
         seconds = time.perf_counter() - start
-    if done.returncode not in (0, 1):
+    failed = done.returncode == 1 or (done.returncode == 2 and re.search(r"\b\d+ failed\b", done.stdout))
+    if done.returncode != 0 and not failed:  # xdist reports a -x stop as interrupted (2) with the failure counted
         raise SystemExit(f"{mutant.name}: pytest exited with {done.returncode}:\n{done.stdout[-3000:]}")
-    return done.returncode == 1, seconds, f"{changed.relative_to(copy)} ({', '.join(tests)})"
+    return bool(failed), seconds, f"{changed.relative_to(copy)} ({', '.join(tests)})"
 
 
 def main(argv=None) -> int:

@@ -1,5 +1,6 @@
-"""Tests for the continuous-time Riccati tools: jaxobs.riccati.care (Cayley transform onto the DARE machinery, then
-Newton-Kleinman, implicit gradients), jaxobs.riccati.lyapunov, and jaxobs.design.lqr / lqe / is_detectable.
+"""Tests for the continuous-time Riccati tools: jaxobs.matrix_equations.care (Cayley transform onto the DARE
+machinery, then Newton-Kleinman, implicit gradients), jaxobs.matrix_equations.lyapunov, and jaxobs.design.lqr /
+lqe / is_detectable.
 
 Oracles: scipy.linalg.solve_continuous_are and python-control on well-conditioned problems; an exact reference (the
 stable invariant subspace of the Hamiltonian in 50-digit mpmath arithmetic, rounded once) where SciPy itself loses
@@ -16,7 +17,7 @@ import scipy.optimize
 from jax.test_util import check_grads
 
 from jaxobs.design import is_detectable, lqe, lqr
-from jaxobs.riccati import _care_nominal_shift, _care_shift, care, lyapunov
+from jaxobs.matrix_equations import _care_nominal_shift, _care_shift, care, lyapunov
 
 
 def rel_err(a, b):

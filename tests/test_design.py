@@ -12,7 +12,7 @@ from scipy.optimize import linear_sum_assignment
 
 from jaxobs.design import acker, critically_damped_poles, dc_compensation, dlqe, dlqr, place
 from jaxobs.lti import c2d, ctrb, ss
-from jaxobs.riccati import dare
+from jaxobs.matrix_equations import dare
 
 
 def assert_same_spectrum(actual, target, atol):

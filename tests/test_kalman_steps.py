@@ -1,4 +1,5 @@
-"""Tests for jaxobs.kalman_steps: the measurement update's innovation covariance and log-likelihood (exact
+"""Tests for jaxobs.kalman_steps: the Riccati covariance step (Cortesão 2006 eq. 27-29, Joseph form) and its
+sequence, the measurement update's innovation covariance and log-likelihood (exact
 marginals over the observed components, NaN-safe gradients, fixed gains), the square-root predict and update, and
 the triangularisation ``tria`` with its derivative at rank-deficient factors."""
 
@@ -9,21 +10,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
+from hypothesis import given
+from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 from jaxobs.kalman_steps import (
     Update,
     bierman_update,
+    covariance_sequence,
     innovation_log_likelihood,
+    kalman_gain,
     moment_update,
     predict,
+    predict_covariance,
+    riccati_step,
     square_root_predict,
     square_root_update,
     tria,
     ud_factor,
     update,
+    update_covariance,
 )
-from jaxobs.riccati import filter_dare, kalman_gain
+from jaxobs.matrix_equations import filter_dare
+from tests.test_matrix_equations import random_system, sequence_jit
 
 
 def _problem(seed=6, n=3, p=2):
@@ -297,3 +306,107 @@ def test_standard_form_loses_definiteness_where_the_joseph_form_keeps_it():
                 for name, f in (("joseph", _joseph), ("standard", _standard))}  # fmt: skip
     assert smallest["standard"] < -1e-13, smallest
     assert smallest["joseph"] > 0, smallest
+
+
+# ---------------------------------------------------------------------------------------------
+# one step
+
+
+def test_riccati_step_equations_cortesao2006_eq27_29():
+    """One step: P1 = Phi P Phi' + Q (eq. 28), K = P1 C'(C P1 C' + R)^{-1} (eq. 27), Joseph-form P (eq. 29),
+    which for the optimal K equals (I - K C) P1."""
+    rng = np.random.default_rng(0)
+    Phi, C, Q, R = random_system(rng, 4, 2)
+    P_prev = np.eye(4) * 0.3 + 0.05
+    P, K, P1 = riccati_step(P_prev, Phi, C, Q, R)
+    P1_ref = Phi @ P_prev @ Phi.T + Q
+    K_ref = P1_ref @ C.T @ np.linalg.inv(C @ P1_ref @ C.T + R)
+    P_ref = (np.eye(4) - K_ref @ C) @ P1_ref
+    np.testing.assert_allclose(P1, P1_ref, rtol=1e-13)
+    np.testing.assert_allclose(K, K_ref, rtol=1e-11)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(predict_covariance(P_prev, Phi, Q), P1_ref, rtol=1e-13)
+    P_u, K_u = update_covariance(P1_ref, C, R)
+    np.testing.assert_allclose(P_u, P_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(kalman_gain(P1_ref, C, R), K_ref, rtol=1e-11)
+
+
+@pytest.mark.parametrize("n, m", [(3, 2), (6, 1), (10, 2)])  # explicit I - K C, and rank-m corrections
+def test_update_covariance_is_joseph_form_eq29(n, m):
+    """update_covariance returns the Joseph expression (I-KC)P1(I-KC)' + KRK' (eq. 29 in Joseph form), written out
+    here with the gain it reports."""
+    rng = np.random.default_rng(1)
+    _, C, Q, R = random_system(rng, n, m)
+    P, K = update_covariance(Q, C, R)
+    K = np.asarray(K)
+    IKC = np.eye(n) - K @ C
+    np.testing.assert_allclose(P, IKC @ Q @ IKC.T + K @ R @ K.T, rtol=1e-12, atol=1e-15)
+
+
+@given(
+    n=st.sampled_from([2, 3, 6]),
+    m=st.sampled_from([1, 2]),
+    seed=st.integers(0, 2**32 - 1),
+    r_exp=st.integers(0, 10),
+    zero_init=st.booleans(),
+)
+def test_joseph_covariance_stays_symmetric_psd(n, m, seed, r_exp, zero_init):
+    """Property (Joseph form, eq. 29, symmetrised): along 300 steps every a-priori and a-posteriori covariance is
+    exactly symmetric and PSD (min eigenvalue >= -1e-10 * scale), also for nearly singular R (condition up to
+    1e10) and P_init = 0."""
+    rng = np.random.default_rng(seed)
+    Phi, C, Q, R = random_system(rng, n, m, r_min=10.0**-r_exp)
+    P_init = np.zeros((n, n)) if zero_init else Q
+    seq = sequence_jit(P_init, Phi, C, Q, R, 300)
+    for P in (np.asarray(seq.P), np.asarray(seq.P_prior)):
+        assert np.all(np.isfinite(P))
+        np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+        scale = np.max(np.abs(P), axis=(-1, -2))
+        assert np.all(np.linalg.eigvalsh(P).min(axis=-1) >= -1e-10 * scale)
+
+
+@pytest.mark.parametrize("n, m", [(3, 3), (6, 1), (6, 2)])  # explicit I - K C, and rank-m corrections
+def test_joseph_update_stays_psd_for_very_precise_measurements(n, m):
+    """The reason for the Joseph form (eq. 29): with very precise measurements (R / P1 ~ 1e-16) the posterior
+    covariance is small in the measured directions, computed from O(1) quantities. One update with
+    P1 ~ 1e8, R ~ 1e-8, and 50 Riccati steps with Q ~ 1, R ~ 1e-16, must stay finite, exactly symmetric and PSD
+    (min eigenvalue >= -1e-10 * scale)."""
+    failures = []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        Phi, C, Q, _ = random_system(rng, n, m, rho=0.9)
+        Hm = rng.normal(size=(m, m))
+        R = 1e-16 * (Hm @ Hm.T + 0.1 * np.eye(m))
+        G = rng.normal(size=(n, n))
+        P_one, _ = update_covariance(1e8 * (G @ G.T + 0.1 * np.eye(n)), C, 1e8 * R)
+        seq = sequence_jit(Q, Phi, C, Q, R, 50)
+        for label, P in (("one update", np.asarray(P_one)[None]), ("sequence", np.asarray(seq.P))):
+            assert np.all(np.isfinite(P)), (seed, label)
+            np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+            lowest = np.linalg.eigvalsh(P).min(axis=-1) / np.max(np.abs(P), axis=(-1, -2))
+            if np.any(lowest < -1e-10):
+                failures.append((seed, label, float(lowest.min())))
+    assert not failures, f"indefinite covariances (seed, where, min eig / scale): {failures}"
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(P_init=np.array([[1.0, 0.5], [0.0, 1.0]])), "P_init"),
+        (dict(Q=np.array([[1.0, 0.5], [0.0, 1.0]])), "Q"),
+        (dict(Q=np.diag([1.0, -0.5])), "Q"),
+        (dict(R=np.zeros((1, 1))), "R"),
+        (dict(R=np.eye(2)), "R"),
+        (dict(Q=np.eye(3)), "Q"),
+        (dict(C=np.ones((1, 3))), "C"),
+        (dict(Phi=np.ones((3, 2))), "Phi"),
+    ],
+)
+def test_covariance_sequence_rejects_bad_input(kwargs, name):
+    """Eager validation of covariance_sequence (DESIGN.md "Errors": shapes, symmetry, definiteness): ValueError
+    naming the argument."""
+    Phi, C, Q, R = np.diag([0.9, 0.5]), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1)
+    args = dict(P_init=np.eye(2), Phi=Phi, C=C, Q=Q, R=R)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=rf"\b{name}\b"):
+        covariance_sequence(args["P_init"], args["Phi"], args["C"], args["Q"], args["R"], 5)

@@ -9,7 +9,19 @@ import pytest
 import scipy.linalg
 import scipy.signal
 
-from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
+from jaxobs.lti import (
+    StateSpace,
+    c2d,
+    controllability_rank,
+    ctrb,
+    dcgain,
+    is_spr,
+    observability_rank,
+    obsv,
+    ss,
+    tf2ss,
+    unobservable_modes,
+)
 
 # Example 1 force plant (the MRAC chapter eq. 57-61, Cortesão 2006 §7): G(s) = k1 / (s (s + p1)) e^{-s Td}
 KS, TP = 3.0, 0.032
@@ -463,3 +475,15 @@ def test_is_spr_rejects_bad_input():
         is_spr([[-1.0]], [[1.0]], [[1.0, 2.0]])
     with pytest.raises(ValueError, match="concrete"):
         jax.jit(lambda a: is_spr(a, [[1.0]], [[1.0]]))(jnp.array([[-1.0]]))
+
+
+def test_ranks_and_unobservable_modes_match_python_control():
+    """controllability_rank / observability_rank are the ranks of python-control's ctrb / obsv; the mode at 2 that
+    C does not see is the one unobservable_modes reports (Hautus test), the stable one at -1 is outside the region."""
+    A = np.diag([2.0, -1.0, 0.5])
+    B = np.array([[1.0], [0.0], [1.0]])
+    C = np.array([[0.0, 1.0, 1.0]])
+    assert controllability_rank(A, B) == np.linalg.matrix_rank(control.ctrb(A, B)) == 2
+    assert observability_rank(A, C) == np.linalg.matrix_rank(control.obsv(A, C)) == 2
+    assert unobservable_modes(A, C, lambda lam: lam.real >= 0) == [2.0]
+    assert unobservable_modes(A, C, lambda lam: lam.real < 0) == []

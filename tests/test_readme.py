@@ -1,5 +1,5 @@
-"""The README's tour runs as printed. (The README's other numbers are pinned by the tests that compute them,
-through tests/_readme.py.)"""
+"""The README: short, and its tour runs as printed. (The numbers of the README and of the docs pages are pinned by
+the tests that compute them, through tests/_published.py.)"""
 
 import re
 
@@ -9,11 +9,18 @@ from tests import ROOT
 
 pytestmark = pytest.mark.published
 
+README = ROOT / "README.md"
+MAX_BYTES = 15_000  # what it is, the two commands, a tour, capabilities, a performance summary; the rest in docs/
+
+
+def test_readme_is_short():
+    size = len(README.read_bytes())
+    assert size <= MAX_BYTES, f"README.md is {size} bytes (at most {MAX_BYTES}): move details to docs/"
+
 
 @pytest.mark.slow
 def test_readme_tour_runs(capsys):
-    text = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
     assert blocks, "README has no python example"
     for code in blocks:
         exec(compile(code, "README.md", "exec"), {})

@@ -256,7 +256,7 @@ def test_chain_lengths_match_markov_toeplitz_ranks(random_scbs):
 def test_deterministic(printed):
     again = scb(*SYSTEMS["tenth_order"])
     first = printed["tenth_order"]
-    for name in ("A", "B", "C", "D", "Gamma1", "Gamma2", "Gamma3", "U", "Y"):
+    for name in ("A", "B", "C", "D", "state_transform", "output_transform", "input_transform", "U", "Y"):
         assert getattr(again, name) == getattr(first, name)
 
 
@@ -268,7 +268,7 @@ def test_numeric_variant_agrees_with_exact_on_float_models(random_scbs):
         f = scb(A.astype(float), B.astype(float), C.astype(float), D.astype(float), numeric=True)
         assert (f.dims, f.chain_lengths, f.m0) == (s.dims, s.chain_lengths, s.m0)
         res = scb_residuals(f, A, B, C, D)
-        scale = 1 + max(np.abs(M).max(initial=0) for M in (f.Gamma1, f.A))
+        scale = 1 + max(np.abs(M).max(initial=0) for M in (f.state_transform, f.A))
         assert max(np.abs(M).max(initial=0) for M in res.values()) < 1e-8 * scale**2
     f = scb(T_A.astype(float), T_B.astype(float), T_C.astype(float), numeric=True)
     assert f.dims == (1, 2, 1, 6) and f.chain_lengths == (1, 2, 3)
@@ -277,7 +277,7 @@ def test_numeric_variant_agrees_with_exact_on_float_models(random_scbs):
 
 def test_floats_become_exact_decimal_fractions():
     s = scb([[0.0, 1.0], [-0.1, -0.3]], [[0.0], [0.0023]], [[1.0, 0.0]])
-    assert s.Gamma3[0, 0] == sp.Rational(10000, 23)
+    assert s.input_transform[0, 0] == sp.Rational(10000, 23)
 
 
 # ---------------------------------------------------------------------------------------------------- bad input
@@ -309,3 +309,17 @@ def test_queries_reject_other_objects():
     with pytest.raises(ValueError, match="system"):
         invariant_zeros("ABC")
     assert scbmod.SCB is type(scb([[0]], [[1]], [[1]]))
+
+
+@pytest.mark.parametrize("numeric", [False, True], ids=["exact", "numeric"])
+def test_zeros_on_the_imaginary_axis_are_not_minimum_phase(numeric):
+    """The boundary belongs to the non-minimum-phase side (section 7.3: A_aa Hurwitz): a zero at s = 0
+    (-s / ((s + 1)(s + 2))) and a pair at s = +-j ((s^2 + 1) / ((s + 1)(s + 2)(s + 3)), by partial fractions)."""
+    for A, B, C, want in [
+        (np.diag([-1, -2]), np.ones((2, 1), int), np.array([[1, -2]]), [0]),
+        (np.diag([-1, -2, -3]), np.ones((3, 1), int), np.array([[1, -5, 5]]), [1j, -1j]),
+    ]:
+        s = scb(*(M.astype(float) for M in (A, B, C)), numeric=True) if numeric else scb(A, B, C)
+        zeros = np.array(invariant_zeros(s), dtype=complex)
+        np.testing.assert_allclose(sorted(zeros, key=np.imag), sorted(want, key=np.imag), atol=1e-9)
+        assert not is_minimum_phase(s)

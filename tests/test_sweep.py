@@ -353,12 +353,14 @@ def test_bad_inputs_raise_before_any_file_is_written(tmp_path, args, message):
     assert not (tmp_path / "out").exists()
 
 
-def test_module_docstring_example_runs(tmp_path, monkeypatch):
-    """The example also checks that a scan may start from a constant carry (shard_map with check_vma=False)."""
+def test_documented_example_runs(tmp_path, monkeypatch):
+    """The example of the sweep engine's design notes (docs/theory/jobs.md); it also checks that a scan may start
+    from a constant carry (shard_map with check_vma=False)."""
+    notes = (Path(__file__).parents[1] / "docs" / "theory" / "jobs.md").read_text()
+    code = notes.split("## `jaxobs.sweep`")[1].split("```python\n")[1].split("```")[0]
     monkeypatch.chdir(tmp_path)
-    code = sweep.__doc__.split("::")[1].split("How it runs")[0]
     namespace = {}
-    exec("\n".join(line[4:] for line in code.splitlines()), namespace)
+    exec(code, namespace)
     cols = namespace["cols"]
     assert sorted(cols) == ["index", "metric.converged", "metric.x50", "param.a"]
     assert len(cols["index"]) == 10_000 and cols["metric.converged"].dtype == np.bool_

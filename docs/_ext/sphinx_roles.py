@@ -3,7 +3,7 @@
 jaxobs' docstrings are Google style with Sphinx roles (``:func:`dare```, ``:class:`~jaxobs.lti.StateSpace```).
 Once the package is loaded, each role is resolved the way Python would resolve the name in the docstring's scope
 (the object, its parents, then the module's imports); a target the reference renders (public, in a public module)
-becomes a link ``[`dare`][jaxobs.riccati.dare]``, anything else (private helpers, other packages) plain code.
+becomes a link ``[`dare`][jaxobs.matrix_equations.dare]``, anything else (private helpers, other packages) plain code.
 An RST literal-block marker ``::`` at the end of a line becomes ``:`` (the indented block is code in Markdown too),
 and an ``Example:`` header Google's ``Examples:`` (so its doctest renders as code).
 """

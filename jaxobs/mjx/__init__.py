@@ -1,27 +1,16 @@
 """MuJoCo MJX plants shipped with jaxobs (MJCF under ``jaxobs/mjx/assets``).
 
-``force_1dof``: the 1-DOF robot force-control plant of Cortesão 2006 §7, 001 §4 and 003 §7 (velocity-servo
-robot, compliant force sensor of stiffness ``Ks``, command dead time as a FIFO in the rollout state).
-``rollout`` runs it open loop; ``closed_loop_rollout`` runs it under an AOB / CKF (the observer protocol of
-:mod:`jaxobs.observers`) as :func:`jaxobs.closed_loop.simulate` runs the analytic plant.
+``force_1dof``: the 1-DOF robot force-control plant of Cortesão 2006 §7 (``rollout``, ``closed_loop_rollout``).
+``compliant_6dof``: the 6-DOF compliant-motion plant and peg-on-hole scenario of the MRAC chapter §7.
+``estimation``: MJX models as the nonlinear models of the EKF and UKF; the shipped cart-pole with sensors.
+``robot``: your own robot from any MJCF (``make_robot``, ``linearize``, ``mismatch``, ``rollout``).
+``common``: the parts the plants share (device placement, initial data, the dead-time FIFO, input series).
 
-``compliant_6dof`` (a submodule, since its names mirror the 1-DOF ones): the 6-DOF compliant-motion
-plant of the MRAC chapter §7 (Table 1 stiffnesses, per-DOF AOB-1 HBA / CKF SBA of eq. 62-68, the peg-on-hole
-alignment scenario with its contact moment coupled to the alignment rotation).
-
-``estimation`` (a submodule): state estimation on MJX models for the EKF and UKF of :mod:`jaxobs.observers`:
-the state ``(qpos, qvel)``, the transition ``mjx.step``, the measurement ``sensordata``; the shipped cart-pole
-with sensors (``examples/mjx_state_estimation.py``).
-
-``robot`` (a submodule): your own robot from any MJCF: the actuators a controller drives, the sensors it
-measures, the control period and dead time (``make_robot``), its linearisation by ``jax.jacfwd`` of ``mjx.step``
-(``linearize``), named model mismatch such as ``body_mass[payload]`` (``mismatch``) and the closed loop of any
-controller (``rollout``); ``jaxobs tune``'s ``own-robot`` problem tunes an observer on it.
-
-Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not import it.
+Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not. The models and their
+simplifications: docs/theory/mjx.md.
 """
 
-from jaxobs.mjx import compliant_6dof, estimation, robot
+from jaxobs.mjx import common, compliant_6dof, estimation, robot
 from jaxobs.mjx.force_1dof import (
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -36,6 +25,7 @@ from jaxobs.mjx.force_1dof import (
 )
 
 __all__ = [
+    "common",
     "compliant_6dof",
     "estimation",
     "robot",

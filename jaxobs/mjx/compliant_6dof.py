@@ -1,88 +1,11 @@
 """6-DOF compliant-motion plant in MuJoCo MJX (Cortesão, MRAC chapter §7, Table 1, eq. 56-61, Figure 4).
 
-The setup of the MRAC chapter §7: a Manutec R2 robot with a Cartesian position interface (``h = 8 ms``, input dead
-time 5 samples) holds a peg through a compliant force/torque sensor; per DOF the position response is
-``1 / (1 + Tp s) e^{-s Td}`` (eq. 56) and, with the stiffness of that DOF, the force plant is
-``G(s) = Ks / (s (1 + Tp s)) e^{-s Td}`` (eq. 57-61). Each of the six wrench components
-``[f_x, f_y, f_z, m_x, m_y, m_z]`` has its own controller (Figure 2): an AOB-1 with a hybrid estimation
-strategy (HBA) on five DOF and a classical Kalman filter with the sensor-based gain (CKF, SBA) on ``z``
-(§7.4, Figures 5-6).
-
-Units. The MJX model works in mm, N, s, rad (moments in N·mm). Everything a user passes or reads is in the
-units of Table 1 and of the per-DOF designs: forces in N, moments in **N·m**, stiffnesses in N/mm and N·m/rad,
-commands in mm/s and rad/s. So the rotational AOBs are designed on ``force_plant(100 N·m/rad, Tp, h, Td)``
-with moments in N·m, and :func:`sensor_wrench` converts the model's N·mm to N·m. The unit conversion lives
-only in :func:`with_params` (parameters to model fields) and :func:`sensor_wrench` (model to measurement).
-
-MJCF model (``assets/compliant_6dof.xml``): one tool body with three slide joints ``x, y, z`` and three
-hinge joints ``rx, ry, rz`` about the sensor origin (the body origin and centre of mass), so the generalized
-coordinates ``q`` are the six Cartesian deflections past the contact (small angles). Per DOF, as in
-:mod:`jaxobs.mjx.force_1dof`: the compliance is the joint spring (``jnt_stiffness = K_i``, ``springref = 0``,
-optional ``dof_damping = D_i``), the robot's position loop is a velocity servo of gain ``kv_i`` acting on the
-total inertia ``kv_i Tp_i`` (``dof_armature = kv_i Tp_i`` minus the tool's own mass or inertia), so each DOF
-alone is ``M qddot = kv (u - qdot) - K q`` and its force response is the paper's plant with the integrator
-pole moved to ``-K / kv`` (``3e-5 .. 2e-4 1/s`` nominally). Contacts and constraints are disabled: the model
-is smooth and differentiable.
-
-Peg-on-hole coupling (Figure 4, §7.4). The peg touches the hole edge at the contact point ``p`` (site
-``contact``); in the sensor frame at ``q = 0`` it is ``p0 = R_y(tilt) (rho, 0, -l)`` with the peg radius
-``rho``, the depth ``l`` of the peg tip below the sensor origin and the peg's initial tilt about ``y``. The
-contact springs of ``x`` and ``z`` act at ``p``, not at the sensor origin, so an alignment rotation ``theta``
-(joint ``ry``) moves the contact point by ``s(theta) = (R_y(theta) - I) p0`` and loads the contact springs::
-
-    f_x = K_x (q_x + s_x(theta)),    f_z = K_z (q_z + s_z(theta)),    p(theta) = R_y(theta) p0
-    m_y = K_ry theta + p_z(theta) f_x - p_x(theta) f_z               (moment of the contact force about
-                                                                     the sensor origin, (p x f)_y)
-
-(plus ``D_i qdot_i`` per DOF; the other three components are uncoupled). This is the gradient of the
-potential ``V = 1/2 sum_i K_i q_i^2 + 1/2 K_x ((q_x + s_x)^2 - q_x^2) + 1/2 K_z ((q_z + s_z)^2 - q_z^2)``:
-the coupling is conservative and smooth, and the generalized force beyond MuJoCo's diagonal joint springs,
-``-dV_c/dq = -(K_x s_x, 0, K_z s_z, 0, p_z f_x - p_x f_z, 0)``, is written into ``qfrc_applied`` before
-every physics step (:func:`coupling_force`). The sensor reads the total passive plus coupling force of each
-joint (:func:`sensor_wrench`). In the alignment phase the peg pivots on the three-point contact and the
-environment does not resist the rotation about ``y``: the scenario sets ``K_ry = 0``, so
-``m_y = p_z f_x - p_x f_z`` "is only function of the contact forces and of the contact geometry" (§7.4,
-[Koeppel 2001]), and the alignment velocity ``w_y`` changes ``f_x`` and ``f_z`` through ``s(theta)``: for the
-per-DOF controllers it is an equivalent input disturbance, the thing the AOB estimates and cancels.
-``coupling`` scales the lever arm ``p0`` (0 switches the coupling off and makes the six DOF independent).
-
-Controllers: any controller of the jaxobs protocol, one per DOF, stacked on a leading axis of size 6
-(:func:`stack_controllers`); :func:`closed_loop_rollout` steps them with one ``jax.vmap`` over DOF. The velocity
-feedforward ``v_d`` enters at the plant input, outside the observers' models. The six per-DOF AOBs of the MRAC
-chapter (§7.3, eq. 62-68) and its peg-on-hole scenario are in :mod:`jaxobs.papers.cortesao.mrac`.
-
-Simplifications against the real Manutec R2 / DLR setup (quote them with any result):
-
-* no real contact geometry: the three-point contact is a bilateral, always-closed linear spring per DOF at
-  a fixed contact point on the peg; contact is never lost or re-established, there is no friction, no
-  chamferless-hole jamming, no 50 µm clearance and no insertion phase (only the alignment phase is
-  scripted);
-* the coupling is planar: only the alignment plane (``x``, ``z``, rotation about ``y``) is coupled through the
-  lever arm; ``y``, ``rx``, ``rz`` stay independent (the paper's misalignment moment ``m_x`` does not arise);
-* compliance lumped per Cartesian DOF (sensor in series with a very stiff environment, ``Ks ≈ Kw``, §7.2),
-  diagonal in the sensor frame; the real sensor's stiffness matrix and the robot's joint compliance are
-  not modelled; ``K_ry = 0`` in the alignment phase (pivoting peg), Table 1's value elsewhere;
-* the ``z``-rotation stiffness is not in Table 1: 100 N·m/rad is chosen (as for ``x`` and ``y``);
-* decoupled, exactly first-order Cartesian servos (no robot kinematics or dynamics, no joint friction,
-  servo resonance or saturation, no gravity), small-angle joint coordinates for the rotations (MuJoCo
-  composes the three hinges, so large simultaneous rotations are Euler-angle-like), and each servo yields
-  to the contact force by ``K / kv``;
-* the dead time is 5 whole control samples on the command (FIFO), commands held over a control step, the
-  wrench sampled without anti-alias filtering, sensor noise white and Gaussian per channel (no cross
-  correlation, no bias drift); the paper's off-line 2 Hz Butterworth filtering of the plots is not applied;
-* semi-implicit Euler at 1 ms (``Tp / dt = 32``).
-
-Parameters map to model fields only in :func:`with_params`, so mismatched batches are
-``jax.vmap(lambda p: closed_loop_rollout(with_params(model, p), ...))(params_batch)``.
-
-Precision. Float32 is adequate for the plant (the open-loop wrench of the 4 s scenario stays within 5e-5 N of
-float64); the AOB designs with ``Q`` entries of 1e-12 need float64. Tests run in float64.
-
-Checked in ``tests/mjx/test_compliant_6dof.py``: with the coupling off each DOF's closed-loop wrench equals
-:func:`jaxobs.closed_loop.simulate` on :func:`jaxobs.plants.force_plant` to 0.04-0.07 % RMS of the step; the
-alignment rotation loads the contact as the formulas above say (1e-4 relative); jit equals eager; ``vmap`` over
-mismatched models and noise seeds equals single calls; reverse-mode and ``jacfwd`` gradients through the loop
-match central differences.
+A peg held through a compliant force/torque sensor: three slide and three hinge joints, each a joint spring and
+a velocity servo as in :mod:`jaxobs.mjx.force_1dof`, with the peg-on-hole contact moment coupled to the alignment
+rotation (:func:`coupling_force`). Users pass and read Table 1's units (N, N·m, mm/s, rad/s); the conversion lives
+only in :func:`with_params` and :func:`sensor_wrench`. :func:`closed_loop_rollout` runs one controller per DOF
+(:func:`stack_controllers`); the per-DOF AOBs and the scenario are in :mod:`jaxobs.papers.cortesao.mrac`. The
+model, the coupling and the simplifications against the real setup: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
@@ -98,7 +21,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _check_timing, _dead_time, _initial_data, _put_model, _series
+from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -108,6 +31,7 @@ __all__ = [
     "CONTROL_PERIOD",
     "SUBSTEPS",
     "Compliant6Params",
+    "check_per_dof",
     "WrenchRollout",
     "Compliant6Rollout",
     "load_model",
@@ -172,10 +96,10 @@ class Compliant6Params:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        _per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
-        _per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
-        _per_dof("damping", self.damping, minimum=0.0, strict=False)
-        _per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
+        check_per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
+        check_per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
+        check_per_dof("damping", self.damping, minimum=0.0, strict=False)
+        check_per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
         for name in ("contact_radius", "contact_depth", "tilt", "coupling"):
             value = getattr(self, name)
             if np.shape(value) != ():
@@ -188,7 +112,9 @@ class Compliant6Params:
         return jnp.broadcast_to(jnp.asarray(getattr(self, name), dtype), (N_DOF,))
 
 
-def _per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
+def check_per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
+    """``ValueError`` unless ``value`` is a scalar or (6,) per-DOF value, and where concrete finite and above
+    ``minimum`` (``strict``) or at least ``minimum``."""
     shape = np.shape(value)
     if shape not in ((), (N_DOF,)):
         raise ValueError(f"{name} must be a scalar or have shape ({N_DOF},) (x, y, z, rx, ry, rz), got {shape}")
@@ -204,25 +130,43 @@ def _per_dof(name: str, value, *, minimum: float, strict: bool) -> None:
 
 
 class WrenchRollout(NamedTuple):
-    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis time, then the 6 DOF)."""
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis time, then the 6 DOF).
 
-    wrench: jax.Array  # measured wrench (N, N·m): simulated sensor wrench plus noise
-    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
-    position: jax.Array  # joint coordinates q (mm, rad past the untensioned contact)
-    velocity: jax.Array  # qdot (mm/s, rad/s)
-    applied: jax.Array  # plant input during step k (mm/s, rad/s): the command d samples earlier
+    Attributes:
+      wrench: (T, 6) measured wrench (N, N·m): simulated sensor wrench plus noise
+      wrench_true: (T, 6) noise-free sensor wrench (N, N·m)
+      position: (T, 6) joint coordinates q (mm, rad past the untensioned contact)
+      velocity: (T, 6) qdot (mm/s, rad/s)
+      applied: (T, 6) plant input during step k (mm/s, rad/s): the command d samples earlier
+    """
+
+    wrench: jax.Array
+    wrench_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    applied: jax.Array
 
 
 class Compliant6Rollout(NamedTuple):
-    """Per control step ``k`` of :func:`closed_loop_rollout` (leading axis time, then the 6 DOF)."""
+    """Per control step ``k`` of :func:`closed_loop_rollout` (leading axis time, then the 6 DOF).
 
-    wrench: jax.Array  # measured wrench y_k (N, N·m): sensor wrench plus noise, what the controllers read
-    wrench_true: jax.Array  # noise-free sensor wrench (N, N·m)
-    position: jax.Array  # joint coordinates q (mm, rad)
-    velocity: jax.Array  # qdot (mm/s, rad/s)
-    command: jax.Array  # controller commands u_k = r_k - L x_hat_k (mm/s, rad/s)
-    applied: jax.Array  # plant input during step k: (u + v_d + d)_{k-d}
-    controller: object  # per-DOF controller outputs (e.g. FeedbackOutputs), leading axes (T, 6)
+    Attributes:
+      wrench: (T, 6) measured wrench y_k (N, N·m): sensor wrench plus noise, what the controllers read
+      wrench_true: (T, 6) noise-free sensor wrench (N, N·m)
+      position: (T, 6) joint coordinates q (mm, rad)
+      velocity: (T, 6) qdot (mm/s, rad/s)
+      command: (T, 6) controller commands u_k = r_k - L x_hat_k (mm/s, rad/s)
+      applied: (T, 6) plant input during step k: (u + v_d + d)_{k-d}
+      controller: per-DOF controller outputs (e.g. FeedbackOutputs), leading axes (T, 6)
+    """
+
+    wrench: jax.Array
+    wrench_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    command: jax.Array
+    applied: jax.Array
+    controller: object
 
 
 # --------------------------------------------------------------------------------------------
@@ -292,7 +236,7 @@ def load_model(params: Compliant6Params | None = None) -> tuple[mujoco.MjModel, 
     assert layout == (list(range(6)), list(range(6)), list(range(6)), list(range(6)), 0, 1, 6), (
         "compliant_6dof.xml layout changed; update with_params"
     )
-    mx = with_params(_put_model(m), params)
+    mx = with_params(put_model(m), params)
     for field in ("jnt_stiffness", "dof_damping", "dof_armature", "actuator_gainprm", "actuator_biasprm", "site_pos"):
         getattr(m, field)[...] = np.asarray(getattr(mx, field))
     return m, mx
@@ -322,11 +266,13 @@ def _contact(model: mjx.Model, qpos: jax.Array):
 
 
 def coupling_force(model: mjx.Model, qpos: jax.Array) -> jax.Array:
-    """The peg-on-hole coupling as a generalized force (6,) in model units (N, N·mm), ``-dV_c/dq``::
+    """The peg-on-hole coupling as a generalized force (6,) in model units (N, N·mm).
+
+    It is ``-dV_c/dq``::
 
         (-K_x s_x, 0, -K_z s_z, 0, -(p_z f_x - p_x f_z), 0)
 
-    with ``p``, ``s`` and the contact forces ``f`` of the module docstring; zero for a zero lever arm. Added to
+    with ``p``, ``s`` and the contact forces ``f`` of docs/theory/mjx.md; zero for a zero lever arm. Added to
     ``qfrc_applied`` before every physics step; MuJoCo's diagonal joint springs supply the rest of the force."""
     p, s, f = _contact(model, qpos)
     moment = p[1] * f[0] - p[0] * f[1]
@@ -353,7 +299,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     """One control step: push ``u_k`` (6,) into the dead-time FIFO (d, 6), pop ``u_{k-d}`` and hold it (ZOH) for
     ``substeps`` physics steps, each with the coupling force of its start state in ``qfrc_applied``.
     Returns ``(data, fifo, applied)``; shared by :func:`rollout` and :func:`closed_loop_rollout`."""
-    applied, fifo = _dead_time(fifo, u_k, d)
+    applied, fifo = dead_time_step(fifo, u_k, d)
     data = data.replace(ctrl=applied)
 
     def substep(_, data):
@@ -373,7 +319,7 @@ def _leading(name: str, value, what: str) -> jax.Array:
 
 
 def _start(model: mjx.Model, dtype) -> mjx.Data:
-    data = _initial_data(model, dtype)
+    data = initial_data(model, dtype)
     return data.replace(qfrc_applied=data.qfrc_applied.astype(dtype))
 
 
@@ -393,11 +339,11 @@ def rollout(model: mjx.Model, commands, *, dead_time_samples: int = 5, substeps:
     Returns:
       :class:`WrenchRollout`; pure (``jit``, ``vmap``, ``grad``, ``jacfwd``).
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     commands = _leading("commands", commands, "one velocity command")
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
-    noise = _series("noise", noise, (commands.shape[0], N_DOF), dtype, "commands")
+    noise = input_series("noise", noise, (commands.shape[0], N_DOF), dtype, "commands")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
@@ -462,15 +408,15 @@ def closed_loop_rollout(
       :class:`Compliant6Rollout`; pure: ``jit``, ``vmap`` (over models from :func:`with_params`, noise,
       controller parameters), ``grad`` and ``jacfwd`` work through it.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_controllers(params)
     reference = _leading("reference", reference, "one controller reference")
     dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
     reference = reference.astype(dtype)
     n_steps = reference.shape[0]
-    feedforward = _series("feedforward", feedforward, (n_steps, N_DOF), dtype, "reference")
-    noise = _series("noise", noise, (n_steps, N_DOF), dtype, "reference")
-    disturbance = _series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
+    feedforward = input_series("feedforward", feedforward, (n_steps, N_DOF), dtype, "reference")
+    noise = input_series("noise", noise, (n_steps, N_DOF), dtype, "reference")
+    disturbance = input_series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
     d = int(dead_time_samples)
     step = jax.vmap(controller.step)
 

@@ -1,20 +1,11 @@
-"""State estimation on MuJoCo MJX models: the state is ``(qpos, qvel)``, the transition ``mjx.step``, the
+"""State estimation on MuJoCo MJX models: the state ``(qpos, qvel)``, the transition ``mjx.step``, the
 measurement ``sensordata``.
 
-:func:`transition` and :func:`measurement` turn an ``mjx.Model`` into the ``f(x, u, t)`` and ``h(x)`` of
-:func:`jaxobs.nonlinear.nonlinear_model`, so the extended and unscented Kalman filters run on it unchanged; the
-EKF's Jacobians are those of ``mjx.step`` by forward-mode autodiff. Both are ``jax.tree_util.Partial`` s that
-carry the model as a leaf: a mismatched model (``model.replace(body_mass=...)``) is the same pytree with other
-values, so one compiled filter runs on both, and ``vmap`` over a batch of models batches the filter.
-
-Requirements, checked by :func:`check_model`: hinge and slide joints only (``nq == nv``: a quaternion would
-need a multiplicative update, not the filters' additive one), no actuator activations (``na == 0``, so
-``(qpos, qvel)`` is the whole state), and sensors of the position and velocity stages only (an acceleration
-sensor would make the measurement depend on the control). The control is held over the ``substeps`` physics
-steps of one sample.
-
-``cartpole`` (``assets/cartpole_sensors.xml``): a cart on a rail pushed by a motor, a pole hanging from it, a
-cart position sensor and the pole tip's world position: four states, one input, four measurements.
+:func:`transition` and :func:`measurement` turn an ``mjx.Model`` into the ``f`` and ``h`` of
+:func:`jaxobs.nonlinear.nonlinear_model`, so the EKF and UKF run on it unchanged; both carry the model as a pytree
+leaf, so a mismatched or batched model reuses one compiled filter. :func:`check_model` states the requirements
+(hinge and slide joints, no activations, position- and velocity-stage sensors). :data:`CARTPOLE` is the shipped
+cart-pole with sensors. Details: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
@@ -29,7 +20,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.force_1dof import _put_model
+from jaxobs.mjx.common import put_model
 
 __all__ = ["CARTPOLE", "load_cartpole", "check_model", "state", "transition", "measurement", "sample_period"]
 
@@ -40,7 +31,7 @@ def load_cartpole() -> tuple[mujoco.MjModel, mjx.Model]:
     """The shipped cart-pole with sensors (``jaxobs/mjx/assets/cartpole_sensors.xml``): ``(mj_model, mjx_model)``."""
     text = importlib.resources.files("jaxobs.mjx").joinpath("assets", CARTPOLE).read_text()
     m = mujoco.MjModel.from_xml_string(text)
-    return m, _put_model(m)
+    return m, put_model(m)
 
 
 def check_model(model, *, sensors: bool = True) -> None:

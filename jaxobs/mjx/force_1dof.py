@@ -1,56 +1,11 @@
-"""1-DOF robot force-control plant in MuJoCo MJX (Cortesão, MRAC chapter §7, eq. 56-58; Cortesão 2006 §7; the
-stochastic AOB paper §4).
+"""1-DOF robot force-control plant in MuJoCo MJX (Cortesão, MRAC chapter §7, eq. 56-58; Cortesão 2006 §7).
 
-The physical setup (the MRAC chapter §7.2, Table 1): an industrial robot (Manutec R2) with a Cartesian position
-interface at ``h = 8 ms`` and an input dead time of 5 samples; a compliant force sensor of stiffness
-``Ks = 3 N/mm`` carries "the manipulator compliance"; the environment is very stiff. Per DOF the position
-response is ``Gp(s) = e^{-s Td} / (1 + Tp s)`` (eq. 56) and the plant input ``u`` is a **velocity** command
-in mm/s (eq. 59): the position interface integrates it, ``x_c = ∫ u dt``. With ``F = Ks x`` this gives the
-analytic plant ``F(s) / u(s) = Ks / (s (1 + Tp s)) e^{-s Td}`` (eq. 57) of
-:func:`jaxobs.papers.cortesao.force_control.force_plant`.
-
-MJCF model (``assets/force_1dof.xml``, units mm, N, s, so masses in tonnes and ``Ks`` in N/mm as printed):
-
-* one body, the flange plus tool, on a slide joint; ``x`` (mm) is its displacement past the contact point;
-* the sensor compliance is the joint spring: ``jnt_stiffness = Ks``, ``springref = 0``, optional sensor
-  damping ``dof_damping = Ds`` (N s/mm, 0 nominally), so the sensor force is ``F = Ks x + Ds xdot``;
-* the robot's position loop is a velocity servo (``<velocity>`` actuator, gain ``kv`` in N s/mm) acting on
-  the total inertia ``M = kv Tp`` (``dof_armature = kv Tp - m_tool``, the reflected drive inertia).
-
-Derivation. The first-order position loop ``Tp xdot = x_c - x`` differentiated with ``x_c' = u`` is
-``Tp xddot + xdot = u``; multiplying by ``kv`` gives ``M xddot = kv (u - xdot)`` with ``M = kv Tp``: a
-velocity servo (for the matched initial state ``x(0) = x_c(0)``, ``xdot(0) = 0`` the two are identical).
-The sensor spring pushes back on the robot, so the MJX plant is
-
-    M xddot = kv (u - xdot) - Ks x - Ds xdot   =>   F(s)/u(s) = kv (Ks + Ds s) / (M s^2 + (kv + Ds) s + Ks).
-
-With ``Ds = 0`` and ``M = kv Tp`` this is ``Ks / (Tp s^2 + s + Ks / kv)``: the paper's plant with its
-integrator pole moved from 0 to about ``-Ks / kv`` (the robot's position loop yields to the contact force
-by ``Ks / kv``; ``3e-4 1/s`` nominally, a 0.03 %/s drift). ``kv -> infinity`` is the paper's reduction.
-
-The measured force is the joint's passive force (spring plus damper, MuJoCo's ``-qfrc_passive``) of the
-state at the control instant ``k h`` (:func:`sensor_force`), plus additive noise.
-
-Simplifications against the real robot setup (document them where results are quoted):
-
-* one Cartesian DOF, gravity off (gravity-compensated), no coupling to the other DOFs;
-* the position loop is exactly first order (no servo resonances, no saturation, no joint friction);
-* the contact is bilateral and always closed: the sensor spring also pulls (``F < 0``) instead of losing
-  contact, there is no preload and no contact geometry (a contact-free compliant formulation keeps
-  forward and reverse differentiation smooth);
-* environment and sensor are lumped in one linear spring (``Ks ≈ Kw``, the MRAC chapter §7.2);
-* the dead time is a whole number of control samples, applied to the command (a FIFO in the rollout state),
-  the command is held constant over a control step (ZOH), and the force is sampled without anti-alias
-  filtering;
-* semi-implicit Euler at 1 ms (``Tp / dt = 32``) shifts the lag time constant by about ``dt / 2``.
-
-Parameters map to model fields only in :func:`with_params`, so mismatched batches are
-``jax.vmap(lambda p: rollout(with_params(model, p), u))(params_batch)``.
-
-:func:`closed_loop_rollout` closes the loop inside the same scan (sensor force plus noise, observer step,
-``u = r - L x_hat``, dead-time FIFO, substeps) with any controller of :func:`jaxobs.closed_loop.simulate`;
-both rollouts share one control-step function (:func:`_advance`).
-Float32 is adequate for the nominal model (all magnitudes are within 1e-3..1e4); tests run in float64.
+A tool on a slide joint: the compliant force sensor is the joint spring (``Ks`` in N/mm), the robot's position
+loop a velocity servo on the inertia ``kv Tp``, the command a velocity (mm/s) behind a dead-time FIFO; the
+measured force is the joint's passive force plus noise (:func:`sensor_force`). :func:`rollout` runs it open loop,
+:func:`closed_loop_rollout` under any controller of :func:`jaxobs.closed_loop.simulate`; :func:`with_params` is
+the one place parameters map to model fields, so mismatched batches are a ``vmap`` over it. The derivation and the
+simplifications against the real robot: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
@@ -67,6 +22,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
+from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, is_int_at_least, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -119,14 +75,23 @@ class ForcePlantParams:
 
 
 class ForceRollout(NamedTuple):
-    """Per control step ``k`` (at time ``k h``, before the step's command acts)."""
+    """Per control step ``k`` (at time ``k h``, before the step's command acts).
 
-    force: jax.Array  # measured force (N): simulated sensor force plus noise
-    force_true: jax.Array  # noise-free sensor force (N)
-    position: jax.Array  # tool position x (mm past the contact point)
-    velocity: jax.Array  # tool velocity (mm/s)
-    applied: jax.Array  # command applied during step k (mm/s), i.e. u_{k-d}
-    surface: jax.Array  # environment surface position x_e at k h (mm)
+    Attributes:
+      force: (T,) measured force (N): simulated sensor force plus noise
+      force_true: (T,) noise-free sensor force (N)
+      position: (T,) tool position x (mm past the contact point)
+      velocity: (T,) tool velocity (mm/s)
+      applied: (T,) command applied during step k (mm/s), i.e. u_{k-d}
+      surface: (T,) environment surface position x_e at k h (mm)
+    """
+
+    force: jax.Array
+    force_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    applied: jax.Array
+    surface: jax.Array
 
 
 def _ids(m: mujoco.MjModel) -> tuple[int, int, int]:
@@ -217,58 +182,7 @@ def load_model(params: ForcePlantParams | None = None, *, xml=None) -> tuple[muj
     m.dof_armature[0] = kv * tp - tool_mass
     m.actuator_gainprm[0, 0] = kv
     m.actuator_biasprm[0, 2] = -kv
-    return m, _put_model(m)
-
-
-def _is_int_at_least(value, minimum: int) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= minimum
-
-
-def _check_timing(dead_time_samples, substeps) -> None:
-    if not _is_int_at_least(dead_time_samples, 0):
-        raise ValueError(f"dead_time_samples must be a Python int >= 0, got {dead_time_samples!r}")
-    if not _is_int_at_least(substeps, 1):
-        raise ValueError(f"substeps must be a Python int >= 1, got {substeps!r}")
-
-
-def _series(name: str, value, shape, dtype, like: str) -> jax.Array:
-    """A per-step input of shape ``shape`` (an int: ``(shape,)``), zeros for None; finite where concrete.
-    ``like`` names what fixes the shape. Shared with :mod:`jaxobs.mjx.compliant_6dof`."""
-    shape = (shape,) if isinstance(shape, int) else tuple(shape)
-    if value is None:
-        return jnp.zeros(shape, dtype)
-    value = jnp.asarray(value, dtype)
-    if value.shape != shape:
-        raise ValueError(f"{name} must have the shape of {like} {shape}, got {value.shape}")
-    if _checks.is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
-        raise ValueError(f"{name} contains NaN or infinite entries")
-    return value
-
-
-def _dead_time(fifo: jax.Array, u_k: jax.Array, d: int):
-    """The command FIFO of a ``d``-sample dead time (oldest first): push ``u_k``, pop ``u_{k-d}``.
-    Returns ``(applied, fifo)``; shared with :mod:`jaxobs.mjx.compliant_6dof`."""
-    if d == 0:
-        return u_k, fifo
-    return fifo[0], jnp.concatenate([fifo[1:], u_k[None]])
-
-
-def _put_model(m: mujoco.MjModel) -> mjx.Model:
-    """``mjx.put_model`` on this process's first device (its default, ``jax.devices()[0]``, is process 0's in a
-    multi-process run, which the other processes cannot use)."""
-    return mjx.put_model(m, device=jax.local_devices()[0])
-
-
-def _initial_data(model: mjx.Model, dtype) -> mjx.Data:
-    """At rest at the contact point (``F = 0``), state arrays in ``dtype``."""
-    data = mjx.make_data(model)
-    return data.replace(
-        qpos=data.qpos.astype(dtype),
-        qvel=data.qvel.astype(dtype),
-        ctrl=data.ctrl.astype(dtype),
-        act=data.act.astype(dtype),
-        time=jnp.asarray(data.time, dtype),
-    )
+    return m, put_model(m)
 
 
 def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
@@ -292,7 +206,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, 
     (ZOH) for ``substeps`` ``mjx.step`` calls while the surface moves from ``surface`` at
     ``surface_velocity`` mm/s (one position per physics step). Returns ``(data, fifo, applied, surface)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
-    applied, fifo = _dead_time(fifo, u_k, d)
+    applied, fifo = dead_time_step(fifo, u_k, d)
     data = data.replace(ctrl=data.ctrl.at[0].set(applied))
     dx = surface_velocity * model.opt.timestep
 
@@ -314,7 +228,7 @@ def _truncate(carry, k, horizon: int | None):
 
 
 def _check_horizon(gradient_horizon) -> None:
-    if gradient_horizon is not None and not _is_int_at_least(gradient_horizon, 1):
+    if gradient_horizon is not None and not is_int_at_least(gradient_horizon, 1):
         raise ValueError(f"gradient_horizon must be None or a Python int >= 1, got {gradient_horizon!r}")
 
 
@@ -355,7 +269,7 @@ def rollout(
       :class:`ForceRollout` of arrays of shape ``(T,)``. Pure: works under ``jit``, ``vmap``, ``grad``,
       ``jacfwd``.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_horizon(gradient_horizon)
     commands = jnp.asarray(commands)
     if commands.ndim != 1:
@@ -365,10 +279,10 @@ def rollout(
     dtype = jnp.result_type(commands, model.jnt_stiffness.dtype, float)
     commands = commands.astype(dtype)
     n_steps = commands.shape[0]
-    noise = _series("noise", noise, n_steps, dtype, "commands")
+    noise = input_series("noise", noise, n_steps, dtype, "commands")
     d = int(dead_time_samples)
-    fifo = _series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
-    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "commands")
+    fifo = input_series("fifo_init", fifo_init, d, dtype, "the dead time (dead_time_samples entries)")
+    v_e = input_series("surface_velocity", surface_velocity, n_steps, dtype, "commands")
 
     def control_step(carry, inputs):
         k, u_k, noise_k, v_k = inputs
@@ -379,22 +293,33 @@ def rollout(
         out = ForceRollout(force + noise_k, force, position, velocity, applied, surface)
         return (data, fifo, surface_next), out
 
-    carry = (_initial_data(model, dtype), fifo, jnp.zeros((), dtype))
+    carry = (initial_data(model, dtype), fifo, jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), commands, noise, v_e))
     return out
 
 
 class ClosedLoopRollout(NamedTuple):
-    """Per control step ``k`` of :func:`closed_loop_rollout` (time ``k h``; leading axis: time)."""
+    """Per control step ``k`` of :func:`closed_loop_rollout` (time ``k h``; leading axis: time).
 
-    force: jax.Array  # measured force y_k (N): sensor force plus noise, what the controller reads
-    force_true: jax.Array  # noise-free sensor force (N)
-    position: jax.Array  # tool position x (mm past the contact point)
-    velocity: jax.Array  # tool velocity (mm/s)
-    command: jax.Array  # controller command u_k = r_k - L x_hat_k (mm/s)
-    applied: jax.Array  # plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
-    controller: object  # the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
-    surface: jax.Array  # environment surface position x_e at k h (mm)
+    Attributes:
+      force: (T,) measured force y_k (N): sensor force plus noise, what the controller reads
+      force_true: (T,) noise-free sensor force (N)
+      position: (T,) tool position x (mm past the contact point)
+      velocity: (T,) tool velocity (mm/s)
+      command: (T,) controller command u_k = r_k - L x_hat_k (mm/s)
+      applied: (T,) plant input during step k: u_{k-d} + disturbance_{k-d} (mm/s)
+      controller: the controller's outputs per step (e.g. FeedbackOutputs: u, x, the estimator's outputs)
+      surface: (T,) environment surface position x_e at k h (mm)
+    """
+
+    force: jax.Array
+    force_true: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    command: jax.Array
+    applied: jax.Array
+    controller: object
+    surface: jax.Array
 
 
 def closed_loop_rollout(
@@ -444,7 +369,7 @@ def closed_loop_rollout(
       :class:`ClosedLoopRollout`; pure: works under ``jit``, ``vmap`` (over models from
       :func:`with_params`, noise, controller parameters), ``grad`` and ``jacfwd``.
     """
-    _check_timing(dead_time_samples, substeps)
+    check_timing(dead_time_samples, substeps)
     _check_horizon(gradient_horizon)
     reference = jnp.asarray(reference)
     if reference.ndim != 1:
@@ -452,9 +377,9 @@ def closed_loop_rollout(
     dtype = jnp.result_type(reference, model.jnt_stiffness.dtype, float)
     reference = reference.astype(dtype)
     n_steps = reference.shape[0]
-    noise = _series("noise", noise, n_steps, dtype, "reference")
-    disturbance = _series("disturbance", disturbance, n_steps, dtype, "reference")
-    v_e = _series("surface_velocity", surface_velocity, n_steps, dtype, "reference")
+    noise = input_series("noise", noise, n_steps, dtype, "reference")
+    disturbance = input_series("disturbance", disturbance, n_steps, dtype, "reference")
+    v_e = input_series("surface_velocity", surface_velocity, n_steps, dtype, "reference")
     d = int(dead_time_samples)
 
     def control_step(carry, inputs):
@@ -471,6 +396,6 @@ def closed_loop_rollout(
         out = ClosedLoopRollout(y_k, force, position, velocity, u_k, applied, ctrl_out, surface)
         return (data, fifo, ctrl_state, surface_next), out
 
-    carry = (_initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
+    carry = (initial_data(model, dtype), jnp.zeros(d, dtype), controller.init(params), jnp.zeros((), dtype))
     _, out = jax.lax.scan(control_step, carry, (jnp.arange(n_steps), reference, noise, disturbance, v_e))
     return out

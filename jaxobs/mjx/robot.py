@@ -1,30 +1,11 @@
 """Your own robot in MuJoCo MJX: a closed loop over any MJCF, its linearisation, and named model mismatch.
 
-A :class:`Robot` (built by :func:`make_robot` from an MJCF) names what a controller sees of the model: the
-actuators it drives (``ctrl`` entries), the sensors it measures (slices of ``sensordata``), the control period in
-physics steps, the command dead time in control periods, the sensor noise, and an operating point
-``(qpos0, qvel0, ctrl0)``. The controller works in deviations from that operating point, so a linear design on
-:func:`linearize`'s model runs unchanged on the nonlinear plant::
-
-    y_k = sensordata_sel(x(k h)) - sensordata_sel(x0) + v_k,      ctrl = ctrl0 + [u_{k-d} on the named actuators]
-
-:func:`linearize` differentiates the control-period transition (``substeps`` ``mjx.step`` calls with the command
-held) with ``jax.jacfwd`` about the operating point: the discrete ``(Phi, Gamma, C)`` of the state
-``x = (qpos, qvel)``, augmented with the dead-time slots. :func:`mismatch` scales named model fields
-(``body_mass[payload]``, ``dof_damping[hinge]``, ``actuator_gear``, ``geom_friction[foot]``, ...) by a dict of
-factors: a pure function, so ``vmap`` over a batch of factors gives a batch of plants. :func:`rollout` runs any
-:class:`~jaxobs.observers.base.Controller` on the (mismatched) robot in one ``lax.scan``.
-
-Requirements (checked with :func:`jaxobs.mjx.estimation.check_model`): hinge and slide joints only (``nq ==
-nv``; a free or ball joint's quaternion is refused: the linearisation and the additive deviations above need a
-vector state), no actuator activations, and sensors of the position and velocity stages only (an acceleration-
-stage sensor would depend on the command being chosen).
-
-Differentiation. The rollouts are differentiable in the controller's parameters and in the mismatch factors in
-forward mode always. Reverse mode (``jax.grad``) works when the model's constraint solver is off
-(``<flag constraint="disable"/>``, as in the shipped example): MJX's solver iterates in a ``lax.while_loop``,
-which JAX cannot differentiate in reverse, so with constraints (contacts, joint limits, equalities) enabled use
-forward mode (``jax.jvp`` / ``jax.jacfwd``, ``gradient = "forward"`` in ``jaxobs tune``).
+A :class:`Robot` (:func:`make_robot`) names what a controller sees of a model: the actuators it drives, the
+sensors it measures, the control period, the dead time, the sensor noise and an operating point, in whose
+deviations the controller works. :func:`linearize` gives the discrete ``(Phi, Gamma, C)`` by ``jax.jacfwd`` of
+``mjx.step``, :func:`mismatch` scales named model fields (``body_mass[payload]``, ...), and :func:`rollout` runs any
+controller in one ``lax.scan``. Forward-mode gradients always work; reverse mode needs the model's constraint
+solver off. The requirements and the differentiation notes: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
@@ -42,7 +23,7 @@ from mujoco import mjx
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
-from jaxobs.mjx.force_1dof import _dead_time, _put_model
+from jaxobs.mjx.common import dead_time_step, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
@@ -163,7 +144,7 @@ def make_robot(
             raise ValueError(f"{name}: each may be named once, got {list(given)}")
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
     dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
-    model = _put_model(m)
+    model = put_model(m)
     dtype = model.body_mass.dtype
     point = {"qpos0": (qpos0, m.qpos0, m.nq), "qvel0": (qvel0, np.zeros(m.nv), m.nv),
              "ctrl0": (ctrl0, np.zeros(m.nu), m.nu)}  # fmt: skip
@@ -188,7 +169,7 @@ def _step(robot: Robot, model: mjx.Model, x, applied, t):
 
 def _sense(robot: Robot, model: mjx.Model, x):
     """The measured ``sensordata`` entries (p,) of the state ``x``."""
-    return estimation._measurement(model, x)[jnp.asarray(robot.sensors)]
+    return estimation.measurement(model)(x)[jnp.asarray(robot.sensors)]
 
 
 def _operating_state(robot: Robot, qpos0=None, qvel0=None):
@@ -209,8 +190,10 @@ def _jacobians(robot: Robot, x0):
 
 
 def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
-    """The discrete linear model of ``robot`` over one control period about an operating point (default: the
-    robot's), by ``jax.jacfwd`` of the transition (``substeps`` ``mjx.step`` calls, command held)::
+    """The discrete linear model of ``robot`` over one control period about an operating point.
+
+    The operating point defaults to the robot's; the model is ``jax.jacfwd`` of the transition (``substeps``
+    ``mjx.step`` calls, command held)::
 
         dx_{k+1} = Phi dx_k + Gamma du_{k-d},   dy_k = C dx_k,   dx = (qpos, qvel) - (qpos0, qvel0)
 
@@ -324,14 +307,23 @@ def mismatch(model: mjx.Model, scales: dict) -> mjx.Model:
 
 
 class RobotRollout(NamedTuple):
-    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time)."""
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time).
 
-    x: jax.Array  # (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
-    y: jax.Array  # (T, p) measurement the controller read: deviation from the operating point plus noise
-    y_true: jax.Array  # (T, p) the noise-free deviation
-    u: jax.Array  # (T, m) the controller's command u_k
-    applied: jax.Array  # (T, m) the command acting during period k, u_{k-d}
-    controller: Any  # the controller's outputs per step
+    Attributes:
+      x: (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
+      y: (T, p) measurement the controller read: deviation from the operating point plus noise
+      y_true: (T, p) the noise-free deviation
+      u: (T, m) the controller's command u_k
+      applied: (T, m) the command acting during period k, u_{k-d}
+      controller: the controller's outputs per step
+    """
+
+    x: jax.Array
+    y: jax.Array
+    y_true: jax.Array
+    u: jax.Array
+    applied: jax.Array
+    controller: Any
 
 
 def rollout(
@@ -345,8 +337,9 @@ def rollout(
     dx0=None,
     reference=None,
 ) -> RobotRollout:
-    """``robot`` (with the mismatch ``scales``, see :func:`mismatch`) under ``controller`` for ``steps`` control
-    periods, in one ``lax.scan``. At control step ``k`` (time ``k h``)::
+    """``robot`` under ``controller`` for ``steps`` control periods, in one ``lax.scan``.
+
+    The robot carries the mismatch ``scales`` (:func:`mismatch`). At control step ``k`` (time ``k h``)::
 
         y_k      = s(x(k h)) - s(x0) + v_k,  v_k ~ N(0, diag(sensor_noise^2))     measured sensordata entries
         state, o = controller.step(params, state, ControllerInputs(y_k, r_k))
@@ -363,7 +356,7 @@ def rollout(
 
     Returns:
       :class:`RobotRollout`. Pure: ``jit``, ``vmap`` (over scales, keys, params), ``jax.jvp`` / ``jacfwd``, and
-      ``grad`` where the model's constraint solver is off (module docstring).
+      ``grad`` where the model's constraint solver is off (docs/theory/mjx.md).
     """
     steps = _checks.count("steps", steps, minimum=1, hint="control periods")
     model = robot.model if not scales else mismatch(robot.model, scales)
@@ -388,7 +381,7 @@ def rollout(
         state, out = controller.step(params, state, ControllerInputs(y, r_k))
         _checks.shape("params", out.u, (m,), f"the controller's command u needs one entry per named actuator ({m})")
         u = out.u.astype(dtype)
-        applied, fifo = _dead_time(fifo, u, robot.dead_time)
+        applied, fifo = dead_time_step(fifo, u, robot.dead_time)
         x_next = _step(robot, model, x, applied, k * h)
         return (x_next, fifo, state), RobotRollout(x, y, y_true, u, applied, out)
 

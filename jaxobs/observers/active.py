@@ -1,28 +1,11 @@
 """Kalman Active Observer AOB-N (Cortesão 2006 §2-5; Cortesão, Koeppe, Nunes & Hirzinger, "Stochastic
 Active Observers"; Cortesão, MRAC chapter §5-6) as an estimator.
 
-A Kalman filter on the plant model augmented with an *active state* ``p_k``: an equivalent input
-disturbance modelled as an order-N auto-regressive process (Cortesão 2006 eq. 10, 37) whose newest value
-``p_hat_k`` is the observer's disturbance estimate ``d`` (one entry per plant input). With the active state
-removed it is the classical Kalman filter (CKF).
-
-State order (eq. 18, 40): ``x = [x_{r,k}, p_{k-N+1}, ..., p_k]`` where each ``p`` block has one entry
-per plant input (footnote 3 of Cortesão 2006), so ``n_active = N * m``.
-
-The estimator step (eq. 47) with the command ``u_{k-1}`` actually applied::
-
-    x_prior = Phi_n x_hat_{k-1} + Gamma_n u_{k-1}
-    x_hat_k = x_prior + K_k (y_k - C x_prior)                 (K_k from eq. 27-29 with the open-loop Phi_n)
-
-As a controller (:func:`jaxobs.observers.feedback.observer_controller` with :func:`feedback_gain`) it commands
-``u_k = r_k - L_r x_hat_{r,k} - p_hat_k`` (eq. 20, 49-50): :data:`active_observer_controller`.
-
-Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0`` (as in :mod:`jaxobs.observers.kalman`); the
-papers' ``P_{-1} = Q_0`` (Cortesão 2006 §7.2) is the default, advanced one step: ``P0 = Phi_n Q Phi_n' + Q``.
-
-Run-time switches, all traced values (no recompilation): ``active`` (1 = AOB, 0 = CKF: the active
-state is locked at 0 and its Q entry zeroed; Cortesão et al., stochastic AOB §2.1; MRAC chapter §6.3), and the
-adaptive strategy of the stochastic AOB paper §3 (``alpha > 0``).
+A Kalman filter on the plant model augmented with an *active state*: an equivalent input disturbance modelled as
+an order-N auto-regressive process (eq. 10, 37) whose newest value ``p_hat_k`` is the disturbance estimate ``d``.
+With the active state removed (``active = 0``) it is the classical Kalman filter (CKF). :func:`make_aob`,
+:func:`make_ckf` and :data:`active_observer`; as a controller :data:`active_observer_controller` with
+:func:`feedback_gain` (eq. 20, 49-50). State order, prior and run-time switches: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -39,11 +22,12 @@ import numpy as np
 from jax.scipy.special import erf, erfinv
 
 from jaxobs import _checks
-from jaxobs.kalman_steps import predict, update
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import kalman_gain, predict, update
 from jaxobs.lti import StateSpace
+from jaxobs.matrix_equations import dare, require_converged
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
 from jaxobs.observers.feedback import observer_controller
-from jaxobs.riccati import dare, kalman_gain, require_converged, symmetrize
 
 __all__ = [
     "ActiveObserverParams",
@@ -200,34 +184,63 @@ class ActiveObserverParams:
 
     @property
     def n_inputs(self) -> int:
+        """Number of plant inputs ``m``."""
         return self.Gamma.shape[-1]
 
     @property
     def n_active(self) -> int:
+        """Number of active states ``q`` (order times channels)."""
         return self.order * self.n_channels
 
 
 class ActiveObserverState(NamedTuple):
-    x: jax.Array  # (n_aug,) a-posteriori estimate [x_r, p] (the prior mean before the first step)
-    P: jax.Array  # (n_aug, n_aug) its covariance
-    evolution: jax.Array  # (q,) last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`active_observer` between steps (``n_aug = n + q`` states: the plant's and the active states).
+
+    Attributes:
+      x: (n_aug,) a-posteriori estimate [x_r, p] (the prior mean before the first step)
+      P: (n_aug, n_aug) its covariance
+      evolution: (q,) last active-state evolution w_{k-1} = p_hat_{k-1} - p_hat_{k-2}
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    evolution: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class ActiveObserverOutputs(NamedTuple):
-    x: jax.Array  # (n_aug,) a-posteriori estimate
-    d: jax.Array  # (q,) newest active state p_hat_k: the equivalent input disturbance (zeros for a CKF)
-    x_prior: jax.Array  # (n_aug,) a-priori estimate
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n_aug, p) K_k
-    q_active: jax.Array  # (q,) variance used for the newest active state at this step
-    alpha: jax.Array  # (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
-    converged: jax.Array  # () the steady-state gains' DAREs converged (True for time-varying gains)
-    S: jax.Array  # (p, p) innovation covariance of the observed components (1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) under the active-state model (0 when all are missing)
-    P: jax.Array | None = None  # (n_aug, n_aug) a-posteriori covariance (with output_covariance, else None)
-    P_prior: jax.Array | None = None  # (n_aug, n_aug) a-priori covariance (with output_covariance, else None)
+    """Outputs of one step of :data:`active_observer`.
+
+    Attributes:
+      x: (n_aug,) a-posteriori estimate
+      d: (q,) newest active state p_hat_k: the equivalent input disturbance (zeros for a CKF)
+      x_prior: (n_aug,) a-priori estimate
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n_aug, p) K_k
+      q_active: (q,) variance used for the newest active state at this step
+      alpha: (q,) strategy implied by q_active and w_{k-1} (stochastic AOB paper, eq. 34)
+      converged: () the steady-state gains' DAREs converged (True for time-varying gains)
+      S: (p, p) innovation covariance of the observed components (1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) under the active-state model (0 when all are missing)
+      P: (n_aug, n_aug) a-posteriori covariance (with output_covariance, else None)
+      P_prior: (n_aug, n_aug) a-priori covariance (with output_covariance, else None)
+    """
+
+    x: jax.Array
+    d: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    q_active: jax.Array
+    alpha: jax.Array
+    converged: jax.Array
+    S: jax.Array
+    log_likelihood: jax.Array
+    P: jax.Array | None = None
+    P_prior: jax.Array | None = None
 
 
 def _active_slice(params: ActiveObserverParams):

@@ -1,24 +1,10 @@
 """The estimator and controller protocols, the fixed-gain linear form, and :func:`run`.
 
-Like optax's ``GradientTransformation``, an **estimator** is a pair of pure functions over pytrees::
-
-    state = estimator.init(params)
-    state, out = estimator.step(params, state, EstimatorInputs(y=y_k, u_prev=u_km1))
-
-``out.x`` is the a-posteriori estimate ``x_hat_{k|k}`` and ``out.innovation`` the measurement residual
-``y_k - C x_hat_{k|k-1}``; every disturbance observer adds ``out.d``, its disturbance estimate. A
-**controller** is the same pair over :class:`ControllerInputs` ``(y_k, r_k)`` with ``out.u``, the command
-to apply at sample ``k``; :func:`jaxobs.observers.feedback.observer_controller` turns any estimator into
-one. Running over time is ``lax.scan`` (:func:`run`), batching is ``vmap``; the user composes both.
-
-Estimators and controllers that are linear with a fixed gain also give their **linear form**
-(``estimator.linear(params)``): the matrices of :class:`LinearObserver` (and, for a controller, the state
-feedback), which :mod:`jaxobs.stability` analyses without knowing the family.
-
-Conventions shared by every family: ``params`` are frozen dataclasses registered as pytrees (shape-fixing
-integers are static fields); states, inputs and outputs are ``NamedTuple`` s; non-finite measurement
-components are missing (skipped and counted, never propagated); the shapes of the inputs are checked
-against the params when the step is traced, so a wrong shape raises ``ValueError`` even under ``jit``.
+An :class:`Estimator` is a pair of pure functions over pytrees, ``state = init(params)`` and
+``state, out = step(params, state, EstimatorInputs(y=y_k, u_prev=u_km1))`` (``out.x``, ``out.innovation``, and
+``out.d`` for disturbance observers); a :class:`Controller` is the same pair over :class:`ControllerInputs` with
+``out.u``. Fixed-gain families also give their :class:`LinearObserver` form. Running over time is ``lax.scan``
+(:func:`run`), batching is ``vmap``. Conventions shared by every family: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -112,7 +98,9 @@ class Controller(NamedTuple):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class LinearObserver:
-    """A fixed-gain linear observer (predictor-corrector form, Cortesão 2006 eq. 26)::
+    """A fixed-gain linear observer (predictor-corrector form, Cortesão 2006 eq. 26).
+
+    Each step computes::
 
         x_prior = Phi x_hat_{k-1} + Gamma u_{k-1}
         x_hat_k = x_prior + K (y_k - C x_prior)

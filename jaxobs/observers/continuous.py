@@ -2,18 +2,9 @@
 for sampling a continuous-time observer (the linear ones of :mod:`jaxobs.observers.ct_linear` and the modular
 estimator of :mod:`jaxobs.observers.modular` are right-hand sides run here).
 
-A digital implementation of a continuous-time observer sees the input and the measurement only at the samples
-``t_k = t0 + k dt``. Step ``k`` integrates the observer over ``[t_{k-1}, t_k]`` with ``u_{k-1}`` held
-(:func:`jaxobs.ct.integrate`, fixed Euler or RK4 substeps) and outputs ``x_hat(t_k)``. The measurement over the
-interval is, with ``measurement="hold"``, ``y_{k-1}`` (zero-order hold: ``y_k`` acts from ``t_k`` on), or, with
-``measurement="linear"``, the line from ``y_{k-1}`` to ``y_k`` (first-order interpolation; ``y_k`` is known at
-step ``k``, so the estimate at ``t_k`` still uses no later sample). The first step outputs ``x0`` unchanged. The
-innovation is ``y_k - h(x_hat(t_k), u_{k-1})``. The observer state ``x_hat`` may be any pytree of arrays (e.g.
-an estimate and its covariance).
-
-Missing data: a non-finite component of a measurement the interval uses is replaced, over that interval, by the
-observer's own prediction ``h(x_hat(t), u)``, so an output-injection term ``L (y - h(x_hat, u))`` is exactly zero
-in that channel; such components are counted in ``state.missing`` and their innovation is zero.
+Step ``k`` integrates the observer over ``[t_{k-1}, t_k]`` with ``u_{k-1}`` held (:func:`jaxobs.ct.integrate`) and
+the measurement held or interpolated (``measurement="hold"`` or ``"linear"``); :func:`make_continuous_observer`,
+:data:`continuous_observer`. Timing and missing data: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -63,24 +54,43 @@ class ContinuousObserverParams:
 
     @property
     def dtype(self):
+        """The floating dtype of the estimate."""
         return jnp.result_type(*jax.tree_util.tree_leaves(self.x0))
 
     @property
     def n_outputs(self) -> int:
+        """Number of measured outputs ``p`` (from the shape of ``h``)."""
         return jax.eval_shape(self.h, self.x0, jnp.zeros((self.n_inputs,), self.dtype)).shape[0]
 
 
 class ContinuousObserverState(NamedTuple):
-    x: jax.Array  # estimate x_hat(t_{k-1}) (the pytree of x0)
-    y: jax.Array  # (p,) measurement y_{k-1} (NaN where missing)
-    t: jax.Array  # () t_{k-1}
-    started: jax.Array  # () bool: a sample has been processed (the next step integrates)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of a continuous-time observer run as a sampled estimator.
+
+    Attributes:
+      x: estimate x_hat(t_{k-1}) (the pytree of x0)
+      y: (p,) measurement y_{k-1} (NaN where missing)
+      t: () t_{k-1}
+      started: () bool: a sample has been processed (the next step integrates)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    y: jax.Array
+    t: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class ContinuousObserverOutputs(NamedTuple):
-    x: jax.Array  # estimate x_hat(t_k) (the pytree of x0)
-    innovation: jax.Array  # (p,) y_k - h(x_hat(t_k), u_{k-1}) (0 for missing components)
+    """Outputs of one sample of a continuous-time observer.
+
+    Attributes:
+      x: estimate x_hat(t_k) (the pytree of x0)
+      innovation: (p,) y_k - h(x_hat(t_k), u_{k-1}) (0 for missing components)
+    """
+
+    x: jax.Array
+    innovation: jax.Array
 
 
 def make_continuous_observer(F, h, *, x0, dt, t0=0.0, n_inputs: int = 0, substeps: int = 1, method: str = "rk4",

@@ -1,24 +1,10 @@
 """The extended Kalman filter (EKF): discrete time or continuous-discrete, with an iterated-update option.
 
-The model is a :class:`~jaxobs.nonlinear.NonlinearModel` (``f(x, u, t)``, ``h(x)``, ``Q``, ``R``, prior); each map
-is replaced by its first-order Taylor series around the current mean, the Jacobians by forward-mode autodiff
-(``jax.jacfwd``)::
-
-    F = df/dx (x_hat_{k-1}, u_{k-1}, t_{k-1}),   x_prior = f(x_hat_{k-1}, u_{k-1}, t_{k-1}),   P_prior = F P F' + Q
-    H = dh/dx (x_prior),   K = P_prior H' (H P_prior H' + R)^{-1},   x_hat_k = x_prior + K (y_k - h(x_prior))
-
-and ``P_k`` by the Joseph form (:mod:`jaxobs.kalman_steps`), or with ``bierman=True`` by Bierman's U-D update
-(:func:`jaxobs.kalman_steps.bierman_update`: scalar components in sequence, the covariance factors kept positive
-semidefinite as ``R -> 0``; Grip 2010 §2.9). Continuous-discrete (``model.continuous``): the
-mean and the covariance follow ``dm/dt = f(m, u, t)``, ``dP/dt = F P + P F' + Q`` over each sample, integrated by
-:mod:`jaxobs.ct`. ``iterations > 1``: the Gauss-Newton iterated update (Bell & Cathey 1993) relinearises ``h``
-around the latest estimate, ``x_{i+1} = x_prior + K_i (y_k - h(x_i) - H_i (x_prior - x_i))``.
-
-Prior and missing data as in the Kalman filter (:mod:`jaxobs.nonlinear`): the first step updates the prior of
-``x_0`` without a prediction; non-finite measurement components are skipped and counted (``state.missing``).
-On a linear model the EKF is the Kalman filter. ``gate``: an innovation gate (off by default) skips each
-measurement component whose innovation exceeds ``gate`` standard deviations of its prediction
-(:func:`jaxobs.kalman_steps.innovation_gate`), counted in ``state.gated`` (and ``state.missing``).
+The maps of a :class:`~jaxobs.nonlinear.NonlinearModel` are replaced by their first-order Taylor series around
+the current mean (Jacobians by ``jax.jacfwd``) and the step is the Kalman step of :mod:`jaxobs.nonlinear`: Joseph
+form, or Bierman's U-D update with ``bierman=True`` (Grip 2010 §2.9); ``iterations > 1`` is the Gauss-Newton
+iterated EKF (Bell & Cathey 1993); ``gate`` skips outlying components. :func:`make_ekf`,
+:data:`extended_kalman_filter`. The equations: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -46,7 +32,7 @@ class EKFParams:
       bierman: static; measurement updates by Bierman's U-D algorithm instead of the Joseph form.
       gate: ``None`` (no gate) or the innovation gate in standard deviations (a leaf).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
-        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
+        rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     model: NonlinearModel
@@ -104,8 +90,8 @@ def taylor(g, m, P) -> Linearization:
 
     G, mean = jax.jacfwd(value_twice, has_aux=True)(m)
     # jacfwd stacks the Jacobian's columns; without the barrier XLA folds that transpose into the products
-    # F P F' and H P, whose transposed operands its CPU backend multiplies by a slower kernel (EKF, n = 10,
-    # 64 sequences: 1.4x the time; benchmarks/estimation.py)
+    # F P F' and H P, whose transposed operands its CPU backend multiplies by a slower kernel
+    # (benchmarks/estimation.py)
     G = jax.lax.optimization_barrier(jnp.reshape(G, (mean.shape[0], m.shape[0])))
     return Linearization(mean, G, None)
 

@@ -1,16 +1,10 @@
 """Observer-based state feedback: the combinator that turns any estimator into a controller.
 
 Like ``optax.chain``, :func:`observer_controller` takes an :class:`~jaxobs.observers.base.Estimator` and
-returns a :class:`~jaxobs.observers.base.Controller`. At sample ``k`` the controller feeds the estimator the
-measurement ``y_k`` and its own previous command ``u_{k-1}``, then commands (Cortesão 2006 eq. 49-50)::
-
-    u_k = N r_k - L x_hat_k
-
-``L`` acts on the estimator's whole state: for an AOB it is ``[L_r, 0, ..., 0, I]``
-(:func:`jaxobs.observers.active.feedback_gain`), which adds the active-state compensation ``- p_hat_k`` to
-the plant's state feedback ``- L_r x_hat_r``. ``N`` is an optional reference pre-gain (e.g.
-:func:`jaxobs.design.reference_gain`) so that ``r`` can be given in output units; without it ``r`` is in
-input units.
+returns a :class:`~jaxobs.observers.base.Controller` that commands ``u_k = N r_k - L x_hat_k`` (Cortesão 2006
+eq. 49-50), feeding the estimator ``y_k`` and its own previous command. For an AOB, ``L = [L_r, 0, ..., 0, I]``
+(:func:`jaxobs.observers.active.feedback_gain`) adds the active-state compensation. Details:
+docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -44,6 +38,7 @@ class FeedbackParams:
 
     @property
     def n_inputs(self) -> int:
+        """Number of plant inputs ``m``."""
         return self.L.shape[-2]
 
     def padded(self, n: int) -> FeedbackParams:
@@ -56,14 +51,29 @@ class FeedbackParams:
 
 
 class FeedbackState(NamedTuple):
-    estimator: Any  # the estimator's state
-    u: jax.Array  # (m,) the last command u_{k-1}
+    """State of :func:`observer_controller` between steps.
+
+    Attributes:
+      estimator: the estimator's state
+      u: (m,) the last command u_{k-1}
+    """
+
+    estimator: Any
+    u: jax.Array
 
 
 class FeedbackOutputs(NamedTuple):
-    u: jax.Array  # (m,) command u_k = N r_k - L x_hat_k
-    x: jax.Array  # (n,) the estimate x_hat_k used
-    estimator: Any  # the estimator's outputs at sample k
+    """Outputs of one step of :func:`observer_controller`.
+
+    Attributes:
+      u: (m,) command u_k = N r_k - L x_hat_k
+      x: (n,) the estimate x_hat_k used
+      estimator: the estimator's outputs at sample k
+    """
+
+    u: jax.Array
+    x: jax.Array
+    estimator: Any
 
 
 def _reference(params: FeedbackParams, r):

@@ -1,23 +1,10 @@
 """A masked observability-Gramian reconstruction as an estimator (the observer of Grip 2010, ch. 8, sampled).
 
-Chapter 8 reconstructs the state of ``x' = A x + B u``, ``y = sat(C x)`` from the outputs that are not saturated: a
-channel contributes with the weight ``1 - |y_i|`` (zero while it is saturated), the masked Gramian ``D`` and data
-vector ``xi`` of (8.5b, d) satisfy ``xi = D x(0)``, and ``x(0) = D^{-1} xi`` as soon as ``D`` is nonsingular, i.e.
-once every output has been unsaturated for a while (each channel's data spans what ``(C_i, A)`` observes).
-
-This estimator runs the same least squares on samples, in the coordinates of the current state (an information
-form, so it can run forever): with ``Phi = exp(A dt)``, ``Gamma = int_0^dt exp(A s) B ds`` and the forgetting factor
-``f = exp(-lambda dt)``::
-
-    Y_k = f Phi^{-T} Y_{k-1} Phi^{-1} + dt C' W_k C
-    q_k = f Phi^{-T} (q_{k-1} + Y_{k-1} Phi^{-1} Gamma u_{k-1}) + dt C' W_k y_k
-
-``W_k = diag(w)`` with ``w_i = max(0, 1 - |y_i| / level_i)`` (``weights="saturation"``) or ``w_i = 1``
-(``weights="valid"``: every finite sample counts, so a user masks clipped samples by giving them as NaN); a non-finite
-``y_i`` always has weight 0. With ``lambda = 0`` this is (8.5) by the rectangle rule, transported to time ``k dt``:
-``Y_k = exp(-A' t_k) D exp(-A t_k)``. The transport is exact, so ``Y_k x_k = q_k`` holds exactly for noise-free data
-whatever ``dt``; the estimate ``x_hat = Y^{-1} q`` is returned once ``cond(Y) <= cond_max`` (``out.ready``, with the
-condition number in ``out.condition``), and before that the open-loop prediction of ``x0`` is returned.
+The state of ``x' = A x + B u``, ``y = sat(C x)`` is reconstructed by least squares from the outputs that are
+not saturated (each channel weighted by ``1 - |y_i|``, the masked Gramian of (8.5)), in an information form
+transported to the current sample so that it can run forever; the estimate ``Y^{-1} q`` is returned once
+``cond(Y) <= cond_max``. :func:`make_gramian`, :data:`gramian_estimator`. The recursion:
+docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -62,17 +49,35 @@ class GramianParams:
 
 
 class GramianState(NamedTuple):
-    Y: jax.Array  # (n, n) information matrix (masked Gramian in current-state coordinates)
-    q: jax.Array  # (n,) information vector, Y x = q for consistent data
-    x: jax.Array  # (n,) the last estimate
+    """State of :data:`gramian_estimator` between steps.
+
+    Attributes:
+      Y: (n, n) information matrix (masked Gramian in current-state coordinates)
+      q: (n,) information vector, Y x = q for consistent data
+      x: (n,) the last estimate
+    """
+
+    Y: jax.Array
+    q: jax.Array
+    x: jax.Array
 
 
 class GramianOutputs(NamedTuple):
-    x: jax.Array  # (n,) Y^{-1} q when ready, else the open-loop prediction
-    innovation: jax.Array  # (p,) y - C x_prior (0 for a missing entry)
-    ready: jax.Array  # () bool: cond(Y) <= cond_max
-    condition: jax.Array  # () condition number of Y (inf while singular)
-    weights: jax.Array  # (p,) the weights w_i of this sample
+    """Outputs of one step of :data:`gramian_estimator`.
+
+    Attributes:
+      x: (n,) Y^{-1} q when ready, else the open-loop prediction
+      innovation: (p,) y - C x_prior (0 for a missing entry)
+      ready: () bool: cond(Y) <= cond_max
+      condition: () condition number of Y (inf while singular)
+      weights: (p,) the weights w_i of this sample
+    """
+
+    x: jax.Array
+    innovation: jax.Array
+    ready: jax.Array
+    condition: jax.Array
+    weights: jax.Array
 
 
 def make_gramian(A, B, C, *, dt, forgetting=0.0, weights: str = "saturation", level=1.0, cond_max=1e10, x0=None):

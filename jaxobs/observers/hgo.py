@@ -9,9 +9,11 @@ the observer (6.3) is::
     phi_hat = g(v, x_hat, theta_hat) + z                                                               (6.3c)
 
 with the gains ``K(eps) = [K_x; K_phi]`` of :func:`hgo_gains` (section 6.3, the special coordinate basis of the
-error system (6.4)) and ``theta_hat' = u_theta(v, x_hat, phi_hat, theta_hat)`` a pluggable update law
-(Propositions 6.1-6.4). The derivatives of ``g`` come from autodiff; the ``dg/dv v'`` term of ``phi_hat'`` is
-carried by the explicit dependence of ``g(v, x_hat, theta_hat)`` on the measured ``v``, so ``v'`` is never needed.
+error system (6.4)) and ``theta_hat' = u_theta(v, x_hat, phi_hat, theta_hat)`` an update law of
+:mod:`jaxobs.adaptive` (Propositions 6.1 and 6.2: :class:`~jaxobs.adaptive.InversionLaw`; 6.3 and 6.4:
+:class:`~jaxobs.adaptive.PerturbationGradientLaw`), called with ``args = (v, x_hat)``. The derivatives of ``g``
+come from autodiff; the ``dg/dv v'`` term of ``phi_hat'`` is carried by the explicit dependence of ``g(v, x_hat,
+theta_hat)`` on the measured ``v``, so ``v'`` is never needed.
 With ``g`` linear and ``theta`` known the error ``col(x - x_hat, phi - phi_hat)`` follows (6.4) exactly.
 
 :func:`hgo_gains` is design-time (NumPy and :mod:`jaxobs.scb`); its result evaluates ``K(eps)`` for a traced
@@ -29,9 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs import _checks
+from jaxobs import _checks, adaptive
 from jaxobs import scb as _scb
-from jaxobs.adaptive import project
 from jaxobs.design import place
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.continuous import ContinuousObserverParams, continuous_observer
@@ -40,8 +41,6 @@ __all__ = [
     "HGOGains",
     "hgo_gains",
     "smooth_abs",
-    "target_law",
-    "gradient_law",
     "HGOParams",
     "HGOOutputs",
     "make_hgo",
@@ -58,8 +57,8 @@ class HGOGains:
     """Result of :func:`hgo_gains`.
 
     Fields:
-      K: (n + k, r) the gain ``[K_x; K_phi]`` at ``eps`` ((n, r) ``K_x`` alone when ``extended=False``).
-      terms: (q + 1, n + k, r) with ``K(eps) = sum_i terms[i] eps^-i`` (``q`` the longest chain); see :meth:`at`.
+      K: (n + k, p) the gain ``[K_x; K_phi]`` at ``eps`` ((n, p) ``K_x`` alone when ``extended=False``).
+      terms: (q + 1, n + k, p) with ``K(eps) = sum_i terms[i] eps^-i`` (``q`` the longest chain); see :meth:`at`.
       eps: the ``eps`` of ``K``.
       poles: the eigenvalues of the error dynamics ``A_e - K C_e`` of the (true) system given to :func:`hgo_gains`.
       zeros: the invariant zeros of the design error system (where ``n_a`` of the poles sit when the design and the
@@ -160,7 +159,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
     ``n_q`` others tend to ``eig(H_j)`` (Remark 6.2).
 
     Args:
-      A: (n, n), E: (n, k), C: (r, n): the plant ``x' = A x + B u + E phi``, ``y = C x`` (finite floats);
+      A: (n, n), E: (n, k), C: (p, n): the plant ``x' = A x + B u + E phi``, ``y = C x`` (finite floats);
         ``(C, A, E)`` must be left-invertible and minimum-phase (Assumption 6.1), else ``ValueError`` naming which
         (with the offending zeros).
       poles: (n_q,) the poles of the ``H_j``, the first ``n_q1`` for the first chain of ``chain_lengths`` and so
@@ -168,7 +167,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
       eps: the high-gain parameter, ``0 < eps <= 1``.
       poles_b: (n_b,) the eigenvalues of ``A_b - K_bb C_b``; required iff the error system has an x_b subsystem.
       extended: design the extended observer (6.3) (True) or the state observer of the cascade redesign, section
-        6.6 (False: the SCB of ``x' = A x + E g``, input ``g``, and ``K`` is (n, r)).
+        6.6 (False: the SCB of ``x' = A x + E g``, input ``g``, and ``K`` is (n, p)).
       design: ``(A0, E0, C0)``: design on these (unperturbed) matrices instead, section 6.7.1 (e.g. a small
         parameter set to zero); ``poles`` of the result are still those of ``(A, E, C)``.
       corrected: the corrigendum's ``K_qjq`` (True) or the one printed in section 6.3.2, with powers
@@ -221,7 +220,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
     n_a, n_b, _, n_q = f.dims
     chains = f.chain_lengths
     terms = _scb_gain_terms(f, _pole_groups("poles", poles, chains), poles_b, corrected)
-    K_terms = np.einsum("ij,qjk,kl->qil", f.Gamma1, terms, np.linalg.inv(f.Gamma2))
+    K_terms = np.einsum("ij,qjk,kl->qil", f.state_transform, terms, np.linalg.inv(f.output_transform))
     K = np.tensordot(eps ** -np.arange(K_terms.shape[0], dtype=float), K_terms, axes=1)
     Ae, _, Ce = _error_system(A, E, C, extended)
     return HGOGains(
@@ -273,7 +272,7 @@ def _scb_gain_terms(f: _scb.SCB, groups, poles_b, corrected: bool) -> np.ndarray
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Parameter update laws u_theta (Propositions 6.1-6.4) and the smooth absolute value of section 6.8
+# The smooth absolute value of section 6.8
 
 
 def smooth_abs(w, kappa):
@@ -293,76 +292,6 @@ def smooth_abs(w, kappa):
     return jnp.where(inside, w**2 / (2 * kappa) + kappa / 2, jnp.abs(jnp.where(inside, kappa, w)))
 
 
-def _projected(rate, theta_hat, Gamma, region, epsilon):
-    return rate if region is None else project(rate, theta_hat, Gamma, region, epsilon)
-
-
-def _target_law(theta_star, Gamma, threshold, l, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
-    active = jnp.linalg.norm(phi_hat) >= threshold
-    # theta_star never sees |phi_hat| < threshold (e.g. a division by phi_hat): a stand-in of norm threshold
-    safe = jnp.where(active, phi_hat, threshold / jnp.sqrt(phi_hat.shape[0]))
-    G = _checks.gain("Gamma", Gamma, theta_hat.shape[0], theta_hat.dtype)
-    weight = 1.0 if l is None else l(v, x_hat, safe)
-    rate = jnp.where(active, weight * (G @ (theta_star(v, x_hat, safe) - theta_hat)), 0.0)
-    return _projected(rate, theta_hat, Gamma, region, epsilon)
-
-
-def target_law(theta_star, Gamma, *, threshold=0.0, l=None, region=None, epsilon=None) -> jax.tree_util.Partial:
-    """The law ``theta_hat' = Proj(l Gamma (theta*(v, x_hat, phi_hat) - theta_hat))`` of Propositions 6.1 (``l =
-    1``) and 6.2 (Grip 2010: a weight ``l(v, x_hat, phi_hat) >= 0`` whose integral over every window of some length
-    T stays above a sigma > 0), here ``l`` times the indicator of ``|phi_hat| >= threshold`` (section 6.8: the
-    update pauses while the perturbation is too small to invert for theta). Below the threshold ``theta_star`` and
-    ``l`` are evaluated at a stand-in ``phi_hat`` of norm ``threshold`` and the result discarded, so a
-    ``theta_star`` that divides by ``phi_hat`` produces no NaN, in values or gradients, for ``threshold > 0``.
-
-    Args:
-      theta_star: ``theta*(v, x_hat, phi_hat) -> (p,)``, the parameter solved from ``phi = g(v, x, theta)``.
-      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
-      threshold: ``>= 0``; 0 (and ``l`` None) gives Proposition 6.1.
-      l: the weight ``l(v, x_hat, phi_hat) -> ()`` of Proposition 6.2 (None: 1).
-      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
-
-    Returns:
-      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
-    """
-    _checks.positive_scalar("threshold", threshold, allow_zero=True)
-    if region is not None:
-        _checks.positive_scalar("epsilon", epsilon)
-    l = None if l is None else _checks.function("l", l)
-    return jax.tree_util.Partial(
-        _target_law, _checks.function("theta_star", theta_star), Gamma, threshold, l, region, epsilon
-    )
-
-
-def _gradient_law(M, Gamma, region, epsilon, g, v, x_hat, phi_hat, theta_hat):
-    residual = phi_hat - g(v, x_hat, theta_hat)
-    gain = jax.jacfwd(g, argnums=2)(v, x_hat, theta_hat).T if M is None else M(v, x_hat, theta_hat)
-    rate = _checks.gain("Gamma", Gamma, theta_hat.shape[0], theta_hat.dtype) @ (gain @ residual)
-    return _projected(rate, theta_hat, Gamma, region, epsilon)
-
-
-def gradient_law(Gamma, *, M=None, region=None, epsilon=None) -> jax.tree_util.Partial:
-    """The law ``theta_hat' = Proj(Gamma M(v, x_hat, theta_hat) (phi_hat - g(v, x_hat, theta_hat)))`` of
-    Propositions 6.3 and 6.4 (Grip 2010), by default the gradient search ``M = (dg/dtheta)'`` (autodiff).
-
-    Args:
-      Gamma: positive scalar or (p, p) symmetric positive-definite gain.
-      M: ``M(v, x_hat, theta_hat) -> (p, k)`` satisfying (6.14) or (6.15); ``(dg/dtheta)'`` if None.
-      region, epsilon: the projection set of :func:`jaxobs.adaptive.project` (no projection if ``region`` is None).
-
-    Returns:
-      the law ``u_theta(g, v, x_hat, phi_hat, theta_hat)`` for :func:`make_hgo`, a ``Partial``.
-    """
-    if region is not None:
-        _checks.positive_scalar("epsilon", epsilon)
-    M = None if M is None else _checks.function("M", M)
-    return jax.tree_util.Partial(_gradient_law, M, Gamma, region, epsilon)
-
-
-def _no_update(g, v, x_hat, phi_hat, theta_hat):
-    return jnp.zeros_like(theta_hat)
-
-
 # --------------------------------------------------------------------------------------------------------------
 # The observer (6.3) as a sampled estimator
 
@@ -373,13 +302,14 @@ class HGOParams:
     """The modified high-gain observer (6.3); build it with :func:`make_hgo`.
 
     Attributes:
-      A: (n, n).  B: (n, m).  E: (n, k).  C: (r, n): the plant matrices.
-      K: (n + k, r) the gain ``[K_x; K_phi]`` (:func:`hgo_gains`).
+      A: (n, n).  B: (n, m).  E: (n, k).  C: (p, n): the plant matrices.
+      K: (n + k, p) the gain ``[K_x; K_phi]`` (:func:`hgo_gains`).
       g: ``g(v, x, theta) -> (k,)`` with ``v = col(u, y)``, a ``Partial``.
-      law: ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)``, a ``Partial`` (:func:`target_law`,
-        :func:`gradient_law`, or none: theta_hat stays at ``theta0``).
-      x0: (n,).  z0: (k,).  theta0: (p,): the initial ``x_hat``, ``z`` and ``theta_hat``.
-      K2: (n, r) the gain of the cascaded state observer of section 6.6 (``hgo_gains(..., extended=False)``),
+      law: the update law, called as ``law(g, (v, x_hat), phi_hat, theta_hat) -> (n_theta,)``
+        (:class:`~jaxobs.adaptive.InversionLaw`, :class:`~jaxobs.adaptive.PerturbationGradientLaw`,
+        :class:`~jaxobs.adaptive.CustomLaw`), or None: ``theta_hat`` stays at ``theta0``.
+      x0: (n,).  z0: (k,).  theta0: (n_theta,): the initial ``x_hat``, ``z`` and ``theta_hat``.
+      K2: (n, p) the gain of the cascaded state observer of section 6.6 (``hgo_gains(..., extended=False)``),
         or an (n, 0) array for none.
       g2: the perturbation model of the cascaded observer, a ``Partial`` (``g`` unless another was given).
       dt: () sample period.  t0: () time of the first sample.
@@ -392,7 +322,7 @@ class HGOParams:
     C: jax.Array
     K: jax.Array
     g: Callable
-    law: Callable
+    law: Callable | None
     x0: jax.Array
     z0: jax.Array
     theta0: jax.Array
@@ -407,16 +337,16 @@ class HGOParams:
 class HGOOutputs(NamedTuple):
     x: jax.Array  # (n,) x_hat(t_k)
     phi: jax.Array  # (k,) phi_hat(t_k) = g(v, x_hat, theta_hat) + z, v the (u, y) held over the last interval
-    theta: jax.Array  # (p,) theta_hat(t_k)
+    theta: jax.Array  # (n_theta,) theta_hat(t_k)
     x2: jax.Array  # (n,) the cascaded state observer of section 6.6 (x_hat when there is none)
-    innovation: jax.Array  # (r,) y_k - C x_hat(t_k) (0 for missing components)
+    innovation: jax.Array  # (p,) y_k - C x_hat(t_k) (0 for missing components)
 
 
 def _split(params: HGOParams, xi):
     """``(x_hat, z, theta_hat, x2)`` from the stacked state (``x2`` empty without a cascade)."""
     n, k = params.E.shape
-    p = params.theta0.shape[0]
-    return xi[:n], xi[n : n + k], xi[n + k : n + k + p], xi[n + k + p :]
+    n_theta = params.theta0.shape[0]
+    return xi[:n], xi[n : n + k], xi[n + k : n + k + n_theta], xi[n + k + n_theta :]
 
 
 def _cascade(params: HGOParams) -> bool:
@@ -430,7 +360,10 @@ def _rhs(params: HGOParams, xi, u, y, t):
     v = jnp.concatenate([u, y])
     innovation = y - params.C @ x_hat
     phi_hat = params.g(v, x_hat, theta_hat) + z
-    theta_dot = params.law(params.g, v, x_hat, phi_hat, theta_hat)
+    if params.law is None:
+        theta_dot = jnp.zeros_like(theta_hat)
+    else:
+        theta_dot = params.law(params.g, (v, x_hat), phi_hat, theta_hat)
     Kx_innov, Kphi_innov = params.K[:n] @ innovation, params.K[n:] @ innovation
     # dg/dx K_x innovation + dg/dtheta theta_dot in one forward-mode product
     _, along = jax.jvp(lambda x, th: params.g(v, x, th), (x_hat, theta_hat), (Kx_innov, theta_dot))
@@ -457,14 +390,16 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
 
     Args:
-      A: (n, n), B: (n, m), E: (n, k), C: (r, n): ``x' = A x + B u + E phi``, ``y = C x`` (B may be (n, 0)).
-      K: (n + k, r) the gain ``[K_x(eps); K_phi(eps)]`` (:func:`hgo_gains`, ``HGOGains.K`` or ``.at(eps)``).
-      g: the perturbation model ``g(v, x, theta) -> (k,)``, ``v = col(u, y)`` (m + r,), differentiable.
-      law: the parameter update ``u_theta(g, v, x_hat, phi_hat, theta_hat) -> (p,)`` (:func:`target_law`,
-        :func:`gradient_law`); None keeps ``theta_hat = theta0`` (a known theta).
+      A: (n, n), B: (n, m), E: (n, k), C: (p, n): ``x' = A x + B u + E phi``, ``y = C x`` (B may be (n, 0)).
+      K: (n + k, p) the gain ``[K_x(eps); K_phi(eps)]`` (:func:`hgo_gains`, ``HGOGains.K`` or ``.at(eps)``).
+      g: the perturbation model ``g(v, x, theta) -> (k,)``, ``v = col(u, y)`` (m + p,), differentiable.
+      law: the parameter update law, a law object of :mod:`jaxobs.adaptive` called as ``law(g, (v, x_hat),
+        phi_hat, theta_hat) -> (n_theta,)`` (:class:`~jaxobs.adaptive.InversionLaw` for Props. 6.1-6.2,
+        :class:`~jaxobs.adaptive.PerturbationGradientLaw` for Props. 6.3-6.4); None keeps ``theta_hat = theta0``
+        (a known theta).
       x0: (n,) initial ``x_hat`` (zeros if None).  z0: (k,) initial ``z`` (zeros if None).
-      theta0: (p,) initial ``theta_hat`` (inside the projection set of ``law``, if any).
-      K2: (n, r) gain of the cascaded state observer of section 6.6, ``x2' = A x2 + B u + E g(v, x2, theta_hat)
+      theta0: (n_theta,) initial ``theta_hat`` (inside the projection set of ``law``, if any).
+      K2: (n, p) gain of the cascaded state observer of section 6.6, ``x2' = A x2 + B u + E g(v, x2, theta_hat)
         + K2 (y - C x2)`` with ``theta_hat`` from (6.3) (``hgo_gains(..., extended=False)``; output ``x2``, started at
         ``x0``); None for none (``x2`` then repeats ``x_hat``).
       g2: the cascaded observer's perturbation model, ``g`` if None (section 6.8 gives it the exact ``|omega|``,
@@ -492,15 +427,15 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     n = A.shape[0]
     _checks.matrix("E", E, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
-    k, r = E.shape[1], C.shape[0]
+    k, p = E.shape[1], C.shape[0]
     B = jnp.asarray(B, dtype).reshape((n, -1)) if np.size(B) == 0 else jnp.asarray(B, dtype)
     _checks.matrix("B", B, shape=(n, None))
     K = jnp.asarray(K, dtype)
-    _checks.matrix("K", K, shape=(n + k, r))
+    _checks.matrix("K", K, shape=(n + k, p))
     m = B.shape[1]
     K2 = jnp.zeros((n, 0), dtype) if K2 is None else jnp.asarray(K2, dtype)
     if K2.shape[1]:
-        _checks.matrix("K2", K2, shape=(n, r))
+        _checks.matrix("K2", K2, shape=(n, p))
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     z0 = jnp.zeros((k,), dtype) if z0 is None else _checks.vector("z0", z0, k, dtype, what="one per perturbation")
     theta0 = jnp.atleast_1d(jnp.asarray(theta0, dtype)) if np.size(theta0) else jnp.zeros((0,), dtype)
@@ -508,13 +443,14 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     _checks.finite("theta0", theta0)
     _checks.positive_scalar("dt", dt)
     g = _checks.function("g", g)
-    law = jax.tree_util.Partial(_no_update) if law is None else _checks.function("law", law)
-    v = jnp.zeros((m + r,), dtype)
+    v = jnp.zeros((m + p,), dtype)
     _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
-    _checks.returns(
-        "law(g, v, x_hat, phi_hat, theta_hat)", lambda *a: law(g, *a), (v, x0, z0, theta0), theta0.shape,
-        "theta_hat_dot, one entry per entry of theta0",
-    )  # fmt: skip
+    if law is not None:
+        adaptive.check_law(law, theta0)
+        _checks.returns(
+            "law(g, (v, x_hat), phi_hat, theta_hat)", lambda *a: law(g, a[:2], *a[2:]), (v, x0, z0, theta0),
+            theta0.shape, "theta_hat_dot, one entry per entry of theta0",
+        )  # fmt: skip
     substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
     if method not in ("rk4", "euler"):
         raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
@@ -545,4 +481,4 @@ def _step(params: HGOParams, state, inputs: EstimatorInputs):
 hgo_observer = Estimator(_init, _step)
 """The modified high-gain observer (6.3) as a sampled :class:`~jaxobs.observers.base.Estimator` over
 :class:`HGOParams` (run by :mod:`jaxobs.observers.continuous`: ``u_{k-1}``, ``y_{k-1}`` held over ``[t_{k-1},
-t_k]``). Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (r,) and (m,). Outputs: :class:`HGOOutputs`."""
+t_k]``). Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,). Outputs: :class:`HGOOutputs`."""

@@ -1,51 +1,11 @@
 """Discrete-time suboptimal H-infinity filter (a-posteriori / filtered form, Riccati recursion).
 
-Model (same timing as :mod:`jaxobs.observers.kalman`)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    z_k = Cz x_k
-
-with ``x_0`` the state at the first measurement, guessed as ``x0`` (the prior convention of
-:mod:`jaxobs.observers.kalman`). The filter returns ``z_hat_k = Cz x_hat_{k|k}`` from
-``y_0 .. y_k`` and guarantees, for every disturbance sequence of finite energy, over every horizon ``N``
-on which the existence condition below holds::
-
-    sum_k |z_k - z_hat_k|^2
-    ------------------------------------------------------------------------------   <  gamma^2
-    |x_0 - x0|^2_{P0^{-1}} + sum_{k>=1} |w_k|^2_{Q^{-1}} + sum_k |v_k|^2_{R^{-1}}
-
-(``|a|^2_M = a' M a``; with a singular ``Q``, ``P0`` the disturbance lives in their range.)
-
-Recursion (Hassibi, Sayed & Kailath, "Linear estimation in Krein spaces -- Part II: Applications",
-IEEE Trans. Automatic Control 41(1), 1996, the a-posteriori H-infinity filter; also their book
-"Indefinite-Quadratic Estimation and Control", SIAM 1999, ch. 4; D. Simon, "Optimal State Estimation",
-Wiley 2006, ch. 11, gives the same Riccati equation in game-theoretic form, with ``theta = gamma^{-2}``,
-``S = I``)::
-
-    x1_k = Phi x_{k-1} + Gamma u_{k-1}                    P1_k = Phi Pb_{k-1} Phi' + Q
-    K_k  = P1_k C' (C P1_k C' + R)^{-1}                     x_k  = x1_k + K_k (y_k - C x1_k)
-    P_k  = (I - K_k C) P1_k (I - K_k C)' + K_k R K_k'      (Joseph form, = (P1_k^{-1} + C' R^{-1} C)^{-1})
-    Pb_k = (P_k^{-1} - gamma^{-2} Cz' Cz)^{-1}
-         = P_k + gamma^{-2} P_k Cz' (I - gamma^{-2} Cz P_k Cz')^{-1} Cz P_k      (Woodbury; no inverse of P)
-
-starting from ``P1_0 = P0`` (the first step has no prediction). The estimate has the Kalman structure; only the
-Riccati matrix is inflated by the ``-gamma^{-2} Cz' Cz`` term. Existence condition, checked at every step::
-
-    P1_k^{-1} + C' R^{-1} C - gamma^{-2} Cz' Cz > 0    <=>    I - gamma^{-2} Cz P_k Cz' > 0
-
-(the right-hand form is a Schur complement of the left one and needs no inverse of ``P1_k``). Its
-smallest eigenvalue is reported as ``margin``; a step with ``margin <= 0`` is flagged
-(``feasible=False``), counted in ``state.violations`` and, so that traced sweeps keep finite numbers, falls
-back to the Kalman matrix ``Pb_k = P_k`` for that step; the gamma bound is then not guaranteed.
-
-As ``gamma -> inf`` the correction vanishes and the filter is exactly the Kalman filter
-(``gamma=jnp.inf`` is allowed and gives it bit for bit). The smallest ``gamma`` for which the condition
-holds over a horizon (the optimal a-posteriori level) is found by :func:`gamma_bisection`; no filter
-that estimates ``z_k`` from ``y_0 .. y_k`` achieves a smaller worst-case ratio over that horizon. The
-a-priori (one-step predictor, ``z_k`` from ``y_0 .. y_{k-1}``) variant is not implemented here.
-
-Missing data: as in the Kalman filter, non-finite measurement components are skipped exactly and
-counted in ``state.missing``. Precision: the condition check compares eigenvalues with zero; near the
-optimal gamma use float64 (float32 is fine well above it).
+For the model of :mod:`jaxobs.observers.kalman` with the estimated output ``z_k = Cz x_k``, the filter
+guarantees an energy gain from disturbances to the error of ``z_hat_k`` below ``gamma^2`` wherever its existence
+condition holds (Hassibi, Sayed & Kailath 1996; Simon 2006, ch. 11). :func:`make_hinf`, :data:`hinf_filter`,
+the recursion :func:`hinf_riccati_step` / :func:`hinf_riccati_sequence`, its steady state
+(:func:`hinf_steady_state`) and the optimal level (:func:`gamma_bisection`); ``gamma = inf`` is the Kalman
+filter. The bound, the recursion and the existence condition: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -59,10 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd
-from jaxobs.kalman_steps import predict, update
+from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs.kalman_steps import predict, predict_covariance, update, update_covariance
+from jaxobs.matrix_equations import is_stable
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import is_stable, predict_covariance, symmetrize, update_covariance
 
 __all__ = [
     "HinfParams",
@@ -111,22 +71,45 @@ class HinfParams:
 
 
 class HinfState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) H-infinity Riccati matrix Pb_{k-1} (the prior P0 before the first step)
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    violations: jax.Array  # () steps so far at which the existence condition failed
-    missing: jax.Array  # () measurement components skipped so far
+    """State of :data:`hinf_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) H-infinity Riccati matrix Pb_{k-1} (the prior P0 before the first step)
+      started: () bool: a measurement has been processed (the next step predicts)
+      violations: () steps so far at which the existence condition failed
+      missing: () measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    started: jax.Array
+    violations: jax.Array
+    missing: jax.Array
 
 
 class HinfOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k|k}
-    z: jax.Array  # (q,) z_hat_k = Cz x_hat_{k|k}
-    d: jax.Array  # (r,) disturbance estimate Cd x_hat_{k|k}
-    x_prior: jax.Array  # (n,) x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n, p) K_k
-    feasible: jax.Array  # () existence condition held at this step
-    margin: jax.Array  # () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required)
+    """Outputs of one step of :data:`hinf_filter`.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k|k}
+      z: (q,) z_hat_k = Cz x_hat_{k|k}
+      d: (r,) disturbance estimate Cd x_hat_{k|k}
+      x_prior: (n,) x_hat_{k|k-1}
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n, p) K_k
+      feasible: () existence condition held at this step
+      margin: () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required)
+    """
+
+    x: jax.Array
+    z: jax.Array
+    d: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    feasible: jax.Array
+    margin: jax.Array
 
 
 def _check_gamma(gamma):
@@ -234,13 +217,21 @@ def hinf_riccati_step(Pb_prev, Phi, C, Cz, Q, R, gamma, *, first=False):
 
 
 class HinfSequence(NamedTuple):
-    """Stacked over time (leading axis ``num_steps``)."""
+    """Stacked over time (leading axis ``num_steps``).
 
-    P: jax.Array  # (T, n, n) Pb_k
-    K: jax.Array  # (T, n, p) gains K_k
-    P_prior: jax.Array  # (T, n, n) P1_k
-    margin: jax.Array  # (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
-    feasible: jax.Array  # (T,) the existence condition held at step k
+    Attributes:
+      P: (T, n, n) Pb_k
+      K: (T, n, p) gains K_k
+      P_prior: (T, n, n) P1_k
+      margin: (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
+      feasible: (T,) the existence condition held at step k
+    """
+
+    P: jax.Array
+    K: jax.Array
+    P_prior: jax.Array
+    margin: jax.Array
+    feasible: jax.Array
 
 
 def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSequence:
@@ -260,12 +251,23 @@ def hinf_riccati_sequence(P0, Phi, C, Cz, Q, R, gamma, num_steps: int) -> HinfSe
 
 
 class HinfSteadyState(NamedTuple):
-    P_prior: jax.Array  # (n, n) steady P1
-    P: jax.Array  # (n, n) steady Pb
-    gain: jax.Array  # (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
-    margin: jax.Array  # () smallest margin met along the iteration
-    converged: jax.Array  # () last relative change below tol, finite, and the steady filter stable
-    feasible: jax.Array  # () existence condition held at every iteration
+    """Steady state of the H-infinity Riccati recursion (:func:`hinf_steady_state`).
+
+    Attributes:
+      P_prior: (n, n) steady P1
+      P: (n, n) steady Pb
+      gain: (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
+      margin: () smallest margin met along the iteration
+      converged: () last relative change below tol, finite, and the steady filter stable
+      feasible: () existence condition held at every iteration
+    """
+
+    P_prior: jax.Array
+    P: jax.Array
+    gain: jax.Array
+    margin: jax.Array
+    converged: jax.Array
+    feasible: jax.Array
 
 
 def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 1000, tol: float | None = None):
@@ -368,10 +370,19 @@ checks them against the params while tracing and casts them to the params' dtype
 
 
 class GammaSearch(NamedTuple):
-    gamma: jax.Array  # () smallest level found feasible (upper end of the final bracket)
-    lower: jax.Array  # () largest level found infeasible
-    found: jax.Array  # () gamma is feasible and (gamma - lower) <= rtol * gamma
-    iterations: jax.Array  # () recursions evaluated
+    """Result of the bisection over the attenuation level (:func:`gamma_bisection`).
+
+    Attributes:
+      gamma: () smallest level found feasible (upper end of the final bracket)
+      lower: () largest level found infeasible
+      found: () gamma is feasible and (gamma - lower) <= rtol * gamma
+      iterations: () recursions evaluated
+    """
+
+    gamma: jax.Array
+    lower: jax.Array
+    found: jax.Array
+    iterations: jax.Array
 
 
 def gamma_bisection(Phi, C, Q, R, *, Cz=None, P0=None, num_steps: int = 200, rtol: float = 1e-6,

@@ -2,13 +2,14 @@
 
 Plant (eq. 1, continuous time)::
 
-    x' = A x + Gamma(u, y) + B d,    y = C x
+    x' = A x + known(u, y) + B d,    y = C x
 
-with ``B`` of full column rank and ``(A, C)`` observable (Assumption 2.1). ``Gamma(u, y)`` is a known
-(possibly nonlinear) term; the user evaluates it and passes its value. The observer (eq. 2, 4)::
+with ``B`` of full column rank and ``(A, C)`` observable (Assumption 2.1). ``known(u, y)`` (the paper's
+``Gamma(u, y)``; in jaxobs ``Gamma`` is the discrete input matrix) is a known (possibly nonlinear) term; the user
+evaluates it and passes its value. The observer (eq. 2, 4)::
 
-    x_hat' = A x_hat + Gamma(u, y) + B d_hat + K (y - C x_hat)                          (2)
-    d_hat  = F1 y + F2 y' + G1 x_hat + G2 x_hat' + G3 Gamma(u, y)                       (4)
+    x_hat' = A x_hat + known(u, y) + B d_hat + K (y - C x_hat)                          (2)
+    d_hat  = F1 y + F2 y' + G1 x_hat + G2 x_hat' + G3 known(u, y)                       (4)
 
 Case 1 (Lemma 3.1, eq. 5-8): some ``F2`` has ``F2 C B = I`` (relative degree one); then
 ``G1 = -(F1 C + F2 C A)``, ``G2 = 0``, ``G3 = -F2 C`` and the errors ``e = x_hat - x``, ``e_d = d_hat - d``
@@ -30,7 +31,7 @@ preserve Hurwitz stability. :func:`fact35` returns both flags. Note ``det M_e = 
 so ``M_e`` is nonsingular (Lemma 3.6) only for plants that also satisfy the Case 1 rank condition.
 
 The general form used here: for any ``G1, G2, G3`` of either case the observer is the descriptor system
-``M_e x_hat' = A_e x_hat + (I + B G3) Gamma + (B F1 + K) y + B F2 y'`` with ``M_e = I - B G2`` and
+``M_e x_hat' = A_e x_hat + (I + B G3) known + (B F1 + K) y + B F2 y'`` with ``M_e = I - B G2`` and
 ``A_e = A - K C + B G1`` (these reduce to eq. 8 and eq. 17-18).
 
 Discrete time (the run-time observer, :data:`inverse_dynamics_observer`). The paper runs the
@@ -221,8 +222,8 @@ class InverseDynamicsParams:
 
     Attributes:
       A: (n, n).  B: (n, n_d) disturbance matrix.  C: (n_y, n).
-      Bu: (n, m) input matrix of the known term ``Gamma(u, y) = Bu u`` (m = 0 without inputs; for a nonlinear
-        ``Gamma`` take ``Bu = I`` and pass its value as the input).
+      Bu: (n, m) input matrix of the known term ``known(u, y) = Bu u`` (m = 0 without inputs; for a nonlinear
+        ``known`` take ``Bu = I`` and pass its value as the input).
       K: (n, n_y).  F1, F2: (n_d, n_y).  G1: (n_d, n), G2: (n_d, n), G3: (n_d, n) from :func:`case1_gains` or
         :func:`case2_gains`.
       x0: (n,) the estimate the observer integrates from (``x_hat`` one sample before the first).
@@ -299,7 +300,7 @@ inverse_dynamics_observer = Estimator(_init, _step)
 """The sampled inverse-dynamics observer as an :class:`~jaxobs.observers.base.Estimator` over
 :class:`InverseDynamicsParams`.
 
-Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (n_y,) and (m,): ``Gamma = Bu u_prev`` is the known term over
+Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (n_y,) and (m,): ``known = Bu u_prev`` is the known term over
 the step to sample ``k`` (backward Euler evaluates eq. 2 at ``t_k``; to use the input of sample ``k`` itself,
 pass that series as ``u_prev``). Each step checks the inputs against the params while tracing and casts them to
 the params' dtype. Outputs: :class:`InverseDynamicsOutputs`."""
@@ -328,7 +329,7 @@ def make_inverse_dynamics(
       A, B, C: plant of eq. 1 (``B`` is the disturbance matrix, full column rank; ``(A, C)`` observable).
       K: ``(n, n_y)`` state-observer gain.  F1, F2: ``(n_d, n_y)`` disturbance gains (eq. 4).
       h: sample time (seconds).
-      Bu: ``(n, m)`` input matrix of the known term ``Gamma(u, y) = Bu u`` (default none).
+      Bu: ``(n, m)`` input matrix of the known term ``known(u, y) = Bu u`` (default none).
       case: 1 (Lemma 3.1) or 2 (Lemma 3.3); default 1 when ``C B`` has full column rank, else 2.
         Case 1 with ``F2=None`` takes the minimum-norm ``F2`` with ``F2 C B = I``; Case 2 needs ``F2``.
       rho: ``(n_d, n)`` free parameter of ``B+`` (Case 2 only; default 0).

@@ -1,22 +1,10 @@
 """The Kalman filter: time-varying gain (Riccati recursion) or a fixed steady-state gain.
 
-Model (Cortesão 2006 eq. 27-29; the steps are those of :mod:`jaxobs.kalman_steps`)::
-
-    x_k = Phi x_{k-1} + Gamma u_{k-1} + w_k,    y_k = C x_k + v_k,    E[w w'] = Q,  E[v v'] = R
-
-Prior: ``x0``, ``P0`` are the mean and covariance of ``x_0``, the state at the first measurement ``y_0``
-(the convention of dynamax and cuthbert): the first step updates the prior with ``y_0`` without a prediction,
-and every later step predicts with ``u_{k-1}`` and updates with ``y_k``. A model without inputs needs no
-``Gamma`` and no ``u_prev``.
-
-Missing data: non-finite measurement components are skipped exactly and counted in ``state.missing``.
-
-Every step also gives the innovation covariance ``S_k`` and the log-likelihood ``log p(y_k | y_0..y_{k-1})`` of the
-observed components (their sum over a record is the model's log marginal likelihood, exact with missing data;
-:func:`jaxobs.smoothing.log_likelihood`); with ``output_covariance`` the a-posteriori and a-priori covariances,
-which the smoothers of :mod:`jaxobs.smoothing` read. :data:`square_root_kalman_filter` is the same filter with
-Cholesky factors of the covariances (Bierman 1977): for long float32 runs, and with gradients that stay finite
-where a covariance is singular.
+Model (Cortesão 2006 eq. 27-29; the steps are those of :mod:`jaxobs.kalman_steps`): ``x_k = Phi x_{k-1} + Gamma
+u_{k-1} + w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = Q``, ``E[v v'] = R``, with the prior ``x0``, ``P0`` of ``x_0``,
+the state at the first measurement. :func:`make_kalman`, :data:`kalman_filter`; non-finite measurement components
+are skipped and counted. :data:`square_root_kalman_filter` (:func:`square_root_form`) is the same filter with
+factors of the covariances (Bierman 1977). Prior convention and outputs: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
@@ -28,9 +16,18 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.kalman_steps import predict, square_root_predict, square_root_update, tria, update
+from jaxobs._linalg import symmetrize
+from jaxobs.kalman_steps import (
+    covariance_sequence,
+    predict,
+    square_root_predict,
+    square_root_update,
+    tria,
+    update,
+    update_covariance,
+)
+from jaxobs.matrix_equations import filter_dare
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
-from jaxobs.riccati import covariance_sequence, filter_dare, symmetrize, update_covariance
 
 __all__ = [
     "KalmanParams",
@@ -64,7 +61,7 @@ class KalmanParams:
         ``P_prior`` (what the smoothers need): ``2 T n^2`` more numbers over ``T`` steps (16 MB for ``n = 10``,
         ``T = 10^4`` in float64). Time-varying gain only (a fixed gain propagates no covariance).
       joseph: static; the covariance update in Joseph form (default), else the standard form, faster and
-        positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
+        positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     Phi: jax.Array
@@ -81,22 +78,45 @@ class KalmanParams:
 
 
 class KalmanState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P: jax.Array  # (n, n) its covariance
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`kalman_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P: (n, n) its covariance
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class KalmanOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k|k}
-    x_prior: jax.Array  # (n,) a-priori estimate x_hat_{k|k-1}
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
-    gain: jax.Array  # (n, p) gain K_k used at this step
-    converged: jax.Array  # () the steady-state gain's DARE converged (True for time-varying gains)
-    S: jax.Array  # (p, p) innovation covariance C P_prior C' + R of the observed components (1 on a missing diagonal)
-    log_likelihood: jax.Array  # () log p(y_k | y_0..y_{k-1}) of the observed components (0 when all are missing)
-    P: jax.Array | None = None  # (n, n) a-posteriori covariance P_{k|k} (with output_covariance, else None)
-    P_prior: jax.Array | None = None  # (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
+    """Outputs of one step of :data:`kalman_filter`.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k|k}
+      x_prior: (n,) a-priori estimate x_hat_{k|k-1}
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+      gain: (n, p) gain K_k used at this step
+      converged: () the steady-state gain's DARE converged (True for time-varying gains)
+      S: (p, p) innovation covariance C P_prior C' + R of the observed components (1 on a missing diagonal)
+      log_likelihood: () log p(y_k | y_0..y_{k-1}) of the observed components (0 when all are missing)
+      P: (n, n) a-posteriori covariance P_{k|k} (with output_covariance, else None)
+      P_prior: (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
+    """
+
+    x: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
+    gain: jax.Array
+    converged: jax.Array
+    S: jax.Array
+    log_likelihood: jax.Array
+    P: jax.Array | None = None
+    P_prior: jax.Array | None = None
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False,
@@ -109,7 +129,7 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       x0: (n,) prior mean of ``x_0`` (default zeros).  P0: (n, n) prior covariance of ``x_0`` (default ``Q``).
       steady_state: use the steady-state gain (:func:`with_steady_state_gain`).
       joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
-        step, positive semidefinite only to rounding (:func:`jaxobs.riccati.update_covariance_factors`).
+        step, positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
 
     All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
     becomes float64), so the filter's state keeps one dtype over a run.
@@ -141,10 +161,10 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
 
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     """The same filter with the fixed steady-state gain ``K = P C' (C P C' + R)^{-1}``, ``P`` the a-priori
-    solution of the filter DARE (:func:`jaxobs.riccati.filter_dare`); ``P0`` becomes the steady-state a-posteriori
-    covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising solution or did
-    not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and reported by every
-    step (``KalmanOutputs.converged``).
+    solution of the filter DARE (:func:`jaxobs.matrix_equations.filter_dare`); ``P0`` becomes the steady-state
+    a-posteriori covariance. Eagerly, raises ``ValueError`` with the reason when the DARE has no stabilising
+    solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
+    reported by every step (``KalmanOutputs.converged``).
     """
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
     P, gain = update_covariance(sol.X, params.C, params.R)
@@ -213,7 +233,7 @@ checks them against the params while tracing and casts them to the params' dtype
 
 def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     """Filter a batch of sequences with one model: the Riccati recursion runs once
-    (:func:`jaxobs.riccati.covariance_sequence`) and only the means are batched, the fast path for Monte-Carlo
+    (:func:`jaxobs.kalman_steps.covariance_sequence`) and only the means are batched, the fast path for Monte-Carlo
     runs over noise seeds.
 
     Args:
@@ -277,6 +297,7 @@ class SquareRootKalmanParams:
         measurement noise covariance.  P0_sqrt: (n, n) factor of the prior covariance of ``x_0``.
       output_covariance: static; outputs ``P = P_sqrt P_sqrt'`` and ``P_prior`` at every step (see
         :class:`KalmanParams`).
+      joseph: static; the covariance update in Joseph form (see :class:`KalmanParams`).
     """
 
     Phi: jax.Array
@@ -291,10 +312,19 @@ class SquareRootKalmanParams:
 
 
 class SquareRootKalmanState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
-    P_sqrt: jax.Array  # (n, n) lower-triangular factor of its covariance
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () int32, measurement components skipped so far
+    """State of :data:`square_root_kalman_filter` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1|k-1} (the prior mean before the first step)
+      P_sqrt: (n, n) lower-triangular factor of its covariance
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () int32, measurement components skipped so far
+    """
+
+    x: jax.Array
+    P_sqrt: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 def _factor(M):
@@ -352,5 +382,5 @@ square_root_kalman_filter = Estimator(_square_root_init, _square_root_step)
 lower-triangular factor of the covariance (:class:`SquareRootKalmanState`), predicts with the triangularisation of
 ``[Phi P_sqrt, Q_sqrt]`` and updates with that of the pre-array of :func:`jaxobs.kalman_steps.square_root_update`,
 so covariances stay positive semidefinite in any precision. Outputs: :class:`KalmanOutputs` (the covariances
-``S``, ``P``, ``P_prior`` as products of the factors). Costs about twice the covariance form per step
+``S``, ``P``, ``P_prior`` as products of the factors). Costs more per step than the covariance form
 (``benchmarks/parallel_in_time.py``)."""

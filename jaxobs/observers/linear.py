@@ -26,15 +26,31 @@ __all__ = ["LinearObserver", "LinearObserverState", "LinearObserverOutputs", "li
 
 
 class LinearObserverState(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_{k-1} (zero before the first sample)
-    started: jax.Array  # () bool: a measurement has been processed (the next step predicts)
-    missing: jax.Array  # () measurement components skipped so far
+    """State of :data:`linear_observer` between steps.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_{k-1} (zero before the first sample)
+      started: () bool: a measurement has been processed (the next step predicts)
+      missing: () measurement components skipped so far
+    """
+
+    x: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class LinearObserverOutputs(NamedTuple):
-    x: jax.Array  # (n,) a-posteriori estimate x_hat_k
-    x_prior: jax.Array  # (n,) a-priori estimate
-    innovation: jax.Array  # (p,) y_k - C x_prior (0 for missing components)
+    """Outputs of one step of :data:`linear_observer`.
+
+    Attributes:
+      x: (n,) a-posteriori estimate x_hat_k
+      x_prior: (n,) a-priori estimate
+      innovation: (p,) y_k - C x_prior (0 for missing components)
+    """
+
+    x: jax.Array
+    x_prior: jax.Array
+    innovation: jax.Array
 
 
 def _init(params: LinearObserver) -> LinearObserverState:

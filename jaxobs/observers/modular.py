@@ -3,7 +3,8 @@ systems with nonlinearly parameterised perturbations and a measured state::
 
     x' = f(t, x) + B(t, x) (g(t, x, theta) + v(t, x))                                   (5.1)
 
-with ``x`` (n,) measured, ``B`` (n, m), ``g`` (m,) known up to the constant ``theta`` (p,), ``v`` (m,) a known input.
+with ``x`` (n,) measured, ``B`` (n, m), ``g`` (m,) known up to the constant ``theta`` (n_theta,), ``v`` (m,) a known
+input.
 Two modules: a parameter update law ``theta_hat' = u_theta(t, x, phi_hat, theta_hat)`` (5.2), designed as if the
 full perturbation ``phi = B g(t, x, theta)`` were measured, and the perturbation estimator (5.8)::
 
@@ -17,17 +18,18 @@ K_phi^{-1} B (dg/dtheta) u_theta`` with ``phi_hat = K_phi (x - x_hat) + B g(t, x
     phi_tilde'   = -K_phi phi_tilde + d(t, x, theta_tilde),   d = d/dt [B (g(theta) - g(theta_hat))]|theta_hat fixed
     theta_tilde' = -u_theta(t, x, phi_hat, theta_hat)                                      (5.10, 5.11)
 
-The update laws (``law``), all through the projection of App. 5.A (:func:`jaxobs.adaptive.project`) and with
-``phi_hat`` saturated to known bounds inside ``u_theta`` (Remark 5.2):
+The update law ``law`` is a law object of :mod:`jaxobs.adaptive`, called as ``law(B g, (t, x), phi_hat,
+theta_hat)`` with the perturbation model ``B g`` (n,) and with ``phi_hat`` saturated to known bounds (Remark 5.2); its
+projection is that of App. 5.A (:func:`jaxobs.adaptive.project`):
 
-* ``"inversion"`` (Prop. 5.1): ``Proj(Gamma (theta*(t, x, phi_hat) - theta_hat))``, ``theta*`` the user's inverse of
-  ``phi = B g(t, x, theta)``;
-* ``"intermittent"`` (Prop. 5.2): ``Proj(l(t, x) Gamma (theta* - theta_hat))`` with ``l`` in [0, 1], where
-  ``theta*`` needs to exist only where ``l > 0``;
-* ``"gradient"`` (Props. 5.3, 5.4): ``Proj(Gamma M(t, x, theta_hat) (phi_hat - B g(t, x, theta_hat)))``, ``M``
-  (p, n) by default ``(dg/dtheta)' B'`` (Remark 5.1: steepest descent of ``|B (g(theta) - g(theta_hat))|^2``);
-* ``"custom"``: ``Proj(Gamma direction(t, x, phi_hat, theta_hat))`` for laws that combine the above per parameter
-  (Example 5.5) or are designed by hand (the drilling estimator's (5.26)-(5.27)).
+* :class:`~jaxobs.adaptive.InversionLaw` (Prop. 5.1): ``Proj(Gamma (theta*(t, x, phi_hat) - theta_hat))``,
+  ``theta*`` the user's inverse of ``phi = B g(t, x, theta)``; with a ``weight`` ``l(t, x, phi_hat)`` in [0, 1]
+  (Prop. 5.2) ``theta*`` needs to exist only where ``l > 0``;
+* :class:`~jaxobs.adaptive.PerturbationGradientLaw` (Props. 5.3, 5.4): ``Proj(Gamma M(t, x, theta_hat) (phi_hat - B
+  g(t, x, theta_hat)))``, ``M`` (n_theta, n) by default ``(dg/dtheta)' B'`` (Remark 5.1: steepest descent of ``|B
+  (g(theta) - g(theta_hat))|^2``);
+* :class:`~jaxobs.adaptive.CustomLaw`: ``Proj(Gamma direction(B g, (t, x), phi_hat, theta_hat))`` for laws that
+  combine the above per parameter (Example 5.5) or are designed by hand (the drilling estimator's (5.26)-(5.27)).
 
 ``dg/dtheta`` and ``d`` come from automatic differentiation. The compensation ``v = -g(t, x, theta_hat)`` (5.15) is
 :func:`compensation`. The estimator runs on sampled measurements through :mod:`jaxobs.observers.continuous`
@@ -54,7 +56,6 @@ from jaxobs.observers.continuous import (
 )
 
 __all__ = [
-    "LAWS",
     "ModularModel",
     "ModularParams",
     "ModularState",
@@ -68,45 +69,31 @@ __all__ = [
     "compensation",
 ]
 
-LAWS = ("inversion", "intermittent", "gradient", "custom")
-"""The parameter update laws: Grip 2010 Prop. 5.1, Prop. 5.2, Props. 5.3/5.4, and a user direction."""
-
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ModularModel:
-    """The plant (5.1) and the design of the modular estimator (``n`` states, ``m`` perturbation channels, ``p``
-    parameters, ``r`` applied inputs); build it with :func:`make_modular`.
+    """The plant (5.1) and the design of the modular estimator (``n`` states, ``m`` perturbation channels,
+    ``n_theta`` parameters, ``r`` applied inputs); build it with :func:`make_modular`.
 
     Attributes:
       f: ``f(t, x)`` (n,).  B: ``B(t, x)`` (n, m).  g: ``g(t, x, theta)`` (m,).  v: ``v(t, x, u)`` (m,), the known
-        input (``u`` (r,) the applied input of the sample), or ``None`` (no known input).
-        theta_star: ``theta*(t, x, phi)`` (p,) or ``None``.  l: ``l(t, x)`` () in [0, 1] or ``None``.
-        M: ``M(t, x, theta_hat)`` (p, n) or ``None`` (Remark 5.1).  direction: ``direction(t, x, phi,
-        theta_hat)`` (p,) or ``None``.  (All ``jax.tree_util.Partial``: bound
-        arguments are leaves.)
-      K_phi: (n, n) symmetric positive-definite injection gain.  Gamma: (p, p) symmetric positive-definite
-        adaptation gain.  region: the smooth convex ``P`` of the projection set (:class:`jaxobs.adaptive.Ball`,
-        :class:`jaxobs.adaptive.Box`) or ``None`` (no projection).  epsilon: () boundary-layer width.
+        input (``u`` (r,) the applied input of the sample), or ``None`` (no known input).  (All
+        ``jax.tree_util.Partial``: bound arguments are leaves.)
+      law: the update law (:class:`~jaxobs.adaptive.InversionLaw`,
+        :class:`~jaxobs.adaptive.PerturbationGradientLaw`, :class:`~jaxobs.adaptive.CustomLaw`).
+      K_phi: (n, n) symmetric positive-definite injection gain.
       phi_lower, phi_upper: (n,) saturation bounds of ``phi_hat`` in ``u_theta`` (infinite: none).
-      law: static, one of :data:`LAWS`.
     """
 
     f: Callable
     B: Callable
     g: Callable
-    v: Callable
-    theta_star: Callable | None
-    l: Callable | None
-    M: Callable | None
-    direction: Callable | None
+    v: Callable | None
+    law: Callable
     K_phi: jax.Array
-    Gamma: jax.Array
-    region: Callable | None
-    epsilon: jax.Array
     phi_lower: jax.Array
     phi_upper: jax.Array
-    law: str = dataclasses.field(default="gradient", metadata=dict(static=True))
 
 
 @jax.tree_util.register_dataclass
@@ -121,12 +108,12 @@ class ModularParams:
 
 class ModularState(NamedTuple):
     z: jax.Array  # (n,) the perturbation estimator's state of (5.8)
-    theta_hat: jax.Array  # (p,) parameter estimate
+    theta_hat: jax.Array  # (n_theta,) parameter estimate
 
 
 class ModularOutputs(NamedTuple):
     x: jax.Array  # (n,) x_hat = -K_phi^{-1} z at the sample
-    theta_hat: jax.Array  # (p,) parameter estimate
+    theta_hat: jax.Array  # (n_theta,) parameter estimate
     phi_hat: jax.Array  # (n,) perturbation estimate (5.8c), unsaturated
     innovation: jax.Array  # (n,) x_k - x_hat (0 for missing components)
 
@@ -140,29 +127,15 @@ def perturbation_estimate(model: ModularModel, state: ModularState, t, x):
     return _phi_hat(model, state, t, x)
 
 
+def _perturbation_model(model: ModularModel, t, x, theta):
+    return model.B(t, x) @ model.g(t, x, theta)
+
+
 def parameter_rate(model: ModularModel, t, x, phi_hat, theta_hat):
-    """The update law ``u_theta(t, x, phi_hat, theta_hat)`` (p,) of ``model.law`` (Grip 2010 Props. 5.1-5.4), with
-    ``phi_hat`` (n,) saturated to ``[phi_lower, phi_upper]`` and the projection of App. 5.A."""
+    """The update law ``u_theta(t, x, phi_hat, theta_hat)`` (n_theta,) of ``model.law`` (Grip 2010 Props.
+    5.1-5.4), with ``phi_hat`` (n,) saturated to ``[phi_lower, phi_upper]`` (Remark 5.2)."""
     phi = jnp.clip(phi_hat, model.phi_lower, model.phi_upper)
-    if model.law == "gradient":
-        Bm = model.B(t, x)
-        if model.M is None:  # Remark 5.1: (dg/dtheta)' B'
-            M = (Bm @ jax.jacfwd(model.g, argnums=2)(t, x, theta_hat)).T
-        else:
-            M = model.M(t, x, theta_hat)
-        tau = model.Gamma @ (M @ (phi - Bm @ model.g(t, x, theta_hat)))
-    elif model.law == "custom":
-        tau = model.Gamma @ model.direction(t, x, phi, theta_hat)
-    else:
-        star = model.theta_star(t, x, phi)
-        if model.law == "intermittent":
-            weight = jnp.clip(model.l(t, x), 0, 1)
-            tau = weight * (model.Gamma @ jnp.where(weight > 0, star - theta_hat, 0))
-        else:
-            tau = model.Gamma @ (star - theta_hat)
-    if model.region is None:
-        return tau
-    return adaptive.project(tau, theta_hat, model.Gamma, model.region, model.epsilon)
+    return model.law(jax.tree_util.Partial(_perturbation_model, model), (t, x), phi, theta_hat)
 
 
 def modular_rate(model: ModularModel, state: ModularState, u, x, t) -> ModularState:
@@ -179,7 +152,8 @@ def modular_rate(model: ModularModel, state: ModularState, u, x, t) -> ModularSt
 
 def perturbation_error_rate(model: ModularModel, t, x, x_dot, theta, theta_hat):
     """``d(t, x, theta_tilde)`` of (5.10): the time derivative of ``B(t, x) (g(t, x, theta) - g(t, x, theta_hat))``
-    along ``x' = x_dot`` (n,) with ``theta`` (p,) and ``theta_hat`` (p,) fixed (one Jacobian-vector product)."""
+    along ``x' = x_dot`` (n,) with ``theta`` (n_theta,) and ``theta_hat`` (n_theta,) fixed (one Jacobian-vector
+    product)."""
     gap = lambda s, y: model.B(s, y) @ (model.g(s, y, theta) - model.g(s, y, theta_hat))
     t = jnp.asarray(t, x.dtype)
     return jax.jvp(gap, (t, x), (jnp.ones_like(t), x_dot))[1]
@@ -200,27 +174,24 @@ def _applied_input(t, x, u):
     return u
 
 
-def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=None, n_inputs: int = 0,
-                 theta_star=None, l=None, M=None, direction=None, region=None, epsilon=0.1, phi_bounds=None,
-                 z0=None, t0=0.0, substeps: int = 1, method: str = "rk4", n=None) -> ModularParams:  # fmt: skip
+def make_modular(f, B, g, *, theta0, K_phi, law, dt, v=None, n_inputs: int = 0, phi_bounds=None, z0=None,
+                 t0=0.0, substeps: int = 1, method: str = "rk4", n=None) -> ModularParams:  # fmt: skip
     """Params of the modular estimator (Grip 2010 eq. 5.8) with the checks.
 
     Args:
       f: ``f(t, x)`` (n,).  B: ``B(t, x)`` (n, m).  g: ``g(t, x, theta)`` (m,).
-      theta0: (p,) initial estimate, inside the projection set ``{region <= epsilon}``.
-      K_phi: positive scalar or (n, n) symmetric positive definite.  Gamma: positive scalar or (p, p) SPD.
-      dt: sample period (> 0).  law: ``"inversion"``, ``"intermittent"``, ``"gradient"`` or ``"custom"``
-        (:data:`LAWS`).
+      theta0: (n_theta,) initial estimate, inside the projection set of ``law`` (if any).
+      K_phi: positive scalar or (n, n) symmetric positive definite.
+      law: the update law, a law object of :mod:`jaxobs.adaptive` called as ``law(B g, (t, x), phi_hat,
+        theta_hat)``: :class:`~jaxobs.adaptive.InversionLaw` (Props. 5.1, 5.2; ``theta_star(t, x, phi)``,
+        ``weight(t, x, phi)``), :class:`~jaxobs.adaptive.PerturbationGradientLaw` (Props. 5.3, 5.4; ``M(t, x,
+        theta_hat)`` (n_theta, n), default Remark 5.1's ``(dg/dtheta)' B'``) or :class:`~jaxobs.adaptive.CustomLaw`.
+      dt: sample period (> 0).
       v: known input ``v(t, x, u)`` (m,) given the applied input ``u`` (``n_inputs``,) of the sample (held over
         it); default ``v = u`` when ``n_inputs = m`` (e.g. the compensation :func:`compensation` applied by a
         controller) and ``v = 0`` when ``n_inputs = 0``.
       n_inputs: the size of ``u`` (default 0).
-      theta_star: ``theta*(t, x, phi)`` (p,), the inverse of ``phi = B g(t, x, theta)`` (inversion laws).
-      l: ``l(t, x)`` () in [0, 1] (``"intermittent"``).  M: ``M(t, x, theta_hat)`` (p, n) (``"gradient"``;
-        default Remark 5.1's ``(dg/dtheta)' B'``).  direction: ``direction(t, x, phi, theta_hat)`` (p,), the
-        unprojected rate before ``Gamma`` (``"custom"``).
-      region: the projection set's smooth convex ``P`` (e.g. ``jaxobs.adaptive.Box``) or ``None``.
-      epsilon: its boundary layer (> 0).  phi_bounds: ``(lower, upper)`` (n,) saturation of ``phi_hat`` or ``None``.
+      phi_bounds: ``(lower, upper)`` (n,) saturation of ``phi_hat`` or ``None``.
       z0: (n,) initial ``z`` (default 0).  t0: time of the first sample.  substeps, method: the integration
         (:func:`jaxobs.ct.integrate`) per sample.  n: the state size (default: the size of ``z0``, else of
         ``K_phi`` when a matrix; required otherwise).
@@ -230,22 +201,21 @@ def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=
 
       >>> import jax.numpy as jnp
       >>> import jaxobs as jo
+      >>> law = jo.adaptive.InversionLaw(lambda t, x, phi: phi, adaptation_gain=5.0)
       >>> params = jo.make_modular(lambda t, x: -x, lambda t, x: jnp.eye(1), lambda t, x, th: th, theta0=[0.0],
-      ...     K_phi=10.0, Gamma=5.0, dt=0.01, n=1, law="inversion", theta_star=lambda t, x, phi: phi)
+      ...     K_phi=10.0, law=law, dt=0.01, n=1)
       >>> x = 2.0 * (1 - jnp.exp(-0.01 * jnp.arange(500)))[:, None]
       >>> _, out = jo.run(jo.modular_estimator, params, jo.EstimatorInputs(y=x))
       >>> bool(jnp.abs(out.theta_hat[-1, 0] - 2.0) < 1e-3)
       True
     """
-    if law not in LAWS:
-        raise ValueError(f"law must be one of {LAWS}, got {law!r}")
     f, B, g = (_checks.function(name, fn) for name, fn in (("f", f), ("B", B), ("g", g)))
     theta0 = jnp.atleast_1d(jnp.asarray(theta0))
     _checks.shape("theta0", theta0, (None,), "the initial parameter estimate, a vector")
-    dtype = _checks.float_dtype(theta0=theta0, K_phi=K_phi, Gamma=Gamma, dt=dt, t0=t0, z0=z0)
+    dtype = _checks.float_dtype(theta0=theta0, K_phi=K_phi, dt=dt, t0=t0, z0=z0)
     theta0 = theta0.astype(dtype)
     _checks.finite("theta0", theta0)
-    p = theta0.shape[0]
+    n_theta = theta0.shape[0]
     if n is None:
         if z0 is not None:
             n = jnp.shape(z0)[0]
@@ -254,7 +224,7 @@ def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=
         else:
             raise ValueError("n is required: the state size follows from z0 or a matrix K_phi, neither was given")
     n = _checks.count("n", n, minimum=1, hint="the size of the measured state x")
-    K_phi, Gamma = _checks.gain("K_phi", K_phi, n, dtype), _checks.gain("Gamma", Gamma, p, dtype)
+    K_phi = _checks.gain("K_phi", K_phi, n, dtype)
     z0 = jnp.zeros(n, dtype) if z0 is None else _checks.vector("z0", z0, n, dtype)
     t_, x_ = jnp.zeros((), dtype), jnp.zeros(n, dtype)
     _checks.returns("f(t, x)", f, (t_, x_), (n,), "dx/dt's known part, one entry per state")
@@ -269,42 +239,15 @@ def make_modular(f, B, g, *, theta0, K_phi, Gamma, dt, law: str = "gradient", v=
     if v is not None:
         v = _checks.function("v", v)
         _checks.returns("v(t, x, u)", v, (t_, x_, jnp.zeros(n_inputs, dtype)), (m,), "the known input, m entries")
-    if law in ("inversion", "intermittent"):
-        if theta_star is None:
-            raise ValueError(f"theta_star is required by law={law!r}: the inverse theta*(t, x, phi) of phi = B g")
-        theta_star = _checks.function("theta_star", theta_star)
-        _checks.returns("theta_star(t, x, phi)", theta_star, (t_, x_, x_), (p,), "one entry per parameter")
-    if law == "intermittent":
-        if l is None:
-            raise ValueError("l is required by law='intermittent': the weight l(t, x) in [0, 1] of Prop. 5.2")
-        l = _checks.function("l", l)
-        _checks.returns("l(t, x)", l, (t_, x_), (), "a scalar weight in [0, 1]")
-    if law == "custom":
-        if direction is None:
-            raise ValueError("direction is required by law='custom': the rate direction(t, x, phi, theta_hat)")
-        direction = _checks.function("direction", direction)
-        _checks.returns("direction(t, x, phi, theta_hat)", direction, (t_, x_, x_, theta0), (p,), "one per parameter")
-    if M is not None:
-        M = _checks.function("M", M)
-        _checks.returns("M(t, x, theta_hat)", M, (t_, x_, theta0), (p, n), "a (p, n) matrix")
-    epsilon = jnp.asarray(epsilon, dtype)
-    _checks.positive_scalar("epsilon", epsilon)
-    if region is not None:
-        if not callable(region):
-            raise ValueError(f"region must be a callable P(theta) -> (), e.g. jaxobs.adaptive.Box, got {region!r}")
-        _checks.returns("region(theta)", region, (theta0,), (), "the scalar P(theta) of the projection set")
-        value = region(theta0)
-        if _checks.is_concrete(value, epsilon) and not float(value) <= float(epsilon):
-            raise ValueError(
-                f"theta0 must lie in the projection set {{P(theta) <= epsilon = {float(epsilon):.6g}}}, got "
-                f"P(theta0) = {float(value):.6g}"
-            )
+    adaptive.check_law(law, theta0)
     lower, upper = (-jnp.inf, jnp.inf) if phi_bounds is None else phi_bounds
     lower = jnp.broadcast_to(jnp.asarray(lower, dtype), (n,))
     upper = jnp.broadcast_to(jnp.asarray(upper, dtype), (n,))
     if _checks.is_concrete(lower, upper) and not bool(jnp.all(lower < upper)):
         raise ValueError("phi_bounds must be (lower, upper) with lower < upper in every entry")
-    model = ModularModel(f, B, g, v, theta_star, l, M, direction, K_phi, Gamma, region, epsilon, lower, upper, law)
+    model = ModularModel(f, B, g, v, law, K_phi, lower, upper)
+    _checks.returns("law(B g, (t, x), phi_hat, theta_hat)", lambda t, x, th: parameter_rate(model, t, x, x, th),
+                    (t_, x_, theta0), (n_theta,), "theta_hat_dot, one entry per parameter")  # fmt: skip
     part = jax.tree_util.Partial
     sampled = make_continuous_observer(part(modular_rate, model), part(_x_hat, model), x0=ModularState(z0, theta0),
                                        dt=dt, t0=t0, n_inputs=n_inputs, substeps=substeps, method=method)  # fmt: skip

@@ -1,22 +1,10 @@
 """The unscented Kalman filter (UKF) with the unscented or the cubature sigma-point rule.
 
-The model is a :class:`~jaxobs.nonlinear.NonlinearModel`; each map ``g`` (``f`` or ``h``) is propagated through
-``2n + 1`` sigma points of the current Gaussian ``N(m, P)``, ``P = L L'`` (Cholesky)::
-
-    X_0 = m,   X_i = m + c L e_i,   X_{n+i} = m - c L e_i,   c^2 = alpha^2 (n + kappa),   lambda = c^2 - n
-    W_0^m = lambda / c^2,   W_0^c = W_0^m + 1 - alpha^2 + beta,   W_i^m = W_i^c = 1 / (2 c^2)
-
-(the scaled unscented transform, Wan & van der Merwe 2000; Julier & Uhlmann 2004). The cubature rule
-(Arasaratnam & Haykin 2009) is the case ``alpha = 1, beta = 0, kappa = 0``: the centre point has weight zero and
-the others ``1 / (2n)``. The moments ``g_bar = sum W^m g(X_i)``, ``C = sum W^c (X_i - m)(g(X_i) - g_bar)'`` and
-``Cov = sum W^c (g(X_i) - g_bar)(...)'`` define the statistical linear regression ``G = C' P^{-1}``,
-``Omega = Cov - G C`` (Särkkä 2013, ch. 5-6), and the step is the Kalman step of :mod:`jaxobs.nonlinear`: the
-prediction ``P_prior = Cov_f + Q``, the update with ``S = Cov_h + R`` and gain ``C_h S^{-1}`` (in Joseph form),
-exactly the UKF's. Continuous-discrete models integrate the sigma-point moment equations (Särkkä 2007);
-``iterations > 1`` relinearises ``h`` on sigma points of the latest posterior (the iterated posterior
-linearisation filter, García-Fernández et al. 2015).
-
-``P`` must stay positive definite (the Cholesky factor); prior and missing data as in the Kalman filter.
+Each map of a :class:`~jaxobs.nonlinear.NonlinearModel` is propagated through ``2n + 1`` sigma points of the
+current Gaussian (the scaled unscented transform, Wan & van der Merwe 2000; Julier & Uhlmann 2004; the cubature
+rule of Arasaratnam & Haykin 2009 is ``alpha = 1, beta = 0, kappa = 0``), and the step is the Kalman step of
+:mod:`jaxobs.nonlinear` on the statistical linear regression. ``P`` must stay positive definite.
+:func:`make_ukf`, :data:`unscented_kalman_filter`. The sigma points and weights: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -27,10 +15,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import cho_solve, cholesky
+from jaxobs._linalg import cho_solve, cholesky, symmetrize
 from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
 from jaxobs.observers.base import Estimator, EstimatorInputs
-from jaxobs.riccati import symmetrize
 
 __all__ = ["UKFParams", "make_ukf", "unscented_kalman_filter", "sigma_points", "unscented", "RULES"]
 
@@ -50,7 +37,7 @@ class UKFParams:
         they may be traced, batched or differentiated.
       iterations: static number of updates per sample (1: the plain UKF).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
-        rounding; :func:`jaxobs.riccati.update_covariance_factors`).
+        rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
     """
 
     model: NonlinearModel

@@ -74,6 +74,7 @@ def check_common(config: dict, source: str) -> None:
 
 
 def settings(config: dict) -> TuneSettings:
+    """The optimiser settings of a tuning configuration (its ``[optimizer]`` table)."""
     return TuneSettings(**config["optimizer"])
 
 

@@ -1,26 +1,10 @@
 """Tuning the Kalman filter of an LQG controller against MJX rollouts of your own robot (any MJCF).
 
-The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with the actuators the controller drives, the
-sensors it measures, the control period in physics steps, the dead time and the sensor noise. The controller is
-designed on the nominal model linearised about the operating point (:func:`jaxobs.mjx.robot.linearize`, dead-time
-slots included): a steady-state Kalman filter with the noise covariances ``Q`` (the plant states; the dead-time
-slots are known exactly, so zero) and ``R`` being tuned, the LQR state feedback of ``design.lqr_state`` and
-``design.lqr_input``, and a reference pre-gain so the ``scenario.tracked`` sensors follow ``scenario.reference``.
-Tuned: ``log_q`` (the diagonal of ``Q`` over ``(qpos, qvel)``) and ``log_r`` (the diagonal of ``R``), from the
-hand-set ``design.q`` and ``R = diag(sensor_noise^2)``.
-
-Plants: the nominal model with named fields scaled by factors drawn uniformly from ``plants.mismatch`` (e.g. the
-payload mass, ``body_mass[payload] = [0.25, 2.0]``; :func:`jaxobs.mjx.robot.mismatch`), each with its own sensor
-noise seed; training and held-out plants from independent keys. The per-plant loss is the mean over the rollout
-of ``sum_i w_i (y_i - y_desired_i)^2 + input_weight |u|^2`` on the noise-free measured entries, ``y_desired`` being
-the response of the desired closed loop, the LQR with the true state on the nominal linear model
-(:func:`jaxobs.closed_loop.ideal_response`; as in the force problem, after Cortesão 2006 eq. 43): what is left is
-the observer's share, the noise it lets through and the error of its model on the mismatched plant. A rollout
-that is not finite or leaves ``scenario.state_limit`` of the operating point counts as diverged.
-
-The shipped example (``examples/robots/cartpole_payload.xml``, ``tuning/cartpole_payload.toml``) is a cart
-carrying a hanging pole with a payload of unknown mass (a gantry crane) moved 0.5 m with its pole kept still.
-Relative MJCF paths are read from the current directory.
+The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with its actuators, sensors, control period,
+dead time and sensor noise; the controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the
+model linearised about the operating point. Tuned: ``log_q`` and ``log_r``; the loss is the error against the
+desired closed loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
+``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
 """
 
 from __future__ import annotations

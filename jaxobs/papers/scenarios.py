@@ -43,6 +43,7 @@ class Reproduction:
     headline: tuple[str, ...] = ()
 
     def __post_init__(self):
+        """Keep the summary's first paragraph only."""
         object.__setattr__(self, "summary", first_paragraph(self.summary))
 
 
@@ -146,9 +147,12 @@ class TuningScenario(_Configured):
     build: Callable[[dict], Any]
 
     def config_notes(self) -> dict:
+        """Comments on the configuration keys, the tuning keys' included."""
         return {**super().config_notes(), **_tuning_config.COMMON_NOTES}
 
     def validate(self, given: dict | None = None, source: str = "<default>") -> dict:
+        """The defaults merged with ``given``, checked, the tuning keys included (a :class:`ConfigError` names the
+        first invalid key)."""
         config = super().validate(given, source)
         _tuning_config.check_common(config, source)
         return config

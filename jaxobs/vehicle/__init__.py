@@ -1,22 +1,13 @@
-"""A planar vehicle simulator for the sideslip observers of Grip 2010 (ch. 2-4): tyres, a two-track model,
-ESC-type sensors and manoeuvres modelled on the thesis's test drives.
+"""A planar vehicle simulator for the sideslip observers of Grip 2010 (ch. 2-4).
 
-``tyres``: Magic Formula and Burckhardt tyre curves with combined slip in the friction ellipse.
-``model``: the planar two-track model (:class:`VehicleParams`, :func:`dynamics`, the friction model's
-:func:`lateral_acceleration`).
-``sensors``: ESC-type measurements at 100 Hz with bias, drift, noise and the 15 Hz low-pass (:func:`measure`).
-``manoeuvres``: the named test drives modelled on Grip 2010 §2.10 (:data:`MANOEUVRES`, :func:`manoeuvre`).
-``simulate``: a driver that follows a :class:`Command` and :func:`simulate` (RK4 at 1 ms in one ``lax.scan``).
-``nvso``: the nonlinear vehicle sideslip observer of Grip 2010 ch. 2 (:func:`make_nvso`, :data:`nvso`).
-``ekf``: its EKF baseline of Grip 2010 §2.9 (:func:`make_vehicle_ekf`, :data:`vehicle_ekf`).
-``lateral``: the friction-adaptive observers (3.4) and (3.14) of Grip 2010 ch. 3 (:func:`make_adaptive_lateral`,
-:data:`lateral_observer`, :data:`full_observer`, :func:`lyapunov_3_1`, :func:`lemma_3_1_check`).
-``road_angles``: the inclination and bank estimators of Grip 2010 ch. 4 (:func:`make_road_angles`,
-:data:`road_angles`, :data:`road_angles_adaptive`) and the gain bounds of its Lemmas 4.1-4.2 (:func:`lemma_check`).
+``tyres`` (Magic Formula and Burckhardt curves, combined slip), ``model`` (the two-track model, the friction
+model), ``sensors`` (ESC-type measurements and the observers' sensor vector), ``manoeuvres`` (test drives modelled
+on Grip 2010 §2.10), ``simulate`` (a driver and RK4 in one ``lax.scan``), ``switching`` (the friction-estimation
+switch of §2.5); the observers ``nvso`` (Grip 2010 ch. 2), ``ekf`` (its EKF baseline, §2.9), ``lateral`` (the
+friction-adaptive observers of ch. 3) and ``road_angles`` (inclination and bank, ch. 4).
 
-Every parameter set is a registered dataclass pytree, so a batch of vehicles is a dataclass of arrays under
-``vmap``; everything is pure and works under ``jit``, ``vmap`` and ``grad``. ``import jaxobs`` does not import
-this package.
+Parameters are registered dataclass pytrees (a batch of vehicles is a ``vmap``); everything is pure under ``jit``,
+``vmap`` and ``grad``. ``import jaxobs`` does not import this package. Design notes: docs/theory/vehicle.md.
 """
 
 from jaxobs.vehicle.ekf import VehicleEKFOutputs, VehicleEKFParams, VehicleEKFState, make_vehicle_ekf, vehicle_ekf
@@ -32,7 +23,7 @@ from jaxobs.vehicle.lateral import (
     make_adaptive_lateral,
     vehicle_model,
 )
-from jaxobs.vehicle.manoeuvres import MANOEUVRES, manoeuvre
+from jaxobs.vehicle.manoeuvres import MANOEUVRES, Command, Manoeuvre, manoeuvre
 from jaxobs.vehicle.model import (
     GRAVITY,
     MIN_SPEED,
@@ -49,7 +40,7 @@ from jaxobs.vehicle.model import (
     steady_state,
     wheel_kinematics,
 )
-from jaxobs.vehicle.nvso import N_SENSORS, NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso, sensor_inputs
+from jaxobs.vehicle.nvso import NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso
 from jaxobs.vehicle.road_angles import (
     FinalAngles,
     LemmaCheck,
@@ -66,8 +57,9 @@ from jaxobs.vehicle.road_angles import (
     road_angles,
     road_angles_adaptive,
 )
-from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements, SensorParams, low_pass, measure
-from jaxobs.vehicle.simulate import PLANT_STEP, Command, Manoeuvre, Trajectory, driver, simulate
+from jaxobs.vehicle.sensors import N_SENSORS, SENSOR_RATE, Measurements, SensorParams, low_pass, measure, sensor_inputs
+from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory, driver, simulate
+from jaxobs.vehicle.switching import SwitchingParams, make_switching
 from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
 
 __all__ = [
@@ -110,6 +102,8 @@ __all__ = [
     "make_nvso",
     "nvso",
     "sensor_inputs",
+    "SwitchingParams",
+    "make_switching",
     "VehicleEKFOutputs",
     "VehicleEKFParams",
     "VehicleEKFState",

@@ -1,57 +1,12 @@
 """The extended Kalman filter baseline of Grip 2010 §2.9 for vehicle sideslip, on the toolkit's EKF
 (:mod:`jaxobs.observers.ekf`), with Bierman's U-D measurement update as an option.
 
-State (8,): ``v_x``, ``v_y`` (m/s), the inclination ``theta_i = sin(Theta)``, the bank ``theta_b = cos(Theta)
-sin(Phi)``, the road friction ``mu`` (the scale of the tyres' peak friction, 1 = their own) and the time
-derivatives ``d_i``, ``d_b``, ``d_mu`` of the last three, each a first-order filtered white noise (§2.9: "the
-derivatives of mu_H, inclination and bank are modelled as filtered white noise")::
-
-    v_x' = a_x + r v_y + g theta_i,    v_y' = a_y - r v_x - g theta_b                     (2.11)-(2.12)
-    theta_i' = d_i,  theta_b' = d_b,  mu' = d_mu - (1 - m) k_mu (mu - mu0),    d' = -d / tau + w,   var w = q_d^2
-
-with the measured ``a_x``, the roll-corrected ``a_y`` and the yaw rate ``r`` of the previous sample as known inputs
-(the yaw rate as a known time-varying signal makes the process model linear time-varying, as in the thesis), and
-white process noise ``q_v`` (m/s^2) on the two velocity equations (the accelerometer noise). Forward Euler at the
-sensor period (§2.9): ``x_k = x_{k-1} + dt f(x_{k-1}, u_{k-1})``, ``Q = dt diag(q_v^2, q_v^2, 0, 0, 0, q_d^2)``.
-
-Measurements (4,): ``a_x``, the roll-corrected ``a_y``, the yaw acceleration ``r'`` (the difference of two yaw-rate
-samples over ``dt``) and ``v_x,ref``; the model is the friction model (:func:`jaxobs.vehicle.friction_model`) at the
-estimated ``v_x``, ``v_y`` and friction ``mu``, evaluated with the current steering
-angle, wheel speeds, yaw rate and the loads of the measured accelerations (force and moment balances: ``a_x = F_x /
-m``, ``a_y = F_y / m``, ``r' = M / I_z``), and ``v_x`` for ``v_x,ref``.
-
-After each update the estimate of ``mu`` is projected onto ``[max(lo, |(a_x, a_y)| / (accel_margin g)), hi]``
-(``mu_bounds = (lo, hi)``, ``accel_margin`` of the switching params: the bounds the NVSO clips its friction estimate
-to, §2.8): below the acceleration bound the friction model cannot produce the measured acceleration, and outside
-``mu_bounds`` the friction model carries no information on ``mu``.
-
-Friction estimation switches between slow and fast (§2.9) with the NVSO's rule (:func:`jaxobs.vehicle.nvso.switching`,
-Grip 2010 §2.5, on the EKF's ``v_x``): the intensity of the noise that drives ``d_mu`` is ``q_mu_slow`` in mode
-``m = 0`` and ``q_mu_fast`` in mode 1 (blended by a smooth gate when the switching params are ``smooth``), and in
-slow estimation ``mu`` is drawn to its default ``mu0`` at the rate ``k_mu`` (``mu_attraction``), as the NVSO draws
-its friction estimate to ``theta*`` in its mode 1 ((2.20), §2.5: a high default, because high friction is the
-common case and a too-low friction gives too-high sideslip estimates).
-
-Why the attraction, the innovation gate (``gate``) and the prior (``P0_diag``; ``v_x`` from the first
-``v_x,ref``): without them the filter diverged on the 40 m circle and the ice lake from their first samples. A
-drive that starts with the steering wheel already turned (the circle's driver steers 18 deg of road-wheel angle at
-8 m/s from a straight run) meets the friction model, which has no tyre relaxation, with 18 deg of steady-state
-front slip while the simulated tyres have none yet: the model predicted ``a_x = -5.7``, ``a_y = 4.0`` m/s^2 against
-the measured 3.9 and 1.2. With a wide prior (variances 1 on ``v_x``, ``v_y``, 0.05 on ``mu``) the linearised first
-update took this as a low friction (``mu`` 1 -> 0.35 in one sample); at ``mu`` near ``|a| / g`` every model tyre
-saturates, where ``a_y`` and ``r'`` no longer depend on ``v_y`` (and fall with it past the tyre's peak), so ``v_y``
-ran off to a consistent but wrong fixed point (sideslip -20 to -31 deg where the true one stayed within +-1.6 deg,
-innovations 0.03 m/s^2) that the slow-mode noise could not leave. The prior now says what a start knows (``v_x``
-from ``v_x,ref``, ``mu`` near the nominal), the gate rejects what the model cannot explain (4 sigma outliers such as
-those start-up samples, counted in ``state.filter.gated``) and the attraction keeps ``mu`` at the high default
-where nothing excites the tyres, where the friction model carries little information on ``mu`` and its small
-errors would otherwise walk the estimate down into the saturated region. The price is the NVSO's: on a low-friction
-road without excitation the friction estimate stays near ``mu0``.
-
-Assumptions (the thesis gives no numbers): the noise intensities, the thresholds, the gate, the attraction and the
-prior are assumed defaults (:func:`make_vehicle_ekf`). Missing data: a non-finite sensor sample is
-held at the channel's last finite value in the model and the measurements built from it are skipped by the EKF;
-both are counted (``state.missing`` counts the non-finite sensor entries).
+State (8,): ``v_x``, ``v_y``, the inclination, the bank, the road friction ``mu`` and the derivatives of the last
+three as filtered white noise; measurements (4,): ``a_x``, ``a_y``, the yaw acceleration and ``v_x,ref`` against
+the friction model. Friction estimation switches between slow and fast with the NVSO's rule
+(:mod:`jaxobs.vehicle.switching`). The noise intensities, thresholds, innovation gate, attraction of ``mu`` and
+prior are assumed defaults (:func:`make_vehicle_ekf`; the thesis gives no numbers). :data:`vehicle_ekf`. The model,
+the projection of ``mu`` and why the gate, prior and attraction are needed: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -68,12 +23,10 @@ from jaxobs.nonlinear import GaussianState, nonlinear_model
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.ekf import EKFParams, extended_kalman_filter, make_ekf
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import N_SENSORS, NVSOParams, make_nvso, switching
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
+from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
 __all__ = ["VehicleEKFParams", "VehicleEKFState", "VehicleEKFOutputs", "make_vehicle_ekf", "vehicle_ekf"]
-
-_AX, _AY, _R, _SW, _OMEGA, _VREF = 0, 1, 2, 3, slice(4, 8), 8
 
 
 @jax.tree_util.register_dataclass
@@ -86,37 +39,58 @@ class VehicleEKFParams:
       ekf: the :class:`~jaxobs.observers.ekf.EKFParams` of the state-space model (its measurement function is
         rebound to the current sensors at every step); ``ekf.bierman`` selects Bierman's update.
       mu_bounds: (2,) the range of ``mu`` the friction model is evaluated at.
-      switching: the :class:`~jaxobs.vehicle.NVSOParams` whose switching thresholds (and ``smooth``) select slow or
-        fast friction estimation.
+      switching: the :class:`~jaxobs.vehicle.switching.SwitchingParams` whose thresholds (and ``smooth``) select
+        slow or fast friction estimation.
       q_mu: (2,) the intensities of the noise that drives ``d_mu`` in slow and fast friction estimation.
     """
 
     vehicle: VehicleParams
     ekf: EKFParams
     mu_bounds: jax.Array
-    switching: NVSOParams
+    switching: SwitchingParams
     q_mu: jax.Array
 
 
 class VehicleEKFState(NamedTuple):
-    filter: GaussianState  # the EKF's state
-    mode: jax.Array  # () fast friction estimation (1) or slow (0), for the next interval
-    off_timer: jax.Array  # () the switching logic's timer (s)
-    low_pass: jax.Array  # () its high-pass filter's state
-    sensors: jax.Array  # (N_SENSORS,) last finite sensor sample
-    missing: jax.Array  # () int32, non-finite sensor entries so far
+    """State of :data:`vehicle_ekf` between samples.
+
+    Attributes:
+      filter: the EKF's state
+      mode: () fast friction estimation (1) or slow (0), for the next interval
+      off_timer: () the switching logic's timer (s)
+      low_pass: () its high-pass filter's state
+      sensors: (N_SENSORS,) last finite sensor sample
+      missing: () int32, non-finite sensor entries so far
+    """
+
+    filter: GaussianState
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    sensors: jax.Array
+    missing: jax.Array
 
 
 class VehicleEKFOutputs(NamedTuple):
-    x: jax.Array  # (8,) a-posteriori state (v_x, v_y, theta_i, theta_b, mu, d_i, d_b, d_mu)
-    P: jax.Array  # (8, 8) its covariance
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
-    mode: jax.Array  # () the friction-estimation mode of the interval (1 fast)
-    innovation: jax.Array  # (4,) (a_x, a_y, r', v_x,ref) minus the model at the prior (0 where skipped)
+    """Outputs of one sample of :data:`vehicle_ekf`.
+
+    Attributes:
+      x: (8,) a-posteriori state (v_x, v_y, theta_i, theta_b, mu, d_i, d_b, d_mu)
+      P: (8, 8) its covariance
+      beta: () sideslip arctan(v_y / v_x) (rad)
+      mode: () the friction-estimation mode of the interval (1 fast)
+      innovation: (4,) (a_x, a_y, r', v_x,ref) minus the model at the prior (0 where skipped)
+    """
+
+    x: jax.Array
+    P: jax.Array
+    beta: jax.Array
+    mode: jax.Array
+    innovation: jax.Array
 
 
 def _process(constants, x, u, t):
-    """The Euler map ``x + dt f(x, u)`` of the process model (module docstring); ``constants = (dt, tau, k_mu,
+    """The Euler map ``x + dt f(x, u)`` of the process model (docs/theory/vehicle.md); ``constants = (dt, tau, k_mu,
     mu0)``, ``u = (a_x, a_y, r, 1 - m)`` with the friction-estimation mode ``m`` of the interval."""
     dt, tau, k_mu, mu0 = constants
     ax, ay, r, slow = u
@@ -128,9 +102,10 @@ def _process(constants, x, u, t):
 
 def _measurement(vehicle, mu_bounds, sensors, x):
     """``(a_x, a_y, r', v_x)`` of the friction model at the state ``x`` and the current ``sensors``."""
-    ax, ay = sensors[_AX], sensors[_AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
+    ax, ay = sensors[AX], sensors[AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
     mu = jnp.clip(x[4], mu_bounds[0], mu_bounds[1])
-    f = friction_model(vehicle, x[0], x[1], sensors[_R], sensors[_SW], sensors[_OMEGA], ax, ay, mu)
+    r, steering_wheel, wheel_speed = sensors[YAW_RATE], sensors[STEERING_WHEEL], sensors[WHEEL_SPEED]
+    f = friction_model(vehicle, x[0], x[1], r, steering_wheel, wheel_speed, ax, ay, mu)
     return jnp.stack([f.ax, f.ay, f.yaw_moment / vehicle.yaw_inertia, x[0]])
 
 
@@ -148,7 +123,7 @@ def make_vehicle_ekf(
     mu0: float = 1.0,
     mu_bounds=(0.05, 1.5),
     dt: float = 1.0 / SENSOR_RATE,
-    switching: NVSOParams | None = None,
+    switching: SwitchingParams | None = None,
     gate: float | None = 4.0,
     mu_attraction: float = 0.5,
 ) -> VehicleEKFParams:
@@ -167,11 +142,11 @@ def make_vehicle_ekf(
       P0_diag: (8,) prior variances (>= 0). Default: ``v_x`` 0.01 (the ``v_x,ref`` it starts from, ``r_std``
         0.1 m/s), ``v_y`` 0.1 (0.3 m/s), the angles 1e-3 (1.8 deg), ``mu`` 0.01 (0.1 about the nominal
         surface), the derivatives 1e-5, 1e-5, 1e-4. A wide prior (variances 1 on ``v_x`` and ``v_y``, 0.05 on
-        ``mu``) lets the first updates take a start-up transient for a low friction (module docstring).
+        ``mu``) lets the first updates take a start-up transient for a low friction (docs/theory/vehicle.md).
       mu_bounds: (lo, hi) with ``0 < lo < hi``: the friction range the model is evaluated at.
       dt: sample period (s, > 0).
-      switching: the :class:`~jaxobs.vehicle.NVSOParams` of the switching rule (default ``make_nvso(vehicle)``;
-        its ``dt`` must be this ``dt``).
+      switching: the :class:`~jaxobs.vehicle.switching.SwitchingParams` of the switching rule (default
+        ``make_switching(vehicle, dt=dt)``, the NVSO's thresholds; its ``dt`` must be this ``dt``).
       gate: innovation gate in standard deviations (> 0; default 4, ``None`` for none): a measurement component
         whose innovation exceeds ``gate`` times its predicted standard deviation is skipped as an outlier
         (:func:`jaxobs.kalman_steps.innovation_gate`) and counted in ``state.filter.gated``; it keeps transients
@@ -198,9 +173,10 @@ def make_vehicle_ekf(
     _checks.shape("q_d", q_d, (2,), "one intensity per angle derivative")
     q_mu = jnp.asarray(q_mu, float)
     _checks.shape("q_mu", q_mu, (2,), "(slow, fast)")
-    switching = make_nvso(vehicle, dt=dt) if switching is None else switching
-    if not isinstance(switching, NVSOParams):
-        raise ValueError(f"switching must be NVSOParams (jaxobs.vehicle.make_nvso), got {type(switching).__name__}")
+    switching = make_switching(vehicle, dt=dt) if switching is None else switching
+    if not isinstance(switching, SwitchingParams):
+        kind = type(switching).__name__
+        raise ValueError(f"switching must be SwitchingParams (jaxobs.vehicle.make_switching), got {kind}")
     _checks.shape("r_std", r_std, (4,), "one per measurement (a_x, a_y, r', v_x,ref)")
     _checks.shape("P0_diag", P0_diag, (8,), "one variance per state")
     mu_bounds = jnp.asarray(mu_bounds, float)
@@ -219,8 +195,8 @@ def make_vehicle_ekf(
 
 def _init(params: VehicleEKFParams) -> VehicleEKFState:
     model = params.ekf.model
-    sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[_VREF].set(model.x0[0])
-    sensors = sensors.at[_OMEGA].set(model.x0[0] / params.vehicle.wheel_radius)
+    sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[VX_REF].set(model.x0[0])
+    sensors = sensors.at[WHEEL_SPEED].set(model.x0[0] / params.vehicle.wheel_radius)
     zero = jnp.zeros((), model.x0.dtype)
     timer = jnp.asarray(params.switching.off_delay, model.x0.dtype)
     return VehicleEKFState(extended_kalman_filter.init(params.ekf), zero, timer, zero, sensors,
@@ -235,14 +211,14 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     sensors = jnp.where(finite, y, state.sensors)
     previous = state.sensors
     roll = 1.0 + vehicle.roll_gradient * GRAVITY
-    u_prev = jnp.stack([previous[_AX], previous[_AY] / roll, previous[_R], 1.0 - state.mode])
+    u_prev = jnp.stack([previous[AX], previous[AY] / roll, previous[YAW_RATE], 1.0 - state.mode])
     first = ~state.filter.started
     # the prior mean of v_x is the first finite v_x,ref (the NVSO's start); vx0 only without one
-    start = state.filter.x.at[0].set(jnp.where(finite[_VREF], y[_VREF], state.filter.x[0]))
+    start = state.filter.x.at[0].set(jnp.where(finite[VX_REF], y[VX_REF], state.filter.x[0]))
     filt = state.filter._replace(x=jnp.where(first, start, state.filter.x))
     # r' needs two finite yaw-rate samples; NaN (skipped by the EKF) otherwise and at the first sample
-    yaw_acc = jnp.where(state.filter.started & finite[_R], (y[_R] - previous[_R]) / model.dt, jnp.nan)
-    z = jnp.stack([y[_AX], y[_AY] / roll, yaw_acc, y[_VREF]])
+    yaw_acc = jnp.where(state.filter.started & finite[YAW_RATE], (y[YAW_RATE] - previous[YAW_RATE]) / model.dt, jnp.nan)
+    z = jnp.stack([y[AX], y[AY] / roll, yaw_acc, y[VX_REF]])
     h = Partial(_measurement, vehicle, params.mu_bounds, sensors)
     q_mu = (1.0 - state.mode) * params.q_mu[0] ** 2 + state.mode * params.q_mu[1] ** 2
     Q = model.Q.at[7, 7].set(model.dt * q_mu)
@@ -250,15 +226,15 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     filt, out = extended_kalman_filter.step(ekf, filt, EstimatorInputs(y=z, u_prev=u_prev))
     # projection onto [max(lo, |(a_x, a_y)| / (accel_margin g)), hi] (the NVSO's bounds, Grip 2010 §2.8)
     lower = jnp.maximum(
-        params.mu_bounds[0], jnp.hypot(sensors[_AX], sensors[_AY] / roll) / (params.switching.accel_margin * GRAVITY)
+        params.mu_bounds[0], jnp.hypot(sensors[AX], sensors[AY] / roll) / (params.switching.accel_margin * GRAVITY)
     )
     x = out.x.at[4].set(jnp.clip(out.x[4], jnp.minimum(lower, params.mu_bounds[1]), params.mu_bounds[1]))
     filt, out = filt._replace(x=x), out._replace(x=x)
-    switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[_R], sensors[_AY] / roll,
-                       sensors[_SW])  # fmt: skip
+    switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[YAW_RATE],
+                       sensors[AY] / roll, sensors[STEERING_WHEEL])  # fmt: skip
     mode = jnp.where(first, state.mode, switch.mode)
     timer = jnp.where(first, state.off_timer, switch.off_timer)
-    low_pass = jnp.where(first, sensors[_AY] / roll - sensors[_R] * out.x[0], switch.low_pass)  # HP starts at 0
+    low_pass = jnp.where(first, sensors[AY] / roll - sensors[YAW_RATE] * out.x[0], switch.low_pass)  # HP starts at 0
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
     beta = jnp.arctan2(out.x[1], out.x[0])
     new_state = VehicleEKFState(filt, mode, timer, low_pass, sensors, missing)
@@ -266,6 +242,6 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
 
 
 vehicle_ekf = Estimator(_init, _step)
-"""The vehicle EKF (module docstring) as an :class:`~jaxobs.observers.base.Estimator` over
+"""The vehicle EKF (docs/theory/vehicle.md) as an :class:`~jaxobs.observers.base.Estimator` over
 :class:`VehicleEKFParams`. Inputs: ``EstimatorInputs(y)`` with the sensors ``y`` (:data:`jaxobs.vehicle.N_SENSORS`,)
 (:func:`jaxobs.vehicle.sensor_inputs`). State: :class:`VehicleEKFState`. Outputs: :class:`VehicleEKFOutputs`."""

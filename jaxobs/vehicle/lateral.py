@@ -9,7 +9,8 @@ moment ``theta f_r*``. With the held ESC measurements (roll-corrected ``a_y``, y
     v_y'   = a_y - r v_x + K_vy Lambda xi e                                    (3.4a)
     theta' = Gamma K_vy Lambda f_y^* e                                         (3.4b)
 
-with ``v_x = v_x,ref`` measured, and the full observer (``Gamma = Gamma_1``)::
+with ``v_x = v_x,ref`` measured and the adaptation gain ``Gamma`` (``adaptation_gain``), and the full observer
+(``Gamma_1 = adaptation_gain``, ``Gamma_2 = yaw_adaptation_gain``)::
 
     v_x'   = a_x + r v_y + K_vx (v_x,ref - v_x)                                (3.14a)
     v_y'   = a_y - r v_x + K_vy Lambda xi e + (Gamma_2 / Gamma_1) zeta (r - r^)  (3.14b)
@@ -53,8 +54,7 @@ from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.pe_monitor import PEMonitorParams, PEMonitorState, pe_monitor
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import _AX, _AY, _OMEGA, _R, _SW, _VREF, N_SENSORS
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
     "AdaptiveLateralParams",
@@ -71,8 +71,8 @@ __all__ = [
 
 
 def _vehicle_forces(vehicle: VehicleParams, v, y):
-    ay = y[_AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
-    f = friction_model(vehicle, v[0], v[1], v[2], y[_SW], y[_OMEGA], y[_AX], ay)
+    ay = y[AY] / (1.0 + vehicle.roll_gradient * GRAVITY)
+    f = friction_model(vehicle, v[0], v[1], v[2], y[STEERING_WHEEL], y[WHEEL_SPEED], y[AX], ay)
     return jnp.stack([vehicle.mass * f.ay, f.yaw_moment])
 
 
@@ -93,7 +93,8 @@ class AdaptiveLateralParams:
       model: the nominal ``model(v, y) -> (f_y*, f_r*)`` (a ``Partial``).  mass: ``m`` (kg).  yaw_inertia: ``J``.
       ay_scale: factor on the measured ``a_y`` (``1 / (1 + p_phi g)``, the roll correction of Grip 2010 §2.2; 1
         for a model without roll).
-      K_vy: lateral gain (1/kg).  Gamma: ``Gamma`` of (3.4), ``Gamma_1`` of (3.14).  Gamma_2: of (3.14).
+      K_vy: lateral gain (1/kg).  adaptation_gain: the adaptation gain ``Gamma`` of (3.4), ``Gamma_1`` of (3.14).
+      yaw_adaptation_gain: ``Gamma_2`` of (3.14), the adaptation gain on the yaw-rate residual.
       K_r: yaw-rate gain (1/s).  K_vx: longitudinal gain (1/s).  K_c: attraction to ``theta_default`` (1/s).
       theta_default: ``theta*``.  theta_min, theta_max: the clip.  Lambda_min, Lambda_max: the clip of ``Lambda``.
       high_pass_corner: of ``s / (s + c)`` (rad/s).  monitor_time: time constant of the monitor's high-pass (s).
@@ -107,8 +108,8 @@ class AdaptiveLateralParams:
     yaw_inertia: jax.Array
     ay_scale: jax.Array
     K_vy: jax.Array
-    Gamma: jax.Array
-    Gamma_2: jax.Array
+    adaptation_gain: jax.Array
+    yaw_adaptation_gain: jax.Array
     K_r: jax.Array
     K_vx: jax.Array
     K_c: jax.Array
@@ -127,8 +128,9 @@ class AdaptiveLateralParams:
 
 
 _DEFAULTS = dict(
-    Gamma=4.0, Gamma_2=None, K_r=40.0, K_vx=1.0, K_c=0.5, theta_default=1.0, theta_min=0.1, theta_max=1.0,
-    Lambda_min=1e-6, Lambda_max=1e6, high_pass_corner=0.25, monitor_time=1.0, dt=1.0 / SENSOR_RATE, vx0=20.0,
+    adaptation_gain=4.0, yaw_adaptation_gain=None, K_r=40.0, K_vx=1.0, K_c=0.5, theta_default=1.0, theta_min=0.1,
+    theta_max=1.0, Lambda_min=1e-6, Lambda_max=1e6, high_pass_corner=0.25, monitor_time=1.0, dt=1.0 / SENSOR_RATE,
+    vx0=20.0,
 )  # fmt: skip
 
 
@@ -147,13 +149,13 @@ def make_adaptive_lateral(
       monitor: :class:`~jaxobs.observers.pe_monitor.PEMonitorParams` with ``n_regressors = 1``
         (:func:`~jaxobs.observers.pe_monitor.make_pe_monitor`), or ``None`` for no monitor.
       xi_rule: ``"grip"`` or ``"tangent"``.  high_pass: filter the residual in the update laws.
-      settings: any numeric field of :class:`AdaptiveLateralParams` (``mass``, ``K_vy``, ``Gamma``...); concrete
-        values must be positive (``ValueError`` naming the field), ``theta_min < theta_max``.
+      settings: any numeric field of :class:`AdaptiveLateralParams` (``mass``, ``K_vy``, ``adaptation_gain``...);
+        concrete values must be positive (``ValueError`` naming the field), ``theta_min < theta_max``.
 
     Example:
       >>> from jaxobs.vehicle.lateral import make_adaptive_lateral
-      >>> params = make_adaptive_lateral(Gamma=5.0)
-      >>> float(params.Gamma), float(params.K_vy * params.mass)
+      >>> params = make_adaptive_lateral(adaptation_gain=5.0)
+      >>> float(params.adaptation_gain), float(params.K_vy * params.mass)
       (5.0, 1.0)
     """
     vehicle = VehicleParams() if vehicle is None else vehicle
@@ -172,10 +174,10 @@ def make_adaptive_lateral(
     values = dict(_DEFAULTS, mass=vehicle.mass, yaw_inertia=vehicle.yaw_inertia, ay_scale=scale)
     values.update(settings)
     values.setdefault("K_vy", 1.0 / values["mass"])
-    if values["Gamma_2"] is None:
-        values["Gamma_2"] = 0.1 / values["yaw_inertia"]
+    if values["yaw_adaptation_gain"] is None:
+        values["yaw_adaptation_gain"] = 0.1 / values["yaw_inertia"]
     for name, value in values.items():
-        _checks.positive(name, value, allow_zero=name in ("Gamma_2", "K_c", "theta_min", "vx0"))
+        _checks.positive(name, value, allow_zero=name in ("yaw_adaptation_gain", "K_c", "theta_min", "vx0"))
     if _checks.is_concrete(values["theta_min"], values["theta_max"]) and not values["theta_min"] < values["theta_max"]:
         raise ValueError(f"theta_min must be below theta_max, got {values['theta_min']} >= {values['theta_max']}")
     dtype = _checks.float_dtype(**values)
@@ -205,7 +207,7 @@ class AdaptiveLateralOutputs(NamedTuple):
 def _init(params: AdaptiveLateralParams) -> AdaptiveLateralState:
     dtype = params.dt.dtype
     vx0 = params.vx0
-    y = jnp.zeros((N_SENSORS,), dtype).at[_VREF].set(vx0)
+    y = jnp.zeros((N_SENSORS,), dtype).at[VX_REF].set(vx0)
     x = jnp.stack([vx0, jnp.zeros((), dtype), jnp.zeros((), dtype), params.theta_default])
     monitor = None if params.monitor is None else pe_monitor.init(params.monitor)
     zero = jnp.zeros((), jnp.int32)
@@ -220,13 +222,13 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
 
     m = state.y  # held over [t_{k-1}, t_k]
-    ax, r, vref = m[_AX], m[_R], m[_VREF]
+    ax, r, vref = m[AX], m[YAW_RATE], m[VX_REF]
     _, vy, r_hat, theta = state.x
     vx = state.x[0] if full else vref
     r_model = r_hat if full else r
     forces = lambda vy: params.model(jnp.stack([vx, vy, r_model]), m)
     (f_y, f_r), (slope, zeta) = jax.jvp(forces, (vy,), (jnp.ones_like(vy),))
-    ay = m[_AY] * params.ay_scale
+    ay = m[AY] * params.ay_scale
     may = params.mass * ay
 
     tiny = 1.0 / params.Lambda_max  # keeps 1 / norm and its derivative finite where f_y* and xi vanish
@@ -252,11 +254,11 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
         monitor, mon = pe_monitor.step(params.monitor, state.monitor, EstimatorInputs(y=jnp.stack([signal_hp, 0 * e])))
         excited = mon.excited
 
-    adapt = params.Gamma * params.K_vy * lam * f_y * e_adapt + params.Gamma_2 * f_r * e_r
+    adapt = params.adaptation_gain * params.K_vy * lam * f_y * e_adapt + params.yaw_adaptation_gain * f_r * e_r
     d_theta = jnp.where(excited, adapt, params.K_c * (params.theta_default - theta))
     d_vy = ay - r * vx + params.K_vy * lam * xi * e
     if full:
-        d_vy = d_vy + params.Gamma_2 / params.Gamma * zeta * e_r
+        d_vy = d_vy + params.yaw_adaptation_gain / params.adaptation_gain * zeta * e_r
         d_vx = ax + r * vy + params.K_vx * (vref - vx)
         d_r = theta * f_r / params.yaw_inertia + params.K_r * e_r
     else:
@@ -264,10 +266,10 @@ def _step(params: AdaptiveLateralParams, state: AdaptiveLateralState, inputs: Es
     x = state.x + dt * jnp.stack([d_vx, d_vy, d_r, d_theta])
     x = x.at[3].set(jnp.clip(x[3], params.theta_min, params.theta_max))
     if not full:
-        x = x.at[0].set(y_now[_VREF]).at[2].set(y_now[_R])
+        x = x.at[0].set(y_now[VX_REF]).at[2].set(y_now[YAW_RATE])
 
     first = ~state.started
-    start = state.x.at[0].set(y_now[_VREF]).at[2].set(y_now[_R])
+    start = state.x.at[0].set(y_now[VX_REF]).at[2].set(y_now[YAW_RATE])
     x = jnp.where(first, start, x)
     filters = jnp.where(first, jnp.zeros_like(filters), filters)
     beta = jnp.arctan2(x[1], x[0])
@@ -288,7 +290,7 @@ full_observer = Estimator(_init, functools.partial(_step, full=True))
 def lyapunov_3_1(params: AdaptiveLateralParams, vy, theta, vy_hat, theta_hat):
     """Lemma 3.1's ``V = (theta Gamma (v_y - v_y^)^2 + (theta - theta^)^2) / (2 m^2)`` (any shapes that
     broadcast)."""
-    return (theta * params.Gamma * (vy - vy_hat) ** 2 + (theta - theta_hat) ** 2) / (2 * params.mass**2)
+    return (theta * params.adaptation_gain * (vy - vy_hat) ** 2 + (theta - theta_hat) ** 2) / (2 * params.mass**2)
 
 
 class Lemma31Check(NamedTuple):
@@ -304,7 +306,7 @@ _C_Y, _D_Y = 3.0e4, 2.0e4  # the check plant's cornering stiffness (N s/m) and s
 
 
 def _check_model(v, y):
-    return jnp.stack([-_C_Y * v[1] + _D_Y * y[_SW], jnp.zeros_like(v[1])])
+    return jnp.stack([-_C_Y * v[1] + _D_Y * y[STEERING_WHEEL], jnp.zeros_like(v[1])])
 
 
 def lemma_3_1_check(n_steps: int = 3000, dt: float = 0.01, theta: float = 0.6, vy0: float = 0.5) -> Lemma31Check:
@@ -335,16 +337,16 @@ def lemma_3_1_check(n_steps: int = 3000, dt: float = 0.01, theta: float = 0.6, v
     dtype = params.dt.dtype
     t = jnp.asarray(dt, dtype) * jnp.arange(n, dtype=dtype)
     y = jnp.zeros((n, N_SENSORS), dtype)
-    y = y.at[:, _R].set(0.2 * jnp.sin(0.5 * t)).at[:, _VREF].set(20.0)
-    y = y.at[:, _SW].set(0.3 * jnp.sin(0.7 * t) + 0.2 * jnp.sin(1.9 * t))
-    ay = lambda vy, yk: theta * _check_model(jnp.stack([yk[_VREF], vy, yk[_R]]), yk)[0] / mass
+    y = y.at[:, YAW_RATE].set(0.2 * jnp.sin(0.5 * t)).at[:, VX_REF].set(20.0)
+    y = y.at[:, STEERING_WHEEL].set(0.3 * jnp.sin(0.7 * t) + 0.2 * jnp.sin(1.9 * t))
+    ay = lambda vy, yk: theta * _check_model(jnp.stack([yk[VX_REF], vy, yk[YAW_RATE]]), yk)[0] / mass
 
     def plant(vy, yk):
-        return vy + dt * (ay(vy, yk) - yk[_R] * yk[_VREF]), vy
+        return vy + dt * (ay(vy, yk) - yk[YAW_RATE] * yk[VX_REF]), vy
 
     _, vy = jax.lax.scan(plant, jnp.asarray(vy0, dtype), y)
-    y = y.at[:, _AY].set(jax.vmap(ay)(vy, y))
+    y = y.at[:, AY].set(jax.vmap(ay)(vy, y))
     _, out = run(lateral_observer, params, EstimatorInputs(y=y))
     V = lyapunov_3_1(params, vy, theta, out.x[:, 1], out.x[:, 3])
-    predicted = dt * params.Gamma * params.K_vy * out.Lambda[1:] * (out.innovation[1:, 0] / mass) ** 2
+    predicted = dt * params.adaptation_gain * params.K_vy * out.Lambda[1:] * (out.innovation[1:, 0] / mass) ** 2
     return Lemma31Check(jnp.max(jnp.diff(V) / V[:-1]), V[-1] / V[0], V, -jnp.diff(V) / predicted)

@@ -1,37 +1,55 @@
 """Test drives modelled on those of Grip 2010 §2.10 (Figs. 2.4-2.8), with amplitudes chosen for the default
-:class:`~jaxobs.vehicle.VehicleParams` (the thesis's drives used a test vehicle whose data are not published).
+:class:`~jaxobs.vehicle.VehicleParams` (the thesis's test vehicle is not published).
 
-Each is a :class:`~jaxobs.vehicle.Manoeuvre`, looked up by name with :func:`manoeuvre` or passed by name to
-:func:`~jaxobs.vehicle.simulate`; the peaks below were measured with the default vehicle
-(``tests/vehicle/test_manoeuvres.py`` pins them):
-
-* ``straight``: 100 km/h straight ahead on a flat road, 10 s (no lateral excitation).
-* ``sine_steer``: 80 km/h, steering-wheel sine of 45 deg at 0.5 Hz, 10 s: peak 0.58 g, sideslip 0.85 deg.
-* ``step_steer_200kmh``: 200 km/h, steering-wheel steps alternating +-9.5 deg every 4 s (0.3 s ramps) on a
-  1.5 deg bank, 20 s: peak 0.43 g (Fig. 2.4: about +-0.4 g).
-* ``double_lane_change_120kmh``: 120 km/h, a steering sequence for the ISO 3888-1 double lane change (one
-  50 deg sine period of 2.2 s out, 1 s straight, one back) on a 0.5 deg bank, 8 s: peak 0.92 g, sideslip
-  3.9 deg (Fig. 2.5: 0.90 g).
-* ``circle_40m_ramp``: counter-clockwise circle of 40 m radius (curvature tracking), speed ramped at
-  0.1 m/s^2 from 8 m/s, 120 s: the front axle saturates, the radius grows to 44 m at 0.86 g (Fig. 2.6:
-  0.93 and 0.84 g with two tyre sets).
-* ``ice_lake_circles``: friction 0.25 (ice and snow), 30 m circles at 7.5 +- 1.5 m/s (20 s period); at each
-  speed-up the rear axle breaks loose and the curvature-tracking driver counter-steers: sideslip up to
-  50 deg, above 10 deg for 41 of 120 s, speed down to 2.8 m/s (Fig. 2.7).
-* ``mountain_road``: snow (friction 0.4), a winding road at 12 +- 2 m/s with bank up to 4 deg and inclination up
-  to 6 deg, 60 s: peak 0.38 g (Fig. 2.8).
-
-The road friction of a manoeuvre scales the tyres' own (``Command.friction``); set the tyres' ``mu`` for other
-surfaces.
+A test drive is a :class:`Manoeuvre`: a :class:`Command` per time, a duration and an initial speed.
+:data:`MANOEUVRES` holds the named ones (``straight``, ``sine_steer``, ``step_steer_200kmh``,
+``double_lane_change_120kmh``, ``circle_40m_ramp``, ``ice_lake_circles``, ``mountain_road``), looked up with
+:func:`manoeuvre` or passed by name to :func:`~jaxobs.vehicle.simulate`. Each drive and the peaks it reaches with
+the default vehicle: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
 import jax.numpy as jnp
 
-from jaxobs.vehicle.simulate import Command, Manoeuvre
+__all__ = ["Command", "Manoeuvre", "MANOEUVRES", "manoeuvre"]
 
-__all__ = ["MANOEUVRES", "manoeuvre"]
+
+class Command(NamedTuple):
+    """What the driver is asked to do at one time (all scalars). ``steering_wheel`` (rad, feed-forward),
+    ``curvature`` (1/m) and ``curvature_gain`` (rad of road-wheel angle per 1/m of curvature error; 0 = open
+    loop), ``speed`` (m/s) and ``acceleration`` (m/s^2, feed-forward), the road's ``bank`` and ``inclination``
+    (rad) and ``friction`` (scale of the tyres' peak friction)."""
+
+    steering_wheel: jax.Array = 0.0
+    curvature: jax.Array = 0.0
+    curvature_gain: jax.Array = 0.0
+    speed: jax.Array = 20.0
+    acceleration: jax.Array = 0.0
+    bank: jax.Array = 0.0
+    inclination: jax.Array = 0.0
+    friction: jax.Array = 1.0
+
+
+class Manoeuvre(NamedTuple):
+    """A test drive.
+
+    Attributes:
+      name: the manoeuvre's name
+      command: ``command(t) -> Command`` (traceable)
+      duration: its duration (s)
+      initial_speed: the vehicle's speed at ``t = 0`` (m/s)
+    """
+
+    name: str
+    command: Callable
+    duration: float
+    initial_speed: float
+
 
 _DEG = jnp.pi / 180
 _L, _RATIO = 2.8, 15.5  # the default vehicle's wheelbase and steering ratio (feed-forward of the circle drives)
@@ -119,7 +137,7 @@ MANOEUVRES = {
         Manoeuvre("mountain_road", _mountain, 60.0, 12.0),
     )
 }
-"""The named test drives (module docstring)."""
+"""The named test drives (docs/theory/vehicle.md)."""
 
 
 def manoeuvre(name: str) -> Manoeuvre:

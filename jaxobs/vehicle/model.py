@@ -1,28 +1,10 @@
 """Planar two-track vehicle model: body velocities, yaw rate, wheel spin, tyre relaxation, load transfer.
 
-State (:class:`VehicleState`): ``vx``, ``vy`` (m/s, body frame at the centre of gravity, ``vy`` positive to the
-left), yaw rate ``r`` (rad/s, counter-clockwise), wheel angular speeds ``omega`` (4,), the relaxed lateral slips
-``tan_alpha`` (4,) and the accelerations ``ax_lt``, ``ay_lt`` that set the load transfer. Wheels are ordered
-front-left, front-right, rear-left, rear-right. The right-hand side (:func:`dynamics`) is, with ``F_x``, ``F_y``
-the sums of the tyre forces in the body frame, ``M`` their yaw moment and the road inclination ``Theta``, bank
-``Phi`` as in Grip 2010 (2.11)-(2.12):
-
-    vx'  = a_x + r vy + g sin(Theta),     a_x = (F_x - drag) / m
-    vy'  = a_y - r vx - g cos(Theta) sin(Phi),   a_y = F_y / m
-    r'   = M / I_z
-    J omega_i' = T_i - R F_xw,i                                      (driving / braking torque T_i)
-    tan_alpha_i' = (|v_l,i| / l_relax) (tan_alpha_ss,i - tan_alpha_i)  (first-order relaxation, Pacejka 2006)
-    ax_lt' = (a_x - ax_lt) / tau,   ay_lt' = (a_y - ay_lt) / tau
-
-``a_x``, ``a_y`` are the specific forces an accelerometer at the centre of gravity reads (tyre and drag forces
-over the mass). The normal loads are quasi-static in the lagged accelerations (the lag ``tau`` stands for the
-roll and pitch motion and breaks the algebraic loop between loads and forces): static axle loads
-``m g cos(Theta) cos(Phi) l_{r,f} / L``, longitudinal transfer ``m ax_lt h / L`` from front to rear and
-lateral transfer ``m ay_lt h chi_{f,r} / t_{f,r}`` per axle to the outer wheels (``chi``: roll-stiffness share).
-Front wheels steer by ``steering_wheel / steering_ratio`` (parallel steering, no Ackermann or compliance).
-
-Standstill guard: slips and relaxation rates divide by ``max(|v_l|, MIN_SPEED)``; below :data:`MIN_SPEED` the
-model is not meant to be used (manoeuvres stay above it).
+:class:`VehicleState` holds ``vx``, ``vy``, the yaw rate ``r``, the wheel speeds, the relaxed lateral slips and the
+lagged accelerations of the load transfer; wheels are ordered FL, FR, RL, RR. :func:`dynamics` is the right-hand
+side (road inclination and bank as in Grip 2010 (2.11)-(2.12)), :func:`forces` the tyre forces and their sums,
+:func:`friction_model` and :func:`lateral_acceleration` the observers' friction model. Below :data:`MIN_SPEED`
+the model is not meant to be used. The equations and the load transfer: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -126,25 +108,42 @@ class VehicleParams:
 
     @property
     def wheelbase(self):
+        """Wheelbase ``lf + lr`` (m)."""
         return self.lf + self.lr
 
 
 class VehicleState(NamedTuple):
-    """State of the two-track model (see the module docstring); wheels ordered FL, FR, RL, RR."""
+    """State of the two-track model (docs/theory/vehicle.md); wheels ordered FL, FR, RL, RR.
+
+    Attributes:
+      vx: () longitudinal velocity at the centre of gravity (m/s, body frame)
+      vy: () lateral velocity at the centre of gravity (m/s, body frame, positive to the left)
+      r: () yaw rate (rad/s, counter-clockwise)
+      omega: (4,) wheel angular speeds (rad/s)
+      tan_alpha: (4,) relaxed lateral slips tan(alpha)
+      ax_lt: () lagged a_x of the load transfer (m/s^2)
+      ay_lt: () lagged a_y of the load transfer (m/s^2)
+    """
 
     vx: jax.Array
     vy: jax.Array
     r: jax.Array
-    omega: jax.Array  # (4,) wheel angular speeds (rad/s)
-    tan_alpha: jax.Array  # (4,) relaxed lateral slips tan(alpha)
-    ax_lt: jax.Array  # lagged a_x of the load transfer (m/s^2)
-    ay_lt: jax.Array  # lagged a_y of the load transfer (m/s^2)
+    omega: jax.Array
+    tan_alpha: jax.Array
+    ax_lt: jax.Array
+    ay_lt: jax.Array
 
 
 class Inputs(NamedTuple):
-    """Plant inputs: steering-wheel angle (rad), wheel torques (4,) (N m, driving > 0), road bank ``Phi`` and
-    inclination ``Theta`` (rad, signs of Grip 2010 (2.11)-(2.12)), and a friction scale of the road (1 = the
-    tyre's own ``mu``; it multiplies the tyre's peak friction)."""
+    """Plant inputs at one instant.
+
+    Attributes:
+      steering_wheel: () steering-wheel angle (rad)
+      torque: (4,) wheel torques (N m, driving > 0)
+      bank: () road bank ``Phi`` (rad, sign of Grip 2010 (2.12))
+      inclination: () road inclination ``Theta`` (rad, sign of Grip 2010 (2.11))
+      friction: () friction scale of the road (1 = the tyre's own ``mu``; it multiplies the tyre's peak friction)
+    """
 
     steering_wheel: jax.Array
     torque: jax.Array
@@ -154,17 +153,29 @@ class Inputs(NamedTuple):
 
 
 class Forces(NamedTuple):
-    """Per-wheel quantities (4,) and body-frame sums at one instant."""
+    """Per-wheel quantities (4,) and body-frame sums at one instant.
 
-    fx_wheel: jax.Array  # tyre forces in the wheel frames (N)
+    Attributes:
+      fx_wheel: (4,) longitudinal tyre forces in the wheel frames (N)
+      fy_wheel: (4,) lateral tyre forces in the wheel frames (N)
+      fz: (4,) normal loads (N)
+      kappa: (4,) longitudinal slips
+      tan_alpha_ss: (4,) steady-state lateral slips
+      v_long: (4,) wheel-centre speeds along the wheel planes (m/s)
+      ax: () specific force a_x (m/s^2)
+      ay: () specific force a_y (m/s^2)
+      yaw_moment: () yaw moment of the tyre forces (N m)
+    """
+
+    fx_wheel: jax.Array
     fy_wheel: jax.Array
-    fz: jax.Array  # normal loads (N)
-    kappa: jax.Array  # longitudinal slips
-    tan_alpha_ss: jax.Array  # steady-state lateral slips
-    v_long: jax.Array  # wheel-centre speeds along the wheel planes (m/s)
-    ax: jax.Array  # specific forces a_x, a_y (m/s^2)
+    fz: jax.Array
+    kappa: jax.Array
+    tan_alpha_ss: jax.Array
+    v_long: jax.Array
+    ax: jax.Array
     ay: jax.Array
-    yaw_moment: jax.Array  # (N m)
+    yaw_moment: jax.Array
 
 
 def _geometry(p: VehicleParams):
@@ -228,7 +239,7 @@ def forces(p: VehicleParams, x: VehicleState, u: Inputs) -> Forces:
 
 
 def dynamics(p: VehicleParams, x: VehicleState, u: Inputs) -> VehicleState:
-    """The time derivative of the state (module docstring) under the inputs ``u``."""
+    """The time derivative of the state (docs/theory/vehicle.md) under the inputs ``u``."""
     f = forces(p, x, u)
     speed = jnp.maximum(jnp.abs(f.v_long), MIN_SPEED)
     return VehicleState(

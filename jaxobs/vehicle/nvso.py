@@ -1,56 +1,11 @@
 """The nonlinear vehicle sideslip observer (NVSO) of Grip 2010 ch. 2 (Grip, Imsland, Johansen, Kalkkuhl & Suissa
 2009), run on the ESC sensors of :mod:`jaxobs.vehicle.sensors` as an :class:`~jaxobs.observers.base.Estimator`.
 
-States ``v_x``, ``v_y`` (m/s), the friction scale ``theta`` (``a_y = theta a_y*``, Grip 2010 §2.4), the inclination
-``theta_i = sin(Theta)`` and the bank ``theta_b = cos(Theta) sin(Phi)``. With the residual ``e = a_y - theta a_y*``,
-``a_y*`` the friction model (:func:`jaxobs.vehicle.friction_model`) at the nominal friction ``mu_H* = 1`` (the
-tyres' own), ``xi = d a_y* / d v_y`` (forward-mode autodiff) and ``Lambda = (xi^2 + a_y*^2)^(-1/2)``, the two
-modes are (2.18)-(2.27)::
-
-    v_x'     = a_x + r v_y + g theta_i + K_vx(t) (v_x,ref - v_x)                     (2.18), (2.23)
-    v_y'     = a_y - r v_x - g theta_b - K_vy e           | + K_vy Lambda xi e        (2.19) | (2.24)
-    theta'   = K_e (theta* - theta)                     | K_theta Lambda a_y* e       (2.20) | (2.25)
-    theta_i' = K_theta_i K_vx(t) (v_x,ref - v_x)         (K_theta_i_on in mode 2)     (2.21), (2.26)
-    theta_b' = K_theta_b(t) e                            | -K_theta_b(t) Lambda xi e  (2.22) | (2.27)
-
-mode 1 (friction estimation off) left, mode 2 (on) right; the right-hand side is ``(1 - m) f_1 + m f_2`` with the
-mode ``m``. Discretised by forward Euler at the sensor period (Grip 2010 §2.8): step ``k`` integrates over
-``[t_{k-1}, t_k]`` with the measurement ``y_{k-1}`` held and outputs the estimate at ``t_k`` (the first step outputs
-the initial estimate with ``v_x = v_x,ref``); ``theta`` is then clipped to ``[max(theta_min, |(a_x, a_y)| /
-(accel_margin g)), theta_max]`` (§2.8: the clip bounds and ``1.2 g theta >= |(a_x, a_y)|``).
-
-Switching logic (§2.5), evaluated at every sample from the estimates and the held measurements: friction
-estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (``HP`` a high-pass of time constant
-``high_pass_time``, 10 s) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear single
-track (``K_us = (1/c_f - 1/c_r) / g`` from the tyres' cornering stiffnesses per unit load, by autodiff) exceeds
-``yaw_rate_threshold``, or (ii) the car oversteers: the yaw rate exceeds the reference in the direction the car
-turns, ``(|r| - |r_ref|) v_x > oversteer_threshold`` with ``r`` and ``r_ref`` of the same sign, or ``(|r| + |r_ref|)
-v_x > oversteer_threshold`` with opposite signs (the driver counter-steers a drift: the car yaws against the steering
-wheel, the strongest oversteer; on the ice lake the drift kept (i) below its threshold and a same-sign-only test
-turned friction estimation off for 2.3 s at the drift's peak, 10.5 against 7.6 deg rms sideslip error); it turns off
-``off_delay`` seconds (rounded to whole samples) after the last sample with (i) or (ii). "Same sign" is ``r r_ref >
-(yaw_rate_threshold / 10)^2`` and "opposite signs" ``-r r_ref >`` the same (a dead band: ``r_ref = 0`` has no
-sign). The thesis's third condition (the ESC system active) has no counterpart in the simulator. ``K_theta_b(t)`` is
-``K_theta_b * theta_b_reduction`` when (1) ``|e| > c1``, (2) ``|r' - theta r'*| > c2`` (``r'`` by differencing the
-yaw rate, ``r'*`` the friction model's yaw acceleration) or (3) the same sign and ``(|r_ref| - |r|) v_x > c3``
-(§2.7). ``K_vx(t) = max(K_vx_min, K_vx / (1 + (s / wheel_spread)^2))`` with ``s`` the standard deviation of the four
-wheel-speed velocities (the thesis reduces the nominal gain by their variance; its algorithm is not published).
-These switches are the thesis's practical stand-in for its excitation condition (2.10), which involves the
-unknown errors.
-
-``smooth``: ``None`` for the exact logic; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
-``sigmoid(k (x - c) / scale)`` (``scale = c``, or ``min_speed`` for the standstill guard), so that gains and
-thresholds get gradients; the gates tend to the exact logic as ``k`` grows (away from ties ``x = c``).
-
-Standstill guard: below ``min_speed`` (default :data:`jaxobs.vehicle.MIN_SPEED`, 3 m/s) the slip angles carry no
-information: the ``a_y`` injections and the friction and bank adaptation are switched off, ``theta`` is drawn to
-``theta*`` and ``v_y`` decays to 0 at the rate ``K_vx``; the sideslip output is ``arctan(v_y / max(v_x,
-min_speed))`` (finite, with finite gradients, at rest). Missing data: a non-finite sensor sample is replaced by the
-channel's last finite one (zero-order hold) and counted in ``state.missing``.
-
-Not modelled (documented departures from §2.8): the tyre-relaxation filter of the friction model, the caster
-correction of the steering angle and the roll-dependent wheel loads beyond those from the measured ``a_x``,
-``a_y``.
+It estimates ``v_x``, ``v_y``, the friction scale ``theta``, the inclination and the bank with two modes, friction
+estimation off and on (2.18)-(2.27), switched by the logic of §2.5 (:mod:`jaxobs.vehicle.switching`), discretised
+by forward Euler at the sensor period (§2.8). ``smooth`` replaces every switch by a sigmoid gate so that gains and
+thresholds get gradients. :func:`make_nvso`, :data:`nvso`. The equations, the switches, the standstill guard and
+the departures from §2.8: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -64,29 +19,16 @@ import numpy as np
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, MIN_SPEED, VehicleParams, friction_model
-from jaxobs.vehicle.sensors import SENSOR_RATE, Measurements
-from jaxobs.vehicle.tyres import pure_force
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
+from jaxobs.vehicle.switching import SwitchingParams, either, gate, switching
 
-__all__ = [
-    "N_SENSORS",
-    "NVSOParams",
-    "NVSOState",
-    "NVSOOutputs",
-    "make_nvso",
-    "nvso",
-    "Switching",
-    "switching",
-    "sensor_inputs",
-]
+_SWITCHING = SwitchingParams._field_defaults  # the thresholds the EKF baseline shares
 
-N_SENSORS = 9
-"""Entries of the NVSO's measurement vector: ``a_x``, ``a_y``, yaw rate, steering-wheel angle, the four wheel
-speeds (FL, FR, RL, RR) and ``v_x,ref`` (:func:`sensor_inputs`)."""
-_AX, _AY, _R, _SW, _OMEGA, _VREF = 0, 1, 2, 3, slice(4, 8), 8
+__all__ = ["NVSOParams", "NVSOState", "NVSOOutputs", "make_nvso", "nvso"]
 
 
 class NVSOParams(NamedTuple):
-    """Gains, thresholds and bounds of the NVSO (module docstring); build with :func:`make_nvso`. Every field is a
+    """Gains, thresholds and bounds of the NVSO (docs/theory/vehicle.md); build with :func:`make_nvso`. Every field is a
     leaf (``smooth=None`` has none), so the params can be batched, differentiated and tuned.
 
     Attributes:
@@ -100,7 +42,8 @@ class NVSOParams(NamedTuple):
       c1 (m/s^2), c2 (rad/s^2), c3 (m/s^2): the ``K_theta_b`` reduction thresholds.
       theta_default: ``theta*``.  theta_min, theta_max: the clip bounds.  accel_margin: the 1.2 of
         ``accel_margin g theta >= |(a_x, a_y)|``.
-      vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time: the switching logic
+      vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time: the switching logic of
+        :mod:`jaxobs.vehicle.switching`, with the defaults of its :class:`~jaxobs.vehicle.SwitchingParams`
         (m/s^2, rad/s, m/s^2, s, s).
       min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
         finite ``v_x,ref`` (m/s).
@@ -124,14 +67,14 @@ class NVSOParams(NamedTuple):
     theta_default: jax.Array = 1.0
     theta_min: jax.Array = 0.05
     theta_max: jax.Array = 1.1
-    accel_margin: jax.Array = 1.2
-    vy_dot_threshold: jax.Array = 1.0
-    yaw_rate_threshold: jax.Array = 0.1
-    oversteer_threshold: jax.Array = 1.0
-    off_delay: jax.Array = 0.5
-    high_pass_time: jax.Array = 10.0
+    accel_margin: jax.Array = _SWITCHING["accel_margin"]
+    vy_dot_threshold: jax.Array = _SWITCHING["vy_dot_threshold"]
+    yaw_rate_threshold: jax.Array = _SWITCHING["yaw_rate_threshold"]
+    oversteer_threshold: jax.Array = _SWITCHING["oversteer_threshold"]
+    off_delay: jax.Array = _SWITCHING["off_delay"]
+    high_pass_time: jax.Array = _SWITCHING["high_pass_time"]
     min_speed: jax.Array = MIN_SPEED
-    dt: jax.Array = 1.0 / SENSOR_RATE
+    dt: jax.Array = _SWITCHING["dt"]
     vx0: jax.Array = 20.0
     smooth: jax.Array | None = None
 
@@ -183,96 +126,52 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
 
 
 class NVSOState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
-    mode: jax.Array  # () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
-    off_timer: jax.Array  # () time since the switching conditions last held (s)
-    low_pass: jax.Array  # () the low-pass part of the high-pass filter of a_y - r v_x
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`nvso` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta, theta_i, theta_b) at t_{k-1}
+      mode: () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
+      off_timer: () time since the switching conditions last held (s)
+      low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    mode: jax.Array
+    off_timer: jax.Array
+    low_pass: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class NVSOOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
-    beta: jax.Array  # () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
-    mode: jax.Array  # () the mode used over the interval
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s)
-    K_theta_b: jax.Array  # () the bank gain used (after reductions)
+    """Outputs of one sample of :data:`nvso`.
 
+    Attributes:
+      x: (5,) (v_x, v_y, theta, theta_i, theta_b) at t_k
+      beta: () sideslip arctan(v_y / max(v_x, min_speed)) (rad)
+      mode: () the mode used over the interval
+      innovation: (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
+      xi: () d a_y* / d v_y (1/s)
+      K_theta_b: () the bank gain used (after reductions)
+    """
 
-def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
-    """The NVSO's inputs from :class:`~jaxobs.vehicle.Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`)."""
-    m = measurements
-    columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
-    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None]], axis=1))
-
-
-def _gate(params: NVSOParams, x, threshold, scale):
-    """``x > threshold`` as 0/1, or its sigmoid of sharpness ``params.smooth`` on the given ``scale``."""
-    if params.smooth is None:
-        return (x > threshold).astype(jnp.result_type(x, float))
-    return jax.nn.sigmoid(params.smooth * (x - threshold) / scale)
-
-
-def _either(*gates):
-    """Logical or of 0/1 values (or gates): ``1 - prod(1 - g)``."""
-    out = 1.0 - gates[0]
-    for g in gates[1:]:
-        out = out * (1.0 - g)
-    return 1.0 - out
-
-
-def _understeer_gradient(vehicle: VehicleParams):
-    """``(1/c_f - 1/c_r) / g`` with ``c`` the slope of each axle's pure lateral force per unit load at zero slip."""
-    fz = vehicle.mass * GRAVITY / 4
-    stiffness = lambda tyre: jax.grad(lambda s: pure_force(tyre, s, fz))(jnp.zeros((), jnp.result_type(fz))) / fz
-    return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY
-
-
-class Switching(NamedTuple):
-    """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
-    yaw rate with the "same sign" test it used."""
-
-    mode: jax.Array  # () 1: friction estimation on (a gate value when smooth)
-    off_timer: jax.Array  # () time since the conditions last held (s)
-    low_pass: jax.Array  # () the high-pass filter's low-pass state
-    r_ref: jax.Array  # () reference yaw rate of the linear single track (rad/s)
-    same_sign: jax.Array  # () r and r_ref of the same sign (outside the dead band)
-
-
-def switching(params: NVSOParams, off_timer, low_pass, vx, r, ay, steering_wheel) -> Switching:
-    """The friction-estimation switch of Grip 2010 §2.5 (module docstring), shared by the NVSO and the EKF baseline
-    of §2.9: from the timer and high-pass states of the last sample, the estimated ``vx``, the measured yaw rate
-    ``r``, roll-corrected ``ay`` and steering-wheel angle, with the thresholds (and ``smooth``) of ``params``."""
-    v, dt = params.vehicle, params.dt
-    delta = steering_wheel / v.steering_ratio
-    r_ref = vx * delta / (v.wheelbase + _understeer_gradient(v) * vx**2)
-    high_pass = ay - r * vx - low_pass
-    dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
-    same_sign = _gate(params, r * r_ref, dead_band, dead_band)
-    excited = _gate(params, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * _gate(
-        params, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
-    )
-    opposite = _gate(params, -r * r_ref, dead_band, dead_band)  # counter-steering: the car yaws against the wheel
-    threshold = params.oversteer_threshold
-    oversteer = _either(
-        same_sign * _gate(params, (jnp.abs(r) - jnp.abs(r_ref)) * vx, threshold, threshold),
-        opposite * _gate(params, (jnp.abs(r) + jnp.abs(r_ref)) * vx, threshold, threshold),
-    )
-    on = _either(excited, oversteer)
-    # on while (i) or (ii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
-    timer = (1.0 - on) * (off_timer + dt)
-    mode = _gate(params, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)
-    low_pass = low_pass + dt / params.high_pass_time * high_pass
-    return Switching(mode, timer, low_pass, r_ref, same_sign)
+    x: jax.Array
+    beta: jax.Array
+    mode: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
+    K_theta_b: jax.Array
 
 
 def _init(params: NVSOParams) -> NVSOState:
     dtype = jnp.result_type(params.vx0, params.theta_default, float)
     v = params.vehicle
     vx0 = jnp.asarray(params.vx0, dtype)
-    y = jnp.zeros((N_SENSORS,), dtype).at[_OMEGA].set(vx0 / v.wheel_radius).at[_VREF].set(vx0)
+    y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / v.wheel_radius).at[VX_REF].set(vx0)
     x = jnp.stack([vx0, 0.0 * vx0, jnp.asarray(params.theta_default, dtype), 0.0 * vx0, 0.0 * vx0])
     zero = jnp.zeros((), dtype)
     return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, y, jnp.zeros((), bool),
@@ -288,7 +187,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
 
     m = state.y  # the measurement held over [t_{k-1}, t_k]
-    ax, ay, r, sw, omega, vref = m[_AX], m[_AY], m[_R], m[_SW], m[_OMEGA], m[_VREF]
+    ax, ay, r, sw, omega, vref = m[AX], m[AY], m[YAW_RATE], m[STEERING_WHEEL], m[WHEEL_SPEED], m[VX_REF]
     roll = 1.0 + v.roll_gradient * GRAVITY
     ay = ay / roll  # roll correction, Grip 2010 §2.2
     vx, vy, theta, theta_i, theta_b = state.x
@@ -313,14 +212,14 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     # switching logic (§2.5) and the K_theta_b reductions (§2.7)
     switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw)
     r_ref, same_sign = switch.r_ref, switch.same_sign
-    yaw_acc = (y_now[_R] - r) / dt
-    reduce = _either(
-        _gate(params, jnp.abs(e), params.c1, params.c1),
-        _gate(params, jnp.abs(yaw_acc - theta * yaw_acc_star), params.c2, params.c2),
-        same_sign * _gate(params, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.c3, params.c3),
+    yaw_acc = (y_now[YAW_RATE] - r) / dt
+    reduce = either(
+        gate(params.smooth, jnp.abs(e), params.c1, params.c1),
+        gate(params.smooth, jnp.abs(yaw_acc - theta * yaw_acc_star), params.c2, params.c2),
+        same_sign * gate(params.smooth, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.c3, params.c3),
     )
     K_theta_b = params.K_theta_b * (1.0 - reduce * (1.0 - params.theta_b_reduction))
-    moving = _gate(params, vx, params.min_speed, params.min_speed)
+    moving = gate(params.smooth, vx, params.min_speed, params.min_speed)
 
     # the two modes (2.18)-(2.27), blended by the mode of the interval
     mode = state.mode
@@ -340,11 +239,11 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     next_mode, timer, low_pass = switch.mode, switch.off_timer, switch.low_pass
 
     first = ~state.started
-    x0 = state.x.at[0].set(y_now[_VREF])
+    x0 = state.x.at[0].set(y_now[VX_REF])
     x = jnp.where(first, x0, x)
     next_mode = jnp.where(first, state.mode, next_mode)
     timer = jnp.where(first, state.off_timer, timer)
-    low_pass = jnp.where(first, y_now[_AY] / roll - y_now[_R] * y_now[_VREF], low_pass)  # HP starts at 0
+    low_pass = jnp.where(first, y_now[AY] / roll - y_now[YAW_RATE] * y_now[VX_REF], low_pass)  # HP starts at 0
     new_state = NVSOState(x, next_mode, timer, low_pass, y_now, jnp.ones((), bool), missing)
     beta = jnp.arctan2(x[1], jnp.maximum(x[0], params.min_speed))
     outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
@@ -352,7 +251,8 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
 
 
 nvso = Estimator(_init, _step)
-"""The NVSO (module docstring) as an :class:`~jaxobs.observers.base.Estimator` over :class:`NVSOParams`.
+"""The NVSO (docs/theory/vehicle.md) as an :class:`~jaxobs.observers.base.Estimator` over :class:`NVSOParams`.
 
-Inputs: ``EstimatorInputs(y)`` with ``y`` (:data:`N_SENSORS`,) (:func:`sensor_inputs`); ``u_prev`` is unused.
+Inputs: ``EstimatorInputs(y)`` with ``y`` (:data:`~jaxobs.vehicle.N_SENSORS`,) (:func:`~jaxobs.vehicle.sensor_inputs`);
+``u_prev`` is unused.
 State: :class:`NVSOState`. Outputs: :class:`NVSOOutputs`."""

@@ -1,45 +1,12 @@
 """The road inclination and bank estimators of Grip 2010 ch. 4 (Grip, Imsland, Johansen, Kalkkuhl & Suissa 2009,
 ACC) and the positive-realness gain bounds of its Lemmas 4.1 and 4.2.
 
-On a slanted road ``v_x' = a_x + r v_y + g sin(Theta)``, ``v_y' = a_y - r v_x - g cos(Theta) sin(Phi)`` (4.5);
-the estimators treat ``theta_i = sin(Theta)`` and ``theta_b = cos(Theta) sin(Phi)`` as constants and estimate
-them by integral action on the two velocity residuals. With the held ESC measurements (``r`` the yaw rate, ``a_y``
-roll-corrected as in Grip 2010 §2.2), ``a_y* = a_y*(v_x, v_y)`` the friction model
-(:func:`jaxobs.vehicle.friction_model`) and ``xi = d a_y* / d v_y`` (forward-mode autodiff)::
-
-    v_x'     = a_x + r v_y + g theta_i + K_vx (v_x,ref - v_x)                                   (4.6)
-    theta_i' = K_theta_i K_vx (v_x,ref - v_x)                                                   (4.7)
-
-and, for the lateral part, either the known-friction estimator :data:`road_angles` (``a_y^ = a_y*`` at the known
-road ``friction``, Theorem 4.1: GES under the bounds below and a large enough ``K_vx``)::
-
-    v_y'     = a_y - r v_x - g theta_b - K_vy (a_y - a_y^)                                      (4.9)
-    theta_b' = K_theta_b (a_y - a_y^)                                                           (4.10)
-
-or the friction-adaptive :data:`road_angles_adaptive` (``a_y^ = theta a_y*`` with ``a_y*`` at the nominal friction
-1, ``Lambda = (xi^2 + a_y*^2)^(-1/2)``; no stability guarantee, Grip 2010 §4.5.2)::
-
-    v_y'     = a_y - r v_x - g theta_b + K_vy Lambda xi (a_y - theta a_y*)                      (4.13)
-    theta'   = K_theta Lambda a_y* (a_y - theta a_y*),  theta clipped to [theta_min, theta_max]  (4.12b)
-    theta_b' = -K_theta_b Lambda xi (a_y - theta a_y*)                                          (4.14)
-
-(the source prints ``g theta_b'`` in (4.9) and ``g theta_i`` in (4.13); both mean ``g theta_b``). ``K_vx`` is a
-constant here (Theorem 4.1 allows any ``K_vx(t) >= K_vx,min``); the thesis's final observer, which switches
-between the two lateral parts, schedules ``K_vx`` on the wheel-speed quality and reduces ``K_theta_b``
-heuristically, is :mod:`jaxobs.vehicle.nvso`. Discretisation and missing data as the NVSO: forward Euler at the
-sensor period, step ``k`` integrates over ``[t_{k-1}, t_k]`` with ``y_{k-1}`` held and outputs the estimate at
-``t_k`` (the first step outputs the initial estimate with ``v_x = v_x,ref``); a non-finite sensor sample is
-replaced by the channel's last finite one and counted. The outputs convert the parameters to angles,
-``Theta = arcsin(theta_i)`` and ``Phi = arcsin(theta_b / cos(Theta))``.
-
-Error systems and gain bounds. With ``K_vx(t) = a + (K_vx(t) - a)``, ``0 < a < K_vx,min``, the inclination error
-``(v_x~, theta_i~)`` is the linear system (4.8) in feedback with a sector ``[0, inf]`` nonlinearity; the origin is
-GES when its transfer function ``G(s) = (s + g K_theta_i) / (s^2 + a s + g K_theta_i a)`` is strictly positive
-real, i.e. ``K_theta_i < a / g`` (Lemma 4.1). Likewise the bank error (4.11) with ``a_y~ = -delta(t) v_y~``,
-``delta >= delta_min > 0``: ``G(s) = (K_vy s + g K_theta_b) / (s^2 + K_vy delta_min s + g K_theta_b delta_min)``,
-SPR iff ``K_theta_b < K_vy^2 delta_min / g`` (Lemma 4.2; the thesis's statement prints the gain as "K_theta1").
-:func:`inclination_error_system`, :func:`bank_error_system` give the linear parts, :func:`inclination_gain_bound`,
-:func:`bank_gain_bound` the bounds, and :func:`lemma_check` evaluates :func:`jaxobs.lti.is_spr` on either side.
+:data:`road_angles` is the known-friction estimator (4.6)-(4.10) (Theorem 4.1), :data:`road_angles_adaptive` the
+friction-adaptive one (4.12)-(4.14); both treat ``sin(Theta)`` and ``cos(Theta) sin(Phi)`` as constants estimated
+by integral action, discretised as the NVSO. :func:`inclination_error_system`, :func:`bank_error_system`,
+:func:`inclination_gain_bound`, :func:`bank_gain_bound` and :func:`lemma_check` give the error systems and the SPR
+bounds; :func:`final_angles` reads a run's final estimates. The equations and the source's misprints:
+docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -54,8 +21,7 @@ from jaxobs import _checks
 from jaxobs.lti import StateSpace, is_spr, ss
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
-from jaxobs.vehicle.nvso import _AX, _AY, _OMEGA, _R, _SW, _VREF, N_SENSORS
-from jaxobs.vehicle.sensors import SENSOR_RATE
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
     "RoadAnglesParams",
@@ -145,7 +111,7 @@ def lemma_check(lemma: str, *, a=None, K_vy=None, delta_min=None, g=GRAVITY, rel
 
 
 class RoadAnglesParams(NamedTuple):
-    """Gains of the chapter 4 estimators (module docstring); build with :func:`make_road_angles`. Every field is a
+    """Gains of the chapter 4 estimators (docs/theory/vehicle.md); build with :func:`make_road_angles`. Every field is a
     leaf (batchable, differentiable).
 
     Attributes:
@@ -206,25 +172,45 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
 
 
 class RoadAnglesState(NamedTuple):
-    x: jax.Array  # (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
-    y: jax.Array  # (N_SENSORS,) last finite measurement (held over the next interval)
-    started: jax.Array  # () bool
-    missing: jax.Array  # () int32, non-finite sensor samples skipped so far
+    """State of :data:`road_angles` between samples.
+
+    Attributes:
+      x: (5,) estimate (v_x, v_y, theta_i, theta_b, theta) at t_{k-1}
+      y: (N_SENSORS,) last finite measurement (held over the next interval)
+      started: () bool: a sample has been processed (the first step outputs the initial estimate)
+      missing: () int32, non-finite sensor samples skipped so far
+    """
+
+    x: jax.Array
+    y: jax.Array
+    started: jax.Array
+    missing: jax.Array
 
 
 class RoadAnglesOutputs(NamedTuple):
-    x: jax.Array  # (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
-    inclination: jax.Array  # () arcsin(theta_i) (rad)
-    bank: jax.Array  # () arcsin(theta_b / cos(inclination)) (rad)
-    beta: jax.Array  # () sideslip arctan(v_y / v_x) (rad)
-    innovation: jax.Array  # (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
-    xi: jax.Array  # () d a_y* / d v_y (1/s) over the interval
+    """Outputs of one sample of :data:`road_angles`.
+
+    Attributes:
+      x: (5,) (v_x, v_y, theta_i, theta_b, theta) at t_k
+      inclination: () arcsin(theta_i) (rad)
+      bank: () arcsin(theta_b / cos(inclination)) (rad)
+      beta: () sideslip arctan(v_y / v_x) (rad)
+      innovation: (2,) (v_x,ref - v_x, a_y - a_y^) that drove the interval
+      xi: () d a_y* / d v_y (1/s) over the interval
+    """
+
+    x: jax.Array
+    inclination: jax.Array
+    bank: jax.Array
+    beta: jax.Array
+    innovation: jax.Array
+    xi: jax.Array
 
 
 def _init(params: RoadAnglesParams) -> RoadAnglesState:
     dtype = jnp.result_type(params.vx0, params.friction, float)
     vx0 = jnp.asarray(params.vx0, dtype)
-    y = jnp.zeros((N_SENSORS,), dtype).at[_OMEGA].set(vx0 / params.vehicle.wheel_radius).at[_VREF].set(vx0)
+    y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / params.vehicle.wheel_radius).at[VX_REF].set(vx0)
     zero = jnp.zeros((), dtype)
     x = jnp.stack([vx0, zero, zero, zero, jnp.asarray(params.friction, dtype)])
     return RoadAnglesState(x, y, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
@@ -238,8 +224,8 @@ def _step(params: RoadAnglesParams, state: RoadAnglesState, inputs: EstimatorInp
     missing = state.missing + jnp.sum(~finite).astype(jnp.int32)
 
     m = state.y  # the measurement held over [t_{k-1}, t_k]
-    ax, r, sw, omega, vref = m[_AX], m[_R], m[_SW], m[_OMEGA], m[_VREF]
-    ay = m[_AY] / (1.0 + v.roll_gradient * g)  # roll correction, Grip 2010 §2.2
+    ax, r, sw, omega, vref = m[AX], m[YAW_RATE], m[STEERING_WHEEL], m[WHEEL_SPEED], m[VX_REF]
+    ay = m[AY] / (1.0 + v.roll_gradient * g)  # roll correction, Grip 2010 §2.2
     vx, vy, theta_i, theta_b, theta = state.x
     friction = 1.0 if adaptive else params.friction
     ay_model = lambda vy: friction_model(v, vx, vy, r, sw, omega, ax, ay, friction).ay
@@ -265,7 +251,7 @@ def _step(params: RoadAnglesParams, state: RoadAnglesState, inputs: EstimatorInp
         x = x.at[4].set(jnp.clip(x[4], params.theta_min, params.theta_max))
 
     first = ~state.started
-    x = jnp.where(first, state.x.at[0].set(y_now[_VREF]), x)
+    x = jnp.where(first, state.x.at[0].set(y_now[VX_REF]), x)
     inclination = jnp.arcsin(jnp.clip(x[2], -1.0, 1.0))
     bank = jnp.arcsin(jnp.clip(x[3] / jnp.cos(inclination), -1.0, 1.0))
     beta = jnp.arctan2(x[1], x[0])
@@ -281,19 +267,28 @@ State: :class:`RoadAnglesState`. Outputs: :class:`RoadAnglesOutputs` (``theta`` 
 
 road_angles_adaptive = Estimator(_init, functools.partial(_step, adaptive=True))
 """The friction-adaptive inclination and bank estimator (4.6), (4.7), (4.13), (4.12b), (4.14) of Grip 2010 ch. 4
-(module docstring); as :data:`road_angles` otherwise."""
+(docs/theory/vehicle.md); as :data:`road_angles` otherwise."""
 
 
 class FinalAngles(NamedTuple):
     """:func:`final_angles`' result: the estimated and the true parameters at the last sample and their errors in
-    degrees of the angles."""
+    degrees of the angles.
 
-    theta_i_final: jax.Array  # () estimated sin(Theta)
-    theta_i_expected: jax.Array  # () true sin(Theta)
-    theta_b_final: jax.Array  # () estimated cos(Theta) sin(Phi)
-    theta_b_expected: jax.Array  # () true cos(Theta) sin(Phi)
-    inclination_error: jax.Array  # () estimated minus true inclination (deg)
-    bank_error: jax.Array  # () estimated minus true bank (deg)
+    Attributes:
+      theta_i_final: () estimated sin(Theta)
+      theta_i_expected: () true sin(Theta)
+      theta_b_final: () estimated cos(Theta) sin(Phi)
+      theta_b_expected: () true cos(Theta) sin(Phi)
+      inclination_error: () estimated minus true inclination (deg)
+      bank_error: () estimated minus true bank (deg)
+    """
+
+    theta_i_final: jax.Array
+    theta_i_expected: jax.Array
+    theta_b_final: jax.Array
+    theta_b_expected: jax.Array
+    inclination_error: jax.Array
+    bank_error: jax.Array
 
 
 def final_angles(outputs: RoadAnglesOutputs, inclination, bank) -> FinalAngles:

@@ -1,18 +1,10 @@
 """ESC-type sensors (Grip 2010 §2.1, §2.8): accelerometers, yaw-rate gyro, steering-wheel angle, wheel speeds and
 a longitudinal reference velocity, sampled at 100 Hz with bias, drift, noise and the 15 Hz low-pass.
 
-For a channel with true value ``s_k`` at the sample times ``t_k = k T_s``:
-
-    y_k = LP(s_k + bias + w_k + n_k),   w_k = w_{k-1} + drift sqrt(T_s) e_k  (w_0 = 0),   n_k ~ N(0, noise^2)
-
-with ``e_k`` standard normal (the drift is a random walk whose standard deviation grows as ``drift sqrt(t)``)
-and ``LP`` the first-order discrete low-pass ``y_k = y_{k-1} + a (x_k - y_{k-1})``, ``a = 1 - exp(-2 pi f_c T_s)``,
-``y_0 = x_0`` (``f_c = inf`` turns it off). The lateral accelerometer rolls with the body: it reads
-``(1 + p_phi g) a_y`` (Grip 2010 §2.2, ``p_phi`` the vehicle's ``roll_gradient``). Wheel speeds are the wheels'
-angular speeds. The reference velocity ``v_x,ref`` is the mean over the (non-driven) front wheels of
-``omega_i R / cos(delta) + r y_i`` from the measured wheel speeds, steering angle and yaw rate: exact for
-free-rolling wheels without side slip, biased by braking slip (a stand-in for the manufacturers' algorithms
-that Grip 2010 §2.3 assumes given).
+:func:`measure` samples a trajectory (the lateral accelerometer rolls with the body, Grip 2010 §2.2; ``v_x,ref``
+from the front wheel speeds stands in for the algorithms Grip 2010 §2.3 assumes given); :data:`N_SENSORS` and the
+column indices :data:`AX` .. :data:`VX_REF` lay out the sensor vector the observers take (:func:`sensor_inputs`).
+The sensor model: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -26,13 +18,34 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs.observers.base import EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, VehicleParams
 from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory
 
-__all__ = ["SENSOR_RATE", "SensorParams", "Measurements", "measure", "low_pass"]
+__all__ = [
+    "SENSOR_RATE",
+    "N_SENSORS",
+    "AX",
+    "AY",
+    "YAW_RATE",
+    "STEERING_WHEEL",
+    "WHEEL_SPEED",
+    "VX_REF",
+    "SensorParams",
+    "Measurements",
+    "measure",
+    "low_pass",
+    "sensor_inputs",
+]
 
 SENSOR_RATE = 100.0
 """ESC sensor rate (Hz), the 10 ms sample time of Grip 2010 §2.8."""
+
+N_SENSORS = 9
+"""Entries of the sensor vector the vehicle observers take: ``a_x``, ``a_y``, yaw rate, steering-wheel angle, the
+four wheel speeds (FL, FR, RL, RR) and ``v_x,ref`` (:func:`sensor_inputs`)."""
+AX, AY, YAW_RATE, STEERING_WHEEL, WHEEL_SPEED, VX_REF = 0, 1, 2, 3, slice(4, 8), 8
+"""Where each measurement sits in the sensor vector (``WHEEL_SPEED`` a slice of the four wheels)."""
 
 _CHANNELS = ("ax", "ay", "yaw_rate", "steering_wheel", "wheel_speed")
 
@@ -92,7 +105,7 @@ class Measurements(NamedTuple):
 
 
 def low_pass(x, cutoff, period):
-    """First-order discrete low-pass along the leading axis of ``x`` (module docstring), ``y_0 = x_0``."""
+    """First-order discrete low-pass along the leading axis of ``x`` (docs/theory/vehicle.md), ``y_0 = x_0``."""
     a = 1.0 - jnp.exp(-2.0 * jnp.pi * cutoff * period)
 
     def step(y, xk):
@@ -163,3 +176,11 @@ def measure(
     front = out["wheel_speed"][:, :2] * params.wheel_radius / jnp.cos(delta)[:, None]
     vx_ref = jnp.mean(front + out["yaw_rate"][:, None] * jnp.stack([half, -half]), axis=1)
     return Measurements(time=tr.time, vx_ref=vx_ref, **out)
+
+
+def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
+    """The vehicle observers' inputs from :class:`Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`) in the
+    layout of :data:`AX` ... :data:`VX_REF`."""
+    m = measurements
+    columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
+    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None]], axis=1))

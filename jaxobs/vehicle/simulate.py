@@ -1,31 +1,22 @@
 """Simulating the two-track model under a driver: a :class:`Command` per time, RK4 at a fixed plant step.
 
-A manoeuvre is a pure function ``command(t) -> Command`` (traceable in ``t``) with a duration and an initial
-speed (:class:`Manoeuvre`). The driver turns the command and the state into plant inputs:
-
-* steering wheel ``= command.steering_wheel + steering_ratio * curvature_gain * (curvature - r / vx)``
-  (open loop when ``curvature_gain = 0``, path-curvature tracking otherwise), clipped to the steering lock
-  ``steering_ratio * STEERING_LOCK``;
-* total wheel torque ``= R (m (acceleration + SPEED_GAIN (speed - vx) - g sin(Theta)) + drag)``: driving torque
-  split between the rear wheels (rear-wheel drive, as the car of Grip 2010), braking torque between the axles
-  by ``brake_share_front``; each wheel's torque is scaled by ``1 - max(kappa_i sign(T_i), 0) / SLIP_LIMIT``
-  (clipped to [0, 1]), a proportional stand-in for traction control and ABS that keeps the wheels from
-  spinning up or locking.
-
-:func:`simulate` integrates ``x' = dynamics(driver(x, command(t)))`` with :func:`jaxobs.ct.trajectory` (RK4,
-:data:`PLANT_STEP`) in one ``lax.scan`` and returns the states with the specific forces ``a_x``, ``a_y`` and the
-sideslip ``beta = arctan(vy / vx)`` (Grip 2010 ch. 2 convention) at every plant step.
+:func:`driver` turns the command and the state into plant inputs (open-loop or curvature-tracking steering,
+speed-tracking wheel torques with a proportional stand-in for traction control and ABS); :func:`simulate`
+integrates the model under it with :func:`jaxobs.ct.trajectory` (RK4, :data:`PLANT_STEP`) in one ``lax.scan`` and
+returns the states, the specific forces and the sideslip at every plant step. The driver's laws:
+docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks, ct
+from jaxobs.vehicle import manoeuvres
+from jaxobs.vehicle.manoeuvres import Command, Manoeuvre
 from jaxobs.vehicle.model import (
     AIR_DENSITY,
     GRAVITY,
@@ -44,8 +35,6 @@ __all__ = [
     "SPEED_GAIN",
     "SLIP_LIMIT",
     "STEERING_LOCK",
-    "Command",
-    "Manoeuvre",
     "Trajectory",
     "driver",
     "simulate",
@@ -59,31 +48,6 @@ SLIP_LIMIT = 0.15
 """Slip at which the driver's traction and anti-lock limiter has removed a wheel's whole torque (assumed)."""
 STEERING_LOCK = 0.6
 """Largest road-wheel angle the driver applies (rad, about 34 deg; assumed)."""
-
-
-class Command(NamedTuple):
-    """What the driver is asked to do at one time (all scalars). ``steering_wheel`` (rad, feed-forward),
-    ``curvature`` (1/m) and ``curvature_gain`` (rad of road-wheel angle per 1/m of curvature error; 0 = open
-    loop), ``speed`` (m/s) and ``acceleration`` (m/s^2, feed-forward), the road's ``bank`` and ``inclination``
-    (rad) and ``friction`` (scale of the tyres' peak friction)."""
-
-    steering_wheel: jax.Array = 0.0
-    curvature: jax.Array = 0.0
-    curvature_gain: jax.Array = 0.0
-    speed: jax.Array = 20.0
-    acceleration: jax.Array = 0.0
-    bank: jax.Array = 0.0
-    inclination: jax.Array = 0.0
-    friction: jax.Array = 1.0
-
-
-class Manoeuvre(NamedTuple):
-    """A test drive: ``command(t) -> Command`` (traceable), its ``duration`` (s) and ``initial_speed`` (m/s)."""
-
-    name: str
-    command: Callable
-    duration: float
-    initial_speed: float
 
 
 class Trajectory(NamedTuple):
@@ -101,7 +65,7 @@ class Trajectory(NamedTuple):
 
 
 def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
-    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (module docstring)."""
+    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (docs/theory/vehicle.md)."""
     curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
     steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
     steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)
@@ -138,9 +102,7 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
       a :class:`Trajectory` with ``round(duration / dt) + 1`` samples.
     """
     if isinstance(manoeuvre, str):
-        from jaxobs.vehicle.manoeuvres import manoeuvre as by_name
-
-        manoeuvre = by_name(manoeuvre)
+        manoeuvre = manoeuvres.manoeuvre(manoeuvre)
     params.validate()
     _checks.positive_scalar("dt", dt)
     duration = manoeuvre.duration if duration is None else duration

@@ -1,32 +1,11 @@
 """Tyre forces: the Magic Formula with a friction-dependent curve shape, the Burckhardt curve, combined slip.
 
-Slips (Pacejka 2006). A wheel whose centre moves at ``v_l`` along and ``v_s`` across its plane
-(wheel frame, ``v_s`` positive to the left), spinning at ``omega`` with rolling radius ``R``, has the longitudinal
-slip ``kappa = (omega R - v_l) / |v_l|`` and the slip angle ``alpha = -arctan(v_s / v_l)`` (positive clockwise,
-the convention of Grip 2010 ch. 2, so a positive ``alpha`` gives a positive, leftward lateral force). The
-*theoretical slips* ``sigma_x = kappa / (1 + kappa)``, ``sigma_y = tan(alpha) / (1 + kappa)`` and their norm
-``sigma = |(sigma_x, sigma_y)|`` combine the two directions:
-
-    F_x = F_x0(sigma) sigma_x / sigma,    F_y = F_y0(sigma) sigma_y / sigma,
-
-where ``F_x0`` and ``F_y0`` are the pure-slip curves, odd and bounded by the peaks ``D_x``, ``D_y``. So
-``(F_x / D_x)^2 + (F_y / D_y)^2 <= 1``: the forces stay in the friction ellipse, and at pure slip
-(``kappa = 0`` or ``alpha = 0``) the formula is the pure curve itself.
-
-Pure-slip curves of two families:
-
-* :class:`TyreParams`, the Magic Formula (Pacejka 2006):
-  ``F0(s) = D sin(C arctan(B s - E (B s - arctan(B s))))`` with ``D = mu F_z`` and ``B = c F_z / (C D)
-  = c / (C mu)``, where ``c`` is the slip (cornering) stiffness per unit load. The slope at zero slip,
-  ``B C D = c F_z``, does not depend on the friction ``mu`` while the peak does, so the slip at the peak
-  shrinks in proportion to ``mu``: the curve *shape* depends on friction as the measured curves of
-  dry asphalt to ice do (Grip 2010, Fig. 2.3). Past the peak the curve falls to ``D sin(C pi / 2)``.
-* :class:`BurckhardtTyre`, the Burckhardt curve ``mu(s) = c1 (1 - exp(-c2 s)) - c3 s``, ``F0 = mu(s) F_z``
-  (Burckhardt 1993, as tabulated by Kiencke & Nielsen 2000, ch. 7) with a coefficient set per road surface
-  (:data:`BURCKHARDT_SURFACES`); the same curve in both directions.
-
-Everything is elementwise, pure and differentiable (also at zero slip), and every parameter may be an array
-(broadcast with the slips), so a tyre can be batched under ``vmap``.
+:class:`TyreParams` is the Magic Formula (Pacejka 2006), whose slip at the peak shrinks with the friction ``mu``
+as measured curves do (Grip 2010, Fig. 2.3); :class:`BurckhardtTyre` is the Burckhardt curve (Burckhardt 1993;
+Kiencke & Nielsen 2000, ch. 7) with coefficients per surface in :data:`BURCKHARDT_SURFACES`. :func:`tyre_forces`
+combines longitudinal and lateral slip through the theoretical slips, so the forces stay in the friction ellipse.
+Elementwise, pure and differentiable (also at zero slip); parameters broadcast, so tyres batch under ``vmap``.
+The slip conventions and formulas: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""Accuracy of jaxobs.riccati.dare against SciPy (issue 13 §1): on the DAREX collection (Abels & Benner 1999), on
-precise sensors and the papers' AOB designs, and on random systems, the solution and the gain are within 10x
+"""Accuracy of jaxobs.matrix_equations.dare against SciPy (issue 13 §1): on the DAREX collection (Abels & Benner
+1999), on precise sensors and the papers' AOB designs, and on random systems, the solution and the gain are within 10x
 SciPy's own error plus the float64 rounding floor, both measured against an exact-residual Newton reference
 (tests/darex.py). The checks compile one DARE per shape (minutes in all), so they are @pytest.mark.slow; the default
-suite's DARE tests (tests/test_riccati.py) compare with SciPy on random problems."""
+suite's DARE tests (tests/test_matrix_equations.py) compare with SciPy on random problems."""
 
 import numpy as np
 import pytest

@@ -19,7 +19,7 @@ from jaxobs.papers.cortesao.force_control import (
     with_feedback,
 )
 from jaxobs.papers.cortesao.stochastic import PRINTED_COEFFICIENT, Q_ACTIVE, SURFACE_SPEED
-from tests._readme import pin
+from tests._published import pin
 
 H = EXAMPLE1.h
 FORCE_STEP = 10.0  # N

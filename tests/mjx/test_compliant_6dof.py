@@ -19,7 +19,7 @@ from jaxobs.observers.active import active_observer_controller as AOB
 from jaxobs.papers.cortesao import mrac
 from jaxobs.papers.cortesao.force_control import example1_disturbance
 from jaxobs.plants import force_plant
-from tests._readme import pin
+from tests._published import pin
 
 H = c6.CONTROL_PERIOD
 T = 250  # 2 s

@@ -9,7 +9,7 @@ import pytest
 from jaxobs.mjx import CONTROL_PERIOD, ForcePlantParams, load_model, rollout, with_params
 from jaxobs.papers.cortesao.force_control import EXAMPLE1
 from jaxobs.plants import force_plant
-from tests._readme import pin
+from tests._published import pin
 
 T = 120
 PULSE = 60  # 0.48 s at U mm/s: the force steps by Ks * U * PULSE * h

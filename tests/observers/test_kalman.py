@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
+from jaxobs.kalman_steps import kalman_gain, update_covariance
+from jaxobs.matrix_equations import dare
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.observers.kalman import (
     KalmanParams,
@@ -24,7 +26,6 @@ from jaxobs.observers.kalman import (
     square_root_kalman_filter,
     with_steady_state_gain,
 )
-from jaxobs.riccati import dare, kalman_gain, update_covariance
 
 
 def reference_filter(Phi, Gamma, C, Q, R, x0, P0, u_prev, y):

@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 
 from jaxobs import ct
-from jaxobs.adaptive import Ball, Box
+from jaxobs.adaptive import Ball, Box, InversionLaw, PerturbationGradientLaw
 from jaxobs.observers import EstimatorInputs, run
 from jaxobs.observers.modular import (
     ModularState,
@@ -55,8 +55,8 @@ def test_error_dynamics_5_11_along_a_closed_loop_trajectory():
     equals -K_phi phi_tilde + d(t, x, theta_tilde) (5.11a) with d from perturbation_error_rate, theta_tilde' =
     -u_theta(phi_hat) (5.11b), and x_hat = -K_phi^{-1} z obeys the observer form of Grip 2010 §5.7; all to 1e-12."""
     K = jnp.array([[6.0, 1.0], [1.0, 4.0]])
-    params = make_modular(f2, B2, g2, theta0=jnp.zeros(2), K_phi=K, Gamma=jnp.diag(jnp.array([2.0, 3.0])), dt=0.01,
-                          n_inputs=2, region=Ball(jnp.zeros(2), 3.0))  # fmt: skip
+    law = PerturbationGradientLaw(jnp.diag(jnp.array([2.0, 3.0])), region=Ball(jnp.zeros(2), 3.0))
+    params = make_modular(f2, B2, g2, theta0=jnp.zeros(2), K_phi=K, law=law, dt=0.01, n_inputs=2)
     model = params.model
     rate = closed_loop(model, THETA)
     s0 = (jnp.array([0.5, -1.0]), ModularState(jnp.array([0.3, 0.1]), jnp.array([0.2, 0.1])))
@@ -94,7 +94,7 @@ def test_d_by_autodiff_equals_the_closed_form_of_example_5_6():
     """d = (theta e^{sin(t) theta} - theta_hat e^{sin(t) theta_hat}) cos t for g = exp(sin(t) theta) (Grip 2010
     Example 5.6)."""
     params = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), lambda t, x, th: jnp.exp(jnp.sin(t) * th),
-                          theta0=[0.0], K_phi=10.0, Gamma=3.0, dt=0.001, n=1)  # fmt: skip
+                          theta0=[0.0], K_phi=10.0, law=PerturbationGradientLaw(3.0), dt=0.001, n=1)  # fmt: skip
     t, th, th_hat = 0.8, jnp.array([2.0]), jnp.array([-1.0])
     d = perturbation_error_rate(params.model, t, jnp.array([0.3]), jnp.array([5.0]), th, th_hat)
     expected = (2.0 * np.exp(np.sin(t) * 2.0) + np.exp(-np.sin(t))) * np.cos(t)
@@ -112,15 +112,15 @@ def exp_cubic_inverse(t, x, phi):
 
 def test_prop_5_1_inversion_gives_exponential_parameter_error():
     """With phi_hat(0) = phi (z(0) chosen so) and d = 0 (g independent of t and x, B constant), phi_tilde stays 0 and
-    the inversion law gives theta_tilde(t) = expm(-Gamma t) theta_tilde(0) (Prop. 5.1; a non-diagonal Gamma), to
-    1e-9 over 3 s with RK4 at 10 ms (measured 3.8e-11)."""
-    Gamma = jnp.array([[2.0, 0.5], [0.5, 1.0]])
+    the inversion law gives theta_tilde(t) = expm(-Gamma t) theta_tilde(0) (Prop. 5.1; a non-diagonal adaptation gain
+    Gamma), to 1e-9 over 3 s with RK4 at 10 ms (measured 3.8e-11)."""
+    gain = jnp.array([[2.0, 0.5], [0.5, 1.0]])
     theta, theta0, x0 = jnp.array([0.3, -0.5]), jnp.zeros(2), jnp.array([1.0, -1.0])
     K = 5.0 * jnp.eye(2)
     z0 = exp_cubic(0, x0, theta) - exp_cubic(0, x0, theta0) - K @ x0
     params = make_modular(lambda t, x: -x + jnp.array([jnp.sin(t), jnp.cos(t)]), lambda t, x: jnp.eye(2), exp_cubic,
-                          theta0=theta0, K_phi=K, Gamma=Gamma, dt=0.01, law="inversion", theta_star=exp_cubic_inverse,
-                          z0=z0, region=Ball(jnp.zeros(2), 10.0))  # fmt: skip
+                          theta0=theta0, K_phi=K, dt=0.01, z0=z0,
+                          law=InversionLaw(exp_cubic_inverse, gain, region=Ball(jnp.zeros(2), 10.0)))  # fmt: skip
     model = params.model
 
     def rate(s, u, t):
@@ -129,7 +129,7 @@ def test_prop_5_1_inversion_gives_exponential_parameter_error():
 
     _, ests = jax.jit(lambda s: ct.trajectory(rate, s, jnp.zeros(300), h=0.01))((x0, ModularState(z0, theta0)))
     t = 0.01 * np.arange(301)
-    expected = np.stack([scipy.linalg.expm(-np.asarray(Gamma) * s) @ np.asarray(theta - theta0) for s in t])
+    expected = np.stack([scipy.linalg.expm(-np.asarray(gain) * s) @ np.asarray(theta - theta0) for s in t])
     np.testing.assert_allclose(theta - ests.theta_hat, expected, atol=1e-9)
 
 
@@ -138,26 +138,27 @@ def test_update_laws_against_their_hand_written_forms():
     inversion off (rate 0) and on (Gamma (theta* - theta_hat)); the phi_hat saturation bounds what the law sees;
     Example 5.5's combined law as a custom direction."""
     g = lambda t, x, th: jnp.exp(jnp.sin(t) * th)
-    common = dict(theta0=[0.5], K_phi=10.0, Gamma=3.0, dt=0.001, n=1)
+    common = dict(theta0=[0.5], K_phi=10.0, dt=0.001, n=1)
     t, x, phi_hat, th = 0.7, jnp.array([0.2]), jnp.array([1.9]), jnp.array([0.5])
-    default = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, **common).model
+    default = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, law=PerturbationGradientLaw(3.0),
+                           **common).model  # fmt: skip
     s = np.sin(t)
     np.testing.assert_allclose(parameter_rate(default, t, x, phi_hat, th),
                                3.0 * s * np.exp(s * 0.5) * (1.9 - np.exp(s * 0.5)), rtol=1e-13)  # fmt: skip
-    example = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, M=lambda t, x, th: jnp.sin(t)[None, None],
-                           region=Box(jnp.array([-5.0]), jnp.array([5.0])), **common).model  # fmt: skip
+    M = lambda t, x, th: jnp.sin(t)[None, None]
+    law = PerturbationGradientLaw(3.0, M=M, region=Box(jnp.array([-5.0]), jnp.array([5.0])))
+    example = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, law=law, **common).model
     np.testing.assert_allclose(
         parameter_rate(example, t, x, phi_hat, th), 3.0 * s * (1.9 - np.exp(s * 0.5)), rtol=1e-13
     )
-    M = lambda t, x, th: jnp.sin(t)[None, None]
-    saturated = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, M=M, phi_bounds=(0.0, 1.5),
-                             **common).model  # fmt: skip
+    saturated = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, law=PerturbationGradientLaw(3.0, M=M),
+                             phi_bounds=(0.0, 1.5), **common).model  # fmt: skip
     np.testing.assert_allclose(
         parameter_rate(saturated, t, x, phi_hat, th), 3.0 * s * (1.5 - np.exp(s * 0.5)), rtol=1e-13
     )
-    intermittent = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, law="intermittent",
-                                theta_star=lambda t, x, phi: jnp.log(phi) / jnp.sin(t),
-                                l=lambda t, x: (jnp.abs(jnp.sin(t)) >= 0.3).astype(float), **common).model  # fmt: skip
+    law = InversionLaw(lambda t, x, phi: jnp.log(phi) / jnp.sin(t), 3.0,
+                       weight=lambda t, x, phi: (jnp.abs(jnp.sin(t)) >= 0.3).astype(float))  # fmt: skip
+    intermittent = make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), g, law=law, **common).model
     assert float(parameter_rate(intermittent, 0.1, x, phi_hat, th)[0]) == 0.0  # |sin t| < 0.3: off
     np.testing.assert_allclose(
         parameter_rate(intermittent, t, x, phi_hat, th), 3.0 * (np.log(1.9) / s - 0.5), rtol=1e-13
@@ -172,8 +173,9 @@ def example_5_6_samples(T=400, dt=0.01, theta=2.0):
 
 def example_params(K_phi=10.0, dt=0.01):
     return make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), lambda t, x, th: jnp.exp(jnp.sin(t) * th),
-                        theta0=[0.0], K_phi=K_phi, Gamma=3.0, dt=dt, n=1, M=lambda t, x, th: jnp.sin(t)[None, None],
-                        region=Box(jnp.array([-5.0]), jnp.array([5.0])))  # fmt: skip
+                        theta0=[0.0], K_phi=K_phi, dt=dt, n=1,
+                        law=PerturbationGradientLaw(3.0, M=lambda t, x, th: jnp.sin(t)[None, None],
+                                                    region=Box(jnp.array([-5.0]), jnp.array([5.0]))))  # fmt: skip
 
 
 def test_sampled_estimator_jit_vmap_grad_and_missing_measurements():
@@ -199,27 +201,28 @@ def test_sampled_estimator_jit_vmap_grad_and_missing_measurements():
     assert bool(jnp.all(out.innovation[100:110] == 0))
 
 
+BALL = Ball(jnp.zeros(2), 3.0)
+
+
 @pytest.mark.parametrize(
     ("change", "match"),
     [
-        (dict(Gamma=jnp.array([[1.0, 2.0], [2.0, 1.0]])), r"^Gamma must be positive definite"),
+        (dict(law=PerturbationGradientLaw(jnp.array([[1.0, 2.0], [2.0, 1.0]]))), r"^adaptation_gain must be positive"),
         (dict(K_phi=jnp.array([[1.0, 0.0], [1.0, 1.0]])), r"^K_phi must be symmetric"),
         (dict(K_phi=-1.0), r"^K_phi must be a finite positive number"),
         (dict(dt=0.0), r"^dt must be a finite positive number"),
         (dict(theta0=jnp.array([4.0, 0.0])), r"^theta0 must lie in the projection set"),
         (dict(f=lambda t, x: x[:1]), r"^f\(t, x\) must return"),
         (dict(g=lambda t, x, th: th[:1]), r"^g\(t, x, theta\) must return"),
-        (dict(law="inversion"), r"^theta_star is required"),
-        (dict(law="newton"), r"^law must be one of"),
-        (dict(epsilon=0.0), r"^epsilon must be a finite positive number"),
-        (dict(law="custom"), r"^direction is required"),
-        (dict(law="intermittent", theta_star=lambda t, x, phi: phi), r"^l is required"),
-        (dict(M=lambda t, x, th: jnp.ones((2, 3))), r"^M\(t, x, theta_hat\) must return"),
+        (dict(law="inversion"), r"^law must be an update law"),
+        (dict(law=PerturbationGradientLaw(1.0, region=BALL, epsilon=0.0)), r"^epsilon must be a finite positive"),
+        (dict(law=InversionLaw(lambda t, x, phi: jnp.ones(3), 1.0)), r"^law\(B g, \(t, x\), phi_hat, theta_hat\)"),
+        (dict(law=PerturbationGradientLaw(1.0, M=lambda t, x, th: jnp.ones((2, 3)))), r"^law\(B g, \(t, x\)"),
     ],
 )
 def test_bad_inputs_raise_naming_the_argument(change, match):
-    args = dict(f=f2, B=B2, g=g2, theta0=jnp.zeros(2), K_phi=5.0, Gamma=jnp.eye(2), dt=0.01, n=2,
-                region=Ball(jnp.zeros(2), 3.0))  # fmt: skip
+    args = dict(f=f2, B=B2, g=g2, theta0=jnp.zeros(2), K_phi=5.0, dt=0.01, n=2,
+                law=PerturbationGradientLaw(jnp.eye(2), region=BALL))  # fmt: skip
     args.update(change)
     f, B, g = args.pop("f"), args.pop("B"), args.pop("g")
     with pytest.raises(ValueError, match=match):

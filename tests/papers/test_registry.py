@@ -31,7 +31,7 @@ TINY_SWEEPS = {
     },
     "grip-example56": {
         "chunk_size": 2,
-        "grid": {"K_phi": [10.0], "Gamma": [3.0], "noise_variance": [0.0, 1.0], "seeds": 1},
+        "grid": {"K_phi": [10.0], "adaptation_gain": [3.0], "noise_variance": [0.0, 1.0], "seeds": 1},
         "scenario_timing": {"segment_s": 1.0, "window_s": 0.5},
     },
     "saturated-outputs": {

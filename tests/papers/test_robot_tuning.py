@@ -60,7 +60,7 @@ def test_readme_table_row(tmp_path):
     other problems, the tuned filter lowers the training objective, and the README's tuning-table row: the held-out
     objectives of the hand-set filter, the tuned one and the random search at equal rollouts (seeded, so
     reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "robot"
     assert main(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"]) == 0

@@ -80,8 +80,10 @@ def main():
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.config:
         given = load_toml(args.config)
-        scenario = tuning_problems()[given["problem"]]
-        config = scenario.validate(given, args.config)
+        registry = tuning_problems()
+        name = given.get("problem", next(iter(registry)))  # the CLI's default problem
+        scenario = registry[name]
+        config = scenario.validate({**given, "problem": name}, args.config)
         problem, tuned, tag = scenario.build(config), settings(config), "tiny"
     else:
         problem, tag = analytic_problem(args.lapack), "analytic"

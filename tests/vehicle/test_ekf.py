@@ -104,7 +104,7 @@ def test_bad_settings_raise():
         make_vehicle_ekf(q_v=0.0)
     with pytest.raises(ValueError, match="vehicle must be a VehicleParams"):
         make_vehicle_ekf("car")
-    with pytest.raises(ValueError, match="switching must be NVSOParams"):
+    with pytest.raises(ValueError, match="switching must be SwitchingParams"):
         make_vehicle_ekf(switching={"off_delay": 0.5})
     with pytest.raises(ValueError, match="bierman must be a bool"):
         make_vehicle_ekf(bierman=1)

@@ -59,15 +59,16 @@ def test_observers_on_the_double_lane_change(lane_change):
 
 
 def test_jit_vmap_grad(lane_change):
-    """A vmap over two ``Gamma`` equals each run; eager on 2 samples equals the jitted run's first 2; the gradient
-    of the squared sideslip error over the first 2 s with respect to ``K_vy`` is finite and matches a central
+    """A vmap over two adaptation gains equals each run; eager on 2 samples equals the jitted run's first 2; the
+    gradient of the squared sideslip error over the first 2 s with respect to ``K_vy`` is finite and matches a central
     difference."""
     inputs, beta = lane_change
     params = make_adaptive_lateral(P, vx0=float(inputs.y[0, 8]))
     gammas = jnp.array([2.0, 4.0])
-    _, batch = jax.jit(jax.vmap(lambda g: run(full_observer, dataclasses.replace(params, Gamma=g), inputs)))(gammas)
+    with_gain = lambda g: dataclasses.replace(params, adaptation_gain=g)  # noqa: E731
+    _, batch = jax.jit(jax.vmap(lambda g: run(full_observer, with_gain(g), inputs)))(gammas)
     for i, g in enumerate(gammas):
-        single = _run_full(dataclasses.replace(params, Gamma=g), inputs)[1].x
+        single = _run_full(dataclasses.replace(params, adaptation_gain=g), inputs)[1].x
         np.testing.assert_allclose(batch.x[i], single, rtol=1e-10, atol=1e-12)
     short = EstimatorInputs(y=inputs.y[:2])
     np.testing.assert_allclose(run(full_observer, params, short)[1].x, _run_full(params, inputs)[1].x[:2], rtol=1e-12)
@@ -89,8 +90,8 @@ def test_missing_samples_and_bad_settings(lane_change):
     y[np.arange(50, 60), 1] = np.nan
     state, out = _run_full(make_adaptive_lateral(P, vx0=float(y[0, 8])), EstimatorInputs(y=jnp.asarray(y)))
     assert int(state.missing) == 10 and bool(jnp.all(jnp.isfinite(out.x)))
-    with pytest.raises(ValueError, match="Gamma"):
-        make_adaptive_lateral(Gamma=-1.0)
+    with pytest.raises(ValueError, match="adaptation_gain"):
+        make_adaptive_lateral(adaptation_gain=-1.0)
     with pytest.raises(ValueError, match="xi_rule"):
         make_adaptive_lateral(xi_rule="secant")
     with pytest.raises(ValueError, match="monitor"):

@@ -37,7 +37,7 @@ def test_lane_change_reaches_about_0_9_g_and_its_sensors_sample_at_100_hz():
     np.testing.assert_allclose(m.vx_ref, tr.state.vx[::10], atol=0.3)  # front-wheel reference, noisy wheels
 
 
-# name: (peak |a_y| / g, peak |beta| in deg), measured with the default vehicle (the module docstring's numbers)
+# name: (peak |a_y| / g, peak |beta| in deg), measured with the default vehicle (the numbers of docs/theory/vehicle.md)
 PEAKS = {
     "straight": (0.0, 0.0),
     "sine_steer": (0.582, 0.85),

@@ -12,7 +12,9 @@ import pytest
 
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.vehicle import SensorParams, VehicleParams, measure, simulate
-from jaxobs.vehicle.nvso import N_SENSORS, make_nvso, nvso, sensor_inputs, switching
+from jaxobs.vehicle.nvso import make_nvso, nvso
+from jaxobs.vehicle.sensors import N_SENSORS, sensor_inputs
+from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
 P = VehicleParams()
 EXACT_SENSORS = SensorParams(noise_acc=0.0, noise_yaw_rate=0.0, noise_steering=0.0, noise_wheel=0.0)
@@ -171,3 +173,15 @@ def test_make_nvso_and_the_ekf_build_under_jit():
 
     assert float(jax.jit(lambda k: make_nvso(K_vy=k).K_vy)(0.8)) == 0.8
     assert float(jax.jit(lambda v: make_vehicle_ekf(vx0=v).ekf.model.x0[0])(12.0)) == 12.0
+
+
+def test_switching_params_share_the_nvso_defaults_and_are_checked():
+    """The EKF baseline's switch (SwitchingParams) has the NVSO's thresholds by default, so both switch alike;
+    make_switching names an unknown or non-positive setting."""
+    nvso_params, switch = make_nvso(), make_switching()
+    for name in SwitchingParams._fields[1:]:
+        assert getattr(switch, name) == getattr(nvso_params, name), name
+    with pytest.raises(ValueError, match="unknown switching settings"):
+        make_switching(K_vy=1.0)
+    with pytest.raises(ValueError, match="off_delay"):
+        make_switching(off_delay=0.0)

@@ -32,21 +32,35 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True)
 class ForceControlSetup:
-    """Nominal parameters (Cortesão 2006 §7.2, the MRAC chapter Table 1)."""
+    """Nominal parameters (Cortesão 2006 §7.2, the MRAC chapter Table 1).
 
-    Ks: float = 3.0  # N/mm
-    Tp: float = 0.032  # s, position response time constant
-    h: float = 0.008  # s, sample time
-    dead_time_samples: int = 5  # Td = 5 h
-    tau_c_over_Tp: float = 10.0  # closed-loop time constant tau_c = 10 Tp (the MRAC chapter eq. 68)
-    R: float = 2.1e-2  # N^2, force sensor noise (Cortesão 2006 §7.2, the MRAC chapter eq. 64)
-    q_plant: float = 1e-12  # Q_xr(i, i)
-    sigma2_active: float = 1e-3  # variance of xi_p
-    c: float = 1.0 / 500.0  # eq. 55 factor
-    duration: float = 20.0  # s
+    Attributes:
+      Ks: environment stiffness (N/mm).
+      Tp: position response time constant (s).
+      h: sample time (s).
+      dead_time_samples: dead time in samples (Td = 5 h).
+      tau_c_over_Tp: closed-loop time constant over ``Tp`` (tau_c = 10 Tp, the MRAC chapter eq. 68).
+      R: force sensor noise variance (N^2; Cortesão 2006 §7.2, the MRAC chapter eq. 64).
+      q_plant: process noise of each plant state, ``Q_xr(i, i)``.
+      sigma2_active: variance of the active-state noise ``xi_p``.
+      c: the factor of eq. 55.
+      duration: length of a run (s).
+    """
+
+    Ks: float = 3.0
+    Tp: float = 0.032
+    h: float = 0.008
+    dead_time_samples: int = 5
+    tau_c_over_Tp: float = 10.0
+    R: float = 2.1e-2
+    q_plant: float = 1e-12
+    sigma2_active: float = 1e-3
+    c: float = 1.0 / 500.0
+    duration: float = 20.0
 
     @property
     def num_steps(self) -> int:
+        """Samples in ``duration``."""
         return int(round(self.duration / self.h))
 
 

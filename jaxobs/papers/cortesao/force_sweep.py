@@ -1,19 +1,9 @@
 """Robustness sweep of the Example 1 force controllers (Cortesão 2006 §6-7): the default ``jaxobs sweep``.
 
-AOB-1, AOB-2, AOB-3 and a CKF, each designed on the nominal plant (Ks = 3 N/mm, Tp = 32 ms, 5 samples
-of dead time) for a grid of Q/R strategies, run against true plants with stiffness, time-constant
-and (fractional) dead-time mismatch. Per configuration: the spectral radius of the closed loop
-(eq. 59) and the margins of the loop transfer function (eq. 65), and a 20 s closed-loop run under
-the disturbance of eq. 81-82 with sensor noise, scored by the RMS force error against the desired
-response (as in §7.2).
-
-The strategy grid: the variance ``sigma^2`` of the active-state noise (eq. 55, with Example 1's
-``c = 1/500``) times ``R``. The CKF has no active state, so for it the first axis is the plant-state
-variance ``Q_xr``. By Q/R scale invariance (the MRAC chapter Proposition 1) the gains depend mostly on
-``sigma^2 / R``, the axis of the stability maps.
-
-Configuration ``i`` uses design ``i mod D`` (so every design gets the same number of plants) and
-samples its plant from its own key.
+AOB-1, AOB-2, AOB-3 and a CKF designed on the nominal plant for a grid of Q/R strategies, run against plants with
+stiffness, time-constant and dead-time mismatch; per configuration the closed loop's spectral radius (eq. 59), the
+margins (eq. 65) and the RMS force error of a 20 s run under the disturbance of eq. 81-82. The scenario:
+docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -303,7 +293,6 @@ def _worst_cases(cols: dict, orders) -> dict:
 
 def report(config: dict, out_dir: Path, result=None, designs: Designs | None = None) -> dict:
     """Write ``summary.json``, ``report.md`` and the figures for the sweep in ``out_dir``."""
-
     cols = load_results(out_dir)
     orders = config["controllers"]["orders"]
     summary = {

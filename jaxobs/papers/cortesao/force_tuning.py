@@ -1,25 +1,10 @@
 """Tuning the AOB of the 1-DOF force plant against MJX rollouts: the default ``jaxobs tune`` problem.
 
-The controller is the AOB-N of Cortesão 2006 and the MRAC chapter designed on the nominal analytic plant (Ks = 3 N/mm,
-Tp = 32 ms, 5 samples of dead time; ``L_r`` for tau_c = 10 Tp, eq. 68) with steady-state gains. The
-hand-set design it starts from is the MRAC chapter eq. 62-64: ``Q = diag(1e-12, ..., 1e-12, 1e-5)``,
-``R = 2.1e-2``. It runs against the MJX force plant (:mod:`jaxobs.mjx.force_1dof`) with mismatched
-stiffness (+-50 % by default), time constant and damping, under the papers' disturbances: a 10 N
-force step at t = 0, the input disturbance of Cortesão 2006 eq. 81-82 (a window of it, crossing its 8 s
-step) and the receding surface of the stochastic AOB paper §4 (2 mm/s). The per-plant loss is the mean squared
-force tracking error against the desired closed loop (Cortesão 2006 eq. 43, the nominal ``Phi - Gamma L``
-response), in N^2; sensor noise of the printed variance is drawn per plant with a fixed seed (common
-random numbers, so the objective is deterministic).
-
-Parameterisations (``design.parameterisation``) of the unconstrained ``theta``:
-
-* ``"diagonal"``: ``log_q`` (every diagonal entry of ``Q``) and ``log_r``;
-* ``"cholesky"``: ``q_cholesky`` (:func:`jaxobs.tuning.cholesky_covariance`) and ``log_r``;
-* ``"structured"``: the papers' design space, ``log_q_plant`` (``Q_xr = q I``), ``log_sigma2`` and
-  ``logit_c`` (the active-state variance of eq. 53-55) and ``log_r``.
-
-By Q/R scale invariance (the MRAC chapter Proposition 1) the steady-state gains, hence the losses, do not
-change when ``Q`` and ``R`` are scaled together: one direction of ``theta`` is flat.
+The AOB-N of Cortesão 2006 and the MRAC chapter, designed on the nominal analytic plant from the hand-set
+``Q``, ``R`` of eq. 62-64, runs against mismatched MJX force plants (:mod:`jaxobs.mjx.force_1dof`) under the
+papers' disturbances; the loss is the mean squared force error against the desired closed loop (eq. 43).
+Parameterisations ``"diagonal"``, ``"cholesky"`` and ``"structured"`` (eq. 53-55). The problem:
+docs/theory/papers.md.
 """
 
 from __future__ import annotations

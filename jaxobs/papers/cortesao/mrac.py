@@ -2,35 +2,10 @@
 (IntechOpen chapter), §7: the six per-DOF controllers of the 6-DOF compliant-motion task (eq. 62-68) and the
 peg-on-hole alignment scenario (§7.4, Figures 4-6), on the MJX plant of :mod:`jaxobs.mjx.compliant_6dof`.
 
-Controllers. :func:`design` builds the six per-DOF controllers of §7.3 (eq. 62-68): per DOF the delay-augmented
-``force_plant(K_i, Tp_i, h, 5 h)``, ``L_r`` for a critically damped loop with ``tau_c = 10 Tp`` (eq. 68),
-``Q(f_x) = diag(1e-12, ..., 1e-12, 1e-5)`` (eq. 62), ``P0(f_x) = 1e-4 I`` (eq. 63), ``R(f_x) = 2.1e-2 N^2``
-(eq. 64), ``R(f_y) = 7.4e-4 N^2`` (eq. 67) and for every other DOF ``Q = Q(f_x) R_i / R(f_x)``,
-``P0 = P0(f_x) R_i / R(f_x)`` (eq. 65-66, "analogous equations for the other dimensions"). The ``R`` of ``f_z``
-and of the moments are not printed; :data:`SENSOR_NOISE_VARIANCE` chooses ``R(f_z) = R(f_x) = 2.1e-2 N^2``
-and ``R(m_x) = R(m_y) = R(m_z) = 1e-4 (N·m)^2``. The ratio ``Q/R`` is the same in every DOF, so
-by Proposition 1 DOF with the same ``Ks`` and ``Tp`` share one Kalman gain (``f_x`` and ``f_y``; the three
-moments); ``Ks`` enters the augmented ``Phi_n`` through the active state's input column (eq. 41), so the
-rotational AOB-1 (``Ks = 100``) get larger gains than the translational ones (both HBA). The z controller is an AOB-1
-switched to CKF (``active = 0``) with the SBA gain ``K = [1, 0, ..., 0]'``, so all six have one shape and
-are stacked on a leading axis of size 6; :func:`closed_loop_rollout` steps them with one ``jax.vmap`` over DOF.
-Reference inputs (§7.1, "two reference inputs, f_d and v_d"): the controller reference is
-``r = L_1 f_d`` (:func:`force_reference`) and the velocity feedforward ``v_d`` is added to the command at the
-plant input, outside the observer's model: the AOB treats it as part of the equivalent disturbance and
-cancels it ("the full AOB annihilates any external inputs"), the CKF lets it through.
-
-Simplifications of the scenario (next to those of the plant, listed in :mod:`jaxobs.mjx.compliant_6dof`):
-
-* ``R`` of ``f_z`` and of the three moments are not printed: chosen values (above);
-* the ANN reference generator trained on human demonstrations (§7.4) is replaced by a scripted reference
-  (:func:`peg_on_hole_scenario`); the contact-force magnitudes, the tilt and the ``v_z`` feedforward bias are
-  not printed and are chosen;
-* the moment controller of ``m_y`` is off during the alignment (``L = 0``, pure velocity feedforward ``w_y``),
-  as in §7.4; on-line switching between AOB, CKF and pure state feedback by task state is not scripted
-  (``set_active`` does it at run time).
-
-Precision: with ``Q`` entries of 1e-12..1e-5 the float32 DARE returns steady-state gains near zero, so
-:func:`design` raises ``ValueError`` unless float64 is enabled.
+:func:`design` builds the six controllers (AOB-1 on five DOF, a CKF with the sensor-based gain on z) stacked on a
+leading axis; :func:`peg_on_hole_scenario` scripts the alignment; :func:`jaxobs.mjx.compliant_6dof.closed_loop_rollout`
+runs them with one ``vmap`` over DOF. :func:`design` raises ``ValueError`` unless float64 is enabled. Chosen values and
+simplifications: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -53,7 +28,7 @@ from jaxobs.mjx.compliant_6dof import (
     Compliant6Params,
     X,
     Z,
-    _per_dof,
+    check_per_dof,
 )
 from jaxobs.observers.active import feedback_gain, make_aob, sensor_based_gain
 from jaxobs.observers.feedback import FeedbackParams
@@ -70,14 +45,23 @@ __all__ = [
 
 
 class PegOnHoleScenario(NamedTuple):
-    """The alignment phase of §7.4 (:func:`peg_on_hole_scenario`); series have shape (T, 6)."""
+    """The alignment phase of §7.4 (:func:`peg_on_hole_scenario`); series have shape (T, 6).
 
-    t: jax.Array  # (T,) time (s)
-    force_setpoint: jax.Array  # f_d (N, N·m)
-    feedforward: jax.Array  # v_d (mm/s, rad/s): w_y alignment velocity, v_z feedforward bias
-    reference: jax.Array  # controller reference r = L_1 f_d
-    plant: Compliant6Params  # the alignment-phase plant (K_ry = 0: the peg pivots on the contact)
-    controllers: FeedbackParams  # the six per-DOF AOB controllers, stacked (m_y feedback off)
+    Attributes:
+      t: (T,) time (s)
+      force_setpoint: f_d (N, N·m)
+      feedforward: v_d (mm/s, rad/s): w_y alignment velocity, v_z feedforward bias
+      reference: controller reference r = L_1 f_d
+      plant: the alignment-phase plant (K_ry = 0: the peg pivots on the contact)
+      controllers: the six per-DOF AOB controllers, stacked (m_y feedback off)
+    """
+
+    t: jax.Array
+    force_setpoint: jax.Array
+    feedforward: jax.Array
+    reference: jax.Array
+    plant: Compliant6Params
+    controllers: FeedbackParams
 
 
 TABLE1_STIFFNESS = NOMINAL_STIFFNESS
@@ -134,9 +118,9 @@ def design(
             f"stiffness must be > 0 in every DOF for a design (Ks/(s(1+Tp s)) is uncontrollable at Ks = 0), "
             f"got {np.asarray(params.stiffness).tolist()}"
         )
-    _per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
+    check_per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
     if q_active is not None:
-        _per_dof("q_active", q_active, minimum=0.0, strict=False)
+        check_per_dof("q_active", q_active, minimum=0.0, strict=False)
     for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
         if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
             raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")

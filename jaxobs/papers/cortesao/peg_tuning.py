@@ -1,17 +1,9 @@
 """Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (the MRAC chapter §7) against MJX rollouts.
 
-The task of :func:`jaxobs.papers.cortesao.mrac.peg_on_hole_scenario`: three-point contact kept by ``f_x < 0``
-and ``f_z > 0`` while the alignment velocity ``w_y`` uprights the tilted peg (its contact moment couples
-into ``f_x``, ``f_z`` and ``m_y``) and ``v_z`` carries a feedforward bias. The hand-set design is eq. 62-68:
-AOB-1 HBA on x, y, rx, ry, rz with ``Q = a_i diag(1e-12, ..., 1e-5)``, ``a_i = R_i / R(f_x)``, CKF SBA on z,
-the ``m_y`` feedback off during the alignment.
-
-Tuned: ``log_q_active`` of the four DOF whose AOB acts (x, y, rx, rz; ``R_i`` stays the measured sensor
-variance, so by scale invariance this sets each DOF's ``q/R``). The z CKF's gain is the fixed sensor-based
-one, and ``m_y`` has no feedback, so their Q has no effect and is not tuned. Mismatched plants: every
-stiffness scaled independently (+-50 % by default), the peg's tilt and the contact lever varied. The
-per-plant loss is the mean over time and the four tuned DOF of the squared error between the measured-free
-wrench and each DOF's desired closed-loop response (eq. 43), in units of that DOF's sensor noise variance.
+Tuned: ``log_q_active`` of the four DOF whose AOB acts (x, y, rx, rz), from the hand-set design of eq. 62-68, on
+plants with scaled stiffnesses, tilt and contact lever (:func:`jaxobs.papers.cortesao.mrac.peg_on_hole_scenario`).
+The loss is each DOF's squared error against its desired closed-loop response (eq. 43), in units of its sensor
+noise variance. The problem: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -96,6 +88,7 @@ def _check(config: dict, source: str) -> None:
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     from jaxobs.mjx import compliant_6dof as c6
     from jaxobs.papers.cortesao import mrac
 

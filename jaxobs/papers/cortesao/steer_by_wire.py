@@ -1,24 +1,10 @@
 """Cortesão 2006, "On Kalman Active Observers" (Cortesão 2006), Example 2 (§8): steer-by-wire (SBW) model
 matching with a MIMO AOB-1.
 
-The SBW setup (eq. 95-99) has four inputs ``u = [T_h, tau_m, F_r, f_s]`` (steering-wheel torque,
-steering-wheel motor torque, road/rack force, rack actuator force) and two outputs, the velocities
-``[d delta_h / dt, d x_r / dt]``. Only ``tau_m`` and ``f_s`` can be actuated. The controller must make
-it behave like a conventional (steering-column) car, the target of eq. 90-94, whose inputs are
-``T_h`` and ``F_r`` only:
-
-* state feedback ``L_r`` on the 7-state discrete SBW plant for the poles of eq. 100-101, with the
-  ``T_h`` and ``F_r`` columns of ``Gamma_r`` zeroed for the design (no feedback to inputs that
-  cannot be actuated), either decoupled (per actuator, Ackermann) or coupled (MIMO ``place``);
-* the DC-gain compensation ``L_c = (SBW DC)^{-1} (target DC)`` (eq. 102-105) applied as the
-  pre-amplification ``r_k = L_c [T_h; F_r]`` (eq. 106) or through the actuators (eq. 107);
-* an AOB-1 with one active state per input, ``Q_p = diag(0, 1e-1, 0, 1e3)`` (eq. 108-110).
-
-Sign convention for ``F_r`` (see ``docs/reproductions.md``): the transfer functions
-are used as printed (``road_force_sign=+1``): a positive rack force moves the rack in the negative
-direction both in the target (``T_23(0) < 0``) and in the SBW plant (``y_r(0) < 0``). The printed
-``L_c`` (eq. 105) and the printed active state ``p_4 -> 0.61`` (eq. 114) correspond to the opposite
-sign of the target's ``F_r`` column (``road_force_sign=-1``); both are computed and reported.
+The SBW plant (eq. 95-99, four inputs, two actuated) is made to behave like a conventional car (eq. 90-94) by
+state feedback ``L_r`` for the poles of eq. 100-101 (decoupled or coupled), the DC-gain compensation ``L_c`` of
+eq. 102-105 and an AOB-1 with one active state per input (eq. 108-110). Both signs of the road force ``F_r`` are
+run (``road_force_sign``; see docs/reproductions.md). The design: docs/theory/papers.md.
 """
 
 from __future__ import annotations

@@ -1,22 +1,9 @@
 """Robustness of the steer-by-wire model matching (Cortesão 2006 §8) to errors in the identified actuator models.
 
-The controller is the Example 2 design (:mod:`jaxobs.papers.cortesao.steer_by_wire`: decoupled ``L_r`` for the
-poles of eq. 100-101, ``L_c`` of eq. 102-105, the AOB-1 of eq. 108-110 with its steady-state gains),
-built on the nominal SBW model. Each configuration is a true SBW plant whose four identified transfer
-functions (``y_h``, ``alpha_h``, ``y_r``, ``alpha_r``, eq. 95-98) each have their gain and their poles
-scaled by independent factors (+-30 % by default). Per configuration:
-
-* the spectral radius of the closed loop with model errors (eq. 59) and stability;
-* model matching (Fig. 8: a 2 Nm, 0.5 Hz steering torque for 4 s, the vehicle impedance of eq. 111 as
-  road feedback): RMS steering-angle and rack-position errors against the conventional car, relative to
-  its peaks;
-* disturbance rejection (Fig. 9: a 1000 N road disturbance from 1 s, no torque): the rack position left
-  after 4 s (the AOB leaves none on the nominal plant; the conventional car yields about 5 mm).
-
-The true plants are realised and discretised on the host (transfer functions to state space is a design
--time step), from the same per-configuration draws the sampler makes, and the sweep engine evaluates
-them by index (``jaxobs sweep --config tuning/steer_by_wire_sweep.toml``). The table of plants is part of the
-evaluated program, so a sweep with another ``plants.count`` is a different sweep (it cannot extend one).
+The Example 2 design (:mod:`jaxobs.papers.cortesao.steer_by_wire`) on the nominal SBW model runs against true
+plants whose four identified transfer functions (eq. 95-98) have their gains and poles scaled (+-30 % by default):
+per configuration the spectral radius (eq. 59), the model-matching errors of Fig. 8 and the disturbance rejection
+of Fig. 9. ``jaxobs sweep --config tuning/steer_by_wire_sweep.toml``. The scenario: docs/theory/papers.md.
 """
 
 from __future__ import annotations

@@ -1,27 +1,10 @@
 """Grip 2010, ch. 1 and 5: Lyapunov-based adaptation (Example 1.1), the modular estimator against a gradient law
 (Example 5.6), and the modular estimator of the downhole pressure during managed-pressure drilling (§5.6).
 
-``grip2010-example1.1``: ``x' = omega(t)' theta + u``, ``u = -x - omega' theta_hat``, ``theta_hat' = Gamma omega x``
-(eqs. 1.11-1.12, :func:`jaxobs.adaptive.lyapunov_law`), with a constant ``omega = [1, 2]`` (``Gamma = diag(1, 2)``:
-``theta_tilde`` converges to ``(I - Gamma w w' / (w' Gamma w)) theta_tilde(0)``, not to 0) and ``omega = [sin t,
-cos t]`` (``Gamma = I``: persistently exciting, ``theta_tilde -> 0``); the Lyapunov identity ``W(t) - W(0) =
--int_0^t x^2`` is checked along both runs (the integral is integrated with the state).
-
-``grip2010-example5.6``: ``x' = -x + exp(sin(t) theta) + u`` (5.20) with the compensation ``u = -exp(sin(t)
-theta_hat)`` (5.15), the modular estimator (5.21)-(5.22) (:mod:`jaxobs.observers.modular`, ``K_phi = 10``, ``Gamma =
-3``, ``M = sin t``, projection onto ``[-5, 5]``) against the gradient-type law ``theta_hat' = Gamma sin(t) exp(sin(t)
-theta_hat) x`` (``Gamma = 1``, ``theta_hat`` limited to ``[-5, 5]``), each in its own closed loop. The thesis shows
-the response only in its Fig. 5.1 and prints no scenario; the scenario of ``assumed`` is fixed here: ``theta`` =
--2, 4, -2, 4, -2 on consecutive 20 s segments, RK4 at 1 ms with the noise and ``theta`` held over each step, a
-noise-free run and 64 noisy ones (N(0, 1) per 1 ms sample added to the ``x`` both laws use), vmapped and jitted.
-
-``grip2010-drilling``: the drilling estimator (5.23)-(5.27) on a synthetic well (the field data and the simulator
-are not available; every value is in ``assumed``): ``x = [V_d / beta_d p_p, V_a / beta_a p_c]``, ``theta = [q_r,
-F_a]``, ``f = [q_p, q_a - q_c]``, ``B = [[-1, 0], [1, 1]]``, ``g = [q_b, q_r]`` with the bit flow ``q_b`` the
-positive root of the momentum balance (5.25); the update laws (5.26) (inversion for ``q_r``) and (5.27) as the
-modular estimator's custom law, with projection and ``phi_hat`` saturation; the downhole pressure ``p_b = p_c +
-F_a (q_b + q_r)^2 + rho_a g h_b``. A step in the reservoir inflow ``q_r`` and a change of the annulus friction
-``F_a`` are identified.
+Three reproductions: ``grip2010-example1.1`` (eqs. 1.11-1.12, constant and persistently exciting regressors, the
+Lyapunov identity checked), ``grip2010-example5.6`` (the modular estimator (5.21)-(5.22) against a gradient law on
+a scenario fixed here) and ``grip2010-drilling`` (the estimator (5.23)-(5.27) on a synthetic well; every chosen
+value in ``assumed``). The scenarios: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -34,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import adaptive, ct
-from jaxobs.adaptive import Box
+from jaxobs.adaptive import Box, CustomLaw, PerturbationGradientLaw
 from jaxobs.observers.modular import (
     ModularState,
     compensation,
@@ -55,7 +38,7 @@ HORIZON_1_1, DT_1_1 = 60.0, 1e-3
 THETA_TILDE0 = (1.0, -1.0)
 
 # Example 5.6 (the gains are printed; the scenario is fixed by this reproduction)
-K_PHI, GAMMA_MODULAR, GAMMA_GRADIENT, THETA_BOUND = 10.0, 3.0, 1.0, 5.0
+K_PHI, ADAPTATION_GAIN_MODULAR, ADAPTATION_GAIN_GRADIENT, THETA_BOUND = 10.0, 3.0, 1.0, 5.0
 SEGMENT_THETAS = (-2.0, 4.0, -2.0, 4.0, -2.0)
 SEGMENT_S, DT, SEEDS = 20.0, 1e-3, 64
 EPSILON, BOX_ORDER = 0.1, 4
@@ -66,33 +49,33 @@ SETTLE_BAND, LAST_WINDOW_S = 0.6, 5.0
 # Example 1.1
 
 
-def _example_1_1_run(omega, Gamma, horizon=HORIZON_1_1, dt=DT_1_1):
+def _example_1_1_run(omega, adaptation_gain, horizon=HORIZON_1_1, dt=DT_1_1):
     """Plant (1.11), controller and Lyapunov law by RK4; the state carries ``int x^2``. Returns times and states."""
     theta = jnp.asarray(THETA_TILDE0)  # theta_hat(0) = 0, so theta = theta_tilde(0)
-    Gamma = jnp.asarray(Gamma)
+    adaptation_gain = jnp.asarray(adaptation_gain)
 
     def rate(s, u, t):
         x, theta_hat, _ = s
         w = omega(t)
         control = -x - w @ theta_hat
-        return w @ theta + control, adaptive.lyapunov_law(w, x, Gamma), x**2
+        return w @ theta + control, adaptive.lyapunov_law(w, x, adaptation_gain), x**2
 
     steps = round(horizon / dt)
     s0 = (jnp.zeros(()), jnp.zeros(2), jnp.zeros(()))
     x, theta_hat, integral = ct.trajectory(rate, s0, jnp.zeros(steps), h=dt)
     theta_tilde = theta - theta_hat
-    W = x**2 / 2 + 0.5 * jnp.einsum("ti,ij,tj->t", theta_tilde, jnp.linalg.inv(Gamma), theta_tilde)
+    W = x**2 / 2 + 0.5 * jnp.einsum("ti,ij,tj->t", theta_tilde, jnp.linalg.inv(adaptation_gain), theta_tilde)
     return dt * jnp.arange(steps + 1), x, theta_tilde, W - W[0] + integral
 
 
 def example_1_1() -> dict:
     """Both runs of Example 1.1 with the closed form of the constant-``omega`` limit."""
-    w, Gamma = np.array([1.0, 2.0]), np.diag([1.0, 2.0])
+    w, adaptation_gain = np.array([1.0, 2.0]), np.diag([1.0, 2.0])
     numpy = lambda run: tuple(np.asarray(a) for a in run)
-    constant = numpy(jax.jit(lambda: _example_1_1_run(lambda t: jnp.array([1.0, 2.0]), Gamma))())
+    constant = numpy(jax.jit(lambda: _example_1_1_run(lambda t: jnp.array([1.0, 2.0]), adaptation_gain))())
     sinusoid = numpy(jax.jit(lambda: _example_1_1_run(lambda t: jnp.stack([jnp.sin(t), jnp.cos(t)]), np.eye(2)))())
     tt0 = np.array(THETA_TILDE0)
-    limit = (np.eye(2) - np.outer(Gamma @ w, w) / (w @ Gamma @ w)) @ tt0
+    limit = (np.eye(2) - np.outer(adaptation_gain @ w, w) / (w @ adaptation_gain @ w)) @ tt0
     runs = {"constant_omega": constant, "sinusoidal_omega": sinusoid}
     summary = {
         "constant_omega": {
@@ -158,13 +141,14 @@ def reproduce_example_1_1(out_dir: Path) -> dict:
 # Example 5.6
 
 
-def example_5_6_model(K_phi=K_PHI, Gamma=GAMMA_MODULAR):
+def example_5_6_model(K_phi=K_PHI, adaptation_gain=ADAPTATION_GAIN_MODULAR):
     """The modular estimator of Example 5.6 as a :class:`~jaxobs.observers.modular.ModularModel` (the applied input
     is the compensation, ``v = u``)."""
     box = Box(jnp.array([-THETA_BOUND]), jnp.array([THETA_BOUND]), order=BOX_ORDER)
+    law = PerturbationGradientLaw(adaptation_gain, M=lambda t, x, th: jnp.sin(t)[None, None], region=box,
+                                  epsilon=EPSILON)  # fmt: skip
     return make_modular(lambda t, x: -x, lambda t, x: jnp.ones((1, 1)), lambda t, x, th: jnp.exp(jnp.sin(t) * th),
-                        theta0=[0.0], K_phi=K_phi, Gamma=Gamma, dt=DT, n=1, n_inputs=1,
-                        M=lambda t, x, th: jnp.sin(t)[None, None], region=box, epsilon=EPSILON).model  # fmt: skip
+                        theta0=[0.0], K_phi=K_phi, law=law, dt=DT, n=1, n_inputs=1).model  # fmt: skip
 
 
 def theta_schedule(dt=DT, segment_s=SEGMENT_S):
@@ -174,15 +158,16 @@ def theta_schedule(dt=DT, segment_s=SEGMENT_S):
     return per_step, np.concatenate([[SEGMENT_THETAS[0]], per_step]), per_segment
 
 
-def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_GRADIENT, dt=DT, segment_s=SEGMENT_S,
+def simulate_5_6(noise, K_phi=K_PHI, adaptation_gain=ADAPTATION_GAIN_MODULAR,
+                 gradient_adaptation_gain=ADAPTATION_GAIN_GRADIENT, dt=DT, segment_s=SEGMENT_S,
                  integrate=ct.integrate):  # fmt: skip
     """Both closed loops of Example 5.6 over the whole scenario (five segments of ``segment_s``), RK4 with ``noise``
     (steps,) and ``theta`` held over each step; the gains may be traced. ``integrate(f, x, u, t, h)``, one step of
     ``x' = f(x, u, t)`` with ``u`` held (default :func:`jaxobs.ct.integrate`), is there for peer integrators in
     benchmarks. Returns per sample ``(x_modular, theta_hat_modular, x_gradient, theta_hat_gradient)`` and per step
     ``(projection_changed_rate, limit_bound)``."""
-    model = example_5_6_model(K_phi, Gamma)
-    raw = dataclasses.replace(model, region=None)  # the same law without projection
+    model = example_5_6_model(K_phi, adaptation_gain)
+    raw = dataclasses.replace(model, law=dataclasses.replace(model.law, region=None))  # the law without projection
     theta_steps, _, _ = theta_schedule(dt, segment_s)
     bound = THETA_BOUND
 
@@ -195,7 +180,7 @@ def simulate_5_6(noise, K_phi=K_PHI, Gamma=GAMMA_MODULAR, Gamma_gradient=GAMMA_G
         (x, th), (theta, n) = s, inputs
         th = jnp.clip(th, -bound, bound)
         u = -jnp.exp(jnp.sin(t) * th)
-        rate = Gamma_gradient * jnp.sin(t) * jnp.exp(jnp.sin(t) * th) * (x + n)
+        rate = gradient_adaptation_gain * jnp.sin(t) * jnp.exp(jnp.sin(t) * th) * (x + n)
         rate = jnp.where(((th >= bound) & (rate > 0)) | ((th <= -bound) & (rate < 0)), 0.0, rate)
         return -x + jnp.exp(jnp.sin(t) * theta) + u, rate
 
@@ -330,8 +315,8 @@ def _figures_5_6(data: dict, out_dir: Path) -> list[str]:
         axes[1].set_ylim(-5.5, 5.5)
         axes[1].legend(fontsize=8, loc="lower right")
         axes[1].set_title("(b) unknown parameter and estimates", fontsize=10)
-        fig.suptitle(f"Grip 2010 Example 5.6 (cf. Fig. 5.1): K_phi = {K_PHI:g}, Gamma = {GAMMA_MODULAR:g} vs gradient "
-                     f"Gamma = {GAMMA_GRADIENT:g}")  # fmt: skip
+        fig.suptitle(f"Grip 2010 Example 5.6 (cf. Fig. 5.1): K_phi = {K_PHI:g}, Gamma = {ADAPTATION_GAIN_MODULAR:g} vs "
+                     f"gradient Gamma = {ADAPTATION_GAIN_GRADIENT:g}")  # fmt: skip
         names.append(save_figure(fig, out_dir, f"{NAME_EXAMPLE_5_6}-{key.replace('_', '-')}"))
     mean_m, mean_g = data["noisy_means"]
     fig, ax = plt.subplots(figsize=(9, 4))
@@ -408,8 +393,8 @@ DRILLING = {
     "F_a_change_s": 2400.0,
     "horizon_s": 3600.0,
     "dt_s": 0.01,
-    "Gamma_q_r": 0.005,
-    "Gamma_F_a": 20.0,
+    "adaptation_gain_q_r": 0.005,
+    "adaptation_gain_F_a": 20.0,
     "K_phi": 10.0,
     "theta_hat0": (0.0, 4.0e4),
     "theta_box": ((-0.01, 1.0e4), (0.01, 1.0e5)),
@@ -440,7 +425,8 @@ def _drilling_model():
     def g(t, x, theta):
         return jnp.stack([q_bit(x, theta), theta[0]])
 
-    def direction(t, x, phi, theta):  # (5.26) and (5.27), before Gamma
+    def direction(g, args, phi, theta):  # (5.26) and (5.27), before the adaptation gain
+        _, x = args
         q_b = q_bit(x, theta)
         q_r, F_a = theta
         return jnp.stack(
@@ -453,9 +439,9 @@ def _drilling_model():
     x0 = scale * jnp.array([p_p0, p_c0])
     K = d["K_phi"] * jnp.eye(2)
     (lo, hi), (phi_lo, phi_hi) = d["theta_box"], d["phi_bounds"]
-    params = make_modular(f, B, g, theta0=jnp.array(d["theta_hat0"]), K_phi=K, dt=d["dt_s"], law="custom",
-                          Gamma=jnp.diag(jnp.array([d["Gamma_q_r"], d["Gamma_F_a"]])), direction=direction,
-                          region=Box(jnp.array(lo), jnp.array(hi)), z0=-K @ x0,
+    law = CustomLaw(direction, jnp.diag(jnp.array([d["adaptation_gain_q_r"], d["adaptation_gain_F_a"]])),
+                    region=Box(jnp.array(lo), jnp.array(hi)))  # fmt: skip
+    params = make_modular(f, B, g, theta0=jnp.array(d["theta_hat0"]), K_phi=K, dt=d["dt_s"], law=law, z0=-K @ x0,
                           phi_bounds=(jnp.array(phi_lo), jnp.array(phi_hi)))  # fmt: skip
     return params.model, q_bit, scale, x0
 
@@ -533,8 +519,8 @@ def reproduce_drilling(out_dir: Path) -> dict:
         **DRILLING,
         "units": "pressure bar, flow m^3/s, volume m^3, F_d and F_a bar s^2/m^6, time s",
         "choke_model": "q_c = choke_gain sqrt(p_c) (downstream pressure 0 bar gauge, fixed opening)",
-        "Gamma_F_a_note": "the printed Gamma_2 = 2 is in units the thesis does not print; with these units F_a "
-        "converges at the rate Gamma_2 (q_b + q_r)^2 (5.27), so Gamma_2 = 20 (time constant about 100 s); "
+        "adaptation_gain_F_a_note": "the printed Gamma_2 = 2 is in units the thesis does not print; with these "
+        "units F_a converges at the rate Gamma_2 (q_b + q_r)^2 (5.27), so Gamma_2 = 20 (time constant about 100 s); "
         "Gamma_1 = 0.005 (1/s, unit-free) and K_phi = 10 I as printed",
         "z0": "-K_phi x(0) (x_hat(0) = x(0), the measured state)",
         "noise": "none (noise-free synthetic data)",

@@ -3,21 +3,9 @@ high-gain observer estimating the static Coulomb friction theta = alpha_0, the c
 section 6.6, and the pure high-gain design (the extended-state observer without the model, g = 0) it is compared
 with.
 
-Plant (Table 6.1), x = (Omega, omega, eta), y = Omega, phi = sigma_0 eta |omega| / zeta(omega)::
-
-    Omega' = omega,  J omega' = u - (alpha_2 + sigma_1) omega - sigma_0 eta + sigma_1 phi,  eta' = omega - phi
-
-Gains are designed on the unperturbed matrices (sigma_1 = 0, section 6.7.1) with eps = 1: observer 1 with the
-poles of H at -1 +- 0.2j, -2 +- 0.2j, observer 2 (the cascade) at -1 +- 0.2j, -2. The parameter law is that of
-Proposition 6.2 with Gamma = 1 and l = 1{|phi_hat| >= 1}; observer 1's g uses the C^1 absolute value with
-kappa = 0.1, observer 2's the exact |omega| (as in the thesis), and the estimate is projected onto Theta =
-[0.05, 1] (the thesis's example ignores the projection, Remark 6.5).
-
-The thesis prints no simulation inputs. Used here: u = sin(pi t) Nm for 20 s, theta_hat(0) = 1.0, zero initial
-states (plant and observers), y sampled and held at 1 kHz with N(0, sigma^2) noise (sigma in {0, 1e-3} rad, seed
-0), RK4 with dt = 1e-4 for the plant and the observers (10 substeps per sample); the pure ESO for eps in {1, 0.5,
-0.2, 0.1}. Reported: the SCB structures, gains and error poles, the 1/eps scaling of the gains and slow poles,
-theta_hat averaged over t > 10 s and the RMS errors of omega over t > 10 s.
+The plant of Table 6.1, gains designed on the unperturbed matrices (section 6.7.1), the parameter law of
+Proposition 6.2 with projection; the thesis prints no simulation inputs, so they are chosen here. The plant,
+gains and inputs: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -29,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import ct
-from jaxobs.adaptive import Box
+from jaxobs.adaptive import Box, InversionLaw
 from jaxobs.observers import EstimatorInputs, run
-from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs, target_law
+from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo, smooth_abs
 from jaxobs.papers._output import pyplot, save_figure, write_reproduction
 from jaxobs.papers.scenarios import Reproduction
 from jaxobs.scb import scb, scb_arrays
@@ -72,7 +60,8 @@ def g_exact(v, x, theta):
 
 
 def theta_star(v, x, phi):
-    """theta solved from phi = g: ``sigma_0 eta a(omega) / phi - alpha_1 exp(-(omega / omega_0)^2)``."""
+    """The parameter ``theta`` solved from ``phi = g``:
+    ``sigma_0 eta a(omega) / phi - alpha_1 exp(-(omega / omega_0)^2)``."""
     return jnp.atleast_1d(TABLE_6_1["sigma_0"] * x[2] * smooth_abs(x[1], KAPPA) / phi[0] - _zeta(x[1], 0.0))
 
 
@@ -144,7 +133,7 @@ def observers(K1, K2, inputs):
     """Observer 1 (6.3) with the Proposition 6.2 law and the cascaded observer 2 (section 6.6) on ``inputs``."""
     A, B, E, C = matrices(TABLE_6_1["sigma_1"])
     region = Box(jnp.array([THETA_SET[0]]), jnp.array([THETA_SET[1]]))
-    law = target_law(theta_star, 1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
+    law = InversionLaw(theta_star, adaptation_gain=1.0, threshold=THRESHOLD, region=region, epsilon=0.05)
     params = make_hgo(A, B, E, C, K1, g_model, law=law, theta0=[1.0], K2=K2, g2=g_exact, dt=DT, substeps=SUBSTEPS)
     return run(hgo_observer, params, inputs)[1]
 

@@ -1,13 +1,13 @@
 """Example 5.6 of Grip 2010 over a grid of the modular estimator's gains, noise levels and noise seeds.
 
-Each configuration is one point of ``grid.K_phi x grid.Gamma x grid.noise_variance x grid.seeds`` (the index runs
-over the seeds fastest). It runs both closed loops of :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6` (the
-scenario of the ``grip2010-example5.6`` reproduction: ``theta`` = -2, 4, -2, 4, -2 on consecutive segments, RK4 at
-1 ms): the modular estimator with the configuration's ``(K_phi, Gamma)`` and the gradient-type law with the fixed
-``gradient.Gamma``, on the same noise ``sqrt(noise_variance) N(0, 1)`` per 1 ms sample added to the x both laws use.
-Noise seed ``s`` is ``fold_in(PRNGKey(seed), s)`` at every grid point (common random numbers: the grid points and
-the two laws are compared on the same noise). Metrics per law and configuration: the mean ``|theta_tilde|`` over
-the last ``scenario.window_s`` of each segment, the peak ``|x|`` per segment, whether the projection (modular) or
+Each configuration is one point of ``grid.K_phi x grid.adaptation_gain x grid.noise_variance x grid.seeds`` (the index
+runs over the seeds fastest). It runs both closed loops of :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6` (the
+scenario of the ``grip2010-example5.6`` reproduction: ``theta`` = -2, 4, -2, 4, -2 on consecutive segments, RK4 at 1
+ms): the modular estimator with the configuration's ``(K_phi, adaptation_gain)`` and the gradient-type law with the
+fixed ``gradient.adaptation_gain``, on the same noise ``sqrt(noise_variance) N(0, 1)`` per 1 ms sample added to the x
+both laws use. Noise seed ``s`` is ``fold_in(PRNGKey(seed), s)`` at every grid point (common random numbers: the grid
+points and the two laws are compared on the same noise). Metrics per law and configuration: the mean ``|theta_tilde|``
+over the last ``scenario.window_s`` of each segment, the peak ``|x|`` per segment, whether the projection (modular) or
 the limit to [-5, 5] (gradient) acted; ``inf`` where a run is not finite. ``jaxobs sweep --config
 tuning/grip_example56_sweep.toml``.
 """
@@ -30,7 +30,7 @@ __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "make_sweep", "
 
 NAME = "grip-example56"
 LAWS = ("modular", "gradient")
-GRID = ("K_phi", "Gamma", "noise_variance")
+GRID = ("K_phi", "adaptation_gain", "noise_variance")
 
 DEFAULT_CONFIG = {
     "scenario": NAME,
@@ -38,28 +38,28 @@ DEFAULT_CONFIG = {
     "chunk_size": 16,
     "grid": {
         "K_phi": [1.0, 3.0, 10.0, 30.0],  # the modular estimator's K_phi (printed: 10)
-        "Gamma": [0.3, 1.0, 3.0, 10.0],  # its Gamma (printed: 3)
+        "adaptation_gain": [0.3, 1.0, 3.0, 10.0],  # its adaptation_gain (printed: 3)
         "noise_variance": [0.0, 0.25, 1.0],  # of the N(0, variance) noise per 1 ms sample on x
         "seeds": 4,  # noise seeds per grid point (the same seeds at every point)
     },
-    "gradient": {"Gamma": grip.GAMMA_GRADIENT},  # the gradient-type law's gain, fixed
+    "gradient": {"adaptation_gain": grip.ADAPTATION_GAIN_GRADIENT},  # the gradient-type law's gain, fixed
     "scenario_timing": {
         "segment_s": grip.SEGMENT_S,  # length of each of the five theta segments (s)
         "window_s": grip.LAST_WINDOW_S,  # mean |theta_tilde| over each segment's last window_s (s)
     },
 }
-"""4 K_phi x 4 Gamma x 3 noise variances x 4 seeds = 192 configurations of the 100 s scenario."""
+"""4 K_phi x 4 adaptation_gain x 3 noise variances x 4 seeds = 192 configurations of the 100 s scenario."""
 
 CONFIG_NOTES = {
     "seed": "base of the noise keys (seed s is the same at every grid point, so both laws see the same noise)",
     "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
-    "grid": "the configurations: every combination of K_phi, Gamma, noise variance and seed",
+    "grid": "the configurations: every combination of K_phi, adaptation_gain, noise variance and seed",
     "grid.K_phi": "the modular estimator's K_phi, each > 0 (printed: 10)",
-    "grid.Gamma": "its Gamma, each > 0 (printed: 3)",
+    "grid.adaptation_gain": "its adaptation_gain, each > 0 (printed: 3)",
     "grid.noise_variance": "variance of the N(0, variance) noise per 1 ms sample on x, each >= 0",
     "grid.seeds": "noise seeds per grid point",
     "gradient": "the gradient-type law it is compared with",
-    "gradient.Gamma": "its gain (> 0; printed: 1), theta_hat limited to [-5, 5]",
+    "gradient.adaptation_gain": "its gain (> 0; printed: 1), theta_hat limited to [-5, 5]",
     "scenario_timing": "the theta schedule and the error window",
     "scenario_timing.segment_s": "length of each of the five theta segments (s)",
     "scenario_timing.window_s": "mean |theta_tilde| over each segment's last window_s (s)",
@@ -77,7 +77,7 @@ def _check(config: dict, source: str) -> None:
             kind = "positive" if positive else "non-negative"
             fail(source, f"grid.{key}", f"must hold {kind} numbers, got {values!r}")
     for key, low, strict in (("seed", 0, False), ("chunk_size", 1, False), ("grid.seeds", 1, False),
-                             ("gradient.Gamma", 0, True), ("scenario_timing.segment_s", 0, True),
+                             ("gradient.adaptation_gain", 0, True), ("scenario_timing.segment_s", 0, True),
                              ("scenario_timing.window_s", 0, True)):  # fmt: skip
         check_at_least(config, source, key, low, strict=strict)
     timing = config["scenario_timing"]
@@ -87,7 +87,7 @@ def _check(config: dict, source: str) -> None:
 
 def _num_configs(config: dict) -> int:
     g = config["grid"]
-    return len(g["K_phi"]) * len(g["Gamma"]) * len(g["noise_variance"]) * g["seeds"]
+    return len(g["K_phi"]) * len(g["adaptation_gain"]) * len(g["noise_variance"]) * g["seeds"]
 
 
 def _sampler(config: dict):
@@ -112,7 +112,7 @@ def make_sweep(config: dict):
     timing = config["scenario_timing"]
     seg, window = float(timing["segment_s"]), float(timing["window_s"])
     steps = len(grip.SEGMENT_THETAS) * round(seg / grip.DT)
-    gamma_gradient = float(config["gradient"]["Gamma"])
+    gamma_gradient = float(config["gradient"]["adaptation_gain"])
 
     def finite(a):
         return jnp.where(jnp.isfinite(a), a, jnp.inf)
@@ -120,7 +120,7 @@ def make_sweep(config: dict):
     def evaluate(p):
         noise = jnp.sqrt(p["noise_variance"]) * jax.random.normal(jax.random.fold_in(base, p["noise_seed"]), (steps,))
         (xm, thm, xg, thg), (changed, limited) = grip.simulate_5_6(
-            noise, p["K_phi"], p["Gamma"], gamma_gradient, segment_s=seg
+            noise, p["K_phi"], p["adaptation_gain"], gamma_gradient, segment_s=seg
         )
         out = {}
         for law, x, th, active in (("modular", xm, thm, changed), ("gradient", xg, thg, limited)):
@@ -139,9 +139,9 @@ def _columns(cols: dict, law: str, metric: str) -> np.ndarray:
 
 
 def _grid_table(config: dict, cols: dict) -> dict:
-    """Per law, metric arrays shaped ``(K_phi, Gamma, noise_variance, seeds, ...)``."""
+    """Per law, metric arrays shaped ``(K_phi, adaptation_gain, noise_variance, seeds, ...)``."""
     g = config["grid"]
-    shape = (len(g["K_phi"]), len(g["Gamma"]), len(g["noise_variance"]), g["seeds"])
+    shape = (len(g["K_phi"]), len(g["adaptation_gain"]), len(g["noise_variance"]), g["seeds"])
     table = {}
     for law in LAWS:
         table[law] = {
@@ -153,14 +153,15 @@ def _grid_table(config: dict, cols: dict) -> dict:
 
 
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
+    """Summarise the sweep's results in ``out_dir`` (``summary.json``, ``report.md``); returns the summary."""
     cols = load_results(out_dir)
     g = config["grid"]
     t = _grid_table(config, cols)
     points = []
     for i, k_phi in enumerate(g["K_phi"]):
-        for j, gamma in enumerate(g["Gamma"]):
+        for j, gamma in enumerate(g["adaptation_gain"]):
             for v, variance in enumerate(g["noise_variance"]):
-                point = {"K_phi": k_phi, "Gamma": gamma, "noise_variance": variance}
+                point = {"K_phi": k_phi, "adaptation_gain": gamma, "noise_variance": variance}
                 for law in LAWS:
                     mean, peak = t[law]["mean"][i, j, v], t[law]["peak"][i, j, v]  # (seeds, segments)
                     point[law] = {
@@ -187,17 +188,18 @@ def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
         "grid": points,
     }
     for v, variance in enumerate(g["noise_variance"]):  # the best modular gains per noise level
-        med = np.median(t["modular"]["mean"][:, :, v].reshape(len(g["K_phi"]), len(g["Gamma"]), -1), axis=2)
+        med = np.median(t["modular"]["mean"][:, :, v].reshape(len(g["K_phi"]), len(g["adaptation_gain"]), -1), axis=2)
         i, j = np.unravel_index(np.argmin(np.where(np.isfinite(med), med, np.inf)), med.shape)
         summary.setdefault("best_modular_gains", {})[str(variance)] = {
-            "K_phi": g["K_phi"][i], "Gamma": g["Gamma"][j], "median_mean_abs_theta_error": float(med[i, j]),
+            "K_phi": g["K_phi"][i], "adaptation_gain": g["adaptation_gain"][j],
+            "median_mean_abs_theta_error": float(med[i, j]),
             "gradient_median_mean_abs_theta_error": float(np.median(t["gradient"]["mean"][0, 0, v])),
         }  # fmt: skip
     return write_sweep_report(out_dir, summary, config, result, [_plot(config, t, out_dir)], _markdown)
 
 
 def _plot(config: dict, t: dict, out_dir: Path) -> str:
-    """Per noise variance (rows): heat maps over (K_phi, Gamma) of the modular estimator's median mean
+    """Per noise variance (rows): heat maps over (K_phi, adaptation_gain) of the modular estimator's median mean
     |theta_tilde|, the fraction of seed x segment pairs it beats the gradient law in, and its median peak |x|."""
     g = config["grid"]
     plt = pyplot()
@@ -205,7 +207,7 @@ def _plot(config: dict, t: dict, out_dir: Path) -> str:
 
     rows = len(g["noise_variance"])
     fig, axes = plt.subplots(rows, 3, figsize=(14, 3.6 * rows), squeeze=False)
-    nk, ng = len(g["K_phi"]), len(g["Gamma"])
+    nk, ng = len(g["K_phi"]), len(g["adaptation_gain"])
     med = np.median(t["modular"]["mean"].reshape(nk, ng, rows, -1), axis=3)
     better = np.mean((t["modular"]["mean"] < t["gradient"]["mean"]).reshape(nk, ng, rows, -1), axis=3)
     peak = np.median(np.max(t["modular"]["peak"], axis=4), axis=3)
@@ -223,15 +225,16 @@ def _plot(config: dict, t: dict, out_dir: Path) -> str:
             for (i, j), value in np.ndenumerate(values):
                 box = dict(facecolor="white", alpha=0.7, lw=0, pad=1)
                 ax.text(j, i, format(value, fmt), ha="center", va="center", fontsize=7, bbox=box)
-            ax.set_xticks(range(ng), [f"{x:g}" for x in g["Gamma"]])
+            ax.set_xticks(range(ng), [f"{x:g}" for x in g["adaptation_gain"]])
             ax.set_yticks(range(nk), [f"{x:g}" for x in g["K_phi"]])
-            ax.set(xlabel="Gamma (modular)", ylabel="K_phi", title=f"{title}\nnoise variance {variance:g}")
+            ax.set(xlabel="adaptation_gain (modular)", ylabel="K_phi", title=f"{title}\nnoise variance {variance:g}")
             fig.colorbar(image, ax=ax)
         axes[v, 0].set_title(axes[v, 0].get_title() + f"; gradient law: {grad:.3g}", fontsize=9)
         for ax in axes[v, 1:]:
             ax.title.set_fontsize(9)
-    fig.suptitle(f"Grip 2010 Example 5.6: modular estimator over (K_phi, Gamma), {g['seeds']} noise seeds per point "
-                 f"(gradient-type law: Gamma = {config['gradient']['Gamma']:g})")  # fmt: skip
+    gradient_gain = config["gradient"]["adaptation_gain"]
+    fig.suptitle(f"Grip 2010 Example 5.6: modular estimator over (K_phi, adaptation_gain), {g['seeds']} noise seeds "
+                 f"per point (gradient-type law: adaptation_gain = {gradient_gain:g})")  # fmt: skip
     fig.tight_layout()
     return save_figure(fig, out_dir, "grid")
 
@@ -242,27 +245,28 @@ def _markdown(summary: dict) -> str:
     lines = [
         "# Grip 2010 Example 5.6: the modular estimator over its gains and the noise level",
         "",
-        f"{summary['num_configs']} configurations: K_phi in {g['K_phi']}, Gamma in {g['Gamma']}, noise variance in "
-        f"{g['noise_variance']} (per 1 ms sample on x), {g['seeds']} noise seeds per point (the same at every "
-        f"point); the gradient-type law with Gamma = {c['gradient']['Gamma']:g}. theta = "
+        f"{summary['num_configs']} configurations: K_phi in {g['K_phi']}, adaptation_gain in {g['adaptation_gain']}, "
+        f"noise variance in {g['noise_variance']} (per 1 ms sample on x), {g['seeds']} noise seeds per point (the same "
+        f"at every point); the gradient-type law with adaptation_gain = {c['gradient']['adaptation_gain']:g}. theta = "
         f"{list(grip.SEGMENT_THETAS)} on {timing['segment_s']:g} s segments; mean |theta_tilde| over each segment's "
         f"last {timing['window_s']:g} s.",
         "",
-        "| noise var. | K_phi | Gamma | mean abs theta err. modular | gradient | modular better | peak abs x modular | "
-        "gradient | projection active modular | gradient |",
+        "| noise var. | K_phi | adaptation_gain | mean abs theta err. modular | gradient | modular better | "
+        "peak abs x modular | gradient | projection active modular | gradient |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for p in sorted(summary["grid"], key=lambda p: (p["noise_variance"], p["K_phi"], p["Gamma"])):
+    for p in sorted(summary["grid"], key=lambda p: (p["noise_variance"], p["K_phi"], p["adaptation_gain"])):
         m, gr = p["modular"], p["gradient"]
         lines.append(
-            f"| {p['noise_variance']:g} | {p['K_phi']:g} | {p['Gamma']:g} | {m['median_mean_abs_theta_error']:.3g} | "
+            f"| {p['noise_variance']:g} | {p['K_phi']:g} | {p['adaptation_gain']:g} | "
+            f"{m['median_mean_abs_theta_error']:.3g} | "
             f"{gr['median_mean_abs_theta_error']:.3g} | {100 * p['modular_better_fraction']:.0f} % | "
             f"{m['median_peak_abs_x']:.3g} | {gr['median_peak_abs_x']:.3g} | "
             f"{100 * m['projection_active_fraction']:.0f} % | {100 * gr['projection_active_fraction']:.0f} % |"
         )
     lines += ["", "Best modular gains per noise variance (lowest median mean |theta_tilde|):", ""]
     for variance, b in summary["best_modular_gains"].items():
-        lines.append(f"- variance {variance}: K_phi = {b['K_phi']:g}, Gamma = {b['Gamma']:g}: "
+        lines.append(f"- variance {variance}: K_phi = {b['K_phi']:g}, adaptation_gain = {b['adaptation_gain']:g}: "
                      f"{b['median_mean_abs_theta_error']:.3g} "
                      f"(gradient law {b['gradient_median_mean_abs_theta_error']:.3g})")  # fmt: skip
     lines.append("")

@@ -1,12 +1,13 @@
 """Tuning the gains of the modular estimator of Grip 2010 Example 5.6 against its noisy objective.
 
-Tuned: ``log K_phi`` and ``log Gamma`` of the modular estimator (5.21)-(5.22), from the printed ``(K_phi, Gamma) =
-(10, 3)``. Each "plant" is a noise seed: the scenario of the ``grip2010-example5.6`` reproduction (``theta`` = -2, 4,
--2, 4, -2 on consecutive segments, RK4 at 1 ms, :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6`) with
-``sqrt(noise_variance) N(0, 1)`` per 1 ms sample added to the measured x. The per-seed loss is the mean over the
-segments of the mean ``|theta_tilde|`` over each segment's last ``window_s`` (the noisy metric of the reproduction);
-a run that is not finite counts as diverged. Training and held-out seeds are disjoint (``fold_in(PRNGKey(seed), 0)``
-and ``fold_in(PRNGKey(seed), 1)``, split). Two parameters: forward-mode gradients by default.
+Tuned: ``log K_phi`` and ``log adaptation_gain`` of the modular estimator (5.21)-(5.22), from the printed ``(K_phi,
+adaptation_gain) = (10, 3)``. Each "plant" is a noise seed: the scenario of the ``grip2010-example5.6`` reproduction
+(``theta`` = -2, 4, -2, 4, -2 on consecutive segments, RK4 at 1 ms,
+:func:`jaxobs.papers.grip2010.adaptive.simulate_5_6`) with ``sqrt(noise_variance) N(0, 1)`` per 1 ms sample added to the
+measured x. The per-seed loss is the mean over the segments of the mean ``|theta_tilde|`` over each segment's last
+``window_s`` (the noisy metric of the reproduction); a run that is not finite counts as diverged. Training and held-out
+seeds are disjoint (``fold_in(PRNGKey(seed), 0)`` and ``fold_in(PRNGKey(seed), 1)``, split). Two parameters:
+forward-mode gradients by default.
 """
 
 from __future__ import annotations
@@ -38,11 +39,12 @@ DEFAULT_CONFIG = {
         "segment_s": grip.SEGMENT_S,  # length of each of the five theta segments (s)
         "window_s": grip.LAST_WINDOW_S,  # the loss averages |theta_tilde| over each segment's last window_s (s)
     },
-    "design": {"K_phi": grip.K_PHI, "Gamma": grip.GAMMA_MODULAR},  # the hand-set start (printed: 10, 3)
+    # the hand-set start (printed: 10, 3)
+    "design": {"K_phi": grip.K_PHI, "adaptation_gain": grip.ADAPTATION_GAIN_MODULAR},
     "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, gradient="forward", patience=8, checkpoint_every=5),
     "baseline": dict(BASELINE_DEFAULTS),
 }
-"""Tune log K_phi, log Gamma of Example 5.6 from the printed (10, 3) with unit noise variance (8 / 32 seeds)."""
+"""Tune log K_phi, log adaptation_gain of Example 5.6 from the printed (10, 3), unit noise variance (8 / 32 seeds)."""
 
 CONFIG_NOTES = {
     "seeds": "noise seeds of the Example 5.6 runs (training and held-out sets are disjoint)",
@@ -52,9 +54,9 @@ CONFIG_NOTES = {
     "scenario.noise_variance": "variance of the N(0, variance) noise per 1 ms sample on x",
     "scenario.segment_s": "length of each of the five theta segments (s)",
     "scenario.window_s": "the loss averages |theta_tilde| over each segment's last window_s (s)",
-    "design": "the modular estimator's hand-set gains, the tuner's start (printed: K_phi = 10, Gamma = 3)",
+    "design": "the modular estimator's hand-set gains, the tuner's start (printed: K_phi = 10, adaptation_gain = 3)",
     "design.K_phi": "K_phi (> 0)",
-    "design.Gamma": "Gamma (> 0)",
+    "design.adaptation_gain": "adaptation_gain (> 0)",
 }
 
 
@@ -63,21 +65,22 @@ def _check(config: dict, source: str) -> None:
     for key in ("seeds.train", "seeds.heldout"):
         check_at_least(config, source, key, 1)
     check_at_least(config, source, "scenario.noise_variance", 0)
-    for key in ("scenario.segment_s", "scenario.window_s", "design.K_phi", "design.Gamma"):
+    for key in ("scenario.segment_s", "scenario.window_s", "design.K_phi", "design.adaptation_gain"):
         check_at_least(config, source, key, 0, strict=True)
     if config["scenario"]["window_s"] > config["scenario"]["segment_s"]:
         fail(source, "scenario.window_s", f"must not exceed segment_s = {config['scenario']['segment_s']}")
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     sc = config["scenario"]
     seg, window, std = float(sc["segment_s"]), float(sc["window_s"]), float(np.sqrt(sc["noise_variance"]))
     steps = len(grip.SEGMENT_THETAS) * round(seg / grip.DT)
 
     def run(theta, key):
         noise = std * jax.random.normal(key, (steps,))
-        (xm, thm, _, _), _ = grip.simulate_5_6(noise, jnp.exp(theta["log_K_phi"]), jnp.exp(theta["log_Gamma"]),
-                                               segment_s=seg)  # fmt: skip
+        gains = jnp.exp(theta["log_K_phi"]), jnp.exp(theta["log_adaptation_gain"])
+        (xm, thm, _, _), _ = grip.simulate_5_6(noise, *gains, segment_s=seg)
         return xm, thm
 
     def losses(theta, keys):
@@ -106,11 +109,14 @@ def build_problem(config: dict) -> TuningProblem:
         }
 
     def describe(theta):
-        return {"K_phi": float(np.exp(theta["log_K_phi"])), "Gamma": float(np.exp(theta["log_Gamma"]))}
+        return {
+            "K_phi": float(np.exp(theta["log_K_phi"])),
+            "adaptation_gain": float(np.exp(theta["log_adaptation_gain"])),
+        }
 
     design = config["design"]
     theta0 = {"log_K_phi": jnp.log(jnp.asarray(float(design["K_phi"]))),
-              "log_Gamma": jnp.log(jnp.asarray(float(design["Gamma"])))}  # fmt: skip
+              "log_adaptation_gain": jnp.log(jnp.asarray(float(design["adaptation_gain"])))}  # fmt: skip
     return TuningProblem(
         theta0=theta0,
         losses=losses,

@@ -1,20 +1,9 @@
 """Grip 2010, ch. 9: semiglobal stabilisation of a sandwich system by dynamic output feedback (Grip, Saberi,
 Stoorvogel, Wang & Roy), on an instance of this project's choice (the chapter prints no example).
 
-The instance:
-
-* ``L1``: the double integrator ``x1' = x2``, ``x2' = u``, ``z = x1``, with the pre-feedback ``F = [-1, -2]``
-  (``A + B F`` has a double eigenvalue at -1);
-* ``L2``: the lag ``w' = -w + sat(z)``, ``y = w`` (no invariant zero, ``M`` Hurwitz: Assumptions 9.1-9.3').
-
-Reported: (i) the detectors of §9.3.1 on four windows of T = 0.5 s with ``u = 0`` (``z >= 1``, ``z <= -1``,
-``|z| < 1``, ``z`` crossing 1), each simulated with RK4 at 0.5 ms and classified by Theorem 9.1
-(:func:`jaxobs.saturation.sandwich_detectors`); (ii) the low-gain ARE (9.12) for eps in {1e-1, 1e-2, 1e-3, 1e-4};
-(iii) the three-stage controller from the 5 x 5 x 5 grid of the box ``|x1| <= 5``, ``|x2| <= 5``, ``|w| <= 1``
-with the design chosen here: detection windows T = 0.05 s (50 RK4 steps of 1 ms each), stage-2 intervals
-Tbar = 4 T = 0.2 s, ``alpha = 1.1 exp(2 Tbar ||A||)``, ``h = C'``, eps = 1e-3, 40 s. A window of T = 0.1 s fails
-from this box: the stage-2 input then grows fast enough that ``z`` crosses the linear region within less than two
-windows and never spends a whole window there (Lemma 9.1 needs T small for the given box).
+Reported: the detectors of §9.3.1 on four windows (Theorem 9.1, :func:`jaxobs.saturation.sandwich_detectors`),
+the low-gain ARE (9.12) over :data:`EPS_FAMILY`, and the three-stage controller from a grid of initial states
+(:func:`closed_loop`). The instance and the design: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -76,6 +65,7 @@ def windows(design) -> list[dict]:
 
 
 def are_family() -> dict:
+    """Norm and smallest eigenvalue of the low-gain ARE solution ``P(eps)`` over :data:`EPS_FAMILY`."""
     P = [np.asarray(low_gain_are(**{k: SYSTEM[k] for k in "ABCMN"}, F=F, eps=e).X) for e in EPS_FAMILY]
     norms = [float(np.linalg.norm(p, 2)) for p in P]
     return {
@@ -87,11 +77,13 @@ def are_family() -> dict:
 
 
 def grid() -> np.ndarray:
+    """(GRID**3, 3) initial states ``chi_0``: a regular grid over ``[-5, 5]^2 x [-1, 1]``."""
     g, gw = np.linspace(-5, 5, GRID), np.linspace(-1, 1, GRID)
     return np.array(np.meshgrid(g, g, gw, indexing="ij")).reshape(3, -1).T
 
 
 def closed_loop(design):
+    """The initial states of :func:`grid` and the sandwich closed loop simulated from each (one ``vmap``)."""
     chi0 = grid()
     run = jax.jit(jax.vmap(lambda c: simulate_sandwich(design, c, INTERVALS, substeps=SUBSTEPS)))
     return chi0, run(jnp.asarray(chi0))

@@ -132,6 +132,7 @@ def make_sweep(config: dict):
 
 
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
+    """Summarise the sweep's results in ``out_dir`` (``summary.json``, ``report.md``); returns the summary."""
     cols = load_results(out_dir)
     g = config["grid"]
     shape = (len(g["T"]), len(g["rho"]), len(g["h_scale"]), g["initial_states"])

@@ -1,23 +1,9 @@
 """Grip 2010, ch. 7 (section 7.5): the special coordinate basis of the five worked examples, exactly.
 
-Cases: the linear single-track vehicle model with front steering (``single_track``) and with front and rear
-steering (``single_track_rear``), the DC motor with LuGre friction (7.8) (``dc_motor``) and with sigma_1 = 0
-(``dc_motor_sigma1_zero``), and the tenth-order system of Sannuti & Saberi 1987 (``tenth_order``). For each,
-:func:`jaxobs.scb.scb` is run in exact arithmetic (symbols for the vehicle and motor parameters) and compared
-with what the thesis prints:
-
-* ``residuals``: the identities (7.6) ``Gamma1 A = A_hat Gamma1``, ``Gamma1 B = B_hat Gamma3``,
-  ``Gamma2 C = C_hat Gamma1``, ``Gamma2 D = D_hat Gamma3`` of the computed SCB: ``0`` when the residual matrix is
-  exactly zero, else the list of non-zero entries;
-* ``printed_check``: the printed SCB matrices against the original system. Where the thesis prints Gamma1,
-  Gamma2, Gamma3 they are used and every entry of a printed matrix that differs from the value the identities
-  imply is listed; in every case the identities are also solved for (Gamma1, Gamma2, Gamma3) as a linear system
-  with the printed A, B, C, and a nonsingular solution (an exhibited one is a proof that the printed matrices are
-  a valid SCB of the system) is searched for in the solution space;
-* ``misprints``: the discrepancies that these checks prove, with the corrected values.
-
-Symbolic matrices are written as sympy ``srepr`` strings, exact rational ones as numbers (integers, or floats
-for non-integer fractions, with the exact ``p/q`` strings under ``*_exact``).
+For the single-track vehicle (front, and front and rear steering), the DC motor with LuGre friction (7.8) (and with
+sigma_1 = 0) and the tenth-order system of Sannuti & Saberi 1987, :func:`jaxobs.scb.scb` runs in exact arithmetic
+and is compared with the thesis: ``residuals`` of the identities (7.6), ``printed_check`` of the printed matrices
+and the ``misprints`` these checks prove. The checks and the output format: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -39,6 +25,7 @@ from jaxobs.scb import (
 
 NAME = "grip2010-scb"
 CASES = ("single_track", "single_track_rear", "dc_motor", "dc_motor_sigma1_zero", "tenth_order")
+TRANSFORMS = ("state_transform", "output_transform", "input_transform")  # the thesis's Gamma1, Gamma2, Gamma3
 # Maple 12 CPU times printed in section 7.6
 MAPLE_SECONDS = {
     "single_track": 0.30,
@@ -133,7 +120,8 @@ def systems() -> dict:
 
 def printed() -> dict:
     """What section 7.5 prints per case: dims, chain lengths, invariant zeros, the SCB A, B, C and, for the
-    single-track cases, Gamma1, Gamma2, Gamma3 (transcribed as printed, misprints included)."""
+    single-track cases, state_transform, output_transform, input_transform (the thesis's Gamma1, Gamma2, Gamma3,
+    transcribed as printed, misprints included)."""
     import sympy as sp
 
     s = _symbols()
@@ -161,7 +149,7 @@ def printed() -> dict:
             ),
             "B": sp.Matrix([0, 0, 0, 1]),
             "C": sp.Matrix([[0, 0, 0, 1], [1, 0, 0, 0]]),
-            "Gamma1": sp.Matrix(
+            "state_transform": sp.Matrix(
                 [
                     [0, 0, vx, 0],
                     [cr * L / (Tr * J), 0, 0, 0],
@@ -169,8 +157,8 @@ def printed() -> dict:
                     [cr / Tr**2, -cr / Tr, 0, 0],
                 ]
             ),
-            "Gamma2": sp.Matrix([[0, cr * (lf + cr) / (Tr * J)], [1, 0]]),
-            "Gamma3": sp.Matrix([[m * Tr / cf]]),
+            "output_transform": sp.Matrix([[0, cr * (lf + cr) / (Tr * J)], [1, 0]]),
+            "input_transform": sp.Matrix([[m * Tr / cf]]),
         },
         "single_track_rear": {
             "dims": (1, 0, 0, 3),
@@ -186,9 +174,11 @@ def printed() -> dict:
             ),
             "B": sp.Matrix([[0, 0], [1, 0], [0, 0], [0, 1]]),
             "C": sp.Matrix([[0, 1, 0, 0], [0, 0, 1, 0]]),
-            "Gamma1": sp.Matrix([[1, 0, 0, 0], [0, 0, 1, 0], [0, lr * m / L, 0, J / L], [0, lf * m / L, 0, -J / L]]),
-            "Gamma2": sp.Matrix([[0, 1], [1, 0]]),
-            "Gamma3": sp.Matrix(
+            "state_transform": sp.Matrix(
+                [[1, 0, 0, 0], [0, 0, 1, 0], [0, lr * m / L, 0, J / L], [0, lf * m / L, 0, -J / L]]
+            ),
+            "output_transform": sp.Matrix([[0, 1], [1, 0]]),
+            "input_transform": sp.Matrix(
                 [[lr * Tr * m / (cf * L), Tr * J / (cf * L)], [lf * Tr * m / (cr * L), -Tr * J / (cr * L)]]
             ),
         },
@@ -252,18 +242,20 @@ def _residual_report(residuals: dict) -> dict:
 
 
 def _implied_entries(system, case: dict) -> dict:
-    """With the printed Gamma1 and Gamma3: the entries of the printed A, B that differ from the ones the identities
-    imply (``Gamma1^-1 A_hat Gamma1``, ``Gamma1^-1 B_hat Gamma3``), and the entries of the printed Gamma2 that
-    differ from the one ``Gamma2 C = C_hat Gamma1`` implies with the printed C and Gamma1."""
+    """With the printed state_transform and input_transform: the entries of the printed A, B that differ from the ones
+    the identities imply (``state_transform^-1 A_hat state_transform``, ``state_transform^-1 B_hat input_transform``),
+    and the entries of the printed output_transform that differ from the one ``output_transform C = C_hat
+    state_transform`` implies with the printed C and state_transform."""
     import sympy as sp
 
     A, B, C = system
-    G1, G3 = case["Gamma1"], case["Gamma3"]
+    G1, G3 = case["state_transform"], case["input_transform"]
     implied = {
         "A": G1.inv() * A * G1,
         "B": G1.inv() * B * G3,
-        # the printed C has full row rank, so Gamma2 C = C_hat Gamma1 fixes Gamma2 given the printed C and Gamma1
-        "Gamma2": C * G1 * case["C"].T * (case["C"] * case["C"].T).inv(),
+        # the printed C has full row rank, so output_transform C = C_hat state_transform fixes output_transform
+        # given the printed C and state_transform
+        "output_transform": C * G1 * case["C"].T * (case["C"] * case["C"].T).inv(),
     }
     differing = []
     for name, M in implied.items():
@@ -283,10 +275,11 @@ def _implied_entries(system, case: dict) -> dict:
     return differing
 
 
-def _solve_gammas(system, case: dict) -> dict:
-    """Solve Gamma1 A_p = A Gamma1, Gamma1 B_p = B Gamma3, Gamma2 C_p = C Gamma1 (linear in the Gammas) with the
-    printed A_p, B_p, C_p; a nonsingular element of the solution space (tried on the basis and on two fixed
-    combinations of it) proves that the printed matrices are an SCB of the system."""
+def _solve_transformations(system, case: dict) -> dict:
+    """Solve state_transform A_p = A state_transform, state_transform B_p = B input_transform, output_transform C_p
+    = C state_transform (linear in the transformations) with the printed A_p, B_p, C_p; a nonsingular element of the
+    solution space (tried on the basis and on two fixed combinations of it) proves that the printed matrices are an
+    SCB of the system."""
     import sympy as sp
     from sympy.polys.matrices import DomainMatrix
 
@@ -320,9 +313,9 @@ def _solve_gammas(system, case: dict) -> dict:
             return {
                 "solution_space_dim": dim,
                 "nonsingular_solution": True,
-                "Gamma1": _export(g1),
-                "Gamma2": _export(g2),
-                "Gamma3": _export(g3),
+                "state_transform": _export(g1),
+                "output_transform": _export(g2),
+                "input_transform": _export(g3),
             }
     # dim 0, or dim 1 with a singular solution, proves that no nonsingular solution exists
     return {"solution_space_dim": dim, "nonsingular_solution": False, "proof": dim <= 1}
@@ -330,19 +323,20 @@ def _solve_gammas(system, case: dict) -> dict:
 
 def printed_check(name: str, system=None) -> dict:
     """Do the printed SCB matrices of case ``name`` satisfy the SCB identities with the original system? With
-    printed Gammas, the differing entries are listed (:func:`_implied_entries`); otherwise the identities are
-    solved for the Gammas (:func:`_solve_gammas`)."""
+    printed transformations, the differing entries are listed (:func:`_implied_entries`); otherwise the identities are
+    solved for the transformations (:func:`_solve_transformations`)."""
     system = system or systems()[name]
     case = printed()[name]
-    if "Gamma1" in case:
+    if "state_transform" in case:
         differing = _implied_entries(system, case)
-        return {"gammas": "printed", "identities_hold": not differing, "differing_entries": differing}
-    solved = _solve_gammas(system, case)
-    return {"gammas": "solved", "identities_hold": solved["nonsingular_solution"], **solved}
+        return {"transformations": "printed", "identities_hold": not differing, "differing_entries": differing}
+    solved = _solve_transformations(system, case)
+    return {"transformations": "solved", "identities_hold": solved["nonsingular_solution"], **solved}
 
 
 def _export(M):
-    """sympy srepr strings for symbolic matrices, numbers (int, else float) for rational ones."""
+    """The entries of ``M`` for JSON: sympy srepr strings for symbolic matrices, numbers (int, else float) for
+    rational ones."""
     import sympy as sp
 
     if any(e.free_symbols for e in M):
@@ -370,7 +364,7 @@ def case(name: str) -> dict:
         "invariant_zeros": [sp.srepr(z) if symbolic else _number(z) for z in zeros],
         "left_invertible": is_left_invertible(s),
         "right_invertible": is_right_invertible(s),
-        **{k: _export(getattr(s, k)) for k in ("A", "B", "C", "Gamma1", "Gamma2", "Gamma3")},
+        **{k: _export(getattr(s, k)) for k in ("A", "B", "C", *TRANSFORMS)},
         "residuals": _residual_report(scb_residuals(s, *system)),
         "printed_check": printed_check(name, system),
         "matches_printed": _matches_printed(s, printed()[name]),
@@ -378,7 +372,7 @@ def case(name: str) -> dict:
         "maple_seconds_printed": MAPLE_SECONDS[name],
     }
     if not symbolic:
-        out.update({f"{k}_exact": _exact_strings(getattr(s, k)) for k in ("A", "Gamma1", "Gamma2", "Gamma3")})
+        out.update({f"{k}_exact": _exact_strings(getattr(s, k)) for k in ("A", *TRANSFORMS)})
     if name == "dc_motor":
         num = scb_arrays(s, DC_MOTOR_VALUES)
         out["A_numeric"] = num.A
@@ -398,7 +392,7 @@ def _matches_printed(s: SCB, case: dict) -> dict:
 
     out = {"dims": tuple(s.dims) == case["dims"], "chain_lengths": tuple(s.chain_lengths) == case["chain_lengths"]}
     out["invariant_zeros"] = [sp.simplify(z) for z in invariant_zeros(s)] == case["invariant_zeros"]
-    for k in ("A", "B", "C", "Gamma1", "Gamma2", "Gamma3"):
+    for k in ("A", "B", "C", *TRANSFORMS):
         if k in case:
             M = getattr(s, k)
             out[k] = M.shape == case[k].shape and all(sp.cancel(e) == 0 for e in M - case[k])
@@ -415,8 +409,8 @@ def misprints(cases: dict) -> list[dict]:
                     "case": name,
                     "where": "section 7.5",
                     **entry,
-                    "proof": f"with the printed Gamma1 (and Gamma3), the SCB identities hold for every other entry and "
-                    f"require {entry['matrix']}{entry['entry']} = the implied value",
+                    "proof": f"with the printed state_transform (and input_transform), the SCB identities hold for "
+                    f"every other entry and require {entry['matrix']}{entry['entry']} = the implied value",
                 }
             )
     dc = cases["dc_motor"]

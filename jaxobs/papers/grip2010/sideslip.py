@@ -2,32 +2,8 @@
 test drives, and the chapter's claims as checks.
 
 The thesis's experiments used test-vehicle data that are not published, so no number of §2.10 can be reproduced;
-§2.12 lists the qualitative claims checked here.
-
-The drives are :data:`jaxobs.vehicle.MANOEUVRES` (modelled on Figs. 2.4-2.8) plus five drives for the checks, all
-simulated in one ``vmap`` (the command picked by ``lax.switch``, every drive run to the longest duration and cut to
-its own), measured with the ESC sensors of :mod:`jaxobs.vehicle.sensors` and estimated by one ``vmap`` of the NVSO
-(:mod:`jaxobs.vehicle.nvso`) and one of the EKF (:mod:`jaxobs.vehicle.ekf`). The checks:
-
-* ``known_friction_flat``: the basic observer (2.3), (2.5) (friction estimation never on, no angle estimation) on the
-  double lane change on a flat road, observer model = simulator, sensors without errors or low-pass;
-* ``ay_bias``: an ``a_y`` bias ``b`` on a flat straight road appears in the bank estimate (§2.6: "an accelerometer
-  bias just biases the bank estimate"); the NVSO divides the rolled reading by ``1 + p_phi g`` (§2.2), so the
-  expected value is ``b / (g (1 + p_phi g))`` (``b / g`` for the reading's own scale);
-* ``bank``, ``inclination``: straight drives on a constant bank / slope, expected ``theta_b = sin(Phi)``,
-  ``theta_i = sin(Theta)`` (§2.6);
-* ``friction_adaptation``: a sine steer on friction 0.3 (80 km/h, 25 deg at 0.5 Hz: the ``sine_steer`` manoeuvre's
-  45 deg spins the car there), the NVSO with friction estimation never on (mode 1,
-  ``theta`` drawn to ``theta* = 1``) and with the switching logic of §2.5 (mode 2 when excited);
-* ``straight_no_excitation``: the straight drive with friction estimation held on (mode 2) from ``theta = 0.5``
-  (true 1) and a ``v_y`` error of 0.5 m/s: ``v_y`` converges, ``theta`` does not move (§2.4, Grip et al. 2008);
-* ``lemma_4_1``, ``lemma_4_2``: the gain bounds of the chapter 4 estimators (Lemmas 4.1, 4.2), with
-  :func:`jaxobs.lti.is_spr` of the error systems just below and above each (:func:`jaxobs.vehicle.road_angles.
-  lemma_check`) at the design of the mountain-road test (``a = 4``, ``K_vy = 10``, ``delta_min = 0.90``);
-* ``lemma_3_1``: the largest relative per-step increase of Lemma 3.1's Lyapunov function along a run of (3.4)
-  (:func:`jaxobs.vehicle.lateral.lemma_3_1_check`; negative: it decreases at every step);
-* ``cost``: one NVSO step and one EKF step per drive (the batched runs timed again); the thesis: NVSO about a
-  third of the EKF.
+the qualitative claims of §2.12 are checked on :data:`jaxobs.vehicle.MANOEUVRES` and five further drives, each
+stage in one ``vmap`` (:func:`estimate`). The checks: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -203,17 +179,29 @@ def _run_ekf(params, y):
 
 
 class Estimates(NamedTuple):
-    """Result of :func:`estimate`: the names along each leading axis and the batched results."""
+    """Result of :func:`estimate`: the names along each leading axis and the batched results.
 
-    manoeuvres: list  # the manoeuvres (keys of jaxobs.vehicle.MANOEUVRES), the EKF's batch
-    drives: list  # keys of DRIVES, the batch of ``trajectory``
-    measurements: list  # keys of MEASUREMENTS, the batch of ``measurements``
-    runs: list  # keys of NVSO_RUNS, the NVSO's batch
+    Attributes:
+      manoeuvres: the manoeuvres (keys of jaxobs.vehicle.MANOEUVRES), the EKF's batch
+      drives: keys of DRIVES, the batch of ``trajectory``
+      measurements: keys of MEASUREMENTS, the batch of ``measurements``
+      runs: keys of NVSO_RUNS, the NVSO's batch
+      trajectory: the simulated drives, batched over ``drives``
+      measurements_data: the sensor signals, batched over ``measurements``
+      nvso: the NVSO's outputs over time, batched over ``runs``
+      ekf: the vehicle EKF's outputs over time, batched over ``manoeuvres``
+      inputs: "nvso": (params, initial states, sensors), "ekf": (params, sensors) of the batched runs
+    """
+
+    manoeuvres: list
+    drives: list
+    measurements: list
+    runs: list
     trajectory: Trajectory
     measurements_data: Measurements
     nvso: NVSOOutputs
     ekf: VehicleEKFOutputs
-    inputs: dict  # "nvso": (params, initial states, sensors), "ekf": (params, sensors) of the batched runs
+    inputs: dict
 
 
 def estimate(vehicle: VehicleParams | None = None, manoeuvres=None) -> Estimates:

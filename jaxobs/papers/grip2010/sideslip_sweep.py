@@ -1,18 +1,9 @@
 """The sideslip observers of Grip 2010 ch. 2 over manoeuvres, road friction, sensor errors and vehicle mismatch.
 
-Each configuration is one point of ``grid.manoeuvre x grid.friction x grid.acc_bias x grid.drift x grid.mass x
-grid.cornering_stiffness x grid.seeds``. Per configuration, traced and ``vmap``ped by :func:`jaxobs.sweep.run_sweep`:
-the named test drive (:data:`jaxobs.vehicle.MANOEUVRES`, all run for ``simulation.duration``) with its road friction
-scaled by ``friction``, driven by the true vehicle (the default :class:`~jaxobs.vehicle.VehicleParams` with its mass
-and the cornering stiffness of both axles' tyres scaled by ``mass`` and ``cornering_stiffness``); the ESC sensors
-(:func:`jaxobs.vehicle.measure`, default noise) with the bias ``acc_bias`` on both accelerometers and the
-random-walk drift ``drift`` (the configuration's seed); the NVSO (:data:`jaxobs.vehicle.nvso`, default gains) and
-the EKF of §2.9 (:data:`jaxobs.vehicle.vehicle_ekf`) built on the nominal vehicle. Metrics per observer: the RMS
-and largest sideslip errors (deg) over the samples after ``simulation.error_start``, the final friction estimate
-minus the true road friction (both as the scale of the tyres' own peak friction), the RMS errors of the bank
-``cos(Theta) sin(Phi)`` and inclination ``sin(Theta)`` estimates (deg, same window), the fraction of samples
-with friction estimation on, and whether everything stayed finite. ``jaxobs sweep --config
-tuning/sideslip_sweep.toml``.
+Each configuration is one point of the grid of manoeuvre, friction, accelerometer bias and drift, mass, cornering
+stiffness and seed; the NVSO and the EKF of §2.9, built on the nominal vehicle, run on the true vehicle's ESC
+sensors. Metrics per observer: sideslip, friction, bank and inclination errors and the share of samples with
+friction estimation on. ``jaxobs sweep --config tuning/sideslip_sweep.toml``. Details: docs/theory/papers.md.
 """
 
 from __future__ import annotations

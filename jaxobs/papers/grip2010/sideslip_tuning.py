@@ -1,20 +1,9 @@
 """Tuning the gains and switching thresholds of the NVSO of Grip 2010 ch. 2 on mismatched vehicles.
 
-Tuned (log scale, from the hand-set defaults of :class:`jaxobs.vehicle.NVSOParams`): the gains ``K_vx``, ``K_vy``,
-``K_theta``, ``K_theta_b`` (``log_gains``) and the thresholds of the friction-estimation switch
-``vy_dot_threshold``, ``yaw_rate_threshold``, ``oversteer_threshold`` (``log_thresholds``, §2.5). The observer runs
-with sigmoid gates of sharpness ``scenario.smooth`` (``NVSOParams.smooth``), so that the thresholds have
-gradients; the held-out scores use the same gates.
-
-Each plant is a vehicle driving one test drive (``scenario.manoeuvres`` in turn, all for ``scenario.duration``),
-drawn like a point of the ``sideslip`` sweep (:mod:`jaxobs.papers.grip2010.sideslip_sweep`): the road friction of
-the drive
-scaled, the true mass and the cornering stiffness of all four tyres scaled by factors drawn uniformly from
-``plants.friction``, ``plants.mass``, ``plants.cornering_stiffness``, a bias on both accelerometers drawn from
-``N(0, plants.acc_bias_std^2)`` and the ESC sensor noise of its own seed; training and held-out plants from
-independent keys. The drives and the sensors do not depend on the gains: they are simulated once, and every
-rollout is the NVSO (on the nominal vehicle) over a plant's recorded sensors. The per-plant loss is the RMS
-sideslip error (deg) over ``t >= scenario.error_start``; a non-finite one counts as diverged.
+Tuned on a log scale from the defaults of :class:`jaxobs.vehicle.NVSOParams`: the gains (``log_gains``) and the
+thresholds of the friction-estimation switch (``log_thresholds``, §2.5), with sigmoid gates so that the thresholds
+have gradients. The plants are drawn like points of the ``sideslip`` sweep; the loss is the RMS sideslip error
+(deg). The problem: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -146,6 +135,7 @@ def _plants(config: dict):
 
 
 def build_problem(config: dict) -> TuningProblem:
+    """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     sc = config["scenario"]
     base = make_nvso(VehicleParams(), smooth=float(sc["smooth"]))
     late = base.dt * np.arange(round(float(sc["duration"]) / float(base.dt)) + 1) >= float(sc["error_start"])

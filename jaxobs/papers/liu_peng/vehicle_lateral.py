@@ -1,40 +1,10 @@
 """Liu & Peng 2002 §4.2: vehicle lateral speed and disturbance from yaw rate (eq. 31, Figs. 3-5).
 
-Bicycle model (eq. 31), state ``x = [v_y, r]`` (m/s, rad/s), steering ``u`` (rad), disturbance ``d``
-(m/s^2, lateral acceleration at the centre of gravity), measured ``y = r`` at 100 Hz::
-
-    x' = [[a1, a2], [a3, a4]] x + B_u u + [1, 0]' d,    B_u = [2 C_f / m, 2 a C_f / I_z]'
-
-Two models are run (``docs/reproductions.md``, "Liu & Peng §4.2"):
-
-* ``"parameters"``: the a_i from the printed vehicle parameters, a1..a4 = -7.686, -14.362, 0.3388, -6.655.
-  Eq. 31 prints ``a4 = (-2 a^2 C_f + 2 b^2 C_r) / (I_z v_x)`` (= +1.132, an unstable yaw mode); the bicycle
-  model has ``-(2 a^2 C_f + 2 b^2 C_r) / (I_z v_x)`` (= -6.655, the note's value), which is used here.
-* ``"printed_a"``: the printed a1..a4 = -9.754, -14.03, 0.5901, -12.622 (not consistent with the parameters:
-  ``a3 / (a2 + v_x) = m / I_z`` fails), with ``B_u`` from the parameters.
-
-Estimators, all at h = 10 ms, all on the nominal model and the measured steering:
-
-* ``"inverse_dynamics"``: :func:`jaxobs.observers.inverse_dynamics.make_inverse_dynamics`, Case 2, ``rho = 0``,
-  ``K = [47, 10]'``, ``F1 = -10``, ``F2 = 1`` (§4.2), ``Gamma = B_u u_k``; backward-difference ``y'``.
-* ``"hinf"``: the a-posteriori H-infinity filter (:mod:`jaxobs.observers.hinf`) on the ZOH model augmented with a
-  random-walk disturbance state ``[v_y, r, d]``, estimating ``z = [v_y, d]`` at ``HINF_GAMMA_FACTOR`` times the
-  optimal level over the run (:func:`~jaxobs.observers.hinf.gamma_bisection`). The paper used MATLAB's
-  continuous-time ``hinf()``; its weights are not printed.
-* ``"aob"``: the AOB-1 as an estimator (:func:`jaxobs.observers.active.make_aob` with
-  ``disturbance_input = G_d``, so the active state ``p`` is ``d``, entering where ``d`` does, with the AOB-1
-  random-walk model), the AOB noise design (model trusted, ``Q_x = 1e-10``; ``Q_p`` as below), time-varying gain,
-  the steering as known input. Nothing is fed back (an AOB-1 as a controller would cancel ``p`` at its own input,
-  the steering, which is not where ``d`` acts).
-* ``"kalman"``: the classical Kalman filter on the plant alone (no disturbance state; ``d`` is white process noise
-  ``Q = s_d^2 G_d G_d'``); ``d_hat`` is the least-squares disturbance that explains the state correction,
-  ``G_d^+ (x_hat_k - x_prior_k)`` (one sample late). This is the usual approach the paper's introduction says is
-  biased by superelevation.
-
-Scenario (§4.2): v_x = 15 m/s, steering 0.33 deg, superelevation 5 deg between 1 and 4 s, wind gusts at 3, 10 and
-35 rad/s. Robustness case: white noise 0.001 rad/s plus 0.001 sin(2 pi t) rad/s on the yaw rate, 0.01 deg steering
-offset, true m and I_z +20 %, cornering stiffness -30 %, fifth-order low-pass on y for the inverse-dynamics
-observer. Values the paper does not print are in :data:`ASSUMED` (also written to the JSON under ``"assumed"``).
+The bicycle model of eq. 31 (state ``[v_y, r]``, steering ``u``, lateral disturbance ``d``, yaw rate measured at
+100 Hz), with the a_i from the printed parameters or as printed (see docs/reproductions.md), and four estimators
+on the nominal model (:data:`METHODS`): the inverse-dynamics observer, an H-infinity filter, the AOB-1 as an
+estimator and a Kalman filter without a disturbance state. Values the paper does not print are in
+:data:`ASSUMED`. The models, estimators and scenario: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -72,7 +42,13 @@ CASES = ("ideal", "robustness")
 
 @dataclasses.dataclass(frozen=True)
 class Vehicle:
-    """Printed §4.2 parameters (SI units, per-tyre cornering stiffness, eq. 31 uses 2 C)."""
+    """Printed §4.2 parameters (SI units, per-tyre cornering stiffness, eq. 31 uses 2 C).
+
+    Attributes:
+      Cf, Cr: front and rear cornering stiffness (N/rad).  m: mass (kg).
+      a, b: distances of the front and rear axles from the centre of mass (m).
+      Iz: yaw moment of inertia (kg m^2).  vx: longitudinal speed (m/s).
+    """
 
     Cf: float = 51000.0
     Cr: float = 47000.0
@@ -233,13 +209,19 @@ def _advanced(Phi, Q, P):
 
 
 class Estimators(NamedTuple):
-    """The four estimators designed on the nominal model (a pytree; :func:`run_estimators` is traceable)."""
+    """The four estimators designed on the nominal model (a pytree; :func:`run_estimators` is traceable).
+
+    Attributes:
+      inverse_dynamics, aob, hinf, kalman: each estimator's parameters.
+      G_d_pinv: the Kalman filter's least-squares disturbance from its state correction.
+      hinf_gamma: the H-infinity filter's attenuation level (from the bisection).
+    """
 
     inverse_dynamics: Any
     aob: Any
     hinf: Any
     kalman: Any
-    G_d_pinv: jax.Array  # CKF: least-squares disturbance from the state correction
+    G_d_pinv: jax.Array
     hinf_gamma: float
 
 

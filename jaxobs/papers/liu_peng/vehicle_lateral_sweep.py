@@ -1,23 +1,10 @@
 """Monte-Carlo comparison of the four Liu & Peng §4.2 estimators over random vehicle mismatch and noise seeds.
 
-The estimators (:data:`jaxobs.papers.liu_peng.vehicle_lateral.METHODS`: inverse dynamics, H-infinity, AOB-1 estimator,
-Kalman filter without a disturbance state) are designed once on the nominal parameter model
-(:func:`jaxobs.papers.liu_peng.vehicle_lateral.design_estimators`; the H-infinity level is bisected there, outside
-the traced code). Each configuration draws a true vehicle (mass, yaw inertia, front and rear cornering stiffness scaled
-independently and uniformly; a steering offset: the true road-wheel angle is the measured 0.33 deg plus the
-offset) and a yaw-rate noise seed. Per configuration, traced and ``vmap``ped by :func:`jaxobs.sweep.run_sweep`:
-
-* the true bicycle model (eq. 31, parameter model, a4 with the bicycle-model sign) is built from the drawn
-  parameters and discretised with :func:`jaxobs.lti.c2d` at 1 ms; starting in its own steady turn, it is driven by
-  the §4.2 superelevation and wind gusts (:func:`jaxobs.papers.liu_peng.vehicle_lateral.disturbance`), the d
-  samples of each 10 ms interval entering through the exact 1 ms ZOH steps (as
-  :func:`~jaxobs.papers.liu_peng.vehicle_lateral.simulate_truth`);
-* the yaw rate is sampled at 100 Hz with white noise (``noise.std``) and the 1 Hz sine (``noise.sine``);
-* the four fixed estimators run on it (:func:`jaxobs.papers.liu_peng.vehicle_lateral.run_estimators`, ``lax.scan``);
-* metrics: RMS errors of v_y (m/s) and d (m/s^2) of each method over t >= 0.5 s (``inf`` where not finite).
-
-Only the parameter model is swept (the printed a_i are not consistent with the parameters, so a mismatch in
-m, I_z, C_f, C_r has no meaning for them). ``jaxobs sweep --config tuning/liu_peng_sweep.toml``.
+The estimators are designed once on the nominal parameter model
+(:func:`jaxobs.papers.liu_peng.vehicle_lateral.design_estimators`); each configuration draws a true vehicle (mass,
+yaw inertia, cornering stiffnesses, steering offset) and a noise seed, simulates the §4.2 scenario and scores the
+RMS errors of ``v_y`` and ``d`` of each method. ``jaxobs sweep --config tuning/liu_peng_sweep.toml``. Details:
+docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -171,6 +158,7 @@ QUANTILES = (("p10", 0.1), ("median", 0.5), ("p90", 0.9), ("max", 1.0))
 
 
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
+    """Summarise the sweep's results in ``out_dir`` (``summary.json``, ``report.md``); returns the summary."""
     cols = load_results(out_dir)
     errors = {e: np.stack([cols[f"metric.{e}_rms.{m}"] for m in lp.METHODS], axis=1) for e in ERRORS}
     finite = np.all(np.isfinite(np.concatenate(list(errors.values()), axis=1)), axis=1)

@@ -1,5 +1,5 @@
 """Reproductions of the printed numbers (Cortesão 2006 §7, the stochastic AOB paper §4) through `reproduce`, and the
-README's reproduction figures pinned to them (tests/_readme.py)."""
+README's reproduction figures pinned to them (tests/_published.py)."""
 
 import json
 
@@ -10,7 +10,7 @@ from jaxobs.papers.cortesao import example1 as example1_module
 from jaxobs.papers.cortesao import stochastic
 from jaxobs.papers.cortesao.force_control import nominal_design
 from jaxobs.papers.registry import reproductions
-from tests._readme import pin
+from tests._published import pin
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from jaxobs.papers.cortesao import force_sweep as fr
 from jaxobs.papers.cortesao.example1 import aob_params
 from jaxobs.papers.cortesao.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
 from jaxobs.plants import force_plant
-from tests._readme import pin
+from tests._published import pin
 
 SMALL = {
     "chunk_size": 64,

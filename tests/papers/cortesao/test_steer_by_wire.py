@@ -9,7 +9,7 @@ from jaxobs.design import dc_compensation, place
 from jaxobs.lti import c2d, dcgain, tf2ss
 from jaxobs.papers.cortesao import steer_by_wire as sbw
 from jaxobs.papers.registry import reproductions
-from tests._readme import pin
+from tests._published import pin
 
 OMEGA = np.array([0.1, 1.0, 10.0, 86.7, 300.0, 1000.0])  # rad/s, around the 87 rad/s target resonance
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jaxobs.papers.grip2010 import adaptive
-from tests._readme import pin
+from tests._published import pin
 
 ISSUE_KEYS_5_6 = {
     "noise_free": ["theta_error_segment_end", "peak_abs_x", "last_exit_0p6_s", "projection_active"],

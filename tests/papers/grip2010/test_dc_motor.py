@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from tests._readme import pin
+from tests._published import pin
 
 pytest.importorskip("sympy")
 

@@ -14,7 +14,7 @@ from jaxobs.sweep import config_key, load_results
 
 TINY = {
     "chunk_size": 4,
-    "grid": {"K_phi": [3.0, 10.0], "Gamma": [3.0], "noise_variance": [0.0, 1.0], "seeds": 2},
+    "grid": {"K_phi": [3.0, 10.0], "adaptation_gain": [3.0], "noise_variance": [0.0, 1.0], "seeds": 2},
     "scenario_timing": {"segment_s": 2.0, "window_s": 1.0},
 }
 
@@ -28,10 +28,10 @@ def test_default_config_file_validates():
     "given, key",
     [
         ({"grid": {"K_phi": []}}, "grid.K_phi"),
-        ({"grid": {"Gamma": [1.0, 0.0]}}, "grid.Gamma"),
+        ({"grid": {"adaptation_gain": [1.0, 0.0]}}, "grid.adaptation_gain"),
         ({"grid": {"noise_variance": [-1.0]}}, "grid.noise_variance"),
         ({"grid": {"seeds": 0}}, "grid.seeds"),
-        ({"gradient": {"Gamma": 0.0}}, "gradient.Gamma"),
+        ({"gradient": {"adaptation_gain": 0.0}}, "gradient.adaptation_gain"),
         ({"scenario_timing": {"segment_s": 2.0, "window_s": 3.0}}, "scenario_timing.window_s"),
     ],
 )
@@ -41,7 +41,7 @@ def test_bad_config_names_the_key(given, key):
 
 
 def test_index_runs_over_the_grid_seeds_fastest():
-    grid = {"K_phi": [1.0, 2.0], "Gamma": [3.0, 4.0, 5.0], "noise_variance": [0.0, 1.0], "seeds": 2}
+    grid = {"K_phi": [1.0, 2.0], "adaptation_gain": [3.0, 4.0, 5.0], "noise_variance": [0.0, 1.0], "seeds": 2}
     config = sweep.SCENARIO.validate({"grid": grid})
     sampler, _, n, _ = sweep.make_sweep(config)
     assert n == 24
@@ -52,11 +52,11 @@ def test_index_runs_over_the_grid_seeds_fastest():
 
 
 def test_cli_sweep_end_to_end(tmp_path):
-    """A tiny grid (2 s segments): the gradient law sees the same noise at every (K_phi, Gamma) point (common random
-    numbers), the noise-free runs do not depend on the seed, and the report matches the rows."""
+    """A tiny grid (2 s segments): the gradient law sees the same noise at every (K_phi, adaptation_gain) point (common
+    random numbers), the noise-free runs do not depend on the seed, and the report matches the rows."""
     config = tmp_path / "grip.toml"
     config.write_text(
-        'scenario = "grip-example56"\nchunk_size = 4\n[grid]\nK_phi = [3.0, 10.0]\nGamma = [3.0]\n'
+        'scenario = "grip-example56"\nchunk_size = 4\n[grid]\nK_phi = [3.0, 10.0]\nadaptation_gain = [3.0]\n'
         "noise_variance = [0.0, 1.0]\nseeds = 2\n[scenario_timing]\nsegment_s = 2.0\nwindow_s = 1.0\n"
     )
     out = tmp_path / "sweep"
@@ -84,13 +84,14 @@ def test_readme_sweep_figures(tmp_path):
     from a fresh run of that command: at the printed gains with unit noise variance, both laws' median errors and
     the modular estimator's share of better seed x segment pairs; the best grid point's error. Regression snapshots
     of this implementation (seeded noise), pinned to their printed digits."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "grip"
     path = "tuning/grip_example56_sweep.toml"
     assert cli.main(["sweep", "--config", path, "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    point = next(p for p in summary["grid"] if (p["K_phi"], p["Gamma"], p["noise_variance"]) == (10.0, 3.0, 1.0))
+    key = lambda p: (p["K_phi"], p["adaptation_gain"], p["noise_variance"])  # noqa: E731
+    point = next(p for p in summary["grid"] if key(p) == (10.0, 3.0, 1.0))
     pattern = (
         r"\(10, 3\) give a median mean \|theta_tilde\| over each segment's last 5 s of ([0-9.]+) against the "
         r"gradient law's ([0-9.]+) \(lower in ([0-9]+) %"
@@ -99,5 +100,5 @@ def test_readme_sweep_figures(tmp_path):
     pin(point["gradient"]["median_mean_abs_theta_error"], pattern, 2)
     pin(100 * point["modular_better_fraction"], pattern, 3)
     best = summary["best_modular_gains"]["1.0"]
-    assert (best["K_phi"], best["Gamma"]) == (10.0, 0.3)
+    assert (best["K_phi"], best["adaptation_gain"]) == (10.0, 0.3)
     pin(best["median_mean_abs_theta_error"], r"\(10, 0\.3\), with ([0-9.]+)")

@@ -21,7 +21,7 @@ def test_default_config_file_validates():
         ({"seeds": {"heldout": 0}}, "seeds.heldout"),
         ({"scenario": {"noise_variance": -1.0}}, "scenario.noise_variance"),
         ({"scenario": {"segment_s": 2.0, "window_s": 3.0}}, "scenario.window_s"),
-        ({"design": {"Gamma": 0.0}}, "design.Gamma"),
+        ({"design": {"adaptation_gain": 0.0}}, "design.adaptation_gain"),
         ({"optimizer": {"learning_rate": 0.0}}, "optimizer"),
     ],
 )
@@ -31,8 +31,8 @@ def test_bad_config_names_the_key(given, key):
 
 
 def test_gradient_matches_finite_differences():
-    """d loss / d (log K_phi, log Gamma) through the 5000 RK4 steps of a 1 s-segment run, forward mode against a
-    central difference (step 1e-5: truncation about 1e-10 relative; the loss is smooth away from theta_tilde = 0)."""
+    """d loss / d (log K_phi, log adaptation_gain) through the 5000 RK4 steps of a 1 s-segment run, forward mode against
+    a central difference (step 1e-5: truncation about 1e-10 relative; the loss is smooth away from theta_tilde = 0)."""
     config = example56_tuning.PROBLEM.validate({"seeds": {"train": 1}, "scenario": {"segment_s": 1.0, "window_s": 0.5}})
     problem = example56_tuning.build_problem(config)
     loss = jax.jit(lambda theta: problem.losses(theta, problem.train)[0][0])
@@ -52,7 +52,7 @@ def test_readme_table_row(tmp_path):
     """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
     held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,
     so reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "grip"
     assert main(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"]) == 0
@@ -66,6 +66,6 @@ def test_readme_table_row(tmp_path):
     pin(held["tuned"]["objective"], row, 2)
     pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
     pin(summary["parameters"]["tuned"]["K_phi"], row, 4)
-    pin(summary["parameters"]["tuned"]["Gamma"], row, 5)
+    pin(summary["parameters"]["tuned"]["adaptation_gain"], row, 5)
     pin(held["random search, equal rollouts"]["objective"], row, 6)
     pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 7)

@@ -8,7 +8,7 @@ import pytest
 
 from jaxobs.papers.grip2010 import sandwich as g
 from jaxobs.saturation import sandwich_design
-from tests._readme import pin
+from tests._published import pin
 
 ROW = r"`grip2010-sandwich` \| Grip 2010 ch\. 9 \|.*?"
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 
 from jaxobs.papers.grip2010 import saturated_outputs as g
-from tests._readme import pin
+from tests._published import pin
 
 
 def test_reproduction_writes_every_key_and_matches_the_print(tmp_path):

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from tests._readme import printed
+from tests._published import printed
 
 sp = pytest.importorskip("sympy")
 
@@ -23,7 +23,7 @@ def written(tmp_path_factory):
 def test_every_case_has_the_reported_fields(written):
     _, data = written
     keys = {"dims", "chain_lengths", "invariant_zeros", "left_invertible", "right_invertible", "A", "B", "C"}
-    keys |= {"Gamma1", "Gamma2", "Gamma3", "residuals", "printed_check", "seconds"}
+    keys |= {"state_transform", "output_transform", "input_transform", "residuals", "printed_check", "seconds"}
     for name in scb.CASES:
         assert keys <= set(data[name]), name
         assert data[name]["residuals"] == {"A": 0, "B": 0, "C": 0, "D": 0}
@@ -43,24 +43,24 @@ def test_symbolic_matrices_are_srepr_strings_that_round_trip(written):
 def test_printed_checks(written):
     _, data = written
     check = {name: data[name]["printed_check"] for name in scb.CASES}
-    # printed Gammas: single-track cases; one differing entry each
+    # printed transformations: single-track cases; one differing entry each
     front = check["single_track"]["differing_entries"]
-    assert [(e["matrix"], e["entry"]) for e in front] == [("Gamma2", [0, 1])]
+    assert [(e["matrix"], e["entry"]) for e in front] == [("output_transform", [0, 1])]
     assert sp.simplify(sp.sympify(front[0]["implied_text"]) - sp.sympify("c_r*(l_f + l_r)/(T_r*J)")) == 0
     rear = check["single_track_rear"]["differing_entries"]
     assert [(e["matrix"], e["entry"]) for e in rear] == [("A", [1, 2])]
     assert sp.simplify(sp.sympify(rear[0]["implied_text"]) - sp.sympify("(l_r*c_r - l_f*c_f)/(m*T_r*v_x)")) == 0
-    # no printed Gammas: the identities are solvable with nonsingular Gammas, unique up to a factor
+    # no printed transformations: the identities are solvable with nonsingular transformations, unique up to a factor
     for name in ("dc_motor", "dc_motor_sigma1_zero", "tenth_order"):
         assert check[name]["identities_hold"] and check[name]["solution_space_dim"] == 1, name
 
 
-def test_solved_gammas_are_a_proof(written):
-    """The Gammas found for the printed tenth-order SCB satisfy the identities exactly and are nonsingular."""
+def test_solved_transformations_are_a_proof(written):
+    """The transformations found for the printed tenth-order SCB satisfy the identities exactly and are nonsingular."""
     _, data = written
     A, B, C = scb.systems()["tenth_order"]
     p = scb.printed()["tenth_order"]
-    G1, G2, G3 = (sp.Matrix(data["tenth_order"]["printed_check"][k]) for k in ("Gamma1", "Gamma2", "Gamma3"))
+    G1, G2, G3 = (sp.Matrix(data["tenth_order"]["printed_check"][k]) for k in scb.TRANSFORMS)
     assert G1.det() != 0 and G2.det() != 0 and G3.det() != 0
     assert G1 * p["A"] == A * G1 and G1 * p["B"] == B * G3 and G2 * p["C"] == C * G1
 
@@ -69,7 +69,7 @@ def test_misprints(written):
     _, data = written
     found = {(m["case"], m.get("matrix"), tuple(m.get("entry", ()))) for m in data["misprints"]}
     assert found == {
-        ("single_track", "Gamma2", (0, 1)),
+        ("single_track", "output_transform", (0, 1)),
         ("single_track_rear", "A", (1, 2)),
         ("dc_motor", None, ()),
     }

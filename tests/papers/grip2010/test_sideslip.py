@@ -11,7 +11,7 @@ import pytest
 from jaxobs.papers.grip2010 import sideslip
 from jaxobs.papers.registry import reproductions
 from jaxobs.vehicle import MANOEUVRES, VehicleParams
-from tests._readme import pin
+from tests._published import pin
 
 ESTIMATE_KEYS = {
     "max_abs_beta_error_deg",

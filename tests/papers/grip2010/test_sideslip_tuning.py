@@ -66,7 +66,7 @@ def test_shipped_tuning_run(tmp_path):
     error over 36 held-out vehicles) below the hand-set gains', and the run reports the random search at equal
     rollouts and at equal time. The README's tuning-table row pins the held-out objectives (seeded, so reproducible;
     the equal-time search depends on the machine's speed and is not pinned)."""
-    from tests._readme import pin
+    from tests._published import pin
 
     out = tmp_path / "sideslip"
     assert main(["tune", "--config", "tuning/sideslip.toml", "--out", str(out), "--no-progress"]) == 0

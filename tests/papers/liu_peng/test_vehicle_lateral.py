@@ -8,7 +8,7 @@ import pytest
 
 from jaxobs.papers.liu_peng import vehicle_lateral
 from jaxobs.papers.registry import reproductions
-from tests._readme import pin
+from tests._published import pin
 
 
 @pytest.fixture(scope="module")

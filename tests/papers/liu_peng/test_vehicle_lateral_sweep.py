@@ -8,7 +8,7 @@ import pytest
 from jaxobs import cli
 from jaxobs.papers.liu_peng import vehicle_lateral, vehicle_lateral_sweep
 from jaxobs.sweep import config_key
-from tests._readme import pin
+from tests._published import pin
 
 
 def test_default_config_file_validates():

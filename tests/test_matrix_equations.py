@@ -1,6 +1,6 @@
-"""Tests for jaxobs.riccati: the Kalman covariance recursion (Cortesão 2006 eq. 27-29, Joseph form), its sequence,
-the DARE (doubling + implicit gradients), the Stein solver, and Q/R scale invariance (the MRAC chapter
-Proposition 1)."""
+"""Tests for jaxobs.matrix_equations: the DARE (doubling + implicit gradients) against SciPy and as the limit of the
+Kalman covariance sequence, the Stein solver, and Q/R scale invariance (the MRAC chapter Proposition 1). The
+covariance steps themselves are tested in tests/test_kalman_steps.py."""
 
 import jax
 import jax.numpy as jnp
@@ -11,16 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-from jaxobs.riccati import (
-    covariance_sequence,
-    dare,
-    filter_dare,
-    kalman_gain,
-    predict_covariance,
-    riccati_step,
-    stein,
-    update_covariance,
-)
+from jaxobs.kalman_steps import covariance_sequence, kalman_gain
+from jaxobs.matrix_equations import dare, filter_dare, stein
 
 
 def random_system(rng, n, m, rho=None, r_min=None):
@@ -51,41 +43,6 @@ sequence_jit = jax.jit(covariance_sequence, static_argnums=5)
 
 def rel_err(a, b):
     return np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(np.asarray(b))
-
-
-# ---------------------------------------------------------------------------------------------
-# one step
-
-
-def test_riccati_step_equations_cortesao2006_eq27_29():
-    """One step: P1 = Phi P Phi' + Q (eq. 28), K = P1 C'(C P1 C' + R)^{-1} (eq. 27), Joseph-form P (eq. 29),
-    which for the optimal K equals (I - K C) P1."""
-    rng = np.random.default_rng(0)
-    Phi, C, Q, R = random_system(rng, 4, 2)
-    P_prev = np.eye(4) * 0.3 + 0.05
-    P, K, P1 = riccati_step(P_prev, Phi, C, Q, R)
-    P1_ref = Phi @ P_prev @ Phi.T + Q
-    K_ref = P1_ref @ C.T @ np.linalg.inv(C @ P1_ref @ C.T + R)
-    P_ref = (np.eye(4) - K_ref @ C) @ P1_ref
-    np.testing.assert_allclose(P1, P1_ref, rtol=1e-13)
-    np.testing.assert_allclose(K, K_ref, rtol=1e-11)
-    np.testing.assert_allclose(P, P_ref, rtol=1e-10, atol=1e-13)
-    np.testing.assert_allclose(predict_covariance(P_prev, Phi, Q), P1_ref, rtol=1e-13)
-    P_u, K_u = update_covariance(P1_ref, C, R)
-    np.testing.assert_allclose(P_u, P_ref, rtol=1e-10, atol=1e-13)
-    np.testing.assert_allclose(kalman_gain(P1_ref, C, R), K_ref, rtol=1e-11)
-
-
-@pytest.mark.parametrize("n, m", [(3, 2), (6, 1), (10, 2)])  # explicit I - K C, and rank-m corrections
-def test_update_covariance_is_joseph_form_eq29(n, m):
-    """update_covariance returns the Joseph expression (I-KC)P1(I-KC)' + KRK' (eq. 29 in Joseph form), written out
-    here with the gain it reports."""
-    rng = np.random.default_rng(1)
-    _, C, Q, R = random_system(rng, n, m)
-    P, K = update_covariance(Q, C, R)
-    K = np.asarray(K)
-    IKC = np.eye(n) - K @ C
-    np.testing.assert_allclose(P, IKC @ Q @ IKC.T + K @ R @ K.T, rtol=1e-12, atol=1e-15)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -209,7 +166,7 @@ def test_closed_loop_test_by_squaring_near_the_unit_circle():
     200 random non-normal 6 x 6 matrices per spectral radius: all stable ones flagged stable and all unstable ones
     unstable for |rho - 1| >= 1e-14 (at 1e-15 and below rounding decides), also for a rotation (rho = 1 exactly:
     unstable) and a Jordan block with a 1e6 transient."""
-    from jaxobs.riccati import _smith
+    from jaxobs.matrix_equations import _smith
 
     rng = np.random.default_rng(7)
     M = rng.normal(size=(200, 6, 6))
@@ -315,52 +272,6 @@ def test_covariance_sequence_converges_to_dare():
     np.testing.assert_allclose(seq.P_prior[0], Phi @ Q @ Phi.T + Q, rtol=1e-13)
 
 
-@given(
-    n=st.sampled_from([2, 3, 6]),
-    m=st.sampled_from([1, 2]),
-    seed=st.integers(0, 2**32 - 1),
-    r_exp=st.integers(0, 10),
-    zero_init=st.booleans(),
-)
-def test_joseph_covariance_stays_symmetric_psd(n, m, seed, r_exp, zero_init):
-    """Property (Joseph form, eq. 29, symmetrised): along 300 steps every a-priori and a-posteriori covariance is
-    exactly symmetric and PSD (min eigenvalue >= -1e-10 * scale), also for nearly singular R (condition up to
-    1e10) and P_init = 0."""
-    rng = np.random.default_rng(seed)
-    Phi, C, Q, R = random_system(rng, n, m, r_min=10.0**-r_exp)
-    P_init = np.zeros((n, n)) if zero_init else Q
-    seq = sequence_jit(P_init, Phi, C, Q, R, 300)
-    for P in (np.asarray(seq.P), np.asarray(seq.P_prior)):
-        assert np.all(np.isfinite(P))
-        np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
-        scale = np.max(np.abs(P), axis=(-1, -2))
-        assert np.all(np.linalg.eigvalsh(P).min(axis=-1) >= -1e-10 * scale)
-
-
-@pytest.mark.parametrize("n, m", [(3, 3), (6, 1), (6, 2)])  # explicit I - K C, and rank-m corrections
-def test_joseph_update_stays_psd_for_very_precise_measurements(n, m):
-    """The reason for the Joseph form (eq. 29): with very precise measurements (R / P1 ~ 1e-16) the posterior
-    covariance is small in the measured directions, computed from O(1) quantities. One update with
-    P1 ~ 1e8, R ~ 1e-8, and 50 Riccati steps with Q ~ 1, R ~ 1e-16, must stay finite, exactly symmetric and PSD
-    (min eigenvalue >= -1e-10 * scale)."""
-    failures = []
-    for seed in range(6):
-        rng = np.random.default_rng(seed)
-        Phi, C, Q, _ = random_system(rng, n, m, rho=0.9)
-        Hm = rng.normal(size=(m, m))
-        R = 1e-16 * (Hm @ Hm.T + 0.1 * np.eye(m))
-        G = rng.normal(size=(n, n))
-        P_one, _ = update_covariance(1e8 * (G @ G.T + 0.1 * np.eye(n)), C, 1e8 * R)
-        seq = sequence_jit(Q, Phi, C, Q, R, 50)
-        for label, P in (("one update", np.asarray(P_one)[None]), ("sequence", np.asarray(seq.P))):
-            assert np.all(np.isfinite(P)), (seed, label)
-            np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
-            lowest = np.linalg.eigvalsh(P).min(axis=-1) / np.max(np.abs(P), axis=(-1, -2))
-            if np.any(lowest < -1e-10):
-                failures.append((seed, label, float(lowest.min())))
-    assert not failures, f"indefinite covariances (seed, where, min eig / scale): {failures}"
-
-
 @given(seed=st.integers(0, 2**32 - 1), log_alpha=st.floats(-3.0, 3.0))
 def test_kalman_gain_scale_invariance_mrac_chapter_prop1(seed, log_alpha):
     """The MRAC chapter Proposition 1 (eq. 55): scaling Q, R and P_{-1} by alpha > 0 leaves every gain K_k unchanged and
@@ -398,13 +309,13 @@ def test_dare_and_sequence_jit_vmap_equal_eager():
 
 
 def test_double_word_products_are_exact_to_working_precision_squared():
-    """The DARE residual's double-word products (jaxobs.riccati._dot2: exact slice products summed by TwoSum)
+    """The DARE residual's double-word products (jaxobs.matrix_equations._dot2: exact slice products summed by TwoSum)
     under jit, for entries spanning 16 orders of magnitude: error below 1e-18 of |a| |b| in float64 (the float64
     product errs by 1e-16) and below 1e-10 in float32, checked against exact rational arithmetic. Guards the
     compiler against re-associating the error-free transformations."""
     from fractions import Fraction
 
-    from jaxobs.riccati import _dot2
+    from jaxobs.matrix_equations import _dot2
 
     rng = np.random.default_rng(11)
     for dtype, bound in ((np.float64, 1e-18), (np.float32, 1e-10)):
@@ -461,26 +372,3 @@ def test_dare_rejects_bad_input(kwargs, name):
         dare(args["Phi"].T, args["C"].T, args["Q"], args["R"])
     with pytest.raises(ValueError, match=rf"^{name}\b"):
         filter_dare(args["Phi"], args["C"], args["Q"], args["R"])
-
-
-@pytest.mark.parametrize(
-    "kwargs, name",
-    [
-        (dict(P_init=np.array([[1.0, 0.5], [0.0, 1.0]])), "P_init"),
-        (dict(Q=np.array([[1.0, 0.5], [0.0, 1.0]])), "Q"),
-        (dict(Q=np.diag([1.0, -0.5])), "Q"),
-        (dict(R=np.zeros((1, 1))), "R"),
-        (dict(R=np.eye(2)), "R"),
-        (dict(Q=np.eye(3)), "Q"),
-        (dict(C=np.ones((1, 3))), "C"),
-        (dict(Phi=np.ones((3, 2))), "Phi"),
-    ],
-)
-def test_covariance_sequence_rejects_bad_input(kwargs, name):
-    """Eager validation of covariance_sequence (DESIGN.md "Errors": shapes, symmetry, definiteness): ValueError
-    naming the argument."""
-    Phi, C, Q, R = _good()
-    args = dict(P_init=np.eye(2), Phi=Phi, C=C, Q=Q, R=R)
-    args.update(kwargs)
-    with pytest.raises(ValueError, match=rf"\b{name}\b"):
-        covariance_sequence(args["P_init"], args["Phi"], args["C"], args["Q"], args["R"], 5)

@@ -1,12 +1,10 @@
-"""Riccati recursions: the Kalman covariance step, its sequence over time, the discrete algebraic Riccati equation
-(DARE), and the continuous one (CARE) with the continuous Lyapunov equation.
+"""Matrix equations of control and estimation: the discrete algebraic Riccati equation (:func:`dare`, and
+:func:`filter_dare` for the Kalman filter), the continuous one (:func:`care`), the continuous Lyapunov equation
+(:func:`lyapunov`), the Stein (discrete Lyapunov) equation (:func:`stein`) and the stability test :func:`is_stable`.
 
-Notation of Cortesão 2006 (Cortesão 2006) eq. 27-29, for ``x_k = Phi x_{k-1} + w_k``, ``y_k = C x_k + v_k``,
-``E[w w'] = Q``, ``E[v v'] = R``::
-
-    P1_k = Phi P_{k-1} Phi' + Q                      (a-priori covariance, eq. 28)
-    K_k  = P1_k C' (C P1_k C' + R)^{-1}              (Kalman gain, eq. 27)
-    P_k  = (I - K_k C) P1_k (I - K_k C)' + K_k R K_k'   (a-posteriori, eq. 29 in Joseph form)
+Riccati solvers by structured doubling with a residual and closed-loop stability check, refined by Newton, with
+implicit-function gradients; ``converged`` means the stabilising solution was found. The Kalman recursion whose
+fixed point the filter DARE is lives in :mod:`jaxobs.kalman_steps`.
 
 Every function here is pure and works eagerly, under ``jit``, ``vmap`` and ``grad``.
 """
@@ -21,18 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import cho_solve, cholesky, small_solve, solve_lower, solve_spd
+from jaxobs._linalg import small_solve, solve_spd, symmetrize
+from jaxobs.lti import unobservable_modes
 
 __all__ = [
-    "symmetrize",
-    "predict_covariance",
-    "update_covariance",
-    "update_covariance_factors",
-    "update_covariance_moments",
-    "CovarianceUpdate",
-    "riccati_step",
-    "covariance_sequence",
-    "kalman_gain",
     "dare",
     "filter_dare",
     "DareSolution",
@@ -41,124 +31,9 @@ __all__ = [
     "is_stable",
     "care",
     "CareSolution",
+    "require_care_converged",
     "lyapunov",
 ]
-
-
-def symmetrize(P):
-    """``(P + P') / 2``."""
-    return 0.5 * (P + jnp.swapaxes(P, -1, -2))
-
-
-def predict_covariance(P, Phi, Q):
-    """A-priori covariance ``Phi P Phi' + Q`` (eq. 28).
-
-    Symmetric to rounding only: the filters symmetrise once per step, in :func:`update_covariance`
-    (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
-    optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
-    kernel 3x slower for a batch of 10 x 10 matrices (``benchmarks/estimation.py``, ``filter``, n = 10).
-    """
-    return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
-
-
-def kalman_gain(P1, C, R):
-    """Kalman gain ``K = P1 C' (C P1 C' + R)^{-1}`` (eq. 27) by a linear solve, never an inverse.
-
-    With the DARE solution ``P`` (a-priori, see :func:`dare`) this is the steady-state gain.
-    """
-    CP1 = C @ P1
-    return solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
-
-
-class CovarianceUpdate(NamedTuple):
-    """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs)."""
-
-    P: jax.Array  # (n, n) a-posteriori covariance
-    K: jax.Array  # (n, p) Kalman gain
-    S: jax.Array  # (p, p) innovation covariance C P1 C' + R
-    S_chol: jax.Array  # (p, p) its lower Cholesky factor
-
-
-def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpdate:
-    """Measurement update with the innovation covariance and its Cholesky factor (eq. 27 and 29).
-
-    ``S = C P1 C' + R`` is factored once (``S = L L'``) and the factor serves the gain ``K = P1 C' S^{-1}`` and
-    the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``).
-
-    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'``, a congruence plus a PSD term, so ``P``
-    stays symmetric positive semidefinite in floating point even for very precise measurements. With fewer
-    outputs than half the states, each factor is applied as a rank-m correction, ``(I - K C) X = X - K (C X)``:
-    the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
-    ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
-    symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
-    the prior, where it can lose definiteness.
-    """
-    CP1 = C @ P1
-    S = symmetrize(CP1 @ C.T + R)
-    if not joseph:
-        return update_covariance_moments(P1, CP1, S)
-    S_chol = cholesky(S)
-    K = cho_solve(S_chol, CP1).T
-    n, m = C.shape[-1], C.shape[-2]
-    if 2 * m < n:
-        left = P1 - K @ CP1  # (I - K C) P1
-        congruence = left - (left @ C.T) @ K.T  # ((I - K C) P1) (I - K C)'
-    else:
-        IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
-        congruence = IKC @ P1 @ IKC.T
-    return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)
-
-
-def update_covariance_moments(P1, CP1, S) -> CovarianceUpdate:
-    """The standard-form update of :func:`update_covariance_factors` from the moments of the predicted measurement:
-    ``CP1`` (p, n) its covariance with the state (``C P1``) and ``S`` (p, p) the innovation covariance
-    (``C P1 C' + R``), read from its lower triangle. A sigma-point filter has both without a matrix ``C``.
-    ``P = P1 - W' W``, ``W = L^{-1} CP1``, ``K = L'^{-1} W``."""
-    S_chol = cholesky(S)
-    W = solve_lower(S_chol, CP1)
-    return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
-
-
-def update_covariance(P1, C, R):
-    """Measurement update in Joseph form: returns ``(P, K)`` (eq. 27 and 29); see
-    :func:`update_covariance_factors`."""
-    P, K, _, _ = update_covariance_factors(P1, C, R)
-    return P, K
-
-
-def riccati_step(P_prev, Phi, C, Q, R):
-    """One step of eq. 27-29: ``P_{k-1} -> (P_k, K_k, P1_k)``, all three exactly symmetric."""
-    P1 = predict_covariance(P_prev, Phi, Q)
-    P, K = update_covariance(P1, C, R)
-    return P, K, symmetrize(P1)
-
-
-class CovarianceSequence(NamedTuple):
-    """Stacked over time (leading axis ``num_steps``)."""
-
-    P: jax.Array  # (T, n, n) a-posteriori covariances P_k
-    K: jax.Array  # (T, n, p) Kalman gains K_k
-    P_prior: jax.Array  # (T, n, n) a-priori covariances P1_k
-
-
-def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
-    """Gains and covariances of ``num_steps`` Riccati steps from ``P_{-1} = P_init`` (``lax.scan``).
-
-    The papers initialise with ``P_{-1} = Q_0`` (Cortesão 2006 §7.2).
-    """
-    n = Phi.shape[-1]
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
-    _checks.matrix("C", C, shape=(None, n))
-    _checks.covariance("P_init", P_init, definite=False, size=n)
-    _checks.covariance("Q", Q, definite=False, size=n)
-    _checks.covariance("R", R, definite=True, size=C.shape[-2])
-
-    def body(P, _):
-        P, K, P1 = riccati_step(P, Phi, C, Q, R)
-        return P, CovarianceSequence(P, K, P1)
-
-    _, seq = jax.lax.scan(body, P_init, None, length=num_steps)
-    return seq
 
 
 # --------------------------------------------------------------------------------------------
@@ -166,11 +41,17 @@ def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSeque
 
 
 class DareSolution(NamedTuple):
-    """Stabilising solution of a DARE and how well it solves it."""
+    """Stabilising solution of a DARE and how well it solves it.
 
-    X: jax.Array  # (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
-    residual: jax.Array  # () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
-    converged: jax.Array  # () the stabilising solution was found: X finite, closed loop stable, residual small
+    Attributes:
+      X: (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
+      residual: () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
+      converged: () the stabilising solution was found: X finite, closed loop stable, residual small
+    """
+
+    X: jax.Array
+    residual: jax.Array
+    converged: jax.Array
 
 
 # Double-word arithmetic for the DARE residual, whose terms cancel to many digits: a value is the
@@ -505,8 +386,9 @@ def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
 
 
 def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSolution:
-    """Stabilising solution ``X`` of the discrete algebraic Riccati equation, as
-    ``scipy.linalg.solve_discrete_are(A, B, Q, R)``::
+    """Stabilising solution ``X`` of the discrete algebraic Riccati equation.
+
+    As ``scipy.linalg.solve_discrete_are(A, B, Q, R)``::
 
         X = A' X A - A' X B (R + B' X B)^{-1} B' X A + Q
 
@@ -645,12 +527,18 @@ _KAPPAS = (1e4, 1.0)
 
 
 class CareSolution(NamedTuple):
-    """Stabilising solution of a CARE and how well it solves it."""
+    """Stabilising solution of a CARE and how well it solves it.
 
-    X: jax.Array  # (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
-    residual: jax.Array  # () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B')
-    # (floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift)
-    converged: jax.Array  # () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+    Attributes:
+      X: (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
+      residual: () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B'),
+        floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift
+      converged: () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+    """
+
+    X: jax.Array
+    residual: jax.Array
+    converged: jax.Array
 
 
 def _norm_bound(A):
@@ -761,8 +649,10 @@ def _care_terms(A, B, Q, R, X):
 
 
 def _care_to_dare(A, B, Q, R, gamma):
-    """The DARE ``(A_d, B_d, Q_d, R_d)`` whose stabilising solution is the CARE's, by the Cayley transform of the
-    Hamiltonian with shift ``gamma`` (Chu, Fan & Lin 2005, the initial step of their doubling for the CARE). With
+    """The DARE ``(A_d, B_d, Q_d, R_d)`` whose stabilising solution is the CARE's.
+
+    By the Cayley transform of the Hamiltonian with shift ``gamma`` (Chu, Fan & Lin 2005, the initial step of
+    their doubling for the CARE). With
     ``A_g = A - gamma I``, ``Z = A_g^{-1} B``, ``Y = A_g^{-T} Q A_g^{-1}``::
 
         R_d = R + Z' Q Z,   B_d = sqrt(2 gamma) Z,   Q_d = 2 gamma (Y - A_g^{-T} Q Z R_d^{-1} Z' Q A_g^{-1}),
@@ -881,8 +771,9 @@ def _solve_care_jit(A, B, Q, R, *, max_iters: int, tol: float) -> CareSolution:
 
 
 def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSolution:
-    """Stabilising solution ``X`` of the continuous algebraic Riccati equation, as
-    ``scipy.linalg.solve_continuous_are(A, B, Q, R)``::
+    """Stabilising solution ``X`` of the continuous algebraic Riccati equation.
+
+    As ``scipy.linalg.solve_continuous_are(A, B, Q, R)``::
 
         A' X + X A - X B R^{-1} B' X + Q = 0
 
@@ -918,25 +809,7 @@ def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSo
     return _solve_care_jit(A, B, Q, R, max_iters=int(max_iters), tol=tol)
 
 
-def _pbh_deficient_eigenvalues(A, C, region, tol: float = 1e-9):
-    """Eigenvalues ``lam`` of ``A`` in ``region`` (a predicate on a NumPy eigenvalue) whose PBH matrix
-    ``[lam I - A; C]`` loses rank (smallest singular value below ``tol`` times ``max(|A|, 1)``, ``C`` scaled to
-    ``A``): the unobservable modes of ``(C, A)`` there (eager, NumPy; for the uncontrollable modes of ``(A, B)`` pass
-    ``(A', B')``)."""
-    A, C = np.asarray(A, np.float64), np.asarray(C, np.float64)
-    n = A.shape[-1]
-    scale = max(float(np.max(np.abs(A))) if A.size else 0.0, 1.0)
-    C_scaled = C / max(float(np.max(np.abs(C))) if C.size else 0.0, np.finfo(float).tiny) * scale
-    deficient = []
-    for lam in np.linalg.eigvals(A):
-        if region(lam):
-            pbh = np.vstack([lam * np.eye(n) - A, C_scaled])
-            if np.linalg.svd(pbh, compute_uv=False)[-1] <= tol * scale:
-                deficient.append(complex(lam))
-    return deficient
-
-
-def _require_care_converged(sol: CareSolution, A, B, Q, *, what: str, estimation: bool = False) -> None:
+def require_care_converged(sol: CareSolution, A, B, Q, *, what: str, estimation: bool = False) -> None:
     """:func:`require_converged` for :func:`care` on ``(A, B, Q, R)``: raise ``ValueError`` saying why when ``sol`` is
     concrete and not converged (``estimation`` words it for the Kalman-Bucy filter of ``(A', B')``); nothing under
     tracing. Reasons, tested on the concrete data: an unstabilisable (undetectable) mode in the closed right
@@ -948,13 +821,13 @@ def _require_care_converged(sol: CareSolution, A, B, Q, *, what: str, estimation
     pair, seen = ("(A, B) is not stabilisable", "moved by B")
     if estimation:
         pair, seen = "(A, C) is not detectable", "seen by C"
-    for lam in _pbh_deficient_eigenvalues(A.T, B.T, lambda lam: lam.real >= -1e-9 * max(1.0, abs(lam))):
+    for lam in unobservable_modes(A.T, B.T, lambda lam: lam.real >= -1e-9 * max(1.0, abs(lam))):
         raise ValueError(
             f"{what} did not converge: the CARE has no stabilising solution: {pair}, the mode at eigenvalue "
             f"{lam:.6g} (real part >= 0) is not {seen}"
         )
     excite = "excited by the process noise" if estimation else "penalised by Q"
-    for lam in _pbh_deficient_eigenvalues(A, Q, lambda lam: abs(lam.real) <= 1e-9 * max(1.0, abs(lam))):
+    for lam in unobservable_modes(A, Q, lambda lam: abs(lam.real) <= 1e-9 * max(1.0, abs(lam))):
         raise ValueError(
             f"{what} did not converge: the CARE has no stabilising solution: the mode at eigenvalue {lam:.6g} on the "
             f"imaginary axis is not {excite}"
