@@ -25,7 +25,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m 'not slow'
+	$(BIN)/python -m pytest -q -m 'not slow and not published'
 
 $(VENV)/.bench-installed: $(STAMP)
 	$(BIN)/python -m pip install -e '.[dev,bench]'

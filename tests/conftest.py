@@ -1,7 +1,10 @@
-"""Test configuration: float64 everywhere, one JAX configuration for every test, a modest hypothesis profile.
+"""Test configuration: float64 everywhere, JAX's persistent compilation cache, one JAX configuration for every
+test, a modest hypothesis profile.
 
 x64 is switched on here (the entry point of the test run), never on import of the library.
-``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
+The compiled programs are kept in ``.jax_cache/`` at the repository root (or in ``$JAXOBS_TEST_CACHE``), for this
+process and, through the environment, for every subprocess a test starts: a second run reads them back instead of
+compiling. ``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
 """
 
 import gc
@@ -11,7 +14,16 @@ import jax
 import pytest
 from hypothesis import HealthCheck, settings
 
+from tests import ROOT
+
 jax.config.update("jax_enable_x64", True)
+
+CACHE_DIR = os.environ.get("JAXOBS_TEST_CACHE") or str(ROOT / ".jax_cache")
+CACHE_MIN_COMPILE_SECONDS = 0.05  # every program but the tiniest (single eager operations): the suite's are small
+os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE_DIR  # read by JAX on import in the subprocesses
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(CACHE_MIN_COMPILE_SECONDS)
+jax.config.update("jax_compilation_cache_dir", CACHE_DIR)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECONDS)
 
 
 def _jax_config() -> dict:

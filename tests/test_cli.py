@@ -127,9 +127,9 @@ def test_cache_directory(monkeypatch, tmp_path):
 
 
 def test_cache_is_enabled_where_it_can_be_created(monkeypatch, tmp_path, capsys):
-    """(The test's JAX configuration is restored by conftest; nothing is compiled while the cache is on.)"""
-    if jax.config.jax_compilation_cache_dir:
-        pytest.skip("JAX_COMPILATION_CACHE_DIR is set for this test run")
+    """(The test's JAX configuration, the suite's own cache included, is restored by conftest; nothing is compiled
+    while the cache is changed.)"""
+    jax.config.update("jax_compilation_cache_dir", None)
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("JAXOBS_CACHE_DIR", str(tmp_path / "file" / "cache"))
     cli._enable_compilation_cache()
@@ -142,6 +142,7 @@ def test_cache_is_enabled_where_it_can_be_created(monkeypatch, tmp_path, capsys)
 
 
 def test_a_call_of_main_leaves_the_cache_off(capsys):
+    jax.config.update("jax_compilation_cache_dir", None)  # the suite's own cache off (conftest restores it)
     assert main(["reproduce", "--list"]) == 0
     assert jax.config.jax_compilation_cache_dir is None
 

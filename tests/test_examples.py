@@ -16,6 +16,8 @@ import pytest
 
 from tests import ROOT
 
+pytestmark = pytest.mark.published
+
 EXAMPLES = ROOT / "examples"
 CHECKED_BY = re.compile(r"^# checked by: (tests/\S+\.py)", re.M)  # a script with its own test, which asserts on
 SCRIPTS = sorted(s for s in EXAMPLES.glob("*.py") if not CHECKED_BY.search(s.read_text()))  # what it measures

@@ -7,6 +7,8 @@ import pytest
 
 from tests import ROOT
 
+pytestmark = pytest.mark.published
+
 README = ROOT / "README.md"
 MAX_BYTES = 15_000  # what it is, the two commands, a tour, capabilities, a performance summary; the rest in docs/
 

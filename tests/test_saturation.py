@@ -15,26 +15,41 @@ A8 = np.array([[0.0, 1, 1], [0, 0, 0], [0, 0, 0]])
 B8 = np.array([[0.0, 0], [1, 0], [0, 1]])
 C8 = np.array([[1.0, 0, 0], [1, 1, 0]])
 X0 = np.array([2.0, -4.0, 1.0])
-DESIGN8 = sat.saturated_output_design(A8, B8, C8, T=0.5, rho=1.1)
 SIM8 = jax.jit(sat.simulate_saturated_outputs, static_argnums=2, static_argnames="substeps")
 
 # the sandwich instance of grip2010-sandwich: L1 a double integrator, L2 a first-order lag
 SW = dict(A=[[0.0, 1], [0, 0]], B=[[0.0], [1]], C=[[1.0, 0]], M=[[-1.0]], N=[[1.0]], G=[[1.0]])
 F_SW = [[-1.0, -2.0]]
-DESIGN9 = sat.sandwich_design(**SW, T=0.05, Tbar_intervals=4, rho=1.1, F=F_SW, eps=1e-3)
 H9 = 1e-3  # inner step: 50 per window
-HYP9 = sat.sandwich_hypotheses(DESIGN9, H9)
-DETECT = jax.jit(lambda y, u: sat.sandwich_detectors(DESIGN9, y, u, H9, hypotheses=HYP9))
 
 
 @pytest.fixture(scope="module")
-def example():
-    return SIM8(DESIGN8, X0, 10, substeps=500, cond_max=1e12)
+def design8():
+    """The §8.5 design (T = 0.5, rho = 1.1)."""
+    return sat.saturated_output_design(A8, B8, C8, T=0.5, rho=1.1)
 
 
-def test_interval_map_matches_the_simulated_loop(example):
+@pytest.fixture(scope="module")
+def design9():
+    """The sandwich instance's design (T = 0.05, Tbar = 4 T, eps = 1e-3)."""
+    return sat.sandwich_design(**SW, T=0.05, Tbar_intervals=4, rho=1.1, F=F_SW, eps=1e-3)
+
+
+@pytest.fixture(scope="module")
+def detect(design9):
+    """The chapter 9 detectors of ``design9`` on one window, jitted: ``detect(y, u)``."""
+    hypotheses = sat.sandwich_hypotheses(design9, H9)
+    return jax.jit(lambda y, u: sat.sandwich_detectors(design9, y, u, H9, hypotheses=hypotheses))
+
+
+@pytest.fixture(scope="module")
+def example(design8):
+    return SIM8(design8, X0, 10, substeps=500, cond_max=1e12)
+
+
+def test_interval_map_matches_the_simulated_loop(example, design8):
     """(8.7) x(kT + T) = exp(AT) x(kT) - Bbar U_k against RK4 with 500 steps per interval, to 1e-8."""
-    mapped = jax.vmap(lambda x, U: sat.interval_map(DESIGN8, x, U))(example.x_start, example.U)
+    mapped = jax.vmap(lambda x, U: sat.interval_map(design8, x, U))(example.x_start, example.U)
     np.testing.assert_allclose(example.x_end, mapped, atol=1e-8)
     np.testing.assert_allclose(example.x_start[1:], example.x_end[:-1], atol=0)
     assert np.max(np.abs(np.asarray(example.x_end))) > 1  # the comparison is not on a trivial trajectory
@@ -66,19 +81,19 @@ def test_xi_equals_D_x0_and_D_is_nonsingular_exactly_when_every_output_was_unsat
     np.testing.assert_allclose(example.x0_hat[every.argmax() + 1], X0, atol=1e-7)
 
 
-def test_vmap_over_initial_states_matches_single_runs():
+def test_vmap_over_initial_states_matches_single_runs(design8):
     x0s = np.array([X0, [-3.0, 1.0, 0.5], [0.2, 0.1, -0.1]])
-    batched = jax.vmap(lambda x: SIM8(DESIGN8, x, 10, substeps=500, cond_max=1e12))(x0s)
+    batched = jax.vmap(lambda x: SIM8(design8, x, 10, substeps=500, cond_max=1e12))(x0s)
     for i, x0 in enumerate(x0s):
-        single = SIM8(DESIGN8, x0, 10, substeps=500, cond_max=1e12)
+        single = SIM8(design8, x0, 10, substeps=500, cond_max=1e12)
         np.testing.assert_allclose(batched.x_end[i], single.x_end, rtol=1e-12, atol=1e-12)
         assert np.max(np.abs(np.asarray(single.x_end[-1]))) < 1e-7
 
 
-def test_ill_conditioned_gramian_is_flagged_and_desaturation_continues():
+def test_ill_conditioned_gramian_is_flagged_and_desaturation_continues(design8):
     """Traced cond_max below any condition number: the deadbeat branch is never taken, the flag is raised, the
     state stays finite (never NaN)."""
-    trace = SIM8(DESIGN8, jnp.asarray(X0), 10, substeps=500, cond_max=0.5)
+    trace = SIM8(design8, jnp.asarray(X0), 10, substeps=500, cond_max=0.5)
     assert np.all(np.asarray(trace.mode) == 0)
     every = np.all(np.asarray(trace.sigma) > 0, axis=1)
     assert every.any()
@@ -123,13 +138,13 @@ def _window(chi0, u=0.0, T=0.05, steps=50):
         ([1.05, -4.0, 0.2], 0.0, "mixed"),  # z leaves saturation late in the window
     ],
 )
-def test_theorem_9_1_classifies_each_window(chi0, u, expected):
+def test_theorem_9_1_classifies_each_window(detect, chi0, u, expected):
     y, u_samples, z = _window(chi0, u)
     truth = (
         "positive" if z.min() >= 1 else "negative" if z.max() <= -1 else "linear" if np.abs(z).max() <= 1 else "mixed"
     )
     assert truth == expected  # the window is what its label says
-    result = DETECT(jnp.asarray(y), jnp.asarray(u_samples))
+    result = detect(jnp.asarray(y), jnp.asarray(u_samples))
     assert sat.CLASSES[int(result.cls)] == expected, np.asarray([result.e_plus, result.e_minus, result.e_zero])
     e = {"positive": result.e_plus, "negative": result.e_minus}
     if expected in e:  # a true saturation hypothesis is at rounding level, a false one is not
@@ -173,12 +188,12 @@ def test_bad_sandwich_inputs(change, match):
 
 
 @pytest.mark.slow
-def test_three_stage_closed_loop_converges_from_every_grid_point():
+def test_three_stage_closed_loop_converges_from_every_grid_point(design9):
     """Grip (2010) Theorem 9.2 on the instance: 5 x 5 x 5 initial states on the box |x1|, |x2| <= 5, |w| <= 1,
     T = 0.05, Tbar = 0.2, eps = 1e-3, 40 s; one jit, vmapped."""
     g, gw = np.linspace(-5, 5, 5), np.linspace(-1, 1, 5)
     chi0 = np.array(np.meshgrid(g, g, gw, indexing="ij")).reshape(3, -1).T
-    run = jax.jit(jax.vmap(lambda c: sat.simulate_sandwich(DESIGN9, c, 800, substeps=50)))
+    run = jax.jit(jax.vmap(lambda c: sat.simulate_sandwich(design9, c, 800, substeps=50)))
     trace = run(jnp.asarray(chi0))
     stage = np.asarray(trace.stage)
     assert np.all(stage[:, -1] == 3)

@@ -54,6 +54,7 @@ def test_robot_errors_exit_2_with_the_reason(tmp_path, capsys, toml, message):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_table_row(tmp_path):
     """``jaxobs tune --config tuning/cartpole_payload.toml`` end to end: every output, in the report format of the
     other problems, the tuned filter lowers the training objective, and the README's tuning-table row: the held-out

@@ -148,22 +148,6 @@ def test_peg_config_is_validated(tmp_path, capsys):
     assert "scenario.alignment_end" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_peg_on_hole_small_run(tmp_path):
-    """The 6-DOF problem end to end (forward-mode gradients through design() and the MJX loop)."""
-    config, out = tmp_path / "peg.toml", tmp_path / "out"
-    config.write_text(
-        'problem = "peg-on-hole"\n[plants]\ntrain = 2\nheldout = 2\n[scenario]\nduration = 0.8\n'
-        "alignment_start = 0.2\nalignment_end = 0.7\n[optimizer]\nsteps = 3\n[baseline]\nrandom_search = false\n"
-    )
-    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
-    summary = json.loads((out / "tuned.json").read_text())
-    assert summary["evaluations"] == 3 and set(summary["heldout"]) == {"hand-set", "tuned"}
-    assert summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
-    assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
-    assert set(summary["parameters"]["tuned"]["q_active"]) == {"x", "y", "rx", "rz"}
-
-
 def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()

@@ -141,6 +141,7 @@ def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_default_sweep_figures(tmp_path):
     """The README's figures of the default ``jaxobs sweep`` (100 000 configurations), from a fresh run of that
     command: stable fractions over the whole range and within x1.5 of the nominal stiffness, median phase margins

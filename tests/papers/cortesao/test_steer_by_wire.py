@@ -51,6 +51,7 @@ def test_sbw_realisation_equals_eq95_99():
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_realisation_figure(results):
     """The README's "transfer functions equal to 4e-16": the reproduction's max relative error of both models."""
     realisation = results["realisation"]
@@ -307,6 +308,7 @@ def test_robustness_sweep_small(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_sweep_figures(tmp_path):
     """The README's figures of ``jaxobs sweep --config tuning/steer_by_wire_sweep.toml`` (1000 plants), from a fresh
     run of that command: stable fraction, the stable fraction when no factor is off by more than 20 %, the

@@ -95,6 +95,7 @@ def test_example_5_6_batched_seed_equals_its_single_run(example_5_6):
     np.testing.assert_allclose(single[1][0], per_seed["gradient"][3], rtol=1e-10)
 
 
+@pytest.mark.published
 def test_readme_rows(example_1_1, example_5_6):
     """The README's rows of both reproductions show the computed numbers."""
     _, one = example_1_1

@@ -4,10 +4,9 @@ import jax
 import numpy as np
 import pytest
 
-from jaxobs import cli
 from jaxobs.papers.grip2010 import dc_motor as dc
 from jaxobs.papers.grip2010 import dc_motor_sweep as sweep
-from jaxobs.sweep import config_key, load_results
+from jaxobs.sweep import config_key
 
 pytest.importorskip("sympy")
 
@@ -56,18 +55,3 @@ def test_one_configuration_matches_the_reproduction():
     expected_eso = np.sqrt(np.mean((omega - np.asarray(sim["eso_x"])[0, :, 1])[late] ** 2))
     np.testing.assert_allclose(metrics["rms_omega"]["pure_eso"], expected_eso, rtol=1e-10)
     assert bool(metrics["finite"])
-
-
-@pytest.mark.slow
-def test_cli_sweep_end_to_end(tmp_path):
-    config = tmp_path / "hgo.toml"
-    config.write_text(
-        'scenario = "dc-motor-hgo"\nchunk_size = 2\n[grid]\neps = [1.0, 0.2]\nsigma = [0.0, 1e-2]\n'
-        "alpha_0 = [0.28]\nseeds = 1\n[simulation]\nduration = 2.0\nrms_start = 1.0\n"
-    )
-    out = tmp_path / "sweep"
-    assert cli.main(["sweep", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
-    cols = load_results(out)
-    assert cols["index"].tolist() == [0, 1, 2, 3]
-    assert np.all(cols["metric.finite"])
-    assert (out / "summary.json").exists() and (out / "report.md").exists() and (out / "tradeoff.png").exists()

@@ -78,6 +78,7 @@ def test_cli_sweep_end_to_end(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_readme_sweep_figures(tmp_path):
     """The README's figures of ``jaxobs sweep --config tuning/grip_example56_sweep.toml`` (192 configurations),
     from a fresh run of that command: at the printed gains with unit noise variance, both laws' median errors and

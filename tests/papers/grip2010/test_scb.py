@@ -92,6 +92,7 @@ def test_random_20_state_systems(written):
     assert [r["dims"] for r in runs["3_inputs"]].count([0, 17, 0, 3]) >= 2
 
 
+@pytest.mark.published
 def test_readme_row(written):
     """The README's row of this reproduction shows the computed dims, in the order of the cases."""
     _, data = written

@@ -60,6 +60,7 @@ def test_gradient_matches_finite_differences():
 
 
 @pytest.mark.slow
+@pytest.mark.published
 def test_shipped_tuning_run(tmp_path):
     """``jaxobs tune --config tuning/sideslip.toml``: the tuned gains lower the held-out objective (mean RMS sideslip
     error over 36 held-out vehicles) below the hand-set gains', and the run reports the random search at equal

@@ -115,6 +115,7 @@ def test_robustness_deteriorates_but_stays_reasonable(reproduced):
         assert robust["v_y"] < 0.05 and robust["d"] < 0.5
 
 
+@pytest.mark.published
 def test_readme_reproduction_figures(reproduced):
     """The README's row for this reproduction, pinned to its printed digits: the a_i from the printed parameters
     (eq. 31 with a4's sign corrected) and the RMS v_y / d errors of the four estimators on the parameter model, ideal

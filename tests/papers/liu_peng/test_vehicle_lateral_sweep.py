@@ -3,12 +3,11 @@
 import json
 
 import jax
-import numpy as np
 import pytest
 
 from jaxobs import cli
 from jaxobs.papers.liu_peng import vehicle_lateral, vehicle_lateral_sweep
-from jaxobs.sweep import config_key, load_results
+from jaxobs.sweep import config_key
 from tests._published import pin
 
 
@@ -41,31 +40,7 @@ def test_no_mismatch_no_noise_reproduces_the_ideal_case():
 
 
 @pytest.mark.slow
-def test_cli_sweep_end_to_end(tmp_path):
-    config = tmp_path / "liu_peng.toml"
-    config.write_text('scenario = "liu-peng"\nchunk_size = 3\n[vehicle]\ncount = 5\n')
-    out = tmp_path / "sweep"
-    assert cli.main(["sweep", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
-    cols = load_results(out)
-    assert cols["index"].tolist() == list(range(5))
-    for name in vehicle_lateral_sweep.SCALES:
-        assert np.all((cols[f"param.{name}"] >= 0.7) & (cols[f"param.{name}"] <= 1.2))
-    assert len(set(cols["param.noise_seed"].tolist())) == 5
-    for error in vehicle_lateral_sweep.ERRORS:
-        for method in vehicle_lateral.METHODS:
-            x = cols[f"metric.{error}_rms.{method}"]
-            assert np.all(np.isfinite(x)) and np.all(x > 0)
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["num_configs"] == 5 and summary["finite_fraction"] == 1.0
-    for error in vehicle_lateral_sweep.ERRORS:
-        best = [summary[f"{error}_rms"][m]["best_fraction"] for m in vehicle_lateral.METHODS]
-        assert sum(best) == pytest.approx(1.0)
-        for q in summary[f"{error}_rms"].values():
-            assert q["p10"] <= q["median"] <= q["p90"] <= q["max"]
-    assert (out / "estimators.png").is_file() and "estimators.png" in (out / "report.md").read_text()
-
-
-@pytest.mark.slow
+@pytest.mark.published
 def test_readme_sweep_figures(tmp_path):
     """The README's figures of ``jaxobs sweep --config tuning/liu_peng_sweep.toml`` (500 vehicles), from a fresh run
     of that command: median RMS v_y error per estimator, the 90th percentiles, the Kalman filter's share of best
