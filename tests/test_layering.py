@@ -2,7 +2,7 @@
 
 * the library never imports the paper layer (``jaxobs.papers``) or the command line (``jaxobs.cli``);
 * no module imports another module's private name (``_x``); ``_``-prefixed modules (``jaxobs._checks``,
-  ``jaxobs._linalg``, ``jaxobs.papers._tuning_config``) are shared private modules of their package;
+  ``jaxobs._linalg``, ``jaxobs.papers.tuning_config``) are shared private modules of their package;
 * the module import graph has no cycle;
 * no estimator family imports another family (they share the protocol, :mod:`jaxobs.kalman_steps`, the atoms,
   the feedback wrapper and the sampled runner of continuous-time observers, :mod:`jaxobs.observers.continuous`).

@@ -16,12 +16,12 @@ import numpy as np
 from jaxobs._config import check_at_least, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.observers import feedback, kalman
-from jaxobs.papers._tuning_config import (
+from jaxobs.papers.scenarios import TuningScenario
+from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]

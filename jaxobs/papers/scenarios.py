@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
 from jaxobs._config import check_choice, merge
-from jaxobs.papers import _tuning_config, tune_job
+from jaxobs.papers import tune_job, tuning_config
 from jaxobs.sweep import run_configured_sweep
 
 __all__ = ["first_paragraph", "Reproduction", "Sweep", "SweepScenario", "TuningScenario"]
@@ -134,7 +134,7 @@ class SweepScenario(_Configured):
 class TuningScenario(_Configured):
     """A tuning problem run by ``jaxobs tune`` (the config's ``problem`` key names it); the config's
     ``[optimizer]`` and ``[baseline]`` tables and ``seed`` are common to every problem
-    (:mod:`jaxobs.papers._tuning_config`) and checked here.
+    (:mod:`jaxobs.papers.tuning_config`) and checked here.
 
     Attributes:
       name, summary, defaults, notes, check, open_tables: the config.
@@ -148,13 +148,13 @@ class TuningScenario(_Configured):
 
     def config_notes(self) -> dict:
         """Comments on the configuration keys, the tuning keys' included."""
-        return {**super().config_notes(), **_tuning_config.COMMON_NOTES}
+        return {**super().config_notes(), **tuning_config.COMMON_NOTES}
 
     def validate(self, given: dict | None = None, source: str = "<default>") -> dict:
         """The defaults merged with ``given``, checked, the tuning keys included (a :class:`ConfigError` names the
         first invalid key)."""
         config = super().validate(given, source)
-        _tuning_config.check_common(config, source)
+        tuning_config.check_common(config, source)
         return config
 
     def run(self, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:

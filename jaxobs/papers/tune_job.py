@@ -2,7 +2,7 @@
 
 :func:`run` tunes a :class:`~jaxobs.papers.scenarios.TuningScenario`'s problem from its hand-set design with
 :func:`jaxobs.tuning.tune` (checkpointed, resumable), runs the random-search baseline in the problem's search box
-(:func:`jaxobs.papers._tuning_config.search_box`) for at least as many rollouts and as much wall time as the tuning
+(:func:`jaxobs.papers.tuning_config.search_box`) for at least as many rollouts and as much wall time as the tuning
 took, scores the hand-set, tuned and random-search designs (best at equal rollouts, best at equal wall time) on the
 held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png`` (before/after
 on held-out plants) and ``parameters.png`` (trajectories of the unconstrained parameters). The output directory is
@@ -23,8 +23,8 @@ from jaxobs._config import ConfigError
 from jaxobs._distributed import agree
 from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
-from jaxobs.papers._tuning_config import config_tag, search_spread
-from jaxobs.papers._tuning_config import settings as tuning_settings
+from jaxobs.papers.tuning_config import config_tag, search_spread
+from jaxobs.papers.tuning_config import settings as tuning_settings
 from jaxobs.tuning import evaluate, random_search, tune
 
 __all__ = ["run"]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxobs.cli import main
-from jaxobs.papers import _tuning_config, tune_job
+from jaxobs.papers import tune_job, tuning_config
 from jaxobs.papers.cortesao import force_tuning, peg_tuning
 
 
@@ -163,13 +163,13 @@ def test_the_random_search_box_is_the_tuners_reach():
     """Default ``baseline.spread = 0``: theta0 +- steps x learning_rate on every log coordinate; the off-diagonal
     entries of a Cholesky factor (not log-scaled) stay at theta0; an explicit spread is used as given."""
     config = force_tuning.PROBLEM.validate({"design": {"parameterisation": "cholesky"}})
-    assert _tuning_config.search_spread(config) == 40 * 0.2
+    assert tuning_config.search_spread(config) == 40 * 0.2
     theta0 = {"q_cholesky": np.diag([1.0, 2.0]), "log_r": np.asarray(-3.0)}
-    box = _tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
+    box = tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
     np.testing.assert_array_equal(box["q_cholesky"][0], [[-7.0, 0.0], [0.0, -6.0]])
     np.testing.assert_array_equal(box["q_cholesky"][1], [[9.0, 0.0], [0.0, 10.0]])
     assert (float(box["log_r"][0]), float(box["log_r"][1])) == (-11.0, 5.0)
-    assert _tuning_config.search_spread(force_tuning.PROBLEM.validate({"baseline": {"spread": 2.5}})) == 2.5
+    assert tuning_config.search_spread(force_tuning.PROBLEM.validate({"baseline": {"spread": 2.5}})) == 2.5
     position = tune_job._box_position({"q_cholesky": np.diag([1.0, 10.0]), "log_r": np.asarray(-11.0)}, box)
     assert position == {"q_cholesky": [0.5, 1.0], "log_r": [0.0]}
 

@@ -21,8 +21,8 @@ import numpy as np
 
 import jaxobs.tuning
 from jaxobs._config import load_toml
-from jaxobs.papers._tuning_config import settings
 from jaxobs.papers.registry import tuning_problems
+from jaxobs.papers.tuning_config import settings
 
 WRITES = []
 

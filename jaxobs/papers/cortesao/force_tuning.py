@@ -20,12 +20,6 @@ from jaxobs.closed_loop import ideal_response
 from jaxobs.lti import StateSpace
 from jaxobs.observers import active
 from jaxobs.observers.feedback import FeedbackParams
-from jaxobs.papers._tuning_config import (
-    BASELINE_DEFAULTS,
-    check_plant_memory,
-    optimizer_defaults,
-    search_box,
-)
 from jaxobs.papers.cortesao.force_control import (
     EXAMPLE1,
     example1_disturbance,
@@ -34,6 +28,12 @@ from jaxobs.papers.cortesao.force_control import (
     with_feedback,
 )
 from jaxobs.papers.scenarios import TuningScenario
+from jaxobs.papers.tuning_config import (
+    BASELINE_DEFAULTS,
+    check_plant_memory,
+    optimizer_defaults,
+    search_box,
+)
 from jaxobs.plants import force_plant
 from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.tuning import (

@@ -17,13 +17,13 @@ import numpy as np
 from jaxobs._config import check_at_least, check_range, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.observers.active import active_observer_controller
-from jaxobs.papers._tuning_config import (
+from jaxobs.papers.scenarios import TuningScenario
+from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
     check_plant_memory,
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.plants import force_plant
 from jaxobs.tuning import TuningProblem
 

@@ -17,13 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import check_at_least, fail
-from jaxobs.papers._tuning_config import (
+from jaxobs.papers.grip2010 import adaptive as grip
+from jaxobs.papers.scenarios import TuningScenario
+from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.grip2010 import adaptive as grip
-from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]

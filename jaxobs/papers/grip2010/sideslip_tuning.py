@@ -15,13 +15,13 @@ import numpy as np
 from jaxobs._config import check_at_least, check_range, fail
 from jaxobs.observers.base import EstimatorInputs
 from jaxobs.observers.base import run as run_observer
-from jaxobs.papers._tuning_config import (
+from jaxobs.papers.grip2010.sideslip_sweep import drive, mismatched_vehicle
+from jaxobs.papers.scenarios import TuningScenario
+from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
     optimizer_defaults,
     search_box,
 )
-from jaxobs.papers.grip2010.sideslip_sweep import drive, mismatched_vehicle
-from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.tuning import TuningProblem
 from jaxobs.vehicle import (
     MANOEUVRES,
