@@ -389,6 +389,22 @@ def _evaluations(problem: TuningProblem, settings: TuneSettings, mesh: Mesh | No
     return evaluation, (sound_gradient if settings.gradient == "reverse" else None)
 
 
+def _lower_gradient(evaluation: Callable, theta, batch, mode: str):
+    """``jax.jit(evaluation)`` lowered on one device: traced, not run, so that a rollout reverse mode cannot
+    differentiate is reported (:class:`TuningError`, one line) before anything is compiled or run."""
+    try:
+        return jax.jit(evaluation).lower(_host(theta), batch)
+    except ValueError as exc:
+        if mode == "reverse" and "Reverse-mode differentiation does not work for lax.while_loop" in str(exc):
+            raise TuningError(
+                "reverse mode cannot differentiate a while loop in the rollouts (MJX's constraint solver, for a model "
+                "with contacts, joint limits or equalities): give the solver a fixed iteration count (the robot's "
+                'solver_iterations, see jaxobs.mjx.common.step) or the model <option iterations="1">, or tune '
+                "with gradient = 'forward'"
+            ) from None
+        raise
+
+
 def _finite(tree) -> bool:
     return all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(tree))
 
@@ -550,7 +566,7 @@ def tune(
             error = exc
     _agree(error)
     evaluation = _evaluations(problem, settings, None)[0]
-    lowered = jax.jit(evaluation).lower(_host(theta0), problem.train)  # on one device: the fingerprint's program
+    lowered = _lower_gradient(evaluation, theta0, problem.train, settings.gradient)  # the fingerprint's program
     fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
     if resume and meta.pop("fingerprint") != fingerprint:
         error = CheckpointError(

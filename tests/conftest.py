@@ -4,27 +4,22 @@ test, a modest hypothesis profile.
 x64 is switched on here (the entry point of the test run), never on import of the library.
 The compiled programs are kept in ``.jax_cache/`` at the repository root (or in ``$JAXOBS_TEST_CACHE``), for this
 process and, through the environment, for every subprocess a test starts: a second run reads them back instead of
-compiling. XLA compiles the suite's programs with its cheapest settings (``FAST_COMPILE_FLAGS``, prepended to
-``$XLA_FLAGS``): most programs run once, so compiling them costs more than running them.
+compiling. XLA compiles the suite's programs with its cheapest settings (``tests.FAST_COMPILE_FLAGS``, prepended
+to ``$XLA_FLAGS``): most programs run once, so compiling them costs more than running them.
 ``HYPOTHESIS_PROFILE=thorough`` runs the property tests with more examples.
 """
 
 import gc
 import os
 
-# before JAX starts its CPU backend, and inherited by every subprocess: the legacy loop emitters and no LLVM
-# optimisation compile a program several times faster; results agree to rounding (the suite's tolerances)
-FAST_COMPILE_FLAGS = (
-    "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
-    "--xla_llvm_disable_expensive_passes=true --xla_cpu_parallel_codegen_split_count=1 --xla_cpu_max_isa=AVX"
-)
+from tests import FAST_COMPILE_FLAGS, ROOT
+
+# before JAX starts its CPU backend, and inherited by every subprocess (tests.run_cli undoes it for the long runs)
 os.environ["XLA_FLAGS"] = f"{FAST_COMPILE_FLAGS} {os.environ.get('XLA_FLAGS', '')}".strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
-
-from tests import ROOT  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

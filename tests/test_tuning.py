@@ -376,3 +376,17 @@ def test_tuning_the_analytic_force_loop_lowers_the_held_out_error():
     result = tune(problem, s, progress=False)
     before, after = evaluate(problem, theta0, s)["mean"], evaluate(problem, result.theta, s)["mean"]
     assert after < 0.5 * before
+
+
+def test_a_while_loop_in_reverse_mode_is_refused_before_anything_runs():
+    """A rollout with a while loop (as MJX's constraint solver): one TuningError line, raised while tracing."""
+
+    def losses(theta, batch):
+        count = jax.lax.while_loop(lambda c: c[0] < 3, lambda c: (c[0] + 1, c[1] * theta["a"]), (0, batch))[1]
+        return count, jnp.zeros(batch.shape, bool)
+
+    problem = TuningProblem(theta0={"a": jnp.array(0.5)}, losses=losses, train=jnp.ones(4), heldout=jnp.ones(4))
+    with pytest.raises(TuningError, match="reverse mode cannot differentiate a while loop in the rollouts"):
+        tune(problem, TuneSettings(steps=2), progress=False)
+    result = tune(problem, TuneSettings(steps=2, gradient="forward"), progress=False)
+    assert result.evaluations == 2

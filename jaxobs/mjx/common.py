@@ -1,5 +1,6 @@
-"""Parts the MJX plants share: putting a model on this process's device, the initial data in a dtype, the dead-time
-FIFO of a command, per-step input series and the checks of integer timing arguments.
+"""Parts the MJX plants share: putting a model on this process's device, the initial data in a dtype, the physics
+step (with a fixed-count constraint solver that reverse mode differentiates), the dead-time FIFO of a command,
+per-step input series and the checks of integer timing arguments.
 
 :mod:`jaxobs.mjx.force_1dof`, :mod:`jaxobs.mjx.compliant_6dof`, :mod:`jaxobs.mjx.estimation` and
 :mod:`jaxobs.mjx.robot` build on them.
@@ -15,7 +16,17 @@ from mujoco import mjx
 
 from jaxobs import _checks
 
-__all__ = ["put_model", "initial_data", "dead_time_step", "input_series", "is_int_at_least", "check_timing"]
+__all__ = [
+    "put_model",
+    "initial_data",
+    "step",
+    "constraint_rows",
+    "check_solver_iterations",
+    "dead_time_step",
+    "input_series",
+    "is_int_at_least",
+    "check_timing",
+]
 
 
 def put_model(m: mujoco.MjModel) -> mjx.Model:
@@ -34,6 +45,50 @@ def initial_data(model: mjx.Model, dtype) -> mjx.Data:
         act=data.act.astype(dtype),
         time=jnp.asarray(data.time, dtype),
     )
+
+
+def constraint_rows(data: mjx.Data) -> int:
+    """The number of constraint rows (contacts, joint limits, equalities, friction loss) of ``data`` for the
+    solver: static, MJX sizes them when the data is made."""
+    return int(data._impl.nefc)  # MJX keeps the static row count in its backend-specific part
+
+
+def check_solver_iterations(solver_iterations) -> None:
+    """``ValueError`` unless ``solver_iterations`` is None or an int >= 1."""
+    if solver_iterations is not None and not is_int_at_least(solver_iterations, 1):
+        raise ValueError(f"solver_iterations must be None or a Python int >= 1, got {solver_iterations!r}")
+
+
+def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
+    """One physics step: ``mjx.step``, or with ``solver_iterations = K`` a step whose constraint solver runs exactly
+    ``K`` iterations.
+
+    MJX's solver iterates in a ``lax.while_loop`` until ``opt.tolerance`` (at most ``opt.iterations``), which
+    reverse mode cannot differentiate. With ``K``, the solver runs as ``K`` calls of ``mjx.solve`` at
+    ``opt.iterations = 1``, each warm-started from the last ``qacc``: a loop of fixed length (reverse mode goes
+    through it) that, for MuJoCo's default Newton solver, is ``K`` Newton iterations of the same problem. A model
+    without constraint rows takes the plain step either way. Euler, RK4 and implicit-fast integrators.
+    """
+    if solver_iterations is None:
+        return mjx.step(model, data)
+    check_solver_iterations(solver_iterations)
+    one = model.replace(opt=model.opt.replace(iterations=1))
+    data = mjx.forward(one, data)
+    if constraint_rows(data) and solver_iterations > 1:
+
+        def iterate(_, data):
+            return mjx.solve(one, data.replace(qacc_warmstart=data.qacc))
+
+        data = jax.lax.fori_loop(0, solver_iterations - 1, iterate, data)
+        data = mjx.sensor_acc(one, data)
+    integrator = mujoco.mjtIntegrator(int(model.opt.integrator))
+    if integrator == mujoco.mjtIntegrator.mjINT_EULER:
+        return mjx.euler(one, data)
+    if integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        return mjx.rungekutta4(one, data)
+    if integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return mjx.implicit(one, data)
+    raise ValueError(f"model: integrator {integrator.name} is not supported by MJX (Euler, RK4, implicitfast)")
 
 
 def dead_time_step(fifo: jax.Array, u_k: jax.Array, d: int):

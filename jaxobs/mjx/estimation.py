@@ -20,7 +20,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.common import put_model
+from jaxobs.mjx.common import check_solver_iterations, put_model, step
 
 __all__ = ["CARTPOLE", "load_cartpole", "check_model", "state", "transition", "measurement", "sample_period"]
 
@@ -64,9 +64,9 @@ def _data(model: mjx.Model, x):
     return mjx.make_data(model).replace(qpos=x[:nq], qvel=x[nq:])
 
 
-def _transition(model: mjx.Model, x, u, t, *, substeps: int):
+def _transition(model: mjx.Model, x, u, t, *, substeps: int, solver_iterations: int | None):
     data = _data(model, x).replace(ctrl=u, time=t)
-    data = jax.lax.fori_loop(0, substeps, lambda _, d: mjx.step(model, d), data)
+    data = jax.lax.fori_loop(0, substeps, lambda _, d: step(model, d, solver_iterations), data)
     return state(data)
 
 
@@ -78,19 +78,21 @@ def _measurement(model: mjx.Model, x):
 
 
 @functools.cache
-def _transition_of(substeps: int):
-    """One function object per ``substeps``: ``Partial`` s built from it compare equal (the same pytree structure),
+def _transition_of(substeps: int, solver_iterations: int | None):
+    """One function object per setting: ``Partial`` s built from it compare equal (the same pytree structure),
     so a jitted filter is not retraced for another model or another call of :func:`transition`."""
-    return functools.partial(_transition, substeps=substeps)
+    return functools.partial(_transition, substeps=substeps, solver_iterations=solver_iterations)
 
 
-def transition(model: mjx.Model, *, substeps: int = 1) -> jax.tree_util.Partial:
-    """``f(x, u, t)``: the state after ``substeps`` ``mjx.step`` s from ``x = (qpos, qvel)`` with ``ctrl = u`` (nu,)
+def transition(model: mjx.Model, *, substeps: int = 1, solver_iterations: int | None = None) -> jax.tree_util.Partial:
+    """``f(x, u, t)``: the state after ``substeps`` physics steps from ``x = (qpos, qvel)`` with ``ctrl = u`` (nu,)
     held, starting at time ``t``; a ``Partial`` carrying ``model`` as a leaf. The sample period is
-    :func:`sample_period`."""
+    :func:`sample_period`. ``solver_iterations``: None for ``mjx.step``, an int for a constraint solver of that
+    many iterations that reverse mode differentiates (:func:`jaxobs.mjx.common.step`)."""
     check_model(model, sensors=False)
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per sample")
-    return jax.tree_util.Partial(_transition_of(substeps), model)
+    check_solver_iterations(solver_iterations)
+    return jax.tree_util.Partial(_transition_of(substeps, solver_iterations), model)
 
 
 def measurement(model: mjx.Model) -> jax.tree_util.Partial:

@@ -23,7 +23,7 @@ from mujoco import mjx
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
-from jaxobs.mjx.common import dead_time_step, put_model
+from jaxobs.mjx.common import check_solver_iterations, dead_time_step, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
@@ -44,6 +44,9 @@ class Robot:
       substeps: static, physics steps per control period (``h = substeps * model.opt.timestep``).
       dead_time: static, command dead time in control periods (``u_k`` acts during period ``k + d``).
       timestep: static, the model's physics time step in seconds (so the period is known under tracing).
+      solver_iterations: static, iterations of the constraint solver per physics step: None runs MJX's solver to
+        its tolerance (a ``while`` loop: forward-mode derivatives only), an int exactly that many
+        (:func:`jaxobs.mjx.common.step`: reverse mode too).
     """
 
     model: mjx.Model
@@ -56,6 +59,7 @@ class Robot:
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
     dead_time: int = dataclasses.field(default=0, metadata=dict(static=True))
     timestep: float = dataclasses.field(default=0.002, metadata=dict(static=True))
+    solver_iterations: int | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @property
     def period(self) -> float:
@@ -105,6 +109,7 @@ def make_robot(
     qpos0=None,
     qvel0=None,
     ctrl0=None,
+    solver_iterations: int | None = None,
 ) -> Robot:
     """A :class:`Robot` of ``mjcf`` (see :func:`load_mjcf`).
 
@@ -115,6 +120,8 @@ def make_robot(
       substeps: physics steps per control period (int >= 1).  dead_time: command dead time in control periods.
       sensor_noise: standard deviation of the measurement noise: a scalar or one per measured entry (p,).
       qpos0, qvel0, ctrl0: the operating point (defaults: the model's ``qpos0``, zero velocity, zero control).
+      solver_iterations: constraint-solver iterations per physics step (see :class:`Robot`); a model with
+        contacts, joint limits or equalities needs an int for ``jax.grad`` through its rollouts.
 
     Example:
       >>> from jaxobs.mjx import estimation, robot
@@ -144,6 +151,7 @@ def make_robot(
             raise ValueError(f"{name}: each may be named once, got {list(given)}")
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
     dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
+    check_solver_iterations(solver_iterations)
     model = put_model(m)
     dtype = model.body_mass.dtype
     point = {"qpos0": (qpos0, m.qpos0, m.nq), "qvel0": (qvel0, np.zeros(m.nv), m.nv),
@@ -154,7 +162,7 @@ def make_robot(
     if np.any(np.asarray(noise) < 0):
         raise ValueError(f"sensor_noise must be >= 0, got {np.asarray(noise)}")
     return Robot(model, values["qpos0"], values["qvel0"], values["ctrl0"], noise, act, tuple(rows), substeps, dead_time,
-                 float(m.opt.timestep))  # fmt: skip
+                 float(m.opt.timestep), solver_iterations)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -164,7 +172,7 @@ def make_robot(
 def _step(robot: Robot, model: mjx.Model, x, applied, t):
     """The state after one control period from ``x = (qpos, qvel)`` with ``applied`` (m,) on the named actuators."""
     ctrl = robot.ctrl0.at[jnp.asarray(robot.actuators)].add(applied)
-    return estimation.transition(model, substeps=robot.substeps)(x, ctrl, t)
+    return estimation.transition(model, substeps=robot.substeps, solver_iterations=robot.solver_iterations)(x, ctrl, t)
 
 
 def _sense(robot: Robot, model: mjx.Model, x):
@@ -356,7 +364,7 @@ def rollout(
 
     Returns:
       :class:`RobotRollout`. Pure: ``jit``, ``vmap`` (over scales, keys, params), ``jax.jvp`` / ``jacfwd``, and
-      ``grad`` where the model's constraint solver is off (docs/theory/mjx.md).
+      ``grad`` where the model has no constraints or ``robot.solver_iterations`` is set (docs/theory/mjx.md).
     """
     steps = _checks.count("steps", steps, minimum=1, hint="control periods")
     model = robot.model if not scales else mismatch(robot.model, scales)

@@ -43,6 +43,7 @@ DEFAULT_CONFIG = {
         "sensor_noise": [0.002, 0.005],
         "qpos0": [],
         "ctrl0": [],
+        "solver_iterations": 4,
     },
     "plants": {"train": 8, "heldout": 32, "mismatch": {"body_mass[payload]": [0.25, 2.0]}},
     "scenario": {
@@ -69,6 +70,8 @@ CONFIG_NOTES = {
     "robot.sensor_noise": "standard deviation of the true sensors' noise, one per measured sensordata entry",
     "robot.qpos0": "operating point (qpos) to linearise about and regulate around; empty: the model's qpos0",
     "robot.ctrl0": "operating-point control of every actuator; empty: zero",
+    "robot.solver_iterations": "constraint-solver iterations per physics step of a model with contacts, limits or "
+    "equalities (a fixed loop that reverse mode differentiates); 0: MJX's solver to its tolerance (forward mode only)",
     "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
     "plants.train": "training plants (one rollout each per gradient evaluation)",
     "plants.heldout": "held-out plants, never used in training, that score the designs",
@@ -94,6 +97,7 @@ def _check(config: dict, source: str) -> None:
     for key in ("robot.substeps", "plants.train", "plants.heldout"):
         check_at_least(config, source, key, 1)
     check_at_least(config, source, "robot.dead_time", 0)
+    check_at_least(config, source, "robot.solver_iterations", 0)
     for key in ("scenario.duration", "scenario.state_limit"):
         check_at_least(config, source, key, 0, strict=True)
     check_at_least(config, source, "scenario.input_weight", 0)
@@ -137,7 +141,22 @@ def _robot(config: dict):
     rb = config["robot"]
     timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"]}
     point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None}
-    return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point)
+    return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point,
+                      solver_iterations=rb["solver_iterations"] or None)  # fmt: skip
+
+
+def _check_differentiable(robot, config: dict) -> None:
+    """Refuse, before anything is compiled, a model whose constraint solver reverse mode cannot differentiate."""
+    from jaxobs.mjx.common import constraint_rows, initial_data
+
+    if robot.solver_iterations is None and config["optimizer"]["gradient"] == "reverse":
+        rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
+        if rows:
+            raise ValueError(
+                f"robot.solver_iterations: the model has {rows} constraint rows (contacts, joint limits, equalities), "
+                "whose solver loop reverse mode cannot differentiate; set robot.solver_iterations >= 1 (e.g. 4) or "
+                "optimizer.gradient = 'forward'"
+            )
 
 
 def build_problem(config: dict) -> TuningProblem:
@@ -147,6 +166,7 @@ def build_problem(config: dict) -> TuningProblem:
     from jaxobs.mjx.robot import linearize, mismatch, rollout
 
     robot = _robot(config)
+    _check_differentiable(robot, config)
     sc, d = config["scenario"], config["design"]
     n_x, p = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors)
     for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),

@@ -19,7 +19,7 @@ from jaxobs.papers.cortesao.force_control import (
     with_feedback,
 )
 from jaxobs.papers.cortesao.stochastic import PRINTED_COEFFICIENT, Q_ACTIVE, SURFACE_SPEED
-from tests._published import pin
+from tests._published import pin, printed
 
 H = EXAMPLE1.h
 FORCE_STEP = 10.0  # N
@@ -91,7 +91,7 @@ def test_gradients_match_central_differences(model, nominal):
     """d(mean squared force tracking error over 1.2 s)/d(log R, log sigma^2, c) of an AOB-2 with steady-state
     gains (DARE with implicit derivatives inside the MJX loop), reverse mode and jacfwd, against central
     differences (step 1e-4 in log R, log sigma^2, and 1e-4 c in c): relative errors <= 7e-9 (the truncation error
-    of the differences), asserted <= 5e-8; the README's "1e-8" is that figure."""
+    of the differences), asserted <= 5e-8; the published "to 1e-8" is a bound on that figure."""
     plant, L = nominal
     T = 150
     r = step_reference(L, T)
@@ -118,7 +118,7 @@ def test_gradients_match_central_differences(model, nominal):
     np.testing.assert_allclose(g_fwd, fd, rtol=5e-8)
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8)
     worst = max(float(jnp.max(jnp.abs(g / fd - 1))) for g in (g_rev, g_fwd))
-    pin(worst, r"log sigma² and c match central differences to ([0-9.e-]+)\.")
+    assert worst <= float(printed(r"log sigma² and c match central differences to ([0-9.e-]+)\."))
 
 
 @pytest.mark.slow

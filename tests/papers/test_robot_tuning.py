@@ -8,11 +8,14 @@ import pytest
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
 from jaxobs.papers import robot_tuning
+from tests import ROOT, run_cli
 
 
 def test_shipped_config_file_validates_to_the_default():
     path = "tuning/cartpole_payload.toml"
     assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
+    arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
+    assert arm["robot"]["solver_iterations"] == 4
 
 
 @pytest.mark.parametrize(
@@ -53,6 +56,18 @@ def test_robot_errors_exit_2_with_the_reason(tmp_path, capsys, toml, message):
     assert message in err and "Traceback" not in err
 
 
+def test_a_constrained_model_without_a_solver_count_is_refused_in_reverse_mode(tmp_path, capsys):
+    """The arm with a wall and a joint limit, its solver left to MJX's while loop: refused before anything compiles,
+    naming the key to change."""
+    path = tmp_path / "arm.toml"
+    path.write_text(
+        (ROOT / "tuning/arm_on_table.toml").read_text().replace("solver_iterations = 4", "solver_iterations = 0")
+    )
+    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "robot.solver_iterations: the model has 5 constraint rows" in err and "Traceback" not in err
+
+
 @pytest.mark.slow
 @pytest.mark.published
 def test_readme_table_row(tmp_path):
@@ -63,7 +78,7 @@ def test_readme_table_row(tmp_path):
     from tests._published import pin
 
     out = tmp_path / "robot"
-    assert main(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"]) == 0
+    run_cli(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"])
     summary = json.loads((out / "tuned.json").read_text())
     assert summary["evaluations"] == 20 and summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]

@@ -18,6 +18,7 @@ from jaxobs.papers.cortesao import force_sweep as fr
 from jaxobs.papers.cortesao.example1 import aob_params
 from jaxobs.papers.cortesao.force_control import EXAMPLE1, example1_disturbance, nominal_design, with_feedback
 from jaxobs.plants import force_plant
+from tests import run_cli
 from tests._published import pin
 
 SMALL = {
@@ -149,7 +150,7 @@ def test_readme_default_sweep_figures(tmp_path):
     run), pinned to their printed digits; the fractions may differ by a few configurations on another machine
     (loops within rounding of rho = 1), hence the allowance of 2e-4 (5 of 25 000; within x1.5: 5e-4)."""
     out = tmp_path / "sweep"
-    assert main(["sweep", "--out", str(out), "--no-progress"]) == 0
+    run_cli(["sweep", "--out", str(out), "--no-progress"])
     summary = json.loads((out / "summary.json").read_text())
     assert summary["num_configs"] == 100_000
     c = summary["controllers"]

@@ -6,8 +6,8 @@ import jax
 import pytest
 
 from jaxobs._config import ConfigError, load_toml
-from jaxobs.cli import main
 from jaxobs.papers.grip2010 import example56_tuning
+from tests import run_cli
 
 
 def test_default_config_file_validates():
@@ -55,7 +55,7 @@ def test_readme_table_row(tmp_path):
     from tests._published import pin
 
     out = tmp_path / "grip"
-    assert main(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"]) == 0
+    run_cli(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"])
     summary = json.loads((out / "tuned.json").read_text())
     row = (
         r"\| Grip 2010 Example 5\.6, [^|]*\\\|theta_tilde\\\|[^|]*\| ([0-9.]+) \(10, 3\) \| ([0-9.]+) \(-([0-9.]+) %\) "

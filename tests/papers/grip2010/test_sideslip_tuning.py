@@ -9,8 +9,8 @@ import jax
 import pytest
 
 from jaxobs._config import ConfigError, load_toml
-from jaxobs.cli import main
 from jaxobs.papers.grip2010 import sideslip_tuning
+from tests import run_cli
 
 
 def test_default_config_file_validates():
@@ -69,7 +69,7 @@ def test_shipped_tuning_run(tmp_path):
     from tests._published import pin
 
     out = tmp_path / "sideslip"
-    assert main(["tune", "--config", "tuning/sideslip.toml", "--out", str(out), "--no-progress"]) == 0
+    run_cli(["tune", "--config", "tuning/sideslip.toml", "--out", str(out), "--no-progress"])
     summary = json.loads((out / "tuned.json").read_text())
     held = summary["heldout"]
     assert held["tuned"]["objective"] < held["hand-set"]["objective"]
