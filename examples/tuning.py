@@ -5,6 +5,7 @@
 import jax
 
 import jaxobs as jo
+from jaxobs.papers import tuning_config
 from jaxobs.papers.cortesao import force_tuning
 from jaxobs.tuning import evaluate
 
@@ -19,7 +20,7 @@ print(sorted(problem.theta0), problem.batch_size(problem.train), problem.batch_s
 # --8<-- [end:problem]
 
 # --8<-- [start:tune]
-settings = jo.TuneSettings(**config["optimizer"])  # adam on the mean loss of the training plants
+settings = tuning_config.settings(config)  # the [optimizer] table: adam on the mean loss of the training plants
 result = jo.tune(problem, settings, progress=False)  # add checkpoint="tune.npz" to resume after Ctrl-C
 before, after = (evaluate(problem, theta, settings) for theta in (problem.theta0, result.theta))
 print(f"{result.evaluations} evaluations, {result.rollouts} rollouts")

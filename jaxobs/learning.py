@@ -25,7 +25,7 @@ from jaxobs._linalg import symmetrize
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.kalman import KalmanParams, kalman_filter
 from jaxobs.smoothing import log_likelihood, smooth
-from jaxobs.tuning import OPTIMIZERS, cholesky_covariance, cholesky_parameters
+from jaxobs.tuning import cholesky_covariance, cholesky_parameters
 
 __all__ = [
     "sample",
@@ -169,37 +169,41 @@ def covariance_model(params, names=("Q", "R")):
     return jax.tree_util.Partial(_replace_covariances, params), theta0
 
 
+DEFAULT_FIT_OPTIMIZER = optax.lbfgs()
+"""The default optimiser of :func:`fit`: optax's L-BFGS with its zoom line search."""
+
+
 @dataclasses.dataclass(frozen=True)
 class FitSettings:
     """Settings of :func:`fit`.
 
     Attributes:
-      optimizer: "lbfgs" (optax L-BFGS with a zoom line search) or a first-order optimizer of the tuner ("adam",
-        "sgd", "adabelief", "lamb") with ``learning_rate``.
-      learning_rate: step size of a first-order optimizer (L-BFGS chooses its own).
+      optimizer: an ``optax.GradientTransformation``: L-BFGS with a zoom line search by default
+        (:data:`DEFAULT_FIT_OPTIMIZER`), or any other (e.g. ``optax.adam(0.05)``); each update gets the loss as
+        ``value_fn`` for a line search.
       steps: optimizer steps at most.
       tolerance: early stopping: the loss (nats per observed component) counts as improved when it falls more
         than ``tolerance`` below the best so far.
       patience: stop after this many steps without improvement.
     """
 
-    optimizer: str = "lbfgs"
-    learning_rate: float = 0.05
+    optimizer: optax.GradientTransformation = DEFAULT_FIT_OPTIMIZER
     steps: int = 200
     tolerance: float = 1e-10
     patience: int = 10
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid setting."""
-        if self.optimizer != "lbfgs" and self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"settings.optimizer must be 'lbfgs' or one of {', '.join(OPTIMIZERS)}, "
-                             f"got {self.optimizer!r}")  # fmt: skip
+        if not isinstance(self.optimizer, optax.GradientTransformation):
+            raise ValueError(
+                "settings.optimizer must be an optax.GradientTransformation (e.g. optax.lbfgs() or optax.adam(0.05)), "
+                f"got {self.optimizer!r}"
+            )
         for name in ("steps", "patience"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"settings.{name} must be an integer >= 1, got {value!r}")
-        for name, allow_zero in (("learning_rate", False), ("tolerance", True)):
-            _checks.positive_scalar(f"settings.{name}", getattr(self, name), allow_zero=allow_zero)
+        _checks.positive_scalar("settings.tolerance", self.tolerance, allow_zero=True)
 
 
 class FitResult(NamedTuple):
@@ -227,17 +231,15 @@ def _stepper(estimator: Estimator, settings: FitSettings):
     """One jitted optimizer step ``(build, theta, opt_state, y, u) -> (theta, opt_state, loss, grad_norm)`` (the loss
     and gradient are those of the given ``theta``) and the optimizer; cached so that fits with the same estimator,
     settings, ``build_params`` function and shapes compile once."""
-    lbfgs = settings.optimizer == "lbfgs"
-    optimizer = optax.lbfgs() if lbfgs else OPTIMIZERS[settings.optimizer](settings.learning_rate)
+    optimizer = optax.with_extra_args_support(settings.optimizer)
 
     def step(build, theta, state, y, u):
         loss = lambda th: _nll(estimator, build(th), y, u)  # noqa: E731
-        if lbfgs:
+        if optax.tree.get(state, "value") is not None:  # a line search's state holds the value and gradient
             value, grad = optax.value_and_grad_from_state(loss)(theta, state=state)
-            updates, state = optimizer.update(grad, state, theta, value=value, grad=grad, value_fn=loss)
         else:
             value, grad = jax.value_and_grad(loss)(theta)
-            updates, state = optimizer.update(grad, state, theta)
+        updates, state = optimizer.update(grad, state, theta, value=value, grad=grad, value_fn=loss)
         return optax.apply_updates(theta, updates), state, value, optax.tree.norm(grad)
 
     return jax.jit(step), optimizer

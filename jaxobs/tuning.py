@@ -2,10 +2,11 @@
 
 A :class:`TuningProblem` is unconstrained parameters ``theta``, a function giving one loss per plant of a batch of
 mismatched plants, and a training and a held-out batch. :func:`tune` minimises a robust objective (mean or CVaR)
-of the training losses with optax, with diverged plants penalised (:func:`penalise_diverged`), checkpoints and
-early stopping; :func:`random_search` is the gradient-free baseline; :func:`evaluate` scores a ``theta`` on the
-held-out batch. Parameterisations: :func:`cholesky_covariance`, :func:`unit_interval`. The design of the loop:
-docs/theory/jobs.md and docs/guides/tuning.md.
+of the training losses with any optax optimiser, with diverged plants penalised (:func:`penalise_diverged`),
+checkpoints, and a stop when the objective has converged (a plateau); :func:`random_search` is the gradient-free
+baseline; :func:`evaluate` scores a ``theta`` on the held-out batch. Parameterisations:
+:func:`cholesky_covariance`, :func:`unit_interval`. The design of the loop: docs/theory/jobs.md and
+docs/guides/tuning.md.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ __all__ = [
     "robust_objective",
     "penalise_diverged",
     "value_and_grad",
+    "DEFAULT_OPTIMIZER",
     "TuningProblem",
     "TuneSettings",
     "TuneResult",
@@ -55,7 +57,9 @@ logger = logging.getLogger("jaxobs.tuning")
 
 OBJECTIVES = ("mean", "cvar")
 GRADIENT_MODES = ("reverse", "forward")
-OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb}
+
+DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
+"""The tuner's default optimiser: adam with step size 0.1 after clipping the gradient to global norm 1."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -169,30 +173,28 @@ class TuneSettings:
     """Settings of :func:`tune` (the ``[optimizer]`` table of ``jaxobs tune``'s config).
 
     Attributes:
-      optimizer: "adam", "sgd", "adabelief" or "lamb" (optax).
+      optimizer: an ``optax.GradientTransformation`` (:data:`DEFAULT_OPTIMIZER`); one that takes extra arguments,
+        such as ``optax.lbfgs()``, gets the objective as ``value_fn`` for its line search.
       gradient: "reverse" (``value_and_grad``) or "forward" (``jacfwd``: exact, for few parameters).
-      learning_rate: the optimizer's step size.
-      steps: gradient evaluations at most (rejected ones included).
+      steps: the cap: gradient evaluations at most (rejected ones included).
       objective: "mean" or "cvar" of the per-plant losses.  cvar_alpha: the CVaR fraction of worst plants.
       penalty_weight: weight of the problem's penalty term (0: off).
       divergence_factor: a diverged plant's loss is this times the largest finite loss (see
         :func:`penalise_diverged`).
-      clip_norm: global-norm gradient clipping; 0 disables it.
-      patience: early stopping after this many evaluations without a relative improvement of ``min_improvement``.
+      patience: the plateau window: the run has converged after this many evaluations without a relative
+        improvement of ``min_improvement`` of the best objective.
       min_improvement: relative improvement that resets ``patience``.
       max_rejections: consecutive rejected (diverging) steps before giving up.
       checkpoint_every: evaluations between checkpoints.
     """
 
-    optimizer: str = "adam"
+    optimizer: optax.GradientTransformation = DEFAULT_OPTIMIZER
     gradient: str = "reverse"
-    learning_rate: float = 0.1
     steps: int = 50
     objective: str = "mean"
     cvar_alpha: float = 0.25
     penalty_weight: float = 0.0
     divergence_factor: float = 10.0
-    clip_norm: float = 1.0
     patience: int = 15
     min_improvement: float = 1e-3
     max_rejections: int = 8
@@ -200,26 +202,23 @@ class TuneSettings:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid setting."""
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {self.optimizer!r}")
+        if not isinstance(self.optimizer, optax.GradientTransformation):
+            raise ValueError(
+                f"optimizer must be an optax.GradientTransformation (e.g. optax.adam(0.1)), got {self.optimizer!r}"
+            )
         if self.gradient not in GRADIENT_MODES:
             raise ValueError(f"gradient must be one of {GRADIENT_MODES}, got {self.gradient!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not 0 < self.cvar_alpha <= 1:
             raise ValueError(f"cvar_alpha must be in (0, 1], got {self.cvar_alpha}")
-        for name, low in (("learning_rate", 0.0), ("steps", 0), ("patience", 0), ("checkpoint_every", 0)):
+        for name, low in (("steps", 0), ("patience", 0), ("checkpoint_every", 0)):
             if not getattr(self, name) > low:
                 raise ValueError(f"{name} must be > {low}, got {getattr(self, name)!r}")
-        for name, low in (("penalty_weight", 0), ("clip_norm", 0), ("min_improvement", 0), ("max_rejections", 0),
+        for name, low in (("penalty_weight", 0), ("min_improvement", 0), ("max_rejections", 0),
                           ("divergence_factor", 1)):  # fmt: skip
             if not getattr(self, name) >= low:
                 raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
-
-    def optax_transform(self) -> optax.GradientTransformation:
-        """The optimiser, after gradient clipping by global norm when ``clip_norm > 0``."""
-        base = OPTIMIZERS[self.optimizer](self.learning_rate)
-        return optax.chain(optax.clip_by_global_norm(self.clip_norm), base) if self.clip_norm > 0 else base
 
 
 class TuneResult(NamedTuple):
@@ -229,7 +228,7 @@ class TuneResult(NamedTuple):
       theta: the best accepted parameters (fewest diverged training plants, then lowest objective)
       objective: their training objective
       history: one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
-      stopped: why the loop ended: "steps", "early stopping"
+      stopped: why the loop ended: "converged" (the plateau rule of ``TuneSettings.patience``) or "steps" (the cap)
       evaluations: gradient evaluations (each is one rollout per training plant)
       rollouts: evaluations x training batch size
       diverged: diverged training plants of the best theta
@@ -244,6 +243,11 @@ class TuneResult(NamedTuple):
     rollouts: int
     diverged: int
     seconds: float
+
+    @property
+    def converged(self) -> bool:
+        """Whether the run stopped on the plateau rule (not on the cap ``TuneSettings.steps``)."""
+        return self.stopped == "converged"
 
 
 class TuningError(RuntimeError):
@@ -444,14 +448,21 @@ def _as_numpy(theta: dict) -> dict:
 # Checkpoints
 
 _META = {"evaluations": int, "scale": float, "best_objective": float, "best_diverged": int, "diverged": int,
-         "since_best": int, "rejections": int, "seconds": float, "history": list, "fingerprint": str}  # fmt: skip
+         "since_best": int, "rejections": int, "seconds": float, "history": list, "fingerprint": str,
+         "arrays": int}  # fmt: skip
 
 
 def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str, program: str) -> str:
-    """What a checkpoint was written for: the settings (but ``steps``), ``tag``, ``theta``'s shapes, the ``program``
-    of one evaluation on one device (lowered text) and the training batch's values (an argument of it)."""
+    """What a checkpoint was written for: the settings (but ``steps``: more may continue a run), the optimiser's
+    state structure, ``tag``, ``theta``'s shapes, the ``program`` of one evaluation on one device (lowered text) and
+    the training batch's values (an argument of it). An optimiser's hyperparameters are not visible in its state:
+    ``tag`` names them (the TOML layer's tag does)."""
     shapes = {k: list(np.shape(v)) for k, v in problem.theta0.items()}
-    fixed = {k: v for k, v in dataclasses.asdict(settings).items() if k != "steps"}  # more steps may continue a run
+    fixed = {
+        f.name: getattr(settings, f.name) for f in dataclasses.fields(settings) if f.name not in ("steps", "optimizer")
+    }
+    state = jax.eval_shape(settings.optimizer.init, _strong(problem.theta0))
+    fixed["optimizer"] = f"{jax.tree.structure(state)} {[(x.shape, str(x.dtype)) for x in jax.tree.leaves(state)]}"
     text = json.dumps({"tag": tag, "settings": fixed, "theta": shapes, "jax": jax.__version__}, sort_keys=True)
     digest = hashlib.sha256((text + program).encode())
     for leaf in jax.tree.leaves(problem.train):
@@ -464,7 +475,7 @@ def _save_checkpoint(path: Path, trees: dict, meta: dict) -> None:
     arrays = {f"leaf{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(trees))}
     tmp = temporary_path(path, ".tmp.npz")
     try:
-        np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+        np.savez(tmp, meta=np.array(json.dumps({**meta, "arrays": len(arrays)})), **arrays)
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -490,23 +501,32 @@ def _meta_problem(meta) -> str | None:
 def _load_checkpoint(path: Path, template: dict) -> tuple[dict, dict]:
     """``(trees, meta)`` from ``path``; :class:`CheckpointError` naming the file for anything unusable but the
     fingerprint (checked by the caller)."""
+    leaves, treedef = jax.tree.flatten(template)
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
-            leaves, treedef = jax.tree.flatten(template)
-            loaded = [data[f"leaf{i}"] for i in range(len(leaves))]
-            if len(data.files) != len(leaves) + 1:
-                raise ValueError(f"{len(data.files) - 1} arrays, expected {len(leaves)}")
+            count = len(data.files) - 1
+            loaded = [data[f"leaf{i}"] for i in range(min(count, len(leaves)))]
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise CheckpointError(f"{path}: corrupt or unreadable checkpoint ({exc}); delete it to start over") from exc
     problem = _meta_problem(meta)
+    if problem is None and count != meta["arrays"]:
+        problem = f"{count} arrays, written with {meta['arrays']}"
     if problem is not None:
         raise CheckpointError(f"{path}: damaged checkpoint ({problem}); delete it to start over")
-    for i, (new, old) in enumerate(zip(loaded, leaves, strict=True)):
-        if new.shape != np.shape(old):
-            raise CheckpointError(f"{path}: array {i} has shape {new.shape}, expected {np.shape(old)}")
+    other = f"{count} arrays, expected {len(leaves)}" if count != len(leaves) else None
+    for i, (new, old) in enumerate(zip(loaded, leaves, strict=False)):
+        if other is None and new.shape != np.shape(old):
+            other = f"array {i} has shape {new.shape}, expected {np.shape(old)}"
+    if other is not None:  # another optimiser or parameter layout
+        raise CheckpointError(
+            f"{path}: written for a different problem, program or settings ({other}); delete it (or use another "
+            "--out) to start over"
+        )
+    for i, new in enumerate(loaded):
         if new.dtype.kind in "fc" and not np.all(np.isfinite(new)):
             raise CheckpointError(f"{path}: array {i} holds NaN or infinite values; delete it to start over")
+    meta.pop("arrays")
     return jax.tree.unflatten(treedef, [jnp.asarray(x) for x in loaded]), meta
 
 
@@ -548,7 +568,7 @@ def tune(
 
     settings.validate()
     start = time.perf_counter()
-    optimizer = settings.optax_transform()
+    optimizer = optax.with_extra_args_support(settings.optimizer)
     batch = problem.batch_size(problem.train)
     theta0 = _strong(problem.theta0)
     zeros = jax.tree.map(jnp.zeros_like, theta0)
@@ -585,6 +605,14 @@ def tune(
     )  # fmt: skip
     sound_gradient = _evaluations(problem, settings, mesh)[1]
     sound_gradient = sound_gradient and _jit(sound_gradient, mesh, (False, True, False))  # compiled if ever needed
+    objective = _objective_fn(problem, settings, _spread(problem.losses, mesh, batch))
+
+    def step_update(grad, state, theta, value, placed):  # value_fn: the objective, for a line search (L-BFGS)
+        return optimizer.update(
+            grad, state, theta, value=value, grad=grad, value_fn=lambda th: objective(th, placed)[0]
+        )
+
+    update_step = _jit(step_update, mesh, (False, False, False, False, True))
     previous_seconds = meta["seconds"]
 
     def save(trees, meta, history):
@@ -648,7 +676,7 @@ def tune(
                     meta["since_best"] = 0 if improved else meta["since_best"] + 1
                     if (count, value) < (meta["best_diverged"], meta["best_objective"]):
                         meta["best_diverged"], meta["best_objective"], trees["best"] = count, value, trees["theta"]
-                    update, trees["opt"] = optimizer.update(grad, trees["opt"], trees["theta"])
+                    update, trees["opt"] = update_step(grad, trees["opt"], _host(trees["theta"]), value, train)
                     meta["scale"] = min(1.0, 2 * meta["scale"])
                     trees["anchor"], trees["update"] = trees["theta"], update
                     trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["theta"], update)
@@ -673,7 +701,7 @@ def tune(
         finally:
             bar.close()
     if meta["since_best"] >= settings.patience:
-        stopped = "early stopping"
+        stopped = "converged"
     save(trees, meta, history)
     return TuneResult(
         trees["best"], meta["best_objective"], history, stopped, meta["evaluations"], meta["evaluations"] * batch,

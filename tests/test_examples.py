@@ -36,10 +36,13 @@ def _param(script: Path):
 
 
 def test_every_guide_snippet_comes_from_an_example():
-    """Every ``--8<--`` inclusion in docs/ names an existing example (and, when given, one of its sections)."""
+    """Every ``--8<--`` inclusion in docs/ is well formed (a formatter once broke them into plain text) and names an
+    existing example (and, when given, one of its sections)."""
     snippet = re.compile(r'--8<-- "([^":]+)(?::([\w-]+))?"')
     for page in (ROOT / "docs").rglob("*.md"):
-        for path, section in snippet.findall(page.read_text()):
+        text = page.read_text()
+        assert len(snippet.findall(text)) == text.count("--8"), f"{page.name}: a malformed --8<-- inclusion"
+        for path, section in snippet.findall(text):
             target = ROOT / path
             assert target.is_file(), f"{page.name}: {path} does not exist"
             if section:

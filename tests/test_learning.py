@@ -11,6 +11,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from jaxobs.learning import FitSettings, covariance_model, em, fit, negative_log_likelihood, sample
@@ -114,7 +115,7 @@ def test_progress_bar_and_adam(scalar_data, capsys):
     """A first-order optimizer of the tuner (adam) with the progress bar: the loss decreases."""
     _, y = scalar_data
     build, theta0 = covariance_model(make_kalman([[0.8]], [[1.0]], [[2.0]], [[2.0]], P0=[[1.0]]))
-    settings = FitSettings(optimizer="adam", learning_rate=0.02, steps=40, patience=40)
+    settings = FitSettings(optimizer=optax.adam(0.02), steps=40, patience=40)
     result = fit(kalman_filter, build, theta0, EstimatorInputs(y=y), settings)
     assert result.loss[-1] < result.loss[0] and len(result.loss) == 40 and result.stopped == "steps"
     assert "fit" in capsys.readouterr().err
@@ -232,7 +233,7 @@ def test_bad_inputs_raise_naming_the_argument(scalar_data):
     cases = [
         (lambda: fit(kalman_filter, build, theta0, inputs, FitSettings(optimizer="newton")), "settings.optimizer"),
         (lambda: fit(kalman_filter, build, theta0, inputs, FitSettings(steps=0)), "settings.steps"),
-        (lambda: fit(kalman_filter, build, theta0, inputs, FitSettings(learning_rate=-1.0)), "settings.learning_rate"),
+        (lambda: fit(kalman_filter, build, theta0, inputs, FitSettings(tolerance=-1.0)), "settings.tolerance"),
         (lambda: fit(kalman_filter, build, theta0, inputs, {"steps": 3}), "settings"),
         (lambda: fit("kalman", build, theta0, inputs), "estimator"),
         (lambda: fit(kalman_filter, "build", theta0, inputs), "build_params"),

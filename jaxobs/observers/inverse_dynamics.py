@@ -471,14 +471,15 @@ def design_gains(
     bounds: dict | None = None,
     fixed: tuple = (),
     steps: int = 400,
-    learning_rate: float = 0.05,
+    optimizer=None,
     penalty: float = 100.0,
 ) -> DesignResult:
     """Gradient-based choice of ``K, F1, F2`` (and ``rho``, Case 2) under a pole constraint (design time).
 
     Minimises ``objective(gains) + penalty * sum(relu(Re p - max_real_part + 0.1)^2)`` over the finite poles
-    ``p`` of the error dynamics (eq. 8, or Fact 3.5 with the rank of ``M_e`` at ``init``) with Adam, projecting
-    onto the box ``bounds = {name: (lo, hi)}`` after each step. ``init`` holds the starting gains (Case 1:
+    ``p`` of the error dynamics (eq. 8, or Fact 3.5 with the rank of ``M_e`` at ``init``) for ``steps`` steps of
+    ``optimizer`` (an ``optax.GradientTransformation``; default ``optax.adam(0.05)``), projecting onto the box
+    ``bounds = {name: (lo, hi)}`` after each step. ``init`` holds the starting gains (Case 1:
     ``K, F1`` and ``F2``; Case 2: also ``rho``); names in ``fixed`` are not changed (e.g. ``F2`` in Case 1,
     which must keep ``F2 C B = I``). ``objective(gains) -> scalar`` must be JAX-traceable. The result is
     re-checked with :func:`make_inverse_dynamics`'s tests; ``feasible`` reports the constraints.
@@ -513,12 +514,18 @@ def design_gains(
         obj = 0.0 if objective is None else objective(g)
         return obj + penalty * jnp.sum(viol**2)
 
-    opt = optax.adam(learning_rate)
+    if optimizer is None:
+        optimizer = optax.adam(0.05)
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise ValueError(
+            f"optimizer must be an optax.GradientTransformation (e.g. optax.adam(0.05)), got {optimizer!r}"
+        )
+    opt = optax.with_extra_args_support(optimizer)
 
     @jax.jit
     def update(t, s):
-        grads = jax.grad(loss)(t)
-        upd, s = opt.update(grads, s, t)
+        value, grads = jax.value_and_grad(loss)(t)
+        upd, s = opt.update(grads, s, t, value=value, grad=grads, value_fn=loss)
         return clip(optax.apply_updates(t, upd)), s
 
     t, s = clip(free), opt.init(free)

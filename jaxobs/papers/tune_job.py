@@ -96,6 +96,7 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
         "problem": config["problem"],
         "config": config,
         "stopped": result.stopped,
+        "converged": result.converged,
         "evaluations": result.evaluations,
         "rollouts": result.rollouts,
         "seconds_tune": result.seconds,

@@ -1,5 +1,6 @@
-"""The config tables every ``jaxobs tune`` problem shares: ``[optimizer]`` (:class:`jaxobs.tuning.TuneSettings`),
-``[baseline]`` (the random search and its box) and the seed, with their checks; plus the run's tag.
+"""The config tables every ``jaxobs tune`` problem shares: ``[optimizer]`` (:class:`jaxobs.tuning.TuneSettings`,
+its optax optimiser named by a string), ``[baseline]`` (the random search and its box) and the seed, with their
+checks; plus the run's tag.
 
 The random search's box is ``theta0 +- spread`` per unconstrained coordinate. Its default width (``spread = 0``)
 is the gradient tuner's reach, ``optimizer.steps x optimizer.learning_rate``: adam moves a coordinate by about
@@ -13,12 +14,15 @@ import hashlib
 import json
 
 import jax.numpy as jnp
+import optax
 
 from jaxobs._config import check_at_least, check_memory, fail
 from jaxobs.tuning import TuneSettings
 
 __all__ = [
+    "OPTIMIZERS",
     "optimizer_defaults",
+    "optimizer",
     "BASELINE_DEFAULTS",
     "COMMON_NOTES",
     "check_common",
@@ -31,19 +35,26 @@ __all__ = [
 
 BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}
 
+OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
+              "lbfgs": lambda learning_rate: optax.lbfgs()}  # fmt: skip
+"""The optax optimisers ``[optimizer] optimizer`` may name, by their step size (L-BFGS's line search sets its
+own)."""
+
+_OPTIMIZER_KEYS = {"optimizer": "adam", "learning_rate": 0.1, "clip_norm": 1.0}  # the optimiser, by name
+
 COMMON_NOTES = {
     "seed": "seed of the sampled plants (training and held-out sets) and of the random search",
     "optimizer": "the gradient tuner (jaxobs.tuning.TuneSettings)",
-    "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief' or 'lamb'",
+    "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief', 'lamb' or 'lbfgs' (with a line search)",
     "optimizer.gradient": "'reverse' (value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
     "optimizer.learning_rate": "the optimizer's step size (in the unconstrained parameters)",
-    "optimizer.steps": "gradient evaluations at most, rejected ones included",
+    "optimizer.steps": "the cap: gradient evaluations at most, rejected ones included",
     "optimizer.objective": "'mean' or 'cvar' (mean of the cvar_alpha worst) of the per-plant training losses",
     "optimizer.cvar_alpha": "fraction of worst training plants the CVaR objective averages",
     "optimizer.penalty_weight": "weight of the problem's penalty term; 0 switches it off",
     "optimizer.divergence_factor": "a diverged plant's loss is this times the largest finite loss (at least 1)",
-    "optimizer.clip_norm": "global-norm gradient clipping; 0 switches it off",
-    "optimizer.patience": "stop after this many evaluations without a relative improvement of min_improvement",
+    "optimizer.clip_norm": "global-norm gradient clipping; 0 switches it off (and for lbfgs)",
+    "optimizer.patience": "converged after this many evaluations without a relative improvement of min_improvement",
     "optimizer.min_improvement": "relative improvement of the objective that resets patience",
     "optimizer.max_rejections": "consecutive rejected (more plants diverging) steps before giving up",
     "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
@@ -55,8 +66,11 @@ COMMON_NOTES = {
 
 
 def optimizer_defaults(**overrides) -> dict:
-    """The ``[optimizer]`` table: :class:`jaxobs.tuning.TuneSettings`'s fields, with a problem's ``overrides``."""
-    table = dataclasses.asdict(TuneSettings())
+    """The ``[optimizer]`` table: the optimiser by name (``optimizer``, ``learning_rate``, ``clip_norm``) and the
+    other fields of :class:`jaxobs.tuning.TuneSettings`, with a problem's ``overrides``."""
+    settings = TuneSettings()
+    fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings) if f.name != "optimizer"}
+    table = {**_OPTIMIZER_KEYS, **fields}
     unknown = set(overrides) - set(table)
     if unknown:
         raise KeyError(f"not TuneSettings fields: {sorted(unknown)}")
@@ -73,14 +87,33 @@ def check_common(config: dict, source: str) -> None:
         fail(source, "optimizer", str(exc))
 
 
+def optimizer(table: dict) -> optax.GradientTransformation:
+    """The optax optimiser an ``[optimizer]`` table names: ``OPTIMIZERS[optimizer](learning_rate)``, after
+    global-norm gradient clipping when ``clip_norm > 0`` (never for L-BFGS, whose line search needs the gradient)."""
+    name, rate, clip = (table[k] for k in _OPTIMIZER_KEYS)
+    if name not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {name!r}")
+    if not rate > 0:
+        raise ValueError(f"learning_rate must be > 0, got {rate!r}")
+    if not clip >= 0:
+        raise ValueError(f"clip_norm must be >= 0, got {clip!r}")
+    base = OPTIMIZERS[name](rate)
+    return optax.chain(optax.clip_by_global_norm(clip), base) if clip > 0 and name != "lbfgs" else base
+
+
 def settings(config: dict) -> TuneSettings:
     """The optimiser settings of a tuning configuration (its ``[optimizer]`` table)."""
-    return TuneSettings(**config["optimizer"])
+    table = config["optimizer"]
+    rest = {k: v for k, v in table.items() if k not in _OPTIMIZER_KEYS}
+    return TuneSettings(optimizer=optimizer(table), **rest)
 
 
 def config_tag(config: dict) -> str:
-    """A short hash of everything but the optimiser settings (a resumed run must match it)."""
-    text = json.dumps({k: v for k, v in config.items() if k != "optimizer"}, sort_keys=True)
+    """A short hash of everything but the optimiser's step budget (a resumed run must match it; the optimiser's
+    name and step size are here, since a checkpoint cannot see them)."""
+    kept = {k: v for k, v in config.items() if k != "optimizer"}
+    kept["optimizer"] = {k: v for k, v in config.get("optimizer", {}).items() if k in _OPTIMIZER_KEYS}
+    text = json.dumps(kept, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 import scipy.linalg
 from jax.test_util import check_grads
@@ -421,7 +422,16 @@ def test_design_gains_meets_pole_and_box_constraints():
     init = dict(K=[[5.0], [0.0]], F1=[[-1.0]], F2=[[0.5]], rho=[[0.0, 0.0]])
     bounds = dict(F1=(-10, 10), F2=(0.05, 1.0), K=(-50, 50))
     res = ido.design_gains(
-        A, B, C, init, case=2, max_real_part=-12.0, objective=obj, bounds=bounds, fixed=("rho",), learning_rate=0.2
+        A,
+        B,
+        C,
+        init,
+        case=2,
+        max_real_part=-12.0,
+        objective=obj,
+        bounds=bounds,
+        fixed=("rho",),
+        optimizer=optax.adam(0.2),
     )
     assert ido.design_gains(A, B, C, init, case=2, max_real_part=-12.0, steps=0).feasible is False
     assert res.feasible and np.max(res.poles.real) <= -12.0 and res.objective < 1e-3
@@ -429,7 +439,7 @@ def test_design_gains_meets_pole_and_box_constraints():
     ido.make_inverse_dynamics(A, B, C, g["K"], g["F1"], g["F2"], h=0.01, case=2, rho=g["rho"])
     A1_, B1_, C1_ = case1_plant()
     init1 = dict(K=[[0.0], [0.0], [0.0]], F1=[[-20.0]], F2=ido.case1_f2(B1_, C1_))
-    res1 = ido.design_gains(A1_, B1_, C1_, init1, case=1, max_real_part=-1.5, fixed=("F2",), learning_rate=0.2)
+    res1 = ido.design_gains(A1_, B1_, C1_, init1, case=1, max_real_part=-1.5, fixed=("F2",), optimizer=optax.adam(0.2))
     assert res1.feasible
     for z in (-2.0, -5.0):
         assert np.min(np.abs(res1.poles - z)) < 1e-7

@@ -18,6 +18,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 import jaxobs.tuning
 from jaxobs._config import load_toml
@@ -87,7 +88,7 @@ def main():
         problem, tuned, tag = scenario.build(config), settings(config), "tiny"
     else:
         problem, tag = analytic_problem(args.lapack), "analytic"
-        tuned = jaxobs.tuning.TuneSettings(steps=5, learning_rate=0.3, checkpoint_every=1)
+        tuned = jaxobs.tuning.TuneSettings(optax.adam(0.3), steps=5, checkpoint_every=1)
     result = jaxobs.tuning.tune(problem, tuned, checkpoint=args.checkpoint, progress=False, tag=tag)
     out = {
         "history": [{k: h[k] for k in ("objective", "diverged", "accepted", "theta")} for h in result.history],
