@@ -102,6 +102,21 @@ def _forces(v, vx, vy, r, sw, omega, ax, ay, friction=1.0):
     return (np.sum(fx, axis=1) - drag) / m, np.sum(fy, axis=1) / m, np.sum(gx * fy - gy * fx, axis=1)
 
 
+def _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt):
+    """One step of the switching rule of ``jaxobs.vehicle.switching`` in NumPy, per vehicle: ``(mode, timer,
+    low_pass, same)``; ``mode`` 1 selects the nonlinear injection, ``same`` marks yaw rates of the reference's sign."""
+    high_pass = ay - r * vx - low_pass
+    same = r * r_ref > dead
+    excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
+    opposite = -r * r_ref > dead  # counter-steering
+    over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
+        opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
+    )
+    timer = np.where(excited | over, 0.0, timer + dt)
+    mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
+    return mode, timer, low_pass + dt / f("high_pass_time") * high_pass, same
+
+
 def numpy_nvso(p, y):
     """The NVSO (exact switching) in NumPy over V vehicles at once, a Python loop over the K samples:
     y (V, K, 9) finite -> sideslip (V, K)."""
@@ -138,16 +153,7 @@ def numpy_nvso(p, y):
         spread = np.sqrt(np.mean((wheel_vx - wheel_vx.mean(axis=1, keepdims=True)) ** 2, axis=1) + 1e-12)
         K_vx = np.maximum(f("K_vx_min"), f("K_vx") / (1.0 + (spread / f("wheel_spread")) ** 2))
         r_ref = vx * delta / (L + K_us * vx**2)
-        high_pass = ay - r * vx - low_pass
-        same = r * r_ref > dead
-        excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-        opposite = -r * r_ref > dead  # counter-steering
-        over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
-            opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
-        )
-        timer = np.where(excited | over, 0.0, timer + dt)
-        next_mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
-        low_pass = low_pass + dt / f("high_pass_time") * high_pass
+        next_mode, timer, low_pass, same = _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt)
         yaw_acc = (now[:, 2] - r) / dt
         reduce = (
             (np.abs(e) > f("c1"))
@@ -252,16 +258,7 @@ def numpy_ekf(params, y):
             low_pass = ay - r * vx
         else:
             r_ref = vx * (sw / v.steering_ratio) / (L + K_us * vx**2)
-            high_pass = ay - r * vx - low_pass
-            same = r * r_ref > dead
-            excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
-            opposite = -r * r_ref > dead  # counter-steering
-            over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
-                opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
-            )
-            timer = np.where(excited | over, 0.0, timer + dt)
-            mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
-            low_pass = low_pass + dt / f("high_pass_time") * high_pass
+            mode, timer, low_pass, _ = _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt)
         sensors = now
         out[:, k] = np.arctan2(x[:, 1], x[:, 0])
     return out

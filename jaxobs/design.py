@@ -174,6 +174,17 @@ def dlqr(A, B, Q, R):
     return K, S, jnp.linalg.eigvals(A - B @ K)
 
 
+def _estimation_model(A, G, C, QN):
+    """``(A, G, C, QN)`` as 2-D arrays, their shapes checked (``ValueError`` naming the argument)."""
+    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
+    n = A.shape[-1]
+    _checks.matrix("A", A, shape=(n, n), square=True)
+    _checks.matrix("G", G, shape=(n, None))
+    _checks.matrix("C", C, shape=(None, n))
+    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    return A, G, C, QN
+
+
 def dlqe(A, G, C, QN, RN):
     """Steady-state Kalman estimator (linear-quadratic estimator), as python-control's ``dlqe``, for
     ``x_{k+1} = A x_k + B u_k + G w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = QN``, ``E[v v'] = RN``.
@@ -199,12 +210,7 @@ def dlqe(A, G, C, QN, RN):
       >>> K.shape, bool(np.all(np.abs(E) < 1))
       ((2, 1), True)
     """
-    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
-    n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
-    _checks.matrix("G", G, shape=(n, None))
-    _checks.matrix("C", C, shape=(None, n))
-    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    A, G, C, QN = _estimation_model(A, G, C, QN)
     sol = filter_dare(A, C, G @ QN @ G.T, RN, what="dlqe's DARE")
     RN = jnp.asarray(RN, sol.X.dtype)
     CP = C @ sol.X
@@ -271,12 +277,7 @@ def lqe(A, G, C, QN, RN):
       >>> K.shape, bool(np.all(E.real < 0))
       ((2, 1), True)
     """
-    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
-    n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
-    _checks.matrix("G", G, shape=(n, None))
-    _checks.matrix("C", C, shape=(None, n))
-    _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
+    A, G, C, QN = _estimation_model(A, G, C, QN)
     _checks.covariance("RN", RN, definite=True, size=C.shape[-2])
     W = symmetrize(G @ QN @ G.T)
     sol = care(A.T, C.T, W, RN)
