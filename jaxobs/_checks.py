@@ -183,6 +183,14 @@ def gain(name: str, value, size: int, dtype) -> jax.Array:
     return value.astype(dtype)
 
 
+def optimizer(name: str, value, example: str) -> None:
+    """``ValueError`` unless ``value`` is an ``optax.GradientTransformation`` (``example``: one to suggest)."""
+    import optax
+
+    if not isinstance(value, optax.GradientTransformation):
+        raise ValueError(f"{name} must be an optax.GradientTransformation (e.g. {example}), got {value!r}")
+
+
 def function(name: str, fn) -> jax.tree_util.Partial:
     """``fn`` as a ``jax.tree_util.Partial``: a pytree whose bound arguments are leaves (so ``jit``, ``vmap`` and
     ``grad`` reach the parameters a user binds) and whose function is static. A ``Partial`` is returned as is."""

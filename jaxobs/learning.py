@@ -194,11 +194,7 @@ class FitSettings:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid setting."""
-        if not isinstance(self.optimizer, optax.GradientTransformation):
-            raise ValueError(
-                "settings.optimizer must be an optax.GradientTransformation (e.g. optax.lbfgs() or optax.adam(0.05)), "
-                f"got {self.optimizer!r}"
-            )
+        _checks.optimizer("settings.optimizer", self.optimizer, "optax.lbfgs() or optax.adam(0.05)")
         for name in ("steps", "patience"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -29,6 +29,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxobs import _checks
 from jaxobs._distributed import agree, from_process_0, json_from_process_0, lapack_guard
 from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
 
@@ -202,10 +203,7 @@ class TuneSettings:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid setting."""
-        if not isinstance(self.optimizer, optax.GradientTransformation):
-            raise ValueError(
-                f"optimizer must be an optax.GradientTransformation (e.g. optax.adam(0.1)), got {self.optimizer!r}"
-            )
+        _checks.optimizer("optimizer", self.optimizer, "optax.adam(0.1)")
         if self.gradient not in GRADIENT_MODES:
             raise ValueError(f"gradient must be one of {GRADIENT_MODES}, got {self.gradient!r}")
         if self.objective not in OBJECTIVES:

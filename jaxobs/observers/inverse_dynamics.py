@@ -516,10 +516,7 @@ def design_gains(
 
     if optimizer is None:
         optimizer = optax.adam(0.05)
-    if not isinstance(optimizer, optax.GradientTransformation):
-        raise ValueError(
-            f"optimizer must be an optax.GradientTransformation (e.g. optax.adam(0.05)), got {optimizer!r}"
-        )
+    _checks.optimizer("optimizer", optimizer, "optax.adam(0.05)")
     opt = optax.with_extra_args_support(optimizer)
 
     @jax.jit
