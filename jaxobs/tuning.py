@@ -11,6 +11,7 @@ docs/guides/tuning.md.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import hashlib
@@ -46,6 +47,9 @@ __all__ = [
     "TuningProblem",
     "TuneSettings",
     "TuneResult",
+    "StartResult",
+    "gradient_mode",
+    "FORWARD_MAX_PARAMETERS",
     "SearchResult",
     "TuningError",
     "CheckpointError",
@@ -57,7 +61,16 @@ __all__ = [
 logger = logging.getLogger("jaxobs.tuning")
 
 OBJECTIVES = ("mean", "cvar")
-GRADIENT_MODES = ("reverse", "forward")
+GRADIENT_MODES = ("auto", "reverse", "forward")
+
+FORWARD_MAX_PARAMETERS = 6
+"""``gradient = "auto"`` differentiates in forward mode up to this many scalar parameters, in reverse mode above:
+forward mode costs about one rollout's tangent per parameter, reverse mode a fixed multiple of the rollout (the
+measured crossover on the MJX problems: docs/performance.md)."""
+
+CANDIDATE_CHUNK = 16
+"""Candidates scored per batched call (one ``vmap`` over candidates and plants) by the screening of :func:`tune` and
+by :func:`random_search`."""
 
 DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
 """The tuner's default optimiser: adam with step size 0.1 after clipping the gradient to global norm 1."""
@@ -176,8 +189,16 @@ class TuneSettings:
     Attributes:
       optimizer: an ``optax.GradientTransformation`` (:data:`DEFAULT_OPTIMIZER`); one that takes extra arguments,
         such as ``optax.lbfgs()``, gets the objective as ``value_fn`` for its line search.
-      gradient: "reverse" (``value_and_grad``) or "forward" (``jacfwd``: exact, for few parameters).
-      steps: the cap: gradient evaluations at most (rejected ones included).
+      gradient: "auto" (forward mode up to :data:`FORWARD_MAX_PARAMETERS` scalar parameters, else reverse),
+        "reverse" (``value_and_grad``) or "forward" (``jacfwd``: exact, cheaper for few parameters).
+      steps: the cap: gradient evaluations per start at most (rejected ones included).
+      starts: starting points tuned together (one ``vmap`` over their optimiser states and rollouts); the result
+        is the best of them on the training objective.
+      screening: candidates drawn (scrambled Sobol) in the problem's search box and scored, batched, before the
+        gradient runs; the ``starts`` best of them and ``theta0`` are the starting points (0: ``theta0`` alone,
+        which needs ``starts == 1``).
+      spread: half-width of the search box ``theta0 +- spread`` (unconstrained coordinates) when the problem has
+        no ``search_box``.  seed: seed of the screening's draws.
       objective: "mean" or "cvar" of the per-plant losses.  cvar_alpha: the CVaR fraction of worst plants.
       penalty_weight: weight of the problem's penalty term (0: off).
       divergence_factor: a diverged plant's loss is this times the largest finite loss (see
@@ -190,8 +211,12 @@ class TuneSettings:
     """
 
     optimizer: optax.GradientTransformation = DEFAULT_OPTIMIZER
-    gradient: str = "reverse"
+    gradient: str = "auto"
     steps: int = 50
+    starts: int = 1
+    screening: int = 0
+    spread: float = 2.0
+    seed: int = 0
     objective: str = "mean"
     cvar_alpha: float = 0.25
     penalty_weight: float = 0.0
@@ -210,27 +235,55 @@ class TuneSettings:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not 0 < self.cvar_alpha <= 1:
             raise ValueError(f"cvar_alpha must be in (0, 1], got {self.cvar_alpha}")
-        for name, low in (("steps", 0), ("patience", 0), ("checkpoint_every", 0)):
+        for name, low in (("steps", 0), ("patience", 0), ("checkpoint_every", 0), ("starts", 0), ("spread", 0)):
             if not getattr(self, name) > low:
                 raise ValueError(f"{name} must be > {low}, got {getattr(self, name)!r}")
         for name, low in (("penalty_weight", 0), ("min_improvement", 0), ("max_rejections", 0),
-                          ("divergence_factor", 1)):  # fmt: skip
+                          ("divergence_factor", 1), ("screening", 0), ("seed", 0)):  # fmt: skip
             if not getattr(self, name) >= low:
                 raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
 
 
-class TuneResult(NamedTuple):
-    """Result of :func:`tune`.
+class StartResult(NamedTuple):
+    """One starting point of :func:`tune`.
 
     Attributes:
-      theta: the best accepted parameters (fewest diverged training plants, then lowest objective)
-      objective: their training objective
+      start: the starting ``theta``
+      theta: its best accepted parameters (fewest diverged training plants, then lowest objective)
+      objective: their training objective (inf when no evaluation was accepted)
+      diverged: diverged training plants of ``theta``
+      stopped: "converged" (the plateau rule of ``TuneSettings.patience``), "steps" (the cap), "rejected"
+        (``max_rejections`` rejected steps in a row) or "failed" (the start fails on the training batch)
+      evaluations: its gradient evaluations
       history: one dict per evaluation: evaluation, objective, diverged, accepted, reason, grad_norm, theta, ...
-      stopped: why the loop ended: "converged" (the plateau rule of ``TuneSettings.patience``) or "steps" (the cap)
-      evaluations: gradient evaluations (each is one rollout per training plant)
-      rollouts: evaluations x training batch size
+    """
+
+    start: dict
+    theta: dict
+    objective: float
+    diverged: int
+    stopped: str
+    evaluations: int
+    history: list
+
+
+class TuneResult(NamedTuple):
+    """Result of :func:`tune`: the best of its starting points.
+
+    Attributes:
+      theta: the best accepted parameters of every start (fewest diverged training plants, then lowest objective)
+      objective: their training objective
+      history: the best start's evaluations, one dict each: evaluation, objective, diverged, accepted, reason,
+        grad_norm, theta, ...
+      stopped: why the best start ended: "converged" (the plateau rule) or "steps" (the cap), see
+        :class:`StartResult`
+      evaluations: gradient evaluations of every start together
+      rollouts: rollouts computed, one per training plant for each screened candidate and for each start at each
+        step of the loop (a start that has stopped is computed along with the others until all have)
       diverged: diverged training plants of the best theta
-      seconds: wall time of the tuning over all runs that built this checkpoint, compilation included
+      seconds: wall time of the tuning over all runs that built this checkpoint, screening and compilation
+        included
+      starts: one :class:`StartResult` per starting point
     """
 
     theta: dict
@@ -241,10 +294,11 @@ class TuneResult(NamedTuple):
     rollouts: int
     diverged: int
     seconds: float
+    starts: tuple = ()
 
     @property
     def converged(self) -> bool:
-        """Whether the run stopped on the plateau rule (not on the cap ``TuneSettings.steps``)."""
+        """Whether the best start stopped on the plateau rule (not on the cap ``TuneSettings.steps``)."""
         return self.stopped == "converged"
 
 
@@ -371,24 +425,36 @@ def _compile_spread(build: Callable, batch, theta, what: str, hint: str, alone=N
         devices = fewer
 
 
+def gradient_mode(settings: TuneSettings, theta: dict) -> str:
+    """The differentiation mode of ``settings.gradient`` for parameters ``theta``: "auto" resolves to "forward" up
+    to :data:`FORWARD_MAX_PARAMETERS` scalar parameters and to "reverse" above."""
+    if settings.gradient != "auto":
+        return settings.gradient
+    count = sum(int(np.size(leaf)) for leaf in jax.tree.leaves(theta))
+    return "forward" if count <= FORWARD_MAX_PARAMETERS else "reverse"
+
+
 def _evaluations(problem: TuningProblem, settings: TuneSettings, mesh: Mesh | None):
-    """``(evaluation, sound_gradient)`` on the training batch placed by :func:`_place`: ``(theta, batch) ->
-    ((objective, failed), grad)``, and ``(theta, batch, failed) -> grad`` with the failed plants' inputs replaced
-    by the first sound plant's (so without their own gradient terms), for a reverse-mode gradient that a diverged
-    rollout made non-finite (None in forward mode, where a failed plant's tangents stay in its own lane)."""
+    """``(evaluation, sound_gradient)`` of a stack of starting points (a leading axis on every leaf of ``theta``)
+    on the training batch placed by :func:`_place`: ``(thetas, batch) -> ((objective, failed), grad)`` per start,
+    and ``(thetas, batch, failed) -> grad`` with the failed plants' inputs replaced by the first sound plant's (so
+    without their own gradient terms), for a reverse-mode gradient that a diverged rollout made non-finite (None in
+    forward mode, where a failed plant's tangents stay in its own lane)."""
     size = problem.batch_size(problem.train)
+    mode = gradient_mode(settings, problem.theta0)
     objective = _objective_fn(problem, settings, _spread(problem.losses, mesh, size))
 
     def evaluation(theta, batch):
-        return value_and_grad(lambda th: objective(th, batch), settings.gradient)(theta)
+        return value_and_grad(lambda th: objective(th, batch), mode)(theta)
 
     def sound_gradient(theta, batch, failed):
         keep = jnp.where(failed, jnp.argmin(failed), jnp.arange(size))
         keep = keep[np.minimum(np.arange(problem.batch_size(batch)), size - 1)]  # the padding rows copy the last
         sound = jax.tree.map(lambda x: x[keep], batch)
-        return value_and_grad(lambda th: objective(th, sound, failed), settings.gradient)(theta)[1]
+        return value_and_grad(lambda th: objective(th, sound, failed), mode)(theta)[1]
 
-    return evaluation, (sound_gradient if settings.gradient == "reverse" else None)
+    starts = jax.vmap(evaluation, in_axes=(0, None))
+    return starts, (jax.vmap(sound_gradient, in_axes=(0, None, 0)) if mode == "reverse" else None)
 
 
 def _lower_gradient(evaluation: Callable, theta, batch, mode: str):
@@ -445,9 +511,10 @@ def _as_numpy(theta: dict) -> dict:
 # --------------------------------------------------------------------------------------------
 # Checkpoints
 
-_META = {"evaluations": int, "scale": float, "best_objective": float, "best_diverged": int, "diverged": int,
-         "since_best": int, "rejections": int, "seconds": float, "history": list, "fingerprint": str,
-         "arrays": int}  # fmt: skip
+_META = {"iterations": int, "screened": int, "seconds": float, "lanes": list, "fingerprint": str, "arrays": int}
+_LANE = {"evaluations": int, "scale": float, "best_objective": float, "best_diverged": int, "diverged": int,
+         "since_best": int, "rejections": int, "stopped": str, "history": list}  # fmt: skip
+_STOPS = ("", "converged", "steps", "rejected", "failed")  # "": still running
 
 
 def _fingerprint(problem: TuningProblem, settings: TuneSettings, tag: str, program: str) -> str:
@@ -479,20 +546,37 @@ def _save_checkpoint(path: Path, trees: dict, meta: dict) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _fields_problem(record: dict, fields: dict, where: str) -> str | None:
+    """What makes ``record`` (a JSON object) miss or mistype one of ``fields``, or None."""
+    for key, kind in fields.items():
+        value = record.get(key)
+        ok = isinstance(value, int | float) if kind is float else isinstance(value, kind)
+        if not ok or isinstance(value, bool):
+            return f"{where}{key} is {'missing' if key not in record else repr(value)}, expected {kind.__name__}"
+    numbers = [record[k] for k, kind in fields.items() if kind in (int, float)]
+    if not all(math.isfinite(v) and v >= 0 for v in numbers if v != math.inf):
+        return f"{where[:-1]} holds a negative or non-finite count, scale or objective"
+    return None
+
+
 def _meta_problem(meta) -> str | None:
     """What makes a checkpoint's ``meta`` unusable, or None."""
     if not isinstance(meta, dict):
         return f"meta is a JSON {type(meta).__name__}, not an object"
-    for key, kind in _META.items():
-        value = meta.get(key)
-        ok = isinstance(value, int | float) if kind is float else isinstance(value, kind)
-        if not ok or isinstance(value, bool):
-            return f"meta.{key} is {'missing' if key not in meta else repr(value)}, expected {kind.__name__}"
-    numbers = [meta[k] for k, kind in _META.items() if kind in (int, float)]
-    if not all(math.isfinite(v) and v >= 0 for v in numbers) or meta["scale"] <= 0:
-        return "meta holds a negative or non-finite count, scale or objective"
-    if len(meta["history"]) != meta["evaluations"] or not all(isinstance(h, dict) for h in meta["history"]):
-        return f"meta.history has {len(meta['history'])} entries for {meta['evaluations']} evaluations"
+    problem = _fields_problem(meta, _META, "meta.")
+    if problem is not None:
+        return problem
+    if not meta["lanes"]:
+        return "meta.lanes is empty"
+    for k, lane in enumerate(meta["lanes"]):
+        where = f"meta.lanes[{k}]."
+        problem = _fields_problem(lane, _LANE, where) if isinstance(lane, dict) else f"{where[:-1]} is not an object"
+        if problem is not None:
+            return problem
+        if lane["scale"] <= 0 or lane["stopped"] not in _STOPS:
+            return f"{where[:-1]} holds a scale or stop reason out of range"
+        if len(lane["history"]) != lane["evaluations"] or not all(isinstance(h, dict) for h in lane["history"]):
+            return f"{where}history has {len(lane['history'])} entries for {lane['evaluations']} evaluations"
     return None
 
 
@@ -516,7 +600,9 @@ def _load_checkpoint(path: Path, template: dict) -> tuple[dict, dict]:
     for i, (new, old) in enumerate(zip(loaded, leaves, strict=False)):
         if other is None and new.shape != np.shape(old):
             other = f"array {i} has shape {new.shape}, expected {np.shape(old)}"
-    if other is not None:  # another optimiser or parameter layout
+    if other is None and len(meta["lanes"]) != np.shape(leaves[0])[0]:
+        other = f"{len(meta['lanes'])} starts, expected {np.shape(leaves[0])[0]}"
+    if other is not None:  # another optimiser, parameter layout or number of starts
         raise CheckpointError(
             f"{path}: written for a different problem, program or settings ({other}); delete it (or use another "
             "--out) to start over"
@@ -525,42 +611,171 @@ def _load_checkpoint(path: Path, template: dict) -> tuple[dict, dict]:
         if new.dtype.kind in "fc" and not np.all(np.isfinite(new)):
             raise CheckpointError(f"{path}: array {i} holds NaN or infinite values; delete it to start over")
     meta.pop("arrays")
-    return jax.tree.unflatten(treedef, [jnp.asarray(x) for x in loaded]), meta
+    return jax.tree.unflatten(treedef, list(loaded)), meta
+
+
+# --------------------------------------------------------------------------------------------
+# Candidates: the screening of tune and the random search
+
+
+def _search_box(problem: TuningProblem, spread: float) -> dict:
+    if problem.search_box is not None:
+        return {k: (np.asarray(lo), np.asarray(hi)) for k, (lo, hi) in problem.search_box.items()}
+    return {k: (np.asarray(v) - spread, np.asarray(v) + spread) for k, v in problem.theta0.items()}
+
+
+def _in_box(box: dict, theta0: dict, unit: np.ndarray) -> dict:
+    """Candidates (a leading axis of ``len(unit)``) at the points ``unit`` (N, size) of the unit cube mapped onto
+    ``box``, coordinate by coordinate in the order of ``theta0``'s entries; entries with ``low == high`` stay."""
+    stacked, offset = {}, 0
+    for name, value in theta0.items():
+        low, high = (np.broadcast_to(np.asarray(b, value.dtype), value.shape) for b in box[name])
+        size = value.size
+        part = unit[:, offset : offset + size].reshape((len(unit), *value.shape))
+        stacked[name] = (low + part * (high - low)).astype(value.dtype)
+        offset += size
+    return stacked
+
+
+def _stack(thetas: list[dict]) -> dict:
+    return {k: np.stack([np.asarray(t[k]) for t in thetas]) for k in thetas[0]}
+
+
+def _row(stacked: dict, i: int) -> dict:
+    return {k: v[i] for k, v in stacked.items()}
+
+
+def _candidate_scorer(problem: TuningProblem, settings: TuneSettings, what: str) -> Callable:
+    """``candidates -> (objectives, diverged)`` for a stack of candidates (any number, scored
+    :data:`CANDIDATE_CHUNK` at a time, one batched call each): the training objective of :func:`tune` (inf where
+    every plant diverged or it is not finite) and the count of diverged training plants."""
+    size = problem.batch_size(problem.train)
+    chunk = {k: np.repeat(np.asarray(v)[None], CANDIDATE_CHUNK, 0) for k, v in _strong(problem.theta0).items()}
+    score, train, _ = _compile_spread(
+        lambda mesh: jax.vmap(_objective_fn(problem, settings, _spread(problem.losses, mesh, size)), in_axes=(0, None)),
+        problem.train, chunk, f"{CANDIDATE_CHUNK} {what}' {size} training rollouts each",
+        hint="use fewer training plants",
+    )  # fmt: skip
+
+    def scores(candidates: dict):
+        count = len(next(iter(candidates.values())))
+        rows = np.minimum(np.arange(-(-count // CANDIDATE_CHUNK) * CANDIDATE_CHUNK), count - 1)  # pad with the last
+        values, diverged = [], []
+        for first in range(0, rows.size, CANDIDATE_CHUNK):
+            part = {k: v[rows[first : first + CANDIDATE_CHUNK]] for k, v in candidates.items()}
+            value, failed = _host(score(part, train))
+            counts = np.sum(np.asarray(failed), axis=1)
+            values.append(np.where((counts < size) & np.isfinite(value), value, np.inf))
+            diverged.append(counts)
+        return np.concatenate(values)[:count], np.concatenate(diverged)[:count]
+
+    return scores
+
+
+def _screen(problem: TuningProblem, settings: TuneSettings, count: int) -> tuple[dict, dict]:
+    """``(starts, report)``: the ``count`` best (fewest diverged plants, then lowest objective) of ``theta0`` and
+    ``settings.screening`` scrambled-Sobol candidates in the search box, stacked; the report gives the screened
+    count and the best objectives."""
+    from scipy.stats import qmc
+
+    theta0 = {k: np.asarray(v) for k, v in _strong(problem.theta0).items()}
+    dim = sum(v.size for v in theta0.values())
+    sobol = qmc.Sobol(dim, scramble=True, seed=settings.seed)
+    unit = sobol.random_base2(max(0, math.ceil(math.log2(settings.screening))))[: settings.screening]
+    drawn = _in_box(_search_box(problem, settings.spread), theta0, unit)
+    candidates = {k: np.concatenate([theta0[k][None], drawn[k]]) for k in theta0}
+    values, diverged = _candidate_scorer(problem, settings, "screening candidates")(candidates)
+    order = np.lexsort((values, diverged))[:count]
+    starts = {k: v[order] for k, v in candidates.items()}
+    return starts, {"screened": int(values.size), "theta0": float(values[0]), "best": values[order].tolist()}
 
 
 # --------------------------------------------------------------------------------------------
 # The loop
 
 
+def _new_lane(batch: int) -> dict:
+    return {"evaluations": 0, "scale": 1.0, "best_objective": math.inf, "best_diverged": batch, "diverged": batch,
+            "since_best": 0, "rejections": 0, "stopped": ""}  # fmt: skip
+
+
+def _per_start(values: np.ndarray, leaf) -> np.ndarray:
+    """``values`` (K,), one per start, shaped to broadcast against ``leaf`` (K, ...)."""
+    return values.reshape((-1,) + (1,) * (np.ndim(leaf) - 1))
+
+
+def _where(mask: np.ndarray, new, old):
+    """Per start (the leading axis): ``new`` where ``mask``, else ``old``, leaf by leaf."""
+    return jax.tree.map(lambda a, b: np.where(_per_start(mask, a), a, b), new, old)
+
+
+def _initial(problem: TuningProblem, settings: TuneSettings, initial) -> tuple[dict, int]:
+    """The stacked starting points and their count: ``initial`` (a list of ``theta``), else ``theta0`` repeated
+    ``settings.starts`` times (the screening, if any, replaces them)."""
+    theta0 = {k: np.asarray(v) for k, v in _strong(problem.theta0).items()}
+    if initial is None:
+        if settings.starts > 1 and settings.screening < settings.starts - 1:
+            raise ValueError(
+                f"starts = {settings.starts} needs screening >= {settings.starts - 1} candidates to start from (or "
+                "pass initial=)"
+            )
+        return {k: np.repeat(v[None], settings.starts, 0) for k, v in theta0.items()}, settings.starts
+    initial = list(initial)
+    if not initial:
+        raise ValueError("initial must hold at least one theta")
+    for i, theta in enumerate(initial):
+        shapes = {k: np.shape(v) for k, v in theta.items()} if isinstance(theta, dict) else None
+        if shapes != {k: v.shape for k, v in theta0.items()}:
+            want = {k: v.shape for k, v in theta0.items()}
+            raise ValueError(f"initial[{i}] must have theta0's entries and shapes {want}, got {shapes}")
+    return {k: np.stack([np.asarray(t[k], v.dtype) for t in initial]) for k, v in theta0.items()}, len(initial)
+
+
 def tune(
     problem: TuningProblem,
     settings: TuneSettings = TuneSettings(),
     *,
+    initial: list[dict] | None = None,
     checkpoint: str | Path | None = None,
     progress: bool = True,
     tag: str = "",
 ) -> TuneResult:
-    """Minimise the robust objective of ``problem``'s training losses from ``problem.theta0``.
+    """Minimise the robust objective of ``problem``'s training losses from one or more starting points.
 
-    Each evaluation computes the objective and its gradient (one rollout per training plant). An accepted
-    evaluation takes an optax step ``theta <- theta + s * update`` with step scale ``s`` (1 normally); a
-    rejected one (see the module docstring) is logged, returns to the last accepted ``theta`` and retries with
-    ``s / 2`` (``s`` doubles back towards 1 on each acceptance). Training plants that diverge under the initial
-    design are penalised and logged; the initial design must not fail on every plant (:class:`TuningError`), nor
-    may ``max_rejections`` retries in a row.
+    The starting points are ``initial`` if given, else ``theta0`` and, with ``settings.screening`` candidates, the
+    ``settings.starts`` best of ``theta0`` and the screened candidates. They run together: each step evaluates
+    the objective and its gradient at every start in one call (one rollout per training plant and start). An
+    accepted evaluation takes an optax step ``theta <- theta + s * update`` with step scale ``s`` (1 normally); a
+    rejected one (see the module docstring) is logged, returns to the start's last accepted ``theta`` and retries
+    with ``s / 2`` (``s`` doubles back towards 1 on each acceptance). A start stops when it has converged (no
+    relative improvement of ``min_improvement`` in ``patience`` evaluations), at the cap ``steps``, or after
+    ``max_rejections`` rejections in a row; each start's run is the run :func:`tune` makes from it alone. Training
+    plants that diverge at a start are penalised and logged; a start that fails on every plant is dropped, and
+    when every start fails (or every one ends in rejections) a :class:`TuningError` says why.
 
     Args:
       problem: the :class:`TuningProblem`.
       settings: :class:`TuneSettings`.
-      checkpoint: a ``.npz`` path: written every ``settings.checkpoint_every`` evaluations, at the end and on
-        Ctrl-C, and resumed from when it exists (it must come from the same problem, program, settings and
-        ``tag``).
+      initial: starting points (a list of dicts shaped like ``theta0``), replacing ``theta0`` and the screening.
+      checkpoint: a ``.npz`` path: written after the screening, every ``settings.checkpoint_every`` steps, at the
+        end and on Ctrl-C, and resumed from when it exists (it must come from the same problem, program, settings
+        and ``tag``).
       progress: show a progress bar with the objective.
       tag: a string identifying the problem's configuration, checked when resuming.
 
     Returns:
-      :class:`TuneResult` with the best accepted ``theta``. Ctrl-C raises
+      :class:`TuneResult` with the best accepted ``theta`` over the starts. Ctrl-C raises
       :class:`jaxobs._resources.Interrupted` after saving the checkpoint.
+
+    Example::
+
+        >>> import jax.numpy as jnp, optax
+        >>> from jaxobs.tuning import TuneSettings, TuningProblem, tune
+        >>> losses = lambda theta, t: ((theta["x"] - t) ** 2, t < -1e9)
+        >>> problem = TuningProblem({"x": jnp.array(0.0)}, losses, jnp.array([1.0, 3.0]), jnp.array([2.0]))
+        >>> result = tune(problem, TuneSettings(optax.adam(0.3), starts=4, screening=15), progress=False)
+        >>> round(float(result.theta["x"]), 2), len(result.starts)
+        (2.0, 4)
     """
     from tqdm.auto import tqdm
 
@@ -568,12 +783,16 @@ def tune(
     start = time.perf_counter()
     optimizer = optax.with_extra_args_support(settings.optimizer)
     batch = problem.batch_size(problem.train)
-    theta0 = _strong(problem.theta0)
-    zeros = jax.tree.map(jnp.zeros_like, theta0)
-    trees = {"theta": theta0, "anchor": theta0, "update": zeros, "best": theta0, "opt": optimizer.init(theta0)}
-    meta = {"evaluations": 0, "scale": 1.0, "best_objective": math.inf, "best_diverged": batch, "diverged": batch,
-            "since_best": 0, "rejections": 0, "seconds": 0.0}  # fmt: skip
-    history: list = []
+    thetas, count = _initial(problem, settings, initial)
+    mode = gradient_mode(settings, problem.theta0)
+
+    def fresh(thetas):
+        zeros = jax.tree.map(np.zeros_like, thetas)
+        opt = _host(jax.vmap(optimizer.init)(thetas))
+        return {"start": thetas, "theta": thetas, "anchor": thetas, "update": zeros, "best": thetas, "opt": opt}
+
+    trees = fresh(thetas)
+    meta = {"iterations": 0, "screened": 0, "seconds": 0.0, "lanes": [_new_lane(batch) for _ in range(count)]}
     path = Path(checkpoint) if checkpoint is not None else None
     writer = jax.process_index() == 0  # process 0 alone reads and writes the checkpoint; the others follow it
     resume, error = writer and path is not None and path.exists(), None
@@ -584,22 +803,41 @@ def tune(
             error = exc
     _agree(error)
     evaluation = _evaluations(problem, settings, None)[0]
-    lowered = _lower_gradient(evaluation, theta0, problem.train, settings.gradient)  # the fingerprint's program
-    fingerprint = _fingerprint(problem, settings, tag, lowered.as_text())
+    lowered = _lower_gradient(evaluation, thetas, problem.train, mode)  # the fingerprint's program
+    given = "" if initial is None else json.dumps(_as_numpy(thetas))  # the starting points, when given
+    fingerprint = _fingerprint(problem, settings, tag + given, lowered.as_text())
     if resume and meta.pop("fingerprint") != fingerprint:
         error = CheckpointError(
             f"{path}: written for a different problem, program or settings; delete it (or use another --out) "
             "to start over"
         )
     _agree(error, bytes.fromhex(fingerprint))
-    trees, meta = jax.tree.map(jnp.asarray, from_process_0(trees)), json_from_process_0(meta)
-    history = meta.pop("history", [])
+    trees, meta = _host(from_process_0(trees)), json_from_process_0(meta)
+    lanes = meta["lanes"]
+    histories = [lane.pop("history", []) for lane in lanes]
+    for lane in lanes:  # a larger cap continues the starts the former one stopped
+        if lane["stopped"] == "steps" and lane["evaluations"] < settings.steps:
+            lane["stopped"] = ""
+    previous_seconds = meta["seconds"]
+
+    def save(trees, meta, histories):
+        meta["seconds"] = previous_seconds + time.perf_counter() - start
+        if path is not None and writer:
+            lanes = [{**lane, "history": h} for lane, h in zip(meta["lanes"], histories, strict=True)]
+            _save_checkpoint(path, trees, {**meta, "lanes": lanes, "fingerprint": fingerprint})
+
     if resume:
-        logger.info("resuming from %s at evaluation %d", path, meta["evaluations"])
+        logger.info("resuming from %s at step %d", path, meta["iterations"])
+    elif initial is None and settings.screening > 0:
+        screened, report = _screen(problem, settings, count)
+        trees, meta["screened"] = fresh(screened), report["screened"]
+        logger.info("screened %d candidates: objective %.4g at theta0, best %s", report["screened"],
+                    report["theta0"], ", ".join(f"{v:.4g}" for v in report["best"]))  # fmt: skip
+        save(trees, meta, histories)
     evaluate_with_grad, train, mesh = _compile_spread(
-        lambda mesh: _evaluations(problem, settings, mesh)[0], problem.train, theta0,
-        f"one evaluation of the {batch} training rollouts",
-        hint="use fewer training plants, shorter rollouts or a gradient_horizon", alone=lowered,
+        lambda mesh: _evaluations(problem, settings, mesh)[0], problem.train, trees["theta"],
+        f"one evaluation of the {batch} training rollouts at {count} start(s)",
+        hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon", alone=lowered,
     )  # fmt: skip
     sound_gradient = _evaluations(problem, settings, mesh)[1]
     sound_gradient = sound_gradient and _jit(sound_gradient, mesh, (False, True, False))  # compiled if ever needed
@@ -610,100 +848,137 @@ def tune(
             grad, state, theta, value=value, grad=grad, value_fn=lambda th: objective(th, placed)[0]
         )
 
-    update_step = _jit(step_update, mesh, (False, False, False, False, True))
-    previous_seconds = meta["seconds"]
-
-    def save(trees, meta, history):
-        meta["seconds"] = previous_seconds + time.perf_counter() - start
-        if path is not None and writer:
-            _save_checkpoint(path, trees, {**meta, "fingerprint": fingerprint, "history": history})
-
-    stopped = "steps"
-    bar = tqdm(total=settings.steps, initial=meta["evaluations"], desc="tune", disable=not (progress and writer),
-               unit="eval")  # fmt: skip
-    saved = (dict(trees), dict(meta), len(history))
+    update_step = _jit(jax.vmap(step_update, in_axes=(0, 0, 0, 0, None)), mesh, (False,) * 4 + (True,))
+    named = (lambda k: f"start {k}: ") if count > 1 else (lambda k: "")
+    bar = tqdm(total=settings.steps, initial=meta["iterations"], desc="tune", disable=not (progress and writer),
+               unit="step")  # fmt: skip
+    saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])
     with InterruptWatch() as watch:
         try:
-            while meta["evaluations"] < settings.steps and meta["since_best"] < settings.patience:
+            while meta["iterations"] < settings.steps and not all(lane["stopped"] for lane in lanes):
                 watch.check()
-                saved = (dict(trees), dict(meta), len(history))  # a consistent state for Ctrl-C
+                saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])  # consistent, for Ctrl-C
                 step_start = time.perf_counter()
-                (value, failed), grad = _host(evaluate_with_grad(_host(trees["theta"]), train))
-                if sound_gradient is not None and 0 < np.sum(failed) < batch and not _finite(grad):
-                    grad = _host(sound_gradient(_host(trees["theta"]), train, failed))
-                first = meta["evaluations"] == 0
-                meta["evaluations"] += 1
-                count = int(np.sum(np.asarray(failed)))
-                reason = _failure(value, grad, failed, batch - 1 if first else meta["diverged"])
-                record = {
-                    "evaluation": meta["evaluations"],
-                    "objective": float(value) if np.isfinite(float(value)) else None,
-                    "diverged": count,
-                    "accepted": reason is None,
-                    "reason": reason,
-                    "scale": meta["scale"],
-                    "grad_norm": float(optax.tree.norm(grad)) if reason is None else None,
-                    "theta": _as_numpy(trees["theta"]),
-                }
-                if reason is not None:
-                    if first:
-                        raise TuningError(f"the initial parameters fail on the training batch: {reason}")
-                    meta["rejections"] += 1
-                    meta["scale"] /= 2
-                    logger.warning(
-                        "evaluation %d: step rejected: %s; retrying from the last accepted point with step scale %g",
-                        meta["evaluations"], reason, meta["scale"],
-                    )  # fmt: skip
-                    if meta["rejections"] > settings.max_rejections:
-                        save(trees, meta, history + [record])
-                        raise TuningError(
-                            f"{meta['rejections']} consecutive steps rejected (last: {reason}); lower the learning rate"
-                        )
-                    trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["anchor"], trees["update"])
-                else:
-                    if first and count:
-                        logger.warning(
-                            "%d of %d training plants diverge under the initial design; each counts as at least %g "
-                            "times the largest loss of the others", count, batch, settings.divergence_factor,
-                        )  # fmt: skip
-                    meta["rejections"], meta["diverged"] = 0, count
-                    value = float(value)
-                    improved = count < meta["best_diverged"] or value < meta["best_objective"] * (
-                        1 - settings.min_improvement
-                    )
-                    meta["since_best"] = 0 if improved else meta["since_best"] + 1
-                    if (count, value) < (meta["best_diverged"], meta["best_objective"]):
-                        meta["best_diverged"], meta["best_objective"], trees["best"] = count, value, trees["theta"]
-                    update, trees["opt"] = update_step(grad, trees["opt"], _host(trees["theta"]), value, train)
-                    meta["scale"] = min(1.0, 2 * meta["scale"])
-                    trees["anchor"], trees["update"] = trees["theta"], update
-                    trees["theta"] = jax.tree.map(lambda a, u: a + meta["scale"] * u, trees["theta"], update)
-                record["seconds"] = time.perf_counter() - step_start
-                history.append(record)
-                bar.update(1)
-                bar.set_postfix(
-                    objective=f"{value:.4g}" if reason is None else "rejected", best=f"{meta['best_objective']:.4g}"
+                (values, failed), grads = _host(evaluate_with_grad(trees["theta"], train))
+                counts = np.sum(failed, axis=1)
+                running = np.array([not lane["stopped"] for lane in lanes])
+                poisoned = running & (counts > 0) & (counts < batch)
+                poisoned &= ~np.all(
+                    [np.all(np.isfinite(g), axis=tuple(range(1, g.ndim))) for g in jax.tree.leaves(grads)], 0
                 )
-                if meta["evaluations"] % settings.checkpoint_every == 0:
-                    save(trees, meta, history)
+                if sound_gradient is not None and poisoned.any():
+                    grads = _where(poisoned, _host(sound_gradient(trees["theta"], train, failed)), grads)
+                meta["iterations"] += 1
+                accepted, rejected = np.zeros(count, bool), np.zeros(count, bool)
+                for k in np.flatnonzero(running):
+                    lane, grad = lanes[k], jax.tree.map(lambda g, k=k: g[k], grads)
+                    first = lane["evaluations"] == 0
+                    lane["evaluations"] += 1
+                    value, diverged = values[k], int(counts[k])
+                    reason = _failure(value, grad, failed[k], batch - 1 if first else lane["diverged"])
+                    record = {
+                        "evaluation": lane["evaluations"],
+                        "objective": float(value) if np.isfinite(float(value)) else None,
+                        "diverged": diverged,
+                        "accepted": reason is None,
+                        "reason": reason,
+                        "scale": lane["scale"],
+                        "grad_norm": float(optax.tree.norm(grad)) if reason is None else None,
+                        "theta": _as_numpy(_row(trees["theta"], k)),
+                        "seconds": time.perf_counter() - step_start,
+                    }
+                    histories[k].append(record)
+                    if reason is not None and first:
+                        lane["stopped"] = "failed"
+                        logger.warning("%sthe starting point fails on the training batch: %s", named(k), reason)
+                    elif reason is not None:
+                        rejected[k] = True
+                        lane["rejections"] += 1
+                        lane["scale"] /= 2
+                        logger.warning(
+                            "%sevaluation %d: step rejected: %s; retrying from the last accepted point with step "
+                            "scale %g", named(k), lane["evaluations"], reason, lane["scale"],
+                        )  # fmt: skip
+                        if lane["rejections"] > settings.max_rejections:
+                            lane["stopped"] = "rejected"
+                    else:
+                        if first and diverged:
+                            logger.warning(
+                                "%s%d of %d training plants diverge under the initial design; each counts as at "
+                                "least %g times the largest loss of the others", named(k), diverged, batch,
+                                settings.divergence_factor,
+                            )  # fmt: skip
+                        accepted[k] = True
+                        lane["rejections"], lane["diverged"], value = 0, diverged, float(value)
+                        improved = diverged < lane["best_diverged"] or value < lane["best_objective"] * (
+                            1 - settings.min_improvement
+                        )
+                        lane["since_best"] = 0 if improved else lane["since_best"] + 1
+                        if (diverged, value) < (lane["best_diverged"], lane["best_objective"]):
+                            lane["best_diverged"], lane["best_objective"] = diverged, value
+                            trees["best"] = _where(np.arange(count) == k, trees["theta"], trees["best"])
+                        lane["scale"] = min(1.0, 2 * lane["scale"])
+                        if lane["since_best"] >= settings.patience:
+                            lane["stopped"] = "converged"
+                    if not lane["stopped"] and lane["evaluations"] >= settings.steps:
+                        lane["stopped"] = "steps"
+                if all(lane["stopped"] == "failed" for lane in lanes):
+                    reasons = "; ".join(h[-1]["reason"] for h in histories if h)
+                    raise TuningError(
+                        f"the initial parameters fail on the training batch: {reasons}" if count == 1 else
+                        f"every one of the {count} starting points fails on the training batch: {reasons}"
+                    )  # fmt: skip
+                scale = np.array([lane["scale"] for lane in lanes])
+                if accepted.any():
+                    update, opt = _host(update_step(grads, trees["opt"], trees["theta"], values, train))
+                    trees["opt"] = _where(accepted, opt, trees["opt"])
+                    trees["anchor"] = _where(accepted, trees["theta"], trees["anchor"])
+                    trees["update"] = _where(accepted, update, trees["update"])
+                moved = jax.tree.map(lambda a, u, s=scale: a + _per_start(s, a) * u, trees["anchor"], trees["update"])
+                trees["theta"] = _where(accepted | rejected, moved, trees["theta"])
+                bar.update(1)
+                best = min(lane["best_objective"] for lane in lanes)
+                bar.set_postfix(best=f"{best:.4g}", running=int(sum(not lane["stopped"] for lane in lanes)))
+                if meta["iterations"] % settings.checkpoint_every == 0:
+                    save(trees, meta, histories)
+                if all(lane["stopped"] in ("rejected", "failed") for lane in lanes):
+                    save(trees, meta, histories)
+                    last = next(h[-1]["reason"] for h in histories if h and h[-1]["reason"])
+                    rejections = max(lane["rejections"] for lane in lanes)
+                    raise TuningError(
+                        f"{rejections} consecutive steps rejected (last: {last}); lower the learning rate"
+                    )
         except KeyboardInterrupt as exc:
             trees, meta, done = saved
+            histories = [h[:n] for h, n in zip(histories, done, strict=True)]
             where = ""
-            if meta["evaluations"] > 0 and path is not None and writer:
-                save(trees, meta, history[:done])
+            if meta["iterations"] > 0 and path is not None and writer:
+                save(trees, meta, histories)
                 where = f"; checkpoint saved to {path}"
             raise Interrupted(
-                f"interrupted after {meta['evaluations']} of {settings.steps} evaluations{where}; "
+                f"interrupted after {meta['iterations']} of {settings.steps} evaluations{where}; "
                 "rerun the same command to resume"
             ) from exc
         finally:
             bar.close()
-    if meta["since_best"] >= settings.patience:
-        stopped = "converged"
-    save(trees, meta, history)
+    save(trees, meta, histories)
+    starts = tuple(
+        StartResult(
+            _row(trees["start"], k),
+            _row(trees["best"], k),
+            lane["best_objective"],
+            lane["best_diverged"],
+            lane["stopped"] or "steps",
+            lane["evaluations"],
+            histories[k],
+        )  # fmt: skip
+        for k, lane in enumerate(lanes)
+    )
+    best = min(range(count), key=lambda k: (starts[k].diverged, starts[k].objective))
     return TuneResult(
-        trees["best"], meta["best_objective"], history, stopped, meta["evaluations"], meta["evaluations"] * batch,
-        meta["best_diverged"], meta["seconds"],
+        starts[best].theta, starts[best].objective, starts[best].history, starts[best].stopped,
+        sum(s.evaluations for s in starts), (meta["screened"] + meta["iterations"] * count) * batch,
+        starts[best].diverged, meta["seconds"], starts,
     )  # fmt: skip
 
 
@@ -714,7 +989,7 @@ class SearchResult(NamedTuple):
       candidates: every candidate theta, the first being theta0
       objectives: training objective per candidate (inf where every plant diverged)
       diverged: diverged training plants per candidate
-      elapsed: wall time (s) when each candidate was scored, compilation included
+      elapsed: wall time (s) when each candidate's score was known, compilation included
       rollouts_per_candidate: training plants each candidate was rolled out on
     """
 
@@ -736,34 +1011,29 @@ class SearchResult(NamedTuple):
         return max(1, int(np.searchsorted(self.elapsed, seconds, side="right")))
 
 
-def _search_box(problem: TuningProblem, spread: float) -> dict:
-    if problem.search_box is not None:
-        return {k: (jnp.asarray(lo), jnp.asarray(hi)) for k, (lo, hi) in problem.search_box.items()}
-    return {k: (jnp.asarray(v) - spread, jnp.asarray(v) + spread) for k, v in problem.theta0.items()}
-
-
 def random_search(
     problem: TuningProblem,
     settings: TuneSettings,
     num_candidates: int,
     *,
     seconds: float = 0.0,
-    spread: float = 2.0,
+    spread: float | None = None,
     seed: int = 0,
     progress: bool = True,
 ) -> SearchResult:
     """Gradient-free baseline: ``theta0``, then candidates drawn uniformly from ``problem.search_box`` (default:
     ``theta0 +- spread`` per unconstrained coordinate, a factor up to ``e^spread`` on log-parameters), each
-    scored by the same penalised training objective as :func:`tune` (one rollout per training plant). Draws at
-    least ``num_candidates`` and goes on until ``seconds`` of wall time (compilation included) have passed, so
-    that one search gives the baseline at equal rollouts (:meth:`SearchResult.best` of the first ones) and at
-    equal wall time (:meth:`SearchResult.within`).
+    scored by the same penalised training objective as :func:`tune` (one rollout per training plant),
+    :data:`CANDIDATE_CHUNK` candidates per batched call. Draws at least ``num_candidates`` and goes on, a chunk at
+    a time, until ``seconds`` of wall time (compilation included) have passed, so that one search gives the
+    baseline at equal rollouts (:meth:`SearchResult.best` of the first ones) and at equal wall time
+    (:meth:`SearchResult.within`).
 
     Args:
       problem: the :class:`TuningProblem`.  settings: the objective's settings (as for :func:`tune`).
       num_candidates: candidates drawn at least.  seconds: keep drawing until this much wall time has passed.
-      spread: half-width of the default box in unconstrained coordinates.  seed: PRNG seed of the draws.
-      progress: show a progress bar.
+      spread: half-width of the default box in unconstrained coordinates (default ``settings.spread``).
+      seed: seed of the draws.  progress: show a progress bar.
     """
     from tqdm.auto import tqdm
 
@@ -771,34 +1041,29 @@ def random_search(
     if num_candidates < 1:
         raise ValueError(f"num_candidates must be >= 1, got {num_candidates}")
     start = time.perf_counter()
-    size = problem.batch_size(problem.train)
-    score, train, _ = _compile_spread(
-        lambda mesh: _objective_fn(problem, settings, _spread(problem.losses, mesh, size)), problem.train,
-        problem.theta0, f"one random-search candidate's {size} training rollouts", hint="use fewer training plants",
-    )  # fmt: skip
-    box = _search_box(problem, spread)
-    theta0 = _strong(problem.theta0)
-    key = jax.random.PRNGKey(seed)
+    scores = _candidate_scorer(problem, settings, "random-search candidates")
+    theta0 = {k: np.asarray(v) for k, v in _strong(problem.theta0).items()}
+    box = _search_box(problem, settings.spread if spread is None else spread)
+    dim, rng = sum(v.size for v in theta0.values()), np.random.default_rng(seed)
     candidates, values, diverged, elapsed = [], [], [], []
     bar = tqdm(total=num_candidates, desc="random search", disable=not (progress and jax.process_index() == 0),
-               unit="eval")  # fmt: skip
+               unit="candidate")  # fmt: skip
     while len(candidates) < num_candidates or from_process_0(np.bool_(elapsed[-1] < seconds)):  # process 0's clock
-        key, sub = jax.random.split(key)
-        keys = dict(zip(theta0, jax.random.split(sub, len(theta0)), strict=True))
-        candidate = theta0 if not candidates else {
-            k: jax.random.uniform(keys[k], v.shape, v.dtype, box[k][0], box[k][1]) for k, v in theta0.items()
-        }  # fmt: skip
-        value, failed = _host(score(_host(candidate), train))
-        count = int(np.sum(np.asarray(failed)))
-        candidates.append(candidate)
-        values.append(float(value) if count < np.size(failed) and np.isfinite(float(value)) else math.inf)
-        diverged.append(count)
-        elapsed.append(time.perf_counter() - start)
-        bar.update(1)
+        drawn = _in_box(box, theta0, rng.random((CANDIDATE_CHUNK, dim)))
+        if not candidates:
+            drawn = {k: np.concatenate([theta0[k][None], v[:-1]]) for k, v in drawn.items()}
+        value, count = scores(drawn)
+        now = time.perf_counter() - start
+        short = num_candidates - len(candidates)  # a last chunk past the time budget keeps only what is missing
+        keep = CANDIDATE_CHUNK if short <= 0 or from_process_0(np.bool_(now < seconds)) else min(short, CANDIDATE_CHUNK)
+        candidates += [_row(drawn, i) for i in range(keep)]
+        values += value[:keep].tolist()
+        diverged += count[:keep].tolist()
+        elapsed += [now] * keep
+        bar.update(keep)
     bar.close()
-    return SearchResult(
-        candidates, np.asarray(values), np.asarray(diverged), np.asarray(elapsed), problem.batch_size(problem.train)
-    )
+    return SearchResult(candidates, np.asarray(values), np.asarray(diverged), np.asarray(elapsed),
+                        problem.batch_size(problem.train))  # fmt: skip
 
 
 def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneSettings(), batch=None) -> dict:

@@ -353,3 +353,31 @@ def test_cli_tune_in_two_processes(tuned_mjx, tmp_path):
     summary = json.loads((tmp_path / "out0" / "tuned.json").read_text())
     assert summary["evaluations"] == 3
     np.testing.assert_allclose(summary["train_objective"]["tuned"], tuned_mjx["objective"], rtol=1e-12)
+
+
+def test_a_killed_population_run_resumes_to_the_same_result(tmp_path):
+    """3 starts seeded by 7 screened candidates (analytic problem): SIGKILL once the first checkpoint is written
+    (the screening's), rerun: it resumes without screening again and ends where the uninterrupted run ended,
+    start by start."""
+    population = ["--starts", "3", "--screening", "7"]
+    (straight,) = _tune(1, tmp_path / "straight.npz", *population)
+    checkpoint = tmp_path / "killed.npz"
+    procs = _start(TUNE_SCRIPT, 1, lambda pid: [checkpoint, *population], env={"TUNE_SLEEP": "2"})
+    deadline = time.monotonic() + 300
+    try:
+        while not checkpoint.exists():
+            assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
+            assert time.monotonic() < deadline, "no checkpoint was written"
+            time.sleep(0.05)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.communicate()
+    (resumed,) = _tune(1, checkpoint, *population)
+    assert 0 < resumed["checkpoints_written"] < straight["checkpoints_written"]  # resumed, not restarted
+    _assert_same_tuning(resumed, straight)
+    assert len(resumed["starts"]) == 3
+    for got, want in zip(resumed["starts"], straight["starts"], strict=True):
+        assert (got["stopped"], got["evaluations"]) == (want["stopped"], want["evaluations"])
+        np.testing.assert_allclose(got["objective"], want["objective"], rtol=1e-12)
+        np.testing.assert_allclose(got["theta"]["log_gain"], want["theta"]["log_gain"], rtol=1e-12)

@@ -216,7 +216,7 @@ def test_a_diverged_rollout_does_not_poison_the_gradient(mode):
     batch = {"t": jnp.array([0.0, 3.0, 0.0]), "s": jnp.array([0.0, 0.0, 800.0])}
     problem = TuningProblem({"x": jnp.asarray(1.0)}, losses, batch, batch)
     plain = jax.jit(tuning._evaluations(problem, TuneSettings(gradient=mode), None)[0])  # one device
-    grad = plain({"x": jnp.asarray(1.0)}, batch)[1]["x"]
+    grad = plain({"x": jnp.asarray([1.0])}, batch)[1]["x"][0]  # one starting point
     assert bool(jnp.isnan(grad)) == (mode == "reverse")
     result = tune(problem, TuneSettings(gradient=mode, steps=1), progress=False)
     first = result.history[0]
@@ -259,6 +259,11 @@ def _rewrite(path, edit_meta=None, edit_arrays=None):
     np.savez(path, meta=np.array(json.dumps(meta)), **arrays)
 
 
+def _edit_lane(meta, edit):
+    edit(meta["lanes"][0])
+    return meta
+
+
 def _nan_floats(arrays):
     return {k: np.full_like(v, np.nan) if v.dtype.kind == "f" else v for k, v in arrays.items()}
 
@@ -269,13 +274,17 @@ def _nan_floats(arrays):
         (lambda p: p.write_bytes(b""), "corrupt or unreadable"),
         (lambda p: p.write_bytes(b"not a checkpoint"), "corrupt or unreadable"),
         (lambda p: _rewrite(p, edit_meta=lambda m: [m]), "meta is a JSON list"),
-        (lambda p: _rewrite(p, edit_meta=lambda m: {k: v for k, v in m.items() if k != "scale"}), "meta.scale"),
-        (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "evaluations": "3"}), "meta.evaluations"),
-        (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "history": m["history"][:-1]}), "history has 2 entries"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.pop("scale"))),
+         r"meta.lanes\[0\].scale is missing"),  # fmt: skip
+        (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "iterations": "3"}), "meta.iterations"),
+        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane["history"].pop())),
+         "history has 2 entries"),  # fmt: skip
+        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.update(stopped="tired"))),
+         "stop reason out of range"),  # fmt: skip
         (lambda p: _rewrite(p, edit_arrays=_nan_floats), "holds NaN"),
         (
             lambda p: _rewrite(p, edit_arrays=lambda a: dict(list(a.items())[:-1])),
-            "damaged checkpoint .6 arrays, written with 7",
+            "damaged checkpoint .7 arrays, written with 8",
         ),
     ],
 )
@@ -396,7 +405,7 @@ def test_a_while_loop_in_reverse_mode_is_refused_before_anything_runs():
 
     problem = TuningProblem(theta0={"a": jnp.array(0.5)}, losses=losses, train=jnp.ones(4), heldout=jnp.ones(4))
     with pytest.raises(TuningError, match="reverse mode cannot differentiate a while loop in the rollouts"):
-        tune(problem, TuneSettings(steps=2), progress=False)
+        tune(problem, TuneSettings(steps=2, gradient="reverse"), progress=False)
     result = tune(problem, TuneSettings(steps=2, gradient="forward"), progress=False)
     assert result.evaluations == 2
 
@@ -409,3 +418,56 @@ def test_any_optax_optimiser_is_an_object_and_lbfgs_gets_its_line_search():
     assert float(result.theta["x"]) == pytest.approx(2.0, abs=1e-6)
     with pytest.raises(ValueError, match="optimizer must be an optax.GradientTransformation"):
         tune(quadratic_problem(), TuneSettings("lbfgs"), progress=False)
+
+
+def test_k_starts_run_together_as_k_separate_runs(caplog):
+    """Three starting points in one vmapped run (one of them beyond the divergence limit, so it fails at once) give
+    each start the history of its own run; the result is the best start."""
+    s = TuneSettings(optax.adam(0.5), steps=25, patience=6, checkpoint_every=1000)
+    problem = quadratic_problem(limit=1.5)
+    starts = [{"x": jnp.asarray(x)} for x in (0.0, -2.0, 2.5)]
+    with caplog.at_level(logging.WARNING, logger="jaxobs.tuning"):
+        together = tune(problem, s, initial=starts, progress=False)
+    assert "start 2: the starting point fails on the training batch" in caplog.text
+    assert [r.stopped for r in together.starts][2] == "failed"
+    for start, got in zip(starts[:2], together.starts[:2], strict=True):
+        alone = tune(problem, s, initial=[start], progress=False)
+        assert got.stopped == alone.stopped and got.evaluations == alone.evaluations
+        assert [h["accepted"] for h in got.history] == [h["accepted"] for h in alone.history]
+        objectives = [[np.nan if h["objective"] is None else h["objective"] for h in r.history] for r in (got, alone)]
+        np.testing.assert_allclose(*objectives, rtol=1e-13)
+        np.testing.assert_allclose(got.theta["x"], alone.theta["x"], rtol=1e-13)
+        assert float(got.start["x"]) == float(start["x"])
+    best = min(together.starts[:2], key=lambda r: r.objective)
+    assert together.objective == best.objective and together.history is best.history
+    assert together.evaluations == sum(r.evaluations for r in together.starts)
+    with pytest.raises(TuningError, match="every one of the 2 starting points fails"):
+        tune(problem, s, initial=starts[2:] * 2, progress=False)
+    with pytest.raises(ValueError, match=r"initial\[1\] must have theta0's entries"):
+        tune(problem, s, initial=[starts[0], {"y": 1.0}], progress=False)
+
+
+def test_screening_seeds_the_starts_with_the_best_candidates(caplog):
+    """15 Sobol candidates in theta0 +- 2 and theta0 are scored in batched calls; the 4 best are the starts, in
+    order; every start converges to the mean optimum (2); the rollouts count the screening."""
+    s = TuneSettings(optax.adam(0.3), steps=60, patience=5, starts=4, screening=15, seed=3)
+    problem = quadratic_problem(start=-1.0)
+    with caplog.at_level(logging.INFO, logger="jaxobs.tuning"):
+        result = tune(problem, s, progress=False)
+    assert "screened 16 candidates" in caplog.text
+    firsts = [r.history[0]["objective"] for r in result.starts]
+    assert firsts == sorted(firsts) and firsts[0] < 14 / 3 + 8  # below theta0's objective (x = -1: 26/3)
+    assert all(-3.0 <= float(r.start["x"]) <= 1.0 for r in result.starts)
+    assert all(r.stopped == "converged" for r in result.starts) and result.converged
+    assert float(result.theta["x"]) == pytest.approx(2.0, abs=0.05)
+    steps = max(r.evaluations for r in result.starts)
+    assert result.rollouts == (16 + 4 * steps) * 3
+    with pytest.raises(ValueError, match="starts = 4 needs screening >= 3"):
+        tune(problem, dataclasses.replace(s, screening=2), progress=False)
+
+
+def test_auto_picks_forward_mode_for_few_parameters():
+    few = {"a": jnp.zeros(tuning.FORWARD_MAX_PARAMETERS)}
+    assert tuning.gradient_mode(TuneSettings(), few) == "forward"
+    assert tuning.gradient_mode(TuneSettings(), {**few, "b": jnp.zeros(())}) == "reverse"
+    assert tuning.gradient_mode(TuneSettings(gradient="reverse"), few) == "reverse"

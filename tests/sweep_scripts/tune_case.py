@@ -1,10 +1,11 @@
 """A small ``jaxobs.tuning.tune`` run, runnable as a subprocess of a multi-process test.
 
-``python tune_case.py CHECKPOINT [--config CONFIG.toml] [--evaluate] [--lapack] [--coordinator HOST:PORT
---num-processes N --process-id I]`` builds the problem of the ``jaxobs tune`` config file CONFIG.toml (over its
+``python tune_case.py CHECKPOINT [--config CONFIG.toml] [--evaluate] [--lapack] [--starts K --screening N]
+[--coordinator HOST:PORT --num-processes N --process-id I]`` builds the problem of the ``jaxobs tune`` config file CONFIG.toml (over its
 defaults), or without ``--config`` a cheap analytic problem (:func:`analytic_problem`; ``--lapack``: with a LAPACK
 kernel), tunes it with the checkpoint CHECKPOINT (resumed when it exists) and prints one JSON line: each
-evaluation's objective, diverged count and ``theta``, the best objective and ``theta``, the wall time, the device
+evaluation's objective, diverged count and ``theta``, the best objective and ``theta``, each start's result
+(``--starts``, ``--screening``: a population of the analytic problem), the wall time, the device
 and process counts, and how many checkpoint files this process wrote; ``--evaluate`` adds the held-out losses of
 the tuned ``theta`` (:func:`jaxobs.tuning.evaluate`). ``TUNE_SLEEP`` (seconds) makes every checkpoint write sleep
 first, so that a test can kill the run mid-way.
@@ -72,6 +73,8 @@ def main():
     parser.add_argument("--config")
     parser.add_argument("--evaluate", action="store_true")
     parser.add_argument("--lapack", action="store_true")
+    parser.add_argument("--starts", type=int, default=1)
+    parser.add_argument("--screening", type=int, default=0)
     parser.add_argument("--coordinator")
     parser.add_argument("--num-processes", type=int)
     parser.add_argument("--process-id", type=int)
@@ -88,7 +91,9 @@ def main():
         problem, tuned, tag = scenario.build(config), settings(config), "tiny"
     else:
         problem, tag = analytic_problem(args.lapack), "analytic"
-        tuned = jaxobs.tuning.TuneSettings(optax.adam(0.3), steps=5, checkpoint_every=1)
+        tuned = jaxobs.tuning.TuneSettings(
+            optax.adam(0.3), steps=5, checkpoint_every=1, starts=args.starts, screening=args.screening
+        )
     result = jaxobs.tuning.tune(problem, tuned, checkpoint=args.checkpoint, progress=False, tag=tag)
     out = {
         "history": [{k: h[k] for k in ("objective", "diverged", "accepted", "theta")} for h in result.history],
@@ -98,6 +103,11 @@ def main():
         "devices": len(jax.devices()),
         "processes": jax.process_count(),
         "checkpoints_written": len(WRITES),
+        "starts": [
+            {"objective": s.objective, "stopped": s.stopped, "evaluations": s.evaluations,
+             "theta": {k: np.asarray(v).tolist() for k, v in s.theta.items()}}
+            for s in result.starts
+        ],  # fmt: skip
     }
     if args.evaluate:
         out["heldout"] = jaxobs.tuning.evaluate(problem, result.theta, tuned)["losses"].tolist()
