@@ -1,14 +1,14 @@
 """A small ``jaxobs.tuning.tune`` run, runnable as a subprocess of a multi-process test.
 
 ``python tune_case.py CHECKPOINT [--config CONFIG.toml] [--evaluate] [--lapack] [--starts K --screening N]
-[--coordinator HOST:PORT --num-processes N --process-id I]`` builds the problem of the ``jaxobs tune`` config file CONFIG.toml (over its
-defaults), or without ``--config`` a cheap analytic problem (:func:`analytic_problem`; ``--lapack``: with a LAPACK
-kernel), tunes it with the checkpoint CHECKPOINT (resumed when it exists) and prints one JSON line: each
-evaluation's objective, diverged count and ``theta``, the best objective and ``theta``, each start's result
-(``--starts``, ``--screening``: a population of the analytic problem), the wall time, the device
-and process counts, and how many checkpoint files this process wrote; ``--evaluate`` adds the held-out losses of
-the tuned ``theta`` (:func:`jaxobs.tuning.evaluate`). ``TUNE_SLEEP`` (seconds) makes every checkpoint write sleep
-first, so that a test can kill the run mid-way.
+[--coordinator HOST:PORT --num-processes N --process-id I]`` builds the problem of the ``jaxobs tune`` config file
+CONFIG.toml (over its defaults), or without ``--config`` a cheap analytic problem (:func:`analytic_problem`;
+``--lapack``: with a LAPACK kernel), tunes it with the checkpoint CHECKPOINT (resumed when it exists) and prints one
+JSON line: each evaluation's objective, diverged count and ``theta``, the best objective and ``theta``, each start's
+result (``--starts``, ``--screening``: a population of the analytic problem), the wall time, the device and process
+counts, and how many checkpoint files this process wrote; ``--evaluate`` adds the held-out losses of the tuned
+``theta`` (:func:`jaxobs.tuning.evaluate`). ``TUNE_SLEEP`` (seconds) makes every checkpoint write sleep first, so
+that a test can kill the run mid-way.
 """
 
 import argparse
