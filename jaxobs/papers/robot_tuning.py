@@ -21,8 +21,9 @@ from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
     optimizer_defaults,
     search_box,
+    settings,
 )
-from jaxobs.tuning import TuningProblem
+from jaxobs.tuning import TuningProblem, gradient_mode
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]
 
@@ -56,7 +57,7 @@ DEFAULT_CONFIG = {
     },
     "design": {"q": [1e-6, 1e-6, 1e-4, 1e-4], "lqr_state": [10.0, 10.0, 1.0, 1.0], "lqr_input": [0.01]},
     "optimizer": optimizer_defaults(learning_rate=0.2, steps=20, clip_norm=5.0, patience=8, checkpoint_every=5),
-    "baseline": dict(BASELINE_DEFAULTS),
+    "baseline": {**BASELINE_DEFAULTS, "spread": 4.0},
 }
 """Tune the Kalman filter of the cart with a hanging payload of unknown mass (0.25x to 2x the nominal 0.5 kg)."""
 
@@ -145,11 +146,11 @@ def _robot(config: dict):
                       solver_iterations=rb["solver_iterations"] or None)  # fmt: skip
 
 
-def _check_differentiable(robot, config: dict) -> None:
+def _check_differentiable(robot, config: dict, theta0: dict) -> None:
     """Refuse, before anything is compiled, a model whose constraint solver reverse mode cannot differentiate."""
     from jaxobs.mjx.common import constraint_rows, initial_data
 
-    if robot.solver_iterations is None and config["optimizer"]["gradient"] == "reverse":
+    if robot.solver_iterations is None and gradient_mode(settings(config), theta0) == "reverse":
         rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
         if rows:
             raise ValueError(
@@ -166,8 +167,10 @@ def build_problem(config: dict) -> TuningProblem:
     from jaxobs.mjx.robot import linearize, mismatch, rollout
 
     robot = _robot(config)
-    _check_differentiable(robot, config)
     sc, d = config["scenario"], config["design"]
+    theta0 = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
+              "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
+    _check_differentiable(robot, config, theta0)
     n_x, p = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors)
     for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),
                             ("design.q", n_x, "qpos and qvel entry")):  # fmt: skip
@@ -238,8 +241,6 @@ def build_problem(config: dict) -> TuningProblem:
             "kalman_gain": np.asarray(params.estimator.gain).tolist(),
         }
 
-    theta0 = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
-              "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
     return TuningProblem(
         theta0=theta0,
         losses=losses,

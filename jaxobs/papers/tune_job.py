@@ -23,7 +23,7 @@ from jaxobs._config import ConfigError
 from jaxobs._distributed import agree
 from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
-from jaxobs.papers.tuning_config import config_tag, search_spread
+from jaxobs.papers.tuning_config import config_tag
 from jaxobs.papers.tuning_config import settings as tuning_settings
 from jaxobs.tuning import evaluate, random_search, tune
 
@@ -103,18 +103,18 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
         "train_objective": {"hand-set": result.history[0]["objective"], "tuned": result.objective},
         "train_diverged": {"hand-set": result.history[0]["diverged"], "tuned": result.diverged},
     }
-    search = None
+    search, equal_rollouts = None, max(1, result.rollouts // problem.batch_size(problem.train))
     if config["baseline"]["random_search"]:
         search = random_search(
-            problem, settings, result.evaluations, seconds=result.seconds, seed=config["seed"], progress=progress
+            problem, settings, equal_rollouts, seconds=result.seconds, seed=config["seed"], progress=progress
         )
         summary["random_search"] = {
-            "spread": search_spread(config),
+            "spread": config["baseline"]["spread"],
             "tuned_position_in_box": _box_position(result.theta, problem.search_box),
             "candidates": len(search.candidates),
             "failed_candidates": int(np.sum(~np.isfinite(search.objectives))),
         }
-        for name, count in (("equal rollouts", result.evaluations), ("equal time", search.within(result.seconds))):
+        for name, count in (("equal rollouts", equal_rollouts), ("equal time", search.within(result.seconds))):
             theta, objective, diverged = search.best(count)
             designs[f"random search, {name}"] = theta
             summary["random_search"][name] = {

@@ -2,10 +2,9 @@
 its optax optimiser named by a string), ``[baseline]`` (the random search and its box) and the seed, with their
 checks; plus the run's tag.
 
-The random search's box is ``theta0 +- spread`` per unconstrained coordinate. Its default width (``spread = 0``)
-is the gradient tuner's reach, ``optimizer.steps x optimizer.learning_rate``: adam moves a coordinate by about
-the learning rate per step at most, so the box holds every point the tuner can reach with its budget, and both
-methods search the same region (fixed before any tuning result is known)."""
+The search box is ``theta0 +- baseline.spread`` per unconstrained coordinate, fixed by each problem before any
+tuning result is known: the random search draws from it and the tuner's screening seeds its starts from it (the
+gradient steps may leave it)."""
 
 from __future__ import annotations
 
@@ -29,11 +28,10 @@ __all__ = [
     "check_plant_memory",
     "settings",
     "config_tag",
-    "search_spread",
     "search_box",
 ]
 
-BASELINE_DEFAULTS = {"random_search": True, "spread": 0.0}
+BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
 
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
               "lbfgs": lambda learning_rate: optax.lbfgs()}  # fmt: skip
@@ -41,14 +39,18 @@ OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief
 own)."""
 
 _OPTIMIZER_KEYS = {"optimizer": "adam", "learning_rate": 0.1, "clip_norm": 1.0}  # the optimiser, by name
+_ELSEWHERE = ("optimizer", "spread", "seed")  # TuneSettings fields set from other keys: baseline.spread, seed
 
 COMMON_NOTES = {
-    "seed": "seed of the sampled plants (training and held-out sets) and of the random search",
+    "seed": "seed of the sampled plants (training and held-out sets), the screening and the random search",
     "optimizer": "the gradient tuner (jaxobs.tuning.TuneSettings)",
     "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief', 'lamb' or 'lbfgs' (with a line search)",
-    "optimizer.gradient": "'reverse' (value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
+    "optimizer.gradient": "'auto' (forward up to jaxobs.tuning.FORWARD_MAX_PARAMETERS parameters), 'reverse' "
+    "(value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
+    "optimizer.starts": "starting points tuned together (one vmap); the result is the best on the training objective",
+    "optimizer.screening": "candidates scored in the search box before tuning; the best seed the starts (with theta0)",
     "optimizer.learning_rate": "the optimizer's step size (in the unconstrained parameters)",
-    "optimizer.steps": "the cap: gradient evaluations at most, rejected ones included",
+    "optimizer.steps": "the cap: gradient evaluations per start at most, rejected ones included",
     "optimizer.objective": "'mean' or 'cvar' (mean of the cvar_alpha worst) of the per-plant training losses",
     "optimizer.cvar_alpha": "fraction of worst training plants the CVaR objective averages",
     "optimizer.penalty_weight": "weight of the problem's penalty term; 0 switches it off",
@@ -58,9 +60,9 @@ COMMON_NOTES = {
     "optimizer.min_improvement": "relative improvement of the objective that resets patience",
     "optimizer.max_rejections": "consecutive rejected (more plants diverging) steps before giving up",
     "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
-    "baseline": "the random-search baseline, scored like the tuner",
+    "baseline": "the search box and the random-search baseline, scored like the tuner",
     "baseline.random_search": "run the baseline (same rollouts, then the same wall time as the tuning)",
-    "baseline.spread": "candidates theta0 + U(-spread, spread) per coordinate; 0: the tuner's reach (steps x rate)",
+    "baseline.spread": "the search box theta0 +- spread per unconstrained coordinate (random search and screening)",
 }
 """Notes of the keys every problem shares, for ``jaxobs tune --print-config``."""
 
@@ -69,7 +71,7 @@ def optimizer_defaults(**overrides) -> dict:
     """The ``[optimizer]`` table: the optimiser by name (``optimizer``, ``learning_rate``, ``clip_norm``) and the
     other fields of :class:`jaxobs.tuning.TuneSettings`, with a problem's ``overrides``."""
     settings = TuneSettings()
-    fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings) if f.name != "optimizer"}
+    fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings) if f.name not in _ELSEWHERE}
     table = {**_OPTIMIZER_KEYS, **fields}
     unknown = set(overrides) - set(table)
     if unknown:
@@ -80,7 +82,7 @@ def optimizer_defaults(**overrides) -> dict:
 def check_common(config: dict, source: str) -> None:
     """Check ``seed``, ``[optimizer]`` and ``[baseline]``; a :class:`jaxobs._config.ConfigError` names the key."""
     check_at_least(config, source, "seed", 0)
-    check_at_least(config, source, "baseline.spread", 0)
+    check_at_least(config, source, "baseline.spread", 0, strict=True)
     try:
         settings(config).validate()
     except ValueError as exc:
@@ -102,10 +104,10 @@ def optimizer(table: dict) -> optax.GradientTransformation:
 
 
 def settings(config: dict) -> TuneSettings:
-    """The optimiser settings of a tuning configuration (its ``[optimizer]`` table)."""
+    """The tuner's settings of a tuning configuration (its ``[optimizer]`` table, ``baseline.spread``, ``seed``)."""
     table = config["optimizer"]
     rest = {k: v for k, v in table.items() if k not in _OPTIMIZER_KEYS}
-    return TuneSettings(optimizer=optimizer(table), **rest)
+    return TuneSettings(optimizer=optimizer(table), spread=config["baseline"]["spread"], seed=config["seed"], **rest)
 
 
 def config_tag(config: dict) -> str:
@@ -124,16 +126,10 @@ def check_plant_memory(config: dict, source: str, steps: int, channels: int) -> 
                  "steps", hint="lower plants.train, plants.heldout or scenario.duration")  # fmt: skip
 
 
-def search_spread(config: dict) -> float:
-    """``baseline.spread``, or the tuner's reach ``steps x learning_rate`` when it is 0."""
-    spread, opt = config["baseline"]["spread"], config["optimizer"]
-    return spread if spread > 0 else opt["steps"] * opt["learning_rate"]
-
-
 def search_box(config: dict, theta0: dict, cholesky: tuple = ()) -> dict:
-    """``{name: (low, high)}``: ``theta0 +- search_spread(config)``, except the strictly lower-triangular
-    entries of the Cholesky factors named in ``cholesky`` (not log-scaled), which stay at ``theta0``."""
-    spread, box = search_spread(config), {}
+    """``{name: (low, high)}``: ``theta0 +- baseline.spread``, except the strictly lower-triangular entries of the
+    Cholesky factors named in ``cholesky`` (not log-scaled), which stay at ``theta0``."""
+    spread, box = config["baseline"]["spread"], {}
     for name, value in theta0.items():
         value = jnp.asarray(value)
         width = spread * (jnp.eye(value.shape[0]) if name in cholesky else jnp.ones_like(value))

@@ -7,9 +7,11 @@ import json
 import numpy as np
 import pytest
 
+from jaxobs._config import ConfigError
 from jaxobs.cli import main
 from jaxobs.papers import tune_job, tuning_config
 from jaxobs.papers.cortesao import force_tuning, peg_tuning
+from jaxobs.tuning import gradient_mode
 
 
 def test_default_config_is_the_one_dof_stiffness_problem():
@@ -141,7 +143,9 @@ def test_spectral_radius_penalty():
 
 def test_peg_config_is_validated(tmp_path, capsys):
     config = peg_tuning.PROBLEM.validate({"problem": "peg-on-hole"})
-    assert config["problem"] == "peg-on-hole" and config["optimizer"]["gradient"] == "forward"
+    assert config["problem"] == "peg-on-hole" and config["optimizer"]["gradient"] == "auto"
+    theta0 = peg_tuning.PROBLEM.build(config).theta0  # 4 parameters: forward mode
+    assert gradient_mode(tuning_config.settings(config), theta0) == "forward"
     path = tmp_path / "bad.toml"
     path.write_text('problem = "peg-on-hole"\n[scenario]\nalignment_end = 9.0\n')
     assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out")]) == 2
@@ -159,17 +163,21 @@ def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
     assert "unreadable" in capsys.readouterr().err
 
 
-def test_the_random_search_box_is_the_tuners_reach():
-    """Default ``baseline.spread = 0``: theta0 +- steps x learning_rate on every log coordinate; the off-diagonal
-    entries of a Cholesky factor (not log-scaled) stay at theta0; an explicit spread is used as given."""
+def test_the_search_box_is_the_problems_spread():
+    """The box theta0 +- baseline.spread (8 for the force problem) on every log coordinate; the off-diagonal entries
+    of a Cholesky factor (not log-scaled) stay at theta0; the tuner's screening gets the same spread and seed;
+    a spread of 0 is refused."""
     config = force_tuning.PROBLEM.validate({"design": {"parameterisation": "cholesky"}})
-    assert tuning_config.search_spread(config) == 40 * 0.2
+    assert config["baseline"]["spread"] == 8.0
     theta0 = {"q_cholesky": np.diag([1.0, 2.0]), "log_r": np.asarray(-3.0)}
     box = tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
     np.testing.assert_array_equal(box["q_cholesky"][0], [[-7.0, 0.0], [0.0, -6.0]])
     np.testing.assert_array_equal(box["q_cholesky"][1], [[9.0, 0.0], [0.0, 10.0]])
     assert (float(box["log_r"][0]), float(box["log_r"][1])) == (-11.0, 5.0)
-    assert tuning_config.search_spread(force_tuning.PROBLEM.validate({"baseline": {"spread": 2.5}})) == 2.5
+    given = force_tuning.PROBLEM.validate({"baseline": {"spread": 2.5}, "seed": 7})
+    assert (tuning_config.settings(given).spread, tuning_config.settings(given).seed) == (2.5, 7)
+    with pytest.raises(ConfigError, match="baseline.spread: must be > 0"):
+        force_tuning.PROBLEM.validate({"baseline": {"spread": 0.0}})
     position = tune_job._box_position({"q_cholesky": np.diag([1.0, 10.0]), "log_r": np.asarray(-11.0)}, box)
     assert position == {"q_cholesky": [0.5, 1.0], "log_r": [0.0]}
 

@@ -82,7 +82,7 @@ DEFAULT_CONFIG = {
         "spectral_radius_limit": 0.995,
     },
     "optimizer": optimizer_defaults(learning_rate=0.2, steps=40, clip_norm=5.0, patience=12, checkpoint_every=5),
-    "baseline": dict(BASELINE_DEFAULTS),
+    "baseline": {**BASELINE_DEFAULTS, "spread": 8.0},
 }
 """Tune the AOB-1 of the 1-DOF MJX force plant across +-50 % stiffness mismatch (16 training plants,
 64 held-out plants, 2 s rollouts)."""

@@ -48,8 +48,8 @@ DEFAULT_CONFIG = {
         "insertion_velocity_bias": 0.05,
         "force_limit": 1000.0,
     },
-    "optimizer": optimizer_defaults(learning_rate=0.3, steps=20, gradient="forward", patience=8, checkpoint_every=5),
-    "baseline": dict(BASELINE_DEFAULTS),
+    "optimizer": optimizer_defaults(learning_rate=0.3, steps=20, patience=8, checkpoint_every=5),
+    "baseline": {**BASELINE_DEFAULTS, "spread": 6.0},
 }
 """Tune the x, y, rx, rz active-state variances over +-50 % stiffness mismatch (8 training, 32 held-out plants)."""
 

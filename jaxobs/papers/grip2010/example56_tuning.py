@@ -6,8 +6,8 @@ adaptation_gain) = (10, 3)``. Each "plant" is a noise seed: the scenario of the 
 :func:`jaxobs.papers.grip2010.adaptive.simulate_5_6`) with ``sqrt(noise_variance) N(0, 1)`` per 1 ms sample added to the
 measured x. The per-seed loss is the mean over the segments of the mean ``|theta_tilde|`` over each segment's last
 ``window_s`` (the noisy metric of the reproduction); a run that is not finite counts as diverged. Training and held-out
-seeds are disjoint (``fold_in(PRNGKey(seed), 0)`` and ``fold_in(PRNGKey(seed), 1)``, split). Two parameters:
-forward-mode gradients by default.
+seeds are disjoint (``fold_in(PRNGKey(seed), 0)`` and ``fold_in(PRNGKey(seed), 1)``, split). Two parameters, so
+forward-mode gradients ("auto").
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ DEFAULT_CONFIG = {
     },
     # the hand-set start (printed: 10, 3)
     "design": {"K_phi": grip.K_PHI, "adaptation_gain": grip.ADAPTATION_GAIN_MODULAR},
-    "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, gradient="forward", patience=8, checkpoint_every=5),
-    "baseline": dict(BASELINE_DEFAULTS),
+    "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, patience=8, checkpoint_every=5),
+    "baseline": {**BASELINE_DEFAULTS, "spread": 2.0},
 }
 """Tune log K_phi, log adaptation_gain of Example 5.6 from the printed (10, 3), unit noise variance (8 / 32 seeds)."""
 

@@ -61,7 +61,7 @@ DEFAULT_CONFIG = {
     },
     "design": {name: float(_DEFAULTS[name]) for name in (*GAINS, *THRESHOLDS)},
     "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, patience=8, checkpoint_every=5),
-    "baseline": dict(BASELINE_DEFAULTS),
+    "baseline": {**BASELINE_DEFAULTS, "spread": 2.0},
 }
 """Tune 4 gains and 3 thresholds of the NVSO from its hand-set defaults on 36 training / 36 held-out vehicles."""
 
