@@ -44,6 +44,7 @@ __all__ = [
     "penalise_diverged",
     "value_and_grad",
     "DEFAULT_OPTIMIZER",
+    "lbfgs",
     "TuningProblem",
     "TuneSettings",
     "TuneResult",
@@ -55,6 +56,7 @@ __all__ = [
     "CheckpointError",
     "tune",
     "random_search",
+    "batch_objective",
     "evaluate",
 ]
 
@@ -144,6 +146,24 @@ def penalise_diverged(losses, failed, factor: float, own=None):
     return jnp.where(failed, worst * (1.0 + jnp.where(usable, excess, 0.0)), losses)
 
 
+def lbfgs(learning_rate: float = 1.0, memory_size: int = 10) -> optax.GradientTransformation:
+    """L-BFGS directions (``optax.scale_by_lbfgs``) for a tuner that backtracks itself (``TuneSettings(lbfgs(),
+    backtrack=True)``): no line search of its own, and its memory restarts whenever a pair of steps has
+    non-positive curvature ``s'y <= 0`` (which a decrease-only line search does not exclude, and which would make
+    the inverse-Hessian estimate indefinite, its direction possibly uphill); a restart's first step has norm at most
+    ``learning_rate``."""
+    inner = optax.scale_by_lbfgs(memory_size)
+
+    def update(grads, state, params):
+        curvature = optax.tree.vdot(optax.tree.sub(params, state.params), optax.tree.sub(grads, state.updates))
+        restart = (state.count > 0) & ~(curvature > 0)
+        state = jax.tree.map(lambda fresh, old: jnp.where(restart, fresh, old), inner.init(params), state)
+        direction, state = inner.update(grads, state, params)
+        return optax.tree.scale(-learning_rate, direction), state
+
+    return optax.GradientTransformation(inner.init, update)
+
+
 # --------------------------------------------------------------------------------------------
 # Problem, settings, results
 
@@ -207,6 +227,10 @@ class TuneSettings:
         improvement of ``min_improvement`` of the best objective.
       min_improvement: relative improvement that resets ``patience``.
       max_rejections: consecutive rejected (diverging) steps before giving up.
+      backtrack: also reject a step that does not lower the training objective below the start's best (a
+        backtracking line search on the compiled evaluation: the step is halved; after ``max_rejections`` halvings
+        in a row the start has converged), for a quasi-Newton direction without a line search of its own, such as
+        :func:`lbfgs`: it then costs no evaluation beyond the tuner's own, and no compilation.
       checkpoint_every: evaluations between checkpoints.
     """
 
@@ -224,6 +248,7 @@ class TuneSettings:
     patience: int = 15
     min_improvement: float = 1e-3
     max_rejections: int = 8
+    backtrack: bool = False
     checkpoint_every: int = 10
 
     def validate(self) -> None:
@@ -645,15 +670,28 @@ def _row(stacked: dict, i: int) -> dict:
     return {k: v[i] for k, v in stacked.items()}
 
 
-def _candidate_scorer(problem: TuningProblem, settings: TuneSettings, what: str) -> Callable:
-    """``candidates -> (objectives, diverged)`` for a stack of candidates (any number, scored
-    :data:`CANDIDATE_CHUNK` at a time, one batched call each): the training objective of :func:`tune` (inf where
-    every plant diverged or it is not finite) and the count of diverged training plants."""
+def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSettings()) -> Callable:
+    """A compiled scorer of candidate parameters for gradient-free searches: ``candidates -> (objectives,
+    diverged)`` for ``candidates``, a dict like ``theta0`` with a leading axis of any length N, scored
+    :data:`CANDIDATE_CHUNK` at a time (one ``vmap`` over candidates and training plants per call, spread over the
+    devices like :func:`tune`'s rollouts). ``objectives`` (N,) is :func:`tune`'s training objective (inf where
+    every plant diverged or it is not finite), ``diverged`` (N,) the count of diverged training plants. The
+    screening of :func:`tune` and :func:`random_search` use it; so can CMA-ES or any ask/tell optimiser.
+
+    Example::
+
+        >>> import jax.numpy as jnp, numpy as np
+        >>> from jaxobs.tuning import TuningProblem, batch_objective
+        >>> losses = lambda theta, t: ((theta["x"] - t) ** 2, t < -1e9)
+        >>> problem = TuningProblem({"x": jnp.array(0.0)}, losses, jnp.array([1.0, 3.0]), jnp.array([2.0]))
+        >>> batch_objective(problem)({"x": np.array([0.0, 2.0])})[0].tolist()
+        [5.0, 1.0]
+    """
     size = problem.batch_size(problem.train)
     chunk = {k: np.repeat(np.asarray(v)[None], CANDIDATE_CHUNK, 0) for k, v in _strong(problem.theta0).items()}
     score, train, _ = _compile_spread(
         lambda mesh: jax.vmap(_objective_fn(problem, settings, _spread(problem.losses, mesh, size)), in_axes=(0, None)),
-        problem.train, chunk, f"{CANDIDATE_CHUNK} {what}' {size} training rollouts each",
+        problem.train, chunk, f"{CANDIDATE_CHUNK} candidates' {size} training rollouts each",
         hint="use fewer training plants",
     )  # fmt: skip
 
@@ -684,7 +722,7 @@ def _screen(problem: TuningProblem, settings: TuneSettings, count: int) -> tuple
     unit = sobol.random_base2(max(0, math.ceil(math.log2(settings.screening))))[: settings.screening]
     drawn = _in_box(_search_box(problem, settings.spread), theta0, unit)
     candidates = {k: np.concatenate([theta0[k][None], drawn[k]]) for k in theta0}
-    values, diverged = _candidate_scorer(problem, settings, "screening candidates")(candidates)
+    values, diverged = batch_objective(problem, settings)(candidates)
     order = np.lexsort((values, diverged))[:count]
     starts = {k: v[order] for k, v in candidates.items()}
     return starts, {"screened": int(values.size), "theta0": float(values[0]), "best": values[order].tolist()}
@@ -876,6 +914,10 @@ def tune(
                     lane["evaluations"] += 1
                     value, diverged = values[k], int(counts[k])
                     reason = _failure(value, grad, failed[k], batch - 1 if first else lane["diverged"])
+                    best = (lane["best_diverged"], lane["best_objective"])
+                    rose = reason is None and settings.backtrack and not first and (diverged, float(value)) >= best
+                    if rose:
+                        reason = f"the objective rose to {float(value):.6g} from {best[1]:.6g}"
                     record = {
                         "evaluation": lane["evaluations"],
                         "objective": float(value) if np.isfinite(float(value)) else None,
@@ -891,6 +933,14 @@ def tune(
                     if reason is not None and first:
                         lane["stopped"] = "failed"
                         logger.warning("%sthe starting point fails on the training batch: %s", named(k), reason)
+                    elif rose:  # backtracking: a shorter step along the same update; none improves: a minimum
+                        rejected[k] = True
+                        lane["rejections"] += 1
+                        lane["scale"] /= 2
+                        logger.info("%sevaluation %d: %s; step scale %g", named(k), lane["evaluations"], reason,
+                                    lane["scale"])  # fmt: skip
+                        if lane["rejections"] > settings.max_rejections:
+                            lane["stopped"] = "converged"
                     elif reason is not None:
                         rejected[k] = True
                         lane["rejections"] += 1
@@ -1041,7 +1091,7 @@ def random_search(
     if num_candidates < 1:
         raise ValueError(f"num_candidates must be >= 1, got {num_candidates}")
     start = time.perf_counter()
-    scores = _candidate_scorer(problem, settings, "random-search candidates")
+    scores = batch_objective(problem, settings)
     theta0 = {k: np.asarray(v) for k, v in _strong(problem.theta0).items()}
     box = _search_box(problem, settings.spread if spread is None else spread)
     dim, rng = sum(v.size for v in theta0.values()), np.random.default_rng(seed)

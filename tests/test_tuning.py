@@ -274,13 +274,19 @@ def _nan_floats(arrays):
         (lambda p: p.write_bytes(b""), "corrupt or unreadable"),
         (lambda p: p.write_bytes(b"not a checkpoint"), "corrupt or unreadable"),
         (lambda p: _rewrite(p, edit_meta=lambda m: [m]), "meta is a JSON list"),
-        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.pop("scale"))),
-         r"meta.lanes\[0\].scale is missing"),  # fmt: skip
+        (
+            lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.pop("scale"))),
+            r"meta.lanes\[0\].scale is missing",
+        ),  # fmt: skip
         (lambda p: _rewrite(p, edit_meta=lambda m: {**m, "iterations": "3"}), "meta.iterations"),
-        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane["history"].pop())),
-         "history has 2 entries"),  # fmt: skip
-        (lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.update(stopped="tired"))),
-         "stop reason out of range"),  # fmt: skip
+        (
+            lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane["history"].pop())),
+            "history has 2 entries",
+        ),  # fmt: skip
+        (
+            lambda p: _rewrite(p, edit_meta=lambda m: _edit_lane(m, lambda lane: lane.update(stopped="tired"))),
+            "stop reason out of range",
+        ),  # fmt: skip
         (lambda p: _rewrite(p, edit_arrays=_nan_floats), "holds NaN"),
         (
             lambda p: _rewrite(p, edit_arrays=lambda a: dict(list(a.items())[:-1])),
@@ -471,3 +477,23 @@ def test_auto_picks_forward_mode_for_few_parameters():
     assert tuning.gradient_mode(TuneSettings(), few) == "forward"
     assert tuning.gradient_mode(TuneSettings(), {**few, "b": jnp.zeros(())}) == "reverse"
     assert tuning.gradient_mode(TuneSettings(gradient="reverse"), few) == "reverse"
+
+
+def test_backtracking_lbfgs_descends_monotonically_to_the_rosenbrock_minimum():
+    """jaxobs' L-BFGS (no line search of its own, a restart on non-positive curvature) and the tuner's backtracking: a
+    step that does not lower the objective is rejected and halved; the accepted objectives fall strictly and the
+    run converges at (1, 1)."""
+
+    def losses(theta, a):
+        x, y = theta["xy"][0], theta["xy"][1]
+        loss = (a - x) ** 2 + 100.0 * (y - x**2) ** 2
+        return loss, jnp.zeros(a.shape, bool)
+
+    problem = TuningProblem({"xy": jnp.array([-1.2, 1.0])}, losses, jnp.array([1.0]), jnp.array([1.0]))
+    s = TuneSettings(tuning.lbfgs(), backtrack=True, steps=300, patience=6, min_improvement=1e-6)
+    result = tune(problem, s, progress=False)
+    accepted = [h["objective"] for h in result.history if h["accepted"]]
+    assert np.all(np.diff(accepted) < 0)
+    assert any("rose" in (h["reason"] or "") for h in result.history)
+    assert result.converged and result.objective < 1e-10
+    np.testing.assert_allclose(result.theta["xy"], [1.0, 1.0], atol=1e-5)

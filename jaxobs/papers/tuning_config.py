@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 
 from jaxobs._config import check_at_least, check_memory, fail
-from jaxobs.tuning import TuneSettings
+from jaxobs.tuning import TuneSettings, lbfgs
 
 __all__ = [
     "OPTIMIZERS",
@@ -34,9 +34,10 @@ __all__ = [
 BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
 
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
-              "lbfgs": lambda learning_rate: optax.lbfgs()}  # fmt: skip
-"""The optax optimisers ``[optimizer] optimizer`` may name, by their step size (L-BFGS's line search sets its
-own)."""
+              "lbfgs": lbfgs}  # fmt: skip
+"""The optax optimisers ``[optimizer] optimizer`` may name, by their step size. L-BFGS is
+:func:`jaxobs.tuning.lbfgs`, without a line search of its own: the tuner backtracks on its compiled evaluation
+instead (``TuneSettings.backtrack``, set for it)."""
 
 _OPTIMIZER_KEYS = {"optimizer": "adam", "learning_rate": 0.1, "clip_norm": 1.0}  # the optimiser, by name
 _ELSEWHERE = ("optimizer", "spread", "seed")  # TuneSettings fields set from other keys: baseline.spread, seed
@@ -44,7 +45,7 @@ _ELSEWHERE = ("optimizer", "spread", "seed")  # TuneSettings fields set from oth
 COMMON_NOTES = {
     "seed": "seed of the sampled plants (training and held-out sets), the screening and the random search",
     "optimizer": "the gradient tuner (jaxobs.tuning.TuneSettings)",
-    "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief', 'lamb' or 'lbfgs' (with a line search)",
+    "optimizer.optimizer": "optax optimizer: 'adam', 'sgd', 'adabelief', 'lamb' or 'lbfgs' (backtracking on)",
     "optimizer.gradient": "'auto' (forward up to jaxobs.tuning.FORWARD_MAX_PARAMETERS parameters), 'reverse' "
     "(value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
     "optimizer.starts": "starting points tuned together (one vmap); the result is the best on the training objective",
@@ -59,6 +60,7 @@ COMMON_NOTES = {
     "optimizer.patience": "converged after this many evaluations without a relative improvement of min_improvement",
     "optimizer.min_improvement": "relative improvement of the objective that resets patience",
     "optimizer.max_rejections": "consecutive rejected (more plants diverging) steps before giving up",
+    "optimizer.backtrack": "reject and halve a step that does not improve the objective (always on for lbfgs)",
     "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
     "baseline": "the search box and the random-search baseline, scored like the tuner",
     "baseline.random_search": "run the baseline (same rollouts, then the same wall time as the tuning)",
@@ -107,6 +109,7 @@ def settings(config: dict) -> TuneSettings:
     """The tuner's settings of a tuning configuration (its ``[optimizer]`` table, ``baseline.spread``, ``seed``)."""
     table = config["optimizer"]
     rest = {k: v for k, v in table.items() if k not in _OPTIMIZER_KEYS}
+    rest["backtrack"] = rest["backtrack"] or table["optimizer"] == "lbfgs"
     return TuneSettings(optimizer=optimizer(table), spread=config["baseline"]["spread"], seed=config["seed"], **rest)
 
 

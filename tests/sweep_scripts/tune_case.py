@@ -104,8 +104,12 @@ def main():
         "processes": jax.process_count(),
         "checkpoints_written": len(WRITES),
         "starts": [
-            {"objective": s.objective, "stopped": s.stopped, "evaluations": s.evaluations,
-             "theta": {k: np.asarray(v).tolist() for k, v in s.theta.items()}}
+            {
+                "objective": s.objective,
+                "stopped": s.stopped,
+                "evaluations": s.evaluations,
+                "theta": {k: np.asarray(v).tolist() for k, v in s.theta.items()},
+            }
             for s in result.starts
         ],  # fmt: skip
     }

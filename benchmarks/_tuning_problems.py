@@ -1,0 +1,76 @@
+"""The shipped tuning problems, and the price of a gradient on each, for benchmarks/tuning.py and
+benchmarks/mjx_rollouts.py."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxobs._config import load_toml
+from jaxobs.papers.registry import tuning_problems
+from jaxobs.papers.tuning_config import settings as tuning_settings
+from jaxobs.tuning import GRADIENT_MODES, gradient_mode, robust_objective, value_and_grad
+
+ROOT = Path(__file__).resolve().parent.parent
+PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
+    "force-1dof": None,
+    "force-1dof-cvar": "tuning/force_1dof_cvar.toml",
+    "peg-on-hole": "tuning/peg_on_hole.toml",
+    "grip-example56": "tuning/grip_example56.toml",
+    "cartpole-payload": "tuning/cartpole_payload.toml",
+    "arm-on-table": "tuning/arm_on_table.toml",
+    "sideslip": "tuning/sideslip.toml",
+}
+
+
+def load_problem(label: str):
+    """``(problem, settings, config)`` of a shipped tuning problem."""
+    registry = tuning_problems()
+    path = PROBLEMS[label]
+    given = load_toml(ROOT / path) if path else {}
+    name = given.get("problem", next(iter(registry)))
+    config = registry[name].validate({**given, "problem": name}, path or "defaults")
+    return registry[name].build(config), tuning_settings(config), config
+
+
+def gradient_costs(problem, settings, *, modes=None, rounds: int = 3) -> dict:
+    """The price of a gradient of the training objective: per differentiation mode (default: both), the compile
+    time, the temporary memory XLA reserves and the median wall time over ``rounds`` interleaved rounds, each as
+    a ratio to one forward evaluation of the same batch (``mode`` is the one ``settings`` picks)."""
+    mode = gradient_mode(settings, problem.theta0)
+    modes = modes or [m for m in GRADIENT_MODES if m != "auto"]
+    theta, batch = problem.theta0, problem.train
+
+    def objective(th):
+        losses = problem.losses(th, batch)[0]
+        return robust_objective(losses, settings.objective, settings.cvar_alpha), None
+
+    entries = {"forward_pass": lambda th: objective(th)[0]}
+    entries.update({f"{m}_mode": value_and_grad(objective, m) for m in modes})
+    jax.jit(lambda x: x + 1).lower(1.0).compile()  # the process's one-time compilation costs, paid outside
+    compiled, record = {}, {}
+    for name, fn in entries.items():
+        start = time.perf_counter()
+        compiled[name] = jax.jit(fn).lower(theta).compile()
+        memory = compiled[name].memory_analysis()
+        record[name] = {"compile_s": time.perf_counter() - start,
+                        "temp_bytes": int(getattr(memory, "temp_size_in_bytes", 0) or 0), "seconds": []}  # fmt: skip
+        jax.block_until_ready(compiled[name](theta))
+    for _ in range(rounds):
+        for name, fn in compiled.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(theta))
+            record[name]["seconds"].append(time.perf_counter() - start)
+    base = record["forward_pass"]
+    for r in record.values():
+        r["median_s"] = statistics.median(r["seconds"])
+        r["ratio"] = r["median_s"] / statistics.median(base["seconds"])
+        r["compile_ratio"] = r["compile_s"] / base["compile_s"]
+        r["memory_ratio"] = r["temp_bytes"] / max(base["temp_bytes"], 1)
+    chosen = record.get(f"{mode}_mode", {})
+    return {"mode": mode, "parameters": int(sum(np.size(v) for v in jax.tree.leaves(theta))),
+            "ratio": chosen.get("ratio"), "compile_ratio": chosen.get("compile_ratio"), "entries": record}  # fmt: skip
