@@ -36,10 +36,17 @@ forward and gradient compiled first: ``compile_s``); times, rates and the paired
 median and [min, max] over the rounds. On a GPU the JSON records the device name; on a CPU-only machine it says
 "CPU only".
 
-    python benchmarks/mjx_rollouts.py --out DIR [--steps 250] [--batches 1 64 1024] [--max-batch N]
-                                      [--rounds 5] [--peer-plants 20]
+The price of a gradient on every shipped tuning problem (``--problems``, the configs of ``benchmarks/tuning.py``):
+one forward evaluation of the training objective on the training batch against ``value_and_grad`` in reverse
+mode and ``jacfwd`` in forward mode, each compiled once and timed in ``--rounds`` interleaved rounds (median), with
+their compile times and the temporary memory XLA reserves for them (``memory_analysis``), as ratios to the forward
+evaluation; ``mode`` is the one ``gradient = "auto"`` picks.
 
-Writes ``DIR/mjx_rollouts.json`` and ``DIR/mjx_rollouts.png``.
+    python benchmarks/mjx_rollouts.py --out DIR [--steps 250] [--batches 1 64 1024] [--max-batch N]
+                                      [--rounds 5] [--peer-plants 20] [--problems [NAME ...]]
+
+Writes ``DIR/mjx_rollouts.json`` and ``DIR/mjx_rollouts.png`` (``--batches`` with no value skips them) and, with
+``--problems``, ``DIR/gradient_costs.json``.
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from _timing import Timed, format_range, paired_ratio, time_interleaved  # noqa: E402
+from _tuning_problems import PROBLEMS, gradient_costs, load_problem  # noqa: E402
 from mujoco import rollout as mj_rollout  # noqa: E402
 
 from jaxobs.closed_loop import ideal_response  # noqa: E402
@@ -257,12 +265,18 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--steps", type=int, default=250, help="control steps per rollout (8 physics steps each)")
-    parser.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    parser.add_argument("--batches", type=int, nargs="*", default=[1, 64, 1024])
     parser.add_argument("--max-batch", type=int, default=None, help="skip batches larger than this")
     parser.add_argument("--rounds", type=int, default=5, help="interleaved timed rounds (median and range)")
     parser.add_argument("--peer-plants", type=int, default=20, help="plants the looped CPU peer is timed on")
+    parser.add_argument("--problems", nargs="*", choices=list(PROBLEMS), help="the price of a gradient on these "
+                        "shipped tuning problems (no name: all)")  # fmt: skip
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.problems is not None:
+        problem_costs(args.problems or list(PROBLEMS), args.rounds, args.out)
+    if not args.batches:
+        return {}
     batches = [b for b in args.batches if args.max_batch is None or b <= args.max_batch]
     start = time.perf_counter()
     problem = Problem(args.steps)
@@ -285,6 +299,23 @@ def main(argv=None) -> dict:
     _print(results)
     _plot(results, args.out / "mjx_rollouts.png")
     return results
+
+
+def problem_costs(labels: list, rounds: int, out: Path) -> dict:
+    """:func:`gradient_costs` of each shipped tuning problem, printed and written to ``out/gradient_costs.json``."""
+    costs = {}
+    print(f"{'problem':18s} {'params':>6s} {'auto':>8s}   reverse: time, compile, memory   forward: time, compile, "
+          "memory (x the forward evaluation)")  # fmt: skip
+    for label in labels:
+        problem, settings, _ = load_problem(label)
+        costs[label] = cost = gradient_costs(problem, settings, rounds=rounds)
+        e = cost["entries"]
+        cells = [f"{e[m]['ratio']:5.1f} {e[m]['compile_ratio']:5.1f} {e[m]['memory_ratio']:8.3g}"
+                 for m in ("reverse_mode", "forward_mode")]  # fmt: skip
+        print(f"{label:18s} {cost['parameters']:6d} {cost['mode']:>8s}   {cells[0]:28s}   {cells[1]}", flush=True)
+        (out / "gradient_costs.json").write_text(json.dumps({"platform": _platform(), "rounds": rounds,
+                                                             "problems": costs}, indent=2) + "\n")  # fmt: skip
+    return costs
 
 
 def _print(results: dict) -> None:

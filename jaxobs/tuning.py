@@ -309,6 +309,7 @@ class TuneResult(NamedTuple):
       seconds: wall time of the tuning over all runs that built this checkpoint, screening and compilation
         included
       starts: one :class:`StartResult` per starting point
+      screened: candidates scored by the screening (``theta0`` included), 0 without one
     """
 
     theta: dict
@@ -320,6 +321,7 @@ class TuneResult(NamedTuple):
     diverged: int
     seconds: float
     starts: tuple = ()
+    screened: int = 0
 
     @property
     def converged(self) -> bool:
@@ -1028,7 +1030,7 @@ def tune(
     return TuneResult(
         starts[best].theta, starts[best].objective, starts[best].history, starts[best].stopped,
         sum(s.evaluations for s in starts), (meta["screened"] + meta["iterations"] * count) * batch,
-        starts[best].diverged, meta["seconds"], starts,
+        starts[best].diverged, meta["seconds"], starts, meta["screened"],
     )  # fmt: skip
 
 

@@ -224,6 +224,7 @@ duration = 0.4
 [optimizer]
 steps = 3
 checkpoint_every = 1
+screening = 15
 [baseline]
 random_search = false
 """

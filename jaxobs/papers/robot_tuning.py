@@ -19,6 +19,7 @@ from jaxobs.observers import feedback, kalman
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
+    SHIPPED_STRATEGY,
     optimizer_defaults,
     search_box,
     settings,
@@ -56,7 +57,7 @@ DEFAULT_CONFIG = {
         "state_limit": 10.0,
     },
     "design": {"q": [1e-6, 1e-6, 1e-4, 1e-4], "lqr_state": [10.0, 10.0, 1.0, 1.0], "lqr_input": [0.01]},
-    "optimizer": optimizer_defaults(learning_rate=0.2, steps=20, clip_norm=5.0, patience=8, checkpoint_every=5),
+    "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 4.0},
 }
 """Tune the Kalman filter of the cart with a hanging payload of unknown mass (0.25x to 2x the nominal 0.5 kg)."""

@@ -25,7 +25,7 @@ from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers.tuning_config import config_tag
 from jaxobs.papers.tuning_config import settings as tuning_settings
-from jaxobs.tuning import evaluate, random_search, tune
+from jaxobs.tuning import batch_objective, evaluate, random_search, tune
 
 __all__ = ["run"]
 
@@ -100,8 +100,12 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
         "evaluations": result.evaluations,
         "rollouts": result.rollouts,
         "seconds_tune": result.seconds,
-        "train_objective": {"hand-set": result.history[0]["objective"], "tuned": result.objective},
-        "train_diverged": {"hand-set": result.history[0]["diverged"], "tuned": result.diverged},
+        "train_objective": {"tuned": result.objective},
+        "train_diverged": {"tuned": result.diverged},
+        "starts": [
+            {"objective": r.objective, "diverged": r.diverged, "stopped": r.stopped, "evaluations": r.evaluations}
+            for r in result.starts
+        ],  # fmt: skip
     }
     search, equal_rollouts = None, max(1, result.rollouts // problem.batch_size(problem.train))
     if config["baseline"]["random_search"]:
@@ -124,6 +128,11 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
                 "train_objective": objective,
                 "train_diverged": diverged,
             }
+    if search is None:
+        hand = batch_objective(problem, settings)({k: np.asarray(v)[None] for k, v in problem.theta0.items()})
+    else:
+        hand = search.objectives, search.diverged  # theta0 is the search's first candidate
+    summary["train_objective"]["hand-set"], summary["train_diverged"]["hand-set"] = float(hand[0][0]), int(hand[1][0])
     scores = {name: evaluate(problem, theta, settings) for name, theta in designs.items()}
     if not writer:
         return None
@@ -138,7 +147,7 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
     summary["parameters"] = {name: problem.describe(theta) for name, theta in designs.items()}
     summary["theta"] = {name: {k: np.asarray(v) for k, v in theta.items()} for name, theta in designs.items()}
     summary["figures"] = [
-        _plot_loss_curves(result.history, search, scores, settings.objective, out),
+        _plot_loss_curves(result, search, scores, settings.objective, out),
         _plot_parameters(result.history, out),
     ]
     if problem.responses is not None:
@@ -151,22 +160,25 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
 # Figures
 
 
-def _plot_loss_curves(history, search, scores, objective: str, out: Path) -> str:
+def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
+    """The training objective against the rollouts per training plant spent (the screening's candidates, then each
+    step of every start), beside the random search's; the held-out plants' sorted losses of each design."""
     plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
-    ev = np.array([h["evaluation"] for h in history])
+    history = result.history
+    ev = result.screened + len(result.starts) * np.array([h["evaluation"] for h in history])
     val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history])
     ok = np.array([h["accepted"] for h in history])
-    ax.plot(ev[ok], val[ok], "o-", ms=3, label="gradient (adam): objective")
+    ax.plot(ev[ok], val[ok], "o-", ms=3, label="gradient: objective (best start)")
     if np.any(~ok):
         ax.plot(ev[~ok], np.where(np.isfinite(val[~ok]), val[~ok], np.nanmax(val)), "rx", label="rejected step")
     ax.plot(ev[ok], np.minimum.accumulate(val[ok]), "C0--", lw=1, label="gradient: best so far")
     if search is not None:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
-        ax.axvline(ev.size, color="k", lw=0.6, ls=":")  # equal rollouts
-    ax.set(xlabel="evaluation (one rollout per training plant)", ylabel=f"training objective ({objective})",
-           yscale="log", title="Training objective")  # fmt: skip
+        ax.axvline(ev[-1], color="k", lw=0.6, ls=":")  # equal rollouts
+    ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
+           ylabel=f"training objective ({objective})", yscale="log", title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
     for name, s in scores.items():
         losses = np.sort(s["losses"])

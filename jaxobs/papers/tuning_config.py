@@ -23,6 +23,7 @@ __all__ = [
     "optimizer_defaults",
     "optimizer",
     "BASELINE_DEFAULTS",
+    "SHIPPED_STRATEGY",
     "COMMON_NOTES",
     "check_common",
     "check_plant_memory",
@@ -32,6 +33,12 @@ __all__ = [
 ]
 
 BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
+
+SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "starts": 1, "steps": 100,
+                    "patience": 4}  # fmt: skip
+"""The ``[optimizer]`` defaults of the shipped problems: 127 scrambled-Sobol candidates and ``theta0`` screened in the
+search box, then L-BFGS with backtracking from the best of them until the plateau rule stops it (measured against
+random search, CMA-ES and Optuna at equal wall time: docs/tuning-results.md)."""
 
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
               "lbfgs": lbfgs}  # fmt: skip

@@ -53,7 +53,7 @@ TINY_SWEEPS = {
     },
 }
 
-TINY_OPTIMIZER = {"steps": 2, "checkpoint_every": 1}
+TINY_OPTIMIZER = {"steps": 2, "checkpoint_every": 1, "screening": 15}
 TINY_TUNING = {
     "force-1dof": {"plants": {"train": 2, "heldout": 2}, "scenario": {"duration": 0.2}},
     "peg-on-hole": {

@@ -30,6 +30,7 @@ from jaxobs.papers.cortesao.force_control import (
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
+    SHIPPED_STRATEGY,
     check_plant_memory,
     optimizer_defaults,
     search_box,
@@ -81,7 +82,7 @@ DEFAULT_CONFIG = {
         "R": HAND_SET["R"],
         "spectral_radius_limit": 0.995,
     },
-    "optimizer": optimizer_defaults(learning_rate=0.2, steps=40, clip_norm=5.0, patience=12, checkpoint_every=5),
+    "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 8.0},
 }
 """Tune the AOB-1 of the 1-DOF MJX force plant across +-50 % stiffness mismatch (16 training plants,

@@ -20,6 +20,7 @@ from jaxobs.observers.active import active_observer_controller
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
+    SHIPPED_STRATEGY,
     check_plant_memory,
     optimizer_defaults,
     search_box,
@@ -48,7 +49,7 @@ DEFAULT_CONFIG = {
         "insertion_velocity_bias": 0.05,
         "force_limit": 1000.0,
     },
-    "optimizer": optimizer_defaults(learning_rate=0.3, steps=20, patience=8, checkpoint_every=5),
+    "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 6.0},
 }
 """Tune the x, y, rx, rz active-state variances over +-50 % stiffness mismatch (8 training, 32 held-out plants)."""

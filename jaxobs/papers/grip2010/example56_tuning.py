@@ -21,6 +21,7 @@ from jaxobs.papers.grip2010 import adaptive as grip
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
+    SHIPPED_STRATEGY,
     optimizer_defaults,
     search_box,
 )
@@ -41,7 +42,7 @@ DEFAULT_CONFIG = {
     },
     # the hand-set start (printed: 10, 3)
     "design": {"K_phi": grip.K_PHI, "adaptation_gain": grip.ADAPTATION_GAIN_MODULAR},
-    "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, patience=8, checkpoint_every=5),
+    "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 2.0},
 }
 """Tune log K_phi, log adaptation_gain of Example 5.6 from the printed (10, 3), unit noise variance (8 / 32 seeds)."""

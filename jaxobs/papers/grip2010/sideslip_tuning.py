@@ -19,6 +19,7 @@ from jaxobs.papers.grip2010.sideslip_sweep import drive, mismatched_vehicle
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
+    SHIPPED_STRATEGY,
     optimizer_defaults,
     search_box,
 )
@@ -60,7 +61,7 @@ DEFAULT_CONFIG = {
         "smooth": 50.0,
     },
     "design": {name: float(_DEFAULTS[name]) for name in (*GAINS, *THRESHOLDS)},
-    "optimizer": optimizer_defaults(learning_rate=0.1, steps=20, patience=8, checkpoint_every=5),
+    "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 2.0},
 }
 """Tune 4 gains and 3 thresholds of the NVSO from its hand-set defaults on 36 training / 36 held-out vehicles."""
