@@ -215,8 +215,8 @@ class TuneSettings:
       starts: starting points tuned together (one ``vmap`` over their optimiser states and rollouts); the result
         is the best of them on the training objective.
       screening: candidates drawn (scrambled Sobol) in the problem's search box and scored, batched, before the
-        gradient runs; the ``starts`` best of them and ``theta0`` are the starting points (0: ``theta0`` alone,
-        which needs ``starts == 1``).
+        gradient runs: one start is the best of them and ``theta0``; more starts are ``theta0`` and the
+        ``starts - 1`` best candidates (0: ``theta0`` alone, which needs ``starts == 1``).
       spread: half-width of the search box ``theta0 +- spread`` (unconstrained coordinates) when the problem has
         no ``search_box``.  seed: seed of the screening's draws.
       objective: "mean" or "cvar" of the per-plant losses.  cvar_alpha: the CVaR fraction of worst plants.
@@ -713,9 +713,10 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
 
 
 def _screen(problem: TuningProblem, settings: TuneSettings, count: int) -> tuple[dict, dict]:
-    """``(starts, report)``: the ``count`` best (fewest diverged plants, then lowest objective) of ``theta0`` and
-    ``settings.screening`` scrambled-Sobol candidates in the search box, stacked; the report gives the screened
-    count and the best objectives."""
+    """``(starts, report)``: ``settings.screening`` scrambled-Sobol candidates in the search box and ``theta0``
+    scored, and the starts stacked: the best of them (fewest diverged plants, then lowest objective) for one start;
+    for ``count > 1``, ``theta0`` and the ``count - 1`` best others. The report gives the screened count and the
+    starts' objectives."""
     from scipy.stats import qmc
 
     theta0 = {k: np.asarray(v) for k, v in _strong(problem.theta0).items()}
@@ -725,7 +726,10 @@ def _screen(problem: TuningProblem, settings: TuneSettings, count: int) -> tuple
     drawn = _in_box(_search_box(problem, settings.spread), theta0, unit)
     candidates = {k: np.concatenate([theta0[k][None], drawn[k]]) for k in theta0}
     values, diverged = batch_objective(problem, settings)(candidates)
-    order = np.lexsort((values, diverged))[:count]
+    order = np.lexsort((values, diverged))
+    if count > 1:  # theta0 first, its basin may hold a better minimum than a lower screened point's
+        order = np.concatenate([[0], order[order != 0]])
+    order = order[:count]
     starts = {k: v[order] for k, v in candidates.items()}
     return starts, {"screened": int(values.size), "theta0": float(values[0]), "best": values[order].tolist()}
 
@@ -782,14 +786,16 @@ def tune(
 ) -> TuneResult:
     """Minimise the robust objective of ``problem``'s training losses from one or more starting points.
 
-    The starting points are ``initial`` if given, else ``theta0`` and, with ``settings.screening`` candidates, the
-    ``settings.starts`` best of ``theta0`` and the screened candidates. They run together: each step evaluates
-    the objective and its gradient at every start in one call (one rollout per training plant and start). An
-    accepted evaluation takes an optax step ``theta <- theta + s * update`` with step scale ``s`` (1 normally); a
-    rejected one (see the module docstring) is logged, returns to the start's last accepted ``theta`` and retries
-    with ``s / 2`` (``s`` doubles back towards 1 on each acceptance). A start stops when it has converged (no
-    relative improvement of ``min_improvement`` in ``patience`` evaluations), at the cap ``steps``, or after
-    ``max_rejections`` rejections in a row; each start's run is the run :func:`tune` makes from it alone. Training
+    The starting points are ``initial`` if given, else ``theta0``, or with ``settings.screening`` candidates: the
+    best of them and ``theta0`` for one start, ``theta0`` and the ``settings.starts - 1`` best for more. They run
+    together: each step evaluates the objective and its gradient at every start in one call (one rollout per
+    training plant and start). An accepted evaluation takes an optax step ``theta <- theta + s * update`` with step
+    scale ``s`` (1 normally); a rejected one (see the module docstring; with ``backtrack``, also a step that does
+    not improve) returns to the start's last accepted ``theta`` and retries with ``s / 2`` (``s`` doubles back
+    towards 1 on each acceptance). A start stops when it has converged (no relative improvement of
+    ``min_improvement`` in ``patience`` evaluations, or ``max_rejections`` backtracking halvings in a row), at the
+    cap ``steps``, or after ``max_rejections`` diverging steps in a row; each start's run is the run :func:`tune`
+    makes from it alone. Training
     plants that diverge at a start are penalised and logged; a start that fails on every plant is dropped, and
     when every start fails (or every one ends in rejections) a :class:`TuningError` says why.
 

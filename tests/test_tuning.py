@@ -454,16 +454,20 @@ def test_k_starts_run_together_as_k_separate_runs(caplog):
 
 
 def test_screening_seeds_the_starts_with_the_best_candidates(caplog):
-    """15 Sobol candidates in theta0 +- 2 and theta0 are scored in batched calls; the 4 best are the starts, in
-    order; every start converges to the mean optimum (2); the rollouts count the screening."""
+    """15 Sobol candidates in theta0 +- 2 and theta0 are scored in batched calls; theta0 and the 3 best are the
+    starts, in order; every start converges to the mean optimum (2); the rollouts count the screening. With one
+    start, the best candidate is it."""
     s = TuneSettings(optax.adam(0.3), steps=60, patience=5, starts=4, screening=15, seed=3)
     problem = quadratic_problem(start=-1.0)
     with caplog.at_level(logging.INFO, logger="jaxobs.tuning"):
         result = tune(problem, s, progress=False)
     assert "screened 16 candidates" in caplog.text
     firsts = [r.history[0]["objective"] for r in result.starts]
-    assert firsts == sorted(firsts) and firsts[0] < 14 / 3 + 8  # below theta0's objective (x = -1: 26/3)
+    assert float(result.starts[0].start["x"]) == -1.0 and firsts[0] == pytest.approx(29 / 3)  # theta0
+    assert firsts[1:] == sorted(firsts[1:]) and firsts[1] < 29 / 3
     assert all(-3.0 <= float(r.start["x"]) <= 1.0 for r in result.starts)
+    one = tune(problem, dataclasses.replace(s, starts=1), progress=False)
+    assert one.starts[0].history[0]["objective"] == firsts[1]
     assert all(r.stopped == "converged" for r in result.starts) and result.converged
     assert float(result.theta["x"]) == pytest.approx(2.0, abs=0.05)
     steps = max(r.evaluations for r in result.starts)
