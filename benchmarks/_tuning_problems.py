@@ -32,6 +32,8 @@ def load_problem(label: str):
     registry = tuning_problems()
     path = PROBLEMS[label]
     given = load_toml(ROOT / path) if path else {}
+    if "mjcf" in given.get("robot", {}):  # a path relative to the repository root, wherever this runs
+        given["robot"]["mjcf"] = str(ROOT / given["robot"]["mjcf"])
     name = given.get("problem", next(iter(registry)))
     config = registry[name].validate({**given, "problem": name}, path or "defaults")
     return registry[name].build(config), tuning_settings(config), config

@@ -65,7 +65,7 @@ logger = logging.getLogger("jaxobs.tuning")
 OBJECTIVES = ("mean", "cvar")
 GRADIENT_MODES = ("auto", "reverse", "forward")
 
-FORWARD_MAX_PARAMETERS = 6
+FORWARD_MAX_PARAMETERS = 10
 """``gradient = "auto"`` differentiates in forward mode up to this many scalar parameters, in reverse mode above:
 forward mode costs about one rollout's tangent per parameter, reverse mode a fixed multiple of the rollout (the
 measured crossover on the MJX problems: docs/performance.md)."""
