@@ -80,7 +80,8 @@ def test_readme_table_row(tmp_path):
     out = tmp_path / "robot"
     run_cli(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"])
     summary = json.loads((out / "tuned.json").read_text())
-    assert summary["evaluations"] == 20 and summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
+    assert summary["converged"] and all(start["stopped"] == "converged" for start in summary["starts"])
+    assert summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
     searched = {"random search, equal rollouts", "random search, equal time"}
     assert set(summary["heldout"]) == {"hand-set", "tuned", *searched}
