@@ -349,10 +349,10 @@ def test_cli_tune_in_two_processes(tuned_mjx, tmp_path):
     ]  # fmt: skip
     outs = [p.communicate(timeout=900) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
-    assert "3 gradient evaluations" in outs[0][0] and "process 1 of 2: done" in outs[1][0]
+    assert "6 gradient evaluations" in outs[0][0] and "process 1 of 2: done" in outs[1][0]
     assert not (tmp_path / "out1").exists()
     summary = json.loads((tmp_path / "out0" / "tuned.json").read_text())
-    assert summary["evaluations"] == 3
+    assert summary["evaluations"] == 6  # 2 starts x 3 steps
     np.testing.assert_allclose(summary["train_objective"]["tuned"], tuned_mjx["objective"], rtol=1e-12)
 
 
