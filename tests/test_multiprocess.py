@@ -314,13 +314,9 @@ def test_tune_of_the_mjx_problem_in_two_processes_matches_one_process(tuned_mjx,
         _assert_same_tuning(result, tuned_mjx)
 
 
-@pytest.mark.slow
-def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
-    """SIGKILL both processes once process 0 has written a checkpoint (each write sleeps first), then rerun in one
-    process: it resumes where process 0 stopped and ends where the uninterrupted run ended."""
-    checkpoint = tmp_path / "killed.npz"
-    procs = _start(TUNE_SCRIPT, 2, lambda pid: [checkpoint], env={"TUNE_SLEEP": "2"})
-    deadline = time.monotonic() + 300
+def _kill_after_first_checkpoint(procs, checkpoint, timeout: float = 300) -> None:
+    """SIGKILL ``procs`` as soon as ``checkpoint`` exists (each write sleeps first, so the kill lands mid-run)."""
+    deadline = time.monotonic() + timeout
     try:
         while not checkpoint.exists():
             assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
@@ -330,6 +326,14 @@ def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
         for proc in procs:
             proc.kill()
             proc.communicate()
+
+
+@pytest.mark.slow
+def test_tune_killed_in_two_processes_resumes_in_one(tuned, tmp_path):
+    """SIGKILL both processes once process 0 has written a checkpoint (each write sleeps first), then rerun in one
+    process: it resumes where process 0 stopped and ends where the uninterrupted run ended."""
+    checkpoint = tmp_path / "killed.npz"
+    _kill_after_first_checkpoint(_start(TUNE_SCRIPT, 2, lambda pid: [checkpoint], env={"TUNE_SLEEP": "2"}), checkpoint)
     (result,) = _tune(1, checkpoint, "--evaluate")
     assert 0 < result["checkpoints_written"] < 6  # resumed, not restarted (6 writes from the start)
     _assert_same_tuning(result, tuned)
@@ -363,17 +367,9 @@ def test_a_killed_population_run_resumes_to_the_same_result(tmp_path):
     population = ["--starts", "3", "--screening", "7"]
     (straight,) = _tune(1, tmp_path / "straight.npz", *population)
     checkpoint = tmp_path / "killed.npz"
-    procs = _start(TUNE_SCRIPT, 1, lambda pid: [checkpoint, *population], env={"TUNE_SLEEP": "2"})
-    deadline = time.monotonic() + 300
-    try:
-        while not checkpoint.exists():
-            assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll()]
-            assert time.monotonic() < deadline, "no checkpoint was written"
-            time.sleep(0.05)
-    finally:
-        for proc in procs:
-            proc.kill()
-            proc.communicate()
+    _kill_after_first_checkpoint(
+        _start(TUNE_SCRIPT, 1, lambda pid: [checkpoint, *population], env={"TUNE_SLEEP": "2"}), checkpoint
+    )
     (resumed,) = _tune(1, checkpoint, *population)
     assert 0 < resumed["checkpoints_written"] < straight["checkpoints_written"]  # resumed, not restarted
     _assert_same_tuning(resumed, straight)
