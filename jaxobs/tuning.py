@@ -664,10 +664,6 @@ def _in_box(box: dict, theta0: dict, unit: np.ndarray) -> dict:
     return stacked
 
 
-def _stack(thetas: list[dict]) -> dict:
-    return {k: np.stack([np.asarray(t[k]) for t in thetas]) for k in thetas[0]}
-
-
 def _row(stacked: dict, i: int) -> dict:
     return {k: v[i] for k, v in stacked.items()}
 
