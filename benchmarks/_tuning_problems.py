@@ -24,6 +24,9 @@ PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
     "cartpole-payload": "tuning/cartpole_payload.toml",
     "arm-on-table": "tuning/arm_on_table.toml",
     "sideslip": "tuning/sideslip.toml",
+    "peg-on-hole-cholesky": "tuning/peg_on_hole_cholesky.toml",
+    "cartpole-payload-aob": "tuning/cartpole_payload_aob.toml",
+    "arm-on-table-cholesky": "tuning/arm_on_table_cholesky.toml",
 }
 
 

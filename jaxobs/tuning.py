@@ -83,18 +83,31 @@ DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
 
 
 def cholesky_covariance(raw):
-    """``Q = L L^T`` with ``L = tril(raw, -1) + diag(exp(diag(raw)))``: positive definite for every ``raw``
-    (n, n) (the strict upper triangle of ``raw`` is ignored)."""
-    lower = jnp.tril(raw, -1) + jnp.diag(jnp.exp(jnp.diagonal(raw)))
-    return lower @ lower.T
+    """``Q = L L^T`` with ``L = diag(exp(diag(raw))) (I + tril(raw, -1))``: positive definite for every ``raw``
+    (..., n, n). The diagonal of ``raw`` holds log standard-deviation scales, its strict lower triangle
+    dimensionless couplings (a row's entries relative to its own scale), so one search box fits covariances of any
+    units; the strict upper triangle is ignored. Leading axes are batch axes.
+
+    Example:
+      >>> import jax.numpy as jnp
+      >>> from jaxobs.tuning import cholesky_covariance
+      >>> cholesky_covariance(jnp.array([[0.0, 0.0], [0.5, jnp.log(2.0)]])).tolist()
+      [[1.0, 1.0], [1.0, 5.0]]
+    """
+    raw = jnp.asarray(raw)
+    scale = jnp.exp(jnp.diagonal(raw, axis1=-2, axis2=-1))
+    lower = scale[..., :, None] * (jnp.tril(raw, -1) + jnp.eye(raw.shape[-1], dtype=raw.dtype))
+    return lower @ jnp.swapaxes(lower, -1, -2)
 
 
 def cholesky_parameters(cov):
-    """The ``raw`` of :func:`cholesky_covariance` for a positive-definite ``cov`` (its inverse)."""
+    """The ``raw`` of :func:`cholesky_covariance` for a positive-definite ``cov`` (..., n, n) (its inverse)."""
     lower = jnp.linalg.cholesky(jnp.asarray(cov))
     if not bool(jnp.all(jnp.isfinite(lower))):
         raise ValueError("cov must be symmetric positive definite for a Cholesky parameterisation")
-    return jnp.tril(lower, -1) + jnp.diag(jnp.log(jnp.diagonal(lower)))
+    scale = jnp.diagonal(lower, axis1=-2, axis2=-1)
+    n = lower.shape[-1]
+    return jnp.tril(lower / scale[..., :, None], -1) + jnp.log(scale)[..., :, None] * jnp.eye(n, dtype=lower.dtype)
 
 
 def unit_interval(raw):

@@ -359,6 +359,7 @@ def make_aob(
     *,
     q_plant=1e-12,
     q_active=1e-3,
+    Q=None,
     P0=None,
     x0=None,
     active=1.0,
@@ -375,6 +376,8 @@ def make_aob(
       R: (p, p) measurement noise covariance (a scalar for one output).
       q_plant: diagonal of ``Q_xr`` (eq. 51), small: the model is trusted, errors go to ``p``.
       q_active: variance of ``^{N-1} xi_p`` (see :func:`evolution_variance`), scalar or one per input.
+      Q: (n_aug, n_aug) full process noise covariance replacing eq. 51-53's ``blockdiag(Q_xr, Q_Np)`` (then
+        ``q_plant`` and ``q_active`` are not used), e.g. a tuned :func:`jaxobs.tuning.cholesky_covariance`.
       P0: (n_aug, n_aug) prior covariance of ``x_0``; defaults to ``Phi_n Q Phi_n' + Q`` (the papers'
         ``P_{-1} = Q_0`` advanced one step; with ``active = 0`` the active block of ``Q`` is zeroed first, so the
         switched-off AOB starts from the CKF's prior).
@@ -396,7 +399,7 @@ def make_aob(
       ((9, 9), (9, 1))
     """
     order = _checks.count("order", order, minimum=1, hint="use make_ckf for the classical filter")
-    return _make(plant, order, R, q_plant, q_active, None, P0, x0, active, alpha, sigma_floor, disturbance_input,
+    return _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_floor, disturbance_input,
                  steady_state)  # fmt: skip
 
 

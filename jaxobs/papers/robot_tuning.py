@@ -2,8 +2,11 @@
 
 The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with its actuators, sensors, control period,
 dead time and sensor noise; the controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the
-model linearised about the operating point. Tuned: ``log_q`` and ``log_r``; the loss is the error against the
-desired closed loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
+model linearised about the operating point; with ``design.observer = "aob"`` the filter is an AOB-1 whose active
+state (an equivalent input disturbance per actuator) the feedback cancels (Cortesão 2006 eq. 49-50). Tuned: the
+filter's noise covariances, as log diagonals (``design.parameterisation = "diagonal"``) or as full Cholesky factors
+of ``Q`` over every filter state and of ``R`` (``"cholesky"``); the loss is the error against the desired closed
+loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
 ``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
 """
 
@@ -13,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, fail
+from jaxobs._config import check_at_least, check_choice, fail
 from jaxobs.closed_loop import ideal_response
-from jaxobs.observers import feedback, kalman
+from jaxobs.observers import active, feedback, kalman
 from jaxobs.papers.scenarios import TuningScenario
 from jaxobs.papers.tuning_config import (
     BASELINE_DEFAULTS,
@@ -24,11 +27,13 @@ from jaxobs.papers.tuning_config import (
     search_box,
     settings,
 )
-from jaxobs.tuning import TuningProblem, gradient_mode
+from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters, gradient_mode
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]
 
 NAME = "own-robot"
+OBSERVERS = ("kalman", "aob")
+PARAMETERISATIONS = ("diagonal", "cholesky")
 
 LQG = feedback.observer_controller(kalman.kalman_filter)
 """The controller: a Kalman filter with the state feedback ``u = N r - L x_hat`` (params: :func:`lqg_params`)."""
@@ -56,7 +61,15 @@ DEFAULT_CONFIG = {
         "input_weight": 0.0,
         "state_limit": 10.0,
     },
-    "design": {"q": [1e-6, 1e-6, 1e-4, 1e-4], "lqr_state": [10.0, 10.0, 1.0, 1.0], "lqr_input": [0.01]},
+    "design": {
+        "observer": "kalman",
+        "parameterisation": "diagonal",
+        "q": [1e-6, 1e-6, 1e-4, 1e-4],
+        "q_input": [],
+        "q_active": [],
+        "lqr_state": [10.0, 10.0, 1.0, 1.0],
+        "lqr_input": [0.01],
+    },
     "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 4.0},
 }
@@ -86,8 +99,15 @@ CONFIG_NOTES = {
     "scenario.output_weights": "loss weight of each measured entry's squared error to the desired closed loop's",
     "scenario.input_weight": "loss weight of the squared command",
     "scenario.state_limit": "a rollout whose (qpos, qvel) leaves the operating point by more counts as diverged",
-    "design": "the LQG controller on the linearised nominal model; the Kalman filter's Q and R are tuned",
+    "design": "the observer-based controller on the linearised nominal model; the filter's Q and R are tuned",
+    "design.observer": "'kalman' (the LQG) or 'aob' (an AOB-1: an active state per actuator, cancelled by the "
+    "feedback)",
+    "design.parameterisation": "'diagonal' (log variances of q, q_active and R) or 'cholesky' (full Q over every "
+    "filter state, dead-time and active states included, and full R)",
     "design.q": "hand-set process noise variances of (qpos, qvel) (R starts at sensor_noise^2)",
+    "design.q_input": "process noise variance of the commands in flight (dead-time states), one per actuator: an "
+    "input disturbance; empty: 0 (exact commands; the cholesky parameterisation needs > 0 with a dead time)",
+    "design.q_active": "hand-set variance of the active state's increment per control period, one per actuator (AOB)",
     "design.lqr_state": "LQR state weights of (qpos, qvel)",
     "design.lqr_input": "LQR input weights, one per actuator",
 }
@@ -119,6 +139,17 @@ def _check(config: dict, source: str) -> None:
         fail(source, "scenario.tracked", f"must name measured sensors ({', '.join(rb['sensors'])})")
     if len(d["lqr_input"]) != n_act:
         fail(source, "design.lqr_input", f"needs one weight per actuator ({n_act})")
+    check_choice(config, source, "design.observer", OBSERVERS)
+    check_choice(config, source, "design.parameterisation", PARAMETERISATIONS)
+    for key, needed in (("q_input", False), ("q_active", d["observer"] == "aob")):
+        if (d[key] or needed) and len(d[key]) != n_act:
+            fail(source, f"design.{key}", f"needs one variance per actuator ({n_act})")
+    if any(v < 0 for v in d["q_input"]) or any(v <= 0 for v in d["q_active"]):
+        fail(source, "design.q_input" if any(v < 0 for v in d["q_input"]) else "design.q_active",
+             "variances must be >= 0 (q_input) and > 0 (q_active)")  # fmt: skip
+    if d["parameterisation"] == "cholesky" and rb["dead_time"] and not all(v > 0 for v in d["q_input"] or [0]):
+        fail(source, "design.q_input", "the cholesky parameterisation needs a positive variance per actuator for "
+             "the dead-time states (a full Q must be positive definite)")  # fmt: skip
     if len(d["q"]) != len(d["lqr_state"]):
         fail(source, "design.q", "needs as many entries as design.lqr_state (one per qpos and qvel)")
     for key in ("design.q", "design.lqr_input", "robot.sensor_noise"):
@@ -169,15 +200,31 @@ def build_problem(config: dict) -> TuningProblem:
 
     robot = _robot(config)
     sc, d = config["scenario"], config["design"]
-    theta0 = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
-              "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
-    _check_differentiable(robot, config, theta0)
-    n_x, p = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors)
+    n_x, p, m = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors), len(robot.actuators)
     for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),
                             ("design.q", n_x, "qpos and qvel entry")):  # fmt: skip
         section, name = key.split(".")
         if len(config[section][name]) != size:
             raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
+    aob = d["observer"] == "aob"
+    q_input = jnp.tile(jnp.asarray(d["q_input"] or [0.0] * m, float), robot.dead_time)
+    hand_set = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
+                "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
+    if aob:
+        hand_set["log_q_active"] = jnp.log(jnp.asarray(d["q_active"], float))
+
+    def covariances(theta):
+        """``(Q, R)`` of the filter (every state: qpos, qvel, commands in flight, active states)."""
+        if "q_cholesky" in theta:
+            return cholesky_covariance(theta["q_cholesky"]), cholesky_covariance(theta["r_cholesky"])
+        q = [jnp.exp(theta["log_q"]), q_input] + ([jnp.exp(theta["log_q_active"])] if aob else [])
+        return jnp.diag(jnp.concatenate(q)), jnp.diag(jnp.exp(theta["log_r"]))
+
+    theta0 = hand_set
+    if d["parameterisation"] == "cholesky":
+        Q0, R0 = covariances(hand_set)
+        theta0 = {"q_cholesky": cholesky_parameters(Q0), "r_cholesky": cholesky_parameters(R0)}
+    _check_differentiable(robot, config, theta0)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
@@ -191,16 +238,20 @@ def build_problem(config: dict) -> TuningProblem:
     desired = ideal_response(lin, L, reference @ N.T)  # (steps, p): the LQR with the true state, nominal model
     weights = jnp.asarray(sc["output_weights"], float)
     x_op = jnp.concatenate([robot.qpos0, robot.qvel0])
+    estimator_controller = active.active_observer_controller if aob else LQG
 
     def controller(theta):
-        Q = jnp.diag(pad(jnp.exp(theta["log_q"])))
-        return lqg_params(lin, Q, jnp.diag(jnp.exp(theta["log_r"])), L, N)
+        Q, R = covariances(theta)
+        if not aob:
+            return lqg_params(lin, Q, R, L, N)
+        observer = active.make_aob(lin, 1, R, Q=Q, steady_state=True)
+        return feedback.FeedbackParams(observer, active.feedback_gain(observer, L), N)
 
     def run(theta, plants):
         params = controller(theta)
 
         def one(scales, key):
-            return rollout(robot, LQG, params, scales, key, steps, reference=reference)
+            return rollout(robot, estimator_controller, params, scales, key, steps, reference=reference)
 
         return jax.vmap(one)(plants["scales"], plants["key"])
 
@@ -235,11 +286,12 @@ def build_problem(config: dict) -> TuningProblem:
         }
 
     def describe(theta):
-        params = controller(theta)
+        Q, R = (np.asarray(a) for a in covariances(theta))
+        full = "q_cholesky" in theta
         return {
-            "Q_diagonal": np.exp(np.asarray(theta["log_q"])).tolist(),
-            "R_diagonal": np.exp(np.asarray(theta["log_r"])).tolist(),
-            "kalman_gain": np.asarray(params.estimator.gain).tolist(),
+            ("Q" if full else "Q_diagonal"): (Q if full else np.diagonal(Q)).tolist(),
+            ("R" if full else "R_diagonal"): (R if full else np.diagonal(R)).tolist(),
+            "kalman_gain": np.asarray(controller(theta).estimator.gain).tolist(),
         }
 
     return TuningProblem(
@@ -249,7 +301,7 @@ def build_problem(config: dict) -> TuningProblem:
         heldout=sample("heldout"),
         describe=describe,
         responses=responses,
-        search_box=search_box(config, theta0),
+        search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
     )
 
 

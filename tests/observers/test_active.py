@@ -357,6 +357,18 @@ def test_gradient_through_closed_loop(plant_and_gain):
     check_grads(cost_ss, (jnp.log(1e-3),), order=1, modes=["rev", "fwd"], rtol=1e-4)
 
 
+def test_full_q_replaces_the_block_diagonal_of_eq51(plant_and_gain):
+    """``make_aob(..., Q=...)`` with eq. 51-53's own Q is the same observer; another full Q is taken as given."""
+    plant, _ = plant_and_gain
+    aob = active.make_aob(plant, 2, 0.1, q_plant=1e-6, q_active=1e-3, steady_state=True)
+    same = active.make_aob(plant, 2, 0.1, Q=aob.Q, steady_state=True)
+    np.testing.assert_array_equal(same.gain, aob.gain)
+    coupled = aob.Q.at[0, -1].set(1e-5).at[-1, 0].set(1e-5)
+    np.testing.assert_array_equal(active.make_aob(plant, 2, 0.1, Q=coupled).Q, coupled)
+    with pytest.raises(ValueError, match="Q must be positive semidefinite"):
+        active.make_aob(plant, 2, 0.1, Q=-aob.Q)
+
+
 def test_bad_inputs(plant_and_gain):
     """Clear ValueErrors naming the argument."""
     plant, L = plant_and_gain

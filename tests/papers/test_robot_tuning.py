@@ -3,6 +3,7 @@ run of the shipped payload-cart example that pins its README row."""
 
 import json
 
+import numpy as np
 import pytest
 
 from jaxobs._config import ConfigError, load_toml
@@ -16,6 +17,24 @@ def test_shipped_config_file_validates_to_the_default():
     assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
     arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
     assert arm["robot"]["solver_iterations"] == 4
+    full = {"tuning/arm_on_table_cholesky.toml": "kalman", "tuning/cartpole_payload_aob.toml": "aob"}
+    for path, observer in full.items():
+        design = robot_tuning.PROBLEM.validate(load_toml(path), path)["design"]
+        assert (design["observer"], design["parameterisation"]) == (observer, "cholesky")
+
+
+def test_full_covariances_start_at_the_hand_set_filter():
+    """The Cholesky parameterisation of the hand-set Q (every filter state: qpos, qvel, command in flight, active
+    state) and R designs the same AOB as the log-diagonal one; it counts 21 + 3 free parameters."""
+    given = {"problem": robot_tuning.NAME, "scenario": {"duration": 0.1},
+             "design": {"observer": "aob", "q_input": [1e-4], "q_active": [1e-2]}}  # fmt: skip
+    diagonal = robot_tuning.build_problem(robot_tuning.PROBLEM.validate(given))
+    given["design"]["parameterisation"] = "cholesky"
+    full = robot_tuning.build_problem(robot_tuning.PROBLEM.validate(given))
+    assert {k: v.shape for k, v in full.theta0.items()} == {"q_cholesky": (6, 6), "r_cholesky": (2, 2)}
+    assert sum(int(np.sum(hi > lo)) for lo, hi in full.search_box.values()) == 24
+    np.testing.assert_allclose(full.describe(full.theta0)["kalman_gain"],
+                               diagonal.describe(diagonal.theta0)["kalman_gain"], rtol=1e-9)  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -31,6 +50,13 @@ def test_shipped_config_file_validates_to_the_default():
         ({"design": {"lqr_input": [0.01, 0.01]}}, "design.lqr_input"),
         ({"design": {"q": [1e-6, 1e-6, 1e-4]}}, "design.q"),
         ({"robot": {"sensor_noise": [0.0, 0.1]}}, "robot.sensor_noise"),
+        ({"design": {"observer": "luenberger"}}, "design.observer"),
+        ({"design": {"parameterisation": "full"}}, "design.parameterisation"),
+        ({"design": {"observer": "aob"}}, "design.q_active"),
+        ({"design": {"q_input": [1e-4, 1e-4]}}, "design.q_input"),
+        ({"design": {"q_input": [-1e-4]}}, "design.q_input"),
+        ({"design": {"observer": "aob", "q_active": [0.0]}}, "design.q_active"),
+        ({"design": {"parameterisation": "cholesky"}}, "design.q_input"),
     ],
 )
 def test_bad_config_names_the_key(given, key):

@@ -30,7 +30,7 @@ from jaxobs.mjx.compliant_6dof import (
     Z,
     check_per_dof,
 )
-from jaxobs.observers.active import feedback_gain, make_aob, sensor_based_gain
+from jaxobs.observers.active import aob_noise_covariance, feedback_gain, make_aob, sensor_based_gain
 from jaxobs.observers.feedback import FeedbackParams
 from jaxobs.plants import force_plant
 
@@ -82,6 +82,7 @@ def design(
     *,
     noise_variance=SENSOR_NOISE_VARIANCE,
     q_active=None,
+    process_noise=None,
     h: float = CONTROL_PERIOD,
     dead_time_samples: int = 5,
     tau_c_over_tp: float = TAU_C_OVER_TP,
@@ -103,6 +104,8 @@ def design(
       params: the nominal plant (Table-1 stiffnesses; every stiffness must be > 0 here).
       noise_variance: ``R`` per DOF (6,), N^2 and (N·m)^2 (:data:`SENSOR_NOISE_VARIANCE`).
       q_active: active-state variances (6,) replacing ``a_i 1e-5`` (may be traced, e.g. ``exp`` of a tuned log).
+      process_noise: (6, n, n) full per-DOF ``Q`` replacing eq. 62's (then ``q_active`` must be None), ``n = 3 +
+        dead_time_samples`` observer states ``[F, dF/dt, u_{k-d}, ..., u_{k-1}, p]``; may be traced.
       steady_state: steady-state Kalman gains (DARE with implicit derivatives, so tuners can differentiate
         through the design); ``False`` (time-varying gains) needs ``sba=()``, since the SBA gain is fixed and
         the six controllers must share one pytree structure.
@@ -121,6 +124,12 @@ def design(
     check_per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
     if q_active is not None:
         check_per_dof("q_active", q_active, minimum=0.0, strict=False)
+        if process_noise is not None:
+            raise ValueError("give q_active or process_noise, not both")
+    n_obs = 3 + int(dead_time_samples)
+    if process_noise is not None:
+        _checks.shape("process_noise", process_noise, (N_DOF, n_obs, n_obs), "one (n, n) Q per DOF")
+        _checks.covariance("process_noise", process_noise, definite=False, size=n_obs)
     for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
         if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
             raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
@@ -133,11 +142,13 @@ def design(
             "enable it in your entry point with jax.config.update('jax_enable_x64', True)"
         )
     ratio = r / r[X]  # eq. 65-66
-    q_active = Q_ACTIVE_FX * ratio if q_active is None else jnp.broadcast_to(jnp.asarray(q_active, float), (N_DOF,))
+    if process_noise is None:
+        q_active = Q_ACTIVE_FX * ratio if q_active is None else jnp.broadcast_to(jnp.asarray(q_active, float), (N_DOF,))
+        process_noise = jax.vmap(lambda a, b: aob_noise_covariance(n_obs - 1, 1, 1, a, b))(Q_PLANT_FX * ratio, q_active)
+    Q = jnp.asarray(process_noise, float)
     controllers = _design_aobs(
-        params.per_dof("stiffness", float), params.per_dof("time_constant", float), r, Q_PLANT_FX * ratio, q_active,
-        P0_FX * ratio, h=float(h), dead_time_samples=int(dead_time_samples), tau_c_over_tp=float(tau_c_over_tp),
-        steady_state=bool(steady_state),
+        params.per_dof("stiffness", float), params.per_dof("time_constant", float), r, Q, P0_FX * ratio, h=float(h),
+        dead_time_samples=int(dead_time_samples), tau_c_over_tp=float(tau_c_over_tp), steady_state=bool(steady_state),
     )  # fmt: skip
     aobs = controllers.estimator
     if sba:
@@ -157,17 +168,17 @@ def design(
 
 
 @functools.partial(jax.jit, static_argnames=("h", "dead_time_samples", "tau_c_over_tp", "steady_state"))
-def _design_aobs(stiffness, tp, r, q_plant, q_active, p0, *, h, dead_time_samples, tau_c_over_tp, steady_state):
+def _design_aobs(stiffness, tp, r, Q, p0, *, h, dead_time_samples, tau_c_over_tp, steady_state):
     """The six AOB-1 of eq. 62-68 in one ``vmap`` over DOF (compiled once per process; traceable)."""
 
-    def one(ks, tp, r, q_plant, q_active, p0):
+    def one(ks, tp, r, Q, p0):
         plant = force_plant(ks, tp, h, dead_time_samples * h)
         L_r = critically_damped_gain(plant, tau_c_over_tp * tp)
         P0 = p0 * jnp.eye(plant.n_states + 1)
-        aob = make_aob(plant, 1, r, q_plant=q_plant, q_active=q_active, P0=P0, steady_state=steady_state)
+        aob = make_aob(plant, 1, r, Q=Q, P0=P0, steady_state=steady_state)
         return FeedbackParams(aob, feedback_gain(aob, L_r))
 
-    return jax.vmap(one)(stiffness, tp, r, q_plant, q_active, p0)
+    return jax.vmap(one)(stiffness, tp, r, Q, p0)
 
 
 def force_reference(controllers: FeedbackParams, force_setpoint) -> jax.Array:

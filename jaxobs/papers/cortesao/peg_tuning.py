@@ -1,9 +1,11 @@
 """Tuning the per-DOF AOBs of the 6-DOF peg-on-hole alignment (the MRAC chapter §7) against MJX rollouts.
 
-Tuned: ``log_q_active`` of the four DOF whose AOB acts (x, y, rx, rz), from the hand-set design of eq. 62-68, on
-plants with scaled stiffnesses, tilt and contact lever (:func:`jaxobs.papers.cortesao.mrac.peg_on_hole_scenario`).
-The loss is each DOF's squared error against its desired closed-loop response (eq. 43), in units of its sensor
-noise variance. The problem: docs/theory/papers.md.
+Tuned, from the hand-set design of eq. 62-68, the process noise of the four DOF whose AOB acts (x, y, rx, rz):
+their active-state variances ``log_q_active`` (``design.parameterisation = "diagonal"``), or per DOF a full
+covariance of the force, its rate and the active state, ``q_cholesky`` (4, 3, 3) (``"cholesky"``, 24 parameters;
+the dead-time slots keep eq. 62's entries), on plants with scaled stiffnesses, tilt and contact lever
+(:func:`jaxobs.papers.cortesao.mrac.peg_on_hole_scenario`). The loss is each DOF's squared error against its
+desired closed-loop response (eq. 43), in units of its sensor noise variance. The problem: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_range, fail
+from jaxobs._config import check_at_least, check_choice, check_range, fail
 from jaxobs.closed_loop import ideal_response
 from jaxobs.observers.active import active_observer_controller
 from jaxobs.papers.scenarios import TuningScenario
@@ -26,11 +28,12 @@ from jaxobs.papers.tuning_config import (
     search_box,
 )
 from jaxobs.plants import force_plant
-from jaxobs.tuning import TuningProblem
+from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]
 
 NAME = "peg-on-hole"
+PARAMETERISATIONS = ("diagonal", "cholesky")
 
 DEFAULT_CONFIG = {
     "problem": NAME,
@@ -49,6 +52,7 @@ DEFAULT_CONFIG = {
         "insertion_velocity_bias": 0.05,
         "force_limit": 1000.0,
     },
+    "design": {"parameterisation": "diagonal"},
     "optimizer": optimizer_defaults(**SHIPPED_STRATEGY, checkpoint_every=5),
     "baseline": {**BASELINE_DEFAULTS, "spread": 6.0},
 }
@@ -67,11 +71,15 @@ CONFIG_NOTES = {
     "scenario.alignment_end": "end of the alignment rotation (s), at most the duration",
     "scenario.insertion_velocity_bias": "feedforward bias on v_z (mm/s)",
     "scenario.force_limit": "a rollout whose force (N) or moment (N m) exceeds it counts as diverged",
+    "design": "what is tuned of the per-DOF AOB-1 of x, y, rx, rz (the z CKF keeps its sensor-based gain)",
+    "design.parameterisation": "'diagonal' (the active-state variances, 4) or 'cholesky' (per DOF the full "
+    "covariance of force, force rate and active state, 4 x 6)",
 }
 
 
 def _check(config: dict, source: str) -> None:
     """Raise a :class:`jaxobs._config.ConfigError` naming the key of a bad value of the merged ``config``."""
+    check_choice(config, source, "design.parameterisation", PARAMETERISATIONS)
     check_range(config, source, "plants.stiffness_scale", positive=True, allow_point=True)
     check_range(config, source, "plants.tilt", allow_point=True, minimum=-0.3, maximum=0.3)
     check_range(config, source, "plants.contact_radius", positive=True, allow_point=True)
@@ -114,9 +122,16 @@ def build_problem(config: dict) -> TuningProblem:
     model = c6.load_model()[1]
     steps = scenario.t.shape[0]
 
+    hand_set_q = hand_set.estimator.Q  # (6, 8, 8), eq. 62
+    block = np.array([0, 1, hand_set_q.shape[-1] - 1])  # F, dF/dt and the active state p
+    cholesky = config["design"]["parameterisation"] == "cholesky"
+
     def controllers(theta):
-        q = q_hand.at[tuned].set(jnp.exp(theta["log_q_active"]))
-        return mrac.design(nominal, q_active=q, feedback_off=(c6.RY,))
+        if not cholesky:
+            q = q_hand.at[tuned].set(jnp.exp(theta["log_q_active"]))
+            return mrac.design(nominal, q_active=q, feedback_off=(c6.RY,))
+        Q = hand_set_q.at[np.ix_(tuned, block, block)].set(cholesky_covariance(theta["q_cholesky"]))
+        return mrac.design(nominal, process_noise=Q, feedback_off=(c6.RY,))
 
     def rollout(theta, plants):
         ctrl = controllers(theta)
@@ -155,9 +170,12 @@ def build_problem(config: dict) -> TuningProblem:
         }
 
     def describe(theta):
+        names = [c6.DOF_NAMES[i] for i in tuned]
+        if cholesky:
+            Q = np.asarray(cholesky_covariance(theta["q_cholesky"]))
+            return {"Q_force_rate_active": dict(zip(names, Q.tolist(), strict=True))}
         q = np.exp(np.asarray(theta["log_q_active"]))
         r = np.asarray(noise_variance)[tuned]
-        names = [c6.DOF_NAMES[i] for i in tuned]
         return {"q_active": dict(zip(names, q.tolist(), strict=True)),
                 "q_active_over_R": dict(zip(names, (q / r).tolist(), strict=True))}  # fmt: skip
 
@@ -172,7 +190,10 @@ def build_problem(config: dict) -> TuningProblem:
             "ylabel": "f_x (N)",
         }
 
-    theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
+    if cholesky:
+        theta0 = {"q_cholesky": cholesky_parameters(hand_set_q[np.ix_(tuned, block, block)])}
+    else:
+        theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
     return TuningProblem(
         theta0=theta0,
         losses=losses,
@@ -180,7 +201,7 @@ def build_problem(config: dict) -> TuningProblem:
         heldout=sample("heldout"),
         describe=describe,
         responses=responses,
-        search_box=search_box(config, theta0),
+        search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
     )
 
 

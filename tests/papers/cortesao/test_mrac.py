@@ -82,6 +82,24 @@ def test_aob_partly_cancels_the_alignment_load(controllers):
     assert err_aob < 0.75 * err_ckf
 
 
+def test_full_process_noise_replaces_eq62():
+    """``process_noise`` given as eq. 62's own covariances designs the same controllers; a coupled Q changes the
+    gains; a Q that is not PSD, of the wrong shape, or given with q_active is refused naming it."""
+    hand_set = mrac.design()
+    same = mrac.design(process_noise=hand_set.estimator.Q)
+    np.testing.assert_array_equal(same.estimator.gain, hand_set.estimator.gain)
+    Q = hand_set.estimator.Q
+    cross = 0.5 * jnp.sqrt(Q[:, 0, 0] * Q[:, 7, 7])  # a correlation of 0.5 between the force and the active state
+    coupled = Q.at[:, 0, 7].set(cross).at[:, 7, 0].set(cross)
+    assert not np.allclose(mrac.design(process_noise=coupled).estimator.gain[X], hand_set.estimator.gain[X])
+    with pytest.raises(ValueError, match="process_noise must be positive semidefinite"):
+        mrac.design(process_noise=-hand_set.estimator.Q)
+    with pytest.raises(ValueError, match=r"process_noise must have shape \(6, 8, 8\)"):
+        mrac.design(process_noise=hand_set.estimator.Q[:, :7, :7])
+    with pytest.raises(ValueError, match="q_active or process_noise, not both"):
+        mrac.design(q_active=1e-5, process_noise=hand_set.estimator.Q)
+
+
 def test_bad_inputs_raise():
     with pytest.raises(ValueError, match=r"^stiffness must be > 0"):
         mrac.design(mrac.peg_on_hole_scenario().plant)  # K_ry = 0: nothing to design a moment loop on
