@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxobs._config import load_toml
@@ -42,10 +43,12 @@ def load_problem(label: str):
     return registry[name].build(config), tuning_settings(config), config
 
 
-def gradient_costs(problem, settings, *, modes=None, rounds: int = 3) -> dict:
+def gradient_costs(problem, settings, *, modes=None, rounds: int = 3, population: int | None = None) -> dict:
     """The price of a gradient of the training objective: per differentiation mode (default: both), the compile
     time, the temporary memory XLA reserves and the median wall time over ``rounds`` interleaved rounds, each as
-    a ratio to one forward evaluation of the same batch (``mode`` is the one ``settings`` picks)."""
+    a ratio to one forward evaluation of the same batch (``mode`` is the one ``settings`` picks); with
+    ``population``, the price of that many starts' gradients in one ``vmap`` (the tuner's populations) against one
+    start's (``population_ratio``)."""
     mode = gradient_mode(settings, problem.theta0)
     modes = modes or [m for m in GRADIENT_MODES if m != "auto"]
     theta, batch = problem.theta0, problem.train
@@ -56,6 +59,14 @@ def gradient_costs(problem, settings, *, modes=None, rounds: int = 3) -> dict:
 
     entries = {"forward_pass": lambda th: objective(th)[0]}
     entries.update({f"{m}_mode": value_and_grad(objective, m) for m in modes})
+    if population:
+        starts = jnp.arange(population, dtype=float) * 1e-2  # distinct starts around theta
+
+        def population_gradients(th):
+            spread = jax.tree.map(lambda v: v[None] + starts.reshape((-1,) + (1,) * np.ndim(v)), th)
+            return jax.vmap(value_and_grad(objective, mode))(spread)
+
+        entries["population"] = population_gradients
     jax.jit(lambda x: x + 1).lower(1.0).compile()  # the process's one-time compilation costs, paid outside
     compiled, record = {}, {}
     for name, fn in entries.items():
@@ -76,6 +87,8 @@ def gradient_costs(problem, settings, *, modes=None, rounds: int = 3) -> dict:
         r["ratio"] = r["median_s"] / statistics.median(base["seconds"])
         r["compile_ratio"] = r["compile_s"] / base["compile_s"]
         r["memory_ratio"] = r["temp_bytes"] / max(base["temp_bytes"], 1)
-    chosen = record.get(f"{mode}_mode", {})
+    chosen = record[f"{mode}_mode"]
     return {"mode": mode, "parameters": int(sum(np.size(v) for v in jax.tree.leaves(theta))),
-            "ratio": chosen.get("ratio"), "compile_ratio": chosen.get("compile_ratio"), "entries": record}  # fmt: skip
+            "ratio": chosen["ratio"], "compile_ratio": chosen["compile_ratio"], "population": population,
+            "population_ratio": record["population"]["median_s"] / chosen["median_s"] if population else None,
+            "entries": record}  # fmt: skip

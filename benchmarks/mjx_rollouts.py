@@ -40,13 +40,22 @@ The price of a gradient on every shipped tuning problem (``--problems``, the con
 one forward evaluation of the training objective on the training batch against ``value_and_grad`` in reverse
 mode and ``jacfwd`` in forward mode, each compiled once and timed in ``--rounds`` interleaved rounds (median), with
 their compile times and the temporary memory XLA reserves for them (``memory_analysis``), as ratios to the forward
-evaluation; ``mode`` is the one ``gradient = "auto"`` picks.
+evaluation; ``mode`` is the one ``gradient = "auto"`` picks; and 16 starts' gradients in ``mode``, in one ``vmap``
+(the tuner's populations), against one start's.
+
+The floor under reverse mode (``--step-costs [BATCH ...]``): for each MJX model of the shipped problems, 50
+physics steps (a ``lax.scan``; ``jaxobs.mjx.common.step`` with the tuner's fixed solver iterations where the problem
+sets them) of a batch against their ``jax.vjp`` (forward and backward pass): the ratio of their times over
+``--rounds`` interleaved rounds, of their compile times and of the flops XLA's cost analysis counts. A rollout's
+reverse-mode gradient runs every step's backward pass at least once (checkpointing only adds forward
+recomputation), so where the physics dominates the rollout this ratio bounds the gradient's from below.
 
     python benchmarks/mjx_rollouts.py --out DIR [--steps 250] [--batches 1 64 1024] [--max-batch N]
                                       [--rounds 5] [--peer-plants 20] [--problems [NAME ...]]
+                                      [--step-costs [BATCH ...]]
 
 Writes ``DIR/mjx_rollouts.json`` and ``DIR/mjx_rollouts.png`` (``--batches`` with no value skips them) and, with
-``--problems``, ``DIR/gradient_costs.json``.
+``--problems``, ``DIR/gradient_costs.json``, with ``--step-costs``, ``DIR/step_costs.json``.
 """
 
 from __future__ import annotations
@@ -60,6 +69,7 @@ import copy  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import time  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
@@ -271,8 +281,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--peer-plants", type=int, default=20, help="plants the looped CPU peer is timed on")
     parser.add_argument("--problems", nargs="*", choices=list(PROBLEMS), help="the price of a gradient on these "
                         "shipped tuning problems (no name: all)")  # fmt: skip
+    parser.add_argument("--step-costs", type=int, nargs="*", help="one physics step against its vjp on each "
+                        "shipped MJX model, at these batch sizes (no value: 8 64 512)")  # fmt: skip
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.step_costs is not None:
+        step_costs(args.step_costs or [8, 64, 512], args.rounds, args.out)
     if args.problems is not None:
         problem_costs(args.problems or list(PROBLEMS), args.rounds, args.out)
     if not args.batches:
@@ -305,17 +319,97 @@ def problem_costs(labels: list, rounds: int, out: Path) -> dict:
     """:func:`gradient_costs` of each shipped tuning problem, printed and written to ``out/gradient_costs.json``."""
     costs = {}
     print(f"{'problem':18s} {'params':>6s} {'auto':>8s}   reverse: time, compile, memory   forward: time, compile, "
-          "memory (x the forward evaluation)")  # fmt: skip
+          "memory (x the forward evaluation)   16 starts (x one start)")  # fmt: skip
     for label in labels:
         problem, settings, _ = load_problem(label)
-        costs[label] = cost = gradient_costs(problem, settings, rounds=rounds)
+        costs[label] = cost = gradient_costs(problem, settings, rounds=rounds, population=16)
         e = cost["entries"]
         cells = [f"{e[m]['ratio']:5.1f} {e[m]['compile_ratio']:5.1f} {e[m]['memory_ratio']:8.3g}"
                  for m in ("reverse_mode", "forward_mode")]  # fmt: skip
-        print(f"{label:18s} {cost['parameters']:6d} {cost['mode']:>8s}   {cells[0]:28s}   {cells[1]}", flush=True)
+        print(f"{label:18s} {cost['parameters']:6d} {cost['mode']:>8s}   {cells[0]:28s}   {cells[1]:28s}   "
+              f"{cost['population_ratio']:5.1f}", flush=True)  # fmt: skip
         (out / "gradient_costs.json").write_text(json.dumps({"platform": _platform(), "rounds": rounds,
                                                              "problems": costs}, indent=2) + "\n")  # fmt: skip
     return costs
+
+
+def _step_models() -> dict:
+    """``{label: (mjx.Model, solver_iterations)}``: the MJX models of the shipped tuning problems."""
+    from jaxobs.mjx import compliant_6dof, force_1dof
+    from jaxobs.mjx.robot import make_robot
+
+    root = Path(__file__).resolve().parent.parent / "examples" / "robots"
+    cart = make_robot(root / "cartpole_payload.xml", ["push"], ["cart_position"])
+    arm = make_robot(root / "arm_on_table.xml", ["shoulder_motor", "elbow_motor"], ["shoulder_angle"],
+                     solver_iterations=4)  # fmt: skip
+    return {
+        "1-DOF force plant": (force_1dof.load_model()[1], None),
+        "6-DOF compliant peg": (compliant_6dof.load_model()[1], None),
+        "cart-pole with payload": (cart.model, None),
+        "arm on a table (4 solver iterations)": (arm.model, 4),
+    }
+
+
+def _flops(fn, args) -> float:
+    """The floating-point operations XLA's cost analysis counts in ``fn`` compiled for ``args`` (a loop body
+    once: a ratio of two such counts compares the bodies)."""
+    analysis = jax.jit(fn).lower(*args).compile().cost_analysis()
+    return float((analysis[0] if isinstance(analysis, list) else analysis)["flops"])
+
+
+def _vjp(fn, x, cotangent):
+    """``fn``'s forward pass and its backward pass of ``cotangent`` (reverse mode)."""
+    return jax.vjp(fn, x)[1](cotangent)
+
+
+def step_costs(batches: list, rounds: int, out: Path, steps: int = 50) -> dict:
+    """``steps`` physics steps (a ``lax.scan``, command held) of each MJX model against their ``jax.vjp``, per
+    batch size (see the module docstring), printed and written to ``out/step_costs.json``."""
+    from jaxobs.mjx.common import initial_data, step
+
+    results = {}
+    for label, (model, iterations) in _step_models().items():
+        data = initial_data(model, jnp.float64)
+
+        def physics(x, data=data, model=model, iterations=iterations):
+            qpos, qvel, ctrl = x
+
+            def advance(carry, _):
+                after = step(model, data.replace(qpos=carry[0], qvel=carry[1], ctrl=ctrl), iterations)
+                return (after.qpos, after.qvel), None
+
+            return jax.lax.scan(advance, (qpos, qvel), None, length=steps)[0]
+
+        for batch in batches:
+            keys = jax.random.split(jax.random.PRNGKey(batch), 3)
+            x = tuple(a + 1e-3 * jax.random.normal(k, (batch, *a.shape))
+                      for k, a in zip(keys, (data.qpos, data.qvel, data.ctrl), strict=True))  # fmt: skip
+            batched = jax.vmap(physics)
+            cotangent = jax.tree.map(jnp.ones_like, jax.eval_shape(batched, x))
+            calls = {"forward": (batched, (x,)), "vjp": (partial(_vjp, batched), (x, cotangent))}
+            entries = {name: (lambda call=call: call, True, 1.0) for name, call in calls.items()}
+            timings, _ = time_interleaved(entries, rounds, required=tuple(entries))
+            f, v = timings["forward"], timings["vjp"]
+            flops = {name: _flops(*call) for name, call in calls.items()}
+            row = {
+                "forward": f.record(batch * steps, "physics plant-steps/s"),
+                "vjp": v.record(batch * steps, "physics plant-steps/s"),
+                "ratio": paired_ratio(f, v),
+                "compile_ratio": v.compile_s / f.compile_s,
+                "flops_ratio": flops["vjp"] / flops["forward"],
+            }
+            results.setdefault(label, {})[str(batch)] = row
+            print(
+                f"{label:38s} batch {batch:4d}: {steps} steps {1e3 * row['forward']['seconds']['median']:8.1f} ms,"
+                f" vjp {format_range(row['ratio'], '.2g', 'x')} (compile {row['compile_ratio']:.1f}x, XLA's flop count "
+                f"{row['flops_ratio']:.1f}x)",
+                flush=True,
+            )
+            (out / "step_costs.json").write_text(
+                json.dumps({"platform": _platform(), "rounds": rounds, "steps": steps, "models": results}, indent=2)
+                + "\n"
+            )
+    return results
 
 
 def _print(results: dict) -> None:

@@ -18,9 +18,11 @@ time of one gradient evaluation (the tuner's mode) over one forward evaluation o
 compile times (``benchmarks/_tuning_problems.py``; both modes: ``benchmarks/mjx_rollouts.py --problems``).
 
     python benchmarks/tuning.py --out DIR [--problems NAME ...] [--seeds 3] [--readme README.md]
+    python benchmarks/tuning.py --out DIR --merge A/tuning.json B/tuning.json [--readme README.md]
 
 Writes ``DIR/tuning.json`` and ``DIR/tuning.png``; ``--readme`` replaces the table between the
-``<!-- tuning-table -->`` markers of that file by the results.
+``<!-- tuning-table -->`` markers of that file by the results; ``--merge`` runs nothing and tabulates and plots
+runs saved by earlier calls (one table from runs made one problem at a time).
 """
 
 from __future__ import annotations
@@ -191,8 +193,14 @@ def run_problem(label: str, seeds: list[int], progress: bool) -> dict:
                          runs["jaxobs"][-1]["heldout"])  # fmt: skip
     costs = gradient_costs(problem, settings, modes=[gradient_mode(settings, problem.theta0)])
     summary = {m: _summary([r["heldout"] for r in rs]) for m, rs in runs.items()}
-    return {"config": PROBLEMS[label], "parameters": int(sum(np.size(v) for v in problem.theta0.values())),
-            "training_plants": batch, "runs": runs, "heldout": summary, "gradient_cost": costs}  # fmt: skip
+    return {"config": PROBLEMS[label], "parameters": free_parameters(problem, settings), "training_plants": batch,
+            "runs": runs, "heldout": summary, "gradient_cost": costs}  # fmt: skip
+
+
+def free_parameters(problem, settings) -> int:
+    """The coordinates the search box leaves free: every parameter but the unused upper triangles of Cholesky
+    factors."""
+    return int(np.sum(Box(problem, settings.spread).free))
 
 
 def _summary(values):
@@ -244,12 +252,26 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--readme", help="replace the table between <!-- tuning-table --> markers of this file")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="JSON",
+        help="run nothing: the table and figure of these "
+        "tuning.json files' problems (a later file's run of a problem replaces an earlier one's)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for label in args.problems:
+    if args.merge:
+        for path in args.merge:
+            results.update(json.loads(Path(path).read_text())["results"])
+        results = {label: results[label] for label in PROBLEMS if label in results}
+        for label, r in results.items():  # runs saved before the count left out unused entries
+            problem, settings, _ = load_problem(label)
+            r["parameters"] = free_parameters(problem, settings)
+    for label in [] if args.merge else args.problems:
         results[label] = run_problem(label, list(range(args.seeds)), args.progress)
         (out / "tuning.json").write_text(json.dumps({"device": jax.devices()[0].device_kind, "results": results},
                                                     indent=2, default=float) + "\n")  # fmt: skip
