@@ -105,13 +105,13 @@ def _sweep(args) -> int:
         return _print_config(args, registry, "scenario")
     import jax
 
-    scenario, config, _ = _scenario(args, registry, "scenario")
+    scenario, config, source = _scenario(args, registry, "scenario")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
         if alone and not args.overwrite:
             read_manifest(out)  # a damaged manifest is reported before the sweep is built
-        result = scenario.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = scenario.run(config, out, source=source, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
@@ -143,11 +143,11 @@ def _tune(args) -> int:
     logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     import jax
 
-    problem, config, _ = _scenario(args, registry, "problem")
+    problem, config, source = _scenario(args, registry, "problem")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else process 0 checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
-        result = problem.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = problem.run(config, out, source=source, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
