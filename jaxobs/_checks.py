@@ -13,6 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+MAX_INDEX = 2**31 - 1
+"""The largest count or index the library and its jobs take: JAX's default integers (indices, seeds, loop
+counters, scan lengths) are int32."""
+
 
 def is_concrete(*values) -> bool:
     """True when none of ``values`` is a JAX tracer (so they can be inspected with NumPy)."""

@@ -17,6 +17,8 @@ import signal
 import threading
 from pathlib import Path
 
+from jaxobs._checks import MAX_INDEX
+
 __all__ = [
     "JobError",
     "LimitError",
@@ -50,10 +52,6 @@ class LimitError(JobError):
     def __init__(self, reason: str, hint: str = ""):
         super().__init__(reason + (f"; {hint}" if hint else ""))
         self.reason, self.hint = reason, hint
-
-
-MAX_INDEX = 2**31 - 1
-"""The largest count or index a job takes: JAX's default integers (indices, seeds, loop counters) are int32."""
 
 
 class Interrupted(KeyboardInterrupt):
