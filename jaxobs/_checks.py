@@ -13,6 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+MAX_INDEX = 2**31 - 1
+"""The largest count or index the library and its jobs take: JAX's default integers (indices, seeds, loop
+counters, scan lengths) are int32."""
+
 
 def is_concrete(*values) -> bool:
     """True when none of ``values`` is a JAX tracer (so they can be inspected with NumPy)."""
@@ -42,24 +46,44 @@ def count(name: str, value, *, minimum: int = 0, maximum: int | None = None, hin
     return value
 
 
+def _real(name: str, value):
+    """``value`` checked to be real numbers: a Python scalar (kept weakly typed), an array, or a sequence (read as an
+    array); ``ValueError`` naming ``name`` for anything else (None, a string, a complex or object array, a ragged
+    sequence)."""
+    try:
+        if any(isinstance(leaf, (str, bytes)) for leaf in jax.tree_util.tree_leaves(value)):
+            raise TypeError("text")  # before jnp.asarray, which reads a string in a list as a dtype
+        value = value if isinstance(value, (jax.Array, np.ndarray, np.generic, int, float)) else jnp.asarray(value)
+        dtype = jnp.result_type(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a real numeric array, got {type(value).__name__}") from exc
+    if jnp.issubdtype(dtype, jnp.complexfloating) or not (
+        jnp.issubdtype(dtype, jnp.number) or jnp.issubdtype(dtype, jnp.bool_)
+    ):
+        raise ValueError(f"{name} must be real (a float, integer or bool array), got dtype {dtype}")
+    return value
+
+
+def real_array(name: str, value) -> jax.Array:
+    """``value`` as a JAX array of real numbers (float, integer or bool dtype, cast by the caller); ``ValueError``
+    naming ``name`` for None, a string, a complex or object array or a ragged sequence (where ``jnp.asarray`` raises
+    a ``TypeError`` that names nothing)."""
+    return jnp.asarray(_real(name, value))
+
+
+def boolean(name: str, value) -> bool:
+    """``value`` as a Python ``bool``: ``True``/``False`` (or a NumPy bool) only, so that a string such as ``"no"``
+    or a number is not taken for true; ``ValueError`` naming ``name`` otherwise."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a bool (True or False), got {value!r} ({type(value).__name__})")
+    return bool(value)
+
+
 def float_dtype(**values):
     """The common floating dtype of the named arrays (``result_type`` of them and ``float``): integer and
     bool inputs become float, float32 mixed with float64 becomes float64 (where x64 is enabled).
     ``None`` entries are ignored; a complex or non-numeric argument raises ``ValueError`` naming it."""
-    arrays = []
-    for name, value in values.items():
-        if value is None:
-            continue
-        try:  # Python scalars stay weakly typed; sequences are read as arrays
-            value = value if isinstance(value, (jax.Array, np.ndarray, np.generic, int, float)) else jnp.asarray(value)
-            dtype = jnp.result_type(value)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name} must be a real numeric array, got {type(value).__name__}") from exc
-        if jnp.issubdtype(dtype, jnp.complexfloating) or not (
-            jnp.issubdtype(dtype, jnp.number) or jnp.issubdtype(dtype, jnp.bool_)
-        ):
-            raise ValueError(f"{name} must be real (a float, integer or bool array), got dtype {dtype}")
-        arrays.append(value)
+    arrays = [_real(name, value) for name, value in values.items() if value is not None]
     return jnp.result_type(*arrays, float)
 
 

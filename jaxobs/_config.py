@@ -1,11 +1,13 @@
 """Configuration files of the ``jaxobs`` commands: TOML over an embedded default, checked key by key.
 
 Every command that reads a config (``jaxobs sweep``, ``jaxobs tune``) merges the user's TOML over its
-embedded default with :func:`merge` (unknown keys, wrong types and non-finite numbers such as TOML's ``inf``
-and ``nan`` are errors) and checks values with :func:`check_range` / :func:`check_at_least`, and the sizes of what
-the configuration will allocate with :func:`check_memory`; a :class:`ConfigError` names the file and the key.
-Each scenario documents its keys in a ``{dotted key: note}`` dict beside its default, and :func:`to_toml` writes
-a configuration back as TOML with every key's note above it (``--print-config``).
+embedded default with :func:`merge` (unknown keys, wrong types, non-finite numbers such as TOML's ``inf``
+and ``nan``, and integers beyond int32 are errors) and checks values with :func:`check_range` /
+:func:`check_at_least`, and the sizes of what the configuration will allocate with :func:`check_memory`; a
+:class:`ConfigError` names the file and the key. The paper layer names the size key of a job that exceeds the
+machine's memory or JAX's counts as it is built (:class:`jaxobs.papers.scenarios.SweepScenario`). Each scenario
+documents its keys in a ``{dotted key: note}`` dict beside its default, and :func:`to_toml` writes a configuration
+back as TOML with every key's note above it (``--print-config``).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import re
 import textwrap
 from pathlib import Path
 
-from jaxobs._resources import JobError
+from jaxobs._resources import MAX_INDEX, JobError
 from jaxobs._resources import check_memory as _check_memory
 
 __all__ = [
@@ -67,16 +69,25 @@ def _is_numbers(value) -> bool:
     return isinstance(value, list) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
 
 
+def _check_numbers(source: str, name: str, value) -> None:
+    """Numbers (alone or in a list) must be finite, and integers at most :data:`jaxobs._resources.MAX_INDEX` in
+    magnitude: JAX reads counts, sizes and seeds as int32 (a larger one overflows, or sets an impossible size)."""
+    numbers = value if isinstance(value, list) else [value]
+    if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+        fail(source, name, f"must be finite, got {value!r}")
+    if any(isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INDEX for v in numbers):
+        fail(source, name, f"must be an integer of magnitude at most 2**31 - 1 = {MAX_INDEX} (int32), got {value!r}")
+
+
 def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tables: tuple = ()) -> dict:
-    """``given`` over ``default``; unknown keys, type mismatches and non-finite numbers are errors. A list default
-    of strings takes a list of strings, any other list default a list of numbers. The tables named (dotted) in
-    ``open_tables`` take keys of the user's choosing, each a list of numbers: a given one replaces the default's."""
+    """``given`` over ``default``; unknown keys, type mismatches, non-finite numbers and integers beyond int32 are
+    errors. A list default of strings takes a list of strings, any other list default a list of numbers. The tables
+    named (dotted) in ``open_tables`` take keys of the user's choosing, each a list of numbers: a given one replaces
+    the default's."""
     merged = copy.deepcopy(default)
     for key, value in given.items():
         name = f"{prefix}{key}"
-        numbers = value if isinstance(value, list) else [value]
-        if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
-            fail(source, name, f"must be finite, got {value!r}")
+        _check_numbers(source, name, value)
         if key not in default:
             fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
         expected = default[key]
@@ -84,8 +95,9 @@ def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tab
             if not isinstance(value, dict):
                 fail(source, name, "must be a table")
             for entry, numbers in value.items():
-                if not _is_numbers(numbers) or not all(math.isfinite(v) for v in numbers):
+                if not _is_numbers(numbers):
                     fail(source, f"{name}.{entry}", f"must be a list of finite numbers, got {numbers!r}")
+                _check_numbers(source, f"{name}.{entry}", numbers)
             merged[key] = dict(value)
         elif isinstance(expected, dict):
             if not isinstance(value, dict):

@@ -26,6 +26,8 @@ __all__ = [
     "cho_solve",
     "solve_spd",
     "symmetrize",
+    "is_positive_semidefinite",
+    "is_positive_definite",
 ]
 
 UNROLL_MAX = 16
@@ -135,3 +137,23 @@ def solve_spd(S, B):
 def symmetrize(P):
     """``(P + P') / 2``."""
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))
+
+
+def is_positive_semidefinite(S, scale=0.0):
+    """Traced test (a bool array over the batch) that ``S`` (..., p, p) is finite and positive semidefinite to
+    rounding: the Cholesky factor of ``(S + S') / 2 + delta I`` is finite, ``delta = sqrt(eps) max(max|S|, scale)``
+    plus the smallest normal number (an eigenvalue above ``-delta`` passes; ``scale``: the size of ``S`` where it
+    is zero, e.g. a Riccati equation's). The Riccati solvers add it to ``converged``
+    (:mod:`jaxobs.matrix_equations`)."""
+    info = jnp.finfo(S.dtype)
+    delta = jnp.sqrt(info.eps) * jnp.maximum(jnp.max(jnp.abs(S), axis=(-2, -1)), scale) + info.tiny
+    shifted = symmetrize(S) + delta[..., None, None] * jnp.eye(S.shape[-1], dtype=S.dtype)
+    return jnp.all(jnp.isfinite(cholesky(shifted)), axis=(-2, -1))
+
+
+def is_positive_definite(S):
+    """Traced test (a bool array over the batch) that ``S`` (..., p, p) is finite and symmetric positive definite
+    in working precision: its Cholesky factor (of ``(S + S') / 2``) is finite with a positive diagonal."""
+    L = cholesky(symmetrize(S))
+    diagonal = jnp.diagonal(L, axis1=-2, axis2=-1)
+    return jnp.all(jnp.isfinite(L), axis=(-2, -1)) & jnp.all(diagonal > 0, axis=-1)

@@ -17,8 +17,12 @@ import signal
 import threading
 from pathlib import Path
 
+from jaxobs._checks import MAX_INDEX
+
 __all__ = [
     "JobError",
+    "LimitError",
+    "MAX_INDEX",
     "Interrupted",
     "InterruptWatch",
     "LOCK_NAME",
@@ -38,6 +42,16 @@ _held: dict[Path, list] = {}  # resolved directory -> [file descriptor, depth]
 
 class JobError(ValueError):
     """A job cannot run as asked: its output directory is unusable or in use, or it cannot fit in memory."""
+
+
+class LimitError(JobError):
+    """A job beyond a limit of the machine or of JAX: more memory than is available (its estimate), or a count
+    beyond :data:`MAX_INDEX`. ``reason`` says what, ``hint`` what to lower; the paper layer names the config key
+    instead (:class:`jaxobs.papers.scenarios.SweepScenario`)."""
+
+    def __init__(self, reason: str, hint: str = ""):
+        super().__init__(reason + (f"; {hint}" if hint else ""))
+        self.reason, self.hint = reason, hint
 
 
 class Interrupted(KeyboardInterrupt):
@@ -251,21 +265,22 @@ def format_bytes(n: float) -> str:
 
 
 def check_memory(nbytes: int | None, what: str, device=None, hint: str = "") -> None:
-    """Raise :class:`JobError` if ``nbytes`` (an estimate of what ``what`` allocates) exceeds the memory
+    """Raise :class:`LimitError` if ``nbytes`` (an estimate of what ``what`` allocates) exceeds the memory
     available on ``device`` (default: the host). Unknown sizes or unknown free memory pass."""
     free = available_memory(device)
     if nbytes is None or free is None or nbytes <= free:
         return
     where = "memory" if device is None or device.platform == "cpu" else f"memory on {device.device_kind}"
-    raise JobError(
+    raise LimitError(
         f"{what} needs about {format_bytes(nbytes)} (estimated), more than the {format_bytes(free)} of {where} "
-        f"available{'; ' + hint if hint else ''}"
+        "available",
+        hint,
     )
 
 
 def compile_checked(lowered, what: str, hint: str = ""):
     """Compile ``lowered`` (a ``jax.jit(f).lower(...)``) after checking that one run fits in the memory of this
-    process's first device (:class:`JobError` otherwise)."""
+    process's first device (:class:`LimitError` otherwise)."""
     import jax
 
     compiled = lowered.compile()

@@ -8,6 +8,11 @@ measure (:func:`excitation`), after Grip 2010 §1.3.1 and App. 5.A. The adaptati
 thesis's ``Gamma``) is a positive scalar or a symmetric positive-definite (n_theta, n_theta) matrix. Continuous-time
 laws return ``theta_hat_dot``, discrete-time ones the next value. Notation and equations:
 docs/theory/adaptive.md.
+
+Input contract: shapes are checked at trace time; eagerly, non-finite values, a gain that is not symmetric positive
+definite, ``epsilon <= 0``, a :class:`Ball` radius ``<= 0`` and :class:`Box` bounds with ``lower >= upper`` raise
+``ValueError`` naming the argument. Under ``jit`` nothing raises: a non-finite input gives a non-finite result, and
+an invalid region or box (traced) gives NaN, never a result that looks valid (each function says which).
 """
 
 from __future__ import annotations
@@ -42,15 +47,26 @@ __all__ = [
 # validation and shapes
 
 
-def _regression(theta_hat, omega, z):
-    """``(theta_hat (n_theta,), omega (n_theta, q), z (q,), dtype)`` with the shapes checked at trace time:
-    ``omega`` (n_theta,) with ``z`` () is the scalar regression ``q = 1``."""
-    dtype = _checks.float_dtype(theta_hat=theta_hat, omega=omega, z=z)
+def _estimate(theta_hat, dtype) -> jax.Array:
+    """``theta_hat`` as a finite (where concrete) (n_theta,) vector in ``dtype`` (shape checked at trace time)."""
     theta_hat = jnp.asarray(theta_hat, dtype)
     if theta_hat.ndim != 1:
         raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    _checks.finite("theta_hat", theta_hat)
+    return theta_hat
+
+
+def _regression(theta_hat, omega, z, *, missing: bool = False):
+    """``(theta_hat (n_theta,), omega (n_theta, q), z (q,), dtype)`` with the shapes checked at trace time and the
+    values finite where concrete (``missing``: non-finite ``z`` allowed, missing data): ``omega`` (n_theta,) with
+    ``z`` () is the scalar regression ``q = 1``."""
+    dtype = _checks.float_dtype(theta_hat=theta_hat, omega=omega, z=z)
+    theta_hat = _estimate(theta_hat, dtype)
     n_theta = theta_hat.shape[0]
     omega, z = jnp.asarray(omega, dtype), jnp.asarray(z, dtype)
+    _checks.finite("omega", omega)
+    if not missing:
+        _checks.finite("z", z)
     if omega.ndim == 1:
         _checks.shape("omega", omega, (n_theta,), "one entry per parameter")
         _checks.shape("z", z, (), "a scalar target for a (n_theta,) regressor")
@@ -78,19 +94,19 @@ def lyapunov_law(omega, x, adaptation_gain) -> jax.Array:
     ``W = |x|^2 / 2 + theta_tilde' Gamma^{-1} theta_tilde / 2``, which leaves ``W_dot = -|x|^2``.
 
     Args:
-      omega: (n_theta,) regressor for a scalar ``x``, or (n_theta, n) for ``x`` of size n.
-      x: () or (n,) the error that the parameter error drives.
+      omega: (n_theta,) regressor for a scalar ``x``, or (n_theta, n) for ``x`` of size n; finite.
+      x: () or (n,) the error that the parameter error drives; finite.
       adaptation_gain: positive scalar or (n_theta, n_theta) symmetric positive-definite ``Gamma``.
 
     Returns:
-      (n_theta,) ``theta_hat_dot``.
+      (n_theta,) ``theta_hat_dot`` (non-finite where traced inputs are).
 
     Example:
       >>> import numpy as np
       >>> lyapunov_law(np.array([1.0, 2.0]), 0.5, 2.0).tolist()
       [1.0, 2.0]
     """
-    omega = jnp.asarray(omega)
+    omega = _checks.real_array("omega", omega)
     if omega.ndim not in (1, 2):
         raise ValueError(f"omega must be a (n_theta,) or (n_theta, n) array, got shape {omega.shape}")
     dtype = _checks.float_dtype(omega=omega, x=x)
@@ -100,6 +116,8 @@ def lyapunov_law(omega, x, adaptation_gain) -> jax.Array:
         _checks.shape("x", x, (), "a scalar for a (n_theta,) omega")
     else:
         _checks.shape("x", x, (omega.shape[1],), "one entry per column of omega")
+    _checks.finite("omega", omega)
+    _checks.finite("x", x)
     gain = _checks.gain("adaptation_gain", adaptation_gain, n_theta, dtype)
     return gain @ (omega * x if omega.ndim == 1 else omega @ x)
 
@@ -114,12 +132,12 @@ def regression_gradient_law(theta_hat, omega, z, adaptation_gain, *, normalized:
 
     Args:
       theta_hat: (n_theta,) estimate.  omega: (n_theta,) regressor, or (n_theta, q) for q equations.
-      z: () target, or (q,).
+      z: () target, or (q,).  All finite.
       adaptation_gain: positive scalar or (n_theta, n_theta) symmetric positive-definite ``Gamma``.
       normalized: divide by ``1 + |omega|^2`` (bounded rate for unbounded regressors).
 
     Returns:
-      (n_theta,) ``theta_hat_dot``.
+      (n_theta,) ``theta_hat_dot`` (non-finite where traced inputs are).
 
     Example:
       >>> import numpy as np
@@ -129,7 +147,7 @@ def regression_gradient_law(theta_hat, omega, z, adaptation_gain, *, normalized:
     theta_hat, omega, z, dtype = _regression(theta_hat, omega, z)
     gain = _checks.gain("adaptation_gain", adaptation_gain, theta_hat.shape[0], dtype)
     rate = gain @ (omega @ (z - omega.T @ theta_hat))
-    return rate / (1 + jnp.sum(omega**2)) if normalized else rate
+    return rate / (1 + jnp.sum(omega**2)) if _checks.boolean("normalized", normalized) else rate
 
 
 def rls_update(theta_hat, P, omega, z, forgetting=1.0):
@@ -144,11 +162,14 @@ def rls_update(theta_hat, P, omega, z, forgetting=1.0):
     After ``k + 1`` steps from ``(theta_0, P_0)``, ``theta_hat`` minimises ``sum_i lambda^(k-i) |z_i - omega_i'
     theta|^2 + lambda^(k+1) (theta - theta_0)' P_0^{-1} (theta - theta_0)``: the batch least-squares estimate with
     exponentially fading memory (``lambda = 1``: ordinary least squares, regularised by the prior). Non-finite
-    entries of ``z`` are missing: their equations are dropped (``P`` is still divided by ``lambda``).
+    entries of ``z`` are missing: their equations are dropped (``P`` is still divided by ``lambda``). A non-finite
+    column of ``omega`` raises eagerly; under ``jit`` its equation is dropped as missing, so ``theta_hat`` and ``P``
+    stay finite.
 
     Args:
-      theta_hat: (n_theta,) estimate.  P: (n_theta, n_theta) symmetric positive-definite matrix (``P_0``: large
-        for a vague prior).  omega: (n_theta,) regressor, or (n_theta, q).  z: () target, or (q,).
+      theta_hat: (n_theta,) finite estimate.  P: (n_theta, n_theta) symmetric positive-definite matrix (``P_0``:
+        large for a vague prior).  omega: (n_theta,) finite regressor, or (n_theta, q).  z: () target, or (q,)
+        (NaN: missing).
       forgetting: ``lambda`` in (0, 1].
 
     Returns:
@@ -162,12 +183,12 @@ def rls_update(theta_hat, P, omega, z, forgetting=1.0):
       >>> round(float(theta[0]), 6)
       2.0
     """
-    theta_hat, omega, z, dtype = _regression(theta_hat, omega, z)
+    theta_hat, omega, z, dtype = _regression(theta_hat, omega, z, missing=True)
     n_theta = theta_hat.shape[0]
     _checks.covariance("P", P, definite=True, size=n_theta)
     P = jnp.asarray(P, dtype)
     lam = _forgetting_factor(forgetting, dtype)
-    seen = jnp.isfinite(z)
+    seen = jnp.isfinite(z) & jnp.all(jnp.isfinite(omega), axis=0)
     omega = jnp.where(seen[None, :], omega, 0)  # a missing equation carries no information
     e = jnp.where(seen, z - omega.T @ theta_hat, 0)
     P_omega = P @ omega
@@ -198,10 +219,11 @@ def rls_rate(theta_hat, P, omega, z, forgetting=0.0):
 
     Args:
       theta_hat: (n_theta,) estimate.  P: (n_theta, n_theta) symmetric positive-definite matrix.
-      omega: (n_theta,) regressor, or (n_theta, q).  z: () target, or (q,).  forgetting: ``beta >= 0``.
+      omega: (n_theta,) regressor, or (n_theta, q).  z: () target, or (q,).  All finite.
+      forgetting: ``beta >= 0``.
 
     Returns:
-      ``(theta_hat_dot, P_dot)``.
+      ``(theta_hat_dot, P_dot)`` (non-finite where traced inputs are).
 
     Example:
       >>> import numpy as np
@@ -230,7 +252,8 @@ class Ball:
     radius ``radius sqrt(1 + epsilon)``.
 
     Attributes:
-      center: (n_theta,) centre.  radius: () positive radius.
+      center: (n_theta,) finite centre.  radius: () finite radius ``> 0`` (checked eagerly by :func:`project` and
+        :func:`check_law`; a traced radius ``<= 0`` makes ``P`` NaN).
     """
 
     center: jax.Array
@@ -238,7 +261,8 @@ class Ball:
 
     def __call__(self, theta) -> jax.Array:
         """``P(theta)``."""
-        return jnp.sum((theta - self.center) ** 2) / self.radius**2 - 1
+        value = jnp.sum((theta - self.center) ** 2) / self.radius**2 - 1
+        return jnp.where(self.radius > 0, value, jnp.nan)
 
 
 @jax.tree_util.register_dataclass
@@ -252,7 +276,9 @@ class Box:
     order))`` times larger about the centre. (For exact boxes in discrete time, see :func:`clip_step`.)
 
     Attributes:
-      lower: (n_theta,) lower bounds.  upper: (n_theta,) upper bounds, ``> lower``.  order: static positive integer.
+      lower: (n_theta,) finite lower bounds.  upper: (n_theta,) finite upper bounds, ``> lower`` (checked eagerly by
+        :func:`project` and :func:`check_law`; traced bounds with ``upper <= lower`` make ``P`` NaN).
+      order: static positive integer.
     """
 
     lower: jax.Array
@@ -262,7 +288,26 @@ class Box:
     def __call__(self, theta) -> jax.Array:
         """``P(theta)``."""
         u = (2 * theta - self.lower - self.upper) / (self.upper - self.lower)
-        return jnp.sum(u ** (2 * self.order)) - 1
+        return jnp.where(jnp.all(self.upper > self.lower), jnp.sum(u ** (2 * self.order)) - 1, jnp.nan)
+
+
+def _check_region(region, n_theta: int) -> None:
+    """Check a :class:`Ball` or :class:`Box` for ``n_theta`` parameters (shapes always, values where concrete),
+    naming the field; any other callable ``P`` is the user's."""
+    if isinstance(region, Ball):
+        _checks.shape("region.center", region.center, (n_theta,), "one entry per parameter")
+        _checks.finite("region.center", region.center)
+        _checks.shape("region.radius", region.radius, (), "a scalar")
+        _checks.positive_scalar("region.radius", region.radius)
+    elif isinstance(region, Box):
+        for name in ("lower", "upper"):
+            _checks.shape(f"region.{name}", getattr(region, name), (n_theta,), "one bound per parameter")
+            _checks.finite(f"region.{name}", getattr(region, name))
+        _checks.count("region.order", region.order, minimum=1)
+        if _checks.is_concrete(region.lower, region.upper):
+            lower, upper = np.asarray(region.lower), np.asarray(region.upper)
+            if np.any(upper <= lower):
+                raise ValueError(f"region.upper must be > region.lower, got lower {lower}, upper {upper}")
 
 
 def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.Array:
@@ -285,8 +330,8 @@ def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.A
     bounds in discrete time use :func:`clip_step`.)
 
     Args:
-      tau: (n_theta,) the unprojected rate, e.g. ``Gamma M (phi_hat - B g)`` (Grip 2010 Prop. 5.3).
-      theta_hat: (n_theta,) estimate, in ``Theta`` (checked when concrete).
+      tau: (n_theta,) the unprojected rate, e.g. ``Gamma M (phi_hat - B g)`` (Grip 2010 Prop. 5.3); finite.
+      theta_hat: (n_theta,) finite estimate, in ``Theta`` (checked when concrete).
       adaptation_gain: ``Gamma``, the gain of the law (positive scalar or (n_theta, n_theta) symmetric positive
         definite).
       region: smooth convex ``P: (n_theta,) -> ()``, e.g. :class:`Ball` or :class:`Box` (differentiated with
@@ -294,7 +339,9 @@ def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.A
       epsilon: positive width of the boundary layer, in the units of ``P``.
 
     Returns:
-      (n_theta,) ``Proj(tau)``.
+      (n_theta,) ``Proj(tau)``; NaN where ``P(theta_hat)`` or its gradient is not finite or ``epsilon <= 0``
+      (under ``jit``: a non-finite input, a :class:`Ball` radius ``<= 0``, :class:`Box` bounds with ``upper <=
+      lower``).
 
     Example:
       >>> import numpy as np
@@ -305,13 +352,14 @@ def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.A
       [0.184, 1.0]
     """
     dtype = _checks.float_dtype(tau=tau, theta_hat=theta_hat)
-    theta_hat = jnp.asarray(theta_hat, dtype)
-    if theta_hat.ndim != 1:
-        raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    theta_hat = _estimate(theta_hat, dtype)
     n_theta = theta_hat.shape[0]
     tau = _checks.vector("tau", tau, n_theta, dtype, what="one entry per parameter")
     G = _checks.gain("adaptation_gain", adaptation_gain, n_theta, dtype)
     epsilon = _positive("epsilon", epsilon, dtype)
+    if not callable(region):
+        raise ValueError(f"region must be a callable P(theta) -> (), e.g. jaxobs.adaptive.Ball, got {region!r}")
+    _check_region(region, n_theta)
     value, grad = jax.value_and_grad(lambda t: jnp.asarray(region(t), dtype))(theta_hat)
     if _checks.is_concrete(value, epsilon) and not float(value) <= float(epsilon) * (1 + 1e-9):
         raise ValueError(
@@ -323,7 +371,8 @@ def project(tau, theta_hat, adaptation_gain, region: Callable, epsilon) -> jax.A
     Gg = G @ grad
     norm2 = jnp.where(active, grad @ Gg, 1)
     c = jnp.minimum(1, value / epsilon)
-    return tau - jnp.where(active, c * along / norm2, 0) * Gg
+    defined = jnp.isfinite(value) & jnp.all(jnp.isfinite(grad)) & (epsilon > 0)
+    return jnp.where(defined, tau - jnp.where(active, c * along / norm2, 0) * Gg, jnp.nan)
 
 
 def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
@@ -334,11 +383,12 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
         theta_hat_{k+1} = min(max(theta_hat_k + dt rate_k, lower), upper)
 
     Args:
-      theta_hat: (n_theta,) estimate in ``[lower, upper]`` (checked when concrete).  rate: (n_theta,) ``theta_hat_dot``.
-      dt: positive step.  lower: (n_theta,) or () lower bounds.  upper: (n_theta,) or () upper bounds, ``>= lower``.
+      theta_hat: (n_theta,) finite estimate in ``[lower, upper]`` (checked when concrete).  rate: (n_theta,) finite
+        ``theta_hat_dot``.  dt: positive step.  lower: (n_theta,) or () finite lower bounds.  upper: (n_theta,) or ()
+        finite upper bounds, ``>= lower``.
 
     Returns:
-      (n_theta,) ``theta_hat_{k+1}``.
+      (n_theta,) ``theta_hat_{k+1}``; NaN for the parameters whose traced bounds have ``upper < lower``.
 
     Example:
       >>> import numpy as np
@@ -346,9 +396,7 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
       [1.1]
     """
     dtype = _checks.float_dtype(theta_hat=theta_hat, rate=rate, lower=lower, upper=upper)
-    theta_hat = jnp.asarray(theta_hat, dtype)
-    if theta_hat.ndim != 1:
-        raise ValueError(f"theta_hat must be a (n_theta,) vector, got shape {theta_hat.shape}")
+    theta_hat = _estimate(theta_hat, dtype)
     n_theta = theta_hat.shape[0]
     rate = _checks.vector("rate", rate, n_theta, dtype, what="one entry per parameter")
     dt = _positive("dt", dt, dtype)
@@ -362,7 +410,7 @@ def clip_step(theta_hat, rate, dt, lower, upper) -> jax.Array:
                 f"theta_hat must lie in [lower, upper] = [{np.asarray(lower)}, {np.asarray(upper)}], "
                 f"got {np.asarray(theta_hat)}"
             )
-    return jnp.clip(theta_hat + dt * rate, lower, upper)
+    return jnp.where(upper >= lower, jnp.clip(theta_hat + dt * rate, lower, upper), jnp.nan)
 
 
 # --------------------------------------------------------------------------------------------
@@ -515,6 +563,7 @@ def check_law(law, theta0) -> None:
         return
     if not callable(law.region):
         raise ValueError(f"region must be a callable P(theta) -> (), e.g. jaxobs.adaptive.Box, got {law.region!r}")
+    _check_region(law.region, theta0.shape[0])
     _checks.returns("region(theta)", law.region, (theta0,), (), "the scalar P(theta) of the projection set")
     value = law.region(theta0)
     if _checks.is_concrete(value, law.epsilon) and not float(value) <= float(law.epsilon):
@@ -534,12 +583,13 @@ def excitation(regressors, dt):
     Example 1.1 continued; Prop. 5.4's ``int S dtau``).
 
     Args:
-      regressors: (N, n_theta) the regressors ``omega_k`` of the window (rows), or (N, n_theta, q) for
+      regressors: (N, n_theta) finite regressors ``omega_k`` of the window (rows), or (N, n_theta, q) for
         (n_theta, q) regressors (``sum_k omega_k omega_k'``).
       dt: positive sample period (``T = N dt``).
 
     Returns:
-      ``(gram, lambda_min)``: (n_theta, n_theta) ``dt sum_k omega_k omega_k'`` and its smallest eigenvalue.
+      ``(gram, lambda_min)``: (n_theta, n_theta) ``dt sum_k omega_k omega_k'`` and its smallest eigenvalue (NaN
+      when traced regressors are not finite).
 
     Example:
       >>> import numpy as np
@@ -548,7 +598,7 @@ def excitation(regressors, dt):
       >>> round(float(low), 2)  # int_0^2pi sin^2 = pi
       3.14
     """
-    W = jnp.asarray(regressors)
+    W = _checks.real_array("regressors", regressors)
     if W.ndim == 2:
         W = W[..., None]
     if W.ndim != 3:
@@ -556,8 +606,10 @@ def excitation(regressors, dt):
             f"regressors must be an (N, n_theta) or (N, n_theta, q) array, got shape {jnp.shape(regressors)}"
         )
     dtype = _checks.float_dtype(regressors=W, dt=dt)
+    _checks.finite("regressors", W)
     dt = _positive("dt", dt, dtype)
     W = W.astype(dtype)
     gram = dt * jnp.einsum("kiq,kjq->ij", W, W)
     gram = (gram + gram.T) / 2
-    return gram, jnp.linalg.eigvalsh(gram)[0]
+    finite = jnp.all(jnp.isfinite(gram))
+    return gram, jnp.where(finite, jnp.linalg.eigvalsh(jnp.where(finite, gram, 0))[0], jnp.nan)

@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+from jaxobs._distributed import DEFAULT_JOIN_TIMEOUT
 from jaxobs._resources import InterruptWatch, JobError, locked_out_dir
 
 RESUME_HINT = "rerun the same command to resume"
@@ -104,13 +105,13 @@ def _sweep(args) -> int:
         return _print_config(args, registry, "scenario")
     import jax
 
-    scenario, config, _ = _scenario(args, registry, "scenario")
+    scenario, config, source = _scenario(args, registry, "scenario")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
         if alone and not args.overwrite:
             read_manifest(out)  # a damaged manifest is reported before the sweep is built
-        result = scenario.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = scenario.run(config, out, source=source, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
@@ -142,11 +143,11 @@ def _tune(args) -> int:
     logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     import jax
 
-    problem, config, _ = _scenario(args, registry, "problem")
+    problem, config, source = _scenario(args, registry, "problem")
     out = Path(args.out)
     alone = jax.process_count() == 1  # else process 0 checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
-        result = problem.run(config, out, progress=not args.no_progress, overwrite=args.overwrite)
+        result = problem.run(config, out, source=source, progress=not args.no_progress, overwrite=args.overwrite)
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
@@ -164,16 +165,21 @@ def _tune(args) -> int:
 
 
 def _join(args) -> None:
-    """Join a multi-process run (``jax.distributed.initialize``) if the command line asks for one."""
-    import jax
+    """Join a multi-process run (:func:`jaxobs._distributed.join`) if the command line asks for one; a partner that
+    does not come within ``--coordinator-timeout`` ends the process with one line and status 2."""
+    from jaxobs._distributed import join
 
     given = (args.coordinator, args.num_processes, args.process_id)
     if not args.distributed and given == (None, None, None):
         return
-    try:
-        jax.distributed.initialize(*given)
-    except (ValueError, RuntimeError) as exc:
-        raise JobError(f"cannot join the multi-process run ({type(exc).__name__}: {exc})") from exc
+
+    def give_up(message: str) -> None:  # from the watchdog thread, while the main thread waits inside JAX
+        print(f"jaxobs {args.command}: {message} (--coordinator-timeout {args.coordinator_timeout:g})",
+              file=sys.stderr, flush=True)  # fmt: skip
+        sys.stdout.flush()
+        os._exit(2)
+
+    join(*given, timeout=args.coordinator_timeout, on_timeout=give_up)
 
 
 def cache_dir() -> Path:
@@ -230,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
         launch.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordinator")
         launch.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
         launch.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 .. N-1")
+        launch.add_argument("--coordinator-timeout", type=float, metavar="SECONDS", default=DEFAULT_JOIN_TIMEOUT,
+                            help="give up (exit status 2) when not every process has reached the coordinator "
+                                 f"within SECONDS (default: {DEFAULT_JOIN_TIMEOUT:g})")  # fmt: skip
         launch.add_argument("--distributed", action="store_true",
                             help="join a multi-process run; values not given come from the cluster environment "
                                  "(SLURM, Open MPI, ...) that jax.distributed.initialize detects")  # fmt: skip

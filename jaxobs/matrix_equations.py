@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import small_solve, solve_spd, symmetrize
+from jaxobs._linalg import is_positive_definite, is_positive_semidefinite, small_solve, solve_spd, symmetrize
 from jaxobs.lti import unobservable_modes
 
 __all__ = [
@@ -46,7 +46,8 @@ class DareSolution(NamedTuple):
     Attributes:
       X: (n, n) the solution (for the filter DARE of (Phi', C'): the a-priori steady-state covariance)
       residual: () max |Ricc(X) - X| / max(|X|, scale): scale = max|Q|, or R / |B|^2 when Q = 0
-      converged: () the stabilising solution was found: X finite, closed loop stable, residual small
+      converged: () the stabilising solution was found: X finite and positive semidefinite, R + B'XB positive
+        definite, closed loop stable, residual small
     """
 
     X: jax.Array
@@ -246,7 +247,8 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
 
     Returns ``(X, residual, found)``: the relative residual ``max|F(X)| / max(|X|, scale)`` (``scale`` is
     ``max|Q|``, or ``1 / max|B R^{-1} B'|`` when ``Q = 0``) and whether the stabilising solution was found:
-    ``X`` finite, the last Newton step's closed loop stable (its powers decayed, :func:`_smith`: no
+    ``X`` finite and positive semidefinite (to ``sqrt(eps)`` of ``max(|X|, scale)``), ``R + B'XB`` positive
+    definite, the last Newton step's closed loop stable (its powers decayed, :func:`_smith`: no
     eigenvalue on or outside the unit circle), and Newton's method settled: its corrections fell to ``4 eps``
     of ``X``, or stalled below ``sqrt(eps)``, and not at a linear rate (four corrections of 0.3 to 0.7 of
     the one before since the last faster one). Where the solution sits on the boundary of existence (a
@@ -307,7 +309,8 @@ def _solve_control_dare(A, B, Q, R, max_iters, newton_steps):
     init = (jnp.zeros_like(A), jnp.zeros_like(A), jnp.asarray(False), 0)
     X, F, found, _ = jax.lax.while_loop(retry, attempt, init)
     residual = jnp.max(jnp.abs(F)) / jnp.maximum(jnp.max(jnp.abs(X)), scale)
-    return X, jnp.where(jnp.all(jnp.isfinite(F)) & jnp.isfinite(residual), residual, jnp.inf), found
+    well_posed = is_positive_semidefinite(X, scale) & is_positive_definite(R + B.T @ X @ B)
+    return X, jnp.where(jnp.all(jnp.isfinite(F)) & jnp.isfinite(residual), residual, jnp.inf), found & well_posed
 
 
 def _stalled(size, previous):
@@ -408,11 +411,14 @@ def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSo
     backpropagation through the iterations.
 
     Returns a :class:`DareSolution` ``(X, residual, converged)``. ``converged`` means the stabilising solution
-    was found: ``X`` finite, the closed loop ``A - B K`` (``K = (R + B'XB)^{-1} B'XA``) stable, Newton's
-    method settled, and the residual below ``tol``. It is False (a flag, never an exception, so it works under
-    ``jit``) when no stabilising solution exists (``(A, B)`` not stabilisable, or ``Q`` does not penalise a
-    mode on the unit circle) or when the working precision does not resolve the problem (e.g. the AOB-3
-    design in float32); :func:`require_converged` turns the flag into an error message for eager callers.
+    was found: ``X`` finite and positive semidefinite (to ``sqrt(eps)`` of its largest entry), ``R + B'XB``
+    positive definite, the closed loop ``A - B K`` (``K = (R + B'XB)^{-1} B'XA``) stable, Newton's method
+    settled, and the residual below ``tol``. It is False (a flag, never an exception, so it works under ``jit``)
+    when no stabilising solution exists (``(A, B)`` not stabilisable, or ``Q`` does not penalise a mode on the
+    unit circle), when traced ``Q`` or ``R`` are not semidefinite / definite (the checks that raise eagerly cannot
+    run on tracers; the solution is then indefinite), or when the working precision does not resolve the problem
+    (e.g. the AOB-3 design in float32); :func:`require_converged` turns the flag into an error message for eager
+    callers.
 
     Example:
       >>> import numpy as np, scipy.linalg
@@ -533,7 +539,8 @@ class CareSolution(NamedTuple):
       X: (n, n) the solution (for the filter CARE of (A', C'): the steady-state Kalman-Bucy covariance)
       residual: () max |Ric(X)| / the largest of its terms max|Q|, 2 max|XA|, max|XGX| (G = B R^-1 B'),
         floored at gamma^2 / max|G| where Q = 0, gamma the frequency scale of the Cayley shift
-      converged: () the stabilising solution was found: X finite, A - B K Hurwitz, residual small
+      converged: () the stabilising solution was found: X finite and positive semidefinite, R positive definite,
+        A - B K Hurwitz, residual small
     """
 
     X: jax.Array
@@ -693,7 +700,8 @@ def _solve_care(A, B, Q, R, max_iters):
        (:func:`_lyapunov`), until it is at the rounding level of ``X`` or stalls; they remove what the transform
        lost to rounding (``eps`` times the conditioning of ``A - gamma I`` and of the transformed closed loop).
 
-    Returns ``(X, residual, found)``: ``found`` when ``X`` is finite, the last correction's closed loop Hurwitz, and
+    Returns ``(X, residual, found)``: ``found`` when ``X`` is finite and positive semidefinite, ``R`` positive
+    definite, the last correction's closed loop Hurwitz, and
     Newton's method settled (to ``4 eps``, or stalled below ``sqrt(eps)``, and not at a linear rate: where the
     closed loop has an eigenvalue on the imaginary axis, in the limit of existence, the corrections halve steadily).
     """
@@ -727,7 +735,8 @@ def _solve_care(A, B, Q, R, max_iters):
     settled = ((c.size <= 4 * eps) | (_stalled(c.size, c.previous) & (c.size <= jnp.sqrt(eps)))) & (c.halvings < 4)
     residual = jnp.max(jnp.abs(F)) / jnp.maximum(size, gamma * scale)  # floor gamma^2 / |G| where Q = 0
     residual = jnp.where(jnp.isfinite(residual), residual, jnp.inf)
-    return c.X, residual, c.stable & settled & jnp.all(jnp.isfinite(c.X))
+    well_posed = is_positive_semidefinite(c.X, scale) & is_positive_definite(R)
+    return c.X, residual, c.stable & settled & jnp.all(jnp.isfinite(c.X)) & well_posed
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(4,))
@@ -791,7 +800,8 @@ def care(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> CareSo
     one Lyapunov solve.
 
     Returns a :class:`CareSolution` ``(X, residual, converged)``. ``converged`` means the stabilising solution was
-    found: ``X`` finite, ``A - B K`` Hurwitz (``K = R^{-1} B' X``; tested on its Cayley transform by squaring, no
+    found: ``X`` finite and positive semidefinite, ``R`` positive definite (traced ``Q`` and ``R`` are not checked
+    otherwise), ``A - B K`` Hurwitz (``K = R^{-1} B' X``; tested on its Cayley transform by squaring, no
     eigenvalue solver), Newton's method settled, and the residual below ``tol``. It is False (a flag, never an
     exception, so it works under ``jit``) when no stabilising solution exists (``(A, B)`` not stabilisable, or a
     mode on the imaginary axis that ``Q`` does not penalise) or when the working precision does not resolve the

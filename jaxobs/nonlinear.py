@@ -95,9 +95,9 @@ def nonlinear_model(
       ((2, 2), (1, 1))
     """
     f, h = _checks.function("f", f), _checks.function("h", h)
-    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
-    x0 = jnp.atleast_1d(jnp.asarray(x0))
-    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    Q, R = jnp.atleast_2d(_checks.real_array("Q", Q)), jnp.atleast_2d(_checks.real_array("R", R))
+    x0 = jnp.atleast_1d(_checks.real_array("x0", x0))
+    P0 = Q if P0 is None else jnp.atleast_2d(_checks.real_array("P0", P0))
     dtype = _checks.float_dtype(Q=Q, R=R, x0=x0, P0=P0, dt=dt, t0=t0)
     _checks.shape("x0", x0, (None,), "the prior mean, one entry per state")
     n = x0.shape[0]
@@ -111,7 +111,7 @@ def nonlinear_model(
     _checks.shape("t0", t0, (), "a scalar time")
     _checks.finite("t0", t0)
     n_inputs = _checks.count("n_inputs", n_inputs, hint="the size of the input u of f(x, u, t)")
-    continuous = bool(continuous)
+    continuous = _checks.boolean("continuous", continuous)
     substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
     if method not in ct.METHODS:
         raise ValueError(f"method must be one of {sorted(ct.METHODS)}, got {method!r}")

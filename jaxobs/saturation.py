@@ -6,6 +6,12 @@ Chapter 8 (Grip, Saberi & Wang): the sampled hybrid controller that stabilises `
 window of a saturated system's output (:func:`hypothesis_residual`, :func:`explains`,
 :func:`sandwich_detectors`), the low-gain ARE (:func:`low_gain_are`) and the three-stage controller of §9.4
 (:func:`simulate_sandwich`). The equations: docs/theory/analysis.md.
+
+Input contract: shapes and types are checked at trace time, values (finite arrays, ``T``, ``h``, ``eps > 0``,
+``rho > 1``, ``cond_max >= 1``) where concrete, ``ValueError`` naming the argument; an eager design whose matrix
+exponentials overflow (``T`` too long for the working precision) raises naming ``T``. Under ``jit`` nothing raises:
+such a design has non-finite constants, a window model at a step ``h <= 0`` is NaN, and a ``cond_max`` below 1 (or
+NaN) flags every interval ``ill_conditioned``.
 """
 
 from __future__ import annotations
@@ -51,8 +57,8 @@ __all__ = [
 
 
 def sat(v):
-    """The standard saturation ``sign(v) min(1, |v|)``, componentwise."""
-    return jnp.clip(v, -1.0, 1.0)
+    """The standard saturation ``sign(v) min(1, |v|)``, componentwise (``v`` any real array)."""
+    return jnp.clip(_checks.real_array("v", v), -1.0, 1.0)
 
 
 def require_controllable_observable(A, B, C, *, names: tuple[str, str] = ("(A, B)", "(C, A)")) -> None:
@@ -83,6 +89,20 @@ def _matrices(**named):
         _checks.matrix(name, value)
         out.append(jnp.asarray(value, dtype))
     return dtype, out
+
+
+def _finite_result(name: str, given, **values) -> None:
+    """Eagerly, ``ValueError`` naming the argument ``name`` (whose value was ``given``) when one of the concrete
+    ``values`` it sets is not finite, e.g. a matrix exponential that overflows."""
+    for label, value in values.items():
+        if _checks.is_concrete(value, given) and not np.all(np.isfinite(np.asarray(value))):
+            dtype = np.asarray(value).dtype
+            raise ValueError(f"{name} = {float(given):g} is too large: {label} is not finite in {dtype}; lower {name}")
+
+
+def _design(name: str, value, kind) -> None:
+    if not isinstance(value, kind):
+        raise ValueError(f"{name} must be a {kind.__name__} (see {kind.__name__.lower()}), got {type(value).__name__}")
 
 
 # ---------------------------------------------------------------------------------------------------- chapter 8
@@ -118,13 +138,15 @@ def saturated_output_design(A, B, C, *, T, rho, H=None, alpha_norm: str = "2") -
 
     Args:
       A: (n, n).  B: (n, m).  C: (p, n): the plant (8.1), ``(A, B)`` controllable and ``(C, A)`` observable.
-      T: () interval length ``> 0``.  rho: () ``> 1``, ``alpha = rho ||exp(A T)||``.
+      T: () interval length ``> 0`` (``exp(A T)`` must not overflow).  rho: () finite ``> 1``, ``alpha = rho
+        ||exp(A T)||``.
       H: (p, n) the vectors ``h_i`` as rows, each with ``C_i h_i > 0``; default ``C`` (``h_i = C_i'``, §8.4).
       alpha_norm: the matrix norm of ``||exp(A T)||``: ``"2"`` (spectral, the default), ``"1"``, ``"inf"`` or
         ``"fro"`` (the thesis does not say which; ``grip2010-saturated-outputs`` compares them).
 
     ``Bbar`` is computed exactly as a block of one matrix exponential (Van Loan 1978). Eager: the assumptions are
-    checked on concrete values and raise ``ValueError`` naming the argument.
+    checked on concrete values and raise ``ValueError`` naming the argument, as does a ``T`` for which ``exp(A T)``,
+    ``alpha`` or ``Bbar^{-1}`` is not finite; under ``jit`` such constants are returned non-finite.
 
     Example:
       >>> import numpy as np
@@ -157,11 +179,18 @@ def saturated_output_design(A, B, C, *, T, rho, H=None, alpha_norm: str = "2") -
     expAT = jax.scipy.linalg.expm(A * T)
     alpha = jnp.asarray(rho, dtype) * jnp.linalg.norm(expAT, ord=ALPHA_NORMS[alpha_norm])
     Bbar = _van_loan(A, B @ B.T, T)
-    return SaturatedOutputDesign(A, B, C, T, alpha, H, expAT, Bbar, jnp.linalg.inv(Bbar))
+    Bbar_inv = jnp.linalg.inv(Bbar)
+    _finite_result("T", T, **{"exp(A T)": expAT, "alpha": alpha, "Bbar": Bbar, "Bbar^-1": Bbar_inv})
+    return SaturatedOutputDesign(A, B, C, T, alpha, H, expAT, Bbar, Bbar_inv)
 
 
 def interval_map(design: SaturatedOutputDesign, x, U):
-    """``x(kT + T) = exp(A T) x(kT) - Bbar U_k`` (8.7): the exact state one interval later under (8.2)."""
+    """``x(kT + T) = exp(A T) x(kT) - Bbar U_k`` (8.7): the exact state one interval later under (8.2); ``x`` and
+    ``U`` (n,)."""
+    _design("design", design, SaturatedOutputDesign)
+    n, dtype = design.A.shape[0], design.A.dtype
+    x = _checks.vector("x", x, n, dtype)
+    U = _checks.vector("U", U, n, dtype)
     return design.expAT @ x - design.Bbar @ U
 
 
@@ -221,14 +250,19 @@ def simulate_saturated_outputs(
     desaturation goes on with the output of smallest ``sigma_i``, so the state never becomes NaN.
 
     Args:
-      design: :func:`saturated_output_design`.  x0: (n,) the initial state.
-      num_intervals: static number of intervals ``K``.  substeps: static RK4 steps per interval.
-      cond_max: the largest condition number of ``D`` that is inverted.
+      design: :func:`saturated_output_design`.  x0: (n,) the finite initial state.
+      num_intervals: static number of intervals ``K`` (>= 1).  substeps: static RK4 steps per interval (>= 1).
+      cond_max: the largest condition number of ``D`` that is inverted, finite ``>= 1`` (a traced value below 1 or NaN
+        inverts none: every interval whose outputs were all unsaturated is flagged ``ill_conditioned``).
 
     Returns: a :class:`SaturatedOutputTrace`. Pure; works under ``jit`` and ``vmap`` over ``x0``.
     """
+    _design("design", design, SaturatedOutputDesign)
     num_intervals = _checks.count("num_intervals", num_intervals, minimum=1)
     substeps = _checks.count("substeps", substeps, minimum=1)
+    _checks.positive_scalar("cond_max", cond_max)
+    if _checks.is_concrete(cond_max) and float(cond_max) < 1:
+        raise ValueError(f"cond_max must be >= 1 (a condition number), got {float(cond_max)}")
     A, B, C, H = design.A, design.B, design.C, design.H
     n, p = A.shape[0], C.shape[0]
     dtype = A.dtype
@@ -292,18 +326,33 @@ class WindowModel(NamedTuple):
 
 def window_model(F, Bf, H, h) -> WindowModel:
     """The hypothesis "``y = H w``, ``w' = F w + Bf u``" sampled at step ``h``: one matrix exponential (computed once,
-    outside any loop over windows)."""
-    nf, m = F.shape[0], Bf.shape[1]
-    Z = jnp.zeros((nf + 2 * m, nf + 2 * m), F.dtype)
-    Z = Z.at[:nf, :nf].set(F).at[:nf, nf : nf + m].set(Bf).at[nf : nf + m, nf + m :].set(jnp.eye(m, dtype=F.dtype))
-    X = jax.scipy.linalg.expm(Z * h)
-    return WindowModel(H, X[:nf, :nf], X[:nf, nf : nf + m], X[:nf, nf + m :], jnp.asarray(h, F.dtype))
+    outside any loop over windows).
+
+    Args:
+      F: (nf, nf).  Bf: (nf, m).  H: (p, nf).  h: () the step, finite and ``> 0`` (checked where concrete; a
+        traced ``h <= 0`` gives a NaN model).
+    """
+    dtype, (F, Bf, H) = _matrices(F=F, Bf=Bf, H=H)
+    nf = F.shape[0]
+    _checks.matrix("F", F, square=True)
+    _checks.matrix("Bf", Bf, shape=(nf, None))
+    _checks.matrix("H", H, shape=(None, nf))
+    _checks.positive_scalar("h", h)
+    m = Bf.shape[1]
+    h = jnp.asarray(h, dtype)
+    _checks.shape("h", h, (), "a scalar step")
+    Z = jnp.zeros((nf + 2 * m, nf + 2 * m), dtype)
+    Z = Z.at[:nf, :nf].set(F).at[:nf, nf : nf + m].set(Bf).at[nf : nf + m, nf + m :].set(jnp.eye(m, dtype=dtype))
+    X = jnp.where(h > 0, jax.scipy.linalg.expm(Z * h), jnp.nan)
+    _finite_result("h", h, **{"exp(F h)": X})
+    return WindowModel(H, X[:nf, :nf], X[:nf, nf : nf + m], X[:nf, nf + m :], jnp.where(h > 0, h, jnp.nan))
 
 
 def forced_response(model: WindowModel, u):
-    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the input ``u`` (N + 1, m)
-    sampled at ``tau_j`` and linear in between (exact for piecewise-linear inputs): ``u_s*`` of (9.4) for a constant
-    input, ``u_0*`` of §9.3.1 for the plant's input. ``model``: :func:`window_model`."""
+    """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the finite input ``u`` (N + 1,
+    m) sampled at ``tau_j`` and linear in between (exact for piecewise-linear inputs): ``u_s*`` of (9.4) for a
+    constant input, ``u_0*`` of §9.3.1 for the plant's input. ``model``: :func:`window_model`."""
+    u = _samples("u", u, model.G0.shape[1], model.E.dtype, "the input at the samples")
 
     def step(v, pair):
         u0, u1 = pair
@@ -313,6 +362,17 @@ def forced_response(model: WindowModel, u):
     zero = jnp.zeros(model.E.shape[0], model.E.dtype)
     _, vs = jax.lax.scan(step, zero, (u[:-1], u[1:]))
     return jnp.concatenate([zero[None], vs])
+
+
+def _samples(name: str, value, width: int, dtype, what: str, length: int | None = None) -> jax.Array:
+    """A record ``value`` of shape (N + 1, width) (``length`` rows when given, at least 2) as a finite (where concrete)
+    array in ``dtype``; ``ValueError`` naming ``name`` otherwise (no broadcast)."""
+    value = _checks.real_array(name, value)
+    _checks.shape(name, value, (length, width), what)
+    if value.shape[0] < 2:
+        raise ValueError(f"{name} must have at least 2 samples (rows), got shape {value.shape}")
+    _checks.finite(name, value)
+    return value.astype(dtype)
 
 
 def _adjugate(D):
@@ -361,10 +421,14 @@ def hypothesis_residual(model: WindowModel, y, u) -> Residual:
 
     Args:
       model: :func:`window_model` of ``(F, Bf, H)`` at the sample step ``h``.
-      y: (N + 1, p) outputs at ``tau_j = j h``.  u: (N + 1, m) the hypothesis's input at the same times.
+      y: (N + 1, p) finite outputs at ``tau_j = j h``.  u: (N + 1, m) the hypothesis's finite input at the same
+        times.
     """
+    _design("model", model, WindowModel)
     H, h = model.H, model.h
     nf = model.E.shape[0]
+    y = _samples("y", y, H.shape[0], model.E.dtype, "one column per row of the hypothesis's H")
+    u = _samples("u", u, model.G0.shape[1], model.E.dtype, "the input at the samples of y", length=y.shape[0])
     v = forced_response(model, u)
     e = y - v @ H.T
 
@@ -406,15 +470,10 @@ def hypothesis(F, Bf, H, h) -> Hypothesis:
     """The hypothesis "the window's output is ``H w`` with ``w' = F w + Bf u``" for :func:`explains`.
 
     Args:
-      F: (nf, nf).  Bf: (nf, m).  H: (p, nf), ``(H, F)`` observable.  h: () the sample step of the windows.
+      F: (nf, nf).  Bf: (nf, m).  H: (p, nf), ``(H, F)`` observable.  h: () the sample step of the windows, ``> 0``.
     """
-    dtype = _checks.float_dtype(F=F, Bf=Bf, H=H)
-    F, Bf, H = (jnp.asarray(M, dtype) for M in (F, Bf, H))
-    _checks.matrix("F", F, square=True)
-    _checks.matrix("Bf", Bf, shape=(F.shape[0], None))
-    _checks.matrix("H", H, shape=(None, F.shape[0]))
-    _checks.positive_scalar("h", h)
-    return Hypothesis(window_model(F, Bf, H, h), window_model(F, Bf, H, 2 * jnp.asarray(h, dtype)))
+    fine = window_model(F, Bf, H, h)
+    return Hypothesis(fine, window_model(F, Bf, H, 2 * fine.h))
 
 
 def explains(hyp: Hypothesis, y, u, *, ratio=3.0, rtol=1e-9, rounding=64.0):
@@ -429,14 +488,23 @@ def explains(hyp: Hypothesis, y, u, *, ratio=3.0, rtol=1e-9, rounding=64.0):
     has a poorly conditioned ``D``).
 
     Args:
-      hyp: :func:`hypothesis`.  y: (N + 1, p) outputs at ``j h``, ``N`` even.  u: (N + 1, m) the input.
-      ratio, rtol, rounding: the acceptance rule above.
+      hyp: :func:`hypothesis`.  y: (N + 1, p) finite outputs at ``j h``, ``N`` even, ``p`` the rows of the
+        hypothesis's ``H`` (no broadcast).  u: (N + 1, m) the finite input.
+      ratio: () ``> 1``.  rtol, rounding: () ``>= 0``: the acceptance rule above.
 
     Returns ``(accepted, e_h, e_2h, residual)`` with ``residual`` the :class:`Residual` at step ``h``.
     """
+    _design("hyp", hyp, Hypothesis)
+    dtype = hyp.fine.E.dtype
+    y = _samples("y", y, hyp.fine.H.shape[0], dtype, "one column per row of the hypothesis's H")
     if y.shape[0] % 2 != 1 or y.shape[0] < 5:
         raise ValueError(f"y must have an odd number N + 1 >= 5 of samples (N even), got {y.shape[0]}")
-    _checks.shape("u", u, (y.shape[0], hyp.fine.G0.shape[1]), "the input at the samples of y")
+    u = _samples("u", u, hyp.fine.G0.shape[1], dtype, "the input at the samples of y", length=y.shape[0])
+    _checks.positive_scalar("ratio", ratio)
+    if _checks.is_concrete(ratio) and float(ratio) <= 1:
+        raise ValueError(f"ratio must be > 1 (halving the step divides a true statistic by 4), got {ratio}")
+    _checks.positive_scalar("rtol", rtol, allow_zero=True)
+    _checks.positive_scalar("rounding", rounding, allow_zero=True)
     fine = hypothesis_residual(hyp.fine, y, u)
     coarse = hypothesis_residual(hyp.coarse, y[::2], u[::2])
     floor = jnp.maximum(rtol, rounding * jnp.finfo(y.dtype).eps * fine.condition) * fine.scale
@@ -538,6 +606,9 @@ def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F,
       T: () detection interval ``> 0``.  Tbar_intervals: static ``q >= 1``, the stage-2 interval ``Tbar = q T``.
       rho: () ``> 1``: ``alpha = rho exp(2 Tbar ||A||_2)``.  h: (n,) with ``C h > 0`` (default ``C'``).
       F: (1, n) with ``A + B F`` Hurwitz.  eps: () ``> 0`` the low-gain parameter of (9.12).
+
+    Eagerly, a ``Tbar`` for which ``alpha``, ``exp(A Tbar)`` or ``beta(Tbar)^{-1}`` is not finite raises naming
+    ``T``; under ``jit`` those constants are returned non-finite.
     """
     dtype, (A, B, C, M, N, G, F) = _matrices(A=A, B=B, C=C, M=M, N=N, G=G, F=F)
     n, m = A.shape[0], M.shape[0]
@@ -578,8 +649,10 @@ def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F,
     beta = _van_loan(A, B @ B.T, Tbar)
     sol = low_gain_are(A, B, C, M, N, F, eps)
     K = jnp.concatenate([F, jnp.zeros((1, m), dtype)], axis=1) - BB.T @ sol.X
-    return SandwichDesign(A, B, C, M, N, G, AA, BB, CC, T, alpha, h, jnp.linalg.inv(beta),
-                          jax.scipy.linalg.expm(A * Tbar), K, sol.X, q)  # fmt: skip
+    beta_inv, expATbar = jnp.linalg.inv(beta), jax.scipy.linalg.expm(A * Tbar)
+    _finite_result("T", T, **{"alpha (Tbar = Tbar_intervals T)": alpha, "beta(Tbar)^-1": beta_inv,
+                              "exp(A Tbar)": expATbar})  # fmt: skip
+    return SandwichDesign(A, B, C, M, N, G, AA, BB, CC, T, alpha, h, beta_inv, expATbar, K, sol.X, q)
 
 
 def sandwich_hypotheses(design: SandwichDesign, h) -> tuple[Hypothesis, Hypothesis]:
@@ -602,8 +675,12 @@ def sandwich_detectors(design: SandwichDesign, y, u, h, *, z_margin=1e-2, hypoth
       z_margin: () tolerance of the consistency check ``|z| <= 1``.
       hypotheses: :func:`sandwich_hypotheses` at ``h`` (computed when not given; give them inside a loop).
     """
-    y = jnp.asarray(y)
-    u = jnp.reshape(jnp.asarray(u, y.dtype), (y.shape[0], 1))
+    _design("design", design, SandwichDesign)
+    y = _checks.real_array("y", y)
+    u = _checks.real_array("u", u)
+    if u.ndim == 1 and y.ndim == 2:
+        u = u[:, None]
+    _checks.positive_scalar("z_margin", z_margin, allow_zero=True)
     l2, merged = sandwich_hypotheses(design, h) if hypotheses is None else hypotheses
     one = jnp.ones_like(u)
     plus, minus, zero = explains(l2, y, one), explains(l2, y, -one), explains(merged, y, u)
@@ -649,6 +726,7 @@ def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, subst
 
     Returns: a :class:`SandwichTrace`. Pure; ``jit`` and ``vmap`` over ``chi0``.
     """
+    _design("design", design, SandwichDesign)
     num_intervals = _checks.count("num_intervals", num_intervals, minimum=1)
     substeps = _checks.count("substeps", substeps, minimum=4)
     if substeps % 2:

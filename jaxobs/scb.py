@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxobs import _checks
+
 __all__ = [
     "SCB",
     "scb",
@@ -524,7 +526,7 @@ def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
       ((0, 0, 0, 2), (2,))
     """
     given = _validate(A, B, C, D)
-    if numeric:
+    if _checks.boolean("numeric", numeric):
         if not (isinstance(tol, Real) and np.isfinite(tol) and 0 < tol < 1):
             raise ValueError(f"tol must be a number in (0, 1), got {tol!r}")
         bk = _Float(float(tol))

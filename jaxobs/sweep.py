@@ -35,9 +35,11 @@ from tqdm.auto import tqdm
 
 from jaxobs._distributed import agree, from_process_0, lapack_guard
 from jaxobs._resources import (
+    MAX_INDEX,
     Interrupted,
     InterruptWatch,
     JobError,
+    LimitError,
     atomic_write,
     check_memory,
     locked_out_dir,
@@ -213,8 +215,8 @@ def _check_args(sampler, evaluate, num_configs, chunk_size, seed, config) -> Non
             raise ValueError(f"{name} must be an int, got {value!r}")
         if lo is not None and value < lo:
             raise ValueError(f"{name} must be >= {lo}, got {value}")
-    if num_configs >= 2**31:
-        raise ValueError(f"num_configs must be below 2**31 (indices are int32), got {num_configs}")
+    if num_configs > MAX_INDEX:
+        raise LimitError(f"num_configs must be below 2**31 (indices are int32), got {num_configs}")
     try:
         json.dumps(config, allow_nan=False)
     except (TypeError, ValueError) as e:

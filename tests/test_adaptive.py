@@ -5,6 +5,8 @@ inequalities and set invariance, the clipping form, and the excitation measure.
 
 Continuous-time laws are integrated by a fixed-step RK4 written here (``_rk4``), to be replaced by jaxobs.ct."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -431,3 +433,114 @@ def test_bad_values_raise_naming_the_argument():
     for name, call in cases:
         with pytest.raises(ValueError, match=rf"^{name}\b"):
             call()
+
+
+# ---------------------------------------------------------------------------------------------
+# the input contract (issue 28): every array argument, every non-finite value; ranges; wrong types; jit
+
+BALL = Ball(center=np.zeros(2), radius=np.asarray(1.0))
+BOX = Box(lower=-np.ones(2), upper=np.ones(2))
+
+# (function, its arguments by name (two parameters), the array arguments that must be finite)
+CALLS = {
+    "regression_gradient_law": (regression_gradient_law, dict(theta_hat=np.zeros(2), omega=np.ones(2), z=1.0,
+                                                              adaptation_gain=1.0), ("theta_hat", "omega", "z")),
+    "lyapunov_law": (lyapunov_law, dict(omega=np.ones(2), x=0.5, adaptation_gain=2.0), ("omega", "x")),
+    "rls_update": (rls_update, dict(theta_hat=np.zeros(2), P=np.eye(2), omega=np.ones(2), z=1.0),
+                   ("theta_hat", "P", "omega")),
+    "rls_rate": (rls_rate, dict(theta_hat=np.zeros(2), P=np.eye(2), omega=np.ones(2), z=1.0),
+                 ("theta_hat", "P", "omega", "z")),
+    "project": (project, dict(tau=np.ones(2), theta_hat=np.zeros(2), adaptation_gain=1.0, region=BALL, epsilon=0.1),
+                ("tau", "theta_hat")),
+    "clip_step": (clip_step, dict(theta_hat=np.zeros(2), rate=np.ones(2), dt=0.1, lower=-1.0, upper=1.0),
+                  ("theta_hat", "rate", "lower", "upper")),
+    "excitation": (excitation, dict(regressors=np.ones((4, 2)), dt=0.01), ("regressors",)),
+}  # fmt: skip
+NON_FINITE = {"nan": np.nan, "inf": np.inf, "-inf": -np.inf}
+
+
+def _with(kwargs, name, bad):
+    """``kwargs`` with one entry of ``kwargs[name]`` replaced by ``bad``."""
+    value = np.array(kwargs[name], dtype=float)
+    value.flat[-1] = bad
+    return {**kwargs, name: value}
+
+
+@pytest.mark.parametrize("bad", NON_FINITE.values(), ids=NON_FINITE)
+@pytest.mark.parametrize("function, name", [(f, n) for f, (_, _, names) in CALLS.items() for n in names])
+def test_non_finite_arrays_raise_naming_the_argument(function, name, bad):
+    """NaN or +-inf anywhere in an array argument: ValueError naming it (before: NaN or inf results, e.g.
+    regression_gradient_law(zeros(2), ones(2), nan, 1.0), lyapunov_law(omega, nan, 2.0), rls_rate(z=inf),
+    rls_update(th, P, [nan], 1.0) and excitation([[1, nan], [0, 1]], 0.01))."""
+    fn, kwargs, _ = CALLS[function]
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        fn(**_with(kwargs, name, bad))
+
+
+@pytest.mark.parametrize("function, name", [(f, n) for f, (_, kwargs, names) in CALLS.items() for n in names])
+def test_strings_raise_naming_the_argument(function, name):
+    fn, kwargs, _ = CALLS[function]
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        fn(**{**kwargs, name: "abc"})
+
+
+BAD_REGIONS = [
+    ("ball-radius-negative", Ball(np.zeros(2), np.asarray(-1.0)), "region.radius"),
+    ("ball-radius-zero", Ball(np.zeros(2), np.asarray(0.0)), "region.radius"),
+    ("ball-radius-nan", Ball(np.zeros(2), np.asarray(np.nan)), "region.radius"),
+    ("ball-radius-vector", Ball(np.zeros(2), np.ones(2)), "region.radius"),
+    ("ball-center-nan", Ball(np.array([0.0, np.nan]), np.asarray(1.0)), "region.center"),
+    ("ball-center-length", Ball(np.zeros(3), np.asarray(1.0)), "region.center"),
+    ("box-lower-above-upper", Box(np.ones(2), -np.ones(2)), "region.upper"),
+    ("box-empty", Box(np.zeros(2), np.array([1.0, 0.0])), "region.upper"),
+    ("box-upper-inf", Box(-np.ones(2), np.array([1.0, np.inf])), "region.upper"),
+    ("box-lower-length", Box(-np.ones(3), np.ones(2)), "region.lower"),
+    ("box-order-zero", Box(-np.ones(2), np.ones(2), order=0), "region.order"),
+    ("box-order-float", Box(-np.ones(2), np.ones(2), order=2.5), "region.order"),
+    ("not-callable", "ball", "region"),
+]
+
+
+@pytest.mark.parametrize("region, name", [pytest.param(r, n, id=i) for i, r, n in BAD_REGIONS])
+def test_bad_regions_raise_naming_the_field(region, name):
+    """A Ball radius <= 0 (before: Ball(radius=-1) acted as radius 1, radius 0 blamed theta_hat) and Box bounds with
+    lower >= upper (before: project returned tau unprojected) are refused by project and by the laws' check."""
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
+        project(np.ones(2), np.zeros(2), 1.0, region, 0.1)
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
+        check_law(CustomLaw(lambda g, a, p, t: t, 1.0, region=region), np.zeros(2))
+
+
+def test_traced_invalid_regions_and_bounds_give_nan():
+    """Under jit nothing raises, and nothing looks valid: a traced Ball radius <= 0, Box bounds with lower >= upper
+    or epsilon <= 0 make project NaN; clip_step bounds with upper < lower make that parameter NaN; non-finite
+    regressors make excitation's lambda_min NaN; a non-finite input makes a law's rate non-finite."""
+    tau, theta = jnp.ones(2), jnp.array([0.9, 0.0])
+    ball = jax.jit(lambda r: project(tau, theta, 1.0, Ball(jnp.zeros(2), r), 0.1))
+    assert np.all(np.isfinite(ball(1.0)))
+    for r in (-1.0, 0.0, np.nan):
+        assert np.all(np.isnan(ball(r)))
+    box = jax.jit(lambda lo, hi: project(tau, theta, 1.0, Box(lo, hi), 0.1))
+    assert np.all(np.isfinite(box(-jnp.ones(2), jnp.ones(2))))
+    assert np.all(np.isnan(box(jnp.ones(2), -jnp.ones(2))))
+    eps = jax.jit(lambda e: project(tau, jnp.array([1.04, 0.0]), 1.0, BALL, e))
+    assert np.all(np.isnan(eps(-0.1))) and np.all(np.isfinite(eps(0.1)))
+    clip = jax.jit(lambda lo, hi: clip_step(jnp.zeros(2), jnp.ones(2), 0.1, lo, hi))
+    np.testing.assert_array_equal(clip(jnp.array([-1.0, 1.0]), jnp.array([1.0, -1.0])), [0.1, np.nan])
+    low = jax.jit(lambda W: excitation(W, 0.01)[1])
+    assert np.isnan(low(jnp.array([[1.0, np.nan], [0.0, 1.0]]))) and low(jnp.eye(2)) > 0
+    rate = jax.jit(lambda z: regression_gradient_law(jnp.zeros(2), jnp.ones(2), z, 1.0))
+    assert np.all(np.isnan(rate(np.nan)))
+
+
+def test_traced_non_finite_regressor_is_a_missing_equation():
+    """rls_update under jit: a non-finite column of omega drops its equation, as a missing z does (before: NaN
+    theta and P), so the estimate and P stay those of the other equations."""
+    step = jax.jit(rls_update)
+    theta, P = jnp.zeros(2), jnp.eye(2)
+    omega = jnp.array([[1.0, np.nan], [0.5, 1.0]])
+    got = step(theta, P, omega, jnp.array([1.0, 2.0]))
+    want = step(theta, P, omega.at[0, 1].set(0.0), jnp.array([1.0, np.nan]))
+    for a, b in zip(got, want, strict=True):
+        assert np.all(np.isfinite(a))
+        np.testing.assert_array_equal(a, b)

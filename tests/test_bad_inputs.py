@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from jaxobs import closed_loop, design, lti, stability
+from jaxobs import closed_loop, design, lti, scb, stability
 from jaxobs.observers import active, feedback, hinf, kalman, linear
 from jaxobs.observers import inverse_dynamics as ido
 from jaxobs.observers.base import Controller, ControllerInputs, EstimatorInputs, LinearObserver, run
@@ -419,3 +419,118 @@ def test_the_documented_shorthands_still_work():
     a = kalman.kalman_filter.step(kf(), state, EstimatorInputs(y=1.0, u_prev=0.0))[1].x
     b = kalman.kalman_filter.step(kf(), state, EstimatorInputs(y=jnp.ones(1), u_prev=jnp.zeros(1)))[1].x
     np.testing.assert_array_equal(a, b)
+
+
+# ------------------------------------------------------------------ wrong types (issue 28): every class, every array
+
+WRONG_TYPES = {
+    "str": "abc",
+    "dict": {"a": 1.0},
+    "object": object(),
+    "ragged": [[1.0], [1.0, 2.0]],
+    "strings": [["a", "b"], ["c", "d"]],
+    "complex": 1j * EYE2,
+}
+
+
+def _nonlinear(**kwargs):
+    from jaxobs.nonlinear import nonlinear_model
+
+    args = dict(Q=EYE2, R=[[1.0]], x0=np.zeros(2)) | kwargs
+    return nonlinear_model(lambda x, u, t: x, lambda x: x[:1], args.pop("Q"), args.pop("R"), **args)
+
+
+# (case, call with the wrong value, argument named, required: None is wrong too)
+TYPE_TARGETS = [
+    ("make_kalman-Phi", lambda v: kalman.make_kalman(v, plant().C, EYE2, 1.0), "Phi", True),
+    ("make_kalman-C", lambda v: kalman.make_kalman(plant().A, v, EYE2, 1.0), "C", True),
+    ("make_kalman-Q", lambda v: kalman.make_kalman(plant().A, plant().C, v, 1.0), "Q", True),
+    ("make_kalman-R", lambda v: kalman.make_kalman(plant().A, plant().C, EYE2, v), "R", True),
+    ("make_kalman-P0", lambda v: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, P0=v), "P0", False),
+    ("make_aob-R", lambda v: active.make_aob(plant(), 1, v), "R", True),
+    ("make_ckf-Q", lambda v: active.make_ckf(plant(), 1.0, Q=v), "Q", False),
+    ("nonlinear_model-Q", lambda v: _nonlinear(Q=v), "Q", True),
+    ("nonlinear_model-R", lambda v: _nonlinear(R=v), "R", True),
+    ("nonlinear_model-x0", lambda v: _nonlinear(x0=v), "x0", True),
+    ("nonlinear_model-P0", lambda v: _nonlinear(P0=v), "P0", False),
+]
+TYPE_CASES = [
+    pytest.param(call, name, value, id=f"{case}-{kind}")
+    for case, call, name, required in TYPE_TARGETS
+    for kind, value in [*WRONG_TYPES.items(), *([("None", None)] if required else [])]
+]
+
+
+@pytest.mark.parametrize("call, name, value", TYPE_CASES)
+def test_wrong_types_raise_value_error_naming_the_argument(call, name, value):
+    """Strings, dicts, objects, ragged or string sequences and complex arrays (and None where the argument is
+    required) give a ValueError naming the argument (before: JAX's TypeError, e.g. make_kalman(Phi, C, "abc", R))."""
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
+        call(value)
+
+
+@pytest.mark.parametrize("value", ["no", "False", 0, 1, 1.0, None, np.array([True])])
+@pytest.mark.parametrize(
+    "call, name",
+    [
+        pytest.param(lambda v: _nonlinear(continuous=v), "continuous", id="nonlinear_model-continuous"),
+        pytest.param(lambda v: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, steady_state=v), "steady_state",
+                     id="make_kalman-steady_state"),
+        pytest.param(lambda v: kalman.make_kalman(plant().A, plant().C, EYE2, 1.0, joseph=v), "joseph",
+                     id="make_kalman-joseph"),
+        pytest.param(lambda v: active.make_aob(plant(), 1, 1.0, steady_state=v), "steady_state",
+                     id="make_aob-steady_state"),
+    ],
+)  # fmt: skip
+def test_switches_must_be_bools(call, name, value):
+    """A switch takes True or False only: nonlinear_model(..., continuous="no") was taken as True."""
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)} must be a bool"):
+        call(value)
+
+
+# ------------------------------------------------- the vehicle package and Grip's design-time modules (issue 28)
+
+
+def _v(module: str):
+    """A module of the vehicle package (imported on first use: ``import jaxobs`` does not import it)."""
+    import importlib
+
+    return importlib.import_module(f"jaxobs.vehicle.{module}")
+
+
+def _car():
+    return _v("model").VehicleParams()
+
+
+# fmt: off
+VEHICLE_CASES = [
+    ("low_pass-cutoff-negative", lambda: _v("sensors").low_pass(np.ones(5), -1.0, 0.01), "cutoff"),
+    ("low_pass-cutoff-nan", lambda: _v("sensors").low_pass(np.ones(5), NAN, 0.01), "cutoff"),
+    ("low_pass-period-zero", lambda: _v("sensors").low_pass(np.ones(5), 1.0, 0.0), "period"),
+    ("low_pass-x-str", lambda: _v("sensors").low_pass("abc", 1.0, 0.01), "x"),
+    ("low_pass-x-empty", lambda: _v("sensors").low_pass(np.ones(0), 1.0, 0.01), "x"),
+    ("inclination_gain_bound-a-nan", lambda: _v("road_angles").inclination_gain_bound(NAN), "a"),
+    ("inclination_gain_bound-a-negative", lambda: _v("road_angles").inclination_gain_bound(-1.0), "a"),
+    ("bank_gain_bound-delta_min-nan", lambda: _v("road_angles").bank_gain_bound(1.0, NAN), "delta_min"),
+    ("bank_gain_bound-K_vy-negative", lambda: _v("road_angles").bank_gain_bound(-1.0, 0.1), "K_vy"),
+    ("final_angles-outputs", lambda: _v("road_angles").final_angles(None, np.zeros(3), np.zeros(3)), "outputs"),
+    ("simulate-params", lambda: _v("simulate").simulate("sine_steer", "car", duration=0.1), "params"),
+    ("simulate-manoeuvre", lambda: _v("simulate").simulate(3, _car(), duration=0.1), "manoeuvre"),
+    ("simulate-duration-beyond-int32", lambda: _v("simulate").simulate("sine_steer", _car(), duration=1e12),
+     "duration"),
+    ("understeer_gradient-vehicle", lambda: _v("switching").understeer_gradient("car"), "vehicle"),
+    ("make_nvso-vehicle-invalid", lambda: _v("nvso").make_nvso(_v("model").VehicleParams(mass=-1.0)), "mass"),
+    ("steady_state-vx-nan", lambda: _v("model").steady_state(_car(), NAN), "vx"),
+    ("steady_state-r-inf", lambda: _v("model").steady_state(_car(), 20.0, r=np.inf), "r"),
+    ("scb-numeric-str", lambda: scb.scb([[0.0]], [[1.0]], [[1.0]], numeric="no"), "numeric"),
+]
+# fmt: on
+
+
+@pytest.mark.parametrize("call, name", [pytest.param(call, name, id=case_id) for case_id, call, name in VEHICLE_CASES])
+def test_vehicle_and_scb_bad_inputs_raise_naming_the_argument(call, name):
+    """Filter constants, gain bounds, simulated time and the types of the vehicle package's public functions (before:
+    low_pass(x, -1, 0.01) returned x unfiltered, the gain bounds returned NaN or negative bounds, simulate with
+    duration = 1e12 tried to allocate 8 PB, a string for the vehicle gave an AttributeError)."""
+    with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
+        call()

@@ -274,13 +274,43 @@ def test_non_finite_config_values_exit_2_naming_file_and_key(tmp_path, capsys, c
 
 def test_a_run_that_cannot_fit_in_memory_exits_2_with_the_estimate(tmp_path, capsys):
     path = tmp_path / "big.toml"
-    path.write_text("[plants]\nheldout = 1000000000000\n")
+    path.write_text("[plants]\nheldout = 2000000000\n")
     assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out")]) == 2
     line = _one_line(capsys)
-    assert line.startswith(f"jaxobs tune: {path}: plants: the sensor noise of 1000000000016 plants over 250 steps "
-                           "needs about 2 PB (estimated), more than the ")  # fmt: skip
+    assert line.startswith(f"jaxobs tune: {path}: plants: the sensor noise of 2000000016 plants over 250 steps "
+                           "needs about 4 TB (estimated), more than the ")  # fmt: skip
     assert line.endswith("; lower plants.train, plants.heldout or scenario.duration")
     assert not (tmp_path / "out").exists()
+
+
+SATURATED = 'scenario = "saturated-outputs"\n'
+TINY_FORCE = "chunk_size = 4\n[controllers]\norders = [1]\ngrid_points = 1\n[simulation]\nconfigs_per_design = 8\n"
+
+
+@pytest.mark.parametrize(
+    "toml, key, message",
+    [
+        pytest.param(SATURATED + "seed = 100000000000000000000\n", "seed",
+                     "must be an integer of magnitude at most 2**31 - 1", id="integer-beyond-int32"),
+        pytest.param(SATURATED + "[grid]\ninitial_states = 1000000000\n", "grid.initial_states",
+                     "num_configs must be below 2**31 (indices are int32), got 27000000000", id="count-beyond-int32"),
+        pytest.param(SATURATED + "[run]\nintervals = 100000000\n", "run.intervals",
+                     "one step of the sweep (1 device(s) x chunk_size 64) needs about ", id="step-memory"),
+        pytest.param(TINY_FORCE + "duration = 1e9\n", "simulation.duration",
+                     "one step of the sweep (1 device(s) x chunk_size 4) needs about ", id="simulated-time-memory",
+                     marks=pytest.mark.slow),  # ~40 s: the AOB design compiles first
+    ],
+)  # fmt: skip
+def test_job_limits_exit_2_naming_file_and_key(tmp_path, capsys, toml, key, message):
+    """The issue's examples: an integer JAX cannot hold, a count of configurations beyond int32 and a step whose
+    memory estimate exceeds the machine's (set by the intervals, by the simulated time) exit 2 with one line
+    naming the file and the key, before any configuration is computed (before: OverflowError and ValueError
+    tracebacks, RESOURCE_EXHAUSTED allocating 1 TB, a memory message naming neither file nor key)."""
+    path, out = tmp_path / "big.toml", tmp_path / "out"
+    path.write_text(toml)
+    assert main(["sweep", "--config", str(path), "--out", str(out), "--no-progress"]) == 2
+    assert _one_line(capsys).startswith(f"jaxobs sweep: {path}: {key}: {message}")
+    assert not out.exists() or [p.name for p in out.iterdir()] in ([], [".jaxobs.lock"])  # nothing computed
 
 
 def test_ctrl_c_exits_130_with_the_resume_hint(tmp_path):

@@ -7,12 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 from jaxobs.kalman_steps import covariance_sequence, kalman_gain
-from jaxobs.matrix_equations import dare, filter_dare, stein
+from jaxobs.matrix_equations import care, dare, filter_dare, stein
 
 
 def random_system(rng, n, m, rho=None, r_min=None):
@@ -372,3 +372,57 @@ def test_dare_rejects_bad_input(kwargs, name):
         dare(args["Phi"].T, args["C"].T, args["Q"], args["R"])
     with pytest.raises(ValueError, match=rf"^{name}\b"):
         filter_dare(args["Phi"], args["C"], args["Q"], args["R"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Traced flags that never lie (issue 28): Q and R are checked eagerly only, so under jit an indefinite Q or R
+# reaches the solvers; converged must then stay False unless the answer is a finite PSD solution.
+
+care_jit = jax.jit(lambda A, B, Q, R: care(A, B, Q, R))
+
+
+def _indefinite(rng, n, lowest):
+    """A random symmetric (n, n) matrix with the smallest eigenvalue ``lowest`` (< 0) and the others in [0.1, 2]."""
+    U, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    eig = np.concatenate([[lowest], rng.uniform(0.1, 2.0, n - 1)])
+    return (U * eig) @ U.T
+
+
+def _well_posed(X, B, R):
+    """X finite and positive semidefinite (to 1e-7 of its size) and R + B'XB positive definite."""
+    X = np.asarray(X)
+    if not np.all(np.isfinite(X)):
+        return False
+    lowest = np.min(np.linalg.eigvalsh((X + X.T) / 2))
+    return lowest >= -1e-7 * max(np.max(np.abs(X)), 1.0) and np.min(np.linalg.eigvalsh(R + B.T @ X @ B)) > 0
+
+
+def test_traced_dare_with_indefinite_Q_is_not_converged_issue28():
+    """The issue's example: jit(dare) of the filter DARE of Phi = diag(0.5, 0.5), C = [[0, 1]], Q = diag(1, -1),
+    R = 0.1 returned an X with the eigenvalue -0.97 flagged converged; now converged is False (and a PSD Q still
+    converges under jit)."""
+    Phi, C, R = np.diag([0.5, 0.5]), np.array([[0.0, 1.0]]), np.array([[0.1]])
+    bad = filter_dare_jit(Phi, C, np.diag([1.0, -1.0]), R)
+    assert np.min(np.linalg.eigvalsh(bad.X)) < -0.9
+    assert not bool(bad.converged)
+    assert bool(filter_dare_jit(Phi, C, np.diag([1.0, 1.0]), R).converged)
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**32 - 1), lowest=st.floats(-2.0, -1e-3),
+       bad_R=st.booleans())  # fmt: skip
+def test_traced_riccati_flags_never_report_an_indefinite_solution_property(n, m, seed, lowest, bad_R):
+    """Property: under jit, with Q indefinite (or R indefinite), dare and care report converged only with a finite
+    positive semidefinite X and R + B'XB (care: R) positive definite."""
+    rng = np.random.default_rng(seed)
+    Phi, C, Q, R = random_system(rng, n, m)
+    if bad_R:
+        R = _indefinite(rng, m, lowest)
+    else:
+        Q = _indefinite(rng, n, lowest)
+    sol = filter_dare_jit(Phi, C, Q, R)
+    assert not bool(sol.converged) or _well_posed(sol.X, C.T, R)
+    sol = care_jit(Phi - np.eye(n), C.T, Q, R)
+    assert not bool(sol.converged) or _well_posed(sol.X, np.zeros_like(C.T), R)
+    if bad_R:  # an indefinite R is never a valid problem
+        assert not bool(sol.converged)

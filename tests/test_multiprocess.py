@@ -208,7 +208,48 @@ def test_cli_without_a_coordinator_exits_2():
     cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--num-processes", "2", "--process-id", "0", "--no-cache"]
     done = subprocess.run(cmd, env=_env(1), capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
-    assert "cannot join the multi-process run (ValueError: coordinator_address" in done.stderr
+    assert "cannot join the multi-process run: ValueError: coordinator_address" in done.stderr
+
+
+@pytest.mark.parametrize("address", ["nonsense", "127.0.0.1", "127.0.0.1:0", "127.0.0.1:65536", ":1234", "::1:1234"])
+def test_a_malformed_coordinator_address_exits_2_naming_it(tmp_path, capsys, address):
+    """``--coordinator nonsense`` (or no port, a port out of range, an IPv6 host without brackets): one line naming
+    the address, before anything starts (before: an IndexError traceback in JAX)."""
+    from jaxobs.cli import main
+
+    argv = ["sweep", "--coordinator", address, "--num-processes", "2", "--process-id", "0", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"jaxobs sweep: the coordinator address {address!r}")
+
+
+@pytest.mark.parametrize("timeout", ["0", "-1", "nan", "inf"])
+def test_a_coordinator_timeout_that_is_not_a_positive_number_exits_2(tmp_path, capsys, timeout):
+    from jaxobs.cli import main
+
+    argv = ["tune", "--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "1",
+            "--coordinator-timeout", timeout, "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().startswith("jaxobs tune: the coordinator timeout must be a positive")
+
+
+@pytest.mark.parametrize("command, process_id", [("sweep", 0), ("tune", 1)])
+def test_a_partner_that_never_comes_fails_in_bounded_time_with_one_line(command, process_id):
+    """Process 0 (which runs the coordinator) or 1 of a two-process run whose other process never starts: exit 2
+    after --coordinator-timeout (2 s here) with one line naming the address (before: silence for JAX's 300 s, then
+    an abort with a stack trace)."""
+    address = f"127.0.0.1:{_free_port()}"
+    cmd = [sys.executable, "-m", "jaxobs.cli", command, "--coordinator", address, "--num-processes", "2",
+           "--process-id", str(process_id), "--coordinator-timeout", "2", "--no-cache"]  # fmt: skip
+    start = time.monotonic()
+    done = subprocess.run(cmd, env=_env(1), capture_output=True, text=True, timeout=120)
+    elapsed = time.monotonic() - start
+    assert done.returncode == 2, done.stderr[-2000:]
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr[-2000:]
+    assert lines[0].startswith(f"jaxobs {command}: cannot join the multi-process run (process {process_id} of 2)")
+    assert address in lines[0] and "within 2 s" in lines[0]
+    assert elapsed < 60  # the timeout plus the start of Python and JAX, far below JAX's default of 300 s
 
 
 # --------------------------------------------------------------------------------------------

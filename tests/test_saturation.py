@@ -201,3 +201,112 @@ def test_three_stage_closed_loop_converges_from_every_grid_point(design9):
     error = np.linalg.norm(np.asarray(trace.chi_end) - np.asarray(trace.chi_hat_end), axis=2)
     assert np.max(error[in3]) < 1e-6  # the deadbeat reconstruction (9.11b) and Lemma 9.2
     assert np.max(np.linalg.norm(np.asarray(trace.chi_end)[:, -1], axis=1)) < 1e-3
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the input contract (issue 28)
+
+NON_FINITE = [np.nan, np.inf, -np.inf]
+ONE = dict(A=[[1.0]], B=[[1.0]], C=[[1.0]])
+
+
+@pytest.mark.parametrize(
+    "call, name",
+    [
+        pytest.param(lambda: sat.saturated_output_design(**ONE, T=1e4, rho=1.1), "T", id="design-T-overflows"),
+        pytest.param(lambda: sat.saturated_output_design(A8, B8, C8, T=1e100, rho=1.1), "T", id="design-T-8.5"),
+        pytest.param(lambda: sat.sandwich_design(**SW, T=500.0, Tbar_intervals=4, rho=1.1, F=F_SW, eps=1e-3), "T",
+                     id="sandwich-Tbar-overflows"),
+        pytest.param(lambda: sat.window_model([[1.0]], [[1.0]], [[1.0]], 1e4), "h", id="window-h-overflows"),
+        *[pytest.param(lambda v=v: sat.saturated_output_design(**ONE, T=v, rho=1.1), "T", id=f"design-T-{v}")
+          for v in (*NON_FINITE, -1.0)],
+        *[pytest.param(lambda v=v: sat.saturated_output_design(**ONE, T=0.5, rho=v), "rho", id=f"design-rho-{v}")
+          for v in (*NON_FINITE, 0.5)],
+        *[pytest.param(lambda v=v: sat.window_model([[0.0]], [[1.0]], [[1.0]], v), "h", id=f"window-h-{v}")
+          for v in (*NON_FINITE, -1.0, 0.0)],
+        pytest.param(lambda: sat.window_model([[np.nan]], [[1.0]], [[1.0]], 0.1), "F", id="window-F-nan"),
+        pytest.param(lambda: sat.window_model([[0.0]], [[1.0], [1.0]], [[1.0]], 0.1), "Bf", id="window-Bf-rows"),
+        pytest.param(lambda: sat.hypothesis([[0.0]], [[1.0]], "H", 0.1), "H", id="hypothesis-H-str"),
+    ],
+)  # fmt: skip
+def test_design_values_are_checked_naming_the_argument(call, name):
+    """Times and steps must be finite and positive, rho > 1, and T (h) small enough that the matrix exponentials stay
+    finite: before, saturated_output_design([[1]], [[1]], [[1]], T=1e4, rho=1.1) returned alpha = NaN, exp(AT) = inf
+    and Bbar = NaN, and window_model(F, Bf, H, -1 or nan) matrices with negative or NaN entries."""
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        call()
+
+
+def test_traced_overflows_and_steps_are_non_finite_not_wrong():
+    """Under jit nothing raises: a T whose exp(A T) overflows gives non-finite design constants, and a step h <= 0 a
+    NaN window model (before: matrices with negative entries at h = -1)."""
+    alpha = jax.jit(lambda T: sat.saturated_output_design(**ONE, T=T, rho=1.1).alpha)
+    assert not np.isfinite(alpha(1e4)) and np.isfinite(alpha(0.5))
+    model = jax.jit(lambda h: sat.window_model([[0.0]], [[1.0]], [[1.0]], h))
+    for h in (-1.0, 0.0):
+        assert all(np.all(np.isnan(M)) for M in model(h)[1:])
+    assert all(np.all(np.isfinite(M)) for M in model(0.1))
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        *[(dict(cond_max=v), "cond_max") for v in (*NON_FINITE, -1.0, 0.0, 0.5)],
+        (dict(x0=[2.0, np.nan, 1.0]), "x0"),
+        (dict(x0=[2.0, 1.0]), "x0"),
+        (dict(num_intervals=0), "num_intervals"),
+        (dict(substeps=2.5), "substeps"),
+        (dict(design="design"), "design"),
+    ],
+)
+def test_simulate_saturated_outputs_bad_inputs(design8, kwargs, name):
+    """cond_max must be a finite number >= 1 (before: NaN or -1 ran and never reached deadbeat, unflagged)."""
+    args = dict(design=design8, x0=X0, num_intervals=3) | kwargs
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        sat.simulate_saturated_outputs(args.pop("design"), args.pop("x0"), args.pop("num_intervals"), **args)
+
+
+def _two_output_hypothesis():
+    return sat.hypothesis(np.zeros((2, 2)), np.ones((2, 1)), np.eye(2), 0.1)
+
+
+@pytest.mark.parametrize(
+    "y, u, kwargs, name",
+    [
+        (np.zeros((11, 1)), np.zeros((11, 1)), {}, "y"),  # one output for two: was broadcast, statistic 0
+        (np.zeros((11, 3)), np.zeros((11, 1)), {}, "y"),
+        (np.zeros(11), np.zeros((11, 1)), {}, "y"),
+        (np.full((11, 2), np.nan), np.zeros((11, 1)), {}, "y"),
+        (np.zeros((11, 2)), np.zeros((9, 1)), {}, "u"),
+        (np.zeros((11, 2)), np.zeros((11, 2)), {}, "u"),
+        (np.zeros((11, 2)), np.full((11, 1), np.inf), {}, "u"),
+        (np.zeros((10, 2)), np.zeros((10, 1)), {}, "y"),  # N odd
+        ("y", np.zeros((11, 1)), {}, "y"),
+        (np.zeros((11, 2)), np.zeros((11, 1)), dict(ratio=1.0), "ratio"),
+        (np.zeros((11, 2)), np.zeros((11, 1)), dict(rtol=-1.0), "rtol"),
+        (np.zeros((11, 2)), np.zeros((11, 1)), dict(rounding=np.nan), "rounding"),
+    ],
+)
+def test_explains_checks_its_records(y, u, kwargs, name):
+    """Records must have one column per output of the hypothesis (no broadcast) and per input, finite values, and
+    an odd number of samples; the acceptance constants their ranges."""
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        sat.explains(_two_output_hypothesis(), y, u, **kwargs)
+
+
+def test_explains_takes_nested_lists_as_arrays():
+    """A nested list is read as an array (before: AttributeError)."""
+    hyp, y, u = _two_output_hypothesis(), np.ones((11, 2)), np.zeros((11, 1))
+    listed = sat.explains(hyp, y.tolist(), u.tolist())
+    arrays = sat.explains(hyp, y, u)
+    assert bool(listed[0]) and bool(arrays[0])
+    np.testing.assert_array_equal(listed[1], arrays[1])
+
+
+def test_interval_map_and_residual_check_their_arguments(design8):
+    with pytest.raises(ValueError, match=r"^x\b"):
+        sat.interval_map(design8, np.zeros(2), np.zeros(3))
+    with pytest.raises(ValueError, match=r"^U\b"):
+        sat.interval_map(design8, np.zeros(3), [0.0, np.nan, 0.0])
+    with pytest.raises(ValueError, match=r"^y\b"):
+        sat.hypothesis_residual(_two_output_hypothesis().fine, np.zeros((5, 1)), np.zeros((5, 1)))

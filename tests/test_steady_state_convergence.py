@@ -107,3 +107,36 @@ def test_dlqr_gain_stabilises_where_the_input_reaches_the_unstable_mode():
     K, _, E = dlqr(A, B, np.eye(2), R1)
     np.testing.assert_allclose(np.sort(np.abs(E)), np.sort(np.abs(np.linalg.eigvals(A - B @ np.asarray(K)))))
     assert np.max(np.abs(E)) < 1
+
+
+def test_traced_indefinite_Q_is_never_reported_converged_issue28():
+    """The issue's example: jit(make_kalman(diag(.5, .5), [[0, 1]], q, [[.1]], steady_state=True)) at q = diag(1, -1)
+    (an indefinite Q that the eager check refuses) reported gain_converged=True with the gain [nan, nan], and every
+    step converged; now the flag is False, at every step too. The same for the AOB's CKF and the H-infinity filter's
+    steady state (whose covariance had the eigenvalue -0.016 at q = diag(1, -0.01))."""
+    from jaxobs.observers.hinf import hinf_steady_state
+
+    Phi, C, R = np.diag([0.5, 0.5]), np.array([[0.0, 1.0]]), np.array([[0.1]])
+
+    @jax.jit
+    def kalman(q):
+        params = make_kalman(Phi, C, q, R, steady_state=True)
+        return params.gain, params.gain_converged, run(kalman_filter, params, EstimatorInputs(y=jnp.zeros((3, 1))))[1]
+
+    gain, flag, out = kalman(np.diag([1.0, -1.0]))
+    assert not np.all(np.isfinite(gain)) and not bool(flag)
+    assert np.asarray(out.converged).tolist() == [False] * 3
+    assert bool(kalman(np.diag([1.0, 1.0]))[1])
+
+    plant = nominal_design(EXAMPLE1)[0]
+    ckf = jax.jit(lambda q: make_ckf(plant, EXAMPLE1.R, Q=q, steady_state=True).gain_converged)
+    indefinite = np.eye(plant.n_states)
+    indefinite[0, 0] = -1.0
+    assert not bool(ckf(indefinite))
+
+    hinf = jax.jit(lambda q: hinf_steady_state(Phi, C, np.eye(2), q, R, 10.0))
+    for q, want in ((np.diag([1.0, -0.01]), False), (np.diag([1.0, -1.0]), False), (np.eye(2), True)):
+        sol = hinf(q)
+        assert bool(sol.converged) is want
+        if want:
+            assert np.min(np.linalg.eigvalsh(sol.P)) > 0

@@ -423,7 +423,8 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
     n = plant.n_states
-    Q, R, P0 = (None if M is None else jnp.atleast_2d(jnp.asarray(M)) for M in (Q, R, P0))
+    R = jnp.atleast_2d(_checks.real_array("R", R))
+    Q, P0 = (None if M is None else jnp.atleast_2d(_checks.real_array(k, M)) for k, M in (("Q", Q), ("P0", P0)))
     dtype = _checks.float_dtype(
         **{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C}, R=R, Q=Q, P0=P0, x0=x0,
         q_plant=q_plant, q_active=q_active, active=active, alpha=alpha, sigma_floor=sigma_floor,
@@ -465,7 +466,7 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
         Phi, Gamma, C, Q, R.astype(dtype), P0.astype(dtype), x0,
         jnp.asarray(active, dtype), alpha, sigma_floor, order=order, n_channels=q, matched=disturbance_input is None,
     )  # fmt: skip
-    return with_steady_state_gains(params) if steady_state else params
+    return with_steady_state_gains(params) if _checks.boolean("steady_state", steady_state) else params
 
 
 @partial(jax.jit, static_argnames=("order",))

@@ -69,9 +69,7 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
     if not isinstance(model, NonlinearModel):
         raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
-    for name, flag in (("bierman", bierman), ("joseph", joseph)):
-        if not isinstance(flag, bool):
-            raise ValueError(f"{name} must be a bool, got {flag!r}")
+    bierman, joseph = _checks.boolean("bierman", bierman), _checks.boolean("joseph", joseph)
     if bierman and not joseph:
         raise ValueError("bierman=True and joseph=False: choose one covariance update (Bierman's keeps its factors)")
     if gate is not None:

@@ -66,10 +66,23 @@ class HGOGains:
     system: _scb.SCB
 
     def at(self, eps) -> jax.Array:
-        """``K(eps)`` for any ``0 < eps <= 1``, traced or not (``jit``/``grad`` in ``eps``)."""
+        """``K(eps)`` (the shape of :attr:`K`) for a scalar ``0 < eps <= 1``, traced or not (``jit``/``grad`` in
+        ``eps``). A concrete ``eps`` outside ``(0, 1]`` (or NaN) raises ``ValueError``; a traced one gives NaN
+        gains."""
+        _check_eps(eps, hint="")
         terms = jnp.asarray(self.terms, jnp.result_type(eps, float))
-        powers = jnp.asarray(eps, terms.dtype) ** -jnp.arange(terms.shape[0], dtype=terms.dtype)
-        return jnp.tensordot(powers, terms, axes=1)
+        eps = jnp.asarray(eps, terms.dtype)
+        powers = eps ** -jnp.arange(terms.shape[0], dtype=terms.dtype)
+        return jnp.where((eps > 0) & (eps <= 1), jnp.tensordot(powers, terms, axes=1), jnp.nan)
+
+
+def _check_eps(eps, hint: str) -> None:
+    """``eps`` must be a real scalar in ``(0, 1]`` (a bool is refused); its value is checked where concrete."""
+    if eps is None or isinstance(eps, (bool, np.bool_)) or np.ndim(eps) != 0:
+        raise ValueError(f"eps must be a number in (0, 1], got {eps!r}{hint}")
+    dtype = _checks.float_dtype(eps=eps)
+    if _checks.is_concrete(eps) and not 0 < float(jnp.asarray(eps, dtype)) <= 1:
+        raise ValueError(f"eps must be a number in (0, 1], got {eps!r}{hint}")
 
 
 def _real_matrix(name, value, shape):
@@ -186,13 +199,13 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
                 f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
                 f"{(A.shape, E.shape, C.shape)}"
             )
-    concrete = _checks.is_concrete(eps) and np.ndim(eps) == 0 and not isinstance(eps, bool | np.bool_)
-    real = concrete and (
-        np.issubdtype(np.asarray(eps).dtype, np.integer) or np.issubdtype(np.asarray(eps).dtype, np.floating)
-    )
-    if not (real and 0 < float(eps) <= 1):
-        raise ValueError(f"eps must be a number in (0, 1] (for a traced eps use HGOGains.at), got {eps!r}")
+    hint = " (for a traced eps use HGOGains.at)"
+    if not _checks.is_concrete(eps):
+        raise ValueError(f"eps must be a concrete number in (0, 1]{hint}, got a traced value")
+    _check_eps(eps, hint)
     eps = float(eps)
+    extended, corrected = _checks.boolean("extended", extended), _checks.boolean("corrected", corrected)
+    numeric = _checks.boolean("numeric", numeric)
     triple = "(C, A, E)" if design is None else "the design triple (C0, A0, E0)"
     s = _scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric)
     if not _scb.is_left_invertible(s):
@@ -402,8 +415,11 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
         ``x0``); None for none (``x2`` then repeats ``x_hat``).
       g2: the cascaded observer's perturbation model, ``g`` if None (section 6.8 gives it the exact ``|omega|``,
         as it needs only g, not its derivative, to be Lipschitz).
-      dt: sample period (> 0).  t0: time of the first sample.
-      substeps: fixed steps per sample.  method: ``"rk4"`` or ``"euler"``.
+      dt: finite sample period (> 0).  t0: finite time of the first sample.
+      substeps: fixed steps per sample (>= 1).  method: ``"rk4"`` or ``"euler"``.
+
+    Shapes are checked at trace time; values (finite matrices and initial values, ``dt > 0``, the law's gain,
+    ``epsilon`` and projection set) where concrete, ``ValueError`` naming the argument.
 
     Example: the extended-state observer of a double integrator with an unknown constant force (g = 0).
 
@@ -440,6 +456,7 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     _checks.shape("theta0", theta0, (None,), "the initial parameter estimate, a vector")
     _checks.finite("theta0", theta0)
     _checks.positive_scalar("dt", dt)
+    _checks.finite("t0", t0)
     g = _checks.function("g", g)
     v = jnp.zeros((m + p,), dtype)
     _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
-from jaxobs._linalg import solve_spd, symmetrize
+from jaxobs._linalg import is_positive_semidefinite, solve_spd, symmetrize
 from jaxobs.kalman_steps import predict, predict_covariance, update, update_covariance
 from jaxobs.matrix_equations import is_stable
 from jaxobs.observers.base import Estimator, EstimatorInputs, LinearObserver
@@ -258,7 +258,8 @@ class HinfSteadyState(NamedTuple):
       P: (n, n) steady Pb
       gain: (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
       margin: () smallest margin met along the iteration
-      converged: () last relative change below tol, finite, and the steady filter stable
+      converged: () last relative change below tol, P and P_prior finite and positive semidefinite, the gain
+        finite, and the steady filter stable
       feasible: () existence condition held at every iteration
     """
 
@@ -276,9 +277,10 @@ def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 
     definite, from which the recursion reaches the stabilising solution where one exists). A fixed trip count
     (``lax.scan``), so it is differentiable in both modes.
 
-    ``converged``: the relative change of the last step is below ``tol`` (default ``sqrt(eps)``), and the steady
-    filter's error dynamics ``(I - K C) Phi`` are stable (the stabilising solution); ``feasible``: the existence
-    condition held at every step. Both flags, never an exception.
+    ``converged``: the relative change of the last step is below ``tol`` (default ``sqrt(eps)``), the covariances
+    are finite and positive semidefinite (traced ``Q``, ``R`` are not checked otherwise), the gain is finite, and
+    the steady filter's error dynamics ``(I - K C) Phi`` are stable (the stabilising solution); ``feasible``: the
+    existence condition held at every step. Both flags, never an exception.
     """
     default_start = P_init is None
     Phi, C, Cz, Q, R, P_init = _as_matrices(Phi, C, Cz, Q, R, P_init)
@@ -307,7 +309,8 @@ def _steady(Phi, C, Cz, Q, R, gamma, P_init, *, num_iters, tol):
     _, K = update_covariance(P1, C, R)
     n = Phi.shape[-1]
     stable = is_stable((jnp.eye(n, dtype=dtype) - K @ C) @ Phi)  # the steady filter's error dynamics
-    converged = jnp.isfinite(change) & (change < tol) & jnp.all(jnp.isfinite(Pb)) & stable
+    covariances = is_positive_semidefinite(Pb) & is_positive_semidefinite(P1) & jnp.all(jnp.isfinite(K))
+    converged = jnp.isfinite(change) & (change < tol) & covariances & stable
     return HinfSteadyState(P1, Pb, K, margin, converged, ok)
 
 

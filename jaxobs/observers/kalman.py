@@ -140,9 +140,8 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       >>> params.gain is None, params.Gamma.shape
       (True, (2, 0))
     """
-    Phi, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (Phi, C))
-    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
-    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    Phi, C, Q, R = (jnp.atleast_2d(_checks.real_array(k, M)) for k, M in (("Phi", Phi), ("C", C), ("Q", Q), ("R", R)))
+    P0 = Q if P0 is None else jnp.atleast_2d(_checks.real_array("P0", P0))
     dtype = _checks.float_dtype(Phi=Phi, Gamma=Gamma, C=C, Q=Q, R=R, P0=P0, x0=x0)
     _checks.matrix("Phi", Phi, square=True)
     n = Phi.shape[-1]
@@ -153,10 +152,9 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
     _checks.covariance("R", R, definite=True, size=C.shape[0])
     _checks.covariance("P0", P0, definite=False, size=n)
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
-    if not isinstance(joseph, bool):
-        raise ValueError(f"joseph must be a bool, got {joseph!r}")
+    joseph = _checks.boolean("joseph", joseph)
     params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype), joseph=joseph)
-    return with_steady_state_gain(params) if steady_state else params
+    return with_steady_state_gain(params) if _checks.boolean("steady_state", steady_state) else params
 
 
 def with_steady_state_gain(params: KalmanParams) -> KalmanParams:

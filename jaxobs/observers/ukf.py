@@ -93,8 +93,7 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
                              f"got {float(values['kappa'])}")  # fmt: skip
     _checks.covariance("model.P0", model.P0, definite=True)
     iterations = _checks.count("iterations", iterations, minimum=1, hint="updates per sample")
-    if not isinstance(joseph, bool):
-        raise ValueError(f"joseph must be a bool, got {joseph!r}")
+    joseph = _checks.boolean("joseph", joseph)
     return UKFParams(model, values["alpha"], values["beta"], values["kappa"], iterations, joseph)
 
 

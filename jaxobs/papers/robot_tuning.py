@@ -323,4 +323,5 @@ PROBLEM = TuningScenario(
     check=_check,
     build=build_problem,
     open_tables=("plants.mismatch",),
+    size_keys=("scenario.duration", "plants.train", "plants.heldout", "robot.substeps", "robot.solver_iterations"),
 )

@@ -12,7 +12,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
-from jaxobs._config import check_choice, merge
+import jax
+
+from jaxobs._config import check_choice, fail, get, merge
+from jaxobs._resources import LimitError
 from jaxobs.papers import tune_job, tuning_config
 from jaxobs.sweep import run_configured_sweep
 
@@ -49,9 +52,18 @@ class Reproduction:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class _Configured:
-    """A job driven by a TOML config: its defaults, the notes ``--print-config`` writes, its checks."""
+    """A job driven by a TOML config: its defaults, the notes ``--print-config`` writes, its checks, and the keys
+    that set its sizes.
+
+    The limits are checked in one place for every registered job: integers beyond int32 when the config is merged
+    (:func:`jaxobs._config.merge`), and, as :meth:`run` builds and compiles the job (before it computes any
+    configuration or step), the memory estimates and counts of the engines (:class:`jaxobs._resources.LimitError`),
+    or an allocation or size that fails outright, as a :class:`jaxobs._config.ConfigError` naming the file and the
+    size key (:meth:`blame`).
+    """
 
     key: ClassVar[str]  # the config key that names the job
+    common_size_keys: ClassVar[tuple[str, ...]] = ()  # size keys every job of the kind has
 
     name: str
     summary: str
@@ -59,6 +71,7 @@ class _Configured:
     notes: dict
     check: Callable[[dict, str], None]
     open_tables: tuple[str, ...] = ()
+    size_keys: tuple[str, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "summary", first_paragraph(self.summary))
@@ -67,10 +80,35 @@ class _Configured:
         undocumented = [k for k in self.defaults if k not in self.config_notes()]
         if undocumented:
             raise ValueError(f"{self.name}: config keys without a note: {undocumented}")
+        for key in self.all_size_keys():
+            try:
+                value = get(self.defaults, key)
+            except (KeyError, TypeError):
+                value = None
+            if isinstance(value, bool) or not isinstance(value, int | float | list):
+                raise ValueError(f"{self.name}: size key {key!r} is not a number or a list of the defaults")
 
     def config_notes(self) -> dict:
         """``{dotted key: note}`` of every key, for ``--print-config``."""
         return {self.key: f"the {self.key} (list them with --list)", **self.notes}
+
+    def all_size_keys(self) -> tuple[str, ...]:
+        """The dotted keys that set the job's sizes (simulated time, counts, grids, batches): its own
+        ``size_keys``, then those every job of its kind has."""
+        return self.size_keys + tuple(k for k in self.common_size_keys if k not in self.size_keys)
+
+    def blame(self, config: dict) -> str:
+        """The size key that ``config`` raises most over the defaults (relative to the default's value, or its length
+        for a list): the one to name when the job exceeds a limit; the first size key when none is raised."""
+
+        def size(value) -> float:
+            return float(len(value)) if isinstance(value, list) else abs(float(value))
+
+        def growth(key: str) -> float:
+            return size(get(config, key)) / max(size(get(self.defaults, key)), 1e-300)
+
+        keys = self.all_size_keys()
+        return max(keys, key=growth) if keys else self.key  # max keeps the first of equal growths
 
     def validate(self, given: dict | None = None, source: str = "<default>") -> dict:
         """The complete configuration (``given`` over the defaults), or a :class:`jaxobs._config.ConfigError`
@@ -79,6 +117,29 @@ class _Configured:
         check_choice(config, source, self.key, (self.name,))
         self.check(config, source)
         return config
+
+    def run(self, config: dict, out_dir, *, source: str = "<default>", progress: bool = True,
+            overwrite: bool = False) -> dict | None:  # fmt: skip
+        """Run the job on its validated ``config`` (read from ``source``) into ``out_dir`` (:meth:`_run`). A limit it
+        exceeds while it is built and compiled (a :class:`jaxobs._resources.LimitError`, or an allocation or a size
+        that fails: XLA's ``RESOURCE_EXHAUSTED``, ``MemoryError``, ``OverflowError``) is a
+        :class:`jaxobs._config.ConfigError` naming ``source`` and the size key :meth:`blame` finds."""
+        try:
+            return self._run(config, out_dir, progress=progress, overwrite=overwrite)
+        except LimitError as exc:
+            reason = exc.reason
+        except (MemoryError, OverflowError, jax.errors.JaxRuntimeError) as exc:
+            if isinstance(exc, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" not in str(exc):
+                raise
+            first = (str(exc).strip().splitlines() or [""])[0]
+            reason = f"the job's sizes exceed this machine ({type(exc).__name__}: {first})"
+        key = self.blame(config)
+        others = [k for k in self.all_size_keys() if k != key]
+        also = f" (sizes are also set by {', '.join(others)})" if others else ""
+        fail(source, key, f"{reason}; lower {key}{also}")
+
+    def _run(self, config: dict, out_dir, *, progress: bool, overwrite: bool) -> dict | None:
+        raise NotImplementedError
 
 
 class Sweep(NamedTuple):
@@ -111,15 +172,18 @@ class SweepScenario(_Configured):
         ``figures``).
       size_key: the dotted key that sets the number of configurations: raising it extends a finished sweep in the
         same directory (None: any change starts over).
+      size_keys: the dotted keys that set the sweep's sizes (``chunk_size`` is added), named when it exceeds a
+        limit (:meth:`run`).
     """
 
     key: ClassVar[str] = "scenario"
+    common_size_keys: ClassVar[tuple[str, ...]] = ("chunk_size",)
 
     build: Callable[[dict], Sweep]
     report: Callable[..., dict]
     size_key: str | None = None
 
-    def run(self, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+    def _run(self, config: dict, out_dir, *, progress: bool, overwrite: bool) -> dict | None:
         """Run the sweep (resuming a partial run in ``out_dir``) and write its report; returns the report's summary
         in process 0, None in the other processes of a multi-process run (process 0 writes)."""
         sweep = self.build(config)
@@ -140,9 +204,12 @@ class TuningScenario(_Configured):
       name, summary, defaults, notes, check, open_tables: the config.
       build: ``build(config) -> jaxobs.tuning.TuningProblem``; a ``ValueError`` (e.g. an invalid MJCF) is reported
         as a config error.
+      size_keys: the dotted keys that set the problem's sizes (``optimizer.screening`` and ``optimizer.starts`` are
+        added), named when it exceeds a limit (:meth:`run`).
     """
 
     key: ClassVar[str] = "problem"
+    common_size_keys: ClassVar[tuple[str, ...]] = ("optimizer.screening", "optimizer.starts")
 
     build: Callable[[dict], Any]
 
@@ -157,6 +224,6 @@ class TuningScenario(_Configured):
         tuning_config.check_common(config, source)
         return config
 
-    def run(self, config: dict, out_dir, *, progress: bool = True, overwrite: bool = False) -> dict | None:
+    def _run(self, config: dict, out_dir, *, progress: bool, overwrite: bool) -> dict | None:
         """Tune, run the baselines and score on the held-out plants (:func:`jaxobs.papers.tune_job.run`)."""
         return tune_job.run(self, config, out_dir, progress=progress, overwrite=overwrite)

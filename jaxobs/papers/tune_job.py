@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxobs._config import ConfigError
 from jaxobs._distributed import agree
-from jaxobs._resources import LOCK_NAME, JobError, atomic_write, locked_out_dir
+from jaxobs._resources import LOCK_NAME, JobError, LimitError, atomic_write, locked_out_dir
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers.tuning_config import config_tag
 from jaxobs.papers.tuning_config import settings as tuning_settings
@@ -87,6 +87,8 @@ def run(scenario, config: dict, out_dir, *, progress: bool = True, overwrite: bo
 def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
     try:
         problem = scenario.build(config)
+    except LimitError:  # named by the config key that sets the size (jaxobs.papers.scenarios)
+        raise
     except ValueError as exc:  # e.g. an invalid MJCF
         raise ConfigError(f"{config['problem']}: {exc}") from exc
     settings = tuning_settings(config)

@@ -22,7 +22,7 @@ from jaxobs import _checks
 from jaxobs.nonlinear import GaussianState, nonlinear_model
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.ekf import EKFParams, extended_kalman_filter, make_ekf
-from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle, friction_model
 from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
@@ -160,10 +160,7 @@ def make_vehicle_ekf(
       >>> params.ekf.bierman, params.ekf.model.x0.shape
       (True, (8,))
     """
-    vehicle = VehicleParams() if vehicle is None else vehicle
-    if not isinstance(vehicle, VehicleParams):
-        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
-    vehicle.validate()
+    vehicle = check_vehicle(vehicle)
     for name, value in (("q_v", q_v), ("q_d", q_d), ("q_mu", q_mu), ("tau", tau), ("r_std", r_std), ("dt", dt)):
         _checks.positive(name, value)
     _checks.positive("P0_diag", P0_diag, allow_zero=True)

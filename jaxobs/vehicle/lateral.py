@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.pe_monitor import PEMonitorParams, PEMonitorState, pe_monitor
-from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle, friction_model
 from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
@@ -125,10 +125,7 @@ def make_adaptive_lateral(
       >>> float(params.adaptation_gain), float(params.K_vy * params.mass)
       (5.0, 1.0)
     """
-    vehicle = VehicleParams() if vehicle is None else vehicle
-    if not isinstance(vehicle, VehicleParams):
-        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
-    vehicle.validate()
+    vehicle = check_vehicle(vehicle)
     fields = [f.name for f in dataclasses.fields(AdaptiveLateralParams)][1:-3]
     unknown = sorted(set(settings) - set(fields))
     if unknown:

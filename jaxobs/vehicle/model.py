@@ -33,6 +33,7 @@ __all__ = [
     "friction_model",
     "lateral_acceleration",
     "broadcast",
+    "check_vehicle",
 ]
 
 GRAVITY = 9.81
@@ -255,7 +256,10 @@ def dynamics(p: VehicleParams, x: VehicleState, u: Inputs) -> VehicleState:
 
 def steady_state(p: VehicleParams, vx, vy=0.0, r=0.0, steering_wheel=0.0, ax=0.0, ay=None) -> VehicleState:
     """A state with free-rolling wheels, relaxed slips and the load transfer of ``ax`` and ``ay`` (default
-    ``ay = r vx``), e.g. the initial state of a manoeuvre."""
+    ``ay = r vx``), e.g. the initial state of a manoeuvre. Scalars (or arrays of one shape), finite where concrete."""
+    for name, value in (("vx", vx), ("vy", vy), ("r", r), ("steering_wheel", steering_wheel), ("ax", ax), ("ay", ay)):
+        if value is not None:
+            _checks.finite(name, _checks.real_array(name, value))
     dtype = jnp.result_type(vx, vy, r, float)
     vx, vy, r = (jnp.asarray(v, dtype) for v in (vx, vy, r))
     v_l, v_s, _ = wheel_kinematics(p, vx, vy, r, steering_wheel)
@@ -292,3 +296,13 @@ def broadcast(params, n: int):
     only some fields vary: set those fields to ``(n,)`` arrays first)."""
     n = _checks.count("n", n, minimum=1)
     return jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, (n, *jnp.shape(leaf)[1:])), params)
+
+
+def check_vehicle(vehicle, name: str = "vehicle") -> VehicleParams:
+    """``vehicle`` checked: a :class:`VehicleParams` (``None``: the default one) whose concrete fields are valid
+    (:meth:`VehicleParams.validate`); ``ValueError`` naming ``name`` (or the bad field) otherwise."""
+    vehicle = VehicleParams() if vehicle is None else vehicle
+    if not isinstance(vehicle, VehicleParams):
+        raise ValueError(f"{name} must be a VehicleParams, got {type(vehicle).__name__}")
+    vehicle.validate()
+    return vehicle

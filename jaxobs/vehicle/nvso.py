@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs
-from jaxobs.vehicle.model import GRAVITY, MIN_SPEED, VehicleParams, friction_model
+from jaxobs.vehicle.model import GRAVITY, MIN_SPEED, VehicleParams, check_vehicle, friction_model
 from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 from jaxobs.vehicle.switching import SwitchingParams, either, gate, switching
 
@@ -103,13 +103,10 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
       >>> float(params.K_vy), float(params.smooth)
       (0.8, 50.0)
     """
-    vehicle = VehicleParams() if vehicle is None else vehicle
-    if not isinstance(vehicle, VehicleParams):
-        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    vehicle = check_vehicle(vehicle)
     unknown = sorted(set(settings) - set(NVSOParams._fields[1:]))
     if unknown:
         raise ValueError(f"unknown NVSO settings {unknown}; the fields are {list(NVSOParams._fields[1:])}")
-    vehicle.validate()
     for name in _POSITIVE:
         if name in settings:
             _checks.positive(name, settings[name])

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, is_spr, ss
 from jaxobs.observers.base import Estimator, EstimatorInputs
-from jaxobs.vehicle.model import GRAVITY, VehicleParams, friction_model
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle, friction_model
 from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 
 __all__ = [
@@ -66,13 +66,19 @@ def bank_error_system(K_vy, delta_min, K_theta_b, g=GRAVITY) -> StateSpace:
 
 
 def inclination_gain_bound(a, g=GRAVITY):
-    """Lemma 4.1: the inclination estimator is GES for ``0 < K_theta_i < a / g``; returns ``a / g``."""
-    return jnp.asarray(a) / g
+    """Lemma 4.1: the inclination estimator is GES for ``0 < K_theta_i < a / g``; returns ``a / g``. ``a`` (1/s) and
+    ``g`` (m/s^2) finite and > 0, checked where concrete."""
+    for name, value in (("a", a), ("g", g)):
+        _checks.positive(name, value)
+    return jnp.asarray(a, _checks.float_dtype(a=a, g=g)) / g
 
 
 def bank_gain_bound(K_vy, delta_min, g=GRAVITY):
-    """Lemma 4.2: the bank estimator is GES for ``0 < K_theta_b < K_vy^2 delta_min / g``; returns the bound."""
-    return jnp.asarray(K_vy) ** 2 * delta_min / g
+    """Lemma 4.2: the bank estimator is GES for ``0 < K_theta_b < K_vy^2 delta_min / g``; returns the bound. ``K_vy``,
+    ``delta_min`` (1/s) and ``g`` (m/s^2) finite and > 0, checked where concrete."""
+    for name, value in (("K_vy", K_vy), ("delta_min", delta_min), ("g", g)):
+        _checks.positive(name, value)
+    return jnp.asarray(K_vy, _checks.float_dtype(K_vy=K_vy, delta_min=delta_min, g=g)) ** 2 * delta_min / g
 
 
 class LemmaCheck(NamedTuple):
@@ -153,14 +159,11 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
       >>> float(make_road_angles(K_theta_b=0.1).K_theta_b)
       0.1
     """
-    vehicle = VehicleParams() if vehicle is None else vehicle
-    if not isinstance(vehicle, VehicleParams):
-        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    vehicle = check_vehicle(vehicle)
     fields = RoadAnglesParams._fields[1:]
     unknown = sorted(set(settings) - set(fields))
     if unknown:
         raise ValueError(f"unknown road-angle settings {unknown}; the fields are {list(fields)}")
-    vehicle.validate()
     for name, value in settings.items():
         zero_ok = name in ("K_theta_i", "K_theta_b", "theta_min", "vx0")
         _checks.positive(name, value, allow_zero=zero_ok)
@@ -295,7 +298,13 @@ def final_angles(outputs: RoadAnglesOutputs, inclination, bank) -> FinalAngles:
     """The final inclination and bank estimates of a run (``outputs`` of :data:`road_angles` or
     :data:`road_angles_adaptive`, stacked over K samples) against the road's true ``inclination`` and ``bank``
     (K,) (rad, e.g. a :class:`~jaxobs.vehicle.Trajectory`'s ``inputs.inclination`` at the sensor samples)."""
-    Theta, Phi = jnp.asarray(inclination)[-1], jnp.asarray(bank)[-1]
+    if not isinstance(outputs, RoadAnglesOutputs):
+        raise ValueError(f"outputs must be the RoadAnglesOutputs of a run, got {type(outputs).__name__}")
+    samples = outputs.x.shape[0]
+    inclination, bank = _checks.real_array("inclination", inclination), _checks.real_array("bank", bank)
+    _checks.shape("inclination", inclination, (samples,), "one angle per sample of outputs")
+    _checks.shape("bank", bank, (samples,), "one angle per sample of outputs")
+    Theta, Phi = inclination[-1], bank[-1]
     deg = 180.0 / jnp.pi
     return FinalAngles(
         outputs.x[-1, 2], jnp.sin(Theta), outputs.x[-1, 3], jnp.cos(Theta) * jnp.sin(Phi),

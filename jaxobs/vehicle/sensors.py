@@ -105,8 +105,20 @@ class Measurements(NamedTuple):
 
 
 def low_pass(x, cutoff, period):
-    """First-order discrete low-pass along the leading axis of ``x`` (docs/theory/vehicle.md), ``y_0 = x_0``."""
+    """First-order discrete low-pass along the leading axis of ``x`` (docs/theory/vehicle.md), ``y_0 = x_0``.
+
+    Args:
+      x: (K, ...) samples.  cutoff: cut-off frequency (Hz, > 0; ``inf`` for none).  period: sample period (s,
+        finite, > 0). Both checked where concrete; traced values outside the range give NaN.
+    """
+    x = _checks.real_array("x", x)
+    if x.ndim == 0 or x.shape[0] == 0:
+        raise ValueError(f"x must have at least one sample along its leading axis, got shape {x.shape}")
+    if _checks.is_concrete(cutoff) and not np.all(np.asarray(cutoff) > 0):
+        raise ValueError(f"cutoff must be positive (Hz, inf for no low-pass), got {cutoff!r}")
+    _checks.positive("period", period)
     a = 1.0 - jnp.exp(-2.0 * jnp.pi * cutoff * period)
+    a = jnp.where((cutoff > 0) & (period > 0) & jnp.isfinite(period), a, jnp.nan)
 
     def step(y, xk):
         y = y + a * (xk - y)

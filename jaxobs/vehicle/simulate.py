@@ -24,6 +24,7 @@ from jaxobs.vehicle.model import (
     Inputs,
     VehicleParams,
     VehicleState,
+    check_vehicle,
     dynamics,
     forces,
     steady_state,
@@ -95,7 +96,7 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
       manoeuvre: the test drive, or the name of one of :data:`jaxobs.vehicle.MANOEUVRES` (``ValueError`` listing
         them for another name).  params: the vehicle (validated when concrete; fields may be traced, e.g. under
         ``vmap``).
-      duration: simulated time (s, default the manoeuvre's); rounded to whole plant steps.
+      duration: simulated time (s, > 0, default the manoeuvre's); rounded to whole plant steps, at most 2**31 - 1.
       dt: plant step (s, > 0, static).
 
     Returns:
@@ -103,11 +104,15 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
     """
     if isinstance(manoeuvre, str):
         manoeuvre = manoeuvres.manoeuvre(manoeuvre)
-    params.validate()
+    if not isinstance(manoeuvre, Manoeuvre):
+        raise ValueError(f"manoeuvre must be a Manoeuvre or the name of one, got {type(manoeuvre).__name__}")
+    params = check_vehicle(params, "params")
     _checks.positive_scalar("dt", dt)
     duration = manoeuvre.duration if duration is None else duration
     _checks.positive_scalar("duration", duration)
     steps = max(int(round(duration / dt)), 1)
+    if steps > _checks.MAX_INDEX:
+        raise ValueError(f"duration = {duration:g} s is {steps} plant steps of {dt:g} s, more than 2**31 - 1")
     x0 = steady_state(params, jnp.asarray(manoeuvre.initial_speed, float))
 
     def f(x, _, t):

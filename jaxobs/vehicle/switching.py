@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.vehicle.model import GRAVITY, VehicleParams
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle
 from jaxobs.vehicle.sensors import SENSOR_RATE
 from jaxobs.vehicle.tyres import pure_force
 
@@ -53,14 +53,11 @@ def make_switching(vehicle: VehicleParams | None = None, **settings) -> Switchin
     """The switch for ``vehicle`` (default :class:`~jaxobs.vehicle.VehicleParams`) with the defaults of
     :class:`SwitchingParams` overridden by ``settings`` (``ValueError`` for an unknown field; concrete values
     positive, ``smooth`` ``None`` or positive)."""
-    vehicle = VehicleParams() if vehicle is None else vehicle
-    if not isinstance(vehicle, VehicleParams):
-        raise ValueError(f"vehicle must be a VehicleParams, got {type(vehicle).__name__}")
+    vehicle = check_vehicle(vehicle)
     fields = list(SwitchingParams._fields[1:])
     unknown = sorted(set(settings) - set(fields))
     if unknown:
         raise ValueError(f"unknown switching settings {unknown}; the fields are {fields}")
-    vehicle.validate()
     for name, value in settings.items():
         if name != "smooth" or value is not None:
             _checks.positive(name, value)
@@ -85,6 +82,7 @@ def either(*gates):
 
 def understeer_gradient(vehicle: VehicleParams):
     """``(1/c_f - 1/c_r) / g`` with ``c`` the slope of each axle's pure lateral force per unit load at zero slip."""
+    vehicle = check_vehicle(vehicle)
     fz = vehicle.mass * GRAVITY / 4
     stiffness = lambda tyre: jax.grad(lambda s: pure_force(tyre, s, fz))(jnp.zeros((), jnp.result_type(fz))) / fz
     return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY

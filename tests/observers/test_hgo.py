@@ -145,7 +145,17 @@ def _with(params, theta0, K=None):
         (dict(g=lambda v, x, th: jnp.zeros(2)), r"g\(v, x, theta\) must return"),
         (dict(x0=[1.0, np.nan]), "x0 contains NaN"),
         (dict(dt=0.0), "dt must be a finite positive"),
+        (dict(dt=-0.01), "dt must be a finite positive"),
+        (dict(dt=float("nan")), "dt must be a finite positive"),
+        (dict(t0=float("nan")), "t0 contains NaN"),
+        (dict(t0=float("inf")), "t0 contains NaN"),
+        (dict(K=np.array([[1.0], [np.nan], [1.0]])), "K contains NaN"),
+        (dict(z0=[np.inf]), "z0 contains NaN"),
+        (dict(theta0=[np.nan]), "theta0 contains NaN"),
+        (dict(A="abc"), "A must be a real numeric"),
         (dict(substeps=0), "substeps"),
+        (dict(substeps=2.0), "substeps"),
+        (dict(method="rk45"), "method"),
     ],
 )
 def test_make_hgo_bad_inputs(kwargs, match):

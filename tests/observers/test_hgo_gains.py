@@ -124,6 +124,13 @@ def test_gain_is_a_polynomial_in_one_over_eps_under_jit_and_grad():
         (dict(eps=float("nan")), "eps"),
         (dict(eps=True), "eps"),
         (dict(eps=0.5j), "eps"),
+        (dict(eps=-1.0), "eps"),
+        (dict(eps=float("inf")), "eps"),
+        (dict(eps="0.5"), "eps"),
+        (dict(eps=[0.5]), "eps"),
+        (dict(extended="no"), "extended must be a bool"),
+        (dict(corrected=1), "corrected must be a bool"),
+        (dict(numeric=None), "numeric must be a bool"),
         (dict(poles=[-1.0, -2.0, -3.0]), "poles must have 4 entries"),
         (dict(poles=[-1 + 1j, -1 - 2j, -2.0, -3.0]), "conjugate pairs"),
         (dict(poles=[-1.0, -2.0, -3.0, np.nan]), "poles must be finite"),
@@ -149,3 +156,23 @@ def test_numeric_scb_gives_the_same_gains():
     exact = hgo_gains(*_motor(S1), H1, design=_motor(0.0))
     numeric = hgo_gains(*_motor(S1), H1, design=_motor(0.0), numeric=True)
     np.testing.assert_allclose(numeric.K, exact.K, rtol=1e-8)
+
+
+BAD_EPS = {"zero": 0.0, "negative": -1.0, "above-one": 2.0, "nan": float("nan"), "inf": float("inf")}
+
+
+@pytest.mark.parametrize("eps", BAD_EPS.values(), ids=BAD_EPS)
+def test_gains_at_eps_outside_the_range(eps):
+    """HGOGains.at(eps) for eps outside (0, 1]: ValueError naming eps eagerly (before: NaN gains at 0, sign-flipped
+    gains at -1, accepted 2 and NaN); NaN gains under jit, never a finite gain that looks valid."""
+    g = hgo_gains(*_motor(0.0), H1, 0.5)
+    with pytest.raises(ValueError, match=r"^eps must be a number in \(0, 1\]"):
+        g.at(eps)
+    assert np.all(np.isnan(jax.jit(g.at)(eps)))
+    assert np.all(np.isfinite(jax.jit(g.at)(1.0)))
+
+
+@pytest.mark.parametrize("eps", [True, "0.5", [0.5, 0.5], None])
+def test_gains_at_eps_of_the_wrong_type(eps):
+    with pytest.raises(ValueError, match=r"^eps\b"):
+        hgo_gains(*_motor(0.0), H1, 0.5).at(eps)

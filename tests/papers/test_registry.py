@@ -9,9 +9,13 @@ without one fails :func:`test_every_registered_name_has_a_tiny_config`. The runs
 
 import json
 import math
+import re
 
+import jax
 import pytest
 
+from jaxobs._config import ConfigError, get, leaf_keys
+from jaxobs._resources import LimitError
 from jaxobs.papers import registry
 from jaxobs.sweep import load_results
 
@@ -122,3 +126,112 @@ def test_tuning_problem_runs_end_to_end(name, tmp_path):
     for design in ("hand-set", "tuned"):
         assert math.isfinite(summary["heldout"][design]["objective"]), design
     assert _finite_numbers(json.loads((tmp_path / "tuned.json").read_text())["heldout"])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the limits of every registered config (issue 28): one generic check, named by file and key
+
+
+def _jobs() -> dict:
+    return {**registry.sweep_scenarios(), **registry.tuning_problems()}
+
+
+def _nested(key: str, value) -> dict:
+    """``{"a": {"b": value}}`` for the dotted ``key`` ``"a.b"``."""
+    for part in reversed(key.split(".")):
+        value = {part: value}
+    return value
+
+
+def _integer_keys(job) -> list[str]:
+    config = job.validate()
+    keys = []
+    for key in leaf_keys(config):
+        value = get(config, key)
+        numbers = value if isinstance(value, list) else [value]
+        if numbers and all(isinstance(v, int) and not isinstance(v, bool) for v in numbers):
+            keys.append(key)
+    return keys
+
+
+@pytest.mark.parametrize("name", list(_jobs()))
+def test_every_integer_key_is_limited_to_int32(name):
+    """Every integer of every registered config (counts, seeds, integer grids) beyond 2**31 - 1 in magnitude is a
+    ConfigError naming the file and the key, before anything is built (before: seed = 10**20 ended in an
+    OverflowError traceback)."""
+    job = _jobs()[name]
+    keys = _integer_keys(job)
+    assert "seed" in keys
+    for key in keys:
+        default = get(job.defaults, key)
+        for bad in (2**31, -(2**31), 10**20):
+            given = {job.key: name, **_nested(key, [bad] * len(default) if isinstance(default, list) else bad)}
+            with pytest.raises(ConfigError, match=rf"^big.toml: {re.escape(key)}: must be an integer of magnitude"):
+                job.validate(given, "big.toml")
+
+
+@pytest.mark.parametrize("name", list(_jobs()))
+def test_the_size_key_raised_most_is_named(name):
+    """Every registered job declares the keys that set its sizes (numbers or lists of its defaults, the engine's
+    common ones included), and a limit is blamed on the one a config raises most over its default."""
+    job = _jobs()[name]
+    keys = job.all_size_keys()
+    assert len(keys) >= 2 and len(set(keys)) == len(keys)
+    assert set(type(job).common_size_keys) <= set(keys)
+    assert job.blame(job.validate()) == keys[0]
+    for key in keys:
+        value = get(job.defaults, key)
+        raised = value * 3 if isinstance(value, list) else value * 1000
+        assert job.blame(_merged(job, key, raised)) == key
+
+
+def _merged(job, key: str, value) -> dict:
+    """The defaults with the dotted ``key`` set to ``value`` (without validation)."""
+    config = json.loads(json.dumps(job.defaults))
+    *parents, last = key.split(".")
+    table = config
+    for part in parents:
+        table = table[part]
+    table[last] = value
+    return config
+
+
+def _failing_scenario(error: Exception):
+    """A sweep scenario with two size keys whose build raises ``error``."""
+    from jaxobs.papers.scenarios import SweepScenario
+
+    def build(config):
+        raise error
+
+    defaults = {"scenario": "failing", "seed": 0, "chunk_size": 4, "run": {"steps": 10, "duration": 1.0}}
+    notes = {k: "" for k in ("seed", "chunk_size", "run", "run.steps", "run.duration")}
+    return SweepScenario(name="failing", summary="fails", defaults=defaults, notes=notes, check=lambda c, s: None,
+                         build=build, report=None, size_keys=("run.steps", "run.duration"))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "error, reason",
+    [
+        (LimitError("one step needs about 1 TB, more than the 8 GB of memory available", "lower chunk_size"),
+         "one step needs about 1 TB, more than the 8 GB of memory available"),
+        (jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 1000000000000 bytes."),
+         r"the job's sizes exceed this machine \(JaxRuntimeError: RESOURCE_EXHAUSTED: Out of memory"),
+        (MemoryError("no room"), r"the job's sizes exceed this machine \(MemoryError: no room\)"),
+        (OverflowError("Python int too large to convert to C long"), r"the job's sizes exceed this machine "),
+    ],
+    ids=["estimate", "xla-resource-exhausted", "memory-error", "overflow"],
+)  # fmt: skip
+def test_a_limit_met_while_building_is_named_by_file_and_size_key(tmp_path, error, reason):
+    """The generic conversion of every registered job's run: an estimate over the memory, an allocation that fails
+    or a size that overflows, as a ConfigError naming the file and the size key raised most (run.duration here)."""
+    job = _failing_scenario(error)
+    config = job.validate({"run": {"duration": 1e9}}, "sizes.toml")
+    with pytest.raises(ConfigError, match=rf"^sizes.toml: run.duration: {reason}.*; lower run.duration "
+                                          r"\(sizes are also set by run.steps, chunk_size\)$"):  # fmt: skip
+        job.run(config, tmp_path, source="sizes.toml", progress=False)
+
+
+def test_other_runtime_errors_are_not_taken_for_limits(tmp_path):
+    job = _failing_scenario(jax.errors.JaxRuntimeError("INTERNAL: a bug"))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="INTERNAL"):
+        job.run(job.validate(), tmp_path, progress=False)

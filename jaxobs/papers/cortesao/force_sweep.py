@@ -164,24 +164,38 @@ def build_designs(config: dict) -> Designs:
     return Designs(stacked, np.concatenate(orders), np.tile(V, count), np.tile(R, count))
 
 
-def _scenario(config: dict):
-    """``(steps, n_delay, reference, desired force, disturbance)`` shared by every configuration."""
-    h, sim = EXAMPLE1.h, config["simulation"]
-    steps = int(round(sim["duration"] / h))
+def _timing(config: dict) -> tuple[int, int]:
+    """``(steps, n_delay)``: the samples of a run and the dead-time slots of the plants."""
+    h = EXAMPLE1.h
+    steps = int(round(config["simulation"]["duration"] / h))
+    return steps, n_delay_slots(config["plant"]["dead_time_samples"][1] * h, h)
+
+
+def _signals(config: dict, steps: int):
+    """``f() -> (reference, desired force, disturbance)``, each (steps,), shared by every configuration. Called inside
+    the traced closed loop, their size counts in the sweep step's memory estimate instead of being allocated while
+    the sweep is built (the nominal design is computed here, eagerly)."""
+    h = EXAMPLE1.h
     nominal, L_r = nominal_design()
-    reference = jnp.full((steps,), reference_gain(L_r) * sim["force_step"])
-    desired = ideal_response(nominal, L_r, reference)[:, 0]
-    disturbance = example1_disturbance(jnp.arange(steps) * h)
-    return steps, n_delay_slots(config["plant"]["dead_time_samples"][1] * h, h), reference, desired, disturbance
+    level = reference_gain(L_r) * config["simulation"]["force_step"]
+
+    def signals():
+        reference = jnp.full((steps,), level)
+        desired = ideal_response(nominal, L_r, reference)[:, 0]
+        return reference, desired, example1_disturbance(jnp.arange(steps) * h)
+
+    return signals
 
 
 def tracking(config: dict):
     """``(true plant, controller, noise seed) -> (force, RMS force error, peak |force|)``: the closed loop of
     the scenario (the two scores are inf where it diverges)."""
-    steps, _, reference, desired, disturbance = _scenario(config)
+    steps = _timing(config)[0]
+    signals = _signals(config, steps)
     std = jnp.sqrt(config["simulation"]["sensor_noise"])
 
     def run(true, ctrl, noise_seed):
+        reference, desired, disturbance = signals()
         noise = std * jax.random.normal(jax.random.PRNGKey(noise_seed), (steps,))
         trace = simulate(true, linear_controller, ctrl, reference, disturbance=disturbance, noise=noise)
         force = trace.y_true[:, 0]
@@ -195,7 +209,7 @@ def make_sweep(config: dict):
     """The sweep of ``config``: its context is the :class:`Designs`."""
     designs = build_designs(config)
     plant_cfg, h = config["plant"], EXAMPLE1.h
-    n_delay = _scenario(config)[1]
+    n_delay = _timing(config)[1]
     closed_loop = tracking(config)
     table = designs.controller
     order, variance, R = (jnp.asarray(a) for a in (designs.order, designs.active_variance, designs.R))
@@ -376,7 +390,8 @@ def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path
     """Re-simulate each controller's worst stable case (same noise) and plot force vs desired, one panel (and one
     force scale) per controller."""
     plt = pyplot()
-    steps, n_delay, _, desired, _ = _scenario(config)
+    steps, n_delay = _timing(config)
+    desired = _signals(config, steps)()[1]
     closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
     orders = {_name(order): order for order in config["controllers"]["orders"]}
@@ -442,4 +457,11 @@ SCENARIO = SweepScenario(
     build=make_sweep,
     report=report,
     size_key="simulation.configs_per_design",
+    size_keys=(
+        "simulation.duration",
+        "simulation.configs_per_design",
+        "controllers.grid_points",
+        "controllers.orders",
+        "margins.num_points",
+    ),
 )

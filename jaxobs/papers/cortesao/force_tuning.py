@@ -311,4 +311,5 @@ PROBLEM = TuningScenario(
     notes=CONFIG_NOTES,
     check=_check,
     build=build_problem,
+    size_keys=("scenario.duration", "plants.train", "plants.heldout"),
 )

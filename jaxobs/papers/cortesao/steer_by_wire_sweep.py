@@ -224,4 +224,5 @@ SCENARIO = SweepScenario(
     check=_check,
     build=make_sweep,
     report=report,
+    size_keys=("plants.count",),
 )

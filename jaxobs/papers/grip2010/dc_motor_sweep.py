@@ -193,4 +193,5 @@ SCENARIO = SweepScenario(
     check=_check,
     build=make_sweep,
     report=report,
+    size_keys=("simulation.duration", "grid.seeds", "grid.eps", "grid.sigma", "grid.alpha_0"),
 )

@@ -280,4 +280,5 @@ SCENARIO = SweepScenario(
     check=_check,
     build=make_sweep,
     report=report,
+    size_keys=("scenario_timing.segment_s", "grid.seeds", "grid.K_phi", "grid.adaptation_gain", "grid.noise_variance"),
 )

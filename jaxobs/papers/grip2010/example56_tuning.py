@@ -136,4 +136,5 @@ PROBLEM = TuningScenario(
     notes=CONFIG_NOTES,
     check=_check,
     build=build_problem,
+    size_keys=("scenario.segment_s", "seeds.train", "seeds.heldout"),
 )

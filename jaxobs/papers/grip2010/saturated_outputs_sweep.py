@@ -217,4 +217,5 @@ SCENARIO = SweepScenario(
     check=_check,
     build=make_sweep,
     report=report,
+    size_keys=("run.intervals", "run.substeps", "grid.initial_states", "grid.T", "grid.rho", "grid.h_scale"),
 )

@@ -258,4 +258,14 @@ SCENARIO = SweepScenario(
     check=_check,
     build=make_sweep,
     report=report,
+    size_keys=(
+        "simulation.duration",
+        "grid.seeds",
+        "grid.manoeuvre",
+        "grid.friction",
+        "grid.acc_bias",
+        "grid.drift",
+        "grid.mass",
+        "grid.cornering_stiffness",
+    ),
 )

@@ -245,4 +245,5 @@ SCENARIO = SweepScenario(
     build=make_sweep,
     report=report,
     size_key="vehicle.count",
+    size_keys=("vehicle.count",),
 )
