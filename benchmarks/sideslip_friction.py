@@ -47,7 +47,7 @@ DRIVE = "sine_steer_low_friction"
 ALWAYS_ON = dict(vy_dot_threshold=1e-9, yaw_rate_threshold=1e-9, oversteer_threshold=1e-9, off_delay=1e6)
 """Switching settings that keep friction estimation on from the start (with the initial mode set to 2)."""
 SUSTAINED = 30.0  # s, the drive continued (the same sine) for the convergence runs of (c)
-QUASI_STATIC = (0.02, 0.005)  # m, s: relaxation length and load-transfer lag of the "quasi-static" simulator
+SHORT_RELAXATION = 0.02  # m: the relaxation length of the simulator without (appreciable) tyre relaxation
 EXCITED_AY = 0.5  # |a_y| / (friction g) above which a sample counts as excited in the per-axle statistics
 
 
@@ -132,13 +132,13 @@ def _drive(vehicle, duration=None):
 
 def _sustained(vehicle, friction):
     """Friction estimation held on over the drive continued to SUSTAINED s: the default model, the matched one,
-    and the matched one on a simulator whose tyre relaxation and load-transfer lag are nearly instantaneous."""
-    quasi_static = dataclasses.replace(vehicle, relaxation_length=QUASI_STATIC[0], load_time_constant=QUASI_STATIC[1])
+    and the matched one on a simulator whose tyre relaxation is nearly instantaneous (0.02 m instead of 0.5 m)."""
+    no_relaxation = dataclasses.replace(vehicle, relaxation_length=SHORT_RELAXATION)
     result, series = {}, {}
     for name, sim_vehicle, matched in (
         ("default_model", vehicle, False),
         ("matched_model", vehicle, True),
-        ("matched_model_quasi_static_simulator", quasi_static, True),
+        ("matched_model_simulator_without_relaxation", no_relaxation, True),
     ):
         tr, y, vx0 = _drive(sim_vehicle, SUSTAINED)
         obs = matched_vehicle(sim_vehicle, friction) if matched else sim_vehicle
@@ -300,8 +300,8 @@ def figure(summary: dict, series: dict, path: Path) -> None:
     p = ax[0, 2]
     for (name, label), c in zip(
         (("default_model", "default model"), ("matched_model", "model = simulator's tyre"),
-         ("matched_model_quasi_static_simulator", "model = simulator's tyre; simulator without tyre relaxation\n"
-          "and load-transfer lag")),
+         ("matched_model_simulator_without_relaxation", "model = simulator's tyre; simulator's relaxation length\n"
+          f"{SHORT_RELAXATION:g} m instead of 0.5 m")),
         ("C1", "C0", "C2"), strict=True,
     ):  # fmt: skip
         p.plot(*series["sustained"][name], color=c, label=label)
