@@ -326,7 +326,8 @@ def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, set
         _checks.finite("theta0", leaf)
     y, u = _batched(build(theta), inputs)
     step, optimizer = _stepper(estimator, settings)
-    state = optimizer.init(theta)
+    # strongly typed, as the step returns it (optax's L-BFGS starts with weakly typed counters): one compilation
+    state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), optimizer.init(theta))
     best, best_loss, since_best, stopped = theta, math.inf, 0, "steps"
     losses, norms = [], []
     bar = tqdm(total=settings.steps, desc="fit", disable=not progress, unit="step")
