@@ -4,7 +4,9 @@
 or continuous-discrete (``continuous=True``), with ``y_k = h(x_k) + v_k``. A Gaussian filter replaces each map by
 a :class:`Linearization` (Särkkä 2013, ch. 5-6) and takes the linear Kalman step of :mod:`jaxobs.kalman_steps`
 (:func:`gaussian_step`), with missing data, an optional innovation gate and iterated updates (Bell & Cathey 1993;
-García-Fernández et al. 2015). The equations: docs/theory/nonlinear.md.
+García-Fernández et al. 2015). Each step outputs its log-likelihood and, with ``output_covariance``, the
+linearised transition the extended and unscented RTS smoothers reuse (:func:`jaxobs.smoothing.smooth`; Särkkä
+2008, 2013). The equations: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -248,7 +250,8 @@ def gaussian_step(
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
     Returns:
-      ``(GaussianState, GaussianOutputs)`` of sample ``k``.
+      ``(GaussianState, GaussianOutputs)`` of sample ``k``; its ``log_likelihood`` is that of the first
+      linearisation of ``h`` (around the prior), the filter's predictive density of ``y_k``.
     """
     y, u = _inputs(model, inputs)
     m_pred, P_pred, F = _predict(linearize, model, state.x, state.P, u, state.t, output_covariance)
