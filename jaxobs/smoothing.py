@@ -105,8 +105,7 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
     if np.ndim(Phi) == 3:
         _checks.shape("Phi", Phi, (T, n, n), "(T, n, n) transitions, Phi[k] from sample k - 1 to k")
-    else:
-        _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True, batch=np.ndim(Phi) == 3)
     return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
 
 
