@@ -264,6 +264,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--readme", help="replace the table between <!-- tuning-table --> markers of this file")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--spread", type=float, help="replace each problem's baseline.spread (its search box)")
     parser.add_argument(
         "--merge",
         nargs="+",
