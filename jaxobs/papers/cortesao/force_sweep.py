@@ -330,8 +330,9 @@ def report(config: dict, out_dir: Path, result=None, designs: Designs | None = N
 
 
 def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
-    """Stable fraction over stiffness mismatch and sigma^2 / R, a heat map per controller; a sweep of one
-    sigma^2 / R (``grid_points = 1``) is drawn as a line per controller over the stiffness mismatch."""
+    """Stable fraction over stiffness mismatch and sigma^2 / R, a heat map per controller (a row per value of
+    sigma^2 / R where there are at most 10); a sweep of one sigma^2 / R (``grid_points = 1``) is drawn as a line
+    per controller over the stiffness mismatch."""
     plt = pyplot()
     ks_ratio = np.log10(cols["param.stiffness"] / EXAMPLE1.Ks)
     ratio = np.log10(cols["param.active_variance"] / cols["param.R"])
@@ -353,7 +354,12 @@ def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
         ax.title.set_fontsize(10)
         ax.legend(loc="lower left")
         return save_figure(fig, out_dir, "stability_maps")
-    y_edges = np.linspace(ratio.min(), ratio.max(), 11)
+    levels = np.unique(np.round(ratio, 9))
+    if levels.size <= 10:  # a row per strategy, edges halfway between them
+        mid = 0.5 * (levels[1:] + levels[:-1])
+        y_edges = np.concatenate([[2 * levels[0] - mid[0]], mid, [2 * levels[-1] - mid[-1]]])
+    else:
+        y_edges = np.linspace(ratio.min(), ratio.max(), 11)
     fig, axes = plt.subplots(1, len(orders), figsize=(3.6 * len(orders), 3.6), squeeze=False, layout="constrained")
     for ax, order in zip(axes[0], orders, strict=True):
         sel = cols["param.order"] == order
@@ -362,11 +368,13 @@ def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
         with np.errstate(invalid="ignore"):
             frac = count / total
         mesh = ax.pcolormesh(x_edges, y_edges, frac.T, vmin=0, vmax=1, cmap="RdYlGn")
+        if levels.size <= 10:
+            ax.set_yticks(levels)
         ax.set_title(_name(order))
         ax.set_xlabel("log10 Ks_true / Ks_nominal")
         ax.axvline(0.0, color="k", lw=0.6)
     axes[0, 0].set_ylabel(y_label)
-    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction")
+    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction (white: no configuration)")
     fig.suptitle("Stable fraction vs stiffness mismatch and Q/R strategy")
     return save_figure(fig, out_dir, "stability_maps")
 
@@ -454,8 +462,8 @@ def _plot_worst_cases(config: dict, designs: Designs, summary: dict, out_dir: Pa
         ax.set_title(name, loc="left", fontsize=10, fontweight="bold")
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1, 0].set_xlabel("time (s)")
-    fig.suptitle("Worst cases per controller (largest RMS force error): a spectral radius near 1 is stable but "
-                 "barely damped")  # fmt: skip
+    fig.suptitle("Worst cases per controller (largest RMS force error), each with its closed loop's spectral radius "
+                 "(stable below 1)")  # fmt: skip
     return save_figure(fig, out_dir, "worst_cases")
 
 
