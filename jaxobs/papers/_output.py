@@ -31,14 +31,15 @@ def pyplot():
 
 
 def plain_ticks(fig) -> None:
-    """Tick labels read as numbers: no offset (``1e-9 - 1.5`` above an axis) on linear axes, and ``40`` rather
-    than ``4x10^1`` on log axes between 1e-3 and 1e4."""
+    """Tick labels read as numbers: no offset (``1e-9 - 1.5`` above an axis) on linear axes; on log axes ``40``
+    rather than ``4x10^1`` between 1e-3 and 1e4, ``9e-5`` rather than ``9x10^-5`` outside."""
     from matplotlib.ticker import LogFormatterSciNotation, ScalarFormatter
 
     class PlainLog(LogFormatterSciNotation):
         def __call__(self, x, pos=None):
-            label = super().__call__(x, pos)
-            return f"{x:.4g}" if label and 1e-3 <= abs(x) < 1e4 else label
+            if not super().__call__(x, pos):
+                return ""
+            return f"{x:.4g}" if 1e-3 <= abs(x) < 1e4 else f"{x:.2g}".replace("e-0", "e-").replace("e+0", "e")
 
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):

@@ -165,6 +165,8 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
 def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     """The training objective against the rollouts per training plant spent (the screening's candidates, then each
     step of every start), beside the random search's; the held-out plants' sorted losses of each design."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
     history = result.history
@@ -180,6 +182,7 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
         ax.axvline(ev[-1], color="k", lw=0.6, ls=":")  # equal rollouts
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
            ylabel=f"training objective ({objective})", yscale="log", title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
@@ -210,7 +213,7 @@ def _plot_parameters(history, out: Path) -> str:
                f"{name} ({size} components, flattened)")  # fmt: skip
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         if 1 < size <= 10:  # a legend of more entries would hide the lines
-            ax.legend(fontsize=7, loc="best")
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.suptitle("Unconstrained parameters during tuning (log_: natural log of a variance; logit_: of a factor "
                  "in (0, 1); q_cholesky: Cholesky factor, log diagonal)", fontsize=10)  # fmt: skip
     return save_figure(fig, out, "parameters")

@@ -26,15 +26,18 @@ def _capture(monkeypatch, module) -> list:
 
 def test_tick_labels_have_no_offset_and_log_axes_read_plain():
     plt = _output.pyplot()
-    fig, (ax, bx) = plt.subplots(1, 2)
+    fig, (ax, bx, cx) = plt.subplots(1, 3)
     ax.plot([0, 1], [-1.5 - 1e-9, -1.5 + 1e-9])
     bx.plot([0, 1], [43.4, 45.0])
-    bx.set_yscale("log")
+    cx.plot([0, 1], [8.5e-5, 2e-4])
+    for log in (bx, cx):
+        log.set_yscale("log")
     _output.plain_ticks(fig)
     fig.canvas.draw()
     assert ax.yaxis.get_offset_text().get_text() == ""
-    labels = [t.get_text() for t in (*bx.get_yticklabels(), *bx.get_yticklabels(minor=True)) if t.get_text()]
-    assert labels and not any("times" in label or "^" in label for label in labels), labels
+    for log in (bx, cx):
+        labels = [t.get_text() for t in (*log.get_yticklabels(), *log.get_yticklabels(minor=True)) if t.get_text()]
+        assert labels and not any("times" in label or "^" in label for label in labels), labels
     plt.close(fig)
 
 
