@@ -1,7 +1,8 @@
 """The code on the documentation pages: every ``python`` block of a page runs, in order, as one script in a fresh
 interpreter (from a scratch directory holding the repository's ``examples/`` and ``tuning/``, as a user runs it
-from the repository root), and prints what the page's ``Output`` blocks show, number for number within one unit of
-the last printed digit (integers exactly). Code lines (python, TOML, shell) fit the site's column.
+from the repository root), and prints what the page's ``Output`` blocks show (each after the block that prints it;
+together, in order, the script's output), number for number within one unit of the last printed digit (integers
+exactly). Code lines (python, TOML, shell) fit the site's column.
 
 The scripts run with Arrow's system memory pool: with its default pool, a script that has read a sweep's results
 (``load_results``) aborts at exit about half the time ("terminate called without an active exception", as in
@@ -54,12 +55,10 @@ def _unit(number: str) -> float:
 def same_output(printed: str, shown: str) -> bool:
     """Whether ``printed`` reads as ``shown``: the same text between the numbers, each number within one unit of
     the last digit ``shown`` prints (an integer: equal)."""
-    if NUMBER.split(printed) != NUMBER.split(shown):
+    if NUMBER.split(printed) != NUMBER.split(shown):  # also: as many numbers
         return False
-    pairs = zip(NUMBER.findall(printed), NUMBER.findall(shown), strict=False)
-    return len(NUMBER.findall(printed)) == len(NUMBER.findall(shown)) and all(
-        abs(float(a) - float(b)) <= _unit(b) * (1 + 1e-9) for a, b in pairs
-    )
+    pairs = zip(NUMBER.findall(printed), NUMBER.findall(shown), strict=True)
+    return all(abs(float(a) - float(b)) <= _unit(b) * (1 + 1e-9) for a, b in pairs)
 
 
 def test_same_output_allows_the_last_digit_only():
