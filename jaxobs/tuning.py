@@ -196,7 +196,8 @@ class TuningProblem:
       penalty: optional ``theta -> scalar >= 0`` added with ``TuneSettings.penalty_weight``.
       describe: ``theta -> dict`` of readable (constrained) values for reports.
       responses: optional ``(theta, batch) -> dict`` of time series for a before/after figure: ``t`` (T,),
-        ``output`` (B, T) or (B, T, k), ``desired`` (T,) or (T, k), ``labels`` (one per plant), ``ylabel``.
+        ``output`` (B, T) or (B, T, k), ``desired`` (T,) or (T, k), ``labels`` (one per plant), ``ylabel`` (one,
+        or one per output) and optionally ``setpoint`` (scalar or (k,)).
       search_box: optional ``{name: (low, high)}`` bounds of ``theta`` (arrays of each entry's shape) for
         :func:`random_search`; entries with ``low == high`` stay fixed.
     """

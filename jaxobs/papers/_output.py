@@ -30,10 +30,32 @@ def pyplot():
     return plt
 
 
+def plain_ticks(fig) -> None:
+    """Tick labels read as numbers: no offset (``1e-9 - 1.5`` above an axis) on linear axes; on log axes ``40``
+    rather than ``4x10^1`` between 1e-3 and 1e4, ``9e-5`` rather than ``9x10^-5`` outside."""
+    from matplotlib.ticker import LogFormatterSciNotation, ScalarFormatter
+
+    class PlainLog(LogFormatterSciNotation):
+        def __call__(self, x, pos=None):
+            if not super().__call__(x, pos):
+                return ""
+            return f"{x:.4g}" if 1e-3 <= abs(x) < 1e4 else f"{x:.2g}".replace("e-0", "e-").replace("e+0", "e")
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() == "log":
+                axis.set_major_formatter(PlainLog())
+                axis.set_minor_formatter(PlainLog(labelOnlyBase=False))
+            elif isinstance(axis.get_major_formatter(), ScalarFormatter):
+                axis.get_major_formatter().set_useOffset(False)
+
+
 def save_figure(fig, out_dir: Path, name: str) -> str:
-    """Lay out, write ``out_dir/name.png`` and close ``fig``; returns the file name."""
+    """Lay out, write ``out_dir/name.png`` (tick labels made plain by :func:`plain_ticks`) and close ``fig``;
+    returns the file name."""
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{name}.png"
+    plain_ticks(fig)
     if fig.get_layout_engine() is None:
         fig.tight_layout()
     fig.savefig(path, dpi=110)

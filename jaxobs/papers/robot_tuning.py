@@ -270,19 +270,21 @@ def build_problem(config: dict) -> TuningProblem:
                   for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
         return {"scales": scales, "key": jax.random.split(keys[0], count)}
 
-    first = rows[0]
-    traces = jax.jit(lambda theta, plants: run(theta, plants).y_true[..., first])
+    traces = jax.jit(lambda theta, plants: run(theta, plants).y_true)
+    setpoint = np.full(desired.shape[1], np.nan)
+    setpoint[rows] = sc["reference"]
 
     def responses(theta, plants):
         return {
             "t": robot.period * np.arange(steps),
             "output": traces(theta, plants),
-            "desired": np.asarray(desired[:, first]),
+            "desired": np.asarray(desired),
             "labels": [
                 ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items())
                 for i in range(len(plants["key"]))
             ],  # fmt: skip
-            "ylabel": f"{sc['tracked'][0]} (deviation)",
+            "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
+            "setpoint": setpoint,
         }
 
     def describe(theta):
@@ -303,6 +305,18 @@ def build_problem(config: dict) -> TuningProblem:
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
     )
+
+
+def _entry_names(robot, config: dict) -> list[str]:
+    """A name per measured entry (row of ``y``): its sensor's, indexed where the sensor has several."""
+    import mujoco
+    from mujoco import mjx
+
+    names = []
+    for name in config["robot"]["sensors"]:
+        dim = int(robot.model.sensor_dim[mjx.name2id(robot.model, mujoco.mjtObj.mjOBJ_SENSOR, name)])
+        names += [name] if dim == 1 else [f"{name}[{i}]" for i in range(dim)]
+    return names
 
 
 def _tracked_rows(robot, config: dict) -> list[int]:

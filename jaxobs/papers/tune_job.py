@@ -165,6 +165,8 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
 def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     """The training objective against the rollouts per training plant spent (the screening's candidates, then each
     step of every start), beside the random search's; the held-out plants' sorted losses of each design."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
     history = result.history
@@ -174,11 +176,13 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     ax.plot(ev[ok], val[ok], "o-", ms=3, label="gradient: objective (best start)")
     if np.any(~ok):
         ax.plot(ev[~ok], np.where(np.isfinite(val[~ok]), val[~ok], np.nanmax(val)), "rx", label="rejected step")
-    ax.plot(ev[ok], np.minimum.accumulate(val[ok]), "C0--", lw=1, label="gradient: best so far")
+    ax.plot(ev[ok], np.minimum.accumulate(val[ok]), "C0-", lw=5, alpha=0.25, drawstyle="steps-post", zorder=1,
+            label="gradient: best so far")  # fmt: skip
     if search is not None:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
         ax.axvline(ev[-1], color="k", lw=0.6, ls=":")  # equal rollouts
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
            ylabel=f"training objective ({objective})", yscale="log", title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
@@ -209,27 +213,43 @@ def _plot_parameters(history, out: Path) -> str:
                f"{name} ({size} components, flattened)")  # fmt: skip
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         if 1 < size <= 10:  # a legend of more entries would hide the lines
-            ax.legend(fontsize=7, loc="best")
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.suptitle("Unconstrained parameters during tuning (log_: natural log of a variance; logit_: of a factor "
                  "in (0, 1); q_cholesky: Cholesky factor, log diagonal)", fontsize=10)  # fmt: skip
     return save_figure(fig, out, "parameters")
 
 
 def _plot_responses(problem, designs: dict, hand_losses, out: Path) -> str:
-    """The held-out plants with the lowest, median and highest hand-set loss, each design's response."""
+    """The held-out plants with the lowest, median and highest hand-set loss (columns), each tracked output (rows):
+    each design's response, the desired one and, where the problem gives it, the set-point."""
+    import textwrap
+
     order = np.argsort(np.where(np.isfinite(hand_losses), hand_losses, np.inf))
     picks = np.asarray([order[0], order[order.size // 2], order[-1]])
     plants = jax.tree.map(lambda x: x[picks], problem.heldout)
+    runs = {name: problem.responses(theta, plants) for name, theta in designs.items()}
+    r = next(iter(runs.values()))
+    desired = np.asarray(r["desired"]).reshape(len(r["t"]), -1)
+    k = desired.shape[1]
+    ylabels = [r["ylabel"]] * k if isinstance(r["ylabel"], str) else list(r["ylabel"])
+    setpoint = None if r.get("setpoint") is None else np.broadcast_to(r["setpoint"], (k,))
     plt = pyplot()
-    fig, axes = plt.subplots(1, picks.size, figsize=(5 * picks.size, 3.8), sharey=True)
-    for name, theta in designs.items():
-        r = problem.responses(theta, plants)
-        output = np.asarray(r["output"])
-        for i, ax in enumerate(axes):
-            ax.plot(r["t"], output[i], lw=1, label=name)
-    for i, ax in enumerate(axes):
-        ax.plot(r["t"], r["desired"], "k--", lw=1, label="desired")
-        ax.set(xlabel="time (s)", title=f"held-out: {r['labels'][i]}")
-    axes[0].set_ylabel(r["ylabel"])
-    axes[0].legend(fontsize=8)
+    fig, axes = plt.subplots(k, picks.size, figsize=(4.6 * picks.size, 2.9 * k + 0.8), sharex=True, sharey="row",
+                             squeeze=False, layout="constrained")  # fmt: skip
+    for name, run in runs.items():
+        output = np.asarray(run["output"]).reshape(picks.size, len(r["t"]), k)
+        for (j, i), ax in np.ndenumerate(axes):
+            ax.plot(r["t"], output[i, :, j], lw=1, label=name)
+    for (j, i), ax in np.ndenumerate(axes):
+        ax.plot(r["t"], desired[:, j], "k--", lw=1, label="desired")
+        if setpoint is not None and np.isfinite(setpoint[j]):
+            ax.axhline(setpoint[j], color="0.5", lw=0.8, ls=":", label="set-point")
+        if j == 0:
+            ax.set_title("\n".join(textwrap.wrap(f"held-out: {r['labels'][i]}", 48)), fontsize=9)
+    for j, label in enumerate(ylabels):
+        axes[j, 0].set_ylabel(label)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    handles, labels = max((ax.get_legend_handles_labels() for ax in axes.flat), key=lambda hl: len(hl[1]))
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)
     return save_figure(fig, out, "responses")

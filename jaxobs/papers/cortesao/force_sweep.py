@@ -293,11 +293,16 @@ def summarize(config: dict, cols: dict) -> dict:
     return per
 
 
-def _worst_cases(cols: dict, orders) -> dict:
-    """Per controller, the stable configuration with the largest RMS force error."""
+MARGIN_RADIUS = 0.99
+"""A closed loop with this spectral radius or less has a margin: its slowest mode decays to 1/e within 100
+samples (0.8 s); the figures show each controller's worst case among these beside its worst stable one."""
+
+
+def _worst_cases(cols: dict, orders, radius: float = 1.0) -> dict:
+    """Per controller, the configuration of spectral radius below ``radius`` with the largest RMS force error."""
     worst = {}
     for order in orders:
-        sel = np.flatnonzero((cols["param.order"] == order) & cols["metric.stable"].astype(bool))
+        sel = np.flatnonzero((cols["param.order"] == order) & (cols["metric.spectral_radius"] < radius))
         if sel.size:
             i = sel[np.argmax(cols["metric.rms_force_error"][sel])]
             worst[_name(order)] = {k.split(".", 1)[1]: cols[k][i].item() for k in cols if k != "index"}
@@ -314,34 +319,62 @@ def report(config: dict, out_dir: Path, result=None, designs: Designs | None = N
         "stable_fraction": float(cols["metric.stable"].mean()),
         "controllers": summarize(config, cols),
         "worst_cases": _worst_cases(cols, orders),
+        "worst_cases_with_margin": _worst_cases(cols, orders, MARGIN_RADIUS),
     }
     figures = [
         _plot_stability_maps(cols, orders, out_dir),
         _plot_distributions(cols, orders, out_dir),
-        _plot_worst_cases(config, designs or build_designs(config), summary["worst_cases"], out_dir),
+        _plot_worst_cases(config, designs or build_designs(config), summary, out_dir),
     ]
     return write_sweep_report(out_dir, summary, config, result, figures, _markdown)
 
 
 def _plot_stability_maps(cols, orders, out_dir: Path) -> str:
+    """Stable fraction over stiffness mismatch and sigma^2 / R, a heat map per controller (a row per value of
+    sigma^2 / R where there are at most 10); a sweep of one sigma^2 / R (``grid_points = 1``) is drawn as a line
+    per controller over the stiffness mismatch."""
     plt = pyplot()
     ks_ratio = np.log10(cols["param.stiffness"] / EXAMPLE1.Ks)
     ratio = np.log10(cols["param.active_variance"] / cols["param.R"])
     x_edges = np.linspace(ks_ratio.min(), ks_ratio.max(), 13)
-    y_edges = np.linspace(ratio.min() - 1e-9, ratio.max() + 1e-9, 11)
+    stable = cols["metric.stable"].astype(float)
+    y_label = "log10 sigma^2 / R" + (" (CKF: Q_xr / R)" if 0 in orders else "")
+    if np.ptp(ratio) < 1e-6:
+        fig, ax = plt.subplots(figsize=(6.5, 3.6), layout="constrained")
+        centres = 0.5 * (x_edges[:-1] + x_edges[1:])
+        for order in orders:
+            sel = cols["param.order"] == order
+            total = np.histogram(ks_ratio[sel], x_edges)[0]
+            with np.errstate(invalid="ignore"):
+                frac = np.histogram(ks_ratio[sel], x_edges, weights=stable[sel])[0] / total
+            ax.plot(centres, frac, "o-", color=_colour(order), label=_name(order))
+        ax.axvline(0.0, color="k", lw=0.6)
+        ax.set(xlabel="log10 Ks_true / Ks_nominal", ylabel="stable fraction", ylim=(-0.03, 1.03),
+               title=f"Stable fraction vs stiffness mismatch\n(one strategy: {y_label} = {ratio[0]:.2f})")  # fmt: skip
+        ax.title.set_fontsize(10)
+        ax.legend(loc="lower left")
+        return save_figure(fig, out_dir, "stability_maps")
+    levels = np.unique(np.round(ratio, 9))
+    if levels.size <= 10:  # a row per strategy, edges halfway between them
+        mid = 0.5 * (levels[1:] + levels[:-1])
+        y_edges = np.concatenate([[2 * levels[0] - mid[0]], mid, [2 * levels[-1] - mid[-1]]])
+    else:
+        y_edges = np.linspace(ratio.min(), ratio.max(), 11)
     fig, axes = plt.subplots(1, len(orders), figsize=(3.6 * len(orders), 3.6), squeeze=False, layout="constrained")
     for ax, order in zip(axes[0], orders, strict=True):
         sel = cols["param.order"] == order
         total, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges])
-        stable, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges], weights=cols["metric.stable"][sel])
+        count, _, _ = np.histogram2d(ks_ratio[sel], ratio[sel], [x_edges, y_edges], weights=stable[sel])
         with np.errstate(invalid="ignore"):
-            frac = stable / total
+            frac = count / total
         mesh = ax.pcolormesh(x_edges, y_edges, frac.T, vmin=0, vmax=1, cmap="RdYlGn")
+        if levels.size <= 10:
+            ax.set_yticks(levels)
         ax.set_title(_name(order))
         ax.set_xlabel("log10 Ks_true / Ks_nominal")
         ax.axvline(0.0, color="k", lw=0.6)
-    axes[0, 0].set_ylabel("log10 sigma^2 / R" + (" (CKF: Q_xr / R)" if 0 in orders else ""))
-    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction")
+    axes[0, 0].set_ylabel(y_label)
+    fig.colorbar(mesh, ax=axes[0].tolist(), label="stable fraction (white: no configuration)")
     fig.suptitle("Stable fraction vs stiffness mismatch and Q/R strategy")
     return save_figure(fig, out_dir, "stability_maps")
 
@@ -386,35 +419,51 @@ def _colour(order: int) -> str:
     return {1: "C0", 2: "C1", 3: "C2", 0: "C3"}.get(order, "C4")
 
 
-def _plot_worst_cases(config: dict, designs: Designs, worst: dict, out_dir: Path) -> str:
-    """Re-simulate each controller's worst stable case (same noise) and plot force vs desired, one panel (and one
-    force scale) per controller."""
+def _decay_time(radius: float) -> float:
+    """Seconds for a mode of the spectral ``radius`` to decay to 1/e."""
+    return EXAMPLE1.h / -np.log(radius) if radius < 1.0 else np.inf
+
+
+def _plot_worst_cases(config: dict, designs: Designs, summary: dict, out_dir: Path) -> str:
+    """Re-simulate each controller's worst stable case and its worst case with a margin (spectral radius at most
+    :data:`MARGIN_RADIUS`), same noise, against the desired force; one panel per controller, each case labelled by
+    its spectral radius and the decay time of its slowest mode, the disturbance step (eq. 82) marked."""
     plt = pyplot()
     steps, n_delay = _timing(config)
     desired = _signals(config, steps)()[1]
     closed_loop = tracking(config)
     t = np.arange(steps) * EXAMPLE1.h
     orders = {_name(order): order for order in config["controllers"]["orders"]}
+    worst, margin = summary["worst_cases"], summary["worst_cases_with_margin"]
     rows = max(len(worst), 1)  # a sweep without a stable configuration still gets its (empty) figure
-    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.4 * rows + 0.6), sharex=True, squeeze=False,
+    fig, axes = plt.subplots(rows, 1, figsize=(12, 2.8 * rows + 0.6), sharex=True, squeeze=False,
                              layout="constrained")  # fmt: skip
-    if not worst:
-        axes[0, 0].plot(t, np.asarray(desired), "k--", lw=1, label="desired")
-        axes[0, 0].set(title="no stable configuration", ylabel="force (N)")
-    for ax, (name, case) in zip(axes[: len(worst), 0], worst.items(), strict=True):
-        ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
-        true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h, case["dead_time_samples"] * EXAMPLE1.h,
-                           n_delay=n_delay)  # fmt: skip
-        force = closed_loop(true, ctrl, case["noise_seed"])[0]
+    for ax in axes[:, 0]:
         ax.plot(t, np.asarray(desired), "k--", lw=1, label="desired")
-        ax.plot(t, np.asarray(force), lw=0.8, color=_colour(orders[name]), label=name)
-        ax.set_title(f"{name}: Ks = {case['stiffness']:.2g} N/mm, Tp = {case['time_constant'] * 1e3:.0f} ms, "
-                     f"dead time {case['dead_time_samples']:.1f} samples; RMS error {case['rms_force_error']:.2f} N",
-                     fontsize=9)  # fmt: skip
+        if t[-1] >= 8.0:
+            ax.axvline(8.0, color="0.4", lw=0.8, ls=":", label="disturbance step (eq. 82)")
         ax.set_ylabel("force (N)")
-        ax.legend(fontsize=7, loc="best")
+    if not worst:
+        axes[0, 0].set_title("no stable configuration")
+    for ax, name in zip(axes[: len(worst), 0], worst, strict=True):
+        cases = [("worst stable", worst[name], 0.8)]
+        if name in margin and margin[name]["index"] != worst[name]["index"]:
+            cases.append((f"worst with radius <= {MARGIN_RADIUS}", margin[name], 1.6))
+        for label, case, lw in cases:
+            ctrl = jax.tree.map(lambda M, d=case["design"]: M[d], designs.controller)
+            true = force_plant(case["stiffness"], case["time_constant"], EXAMPLE1.h,
+                               case["dead_time_samples"] * EXAMPLE1.h, n_delay=n_delay)  # fmt: skip
+            force = closed_loop(true, ctrl, case["noise_seed"])[0]
+            rho = case["spectral_radius"]
+            ax.plot(t, np.asarray(force), lw=lw, alpha=0.9 if lw > 1 else 0.6, color=_colour(orders[name]),
+                    label=f"{label}: spectral radius {rho:.4f}\n(slowest mode to 1/e in {_decay_time(rho):.2g} s), "
+                          f"Ks = {case['stiffness']:.2g} N/mm,\ndead time {case['dead_time_samples']:.1f} samples, "
+                          f"RMS error {case['rms_force_error']:.2f} N")  # fmt: skip
+        ax.set_title(name, loc="left", fontsize=10, fontweight="bold")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     axes[-1, 0].set_xlabel("time (s)")
-    fig.suptitle("Worst stable case per controller (largest RMS force error)")
+    fig.suptitle("Worst cases per controller (largest RMS force error), each with its closed loop's spectral radius "
+                 "(stable below 1)")  # fmt: skip
     return save_figure(fig, out_dir, "worst_cases")
 
 
@@ -444,6 +493,12 @@ def _markdown(summary: dict) -> str:
             f"- {name}: config {case['index']}, Ks = {case['stiffness']:.3g} N/mm, Tp = {case['time_constant']:.4f} s, "
             f"dead time {case['dead_time_samples']:.2f} samples, sigma^2 = {case['active_variance']:.2g}, "
             f"R = {case['R']:.2g}: RMS {case['rms_force_error']:.3g} N, spectral radius {case['spectral_radius']:.4f}"
+        )
+    lines += ["", f"Worst case with a margin (spectral radius at most {MARGIN_RADIUS}):", ""]
+    for name, case in summary["worst_cases_with_margin"].items():
+        lines.append(
+            f"- {name}: config {case['index']}, Ks = {case['stiffness']:.3g} N/mm, "
+            f"RMS {case['rms_force_error']:.3g} N, spectral radius {case['spectral_radius']:.4f}"
         )
     return "\n".join(lines) + "\n"
 

@@ -287,6 +287,7 @@ def build_problem(config: dict) -> TuningProblem:
             "t": inputs["t"],
             "output": rollout_jit(theta, plants),
             "desired": inputs["desired"],
+            "setpoint": sc["force_step"],
             "labels": [f"Ks = {float(k):.2f} N/mm" for k in plants["ks"]],
             "ylabel": "force (N)",
         }

@@ -301,11 +301,11 @@ def _figures_5_6(data: dict, out_dir: Path) -> list[str]:
         xm, thm, xg, thg = data[key]
         t = DT * stride * np.arange(xm.shape[0])
         theta = theta_samples[::stride]
-        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
         axes[0].plot(t, xg, ":", color="C1", label="gradient-type law")
         axes[0].plot(t, xm, color="C0", label="modular estimator")
         axes[0].set_ylabel("x (controlled)")
-        axes[0].legend(fontsize=8, loc="upper right")
+        axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the traces
         axes[0].set_title(f"(a) controlled variable ({label})", fontsize=10)
         axes[1].plot(t, theta, "--", color="k", label="theta")
         axes[1].plot(t, thg, ":", color="C1", label="theta_hat, gradient-type law")
@@ -313,7 +313,7 @@ def _figures_5_6(data: dict, out_dir: Path) -> list[str]:
         axes[1].set_ylabel("parameter")
         axes[1].set_xlabel("t [s]")
         axes[1].set_ylim(-5.5, 5.5)
-        axes[1].legend(fontsize=8, loc="lower right")
+        axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         axes[1].set_title("(b) unknown parameter and estimates", fontsize=10)
         fig.suptitle(f"Grip 2010 Example 5.6 (cf. Fig. 5.1): K_phi = {K_PHI:g}, Gamma = {ADAPTATION_GAIN_MODULAR:g} vs "
                      f"gradient Gamma = {ADAPTATION_GAIN_GRADIENT:g}")  # fmt: skip

@@ -427,7 +427,7 @@ def _figure(out_dir: Path, est: Estimates) -> str:
                    [("NVSO, mode 1 only", nv.beta[runs.index("friction_mode1")], "C1"),
                     ("NVSO, switching", nv.beta[runs.index("friction_mode2")], "C3")]))  # fmt: skip
     rows = (len(panels) + 1) // 2
-    fig, axes = plt.subplots(rows, 2, figsize=(11, 2.75 * rows + 0.5), squeeze=False)
+    fig, axes = plt.subplots(rows, 2, figsize=(11, 2.75 * rows + 0.8), squeeze=False, layout="constrained")
     for ax in axes.ravel()[len(panels) :]:
         ax.set_axis_off()
     for ax, (name, duration, estimates) in zip(axes.ravel(), panels, strict=False):
@@ -440,7 +440,10 @@ def _figure(out_dir: Path, est: Estimates) -> str:
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("t [s]")
         ax.set_ylabel("sideslip beta [deg]")
-        ax.legend(fontsize=7, loc="best")
+    legend = {}  # one legend for every panel, below them: a panel's own would cover its traces
+    for ax in axes.ravel()[: len(panels)]:
+        legend.update({label: handle for handle, label in zip(*ax.get_legend_handles_labels(), strict=True)})
+    fig.legend(legend.values(), legend.keys(), loc="outside lower center", ncol=len(legend), fontsize=8)
     fig.suptitle("Grip 2010 ch. 2: true sideslip, NVSO and EKF on simulated drives", fontsize=11)
     return save_figure(fig, out_dir, "grip2010_sideslip")
 

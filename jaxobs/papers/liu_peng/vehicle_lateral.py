@@ -354,7 +354,7 @@ STYLES = {  # the H-infinity and AOB-1 estimates nearly coincide: H-infinity das
 
 def _fig_pair(run_: dict, methods, title: str):
     plt = pyplot()
-    fig, axes = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True, layout="constrained")  # no clipped label
+    fig, axes = plt.subplots(2, 1, figsize=(9.5, 5.5), sharex=True, layout="constrained")  # no clipped label
     t = run_["t"]
     axes[0].plot(t, run_["d"], "k", lw=2, label="true")
     axes[1].plot(t, run_["v_y"], "k", lw=2, label="true")
@@ -374,7 +374,7 @@ def _fig_pair(run_: dict, methods, title: str):
         ax.set_ylim(values.min() - pad, values.max() + pad)
     for ax in axes:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the traces
     return fig
 
 
