@@ -26,13 +26,22 @@ cart = rb.make_robot(
 print(cart.actuators, cart.sensors, cart.period)  # prints: (0,) (0, 1) 0.02
 # --8<-- [end:robot]
 
+# --8<-- [start:hold]
+arm = Path(__file__).parent / "robots" / "arm_on_table.xml"  # a two-link arm in a vertical plane
+pose = [0.3, 0.5]  # shoulder and elbow raised against gravity: not a rest pose without torque
+ctrl0 = rb.holding_ctrl(arm, pose)  # the motor torques that hold it (MuJoCo's inverse dynamics)
+print(ctrl0.round(3))  # prints: [1.923 0.88 ]
+raised = rb.make_robot(arm, ["shoulder_motor", "elbow_motor"], ["shoulder_angle", "elbow_angle"], qpos0=pose,
+                       ctrl0=ctrl0, solver_iterations=4)  # fmt: skip
+# --8<-- [end:hold]
+
 # --8<-- [start:linearize]
 lin = rb.linearize(cart)  # about the operating point (cart at 0, pole hanging, no force)
-print(lin.A.shape, lin.B.shape, lin.C.shape)  # prints: (5, 5) (5, 1) (2, 5)
-L, _, poles = jo.dlqr(lin.A, lin.B, jnp.diag(jnp.array([10.0, 10.0, 1.0, 1.0, 0.0])), 0.01 * jnp.eye(1))
-N = jo.reference_gain(jo.ss(lin.A, lin.B, lin.C[:1], dt=lin.dt), L)  # the cart position follows r
+print(lin.Phi.shape, lin.Gamma.shape, lin.C.shape)  # prints: (5, 5) (5, 1) (2, 5)
+L, _, poles = jo.dlqr(lin.Phi, lin.Gamma, jnp.diag(jnp.array([10.0, 10.0, 1.0, 1.0, 0.0])), 0.01 * jnp.eye(1))
+N = jo.reference_gain(jo.ss(lin.Phi, lin.Gamma, lin.C[:1], dt=lin.dt), L)  # the cart position follows r
 Q = jnp.diag(jnp.array([1e-6, 1e-6, 1e-4, 1e-4, 0.0]))  # no noise on the dead-time slot: it is known
-estimator = jo.make_kalman(lin.A, lin.C, Q, jnp.diag(cart.sensor_noise**2), Gamma=lin.B, steady_state=True)
+estimator = jo.make_kalman(lin.Phi, lin.C, Q, jnp.diag(cart.sensor_noise**2), Gamma=lin.Gamma, steady_state=True)
 params = jo.FeedbackParams(estimator, L, N)
 lqg = feedback.observer_controller(kalman.kalman_filter)  # any jaxobs Controller runs in the loop
 print(f"closed-loop spectral radius {float(jnp.max(jnp.abs(poles))):.4f}")  # prints: closed-loop spectral radius 0.9703
