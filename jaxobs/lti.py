@@ -24,6 +24,7 @@ import numpy as np
 import scipy.linalg
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 
 __all__ = [
     "StateSpace",
@@ -221,7 +222,7 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
     return StateSpace(*matrices, h)
 
 
-@functools.partial(jax.jit, static_argnames=("h", "n_delay"))
+@functools.partial(jit, static_argnames=("h", "n_delay"), what="c2d")
 def _c2d_matrices(A, B, C, D, tau, *, h: float, n_delay: int):
     """The numerical part of :func:`c2d` (compiled once per shape: eager calls cost one dispatch)."""
     dtype = A.dtype

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import warnings
+from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -24,6 +25,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
 from jaxobs.mjx.common import check_solver_iterations, dead_time_step, put_model
@@ -250,7 +252,7 @@ def _operating_state(robot: Robot, qpos0=None, qvel0=None):
     return jnp.concatenate([qpos, qvel])
 
 
-@jax.jit
+@partial(jit, what="linearize")
 def _jacobians(robot: Robot, x0):
     """``(Phi, Gamma, C, drift)`` of one control period at ``x0`` (compiled once per robot structure); ``drift``
     (nq + nv,) is the transition's constant term ``f(x0, 0) - x0``, zero at an equilibrium."""

@@ -109,6 +109,7 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
         "evaluations": result.evaluations,
         "rollouts": result.rollouts,
         "seconds_tune": result.seconds,
+        "compile_seconds_tune": result.compile_seconds,
         "train_objective": {"tuned": result.objective},
         "train_diverged": {"tuned": result.diverged},
         "starts": [
