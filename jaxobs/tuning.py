@@ -866,7 +866,7 @@ def tune(
     _agree(error)
     evaluation = _evaluations(problem, settings, None)[0]
     what = f"one evaluation of the {batch} training rollouts at {count} start(s), {mode}-mode gradient"
-    with Compiling(logger, f"{what}: tracing") as tracing:
+    with Compiling(logger, f"{what} (tracing)") as tracing:
         lowered = _lower_gradient(evaluation, thetas, problem.train, mode)  # the fingerprint's program
     given = "" if initial is None else json.dumps(_as_numpy(thetas))  # the starting points, when given
     fingerprint = _fingerprint(problem, settings, tag + given, lowered.as_text())

@@ -190,7 +190,7 @@ def holding_ctrl(mjcf, qpos=None) -> np.ndarray:
     Example:
       >>> from jaxobs.mjx import estimation, robot
       >>> mj_model, _ = estimation.load_cartpole()
-      >>> robot.holding_ctrl(mj_model, [0.0, 0.0]).round(6).tolist()  # the upright pole is balanced already
+      >>> robot.holding_ctrl(mj_model, [0.0, 0.0]).round(6).tolist()  # the hanging pole rests without a push
       [0.0]
     """
     m = load_mjcf(mjcf)
