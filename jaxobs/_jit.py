@@ -35,11 +35,12 @@ class _Logged:
         functools.update_wrapper(self, jitted)
 
     def __call__(self, *args, **kwargs):
-        if self._logged:
+        cache_size = getattr(self._jitted, "_cache_size", None)  # jax.jit's, not a public API: no log without it
+        if self._logged or cache_size is None:
             return self._jitted(*args, **kwargs)
-        before, start = self._jitted._cache_size(), time.perf_counter()
+        before, start = cache_size(), time.perf_counter()
         out = self._jitted(*args, **kwargs)
-        if self._jitted._cache_size() > before:
+        if cache_size() > before:
             self._logged = True
             self._logger.info(
                 "%s: the first call compiled its program in %.1f s (once per shapes, dtypes and static arguments; "
