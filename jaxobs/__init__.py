@@ -13,55 +13,168 @@ in your entry point (``jax.config.update("jax_enable_x64", True)``). A map of th
 docs/theory/api-map.md.
 """
 
+import functools
 import importlib
 import importlib.util
+from typing import TYPE_CHECKING
 
-_EXPORTS = {  # module -> the names ``jaxobs`` exports from it, loaded on first use (PEP 562)
+if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
+    from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
+    from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
+    from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
+    from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
+    from jaxobs.matrix_equations import care, dare
+    from jaxobs.nonlinear import NonlinearModel, nonlinear_model
+    from jaxobs.observers import (
+        Controller,
+        ControllerInputs,
+        Estimator,
+        EstimatorInputs,
+        FeedbackParams,
+        LinearObserver,
+        observer_controller,
+        run,
+    )
+    from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
+    from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
+    from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
+    from jaxobs.observers.gramian import gramian_estimator, make_gramian
+    from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
+    from jaxobs.observers.hinf import hinf_filter, make_hinf
+    from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
+    from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
+    from jaxobs.observers.linear import linear_observer
+    from jaxobs.observers.modular import make_modular, modular_estimator
+    from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
+    from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
+    from jaxobs.plants import force_plant
+    from jaxobs.scb import (
+        SCB,
+        infinite_zero_structure,
+        invariant_zeros,
+        is_left_invertible,
+        is_minimum_phase,
+        is_right_invertible,
+    )
+    from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
+    from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
+    from jaxobs.sweep import load_results, run_sweep
+    from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
+
+__all__ = [
+    "__version__",
     # models and design
-    "jaxobs.lti": ("StateSpace", "ss", "c2d", "tf2ss", "ctrb", "obsv", "dcgain", "is_spr"),
-    "jaxobs.matrix_equations": ("dare", "care"),
-    "jaxobs.design": ("dlqr", "dlqe", "lqr", "lqe", "acker", "place", "reference_gain", "critically_damped_gain"),
-    "jaxobs.plants": ("force_plant",),
+    "StateSpace",
+    "ss",
+    "c2d",
+    "tf2ss",
+    "ctrb",
+    "obsv",
+    "dcgain",
+    "is_spr",
+    "dare",
+    "dlqr",
+    "dlqe",
+    "care",
+    "lqr",
+    "lqe",
+    "acker",
+    "place",
+    "reference_gain",
+    "critically_damped_gain",
+    "force_plant",
     # estimators and controllers
-    "jaxobs.observers": ("Estimator", "Controller", "EstimatorInputs", "ControllerInputs", "LinearObserver",
-                         "FeedbackParams", "observer_controller", "run"),
-    "jaxobs.observers.kalman": ("kalman_filter", "make_kalman", "square_root_kalman_filter", "square_root_form"),
-    "jaxobs.observers.active": ("active_observer", "active_observer_controller", "make_aob", "make_ckf",
-                                "feedback_gain"),
-    "jaxobs.observers.hinf": ("hinf_filter", "make_hinf"),
-    "jaxobs.observers.inverse_dynamics": ("inverse_dynamics_observer", "make_inverse_dynamics"),
-    "jaxobs.observers.pe_monitor": ("pe_monitor", "make_pe_monitor"),
-    "jaxobs.observers.gramian": ("gramian_estimator", "make_gramian"),
-    "jaxobs.observers.linear": ("linear_observer",),
-    "jaxobs.nonlinear": ("NonlinearModel", "nonlinear_model"),
-    "jaxobs.observers.ekf": ("extended_kalman_filter", "make_ekf"),
-    "jaxobs.observers.ukf": ("unscented_kalman_filter", "make_ukf"),
-    "jaxobs.observers.continuous": ("continuous_observer", "make_continuous_observer"),
-    "jaxobs.observers.hgo": ("hgo_gains", "hgo_observer", "make_hgo"),
-    "jaxobs.observers.modular": ("modular_estimator", "make_modular"),
+    "Estimator",
+    "Controller",
+    "EstimatorInputs",
+    "ControllerInputs",
+    "LinearObserver",
+    "FeedbackParams",
+    "observer_controller",
+    "run",
+    "kalman_filter",
+    "make_kalman",
+    "square_root_kalman_filter",
+    "square_root_form",
+    "active_observer",
+    "active_observer_controller",
+    "make_aob",
+    "make_ckf",
+    "feedback_gain",
+    "hinf_filter",
+    "make_hinf",
+    "inverse_dynamics_observer",
+    "make_inverse_dynamics",
+    "pe_monitor",
+    "make_pe_monitor",
+    "gramian_estimator",
+    "make_gramian",
+    "linear_observer",
+    "NonlinearModel",
+    "nonlinear_model",
+    "extended_kalman_filter",
+    "make_ekf",
+    "unscented_kalman_filter",
+    "make_ukf",
+    "continuous_observer",
+    "make_continuous_observer",
+    "hgo_gains",
+    "hgo_observer",
+    "make_hgo",
+    "modular_estimator",
+    "make_modular",
     # estimation over a record
-    "jaxobs.smoothing": ("log_likelihood", "smooth", "rts_smoother", "parallel_filter", "Smoothed"),
+    "log_likelihood",
+    "smooth",
+    "rts_smoother",
+    "parallel_filter",
+    "Smoothed",
     # learning from data
-    "jaxobs.learning": ("sample", "fit", "FitSettings", "covariance_model", "em"),
+    "sample",
+    "fit",
+    "FitSettings",
+    "covariance_model",
+    "em",
     # closed loops and robustness
-    "jaxobs.closed_loop": ("simulate", "ClosedLoopTrace", "measurement_noise", "rms"),
-    "jaxobs.stability": ("stability_margins", "loop_transfer", "closed_loop_matrix", "spectral_radius"),
+    "simulate",
+    "ClosedLoopTrace",
+    "measurement_noise",
+    "rms",
+    "stability_margins",
+    "loop_transfer",
+    "closed_loop_matrix",
+    "spectral_radius",
     # jobs
-    "jaxobs.sweep": ("run_sweep", "load_results"),
-    "jaxobs.tuning": ("tune", "TuningProblem", "TuneSettings", "random_search"),
+    "run_sweep",
+    "load_results",
+    "tune",
+    "TuningProblem",
+    "TuneSettings",
+    "random_search",
     # structure (design time, NumPy/sympy; the decomposition itself is jaxobs.scb.scb)
-    "jaxobs.scb": ("SCB", "invariant_zeros", "infinite_zero_structure", "is_left_invertible", "is_right_invertible",
-                   "is_minimum_phase"),
-}  # fmt: skip
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+    "SCB",
+    "invariant_zeros",
+    "infinite_zero_structure",
+    "is_left_invertible",
+    "is_right_invertible",
+    "is_minimum_phase",
+]
 
-__all__ = ["__version__", *_MODULE_OF]
+
+@functools.cache
+def _module_of() -> dict[str, str]:
+    """Exported name -> its module, read from the ``TYPE_CHECKING`` imports above (the one list of them)."""
+    import ast
+
+    tree = ast.parse(open(__file__, encoding="utf-8").read())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING")
+    return {alias.name: node.module for node in block.body for alias in node.names}
 
 
 def __getattr__(name: str):
     """An exported name, ``__version__`` or a submodule (``jaxobs.mjx``), imported on first use and kept."""
-    if name in _MODULE_OF:
-        value = getattr(importlib.import_module(_MODULE_OF[name]), name)
+    if name in __all__ and name != "__version__":
+        value = getattr(importlib.import_module(_module_of()[name]), name)
     elif name == "__version__":
         from importlib.metadata import PackageNotFoundError, version
 
