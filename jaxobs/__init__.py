@@ -7,59 +7,59 @@ combinator :func:`observer_controller`, :func:`run`), nonlinear filters (:mod:`j
 a record (:mod:`jaxobs.smoothing`), learning from data (:mod:`jaxobs.learning`), closed loops and robustness
 (:func:`simulate`, :func:`stability_margins`), and the jobs :func:`run_sweep` and :func:`tune`.
 
-MuJoCo MJX plants live in :mod:`jaxobs.mjx` (not imported here: it imports ``mujoco.mjx``). The library never
-enables float64 itself: do it in your entry point (``jax.config.update("jax_enable_x64", True)``). A map of the
-API by task: docs/theory/api-map.md.
+Names and submodules load on first use (``import jaxobs`` imports neither JAX nor the modules: each costs its
+import when first named; ``jaxobs.mjx`` imports ``mujoco.mjx``). The library never enables float64 itself: do it
+in your entry point (``jax.config.update("jax_enable_x64", True)``). A map of the API by task:
+docs/theory/api-map.md.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+import functools
+import importlib
+import importlib.util
+from typing import TYPE_CHECKING
 
-from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
-from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
-from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
-from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
-from jaxobs.matrix_equations import care, dare
-from jaxobs.nonlinear import NonlinearModel, nonlinear_model
-from jaxobs.observers import (
-    Controller,
-    ControllerInputs,
-    Estimator,
-    EstimatorInputs,
-    FeedbackParams,
-    LinearObserver,
-    observer_controller,
-    run,
-)
-from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
-from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
-from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
-from jaxobs.observers.gramian import gramian_estimator, make_gramian
-from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
-from jaxobs.observers.hinf import hinf_filter, make_hinf
-from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
-from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
-from jaxobs.observers.linear import linear_observer
-from jaxobs.observers.modular import make_modular, modular_estimator
-from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
-from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
-from jaxobs.plants import force_plant
-from jaxobs.scb import (
-    SCB,
-    infinite_zero_structure,
-    invariant_zeros,
-    is_left_invertible,
-    is_minimum_phase,
-    is_right_invertible,
-)
-from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
-from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
-from jaxobs.sweep import load_results, run_sweep
-from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
-
-try:
-    __version__ = version("jaxobs")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0+unknown"
+if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
+    from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
+    from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
+    from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
+    from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
+    from jaxobs.matrix_equations import care, dare
+    from jaxobs.nonlinear import NonlinearModel, nonlinear_model
+    from jaxobs.observers import (
+        Controller,
+        ControllerInputs,
+        Estimator,
+        EstimatorInputs,
+        FeedbackParams,
+        LinearObserver,
+        observer_controller,
+        run,
+    )
+    from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
+    from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
+    from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
+    from jaxobs.observers.gramian import gramian_estimator, make_gramian
+    from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
+    from jaxobs.observers.hinf import hinf_filter, make_hinf
+    from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
+    from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
+    from jaxobs.observers.linear import linear_observer
+    from jaxobs.observers.modular import make_modular, modular_estimator
+    from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
+    from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
+    from jaxobs.plants import force_plant
+    from jaxobs.scb import (
+        SCB,
+        infinite_zero_structure,
+        invariant_zeros,
+        is_left_invertible,
+        is_minimum_phase,
+        is_right_invertible,
+    )
+    from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
+    from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
+    from jaxobs.sweep import load_results, run_sweep
+    from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
 
 __all__ = [
     "__version__",
@@ -159,3 +159,36 @@ __all__ = [
     "is_right_invertible",
     "is_minimum_phase",
 ]
+
+
+@functools.cache
+def _module_of() -> dict[str, str]:
+    """Exported name -> its module, read from the ``TYPE_CHECKING`` imports above (the one list of them)."""
+    import ast
+
+    tree = ast.parse(open(__file__, encoding="utf-8").read())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING")
+    return {alias.name: node.module for node in block.body for alias in node.names}
+
+
+def __getattr__(name: str):
+    """An exported name, ``__version__`` or a submodule (``jaxobs.mjx``), imported on first use and kept."""
+    if name in __all__ and name != "__version__":
+        value = getattr(importlib.import_module(_module_of()[name]), name)
+    elif name == "__version__":
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            value = version("jaxobs")
+        except PackageNotFoundError:  # running from a source tree that is not installed
+            value = "0+unknown"
+    elif not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import os
 import sys
 import time
@@ -82,7 +83,7 @@ def _scenario(args, registry: dict, key: str):
 def _print_config(args, registry: dict, key: str) -> int:
     from jaxobs._config import to_toml
 
-    with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only (mujoco.mjx prints on import)
+    with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only, whatever an import prints
         scenario, config, source = _scenario(args, registry, key)
     where = f"{source}'s values over the defaults of" if args.config else "the defaults of"
     header = (
@@ -115,9 +116,15 @@ def _sweep(args) -> int:
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
+    ran = (
+        f"{result['seconds']:.1f} s, {result['compile_seconds']:.1f} s of it compiling the step"
+        if "seconds" in result
+        else "all already computed"
+    )
     print(
-        f"{result['num_configs']} configurations in {result.get('seconds', 0.0):.1f} s; "
-        f"wrote {out / 'summary.json'}, {out / 'report.md'} and {', '.join(result['figures'])}"
+        f"{result['num_configs']} configurations ({ran}); {_command_seconds(args)} (building the scenario, the "
+        f"report and figures included); wrote {out / 'summary.json'}, {out / 'report.md'} and "
+        f"{', '.join(result['figures'])}"
     )
     for name, s in result.get("controllers", {"all": result}).items():
         if "stable_fraction" in s:
@@ -125,9 +132,30 @@ def _sweep(args) -> int:
     return 0
 
 
-def _tune(args) -> int:
-    import logging
+@contextlib.contextmanager
+def _log_to_stderr():
+    """The library's INFO messages (what compiles and for how long, screening, resumption) on stderr while a
+    command runs, on the ``jaxobs`` logger alone (shown once even where a library configured the root logger);
+    the logger is as it was afterwards (``main`` may be called from a program)."""
+    logger = logging.getLogger("jaxobs")
+    handler, saved = logging.StreamHandler(), (logger.level, logger.propagate)
+    handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(saved[0])
+        logger.propagate = saved[1]
 
+
+def _command_seconds(args) -> str:
+    return f"the command took {time.perf_counter() - args.started:.1f} s"
+
+
+def _tune(args) -> int:
     from jaxobs.papers.registry import tuning_problems
 
     registry = tuning_problems()
@@ -136,11 +164,6 @@ def _tune(args) -> int:
         return 0
     if args.print_config is not None:
         return _print_config(args, registry, "problem")
-    handler = logging.StreamHandler()
-    handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
-    logging.getLogger("jaxobs").addHandler(handler)
-    logging.getLogger("jaxobs").setLevel(logging.INFO)
-    logging.getLogger("jaxobs").propagate = False  # once, even where a library configured the root logger
     import jax
 
     problem, config, source = _scenario(args, registry, "problem")
@@ -153,8 +176,9 @@ def _tune(args) -> int:
         return 0
     print(
         f"{result['problem']}: {result['evaluations']} gradient evaluations ({result['rollouts']} rollouts, "
-        f"{result['seconds_tune']:.1f} s, stopped: {result['stopped']}); wrote {out / 'tuned.json'} and "
-        f"{', '.join(result['figures'])}"
+        f"{result['seconds_tune']:.1f} s of tuning, screening and {result['compile_seconds_tune']:.1f} s of "
+        f"compiling included; stopped: {result['stopped']}); {_command_seconds(args)} (the baseline, held-out "
+        f"scores and figures included); wrote {out / 'tuned.json'} and {', '.join(result['figures'])}"
     )
     for name, s in result["heldout"].items():
         change = s["reduction_vs_hand_set"]
@@ -256,16 +280,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Run the command line ``argv`` (default: ``sys.argv[1:]``, as the ``jaxobs`` command); returns the exit
     status. Only the command (``argv`` omitted) turns the persistent compilation cache on."""
+    started = time.perf_counter()
     with InterruptWatch() as watch:  # from the first line: a Ctrl-C whose KeyboardInterrupt is lost still counts
-        return _run(argv, watch)
+        return _run(argv, watch, started)
 
 
-def _run(argv, watch: InterruptWatch) -> int:
+def _run(argv, watch: InterruptWatch, started: float) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     as_command = argv is None
     args = build_parser().parse_args(argv)
+    args.started = started
     if as_command and not args.no_cache:
         _enable_compilation_cache()
     from jaxobs.tuning import CheckpointError, TuningError
@@ -273,7 +299,8 @@ def _run(argv, watch: InterruptWatch) -> int:
     try:
         if args.command in ("sweep", "tune"):
             _join(args)
-        status = args.func(args)
+        with _log_to_stderr():
+            status = args.func(args)
         watch.check()
         return status
     except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped

@@ -8,12 +8,13 @@ answer.
 
 from __future__ import annotations
 
-import jax
+from functools import partial
+
 import jax.numpy as jnp
 import numpy as np
-import scipy.signal
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs._linalg import solve_spd, symmetrize
 from jaxobs.lti import StateSpace, ctrb, dcgain, unobservable_modes
 from jaxobs.matrix_equations import care, dare, filter_dare, require_care_converged, require_converged
@@ -83,7 +84,7 @@ def acker(Phi, Gamma, poles):
     return L
 
 
-@jax.jit
+@partial(jit, what="acker")
 def _ackermann(Phi, Gamma, poles):
     """``(L, W_c)`` of :func:`acker` (compiled once per shape: eager calls cost one dispatch)."""
     n = Phi.shape[-1]
@@ -134,6 +135,8 @@ def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np
     if len(keep) == 1:
         L_keep = np.asarray(acker(Phi, G, poles))
     else:
+        import scipy.signal  # 1-2 s to import: only here, for MIMO placement
+
         L_keep = scipy.signal.place_poles(Phi, G, poles, method=method).gain_matrix
     L = np.zeros((m, n))
     L[keep] = L_keep

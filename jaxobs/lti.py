@@ -24,6 +24,7 @@ import numpy as np
 import scipy.linalg
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 
 __all__ = [
     "StateSpace",
@@ -51,7 +52,8 @@ class StateSpace:
       dt: sample time in seconds (static metadata), ``None`` for continuous time.
 
     A pytree: ``A, B, C, D`` are leaves (they may carry leading batch axes under ``vmap``). Build it with
-    :func:`ss`, which checks and casts.
+    :func:`ss`, which checks and casts. A discrete model's ``A`` and ``B`` are also ``Phi`` and ``Gamma``, their
+    names in the estimator designs (``make_kalman(Phi, C, Q, R, Gamma=...)``) and in Cortesão 2006.
     """
 
     A: jax.Array
@@ -59,6 +61,22 @@ class StateSpace:
     C: jax.Array
     D: jax.Array
     dt: float | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def Phi(self) -> jax.Array:
+        """The discrete state matrix ``A`` (``x_{k+1} = Phi x_k + Gamma u_k``); discrete models only."""
+        return self._discrete("Phi", self.A)
+
+    @property
+    def Gamma(self) -> jax.Array:
+        """The discrete input matrix ``B``; discrete models only."""
+        return self._discrete("Gamma", self.B)
+
+    def _discrete(self, name: str, value: jax.Array) -> jax.Array:
+        if self.dt is None:
+            raise AttributeError(f"{name} is the matrix of a discrete model; this one is continuous (dt=None): use "
+                                 "A and B, or discretise it with c2d")  # fmt: skip
+        return value
 
     @property
     def n_states(self) -> int:
@@ -204,7 +222,7 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
     return StateSpace(*matrices, h)
 
 
-@functools.partial(jax.jit, static_argnames=("h", "n_delay"))
+@functools.partial(jit, static_argnames=("h", "n_delay"), what="c2d")
 def _c2d_matrices(A, B, C, D, tau, *, h: float, n_delay: int):
     """The numerical part of :func:`c2d` (compiled once per shape: eager calls cost one dispatch)."""
     dtype = A.dtype

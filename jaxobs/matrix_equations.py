@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs._linalg import is_positive_definite, is_positive_semidefinite, small_solve, solve_spd, symmetrize
 from jaxobs.lti import unobservable_modes
 
@@ -379,7 +380,7 @@ def _control_dare_jvp(max_iters, primals, tangents):
     return (X, residual, found), (dX, jnp.zeros_like(residual), no_tangent)
 
 
-@partial(jax.jit, static_argnames=("max_iters", "tol"))
+@partial(jit, static_argnames=("max_iters", "tol"), what="dare (behind dlqr, dlqe and the steady-state filters)")
 def _solve(A, B, Q, R, *, max_iters: int, tol: float) -> DareSolution:
     """The control DARE ``X = A'XA - A'XB (R + B'XB)^{-1} B'XA + Q`` (``scipy.linalg.solve_discrete_are``'s
     form), compiled once per shape so that eager calls cost one dispatch. ``converged`` also needs the
@@ -772,7 +773,7 @@ def _care_jvp(max_iters, primals, tangents):
     return (X, residual, found), (dX, jnp.zeros_like(residual), no_tangent)
 
 
-@partial(jax.jit, static_argnames=("max_iters", "tol"))
+@partial(jit, static_argnames=("max_iters", "tol"), what="care (behind lqr and lqe)")
 def _solve_care_jit(A, B, Q, R, *, max_iters: int, tol: float) -> CareSolution:
     """:func:`care`'s numerical core, compiled once per shape; ``converged`` also needs the residual below ``tol``."""
     X, residual, found = _care(A, B, Q, R, max_iters)

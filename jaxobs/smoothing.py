@@ -231,7 +231,7 @@ def _parallel_filter(params: KalmanParams, y, u_prev):
     n, dtype, T = params.Phi.shape[-1], params.Phi.dtype, y.shape[0]
     y = y.astype(dtype)
     offsets = jnp.zeros((T, n), dtype) if u_prev is None else u_prev.astype(dtype) @ params.Gamma.T
-    first = update(params.x0, params.P0, params.C, params.R, y[0])
+    first = update(params.x0, params.P0, params.C, params.R, y[0], joseph=params.joseph)
     zeros = jnp.zeros((n, n), dtype)
     head = _FilterElement(zeros, first.x, first.P, jnp.zeros((n,), dtype), zeros)
     rest = jax.vmap(_filter_element, (None, None, None, None, 0, 0))(
@@ -241,7 +241,9 @@ def _parallel_filter(params: KalmanParams, y, u_prev):
     posterior = jax.lax.associative_scan(jax.vmap(_filter_combine), elements)  # fn sees batches of pairs
     x_prior = jnp.concatenate([params.x0[None], posterior.b[:-1] @ params.Phi.T + offsets[1:]])
     P_prior = jnp.concatenate([params.P0[None], predict_covariance(posterior.C[:-1], params.Phi, params.Q)])
-    result = jax.vmap(update, (0, 0, None, None, 0))(x_prior, P_prior, params.C, params.R, y)
+    result = jax.vmap(partial(update, joseph=params.joseph), (0, 0, None, None, 0))(
+        x_prior, P_prior, params.C, params.R, y
+    )
     covariances = (result.P, P_prior) if params.output_covariance else ()
     outputs = KalmanOutputs(result.x, x_prior, result.innovation, result.K, jnp.ones((T,), bool), result.S,
                             result.log_likelihood, *covariances)  # fmt: skip

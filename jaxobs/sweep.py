@@ -34,6 +34,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from jaxobs._distributed import agree, from_process_0, lapack_guard
+from jaxobs._jit import Compiling
 from jaxobs._resources import (
     MAX_INDEX,
     Interrupted,
@@ -73,9 +74,12 @@ class SweepResult:
     Attributes:
       out_dir: the directory holding the results.  num_configs: configurations in the sweep.
       chunks_computed, chunks_reused: chunks computed in this call and found already written.
-      seconds: this call's wall time (compilation included).
+      seconds: this call's wall time from the compilation to the last chunk written (compilation included; the
+        caller's building of the sampler and evaluation, and any report, not).
       configs_per_second: configurations computed in this call over the time spent computing and writing them
         (compilation excluded; 0 if none).
+      compile_seconds: this call's tracing and compiling of the sweep step (part of ``seconds``; 0 when every
+        chunk was already written).
     """
 
     out_dir: Path
@@ -84,6 +88,7 @@ class SweepResult:
     chunks_reused: int
     seconds: float
     configs_per_second: float
+    compile_seconds: float = 0.0
 
 
 def config_key(seed: int, index) -> jax.Array:
@@ -402,10 +407,12 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     reused_rows = sum(e["rows"] for c, e in completed.items() if int(c) < num_chunks)
 
     devices, compiled, sharding, compile_seconds = jax.devices(), None, None, (old or {}).get("compile_seconds")
-    start = time.perf_counter()
+    start, compiled_now = time.perf_counter(), 0.0
     if todo.any():  # compile and size the step before writing anything
-        compiled, sharding, devices = _compile(row, devices, chunk_size)
-        compile_seconds = time.perf_counter() - start
+        what = f"the sweep step ({chunk_size} configurations per device, {len(devices)} device(s))"
+        with Compiling(_log, what) as timer:
+            compiled, sharding, devices = _compile(row, devices, chunk_size)
+        compile_seconds = compiled_now = timer.seconds
         try:
             _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
         except JobError as exc:
@@ -440,7 +447,8 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
             for tmp in [*(out_dir / "chunks").glob("*.tmp"), *out_dir.glob(f"{_MANIFEST}.*.tmp")]:
                 tmp.unlink()  # left by a killed run: this process holds the lock, so no other writer owns them
             _write_manifest(out_dir, manifest)
-        bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer))
+        bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer),
+                   desc=f"sweep (compiled in {compiled_now:.1f} s)")  # fmt: skip
         todo_chunks = [int(c) for c in np.flatnonzero(todo)]
         for first in range(0, len(todo_chunks), ndev):
             watch.check()
@@ -485,6 +493,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
         chunks_reused=num_chunks - int(todo.sum()),
         seconds=seconds,
         configs_per_second=computed_rows / compute_seconds if computed_rows else 0.0,
+        compile_seconds=compiled_now,
     )
 
 

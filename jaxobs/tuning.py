@@ -32,6 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxobs import _checks
 from jaxobs._distributed import agree, from_process_0, json_from_process_0, lapack_guard
+from jaxobs._jit import Compiling
 from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
 
 __all__ = [
@@ -324,6 +325,8 @@ class TuneResult(NamedTuple):
         included
       starts: one :class:`StartResult` per starting point
       screened: candidates scored by the screening (``theta0`` included), 0 without one
+      compile_seconds: this call's tracing and compiling of the gradient evaluation (part of ``seconds``; the
+        screening's scorer is compiled before it, logged at INFO level)
     """
 
     theta: dict
@@ -336,6 +339,7 @@ class TuneResult(NamedTuple):
     seconds: float
     starts: tuple = ()
     screened: int = 0
+    compile_seconds: float = 0.0
 
     @property
     def converged(self) -> bool:
@@ -447,23 +451,26 @@ def _host(tree):
 
 
 def _compile_spread(build: Callable, batch, theta, what: str, hint: str, alone=None):
-    """``(compiled, placed batch, mesh)``: ``build(mesh) -> fn(theta, batch)`` compiled over every device of every
-    process (:func:`_jit`, memory checked by :func:`jaxobs._resources.compile_checked`), or over one device per
-    process when the program calls blocking CPU LAPACK kernels (:func:`jaxobs._distributed.lapack_guard`).
-    ``alone``: the program already lowered for a single device, used when there is one."""
+    """``(compiled, placed batch, mesh, seconds)``: ``build(mesh) -> fn(theta, batch)`` compiled over every device
+    of every process (:func:`_jit`, memory checked by :func:`jaxobs._resources.compile_checked`), or over one device
+    per process when the program calls blocking CPU LAPACK kernels (:func:`jaxobs._distributed.lapack_guard`), in
+    ``seconds`` (logged at INFO level). ``alone``: the program already lowered for a single device, used when there
+    is one."""
     devices = jax.devices()
-    while True:
-        mesh = _mesh(devices)
-        placed = _place(batch, mesh)
-        if mesh is None and alone is not None:
-            lowered = alone
-        else:
-            lowered = _jit(build(mesh), mesh, (False, True)).lower(_host(theta), placed)
-        compiled = compile_checked(lowered, what, hint=hint)
-        fewer = lapack_guard(compiled, devices, logger)
-        if fewer is None:
-            return compiled, placed, mesh
-        devices = fewer
+    with Compiling(logger, what) as timer:
+        while True:
+            mesh = _mesh(devices)
+            placed = _place(batch, mesh)
+            if mesh is None and alone is not None:
+                lowered = alone
+            else:
+                lowered = _jit(build(mesh), mesh, (False, True)).lower(_host(theta), placed)
+            compiled = compile_checked(lowered, what, hint=hint)
+            fewer = lapack_guard(compiled, devices, logger)
+            if fewer is None:
+                break
+            devices = fewer
+    return compiled, placed, mesh, timer.seconds
 
 
 def gradient_mode(settings: TuneSettings, theta: dict) -> str:
@@ -701,7 +708,7 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
     """
     size = problem.batch_size(problem.train)
     chunk = {k: np.repeat(np.asarray(v)[None], CANDIDATE_CHUNK, 0) for k, v in _strong(problem.theta0).items()}
-    score, train, _ = _compile_spread(
+    score, train, _, _ = _compile_spread(
         lambda mesh: jax.vmap(_objective_fn(problem, settings, _spread(problem.losses, mesh, size)), in_axes=(0, None)),
         problem.train, chunk, f"{CANDIDATE_CHUNK} candidates' {size} training rollouts each",
         hint="use fewer training plants",
@@ -859,7 +866,9 @@ def tune(
             error = exc
     _agree(error)
     evaluation = _evaluations(problem, settings, None)[0]
-    lowered = _lower_gradient(evaluation, thetas, problem.train, mode)  # the fingerprint's program
+    what = f"one evaluation of the {batch} training rollouts at {count} start(s), {mode}-mode gradient"
+    with Compiling(logger, f"{what} (tracing)") as tracing:
+        lowered = _lower_gradient(evaluation, thetas, problem.train, mode)  # the fingerprint's program
     given = "" if initial is None else json.dumps(_as_numpy(thetas))  # the starting points, when given
     fingerprint = _fingerprint(problem, settings, tag + given, lowered.as_text())
     if resume and meta.pop("fingerprint") != fingerprint:
@@ -890,11 +899,11 @@ def tune(
         logger.info("screened %d candidates: objective %.4g at theta0, best %s", report["screened"],
                     report["theta0"], ", ".join(f"{v:.4g}" for v in report["best"]))  # fmt: skip
         save(trees, meta, histories)
-    evaluate_with_grad, train, mesh = _compile_spread(
-        lambda mesh: _evaluations(problem, settings, mesh)[0], problem.train, trees["theta"],
-        f"one evaluation of the {batch} training rollouts at {count} start(s)",
+    evaluate_with_grad, train, mesh, compile_seconds = _compile_spread(
+        lambda mesh: _evaluations(problem, settings, mesh)[0], problem.train, trees["theta"], what,
         hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon", alone=lowered,
     )  # fmt: skip
+    compile_seconds += tracing.seconds
     sound_gradient = _evaluations(problem, settings, mesh)[1]
     sound_gradient = sound_gradient and _jit(sound_gradient, mesh, (False, True, False))  # compiled if ever needed
     objective = _objective_fn(problem, settings, _spread(problem.losses, mesh, batch))
@@ -906,8 +915,8 @@ def tune(
 
     update_step = _jit(jax.vmap(step_update, in_axes=(0, 0, 0, 0, None)), mesh, (False,) * 4 + (True,))
     named = (lambda k: f"start {k}: ") if count > 1 else (lambda k: "")
-    bar = tqdm(total=settings.steps, initial=meta["iterations"], desc="tune", disable=not (progress and writer),
-               unit="step")  # fmt: skip
+    bar = tqdm(total=settings.steps, initial=meta["iterations"], desc=f"tune (compiled in {compile_seconds:.1f} s)",
+               disable=not (progress and writer), unit="step")  # fmt: skip
     saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])
     with InterruptWatch() as watch:
         try:
@@ -1046,7 +1055,7 @@ def tune(
     return TuneResult(
         starts[best].theta, starts[best].objective, starts[best].history, starts[best].stopped,
         sum(s.evaluations for s in starts), (meta["screened"] + meta["iterations"] * count) * batch,
-        starts[best].diverged, meta["seconds"], starts, meta["screened"],
+        starts[best].diverged, meta["seconds"], starts, meta["screened"], compile_seconds,
     )  # fmt: skip
 
 
@@ -1142,7 +1151,7 @@ def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneS
     diverged)."""
     batch = problem.heldout if batch is None else batch
     size = problem.batch_size(batch)
-    compiled, placed, _ = _compile_spread(
+    compiled, placed, _, _ = _compile_spread(
         lambda mesh: _spread(problem.losses, mesh, size), batch, theta, f"the {size} rollouts of an evaluation",
         hint="use fewer plants",
     )  # fmt: skip

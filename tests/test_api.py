@@ -6,13 +6,17 @@ import dataclasses
 import doctest
 import importlib
 import inspect
+import os
 import pkgutil
 import re
+import subprocess
+import sys
 
 import pytest
 
 import jaxobs as jo
 import jaxobs.observers
+from tests import ROOT
 
 NAMES = [name for name in jo.__all__ if name != "__version__"]
 
@@ -90,3 +94,31 @@ def test_docstring_examples_run(name):
     for test in finder.find(obj, name, module=module, globs=dict(vars(module))):
         runner.run(test)
     assert runner.failures == 0, f"jo.{name}: {runner.failures} docstring example(s) failed (run pytest -s to see)"
+
+
+def _fresh(code: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
+                          check=True)  # fmt: skip
+
+
+def test_import_jaxobs_loads_names_on_first_use():
+    """``import jaxobs`` imports neither JAX nor a module of jaxobs; a name loads its module (and JAX), never MuJoCo,
+    matplotlib or SciPy's signal package (1-2 s of import that only MIMO placement needs)."""
+    heavy = ("jax", "jaxobs.lti", "jaxobs.mjx", "mujoco", "matplotlib", "scipy.signal", "optax", "pyarrow")
+    code = (f"import sys, jaxobs; print([m for m in {heavy!r} if m in sys.modules]); jaxobs.make_kalman; "
+            f"print([m for m in {heavy!r} if m in sys.modules])")  # fmt: skip
+    before, after = _fresh(code).stdout.splitlines()
+    assert before == "[]"
+    assert after == "['jax', 'jaxobs.lti']"
+    assert set(jo.__all__) <= set(dir(jo))
+    with pytest.raises(AttributeError, match="module 'jaxobs' has no attribute 'no_such_name'"):
+        jo.no_such_name  # noqa: B018
+    assert jo.observers is jaxobs.observers  # a submodule by attribute, as after an import
+
+
+def test_import_jaxobs_mjx_prints_nothing():
+    """mujoco.mjx's "Failed to import warp: No module named 'warp'" lines (the absent optional backend) are not
+    passed on."""
+    done = _fresh("import jaxobs.mjx")
+    assert (done.stdout, done.stderr) == ("", "")

@@ -9,6 +9,7 @@ that subprocesses run exactly the same functions as this process.
 
 import importlib.util
 import json
+import logging
 import os
 import shutil
 import signal
@@ -110,10 +111,18 @@ def test_columns_dtypes_and_values_match_a_direct_vmap(reference):
     assert sorted(p.name for p in out.iterdir()) == [".jaxobs.lock", "chunks", "manifest.json"]  # no temporaries
 
 
-def test_chunk_size_does_not_change_results(reference, tmp_path):
-    result = _run(tmp_path, chunk_size=300)
+def test_chunk_size_does_not_change_results(reference, tmp_path, caplog):
+    """(Another chunk size compiles another step: the sweep says so at INFO level, and reports its seconds as part
+    of the call's.)"""
+    with caplog.at_level(logging.INFO, logger="jaxobs.sweep"):
+        result = _run(tmp_path, chunk_size=300)
     assert result.chunks_computed == 4
     _assert_same(load_results(tmp_path), reference[1])
+    said = [r.getMessage() for r in caplog.records if r.name == "jaxobs.sweep"]
+    assert said[:2] == ["compiling the sweep step (300 configurations per device, 1 device(s)) ...",
+                        f"compiled the sweep step (300 configurations per device, 1 device(s)) in "
+                        f"{result.compile_seconds:.1f} s"]  # fmt: skip
+    assert 0 < result.compile_seconds <= result.seconds
 
 
 def test_resume_recomputes_missing_truncated_and_corrupt_chunks(reference, tmp_path, caplog):

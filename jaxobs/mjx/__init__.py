@@ -10,8 +10,21 @@ Importing this package imports ``mujoco.mjx``; ``import jaxobs`` does not. The m
 simplifications: docs/theory/mjx.md.
 """
 
-from jaxobs.mjx import common, compliant_6dof, estimation, robot
-from jaxobs.mjx.force_1dof import (
+import contextlib
+import io
+import re
+import sys
+
+# mujoco.mjx prints "Failed to import warp: No module named 'warp'" (and the same for mujoco_warp) on import when
+# the optional package for its warp backend is absent; that reads as an error on every run that does not use the
+# backend. Only those two lines are dropped: anything else it prints (a warp install that fails) still shows.
+_WARP_ABSENT = re.compile(r"Failed to import (mujoco_)?warp: No module named '(mujoco_)?warp(\.[\w.]*)?'$")
+with contextlib.redirect_stdout(io.StringIO()) as _printed:
+    import mujoco.mjx  # noqa: F401
+sys.stdout.write("".join(line + "\n" for line in _printed.getvalue().splitlines() if not _WARP_ABSENT.match(line)))
+
+from jaxobs.mjx import common, compliant_6dof, estimation, robot  # noqa: E402 (after the quiet import)
+from jaxobs.mjx.force_1dof import (  # noqa: E402
     CONTROL_PERIOD,
     SUBSTEPS,
     ClosedLoopRollout,

@@ -3,14 +3,18 @@
 A :class:`Robot` (:func:`make_robot`) names what a controller sees of a model: the actuators it drives, the
 sensors it measures, the control period, the dead time, the sensor noise and an operating point, in whose
 deviations the controller works. :func:`linearize` gives the discrete ``(Phi, Gamma, C)`` by ``jax.jacfwd`` of
-``mjx.step``, :func:`mismatch` scales named model fields (``body_mass[payload]``, ...), and :func:`rollout` runs any
+``mjx.step`` (warning when the operating point is not an equilibrium), :func:`holding_ctrl` the control that holds a
+pose at rest, :func:`mismatch` scales named model fields (``body_mass[payload]``, ...), and :func:`rollout` runs any
 controller in one ``lax.scan``. Forward-mode gradients always work; reverse mode needs the model's constraint
 solver off. The requirements and the differentiation notes: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import warnings
+from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -21,12 +25,13 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs.lti import StateSpace, ss
 from jaxobs.mjx import estimation
 from jaxobs.mjx.common import check_solver_iterations, dead_time_step, put_model
 from jaxobs.observers.base import Controller, ControllerInputs
 
-__all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "linearize", "mismatch", "rollout"]
+__all__ = ["Robot", "RobotRollout", "load_mjcf", "make_robot", "holding_ctrl", "linearize", "mismatch", "rollout"]
 
 
 @jax.tree_util.register_dataclass
@@ -165,6 +170,65 @@ def make_robot(
                  float(m.opt.timestep), solver_iterations)  # fmt: skip
 
 
+def holding_ctrl(mjcf, qpos=None) -> np.ndarray:
+    """The control of every actuator (nu,) that holds the pose ``qpos`` at rest: the ``ctrl0`` of an operating
+    point that is not an equilibrium by itself (a pose against gravity, a spring or a contact).
+
+    MuJoCo's inverse dynamics (``mj_inverse`` at zero velocity and acceleration) gives the generalised force
+    ``f`` the pose needs; the actuators' force is affine in the control, ``J ctrl + b`` (nv,), and ``ctrl`` is
+    the least-squares solution of ``J ctrl + b = f`` (the smallest one when several actuators share a joint).
+
+    Args:
+      mjcf: path, XML text or ``mujoco.MjModel`` (see :func:`load_mjcf`).
+      qpos: (nq,) the pose (default: the model's ``qpos0``).
+
+    Raises:
+      ValueError: when the actuators cannot produce ``f`` (a loaded joint without an actuator, fewer actuators
+        than loaded directions), naming the joints left unheld, or when ``ctrl`` lies outside an actuator's
+        ``ctrlrange``.
+
+    Example:
+      >>> from jaxobs.mjx import estimation, robot
+      >>> mj_model, _ = estimation.load_cartpole()
+      >>> robot.holding_ctrl(mj_model, [0.0, 0.0]).round(6).tolist()  # the hanging pole rests without a push
+      [0.0]
+    """
+    m = load_mjcf(mjcf)
+    estimation.check_model(m, sensors=False)
+    pose = np.asarray(m.qpos0 if qpos is None else qpos, float)
+    if pose.shape != (m.nq,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"qpos must be {m.nq} finite entries (one per qpos), got {pose.tolist()}")
+    data = mujoco.MjData(m)
+    data.qpos[:] = pose
+    mujoco.mj_inverse(m, data)
+    needed = data.qfrc_inverse.copy()
+    free = copy.copy(m)  # the control unclamped, to read the affine map off unit controls
+    free.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL
+    forces = []
+    for ctrl in np.vstack([np.zeros(m.nu), np.eye(m.nu)]):
+        data.ctrl[:] = ctrl
+        mujoco.mj_forward(free, data)
+        forces.append(data.qfrc_actuator.copy())
+    b, J = forces[0], np.array(forces[1:]).T.reshape(m.nv, m.nu) - forces[0][:, None]
+    ctrl = np.linalg.lstsq(J, needed - b, rcond=None)[0]
+    residual = np.abs(J @ ctrl + b - needed)
+    unheld = np.flatnonzero(residual > 1e-6 * max(1.0, np.max(np.abs(needed))))
+    joints = _names(m, mujoco.mjtObj.mjOBJ_JOINT, m.njnt)
+    if unheld.size:
+        shown = ", ".join(f"{joints[m.dof_jntid[i]]!r} ({residual[i]:.3g} unheld)" for i in unheld)
+        raise ValueError(
+            f"the actuators cannot hold this pose at rest: no control produces the force it needs on joint {shown}; "
+            "choose a pose that is an equilibrium there, or actuate those joints"
+        )
+    low, high = m.actuator_ctrlrange.T
+    outside = [i for i in range(m.nu) if m.actuator_ctrllimited[i] and not low[i] <= ctrl[i] <= high[i]]
+    if outside:
+        names = _names(m, mujoco.mjtObj.mjOBJ_ACTUATOR, m.nu)
+        shown = ", ".join(f"{names[i]!r} needs {ctrl[i]:.4g}, range [{low[i]:g}, {high[i]:g}]" for i in outside)
+        raise ValueError(f"the actuators cannot hold this pose at rest: outside ctrlrange: {shown}")
+    return ctrl
+
+
 # --------------------------------------------------------------------------------------------
 # Transition and measurement in the controller's coordinates
 
@@ -188,13 +252,39 @@ def _operating_state(robot: Robot, qpos0=None, qvel0=None):
     return jnp.concatenate([qpos, qvel])
 
 
-@jax.jit
+@partial(jit, what="linearize")
 def _jacobians(robot: Robot, x0):
-    """``(Phi, Gamma, C)`` of one control period at ``x0`` (compiled once per robot structure)."""
+    """``(Phi, Gamma, C, drift)`` of one control period at ``x0`` (compiled once per robot structure); ``drift``
+    (nq + nv,) is the transition's constant term ``f(x0, 0) - x0``, zero at an equilibrium."""
     u0 = jnp.zeros(len(robot.actuators), x0.dtype)
-    both = lambda x, u: (_step(robot, robot.model, x, u, jnp.zeros((), x0.dtype)), _sense(robot, robot.model, x))
-    (Phi, Gamma), (C, _) = jax.jacfwd(both, argnums=(0, 1))(x0, u0)  # one forward pass: x and u tangents
-    return Phi, Gamma, C
+
+    def both(x, u):
+        x_next = _step(robot, robot.model, x, u, jnp.zeros((), x0.dtype))
+        return (x_next, _sense(robot, robot.model, x)), x_next - x
+
+    ((Phi, Gamma), (C, _)), drift = jax.jacfwd(both, argnums=(0, 1), has_aux=True)(x0, u0)  # x and u tangents
+    return Phi, Gamma, C, drift
+
+
+def _warn_unless_equilibrium(robot: Robot, drift) -> None:
+    """Warn when a concrete ``drift`` (the state's change over one period with ``u = 0``) is not negligible."""
+    if isinstance(drift, jax.core.Tracer):
+        return
+    drift = np.asarray(drift)
+    tolerance = max(1e-6, 1000 * np.finfo(drift.dtype).eps)
+    i = int(np.argmax(np.abs(drift)))
+    if abs(drift[i]) <= tolerance:
+        return
+    nq = robot.qpos0.shape[0]
+    joint = mjx.id2name(robot.model, mujoco.mjtObj.mjOBJ_JOINT, int(np.asarray(robot.model.dof_jntid)[i % nq]))
+    warnings.warn(
+        f"linearize: the operating point is not an equilibrium: with u = 0 one control period changes "
+        f"{'qpos' if i < nq else 'qvel'}[{i % nq}] (joint {joint!r}) by {drift[i]:.3g}; the linear model drops this "
+        "drift, so a design on it regulates towards a point the robot does not rest at. Hold the pose with "
+        "ctrl0=holding_ctrl(mjcf, qpos0), or linearise about a rest pose.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
 
 
 def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
@@ -207,27 +297,29 @@ def linearize(robot: Robot, qpos0=None, qvel0=None, ctrl0=None) -> StateSpace:
 
     With a dead time ``d > 0`` the state is augmented with the commands in flight, ``[dx, u_{k-d}, ...,
     u_{k-1}]`` (oldest first, as :func:`jaxobs.lti.c2d`): ``n = nq + nv + d m``. The operating point should be
-    an equilibrium (the transition's constant term is dropped). ``ctrl0`` (nu,) replaces the robot's operating
-    control.
+    an equilibrium: the transition's constant term is dropped, and a ``RuntimeWarning`` (eager calls) names the
+    joint that drifts when one period moves the state by more than 1e-6 (:func:`holding_ctrl` gives the
+    ``ctrl0`` that holds a pose). ``ctrl0`` (nu,) replaces the robot's operating control.
 
     Returns:
-      :class:`jaxobs.lti.StateSpace` with ``A = Phi``, ``B = Gamma``, ``C``, ``D = 0`` and ``dt`` the control
-      period; the nominal model a linear controller is designed on. Pure and traceable (a mismatched model:
-      ``dataclasses.replace(robot, model=mismatch(robot.model, scales))``); the Jacobians are compiled once per
-      robot structure, so later eager calls are one dispatch.
+      :class:`jaxobs.lti.StateSpace`: ``Phi`` (n, n), ``Gamma`` (n, m) and ``C`` (p, n) (also its ``A``, ``B``),
+      ``D = 0`` and ``dt`` the control period; the nominal model a linear controller is designed on. Pure and
+      traceable (a mismatched model: ``dataclasses.replace(robot, model=mismatch(robot.model, scales))``); the
+      Jacobians are compiled once per robot structure, so later eager calls are one dispatch.
 
     Example:
       >>> from jaxobs.mjx import estimation, robot
       >>> arm = robot.make_robot(estimation.load_cartpole()[0], ["push"], ["cart_position"], substeps=2, dead_time=1)
       >>> lin = robot.linearize(arm)
-      >>> lin.A.shape, lin.B.shape, lin.C.shape
+      >>> lin.Phi.shape, lin.Gamma.shape, lin.C.shape
       ((5, 5), (5, 1), (1, 5))
     """
     if ctrl0 is not None:
         ctrl0 = _checks.vector("ctrl0", ctrl0, robot.ctrl0.shape[0], robot.ctrl0.dtype, what="one entry per actuator")
         robot = dataclasses.replace(robot, ctrl0=ctrl0)
     x0 = _operating_state(robot, qpos0, qvel0)
-    Phi, Gamma, C = _jacobians(robot, x0)
+    Phi, Gamma, C, drift = _jacobians(robot, x0)
+    _warn_unless_equilibrium(robot, drift)
     d, (n, m) = robot.dead_time, Gamma.shape
     if d:
         slots = d * m
@@ -315,15 +407,19 @@ def mismatch(model: mjx.Model, scales: dict) -> mjx.Model:
 
 
 class RobotRollout(NamedTuple):
-    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time).
+    """Per control step ``k`` of :func:`rollout` (time ``k h``; leading axis: time ``T = steps``).
+
+    The state is absolute, the measurements and commands are the controller's: deviations from the operating
+    point (``y`` from ``s(x0)``, ``u`` from ``ctrl0``).
 
     Attributes:
-      x: (T, nq + nv) the plant state (qpos, qvel) at k h (absolute)
-      y: (T, p) measurement the controller read: deviation from the operating point plus noise
-      y_true: (T, p) the noise-free deviation
-      u: (T, m) the controller's command u_k
-      applied: (T, m) the command acting during period k, u_{k-d}
-      controller: the controller's outputs per step
+      x: (T, nq + nv) the plant state ``(qpos, qvel)`` at ``k h``, absolute (``x - (qpos0, qvel0)`` is the
+        deviation the linearisation's state holds).
+      y: (T, p) the measurement the controller read, ``s(x(k h)) - s(x0) + v_k``: a deviation, noise included.
+      y_true: (T, p) the same deviation without the noise.
+      u: (T, m) the controller's command ``u_k``, added to ``ctrl0`` on the named actuators.
+      applied: (T, m) the command acting during period ``k``, ``u_{k-d}`` (zeros for the first ``d`` periods).
+      controller: the controller's outputs per step (its ``out`` pytree, each leaf with the leading axis T).
     """
 
     x: jax.Array

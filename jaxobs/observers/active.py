@@ -22,6 +22,7 @@ import numpy as np
 from jax.scipy.special import erf, erfinv
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs._linalg import symmetrize
 from jaxobs.kalman_steps import kalman_gain, predict, update
 from jaxobs.lti import StateSpace
@@ -469,7 +470,7 @@ def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_fl
     return with_steady_state_gains(params) if _checks.boolean("steady_state", steady_state) else params
 
 
-@partial(jax.jit, static_argnames=("order",))
+@partial(jit, static_argnames=("order",), what="make_aob")
 def _assemble(A, B, C, G_d, Q, q_plant, q_active, active, *, order: int):
     """The augmented model (eq. 30-48), its ``Q`` (eq. 51-53, unless given) and the default prior: the papers'
     ``P_{-1} = Q_0`` with the switch applied, advanced one step (switched off: the CKF's prior). One compiled
@@ -544,7 +545,7 @@ def _exactly_known_states(Phi, Q, P0):
     return jax.lax.fori_loop(0, Phi.shape[-1], shrink, known)
 
 
-@partial(jax.jit, static_argnames=("n_plant",))
+@partial(jit, static_argnames=("n_plant",), what="make_aob (steady state)")
 def _steady_state_gains(Phi, C, Q, R, P0, *, n_plant: int):
     """``(gain, gain_passive, solutions, masks)`` of :func:`with_steady_state_gains`: the AOB's and the embedded
     plant's filter DAREs in one ``vmap``, each on the states in its row of ``masks`` (the others exactly known or

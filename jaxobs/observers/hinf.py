@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxobs import _checks
+from jaxobs._jit import jit
 from jaxobs._linalg import is_positive_semidefinite, solve_spd, symmetrize
 from jaxobs.kalman_steps import predict, predict_covariance, update, update_covariance
 from jaxobs.matrix_equations import is_stable
@@ -293,7 +294,7 @@ def hinf_steady_state(Phi, C, Cz, Q, R, gamma, *, P_init=None, num_iters: int = 
     return _steady(Phi, C, Cz, Q, R, jnp.asarray(gamma, dtype), P_init, num_iters=int(num_iters), tol=tol)
 
 
-@partial(jax.jit, static_argnames=("num_iters", "tol"))
+@partial(jit, static_argnames=("num_iters", "tol"), what="make_hinf (steady state)")
 def _steady(Phi, C, Cz, Q, R, gamma, P_init, *, num_iters, tol):
     dtype = P_init.dtype
 
@@ -409,7 +410,7 @@ def gamma_bisection(Phi, C, Q, R, *, Cz=None, P0=None, num_steps: int = 200, rto
     return _bisect(Phi, C, Cz, Q, R, P0, num_steps=num_steps, rtol=float(rtol), max_iters=max_iters)
 
 
-@partial(jax.jit, static_argnames=("num_steps", "rtol", "max_iters"))
+@partial(jit, static_argnames=("num_steps", "rtol", "max_iters"), what="make_hinf (gamma search)")
 def _bisect(Phi, C, Cz, Q, R, P0, *, num_steps, rtol, max_iters):
 
     def exists(gamma):

@@ -60,8 +60,11 @@ class KalmanParams:
       output_covariance: static; every step also outputs the a-posteriori and a-priori covariances ``P``,
         ``P_prior`` (what the smoothers need): ``2 T n^2`` more numbers over ``T`` steps (16 MB for ``n = 10``,
         ``T = 10^4`` in float64). Time-varying gain only (a fixed gain propagates no covariance).
-      joseph: static; the covariance update in Joseph form (default), else the standard form, faster and
-        positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
+      joseph: static; ``False`` (default): the standard-form covariance update ``P1 - K S K'`` (symmetrised), as
+        dynamax; ``True``: the Joseph form, positive semidefinite by construction, for measurements far more
+        precise than the prior, where the standard form's difference cancels and can lose definiteness
+        (:func:`jaxobs.kalman_steps.update_covariance_factors`). The Joseph form costs up to 1.7x the time per step
+        (docs/estimation.md).
     """
 
     Phi: jax.Array
@@ -74,7 +77,7 @@ class KalmanParams:
     gain: jax.Array | None = None
     gain_converged: jax.Array | None = None
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
-    joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    joseph: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
 class KalmanState(NamedTuple):
@@ -120,7 +123,7 @@ class KalmanOutputs(NamedTuple):
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False,
-                joseph: bool = True) -> KalmanParams:  # fmt: skip
+                joseph: bool = False) -> KalmanParams:  # fmt: skip
     """Build and check :class:`KalmanParams`.
 
     Args:
@@ -128,8 +131,8 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       Gamma: (n, m) input matrix; ``None`` for a model without inputs.
       x0: (n,) prior mean of ``x_0`` (default zeros).  P0: (n, n) prior covariance of ``x_0`` (default ``Q``).
       steady_state: use the steady-state gain (:func:`with_steady_state_gain`).
-      joseph: the covariance update in Joseph form (default); ``False``: the standard form, fewer operations per
-        step, positive semidefinite only to rounding (:func:`jaxobs.kalman_steps.update_covariance_factors`).
+      joseph: ``False`` (default): the standard-form covariance update, one product per step; ``True``: the Joseph
+        form, for measurements far more precise than the prior (see :class:`KalmanParams`).
 
     All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
     becomes float64), so the filter's state keeps one dtype over a run.

@@ -78,6 +78,7 @@ def write_sweep_report(out_dir: Path, summary: dict, config: dict, result, figur
     figures) are written; returns it."""
     if result is not None:
         summary["seconds"] = result.seconds
+        summary["compile_seconds"] = result.compile_seconds
         summary["configs_per_second"] = result.configs_per_second
         summary["chunks_computed"] = result.chunks_computed
         summary["chunks_reused"] = result.chunks_reused
@@ -93,8 +94,9 @@ def _report_footer(summary: dict) -> str:
     lines = []
     if "seconds" in summary:
         lines += [
-            f"Run time {summary['seconds']:.1f} s ({summary['configs_per_second']:.3g} configurations/s; "
-            f"{summary['chunks_computed']} chunks computed, {summary['chunks_reused']} reused).",
+            f"Run time {summary['seconds']:.1f} s, {summary['compile_seconds']:.1f} s of it compiling the sweep step "
+            f"({summary['configs_per_second']:.3g} configurations/s after it; {summary['chunks_computed']} chunks "
+            f"computed, {summary['chunks_reused']} reused).",
             "",
         ]
     lines += [f"![{f}]({f})" for f in summary["figures"]]

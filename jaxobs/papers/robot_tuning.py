@@ -84,7 +84,8 @@ CONFIG_NOTES = {
     "robot.dead_time": "command dead time in control periods",
     "robot.sensor_noise": "standard deviation of the true sensors' noise, one per measured sensordata entry",
     "robot.qpos0": "operating point (qpos) to linearise about and regulate around; empty: the model's qpos0",
-    "robot.ctrl0": "operating-point control of every actuator; empty: zero",
+    "robot.ctrl0": "operating-point control of every actuator; empty: zero (a qpos0 that gravity or a spring moves "
+    "needs the control that holds it: jaxobs.mjx.robot.holding_ctrl)",
     "robot.solver_iterations": "constraint-solver iterations per physics step of a model with contacts, limits or "
     "equalities (a fixed loop that reverse mode differentiates); 0: MJX's solver to its tolerance (forward mode only)",
     "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
@@ -108,7 +109,9 @@ CONFIG_NOTES = {
     "design.q_input": "process noise variance of the commands in flight (dead-time states), one per actuator: an "
     "input disturbance; empty: 0 (exact commands; the cholesky parameterisation needs > 0 with a dead time)",
     "design.q_active": "hand-set variance of the active state's increment per control period, one per actuator (AOB)",
-    "design.lqr_state": "LQR state weights of (qpos, qvel)",
+    "design.lqr_state": "LQR state weights: one per qpos and qvel entry (the commands in flight weighted 0), or one "
+    "per state of the linearised model (qpos, qvel, then the dead-time commands, oldest first: the count "
+    "jaxobs.design.dlqr takes)",
     "design.lqr_input": "LQR input weights, one per actuator",
 }
 
@@ -150,8 +153,6 @@ def _check(config: dict, source: str) -> None:
     if d["parameterisation"] == "cholesky" and rb["dead_time"] and not all(v > 0 for v in d["q_input"] or [0]):
         fail(source, "design.q_input", "the cholesky parameterisation needs a positive variance per actuator for "
              "the dead-time states (a full Q must be positive definite)")  # fmt: skip
-    if len(d["q"]) != len(d["lqr_state"]):
-        fail(source, "design.q", "needs as many entries as design.lqr_state (one per qpos and qvel)")
     for key in ("design.q", "design.lqr_input", "robot.sensor_noise"):
         if any(v <= 0 for v in config[key.split(".")[0]][key.split(".")[1]]):
             fail(source, key, "must be positive")
@@ -164,7 +165,7 @@ def lqg_params(lin, Q, R, L, N):
     """The params of :data:`LQG`: the steady-state Kalman filter of the linear model ``lin`` (a
     :class:`jaxobs.lti.StateSpace`) with the noise covariances ``Q``, ``R``, and the state feedback ``L`` with the
     reference pre-gain ``N``."""
-    est = kalman.make_kalman(lin.A, lin.C, Q, R, Gamma=lin.B, steady_state=True)
+    est = kalman.make_kalman(lin.Phi, lin.C, Q, R, Gamma=lin.Gamma, steady_state=True)
     return feedback.FeedbackParams(est, L, N)
 
 
@@ -201,11 +202,16 @@ def build_problem(config: dict) -> TuningProblem:
     robot = _robot(config)
     sc, d = config["scenario"], config["design"]
     n_x, p, m = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors), len(robot.actuators)
+    n = n_x + robot.dead_time * m
     for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),
                             ("design.q", n_x, "qpos and qvel entry")):  # fmt: skip
         section, name = key.split(".")
         if len(config[section][name]) != size:
             raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
+    if len(d["lqr_state"]) not in (n_x, n):
+        raise ValueError(f"design.lqr_state: needs one weight per qpos and qvel entry ({n_x}) or per state of the "
+                         f"linearised model ({n}: qpos, qvel, then {robot.dead_time} x {m} commands in flight), got "
+                         f"{len(d['lqr_state'])}")  # fmt: skip
     aob = d["observer"] == "aob"
     q_input = jnp.tile(jnp.asarray(d["q_input"] or [0.0] * m, float), robot.dead_time)
     hand_set = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
@@ -228,11 +234,10 @@ def build_problem(config: dict) -> TuningProblem:
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
-    n = lin.n_states
-    pad = lambda v: jnp.concatenate([jnp.asarray(v, float), jnp.zeros(n - n_x)])
-    L, _, _ = design.dlqr(lin.A, lin.B, jnp.diag(pad(d["lqr_state"])), jnp.diag(jnp.asarray(d["lqr_input"], float)))
+    lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
+    L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
     rows = _tracked_rows(robot, config)
-    N = design.reference_gain(ss(lin.A, lin.B, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
+    N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
     steps = max(1, int(round(sc["duration"] / robot.period)))
     reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
     desired = ideal_response(lin, L, reference @ N.T)  # (steps, p): the LQR with the true state, nominal model

@@ -30,17 +30,10 @@ from jaxobs.tuning import batch_objective, evaluate, random_search, tune
 __all__ = ["run"]
 
 
-def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
-    """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``,
-    which empties it (all but the lock the caller holds)."""
+def _refuse_another_run(out: Path, tag: str, overwrite: bool) -> None:
+    """Refuse to mix runs: ``out`` may hold only a run of the same configuration (resumed) unless ``overwrite``."""
     marker = out / "config.json"
-    if overwrite:
-        for entry in out.iterdir():
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry)
-            elif entry.name != LOCK_NAME:
-                entry.unlink()
-    elif marker.exists():
+    if not overwrite and marker.exists():
         try:
             previous = json.loads(marker.read_text())
         except (OSError, ValueError) as exc:
@@ -49,7 +42,17 @@ def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
             raise ConfigError(f"{marker}: not a jaxobs tune record (no tag); use --overwrite to start over")
         if previous["tag"] != tag:
             raise ConfigError(f"{out} holds a tuning run of another configuration; use --overwrite or another --out")
-    atomic_write(marker, (json.dumps({"tag": tag, "config": config}, indent=2) + "\n").encode())
+
+
+def _prepare(out: Path, tag: str, config: dict, overwrite: bool) -> None:
+    """Mark ``out`` as the run of ``config``, emptied first (all but the lock the caller holds) when ``overwrite``."""
+    if overwrite:
+        for entry in out.iterdir():
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            elif entry.name != LOCK_NAME:
+                entry.unlink()
+    atomic_write(out / "config.json", (json.dumps({"tag": tag, "config": config}, indent=2) + "\n").encode())
 
 
 def _box_position(theta: dict, box: dict) -> dict:
@@ -68,7 +71,9 @@ def run(scenario, config: dict, out_dir, *, progress: bool = True, overwrite: bo
 
     In a multi-process run (``jax.distributed.initialize``) every process makes the same call and computes its
     devices' share of every batch of rollouts; process 0 alone locks and writes ``out_dir`` and returns the
-    summary, the others return None (and need not see ``out_dir``)."""
+    summary, the others return None (and need not see ``out_dir``). The problem is built (its last checks: the
+    model's names and counts) before anything is written to ``out_dir``, so a config it refuses leaves no record
+    that would refuse the corrected one."""
     writer = jax.process_index() == 0
     tag = config_tag(config)
     with contextlib.ExitStack() as held:
@@ -76,21 +81,23 @@ def run(scenario, config: dict, out_dir, *, progress: bool = True, overwrite: bo
         try:
             if writer:
                 out = held.enter_context(locked_out_dir(out_dir))
-                _prepare(out, tag, config, overwrite)
+                _refuse_another_run(out, tag, overwrite)
         except JobError as exc:  # ConfigError included
             error = exc
         agree(error, bytes.fromhex(tag), job=f"the tuning run in {out_dir}", kind="tuning run",
               differs="their config files differ", error_type=ConfigError)  # fmt: skip
-        return _run(scenario, config, out, tag, progress, writer)
+        try:
+            problem = scenario.build(config)
+        except LimitError:  # named by the config key that sets the size (jaxobs.papers.scenarios)
+            raise
+        except ValueError as exc:  # e.g. an invalid MJCF
+            raise ConfigError(f"{config['problem']}: {exc}") from exc
+        if writer:
+            _prepare(out, tag, config, overwrite)
+        return _run(problem, config, out, tag, progress, writer)
 
 
-def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
-    try:
-        problem = scenario.build(config)
-    except LimitError:  # named by the config key that sets the size (jaxobs.papers.scenarios)
-        raise
-    except ValueError as exc:  # e.g. an invalid MJCF
-        raise ConfigError(f"{config['problem']}: {exc}") from exc
+def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
     settings = tuning_settings(config)
     result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
     designs = {"hand-set": problem.theta0, "tuned": result.theta}
@@ -102,6 +109,7 @@ def _run(scenario, config: dict, out: Path, tag: str, progress: bool, writer: bo
         "evaluations": result.evaluations,
         "rollouts": result.rollouts,
         "seconds_tune": result.seconds,
+        "compile_seconds_tune": result.compile_seconds,
         "train_objective": {"tuned": result.objective},
         "train_diverged": {"tuned": result.diverged},
         "starts": [

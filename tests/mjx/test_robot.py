@@ -2,6 +2,7 @@
 an LQG closed loop on the shipped payload cart, and gradients of a rollout (reverse and forward mode)."""
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -28,8 +29,8 @@ def cart():
 def _lqg(cart):
     """LQG on the nominal linearisation: the cart position follows r."""
     lin = rb.linearize(cart)
-    L, _, _ = design.dlqr(lin.A, lin.B, jnp.diag(jnp.array([10.0, 10.0, 1.0, 1.0, 0.0])), 0.01 * jnp.eye(1))
-    N = design.reference_gain(ss(lin.A, lin.B, lin.C[:1], dt=lin.dt), L)
+    L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(jnp.array([10.0, 10.0, 1.0, 1.0, 0.0])), 0.01 * jnp.eye(1))
+    N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[:1], dt=lin.dt), L)
     Q = jnp.diag(jnp.array([1e-6, 1e-6, 1e-4, 1e-4, 0.0]))
     return lqg_params(lin, Q, jnp.diag(jnp.asarray(NOISE) ** 2), L, N)
 
@@ -79,7 +80,8 @@ def test_linearize_matches_mujoco_finite_differences(cart):
     """Phi, Gamma, C by jax.jacfwd of mjx.step against MuJoCo's own centred finite differences
     (mjd_transitionFD) chained over the two physics steps, at a point off the equilibrium."""
     qpos, ctrl = np.array([0.1, 0.4]), np.array([1.5])
-    lin = rb.linearize(cart, qpos0=qpos, qvel0=np.array([0.2, -0.3]), ctrl0=ctrl)
+    with pytest.warns(RuntimeWarning, match="not an equilibrium"):
+        lin = rb.linearize(cart, qpos0=qpos, qvel0=np.array([0.2, -0.3]), ctrl0=ctrl)
     m = mujoco.MjModel.from_xml_path(str(XML))
     data = mujoco.MjData(m)
     data.qpos[:], data.qvel[:], data.ctrl[:] = qpos, [0.2, -0.3], ctrl
@@ -89,12 +91,42 @@ def test_linearize_matches_mujoco_finite_differences(cart):
     mujoco.mj_step(m, data)
     A2, B2 = np.zeros((4, 4)), np.zeros((4, 1))
     mujoco.mjd_transitionFD(m, data, 1e-7, True, A2, B2, None, None)
-    assert lin.A.shape == (5, 5) and lin.B.shape == (5, 1) and lin.C.shape == (2, 5)
-    np.testing.assert_allclose(lin.A[:4, :4], A2 @ A, atol=1e-6)
-    np.testing.assert_allclose(lin.A[:4, 4:], A2 @ B + B2, atol=1e-6)  # the command in flight acts next period
+    assert lin.Phi.shape == (5, 5) and lin.Gamma.shape == (5, 1) and lin.C.shape == (2, 5)
+    np.testing.assert_allclose(lin.Phi[:4, :4], A2 @ A, atol=1e-6)
+    np.testing.assert_allclose(lin.Phi[:4, 4:], A2 @ B + B2, atol=1e-6)  # the command in flight acts next period
     np.testing.assert_allclose(lin.C[:, :4], C, atol=1e-6)
-    np.testing.assert_array_equal(lin.B[:, 0], [0, 0, 0, 0, 1])
-    np.testing.assert_array_equal(lin.A[4], 0)
+    np.testing.assert_array_equal(lin.Gamma[:, 0], [0, 0, 0, 0, 1])
+    np.testing.assert_array_equal(lin.Phi[4], 0)
+
+
+ARM = ROOT / "examples" / "robots" / "arm_on_table.xml"
+
+
+def test_holding_ctrl_holds_a_pose_and_linearize_warns_about_one_it_does_not():
+    """The arm raised against gravity: the control of holding_ctrl leaves it at rest (qacc = 0 in MuJoCo), the
+    linearisation about it is silent, the one without it warns naming the drifting joint; an unactuated joint
+    under load (the payload cart's hinge) or a control outside ctrlrange cannot hold."""
+    pose = np.array([0.3, 0.5])
+    ctrl = rb.holding_ctrl(ARM, pose)
+    m = mujoco.MjModel.from_xml_path(str(ARM))
+    data = mujoco.MjData(m)
+    data.qpos[:], data.ctrl[:] = pose, ctrl
+    mujoco.mj_forward(m, data)
+    np.testing.assert_allclose(data.qacc, 0.0, atol=1e-9)
+    arm = rb.make_robot(ARM, ["shoulder_motor", "elbow_motor"], ["shoulder_angle", "elbow_angle"], qpos0=pose,
+                        ctrl0=ctrl, solver_iterations=4)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lin = rb.linearize(arm)
+    assert (lin.Phi.shape, lin.Gamma.shape, lin.C.shape) == ((4, 4), (4, 2), (2, 4))
+    assert lin.Phi is lin.A and lin.Gamma is lin.B
+    with pytest.warns(RuntimeWarning, match=r"changes qvel\[1\] \(joint 'elbow'\).*holding_ctrl"):
+        rb.linearize(arm, ctrl0=np.zeros(2))
+    with pytest.raises(ValueError, match="cannot hold this pose.*joint 'hinge'"):
+        rb.holding_ctrl(XML, [0.0, 0.3])
+    limited = ARM.read_text().replace('gear="1"/>', 'gear="1" ctrlrange="-1 1"/>')
+    with pytest.raises(ValueError, match="outside ctrlrange: 'shoulder_motor' needs 1.923"):
+        rb.holding_ctrl(limited, pose)
 
 
 @jax.jit

@@ -495,11 +495,13 @@ def test_make_kalman_rejects_bad_input():
 
 
 def test_standard_form_filter_equals_the_joseph_filter_under_jit_and_grad():
-    """``joseph=False`` runs the same filter (means, innovation covariances, log-likelihood to 1e-10), and under
-    jit its log-likelihood gradient in a Q scale equals the Joseph filter's (a static flag: the transformations
-    are those of the default filter, tested above)."""
+    """The default, ``joseph=False``, runs the same filter as ``joseph=True`` (means, innovation covariances,
+    log-likelihood to 1e-10), and under jit its log-likelihood gradient in a Q scale equals the Joseph filter's (a
+    static flag: the transformations are those of the default filter, tested above)."""
     model, u, y, _ = make_problem(12, T=25)
     inputs = inputs_of(u, y)
+    fields = ("Phi", "Gamma", "C", "Q", "R", "x0", "P0")
+    assert params_of(model).joseph is False and KalmanParams(*(model.get(k, 0) for k in fields)).joseph is False
 
     def log_likelihood(q, joseph):
         params = params_of(dict(model, Q=q * model["Q"]), joseph=joseph)

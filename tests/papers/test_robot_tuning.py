@@ -25,11 +25,12 @@ def test_shipped_config_file_validates_to_the_default():
 
 def test_full_covariances_start_at_the_hand_set_filter():
     """The Cholesky parameterisation of the hand-set Q (every filter state: qpos, qvel, command in flight, active
-    state) and R designs the same AOB as the log-diagonal one; it counts 21 + 3 free parameters."""
+    state) and R designs the same AOB as the log-diagonal one; it counts 21 + 3 free parameters. design.lqr_state
+    takes the (qpos, qvel) count or the linearised model's (the command in flight too), as dlqr does."""
     given = {"problem": robot_tuning.NAME, "scenario": {"duration": 0.1},
              "design": {"observer": "aob", "q_input": [1e-4], "q_active": [1e-2]}}  # fmt: skip
     diagonal = robot_tuning.build_problem(robot_tuning.PROBLEM.validate(given))
-    given["design"]["parameterisation"] = "cholesky"
+    given["design"].update(parameterisation="cholesky", lqr_state=[10.0, 10.0, 1.0, 1.0, 0.0])
     full = robot_tuning.build_problem(robot_tuning.PROBLEM.validate(given))
     assert {k: v.shape for k, v in full.theta0.items()} == {"q_cholesky": (6, 6), "r_cholesky": (2, 2)}
     assert sum(int(np.sum(hi > lo)) for lo, hi in full.search_box.values()) == 24
@@ -48,7 +49,6 @@ def test_full_covariances_start_at_the_hand_set_filter():
         ({"scenario": {"tracked": ["pole_tip"]}}, "scenario.tracked"),
         ({"scenario": {"reference": [0.5, 0.1]}}, "scenario.tracked"),
         ({"design": {"lqr_input": [0.01, 0.01]}}, "design.lqr_input"),
-        ({"design": {"q": [1e-6, 1e-6, 1e-4]}}, "design.q"),
         ({"robot": {"sensor_noise": [0.0, 0.1]}}, "robot.sensor_noise"),
         ({"design": {"observer": "luenberger"}}, "design.observer"),
         ({"design": {"parameterisation": "full"}}, "design.parameterisation"),
@@ -71,15 +71,23 @@ def test_bad_config_names_the_key(given, key):
         ('[robot]\nactuators = ["motor"]\n', "unknown actuator 'motor'; the model's actuators are: 'push'"),
         ('[plants.mismatch]\n"body_mass[load]" = [0.5, 2.0]\n', "unknown body 'load'; the model's bodies are: "),
         ('[plants.mismatch]\n"dof_dampin[hinge]" = [0.5, 2.0]\n', "'dof_dampin' is not a scalable model field"),
+        ("[design]\nq = [1e-6, 1e-6, 1e-4]\n", "design.q: needs one value per qpos and qvel entry (4), got 3"),
+        (
+            "[design]\nlqr_state = [10.0, 10.0, 1.0]\n",
+            "design.lqr_state: needs one weight per qpos and qvel entry (4) or per state of the linearised model (5: "
+            "qpos, qvel, then 1 x 1 commands in flight), got 3",
+        ),
     ],
 )
 def test_robot_errors_exit_2_with_the_reason(tmp_path, capsys, toml, message):
-    """Checked before anything compiles: the MJCF, the names in it and the mismatched fields."""
+    """Checked before anything compiles: the MJCF, the names in it, the mismatched fields and the counts the model
+    sets; nothing is written to the output directory, so the corrected config is not refused as another run's."""
     path = tmp_path / "robot.toml"
     path.write_text('problem = "own-robot"\n' + toml)
     assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+    assert not (tmp_path / "out" / "config.json").exists()
 
 
 def test_a_constrained_model_without_a_solver_count_is_refused_in_reverse_mode(tmp_path, capsys):
