@@ -18,6 +18,7 @@ import io
 import json
 import logging
 import math
+import os
 import platform
 import shutil
 import time
@@ -27,8 +28,12 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
+
+# pyarrow's default (jemalloc) pool can abort the interpreter at exit next to JAX's threads (apache/arrow#34314);
+# the system allocator does not. Set before pyarrow is first imported; a user's own setting wins.
+os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
+import pyarrow as pa  # noqa: E402
+import pyarrow.parquet as pq  # noqa: E402
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
