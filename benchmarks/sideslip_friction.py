@@ -63,8 +63,8 @@ def matched_vehicle(vehicle: VehicleParams, friction: float) -> VehicleParams:
     return dataclasses.replace(vehicle, tyre_front=scaled(vehicle.tyre_front), tyre_rear=scaled(vehicle.tyre_rear))
 
 
-def _run(observer_vehicle, y, vx0, always_on):
-    settings = {"vx0": vx0, **(ALWAYS_ON if always_on else {})}
+def _run(observer_vehicle, y, vx0, always_on, **nvso_settings):
+    settings = {"vx0": vx0, **(ALWAYS_ON if always_on else {}), **nvso_settings}
     params = make_nvso(observer_vehicle, **settings)
     state = nvso.init(params)
     if always_on:

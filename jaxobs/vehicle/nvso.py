@@ -3,9 +3,9 @@
 
 It estimates ``v_x``, ``v_y``, the friction scale ``theta``, the inclination and the bank with two modes, friction
 estimation off and on (2.18)-(2.27), switched by the logic of §2.5 (:mod:`jaxobs.vehicle.switching`), discretised
-by forward Euler at the sensor period (§2.8). ``smooth`` replaces every switch by a sigmoid gate so that gains and
-thresholds get gradients. :func:`make_nvso`, :data:`nvso`. The equations, the switches, the standstill guard and
-the departures from §2.8: docs/theory/vehicle.md.
+by forward Euler at the sensor period (§2.8), with the tyre-relaxation filter of §2.8 on the friction model's output.
+``smooth`` replaces every switch by a sigmoid gate so that gains and thresholds get gradients. :func:`make_nvso`,
+:data:`nvso`. The equations, the switches, the standstill guard and the departures from §2.8: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -47,7 +47,14 @@ class NVSOParams(NamedTuple):
         (m/s^2, rad/s, m/s^2, s, s).
       min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
         finite ``v_x,ref`` (m/s).
-      smooth: ``None`` (exact switches) or the gate sharpness (> 0).
+      relaxation_length: ``l_e`` of the tyre-relaxation filter (m, >= 0), Grip 2010 §2.8 (and §4.7): the friction
+        model's output (``a_y*`` and the yaw acceleration ``psi''*``) is filtered by ``1 / (T s + 1)`` with the
+        speed-dependent ``T = T_e + l_e / v_x_hat`` (Pacejka 2006, ch. 1; the thesis gives no values). The default
+        (0.5 in :class:`NVSOParams`; :func:`make_nvso` takes the vehicle's ``relaxation_length``) matches the
+        simulator's tyres (:class:`~jaxobs.vehicle.VehicleParams`, ``tan_alpha' = (v / l_relax)(tan_alpha_ss -
+        tan_alpha)``, the same lag ``l / v`` in the linear range). 0 (with ``relaxation_time`` 0) switches the filter
+        off: the model output is used as it is.
+      relaxation_time: ``T_e`` of the same filter (s, >= 0); 0 assumed (the simulator has no lag beyond ``l / v``).
     """
 
     vehicle: VehicleParams
@@ -77,6 +84,8 @@ class NVSOParams(NamedTuple):
     dt: jax.Array = _SWITCHING["dt"]
     vx0: jax.Array = 20.0
     smooth: jax.Array | None = None
+    relaxation_length: jax.Array = VehicleParams.relaxation_length
+    relaxation_time: jax.Array = 0.0
 
 
 _POSITIVE = (
@@ -84,7 +93,8 @@ _POSITIVE = (
     "accel_margin", "vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold", "off_delay", "high_pass_time",
     "min_speed", "dt",
 )  # fmt: skip
-_NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0")
+_NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0", "relaxation_length",
+                 "relaxation_time")  # fmt: skip
 
 
 def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
@@ -95,7 +105,8 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
       vehicle: the vehicle whose friction model the observer uses.
       settings: any field of :class:`NVSOParams` (``ValueError`` for an unknown one). Concrete values are checked:
         gains, thresholds and times positive (``ValueError`` naming the field); ``theta_min < theta_max``;
-        ``smooth`` ``None`` or positive.
+        ``smooth`` ``None`` or positive. ``relaxation_length`` defaults to ``vehicle.relaxation_length`` (the
+        filter of §2.8 matches the simulated tyres); pass 0 to switch the filter off.
 
     Example:
       >>> from jaxobs.vehicle import make_nvso
@@ -113,6 +124,7 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
     for name in _NON_NEGATIVE:
         if name in settings:
             _checks.positive(name, settings[name], allow_zero=True)
+    settings.setdefault("relaxation_length", vehicle.relaxation_length)
     params = NVSOParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
     if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
@@ -130,6 +142,7 @@ class NVSOState(NamedTuple):
       mode: () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
       off_timer: () time since the switching conditions last held (s)
       low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
+      relaxed: (2,) the friction model's output (a_y*, psi''*) after the tyre-relaxation filter (§2.8), at t_{k-1}
       y: (N_SENSORS,) last finite measurement (held over the next interval)
       started: () bool: a sample has been processed (the first step outputs the initial estimate)
       missing: () int32, non-finite sensor samples skipped so far
@@ -139,6 +152,7 @@ class NVSOState(NamedTuple):
     mode: jax.Array
     off_timer: jax.Array
     low_pass: jax.Array
+    relaxed: jax.Array
     y: jax.Array
     started: jax.Array
     missing: jax.Array
@@ -171,8 +185,8 @@ def _init(params: NVSOParams) -> NVSOState:
     y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / v.wheel_radius).at[VX_REF].set(vx0)
     x = jnp.stack([vx0, 0.0 * vx0, jnp.asarray(params.theta_default, dtype), 0.0 * vx0, 0.0 * vx0])
     zero = jnp.zeros((), dtype)
-    return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, y, jnp.zeros((), bool),
-                     jnp.zeros((), jnp.int32))  # fmt: skip
+    return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, jnp.zeros((2,), dtype), y,
+                     jnp.zeros((), bool), jnp.zeros((), jnp.int32))  # fmt: skip
 
 
 def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
@@ -193,7 +207,15 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
         f = friction_model(v, vx, vy, r, sw, omega, ax, ay)
         return jnp.stack([f.ay, f.yaw_moment / v.yaw_inertia])
 
-    (ay_star, yaw_acc_star), (xi, _) = jax.jvp(model, (vy,), (jnp.ones_like(vy),))
+    static, (xi, _) = jax.jvp(model, (vy,), (jnp.ones_like(vy),))
+    # tyre relaxation (Grip 2010 §2.8): the model output through 1 / (T s + 1), T = T_e + l_e / v_x, discretised
+    # exactly for the model output held over the interval and taken at its end (T = 0: no filter, alpha = 1).
+    # xi stays the static model's slope d a_y* / d v_y, the direction of the injection (2.24) and (2.27).
+    T = params.relaxation_time + params.relaxation_length / jnp.maximum(vx, params.min_speed)
+    alpha = -jnp.expm1(-dt / jnp.maximum(T, 1e-3 * dt))  # floor: alpha = 1 - e^-1000 = 1, finite gradients
+    alpha = jnp.where(state.started, alpha, 1.0)  # starts at the model's output at the (straight) initial estimate
+    relaxed = state.relaxed + alpha * (static - state.relaxed)
+    ay_star, yaw_acc_star = relaxed
     lam = jax.lax.rsqrt(jnp.maximum(xi**2 + ay_star**2, 1e-12))
     e = ay - theta * ay_star
 
@@ -241,7 +263,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     next_mode = jnp.where(first, state.mode, next_mode)
     timer = jnp.where(first, state.off_timer, timer)
     low_pass = jnp.where(first, y_now[AY] / roll - y_now[YAW_RATE] * y_now[VX_REF], low_pass)  # HP starts at 0
-    new_state = NVSOState(x, next_mode, timer, low_pass, y_now, jnp.ones((), bool), missing)
+    new_state = NVSOState(x, next_mode, timer, low_pass, relaxed, y_now, jnp.ones((), bool), missing)
     beta = jnp.arctan2(x[1], jnp.maximum(x[0], params.min_speed))
     outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
     return new_state, outputs
