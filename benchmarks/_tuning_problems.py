@@ -31,13 +31,16 @@ PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
 }
 
 
-def load_problem(label: str):
-    """``(problem, settings, config)`` of a shipped tuning problem."""
+def load_problem(label: str, spread: float | None = None):
+    """``(problem, settings, config)`` of a shipped tuning problem; ``spread`` replaces its ``baseline.spread`` (the
+    search box of the screening and of the baselines)."""
     registry = tuning_problems()
     path = PROBLEMS[label]
     given = load_toml(ROOT / path) if path else {}
     if "mjcf" in given.get("robot", {}):  # a path relative to the repository root, wherever this runs
         given["robot"]["mjcf"] = str(ROOT / given["robot"]["mjcf"])
+    if spread is not None:
+        given.setdefault("baseline", {})["spread"] = spread
     name = given.get("problem", next(iter(registry)))
     config = registry[name].validate({**given, "problem": name}, path or "defaults")
     return registry[name].build(config), tuning_settings(config), config

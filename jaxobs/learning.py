@@ -22,6 +22,7 @@ import optax
 
 from jaxobs import _checks
 from jaxobs._linalg import symmetrize
+from jaxobs.nonlinear import NonlinearModel
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.kalman import KalmanParams, kalman_filter
 from jaxobs.smoothing import log_likelihood, smooth
@@ -96,11 +97,20 @@ def _sample(params: KalmanParams, key, u_prev, *, num_steps: int):
     return x, x @ params.C.T + v
 
 
+def _sizes(params) -> tuple[int, int]:
+    """``(p, m)``: the outputs and inputs of the model of a linear estimator's params (``C``, ``Gamma``) or of a
+    nonlinear filter's (its :class:`~jaxobs.nonlinear.NonlinearModel` ``model``)."""
+    model = getattr(params, "model", None)
+    if isinstance(model, NonlinearModel):
+        return model.R.shape[-1], model.n_inputs
+    return params.C.shape[-2], params.Gamma.shape[-1]
+
+
 def _batched(params, inputs: EstimatorInputs, what: str = "inputs"):
     """``(y, u_prev)`` as (B, T, p) and (B, T, m) or None, shapes checked (static) against ``params``."""
     if not isinstance(inputs, EstimatorInputs):
         raise ValueError(f"{what} must be EstimatorInputs(y, u_prev), got {type(inputs).__name__}")
-    p, m = params.C.shape[-2], params.Gamma.shape[-1]
+    p, m = _sizes(params)
     y = jnp.asarray(inputs.y)
     if y.ndim == 2:
         y = y[None]
@@ -135,15 +145,35 @@ def negative_log_likelihood(estimator: Estimator, params, inputs: EstimatorInput
 
     Args:
       estimator: an estimator with a ``log_likelihood`` output (:data:`~jaxobs.observers.kalman.kalman_filter`,
-        :data:`~jaxobs.observers.kalman.square_root_kalman_filter`, :data:`~jaxobs.observers.active.active_observer`).
+        :data:`~jaxobs.observers.kalman.square_root_kalman_filter`, :data:`~jaxobs.observers.active.active_observer`,
+        :data:`~jaxobs.observers.ekf.extended_kalman_filter`, :data:`~jaxobs.observers.ukf.unscented_kalman_filter`).
       params: its params.
       inputs: ``EstimatorInputs`` with ``y`` (B, T, p) or (T, p) and ``u_prev`` (B, T, m), (T, m) or ``None``.
     """
     return _nll(estimator, params, *_batched(params, inputs))
 
 
+def _replace(obj, path: str, value):
+    """``obj`` with the field at the dotted ``path`` of nested dataclasses (``"Q"``, ``"model.Q"``) set to
+    ``value``."""
+    head, _, rest = path.partition(".")
+    return dataclasses.replace(obj, **{head: _replace(getattr(obj, head), rest, value) if rest else value})
+
+
+def _lookup(params, path: str):
+    """The field at the dotted ``path`` of ``params``, or ``None`` when it is not a field of nested dataclasses."""
+    value = params
+    for part in path.split("."):
+        if not (dataclasses.is_dataclass(value) and part in {f.name for f in dataclasses.fields(value)}):
+            return None
+        value = getattr(value, part)
+    return value
+
+
 def _replace_covariances(params, theta: dict):
-    return dataclasses.replace(params, **{name: cholesky_covariance(raw) for name, raw in theta.items()})
+    for name, raw in theta.items():
+        params = _replace(params, name, cholesky_covariance(raw))
+    return params
 
 
 def covariance_model(params, names=("Q", "R")):
@@ -154,16 +184,25 @@ def covariance_model(params, names=("Q", "R")):
     Args:
       params: the estimator's params (a dataclass with the fields ``names``, e.g.
         :class:`~jaxobs.observers.kalman.KalmanParams`).
-      names: the covariance fields to learn.
+      names: the covariance fields to learn; a dotted name reaches into a field, e.g. ``("model.Q", "model.R")``
+        for the :class:`~jaxobs.nonlinear.NonlinearModel` of :class:`~jaxobs.observers.ekf.EKFParams`.
+
+    Example:
+      >>> import jaxobs as jo
+      >>> model = jo.nonlinear_model(lambda x, u, t: jnp.sin(x), lambda x: x, [[0.1]], [[0.2]], x0=[0.0])
+      >>> build, theta0 = jo.covariance_model(jo.make_ekf(model), ("model.Q", "model.R"))
+      >>> sorted(theta0), bool(jnp.allclose(build(theta0).model.R, 0.2))
+      (['model.Q', 'model.R'], True)
     """
-    fields = {f.name for f in dataclasses.fields(params)}
-    unknown = [name for name in names if name not in fields]
+    values = {name: _lookup(params, name) for name in names}
+    unknown = [name for name, value in values.items() if value is None]
     if unknown or not names:
-        raise ValueError(f"names must be fields of {type(params).__name__}, got {list(names)}")
+        raise ValueError(f"names must be fields of {type(params).__name__} (dotted for nested ones, e.g. "
+                         f"'model.Q'), got {list(names)}")  # fmt: skip
     theta0 = {}
-    for name in names:
+    for name, value in values.items():
         try:
-            theta0[name] = cholesky_parameters(getattr(params, name))
+            theta0[name] = cholesky_parameters(value)
         except ValueError as exc:
             raise ValueError(f"params.{name}: {exc}") from exc
     return jax.tree_util.Partial(_replace_covariances, params), theta0
@@ -287,7 +326,8 @@ def fit(estimator: Estimator, build_params, theta0, inputs: EstimatorInputs, set
         _checks.finite("theta0", leaf)
     y, u = _batched(build(theta), inputs)
     step, optimizer = _stepper(estimator, settings)
-    state = optimizer.init(theta)
+    # strongly typed, as the step returns it (optax's L-BFGS starts with weakly typed counters): one compilation
+    state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), optimizer.init(theta))
     best, best_loss, since_best, stopped = theta, math.inf, 0, "steps"
     losses, norms = [], []
     bar = tqdm(total=settings.steps, desc="fit", disable=not progress, unit="step")

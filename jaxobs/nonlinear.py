@@ -4,7 +4,9 @@
 or continuous-discrete (``continuous=True``), with ``y_k = h(x_k) + v_k``. A Gaussian filter replaces each map by
 a :class:`Linearization` (Särkkä 2013, ch. 5-6) and takes the linear Kalman step of :mod:`jaxobs.kalman_steps`
 (:func:`gaussian_step`), with missing data, an optional innovation gate and iterated updates (Bell & Cathey 1993;
-García-Fernández et al. 2015). The equations: docs/theory/nonlinear.md.
+García-Fernández et al. 2015). Each step outputs its log-likelihood and, with ``output_covariance``, the
+linearised transition the extended and unscented RTS smoothers reuse (:func:`jaxobs.smoothing.smooth`; Särkkä
+2008, 2013). The equations: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -172,6 +174,14 @@ class GaussianOutputs(NamedTuple):
       x_prior: (n,) a-priori mean x_hat_{k|k-1}
       innovation: (p,) y_k - h_bar around the prior (0 for missing components)
       gain: (n, p) gain of the (last) update (zero columns for missing components)
+      log_likelihood: () log N(innovation; 0, S), ``S = H P_prior H' + R + Omega_h`` of the first linearisation
+        around the prior: the filter's predictive density of the observed components of ``y_k`` (0 when all
+        are missing or gated)
+      P_prior: (n, n) a-priori covariance P_{k|k-1} (with output_covariance, else None)
+      transition: (n, n) the linearised transition ``F_k`` of the prediction into sample ``k``, whose
+        cross-covariance ``Cov(x_{k-1}, x_k) = P_{k-1} F_k'`` the smoother needs: the Jacobian of ``f``
+        (EKF), the statistical linear regression matrix (UKF), the flow's sensitivity ``dPhi/dt = F Phi``
+        (continuous-discrete); the identity at the first sample (with output_covariance, else None)
     """
 
     x: jax.Array
@@ -179,6 +189,9 @@ class GaussianOutputs(NamedTuple):
     x_prior: jax.Array
     innovation: jax.Array
     gain: jax.Array
+    log_likelihood: jax.Array
+    P_prior: jax.Array | None = None
+    transition: jax.Array | None = None
 
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
@@ -199,27 +212,30 @@ def _inputs(model: NonlinearModel, inputs):
     return y, u
 
 
-def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t):
+def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t, transition: bool):
+    """``(m_prior, P_prior, F)``: the a-priori moments of the next sample and the linearised transition ``F``
+    (:class:`GaussianOutputs`; continuous-discrete only with ``transition``, else None)."""
     if not model.continuous:
         lin = linearize(lambda x: model.f(x, u, t), m, P)
         if lin.cov is not None:
-            return lin.mean, lin.cov + model.Q
+            return lin.mean, lin.cov + model.Q, lin.G
         Q = model.Q if lin.Omega is None else model.Q + lin.Omega
-        return lin.mean, predict_covariance(P, lin.G, Q)
+        return lin.mean, predict_covariance(P, lin.G, Q), lin.G
 
-    def moments(state, u, t):  # the moment equations dm/dt, dP/dt
-        m, P = state
+    def moments(state, u, t):  # dm/dt, dP/dt and, with transition, the sensitivity dPhi/dt = F Phi
+        m, P, *Phi = state
         lin = linearize(lambda x: model.f(x, u, t), m, P)
         FP = lin.G @ P
-        return lin.mean, FP + FP.T + model.Q
+        return (lin.mean, FP + FP.T + model.Q, *(lin.G @ S for S in Phi))
 
-    m, P = ct.integrate(moments, (m, P), u, t, model.dt, substeps=model.substeps, method=model.method)
-    return m, symmetrize(P)
+    start = (m, P, jnp.eye(m.shape[-1], dtype=m.dtype)) if transition else (m, P)
+    m, P, *Phi = ct.integrate(moments, start, u, t, model.dt, substeps=model.substeps, method=model.method)
+    return m, symmetrize(P), Phi[0] if transition else None
 
 
 def gaussian_step(
     linearize: Linearize, iterations: int, model: NonlinearModel, state: GaussianState, inputs, *,
-    bierman: bool = False, gate=None, joseph: bool = True,
+    bierman: bool = False, gate=None, joseph: bool = True, output_covariance: bool = False,
 ):  # fmt: skip
     """One step of the Gaussian filter with ``linearize`` (the equations of this module).
 
@@ -229,19 +245,21 @@ def gaussian_step(
         (:func:`jaxobs.kalman_steps.bierman_update`) instead of the Joseph form.
       gate: ``None`` or the innovation gate (standard deviations, > 0; the first linearisation's innovation).
       joseph: static; ``False``: the standard-form covariance update (:func:`jaxobs.kalman_steps.update`).
+      output_covariance: static; also output ``P_prior`` and ``transition`` (what the smoother needs).
       model: the :class:`NonlinearModel`.  state: the :class:`GaussianState` after sample ``k - 1``.
       inputs: ``EstimatorInputs(y, u_prev)`` of sample ``k``: (p,) and (m,) (``None`` without inputs).
 
     Returns:
-      ``(GaussianState, GaussianOutputs)`` of sample ``k``.
+      ``(GaussianState, GaussianOutputs)`` of sample ``k``; its ``log_likelihood`` is that of the first
+      linearisation of ``h`` (around the prior), the filter's predictive density of ``y_k``.
     """
     y, u = _inputs(model, inputs)
-    m_pred, P_pred = _predict(linearize, model, state.x, state.P, u, state.t)
+    m_pred, P_pred, F = _predict(linearize, model, state.x, state.P, u, state.t, output_covariance)
     first = ~state.started  # the prior is that of x_0: no prediction before the first update
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
     t = jnp.where(first, state.t, state.t + model.dt)
     x, P = m_prior, P_prior
-    innovation, gated = None, jnp.zeros((), jnp.int32)
+    first_update, gated = None, jnp.zeros((), jnp.int32)
     for i in range(iterations):
         lin = linearize(model.h, x, P)
         h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
@@ -257,8 +275,13 @@ def gaussian_step(
         else:
             result = update(m_prior, P_prior, lin.G, R, y, joseph=joseph, predicted=h_bar)
         x, P = result.x, result.P
-        if innovation is None:  # the innovation around the prior, y_k - h_bar(m_prior)
-            innovation = result.innovation
+        if first_update is None:  # the innovation and its density around the prior, y_k - h_bar(m_prior)
+            first_update = result
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = GaussianState(x, P, t, jnp.ones((), bool), missing, state.gated + gated)
-    return new_state, GaussianOutputs(x, P, m_prior, innovation, result.K)
+    covariances = ()
+    if output_covariance:
+        covariances = (P_prior, jnp.where(first, jnp.eye(x.shape[-1], dtype=x.dtype), F))
+    outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
+                              *covariances)  # fmt: skip
+    return new_state, outputs

@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks
 from jaxobs._linalg import solve_spd, symmetrize
@@ -74,8 +75,14 @@ def _smoother_combine(earlier: _SmootherElement, later: _SmootherElement) -> _Sm
 def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     """Rauch-Tung-Striebel smoother of a filtered record.
 
+    With a time-varying ``Phi`` it is the Gaussian RTS smoother of a nonlinear filter (Särkkä 2013, ch. 9-10;
+    Särkkä 2008): ``Phi[k]`` is the linearisation of the transition into sample ``k`` (the EKF's
+    Jacobian at ``x_{k-1|k-1}``, the UKF's sigma-point regression matrix), so ``P_{k-1} Phi[k]'`` is the
+    cross-covariance of ``x_{k-1}`` and ``x_k`` and ``E_{k-1} = P_{k-1} Phi[k]' P_prior_k^{-1}`` the gain.
+
     Args:
-      Phi: (n, n) the filter's state transition.
+      Phi: (n, n) the filter's state transition, or (T, n, n) with ``Phi[k]`` the transition from sample
+        ``k - 1`` to ``k`` (``Phi[0]`` unused): the ``transition`` outputs of a nonlinear filter.
       filtered: the filter's outputs over ``T`` samples with the fields ``x`` (T, n), ``P`` (T, n, n),
         ``x_prior`` (T, n) and ``P_prior`` (T, n, n): those of a Kalman-type estimator run with
         ``output_covariance=True`` (:func:`smooth` does both).
@@ -96,15 +103,20 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     _checks.shape("filtered.P", P, (T, n, n), "(T, n, n) a-posteriori covariances")
     _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
     _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
+    if np.ndim(Phi) == 3:
+        _checks.shape("Phi", Phi, (T, n, n), "(T, n, n) transitions, Phi[k] from sample k - 1 to k")
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True, batch=np.ndim(Phi) == 3)
     return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
 
 
 @partial(jax.jit, static_argnames=("parallel",))
 def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     n = x.shape[-1]
+    varying = Phi.ndim == 3
     if parallel:
-        elements = jax.vmap(_smoother_element, (None, 0, 0, 0, 0))(Phi, x[:-1], P[:-1], x_prior[1:], P_prior[1:])
+        elements = jax.vmap(_smoother_element, (0 if varying else None, 0, 0, 0, 0))(
+            Phi[1:] if varying else Phi, x[:-1], P[:-1], x_prior[1:], P_prior[1:]
+        )
         last = _SmootherElement(jnp.zeros((1, n, n), x.dtype), x[-1:], P[-1:])
         elements = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), elements, last)
         # reverse=True scans from the last sample: the accumulated element is the later one
@@ -118,16 +130,18 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     # (T, n, n) array, benchmarks/estimation.py, smooth): at the last
     # sample the carry holds a "later" sample equal to its own prediction (x = x_prior = 0, P = P_prior = I), so
     # the correction is exactly zero and the smoothed moments are the filtered ones.
+    # A time-varying Phi is read shifted by one sample, Phi[k + 1] next to sample k (the last one unused).
     def body(later, sample):
         x_later, P_later, x_prior_next, P_prior_next = later
-        x_k, P_k, x_prior_k, P_prior_k = sample
-        E_k, E_k_t = _smoother_gain(Phi, P_k, P_prior_next)
+        x_k, P_k, x_prior_k, P_prior_k, *Phi_next = sample
+        E_k, E_k_t = _smoother_gain(Phi_next[0] if varying else Phi, P_k, P_prior_next)
         x_smoothed = x_k + E_k @ (x_later - x_prior_next)
         P_smoothed = symmetrize(P_k + E_k @ (P_later - P_prior_next) @ E_k_t)
         return (x_smoothed, P_smoothed, x_prior_k, P_prior_k), (x_smoothed, P_smoothed, E_k)
 
     zero, unit = jnp.zeros((n,), x.dtype), jnp.eye(n, dtype=x.dtype)
-    _, (xs, Ps, E) = jax.lax.scan(body, (zero, unit, zero, unit), (x, P, x_prior, P_prior), reverse=True)
+    samples = (x, P, x_prior, P_prior, *((jnp.roll(Phi, -1, axis=0),) if varying else ()))
+    _, (xs, Ps, E) = jax.lax.scan(body, (zero, unit, zero, unit), samples, reverse=True)
     return Smoothed(xs, Ps, E.at[-1].set(0.0))
 
 
@@ -261,11 +275,17 @@ _run = jax.jit(run, static_argnums=0)  # one compiled program per estimator and 
 def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):
     """Filter a record and smooth it (:func:`rts_smoother`).
 
+    For the nonlinear filters this is the extended RTS smoother (Särkkä 2013, ch. 9: the transition's Jacobian
+    at each filtered mean) or the unscented RTS smoother (Särkkä 2008: the sigma points' cross-covariance,
+    through their regression matrix), with the filter's own linearisations (its ``transition`` outputs), so
+    missing and gated measurements, iterated updates and continuous-discrete models need nothing more.
+
     Args:
       estimator: a Kalman-type estimator whose params have an ``output_covariance`` switch and a time-varying
         gain: :data:`~jaxobs.observers.kalman.kalman_filter`,
         :data:`~jaxobs.observers.kalman.square_root_kalman_filter`,
-        :data:`~jaxobs.observers.active.active_observer`.
+        :data:`~jaxobs.observers.active.active_observer`, :data:`~jaxobs.observers.ekf.extended_kalman_filter`,
+        :data:`~jaxobs.observers.ukf.unscented_kalman_filter`.
       params: its params (``output_covariance`` is switched on here).
       inputs: ``EstimatorInputs`` over ``T`` samples.
       parallel: filter (Kalman filter only, :func:`parallel_filter`) and smooth with associative scans.
@@ -280,22 +300,30 @@ def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: b
       >>> filtered, smoothed = jo.smooth(jo.kalman_filter, params, jo.EstimatorInputs(y=y))
       >>> bool(jnp.all(smoothed.P[:, 0, 0] <= filtered.P[:, 0, 0]))  # smoothing never adds uncertainty
       True
+      >>> model = jo.nonlinear_model(lambda x, u, t: x + 0.1 * jnp.sin(x), lambda x: x**3, [[0.01]], [[0.1]],
+      ...                            x0=[0.5])
+      >>> filtered, smoothed = jo.smooth(jo.extended_kalman_filter, jo.make_ekf(model), jo.EstimatorInputs(y=y))
+      >>> smoothed.x.shape, filtered.transition.shape  # the transition: the Jacobian of f, one per sample
+      ((100, 1), (100, 1, 1))
     """
     params = _with_covariances(params)
     filtered = _filtered(estimator, params, inputs, parallel)
-    return filtered, rts_smoother(params.Phi, filtered, parallel=parallel)
+    Phi = getattr(filtered, "transition", None)  # a nonlinear filter's linearisations, else the model's Phi
+    return filtered, rts_smoother(params.Phi if Phi is None else Phi, filtered, parallel=parallel)
 
 
 def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):
     """``log p(y_0 .. y_{T-1})`` of a record under the estimator's model: the sum of its per-sample
     ``log_likelihood`` outputs (exact marginals over the observed components; with a steady-state gain, the
-    steady-state approximation). Differentiable in ``params``: the objective for fitting ``Q``, ``R`` or a model
-    to data (maximum likelihood), or for comparing models (e.g. active observers of different orders).
+    steady-state approximation; for the EKF and UKF the Gaussian approximation of each predictive density,
+    Särkkä 2013, ch. 12). Differentiable in ``params``: the objective for fitting ``Q``, ``R`` or a model to
+    data (maximum likelihood), or for comparing models (e.g. active observers of different orders).
 
     Args:
       estimator: :data:`~jaxobs.observers.kalman.kalman_filter`,
         :data:`~jaxobs.observers.kalman.square_root_kalman_filter`,
-        :data:`~jaxobs.observers.active.active_observer` (any estimator with a ``log_likelihood`` output).
+        :data:`~jaxobs.observers.active.active_observer`, :data:`~jaxobs.observers.ekf.extended_kalman_filter`,
+        :data:`~jaxobs.observers.ukf.unscented_kalman_filter` (any estimator with a ``log_likelihood`` output).
       params: its params.  inputs: ``EstimatorInputs`` over ``T`` samples.
       parallel: use :func:`parallel_filter` (Kalman filter only).
 
@@ -306,9 +334,14 @@ def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, par
       ...                                  jo.EstimatorInputs(y=y))
       >>> bool(ll(0.01) > ll(10.0))
       True
+      >>> model = lambda g: jo.nonlinear_model(lambda x, u, t: g * x, lambda x: x, [[0.01]], [[0.1]], x0=[0.1])
+      >>> ll = lambda g: jo.log_likelihood(jo.unscented_kalman_filter, jo.make_ukf(model(g)), jo.EstimatorInputs(y=y))
+      >>> bool(ll(1.0) > ll(0.5)), bool(jnp.isfinite(jax.grad(ll)(1.0)))  # a growing record: g = 1 fits better
+      (True, True)
     """
     per_step = getattr(_filtered(estimator, params, inputs, parallel), "log_likelihood", None)
     if per_step is None:
         raise ValueError("estimator has no log_likelihood output: use a Kalman-type estimator (kalman_filter, "
-                         "square_root_kalman_filter, active_observer) with a noise model")  # fmt: skip
+                         "square_root_kalman_filter, active_observer, extended_kalman_filter, "
+                         "unscented_kalman_filter) with a noise model")  # fmt: skip
     return jnp.sum(per_step)

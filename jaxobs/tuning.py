@@ -83,20 +83,21 @@ DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
 
 
 def cholesky_covariance(raw):
-    """``Q = L L^T`` with ``L = diag(exp(diag(raw))) (I + tril(raw, -1))``: positive definite for every ``raw``
-    (..., n, n). The diagonal of ``raw`` holds log standard-deviation scales, its strict lower triangle
-    dimensionless couplings (a row's entries relative to its own scale), so one search box fits covariances of any
-    units; the strict upper triangle is ignored. Leading axes are batch axes.
+    """``Q = L L^T`` with ``L = diag(exp(diag(raw))) + tril(raw, -1)``, the log-Cholesky parameterisation
+    (Pinheiro and Bates 1996): positive definite for every ``raw`` (..., n, n). The diagonal holds the log of
+    ``L``'s diagonal, the strict lower triangle ``L``'s couplings in the units of their row's state; the strict upper
+    triangle is ignored. Leading axes are batch axes. The couplings are absolute, not relative to the diagonal, so
+    their gradient does not vanish where a hand-set design has a state with (almost) no noise.
 
     Example:
       >>> import jax.numpy as jnp
       >>> from jaxobs.tuning import cholesky_covariance
       >>> cholesky_covariance(jnp.array([[0.0, 0.0], [0.5, jnp.log(2.0)]])).tolist()
-      [[1.0, 1.0], [1.0, 5.0]]
+      [[1.0, 0.5], [0.5, 4.25]]
     """
     raw = jnp.asarray(raw)
-    scale = jnp.exp(jnp.diagonal(raw, axis1=-2, axis2=-1))
-    lower = scale[..., :, None] * (jnp.tril(raw, -1) + jnp.eye(raw.shape[-1], dtype=raw.dtype))
+    eye = jnp.eye(raw.shape[-1], dtype=raw.dtype)
+    lower = jnp.tril(raw, -1) + eye * jnp.exp(jnp.diagonal(raw, axis1=-2, axis2=-1))[..., None, :]
     return lower @ jnp.swapaxes(lower, -1, -2)
 
 
@@ -105,9 +106,8 @@ def cholesky_parameters(cov):
     lower = jnp.linalg.cholesky(jnp.asarray(cov))
     if not bool(jnp.all(jnp.isfinite(lower))):
         raise ValueError("cov must be symmetric positive definite for a Cholesky parameterisation")
-    scale = jnp.diagonal(lower, axis1=-2, axis2=-1)
-    n = lower.shape[-1]
-    return jnp.tril(lower / scale[..., :, None], -1) + jnp.log(scale)[..., :, None] * jnp.eye(n, dtype=lower.dtype)
+    eye = jnp.eye(lower.shape[-1], dtype=lower.dtype)
+    return jnp.tril(lower, -1) + eye * jnp.log(jnp.diagonal(lower, axis1=-2, axis2=-1))[..., None, :]
 
 
 def unit_interval(raw):

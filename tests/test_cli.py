@@ -21,6 +21,7 @@ from jaxobs import __version__, cli
 from jaxobs._config import leaf_keys
 from jaxobs.cli import main
 from jaxobs.papers.registry import reproductions, sweep_scenarios, tuning_problems
+from tests import FAST_COMPILE_FLAGS
 
 COMMANDS = {"sweep": ("scenario", sweep_scenarios), "tune": ("problem", tuning_problems)}
 NAME_STYLE = re.compile(r"[a-z][a-z0-9]*(-[a-z0-9]+(\.[0-9]+)*)*")  # lower-case words, hyphens (numbers as 5.6)
@@ -158,8 +159,10 @@ def test_reproduce_as_a_subprocess_fills_and_reuses_the_compilation_cache(tmp_pa
     a second run reads it and prints the same numbers; ``--no-cache`` writes nothing."""
 
     def run(out, cache, *flags):
-        env = {**os.environ, "JAXOBS_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu", "JAX_LOG_COMPILES": "1"}
-        # (JAX_LOG_COMPILES logs each persistent-cache hit)
+        env = {**os.environ, "JAXOBS_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu", "JAX_LOG_COMPILES": "1",
+               "XLA_FLAGS": os.environ.get("XLA_FLAGS", "").replace(FAST_COMPILE_FLAGS, "").strip()}  # fmt: skip
+        # (JAX_LOG_COMPILES logs each persistent-cache hit; XLA's default compilation, a user's, whose programs are
+        # slow enough to compile to pass the command's caching threshold, unlike the suite's cheapest compilation)
         env.pop("JAX_COMPILATION_CACHE_DIR", None)
         command = [sys.executable, "-m", "jaxobs.cli", "reproduce", "cortesao-stochastic-ramp", "--out", str(out)]
         proc = subprocess.run([*command, *flags], capture_output=True, text=True, timeout=300, env=env)

@@ -33,6 +33,8 @@ class EKFParams:
       gate: ``None`` (no gate) or the innovation gate in standard deviations (a leaf).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
         rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
+      output_covariance: static; every step also outputs ``P_prior`` and the ``transition`` Jacobian, what the
+        extended RTS smoother needs (:func:`jaxobs.smoothing.smooth` switches it on).
     """
 
     model: NonlinearModel
@@ -40,6 +42,7 @@ class EKFParams:
     bierman: bool = dataclasses.field(default=False, metadata=dict(static=True))
     gate: jax.Array | None = None
     joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
 def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = False, gate=None,
@@ -96,7 +99,8 @@ def taylor(g, m, P) -> Linearization:
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
     return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman,
-                         gate=params.gate, joseph=params.joseph)  # fmt: skip
+                         gate=params.gate, joseph=params.joseph,
+                         output_covariance=params.output_covariance)  # fmt: skip
 
 
 extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
@@ -104,4 +108,5 @@ extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _
 
 Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,) (``u_prev=None`` without inputs), checked
 against the model while tracing. State: :class:`~jaxobs.nonlinear.GaussianState`. Outputs:
-:class:`~jaxobs.nonlinear.GaussianOutputs` (``x``, ``P``, ``x_prior``, ``innovation``, ``gain``)."""
+:class:`~jaxobs.nonlinear.GaussianOutputs` (``x``, ``P``, ``x_prior``, ``innovation``, ``gain``,
+``log_likelihood``; ``P_prior`` and ``transition`` with ``output_covariance``)."""

@@ -38,6 +38,9 @@ class UKFParams:
       iterations: static number of updates per sample (1: the plain UKF).
       joseph: static; ``False``: the standard-form covariance update (faster, positive semidefinite only to
         rounding; :func:`jaxobs.kalman_steps.update_covariance_factors`).
+      output_covariance: static; every step also outputs ``P_prior`` and the ``transition`` (the sigma points'
+        regression matrix), what the unscented RTS smoother needs (:func:`jaxobs.smoothing.smooth` switches it
+        on).
     """
 
     model: NonlinearModel
@@ -46,6 +49,7 @@ class UKFParams:
     kappa: jax.Array
     iterations: int = dataclasses.field(default=1, metadata=dict(static=True))
     joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
 def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta=None, kappa=None,
@@ -129,7 +133,8 @@ def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
     def linearize(g, m, P):
         return unscented(g, m, P, params.alpha, params.beta, params.kappa)
 
-    return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph)
+    return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph,
+                         output_covariance=params.output_covariance)  # fmt: skip
 
 
 unscented_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
@@ -137,4 +142,5 @@ unscented_kalman_filter = Estimator(lambda params: gaussian_init(params.model), 
 
 Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,) (``u_prev=None`` without inputs), checked
 against the model while tracing. State: :class:`~jaxobs.nonlinear.GaussianState`. Outputs:
-:class:`~jaxobs.nonlinear.GaussianOutputs` (``x``, ``P``, ``x_prior``, ``innovation``, ``gain``)."""
+:class:`~jaxobs.nonlinear.GaussianOutputs` (``x``, ``P``, ``x_prior``, ``innovation``, ``gain``,
+``log_likelihood``; ``P_prior`` and ``transition`` with ``output_covariance``)."""

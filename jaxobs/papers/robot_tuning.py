@@ -144,9 +144,9 @@ def _check(config: dict, source: str) -> None:
     for key, needed in (("q_input", False), ("q_active", d["observer"] == "aob")):
         if (d[key] or needed) and len(d[key]) != n_act:
             fail(source, f"design.{key}", f"needs one variance per actuator ({n_act})")
-    if any(v < 0 for v in d["q_input"]) or any(v <= 0 for v in d["q_active"]):
-        fail(source, "design.q_input" if any(v < 0 for v in d["q_input"]) else "design.q_active",
-             "variances must be >= 0 (q_input) and > 0 (q_active)")  # fmt: skip
+    for key, lowest in (("q_input", "must be >= 0"), ("q_active", "must be > 0")):
+        if any(v < 0 or (v == 0 and key == "q_active") for v in d[key]):
+            fail(source, f"design.{key}", f"variances {lowest}")
     if d["parameterisation"] == "cholesky" and rb["dead_time"] and not all(v > 0 for v in d["q_input"] or [0]):
         fail(source, "design.q_input", "the cholesky parameterisation needs a positive variance per actuator for "
              "the dead-time states (a full Q must be positive definite)")  # fmt: skip

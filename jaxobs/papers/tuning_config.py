@@ -138,20 +138,21 @@ def check_plant_memory(config: dict, source: str, steps: int, channels: int) -> 
 
 COUPLING_HALF_WIDTH = 1.0
 """Half-width of the search box of a Cholesky factor's couplings (:func:`jaxobs.tuning.cholesky_covariance`'s
-strict lower triangle, dimensionless): correlations up to about 0.7 between neighbouring states."""
+strict lower triangle), in units of the row's standard deviation at ``theta0``: correlations up to about 0.7
+between neighbouring states of the hand-set design."""
 
 
 def search_box(config: dict, theta0: dict, cholesky: tuple = ()) -> dict:
     """``{name: (low, high)}``: ``theta0 +- baseline.spread``, except for the Cholesky factors named in
-    ``cholesky``: their log scales (diagonal) ``+- spread``, their couplings (strict lower triangle)
-    ``+- COUPLING_HALF_WIDTH``, their unused strict upper triangle fixed."""
+    ``cholesky``: their log scales (diagonal) ``+- spread``, their couplings (strict lower triangle) ``+-
+    COUPLING_HALF_WIDTH`` times their row's scale at ``theta0``, their unused strict upper triangle fixed."""
     spread, box = config["baseline"]["spread"], {}
     for name, value in theta0.items():
         value = jnp.asarray(value)
         width = spread * jnp.ones_like(value)
         if name in cholesky:
             n = value.shape[-1]
-            width = spread * jnp.eye(n) + COUPLING_HALF_WIDTH * jnp.tril(jnp.ones((n, n)), -1)
-            width = jnp.broadcast_to(width, value.shape)
+            row_scale = jnp.exp(jnp.diagonal(value, axis1=-2, axis2=-1))[..., :, None]
+            width = spread * jnp.eye(n) + COUPLING_HALF_WIDTH * row_scale * jnp.tril(jnp.ones((n, n)), -1)
         box[name] = (value - width, value + width)
     return box

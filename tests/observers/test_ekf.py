@@ -47,13 +47,13 @@ def test_equals_dynamax_ekf(make_problem, monkeypatch):
 @pytest.mark.parametrize("bierman", [False, True], ids=["joseph", "bierman"])
 def test_linear_model_equals_the_kalman_filter(bierman):
     """On a linear model the EKF is the Kalman filter, missing components included (to rounding), with the Joseph
-    and with Bierman's U-D measurement update."""
+    and with Bierman's U-D measurement update: estimates, gains and per-step log-likelihoods."""
     problem, A, B, C = linear_problem()
     params = jo.make_ekf(problem.model(), bierman=bierman)
     state, out = jo.run(jo.extended_kalman_filter, params, problem.inputs())
     kf = jo.make_kalman(A, C, problem.Q, problem.R, Gamma=B, x0=problem.x0, P0=problem.P0)
     kf_state, kf_out = jo.run(jo.kalman_filter, kf, problem.inputs())
-    for name in ("x", "x_prior", "innovation", "gain"):
+    for name in ("x", "x_prior", "innovation", "gain", "log_likelihood"):
         np.testing.assert_allclose(getattr(out, name), getattr(kf_out, name), rtol=1e-12, atol=1e-12, err_msg=name)
     np.testing.assert_allclose(state.P, kf_state.P, rtol=1e-12, atol=1e-14)
     assert int(state.missing) == int(kf_state.missing) == 4
@@ -108,6 +108,8 @@ def test_iterated_update_converges_to_the_map_estimate():
     assert g_iterated < 1e-9 * g_plain
     assert J(iterated.x) < J(plain.x)
     np.testing.assert_allclose(iterated.innovation, plain.innovation, rtol=1e-15)  # y - h(prior mean) for both
+    # the log-likelihood is the predictive density of y, before the update: the first linearisation's for both
+    np.testing.assert_allclose(iterated.log_likelihood, plain.log_likelihood, rtol=1e-15)
 
 
 def test_iterations_change_nothing_on_a_linear_measurement():
@@ -120,8 +122,8 @@ def test_iterations_change_nothing_on_a_linear_measurement():
 
 
 def test_missing_component_equals_the_model_without_it():
-    """A measurement component that is NaN at every sample is skipped exactly: the filter equals the EKF of the
-    model that does not measure it, its innovation is zero and every skip is counted."""
+    """A measurement component that is NaN at every sample is skipped exactly: the filter (and its log-likelihood)
+    equals the EKF of the model that does not measure it, its innovation is zero and every skip is counted."""
     problem = bearings(T=30)
     y = problem.y.copy()
     y[:, 1] = np.nan
@@ -132,14 +134,16 @@ def test_missing_component_equals_the_model_without_it():
     _, ref = jo.run(jo.extended_kalman_filter, jo.make_ekf(reduced), jo.EstimatorInputs(jnp.asarray(y[:, :1])))
     np.testing.assert_allclose(out.x, ref.x, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(out.P, ref.P, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(out.log_likelihood, ref.log_likelihood, rtol=1e-12)  # contributes nothing
     np.testing.assert_array_equal(out.innovation[:, 1], 0.0)
     assert int(state.missing) == 30
 
 
 def test_innovation_gate_skips_outliers_like_missing_samples():
     """With ``gate=4`` two outliers (30 rad added to a bearing at samples 10 and 20) are skipped: the filter equals
-    the ungated one on the data with those components NaN, and ``state.gated`` counts them (``state.missing`` too).
-    Without a gate, and with a gate so wide nothing fails it, the outliers enter the estimate."""
+    the ungated one on the data with those components NaN (its log-likelihood too), and ``state.gated`` counts them
+    (``state.missing`` too). Without a gate, and with a gate so wide nothing fails it, the outliers enter the
+    estimate."""
     problem = bearings(T=30)
     y = problem.y.copy()
     y[[10, 20], 0] += 30.0
@@ -151,6 +155,7 @@ def test_innovation_gate_skips_outliers_like_missing_samples():
     _, skipped = filter_(jo.make_ekf(model), holes)
     np.testing.assert_allclose(gated.x, skipped.x, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(gated.P, skipped.P, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(gated.log_likelihood, skipped.log_likelihood, rtol=1e-12)
     assert int(gated_state.gated) == 2 and int(gated_state.missing) == 2
     for params in (jo.make_ekf(model), jo.make_ekf(model, gate=1e6)):
         state, out = filter_(params, y)

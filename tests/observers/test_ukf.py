@@ -49,14 +49,14 @@ def test_equals_dynamax_ukf(make_problem, monkeypatch):
 
 def test_linear_model_equals_the_kalman_filter():
     """The unscented transform is exact for linear maps: on a linear model the UKF is the Kalman filter, missing
-    components included (to rounding), in both covariance forms."""
+    components included (to rounding), in both covariance forms, its per-step log-likelihoods too."""
     problem, A, B, C = linear_problem()
     for joseph in (True, False):
         params = jo.make_ukf(problem.model(), joseph=joseph)
         state, out = jo.run(jo.unscented_kalman_filter, params, problem.inputs())
         kf = jo.make_kalman(A, C, problem.Q, problem.R, Gamma=B, x0=problem.x0, P0=problem.P0)
         kf_state, kf_out = jo.run(jo.kalman_filter, kf, problem.inputs())
-        for name in ("x", "x_prior", "innovation", "gain"):
+        for name in ("x", "x_prior", "innovation", "gain", "log_likelihood"):
             np.testing.assert_allclose(getattr(out, name), getattr(kf_out, name), rtol=1e-10, atol=1e-12,
                                        err_msg=name)  # fmt: skip
         np.testing.assert_allclose(state.P, kf_state.P, rtol=1e-10, atol=1e-13)
@@ -137,6 +137,7 @@ def test_missing_component_equals_the_model_without_it():
                         jo.EstimatorInputs(jnp.asarray(y[:, :1])))  # fmt: skip
         np.testing.assert_allclose(out.x, ref.x, rtol=1e-11, atol=1e-13)
         np.testing.assert_allclose(out.P, ref.P, rtol=1e-11, atol=1e-13)
+        np.testing.assert_allclose(out.log_likelihood, ref.log_likelihood, rtol=1e-11)  # contributes nothing
         np.testing.assert_array_equal(out.innovation[:, 1], 0.0)
         assert int(state.missing) == 30
 

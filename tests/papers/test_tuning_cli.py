@@ -165,13 +165,13 @@ def test_out_dir_of_another_run_is_refused(tmp_path, capsys):
 
 def test_the_search_box_is_the_problems_spread():
     """The box theta0 +- baseline.spread (8 for the force problem) on every log coordinate; a Cholesky factor's
-    couplings (dimensionless) +- COUPLING_HALF_WIDTH, its unused upper triangle fixed; the tuner's screening gets
-    the same spread and seed; a spread of 0 is refused."""
+    couplings +- COUPLING_HALF_WIDTH times their row's scale at theta0, its unused upper triangle fixed; the
+    tuner's screening gets the same spread and seed; a spread of 0 is refused."""
     config = force_tuning.PROBLEM.validate({"design": {"parameterisation": "cholesky"}})
     assert config["baseline"]["spread"] == 8.0
     theta0 = {"q_cholesky": np.diag([1.0, 2.0]), "log_r": np.asarray(-3.0)}
     box = tuning_config.search_box(config, theta0, cholesky=("q_cholesky",))
-    coupling = tuning_config.COUPLING_HALF_WIDTH
+    coupling = tuning_config.COUPLING_HALF_WIDTH * np.exp(2.0)  # the second row's scale, e^2
     np.testing.assert_array_equal(box["q_cholesky"][0], [[-7.0, 0.0], [-coupling, -6.0]])
     np.testing.assert_array_equal(box["q_cholesky"][1], [[9.0, 0.0], [coupling, 10.0]])
     assert (float(box["log_r"][0]), float(box["log_r"][1])) == (-11.0, 5.0)
