@@ -108,18 +108,18 @@ def test_bank_and_inclination_are_estimated(reduced):
 @pytest.mark.slow  # shares a 25 s reproduction run
 def test_friction_adaptation_on_low_friction(reduced):
     """Grip 2010 §2.4-2.5 on friction 0.3 (a 25 deg sine steer at 80 km/h, peak 0.27 g, sideslip 0.87 deg): with
-    friction estimation (on 90 % of the time) theta moves from 1 to 0.85 and the sideslip error drops from
-    0.442 deg (mode 1 only, theta held at theta* = 1) to 0.415 deg. The gap: theta does not reach 0.3. The thesis
-    says theta is about mu_H only at large slip (§2.4); here the tyres keep their cornering stiffness at low
-    friction and the drive stays below the peak, so a scale of 0.85 fits a_y. The test pins that measured gap."""
+    friction estimation (on 90 % of the time) the estimate of mu_H moves from 1 to within 15 % of 0.3 in the 10 s,
+    and after 5 s the largest sideslip error is below that of mode 1 only (theta held at theta* = 1; measured 0.25
+    against 0.45 deg; halved once the estimate has settled, tests/vehicle/test_nvso.py). Over the whole drive the
+    largest errors are alike: both come at the first steer, before anything is learned."""
     _, s = reduced
     c = s["checks"]["friction_adaptation"]
     assert c["theta_hat_final_mode1"] == 1.0
-    assert c["theta_hat_final"] < 0.9
-    assert c["theta_hat_final"] == pytest.approx(0.851, abs=0.01)  # not 0.3: the documented gap
-    errors = c["max_abs_beta_error_deg"]
-    assert errors["mode2"] < errors["mode1"] < 0.5
-    pin(c["theta_hat_final"], r"on friction 0.3 theta goes from 1 to ([0-9.]+) \(")
+    assert c["theta_hat_final"] == pytest.approx(0.3, rel=0.15)
+    adapted = c["max_abs_beta_error_after_first_cycles_deg"]
+    assert adapted["mode2"] < adapted["mode1"]
+    assert c["max_abs_beta_error_deg"]["mode2"] < c["max_abs_beta_error_deg"]["mode1"] < 0.5
+    pin(c["theta_hat_final"], r"on friction 0.3 the friction estimate goes from 1 to ([0-9.]+) ")
 
 
 @pytest.mark.slow  # shares a 25 s reproduction run
