@@ -160,11 +160,11 @@ def test_unknown_manoeuvre_raises():
 @pytest.mark.slow
 def test_full_reproduction(tmp_path):
     """All seven manoeuvres (measured, default run): every key; both observers hold the 40 m circle within 0.1 deg
-    rms (NVSO 0.046, EKF 0.054; the EKF lost it from its start, 23.8 deg, before its start-up fix) and the ice lake
-    within 10 deg rms (NVSO 7.6, EKF 9.1; they were at 10.5 and 53 deg before the counter-steer oversteer condition
-    and the EKF's start-up fix). The gaps to the thesis's figures: on the ice lake (Fig. 2.7: error < 3 deg most of
-    the time) both underestimate the 50 deg drifts (max errors 17.6 and 21.5 deg); on the circle the NVSO's max
-    error is 1.44 deg (Fig. 2.6 upper: more accurate)."""
+    rms (NVSO 0.039, EKF 0.054; the EKF lost it from its start, 23.8 deg, before its start-up fix) and the ice lake
+    within 10 deg rms (NVSO 5.5, EKF 9.1; they were at 10.5 and 53 deg before the counter-steer oversteer condition
+    and the EKF's start-up fix, the NVSO at 7.6 with the thesis's friction scale). The gaps to the thesis's figures:
+    on the ice lake (Fig. 2.7: error < 3 deg most of the time) both underestimate the 50 deg drifts (max errors
+    11.7 and 21.5 deg); on the circle the NVSO's max error is 1.16 deg (Fig. 2.6 upper: more accurate)."""
     s = sideslip.reproduce(tmp_path)
     assert set(s["manoeuvres"]) == set(MANOEUVRES)
     for entry in s["manoeuvres"].values():
