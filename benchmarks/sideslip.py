@@ -133,6 +133,8 @@ def numpy_nvso(p, y):
     x = np.zeros((V, 5))
     x[:, 0], x[:, 2] = y0[:, 8], f("theta_default")
     mode, timer = np.zeros(V), np.full(V, f("off_delay"))
+    peak = f("peak_friction")
+    relaxed = np.zeros((V, 2))  # the relaxation filter starts at the straight initial estimate's zero output
     low_pass = y0[:, 1] / roll - y0[:, 2] * y0[:, 8]
     out[:, 0] = np.arctan2(x[:, 1], np.maximum(x[:, 0], f("min_speed")))
     held = y0
@@ -140,13 +142,19 @@ def numpy_nvso(p, y):
         now = y[:, k]
         ax, ay, r, sw, omega, vref = held[:, 0], held[:, 1] / roll, held[:, 2], held[:, 3], held[:, 4:8], held[:, 8]
         vx, vy, theta, ti, tb = x.T
-        _, ay_star, moment = _forces(v, vx, vy, r, sw, omega, ax, ay)
+        friction, scale = peak * theta + (1 - peak), peak + (1 - peak) * theta
+        _, ay_static, moment_static = _forces(v, vx, vy, r, sw, omega, ax, ay, friction)
         hstep = 1e-6
         xi = (
             _forces(v, vx, vy + hstep, r, sw, omega, ax, ay)[1] - _forces(v, vx, vy - hstep, r, sw, omega, ax, ay)[1]
         ) / (2 * hstep)
-        lam = 1.0 / np.sqrt(np.maximum(xi**2 + ay_star**2, 1e-12))
-        e = ay - theta * ay_star
+        T = f("relaxation_time") + f("relaxation_length") / np.maximum(vx, f("min_speed"))
+        alpha = -np.expm1(-dt / np.maximum(T, 1e-3 * dt))
+        relaxed += alpha[:, None] * (np.stack([ay_static, moment_static / v.yaw_inertia], axis=1) - relaxed)
+        ay_model, yaw_acc_model = scale * relaxed[:, 0], scale * relaxed[:, 1]
+        regressor = ay_model / np.maximum(theta, f("theta_min"))
+        lam = 1.0 / np.sqrt(np.maximum(xi**2 + regressor**2, 1e-12))
+        e = ay - ay_model
         delta = sw / v.steering_ratio
         steer = np.stack([np.cos(delta), np.cos(delta), np.ones(V), np.ones(V)], axis=1)
         wheel_vx = omega * v.wheel_radius / steer + r[:, None] * lateral
@@ -157,7 +165,7 @@ def numpy_nvso(p, y):
         yaw_acc = (now[:, 2] - r) / dt
         reduce = (
             (np.abs(e) > f("c1"))
-            | (np.abs(yaw_acc - theta * moment / v.yaw_inertia) > f("c2"))
+            | (np.abs(yaw_acc - yaw_acc_model) > f("c2"))
             | (same & ((np.abs(r_ref) - np.abs(r)) * vx > f("c3")))
         )
         K_theta_b = f("K_theta_b") * np.where(reduce, f("theta_b_reduction"), 1.0)
@@ -167,7 +175,7 @@ def numpy_nvso(p, y):
         d_vy = moving * (ay - r * vx - g * tb + injection) - (1 - moving) * K_vx * vy
         d_theta = (1 - moving * mode) * f("K_e") * (f("theta_default") - theta) + moving * mode * f(
             "K_theta"
-        ) * lam * ay_star * e
+        ) * lam * regressor * e
         d_ti = ((1 - mode) * f("K_theta_i") + mode * f("K_theta_i_on")) * K_vx * (vref - vx)
         d_tb = moving * K_theta_b * ((1 - mode) * e - mode * lam * xi * e)
         x = x + dt * np.stack([kin_x, d_vy, d_theta, d_ti, d_tb], axis=1)

@@ -1,21 +1,26 @@
-"""Why the NVSO's friction estimate ends at 0.85 on the friction-0.3 check drive (issue 30, item 1): a diagnosis.
+"""The NVSO's friction adaptation on low friction (issue 30): why the thesis's friction scale ends far from the road's
+friction, and what the NVSO's default, the adapted ``mu_H``, reaches on four road frictions.
 
-The drive is ``sine_steer_low_friction`` of :mod:`jaxobs.papers.grip2010.sideslip` (80 km/h, steering-wheel sine of
-25 deg at 0.5 Hz, 10 s, road friction 0.3, exact sensors with the 15 Hz low-pass). Three questions, each answered
-with numbers and one panel of the figure:
+The check drive is ``sine_steer_low_friction`` of :mod:`jaxobs.papers.grip2010.sideslip` (80 km/h, steering-wheel
+sine of 25 deg at 0.5 Hz, 10 s, road friction 0.3, exact sensors with the 15 Hz low-pass). Four questions, each
+answered with numbers and a panel of the figure:
 
-(a) Excitation and gating. The update law (Grip 2010 (2.25)) is ``theta' = K_theta phi e`` with the regressor
-    ``phi = Lambda a_y*`` and ``e = a_y - theta a_y*``; it acts only in mode 2 (the switching of §2.5). Reported:
-    ``phi`` along the drive, the fraction of time in mode 2, and the adaptation rate ``K_theta phi a_y*`` (1/s, the
-    rate at which a theta error decays while the model is exact) averaged over mode 2.
+(a) Excitation and gating, for the thesis's scale (``peak_friction = 0``): the update law (Grip 2010 (2.25)) is
+    ``theta' = K_theta phi e`` with the regressor ``phi = Lambda a_y*`` and ``e = a_y - theta a_y*``; it acts only
+    in mode 2 (the switching of §2.5). Reported: ``phi`` along the drive, the fraction of time in mode 2, and the
+    adaptation rate ``K_theta phi a_y*`` (1/s, the rate at which a theta error decays while the model is exact)
+    averaged over mode 2.
 (b) Model mismatch. The simulator's tyres on friction 0.3 keep their cornering stiffness and saturate at 0.3 F_z
-    (a Magic Formula with ``B = c / (C mu)``); the observer's model is ``theta`` times the friction-1 tyre. At the
-    simulator's own slips, loads and wheel slips, the per-axle ratio ``F_y,sim / F_y*`` is the theta the
-    observer's model needs to reproduce the simulator's force; it is 0.3 only if the model can represent the tyre.
-(c) Identifiability. The NVSO rerun with an observer tyre equal to the simulator's at friction 0.3, normalised to
-    ``mu_H* = 1`` (cornering and slip stiffness divided by 0.3, so ``0.3 a_y*`` is exactly the simulator's
-    ``a_y``): the estimate must then converge to 0.3 if the update law is right. Run with the switching of §2.5
-    and with friction estimation held on.
+    (a Magic Formula with ``B = c / (C mu)``); the scaled model is ``theta`` times the friction-1 tyre. At the
+    simulator's own slips, loads and wheel slips, the per-axle ratio ``F_y,sim / F_y*`` is the theta the scaled
+    model needs to reproduce the simulator's force; it is 0.3 only if the model can represent the tyre.
+(c) Identifiability. The scaled NVSO rerun with an observer tyre equal to the simulator's at friction 0.3,
+    normalised to ``mu_H* = 1`` (cornering and slip stiffness divided by 0.3, so ``0.3 a_y*`` is exactly the
+    simulator's ``a_y``): the estimate must then converge to 0.3 if the update law is right; with the switching of
+    §2.5 and with friction estimation held on, with and without the tyre-relaxation filter (Grip 2010 §2.8); and
+    the NVSO's default, ``theta`` as the model's ``mu_H`` (``peak_friction = 1``).
+(d) Per road friction (FRICTION_LEVELS), a sine at TARGET_USE of the friction for SUSTAINED s: the final estimate,
+    its settling times, and the sideslip errors without adaptation and with either parameterisation.
 
     python benchmarks/sideslip_friction.py [--out out/bench]
 
@@ -37,10 +42,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxobs.observers.base import EstimatorInputs, run  # noqa: E402
-from jaxobs.papers.grip2010.sideslip import DRIVES, EXACT, PERIOD  # noqa: E402
+from jaxobs.papers.grip2010.sideslip import DEG, DRIVES, EXACT, LOW_FRICTION, NEVER, PERIOD, SINE_AMPLITUDE_DEG  # noqa: E402
 from jaxobs.vehicle import Manoeuvre, VehicleParams, make_nvso, measure, nvso, sensor_inputs, simulate  # noqa: E402
-from jaxobs.vehicle.model import GRAVITY, friction_model  # noqa: E402
-from jaxobs.vehicle.sensors import AX, AY, STEERING_WHEEL, WHEEL_SPEED, YAW_RATE  # noqa: E402
+from jaxobs.vehicle.model import GRAVITY  # noqa: E402
 from jaxobs.vehicle.tyres import TyreParams, tyre_forces  # noqa: E402
 
 DRIVE = "sine_steer_low_friction"
@@ -49,6 +53,8 @@ ALWAYS_ON = dict(vy_dot_threshold=1e-9, yaw_rate_threshold=1e-9, oversteer_thres
 SUSTAINED = 30.0  # s, the drive continued (the same sine) for the convergence runs of (c)
 SHORT_RELAXATION = 0.02  # m: the relaxation length of the simulator without (appreciable) tyre relaxation
 EXCITED_AY = 0.5  # |a_y| / (friction g) above which a sample counts as excited in the per-axle statistics
+FRICTION_LEVELS = (0.3, 0.5, 0.8, 1.0)  # road frictions of the per-level table
+TARGET_USE = 0.9  # peak |a_y| / (friction g) of each level's sine
 
 
 def matched_vehicle(vehicle: VehicleParams, friction: float) -> VehicleParams:
@@ -63,33 +69,14 @@ def matched_vehicle(vehicle: VehicleParams, friction: float) -> VehicleParams:
     return dataclasses.replace(vehicle, tyre_front=scaled(vehicle.tyre_front), tyre_rear=scaled(vehicle.tyre_rear))
 
 
-def _run(observer_vehicle, y, vx0, always_on):
-    settings = {"vx0": vx0, **(ALWAYS_ON if always_on else {})}
+def _run(observer_vehicle, y, vx0, always_on, **nvso_settings):
+    settings = {"vx0": vx0, **(ALWAYS_ON if always_on else {}), **nvso_settings}
     params = make_nvso(observer_vehicle, **settings)
     state = nvso.init(params)
     if always_on:
         state = state._replace(mode=jnp.ones_like(state.mode), off_timer=jnp.zeros_like(state.off_timer))
     _, out = jax.jit(lambda p, s, yy: run(nvso, p, EstimatorInputs(y=yy), s))(params, state, y)
     return params, out
-
-
-def _regressor(params, out, y):
-    """``phi = Lambda a_y*`` and ``a_y*`` of every sample at the estimate and the measurement of that sample."""
-    v = params.vehicle
-    roll = 1.0 + v.roll_gradient * GRAVITY
-
-    def one(x, m):
-        def ay_star(vy):
-            return friction_model(v, x[0], vy, m[YAW_RATE], m[STEERING_WHEEL], m[WHEEL_SPEED], m[AX],
-                                  m[AY] / roll).ay  # fmt: skip
-
-        a, xi = jax.jvp(ay_star, (x[1],), (jnp.ones_like(x[1]),))
-        return a / jnp.sqrt(xi**2 + a**2), a
-
-    # the estimate x_k was driven by the measurement held over [t_{k-1}, t_k]
-    x_prev = jnp.concatenate([out.x[:1], out.x[:-1]])
-    y_prev = jnp.concatenate([y[:1], y[:-1]])
-    return jax.vmap(one)(x_prev, y_prev)
 
 
 def _axle_forces(vehicle, tr):
@@ -119,11 +106,12 @@ def settling_time(t, theta, target, tol):
     return float(t[outside[-1] + 1]) if outside[-1] + 1 < len(t) else float("nan")
 
 
-def _drive(vehicle, duration=None):
-    """The check drive (optionally lengthened: the same sine continued) at the 100 Hz samples and its sensors."""
-    drive = DRIVES[DRIVE]
+def _drive(vehicle, duration=None, drive=None):
+    """The check drive, or ``drive`` (optionally lengthened: the same sine continued) at the 100 Hz samples and its
+    sensors."""
+    drive = DRIVES[DRIVE] if drive is None else drive
     duration = drive.duration if duration is None else duration
-    tr_fine = simulate(Manoeuvre(DRIVE, drive.command, duration, drive.initial_speed), vehicle)
+    tr_fine = simulate(Manoeuvre(drive.name, drive.command, duration, drive.initial_speed), vehicle)
     every = round(PERIOD / float(tr_fine.time[1] - tr_fine.time[0]))
     tr = jax.tree_util.tree_map(lambda a: a[::every], tr_fine)
     meas = measure(tr, vehicle, EXACT, jax.random.PRNGKey(0), dt=PERIOD)
@@ -131,18 +119,27 @@ def _drive(vehicle, duration=None):
 
 
 def _sustained(vehicle, friction):
-    """Friction estimation held on over the drive continued to SUSTAINED s: the default model, the matched one,
-    and the matched one on a simulator whose tyre relaxation is nearly instantaneous (0.02 m instead of 0.5 m)."""
+    """Friction estimation held on over the drive continued to SUSTAINED s: the default model, the matched one
+    (with the NVSO's tyre-relaxation filter of Grip 2010 §2.8 at the simulator's relaxation length), the matched one
+    without that filter, and the matched one on a simulator whose tyre relaxation is nearly instantaneous (0.02 m
+    instead of 0.5 m; the filter then at 0.02 m too)."""
     no_relaxation = dataclasses.replace(vehicle, relaxation_length=SHORT_RELAXATION)
-    result, series = {}, {}
-    for name, sim_vehicle, matched in (
-        ("default_model", vehicle, False),
-        ("matched_model", vehicle, True),
-        ("matched_model_simulator_without_relaxation", no_relaxation, True),
+    result, series, drives = {}, {}, {}
+    scaled = {"peak_friction": 0.0}
+    for name, sim_vehicle, matched, settings in (
+        ("scaled_model", vehicle, False, scaled),
+        ("matched_model", vehicle, True, scaled),
+        ("matched_model_without_relaxation_filter", vehicle, True, {**scaled, "relaxation_length": 0.0}),
+        ("matched_model_simulator_without_relaxation", no_relaxation, True, scaled),
+        ("peak_friction", vehicle, False, {}),
+        ("peak_friction_simulator_without_relaxation", no_relaxation, False, {}),
     ):
-        tr, y, vx0 = _drive(sim_vehicle, SUSTAINED)
+        key = sim_vehicle.relaxation_length
+        if key not in drives:
+            drives[key] = _drive(sim_vehicle, SUSTAINED)
+        tr, y, vx0 = drives[key]
         obs = matched_vehicle(sim_vehicle, friction) if matched else sim_vehicle
-        _, out = _run(obs, y, vx0, True)
+        _, out = _run(obs, y, vx0, True, **settings)
         theta = np.asarray(out.x[:, 2])
         t = np.asarray(tr.time)
         result[name] = {
@@ -155,6 +152,74 @@ def _sustained(vehicle, friction):
     return result, series
 
 
+def _sine(friction: float, amplitude_deg: float) -> Manoeuvre:
+    """The check drive's sine (80 km/h, 0.5 Hz) of ``amplitude_deg`` on a road of ``friction``, SUSTAINED s."""
+    base = DRIVES[DRIVE]
+
+    def command(t):
+        return base.command(t)._replace(steering_wheel=amplitude_deg * DEG * jnp.sin(jnp.pi * t), friction=friction)
+
+    return Manoeuvre(f"sine_steer_friction_{friction:g}", command, SUSTAINED, base.initial_speed)
+
+
+def _errors(t, beta_true_deg, out) -> dict:
+    err = np.abs(np.rad2deg(np.asarray(out.beta)) - beta_true_deg)
+    return {"max_abs_beta_error_deg": float(err.max()), "rms_beta_error_deg": float(np.sqrt(np.mean(err**2))),
+            "max_abs_beta_error_after_10s_deg": float(err[t > 10.0].max())}  # fmt: skip
+
+
+def friction_levels(vehicle: VehicleParams | None = None, **nvso_settings) -> tuple[list, dict]:
+    """Per road friction of FRICTION_LEVELS, the sine steer of SUSTAINED s whose amplitude puts the peak ``|a_y|`` at
+    about TARGET_USE of the friction (one linear correction of an amplitude proportional to the friction), with
+    the NVSO's switching (§2.5): mode 1 only (no friction adaptation), adaptation of ``mu_H`` (``peak_friction =
+    1``, the default) and of the thesis's scale (``peak_friction = 0``). Rows of the table and theta series."""
+    vehicle = VehicleParams() if vehicle is None else vehicle
+    rows, series = [], {}
+    for friction in FRICTION_LEVELS:
+        amplitude = SINE_AMPLITUDE_DEG * friction / LOW_FRICTION
+        trial, _, _ = _drive(vehicle, 10.0, _sine(friction, amplitude))
+        amplitude *= TARGET_USE / (float(np.abs(np.asarray(trial.ay)).max()) / (friction * GRAVITY))
+        tr, y, vx0 = _drive(vehicle, SUSTAINED, _sine(friction, amplitude))
+        t, beta = np.asarray(tr.time), np.rad2deg(np.asarray(tr.beta))
+        row = {"friction": friction, "steering_amplitude_deg": amplitude,
+               "peak_ay_over_friction_g": float(np.abs(np.asarray(tr.ay)).max() / (friction * GRAVITY)),
+               "peak_beta_deg": float(np.abs(beta).max())}  # fmt: skip
+        for name, settings in (("mode1", {"vy_dot_threshold": NEVER, "oversteer_threshold": NEVER}),
+                               ("peak_friction", {"peak_friction": 1.0}), ("scaled", {"peak_friction": 0.0})):  # fmt: skip
+            _, out = _run(vehicle, y, vx0, False, **{**nvso_settings, **settings})
+            theta = np.asarray(out.x[:, 2])
+            row[name] = {
+                "theta_final": float(theta[-1]),
+                "theta_mean_last_10s": float(theta[t > t[-1] - 10.0].mean()),
+                "settling_time_15pct_s": settling_time(t, theta, friction, 0.15),
+                "settling_time_2pct_s": settling_time(t, theta, friction, 0.02),
+                "mode2_fraction": float(np.mean(np.asarray(out.mode) > 0.5)),
+                **_errors(t, beta, out),
+            }
+            series[(friction, name)] = (t, theta)
+        rows.append(row)
+    return rows, series
+
+
+def levels_table(rows: list) -> str:
+    """The markdown table of :func:`friction_levels`."""
+    lines = ["| road friction (peak a_y / friction g) | theta, mu_H adapted (settling 15 %, 2 %) | theta, scale adapted "
+             "| sideslip error max / after 10 s (deg): no adaptation | mu_H adapted | scale adapted |",
+             "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+
+    def settle(r):
+        return f"{r['settling_time_15pct_s']:.1f} s, {r['settling_time_2pct_s']:.1f} s"
+
+    def err(r):
+        return f"{r['max_abs_beta_error_deg']:.3f} / {r['max_abs_beta_error_after_10s_deg']:.3f}"
+
+    for r in rows:
+        lines.append(f"| {r['friction']:g} ({r['peak_ay_over_friction_g']:.2f}) | {r['peak_friction']['theta_final']:.3f} "
+                     f"({settle(r['peak_friction'])}) | {r['scaled']['theta_final']:.3f} | {err(r['mode1'])} | "
+                     f"{err(r['peak_friction'])} | {err(r['scaled'])} |")  # fmt: skip
+    return "\n".join(lines)
+
+
 def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
     """The numbers (a), (b), (c) of the module docstring and the series the figure draws."""
     vehicle = VehicleParams() if vehicle is None else vehicle
@@ -165,17 +230,20 @@ def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
 
     runs, series = {}, {"t": t}
     matched = matched_vehicle(vehicle, friction)
-    for name, obs_vehicle, always_on in (
-        ("default_switching", vehicle, False),
-        ("default_always_on", vehicle, True),
-        ("matched_switching", matched, False),
-        ("matched_always_on", matched, True),
+    for name, obs_vehicle, always_on, peak in (
+        ("scaled_switching", vehicle, False, 0.0),
+        ("scaled_always_on", vehicle, True, 0.0),
+        ("matched_switching", matched, False, 0.0),
+        ("matched_always_on", matched, True, 0.0),
+        ("peak_switching", vehicle, False, 1.0),
+        ("peak_always_on", vehicle, True, 1.0),
     ):
-        params, out = _run(obs_vehicle, y, vx0, always_on)
-        phi, ay_star = (np.asarray(a) for a in _regressor(params, out, y))
+        params, out = _run(obs_vehicle, y, vx0, always_on, peak_friction=peak)
+        ay_star, xi = np.asarray(out.regressor), np.asarray(out.xi)
+        phi = ay_star / np.sqrt(xi**2 + ay_star**2)  # Lambda a_y*
         theta, mode = np.asarray(out.x[:, 2]), np.asarray(out.mode)
         on = mode > 0.5
-        rate = float(params.K_theta) * phi * ay_star  # d theta~ / dt = -rate theta~ when the model is exact
+        rate = float(params.K_theta) * phi * ay_star  # d theta~ / dt = -rate theta~ when the scaled model is exact
         err = np.rad2deg(np.asarray(out.beta)) - beta
         runs[name] = {
             "theta_final": float(theta[-1]),
@@ -229,7 +297,7 @@ def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
         "peak_ay_over_friction_g": float(np.abs(ay_true).max() / (friction * GRAVITY)),
         "peak_beta_deg": float(np.abs(beta).max()),
         "excited_fraction": float(excited.mean()),
-        "a_regressor_and_gating": {k: runs[k] for k in ("default_switching", "default_always_on")},
+        "a_regressor_and_gating": {k: runs[k] for k in ("scaled_switching", "scaled_always_on")},
         "b_axle_forces": {
             **axles,
             "theta_eff_whole_model_median_excited": float(np.nanmedian(theta_eff)),
@@ -238,6 +306,7 @@ def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
             "model_peak_slip_deg": float(a[np.argmax(curve_model)]),
         },
         "c_identifiability": {k: runs[k] for k in ("matched_switching", "matched_always_on")},
+        "d_peak_friction": {k: runs[k] for k in ("peak_switching", "peak_always_on")},
     }
     summary["c_identifiability"]["sustained_always_on"], series["sustained"] = _sustained(vehicle, friction)
     return summary, series
@@ -255,23 +324,24 @@ def figure(summary: dict, series: dict, path: Path) -> None:
 
     p = ax[0, 0]
     for name, label, style in (
-        ("default_switching", "NVSO, default model, switching (§2.5)", "C3-"),
-        ("default_always_on", "NVSO, default model, estimation always on", "C1--"),
-        ("matched_switching", "NVSO, model = simulator's tyre, switching", "C2-"),
-        ("matched_always_on", "NVSO, model = simulator's tyre, always on", "C0--"),
+        ("scaled_switching", "theta x friction-1 model (Grip 2010 §2.4), switching (§2.5)", "C3-"),
+        ("scaled_always_on", "theta x friction-1 model, estimation always on", "C1--"),
+        ("matched_switching", "theta x simulator's tyre (normalised), switching", "C2-"),
+        ("matched_always_on", "theta x simulator's tyre (normalised), always on", "C0--"),
+        ("peak_switching", "theta = mu_H of the model (the default), switching", "C4-"),
     ):
         p.plot(t, series[name]["theta"], style, label=label)
-    p.plot(t, series["theta_eff"], "k.", ms=2, label="theta the default model needs at the true state")
+    p.plot(t, series["theta_eff"], "k.", ms=2, label="theta the scaled model needs at the true state")
     p.axhline(friction, color="k", lw=1, ls=":", label=f"road friction {friction:g}")
     p.set(xlabel="time (s)", ylabel="friction estimate theta (-)", title="(c) friction estimate", ylim=(0, 1.15))
     p.legend(fontsize=7, loc="lower left")
 
     p = ax[0, 1]
-    s = series["default_switching"]
-    p.plot(t, s["phi"], "C3-", label="regressor phi = Lambda a_y* (default model)")
+    s = series["scaled_switching"]
+    p.plot(t, s["phi"], "C3-", label="regressor phi = Lambda a_y* (scaled model)")
     p.plot(t, series["matched_switching"]["phi"], "C2-", lw=1, label="regressor phi (model = simulator's)")
     p.fill_between(t, -1, 1, where=s["mode"] > 0.5, color="C3", alpha=0.12, step="pre",
-                   label="friction estimation on (default, switching)")  # fmt: skip
+                   label="friction estimation on (scaled, switching)")  # fmt: skip
     p.set(xlabel="time (s)", ylabel="phi (-)", title="(a) update-law regressor and the gate", ylim=(-1.05, 1.05))
     p.legend(fontsize=7, loc="lower left")
 
@@ -299,10 +369,12 @@ def figure(summary: dict, series: dict, path: Path) -> None:
     p.legend(fontsize=7, loc="upper right")
     p = ax[0, 2]
     for (name, label), c in zip(
-        (("default_model", "default model"), ("matched_model", "model = simulator's tyre"),
-         ("matched_model_simulator_without_relaxation", "model = simulator's tyre; simulator's relaxation length\n"
-          f"{SHORT_RELAXATION:g} m instead of 0.5 m")),
-        ("C1", "C0", "C2"), strict=True,
+        (("scaled_model", "theta x friction-1 model"), ("matched_model", "theta x simulator's tyre (normalised)"),
+         ("matched_model_without_relaxation_filter", "the same, no relaxation filter (§2.8)"),
+         ("matched_model_simulator_without_relaxation", "the same; simulator's relaxation length\n"
+          f"{SHORT_RELAXATION:g} m instead of 0.5 m"),
+         ("peak_friction", "theta = mu_H of the model (the default)")),
+        ("C1", "C0", "C3", "C2", "C4"), strict=True,
     ):  # fmt: skip
         p.plot(*series["sustained"][name], color=c, label=label)
     p.axhline(friction, color="k", lw=1, ls=":", label=f"road friction {friction:g}")
@@ -310,7 +382,18 @@ def figure(summary: dict, series: dict, path: Path) -> None:
     p.set(xlabel="time (s)", ylabel="friction estimate theta (-)", ylim=(0, 1.15),
           title=f"(c) the same sine for {SUSTAINED:g} s, estimation held on")  # fmt: skip
     p.legend(fontsize=7, loc="upper right")
-    ax[1, 2].axis("off")
+    p = ax[1, 2]
+    for i, level in enumerate(FRICTION_LEVELS):
+        for name, style in (("peak_friction", "-"), ("scaled", "--")):
+            t_level, theta = series["levels"][(level, name)]
+            p.plot(t_level, theta, style, color=f"C{i}", lw=1.2)
+        p.axhline(level, color=f"C{i}", lw=0.8, ls=":")
+    p.plot([], [], "k-", label="theta = mu_H of the model (the default)")
+    p.plot([], [], "k--", label="theta x friction-1 model (Grip 2010 §2.4)")
+    p.plot([], [], "k:", label="road friction")
+    p.set(xlabel="time (s)", ylabel="friction estimate theta (-)", ylim=(0, 1.15),
+          title=f"(d) sines at {TARGET_USE:g} of each road's friction, switching (§2.5)")  # fmt: skip
+    p.legend(fontsize=7, loc="lower right")
     fig.suptitle(f"NVSO friction adaptation on the friction-{friction:g} check drive ({DRIVE})")
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -323,6 +406,8 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     summary, series = diagnose()
+    summary["friction_levels"], series["levels"] = friction_levels()
+    print(levels_table(summary["friction_levels"]))
     (out / "sideslip_friction.json").write_text(json.dumps(summary, indent=1))
     figure(summary, series, out / "sideslip_friction.png")
     print(json.dumps(summary, indent=1))

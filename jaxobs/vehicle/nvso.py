@@ -3,9 +3,9 @@
 
 It estimates ``v_x``, ``v_y``, the friction scale ``theta``, the inclination and the bank with two modes, friction
 estimation off and on (2.18)-(2.27), switched by the logic of §2.5 (:mod:`jaxobs.vehicle.switching`), discretised
-by forward Euler at the sensor period (§2.8). ``smooth`` replaces every switch by a sigmoid gate so that gains and
-thresholds get gradients. :func:`make_nvso`, :data:`nvso`. The equations, the switches, the standstill guard and
-the departures from §2.8: docs/theory/vehicle.md.
+by forward Euler at the sensor period (§2.8), with the tyre-relaxation filter of §2.8 on the friction model's output.
+``smooth`` replaces every switch by a sigmoid gate so that gains and thresholds get gradients. :func:`make_nvso`,
+:data:`nvso`. The equations, the switches, the standstill guard and the departures from §2.8: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -47,7 +47,19 @@ class NVSOParams(NamedTuple):
         (m/s^2, rad/s, m/s^2, s, s).
       min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
         finite ``v_x,ref`` (m/s).
-      smooth: ``None`` (exact switches) or the gate sharpness (> 0).
+      relaxation_length: ``l_e`` of the tyre-relaxation filter (m, >= 0), Grip 2010 §2.8 (and §4.7): the friction
+        model's output (``a_y*`` and the yaw acceleration ``psi''*``) is filtered by ``1 / (T s + 1)`` with the
+        speed-dependent ``T = T_e + l_e / v_x_hat`` (Pacejka 2006, ch. 1; the thesis gives no values). The default
+        (0.5 in :class:`NVSOParams`; :func:`make_nvso` takes the vehicle's ``relaxation_length``) matches the
+        simulator's tyres (:class:`~jaxobs.vehicle.VehicleParams`, ``tan_alpha' = (v / l_relax)(tan_alpha_ss -
+        tan_alpha)``, the same lag ``l / v`` in the linear range). 0 (with ``relaxation_time`` 0) switches the filter
+        off: the model output is used as it is.
+      relaxation_time: ``T_e`` of the same filter (s, >= 0); 0 assumed (the simulator has no lag beyond ``l / v``).
+      peak_friction: 1 (default): ``theta`` is the friction model's road-tyre friction coefficient ``mu_H``, as in
+        Imsland et al. 2007, so the tyre curve's shape (the slip of its peak) follows it and the regressor of (2.25)
+        is ``d a_y^ / d mu_H``; 0: ``theta`` scales the friction-1 model, ``a_y^ = theta a_y*``, as Grip 2010
+        §2.4.1 chooses for a simpler analysis ("variation in mu_H does not correspond precisely to a scaling of the
+        friction forces"). In ``[0, 1]``; values between blend the two (a leaf, so it batches like the others).
     """
 
     vehicle: VehicleParams
@@ -55,7 +67,7 @@ class NVSOParams(NamedTuple):
     K_vx_min: jax.Array = 0.3
     wheel_spread: jax.Array = 0.5
     K_vy: jax.Array = 1.0
-    K_theta: jax.Array = 1.0
+    K_theta: jax.Array = 3.0
     K_e: jax.Array = 0.5
     K_theta_i: jax.Array = 0.02
     K_theta_i_on: jax.Array = 0.005
@@ -77,6 +89,9 @@ class NVSOParams(NamedTuple):
     dt: jax.Array = _SWITCHING["dt"]
     vx0: jax.Array = 20.0
     smooth: jax.Array | None = None
+    relaxation_length: jax.Array = VehicleParams.relaxation_length
+    relaxation_time: jax.Array = 0.0
+    peak_friction: jax.Array = 1.0
 
 
 _POSITIVE = (
@@ -84,7 +99,8 @@ _POSITIVE = (
     "accel_margin", "vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold", "off_delay", "high_pass_time",
     "min_speed", "dt",
 )  # fmt: skip
-_NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0")
+_NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0", "relaxation_length",
+                 "relaxation_time", "peak_friction")  # fmt: skip
 
 
 def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
@@ -95,7 +111,8 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
       vehicle: the vehicle whose friction model the observer uses.
       settings: any field of :class:`NVSOParams` (``ValueError`` for an unknown one). Concrete values are checked:
         gains, thresholds and times positive (``ValueError`` naming the field); ``theta_min < theta_max``;
-        ``smooth`` ``None`` or positive.
+        ``smooth`` ``None`` or positive. ``relaxation_length`` defaults to ``vehicle.relaxation_length`` (the
+        filter of §2.8 matches the simulated tyres); pass 0 to switch the filter off.
 
     Example:
       >>> from jaxobs.vehicle import make_nvso
@@ -113,12 +130,15 @@ def make_nvso(vehicle: VehicleParams | None = None, **settings) -> NVSOParams:
     for name in _NON_NEGATIVE:
         if name in settings:
             _checks.positive(name, settings[name], allow_zero=True)
+    settings.setdefault("relaxation_length", vehicle.relaxation_length)
     params = NVSOParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
     if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
         raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
     if params.smooth is not None:
         _checks.positive("smooth", params.smooth)
+    if _checks.is_concrete(params.peak_friction) and not np.all(np.asarray(params.peak_friction) <= 1):
+        raise ValueError(f"peak_friction must lie in [0, 1] (1: theta is mu_H), got {params.peak_friction!r}")
     return params
 
 
@@ -130,6 +150,8 @@ class NVSOState(NamedTuple):
       mode: () friction estimation on (1) / off (0); a gate value in [0, 1] when smooth
       off_timer: () time since the switching conditions last held (s)
       low_pass: () the low-pass part of the high-pass filter of a_y - r v_x
+      relaxed: (2,) the friction model's ``a_y`` and ``psi''`` after the tyre-relaxation filter (§2.8), at
+        t_{k-1}: at the friction ``theta`` (``peak_friction``), at 1 otherwise
       y: (N_SENSORS,) last finite measurement (held over the next interval)
       started: () bool: a sample has been processed (the first step outputs the initial estimate)
       missing: () int32, non-finite sensor samples skipped so far
@@ -139,6 +161,7 @@ class NVSOState(NamedTuple):
     mode: jax.Array
     off_timer: jax.Array
     low_pass: jax.Array
+    relaxed: jax.Array
     y: jax.Array
     started: jax.Array
     missing: jax.Array
@@ -153,6 +176,8 @@ class NVSOOutputs(NamedTuple):
       mode: () the mode used over the interval
       innovation: (2,) (v_x,ref - v_x, a_y - theta a_y*) that drove the interval
       xi: () d a_y* / d v_y (1/s)
+      regressor: () the regressor of the update law (2.25) before ``Lambda``: ``a_y^ / theta``, the relaxed
+        ``a_y*`` when ``theta`` scales the model (m/s^2)
       K_theta_b: () the bank gain used (after reductions)
     """
 
@@ -161,6 +186,7 @@ class NVSOOutputs(NamedTuple):
     mode: jax.Array
     innovation: jax.Array
     xi: jax.Array
+    regressor: jax.Array
     K_theta_b: jax.Array
 
 
@@ -171,8 +197,8 @@ def _init(params: NVSOParams) -> NVSOState:
     y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / v.wheel_radius).at[VX_REF].set(vx0)
     x = jnp.stack([vx0, 0.0 * vx0, jnp.asarray(params.theta_default, dtype), 0.0 * vx0, 0.0 * vx0])
     zero = jnp.zeros((), dtype)
-    return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, y, jnp.zeros((), bool),
-                     jnp.zeros((), jnp.int32))  # fmt: skip
+    return NVSOState(x, zero, jnp.asarray(params.off_delay, dtype), zero, jnp.zeros((2,), dtype), y,
+                     jnp.zeros((), bool), jnp.zeros((), jnp.int32))  # fmt: skip
 
 
 def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
@@ -189,13 +215,31 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     ay = ay / roll  # roll correction, Grip 2010 §2.2
     vx, vy, theta, theta_i, theta_b = state.x
 
-    def model(vy):
-        f = friction_model(v, vx, vy, r, sw, omega, ax, ay)
+    # theta is the model's friction mu_H (peak_friction = 1: the tyre curve's shape follows it) or a factor on the
+    # friction-1 model (0: a_y^ = theta a_y*, (2.25) as printed). xi, the direction of the a_y injections (2.24)
+    # and (2.27), is always the friction-1 model's slope, which does not vanish where a low-friction tyre saturates.
+    p = params.peak_friction
+    friction, scale = p * theta + (1.0 - p), p + (1.0 - p) * theta
+
+    def model(vy, friction):
+        f = friction_model(v, vx, vy, r, sw, omega, ax, ay, friction)
         return jnp.stack([f.ay, f.yaw_moment / v.yaw_inertia])
 
-    (ay_star, yaw_acc_star), (xi, _) = jax.jvp(model, (vy,), (jnp.ones_like(vy),))
-    lam = jax.lax.rsqrt(jnp.maximum(xi**2 + ay_star**2, 1e-12))
-    e = ay - theta * ay_star
+    _, (xi, _) = jax.jvp(lambda vy: model(vy, 1.0), (vy,), (jnp.ones_like(vy),))
+    static = model(vy, friction)
+    # tyre relaxation (Grip 2010 §2.8): the model output through 1 / (T s + 1), T = T_e + l_e / v_x, discretised
+    # exactly for the model output held over the interval and taken at its end (T = 0: no filter, alpha = 1).
+    T = params.relaxation_time + params.relaxation_length / jnp.maximum(vx, params.min_speed)
+    alpha = -jnp.expm1(-dt / jnp.maximum(T, 1e-3 * dt))  # floor: alpha = 1 - e^-1000 = 1, finite gradients
+    alpha = jnp.where(state.started, alpha, 1.0)  # starts at the model's output at the (straight) initial estimate
+    relaxed = state.relaxed + alpha * (static - state.relaxed)
+    ay_model, yaw_acc_model = scale * relaxed
+    # the regressor of (2.25): a_y^ per unit friction, a_y* itself when theta scales the model. For theta = mu_H it
+    # has the sign of d a_y^ / d mu_H (a_y^ grows with mu_H at every slip) without its vanishing in the linear
+    # range: the monotone numerical search of Grip 2010 Prop. 5.3
+    regressor = ay_model / jnp.maximum(theta, params.theta_min)
+    lam = jax.lax.rsqrt(jnp.maximum(xi**2 + regressor**2, 1e-12))
+    e = ay - ay_model
 
     # longitudinal gain from the spread of the four wheel velocities
     delta = sw / v.steering_ratio
@@ -212,7 +256,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     yaw_acc = (y_now[YAW_RATE] - r) / dt
     reduce = either(
         gate(params.smooth, jnp.abs(e), params.c1, params.c1),
-        gate(params.smooth, jnp.abs(yaw_acc - theta * yaw_acc_star), params.c2, params.c2),
+        gate(params.smooth, jnp.abs(yaw_acc - yaw_acc_model), params.c2, params.c2),
         same_sign * gate(params.smooth, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.c3, params.c3),
     )
     K_theta_b = params.K_theta_b * (1.0 - reduce * (1.0 - params.theta_b_reduction))
@@ -225,7 +269,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     injection = (1.0 - mode) * (-params.K_vy * e) + mode * params.K_vy * lam * xi * e
     d_vy = moving * (kinematic_y + injection) - (1.0 - moving) * K_vx * vy
     d_theta_off = params.K_e * (params.theta_default - theta)
-    d_theta = (1.0 - moving * mode) * d_theta_off + moving * mode * params.K_theta * lam * ay_star * e
+    d_theta = (1.0 - moving * mode) * d_theta_off + moving * mode * params.K_theta * lam * regressor * e
     K_theta_i = (1.0 - mode) * params.K_theta_i + mode * params.K_theta_i_on
     d_theta_i = K_theta_i * K_vx * (vref - vx)
     d_theta_b = moving * K_theta_b * ((1.0 - mode) * e - mode * lam * xi * e)
@@ -241,9 +285,9 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     next_mode = jnp.where(first, state.mode, next_mode)
     timer = jnp.where(first, state.off_timer, timer)
     low_pass = jnp.where(first, y_now[AY] / roll - y_now[YAW_RATE] * y_now[VX_REF], low_pass)  # HP starts at 0
-    new_state = NVSOState(x, next_mode, timer, low_pass, y_now, jnp.ones((), bool), missing)
+    new_state = NVSOState(x, next_mode, timer, low_pass, relaxed, y_now, jnp.ones((), bool), missing)
     beta = jnp.arctan2(x[1], jnp.maximum(x[0], params.min_speed))
-    outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, K_theta_b)
+    outputs = NVSOOutputs(x, beta, mode, jnp.stack([vref - vx, e]), xi, regressor, K_theta_b)
     return new_state, outputs
 
 

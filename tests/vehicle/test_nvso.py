@@ -1,9 +1,12 @@
 """The NVSO of jaxobs.vehicle.nvso (Grip 2010 ch. 2) on the simulated ISO double lane change: the sideslip error with
 known friction and exact sensors, the smooth gates against the exact switching logic, the oversteer condition of the
 switch (counter-steering included), batching over vehicles, a gradient w.r.t. a gain, missing sensor samples, the
-standstill guard and bad settings."""
+standstill guard and bad settings; the tyre-relaxation filter of §2.8 (its time constant, and the friction
+estimate it makes identifiable with the observer's tyre equal to the simulator's)."""
 
 import dataclasses
+import importlib.util
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -12,8 +15,9 @@ import pytest
 
 from jaxobs.observers.base import EstimatorInputs, run
 from jaxobs.vehicle import SensorParams, VehicleParams, measure, simulate
+from jaxobs.vehicle.model import GRAVITY, friction_model
 from jaxobs.vehicle.nvso import make_nvso, nvso
-from jaxobs.vehicle.sensors import N_SENSORS, sensor_inputs
+from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE, sensor_inputs
 from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
 P = VehicleParams()
@@ -35,16 +39,17 @@ def _params(meas, **settings):
 
 
 def test_sideslip_error_on_the_double_lane_change_with_known_friction(lane_change):
-    """Peak sideslip 3.9 deg at 0.92 g: the NVSO's sideslip error stays below 0.35 deg (measured 0.23 deg max, 0.11
-    rms), friction estimation switches on during the manoeuvre, theta stays within [0.95, 1.1] of the true 1, and
-    the bank estimate ends within 0.15 deg of the road's 0.5 deg (measured 0.54)."""
+    """Peak sideslip 3.9 deg at 0.92 g: the NVSO's sideslip error stays below 0.35 deg, friction estimation
+    switches on during the manoeuvre, theta stays within [0.9, 1.1] of the true 1 (it dips to 0.92 while the
+    tyres are deep in their nonlinear range, as the thesis's Fig. 2.5 shows a dip below the default), and the bank
+    estimate ends within 0.15 deg of the road's 0.5 deg."""
     meas, beta = lane_change
     _, out = _run(_params(meas), sensor_inputs(meas))
     error = np.rad2deg(np.asarray(out.beta - beta))
     assert np.rad2deg(float(jnp.max(jnp.abs(beta)))) > 3.5
     assert np.abs(error).max() < 0.35
     assert 0.1 < float(out.mode.mean()) < 0.95
-    assert 0.95 <= float(out.x[:, 2].min()) and float(out.x[:, 2].max()) <= 1.1
+    assert 0.9 <= float(out.x[:, 2].min()) and float(out.x[:, 2].max()) <= 1.1
     assert abs(np.rad2deg(float(out.x[-1, 4])) - 0.5) < 0.15
 
 
@@ -185,3 +190,92 @@ def test_switching_params_share_the_nvso_defaults_and_are_checked():
         make_switching(K_vy=1.0)
     with pytest.raises(ValueError, match="off_delay"):
         make_switching(off_delay=0.0)
+
+
+def _relaxation_step(params, vx, steering_wheel=30.0 / 57.3, r=0.1, ay=2.0):
+    """One step of a started NVSO at ``v_x = vx`` (``v_y = 0``) from a relaxed model output of 0, with a cornering
+    measurement held: ``(relaxed output after the step, the static model output (a_y*, psi''*))``."""
+    v = params.vehicle
+    y = jnp.zeros(N_SENSORS).at[AY].set(ay).at[YAW_RATE].set(r).at[STEERING_WHEEL].set(steering_wheel)
+    y = y.at[WHEEL_SPEED].set(vx / v.wheel_radius).at[VX_REF].set(vx)
+    state = nvso.init(params)
+    state = state._replace(x=state.x.at[0].set(vx), y=y, started=jnp.ones((), bool))
+    new_state, _ = nvso.step(params, state, EstimatorInputs(y=y))
+    f = friction_model(v, vx, 0.0, r, steering_wheel, y[WHEEL_SPEED], y[AX], ay / (1.0 + v.roll_gradient * GRAVITY))
+    return new_state.relaxed, jnp.stack([f.ay, f.yaw_moment / v.yaw_inertia])
+
+
+def test_tyre_relaxation_filter_time_constant():
+    """The filter of Grip 2010 §2.8, 1 / (T s + 1) with T = T_e + l_e / v_x: from 0, one 10 ms step toward a held
+    model output covers the fraction 1 - exp(-dt / T) of it, at 5 and 25 m/s (l_e = 0.5 m, T = 0.1 and 0.02 s) and
+    with T_e = 0.05 s; l_e = 0 (and T_e = 0) passes the model output through unchanged. make_nvso takes l_e from the
+    vehicle (the simulator's relaxation length); the filter state is jit- and vmap-able over l_e and the gradient
+    w.r.t. l_e is finite, at 0 as well."""
+    assert float(make_nvso(P).relaxation_length) == P.relaxation_length
+    assert float(make_nvso(dataclasses.replace(P, relaxation_length=0.3)).relaxation_length) == 0.3
+    for vx, T_e in ((5.0, 0.0), (25.0, 0.0), (25.0, 0.05)):
+        params = make_nvso(P, relaxation_time=T_e)
+        relaxed, static = _relaxation_step(params, vx)
+        T = T_e + 0.5 / vx
+        assert float(jnp.abs(static[0])) > 1.0
+        np.testing.assert_allclose(relaxed, (1.0 - np.exp(-0.01 / T)) * static, rtol=1e-12)
+    relaxed, static = _relaxation_step(make_nvso(P, relaxation_length=0.0), 25.0)
+    np.testing.assert_array_equal(relaxed, static)
+
+    lengths = jnp.array([0.0, 0.2, 0.5])
+    batched = jax.jit(jax.vmap(lambda l_e: _relaxation_step(make_nvso(P)._replace(relaxation_length=l_e), 20.0)[0]))
+    out = batched(lengths)
+    for i, l_e in enumerate(lengths):
+        np.testing.assert_allclose(out[i], _relaxation_step(make_nvso(P, relaxation_length=float(l_e)), 20.0)[0],
+                                   rtol=1e-12)  # fmt: skip
+    grad = jax.jit(jax.grad(lambda l_e: _relaxation_step(make_nvso(P)._replace(relaxation_length=l_e), 20.0)[0][0]))
+    for l_e in (0.0, 0.5):
+        g = float(grad(l_e))
+        assert np.isfinite(g), (l_e, g)
+    assert float(grad(0.5)) < 0.0  # a longer relaxation length lets less of the (positive) a_y* through
+    with pytest.raises(ValueError, match="relaxation_length"):
+        make_nvso(relaxation_length=-0.1)
+
+
+def _friction_benchmark():
+    spec = importlib.util.spec_from_file_location(
+        "bench_sideslip_friction", Path(__file__).parents[2] / "benchmarks" / "sideslip_friction.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
+@pytest.mark.slow  # a 30 s drive simulated at 1 ms
+def test_friction_identifiable_with_the_simulators_tyre():
+    """The identifiability check of benchmarks/sideslip_friction.py (issue 30): the NVSO's default friction model is
+    the simulator's tyre at the estimated mu_H (peak_friction = 1); on friction 0.3, the steering sine continued to
+    30 s. Friction estimation held on, on a simulator whose tyres relax their slips over 0.02 m (the observer's
+    relaxation filter at 0.02 m too): the estimate ends within 2 % of 0.3 (measured 0.2972; the last 10 s average
+    0.2963, the sine's cycles move it by up to 2.1 %). With the simulator's 0.5 m it ends 2.6 % high (measured
+    0.3077): the filter of Grip 2010 §2.8 lags the model's forces, the simulator lags the slips, alike only in the
+    linear range. The thesis's scale of the friction-1 model (peak_friction = 0) ends at 0.69. With the switching of
+    §2.5, once the estimate has settled (after 10 s), the largest sideslip error is less than half that of mode 1
+    (measured 0.037 against 0.441 deg)."""
+    bench = _friction_benchmark()
+    friction = 0.3
+    final, errors = {}, {}
+    for name, sim, always_on, settings in (
+        ("short", dataclasses.replace(P, relaxation_length=bench.SHORT_RELAXATION), True, {}),
+        ("relaxed", P, True, {}),
+        ("scaled", P, True, {"peak_friction": 0.0}),
+        ("switching", P, False, {}),
+        ("mode1", P, False, {"vy_dot_threshold": 1e6, "oversteer_threshold": 1e6}),
+    ):
+        tr, y, vx0 = bench._drive(sim, bench.SUSTAINED)
+        t = np.asarray(tr.time)
+        _, out = bench._run(sim, y, vx0, always_on, **settings)
+        theta = np.asarray(out.x[:, 2])
+        final[name] = (theta[-1], theta[t > t[-1] - 10.0].mean())
+        errors[name] = np.rad2deg(np.abs(np.asarray(out.beta - tr.beta)))[t > 10.0].max()
+    assert abs(final["short"][0] - friction) < 0.02 * friction, final["short"]
+    assert abs(final["short"][1] - friction) < 0.02 * friction, final["short"]
+    assert abs(final["relaxed"][0] - friction) < 0.03 * friction, final["relaxed"]
+    assert final["scaled"][0] > 2 * friction, final["scaled"]
+    assert abs(final["switching"][0] - friction) < 0.15 * friction, final["switching"]
+    assert errors["switching"] < 0.5 * errors["mode1"], errors

@@ -59,6 +59,7 @@ LEMMA_4_2_K_VY, LEMMA_4_2_DELTA_MIN = 10.0, 0.8995
 SINE_AMPLITUDE_DEG = 25.0  # steering wheel; the sine_steer manoeuvre's 45 deg spins the car on friction 0.3
 THETA0_STRAIGHT, VY0_ERROR = 0.5, 0.5  # straight_no_excitation: initial theta (true 1) and v_y error (m/s)
 CHECK_DURATION = 30.0  # s, the straight check drives
+ADAPTED_AFTER = 5.0  # s: the low-friction check's errors also from here on, after 2.5 periods of its sine
 NEVER = 1e6  # a switching threshold / off delay no signal reaches: friction estimation never on / never off
 EXACT = SensorParams(noise_acc=0.0, noise_yaw_rate=0.0, noise_steering=0.0, noise_wheel=0.0)
 COST_REPEATS = 5
@@ -316,6 +317,10 @@ def checks(vehicle: VehicleParams, est: Estimates) -> dict:
             "mode1": _errors(nv.beta[r1], tr.beta[d], n)["max_abs_beta_error_deg"],
             "mode2": _errors(nv.beta[r2], tr.beta[d], n)["max_abs_beta_error_deg"],
         },
+        "max_abs_beta_error_after_first_cycles_deg": {  # once the sine has excited the estimate
+            mode: float(np.rad2deg(np.abs(np.asarray(nv.beta[r, first:n] - tr.beta[d, first:n])).max()))
+            for mode, r, first in (("mode1", r1, _samples(ADAPTED_AFTER)), ("mode2", r2, _samples(ADAPTED_AFTER)))
+        },
     }
     r, d, n = run_of("straight_no_excitation")
     straight = {
@@ -383,8 +388,7 @@ def assumed(vehicle: VehicleParams) -> dict:
             "straight_no_excitation": f"flat straight, mode 2 held (off_delay = {NEVER:g}), theta(0) = "
                                       f"{THETA0_STRAIGHT}, v_y error(0) = {VY0_ERROR} m/s",
         },  # fmt: skip
-        "not_modelled": "the NVSO's tyre-relaxation filter, caster correction and ESC-active switching condition "
-                        "(jaxobs.vehicle.nvso)",
+        "not_modelled": "the NVSO's caster correction and ESC-active switching condition (jaxobs.vehicle.nvso)",
     }  # fmt: skip
 
 

@@ -108,18 +108,18 @@ def test_bank_and_inclination_are_estimated(reduced):
 @pytest.mark.slow  # shares a 25 s reproduction run
 def test_friction_adaptation_on_low_friction(reduced):
     """Grip 2010 §2.4-2.5 on friction 0.3 (a 25 deg sine steer at 80 km/h, peak 0.27 g, sideslip 0.87 deg): with
-    friction estimation (on 90 % of the time) theta moves from 1 to 0.85 and the sideslip error drops from
-    0.442 deg (mode 1 only, theta held at theta* = 1) to 0.415 deg. The gap: theta does not reach 0.3. The thesis
-    says theta is about mu_H only at large slip (§2.4); here the tyres keep their cornering stiffness at low
-    friction and the drive stays below the peak, so a scale of 0.85 fits a_y. The test pins that measured gap."""
+    friction estimation (on 90 % of the time) the estimate of mu_H moves from 1 to within 15 % of 0.3 in the 10 s,
+    and after 5 s the largest sideslip error is below that of mode 1 only (theta held at theta* = 1; measured 0.25
+    against 0.45 deg; halved once the estimate has settled, tests/vehicle/test_nvso.py). Over the whole drive the
+    largest errors are alike: both come at the first steer, before anything is learned."""
     _, s = reduced
     c = s["checks"]["friction_adaptation"]
     assert c["theta_hat_final_mode1"] == 1.0
-    assert c["theta_hat_final"] < 0.9
-    assert c["theta_hat_final"] == pytest.approx(0.851, abs=0.01)  # not 0.3: the documented gap
-    errors = c["max_abs_beta_error_deg"]
-    assert errors["mode2"] < errors["mode1"] < 0.5
-    pin(c["theta_hat_final"], r"on friction 0.3 theta goes from 1 to ([0-9.]+) \(")
+    assert c["theta_hat_final"] == pytest.approx(0.3, rel=0.15)
+    adapted = c["max_abs_beta_error_after_first_cycles_deg"]
+    assert adapted["mode2"] < adapted["mode1"]
+    assert c["max_abs_beta_error_deg"]["mode2"] < c["max_abs_beta_error_deg"]["mode1"] < 0.5
+    pin(c["theta_hat_final"], r"on friction 0.3 the friction estimate goes from 1 to ([0-9.]+) ")
 
 
 @pytest.mark.slow  # shares a 25 s reproduction run
@@ -160,11 +160,11 @@ def test_unknown_manoeuvre_raises():
 @pytest.mark.slow
 def test_full_reproduction(tmp_path):
     """All seven manoeuvres (measured, default run): every key; both observers hold the 40 m circle within 0.1 deg
-    rms (NVSO 0.046, EKF 0.054; the EKF lost it from its start, 23.8 deg, before its start-up fix) and the ice lake
-    within 10 deg rms (NVSO 7.6, EKF 9.1; they were at 10.5 and 53 deg before the counter-steer oversteer condition
-    and the EKF's start-up fix). The gaps to the thesis's figures: on the ice lake (Fig. 2.7: error < 3 deg most of
-    the time) both underestimate the 50 deg drifts (max errors 17.6 and 21.5 deg); on the circle the NVSO's max
-    error is 1.44 deg (Fig. 2.6 upper: more accurate)."""
+    rms (NVSO 0.039, EKF 0.054; the EKF lost it from its start, 23.8 deg, before its start-up fix) and the ice lake
+    within 10 deg rms (NVSO 5.5, EKF 9.1; they were at 10.5 and 53 deg before the counter-steer oversteer condition
+    and the EKF's start-up fix, the NVSO at 7.6 with the thesis's friction scale). The gaps to the thesis's figures:
+    on the ice lake (Fig. 2.7: error < 3 deg most of the time) both underestimate the 50 deg drifts (max errors
+    11.7 and 21.5 deg); on the circle the NVSO's max error is 1.16 deg (Fig. 2.6 upper: more accurate)."""
     s = sideslip.reproduce(tmp_path)
     assert set(s["manoeuvres"]) == set(MANOEUVRES)
     for entry in s["manoeuvres"].values():
