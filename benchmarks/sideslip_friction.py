@@ -184,8 +184,9 @@ def friction_levels(vehicle: VehicleParams | None = None, **nvso_settings) -> tu
         row = {"friction": friction, "steering_amplitude_deg": amplitude,
                "peak_ay_over_friction_g": float(np.abs(np.asarray(tr.ay)).max() / (friction * GRAVITY)),
                "peak_beta_deg": float(np.abs(beta).max())}  # fmt: skip
-        for name, settings in (("mode1", {"vy_dot_threshold": NEVER, "oversteer_threshold": NEVER}),
-                               ("peak_friction", {"peak_friction": 1.0}), ("scaled", {"peak_friction": 0.0})):  # fmt: skip
+        mode1 = {"vy_dot_threshold": NEVER, "oversteer_threshold": NEVER}
+        for name, settings in (("mode1", mode1), ("peak_friction", {"peak_friction": 1.0}),
+                               ("scaled", {"peak_friction": 0.0})):  # fmt: skip
             _, out = _run(vehicle, y, vx0, False, **{**nvso_settings, **settings})
             theta = np.asarray(out.x[:, 2])
             row[name] = {
@@ -203,8 +204,9 @@ def friction_levels(vehicle: VehicleParams | None = None, **nvso_settings) -> tu
 
 def levels_table(rows: list) -> str:
     """The markdown table of :func:`friction_levels`."""
-    lines = ["| road friction (peak a_y / friction g) | theta, mu_H adapted (settling 15 %, 2 %) | theta, scale adapted "
-             "| sideslip error max / after 10 s (deg): no adaptation | mu_H adapted | scale adapted |",
+    lines = ["| road friction (peak a_y / friction g) | theta, mu_H adapted (settling 15 %, 2 %) "
+             "| theta, scale adapted | sideslip error max / after 10 s (deg): no adaptation | mu_H adapted "
+             "| scale adapted |",
              "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
 
     def settle(r):
@@ -214,8 +216,9 @@ def levels_table(rows: list) -> str:
         return f"{r['max_abs_beta_error_deg']:.3f} / {r['max_abs_beta_error_after_10s_deg']:.3f}"
 
     for r in rows:
-        lines.append(f"| {r['friction']:g} ({r['peak_ay_over_friction_g']:.2f}) | {r['peak_friction']['theta_final']:.3f} "
-                     f"({settle(r['peak_friction'])}) | {r['scaled']['theta_final']:.3f} | {err(r['mode1'])} | "
+        lines.append(f"| {r['friction']:g} ({r['peak_ay_over_friction_g']:.2f}) "
+                     f"| {r['peak_friction']['theta_final']:.3f} ({settle(r['peak_friction'])}) "
+                     f"| {r['scaled']['theta_final']:.3f} | {err(r['mode1'])} | "
                      f"{err(r['peak_friction'])} | {err(r['scaled'])} |")  # fmt: skip
     return "\n".join(lines)
 
