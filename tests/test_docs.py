@@ -7,7 +7,8 @@ exactly). Code lines (python, TOML, shell) fit the site's column.
 The scripts run as a user's would, with ``jaxobs.sweep``'s choice of Arrow's memory pool: with pyarrow's default
 pool a script that had read a sweep's results aborted at exit about half the time.
 
-A page whose first line is ``<!-- test: slow ... -->`` is a slow test. The blocks are found by mktestdocs.
+A page whose first line is ``<!-- test: slow ... -->`` is a slow test. The blocks are found by mktestdocs. The README's
+tour is checked by the same helpers (tests/test_readme.py).
 """
 
 import os
@@ -67,8 +68,9 @@ def test_same_output_allows_the_last_digit_only():
     assert not same_output("rms 0.177", "RMS 0.177")
 
 
-@pytest.mark.parametrize("page", _pages())
-def test_page_code_prints_its_output(page, tmp_path):
+def assert_prints_its_output(page, tmp_path) -> None:
+    """Runs the ``python`` blocks of the markdown file ``page`` as one script from ``tmp_path`` and checks that it
+    prints what the page's ``Output`` blocks show; the docs pages and the README are checked alike."""
     text = page.read_text()
     code = "\n".join(grab_code_blocks(text, lang="python"))
     shown = "".join(grab_code_blocks(text, lang=OUTPUT)).rstrip("\n")
@@ -80,6 +82,11 @@ def test_page_code_prints_its_output(page, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     printed = "\n".join(line.rstrip() for line in done.stdout.splitlines() if not IMPORT_NOISE.match(line))
     assert same_output(printed, shown), f"{page.name} printed\n{printed}\n\nand shows\n{shown}"
+
+
+@pytest.mark.parametrize("page", _pages())
+def test_page_code_prints_its_output(page, tmp_path):
+    assert_prints_its_output(page, tmp_path)
 
 
 def _code_lines(info: str, block: str) -> list:
@@ -97,16 +104,21 @@ def _code_lines(info: str, block: str) -> list:
     return lines
 
 
-def test_code_lines_fit_the_column():
+def assert_code_lines_fit_the_column(pages: list) -> None:
+    """Checks that no code line of the markdown files ``pages`` is longer than ``COLUMN`` characters."""
     fence = re.compile(r"^```(.*?)\n(.*?)^```", re.M | re.S)
     long = [
-        f"{page.relative_to(DOCS)}: {line[:60]}..."
-        for page in sorted(DOCS.rglob("*.md"))
+        f"{page.relative_to(ROOT)}: {line[:60]}..."
+        for page in pages
         for info, block in fence.findall(page.read_text())
         for line in _code_lines(info, block)
         if len(line) > COLUMN
     ]
     assert not long, f"{len(long)} code lines longer than {COLUMN} characters:\n" + "\n".join(long)
+
+
+def test_code_lines_fit_the_column():
+    assert_code_lines_fit_the_column(sorted(DOCS.rglob("*.md")))
 
 
 def test_every_page_is_in_the_navigation():

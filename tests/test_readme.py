@@ -1,11 +1,11 @@
-"""The README: short, and its tour runs as printed. (The numbers of the README and of the docs pages are pinned by
-the tests that compute them, through tests/_published.py.)"""
-
-import re
+"""The README: short, and its tour prints what its ``Output`` blocks show, checked as the docs pages are (by
+tests/test_docs.py). (The numbers of the README and of the docs pages are pinned by the tests that compute them,
+through tests/_published.py.)"""
 
 import pytest
 
 from tests import ROOT
+from tests.test_docs import assert_code_lines_fit_the_column, assert_prints_its_output
 
 pytestmark = pytest.mark.published
 
@@ -18,13 +18,10 @@ def test_readme_is_short():
     assert size <= MAX_BYTES, f"README.md is {size} bytes (at most {MAX_BYTES}): move details to docs/"
 
 
+def test_readme_code_lines_fit_the_column():
+    assert_code_lines_fit_the_column([README])
+
+
 @pytest.mark.slow
-def test_readme_tour_runs(capsys):
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-    assert blocks, "README has no python example"
-    for code in blocks:
-        exec(compile(code, "README.md", "exec"), {})
-    out = capsys.readouterr().out
-    assert "largest stable Ks: 5.44 N/mm" in out
-    assert "held-out loss 5.82 -> 2\n" in out  # the tuning example (adam at step 0.5, no clipping)
-    assert "(200, 2) 10" in out  # the filtering example
+def test_readme_tour_prints_its_output(tmp_path):
+    assert_prints_its_output(README, tmp_path)
