@@ -439,10 +439,9 @@ def _yerr(summaries: list) -> list:
 
 
 def _plot(results: dict, path: Path) -> None:
-    from jaxobs.papers._output import pyplot
+    from jaxobs.papers._output import pyplot, save_figure
 
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4.2))
     batches = [int(k) for k in results["batches"]]
     rows = list(results["batches"].values())
     device = results["platform"]["device"]
@@ -471,9 +470,7 @@ def _plot(results: dict, path: Path) -> None:
     b.set_ylabel("s / gradient step (median, bar: [min, max])")
     b.set_title(f"gradient w.r.t. (log R, log q_active), {results['rounds']} interleaved rounds", fontsize=10)
     b.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path.parent, path.stem)
 
 
 if __name__ == "__main__":

@@ -316,14 +316,11 @@ def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
 
 
 def figure(summary: dict, series: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxobs.papers._output import pyplot, save_figure
 
     t = series["t"]
     friction = summary["road_friction"]
-    fig, ax = plt.subplots(2, 3, figsize=(17, 8.5), constrained_layout=True)
+    fig, ax = pyplot().subplots(2, 3, figsize=(17, 8.5), constrained_layout=True)
 
     p = ax[0, 0]
     for name, label, style in (
@@ -398,8 +395,7 @@ def figure(summary: dict, series: dict, path: Path) -> None:
           title=f"(d) sines at {TARGET_USE:g} of each road's friction, switching (§2.5)")  # fmt: skip
     p.legend(fontsize=7, loc="lower right")
     fig.suptitle(f"NVSO friction adaptation on the friction-{friction:g} check drive ({DRIVE})")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path.parent, path.stem)
 
 
 def main() -> None:

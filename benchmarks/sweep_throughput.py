@@ -419,10 +419,9 @@ def _yerr(summaries: list) -> list:
 
 
 def _plot(results: dict, path: Path) -> None:
-    from jaxobs.papers._output import pyplot
+    from jaxobs.papers._output import pyplot, save_figure
 
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4.2))
     x = np.arange(2)
     for offset, (name, color) in enumerate((("jaxobs", "tab:green"), ("peer", "tab:gray"))):
         recs = [results[key][name]["throughput"] for key in ("full", "no_margins")]
@@ -450,9 +449,7 @@ def _plot(results: dict, path: Path) -> None:
         b.set_xlabel("forced host devices")
         b.set_ylabel("configurations / s (median, bar: [min, max])")
         b.set_title(f"device scaling ({results['platform']['cpu_count']} CPU cores)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path.parent, path.stem)
 
 
 if __name__ == "__main__":

@@ -237,12 +237,9 @@ def markdown_table(results: dict) -> str:
 
 
 def plot(results: dict, path: Path) -> None:
-    import matplotlib
+    from jaxobs.papers._output import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(10, 4.5), layout="constrained")
+    fig, ax = pyplot().subplots(figsize=(10, 4.5), layout="constrained")
     width = 0.8 / len(METHODS)
     for i, m in enumerate(METHODS):
         for j, r in enumerate(results.values()):
@@ -253,8 +250,8 @@ def plot(results: dict, path: Path) -> None:
     ax.set_xticks(range(len(results)), list(results), rotation=15)
     ax.set(ylabel="held-out objective / random search's median", yscale="log",
            title="Tuning at equal wall time (one marker per seed; lower is better)")  # fmt: skip
-    ax.legend(fontsize=8)
-    fig.savefig(path, dpi=120)
+    fig.legend(fontsize=8, loc="outside right upper")  # beside the axes: no marker hidden
+    save_figure(fig, path.parent, path.stem, dpi=120)
 
 
 def main() -> None:

@@ -144,15 +144,12 @@ def main(argv=None) -> dict:
 def plot(out: pathlib.Path, t, x_true, y, estimates, results) -> pathlib.Path:
     """Top: the four states, true and estimated (colour: the filter, line style: the model). Bottom: the RMS
     errors after the transient, one panel per state."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxobs.papers._output import pyplot, save_figure
 
     t, x_true = np.asarray(t), np.asarray(x_true)
     colors = {"EKF": "tab:blue", "UKF": "tab:orange"}
     style = lambda name: dict(color=colors[name.split(",")[0]], ls="-" if "true" in name else "--")
-    fig = plt.figure(figsize=(13, 9.5), layout="constrained")
+    fig = pyplot().figure(figsize=(13, 9.5), layout="constrained")
     grid = fig.add_gridspec(3, 4, height_ratios=[1, 1, 0.8])
     for i, label in enumerate(STATES):
         ax = fig.add_subplot(grid[i // 2, 2 * (i % 2) : 2 * (i % 2) + 2])
@@ -181,11 +178,7 @@ def plot(out: pathlib.Path, t, x_true, y, estimates, results) -> pathlib.Path:
         ax.margins(y=0.2)
     fig.suptitle("MJX cart-pole: EKF and UKF from noisy sensors (10 % of tip samples lost), "
                  "with the true model and with a 30 % heavier pole")  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "mjx_state_estimation.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return out / save_figure(fig, out, "mjx_state_estimation")
 
 
 if __name__ == "__main__":

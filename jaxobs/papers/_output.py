@@ -50,7 +50,7 @@ def plain_ticks(fig) -> None:
                 axis.get_major_formatter().set_useOffset(False)
 
 
-def save_figure(fig, out_dir: Path, name: str) -> str:
+def save_figure(fig, out_dir: Path, name: str, dpi: int = 110) -> str:
     """Lay out, write ``out_dir/name.png`` (tick labels made plain by :func:`plain_ticks`) and close ``fig``;
     returns the file name."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -58,7 +58,7 @@ def save_figure(fig, out_dir: Path, name: str) -> str:
     plain_ticks(fig)
     if fig.get_layout_engine() is None:
         fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     pyplot().close(fig)
     return path.name
 
