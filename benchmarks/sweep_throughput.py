@@ -84,7 +84,7 @@ def prepare_jaxobs(config: dict, configs: int, margins: bool = True):
     closed loop only), the part the NumPy peer batches."""
     sampler, evaluate, _, designs = fr.make_sweep(config)
     if not margins:
-        n_delay, closed_loop, h = fr._scenario(config)[1], fr.tracking(config), EXAMPLE1.h
+        n_delay, closed_loop, h = fr._timing(config)[1], fr.tracking(config), EXAMPLE1.h
 
         def evaluate(p):
             ctrl = jax.tree.map(lambda M: M[p["design"]], designs.controller)
@@ -103,7 +103,7 @@ def _simulation_only(config: dict):
     error, with the true plants drawn from a table discretised beforehand (the full evaluation's ``c2d`` and
     eigenvalues call LAPACK kernels, which make the engine compute on one CPU device; see ``jaxobs.sweep``)."""
     sampler, _, _, designs = fr.make_sweep(config)
-    n_delay, closed_loop = fr._scenario(config)[1], fr.tracking(config)
+    n_delay, closed_loop = fr._timing(config)[1], fr.tracking(config)
     params = jax.vmap(lambda i: sampler(config_key(0, i), i))(jnp.arange(PLANT_TABLE))
     plants = jax.jit(
         jax.vmap(
@@ -172,7 +172,8 @@ class NumpyPeer:
     def __init__(self, config: dict, designs):
         self.config = config
         h, sim = EXAMPLE1.h, config["simulation"]
-        self.steps, self.n_delay, reference, desired, disturbance = fr._scenario(config)
+        self.steps, self.n_delay = fr._timing(config)
+        reference, desired, disturbance = fr._signals(config, self.steps)()
         self.r = float(reference[0])
         self.desired, self.disturbance = np.asarray(desired), np.asarray(disturbance)
         self.std = float(np.sqrt(sim["sensor_noise"]))
@@ -449,6 +450,8 @@ def _plot(results: dict, path: Path) -> None:
         b.set_xlabel("forced host devices")
         b.set_ylabel("configurations / s (median, bar: [min, max])")
         b.set_title(f"device scaling ({results['platform']['cpu_count']} CPU cores)", fontsize=10)
+    else:  # --no-scaling: no empty panel
+        b.remove()
     save_figure(fig, path.parent, path.stem)
 
 
