@@ -422,7 +422,9 @@ def _yerr(summaries: list) -> list:
 def _plot(results: dict, path: Path) -> None:
     from jaxobs.papers._output import pyplot, save_figure
 
-    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4.2))
+    scaling = results.get("device_scaling", {})
+    fig, axes = pyplot().subplots(1, 2 if scaling else 1, figsize=(11 if scaling else 6, 4.6), squeeze=False)
+    a = axes[0, 0]
     x = np.arange(2)
     for offset, (name, color) in enumerate((("jaxobs", "tab:green"), ("peer", "tab:gray"))):
         recs = [results[key][name]["throughput"] for key in ("full", "no_margins")]
@@ -435,23 +437,20 @@ def _plot(results: dict, path: Path) -> None:
     a.set_yscale("log")
     a.set_ylabel("configurations / s (median, bar: [min, max])")
     a.set_xlabel("ratio jaxobs / peer, paired by round: median [min, max]", fontsize=9)
-    a.legend(fontsize=8)
+    a.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.08), ncols=2)  # above the bars
     a.set_title(f"{results['rounds']} interleaved rounds of {results['configs']} configurations", fontsize=10)
-    scaling = results.get("device_scaling", {})
     for workload, rates in scaling.items():
+        b = axes[0, 1]
         used = sorted({r["devices_used"] for r in rates.values()})
         label = f"{workload} (devices used: {', '.join(map(str, used))})"
         devices = [int(d) for d in rates]
         rs = [r["configs_per_second"] for r in rates.values()]
         b.errorbar(devices, [r["median"] for r in rs], yerr=_yerr(rs), fmt="o-", capsize=4, label=label)
         b.set_xticks(devices)
-    if scaling:
         b.legend(fontsize=8)
         b.set_xlabel("forced host devices")
         b.set_ylabel("configurations / s (median, bar: [min, max])")
         b.set_title(f"device scaling ({results['platform']['cpu_count']} CPU cores)", fontsize=10)
-    else:  # --no-scaling: no empty panel
-        b.remove()
     save_figure(fig, path.parent, path.stem)
 
 
