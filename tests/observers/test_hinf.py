@@ -59,8 +59,9 @@ def hinf_params(model, gamma, **kw):
 
 
 def kalman_params(model):
+    """The Kalman filter of ``model`` with the Joseph-form update, the form of the H-infinity Riccati step."""
     m = model
-    return make_kalman(m["Phi"], m["C"], m["Q"], m["R"], Gamma=m["Gamma"], P0=m["P0"])
+    return make_kalman(m["Phi"], m["C"], m["Q"], m["R"], Gamma=m["Gamma"], P0=m["P0"], joseph=True)
 
 
 def optimal_level(model, num_steps=N_STEPS):
