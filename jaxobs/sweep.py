@@ -562,6 +562,6 @@ def load_results(out_dir) -> dict[str, np.ndarray]:
             raise SweepError(
                 f"chunk {chunk} of the sweep in {out_dir} is {why}; rerun the same run_sweep call to repair it"
             )
-        tables.append(pq.read_table(pa.BufferReader(data)))
+        tables.append(pq.read_table(pa.BufferReader(data), use_threads=False))
     table = pa.concat_tables(tables)
-    return {name: table.column(name).to_numpy() for name in manifest["columns"]}
+    return {name: np.array(table.column(name).to_numpy(), copy=True) for name in manifest["columns"]}
