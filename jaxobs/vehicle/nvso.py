@@ -3,9 +3,10 @@
 
 It estimates ``v_x``, ``v_y``, the friction ``theta`` (``peak_friction``), the inclination and the bank with two
 modes, friction estimation off and on (2.18)-(2.27), switched by the logic of §2.5
-(:mod:`jaxobs.vehicle.switching`), discretised by forward Euler at the sensor period (§2.8), with the tyre-relaxation filter of §2.8 on the friction model's output.
-``smooth`` replaces every switch by a sigmoid gate so that gains and thresholds get gradients. :func:`make_nvso`,
-:data:`nvso`. The equations, the switches, the standstill guard and the departures from §2.8: docs/theory/vehicle.md.
+(:mod:`jaxobs.vehicle.switching`), discretised by forward Euler at the sensor period (§2.8), with the
+tyre-relaxation filter of §2.8 on the friction model's output. ``smooth`` replaces every switch by a sigmoid gate so
+that gains and thresholds get gradients. :func:`make_nvso`, :data:`nvso`. The equations, the switches, the standstill
+guard and the departures from §2.8: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ class NVSOParams(NamedTuple):
         Imsland et al. 2007, so the tyre curve's shape (the slip of its peak) follows it, with the regressor
         ``a_y^ / theta`` in (2.25) (the sign of ``d a_y^ / d mu_H``, Grip 2010 Prop. 5.3); 0: ``theta`` scales the
         friction-1 model, ``a_y^ = theta a_y*``, as Grip 2010 §2.4.1 chooses for a simpler analysis ("variation in
-        mu_H does not correspond precisely to a scaling of the friction forces"). In ``[0, 1]``; values between blend the two (a leaf, so it batches like the others).
+        mu_H does not correspond precisely to a scaling of the friction forces"). In ``[0, 1]``; values between
+        blend the two (a leaf, so it batches like the others).
     """
 
     vehicle: VehicleParams
