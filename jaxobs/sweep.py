@@ -18,7 +18,6 @@ import io
 import json
 import logging
 import math
-import os
 import platform
 import shutil
 import time
@@ -28,12 +27,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-# pyarrow's default (jemalloc) pool can abort the interpreter at exit next to JAX's threads (apache/arrow#34314);
-# the system allocator does not. Set before pyarrow is first imported; a user's own setting wins.
-os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
-import pyarrow as pa  # noqa: E402
-import pyarrow.parquet as pq  # noqa: E402
+import pyarrow as pa
+import pyarrow.parquet as pq
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
@@ -564,4 +559,6 @@ def load_results(out_dir) -> dict[str, np.ndarray]:
             )
         tables.append(pq.read_table(pa.BufferReader(data), use_threads=False))
     table = pa.concat_tables(tables)
+    # columns copied out of Arrow's buffers, read without Arrow's threads: with zero-copy views a script that had
+    # read the results aborted at exit now and then ("terminate called without an active exception")
     return {name: np.array(table.column(name).to_numpy(), copy=True) for name in manifest["columns"]}
