@@ -102,24 +102,27 @@ def _forces(v, vx, vy, r, sw, omega, ax, ay, friction=1.0):
     return (np.sum(fx, axis=1) - drag) / m, np.sum(fy, axis=1) / m, np.sum(gx * fy - gy * fx, axis=1)
 
 
-def _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt):
+def _switch(f, r, r_ref, ay, vx, esc, low_pass, timer, dead, dt):
     """One step of the switching rule of ``jaxobs.vehicle.switching`` in NumPy, per vehicle: ``(mode, timer,
     low_pass, same)``; ``mode`` 1 selects the nonlinear injection, ``same`` marks yaw rates of the reference's sign."""
     high_pass = ay - r * vx - low_pass
     same = r * r_ref > dead
-    excited = (np.abs(high_pass) > f("vy_dot_threshold")) & (np.abs(r_ref) > f("yaw_rate_threshold"))
+    lateral_motion = np.abs(high_pass) > f("vy_dot_threshold")
+    excited = lateral_motion & (np.abs(r_ref) > f("yaw_rate_threshold"))
     opposite = -r * r_ref > dead  # counter-steering
     over = (same & ((np.abs(r) - np.abs(r_ref)) * vx > f("oversteer_threshold"))) | (
         opposite & ((np.abs(r) + np.abs(r_ref)) * vx > f("oversteer_threshold"))
     )
-    timer = np.where(excited | over, 0.0, timer + dt)
+    understeer = same & ((np.abs(r_ref) - np.abs(r)) * vx > f("understeer_threshold"))
+    esc_on = (esc > 0.5) & ~(understeer & ~lateral_motion)  # the ESC, not for steady-state understeer
+    timer = np.where(excited | over | esc_on, 0.0, timer + dt)
     mode = (f("off_delay") + dt / 2 - timer > 0).astype(float)
     return mode, timer, low_pass + dt / f("high_pass_time") * high_pass, same
 
 
 def numpy_nvso(p, y):
     """The NVSO (exact switching) in NumPy over V vehicles at once, a Python loop over the K samples:
-    y (V, K, 9) finite -> sideslip (V, K)."""
+    y (V, K, 10) finite -> sideslip (V, K)."""
     v, dt, g = p.vehicle, p.dt, GRAVITY
     f = lambda name: float(getattr(p, name))  # noqa: E731
     V, K, _ = y.shape
@@ -161,7 +164,7 @@ def numpy_nvso(p, y):
         spread = np.sqrt(np.mean((wheel_vx - wheel_vx.mean(axis=1, keepdims=True)) ** 2, axis=1) + 1e-12)
         K_vx = np.maximum(f("K_vx_min"), f("K_vx") / (1.0 + (spread / f("wheel_spread")) ** 2))
         r_ref = vx * delta / (L + K_us * vx**2)
-        next_mode, timer, low_pass, same = _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt)
+        next_mode, timer, low_pass, same = _switch(f, r, r_ref, ay, vx, held[:, 9], low_pass, timer, dead, dt)
         yaw_acc = (now[:, 2] - r) / dt
         reduce = (
             (np.abs(e) > f("c1"))
@@ -188,7 +191,7 @@ def numpy_nvso(p, y):
 
 def numpy_ekf(params, y):
     """The vehicle EKF (Joseph update) in NumPy over V vehicles at once, a Python loop over the K samples:
-    y (V, K, 9) finite -> sideslip (V, K). The measurement Jacobian by central differences (jaxobs: autodiff)."""
+    y (V, K, 10) finite -> sideslip (V, K). The measurement Jacobian by central differences (jaxobs: autodiff)."""
     v, model, sw_p = params.vehicle, params.ekf.model, params.switching
     dt, tau, k_mu, mu0 = (float(c) for c in model.f.args[0])
     gate = np.inf if params.ekf.gate is None else float(params.ekf.gate)
@@ -203,7 +206,7 @@ def numpy_ekf(params, y):
     dead = (f("yaw_rate_threshold") / 10) ** 2
     x = np.tile(np.asarray(model.x0), (V, 1))
     P = np.tile(np.asarray(model.P0), (V, 1, 1))
-    sensors = np.zeros((V, 9))
+    sensors = np.zeros((V, 10))
     sensors[:, 8], sensors[:, 4:8] = x[:, 0:1].T[0], (x[:, 0] / v.wheel_radius)[:, None]
     mode, timer, low_pass = np.zeros(V), np.full(V, f("off_delay")), np.zeros(V)
     eye = np.eye(8)
@@ -266,7 +269,7 @@ def numpy_ekf(params, y):
             low_pass = ay - r * vx
         else:
             r_ref = vx * (sw / v.steering_ratio) / (L + K_us * vx**2)
-            mode, timer, low_pass, _ = _switch(f, r, r_ref, ay, vx, low_pass, timer, dead, dt)
+            mode, timer, low_pass, _ = _switch(f, r, r_ref, ay, vx, now[:, 9], low_pass, timer, dead, dt)
         sensors = now
         out[:, k] = np.arctan2(x[:, 1], x[:, 0])
     return out

@@ -21,6 +21,10 @@ answered with numbers and a panel of the figure:
     the NVSO's default, ``theta`` as the model's ``mu_H`` (``peak_friction = 1``).
 (d) Per road friction (FRICTION_LEVELS), a sine at TARGET_USE of the friction for SUSTAINED s: the final estimate,
     its settling times, and the sideslip errors without adaptation and with either parameterisation.
+(e) The ESC-active condition (iii) of §2.5, on drives where a simulated ESC (:class:`jaxobs.vehicle.ESCParams`)
+    intervenes on low friction (ESC_DRIVES): the NVSO without adaptation, with conditions (i) and (ii) only (the
+    ESC status hidden from it) and with (i)-(iii); the time the ESC intervenes, the time in mode 2, the final
+    estimate and the sideslip errors.
 
     python benchmarks/sideslip_friction.py [--out out/bench]
 
@@ -43,8 +47,19 @@ import numpy as np  # noqa: E402
 
 from jaxobs.observers.base import EstimatorInputs, run  # noqa: E402
 from jaxobs.papers.grip2010.sideslip import DEG, DRIVES, EXACT, LOW_FRICTION, NEVER, PERIOD, SINE_AMPLITUDE_DEG  # noqa: E402
-from jaxobs.vehicle import Manoeuvre, VehicleParams, make_nvso, measure, nvso, sensor_inputs, simulate  # noqa: E402
+from jaxobs.vehicle import (  # noqa: E402
+    ESCParams,
+    Manoeuvre,
+    VehicleParams,
+    make_nvso,
+    manoeuvre,
+    measure,
+    nvso,
+    sensor_inputs,
+    simulate,
+)
 from jaxobs.vehicle.model import GRAVITY  # noqa: E402
+from jaxobs.vehicle.sensors import ESC_ACTIVE  # noqa: E402
 from jaxobs.vehicle.tyres import TyreParams, tyre_forces  # noqa: E402
 
 DRIVE = "sine_steer_low_friction"
@@ -55,6 +70,11 @@ SHORT_RELAXATION = 0.02  # m: the relaxation length of the simulator without (ap
 EXCITED_AY = 0.5  # |a_y| / (friction g) above which a sample counts as excited in the per-axle statistics
 FRICTION_LEVELS = (0.3, 0.5, 0.8, 1.0)  # road frictions of the per-level table
 TARGET_USE = 0.9  # peak |a_y| / (friction g) of each level's sine
+ESC_SINE_OVERDRIVE = 1.5  # times the check drive's steering amplitude: beyond the limit (spins without an ESC)
+ESC_DRIVES = ("sine_beyond_limit_0.3", "circle_40m_ramp_0.3", "ice_lake_circles")
+"""The drives of (e): the check sine at ESC_SINE_OVERDRIVE its amplitude, the 40 m circle with its speed ramp on
+friction 0.3 and the ice lake (friction 0.25)."""
+MODE1 = {"vy_dot_threshold": NEVER, "oversteer_threshold": NEVER}  # with the ESC status hidden: no adaptation
 
 
 def matched_vehicle(vehicle: VehicleParams, friction: float) -> VehicleParams:
@@ -106,12 +126,12 @@ def settling_time(t, theta, target, tol):
     return float(t[outside[-1] + 1]) if outside[-1] + 1 < len(t) else float("nan")
 
 
-def _drive(vehicle, duration=None, drive=None):
-    """The check drive, or ``drive`` (optionally lengthened: the same sine continued) at the 100 Hz samples and its
-    sensors."""
+def _drive(vehicle, duration=None, drive=None, esc=None):
+    """The check drive, or ``drive`` (optionally lengthened: the same sine continued; with the ``esc``) at the 100 Hz
+    samples and its sensors."""
     drive = DRIVES[DRIVE] if drive is None else drive
     duration = drive.duration if duration is None else duration
-    tr_fine = simulate(Manoeuvre(drive.name, drive.command, duration, drive.initial_speed), vehicle)
+    tr_fine = simulate(Manoeuvre(drive.name, drive.command, duration, drive.initial_speed), vehicle, esc=esc)
     every = round(PERIOD / float(tr_fine.time[1] - tr_fine.time[0]))
     tr = jax.tree_util.tree_map(lambda a: a[::every], tr_fine)
     meas = measure(tr, vehicle, EXACT, jax.random.PRNGKey(0), dt=PERIOD)
@@ -184,8 +204,7 @@ def friction_levels(vehicle: VehicleParams | None = None, **nvso_settings) -> tu
         row = {"friction": friction, "steering_amplitude_deg": amplitude,
                "peak_ay_over_friction_g": float(np.abs(np.asarray(tr.ay)).max() / (friction * GRAVITY)),
                "peak_beta_deg": float(np.abs(beta).max())}  # fmt: skip
-        mode1 = {"vy_dot_threshold": NEVER, "oversteer_threshold": NEVER}
-        for name, settings in (("mode1", mode1), ("peak_friction", {"peak_friction": 1.0}),
+        for name, settings in (("mode1", MODE1), ("peak_friction", {"peak_friction": 1.0}),
                                ("scaled", {"peak_friction": 0.0})):  # fmt: skip
             _, out = _run(vehicle, y, vx0, False, **{**nvso_settings, **settings})
             theta = np.asarray(out.x[:, 2])
@@ -202,12 +221,83 @@ def friction_levels(vehicle: VehicleParams | None = None, **nvso_settings) -> tu
     return rows, series
 
 
+def _esc_drive(name: str) -> Manoeuvre:
+    """The drive ``name`` of ESC_DRIVES."""
+    if name == "ice_lake_circles":
+        return manoeuvre(name)
+    friction = float(name.rsplit("_", 1)[1])
+    if name.startswith("sine_beyond_limit"):
+        sine = _sine(friction, ESC_SINE_OVERDRIVE * SINE_AMPLITUDE_DEG)
+        return Manoeuvre(name, sine.command, DRIVES[DRIVE].duration * 2, sine.initial_speed)
+    base = manoeuvre("circle_40m_ramp")
+    return Manoeuvre(name, lambda t: base.command(t)._replace(friction=friction), base.duration, base.initial_speed)
+
+
+def esc_drives(vehicle: VehicleParams | None = None, esc: ESCParams | None = None) -> tuple[list, dict]:
+    """(e) of the module docstring: per drive of ESC_DRIVES, simulated with the ``esc`` (default
+    :class:`~jaxobs.vehicle.ESCParams`), the NVSO without adaptation (``mode1``), with the switching conditions (i)
+    and (ii) only (``without_esc_condition``: the ESC status column zeroed) and with (i)-(iii) (``with_esc_condition``).
+    Rows of the table and the series of the figure."""
+    vehicle = VehicleParams() if vehicle is None else vehicle
+    esc = ESCParams() if esc is None else esc
+    rows, series = [], {}
+    for name in ESC_DRIVES:
+        drive = _esc_drive(name)
+        free = simulate(drive, vehicle)  # the same drive without ESC, for the peak sideslip it would reach
+        tr, y, vx0 = _drive(vehicle, drive=drive, esc=esc)
+        t, beta = np.asarray(tr.time), np.rad2deg(np.asarray(tr.beta))
+        active = np.asarray(tr.esc_active) > 0.5
+        hidden = y.at[:, ESC_ACTIVE].set(0.0)
+        row = {"drive": name, "road_friction": float(np.asarray(tr.inputs.friction).min()),
+               "peak_beta_without_esc_deg": float(np.abs(np.rad2deg(np.asarray(free.beta))).max()),
+               "peak_beta_deg": float(np.abs(beta).max()), "esc_active_fraction": float(active.mean())}  # fmt: skip
+        series[name] = {"t": t, "beta": beta, "esc": active}
+        for run_name, yy, settings in (("mode1", hidden, MODE1), ("without_esc_condition", hidden, {}),
+                                       ("with_esc_condition", y, {})):  # fmt: skip
+            _, out = _run(vehicle, yy, vx0, False, **settings)
+            theta, on = np.asarray(out.x[:, 2]), np.asarray(out.mode) > 0.5
+            err = np.abs(np.rad2deg(np.asarray(out.beta)) - beta)
+            row[run_name] = {
+                "mode2_fraction": float(on.mean()),
+                "esc_active_mode1_fraction": float((active & ~on).sum() / max(active.sum(), 1)),
+                "theta_final": float(theta[-1]),
+                "theta_min": float(theta.min()),
+                "max_abs_beta_error_deg": float(err.max()),
+                "rms_beta_error_deg": float(np.sqrt(np.mean(err**2))),
+                "fraction_under_3deg": float(np.mean(err < 3.0)),
+            }
+            series[name][run_name] = np.rad2deg(np.asarray(out.beta))
+        rows.append(row)
+    return rows, series
+
+
+def _markdown(header: list, cells: list) -> str:
+    """A markdown table of the ``header`` and one row of ``cells`` per entry."""
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in cells])
+
+
+def esc_table(rows: list) -> str:
+    """The markdown table of :func:`esc_drives`."""
+
+    def err(r):
+        return f"{r['max_abs_beta_error_deg']:.2f} / {r['rms_beta_error_deg']:.2f}"
+
+    def row(r):
+        a, b = r["without_esc_condition"], r["with_esc_condition"]
+        return [f"{r['drive']} ({r['road_friction']:g})",
+                f"{r['peak_beta_without_esc_deg']:.1f} / {r['peak_beta_deg']:.1f}", f"{r['esc_active_fraction']:.0%}",
+                f"{a['mode2_fraction']:.0%} / {b['mode2_fraction']:.0%}",
+                f"{a['theta_final']:.2f} / {b['theta_final']:.2f}", err(r["mode1"]), err(a), err(b)]  # fmt: skip
+
+    header = ["drive (friction)", "peak sideslip without / with ESC (deg)", "ESC active",
+              "mode 2: (i)-(ii) / (i)-(iii)", "final theta: (i)-(ii) / (i)-(iii)",
+              "sideslip error max / rms (deg): no adaptation", "(i)-(ii)", "(i)-(iii)"]  # fmt: skip
+    return _markdown(header, [row(r) for r in rows])
+
+
 def levels_table(rows: list) -> str:
     """The markdown table of :func:`friction_levels`."""
-    lines = ["| road friction (peak a_y / friction g) | theta, mu_H adapted (settling 15 %, 2 %) "
-             "| theta, scale adapted | sideslip error max / after 10 s (deg): no adaptation | mu_H adapted "
-             "| scale adapted |",
-             "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
 
     def settle(r):
         return f"{r['settling_time_15pct_s']:.1f} s, {r['settling_time_2pct_s']:.1f} s"
@@ -215,12 +305,16 @@ def levels_table(rows: list) -> str:
     def err(r):
         return f"{r['max_abs_beta_error_deg']:.3f} / {r['max_abs_beta_error_after_10s_deg']:.3f}"
 
-    for r in rows:
-        lines.append(f"| {r['friction']:g} ({r['peak_ay_over_friction_g']:.2f}) "
-                     f"| {r['peak_friction']['theta_final']:.3f} ({settle(r['peak_friction'])}) "
-                     f"| {r['scaled']['theta_final']:.3f} | {err(r['mode1'])} | "
-                     f"{err(r['peak_friction'])} | {err(r['scaled'])} |")  # fmt: skip
-    return "\n".join(lines)
+    def row(r):
+        return [f"{r['friction']:g} ({r['peak_ay_over_friction_g']:.2f})",
+                f"{r['peak_friction']['theta_final']:.3f} ({settle(r['peak_friction'])})",
+                f"{r['scaled']['theta_final']:.3f}", err(r["mode1"]), err(r["peak_friction"]),
+                err(r["scaled"])]  # fmt: skip
+
+    header = ["road friction (peak a_y / friction g)", "theta, mu_H adapted (settling 15 %, 2 %)",
+              "theta, scale adapted", "sideslip error max / after 10 s (deg): no adaptation", "mu_H adapted",
+              "scale adapted"]  # fmt: skip
+    return _markdown(header, [row(r) for r in rows])
 
 
 def diagnose(vehicle: VehicleParams | None = None) -> tuple[dict, dict]:
@@ -320,7 +414,7 @@ def figure(summary: dict, series: dict, path: Path) -> None:
 
     t = series["t"]
     friction = summary["road_friction"]
-    fig, ax = pyplot().subplots(2, 3, figsize=(17, 8.5), constrained_layout=True)
+    fig, ax = pyplot().subplots(3, 3, figsize=(17, 12.5), constrained_layout=True)
 
     p = ax[0, 0]
     for name, label, style in (
@@ -394,6 +488,18 @@ def figure(summary: dict, series: dict, path: Path) -> None:
     p.set(xlabel="time (s)", ylabel="friction estimate theta (-)", ylim=(0, 1.15),
           title=f"(d) sines at {TARGET_USE:g} of each road's friction, switching (§2.5)")  # fmt: skip
     p.legend(fontsize=7, loc="lower right")
+    for p, row in zip(ax[2], summary["esc_drives"], strict=True):
+        e = series["esc"][row["drive"]]
+        p.plot(e["t"], e["beta"], "k-", lw=2, label="true")
+        for run_name, label, style in (("mode1", "NVSO, no adaptation", "C7-"),
+                                       ("without_esc_condition", "NVSO, conditions (i)-(ii)", "C1--"),
+                                       ("with_esc_condition", "NVSO, conditions (i)-(iii)", "C0-")):  # fmt: skip
+            p.plot(e["t"], e[run_name], style, lw=1.2, label=label)
+        low, high = p.get_ylim()
+        p.fill_between(e["t"], low, high, where=e["esc"], color="C3", alpha=0.12, step="pre", label="ESC intervenes")
+        p.set(xlabel="time (s)", ylabel="sideslip (deg)", ylim=(low, high),
+              title=f"(e) {row['drive']} with ESC (friction {row['road_friction']:g})")  # fmt: skip
+        p.legend(fontsize=7, loc="lower left")
     fig.suptitle(f"NVSO friction adaptation on the friction-{friction:g} check drive ({DRIVE})")
     save_figure(fig, path.parent, path.stem)
 
@@ -406,7 +512,9 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     summary, series = diagnose()
     summary["friction_levels"], series["levels"] = friction_levels()
+    summary["esc_drives"], series["esc"] = esc_drives()
     print(levels_table(summary["friction_levels"]))
+    print(esc_table(summary["esc_drives"]))
     (out / "sideslip_friction.json").write_text(json.dumps(summary, indent=1))
     figure(summary, series, out / "sideslip_friction.png")
     print(json.dumps(summary, indent=1))

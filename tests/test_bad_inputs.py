@@ -518,7 +518,7 @@ VEHICLE_CASES = [
     ("simulate-manoeuvre", lambda: _v("simulate").simulate(3, _car(), duration=0.1), "manoeuvre"),
     ("simulate-duration-beyond-int32", lambda: _v("simulate").simulate("sine_steer", _car(), duration=1e12),
      "duration"),
-    ("understeer_gradient-vehicle", lambda: _v("switching").understeer_gradient("car"), "vehicle"),
+    ("understeer_gradient-vehicle", lambda: _v("model").understeer_gradient("car"), "vehicle"),
     ("make_nvso-vehicle-invalid", lambda: _v("nvso").make_nvso(_v("model").VehicleParams(mass=-1.0)), "mass"),
     ("steady_state-vx-nan", lambda: _v("model").steady_state(_car(), NAN), "vx"),
     ("steady_state-r-inf", lambda: _v("model").steady_state(_car(), 20.0, r=np.inf), "r"),

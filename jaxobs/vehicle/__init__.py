@@ -2,9 +2,9 @@
 
 ``tyres`` (Magic Formula and Burckhardt curves, combined slip), ``model`` (the two-track model, the friction
 model), ``sensors`` (ESC-type measurements and the observers' sensor vector), ``manoeuvres`` (test drives modelled
-on Grip 2010 §2.10), ``simulate`` (a driver and RK4 in one ``lax.scan``), ``switching`` (the friction-estimation
-switch of §2.5); the observers ``nvso`` (Grip 2010 ch. 2), ``ekf`` (its EKF baseline, §2.9), ``lateral`` (the
-friction-adaptive observers of ch. 3) and ``road_angles`` (inclination and bank, ch. 4).
+on Grip 2010 §2.10), ``simulate`` (a driver, optionally with an ESC, and RK4 in one ``lax.scan``), ``switching``
+(the friction-estimation switch of §2.5); the observers ``nvso`` (Grip 2010 ch. 2), ``ekf`` (its EKF baseline,
+§2.9), ``lateral`` (the friction-adaptive observers of ch. 3) and ``road_angles`` (inclination and bank, ch. 4).
 
 Parameters are registered dataclass pytrees (a batch of vehicles is a ``vmap``); everything is pure under ``jit``,
 ``vmap`` and ``grad``. ``import jaxobs`` does not import this package. Design notes: docs/theory/vehicle.md.
@@ -37,7 +37,9 @@ from jaxobs.vehicle.model import (
     friction_model,
     lateral_acceleration,
     normal_loads,
+    reference_yaw_rate,
     steady_state,
+    understeer_gradient,
     wheel_kinematics,
 )
 from jaxobs.vehicle.nvso import NVSOOutputs, NVSOParams, NVSOState, make_nvso, nvso
@@ -58,7 +60,7 @@ from jaxobs.vehicle.road_angles import (
     road_angles_adaptive,
 )
 from jaxobs.vehicle.sensors import N_SENSORS, SENSOR_RATE, Measurements, SensorParams, low_pass, measure, sensor_inputs
-from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory, driver, simulate
+from jaxobs.vehicle.simulate import PLANT_STEP, ESCParams, Trajectory, driver, esc_intervention, simulate
 from jaxobs.vehicle.switching import SwitchingParams, make_switching
 from jaxobs.vehicle.tyres import BURCKHARDT_SURFACES, BurckhardtTyre, TyreParams, pure_force, tyre_forces
 
@@ -80,12 +82,16 @@ __all__ = [
     "friction_model",
     "lateral_acceleration",
     "normal_loads",
+    "reference_yaw_rate",
     "steady_state",
+    "understeer_gradient",
     "wheel_kinematics",
     "PLANT_STEP",
     "Command",
     "Manoeuvre",
     "Trajectory",
+    "ESCParams",
+    "esc_intervention",
     "driver",
     "simulate",
     "MANOEUVRES",

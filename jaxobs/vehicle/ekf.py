@@ -23,7 +23,17 @@ from jaxobs.nonlinear import GaussianState, nonlinear_model
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.ekf import EKFParams, extended_kalman_filter, make_ekf
 from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle, friction_model
-from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, SENSOR_RATE, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
+from jaxobs.vehicle.sensors import (
+    AX,
+    AY,
+    ESC_ACTIVE,
+    N_SENSORS,
+    SENSOR_RATE,
+    STEERING_WHEEL,
+    VX_REF,
+    WHEEL_SPEED,
+    YAW_RATE,
+)
 from jaxobs.vehicle.switching import SwitchingParams, make_switching, switching
 
 __all__ = ["VehicleEKFParams", "VehicleEKFState", "VehicleEKFOutputs", "make_vehicle_ekf", "vehicle_ekf"]
@@ -228,7 +238,7 @@ def _step(params: VehicleEKFParams, state: VehicleEKFState, inputs: EstimatorInp
     x = out.x.at[4].set(jnp.clip(out.x[4], jnp.minimum(lower, params.mu_bounds[1]), params.mu_bounds[1]))
     filt, out = filt._replace(x=x), out._replace(x=x)
     switch = switching(params.switching, state.off_timer, state.low_pass, out.x[0], sensors[YAW_RATE],
-                       sensors[AY] / roll, sensors[STEERING_WHEEL])  # fmt: skip
+                       sensors[AY] / roll, sensors[STEERING_WHEEL], sensors[ESC_ACTIVE])  # fmt: skip
     mode = jnp.where(first, state.mode, switch.mode)
     timer = jnp.where(first, state.off_timer, switch.off_timer)
     low_pass = jnp.where(first, sensors[AY] / roll - sensors[YAW_RATE] * out.x[0], switch.low_pass)  # HP starts at 0

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.vehicle.tyres import TyreParams, tyre_forces
+from jaxobs.vehicle.tyres import TyreParams, pure_force, tyre_forces
 
 __all__ = [
     "GRAVITY",
@@ -32,6 +32,8 @@ __all__ = [
     "steady_state",
     "friction_model",
     "lateral_acceleration",
+    "understeer_gradient",
+    "reference_yaw_rate",
     "broadcast",
     "check_vehicle",
 ]
@@ -289,6 +291,22 @@ def lateral_acceleration(p: VehicleParams, vx, vy, r, steering_wheel, omega, ax,
     """The friction model's ``a_y`` (m/s^2, :func:`friction_model`): the ``a_y(v_y)`` of Grip 2010 §2.2 whose
     strict decrease in ``v_y`` the sideslip observer relies on."""
     return friction_model(p, vx, vy, r, steering_wheel, omega, ax, ay, friction).ay
+
+
+def understeer_gradient(vehicle: VehicleParams):
+    """``(1/c_f - 1/c_r) / g`` with ``c`` the slope of each axle's pure lateral force per unit load at zero slip."""
+    vehicle = check_vehicle(vehicle)
+    fz = vehicle.mass * GRAVITY / 4
+    stiffness = lambda tyre: jax.grad(lambda s: pure_force(tyre, s, fz))(jnp.zeros((), jnp.result_type(fz))) / fz
+    return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY
+
+
+def reference_yaw_rate(vehicle: VehicleParams, vx, steering_wheel):
+    """The yaw rate of the linear single track in steady state, ``v_x delta / (L + K_us v_x^2)`` (rad/s) with
+    ``delta`` the road-wheel angle and ``K_us`` the :func:`understeer_gradient`: the reference of the friction
+    switch (Grip 2010 §2.5) and of the simulated ESC (:func:`jaxobs.vehicle.esc_intervention`)."""
+    delta = steering_wheel / vehicle.steering_ratio
+    return vx * delta / (vehicle.wheelbase + understeer_gradient(vehicle) * vx**2)
 
 
 def broadcast(params, n: int):

@@ -20,7 +20,7 @@ import numpy as np
 from jaxobs import _checks
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.vehicle.model import GRAVITY, MIN_SPEED, VehicleParams, check_vehicle, friction_model
-from jaxobs.vehicle.sensors import AX, AY, N_SENSORS, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
+from jaxobs.vehicle.sensors import AX, AY, ESC_ACTIVE, N_SENSORS, STEERING_WHEEL, VX_REF, WHEEL_SPEED, YAW_RATE
 from jaxobs.vehicle.switching import SwitchingParams, either, gate, switching
 
 _SWITCHING = SwitchingParams._field_defaults  # the thresholds the EKF baseline shares
@@ -43,9 +43,9 @@ class NVSOParams(NamedTuple):
       c1 (m/s^2), c2 (rad/s^2), c3 (m/s^2): the ``K_theta_b`` reduction thresholds.
       theta_default: ``theta*``.  theta_min, theta_max: the clip bounds.  accel_margin: the 1.2 of
         ``accel_margin g theta >= |(a_x, a_y)|``.
-      vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time: the switching logic of
-        :mod:`jaxobs.vehicle.switching`, with the defaults of its :class:`~jaxobs.vehicle.SwitchingParams`
-        (m/s^2, rad/s, m/s^2, s, s).
+      vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time, understeer_threshold:
+        the switching logic of :mod:`jaxobs.vehicle.switching`, with the defaults of its
+        :class:`~jaxobs.vehicle.SwitchingParams` (m/s^2, rad/s, m/s^2, s, s, m/s^2).
       min_speed: standstill guard (m/s).  dt: sample period (s).  vx0: initial ``v_x`` used before the first
         finite ``v_x,ref`` (m/s).
       relaxation_length: ``l_e`` of the tyre-relaxation filter (m, >= 0), Grip 2010 §2.8 (and §4.7): the friction
@@ -87,6 +87,7 @@ class NVSOParams(NamedTuple):
     oversteer_threshold: jax.Array = _SWITCHING["oversteer_threshold"]
     off_delay: jax.Array = _SWITCHING["off_delay"]
     high_pass_time: jax.Array = _SWITCHING["high_pass_time"]
+    understeer_threshold: jax.Array = _SWITCHING["understeer_threshold"]
     min_speed: jax.Array = MIN_SPEED
     dt: jax.Array = _SWITCHING["dt"]
     vx0: jax.Array = 20.0
@@ -99,7 +100,7 @@ class NVSOParams(NamedTuple):
 _POSITIVE = (
     "K_vx", "K_vx_min", "wheel_spread", "K_vy", "K_theta", "K_e", "c1", "c2", "c3", "theta_default", "theta_max",
     "accel_margin", "vy_dot_threshold", "yaw_rate_threshold", "oversteer_threshold", "off_delay", "high_pass_time",
-    "min_speed", "dt",
+    "understeer_threshold", "min_speed", "dt",
 )  # fmt: skip
 _NON_NEGATIVE = ("K_theta_i", "K_theta_i_on", "K_theta_b", "theta_b_reduction", "theta_min", "vx0", "relaxation_length",
                  "relaxation_time", "peak_friction")  # fmt: skip
@@ -253,7 +254,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     K_vx = jnp.maximum(params.K_vx_min, params.K_vx / (1.0 + (spread / params.wheel_spread) ** 2))
 
     # switching logic (§2.5) and the K_theta_b reductions (§2.7)
-    switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw)
+    switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw, m[ESC_ACTIVE])
     r_ref, same_sign = switch.r_ref, switch.same_sign
     yaw_acc = (y_now[YAW_RATE] - r) / dt
     reduce = either(

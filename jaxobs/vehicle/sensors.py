@@ -31,6 +31,7 @@ __all__ = [
     "STEERING_WHEEL",
     "WHEEL_SPEED",
     "VX_REF",
+    "ESC_ACTIVE",
     "SensorParams",
     "Measurements",
     "measure",
@@ -41,10 +42,10 @@ __all__ = [
 SENSOR_RATE = 100.0
 """ESC sensor rate (Hz), the 10 ms sample time of Grip 2010 §2.8."""
 
-N_SENSORS = 9
+N_SENSORS = 10
 """Entries of the sensor vector the vehicle observers take: ``a_x``, ``a_y``, yaw rate, steering-wheel angle, the
-four wheel speeds (FL, FR, RL, RR) and ``v_x,ref`` (:func:`sensor_inputs`)."""
-AX, AY, YAW_RATE, STEERING_WHEEL, WHEEL_SPEED, VX_REF = 0, 1, 2, 3, slice(4, 8), 8
+four wheel speeds (FL, FR, RL, RR), ``v_x,ref`` and the ESC's status (1 while it intervenes; :func:`sensor_inputs`)."""
+AX, AY, YAW_RATE, STEERING_WHEEL, WHEEL_SPEED, VX_REF, ESC_ACTIVE = 0, 1, 2, 3, slice(4, 8), 8, 9
 """Where each measurement sits in the sensor vector (``WHEEL_SPEED`` a slice of the four wheels)."""
 
 _CHANNELS = ("ax", "ay", "yaw_rate", "steering_wheel", "wheel_speed")
@@ -93,7 +94,8 @@ class SensorParams:
 
 class Measurements(NamedTuple):
     """Sensor samples at ``time`` (K,): ``ax``, ``ay`` (m/s^2), ``yaw_rate`` (rad/s), ``steering_wheel`` (rad),
-    ``wheel_speed`` (K, 4) (rad/s, FL, FR, RL, RR), ``vx_ref`` (m/s)."""
+    ``wheel_speed`` (K, 4) (rad/s, FL, FR, RL, RR), ``vx_ref`` (m/s) and the ESC's status ``esc_active`` (0/1, the
+    trajectory's at each sample)."""
 
     time: jax.Array
     ax: jax.Array
@@ -102,6 +104,7 @@ class Measurements(NamedTuple):
     steering_wheel: jax.Array
     wheel_speed: jax.Array
     vx_ref: jax.Array
+    esc_active: jax.Array
 
 
 def low_pass(x, cutoff, period):
@@ -187,7 +190,7 @@ def measure(
     half = params.track_front / 2
     front = out["wheel_speed"][:, :2] * params.wheel_radius / jnp.cos(delta)[:, None]
     vx_ref = jnp.mean(front + out["yaw_rate"][:, None] * jnp.stack([half, -half]), axis=1)
-    return Measurements(time=tr.time, vx_ref=vx_ref, **out)
+    return Measurements(time=tr.time, vx_ref=vx_ref, esc_active=tr.esc_active, **out)
 
 
 def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
@@ -195,4 +198,4 @@ def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
     layout of :data:`AX` ... :data:`VX_REF`."""
     m = measurements
     columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
-    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None]], axis=1))
+    return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None], m.esc_active[:, None]], axis=1))

@@ -1,10 +1,11 @@
 """Simulating the two-track model under a driver: a :class:`Command` per time, RK4 at a fixed plant step.
 
 :func:`driver` turns the command and the state into plant inputs (open-loop or curvature-tracking steering,
-speed-tracking wheel torques with a proportional stand-in for traction control and ABS); :func:`simulate`
-integrates the model under it with :func:`jaxobs.ct.trajectory` (RK4, :data:`PLANT_STEP`) in one ``lax.scan`` and
-returns the states, the specific forces and the sideslip at every plant step. The driver's laws:
-docs/theory/vehicle.md.
+speed-tracking wheel torques with a proportional stand-in for traction control and ABS, and, when an
+:class:`ESCParams` is given, the yaw control of an ESC by braking single wheels, :func:`esc_intervention`);
+:func:`simulate` integrates the model under it with :func:`jaxobs.ct.trajectory` (RK4, :data:`PLANT_STEP`) in one
+``lax.scan`` and returns the states, the specific forces, the sideslip and the ESC's status at every plant step. The
+driver's laws: docs/theory/vehicle.md.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks, ct
 from jaxobs.vehicle import manoeuvres
@@ -27,6 +29,7 @@ from jaxobs.vehicle.model import (
     check_vehicle,
     dynamics,
     forces,
+    reference_yaw_rate,
     steady_state,
     wheel_kinematics,
 )
@@ -37,6 +40,8 @@ __all__ = [
     "SLIP_LIMIT",
     "STEERING_LOCK",
     "Trajectory",
+    "ESCParams",
+    "esc_intervention",
     "driver",
     "simulate",
 ]
@@ -54,7 +59,8 @@ STEERING_LOCK = 0.6
 class Trajectory(NamedTuple):
     """A simulated drive at the plant step: ``time`` (T+1,), ``state`` (a :class:`VehicleState` of stacked
     arrays), the plant ``inputs`` (an :class:`Inputs` of stacked arrays), the specific forces ``ax``, ``ay``
-    (m/s^2), the sideslip ``beta`` (rad) and the normal loads ``fz`` (T+1, 4)."""
+    (m/s^2), the sideslip ``beta`` (rad), the normal loads ``fz`` (T+1, 4) and ``esc_active`` (T+1,), 1 where the
+    ESC brakes a wheel (:func:`esc_intervention`; all 0 without an ESC)."""
 
     time: jax.Array
     state: VehicleState
@@ -63,10 +69,58 @@ class Trajectory(NamedTuple):
     ay: jax.Array
     beta: jax.Array
     fz: jax.Array
+    esc_active: jax.Array
 
 
-def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
-    """The plant inputs the driver applies in state ``x`` to follow the command ``c`` (docs/theory/vehicle.md)."""
+class ESCParams(NamedTuple):
+    """The simulated ESC's yaw control (assumed values; the law: :func:`esc_intervention`).
+
+    Attributes:
+      yaw_rate_threshold: dead band of the yaw-rate error (rad/s, > 0); 0.05 (about 3 deg/s).
+      gain: yaw moment per unit yaw-rate error beyond the dead band (N m s/rad, > 0).
+      max_brake_torque: largest brake torque on the braked wheel (N m, > 0).
+      drive_cut: the fraction of the driving torques the ESC removes while it intervenes (in [0, 1]); 1.
+      friction_margin: the ESC's reference yaw rate is held below ``friction_margin mu g / v_x`` with ``mu`` the
+        road's friction scale (:class:`~jaxobs.vehicle.Inputs` ``friction``, the peak friction of the default
+        tyres; the ESC's own friction estimate, taken exact; > 0).
+    """
+
+    yaw_rate_threshold: jax.Array = 0.05
+    gain: jax.Array = 2.0e4
+    max_brake_torque: jax.Array = 1500.0
+    drive_cut: jax.Array = 1.0
+    friction_margin: jax.Array = 1.0
+
+
+def esc_intervention(p: VehicleParams, esc: ESCParams, x: VehicleState, steering_wheel, friction):
+    """The ESC's brake torques (4,) (N m, <= 0) and whether it intervenes (0/1) in state ``x``; while it intervenes
+    the :func:`driver` also removes the fraction ``drive_cut`` of the driving torques.
+
+    The reference ``r_d`` is the :func:`~jaxobs.vehicle.model.reference_yaw_rate` of the steering-wheel angle,
+    held below ``friction_margin friction g / v_x`` (``friction`` the road's friction scale). Beyond the dead
+    band ``|r - r_d| > yaw_rate_threshold`` the ESC asks for the yaw moment ``-gain (e - threshold sign e)`` of the
+    error ``e = r - r_d`` and brakes one wheel on the side that gives it: the outer front wheel when the car yaws
+    more than ``r_d`` (oversteer), the inner rear wheel when it yaws less (understeer), as production ESCs do.
+    """
+    vx = jnp.maximum(x.vx, MIN_SPEED)
+    limit = esc.friction_margin * friction * GRAVITY / vx
+    r_d = jnp.clip(reference_yaw_rate(p, vx, steering_wheel), -limit, limit)
+    e = x.r - r_d
+    excess = jnp.maximum(jnp.abs(e) - esc.yaw_rate_threshold, 0.0)
+    moment = -jnp.sign(e) * esc.gain * excess  # yaw moment asked for (N m, counter-clockwise > 0)
+    oversteer = e * r_d > 0  # yawing beyond the reference in its direction
+    left = moment > 0  # braking a left wheel (FL, RL) turns the car counter-clockwise
+    half_track = jnp.where(oversteer, p.track_front, p.track_rear) / 2
+    torque = jnp.minimum(jnp.abs(moment) / half_track * p.wheel_radius, esc.max_brake_torque)
+    wheel = jnp.where(oversteer, 0, 2) + jnp.where(left, 0, 1)
+    brake = -torque * (jnp.arange(4) == wheel)
+    return brake, (excess > 0).astype(brake.dtype)
+
+
+def driver(p: VehicleParams, x: VehicleState, c: Command, esc: ESCParams | None = None) -> Inputs:
+    """The plant inputs the driver applies in state ``x`` to follow the command ``c``, with the brake torques of
+    the ``esc`` (:func:`esc_intervention`; ``None``: no ESC) added before the traction and anti-lock limiter
+    (docs/theory/vehicle.md)."""
     curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
     steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
     steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)
@@ -77,6 +131,9 @@ def driver(p: VehicleParams, x: VehicleState, c: Command) -> Inputs:
     front = brake * p.brake_share_front / 2
     rear = (drive + brake * (1 - p.brake_share_front)) / 2
     torque = jnp.stack([front, front, rear, rear])
+    if esc is not None:
+        brake, active = esc_intervention(p, esc, x, steering, c.friction)
+        torque = torque - active * esc.drive_cut * jnp.maximum(torque, 0.0) + brake
     v_l, _, _ = wheel_kinematics(p, x.vx, x.vy, x.r, steering)
     kappa = (x.omega * p.wheel_radius - v_l) / jnp.maximum(jnp.abs(v_l), MIN_SPEED)
     limiter = jnp.clip(1.0 - jnp.maximum(jnp.sign(torque) * kappa, 0.0) / SLIP_LIMIT, 0.0, 1.0)
@@ -88,7 +145,14 @@ def _command(manoeuvre: Manoeuvre, t) -> Command:
     return Command(*(jnp.asarray(v, jnp.result_type(t)) for v in c))
 
 
-def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: float = PLANT_STEP) -> Trajectory:
+def simulate(
+    manoeuvre: Manoeuvre,
+    params: VehicleParams,
+    *,
+    duration=None,
+    dt: float = PLANT_STEP,
+    esc: ESCParams | None = None,
+) -> Trajectory:
     """Simulate ``manoeuvre`` (a :class:`Manoeuvre`) with the vehicle ``params`` from a straight run at its
     initial speed.
 
@@ -98,6 +162,7 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
         ``vmap``).
       duration: simulated time (s, > 0, default the manoeuvre's); rounded to whole plant steps, at most 2**31 - 1.
       dt: plant step (s, > 0, static).
+      esc: the car's ESC (:class:`ESCParams`; ``None``, the default: no ESC).
 
     Returns:
       a :class:`Trajectory` with ``round(duration / dt) + 1`` samples.
@@ -107,6 +172,13 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
     if not isinstance(manoeuvre, Manoeuvre):
         raise ValueError(f"manoeuvre must be a Manoeuvre or the name of one, got {type(manoeuvre).__name__}")
     params = check_vehicle(params, "params")
+    if esc is not None:
+        if not isinstance(esc, ESCParams):
+            raise ValueError(f"esc must be an ESCParams or None, got {type(esc).__name__}")
+        for name, value in esc._asdict().items():
+            _checks.positive(f"esc.{name}", value, allow_zero=name == "drive_cut")
+        if _checks.is_concrete(esc.drive_cut) and not np.all(np.asarray(esc.drive_cut) <= 1.0):
+            raise ValueError(f"esc.drive_cut must be in [0, 1], got {esc.drive_cut!r}")
     _checks.positive_scalar("dt", dt)
     duration = manoeuvre.duration if duration is None else duration
     _checks.positive_scalar("duration", duration)
@@ -116,15 +188,17 @@ def simulate(manoeuvre: Manoeuvre, params: VehicleParams, *, duration=None, dt: 
     x0 = steady_state(params, jnp.asarray(manoeuvre.initial_speed, float))
 
     def f(x, _, t):
-        return dynamics(params, x, driver(params, x, _command(manoeuvre, t)))
+        return dynamics(params, x, driver(params, x, _command(manoeuvre, t), esc))
 
     states = ct.trajectory(f, x0, jnp.zeros(steps), h=dt)
     time = dt * jnp.arange(steps + 1, dtype=states.vx.dtype)
 
     def outputs(x, t):
-        u = driver(params, x, _command(manoeuvre, t))
+        c = _command(manoeuvre, t)
+        u = driver(params, x, c, esc)
         f = forces(params, x, u)
-        return u, f.ax, f.ay, f.fz
+        active = jnp.zeros_like(t) if esc is None else esc_intervention(params, esc, x, u.steering_wheel, c.friction)[1]
+        return u, f.ax, f.ay, f.fz, active
 
-    inputs, ax, ay, fz = jax.vmap(outputs)(states, time)
-    return Trajectory(time, states, inputs, ax, ay, jnp.arctan2(states.vy, states.vx), fz)
+    inputs, ax, ay, fz, active = jax.vmap(outputs)(states, time)
+    return Trajectory(time, states, inputs, ax, ay, jnp.arctan2(states.vy, states.vx), fz, active)

@@ -4,8 +4,10 @@ baseline of §2.9 (:mod:`jaxobs.vehicle.ekf`), with the gates it is built of.
 Friction estimation turns on when (i) ``|HP(a_y - r v_x)| > vy_dot_threshold`` (``HP`` a high-pass of time
 constant ``high_pass_time``) and the reference yaw rate ``r_ref = v_x delta / (L + K_us v_x^2)`` of the linear
 single track exceeds ``yaw_rate_threshold``, or (ii) the car oversteers (``(|r| -+ |r_ref|) v_x >
-oversteer_threshold`` for ``r`` and ``r_ref`` of the same or of opposite signs); it turns off ``off_delay`` seconds
-after the last sample with (i) or (ii). The details: docs/theory/vehicle.md (the NVSO).
+oversteer_threshold`` for ``r`` and ``r_ref`` of the same or of opposite signs), or (iii) the ESC intervenes but not
+for steady-state understeer (understeer ``(|r_ref| - |r|) v_x > understeer_threshold`` with ``r`` and ``r_ref`` of
+the same sign while the high-pass test of (i) fails); it turns off ``off_delay`` seconds after the last sample with
+(i), (ii) or (iii). The details: docs/theory/vehicle.md (the NVSO).
 
 ``smooth``: ``None`` for exact switches; a positive sharpness ``k`` replaces every switch ``x > c`` by the gate
 ``sigmoid(k (x - c) / scale)``, so that thresholds get gradients.
@@ -19,11 +21,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle
+from jaxobs.vehicle.model import VehicleParams, check_vehicle, reference_yaw_rate
 from jaxobs.vehicle.sensors import SENSOR_RATE
-from jaxobs.vehicle.tyres import pure_force
 
-__all__ = ["SwitchingParams", "make_switching", "Switching", "switching", "gate", "either", "understeer_gradient"]
+__all__ = ["SwitchingParams", "make_switching", "Switching", "switching", "gate", "either"]
 
 
 class SwitchingParams(NamedTuple):
@@ -34,8 +35,9 @@ class SwitchingParams(NamedTuple):
     Attributes:
       vehicle: the :class:`~jaxobs.vehicle.VehicleParams` of the reference yaw rate.
       vy_dot_threshold, yaw_rate_threshold, oversteer_threshold, off_delay, high_pass_time: (m/s^2, rad/s, m/s^2,
-        s, s).  accel_margin: the 1.2 of ``accel_margin g mu >= |(a_x, a_y)|`` (the least friction the
-        accelerations show).  dt: sample period (s).  smooth: ``None`` (exact switches) or the gate sharpness (> 0).
+        s, s).  understeer_threshold: the steady-state understeer that condition (iii) leaves out (m/s^2).
+        accel_margin: the 1.2 of ``accel_margin g mu >= |(a_x, a_y)|`` (the least friction the accelerations show).
+        dt: sample period (s).  smooth: ``None`` (exact switches) or the gate sharpness (> 0).
     """
 
     vehicle: VehicleParams
@@ -44,6 +46,7 @@ class SwitchingParams(NamedTuple):
     oversteer_threshold: jax.Array = 1.0
     off_delay: jax.Array = 0.5
     high_pass_time: jax.Array = 10.0
+    understeer_threshold: jax.Array = 1.0
     accel_margin: jax.Array = 1.2
     dt: jax.Array = 1.0 / SENSOR_RATE
     smooth: jax.Array | None = None
@@ -80,14 +83,6 @@ def either(*gates):
     return 1.0 - out
 
 
-def understeer_gradient(vehicle: VehicleParams):
-    """``(1/c_f - 1/c_r) / g`` with ``c`` the slope of each axle's pure lateral force per unit load at zero slip."""
-    vehicle = check_vehicle(vehicle)
-    fz = vehicle.mass * GRAVITY / 4
-    stiffness = lambda tyre: jax.grad(lambda s: pure_force(tyre, s, fz))(jnp.zeros((), jnp.result_type(fz))) / fz
-    return (1.0 / stiffness(vehicle.tyre_front) - 1.0 / stiffness(vehicle.tyre_rear)) / GRAVITY
-
-
 class Switching(NamedTuple):
     """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
     yaw rate with the "same sign" test it used.
@@ -107,29 +102,30 @@ class Switching(NamedTuple):
     same_sign: jax.Array
 
 
-def switching(params, off_timer, low_pass, vx, r, ay, steering_wheel) -> Switching:
+def switching(params, off_timer, low_pass, vx, r, ay, steering_wheel, esc_active) -> Switching:
     """The friction-estimation switch of Grip 2010 §2.5 (module docstring), shared by the NVSO and the EKF baseline
     of §2.9: from the timer and high-pass states of the last sample, the estimated ``vx``, the measured yaw rate
-    ``r``, roll-corrected ``ay`` and steering-wheel angle, with the thresholds (and ``smooth``) of ``params``, a
-    :class:`SwitchingParams` or an :class:`~jaxobs.vehicle.NVSOParams`."""
-    v, dt = params.vehicle, params.dt
-    delta = steering_wheel / v.steering_ratio
-    r_ref = vx * delta / (v.wheelbase + understeer_gradient(v) * vx**2)
+    ``r``, roll-corrected ``ay``, steering-wheel angle and ESC status (0/1), with the thresholds (and ``smooth``) of
+    ``params``, a :class:`SwitchingParams` or an :class:`~jaxobs.vehicle.NVSOParams`."""
+    dt = params.dt
+    r_ref = reference_yaw_rate(params.vehicle, vx, steering_wheel)
     high_pass = ay - r * vx - low_pass
     dead_band = (params.yaw_rate_threshold / 10) ** 2  # "same sign" excludes zero yaw rates (no tie at r_ref = 0)
     same_sign = gate(params.smooth, r * r_ref, dead_band, dead_band)
     smooth = params.smooth
-    excited = gate(smooth, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold) * gate(
-        smooth, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold
-    )
+    lateral_motion = gate(smooth, jnp.abs(high_pass), params.vy_dot_threshold, params.vy_dot_threshold)
+    excited = lateral_motion * gate(smooth, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold)
     opposite = gate(params.smooth, -r * r_ref, dead_band, dead_band)  # counter-steering: the car yaws against the wheel
     threshold = params.oversteer_threshold
     oversteer = either(
         same_sign * gate(params.smooth, (jnp.abs(r) - jnp.abs(r_ref)) * vx, threshold, threshold),
         opposite * gate(params.smooth, (jnp.abs(r) + jnp.abs(r_ref)) * vx, threshold, threshold),
     )
-    on = either(excited, oversteer)
-    # on while (i) or (ii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
+    understeer = same_sign * gate(smooth, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.understeer_threshold,
+                                  params.understeer_threshold)  # fmt: skip
+    esc = esc_active * (1.0 - understeer * (1.0 - lateral_motion))
+    on = either(excited, oversteer, esc)
+    # on while (i), (ii) or (iii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
     timer = (1.0 - on) * (off_timer + dt)
     mode = gate(params.smooth, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)
     low_pass = low_pass + dt / params.high_pass_time * high_pass

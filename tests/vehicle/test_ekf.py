@@ -69,7 +69,7 @@ def test_friction_is_drawn_to_its_default_without_excitation():
     ``mu = 0.5``: the tyres are at zero slip, where the friction model's forces carry almost no information on
     ``mu``, so it follows the attraction, ``mu_k - 1 = (0.5 - 1) (1 - k_mu dt)^k`` (to 1e-5, measured 7e-7); with
     ``mu_attraction=0`` it stays at 0.5."""
-    y = jnp.tile(jnp.array([0.0, 0.0, 0.0, 0.0, *[20.0 / P.wheel_radius] * 4, 20.0]), (300, 1))
+    y = jnp.tile(jnp.array([0.0, 0.0, 0.0, 0.0, *[20.0 / P.wheel_radius] * 4, 20.0, 0.0]), (300, 1))
     for k_mu in (0.5, 0.0):
         params = make_vehicle_ekf(P, mu_attraction=k_mu)
         state = vehicle_ekf.init(params)

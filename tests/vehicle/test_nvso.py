@@ -80,7 +80,7 @@ def test_oversteer_turns_friction_estimation_on_also_when_counter_steering():
         params = make_nvso(P, **settings)
         for r, wheel, expected in cases:
             ay = r * 5.0  # a_y - r v_x = 0: nothing for the high-pass
-            result = switching(params, 1.0, 0.0, 5.0, r, ay, wheel)
+            result = switching(params, 1.0, 0.0, 5.0, r, ay, wheel, 0.0)
             assert float(result.mode) == pytest.approx(expected, abs=1e-6), (settings, r, wheel)
 
 
@@ -167,7 +167,7 @@ def test_bad_settings_and_inputs_raise():
         make_nvso(K_vz=1.0)
     with pytest.raises(ValueError, match="vehicle must be a VehicleParams"):
         make_nvso("car")
-    with pytest.raises(ValueError, match=r"inputs.y must have shape \(9,\)"):
+    with pytest.raises(ValueError, match=r"inputs.y must have shape \(10,\)"):
         _run(make_nvso(), EstimatorInputs(y=jnp.zeros((5, 8))))
 
 
@@ -279,3 +279,28 @@ def test_friction_identifiable_with_the_simulators_tyre():
     assert final["scaled"][0] > 2 * friction, final["scaled"]
     assert abs(final["switching"][0] - friction) < 0.15 * friction, final["switching"]
     assert errors["switching"] < 0.5 * errors["mode1"], errors
+
+
+@pytest.mark.slow  # three drives of 20 to 120 s simulated at 1 ms
+@pytest.mark.published
+def test_esc_condition_on_the_esc_drives():
+    """Panel (e) of benchmarks/sideslip_friction.py, as the reproductions page prints it: with the simulator's ESC,
+    on the two low-friction circles only condition (iii) turns friction estimation on (0 % of the drive with (i)-(ii)
+    alone), and the largest sideslip error with (i)-(iii); on the sine beyond the limit (i)-(ii) already cover the
+    ESC's interventions. Regression snapshots of this implementation, pinned to their printed digits."""
+    from tests._published import pin
+
+    rows = {r["drive"]: r for r in _friction_benchmark().esc_drives()[0]}
+    for drive, words in (("circle_40m_ramp_0.3", r"40 m circle, speed ramp \(0\.3\)"), ("ice_lake_circles",
+                         r"ice lake \(0\.25\)")):  # fmt: skip
+        r = rows[drive]
+        assert r["without_esc_condition"]["mode2_fraction"] == 0.0
+        pattern = rf"\| {words} \| [0-9.]+ / [0-9.]+ \| ([0-9]+) % \| 0 % / ([0-9]+) % \|"
+        pin(100 * r["esc_active_fraction"], pattern, 1)
+        pin(100 * r["with_esc_condition"]["mode2_fraction"], pattern, 2)
+        pattern = rf"\| {words} \|(?: [^|]+ \|){{4}} [0-9.]+ / [0-9.]+ \| ([0-9.]+) / [0-9.]+ \| ([0-9.]+) / [0-9.]+ \|"
+        pin(r["without_esc_condition"]["max_abs_beta_error_deg"], pattern, 1)
+        pin(r["with_esc_condition"]["max_abs_beta_error_deg"], pattern, 2)
+    sine = rows["sine_beyond_limit_0.3"]
+    assert sine["with_esc_condition"]["mode2_fraction"] == sine["without_esc_condition"]["mode2_fraction"]
+    pin(sine["peak_beta_deg"], r"check sine x 1\.5, 20 s \(0\.3\) \| 180\.0 / ([0-9.]+) \|")

@@ -21,7 +21,7 @@ def _drive(T=2001, dt=1e-3):
         vx, zeros, 0.1 * jnp.sin(3 * t), jnp.tile((vx / P.wheel_radius)[:, None], 4), jnp.zeros((T, 4)), zeros, zeros
     )
     inputs = Inputs(zeros, jnp.zeros((T, 4)), zeros, zeros, jnp.ones(T))
-    return Trajectory(t, state, inputs, jnp.cos(t), 2.0 * jnp.sin(2 * t), zeros, jnp.zeros((T, 4)))
+    return Trajectory(t, state, inputs, jnp.cos(t), 2.0 * jnp.sin(2 * t), zeros, jnp.zeros((T, 4)), zeros)
 
 
 def test_error_free_sensors_sample_the_truth():

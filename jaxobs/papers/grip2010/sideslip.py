@@ -388,7 +388,7 @@ def assumed(vehicle: VehicleParams) -> dict:
             "straight_no_excitation": f"flat straight, mode 2 held (off_delay = {NEVER:g}), theta(0) = "
                                       f"{THETA0_STRAIGHT}, v_y error(0) = {VY0_ERROR} m/s",
         },  # fmt: skip
-        "not_modelled": "the NVSO's caster correction and ESC-active switching condition (jaxobs.vehicle.nvso)",
+        "not_modelled": "the NVSO's caster correction (jaxobs.vehicle.nvso); the drives run without an ESC",
     }  # fmt: skip
 
 

@@ -104,7 +104,7 @@ def _check(config: dict, source: str) -> None:
 
 
 def _plants(config: dict):
-    """``(train, heldout)``, each ``{"y": (B, K, 9), "beta": (B, K), "vx0": (B,), "manoeuvre": (B,)}``: the simulated
+    """``(train, heldout)``, each ``{"y": (B, K, 10), "beta": (B, K), "vx0": (B,), "manoeuvre": (B,)}``: the simulated
     drives' sensors and true sideslip at the sensor samples (both sets in one compiled batch)."""
     p, sc = config["plants"], config["scenario"]
     names = tuple(sc["manoeuvres"])

@@ -1,6 +1,8 @@
-"""The vehicle sideslip sweep (jaxobs.papers.grip2010.sideslip_sweep): the config file, bad configs, and one small run
-through
-``jaxobs sweep`` (two manoeuvres x two road frictions, 2.5 s each)."""
+"""The vehicle sideslip sweep (jaxobs.papers.grip2010.sideslip_sweep): the config file, bad configs, one small run
+through ``jaxobs sweep`` (two manoeuvres x two road frictions, 2.5 s each) and (slow) the published figures of the
+shipped config."""
+
+import json
 
 import numpy as np
 import pytest
@@ -61,3 +63,36 @@ def test_cli_sweep_small_grid(tmp_path):
         assert np.all(np.abs(cols[f"metric.{obs}.friction_error"][:2]) < 0.15)
     summary = (out / "report.md").read_text()
     assert "double_lane_change_120kmh" in summary and (out / "sideslip.png").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.published
+def test_published_sweep_figures(tmp_path):
+    """The figures of ``jaxobs sweep --config tuning/sideslip_sweep.toml`` (96 configurations) in the sweep results,
+    from a fresh run of that command: the NVSO's and the EKF's median sideslip RMS errors per drive, the median
+    friction errors with and without the cornering-stiffness mismatch, and the range of the friction errors on the
+    sine steer on friction 1 with that mismatch. Regression snapshots of this implementation (seeded noise), pinned
+    to their printed digits."""
+    from tests._published import pin
+
+    out = tmp_path / "sideslip"
+    assert cli.main(["sweep", "--config", "tuning/sideslip_sweep.toml", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_configs"] == 96 and summary["finite_fraction"] == 1.0
+    by_drive = summary["median_by_manoeuvre"]
+    for drive, words in (("sine_steer", "on the sine steer"), ("double_lane_change_120kmh", "on the lane change"),
+                         ("mountain_road", "on the mountain road")):  # fmt: skip
+        pattern = rf"([0-9.]+) against ([0-9.]+) deg {words}"
+        pin(by_drive[drive]["nvso"]["beta_rms_deg"], pattern, 1)
+        pin(by_drive[drive]["ekf"]["beta_rms_deg"], pattern, 2)
+    stiffness = summary["median_by_axis"]["cornering_stiffness"]
+    pattern = r"\(median (-?[0-9.]+) with that mismatch against (-?[0-9.]+) without;"
+    pin(stiffness["0.8"]["nvso"]["friction_error"], pattern, 1)
+    pin(stiffness["1.0"]["nvso"]["friction_error"], pattern, 2)
+    cols = load_results(out)
+    soft = (cols["param.manoeuvre"] == 0) & (cols["param.friction"] == 1.0) & (cols["param.cornering_stiffness"] == 0.8)
+    pattern = r"the NVSO ends ([0-9.]+) to ([0-9.]+) below the road's friction, the EKF ([0-9.]+) to ([0-9.]+)\)"
+    for observer, low, high in (("nvso", 1, 2), ("ekf", 3, 4)):
+        below = -cols[f"metric.{observer}.friction_error"][soft]
+        pin(below.min(), pattern, low)
+        pin(below.max(), pattern, high)
