@@ -8,7 +8,7 @@ import pytest
 
 from jaxobs.papers.grip2010 import sandwich as g
 from jaxobs.saturation import sandwich_design
-from tests._published import pin
+from tests._published import pin, printed
 
 ROW = r"`grip2010-sandwich` \| Grip 2010 ch\. 9 \|.*?"
 
@@ -48,6 +48,7 @@ def test_reproduction_writes_every_key(tmp_path):
     assert loop["stage_switch_times"]["stage3_start_s"]["never"] == 0
     assert all(w["correct"] for w in data["detectors"])
     assert (tmp_path / data["figures"][0]).stat().st_size > 10_000
-    pin(loop["max_final_norm"], ROW + r"final \\\|chi\\\| ≤ ([\d.e-]+)")
+    # the final norm is at the rounding floor: its digits change with XLA's compile options, so the page bounds it
+    assert loop["max_final_norm"] < float(printed(ROW + r"final \\\|chi\\\| below ([\d.e-]+) at 40 s"))
     pin(loop["stage_switch_times"]["stage3_start_s"]["max"], ROW + r"stage 3 reached by ([\d.]+) s")
     pin(loop["n_initial_conditions"], ROW + r"stabilises all (\d+) grid states")
