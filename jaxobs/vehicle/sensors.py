@@ -195,7 +195,7 @@ def measure(
 
 def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
     """The vehicle observers' inputs from :class:`Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`) in the
-    layout of :data:`AX` ... :data:`VX_REF`."""
+    layout of :data:`AX` ... :data:`ESC_ACTIVE`."""
     m = measurements
     columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
     return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None], m.esc_active[:, None]], axis=1))

@@ -99,8 +99,9 @@ def esc_intervention(p: VehicleParams, esc: ESCParams, x: VehicleState, steering
     The reference ``r_d`` is the :func:`~jaxobs.vehicle.model.reference_yaw_rate` of the steering-wheel angle,
     held below ``friction_margin friction g / v_x`` (``friction`` the road's friction scale). Beyond the dead
     band ``|r - r_d| > yaw_rate_threshold`` the ESC asks for the yaw moment ``-gain (e - threshold sign e)`` of the
-    error ``e = r - r_d`` and brakes one wheel on the side that gives it: the outer front wheel when the car yaws
-    more than ``r_d`` (oversteer), the inner rear wheel when it yaws less (understeer), as production ESCs do.
+    error ``e = r - r_d`` and brakes one wheel on the side that gives it: the outer front wheel when ``e`` has the
+    sign of ``r`` (the car yaws too much in its own direction: oversteer), the inner rear wheel otherwise
+    (understeer), as production ESCs do.
     """
     vx = jnp.maximum(x.vx, MIN_SPEED)
     limit = esc.friction_margin * friction * GRAVITY / vx
@@ -108,7 +109,7 @@ def esc_intervention(p: VehicleParams, esc: ESCParams, x: VehicleState, steering
     e = x.r - r_d
     excess = jnp.maximum(jnp.abs(e) - esc.yaw_rate_threshold, 0.0)
     moment = -jnp.sign(e) * esc.gain * excess  # yaw moment asked for (N m, counter-clockwise > 0)
-    oversteer = e * r_d > 0  # yawing beyond the reference in its direction
+    oversteer = e * x.r > 0  # yawing too much in its own direction (counter-steered drifts included)
     left = moment > 0  # braking a left wheel (FL, RL) turns the car counter-clockwise
     half_track = jnp.where(oversteer, p.track_front, p.track_rear) / 2
     torque = jnp.minimum(jnp.abs(moment) / half_track * p.wheel_radius, esc.max_brake_torque)
