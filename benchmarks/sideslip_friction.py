@@ -259,7 +259,6 @@ def esc_drives(vehicle: VehicleParams | None = None, esc: ESCParams | None = Non
             err = np.abs(np.rad2deg(np.asarray(out.beta)) - beta)
             row[run_name] = {
                 "mode2_fraction": float(on.mean()),
-                "esc_active_mode1_fraction": float((active & ~on).sum() / max(active.sum(), 1)),
                 "theta_final": float(theta[-1]),
                 "theta_min": float(theta.min()),
                 "max_abs_beta_error_deg": float(err.max()),

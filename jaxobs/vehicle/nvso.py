@@ -255,12 +255,11 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
 
     # switching logic (§2.5) and the K_theta_b reductions (§2.7)
     switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw, m[ESC_ACTIVE])
-    r_ref, same_sign = switch.r_ref, switch.same_sign
     yaw_acc = (y_now[YAW_RATE] - r) / dt
     reduce = either(
         gate(params.smooth, jnp.abs(e), params.c1, params.c1),
         gate(params.smooth, jnp.abs(yaw_acc - yaw_acc_model), params.c2, params.c2),
-        same_sign * gate(params.smooth, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.c3, params.c3),
+        switch.same_sign * gate(params.smooth, switch.understeer, params.c3, params.c3),
     )
     K_theta_b = params.K_theta_b * (1.0 - reduce * (1.0 - params.theta_b_reduction))
     moving = gate(params.smooth, vx, params.min_speed, params.min_speed)

@@ -84,21 +84,21 @@ def either(*gates):
 
 
 class Switching(NamedTuple):
-    """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the reference
-    yaw rate with the "same sign" test it used.
+    """Result of :func:`switching`: the mode of the next interval, the filter and timer states, and the understeer
+    with the "same sign" test it used (the NVSO's ``K_theta_b`` reduction (3) gates the same understeer).
 
     Attributes:
       mode: () 1: friction estimation on (a gate value when smooth)
       off_timer: () time since the conditions last held (s)
       low_pass: () the high-pass filter's low-pass state
-      r_ref: () reference yaw rate of the linear single track (rad/s)
+      understeer: () ``(|r_ref| - |r|) v_x`` with ``r_ref`` the linear single track's reference yaw rate (m/s^2)
       same_sign: () r and r_ref of the same sign (outside the dead band)
     """
 
     mode: jax.Array
     off_timer: jax.Array
     low_pass: jax.Array
-    r_ref: jax.Array
+    understeer: jax.Array
     same_sign: jax.Array
 
 
@@ -117,16 +117,20 @@ def switching(params, off_timer, low_pass, vx, r, ay, steering_wheel, esc_active
     excited = lateral_motion * gate(smooth, jnp.abs(r_ref), params.yaw_rate_threshold, params.yaw_rate_threshold)
     opposite = gate(params.smooth, -r * r_ref, dead_band, dead_band)  # counter-steering: the car yaws against the wheel
     threshold = params.oversteer_threshold
+    understeer = (jnp.abs(r_ref) - jnp.abs(r)) * vx  # < 0: the car yaws more than the reference
     oversteer = either(
-        same_sign * gate(params.smooth, (jnp.abs(r) - jnp.abs(r_ref)) * vx, threshold, threshold),
+        same_sign * gate(params.smooth, -understeer, threshold, threshold),
         opposite * gate(params.smooth, (jnp.abs(r) + jnp.abs(r_ref)) * vx, threshold, threshold),
     )
-    understeer = same_sign * gate(smooth, (jnp.abs(r_ref) - jnp.abs(r)) * vx, params.understeer_threshold,
-                                  params.understeer_threshold)  # fmt: skip
-    esc = esc_active * (1.0 - understeer * (1.0 - lateral_motion))
+    steady_understeer = (
+        same_sign
+        * (1.0 - lateral_motion)
+        * gate(smooth, understeer, params.understeer_threshold, params.understeer_threshold)
+    )
+    esc = esc_active * (1.0 - steady_understeer)
     on = either(excited, oversteer, esc)
     # on while (i), (ii) or (iii) holds and off_delay after; the half sample keeps the comparison off ties at k dt
     timer = (1.0 - on) * (off_timer + dt)
     mode = gate(params.smooth, params.off_delay + dt / 2 - timer, 0.0, params.off_delay)
     low_pass = low_pass + dt / params.high_pass_time * high_pass
-    return Switching(mode, timer, low_pass, r_ref, same_sign)
+    return Switching(mode, timer, low_pass, understeer, same_sign)
