@@ -19,6 +19,7 @@ import importlib.util
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
+    from jaxobs.batching import safe_lapack, safe_vmap
     from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
     from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
     from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
@@ -146,6 +147,8 @@ __all__ = [
     "spectral_radius",
     # jobs
     "run_sweep",
+    "safe_vmap",
+    "safe_lapack",
     "load_results",
     "tune",
     "TuningProblem",

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from jaxobs._distributed import DEFAULT_JOIN_TIMEOUT
-from jaxobs._resources import InterruptWatch, JobError, locked_out_dir
+from jaxobs._resources import InterruptWatch, JobError, Stalled, locked_out_dir
 
 RESUME_HINT = "rerun the same command to resume"
 CACHE_MIN_COMPILE_SECONDS = 0.2  # programs that compile faster are not worth a cache file
@@ -314,6 +314,10 @@ def _run(argv, watch: InterruptWatch, started: float) -> int:
         return 130
     except (JobError, CheckpointError, TuningError) as exc:  # ConfigError and SweepError are JobErrors
         print(f"jaxobs {args.command}: {exc}", file=sys.stderr)
+        if isinstance(exc, Stalled) and as_command:  # the blocked runtime would keep the interpreter from exiting
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(2)
         return 2
 
 
