@@ -110,6 +110,8 @@ def _batched(params, inputs: EstimatorInputs, what: str = "inputs"):
     """``(y, u_prev)`` as (B, T, p) and (B, T, m) or None, shapes checked (static) against ``params``."""
     if not isinstance(inputs, EstimatorInputs):
         raise ValueError(f"{what} must be EstimatorInputs(y, u_prev), got {type(inputs).__name__}")
+    if inputs.model is not None:
+        raise ValueError(f"{what}.model: fitting takes a constant model; a time-varying one is not supported here")
     p, m = _sizes(params)
     y = jnp.asarray(inputs.y)
     if y.ndim == 2:
