@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at r
     from jaxobs.observers.gramian import gramian_estimator, make_gramian
     from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
     from jaxobs.observers.hinf import hinf_filter, make_hinf
+    from jaxobs.observers.imm import imm, make_imm
     from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
     from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
     from jaxobs.observers.linear import linear_observer
@@ -123,6 +124,8 @@ __all__ = [
     "make_hgo",
     "modular_estimator",
     "make_modular",
+    "imm",
+    "make_imm",
     # estimation over a record
     "log_likelihood",
     "smooth",
