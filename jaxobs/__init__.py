@@ -20,8 +20,9 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
     from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
+    from jaxobs.consistency import nees, nis, whiteness
     from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
-    from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
+    from jaxobs.learning import FitSettings, als, covariance_model, em, fit, sample
     from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
     from jaxobs.matrix_equations import care, dare
     from jaxobs.nonlinear import NonlinearModel, nonlinear_model
@@ -138,6 +139,11 @@ __all__ = [
     "FitSettings",
     "covariance_model",
     "em",
+    "als",
+    # consistency of a filter
+    "nees",
+    "nis",
+    "whiteness",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",
