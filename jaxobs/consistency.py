@@ -5,7 +5,7 @@ true states of a simulation) and the normalised innovation squared (:func:`nis`)
 the state and the measurement dimension as degrees of freedom, and its innovations are white (:func:`whiteness`,
 on the sample :func:`autocovariance`). Each works on the outputs of :func:`~jaxobs.observers.base.run` for one
 record or a batch of Monte-Carlo runs (Bar-Shalom, Li & Kirubarajan 2001, §5.4; Mehra 1970), under ``jit``,
-``vmap`` and ``grad``. The tests and their bands: docs/guides/imm-consistency.md.
+``vmap`` and ``grad``. The tests and their bands: docs/guides/estimation-breadth.md.
 """
 
 from __future__ import annotations

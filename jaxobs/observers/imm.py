@@ -6,7 +6,7 @@ matrix and the modes' prior probabilities. Each step mixes the modes' Gaussians 
 to their states' ``x`` and ``P`` fields) with the mixing probabilities, runs every mode's own step, weighs the
 modes by their ``log_likelihood`` outputs and combines them. Any estimators whose states carry ``x``, ``P`` and
 whose outputs carry ``log_likelihood`` (the Kalman filter, the EKF, the UKF, ...) serve as modes. The equations:
-docs/guides/imm-consistency.md.
+docs/guides/estimation-breadth.md.
 """
 
 from __future__ import annotations
