@@ -4,17 +4,18 @@ quadrature filter, on the same workloads.
 What is measured (float64, ``T`` samples, ``B`` in {1, 64} independent measurement sequences):
 
 * ``imm``: a two-mode interacting multiple model (Blom & Bar-Shalom 1988) over Kalman filters, a
-  constant-velocity and a constant-acceleration mode (3 states, 1 output), on a manoeuvring target (the model of
-  tests/observers/test_imm.py). jaxobs: ``jit(vmap(run(imm(kalman_filter, kalman_filter))))``. filterpy: its
-  ``IMMEstimator`` over two ``KalmanFilter``s, ``predict`` and ``update`` per sample, in Python; it is timed on
-  one sequence and its time multiplied by ``B`` (a Python loop over sequences does exactly that work).
+  constant-velocity and a constant-acceleration mode (3 states, 1 output), on manoeuvring targets (the model
+  tests/observers/test_imm.py checks against filterpy). jaxobs: ``jit(vmap(run(imm(kalman_filter,
+  kalman_filter))))``. filterpy: its ``IMMEstimator`` over two ``KalmanFilter``s, ``predict`` and ``update`` per
+  sample, in Python; it is timed on one sequence and its time multiplied by ``B`` (a Python loop over sequences
+  does exactly that work).
 * ``cubature``, ``gauss_hermite``: the sampled pendulum of Särkkä 2013 (2 states, measured ``sin`` of the
-  angle, as benchmarks/nonlinear.py), filtered with the cubature rule (4 points) and the Gauss-Hermite rule of
-  order 3 (9 points). jaxobs: ``jit(vmap(run(unscented_kalman_filter)))`` with ``make_ukf(model, rule=...)``.
-  cuthbert has the quadrature atoms but no filter object for them: its filter here is its statistical linear
-  regression ``cuthbertlib.quadrature.functional`` of ``f`` and ``h`` around the current Gaussian followed by its
-  square-root Kalman ``predict`` and ``update`` (``cuthbertlib.kalman.filtering``), in a ``lax.scan``, jitted and
-  vmapped alike (the oracle of tests/observers/test_ukf.py).
+  angle; the model and data of benchmarks/nonlinear.py), filtered with the cubature rule (4 points) and the
+  Gauss-Hermite rule of order 3 (9 points). jaxobs: ``jit(vmap(run(unscented_kalman_filter)))`` with
+  ``make_ukf(model, rule=...)``. cuthbert has the quadrature atoms but no filter object for them: its filter here
+  is its statistical linear regression ``cuthbertlib.quadrature.functional`` of ``f`` and ``h`` around the
+  current Gaussian followed by its square-root Kalman ``predict`` and ``update`` (``cuthbertlib.kalman.filtering``),
+  in a ``lax.scan``, jitted and vmapped alike (the oracle of tests/observers/test_ukf.py).
 
 Agreement: the filtered means of both sides on the benchmark data (max relative difference).
 
@@ -36,6 +37,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import argparse  # noqa: E402
+import importlib.util  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
@@ -47,6 +49,10 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _timing import Skipped, format_range, paired_ratio, time_interleaved  # noqa: E402
+from nonlinear import DT, P0, X0, pendulum_f, pendulum_h  # noqa: E402
+from nonlinear import Q as Q_P  # noqa: E402
+from nonlinear import R as R_P  # noqa: E402
+from nonlinear import simulate as pendulums  # noqa: E402
 
 import jaxobs as jo  # noqa: E402
 
@@ -59,82 +65,66 @@ Q_CV, Q_CA, R_IMM = np.diag([1e-4, 1e-3, 1e-6]), np.diag([1e-3, 1e-2, 0.5]), np.
 TRANSITION, MU = np.array([[0.97, 0.03], [0.05, 0.95]]), np.array([0.6, 0.4])
 X_PRIOR, P_PRIOR = np.array([0.0, 1.0, 0.0]), np.diag([1.0, 0.5, 0.2])
 
-# pendulum (benchmarks/nonlinear.py)
-DT, GRAVITY = 0.0125, 9.81
-Q_P = 1.0 * np.array([[DT**3 / 3, DT**2 / 2], [DT**2 / 2, DT]])
-R_P = np.array([[0.09]])
-X0, P0 = np.array([1.4, 0.1]), 0.3 * np.eye(2)
 RULES = {"cubature": {}, "gauss_hermite": {"order": 3}}
 
 
-def pendulum_f(x):
-    return jnp.array([x[0] + x[1] * DT, x[1] - GRAVITY * jnp.sin(x[0]) * DT])
-
-
-def pendulum_h(x):
-    return jnp.sin(x[:1])
-
-
-def manoeuvres(B: int, T: int, seed: int = 0) -> np.ndarray:
-    """(B, T, 1) positions of targets that cruise and accelerate for a random tenth of the record."""
-    rng = np.random.default_rng(seed)
-    ys = np.zeros((B, T, 1))
-    for b in range(B):
-        start = rng.integers(0, max(T - T // 10, 1))
-        x = np.array([0.0, 1.0, 0.0])
-        for k in range(T):
-            x = F_CA @ x
-            x[2] = 1.5 if start <= k < start + T // 10 else 0.0
-            ys[b, k] = H @ x + np.sqrt(R_IMM[0, 0]) * rng.normal(size=1)
+def manoeuvre(T: int, start: int, length: int, rng: np.random.Generator) -> np.ndarray:
+    """(T, 1) noisy positions of a target that cruises at unit speed and accelerates (1.5) from sample ``start``
+    for ``length`` samples."""
+    x, ys = np.array([0.0, 1.0, 0.0]), np.zeros((T, 1))
+    for k in range(T):
+        x = F_CA @ x
+        x[2] = 1.5 if start <= k < start + length else 0.0
+        ys[k] = H @ x + np.sqrt(R_IMM[0, 0]) * rng.normal(size=1)
     return ys
 
 
-def pendulums(B: int, T: int, seed: int = 0) -> np.ndarray:
-    """(B, T, 1) measurements of B pendulums started at angles in [1, 2] rad."""
+def manoeuvres(B: int, T: int, seed: int = 0) -> np.ndarray:
+    """(B, T, 1): B records of :func:`manoeuvre`, each accelerating for a tenth of the record from a random
+    sample."""
     rng = np.random.default_rng(seed)
-    x = np.stack([rng.uniform(1.0, 2.0, B), np.zeros(B)], axis=1)
-    noise = rng.multivariate_normal(np.zeros(2), Q_P, size=(T, B))
-    f = jax.jit(jax.vmap(pendulum_f))
-    ys = []
-    for k in range(T):
-        if k:
-            x = np.asarray(f(x)) + noise[k]
-        ys.append(np.sin(x[:, :1]) + np.sqrt(R_P[0, 0]) * rng.normal(size=(B, 1)))
-    return np.stack(ys, axis=1)
+    return np.stack([manoeuvre(T, rng.integers(0, max(T - T // 10, 1)), T // 10, rng) for _ in range(B)])
+
+
+def imm_params(transition=TRANSITION):
+    """The IMM's params: each mode's prior of ``x_0`` is its prediction of filterpy's prior of ``x_{-1}``, the
+    mode prior filterpy's predicted mode probabilities ``mu M`` (the first jaxobs step has no transition)."""
+    modes = [jo.make_kalman(F, H, Q, R_IMM, x0=F @ X_PRIOR, P0=F @ P_PRIOR @ F.T + Q)
+             for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA))]  # fmt: skip
+    return jo.make_imm(modes, transition, MU @ TRANSITION)
+
+
+def filterpy_imm_estimates(y: np.ndarray):
+    """filterpy's IMMEstimator over two KalmanFilters on one record ``y`` (T, 1), ``predict`` then ``update`` per
+    sample: the combined means (T, 3), covariances (T, 3, 3) and mode probabilities (T, 2)."""
+    from filterpy.kalman import IMMEstimator, KalmanFilter
+
+    filters = []
+    for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA)):
+        kf = KalmanFilter(dim_x=3, dim_z=1)
+        kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = X_PRIOR.copy(), P_PRIOR.copy(), F, Q, H, R_IMM
+        filters.append(kf)
+    estimator = IMMEstimator(filters, MU, TRANSITION)
+    xs, Ps, mus = [], [], []
+    for z in y:
+        estimator.predict()
+        estimator.update(z)
+        xs.append(estimator.x.copy())
+        Ps.append(estimator.P.copy())
+        mus.append(estimator.mu.copy())
+    return np.array(xs), np.array(Ps), np.array(mus)
 
 
 def jaxobs_imm():
-    """The IMM with the priors of ``x_0`` (filterpy's prior of ``x_{-1}`` predicted by each mode) and the
-    predicted mode probabilities ``mu M`` (tests/observers/test_imm.py)."""
-    modes = [jo.make_kalman(F, H, Q, R_IMM, x0=F @ X_PRIOR, P0=F @ P_PRIOR @ F.T + Q)
-             for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA))]  # fmt: skip
-    params = jo.make_imm(modes, TRANSITION, MU @ TRANSITION)
-    imm = jo.imm(jo.kalman_filter, jo.kalman_filter)
+    params, imm = imm_params(), jo.imm(jo.kalman_filter, jo.kalman_filter)
     return lambda ys: jax.vmap(lambda y: jo.run(imm, params, jo.EstimatorInputs(y))[1].x)(ys)
 
 
 def filterpy_imm(ys: np.ndarray):
-    """filterpy's IMMEstimator over the first sequence (its time is scaled by B)."""
-    try:
-        from filterpy.kalman import IMMEstimator, KalmanFilter
-    except ImportError as exc:
-        raise Skipped(f"filterpy not installed: {exc}") from exc
-
-    def run(y):
-        filters = []
-        for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA)):
-            kf = KalmanFilter(dim_x=3, dim_z=1)
-            kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = X_PRIOR.copy(), P_PRIOR.copy(), F, Q, H, R_IMM
-            filters.append(kf)
-        estimator = IMMEstimator(filters, MU, TRANSITION)
-        xs = []
-        for z in y:
-            estimator.predict()
-            estimator.update(z)
-            xs.append(estimator.x.copy())
-        return np.array(xs)[None]
-
-    return run, (ys[0],)
+    """filterpy's IMM over the first sequence (its time is scaled by B)."""
+    if importlib.util.find_spec("filterpy") is None:
+        raise Skipped("filterpy not installed")
+    return lambda y: filterpy_imm_estimates(y)[0][None], (ys[0],)
 
 
 def jaxobs_quadrature(rule: str):

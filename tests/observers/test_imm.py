@@ -1,9 +1,13 @@
 """Tests for jaxobs.observers.imm: filterpy's IMMEstimator on a two-mode Kalman example (a constant-velocity and a
-manoeuvring mode), the mixing algebra, modes of different families, jit/vmap over plants/grad and bad inputs.
+manoeuvring mode; the model and the filterpy reference are those of benchmarks/estimation_breadth.py), the mixing
+algebra, modes of different families, jit/vmap over plants/grad and bad inputs.
 
 Prior conventions: filterpy predicts before every update, so it gets the prior of ``x_{-1}``; jaxobs' modes get
 their own predictions of it (the prior of ``x_0``) and the IMM the predicted mode probabilities ``mu M``, as its
 first step has no transition (tests/observers/test_kalman.py does the same for the Kalman filter)."""
+
+import importlib.util
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -15,56 +19,29 @@ import jaxobs as jo
 from jaxobs.observers import EstimatorInputs, run
 from jaxobs.observers.imm import IMMState, make_imm, mix
 from jaxobs.observers.imm import imm as make_imm_estimator
+from tests import ROOT
 from tests._nonlinear_models import relative_error
 
-DT = 0.5
-F_CV = np.array([[1.0, DT, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])  # constant velocity, no acceleration
-F_CA = np.array([[1.0, DT, DT**2 / 2], [0.0, 1.0, DT], [0.0, 0.0, 1.0]])  # constant acceleration
-H = np.array([[1.0, 0.0, 0.0]])
-Q_CV, Q_CA = np.diag([1e-4, 1e-3, 1e-6]), np.diag([1e-3, 1e-2, 0.5])
-R = np.array([[0.4]])
-TRANSITION = np.array([[0.97, 0.03], [0.05, 0.95]])
-MU = np.array([0.6, 0.4])
-X_PRIOR, P_PRIOR = np.array([0.0, 1.0, 0.0]), np.diag([1.0, 0.5, 0.2])
+
+def _workload():
+    """benchmarks/estimation_breadth.py, the one home of the two-mode example and of its filterpy reference."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("estimation_breadth", ROOT / "benchmarks" / "estimation_breadth.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+BENCH = _workload()
+F_CA, H, Q_CA, R, TRANSITION = BENCH.F_CA, BENCH.H, BENCH.Q_CA, BENCH.R_IMM, BENCH.TRANSITION
 
 
 def manoeuvring_record(T=80, seed=0):
     """Positions of a target that cruises, accelerates between samples 30 and 45, then cruises again."""
-    rng = np.random.default_rng(seed)
-    x, ys = np.array([0.0, 1.0, 0.0]), []
-    for k in range(T):
-        x = F_CA @ x
-        x[2] = 1.5 if 30 <= k < 45 else 0.0
-        ys.append(H @ x + np.sqrt(R[0, 0]) * rng.normal(size=1))
-    return np.array(ys)
+    return BENCH.manoeuvre(T, 30, 15, np.random.default_rng(seed))
 
 
-def filterpy_imm(y):
-    from filterpy.kalman import IMMEstimator, KalmanFilter
-
-    filters = []
-    for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA)):
-        kf = KalmanFilter(dim_x=3, dim_z=1)
-        kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = X_PRIOR.copy(), P_PRIOR.copy(), F, Q, H, R
-        filters.append(kf)
-    estimator = IMMEstimator(filters, MU, TRANSITION)
-    xs, Ps, mus = [], [], []
-    for z in y:
-        estimator.predict()
-        estimator.update(z)
-        xs.append(estimator.x.copy())
-        Ps.append(estimator.P.copy())
-        mus.append(estimator.mu.copy())
-    return np.array(xs), np.array(Ps), np.array(mus)
-
-
-def jaxobs_imm_params(transition=TRANSITION):
-    """The two modes' Kalman filters with the priors of ``x_0`` (the modes' predictions of filterpy's prior of
-    ``x_{-1}``) and the IMM with filterpy's predicted mode probabilities ``mu M`` at the first sample."""
-    modes = [
-        jo.make_kalman(F, H, Q, R, x0=F @ X_PRIOR, P0=F @ P_PRIOR @ F.T + Q) for F, Q in ((F_CV, Q_CV), (F_CA, Q_CA))
-    ]
-    return make_imm(modes, transition, MU @ TRANSITION)
+jaxobs_imm_params = BENCH.imm_params
 
 
 def test_equals_filterpy_imm_estimator():
@@ -72,7 +49,7 @@ def test_equals_filterpy_imm_estimator():
     agree to 1e-8 relative at every step (measured about 1e-14); the manoeuvre moves the probability to the
     constant-acceleration mode and back."""
     y = manoeuvring_record()
-    xs, Ps, mus = filterpy_imm(y)
+    xs, Ps, mus = BENCH.filterpy_imm_estimates(y)
     _, out = run(jo.imm(jo.kalman_filter, jo.kalman_filter), jaxobs_imm_params(), EstimatorInputs(jnp.asarray(y)))
     assert relative_error(out.x, xs) < 1e-8
     assert relative_error(out.P, Ps) < 1e-8
