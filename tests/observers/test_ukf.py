@@ -76,7 +76,8 @@ def cuthbert_quadrature_filter(problem, quadrature):
 QUADRATURES = {"cubature": {}, "gauss_hermite": {"order": 3}, "gauss_hermite order 5": {"order": 5}}
 
 
-@pytest.mark.parametrize("make_problem", [pendulum, bearings], ids=["pendulum", "bearings"])
+@pytest.mark.parametrize("make_problem", [pendulum, pytest.param(bearings, marks=pytest.mark.slow)],
+                         ids=["pendulum", "bearings"])  # fmt: skip
 def test_cubature_and_gauss_hermite_equal_cuthbert(make_problem):
     """The cubature (Arasaratnam & Haykin 2009) and Gauss-Hermite (orders 3 and 5) filters equal cuthbert's
     quadrature linearisation with its square-root Kalman steps: means, covariances and per-step log-likelihoods
