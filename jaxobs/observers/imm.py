@@ -190,9 +190,10 @@ def imm(*estimators: Estimator) -> Estimator:
 
     The first step has no transition and no mixing (the modes' priors are those of ``x_0``, ``c = mode_prior``).
     The modes must have the same state size ``n`` and measurement size ``p``; their states must hold ``x`` and
-    ``P`` (a mode with a fixed gain keeps its fixed ``P``) and their outputs a ``log_likelihood``. Everything is
-    pure: ``jit``, ``vmap`` (over plants, the params' leaves) and ``grad`` (through the transition matrix, the
-    modes' params) apply.
+    ``P`` (propagated by the mode: a Kalman filter with a time-varying gain, an EKF, a UKF; a fixed-gain filter
+    propagates no covariance) and their outputs a ``log_likelihood``; every mode reads the same inputs
+    (``EstimatorInputs.model`` included). Everything is pure: ``jit``, ``vmap`` (over plants, the params'
+    leaves) and ``grad`` (through the transition matrix, the modes' params) apply.
 
     Args:
       estimators: the ``M >= 2`` mode estimators (may differ, e.g. a Kalman filter and an EKF).

@@ -154,12 +154,13 @@ def unit_points(n: int, rule: str, order: int = 3):
     return xi, w
 
 
-def sigma_points(m, P, alpha=None, beta=None, kappa=None, *, rule: str = "unscented", order: int = 3):
+def sigma_points(m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented", order: int = 3):
     """Sigma points and weights of ``N(m, P)`` by the rule ``rule`` (:data:`RULES`).
 
-    ``"unscented"``: the ``2n + 1`` points of the scaled unscented transform with ``alpha``, ``beta``, ``kappa``;
-    ``"cubature"`` and ``"gauss_hermite"``: ``m + L xi`` for the points ``xi`` of :func:`unit_points` (``order``
-    per dimension for Gauss-Hermite), with equal mean and covariance weights.
+    ``"unscented"``: the ``2n + 1`` points of the scaled unscented transform with ``alpha``, ``beta``, ``kappa``
+    (default :data:`UNSCENTED_DEFAULTS`); ``"cubature"`` and ``"gauss_hermite"``: ``m + L xi`` for the points
+    ``xi`` of :func:`unit_points` (``order`` per dimension for Gauss-Hermite; ``alpha``, ``beta``, ``kappa``
+    unused), with equal mean and covariance weights.
 
     Returns:
       ``(X, wm, wc, L)``: (N, n) points (the unscented centre first), (N,) mean and covariance weights, and the
@@ -178,7 +179,7 @@ def sigma_points(m, P, alpha=None, beta=None, kappa=None, *, rule: str = "unscen
     return m + offsets, wm, wc, L
 
 
-def unscented(g, m, P, alpha=None, beta=None, kappa=None, *, rule: str = "unscented", order: int = 3) -> Linearization:
+def unscented(g, m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented", order: int = 3) -> Linearization:
     """Statistical linear regression of ``g`` on the sigma points of ``N(m, P)`` by any rule of
     :func:`sigma_points`: ``(g_bar, C' P^{-1}, Cov - G C)`` (Särkkä 2013, §5.6)."""
     X, wm, wc, L = sigma_points(m, P, alpha, beta, kappa, rule=rule, order=order)

@@ -215,5 +215,7 @@ def test_errors_name_the_argument():
     assert isinstance(sqrt_params, SquareRootKalmanParams)
     with pytest.raises(ValueError, match="must be a dict of per-step values of"):
         run(square_root_kalman_filter, sqrt_params, EstimatorInputs(y, model={"Q": jnp.asarray(model["Q"])}))
+    with pytest.raises(ValueError, match="fitting takes a constant model"):
+        jo.learning.negative_log_likelihood(kalman_filter, params, EstimatorInputs(y, model={"Q": model["Q"]}))
     with pytest.raises(ValueError, match="filter_shared_model shares one constant model"):
         jo.observers.kalman.filter_shared_model(params, EstimatorInputs(y[None], model={"Q": model["Q"][None]}))
