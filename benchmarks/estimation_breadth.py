@@ -196,26 +196,29 @@ def measure(batches, T: int, rounds: int) -> dict:
     return results
 
 
-def _ms(summary: dict) -> str:
-    return format_range({k: summary[k] * 1e3 for k in ("median", "min", "max")}, ".3g")
-
-
 def report(results: dict) -> str:
-    lines = [f"{'case':<20} {'jaxobs (ms)':<26} {'compile (s)':<12} {'peer (ms)':<26} {'compile (s)':<12} "
-             "peer/jaxobs             max rel diff"]  # fmt: skip
+    """A Markdown table: per case and batch, both sides' times and compile times, the paired ratio, the
+    agreement."""
+    scaled = lambda s: {k: s[k] * 1e3 for k in ("median", "min", "max")}  # noqa: E731  seconds -> ms
+    rows = ["| case | B | jaxobs [ms] | peer [ms] | peer / jaxobs | compile jaxobs / peer [s] | max rel. diff. |",
+            "|---|---|---|---|---|---|---|"]  # fmt: skip
     for batch, record in results.items():
         for case in CASES:
             r = record[case]
-            mine, peer = r["jaxobs"], r.get("peer")
-            row = f"{batch + ' ' + case:<20} {_ms(mine['seconds']):<26} {mine['compile_s']:<12.2f} "
+            peer = r.get("peer")
             if peer is None:
-                lines.append(row + f"{r['peer_name']}: {record['problems'].get(r['peer_name'] + '_' + case)}")
+                rows.append(
+                    f"| {case} | {batch} | {r['peer_name']}: {record['problems'].get(r['peer_name'] + '_' + case)} |"
+                )
                 continue
-            compile_s = "-" if peer["compile_s"] is None else f"{peer['compile_s']:.2f}"
-            lines.append(row + f"{r['peer_name'] + ' ' + _ms(peer['seconds']):<26} {compile_s:<12} "
-                         f"{format_range(r['ratio_peer_over_jaxobs'], '.3g'):<23} "
-                         f"{r['max_relative_difference']:.1e}")  # fmt: skip
-    return "\n".join(lines)
+            compile_peer = "none" if peer["compile_s"] is None else f"{peer['compile_s']:.2g}"
+            cells = [f"{case} vs {r['peer_name']}", batch.removeprefix("B="),
+                     format_range(scaled(r["jaxobs"]["seconds"])), format_range(scaled(peer["seconds"])),
+                     format_range(r["ratio_peer_over_jaxobs"], ".3g", "x"),
+                     f"{r['jaxobs']['compile_s']:.2g} / {compile_peer}",
+                     f"{r['max_relative_difference']:.1e}"]  # fmt: skip
+            rows.append("| " + " | ".join(cells) + " |")
+    return "\n".join(rows)
 
 
 def plot(results: dict, meta: dict, path: Path) -> None:
