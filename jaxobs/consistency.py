@@ -10,6 +10,7 @@ record or a batch of Monte-Carlo runs (Bar-Shalom, Li & Kirubarajan 2001, §5.4;
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -64,7 +65,7 @@ def chi2_quantile(q, dof):
     q, dof = jnp.broadcast_arrays(*(jnp.asarray(a, jnp.result_type(q, dof, float)) for a in (q, dof)))
     positive = dof > 0
     half = jnp.where(positive, dof / 2.0, 1.0)
-    # the quantile lies in [exp(-60) q^(2/dof), dof + 40 sqrt(dof) + 100] for the probabilities of a test band
+    # a bracket of log x: exp(-700) is below any quantile a test band asks for, the upper end above it
     low = jnp.full_like(q, -700.0)
     high = jnp.log(jnp.where(positive, dof, 1.0) + 40.0 * jnp.sqrt(jnp.where(positive, dof, 1.0)) + 200.0)
 
@@ -183,14 +184,14 @@ def autocovariance(innovation, lags: int):
       (lags, p, p) with ``C_j[a, b]`` the covariance of ``e_{k+j}[a]`` and ``e_k[b]``.
     """
     e = _runs("innovation", innovation, 1)
-    T = e.shape[1]
-    lags = _checks.count("lags", lags, minimum=1, maximum=max(T - 1, 1), hint="autocovariance lags")
-    e = e.astype(jnp.result_type(e, float))
+    lags = _checks.count("lags", lags, minimum=1, maximum=max(e.shape[1] - 1, 1), hint="autocovariance lags")
+    return _autocovariance(e.astype(jnp.result_type(e, float)), lags=lags)
 
-    def lag(j):
-        return jnp.einsum("rka,rkb->ab", e[:, j:], e[:, : T - j]) / (e.shape[0] * (T - j))
 
-    return jnp.stack([lag(j) for j in range(lags)])
+@partial(jax.jit, static_argnames=("lags",))
+def _autocovariance(e, *, lags: int):
+    runs, T = e.shape[:2]
+    return jnp.stack([jnp.einsum("rka,rkb->ab", e[:, j:], e[:, : T - j]) / (runs * (T - j)) for j in range(lags)])
 
 
 class WhitenessTest(NamedTuple):
@@ -226,6 +227,7 @@ def whiteness(innovation, lags: int = 20, *, confidence=0.95) -> WhitenessTest:
       :class:`WhitenessTest`.
     """
     e = _runs("innovation", innovation, 1)
+    lags = _checks.count("lags", lags, minimum=1, maximum=max(e.shape[1] - 2, 1), hint="autocorrelation lags")
     covariances = autocovariance(e, lags + 1)
     variance = jnp.diagonal(covariances[0])
     rho = jnp.diagonal(covariances[1:], axis1=1, axis2=2) / variance
