@@ -579,7 +579,7 @@ def _structure(size: int, diagonal: bool) -> np.ndarray:
 
 def _als_matrix(Phi, C, K, G, D_q, D_r, lags: int):
     """The matrix ``A`` of ``[vec C_0; ...; vec C_{lags-1}] = A [theta_Q; theta_R]`` (Odelson, Rajamani & Rawlings
-    2006, eq. 13-15, row-major): with ``A_bar = Phi (I - K C)`` the predictor's error dynamics and
+    2006; ``vec`` row-major): with ``A_bar = Phi (I - K C)`` the predictor's error dynamics and
     ``vec P = (I - A_bar (x) A_bar)^{-1} ((G (x) G) vec Q + (Phi K (x) Phi K) vec R)`` its stationary covariance,
     ``C_0 = C P C' + R`` and ``C_j = C A_bar^j P C' - C A_bar^(j-1) Phi K R``."""
     n, p = Phi.shape[-1], C.shape[-2]
@@ -597,8 +597,8 @@ def _als_matrix(Phi, C, K, G, D_q, D_r, lags: int):
 
 def als(params: KalmanParams, innovation, *, lags: int = 15, G=None, diagonal=()) -> ALSResult:
     """Autocovariance least squares (Odelson, Rajamani & Rawlings 2006): ``Q`` and ``R`` from the innovations of a
-    filter with a fixed gain, by matching their sample autocovariances ``C_j`` (:func:`jaxobs.consistency.
-    autocovariance`) with the ones the model implies, which are linear in ``(Q, R)``.
+    filter with a fixed gain, by matching their sample autocovariances ``C_j``
+    (:func:`jaxobs.consistency.autocovariance`) with the ones the model implies, which are linear in ``(Q, R)``.
 
     The filter ``params`` may use any stabilising gain (typically the steady-state gain of a guess of ``Q`` and
     ``R``): its innovations are correlated when the guess is wrong, and that correlation identifies the true
