@@ -371,8 +371,9 @@ def test_als_recovers_q_and_r_within_the_sampling_error(case):
 
 
 def test_als_jit_vmap_structure_and_errors():
-    """eager = jit; a vmap over records equals a loop; with Q known to be diagonal there are fewer unknowns and a
-    singular structure (a full 2x2 Q from one output) is reported as not identifiable; errors name the argument."""
+    """eager = jit; a vmap over records and one over plants (the filter's gain) equal loops; with Q known to be
+    diagonal there are fewer unknowns and a singular structure (a full 2x2 Q from one output) is reported as not
+    identifiable; errors name the argument."""
     c = ALS_CASES["noise input"]
     true = make_kalman(c["Phi"], c["C"], np.asarray(c["G"]) @ c["Q"] @ np.asarray(c["G"]).T, c["R"])
     guess = make_kalman(c["Phi"], c["C"], np.eye(2) * 1e-3, [[1.0]], steady_state=True)
@@ -383,6 +384,10 @@ def test_als_jit_vmap_structure_and_errors():
                                rtol=1e-10)  # fmt: skip
     batched = jax.vmap(lambda e: als(guess, e, lags=8, G=c["G"]))(e)
     np.testing.assert_allclose(batched.R[1], als(guess, e[1], lags=8, G=c["G"]).R, rtol=1e-10)
+    gains = jnp.stack([guess.gain, 0.9 * guess.gain])  # two plants' filters (a vmap over params)
+    plants = jax.vmap(lambda K: als(dataclasses.replace(guess, gain=K), e[0], lags=8, G=c["G"]))(gains)
+    np.testing.assert_allclose(plants.Q[1], als(dataclasses.replace(guess, gain=gains[1]), e[0], lags=8,
+                                                G=c["G"]).Q, rtol=1e-10)  # fmt: skip
     assert bool(eager.identifiable) and not bool(als(guess, e[0], lags=8).identifiable)
     diagonal = als(guess, e[0], lags=8, diagonal=("Q",))
     assert float(diagonal.Q[0, 1]) == 0.0 and bool(diagonal.identifiable)
