@@ -21,8 +21,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
     from jaxobs.batching import safe_lapack, safe_vmap
     from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
+    from jaxobs.consistency import nees, nis, whiteness
     from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
-    from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
+    from jaxobs.learning import FitSettings, als, covariance_model, em, fit, sample
     from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
     from jaxobs.matrix_equations import care, dare
     from jaxobs.nonlinear import NonlinearModel, nonlinear_model
@@ -42,6 +43,7 @@ if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at r
     from jaxobs.observers.gramian import gramian_estimator, make_gramian
     from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
     from jaxobs.observers.hinf import hinf_filter, make_hinf
+    from jaxobs.observers.imm import imm, make_imm
     from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
     from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
     from jaxobs.observers.linear import linear_observer
@@ -124,6 +126,8 @@ __all__ = [
     "make_hgo",
     "modular_estimator",
     "make_modular",
+    "imm",
+    "make_imm",
     # estimation over a record
     "log_likelihood",
     "smooth",
@@ -136,6 +140,11 @@ __all__ = [
     "FitSettings",
     "covariance_model",
     "em",
+    "als",
+    # consistency of a filter
+    "nees",
+    "nis",
+    "whiteness",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",

@@ -182,6 +182,8 @@ class GaussianOutputs(NamedTuple):
         cross-covariance ``Cov(x_{k-1}, x_k) = P_{k-1} F_k'`` the smoother needs: the Jacobian of ``f``
         (EKF), the statistical linear regression matrix (UKF), the flow's sensitivity ``dPhi/dt = F Phi``
         (continuous-discrete); the identity at the first sample (with output_covariance, else None)
+      S: (p, p) the innovation covariance ``S`` of ``log_likelihood`` (1 on the diagonal of a missing or gated
+        component), what the normalised innovation squared needs (:func:`jaxobs.consistency.nis`)
     """
 
     x: jax.Array
@@ -192,6 +194,7 @@ class GaussianOutputs(NamedTuple):
     log_likelihood: jax.Array
     P_prior: jax.Array | None = None
     transition: jax.Array | None = None
+    S: jax.Array | None = None
 
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
@@ -279,9 +282,9 @@ def gaussian_step(
             first_update = result
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = GaussianState(x, P, t, jnp.ones((), bool), missing, state.gated + gated)
-    covariances = ()
+    covariances = (None, None)
     if output_covariance:
         covariances = (P_prior, jnp.where(first, jnp.eye(x.shape[-1], dtype=x.dtype), F))
     outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
-                              *covariances)  # fmt: skip
+                              *covariances, first_update.S)  # fmt: skip
     return new_state, outputs

@@ -8,6 +8,7 @@ filter), ``continuous`` (continuous-time observers run as sampled estimators), `
 Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
 estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains),
 ``gramian`` (the masked observability-Gramian reconstruction of Grip 2010, ch. 8).
+``imm.imm`` combines Gaussian estimators into an interacting multiple model estimator.
 ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
@@ -21,6 +22,7 @@ from jaxobs.observers import (
     gramian,
     hgo,
     hinf,
+    imm,
     inverse_dynamics,
     kalman,
     linear,
@@ -61,4 +63,5 @@ __all__ = [
     "modular",
     "hgo",
     "gramian",
+    "imm",
 ]
