@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 from jaxobs._checks import MAX_INDEX
+from jaxobs.errors import Interrupted, JobError, LimitError, Stalled  # their public home
 
 __all__ = [
     "JobError",
@@ -46,29 +47,6 @@ __all__ = [
 
 LOCK_NAME = ".jaxobs.lock"
 _held: dict[Path, list] = {}  # resolved directory -> [file descriptor, depth]
-
-
-class JobError(ValueError):
-    """A job cannot run as asked: its output directory is unusable or in use, or it cannot fit in memory."""
-
-
-class LimitError(JobError):
-    """A job beyond a limit of the machine or of JAX: more memory than is available (its estimate), or a count
-    beyond :data:`MAX_INDEX`. ``reason`` says what, ``hint`` what to lower; the paper layer names the config key
-    instead (:class:`jaxobs.papers.scenarios.SweepScenario`)."""
-
-    def __init__(self, reason: str, hint: str = ""):
-        super().__init__(reason + (f"; {hint}" if hint else ""))
-        self.reason, self.hint = reason, hint
-
-
-class Interrupted(KeyboardInterrupt):
-    """Ctrl-C during a resumable job; the message says where it stopped and how to resume."""
-
-
-class Stalled(JobError):
-    """A job's computation made no progress within the :class:`StallWatch` bound: the message says which, how long,
-    and what to do. The process's JAX runtime stays blocked: the interpreter is ended with ``os._exit`` at exit."""
 
 
 _FINALISERS = frozenset({"_xla_gc_callback", "__del__"})

@@ -116,19 +116,19 @@ def _sweep(args) -> int:
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
-    ran = (
-        f"{result['seconds']:.1f} s, {result['compile_seconds']:.1f} s of it compiling the step"
-        if "seconds" in result
-        else "all already computed"
-    )
+    runs = result["runs"]
+    ran = f"{result['seconds']:.1f} s in {runs} run{'s' if runs != 1 else ''}, {result['compile_seconds']:.1f} s of it"
+    ran += " compiling the step" + ("" if result.get("chunks_computed") else "; nothing left to compute")
     print(
         f"{result['num_configs']} configurations ({ran}); {_command_seconds(args)} (building the scenario, the "
         f"report and figures included); wrote {out / 'summary.json'}, {out / 'report.md'} and "
         f"{', '.join(result['figures'])}"
     )
     for name, s in result.get("controllers", {"all": result}).items():
-        if "stable_fraction" in s:
+        if s.get("stable_fraction") is not None:
             print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
+    if result.get("invalid") is not None:
+        print(f"  invalid configurations: {result['invalid']} of {result['num_configs']}")
     return 0
 
 
@@ -303,7 +303,7 @@ def _run(argv, watch: InterruptWatch, started: float) -> int:
             status = args.func(args)
         watch.check()
         return status
-    except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped
+    except KeyboardInterrupt as exc:  # jaxobs.errors.Interrupted says where it stopped
         resumable = args.command != "reproduce"
         message = str(exc) or ("interrupted; " + RESUME_HINT if resumable else "interrupted")
         print(f"jaxobs {args.command}: {message}", file=sys.stderr)

@@ -10,6 +10,7 @@ The ``[x; x_hat]`` coordinates and how they map to the printed equations: docs/t
 
 from __future__ import annotations
 
+import logging
 from typing import NamedTuple
 
 import jax
@@ -29,8 +30,11 @@ __all__ = [
     "stability_margins",
     "robustness_metrics",
     "ROBUSTNESS_MARGINS",
+    "check_nominal",
     "unstructured_mismatch",
 ]
+
+_log = logging.getLogger(__name__)
 
 
 def _linear_form(controller: Controller, params) -> FeedbackParams:
@@ -411,6 +415,29 @@ def robustness_metrics(plant: StateSpace, controller: Controller, params, *, val
     nan = jnp.asarray(jnp.nan, margins.spectral_radius.dtype)
     row = {"valid": valid, "stable": stable, "spectral_radius": jnp.where(valid, margins.spectral_radius, nan)}
     return row | {name: jnp.where(stable, getattr(margins, name), nan) for name in ROBUSTNESS_MARGINS}
+
+
+def check_nominal(plant: StateSpace, controller: Controller, params, *, what: str = "the design",
+                  num_points: int = 1024) -> dict:  # fmt: skip
+    """:func:`robustness_metrics` of the loop on the nominal ``plant`` (compiled once, run eagerly), with a warning
+    (logged on ``jaxobs.stability``) when it is not stable there: a sweep of that design would measure only how
+    unstable it is. Call it before a sweep.
+
+    Args:
+      plant, controller, params: as :func:`robustness_metrics`, the plant the design was made for.
+      what: how the warning names the design.  num_points: as :func:`stability_margins`.
+
+    Returns the row (Python scalars).
+    """
+    metrics = jax.jit(lambda plant, params: robustness_metrics(plant, controller, params, num_points=num_points))
+    row = {name: value.item() for name, value in metrics(plant, params).items()}
+    if not row["stable"]:
+        state = (
+            "invalid (non-finite)" if not row["valid"] else f"unstable (spectral radius {row['spectral_radius']:.4g})"
+        )
+        _log.warning("%s is %s on the nominal plant: a sweep of it measures how unstable it is, not how robust", what,
+                     state)  # fmt: skip
+    return row
 
 
 def _golden_minimum(f, lo, hi, iters: int):

@@ -57,7 +57,7 @@ class _Configured:
 
     The limits are checked in one place for every registered job: integers beyond int32 when the config is merged
     (:func:`jaxobs._config.merge`), and, as :meth:`run` builds and compiles the job (before it computes any
-    configuration or step), the memory estimates and counts of the engines (:class:`jaxobs._resources.LimitError`),
+    configuration or step), the memory estimates and counts of the engines (:class:`jaxobs.errors.LimitError`),
     or an allocation or size that fails outright, as a :class:`jaxobs._config.ConfigError` naming the file and the
     size key (:meth:`blame`).
     """
@@ -121,7 +121,7 @@ class _Configured:
     def run(self, config: dict, out_dir, *, source: str = "<default>", progress: bool = True,
             overwrite: bool = False) -> dict | None:  # fmt: skip
         """Run the job on its validated ``config`` (read from ``source``) into ``out_dir`` (:meth:`_run`). A limit it
-        exceeds while it is built and compiled (a :class:`jaxobs._resources.LimitError`, or an allocation or a size
+        exceeds while it is built and compiled (a :class:`jaxobs.errors.LimitError`, or an allocation or a size
         that fails: XLA's ``RESOURCE_EXHAUSTED``, ``MemoryError``, ``OverflowError``) is a
         :class:`jaxobs._config.ConfigError` naming ``source`` and the size key :meth:`blame` finds."""
         try:
