@@ -62,29 +62,38 @@ def _reproduce_one(reproduction, out: Path) -> None:
         print(f"  {key} = {shown}")
 
 
-def _scenario(args, registry: dict, key: str):
+def _scenario(args, registry: dict, key: str, resolve=None):
     """``(scenario, complete config, source)``: ``--config``'s TOML (or nothing) over the defaults of the scenario
-    its ``key`` names, or ``--print-config``'s, or the default one; raises :class:`jaxobs._config.ConfigError`."""
+    its ``key`` names, or ``--print-config``'s or ``--scenario``'s, or the default one; a name not in ``registry``
+    goes to ``resolve`` (a user's scenario, the sweep's ``module:ATTRIBUTE``). The config's ``key`` keeps the name
+    as given; raises :class:`jaxobs._config.ConfigError`."""
     from jaxobs._config import fail, load_toml
 
     given = load_toml(args.config) if args.config else {}
     source = args.config or "<default>"
-    chosen = getattr(args, "print_config", None) or None  # --print-config NAME
+    flags = (("--print-config", getattr(args, "print_config", None)), ("--scenario", getattr(args, "scenario", None)))
+    flag, chosen = next(((flag, value) for flag, value in flags if value), (None, None))  # a NAME on the command line
     name = given.get(key, chosen or next(iter(registry)))
     if chosen and name != chosen:
-        fail(source, key, f"is {name!r}, not the {chosen!r} of --print-config")
-    if name not in registry:
-        fail(source if key in given else "--print-config", key,
-             f"must be one of {', '.join(map(repr, registry))}, got {name!r}")  # fmt: skip
-    scenario = registry[name]
-    return scenario, scenario.validate({**given, key: name}, source), source
+        fail(source, key, f"is {name!r}, not the {chosen!r} of {flag}")
+    where = source if key in given else flag
+    if name in registry:
+        scenario = registry[name]
+    elif resolve is None:
+        fail(where, key, f"must be one of {', '.join(map(repr, registry))}, got {name!r}")
+    else:
+        try:
+            scenario = resolve(name)
+        except ValueError as exc:
+            fail(where, key, str(exc))
+    return scenario, {**scenario.validate({**given, key: scenario.name}, source), key: name}, source
 
 
-def _print_config(args, registry: dict, key: str) -> int:
+def _print_config(args, registry: dict, key: str, resolve=None) -> int:
     from jaxobs._config import to_toml
 
     with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only, whatever an import prints
-        scenario, config, source = _scenario(args, registry, key)
+        scenario, config, source = _scenario(args, registry, key, resolve)
     where = f"{source}'s values over the defaults of" if args.config else "the defaults of"
     header = (
         f"jaxobs {args.command} --config FILE: {where} {key} {scenario.name!r}. {scenario.summary}\n"
@@ -95,7 +104,7 @@ def _print_config(args, registry: dict, key: str) -> int:
 
 
 def _sweep(args) -> int:
-    from jaxobs.papers.registry import sweep_scenarios
+    from jaxobs.papers.registry import sweep_scenario, sweep_scenarios
     from jaxobs.sweep import read_manifest
 
     registry = sweep_scenarios()
@@ -103,10 +112,11 @@ def _sweep(args) -> int:
         _print_list(registry)
         return 0
     if args.print_config is not None:
-        return _print_config(args, registry, "scenario")
+        return _print_config(args, registry, "scenario", sweep_scenario)
     import jax
 
-    scenario, config, source = _scenario(args, registry, "scenario")
+    scenario, config, source = _scenario(args, registry, "scenario", sweep_scenario)
+    config["scenario"] = scenario.name  # the sweep's identity, however the scenario was named
     out = Path(args.out)
     alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
@@ -253,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"print the full config of {what.upper()} (default: the default {what}; with "
                               f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
         run.set_defaults(func=func)
+    commands.choices["sweep"].add_argument(
+        "--scenario", metavar="NAME", help="the scenario to run (instead of the config's 'scenario' key): a name "
+        "from --list, or your own SweepScenario as MODULE:ATTRIBUTE (e.g. my_sweep:SCENARIO, my_sweep.py in the "
+        "current directory)")  # fmt: skip
     for name, engine in (("sweep", "jaxobs.sweep"), ("tune", "jaxobs.tuning")):
         launch = commands.choices[name].add_argument_group(
             "multi-process run", f"every process runs the same command; process 0 writes (see {engine})"

@@ -148,7 +148,8 @@ class Margins(NamedTuple):
     ``H(-1)``); ``stability_margin``: ``min_w |1 + H|``; ``phase_crossover``, ``gain_crossover``,
     ``stability_margin_frequency``: the frequencies of those margins in rad/s (nan if none);
     ``spectral_radius`` of the closed loop (the margins mean something only when it is below 1).
-    ``truncated``: more crossings than ``max_crossings`` were seen (margins may be optimistic).
+    ``truncated``: more crossings than ``max_crossings`` were seen (margins may be optimistic). Phase crossovers
+    with ``|H| >= MAX_LOOP_GAIN`` (an open-loop pole on the unit circle) are not counted.
 
     Every field is NaN (``truncated`` False) for a loop whose matrices are not finite (e.g. a plant from
     :func:`jaxobs.lti.c2d` with a dead time beyond its slots): such a loop has no margins, not infinite ones.
@@ -234,6 +235,11 @@ def _unit_gain_residual(H, dH):
     return jnp.abs(H) ** 2 - 1.0, 2.0 * jnp.real(jnp.conj(H) * dH)
 
 
+MAX_LOOP_GAIN = 1e8
+"""A phase crossover where ``|H|`` reaches this is an open-loop pole on (or within rounding of) the unit circle,
+e.g. a rigid-body mode at z = 1: not counted (a gain reduction by 1e8 is none in practice)."""
+
+
 def _phase_crossovers(fast, theta, H, max_crossings: int, iters: int):
     """The phase crossovers (``H`` real and negative, z = 1 and z = -1 included) of the response ``fast``:
     ``(frequencies, valid, the indices of the one closest to |H| = 1 in log scale and of the nearest on either
@@ -242,7 +248,7 @@ def _phase_crossovers(fast, theta, H, max_crossings: int, iters: int):
     pc, valid, truncated = _crossings(lambda t: jnp.imag(fast(t)), theta, jnp.imag(H), max_crossings, iters)
     pc = jnp.concatenate([pc, jnp.zeros((1,), dtype), jnp.full((1,), jnp.pi, dtype)])
     H_pc = fast(pc)
-    valid = jnp.concatenate([valid, jnp.ones((2,), bool)]) & (jnp.real(H_pc) <= 0) & jnp.isfinite(H_pc)
+    valid = jnp.concatenate([valid, jnp.ones((2,), bool)]) & (jnp.real(H_pc) <= 0) & (jnp.abs(H_pc) < MAX_LOOP_GAIN)
     log_gain = -jnp.log(jnp.abs(H_pc))  # log of the gain factor that puts this crossing on -1
     inf = jnp.asarray(jnp.inf, dtype)
     nearest = jnp.argmin(jnp.where(valid, jnp.abs(log_gain), inf))

@@ -44,11 +44,13 @@ MARGIN_NOTES = (
     "gain_margin_upper (above 1) the increase, gain_margin_lower (below 1) the reduction; a gain_margin_lower "
     "above 0 marks a conditionally stable loop, which a *smaller* gain destabilises. gain_margin is "
     "python-control's: whichever of the two is closer to 1, so a value below 1 is a lower margin. An infinite "
-    "margin on a stable loop means no crossover of its kind (no gain increase, phase lag or delay destabilises it)."
+    "margin on a stable loop means no crossover of its kind (no gain increase, phase lag or delay destabilises it). "
+    "The phase margin is that of the gain crossover nearest to -1 in phase; with several crossovers (a resonance) "
+    "it can be negative on a stable loop, and the delay margin, which counts every crossover, is the one to read."
 )
 """What the margins mean, as the reports say it."""
 
-ZERO_MEANS = {"gain_margin_lower": "not conditionally stable"}
+ZERO_MEANS = {"gain_margin_lower": "not cond. stable"}
 """Metrics whose zero is a category of its own (drawn apart from the histogram)."""
 
 MAX_CATEGORIES = 12  # a parameter with at most this many values is shown value by value
@@ -260,7 +262,7 @@ def _plot_metrics(rows: dict, units: dict, out_dir: Path) -> str | None:
             ax.axvline(1.0, color="k", lw=0.8, ls="--", label="stability bound")
             ax.legend(fontsize=8)
         infinite = f", {values.size - finite.size} infinite (not drawn)" if values.size > finite.size else ""
-        ax.set(xlabel=_label(name, units), title=f"{name}: {finite.size} drawn{zero}{infinite}")
+        ax.set(xlabel=_label(name, units), title=f"{name}\n{finite.size} drawn{zero}{infinite}")
         ax.title.set_fontsize(9)
         ax.set_ylabel("configurations")
     over = "valid" if stable is None else "stable"
