@@ -37,6 +37,7 @@ __all__ = [
     "leaf_keys",
     "to_toml",
     "expression",
+    "Expression",
     "EXPRESSION_FUNCTIONS",
 ]
 
@@ -116,7 +117,8 @@ def _matrix(value, source: str, name: str) -> list:
 def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tables=()) -> dict:
     """``given`` over ``default``; unknown keys, type mismatches, non-finite numbers and integers beyond int32 are
     errors. A list default of strings takes a list of strings, a list of lists (a matrix) a list of equal-length
-    rows of numbers or strings (expressions), any other list default a list of numbers. The tables named (dotted)
+    rows of numbers or strings (expressions), any other list default a list of numbers; an :class:`Expression`
+    default takes a number or a string. The tables named (dotted)
     in ``open_tables`` take keys of the user's choosing: each a list of numbers, or, where ``open_tables`` is a
     dict ``{name: template}`` with a table template, a table merged over the template; a given open table replaces
     the default's."""
@@ -147,6 +149,10 @@ def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tab
         elif isinstance(expected, bool) != isinstance(value, bool):
             kind = "true or false" if isinstance(expected, bool) else "a number"
             fail(source, name, f"must be {kind}, got {value!r}")
+        elif isinstance(expected, Expression):
+            if isinstance(value, bool) or not isinstance(value, int | float | str):
+                fail(source, name, f"must be a number or an expression (a string), got {value!r}")
+            merged[key] = value
         elif isinstance(expected, str) and not isinstance(value, str):
             fail(source, name, f"must be a string, got {value!r}")
         elif isinstance(expected, int) and not isinstance(value, int):
@@ -245,6 +251,11 @@ def to_toml(config: dict, notes: dict, header: str = "", width: int = 100) -> st
 
     head = [line for text in header.splitlines() for line in (comment(text) or ["#"])]
     return "\n".join([*head, *([""] if head else []), *table(config, "")]).strip("\n") + "\n"
+
+
+class Expression(str):
+    """A default that marks its key as a number or an expression (:func:`expression`): :func:`merge` takes either
+    for it (any other string default takes strings only)."""
 
 
 EXPRESSION_FUNCTIONS = ("sqrt", "exp", "log", "sin", "cos", "tan", "abs")

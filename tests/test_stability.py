@@ -226,6 +226,13 @@ def _response(A, B, C, theta):
     return np.array([(C @ np.linalg.solve(np.exp(1j * t) * np.eye(n) - A, B)).item() for t in np.atleast_1d(theta)])
 
 
+def _random_loop(rng, size: int, *, radius, gain):
+    """A random SISO loop ``(A, B, C)``: ``A``'s spectral radius and ``B``'s scale uniform in the ranges given."""
+    A = rng.normal(size=(size, size))
+    A *= rng.uniform(*radius) / np.abs(np.linalg.eigvals(A)).max()
+    return A, rng.normal(size=(size, 1)) * rng.uniform(*gain), rng.normal(size=(1, size))
+
+
 def _loops_with_several_gain_crossovers(count, *, nyquist_gain_above_one=False, seed=8, size=4):
     """Random loops, stable when closed, with two or more gain crossovers of which the one setting the delay
     margin is not the phase-margin crossover, python-control's crossovers (returnall=True) verified on the exact
@@ -234,9 +241,7 @@ def _loops_with_several_gain_crossovers(count, *, nyquist_gain_above_one=False, 
     rng = np.random.default_rng(seed)
     loops = []
     while len(loops) < count:
-        A = rng.normal(size=(size, size))
-        A *= rng.uniform(0.5, 0.98) / np.abs(np.linalg.eigvals(A)).max()
-        B, C = rng.normal(size=(size, 1)) * rng.uniform(0.5, 5.0), rng.normal(size=(1, size))
+        A, B, C = _random_loop(rng, size, radius=(0.5, 0.98), gain=(0.5, 5.0))
         if np.abs(np.linalg.eigvals(A - B @ C)).max() > 0.99:
             continue
         if (abs(_response(A, B, C, np.pi)[0]) > 1.0) != nyquist_gain_above_one:
@@ -386,9 +391,7 @@ def _conditionally_stable_loops(count, seed=11, size=4):
     rng = np.random.default_rng(seed)
     loops = []
     while len(loops) < count:
-        A = rng.normal(size=(size, size))
-        A *= rng.uniform(1.02, 1.5) / np.abs(np.linalg.eigvals(A)).max()
-        B, C = rng.normal(size=(size, 1)) * rng.uniform(0.5, 3.0), rng.normal(size=(1, size))
+        A, B, C = _random_loop(rng, size, radius=(1.02, 1.5), gain=(0.5, 3.0))
         if np.abs(np.linalg.eigvals(A - B @ C)).max() < 0.98:
             loops.append((A, B, C))
     return loops
@@ -446,8 +449,8 @@ def _lqg(gain, dead_time):
 
 def test_robustness_metrics_validity_and_stability_as_data():
     """A dead time beyond the plant's slots is invalid (NaN spectral radius, NaN margins: never inf); an unstable
-    loop keeps its spectral radius and has NaN margins; a stable one has stability_margins' margins; eager = jit =
-    vmap."""
+    loop keeps its spectral radius and has NaN margins; a stable one has stability_margins' margins; jit(vmap) =
+    jit of one (eagerly: the slow test below)."""
     gain, dead = jnp.array([1.0, 1.0, 500.0]), jnp.array([0.05, 0.25, 0.05])  # nominal, dead time too long, unstable
     batched = jax.jit(jax.vmap(_lqg))(gain, dead)
     assert batched["valid"].tolist() == [True, False, True]
@@ -456,9 +459,16 @@ def test_robustness_metrics_validity_and_stability_as_data():
     for name in ROBUSTNESS_MARGINS:
         assert not np.isnan(batched[name][0]), name
         assert np.isnan(batched[name][1:]).all(), name
-    eager = _lqg(1.0, 0.05)
-    for name, value in eager.items():
+    one = jax.jit(_lqg)(1.0, 0.05)
+    for name, value in one.items():
         assert float(value) == pytest.approx(float(batched[name][0]), rel=1e-9), name
+
+
+@pytest.mark.slow  # op by op
+def test_robustness_metrics_eagerly_is_what_it_is_under_jit():
+    eager, compiled = _lqg(1.0, 0.05), jax.jit(_lqg)(1.0, 0.05)
+    for name, value in eager.items():
+        assert float(value) == pytest.approx(float(compiled[name]), rel=1e-9), name
 
 
 @pytest.mark.slow  # ~10 s of compilation

@@ -9,6 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxobs.lti import c2d, ss
+from jaxobs.observers import FeedbackParams, observer_controller
+from jaxobs.observers.kalman import kalman_filter, make_kalman
+from jaxobs.stability import robustness_metrics
 from jaxobs.sweep import load_results, run_sweep
 from jaxobs.sweep_report import quantiles, summarize, write_report
 
@@ -104,3 +108,33 @@ def test_worst_by_another_column(sweep):
     assert summary["worst"][0]["param.stiffness"] == rows["param.stiffness"][valid].min()
     with pytest.raises(ValueError, match="worst_by: no column 'metric.nope'"):
         summarize(rows, worst_by="metric.nope")
+
+
+@pytest.mark.slow  # compiles a sweep step with margins (~30 s on a loaded 2-core machine)
+def test_a_sweep_with_invalid_plants_reports_them(tmp_path):
+    """The issue's case, small: a zero inertia in about 10 % of the configurations makes the discretised plant
+    non-finite: those rows are invalid with NaN margins (never inf), counted by the report, and no statistic
+    includes them."""
+    h = 0.01
+    kf = make_kalman(jnp.eye(1), jnp.eye(1), 1e-2 * jnp.eye(1), jnp.eye(1), Gamma=h * jnp.eye(1), steady_state=True)
+    params = FeedbackParams(kf, 5.0 * jnp.eye(1))
+
+    def sampler(key, index):
+        k_j, k_zero = jax.random.split(key)
+        inertia = jax.random.uniform(k_j, minval=0.5, maxval=1.5)
+        return {"inertia": jnp.where(jax.random.uniform(k_zero) < 0.1, 0.0, inertia)}
+
+    def evaluate(p):  # an integrator 1 / (J s)
+        true = c2d(ss([[0.0]], [[1.0 / p["inertia"]]], [[1.0]]), h, 0.0)
+        return robustness_metrics(true, observer_controller(kalman_filter), params, num_points=64)
+
+    run_sweep(sampler, evaluate, 400, tmp_path / "out", chunk_size=200, progress=False)
+    rows = load_results(tmp_path / "out")
+    zero = rows["param.inertia"] == 0
+    assert 20 < zero.sum() < 60 and (rows["metric.valid"] == ~zero).all()
+    for name in ("spectral_radius", "gain_margin", "phase_margin", "delay_margin", "stability_margin"):
+        assert np.isnan(rows[f"metric.{name}"][zero]).all(), name
+    assert rows["metric.stable"][~zero].all() and np.isfinite(rows["metric.gain_margin"][~zero]).all()
+    summary = write_report(tmp_path / "out")
+    assert summary["invalid"] == int(zero.sum()) and summary["metrics"]["gain_margin"]["count"] == int((~zero).sum())
+    assert f"Invalid configurations: {int(zero.sum())} of 400." in (tmp_path / "out" / "report.md").read_text()

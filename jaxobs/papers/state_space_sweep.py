@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxobs._config import check_at_least, check_choice, check_range, expression, fail
+from jaxobs._config import Expression, check_at_least, check_choice, check_range, expression, fail
 from jaxobs.closed_loop import simulate
 from jaxobs.design import dlqr, reference_gain
 from jaxobs.lti import MAX_DELAY_SLOTS, StateSpace, c2d, n_delay_slots
@@ -60,7 +60,7 @@ DEFAULT_CONFIG = {
     "model": {
         "time": "continuous",
         "sample_time": 0.002,
-        "dead_time": "tau",
+        "dead_time": Expression("tau"),
         # a motor (q_m, v_m) driving a load (q_l, v_l) through a spring k with damping c; the load's position read
         "A": [[0, 1, 0, 0], ["-k/J_m", "-c/J_m", "k/J_m", "c/J_m"],
               [0, 0, 0, 1], ["k/J_l", "c/J_l", "-k/J_l", "-c/J_l"]],
@@ -77,6 +77,7 @@ DEFAULT_CONFIG = {
     },
     "design": {
         "family": "lqg",
+        "dead_time": Expression("model"),
         "Q": [0.0, 0.0, 100.0, 0.0],
         "R": [1.0],
         "process_noise": [0.0, 1e-2, 0.0, 1e-2],
@@ -111,6 +112,8 @@ CONFIG_NOTES = {
     "design": "the controller, designed on the nominal plant (nominal parameters and dead time)",
     "design.family": "'lqg' (LQR + steady-state Kalman filter) or 'aob' (an AOB-N, Cortesão 2006, with the LQR "
     "gain on its plant states and the active-state compensation)",
+    "design.dead_time": "the dead time of the design's model (s): 'model' (the model's at the nominal parameters), "
+    "or a number (0: a design that ignores the dead time) or an expression of the parameters",
     "design.Q": "LQR state weights (diagonal, one per state of A; the dead-time states weigh 0)",
     "design.R": "LQR input weights (diagonal, one per input)",
     "design.process_noise": "lqg: the Kalman filter's process noise variances (diagonal, one per state of A)",
@@ -164,12 +167,13 @@ class Model:
     n_delay: int
     names: tuple[str, ...]
 
-    def plant(self, values: dict, n_delay: int | None = None) -> StateSpace:
-        """The discrete plant with dead time at ``values`` (``n_delay`` slots, default :attr:`n_delay`); its
-        matrices are NaN for a dead time beyond them, and non-finite where a parameter makes them so."""
+    def plant(self, values: dict, n_delay: int | None = None, dead_time=None) -> StateSpace:
+        """The discrete plant at ``values`` with its dead time (or ``dead_time``, seconds), in ``n_delay`` slots
+        (default :attr:`n_delay`); its matrices are NaN for a dead time beyond them, and non-finite where a
+        parameter makes them so."""
         n_delay = self.n_delay if n_delay is None else n_delay
         A, B, C, D = (self.matrices[name](values) for name in MATRICES)
-        tau = jnp.asarray(self.dead_time(values), A.dtype)
+        tau = jnp.asarray(self.dead_time(values) if dead_time is None else dead_time, A.dtype)
         if self.continuous:
             return c2d(StateSpace(A, B, C, D, None), self.h, tau, n_delay=n_delay)
         return _discrete_delay(A, B, C, tau / self.h, n_delay, self.h)
@@ -300,17 +304,23 @@ def _check(config: dict, source: str) -> None:
         fail(source, "model.D", "must be zero: a feedthrough closes an algebraic loop through the command")
     if not float(model.dead_time(nominal)) >= 0:
         fail(source, "model.dead_time", "must be at least 0 at the nominal parameters")
+    if config["design"]["dead_time"] != "model":
+        expression(source, "design.dead_time", config["design"]["dead_time"], model.names)
     _check_sizes(config, source, A.shape[0], B.shape[1], C.shape[0])
 
 
 def design(config: dict, model: Model):
     """``(controller, params)`` of ``[design]`` on the nominal plant (nominal parameters, the nominal dead time's
     slots); a design that fails (no stabilising LQR or filter) is a :class:`jaxobs._config.ConfigError`."""
-    nominal = nominal_values(config)
-    plant = model.plant(nominal, n_delay=_slots(model, float(model.dead_time(nominal))))
-    d, n_plant = config["design"], len(config["design"]["Q"])
-    pad = lambda diagonal: jnp.diag(jnp.pad(jnp.asarray(diagonal, float), (0, plant.n_states - n_plant)))
+    nominal, d = nominal_values(config), config["design"]
     source = "the nominal design"
+    assumed = "model" if d["dead_time"] == "model" else expression(source, "design.dead_time", d["dead_time"], nominal)
+    tau = float((model.dead_time if assumed == "model" else assumed)(nominal))
+    if not 0 <= tau <= MAX_DELAY_SLOTS * model.h:
+        fail(source, "design.dead_time", f"must be between 0 and {MAX_DELAY_SLOTS} samples, got {tau:g} s")
+    plant = model.plant(nominal, n_delay=_slots(model, tau), dead_time=tau)
+    n_plant = len(d["Q"])
+    pad = lambda diagonal: jnp.diag(jnp.pad(jnp.asarray(diagonal, float), (0, plant.n_states - n_plant)))
     try:
         L = dlqr(plant.A, plant.B, pad(d["Q"]), jnp.diag(jnp.asarray(d["R"], float)))[0]
     except ValueError as exc:
