@@ -256,6 +256,10 @@ def _plot_metrics(rows: dict, units: dict, out_dir: Path) -> str | None:
         if finite.size:
             bins = np.geomspace(finite.min(), finite.max() * (1 + 1e-9), 41) if log else 40
             ax.hist(finite, bins=bins, color="C0" if name != "spectral_radius" else "C1")
+        else:
+            ax.text(0.5, 0.5, "no value to draw", ha="center", va="center", transform=ax.transAxes, color="0.4")
+            ax.set_xticks([])
+            ax.set_yticks([])
         if log:
             ax.set_xscale("log")
         if name == "spectral_radius":

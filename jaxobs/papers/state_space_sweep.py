@@ -67,6 +67,8 @@ DEFAULT_CONFIG = {
         "B": [[0], ["1/J_m"], [0], [0]],
         "C": [[0, 0, 1, 0]],
         "D": [[0]],
+        "output_unit": "rad",
+        "input_unit": "N m",
     },
     "parameters": {
         "k": {**PARAMETER, "nominal": 100.0, "unit": "N m/rad", "range": [0.7, 1.3]},
@@ -106,6 +108,8 @@ CONFIG_NOTES = {
     "model.B": "(n, m)",
     "model.C": "(p, n)",
     "model.D": "(p, m), zero: the loop needs a strictly proper plant",
+    "model.output_unit": "the outputs' unit, for the report (the RMS error)",
+    "model.input_unit": "the inputs' unit, for the report (the peak command)",
     "parameters": "[parameters.NAME]: nominal (the design's value), unit (for the report), range [low, high] of "
     "the true value (a factor on nominal with scale = 'relative', values with 'absolute'; [1, 1] relative: not "
     "mismatched), distribution 'uniform' or 'log-uniform'",
@@ -392,6 +396,7 @@ def make_sweep(config: dict) -> Sweep:
 def report(config: dict, out_dir: Path, result=None, context=None) -> dict:
     """The generic report (:func:`jaxobs.sweep_report.write_report`) with the parameters' units."""
     units = {name: p["unit"] for name, p in config["parameters"].items() if p["unit"]}
+    units |= {"rms_error": config["model"]["output_unit"], "peak_command": config["model"]["input_unit"]}
     title = f"Robustness sweep: {config['design']['family'].upper()} on the nominal state-space plant"
     return write_report(out_dir, title=title, units=units, result=result)
 
