@@ -19,6 +19,7 @@ import importlib.util
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
+    from jaxobs._checks import checked
     from jaxobs.batching import safe_lapack, safe_vmap
     from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
     from jaxobs.consistency import nees, nis, whiteness
@@ -158,6 +159,7 @@ __all__ = [
     "run_sweep",
     "safe_vmap",
     "safe_lapack",
+    "checked",
     "load_results",
     "tune",
     "TuningProblem",
