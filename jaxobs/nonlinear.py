@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from jaxobs import _checks, ct
 from jaxobs._linalg import symmetrize
-from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, update
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, ud_factor, update
 
 __all__ = [
     "NonlinearModel",
@@ -30,6 +30,8 @@ __all__ = [
     "GaussianOutputs",
     "gaussian_init",
     "gaussian_step",
+    "model_inputs",
+    "sample_gaussian",
 ]
 
 
@@ -200,8 +202,9 @@ def gaussian_init(model: NonlinearModel) -> GaussianState:
     return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), zero, zero)
 
 
-def _inputs(model: NonlinearModel, inputs):
-    """``(y, u)`` checked against the model's sizes (at trace time) and cast to its dtype."""
+def model_inputs(model: NonlinearModel, inputs):
+    """``(y, u)`` of ``EstimatorInputs(y, u_prev)`` checked against the model's sizes (at trace time) and cast to
+    its dtype; ``u`` is an empty (0,) vector for a model without inputs."""
     p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
     if inputs.u_prev is None:
@@ -253,7 +256,7 @@ def gaussian_step(
       ``(GaussianState, GaussianOutputs)`` of sample ``k``; its ``log_likelihood`` is that of the first
       linearisation of ``h`` (around the prior), the filter's predictive density of ``y_k``.
     """
-    y, u = _inputs(model, inputs)
+    y, u = model_inputs(model, inputs)
     m_pred, P_pred, F = _predict(linearize, model, state.x, state.P, u, state.t, output_covariance)
     first = ~state.started  # the prior is that of x_0: no prediction before the first update
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
@@ -285,3 +288,13 @@ def gaussian_step(
     outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
                               *covariances)  # fmt: skip
     return new_state, outputs
+
+
+def sample_gaussian(key, mean, cov, num: int):
+    """``num`` draws (num, n) of ``N(mean, cov)`` as ``mean + F e``, ``e`` standard normal and ``F F' = cov`` the
+    factor of :func:`jaxobs.kalman_steps.ud_factor` (a singular ``cov`` is no special case): reparameterised, so
+    differentiable in ``mean`` and in a positive definite ``cov``. The noises and priors of the Monte-Carlo
+    filters (particle filters, ensemble Kalman filters) are drawn by it.
+    Shapes: ``mean`` (n,), ``cov`` (n, n); ``num`` static."""
+    U, d = ud_factor(cov)
+    return mean + jax.random.normal(key, (num, mean.shape[-1]), mean.dtype) @ (U * jnp.sqrt(d)).T

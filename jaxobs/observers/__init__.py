@@ -8,6 +8,8 @@ filter), ``continuous`` (continuous-time observers run as sampled estimators), `
 Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
 estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains),
 ``gramian`` (the masked observability-Gramian reconstruction of Grip 2010, ch. 8).
+``particle`` (bootstrap and auxiliary particle filters, backward-simulation smoother).
+``ensemble`` (stochastic and transform ensemble Kalman filters, ensemble Kalman smoother).
 ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
@@ -17,6 +19,7 @@ from jaxobs.observers import (
     continuous,
     ct_linear,
     ekf,
+    ensemble,
     feedback,
     gramian,
     hgo,
@@ -25,6 +28,7 @@ from jaxobs.observers import (
     kalman,
     linear,
     modular,
+    particle,
     pe_monitor,
     ukf,
 )
@@ -61,4 +65,6 @@ __all__ = [
     "modular",
     "hgo",
     "gramian",
+    "particle",
+    "ensemble",
 ]
