@@ -273,7 +273,7 @@ def transform_update(forecast, predicted, R, y, *, transform: bool = False) -> A
     ensemble = update.x + A + G @ (F @ (G.T @ A))
     T = None
     if transform:
-        weights = B @ solve_spd(update.S, update.innovation) / (forecast.shape[0] - 1)  # mean = x_prior + A' w
+        weights = B @ solve_spd(update.S, update.innovation[:, None])[:, 0] / (forecast.shape[0] - 1)  # mean: + A' w
         T = jnp.eye(forecast.shape[0], dtype=A.dtype) + G @ F @ G.T + weights[None, :]
     return Analysis(ensemble, update, P_prior, T)
 

@@ -154,13 +154,23 @@ def make_particle_filter(model: NonlinearModel, num_particles: int, *, key, sche
                           _checks.boolean("output_particles", output_particles))  # fmt: skip
 
 
-def _log_observation(model: NonlinearModel, y, predicted):
+def _log_observation(R, y, predicted):
     """``(log N(y; predicted_i, R) over the observed components for each row of predicted (N, p), mask)``."""
     mask, y_observed = observed(y, predicted.dtype)
-    _, R = observed_model(jnp.zeros((y.shape[-1], 0), predicted.dtype), model.R, mask)  # R with unit placeholders
+    _, R = observed_model(jnp.zeros((y.shape[-1], 0), predicted.dtype), R, mask)  # R with unit placeholders
     innovations = (y_observed - predicted) * mask
     log_density = jax.vmap(innovation_log_likelihood, (0, None, None))(innovations, R, jnp.sum(mask))
     return log_density, mask
+
+
+def _first_stage(model: NonlinearModel, y, means, log_weights):
+    """The auxiliary filter's first-stage log-weights: ``log N(y; h(f(x_{k-1})), H Q H' + R)``, ``H`` the Jacobian
+    of ``h`` at the weighted mean of ``f(x_{k-1})``: the predictive density ``p(y_k | x_{k-1})`` of a
+    linear-Gaussian model exactly, an approximation of it otherwise. (With ``R`` alone, Pitt & Shephard's
+    point prediction, the first stage is too selective when the process noise is large next to ``R``, and the
+    second-stage weights degenerate.)"""
+    H = jax.jacfwd(model.h)(jnp.exp(log_weights) @ means)
+    return _log_observation(H @ model.Q @ H.T + model.R, y, jax.vmap(model.h)(means))[0]
 
 
 def _init(params: ParticleParams) -> ParticleState:
@@ -178,8 +188,8 @@ def _step(params: ParticleParams, state: ParticleState, inputs: EstimatorInputs)
     first = ~state.started  # the particles are draws of x_0: no propagation before the first update
     means = jax.vmap(model.f, (0, None, None))(state.particles, u, state.t)
     look_ahead = jnp.zeros((num,), means.dtype)
-    if params.auxiliary:  # first-stage weights: the predictive density of y_k at f(x_{k-1})
-        look_ahead = jnp.where(first, 0.0, _log_observation(model, y, jax.vmap(model.h)(means))[0])
+    if params.auxiliary:
+        look_ahead = jnp.where(first, 0.0, _first_stage(model, y, means, state.log_weights))
     chosen = resample(resample_key, state.log_weights + look_ahead, scheme=params.scheme,
                       ess_threshold=params.ess_threshold)  # fmt: skip
     ancestors = jnp.where(first, jnp.arange(num, dtype=jnp.int32), chosen.ancestors)
@@ -187,7 +197,7 @@ def _step(params: ParticleParams, state: ParticleState, inputs: EstimatorInputs)
     particles = jnp.where(first, state.particles, means[ancestors] + noise)
     prior = jnp.where(first, state.log_weights, chosen.log_weights - look_ahead[ancestors])
     predicted = jax.vmap(model.h)(particles)
-    log_g, mask = _log_observation(model, y, predicted)
+    log_g, mask = _log_observation(model.R, y, predicted)
     updated = prior + log_g
     increment = jax.nn.logsumexp(updated)  # the weights before the step sum to one
     log_weights = updated - increment
