@@ -166,9 +166,9 @@ def _log_observation(R, y, predicted):
 def _first_stage(model: NonlinearModel, y, means, log_weights):
     """The auxiliary filter's first-stage log-weights: ``log N(y; h(f(x_{k-1})), H Q H' + R)``, ``H`` the Jacobian
     of ``h`` at the weighted mean of ``f(x_{k-1})``: the predictive density ``p(y_k | x_{k-1})`` of a
-    linear-Gaussian model exactly, an approximation of it otherwise. (With ``R`` alone, Pitt & Shephard's
-    point prediction, the first stage is too selective when the process noise is large next to ``R``, and the
-    second-stage weights degenerate.)"""
+    linear-Gaussian model exactly, an approximation of it otherwise. With ``R`` alone (Pitt & Shephard's point
+    prediction) the first stage is too selective when the process noise is large next to ``R``, and the
+    second-stage weights degenerate."""
     H = jax.jacfwd(model.h)(jnp.exp(log_weights) @ means)
     return _log_observation(H @ model.Q @ H.T + model.R, y, jax.vmap(model.h)(means))[0]
 

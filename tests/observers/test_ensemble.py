@@ -45,7 +45,8 @@ def test_equals_filterpy_on_a_fixed_ensemble(monkeypatch):
                                               fx=lambda x, dt: np.asarray(f_numpy(x[None]))[0])  # fmt: skip
     peer.Q, peer.R = problem.Q, R
     peer.sigmas, peer.x = np.array(state.ensemble), np.mean(state.ensemble, axis=0)
-    monkeypatch.setattr(filterpy_enkf, "multivariate_normal", lambda mean, cov, size, it=iter(draws): next(it))
+    supply = iter(draws)
+    monkeypatch.setattr(filterpy_enkf, "multivariate_normal", lambda mean, cov, size: next(supply))
     for k in range(25):
         if k:
             peer.predict()
@@ -90,9 +91,10 @@ def test_transform_smoother_without_process_noise_is_the_rts_smoother():
     first = jo.ensemble_kalman_filter.init(params).ensemble
     kf = jo.make_kalman(A, C, np.zeros((3, 3)), problem.R, Gamma=B, x0=jnp.mean(first, axis=0), P0=jnp.cov(first.T))
     kf_filtered, kf_smoothed = jo.smooth(jo.kalman_filter, kf, problem.inputs())
-    for ours, exact in ((filtered.x, kf_filtered.x), (filtered.P, kf_filtered.P), (smoothed.x, kf_smoothed.x),
-                        (smoothed.P, kf_smoothed.P), (filtered.log_likelihood, kf_filtered.log_likelihood)):  # fmt: skip
-        np.testing.assert_allclose(ours, exact, rtol=1e-10, atol=1e-10)
+    pairs = [(filtered, kf_filtered, "x"), (filtered, kf_filtered, "P"), (filtered, kf_filtered, "log_likelihood"),
+             (smoothed, kf_smoothed, "x"), (smoothed, kf_smoothed, "P")]  # fmt: skip
+    for ours, exact, name in pairs:
+        np.testing.assert_allclose(getattr(ours, name), getattr(exact, name), rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.parametrize("method", ensemble.METHODS)
@@ -123,7 +125,8 @@ def test_gradient_and_vmap_over_plants(method):
     vmap over three plants (noise scales and keys) equals a loop, eager equals jit."""
     problem = linear_problem(T=12)[0]
 
-    def log_likelihood(scales, key=jax.random.key(1)):
+    def log_likelihood(scales, key=None):
+        key = jax.random.key(1) if key is None else key
         model = jo.nonlinear_model(problem.f, problem.h, scales[0] * problem.Q, scales[1] * problem.R,
                                    x0=problem.x0, P0=problem.P0, n_inputs=1)  # fmt: skip
         params = jo.make_enkf(model, 6, key=key, method=method, inflation=1.05)
