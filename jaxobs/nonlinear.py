@@ -31,6 +31,7 @@ __all__ = [
     "gaussian_init",
     "gaussian_step",
     "model_inputs",
+    "gaussian_factor",
     "sample_gaussian",
 ]
 
@@ -290,11 +291,17 @@ def gaussian_step(
     return new_state, outputs
 
 
-def sample_gaussian(key, mean, cov, num: int):
-    """``num`` draws (num, n) of ``N(mean, cov)`` as ``mean + F e``, ``e`` standard normal and ``F F' = cov`` the
-    factor of :func:`jaxobs.kalman_steps.ud_factor` (a singular ``cov`` is no special case): reparameterised, so
-    differentiable in ``mean`` and in a positive definite ``cov``. The noises and priors of the Monte-Carlo
-    filters (particle filters, ensemble Kalman filters) are drawn by it.
-    Shapes: ``mean`` (n,), ``cov`` (n, n); ``num`` static."""
+def gaussian_factor(cov):
+    """A factor ``F`` (n, n) with ``F F' = cov`` of a symmetric positive semidefinite ``cov``, from
+    :func:`jaxobs.kalman_steps.ud_factor` (``F = U diag(d)^(1/2)``), so a singular ``cov`` is no special case;
+    differentiable where ``cov`` is definite. The Monte-Carlo filters (particle filters, ensemble Kalman filters)
+    draw their noises with it (:func:`sample_gaussian`)."""
     U, d = ud_factor(cov)
-    return mean + jax.random.normal(key, (num, mean.shape[-1]), mean.dtype) @ (U * jnp.sqrt(d)).T
+    return U * jnp.sqrt(d)
+
+
+def sample_gaussian(key, mean, factor, num: int):
+    """``num`` draws (num, n) of ``N(mean, F F')`` as ``mean + F e``, ``e`` standard normal, for a factor ``F``
+    (n, r) such as :func:`gaussian_factor`'s: reparameterised, so differentiable in ``mean`` and ``F``.
+    Shapes: ``mean`` (n,); ``num`` static."""
+    return mean + jax.random.normal(key, (num, factor.shape[-1]), mean.dtype) @ factor.T

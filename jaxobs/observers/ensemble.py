@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs._linalg import cholesky, solve_lower, solve_spd, symmetrize
 from jaxobs.kalman_steps import Update, moment_update, observed, observed_model
-from jaxobs.nonlinear import NonlinearModel, model_inputs, sample_gaussian
+from jaxobs.nonlinear import NonlinearModel, gaussian_factor, model_inputs, sample_gaussian
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 
 __all__ = [
@@ -53,6 +53,8 @@ class EnsembleParams:
       model: the discrete-time :class:`~jaxobs.nonlinear.NonlinearModel`.
       key: the PRNG key the initial ensemble and every step's perturbations descend from.
       inflation: () multiplicative inflation of the forecast anomalies (1: none; Anderson & Anderson 1999).
+      Q_sqrt: (n, n) and R_sqrt: (p, p) factors of ``model.Q`` and ``model.R`` (``F F' = M``; :func:`make_enkf`
+        computes them once with :func:`jaxobs.nonlinear.gaussian_factor`), with which the draws are made.
       num_members: static ensemble size ``N`` (>= 2).
       method: static, ``"stochastic"`` (:func:`stochastic_update`) or ``"transform"`` (:func:`transform_update`).
       output_ensemble: static; every step also outputs its ensemble and the transform of its analysis (what
@@ -62,6 +64,8 @@ class EnsembleParams:
     model: NonlinearModel
     key: jax.Array
     inflation: jax.Array
+    Q_sqrt: jax.Array
+    R_sqrt: jax.Array
     num_members: int = dataclasses.field(metadata=dict(static=True))
     method: str = dataclasses.field(default="stochastic", metadata=dict(static=True))
     output_ensemble: bool = dataclasses.field(default=False, metadata=dict(static=True))
@@ -146,7 +150,8 @@ def make_enkf(model: NonlinearModel, num_members: int, *, key, method: str = "st
     _checks.shape("inflation", inflation, (), "a scalar factor on the forecast anomalies")
     if _checks.is_concrete(inflation) and not float(inflation) >= 1.0:
         raise ValueError(f"inflation must be >= 1 (1: no inflation), got {float(inflation)}")
-    return EnsembleParams(model, _checks.key("key", key), inflation, num_members, method,
+    Q_sqrt, R_sqrt = gaussian_factor(model.Q), gaussian_factor(model.R)
+    return EnsembleParams(model, _checks.key("key", key), inflation, Q_sqrt, R_sqrt, num_members, method,
                           _checks.boolean("output_ensemble", output_ensemble))  # fmt: skip
 
 
@@ -278,14 +283,16 @@ def transform_update(forecast, predicted, R, y, *, transform: bool = False) -> A
     return Analysis(ensemble, update, P_prior, T)
 
 
-def perturbations(key, model: NonlinearModel, num_members: int):
+def perturbations(params: EnsembleParams, key):
     """The draws of one step of :data:`ensemble_kalman_filter`: ``(next key, W, E)`` with ``W`` (N, n) the
     process noises ``N(0, Q)`` and ``E`` (N, p) the observation perturbations ``N(0, R)``
-    (:func:`jaxobs.nonlinear.sample_gaussian`), from ``key, kw, ke = jax.random.split(key, 3)``. Public so that a
-    run can be reproduced member by member (e.g. by another implementation fed the same draws)."""
+    (:func:`jaxobs.nonlinear.sample_gaussian` with ``params.Q_sqrt``, ``params.R_sqrt``), from ``key, kw, ke =
+    jax.random.split(key, 3)``. Public so that a run can be reproduced member by member (e.g. by another
+    implementation fed the same draws)."""
     key, process, observation = jax.random.split(key, 3)
-    W = sample_gaussian(process, jnp.zeros_like(model.x0), model.Q, num_members)
-    E = sample_gaussian(observation, jnp.zeros(model.R.shape[-1], model.x0.dtype), model.R, num_members)
+    zero = jnp.zeros((), params.model.x0.dtype)
+    W = sample_gaussian(process, zero, params.Q_sqrt, params.num_members)
+    E = sample_gaussian(observation, zero, params.R_sqrt, params.num_members)
     return key, W, E
 
 
@@ -296,7 +303,7 @@ def perturbations(key, model: NonlinearModel, num_members: int):
 def _init(params: EnsembleParams) -> EnsembleState:
     key, draw = jax.random.split(params.key)
     model = params.model
-    ensemble = sample_gaussian(draw, model.x0, model.P0, params.num_members)
+    ensemble = sample_gaussian(draw, model.x0, gaussian_factor(model.P0), params.num_members)
     return EnsembleState(ensemble, key, model.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
@@ -308,7 +315,7 @@ def _sample_covariance(ensemble):
 def _step(params: EnsembleParams, state: EnsembleState, inputs: EstimatorInputs):
     model = params.model
     y, u = model_inputs(model, inputs)
-    key, W, E = perturbations(state.key, model, params.num_members)
+    key, W, E = perturbations(params, state.key)
     first = ~state.started  # the ensemble holds draws of x_0: no forecast before the first update
     propagated = jax.vmap(model.f, (0, None, None))(state.ensemble, u, state.t) + W
     centre = jnp.mean(propagated, axis=0)

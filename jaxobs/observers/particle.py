@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs._linalg import cholesky, solve_lower
 from jaxobs.kalman_steps import innovation_log_likelihood, observed, observed_model
-from jaxobs.nonlinear import NonlinearModel, model_inputs, sample_gaussian
+from jaxobs.nonlinear import NonlinearModel, gaussian_factor, model_inputs, sample_gaussian
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.resampling import SCHEMES, effective_sample_size, multinomial, resample
 
@@ -48,6 +48,8 @@ class ParticleParams:
       key: the PRNG key the initial particles and every step's draws descend from.
       ess_threshold: () resample when the effective sample size is below ``ess_threshold * num_particles``
         (1: at every step; 0: never).
+      Q_sqrt: (n, n) a factor of ``model.Q`` (``Q_sqrt Q_sqrt' = Q``; :func:`make_particle_filter` computes it
+        once with :func:`jaxobs.nonlinear.gaussian_factor`), with which the process noise is drawn.
       num_particles: static number of particles ``N``.
       scheme: static resampling scheme, a name in :data:`jaxobs.resampling.SCHEMES`.
       auxiliary: static; the auxiliary particle filter instead of the bootstrap filter.
@@ -58,6 +60,7 @@ class ParticleParams:
     model: NonlinearModel
     key: jax.Array
     ess_threshold: jax.Array
+    Q_sqrt: jax.Array
     num_particles: int = dataclasses.field(metadata=dict(static=True))
     scheme: str = dataclasses.field(default="systematic", metadata=dict(static=True))
     auxiliary: bool = dataclasses.field(default=False, metadata=dict(static=True))
@@ -149,7 +152,7 @@ def make_particle_filter(model: NonlinearModel, num_particles: int, *, key, sche
     _checks.shape("ess_threshold", threshold, (), "a fraction of num_particles")
     if _checks.is_concrete(threshold) and not 0.0 <= float(threshold) <= 1.0:
         raise ValueError(f"ess_threshold must be in [0, 1], got {float(threshold)}")
-    return ParticleParams(model, _checks.key("key", key), threshold, num_particles, scheme,
+    return ParticleParams(model, _checks.key("key", key), threshold, gaussian_factor(model.Q), num_particles, scheme,
                           _checks.boolean("auxiliary", auxiliary),
                           _checks.boolean("output_particles", output_particles))  # fmt: skip
 
@@ -176,7 +179,7 @@ def _first_stage(model: NonlinearModel, y, means, log_weights):
 def _init(params: ParticleParams) -> ParticleState:
     model, num = params.model, params.num_particles
     key, draw = jax.random.split(params.key)
-    particles = sample_gaussian(draw, model.x0, model.P0, num)
+    particles = sample_gaussian(draw, model.x0, gaussian_factor(model.P0), num)
     log_weights = jnp.full((num,), -math.log(num), model.x0.dtype)
     return ParticleState(particles, log_weights, key, model.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
@@ -193,7 +196,7 @@ def _step(params: ParticleParams, state: ParticleState, inputs: EstimatorInputs)
     chosen = resample(resample_key, state.log_weights + look_ahead, scheme=params.scheme,
                       ess_threshold=params.ess_threshold)  # fmt: skip
     ancestors = jnp.where(first, jnp.arange(num, dtype=jnp.int32), chosen.ancestors)
-    noise = sample_gaussian(noise_key, jnp.zeros_like(model.x0), model.Q, num)
+    noise = sample_gaussian(noise_key, jnp.zeros_like(model.x0), params.Q_sqrt, num)
     particles = jnp.where(first, state.particles, means[ancestors] + noise)
     prior = jnp.where(first, state.log_weights, chosen.log_weights - look_ahead[ancestors])
     predicted = jax.vmap(model.h)(particles)

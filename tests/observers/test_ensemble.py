@@ -35,9 +35,9 @@ def test_equals_filterpy_on_a_fixed_ensemble(monkeypatch):
     params = jo.make_enkf(model, 20, key=jax.random.key(3), output_ensemble=True)
     state = jo.ensemble_kalman_filter.init(params)
     _, out = jo.run(jo.ensemble_kalman_filter, params, jo.EstimatorInputs(y=jnp.asarray(y)), state)
-    key, draws, perturbations = state.key, [], jax.jit(ensemble.perturbations, static_argnums=2)
+    key, draws, perturbations = state.key, [], jax.jit(ensemble.perturbations)
     for k in range(25):
-        key, W, E = perturbations(key, model, 20)
+        key, W, E = perturbations(params, key)
         draws += ([np.asarray(W)] if k else []) + [np.asarray(E)]  # no forecast before the first update
     f_numpy = jax.jit(jax.vmap(lambda x: f(x, None, 0.0)))  # filterpy maps one member at a time: NumPy twins
     h_numpy = lambda x: np.array([np.sin(x[0]), x[0] * x[1]])
