@@ -233,8 +233,8 @@ def cuthbert_enkf(N: int):
             return dynamics
 
         init_sample = lambda key: x0 + jax.random.normal(key, (L96_N,))
-        filter_obj = ensemble_kalman_filter.build_filter(init_sample, get_dynamics,
-                                                         lambda inputs: (lorenz96_h, chol_R, inputs["y"]), N)  # fmt: skip
+        observations = lambda inputs: (lorenz96_h, chol_R, inputs["y"])
+        filter_obj = ensemble_kalman_filter.build_filter(init_sample, get_dynamics, observations, N)
         init_key, run_key = jax.random.split(key)
         inputs = {"k": jnp.arange(y.shape[0]), "y": y}
         states = cuthbert.filter(filter_obj, inputs, filter_obj.init_prepare(key=init_key), key=run_key)
@@ -315,7 +315,8 @@ def cell(workload: str, B: int, args) -> dict:
         entries, _ = pf_entries(workload, growth_data(B, args.steps), args.particles)
     timings, problems = time_interleaved(entries, args.rounds, required=("jaxobs",))
     ours = timings["jaxobs"]
-    record = {"batch": B, "entries": {name: t.record(B * args.steps, "sequence-steps/s") for name, t in timings.items()}}
+    entries = {name: t.record(B * args.steps, "sequence-steps/s") for name, t in timings.items()}
+    record = {"batch": B, "entries": entries}
     record["entries"].update(problems)
     record["ratios"] = {name: paired_ratio(ours, t) for name, t in timings.items() if name != "jaxobs"}
     return record
