@@ -393,8 +393,13 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     results = {
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "no_plot")},
-        "environment": {"platform": platform.platform(), "device_kind": jax.devices()[0].device_kind,
-                        "jax": jax.__version__, "cpus": os.cpu_count(), "load_average": os.getloadavg()},  # fmt: skip
+        "environment": {
+            "platform": platform.platform(),
+            "device_kind": jax.devices()[0].device_kind,
+            "jax": jax.__version__,
+            "cpus": os.cpu_count(),
+            "load_average": os.getloadavg(),
+        },  # fmt: skip
         "workloads": {},
     }
     for workload in args.workloads:
