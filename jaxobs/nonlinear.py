@@ -31,6 +31,7 @@ __all__ = [
     "gaussian_init",
     "gaussian_step",
     "model_inputs",
+    "check_discrete_model",
     "gaussian_factor",
     "sample_gaussian",
 ]
@@ -289,6 +290,16 @@ def gaussian_step(
     outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
                               *covariances)  # fmt: skip
     return new_state, outputs
+
+
+def check_discrete_model(model, what: str) -> None:
+    """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state), as the
+    Monte-Carlo filters, which draw the transition, need; ``what`` names the filter in the message."""
+    if not isinstance(model, NonlinearModel):
+        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    if model.continuous:
+        raise ValueError(f"model is continuous-time: {what} draws a discrete-time transition; build the model with "
+                         "continuous=False (f the next state)")  # fmt: skip
 
 
 def gaussian_factor(cov):

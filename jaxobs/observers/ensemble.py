@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs._linalg import cholesky, solve_lower, solve_spd, symmetrize
 from jaxobs.kalman_steps import Update, moment_update, observed, observed_model
-from jaxobs.nonlinear import NonlinearModel, gaussian_factor, model_inputs, sample_gaussian
+from jaxobs.nonlinear import NonlinearModel, check_discrete_model, gaussian_factor, model_inputs, sample_gaussian
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 
 __all__ = [
@@ -138,11 +138,7 @@ def make_enkf(model: NonlinearModel, num_members: int, *, key, method: str = "st
       >>> out.x.shape, out.P.shape
       ((20, 1), (20, 1, 1))
     """
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
-    if model.continuous:
-        raise ValueError("model is continuous-time: the ensemble filter forecasts with a discrete-time transition; "
-                         "build the model with continuous=False (f the next state)")  # fmt: skip
+    check_discrete_model(model, "the ensemble filter")
     num_members = _checks.count("num_members", num_members, minimum=2, hint="the ensemble size")
     if method not in METHODS:
         raise ValueError(f"method must be one of {list(METHODS)}, got {method!r}")

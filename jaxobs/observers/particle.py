@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jaxobs import _checks
 from jaxobs._linalg import cholesky, solve_lower
 from jaxobs.kalman_steps import innovation_log_likelihood, observed, observed_model
-from jaxobs.nonlinear import NonlinearModel, gaussian_factor, model_inputs, sample_gaussian
+from jaxobs.nonlinear import NonlinearModel, check_discrete_model, gaussian_factor, model_inputs, sample_gaussian
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.resampling import SCHEMES, effective_sample_size, multinomial, resample
 
@@ -140,11 +140,7 @@ def make_particle_filter(model: NonlinearModel, num_particles: int, *, key, sche
       >>> out.x.shape, out.log_likelihood.shape
       ((20, 1), (20,))
     """
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
-    if model.continuous:
-        raise ValueError("model is continuous-time: the particle filter samples a discrete-time transition; build "
-                         "the model with continuous=False (f the next state)")  # fmt: skip
+    check_discrete_model(model, "the particle filter")
     num_particles = _checks.count("num_particles", num_particles, minimum=1, hint="the number of particles")
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {sorted(SCHEMES)}, got {scheme!r}")
