@@ -145,19 +145,19 @@ def test_filter_approaches_the_kalman_filter(linear):
 
 
 def test_smoother_approaches_the_rts_smoother(linear):
-    """Backward simulation (Godsill, Doucet & West 2004) from 2000 particles, 500 paths: the mean of the paths
+    """Backward simulation (Godsill, Doucet & West 2004) from 2000 particles, 400 paths: the mean of the paths
     is within 0.2 smoothed standard deviations of the RTS smoother's mean at every sample and their standard
     deviations within 20 % (paths drawn from one particle system: the Monte-Carlo error is that of the filter
-    plus that of the 500 draws)."""
+    plus that of the 400 draws)."""
     problem = linear[0]
     A, C, Q, R, B = linear[3]
     kf = jo.make_kalman(A, C, Q, R, Gamma=B, x0=problem.x0, P0=problem.P0)
     smoothed = jo.smooth(jo.kalman_filter, kf, problem.inputs())[1]
     params = jo.make_particle_filter(problem.model(), 2000, key=jax.random.key(2))
-    smooth = jax.jit(lambda p, key: jo.particle_smoother(p, problem.inputs(), key=key, num_paths=500))
+    smooth = jax.jit(lambda p, key: jo.particle_smoother(p, problem.inputs(), key=key, num_paths=400))
     _, paths = smooth(params, jax.random.key(3))
     sd = np.sqrt(np.diagonal(np.asarray(smoothed.P), axis1=1, axis2=2))
-    assert paths.paths.shape == (15, 500, 3)
+    assert paths.paths.shape == (15, 400, 3)
     assert np.max(np.abs(paths.x - smoothed.x) / sd) < 0.2
     assert np.max(np.abs(np.sqrt(np.diagonal(np.asarray(paths.P), axis1=1, axis2=2)) / sd - 1)) < 0.2
 
