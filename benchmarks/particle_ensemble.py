@@ -363,9 +363,9 @@ def plot(results: dict, path: Path) -> None:
     ax.set_ylabel("speedup: peer time / jaxobs time\n(median of paired rounds, bar: [min, max])")
     from matplotlib.patches import Patch
 
-    ax.legend(handles=[Patch(color=c, label=p) for p, c in colors.items()], fontsize=8, loc="upper left")
-    names = ["jaxobs", "cuthbert"]
-    for i, name in enumerate(names):
+    names = {"cuthbert": "cuthbert (jit(vmap))", "filterpy": "filterpy (NumPy; B > 1: one sequence's time x B)"}
+    ax.legend(handles=[Patch(color=c, label=names[p]) for p, c in colors.items()], fontsize=8, loc="upper left")
+    for i, name in enumerate(["jaxobs", "cuthbert"]):
         values = [row[1].get(name, np.nan) for row in compile_rows]
         bx.barh(np.arange(len(compile_rows)) + 0.4 * i, values, height=0.4, label=name,
                 color={"jaxobs": "tab:green", "cuthbert": "tab:blue"}[name])  # fmt: skip
@@ -373,9 +373,11 @@ def plot(results: dict, path: Path) -> None:
     bx.set_xlabel("compile time of the jitted call (s)")
     bx.legend(fontsize=8)
     cfg = results["config"]
+    env = results["environment"]
     fig.suptitle(f"Particle filter (N={cfg['particles']}) and EnKF (N={cfg['members']}, Lorenz-96 n=40), "
-                 f"T={cfg['steps']}, float64, {results['environment']['device_kind']}, {cfg['rounds']} interleaved "
-                 f"rounds (benchmarks/particle_ensemble.py)", fontsize=10)  # fmt: skip
+                 f"T={cfg['steps']}, float64, {env['device_kind']} ({env['cpus']} cores, load average "
+                 f"{env['load_average'][0]:.1f}), {cfg['rounds']} interleaved rounds "
+                 "(benchmarks/particle_ensemble.py)", fontsize=10)  # fmt: skip
     fig.tight_layout()
     save_figure(fig, path.parent, path.stem, dpi=130)
 

@@ -244,7 +244,8 @@ def _square_root_correction_jvp(primals, tangents):
     r = jnp.sqrt(1 + jnp.maximum(s, 0.0))
     derivative = (1 + 2 * r) / (2 * r**3 * (1 + r) ** 2)  # f'(s)
     gap = s[:, None] - s[None, :]
-    close = jnp.abs(gap) <= 1e-10 * (1 + jnp.abs(s[:, None]) + jnp.abs(s[None, :]))
+    tolerance = jnp.sqrt(jnp.finfo(s.dtype).eps)  # below it, f' at the mean beats the rounding of f_i - f_j
+    close = jnp.abs(gap) <= tolerance * (1 + jnp.abs(s[:, None]) + jnp.abs(s[None, :]))
     mean_derivative = 0.5 * (derivative[:, None] + derivative[None, :])
     divided = jnp.where(close, mean_derivative, (f[:, None] - f[None, :]) / jnp.where(close, 1.0, gap))
     return (V * f) @ V.T, V @ ((V.T @ symmetrize(dE) @ V) * divided) @ V.T

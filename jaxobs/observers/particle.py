@@ -6,8 +6,8 @@ w_k``, ``y_k = h(x_k) + v_k`` with Gaussian noises (``Q`` may be singular), and 
 measurement. The state holds the particles, their normalised log-weights and a PRNG key; every step resamples
 adaptively through :func:`jaxobs.resampling.resample` (its stop-gradient weights make the log-likelihood estimate
 differentiate into the Fisher-identity score estimate, Ścibior & Wood 2021). The bootstrap filter (Gordon, Salmond
-& Smith 1993) proposes from the transition; the auxiliary filter (Pitt & Shephard 1999) first reweights by the
-predictive density of ``y_k`` at ``f(x_{k-1})``. :func:`make_particle_filter`, :data:`particle_filter`,
+& Smith 1993) proposes from the transition; the auxiliary filter (Pitt & Shephard 1999) first reweights by a
+Gaussian predictive density of ``y_k`` given ``x_{k-1}``. :func:`make_particle_filter`, :data:`particle_filter`,
 :func:`particle_smoother` (Godsill, Doucet & West 2004). The equations: docs/guides/particle-and-ensemble.md.
 """
 
@@ -218,10 +218,10 @@ particle_filter = Estimator(_init, _step)
 :class:`ParticleParams`.
 
 Each step (after the first, which only weights the prior draws): resample adaptively
-(:func:`jaxobs.resampling.resample`, on the weights times the predictive density of ``y_k`` at ``f(x_{k-1})`` for
-the auxiliary filter), propagate ``x = f(x_parent, u_{k-1}, t) + w``, ``w ~ N(0, Q)``, and weight by the
-likelihood of ``y_k`` (divided by the first-stage one for the auxiliary filter); missing components of ``y_k``
-are skipped. The step's likelihood estimate is the sum of the weights before normalising. Inputs:
+(:func:`jaxobs.resampling.resample`; for the auxiliary filter on the weights times ``N(y_k; h(f(x_{k-1})),
+H Q H' + R)``, exact for a linear-Gaussian model), propagate ``x = f(x_parent, u_{k-1}, t) + w``, ``w ~ N(0,
+Q)``, and weight by the likelihood of ``y_k`` (divided by the first-stage one for the auxiliary filter); missing
+components of ``y_k`` are skipped. The step's likelihood estimate is the sum of the weights before normalising. Inputs:
 ``EstimatorInputs(y, u_prev)``. State: :class:`ParticleState`. Outputs: :class:`ParticleOutputs`."""
 
 
