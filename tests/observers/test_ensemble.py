@@ -144,13 +144,24 @@ def test_gradient_matches_central_differences(method):
 
 
 def test_vmap_over_plants_equals_a_loop():
-    """A vmap over three plants (noise scales and keys) equals a loop; eager equals jit."""
-    log_likelihood = _enkf_log_likelihood(linear_problem(T=12)[0], "stochastic")
+    """Three plants (noise scales and keys) filtered and smoothed (transform filter, ensemble Kalman smoother):
+    ``vmap`` equals a loop, eager equals jit."""
+    problem = linear_problem(T=12)[0]
+
+    def smoothed(scales, key):
+        model = jo.nonlinear_model(problem.f, problem.h, scales[0] * problem.Q, scales[1] * problem.R,
+                                   x0=problem.x0, P0=problem.P0, n_inputs=1)  # fmt: skip
+        return jo.ensemble_smoother(jo.make_enkf(model, 6, key=key, method="transform"), problem.inputs())
+
     scales, keys = jnp.array([[1.0, 1.0], [0.5, 2.0], [2.0, 0.5]]), jax.random.split(jax.random.key(2), 3)
-    batched = jax.jit(jax.vmap(log_likelihood))(scales, keys)
-    looped = [jax.jit(log_likelihood)(s, k) for s, k in zip(scales, keys, strict=True)]
-    np.testing.assert_allclose(batched, looped, rtol=1e-12)
-    np.testing.assert_allclose(log_likelihood(scales[1], keys[1]), looped[1], rtol=1e-12)
+    batched = jax.tree.leaves(jax.jit(jax.vmap(smoothed))(scales, keys))
+    for i in range(3):
+        single = jax.tree.leaves(jax.jit(smoothed)(scales[i], keys[i]))
+        for got, want in zip(batched, single, strict=True):
+            np.testing.assert_allclose(got[i], want, rtol=1e-10, atol=1e-12)
+    eager = jax.tree.leaves(smoothed(scales[1], keys[1]))
+    for got, want in zip(eager, jax.tree.leaves(jax.jit(smoothed)(scales[1], keys[1])), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
 def test_bad_inputs_raise_naming_the_argument():

@@ -163,26 +163,25 @@ def test_smoother_approaches_the_rts_smoother(linear):
 
 
 def test_jit_equals_eager_and_vmap_over_plants_equals_a_loop(linear):
-    """Three plants with different process noise and keys: ``vmap`` over their params equals a loop, and an
-    eager run equals the jitted one."""
+    """Three plants with different process noise and keys, filtered (auxiliary filter, residual resampling) and
+    smoothed: ``vmap`` over their params equals a loop, and an eager run equals the jitted one."""
     problem = linear[0]
     scales, keys = jnp.array([0.5, 1.0, 2.0]), jax.random.split(jax.random.key(5), 3)
 
-    def filtered(scale, key):
+    def smoothed(scale, key):
         model = jo.nonlinear_model(problem.f, problem.h, scale * problem.Q, problem.R, x0=problem.x0,
                                    P0=problem.P0, n_inputs=1)  # fmt: skip
         params = jo.make_particle_filter(model, 32, key=key, scheme="residual", auxiliary=True)
-        return jo.run(jo.particle_filter, params, problem.inputs())[1]
+        return jo.particle_smoother(params, problem.inputs(), key=jax.random.fold_in(key, 1), num_paths=4)
 
-    batched = jax.jit(jax.vmap(filtered))(scales, keys)
-    looped = [jax.jit(filtered)(s, k) for s, k in zip(scales, keys, strict=True)]
-    for i, single in enumerate(looped):
+    batched = jax.tree.leaves(jax.jit(jax.vmap(smoothed))(scales, keys))
+    for i in range(3):
+        single = jax.tree.leaves(jax.jit(smoothed)(scales[i], keys[i]))
         for got, want in zip(batched, single, strict=True):
-            if want is not None:
-                np.testing.assert_allclose(got[i], want, rtol=1e-12, atol=1e-12)
-    eager = filtered(scales[0], keys[0])
-    np.testing.assert_allclose(eager.x, looped[0].x, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(eager.log_likelihood, looped[0].log_likelihood, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(got[i], want, rtol=1e-12, atol=1e-12)
+    eager = jax.tree.leaves(smoothed(scales[0], keys[0]))
+    for got, want in zip(eager, jax.tree.leaves(jax.jit(smoothed)(scales[0], keys[0])), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
 
 
 def test_bad_inputs_raise_naming_the_argument(linear):
