@@ -323,3 +323,14 @@ def returns(call: str, fn, args: tuple, shape: tuple, what: str) -> None:
         raise ValueError(f"{call} must return {what}, shape {_shape_text(shape)}, got {out.shape}")
     if not jnp.issubdtype(out.dtype, jnp.floating):
         raise ValueError(f"{call} must return a floating array, got dtype {out.dtype}")
+
+
+def key(name: str, value) -> jax.Array:
+    """``value`` checked to be a PRNG key: a typed key (``jax.random.key``, shape ``()``) or a raw one
+    (``jax.random.PRNGKey``, uint32 of shape (2,)); static, so it runs under ``jit`` and ``vmap`` too."""
+    value = value if isinstance(value, jax.Array) else jnp.asarray(value)
+    typed = jnp.issubdtype(value.dtype, jax.dtypes.prng_key) and value.shape == ()
+    if not (typed or (value.dtype == jnp.uint32 and value.shape == (2,))):
+        raise ValueError(f"{name} must be a PRNG key (jax.random.key(seed) or jax.random.PRNGKey(seed)), got "
+                         f"{value.dtype}{tuple(value.shape)}")  # fmt: skip
+    return value
