@@ -3,7 +3,7 @@ user's module (``jaxobs sweep --scenario module:NAME``, the TOML's ``scenario = 
 one (the ``jaxobs.sweeps`` entry points), each from a temporary directory, with the generic report; the checks of
 the TOML block name the key; invalid configurations and a design unstable on the nominal plant are reported.
 
-The two-mass spring of the robustness-sweep guide (examples/two-mass.toml) runs in the slow set, its published
+The two-mass spring of the robustness-sweep guide (tuning/two-mass.toml) runs in the slow set, its published
 stable fractions pinned."""
 
 import json
@@ -209,10 +209,10 @@ def test_the_plant_of_the_expressions_is_the_model_discretised():
 @pytest.mark.slow
 @pytest.mark.published
 def test_the_guides_two_mass_spring_from_a_temporary_directory(tmp_path, monkeypatch, capsys):
-    """examples/two-mass.toml as the guide runs it: the stable fraction per stiffness bin it prints, the generic
+    """tuning/two-mass.toml as the guide runs it: the stable fraction per stiffness bin it prints, the generic
     report's figures."""
     monkeypatch.chdir(tmp_path)
-    status, out, err = _run(capsys, "sweep", "--config", str(ROOT / "examples" / "two-mass.toml"), "--out", "out")
+    status, out, err = _run(capsys, "sweep", "--config", str(ROOT / "tuning" / "two-mass.toml"), "--out", "out")
     assert status == 0, err
     assert out[-1] == "  invalid configurations: 0 of 10000"
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
