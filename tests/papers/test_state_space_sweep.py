@@ -124,7 +124,8 @@ def test_an_installed_scenario_is_listed_and_runs(user_dir, capsys, monkeypatch)
     (dist / "entry_points.txt").write_text("[jaxobs.sweeps]\nmy-sweep = my_sweep:SCENARIO\n")
     assert list(registry.sweep_scenarios())[-1] == "my-sweep"
     status, out, _ = _run(capsys, "sweep", "--list")
-    assert status == 0 and out[-1].startswith("my-sweep") and "A cheap scenario of my own" in out[-1]
+    scenarios = out[: out.index("")]  # then the shipped configs
+    assert status == 0 and scenarios[-1].startswith("my-sweep") and "A cheap scenario of my own" in scenarios[-1]
     status, out, err = _run(capsys, "sweep", "--scenario", "my-sweep", "--out", "out")
     assert status == 0, err
     (dist / "entry_points.txt").write_text("[jaxobs.sweeps]\nsomething-else = my_sweep:SCENARIO\n")
