@@ -252,7 +252,8 @@ def _tune(args) -> int:
         f"{result['problem']}: {result['evaluations']} gradient evaluations ({result['rollouts']} rollouts, "
         f"{result['seconds_tune']:.1f} s of tuning, screening and {result['compile_seconds_tune']:.1f} s of "
         f"compiling included; stopped: {result['stopped']}); {_command_seconds(args)} (the baseline, held-out "
-        f"scores and figures included); wrote {out / 'tuned.json'} and {', '.join(result['figures'])}"
+        f"scores and figures included); wrote {out / 'tuned.json'}, {out / 'report.md'} and "
+        f"{', '.join(result['figures'])}"
     )
     for name, s in result["heldout"].items():
         change = s["reduction_vs_hand_set"]

@@ -4,8 +4,9 @@
 :func:`jaxobs.tuning.tune` (checkpointed, resumable), runs the random-search baseline in the problem's search box
 (:func:`jaxobs.papers.tuning_config.search_box`) for at least as many rollouts and as much wall time as the tuning
 took, scores the hand-set, tuned and random-search designs (best at equal rollouts, best at equal wall time) on the
-held-out plants, and writes ``tuned.json`` and three figures: ``loss_curves.png``, ``responses.png`` (before/after
-on held-out plants) and ``parameters.png`` (trajectories of the unconstrained parameters). The output directory is
+held-out plants, and writes ``tuned.json``, ``report.md`` (the same results for a reader) and three figures:
+``loss_curves.png``, ``responses.png`` (before/after on held-out plants) and ``parameters.png`` (trajectories of
+the unconstrained parameters). The output directory is
 locked for the run (:func:`jaxobs._resources.locked_out_dir`). Several processes may run it together.
 """
 
@@ -163,7 +164,69 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
     if problem.responses is not None:
         summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
     atomic_write(out / "tuned.json", (json.dumps(to_builtin(summary), indent=2) + "\n").encode())
+    atomic_write(out / "report.md", markdown_report(summary).encode())
     return summary
+
+
+# --------------------------------------------------------------------------------------------
+# The report
+
+
+def _cell(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool | np.bool_ | str):
+        return str(value).lower() if not isinstance(value, str) else value
+    if isinstance(value, int | np.integer):
+        return f"{int(value):,}".replace(",", " ")
+    return f"{value:.4g}"
+
+
+def _table(header: list[str], rows: list[list]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header),
+            *("| " + " | ".join(map(_cell, row)) + " |" for row in rows), ""]  # fmt: skip
+
+
+def markdown_report(summary: dict) -> str:
+    """``report.md`` of a finished tune from its ``summary`` (``tuned.json``'s content): the held-out results of
+    every design, the run (its stopping, starts and time split into compiling and computing), the random-search
+    baseline at equal rollouts and at equal time, the settings and the figures."""
+    config, held = summary["config"], summary["heldout"]
+    plants = config["plants"]
+    lines = [f"# Tuning report: {summary['problem']}", "",
+             f"Objective: the {config['optimizer']['objective']} of the per-plant losses. Held-out plants: "
+             f"{plants['heldout']}, never used in training (training plants: {plants['train']}).", "",
+             "## Held-out plants", ""]  # fmt: skip
+    rows = []
+    for name, s in held.items():
+        change = s["reduction_vs_hand_set"]
+        change = None if change is None or name == "hand-set" else f"{-100 * change:+.1f} %"
+        rows.append([name, s["objective"], change, f"{100 * s['finite_fraction']:.0f} %", s["p50"], s["p90"], s["max"]])
+    lines += _table(["design", "objective", "vs hand-set", "finite plants", "median loss", "90 % loss", "worst loss"],
+                    rows)  # fmt: skip
+    compile_s = summary["compile_seconds_tune"]
+    lines += ["## The run", "",
+              f"Stopped: {summary['stopped']}{'' if summary['converged'] else ' (not converged)'} after "
+              f"{summary['evaluations']} gradient evaluations and {_cell(summary['rollouts'])} rollouts; "
+              f"{summary['seconds_tune']:.1f} s of tuning ({compile_s:.1f} s compiling, "
+              f"{summary['seconds_tune'] - compile_s:.1f} s computing, screening included). Training objective: "
+              f"hand-set {_cell(summary['train_objective']['hand-set'])}, tuned "
+              f"{_cell(summary['train_objective']['tuned'])}.", ""]  # fmt: skip
+    lines += _table(["start", "training objective", "diverged plants", "evaluations", "stopped"],
+                    [[i, r["objective"], r["diverged"], r["evaluations"], r["stopped"]]
+                     for i, r in enumerate(summary["starts"])])  # fmt: skip
+    search = summary.get("random_search")
+    if search:
+        lines += ["## Baseline: random search in the same box", "",
+                  f"{search['candidates']} candidates drawn in the search box (spread {search['spread']}); the best "
+                  "at equal rollouts and at equal wall time, scored on the held-out plants above.", ""]  # fmt: skip
+        lines += _table(["budget", "candidates", "rollouts", "seconds", "training objective"],
+                        [[name, b["candidates"], b["rollouts"], b["seconds"], b["train_objective"]]
+                         for name, b in search.items() if isinstance(b, dict) and "rollouts" in b])  # fmt: skip
+    settings = (f"- `{key} = {json.dumps(value)}`" for key, value in config["optimizer"].items())
+    figures = (f"![{name}]({name})" for name in summary["figures"])
+    lines += ["## Settings (`[optimizer]`)", "", *settings, "", "## Figures", "", *figures, ""]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------

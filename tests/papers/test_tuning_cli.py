@@ -11,6 +11,7 @@ from jaxobs._config import ConfigError
 from jaxobs.cli import main
 from jaxobs.papers import tune_job, tuning_config
 from jaxobs.papers.cortesao import force_tuning, peg_tuning
+from jaxobs.papers.tune_job import markdown_report
 from jaxobs.tuning import gradient_mode
 
 
@@ -93,8 +94,9 @@ def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
         baselines = {"random search, equal rollouts", "random search, equal time"}
         assert set(summary["heldout"]) == {"hand-set", "tuned", *baselines}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
-    for name in ("loss_curves.png", "parameters.png", "responses.png", "checkpoint.npz"):
+    for name in ("loss_curves.png", "parameters.png", "responses.png", "checkpoint.npz", "report.md"):
         assert (out / name).stat().st_size > 0
+    assert f"| tuned | {summary['heldout']['tuned']['objective']:.4g} |" in (out / "report.md").read_text()
     config.write_text(SMALL.format(kind=kind, steps=5, search=search))
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     resumed = json.loads((out / "tuned.json").read_text())
@@ -219,3 +221,33 @@ def test_diverging_training_plants_are_penalised_and_the_held_out_loss_falls(tmp
     assert hand["finite_fraction"] == 7 / 8 and tuned["finite_fraction"] == 1.0
     assert tuned["objective"] < 0.5 * hand["objective"]
     assert tuned["p90"] < hand["p90"]
+
+
+def _held(objective, reduction):
+    return {"objective": objective, "reduction_vs_hand_set": reduction, "finite_fraction": 1.0, "p50": objective,
+            "p90": 2 * objective, "max": 3 * objective}  # fmt: skip
+
+
+def test_the_report_gives_held_out_results_run_time_and_baselines():
+    """report.md, from tuned.json's content: a row per design (the change against the hand-set design), the time
+    split into compiling and computing, a row per start, the random search's budgets, the settings, the figures."""
+    summary = {
+        "problem": "force-1dof", "stopped": "converged", "converged": True, "evaluations": 12, "rollouts": 3000,
+        "seconds_tune": 30.0, "compile_seconds_tune": 10.0, "train_objective": {"hand-set": 4.0, "tuned": 1.0},
+        "config": {"plants": {"train": 4, "heldout": 8}, "optimizer": {"objective": "cvar", "steps": 20}},
+        "heldout": {"hand-set": _held(5.0, 0.0), "tuned": _held(2.0, 0.6),
+                    "random search, equal time": _held(4.0, 0.2)},
+        "starts": [{"objective": 1.0, "diverged": 0, "evaluations": 7, "stopped": "converged"},
+                   {"objective": 1.5, "diverged": 1, "evaluations": 5, "stopped": "converged"}],
+        "random_search": {"spread": 2.0, "candidates": 50, "tuned_position_in_box": {},
+                          "equal time": {"candidates": 40, "rollouts": 160, "seconds": 29.0, "train_objective": 3.0}},
+        "figures": ["loss_curves.png"],
+    }  # fmt: skip
+    report = markdown_report(summary)
+    assert "| hand-set | 5 | - | 100 % | 5 | 10 | 15 |" in report
+    assert "| tuned | 2 | -60.0 % | 100 % | 2 | 4 | 6 |" in report
+    assert "| random search, equal time | 4 | -20.0 % |" in report
+    assert "30.0 s of tuning (10.0 s compiling, 20.0 s computing" in report and "3 000 rollouts" in report
+    assert "| 1 | 1.5 | 1 | 5 | converged |" in report
+    assert "| equal time | 40 | 160 | 29 | 3 |" in report
+    assert '- `objective = "cvar"`' in report and "![loss_curves.png](loss_curves.png)" in report
