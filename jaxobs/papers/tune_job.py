@@ -252,8 +252,10 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     if search is not None:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
-        ax.axvline(ev[-1], color="k", lw=0.6, ls=":")  # equal rollouts
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.axvline(ev[-1], color="k", lw=0.6, ls=":", label="the gradient run's rollouts (equal-rollouts budget)")
+        ax.set_xscale("log")  # the search runs for as long as the tuning took: often many more rollouts
+    else:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
            ylabel=f"training objective ({objective})", yscale="log", title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
