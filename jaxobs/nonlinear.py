@@ -57,11 +57,13 @@ class Manifold:
       difference: ``difference(a, b)``, a ``jax.tree_util.Partial`` (bound arguments are leaves).
       retract: ``retract(b, delta)``, a ``Partial``.
       dim: static, the tangent dimension (the size of a covariance on this space).
+      size: static, the number of entries of a point.
     """
 
     difference: Callable
     retract: Callable
     dim: int = dataclasses.field(metadata=dict(static=True))
+    size: int = dataclasses.field(metadata=dict(static=True))
 
 
 def difference(manifold: Manifold | None, a, b):
@@ -209,6 +211,8 @@ def _check_manifold(name: str, manifold: Manifold | None, point) -> None:
     its ``dim``."""
     if manifold is None:
         return
+    if point.shape != (manifold.size,):
+        raise ValueError(f"{name} holds points of {manifold.size} entries, got {point.shape} (x0 or h's value)")
     point = jnp.zeros(point.shape, point.dtype)
     tangent = jnp.zeros((manifold.dim,), point.dtype)
     _checks.returns(f"{name}.difference(a, b)", manifold.difference, (point, point), (manifold.dim,),
@@ -298,8 +302,11 @@ def gaussian_init(model: NonlinearModel) -> GaussianState:
 
 def _inputs(model: NonlinearModel, inputs):
     """``(y, u)`` checked against the model's sizes (at trace time) and cast to its dtype."""
-    p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
-    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
+    m, dtype = model.n_inputs, model.x0.dtype
+    p, what = model.R.shape[-1], "one entry per row of R"
+    if model.measurement_manifold is not None:
+        p, what = model.measurement_manifold.size, "a point of measurement_manifold"
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what=what, check_finite=False)
     if inputs.u_prev is None:
         if m:
             raise ValueError(f"inputs.u_prev is required: the model has n_inputs={m}, got None")

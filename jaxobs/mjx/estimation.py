@@ -38,6 +38,7 @@ __all__ = [
     "sensor_noise",
     "filter_model",
     "sample_period",
+    "check_rotations",
 ]
 
 CARTPOLE = "cartpole_sensors.xml"
@@ -80,11 +81,42 @@ def _data(model: mjx.Model, x, u=None):
     return data if u is None else data.replace(ctrl=u)
 
 
+def _rotations(model) -> bool:
+    """The model has free or ball joints (quaternions in ``qpos``)."""
+    kinds = np.asarray(model.jnt_type)
+    return bool(np.any((kinds == mujoco.mjtJoint.mjJNT_FREE) | (kinds == mujoco.mjtJoint.mjJNT_BALL)))
+
+
+def _step(model: mjx.Model, data, solver_iterations: int | None):
+    """One physics step (:func:`jaxobs.mjx.common.step`) whose rotations differentiate correctly.
+
+    MJX turns a free or ball joint's quaternion by the angle ``dt |w|`` about ``w / |w|`` with a norm whose
+    derivative it sets to 0 at ``w = 0``, so at zero angular velocity (a robot at rest, where it is linearised)
+    the derivative of the new orientation with respect to ``w`` is 0 instead of ``dt``. The Euler and implicit-fast
+    integrators set ``qpos' = integrate_pos(qpos, qvel', dt)`` with the new velocity: recomputed here with
+    :func:`jaxobs.mjx.manifold.integrate_pos` (smooth at ``w = 0``), equal values and the right derivatives. (RK4
+    mixes its stages' velocities, which the step does not return: :func:`check_rotations` refuses it.)
+    """
+    stepped = step(model, data, solver_iterations)
+    if _rotations(model) and int(model.opt.integrator) != int(mujoco.mjtIntegrator.mjINT_RK4):
+        stepped = stepped.replace(qpos=manifold.integrate_pos(model, data.qpos, stepped.qvel, model.opt.timestep))
+    # MJX's step returns some integer fields (a tendon's wrapping) in another width than make_data under x64: cast
+    # back, so a loop's carry keeps its types
+    return jax.tree.map(lambda new, old: new.astype(old.dtype), stepped, data)
+
+
+def check_rotations(model, what: str) -> None:
+    """``ValueError`` for a model whose step MJX differentiates wrongly: free or ball joints under RK4 (see
+    :func:`_step`); ``what`` names the derivative that needs it."""
+    if _rotations(model) and int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4):
+        raise ValueError(f"{what}: MJX's RK4 integrator differentiates a free or ball joint's rotation wrongly at zero "
+                         "angular velocity (its quaternion update has a zero derivative there); use the Euler or "
+                         "implicitfast integrator (option integrator=...)")  # fmt: skip
+
+
 def _transition(model: mjx.Model, x, u, t, *, substeps: int, solver_iterations: int | None):
     def substep(_, data):
-        # MJX's step returns some integer fields (a tendon's wrapping) in another width than make_data under x64:
-        # cast back, so the loop's carry keeps its types
-        return jax.tree.map(lambda new, old: new.astype(old.dtype), step(model, data, solver_iterations), data)
+        return _step(model, data, solver_iterations)
 
     data = jax.lax.fori_loop(0, substeps, substep, _data(model, x, u).replace(time=t))
     return state(data)
@@ -150,7 +182,8 @@ def measurement(model: mjx.Model, sensors=None) -> jax.tree_util.Partial:
 def sensor_noise(model, sensors=None) -> np.ndarray:
     """The standard deviation of each tangent entry of the named sensors' readings (None: all): the MJCF's
     ``noise`` attribute of each sensor (``sensor_noise``, 0 where unset), repeated over its entries (3 for a
-    quaternion sensor, whose noise is then an angle in radians)."""
+    quaternion sensor, whose noise is then an angle in radians). ``model``: a ``mujoco.MjModel`` (an ``mjx.Model``
+    does not keep the noise)."""
     _, tangent = manifold.tangent_rows(model, sensors)
     return np.repeat(np.asarray(model.sensor_noise)[manifold.sensor_ids(model, sensors)], tangent)
 
@@ -170,21 +203,25 @@ def filter_model(
       model: the ``mjx.Model`` (or a ``mujoco.MjModel``, put on the device by :func:`put`).
       Q: (d, d) process noise on the tangent space.  x0: (n,) prior mean.  P0: (d, d) its covariance.
       R: (r, r) measurement noise on the readings' tangent space; None: ``diag(sensor_noise(model, sensors)^2)``,
-        the MJCF's ``noise`` attributes (each measured sensor needs one).
+        the MJCF's ``noise`` attributes (each measured sensor needs one; ``model`` a ``mujoco.MjModel``).
       sensors: names of the measured sensors (None: every sensor).  substeps: physics steps per sample.
       solver_iterations: see :func:`transition`.  t0: the time of the first measurement.
+
+    The EKF's Jacobians of a model with free or ball joints are right for the Euler and implicit-fast integrators;
+    under RK4, MJX's own derivative of a rotation is wrong at zero angular velocity (:func:`check_rotations`).
     """
-    if isinstance(model, mujoco.MjModel):
-        model = put(model)
-    n, d = state_size(model)
     if R is None:
-        ids = manifold.sensor_ids(model, sensors)
-        silent = [i for i in ids if not np.asarray(model.sensor_noise)[i] > 0]
+        if not isinstance(model, mujoco.MjModel):
+            raise ValueError("R: an mjx.Model does not keep the MJCF's sensor noise; give R, or the mujoco.MjModel")
+        silent = [i for i in manifold.sensor_ids(model, sensors) if not model.sensor_noise[i] > 0]
         if silent:
-            name = mjx.id2name(model, mujoco.mjtObj.mjOBJ_SENSOR, silent[0]) or f"#{silent[0]}"
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SENSOR, silent[0]) or f"#{silent[0]}"
             raise ValueError(f"R: sensor {name!r} has no noise in the MJCF (its noise attribute); give R or set "
                              "noise on every measured sensor")  # fmt: skip
         R = np.diag(sensor_noise(model, sensors) ** 2)
+    if isinstance(model, mujoco.MjModel):
+        model = put(model)
+    n, d = state_size(model)
     return nonlinear_model(
         transition(model, substeps=substeps, solver_iterations=solver_iterations), measurement(model, sensors), Q, R,
         x0=_checks.vector("x0", x0, n, jnp.asarray(Q).dtype, what="one entry per qpos, qvel and act"), P0=P0,

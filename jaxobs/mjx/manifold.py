@@ -145,7 +145,7 @@ def _check_point(name: str, value, layout: _Layout) -> None:
 
 def _manifold(layout: _Layout) -> Manifold:
     return Manifold(jax.tree_util.Partial(_difference_of(layout)), jax.tree_util.Partial(_retract_of(layout)),
-                    layout.dim)  # fmt: skip
+                    layout.dim, layout.size)  # fmt: skip
 
 
 def _qpos_layout(model) -> tuple[list, list, list, list]:
