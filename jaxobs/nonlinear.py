@@ -189,9 +189,9 @@ def nonlinear_model(
         raise ValueError("continuous=True integrates dx/dt as a vector: a state on a manifold needs a discrete f")
     feedthrough = _checks.boolean("feedthrough", feedthrough)
     x, u = jnp.zeros((n,), dtype), jnp.zeros((n_inputs,), dtype)
+    _check_manifold("manifold", manifold, x)
     what = "dx/dt" if continuous else "the next state"
     _checks.returns("f(x, u, t)", f, (x, u, t0), (n,), f"{what}, one entry per entry of x0")
-    _check_manifold("manifold", manifold, x)
     call, args = ("h(x, u)", (x, u)) if feedthrough else ("h(x)", (x,))
     if measurement_manifold is None:
         _checks.returns(call, h, args, (R.shape[0],), "the measurement, one entry per row of R")
@@ -366,12 +366,12 @@ def residual(manifold: Manifold | None, y, y_bar):
 def _update_problem(model: NonlinearModel, y, lin: Linearization, m_prior, x, *, first: bool):
     """``(x_in, y_in, predicted)``, the arguments of the Kalman update around the iterate ``x`` (the prior mean at
     the first iteration). Vectors: the prior mean, ``y`` and ``h_bar = h(x) + G (m_prior - x)``. On manifolds the
-    update runs in the tangent space at the prior mean: 0, ``y - h(x)`` (:func:`residual`) and ``G (x - m_prior)``.
+    update runs in the tangent space at the prior mean: 0, ``y - h(x)`` (:func:`residual`) and ``G (m_prior - x)``.
     """
     if _vector(model):
         return m_prior, y, lin.mean if first else lin.mean + lin.G @ (m_prior - x)
     y_in = residual(model.measurement_manifold, y, lin.mean)
-    predicted = jnp.zeros_like(y_in) if first else lin.G @ difference(model.manifold, x, m_prior)
+    predicted = jnp.zeros_like(y_in) if first else lin.G @ difference(model.manifold, m_prior, x)
     return jnp.zeros((lin.G.shape[-1],), m_prior.dtype), y_in, predicted
 
 

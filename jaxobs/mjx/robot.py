@@ -109,11 +109,17 @@ class Robot:
 
 
 def load_mjcf(mjcf) -> mujoco.MjModel:
-    """An ``MjModel`` from ``mjcf``: a path to an MJCF file, the XML text, or an ``MjModel`` (returned as is);
-    ``ValueError`` naming the file for an unreadable or invalid one."""
+    """An ``MjModel`` from ``mjcf``: a path to an MJCF file, ``"jaxobs:NAME"`` for an MJCF shipped with jaxobs
+    (``jaxobs/mjx/assets/NAME``: ``free_flyer.xml``, ``muscle_arm.xml``, ``cartpole_sensors.xml``, ...), the XML
+    text, or an ``MjModel`` (returned as is); ``ValueError`` naming the file for an unreadable or invalid one."""
     if isinstance(mjcf, mujoco.MjModel):
         return mjcf
     text, source = str(mjcf), "<string>"
+    if text.startswith("jaxobs:"):
+        try:
+            return estimation.load_asset(text.removeprefix("jaxobs:"))
+        except (FileNotFoundError, ValueError) as exc:
+            raise ValueError(f"MJCF {text}: no such model shipped with jaxobs ({exc})") from exc
     if not text.lstrip().startswith("<"):
         source = text
         try:

@@ -78,7 +78,8 @@ DEFAULT_CONFIG = {
 
 CONFIG_NOTES = {
     "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
-    "robot.mjcf": "path of the MJCF file (relative paths: from the current directory)",
+    "robot.mjcf": "path of the MJCF file (relative paths: from the current directory), or jaxobs:NAME for one shipped "
+    "with jaxobs (jaxobs:free_flyer.xml, jaxobs:muscle_arm.xml)",
     "robot.actuators": "names of the actuators the controller drives",
     "robot.sensors": "names of the sensors it measures (any stage: an accelerometer or a force sensor reads the "
     "command acting when it is sampled; a framequat or ballquat reading counts 3 entries, its rotation)",
