@@ -114,7 +114,8 @@ def monte_carlo(runs: int = 20, seconds: float = 3.0, seed: int = 0) -> dict:
     for name, estimator, params in (("EKF", jo.extended_kalman_filter, jo.make_ekf(nonlinear)),
                                     ("UKF", jo.unscented_kalman_filter, jo.make_ukf(nonlinear))):  # fmt: skip
         start = time.perf_counter()
-        run = jax.jit(jax.vmap(lambda y, u: jo.run(estimator, params, jo.EstimatorInputs(y=y, u_prev=u))[1]))
+        one = lambda y, u, e=estimator, p=params: jo.run(e, p, jo.EstimatorInputs(y=y, u_prev=u))[1]  # noqa: E731
+        run = jax.jit(jax.vmap(one))
         out = jax.block_until_ready(run(y, u_prev))
         test = jo.nees(out, x_true, manifold=nonlinear.manifold)
         h = jax.vmap(jax.vmap(estimation.measurement(model, ["position_fix", "star_tracker"])))(out.x, u_prev)
@@ -136,8 +137,9 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     results = monte_carlo(args.runs, args.seconds, args.seed)
     print(f"{results['runs']} runs of {results['samples']} samples, {results['dof']} tangent directions")
-    print(f"  {'':<16}{'average NEES':>14}{'95 % band':>18}{'inside':>8}{'position RMS [m]':>18}"
-          f"{'angle RMS [rad]':>17}")
+    print(
+        f"  {'':<16}{'average NEES':>14}{'95 % band':>18}{'inside':>8}{'position RMS [m]':>18}{'angle RMS [rad]':>17}"
+    )
     for name in ("EKF", "UKF", "dead reckoning"):
         r = results[name]
         nees = " " * 40
