@@ -1,13 +1,15 @@
 """Tuning the Kalman filter of an LQG controller against MJX rollouts of your own robot (any MJCF).
 
-The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with its actuators, sensors, control period,
-dead time and sensor noise; the controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the
-model linearised about the operating point; with ``design.observer = "aob"`` the filter is an AOB-1 whose active
+The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF (any model MJX can simulate: floating bases,
+muscles, sensors of every stage) with its actuators, sensors, control period, dead time and sensor noise; the
+controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the model linearised about the
+operating point in the state's tangent space; with ``design.observer = "aob"`` the filter is an AOB-1 whose active
 state (an equivalent input disturbance per actuator) the feedback cancels (Cortesão 2006 eq. 49-50). Tuned: the
 filter's noise covariances, as log diagonals (``design.parameterisation = "diagonal"``) or as full Cholesky factors
 of ``Q`` over every filter state and of ``R`` (``"cholesky"``); the loss is the error against the desired closed
 loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
-``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
+``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``; a floating base and a muscle arm:
+``tuning/free_flyer.toml``, ``tuning/muscle_arm.toml``. Details: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -232,8 +234,9 @@ def build_problem(config: dict) -> TuningProblem:
         if len(config[section][name]) != size:
             raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
     if len(d["lqr_state"]) not in (n_x, n):
+        state = "qpos, qvel" if what_x == "qpos and qvel entry" else "the state"
         raise ValueError(f"design.lqr_state: needs one weight per {what_x} ({n_x}) or per state of the linearised "
-                         f"model ({n}: the state, then {slots} x {m} commands in flight), got "
+                         f"model ({n}: {state}, then {slots} x {m} commands in flight), got "
                          f"{len(d['lqr_state'])}")  # fmt: skip
     if d["parameterisation"] == "cholesky" and slots and not all(v > 0 for v in d["q_input"] or [0]):
         raise ValueError("design.q_input: the cholesky parameterisation needs a positive variance per actuator for the "
@@ -259,15 +262,15 @@ def build_problem(config: dict) -> TuningProblem:
         Q0, R0 = covariances(hand_set)
         theta0 = {"q_cholesky": cholesky_parameters(Q0), "r_cholesky": cholesky_parameters(R0)}
     _check_differentiable(robot, config, theta0)
+    rows = _tracked_rows(robot, config)
+    if len(rows) != m:
+        raise ValueError(f"scenario.tracked: the tracked sensors have {len(rows)} entries; the reference gain needs "
+                         f"one per actuator ({m})")  # fmt: skip
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
     lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
     L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
-    rows = _tracked_rows(robot, config)
-    if len(rows) != m:
-        raise ValueError(f"scenario.tracked: the tracked sensors have {len(rows)} entries; the reference gain needs "
-                         f"one per actuator ({m})")  # fmt: skip
     N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
     steps = max(1, int(round(sc["duration"] / robot.period)))
     reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
