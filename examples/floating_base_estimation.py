@@ -31,6 +31,7 @@ import numpy as np
 
 import jaxobs as jo
 from jaxobs.mjx import estimation, manifold
+from jaxobs.mjx.robot import load_mjcf
 
 SUBSTEPS = 4  # physics steps of 5 ms per 20 ms sample
 SENSORS = ["accelerometer", "gyro", "position_fix", "star_tracker", "shoulder_angle", "elbow_angle"]
@@ -40,7 +41,7 @@ PROCESS_STD = np.r_[[1e-4] * 8, [2e-3] * 3, [2e-3] * 3, [5e-3] * 2]  # per 20 ms
 
 def setup():
     """``(mj_model, model, x0, P0, Q)``: the free flyer at rest, the prior and the process noise."""
-    mj_model = estimation.load_asset("free_flyer.xml")
+    mj_model = load_mjcf("free_flyer.xml")
     model = estimation.put(mj_model)
     x0 = jnp.concatenate([jnp.asarray(mj_model.qpos0), jnp.zeros(mj_model.nv)])
     return mj_model, model, x0, jnp.diag(jnp.asarray(PRIOR_STD) ** 2), jnp.diag(jnp.asarray(PROCESS_STD) ** 2)

@@ -13,7 +13,7 @@ filter. :data:`CARTPOLE` is the shipped cart-pole with sensors. Details: docs/th
 from __future__ import annotations
 
 import functools
-import importlib.resources
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -27,9 +27,9 @@ from jaxobs.mjx.common import check_solver_iterations, constraint_rows, put_mode
 from jaxobs.nonlinear import NonlinearModel, nonlinear_model
 
 __all__ = [
+    "ASSETS",
     "CARTPOLE",
     "load_cartpole",
-    "load_asset",
     "put",
     "state",
     "state_size",
@@ -41,17 +41,15 @@ __all__ = [
     "check_rotations",
 ]
 
+ASSETS = Path(__file__).parent / "assets"
+"""The folder of the MJCF models shipped with jaxobs (package data; ``jaxobs.papers.shipped.ROBOTS``)."""
+
 CARTPOLE = "cartpole_sensors.xml"
-
-
-def load_asset(name: str) -> mujoco.MjModel:
-    """The MJCF ``name`` shipped with jaxobs (``jaxobs/mjx/assets/``) as an ``MjModel``."""
-    return mujoco.MjModel.from_xml_string(importlib.resources.files("jaxobs.mjx").joinpath("assets", name).read_text())
 
 
 def load_cartpole() -> tuple[mujoco.MjModel, mjx.Model]:
     """The shipped cart-pole with sensors (``jaxobs/mjx/assets/cartpole_sensors.xml``): ``(mj_model, mjx_model)``."""
-    m = load_asset(CARTPOLE)
+    m = mujoco.MjModel.from_xml_path(str(ASSETS / CARTPOLE))
     return m, put_model(m)
 
 

@@ -109,23 +109,21 @@ class Robot:
 
 
 def load_mjcf(mjcf) -> mujoco.MjModel:
-    """An ``MjModel`` from ``mjcf``: a path to an MJCF file, ``"jaxobs:NAME"`` for an MJCF shipped with jaxobs
-    (``jaxobs/mjx/assets/NAME``: ``free_flyer.xml``, ``muscle_arm.xml``, ``cartpole_sensors.xml``, ...), the XML
-    text, or an ``MjModel`` (returned as is); ``ValueError`` naming the file for an unreadable or invalid one."""
+    """An ``MjModel`` from ``mjcf``: a path to an MJCF file (a relative one from the current directory, failing that
+    the MJCF of that name shipped with jaxobs, ``jaxobs/mjx/assets``: ``free_flyer.xml``, ``muscle_arm.xml``,
+    ``cartpole_payload.xml``, ...; the rule of the configs' paths), the XML text, or an ``MjModel`` (returned as
+    is); ``ValueError`` naming the file for an unreadable or invalid one."""
     if isinstance(mjcf, mujoco.MjModel):
         return mjcf
     text, source = str(mjcf), "<string>"
-    if text.startswith("jaxobs:"):
-        try:
-            return estimation.load_asset(text.removeprefix("jaxobs:"))
-        except (FileNotFoundError, ValueError) as exc:
-            raise ValueError(f"MJCF {text}: no such model shipped with jaxobs ({exc})") from exc
     if not text.lstrip().startswith("<"):
-        source = text
+        source, path = text, Path(text)
+        if not path.is_absolute() and not path.is_file() and (estimation.ASSETS / path).is_file():
+            path = estimation.ASSETS / path
         try:
-            return mujoco.MjModel.from_xml_path(str(Path(text)))
+            return mujoco.MjModel.from_xml_path(str(path))
         except ValueError as exc:  # mujoco reports missing files, XML and schema errors as ValueError
-            raise ValueError(f"MJCF {source}: cannot load it ({exc})") from exc
+            raise ValueError(f"MJCF {source}: cannot load it, nor a shipped robot of that name ({exc})") from exc
     try:
         return mujoco.MjModel.from_xml_string(text)
     except ValueError as exc:

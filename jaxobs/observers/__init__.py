@@ -9,6 +9,8 @@ Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modula
 estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains),
 ``gramian`` (the masked observability-Gramian reconstruction of Grip 2010, ch. 8).
 ``imm.imm`` combines Gaussian estimators into an interacting multiple model estimator.
+``particle`` (bootstrap and auxiliary particle filters, backward-simulation smoother).
+``ensemble`` (stochastic and transform ensemble Kalman filters, ensemble Kalman smoother).
 ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
@@ -18,6 +20,7 @@ from jaxobs.observers import (
     continuous,
     ct_linear,
     ekf,
+    ensemble,
     feedback,
     gramian,
     hgo,
@@ -27,6 +30,7 @@ from jaxobs.observers import (
     kalman,
     linear,
     modular,
+    particle,
     pe_monitor,
     ukf,
 )
@@ -64,4 +68,6 @@ __all__ = [
     "hgo",
     "gramian",
     "imm",
+    "particle",
+    "ensemble",
 ]

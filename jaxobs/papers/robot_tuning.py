@@ -8,7 +8,7 @@ state (an equivalent input disturbance per actuator) the feedback cancels (Corte
 filter's noise covariances, as log diagonals (``design.parameterisation = "diagonal"``) or as full Cholesky factors
 of ``Q`` over every filter state and of ``R`` (``"cholesky"``); the loss is the error against the desired closed
 loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
-``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``; a floating base and a muscle arm:
+``cartpole_payload.xml`` (a shipped robot) with ``tuning/cartpole_payload.toml``; a floating base and a muscle arm:
 ``tuning/free_flyer.toml``, ``tuning/muscle_arm.toml``. Details: docs/theory/papers.md.
 """
 
@@ -44,7 +44,7 @@ DEFAULT_CONFIG = {
     "problem": NAME,
     "seed": 0,
     "robot": {
-        "mjcf": "examples/robots/cartpole_payload.xml",
+        "mjcf": "cartpole_payload.xml",
         "actuators": ["push"],
         "sensors": ["cart_position", "pole_angle"],
         "substeps": 2,
@@ -80,8 +80,8 @@ DEFAULT_CONFIG = {
 
 CONFIG_NOTES = {
     "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
-    "robot.mjcf": "path of the MJCF file (relative paths: from the current directory), or jaxobs:NAME for one shipped "
-    "with jaxobs (jaxobs:free_flyer.xml, jaxobs:muscle_arm.xml)",
+    "robot.mjcf": "path of the MJCF file: relative to the config file's directory (the current directory without "
+    "one), or the name of a shipped robot (cartpole_payload.xml, arm_on_table.xml, free_flyer.xml, muscle_arm.xml)",
     "robot.actuators": "names of the actuators the controller drives",
     "robot.sensors": "names of the sensors it measures (any stage: an accelerometer or a force sensor reads the "
     "command acting when it is sampled; a framequat or ballquat reading counts 3 entries, its rotation)",
@@ -375,4 +375,5 @@ PROBLEM = TuningScenario(
     build=build_problem,
     open_tables=("plants.mismatch",),
     size_keys=("scenario.duration", "plants.train", "plants.heldout", "robot.substeps", "robot.solver_iterations"),
+    path_keys=("robot.mjcf",),
 )

@@ -13,11 +13,12 @@ import pytest
 
 from jaxobs import design
 from jaxobs.lti import ss
+from jaxobs.mjx import estimation
 from jaxobs.mjx import robot as rb
 from jaxobs.papers.robot_tuning import LQG, lqg_params
-from tests import ROOT
+from jaxobs.papers.shipped import ROBOTS
 
-XML = ROOT / "examples" / "robots" / "cartpole_payload.xml"
+XML = ROBOTS / "cartpole_payload.xml"
 NOISE = np.array([0.002, 0.005])
 STEPS = 250  # 5 s at 20 ms
 
@@ -61,12 +62,12 @@ FLYER_SENSORS = ["accelerometer", "gyro", "position_fix", "star_tracker", "shoul
 def test_any_mjcf_mjx_simulates_is_a_robot_and_the_rest_is_refused_in_one_line():
     """A floating base with a quaternion sensor and an accelerometer, and a muscle arm: the noise comes from the MJCF,
     the activations at rest follow the control; what MJX cannot simulate is one ValueError naming it."""
-    flyer = rb.make_robot("jaxobs:free_flyer.xml", FLYER_ACTUATORS, FLYER_SENSORS)
+    flyer = rb.make_robot("free_flyer.xml", FLYER_ACTUATORS, FLYER_SENSORS)
     assert (flyer.x0.shape, flyer.state_manifold.dim, flyer.sensor_manifold.dim) == ((17,), 16, 14)
     assert flyer.feedthrough and flyer.sensors == tuple(range(15))
     np.testing.assert_allclose(flyer.sensor_noise, [0.02] * 3 + [0.002] * 3 + [0.01] * 3 + [0.005] * 3 + [0.001] * 2)
     ctrl0 = [0.36, 0.23, 0.37, 0.22]
-    arm = rb.make_robot("jaxobs:muscle_arm.xml", ["shoulder_flexor", "elbow_flexor"], ["shoulder_angle"],
+    arm = rb.make_robot("muscle_arm.xml", ["shoulder_flexor", "elbow_flexor"], ["shoulder_angle"],
                         ctrl0=ctrl0)  # fmt: skip
     np.testing.assert_allclose(arm.act0, ctrl0)
     assert not arm.feedthrough and arm.state_manifold.dim == 8
@@ -75,18 +76,19 @@ def test_any_mjcf_mjx_simulates_is_a_robot_and_the_rest_is_refused_in_one_line()
         rb.make_robot(implicit, ["push"], ["cart_position"])
     rk4 = XML.read_text().replace('integrator="Euler"', 'integrator="RK4"')
     rb.make_robot(rk4, ["push"], ["cart_position"])  # no rotations: RK4 differentiates
-    flying_rk4 = rb.load_mjcf("jaxobs:free_flyer.xml")
+    flying_rk4 = rb.load_mjcf("free_flyer.xml")
     flying_rk4.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
     with pytest.raises(ValueError, match="linearize: MJX's RK4 integrator differentiates a free or ball joint"):
         rb.linearize(rb.make_robot(flying_rk4, ["thrust_x"], ["gyro"]))
-    with pytest.raises(ValueError, match="MJCF jaxobs:no_such.xml: no such model shipped with jaxobs"):
-        rb.load_mjcf("jaxobs:no_such.xml")
+    with pytest.raises(ValueError, match="MJCF no_such.xml: cannot load it, nor a shipped robot of that name"):
+        rb.load_mjcf("no_such.xml")
+    assert ROBOTS == estimation.ASSETS  # one folder: the configs' paths and load_mjcf find the same robots
 
 
 def test_holding_a_muscle_arm_near_a_co_contraction():
     """Muscles pull only: the smallest holding control would push (negative); the one nearest a co-contraction of 0.3
     holds the raised arm at rest (MuJoCo C: qacc = 0, act_dot = 0) within [0, 1]."""
-    mjcf, pose = "jaxobs:muscle_arm.xml", np.array([0.3, 0.8])
+    mjcf, pose = "muscle_arm.xml", np.array([0.3, 0.8])
     with pytest.raises(ValueError, match="outside ctrlrange: 'shoulder_extensor' needs -0.059"):
         rb.holding_ctrl(mjcf, pose)
     ctrl = rb.holding_ctrl(mjcf, pose, near=np.full(4, 0.3))
@@ -117,7 +119,7 @@ def test_mismatch_scales_the_named_rows_and_vmaps(cart):
 def test_mismatch_of_a_free_joint_and_of_the_physics_options():
     """``dof_*[joint]`` scales every degree of freedom of a free joint (six); ``opt.<name>`` scales a physics option;
     a field without objects takes no name."""
-    model = rb.make_robot("jaxobs:free_flyer.xml", ["thrust_x"], ["gyro"]).model
+    model = rb.make_robot("free_flyer.xml", ["thrust_x"], ["gyro"]).model
     scaled = rb.mismatch(model, {"dof_damping[root]": 3.0, "dof_damping[elbow]": 2.0, "opt.wind": 2.0,
                                  "opt.viscosity": 1.5, "qpos_spring": 1.0})  # fmt: skip
     nominal = np.asarray(model.dof_damping)
@@ -160,7 +162,7 @@ def test_floating_base_linearisation_matches_mujoco_finite_differences():
     differences qpos with mj_differentiatePos: the same coordinates); C against its sensor derivatives; the
     accelerometer's dependence on the command it reads (D, the extra command state) and the star tracker's rotation
     rows against central differences of mj_forward (MuJoCo C)."""
-    m = rb.load_mjcf("jaxobs:free_flyer.xml")
+    m = rb.load_mjcf("free_flyer.xml")
     qpos0 = m.qpos0.copy()
     qpos0[3:7], qpos0[7:] = [np.cos(0.2), 0.0, 0.0, np.sin(0.2)], [0.4, -0.6]
     flyer = rb.make_robot(m, FLYER_ACTUATORS, FLYER_SENSORS, substeps=4, qpos0=qpos0)
@@ -197,7 +199,7 @@ def test_floating_base_linearisation_matches_mujoco_finite_differences():
     np.testing.assert_allclose(lin.C[9:12, :8], C_rot, atol=1e-7)
 
 
-ARM = ROOT / "examples" / "robots" / "arm_on_table.xml"
+ARM = ROBOTS / "arm_on_table.xml"
 
 
 def test_holding_ctrl_holds_a_pose_and_linearize_warns_about_one_it_does_not():

@@ -2,6 +2,7 @@
 run of the shipped payload-cart example that pins its README row."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,17 +10,20 @@ import pytest
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
 from jaxobs.papers import robot_tuning
+from jaxobs.papers.shipped import ROBOTS
 from tests import ROOT, run_cli
 
 
 def test_shipped_config_file_validates_to_the_default():
     path = "tuning/cartpole_payload.toml"
-    assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
+    # the shipped file's robot and the default's resolve to the same packaged MJCF
+    assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.PROBLEM.validate({})
     arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
     assert arm["robot"]["solver_iterations"] == 4
     for path in ("tuning/free_flyer.toml", "tuning/muscle_arm.toml"):
         config = robot_tuning.PROBLEM.validate(load_toml(path), path)
-        assert config["robot"]["mjcf"].startswith("jaxobs:") and config["optimizer"]["gradient"] == "reverse"
+        assert config["robot"]["mjcf"] == str(ROBOTS / Path(path).name.replace(".toml", ".xml"))
+        assert config["optimizer"]["gradient"] == "reverse"
     full = {"tuning/arm_on_table_cholesky.toml": "kalman", "tuning/cartpole_payload_aob.toml": "aob"}
     for path, observer in full.items():
         design = robot_tuning.PROBLEM.validate(load_toml(path), path)["design"]
@@ -117,7 +121,7 @@ def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_
         (flyer.replace('q = [1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6,', 'q = [1e-6,'),
          "design.q: needs one value per tangent entry of the state (nv positions, nv velocities, na activations) "
          "(16), got 9"),
-        (flyer.replace('mjcf = "jaxobs:free_flyer.xml"', f'mjcf = "{tmp_path / "implicit.xml"}"'),
+        (flyer.replace('mjcf = "free_flyer.xml"', f'mjcf = "{tmp_path / "implicit.xml"}"'),
          "cannot simulate this model: mjtIntegrator.mjINT_IMPLICIT"),
     ):  # fmt: skip
         assets = ROOT / "jaxobs" / "mjx" / "assets"
