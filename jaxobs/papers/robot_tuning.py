@@ -14,6 +14,8 @@ loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,16 +217,13 @@ def _check_differentiable(robot, config: dict, theta0: dict) -> None:
         )
 
 
-def build_problem(config: dict) -> TuningProblem:
-    """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
-    from jaxobs import design
-    from jaxobs.lti import ss
-    from jaxobs.mjx.robot import linearize, mismatch, rollout
-
-    robot = _robot(config)
-    sc, d = config["scenario"], config["design"]
+def _check_sizes(robot, config: dict) -> int:
+    """``ValueError`` naming the key whose length does not fit ``robot`` (``scenario.output_weights``, ``design.q``,
+    ``design.lqr_state``, ``design.q_input``) or a measured entry without noise; returns the command slots of the
+    linearised model (commands in flight, and the one a feedthrough sensor reads)."""
+    d = config["design"]
     n_x, p, m = robot.state_manifold.dim, robot.sensor_manifold.dim, len(robot.actuators)
-    slots = robot.dead_time + int(robot.feedthrough)  # commands in flight, and the one a feedthrough sensor reads
+    slots = robot.dead_time + int(robot.feedthrough)
     n = n_x + slots * m
     what_x = "tangent entry of the state (nv positions, nv velocities, na activations)"
     if n_x == robot.qpos0.shape[0] + robot.qvel0.shape[0]:
@@ -244,6 +243,59 @@ def build_problem(config: dict) -> TuningProblem:
     if not np.all(np.asarray(robot.sensor_noise) > 0):
         raise ValueError("robot.sensor_noise: every measured entry needs a positive noise (the filter's R starts at "
                          f"its square); got {np.asarray(robot.sensor_noise).tolist()}")  # fmt: skip
+    return slots
+
+
+def _sample_plants(config: dict, which: str) -> dict:
+    """The ``which`` ("train" or "heldout") plants: ``{"scales": {field: (count,)}, "key": (count,) keys}``, drawn
+    uniformly in the mismatch ranges from a key of their own."""
+    key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+    count, ranges = config["plants"][which], config["plants"]["mismatch"]
+    keys = jax.random.split(key, len(ranges) + 1)
+    scales = {k: jax.random.uniform(kk, (count,), minval=lo, maxval=hi)
+              for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
+    return {"scales": scales, "key": jax.random.split(keys[0], count)}
+
+
+def _responses(robot, config: dict, traces, desired, rows, theta, plants) -> dict:
+    """The held-out responses of the design ``theta`` for ``jaxobs tune``'s figure: ``traces(theta, plants)`` (the
+    measured deviations) against the ``desired`` closed loop, the tracked ``rows``' set-points, a label per plant."""
+    setpoint = np.full(desired.shape[1], np.nan)
+    setpoint[rows] = config["scenario"]["reference"]
+    return {
+        "t": robot.period * np.arange(desired.shape[0]),
+        "output": traces(theta, plants),
+        "desired": desired,
+        "labels": [
+            ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items()) for i in range(len(plants["key"]))
+        ],
+        "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
+        "setpoint": setpoint,
+    }
+
+
+def _describe(covariances, controller, theta) -> dict:
+    """The design ``theta`` as ``tuned.json`` shows it: ``Q`` and ``R`` (their diagonals when diagonal) and the
+    filter's gain."""
+    Q, R = (np.asarray(a) for a in covariances(theta))
+    full = "q_cholesky" in theta
+    return {
+        ("Q" if full else "Q_diagonal"): (Q if full else np.diagonal(Q)).tolist(),
+        ("R" if full else "R_diagonal"): (R if full else np.diagonal(R)).tolist(),
+        "kalman_gain": np.asarray(controller(theta).estimator.gain).tolist(),
+    }
+
+
+def build_problem(config: dict) -> TuningProblem:
+    """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
+    from jaxobs import design
+    from jaxobs.lti import ss
+    from jaxobs.mjx.robot import linearize, mismatch, rollout
+
+    robot = _robot(config)
+    sc, d = config["scenario"], config["design"]
+    slots, m = _check_sizes(robot, config), len(robot.actuators)
+    n = robot.state_manifold.dim + slots * m
     aob = d["observer"] == "aob"
     q_input = jnp.tile(jnp.asarray(d["q_input"] or [0.0] * m, float), slots)
     hand_set = {"log_q": jnp.log(jnp.asarray(d["q"], float)), "log_r": jnp.log(robot.sensor_noise**2)}
@@ -300,47 +352,15 @@ def build_problem(config: dict) -> TuningProblem:
         excursion = jnp.max(jnp.abs(out.dx), axis=(-2, -1))
         return loss, ~jnp.isfinite(loss) | ~(excursion < sc["state_limit"])
 
-    def sample(which):
-        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
-        count, ranges = config["plants"][which], config["plants"]["mismatch"]
-        keys = jax.random.split(key, len(ranges) + 1)
-        scales = {k: jax.random.uniform(kk, (count,), minval=lo, maxval=hi)
-                  for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
-        return {"scales": scales, "key": jax.random.split(keys[0], count)}
-
     traces = jax.jit(lambda theta, plants: run(theta, plants).y_true)
-    setpoint = np.full(desired.shape[1], np.nan)
-    setpoint[rows] = sc["reference"]
-
-    def responses(theta, plants):
-        return {
-            "t": robot.period * np.arange(steps),
-            "output": traces(theta, plants),
-            "desired": np.asarray(desired),
-            "labels": [
-                ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items())
-                for i in range(len(plants["key"]))
-            ],  # fmt: skip
-            "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
-            "setpoint": setpoint,
-        }
-
-    def describe(theta):
-        Q, R = (np.asarray(a) for a in covariances(theta))
-        full = "q_cholesky" in theta
-        return {
-            ("Q" if full else "Q_diagonal"): (Q if full else np.diagonal(Q)).tolist(),
-            ("R" if full else "R_diagonal"): (R if full else np.diagonal(R)).tolist(),
-            "kalman_gain": np.asarray(controller(theta).estimator.gain).tolist(),
-        }
 
     return TuningProblem(
         theta0=theta0,
         losses=losses,
-        train=sample("train"),
-        heldout=sample("heldout"),
-        describe=describe,
-        responses=responses,
+        train=_sample_plants(config, "train"),
+        heldout=_sample_plants(config, "heldout"),
+        describe=functools.partial(_describe, covariances, controller),
+        responses=functools.partial(_responses, robot, config, traces, np.asarray(desired), rows),
         search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
     )
 
