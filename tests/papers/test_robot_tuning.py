@@ -114,6 +114,8 @@ def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_
     the checks before it run here): a tracked quaternion sensor counts 3 entries, one reference each; an integrator
     MJX lacks ends the command with one line naming it."""
     flyer = (ROOT / "tuning/free_flyer.toml").read_text()
+    implicit = (ROBOTS / "free_flyer.xml").read_text().replace('integrator="Euler"', 'integrator="implicit"')
+    (tmp_path / "implicit.xml").write_text(implicit)
     for toml, message in (
         (flyer.replace('tracked = ["position_fix", "star_tracker", "shoulder_angle", "elbow_angle"]',
                        'tracked = ["position_fix", "star_tracker", "shoulder_angle"]'),
@@ -124,9 +126,6 @@ def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_
         (flyer.replace('mjcf = "free_flyer.xml"', f'mjcf = "{tmp_path / "implicit.xml"}"'),
          "cannot simulate this model: mjtIntegrator.mjINT_IMPLICIT"),
     ):  # fmt: skip
-        assets = ROOT / "jaxobs" / "mjx" / "assets"
-        implicit = (assets / "free_flyer.xml").read_text().replace('integrator="Euler"', 'integrator="implicit"')
-        (tmp_path / "implicit.xml").write_text(implicit)
         path = tmp_path / "flyer.toml"
         path.write_text(toml)
         status = main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"])
