@@ -77,7 +77,7 @@ def filter_model(mj_model: mujoco.MjModel, x0, P0) -> jo.NonlinearModel:
     G = jnp.asarray(input_jacobian(mj_model, x0))
     Q = FORCE_STD**2 * G @ G.T + 1e-10 * jnp.eye(x0.shape[0])
     return jo.nonlinear_model(f, h, Q, jnp.diag(jnp.asarray(SENSOR_STD) ** 2), x0=x0, P0=P0, n_inputs=model.nu,
-                              dt=estimation.sample_period(model, SUBSTEPS))  # fmt: skip
+                              dt=estimation.sample_period(model, SUBSTEPS), feedthrough=True)  # fmt: skip
 
 
 @functools.partial(jax.jit, static_argnames="T")
@@ -95,7 +95,8 @@ def simulate(model: mjx.Model, T: int, seed):
         return f(x, u, t), x
 
     _, x_true = jax.lax.scan(step, jnp.array([0.0, 0.8, 0.0, 0.0]), (u_true, t))
-    y = jax.vmap(h)(x_true) + jnp.asarray(SENSOR_STD) * jax.random.normal(keys[1], (T, 4))
+    u_prev = jnp.concatenate([jnp.zeros((1, 1)), u_true[:-1]])  # the force acting when each sample is taken
+    y = jax.vmap(h)(x_true, u_prev) + jnp.asarray(SENSOR_STD) * jax.random.normal(keys[1], (T, 4))
     lost = jax.random.uniform(keys[2], (T,)) < DROPOUT
     y = y.at[:, 1:].set(jnp.where(lost[:, None], jnp.nan, y[:, 1:]))
     return t, x_true, u_known, y

@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at r
     from jaxobs.learning import FitSettings, als, covariance_model, em, fit, sample
     from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
     from jaxobs.matrix_equations import care, dare
-    from jaxobs.nonlinear import NonlinearModel, nonlinear_model
+    from jaxobs.nonlinear import Manifold, NonlinearModel, nonlinear_model
     from jaxobs.observers import (
         Controller,
         ControllerInputs,
@@ -118,6 +118,7 @@ __all__ = [
     "linear_observer",
     "NonlinearModel",
     "nonlinear_model",
+    "Manifold",
     "extended_kalman_filter",
     "make_ekf",
     "unscented_kalman_filter",

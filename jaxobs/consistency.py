@@ -114,7 +114,7 @@ def _quadratic_forms(error, covariance):
     return jnp.sum(z * z, axis=-1).reshape(error.shape[:2])
 
 
-def nees(outputs, x_true, *, confidence=0.95) -> ChiSquareTest:
+def nees(outputs, x_true, *, confidence=0.95, manifold=None) -> ChiSquareTest:
     """The normalised estimation error squared ``eps_k = (x_k - x_hat_k)' P_k^{-1} (x_k - x_hat_k)`` of a filter
     against the true states of a simulation, and its chi-square test with ``n`` degrees of freedom per sample
     (Bar-Shalom, Li & Kirubarajan 2001, §5.4.2): over ``N`` runs, ``N`` times the average at a sample is
@@ -125,6 +125,8 @@ def nees(outputs, x_true, *, confidence=0.95) -> ChiSquareTest:
         those of the Kalman filter with ``output_covariance``, the EKF, the UKF, an IMM.
       x_true: (T, n) or (N, T, n) the true states.
       confidence: the probability of the two-sided band (default 0.95).
+      manifold: the state's :class:`~jaxobs.nonlinear.Manifold` (``None``: vectors): the error is
+        ``manifold.difference(x_true, x_hat)``, on the tangent space where ``P`` lives (``n`` its dimension).
 
     Returns:
       :class:`ChiSquareTest`.
@@ -135,9 +137,10 @@ def nees(outputs, x_true, *, confidence=0.95) -> ChiSquareTest:
     P = _runs("outputs.P", outputs.P, 2)
     x_true = _runs("x_true", x_true, 1)
     _checks.shape("x_true", x_true, x.shape, "the true states, shaped like outputs.x")
-    _checks.shape("outputs.P", P, (*x.shape, x.shape[-1]), "one (n, n) covariance per estimate")
-    statistic = _quadratic_forms(x_true - x, P)
-    dof = jnp.full(x.shape[:2], x.shape[-1], statistic.dtype)
+    error = x_true - x if manifold is None else jax.vmap(jax.vmap(manifold.difference))(x_true, x)
+    _checks.shape("outputs.P", P, (*error.shape, error.shape[-1]), "one (n, n) covariance per estimate")
+    statistic = _quadratic_forms(error, P)
+    dof = jnp.full(error.shape[:2], error.shape[-1], statistic.dtype)
     return _chi_square_test(statistic, dof, confidence)
 
 

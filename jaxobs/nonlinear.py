@@ -1,12 +1,14 @@
 """Nonlinear Gaussian state-space models and the filter step the extended and unscented Kalman filters share.
 
 :func:`nonlinear_model` builds a :class:`NonlinearModel`: discrete time ``x_k = f(x_{k-1}, u_{k-1}, t_{k-1}) + w_k``
-or continuous-discrete (``continuous=True``), with ``y_k = h(x_k) + v_k``. A Gaussian filter replaces each map by
-a :class:`Linearization` (Särkkä 2013, ch. 5-6) and takes the linear Kalman step of :mod:`jaxobs.kalman_steps`
-(:func:`gaussian_step`), with missing data, an optional innovation gate and iterated updates (Bell & Cathey 1993;
-García-Fernández et al. 2015). Each step outputs its log-likelihood and, with ``output_covariance``, the
-linearised transition the extended and unscented RTS smoothers reuse (:func:`jaxobs.smoothing.smooth`; Särkkä
-2008, 2013). The equations: docs/theory/nonlinear.md.
+or continuous-discrete (``continuous=True``), with ``y_k = h(x_k) + v_k`` (``h(x_k, u_{k-1})`` with
+``feedthrough``). A state or a measurement on a :class:`Manifold` (rotations, a MuJoCo ``qpos`` with quaternions)
+has its errors, covariances and noise in the tangent space: ``+`` is its ``retract`` and ``-`` its ``difference``
+(the error-state form of Sola 2017). A Gaussian filter replaces each map by a :class:`Linearization` (Särkkä 2013,
+ch. 5-6) and takes the linear Kalman step of :mod:`jaxobs.kalman_steps` (:func:`gaussian_step`), with missing data,
+an optional innovation gate and iterated updates (Bell & Cathey 1993; García-Fernández et al. 2015). Each step
+outputs its log-likelihood and, with ``output_covariance``, the linearised transition the extended and unscented
+RTS smoothers reuse (:func:`jaxobs.smoothing.smooth`; Särkkä 2008, 2013). The equations: docs/theory/nonlinear.md.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from jaxobs._linalg import symmetrize
 from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, ud_factor, update
 
 __all__ = [
+    "Manifold",
     "NonlinearModel",
     "nonlinear_model",
     "Linearization",
@@ -30,11 +33,51 @@ __all__ = [
     "GaussianOutputs",
     "gaussian_init",
     "gaussian_step",
+    "difference",
+    "retract",
+    "residual",
     "model_inputs",
     "check_discrete_model",
     "gaussian_factor",
     "sample_gaussian",
 ]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Manifold:
+    """A space whose points are not added and subtracted as vectors: a rotation, a MuJoCo ``qpos`` with quaternions.
+
+    Its errors live in a ``dim``-dimensional tangent space, reached by two maps,
+    ``difference(a, b) -> (dim,)``: the tangent vector at ``b`` that leads to ``a`` (``a - b``);
+    ``retract(b, delta) -> point``: the point ``delta`` away from ``b`` (``b + delta``),
+
+    with ``retract(b, difference(a, b)) = a`` and ``difference(b, b) = 0``. A filter keeps its mean a point and its
+    covariance, process and measurement noise on the tangent space (Sola 2017, the error-state form; MuJoCo's
+    ``mj_integratePos`` and ``mj_differentiatePos`` are such a pair, :mod:`jaxobs.mjx.manifold`). ``None`` in
+    place of a manifold means a vector space (``a - b``, ``b + delta``).
+
+    Attributes:
+      difference: ``difference(a, b)``, a ``jax.tree_util.Partial`` (bound arguments are leaves).
+      retract: ``retract(b, delta)``, a ``Partial``.
+      dim: static, the tangent dimension (the size of a covariance on this space).
+      size: static, the number of entries of a point.
+    """
+
+    difference: Callable
+    retract: Callable
+    dim: int = dataclasses.field(metadata=dict(static=True))
+    size: int = dataclasses.field(metadata=dict(static=True))
+
+
+def difference(manifold: Manifold | None, a, b):
+    """``a - b`` on ``manifold`` (its ``difference``; vectors subtract when it is ``None``)."""
+    return a - b if manifold is None else manifold.difference(a, b)
+
+
+def retract(manifold: Manifold | None, b, delta):
+    """``b + delta`` on ``manifold`` (its ``retract``; vectors add when it is ``None``)."""
+    return b + delta if manifold is None else manifold.retract(b, delta)
 
 
 @jax.tree_util.register_dataclass
@@ -47,14 +90,21 @@ class NonlinearModel:
       f: the transition ``f(x, u, t) -> x_next`` (discrete) or ``-> dx/dt`` (``continuous``), as a
         ``jax.tree_util.Partial``: its bound arguments (model parameters, an MJX model) are leaves of this
         pytree, so ``grad`` and ``vmap`` reach them.
-      h: the measurement ``h(x) -> y`` (p,), a ``Partial`` likewise.
-      Q: (n, n) process noise covariance (discrete) or spectral density (continuous).
-      R: (p, p) measurement noise covariance.  x0: (n,) prior mean of ``x_0``.  P0: (n, n) its covariance.
+      h: the measurement ``h(x) -> y`` (p,), or ``h(x, u)`` with ``feedthrough``; a ``Partial`` likewise.
+      Q: (d, d) process noise covariance (discrete) or spectral density (continuous), on the state's tangent
+        space (``d = n`` for a vector state).
+      R: (r, r) measurement noise covariance (``r = p`` for a vector measurement, else the tangent dimension).
+      x0: (n,) prior mean of ``x_0``.  P0: (d, d) its covariance.
       dt: () sample period (the time step between measurements).  t0: () time of the first measurement.
       n_inputs: static ``m``; ``f`` receives an (m,) input (an empty one when ``m = 0``).
       continuous: static; ``f`` is the time derivative and the prediction integrates over each sample.
       substeps: static number of fixed integration steps per sample (continuous models).
       method: static integration rule, ``"rk4"`` or ``"euler"`` (:data:`jaxobs.ct.METHODS`).
+      manifold: the state's :class:`Manifold`, or ``None`` for a vector state.
+      measurement_manifold: the measurement's :class:`Manifold` (innovations ``y - h`` on its tangent space), or
+        ``None``.
+      feedthrough: static; ``h`` takes the input too, ``y_k = h(x_k, u_{k-1})``: the input held over the sample
+        that ends at ``t_k`` acts on the measurement (an accelerometer, a force sensor).
     """
 
     f: Callable
@@ -69,24 +119,38 @@ class NonlinearModel:
     continuous: bool = dataclasses.field(default=False, metadata=dict(static=True))
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
     method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
+    manifold: Manifold | None = None
+    measurement_manifold: Manifold | None = None
+    feedthrough: bool = dataclasses.field(default=False, metadata=dict(static=True))
+
+    def measure(self, u) -> Callable:
+        """``x -> h(x)``, or ``x -> h(x, u)`` with ``feedthrough``."""
+        return (lambda x: self.h(x, u)) if self.feedthrough else self.h
 
 
 def nonlinear_model(
     f, h, Q, R, *, x0, P0=None, n_inputs: int = 0, dt=1.0, t0=0.0, continuous: bool = False,
-    substeps: int = 1, method: str = "rk4",
+    substeps: int = 1, method: str = "rk4", manifold: Manifold | None = None,
+    measurement_manifold: Manifold | None = None, feedthrough: bool = False,
 ) -> NonlinearModel:  # fmt: skip
     """Build and check a :class:`NonlinearModel`.
 
     Args:
       f: transition ``f(x, u, t)``: the next state (discrete) or ``dx/dt`` (``continuous``), shape (n,). A plain
         function or a ``jax.tree_util.Partial`` whose bound arguments should be differentiable or batched.
-      h: measurement ``h(x)``, shape (p,) (a function or a ``Partial``).
-      Q: (n, n) positive semidefinite (a covariance, or a spectral density for a continuous ``f``).
-      R: (p, p) positive definite.  x0: (n,) prior mean of ``x_0``.  P0: (n, n) its covariance (default ``Q``).
+      h: measurement ``h(x)`` (``h(x, u)`` with ``feedthrough``), shape (p,) (a function or a ``Partial``).
+      Q: (d, d) positive semidefinite (a covariance, or a spectral density for a continuous ``f``), ``d`` the
+        tangent dimension of ``manifold`` (``n`` without one).
+      R: (r, r) positive definite, ``r`` the tangent dimension of ``measurement_manifold`` (``p`` without one).
+      x0: (n,) prior mean of ``x_0``.  P0: (d, d) its covariance (default ``Q``).
       n_inputs: the number of inputs ``m`` (``u`` has shape (m,)).
       dt: sample period (> 0).  t0: time of the first measurement; step ``k`` predicts from ``t0 + (k-1) dt``.
-      continuous: ``f`` is a time derivative (continuous-discrete filtering).
+      continuous: ``f`` is a time derivative (continuous-discrete filtering; vector states only).
       substeps: fixed integration steps per sample.  method: ``"rk4"`` or ``"euler"``.
+      manifold, measurement_manifold: the :class:`Manifold` of the state and of the measurement (``None``:
+        vectors). The filters then linearise in the tangent spaces, keep means on the manifolds and report
+        innovations, gains and covariances in tangent coordinates.
+      feedthrough: ``h`` takes the input as well, ``y_k = h(x_k, u_{k-1})``.
 
     The outputs of ``f`` and ``h`` are checked once, abstractly (``jax.eval_shape``). All arrays are cast to their
     common floating dtype.
@@ -107,9 +171,13 @@ def nonlinear_model(
     dtype = _checks.float_dtype(Q=Q, R=R, x0=x0, P0=P0, dt=dt, t0=t0)
     _checks.shape("x0", x0, (None,), "the prior mean, one entry per state")
     n = x0.shape[0]
-    _checks.covariance("Q", Q, definite=False, size=n)
+    for name, space in (("manifold", manifold), ("measurement_manifold", measurement_manifold)):
+        if space is not None and not isinstance(space, Manifold):
+            raise ValueError(f"{name} must be a jaxobs.nonlinear.Manifold or None, got {type(space).__name__}")
+    d = n if manifold is None else manifold.dim
+    _checks.covariance("Q", Q, definite=False, size=d)
     _checks.covariance("R", R, definite=True)
-    _checks.covariance("P0", P0, definite=False, size=n)
+    _checks.covariance("P0", P0, definite=False, size=d)
     _checks.finite("x0", x0)
     _checks.positive_scalar("dt", dt)
     dt, t0 = jnp.asarray(dt, dtype), jnp.asarray(t0, dtype)
@@ -121,17 +189,45 @@ def nonlinear_model(
     substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
     if method not in ct.METHODS:
         raise ValueError(f"method must be one of {sorted(ct.METHODS)}, got {method!r}")
-    p = R.shape[0]
+    if continuous and manifold is not None:
+        raise ValueError("continuous=True integrates dx/dt as a vector: a state on a manifold needs a discrete f")
+    feedthrough = _checks.boolean("feedthrough", feedthrough)
     x, u = jnp.zeros((n,), dtype), jnp.zeros((n_inputs,), dtype)
+    _check_manifold("manifold", manifold, x)
     what = "dx/dt" if continuous else "the next state"
     _checks.returns("f(x, u, t)", f, (x, u, t0), (n,), f"{what}, one entry per entry of x0")
-    _checks.returns("h(x)", h, (x,), (p,), "the measurement, one entry per row of R")
+    call, args = ("h(x, u)", (x, u)) if feedthrough else ("h(x)", (x,))
+    if measurement_manifold is None:
+        _checks.returns(call, h, args, (R.shape[0],), "the measurement, one entry per row of R")
+    else:
+        _checks.returns(call, h, args, (None,), "the measurement, a point of measurement_manifold")
+        _check_manifold("measurement_manifold", measurement_manifold, jax.eval_shape(h, *args))
+        if measurement_manifold.dim != R.shape[0]:
+            raise ValueError(f"R must be ({measurement_manifold.dim}, {measurement_manifold.dim}), the tangent "
+                             f"dimension of measurement_manifold, got {R.shape}")  # fmt: skip
     cast = lambda M: M.astype(dtype)
-    return NonlinearModel(f, h, cast(Q), cast(R), cast(x0), cast(P0), dt, t0, n_inputs, continuous, substeps, method)
+    return NonlinearModel(f, h, cast(Q), cast(R), cast(x0), cast(P0), dt, t0, n_inputs, continuous, substeps, method,
+                          manifold, measurement_manifold, feedthrough)  # fmt: skip
+
+
+def _check_manifold(name: str, manifold: Manifold | None, point) -> None:
+    """Check abstractly that ``manifold``'s maps take and return points shaped like ``point`` and tangent vectors of
+    its ``dim``."""
+    if manifold is None:
+        return
+    if point.shape != (manifold.size,):
+        raise ValueError(f"{name} holds points of {manifold.size} entries, got {point.shape} (x0 or h's value)")
+    point = jnp.zeros(point.shape, point.dtype)
+    tangent = jnp.zeros((manifold.dim,), point.dtype)
+    _checks.returns(f"{name}.difference(a, b)", manifold.difference, (point, point), (manifold.dim,),
+                    f"a tangent vector of its dim ({manifold.dim})")  # fmt: skip
+    _checks.returns(f"{name}.retract(b, delta)", manifold.retract, (point, tangent), point.shape,
+                    f"a point shaped like {point.shape}")  # fmt: skip
 
 
 class Linearization(NamedTuple):
-    """``g(x) ~ mean + G (x - m) + e``, ``e ~ N(0, Omega)``, around ``N(m, P)`` (shapes for ``g: (n,) -> (k,)``).
+    """``g(x) ~ mean + G (x - m) + e``, ``e ~ N(0, Omega)``, around ``N(m, P)`` (shapes for ``g: (n,) -> (k,)``; for
+    values on a :class:`Manifold` ``mean`` is a point and ``k`` the tangent dimension, ``+`` its retraction).
 
     ``cross`` and ``cov``, when given, are the moments the linearisation implies, computed directly: a
     sigma-point rule has them without ``G`` (``cross = P G'``, ``cov = G P G' + Omega``); the prediction and the
@@ -145,8 +241,9 @@ class Linearization(NamedTuple):
 
 
 class Linearize(Protocol):
-    def __call__(self, g: Callable, m: jax.Array, P: jax.Array) -> Linearization:
-        """The linearisation of ``g`` around ``N(m, P)``."""
+    def __call__(self, g: Callable, m: jax.Array, P: jax.Array, *, output: Manifold | None = None) -> Linearization:
+        """The linearisation of ``g`` around ``N(m, P)``; with ``output``, ``g``'s values are points of that manifold:
+        the mean is a point, ``G``, ``Omega`` and the moments live on its tangent space at the mean."""
 
 
 class GaussianState(NamedTuple):
@@ -209,9 +306,13 @@ def gaussian_init(model: NonlinearModel) -> GaussianState:
 
 def model_inputs(model: NonlinearModel, inputs):
     """``(y, u)`` of ``EstimatorInputs(y, u_prev)`` checked against the model's sizes (at trace time) and cast to
-    its dtype; ``u`` is an empty (0,) vector for a model without inputs."""
-    p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
-    y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
+    its dtype; ``u`` is an empty (0,) vector for a model without inputs. With a ``measurement_manifold``, ``y`` is
+    a point of it (its ``size`` entries, e.g. 4 per quaternion)."""
+    m, dtype = model.n_inputs, model.x0.dtype
+    p, what = model.R.shape[-1], "one entry per row of R"
+    if model.measurement_manifold is not None:
+        p, what = model.measurement_manifold.size, "a point of measurement_manifold"
+    y = _checks.vector("inputs.y", inputs.y, p, dtype, what=what, check_finite=False)
     if inputs.u_prev is None:
         if m:
             raise ValueError(f"inputs.u_prev is required: the model has n_inputs={m}, got None")
@@ -224,7 +325,7 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t, transition
     """``(m_prior, P_prior, F)``: the a-priori moments of the next sample and the linearised transition ``F``
     (:class:`GaussianOutputs`; continuous-discrete only with ``transition``, else None)."""
     if not model.continuous:
-        lin = linearize(lambda x: model.f(x, u, t), m, P)
+        lin = _linearize(linearize, lambda x: model.f(x, u, t), m, P, model.manifold, model.manifold)
         if lin.cov is not None:
             return lin.mean, lin.cov + model.Q, lin.G
         Q = model.Q if lin.Omega is None else model.Q + lin.Omega
@@ -239,6 +340,50 @@ def _predict(linearize: Linearize, model: NonlinearModel, m, P, u, t, transition
     start = (m, P, jnp.eye(m.shape[-1], dtype=m.dtype)) if transition else (m, P)
     m, P, *Phi = ct.integrate(moments, start, u, t, model.dt, substeps=model.substeps, method=model.method)
     return m, symmetrize(P), Phi[0] if transition else None
+
+
+def _vector(model: NonlinearModel) -> bool:
+    return model.manifold is None and model.measurement_manifold is None
+
+
+def _linearize(linearize: Linearize, g: Callable, m, P, space_in, space_out) -> Linearization:
+    """The linearisation of ``g`` around ``N(m, P)`` in tangent coordinates: that of ``delta -> g(m + delta)``
+    (``space_in``'s retraction) around ``N(0, P)``, with its mean a point of ``space_out`` and ``G``, ``Omega`` and
+    the moments on that space's tangent space; two vector spaces (``None``) give the plain linearisation."""
+    if space_in is None and space_out is None:
+        return linearize(g, m, P)
+    if space_in is None:
+        return linearize(g, m, P, output=space_out)
+    on_tangent = lambda delta: g(space_in.retract(m, delta))  # noqa: E731
+    return linearize(on_tangent, jnp.zeros((space_in.dim,), m.dtype), P, output=space_out)
+
+
+def residual(manifold: Manifold | None, y, y_bar):
+    """``y - y_bar`` on ``manifold`` (a measurement's innovation), NaN on the tangent entries of a missing
+    (non-finite) component of ``y``; a missing component is replaced by ``y_bar`` before the difference, so no NaN
+    reaches a derivative."""
+    if manifold is None:
+        return y - y_bar
+    e = manifold.difference(jnp.where(jnp.isfinite(y), y, y_bar), y_bar)
+    missing = ~jnp.isfinite(jax.lax.stop_gradient(manifold.difference(y, y_bar)))
+    return jnp.where(missing, jnp.nan, e)
+
+
+def _update_problem(model: NonlinearModel, y, lin: Linearization, m_prior, x, *, first: bool):
+    """``(x_in, y_in, predicted)``, the arguments of the Kalman update around the iterate ``x`` (the prior mean at
+    the first iteration). Vectors: the prior mean, ``y`` and ``h_bar = h(x) + G (m_prior - x)``. On manifolds the
+    update runs in the tangent space at the prior mean: 0, ``y - h(x)`` (:func:`residual`) and ``G (m_prior - x)``.
+    """
+    if _vector(model):
+        return m_prior, y, lin.mean if first else lin.mean + lin.G @ (m_prior - x)
+    y_in = residual(model.measurement_manifold, y, lin.mean)
+    predicted = jnp.zeros_like(y_in) if first else lin.G @ difference(model.manifold, m_prior, x)
+    return jnp.zeros((lin.G.shape[-1],), m_prior.dtype), y_in, predicted
+
+
+def _posterior_mean(model: NonlinearModel, m_prior, x_out):
+    """The a-posteriori mean from the update's: itself for vectors, else the prior mean moved by the correction."""
+    return x_out if _vector(model) else retract(model.manifold, m_prior, x_out)
 
 
 def gaussian_step(
@@ -267,42 +412,48 @@ def gaussian_step(
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
     t = jnp.where(first, state.t, state.t + model.dt)
     x, P = m_prior, P_prior
-    first_update, gated = None, jnp.zeros((), jnp.int32)
+    first_update, gated, accepted = None, jnp.zeros((), jnp.int32), None
     for i in range(iterations):
-        lin = linearize(model.h, x, P)
-        h_bar = lin.mean if i == 0 else lin.mean + lin.G @ (m_prior - x)
+        lin = _linearize(linearize, model.measure(u), x, P, model.manifold, model.measurement_manifold)
+        x_in, y_in, predicted = _update_problem(model, y, lin, m_prior, x, first=i == 0)
         R = model.R if lin.Omega is None else model.R + lin.Omega
         if i == 0 and gate is not None:
-            accepted = innovation_gate(y - h_bar, lin.G, P_prior, R, gate)
-            gated = jnp.sum(jnp.isfinite(y) & ~accepted).astype(jnp.int32)
-            y = jnp.where(accepted, y, jnp.nan)
+            accepted = innovation_gate(y_in - predicted, lin.G, P_prior, R, gate)
+            gated = jnp.sum(jnp.isfinite(y_in) & ~accepted).astype(jnp.int32)
+        if accepted is not None:  # a gated component stays out of every iteration
+            y_in = jnp.where(accepted, y_in, jnp.nan)
         if bierman:
-            result = bierman_update(m_prior, P_prior, lin.G, R, y, predicted=h_bar)
+            result = bierman_update(x_in, P_prior, lin.G, R, y_in, predicted=predicted)
         elif lin.cov is not None and not joseph and iterations == 1:
-            result = moment_update(m_prior, P_prior, lin.cross, lin.cov, model.R, y, h_bar)
+            result = moment_update(x_in, P_prior, lin.cross, lin.cov, model.R, y_in, predicted)
         else:
-            result = update(m_prior, P_prior, lin.G, R, y, joseph=joseph, predicted=h_bar)
-        x, P = result.x, result.P
+            result = update(x_in, P_prior, lin.G, R, y_in, joseph=joseph, predicted=predicted)
+        x, P = _posterior_mean(model, m_prior, result.x), result.P
         if first_update is None:  # the innovation and its density around the prior, y_k - h_bar(m_prior)
             first_update = result
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = GaussianState(x, P, t, jnp.ones((), bool), missing, state.gated + gated)
     covariances = (None, None)
     if output_covariance:
-        covariances = (P_prior, jnp.where(first, jnp.eye(x.shape[-1], dtype=x.dtype), F))
+        covariances = (P_prior, jnp.where(first, jnp.eye(P.shape[-1], dtype=P.dtype), F))
     outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
                               *covariances, first_update.S)  # fmt: skip
     return new_state, outputs
 
 
 def check_discrete_model(model, what: str) -> None:
-    """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state), as the
-    Monte-Carlo filters, which draw the transition, need; ``what`` names the filter in the message."""
+    """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state) on vector
+    states and measurements without feedthrough, as the Monte-Carlo filters, which draw the transition, need;
+    ``what`` names the filter in the message."""
     if not isinstance(model, NonlinearModel):
         raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
     if model.continuous:
         raise ValueError(f"model is continuous-time: {what} draws a discrete-time transition; build the model with "
                          "continuous=False (f the next state)")  # fmt: skip
+    for field in ("manifold", "measurement_manifold", "feedthrough"):
+        if getattr(model, field):
+            raise ValueError(f"model has a {field}: {what} works on vector states and measurements h(x); the EKF and "
+                             "UKF take manifolds and feedthrough")  # fmt: skip
 
 
 def gaussian_factor(cov):

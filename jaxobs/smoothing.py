@@ -20,6 +20,7 @@ import numpy as np
 from jaxobs import _checks
 from jaxobs._linalg import solve_spd, symmetrize
 from jaxobs.kalman_steps import observed, observed_model, predict_covariance, update
+from jaxobs.nonlinear import Manifold, difference, retract
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
 from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter, step_model
 
@@ -72,7 +73,7 @@ def _smoother_combine(earlier: _SmootherElement, later: _SmootherElement) -> _Sm
     return _SmootherElement(E, g, symmetrize(earlier.E @ later.L @ earlier.E.T + earlier.L))
 
 
-def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
+def rts_smoother(Phi, filtered, *, parallel: bool = False, manifold: Manifold | None = None) -> Smoothed:
     """Rauch-Tung-Striebel smoother of a filtered record.
 
     With a time-varying ``Phi`` it is the Gaussian RTS smoother of a nonlinear filter (Särkkä 2013, ch. 9-10;
@@ -88,10 +89,17 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
         ``output_covariance=True`` (:func:`smooth` does both).
       parallel: combine the samples with ``jax.lax.associative_scan`` (depth ``O(log T)``) instead of
         ``jax.lax.scan``; same result to rounding.
+      manifold: the state's :class:`~jaxobs.nonlinear.Manifold` (``None``: a vector state): the means are its
+        points, ``P``, ``P_prior`` and ``Phi`` live on its tangent space (``d`` in place of ``n``), and
+        ``x_{k|T-1} = x_k + E_k (x_{k+1|T-1} - x_prior_{k+1})`` with its ``retract`` and ``difference``
+        (sequential only).
 
     Returns:
       :class:`Smoothed`. Differentiable; works under ``jit`` and ``vmap``.
     """
+    if manifold is not None and parallel:
+        raise ValueError("parallel=True combines affine maps of a vector state; smooth a state on a manifold "
+                         "sequentially (parallel=False)")  # fmt: skip
     x, P, x_prior, P_prior = (getattr(filtered, name, None) for name in ("x", "P", "x_prior", "P_prior"))
     if P is None or P_prior is None:
         raise ValueError("filtered has no covariances P, P_prior: run the filter with output_covariance=True "
@@ -100,18 +108,19 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     T, n = x.shape
     if T == 0:
         raise ValueError("filtered has no samples: give at least one (its x has shape (T, n))")
-    _checks.shape("filtered.P", P, (T, n, n), "(T, n, n) a-posteriori covariances")
+    d = n if manifold is None else manifold.dim
+    _checks.shape("filtered.P", P, (T, d, d), "(T, d, d) a-posteriori covariances (d: the state's tangent size)")
     _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
-    _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
+    _checks.shape("filtered.P_prior", P_prior, (T, d, d), "(T, d, d) a-priori covariances")
     if np.ndim(Phi) == 3:
-        _checks.shape("Phi", Phi, (T, n, n), "(T, n, n) transitions, Phi[k] from sample k - 1 to k")
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True, batch=np.ndim(Phi) == 3)
-    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
+        _checks.shape("Phi", Phi, (T, d, d), "(T, d, d) transitions, Phi[k] from sample k - 1 to k")
+    _checks.matrix("Phi", Phi, shape=(d, d), square=True, batch=np.ndim(Phi) == 3)
+    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, manifold, parallel=bool(parallel))
 
 
 @partial(jax.jit, static_argnames=("parallel",))
-def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
-    n = x.shape[-1]
+def _rts(Phi, x, P, x_prior, P_prior, manifold, *, parallel: bool) -> Smoothed:
+    n = P.shape[-1]
     varying = Phi.ndim == 3
     if parallel:
         elements = jax.vmap(_smoother_element, (0 if varying else None, 0, 0, 0, 0))(
@@ -127,21 +136,22 @@ def _rts(Phi, x, P, x_prior, P_prior, *, parallel: bool) -> Smoothed:
     # the sequential recursion in its classic form, 2 n^3 per sample (the elements' form costs twice that):
     # x_{k|T} = x_k + E_k (x_{k+1|T} - x_prior_{k+1}),  P_{k|T} = P_k + E_k (P_{k+1|T} - P_prior_{k+1}) E_k'
     # The scan runs over the whole records (slicing them and joining the last sample back costs a copy of each
-    # (T, n, n) array, benchmarks/estimation.py, smooth): at the last
-    # sample the carry holds a "later" sample equal to its own prediction (x = x_prior = 0, P = P_prior = I), so
-    # the correction is exactly zero and the smoothed moments are the filtered ones.
+    # (T, n, n) array, benchmarks/estimation.py, smooth): at the last sample the carry holds a "later" sample equal
+    # to its own prediction, so the correction is exactly zero and the smoothed moments are the filtered ones.
     # A time-varying Phi is read shifted by one sample, Phi[k + 1] next to sample k (the last one unused).
     def body(later, sample):
         x_later, P_later, x_prior_next, P_prior_next = later
         x_k, P_k, x_prior_k, P_prior_k, *Phi_next = sample
         E_k, E_k_t = _smoother_gain(Phi_next[0] if varying else Phi, P_k, P_prior_next)
-        x_smoothed = x_k + E_k @ (x_later - x_prior_next)
+        x_smoothed = retract(manifold, x_k, E_k @ difference(manifold, x_later, x_prior_next))
         P_smoothed = symmetrize(P_k + E_k @ (P_later - P_prior_next) @ E_k_t)
         return (x_smoothed, P_smoothed, x_prior_k, P_prior_k), (x_smoothed, P_smoothed, E_k)
 
-    zero, unit = jnp.zeros((n,), x.dtype), jnp.eye(n, dtype=x.dtype)
+    # the "later" sample of the last one equals its own prediction: x_later = x_prior_next (any point; the last
+    # filtered mean, a valid point of a manifold), P_later = P_prior_next = I, so its correction is exactly zero
+    unit = jnp.eye(n, dtype=x.dtype)
     samples = (x, P, x_prior, P_prior, *((jnp.roll(Phi, -1, axis=0),) if varying else ()))
-    _, (xs, Ps, E) = jax.lax.scan(body, (zero, unit, zero, unit), samples, reverse=True)
+    _, (xs, Ps, E) = jax.lax.scan(body, (x[-1], unit, x[-1], unit), samples, reverse=True)
     return Smoothed(xs, Ps, E.at[-1].set(0.0))
 
 
@@ -301,7 +311,8 @@ def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: b
     For the nonlinear filters this is the extended RTS smoother (Särkkä 2013, ch. 9: the transition's Jacobian
     at each filtered mean) or the unscented RTS smoother (Särkkä 2008: the sigma points' cross-covariance,
     through their regression matrix), with the filter's own linearisations (its ``transition`` outputs), so
-    missing and gated measurements, iterated updates and continuous-discrete models need nothing more.
+    missing and gated measurements, iterated updates and continuous-discrete models need nothing more. A state on a
+    :class:`~jaxobs.nonlinear.Manifold` (the model's ``manifold``) is smoothed on it (:func:`rts_smoother`).
 
     Args:
       estimator: a Kalman-type estimator whose params have an ``output_covariance`` switch and a time-varying
@@ -336,7 +347,8 @@ def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: b
         Phi = params.Phi
         if hasattr(params, "model_fields"):  # a Kalman filter's time-varying model: Phi_k of every sample
             Phi = _step_models(params, getattr(inputs, "model", None), jnp.shape(inputs.y)[0]).get("Phi", Phi)
-    return filtered, rts_smoother(Phi, filtered, parallel=parallel)
+    manifold = getattr(getattr(params, "model", None), "manifold", None)  # a nonlinear model's state space
+    return filtered, rts_smoother(Phi, filtered, parallel=parallel, manifold=manifold)
 
 
 def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):

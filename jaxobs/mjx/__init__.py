@@ -3,6 +3,7 @@
 ``force_1dof``: the 1-DOF robot force-control plant of Cortesão 2006 §7 (``rollout``, ``closed_loop_rollout``).
 ``compliant_6dof``: the 6-DOF compliant-motion plant and peg-on-hole scenario of the MRAC chapter §7.
 ``estimation``: MJX models as the nonlinear models of the EKF and UKF; the shipped cart-pole with sensors.
+``manifold``: the state ``(qpos, qvel, act)`` and the sensors' readings with errors in the tangent space.
 ``robot``: your own robot from any MJCF (``make_robot``, ``linearize``, ``mismatch``, ``rollout``).
 ``common``: the parts the plants share (device placement, initial data, the dead-time FIFO, input series).
 
@@ -23,7 +24,7 @@ with contextlib.redirect_stdout(io.StringIO()) as _printed:
     import mujoco.mjx  # noqa: F401
 sys.stdout.write("".join(line + "\n" for line in _printed.getvalue().splitlines() if not _WARP_ABSENT.match(line)))
 
-from jaxobs.mjx import common, compliant_6dof, estimation, robot  # noqa: E402 (after the quiet import)
+from jaxobs.mjx import common, compliant_6dof, estimation, manifold, robot  # noqa: E402 (after the quiet import)
 from jaxobs.mjx.force_1dof import (  # noqa: E402
     CONTROL_PERIOD,
     SUBSTEPS,
@@ -41,6 +42,7 @@ __all__ = [
     "common",
     "compliant_6dof",
     "estimation",
+    "manifold",
     "robot",
     "CONTROL_PERIOD",
     "SUBSTEPS",

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
+from jaxobs.nonlinear import GaussianState, Linearization, Manifold, NonlinearModel, gaussian_init, gaussian_step
 from jaxobs.observers.base import Estimator, EstimatorInputs
 
 __all__ = ["EKFParams", "make_ekf", "extended_kalman_filter", "taylor"]
@@ -80,20 +80,24 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
     return EKFParams(model, iterations, bierman, gate, joseph)
 
 
-def taylor(g, m, P) -> Linearization:
+def taylor(g, m, P, *, output: Manifold | None = None) -> Linearization:
     """First-order Taylor linearisation of ``g`` at ``m``: ``(g(m), dg/dx (m), None)``; one forward-mode pass
-    evaluates ``g`` and its Jacobian together. ``P`` is unused."""
+    evaluates ``g`` and its Jacobian together. ``P`` is unused. With ``output`` (the :class:`~jaxobs.nonlinear.Manifold`
+    of ``g``'s values) the Jacobian is that of ``output.difference(g(x), g(m))``, on the tangent space at ``g(m)``."""
     del P
 
     def value_twice(x):
         value = g(x)
-        return value, value
+        if output is None:
+            return value, value
+        # at x = m the reference equals the value, so this is d/dx (g(x) - g(m)) on the tangent space at g(m)
+        return output.difference(value, jax.lax.stop_gradient(value)), value
 
     G, mean = jax.jacfwd(value_twice, has_aux=True)(m)
     # jacfwd stacks the Jacobian's columns; without the barrier XLA folds that transpose into the products
     # F P F' and H P, whose transposed operands its CPU backend multiplies by a slower kernel
     # (benchmarks/estimation.py)
-    G = jax.lax.optimization_barrier(jnp.reshape(G, (mean.shape[0], m.shape[0])))
+    G = jax.lax.optimization_barrier(jnp.reshape(G, (G.shape[0], m.shape[0])))
     return Linearization(mean, G, None)
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs._linalg import cho_solve, cholesky, symmetrize
-from jaxobs.nonlinear import GaussianState, Linearization, NonlinearModel, gaussian_init, gaussian_step
+from jaxobs.nonlinear import GaussianState, Linearization, Manifold, NonlinearModel, gaussian_init, gaussian_step
 from jaxobs.observers.base import Estimator, EstimatorInputs
 
 __all__ = [
@@ -32,6 +32,8 @@ __all__ = [
     "unscented",
     "RULES",
     "UNSCENTED_DEFAULTS",
+    "MEAN_ITERATIONS",
+    "manifold_mean",
 ]
 
 RULES = ("unscented", "cubature", "gauss_hermite")
@@ -39,6 +41,9 @@ RULES = ("unscented", "cubature", "gauss_hermite")
 
 UNSCENTED_DEFAULTS = (1.0, 2.0, 0.0)
 """The unscented rule's default ``(alpha, beta, kappa)``."""
+
+MEAN_ITERATIONS = 3
+"""Gauss-Newton steps of the mean of sigma points on a manifold (:func:`manifold_mean`)."""
 
 
 @jax.tree_util.register_dataclass
@@ -179,22 +184,42 @@ def sigma_points(m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented
     return m + offsets, wm, wc, L
 
 
-def unscented(g, m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented", order: int = 3) -> Linearization:
+def unscented(g, m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented", order: int = 3,
+              output: Manifold | None = None) -> Linearization:  # fmt: skip
     """Statistical linear regression of ``g`` on the sigma points of ``N(m, P)`` by any rule of
-    :func:`sigma_points`: ``(g_bar, C' P^{-1}, Cov - G C)`` (Särkkä 2013, §5.6)."""
+    :func:`sigma_points`: ``(g_bar, C' P^{-1}, Cov - G C)`` (Särkkä 2013, §5.6). With ``output`` (the
+    :class:`~jaxobs.nonlinear.Manifold` of ``g``'s values) ``g_bar`` is their weighted mean on the manifold
+    (:func:`manifold_mean`) and the deviations from it are tangent vectors."""
     X, wm, wc, L = sigma_points(m, P, alpha, beta, kappa, rule=rule, order=order)
     Y = jax.vmap(g)(X)
-    mean = wm @ Y
-    dX, dY = X - m, Y - mean
+    if output is None:
+        mean = wm @ Y
+        dY = Y - mean
+    else:
+        mean = manifold_mean(output, Y, wm, Y[0] if rule == "unscented" else g(m))
+        dY = jax.vmap(output.difference, (0, None))(Y, mean)
+    dX = X - m
     C = (wc[:, None] * dX).T @ dY  # (n, k) cross-covariance
     cov = (wc[:, None] * dY).T @ dY  # (k, k)
     G = cho_solve(L, C).T
     return Linearization(mean, G, symmetrize(cov - G @ C), C, symmetrize(cov))
 
 
+def manifold_mean(manifold: Manifold, Y, w, reference, iterations: int = MEAN_ITERATIONS):
+    """The weighted mean of the points ``Y`` (N, k) of ``manifold`` with weights ``w`` (N,) summing to 1: from
+    ``reference``, ``iterations`` Gauss-Newton steps ``mean <- mean + sum_i w_i (Y_i - mean)`` (``+`` and ``-`` the
+    manifold's ``retract`` and ``difference``; the weighted Karcher mean, Pennec 2006). For points a sigma-point
+    spread apart the steps contract quickly; a fixed count keeps the step traceable."""
+    mean = reference
+    for _ in range(iterations):
+        mean = manifold.retract(mean, w @ jax.vmap(manifold.difference, (0, None))(Y, mean))
+    return mean
+
+
 def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
-    def linearize(g, m, P):
-        return unscented(g, m, P, params.alpha, params.beta, params.kappa, rule=params.rule, order=params.order)
+    def linearize(g, m, P, output=None):
+        return unscented(g, m, P, params.alpha, params.beta, params.kappa, rule=params.rule, order=params.order,
+                         output=output)  # fmt: skip
 
     return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph,
                          output_covariance=params.output_covariance)  # fmt: skip

@@ -1,16 +1,20 @@
 """Tuning the Kalman filter of an LQG controller against MJX rollouts of your own robot (any MJCF).
 
-The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF with its actuators, sensors, control period,
-dead time and sensor noise; the controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the
-model linearised about the operating point; with ``design.observer = "aob"`` the filter is an AOB-1 whose active
+The robot (:func:`jaxobs.mjx.robot.make_robot`) is the config's MJCF (any model MJX can simulate: floating bases,
+muscles, sensors of every stage) with its actuators, sensors, control period, dead time and sensor noise; the
+controller (steady-state Kalman filter, LQR, reference pre-gain) is designed on the model linearised about the
+operating point in the state's tangent space; with ``design.observer = "aob"`` the filter is an AOB-1 whose active
 state (an equivalent input disturbance per actuator) the feedback cancels (Cortesão 2006 eq. 49-50). Tuned: the
 filter's noise covariances, as log diagonals (``design.parameterisation = "diagonal"``) or as full Cholesky factors
 of ``Q`` over every filter state and of ``R`` (``"cholesky"``); the loss is the error against the desired closed
 loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
-``cartpole_payload.xml`` (a shipped robot) with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
+``cartpole_payload.xml`` (a shipped robot) with ``tuning/cartpole_payload.toml``; a floating base and a muscle arm:
+``tuning/free_flyer.toml``, ``tuning/muscle_arm.toml``. Details: docs/theory/papers.md.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -50,6 +54,7 @@ DEFAULT_CONFIG = {
         "sensor_noise": [0.002, 0.005],
         "qpos0": [],
         "ctrl0": [],
+        "act0": [],
         "solver_iterations": 4,
     },
     "plants": {"train": 8, "heldout": 32, "mismatch": {"body_mass[payload]": [0.25, 2.0]}},
@@ -78,15 +83,20 @@ DEFAULT_CONFIG = {
 CONFIG_NOTES = {
     "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
     "robot.mjcf": "path of the MJCF file: relative to the config file's directory (the current directory without "
-    "one), or the name of a shipped robot (cartpole_payload.xml, arm_on_table.xml)",
+    "one), or the name of a shipped robot (cartpole_payload.xml, arm_on_table.xml, free_flyer.xml, muscle_arm.xml)",
     "robot.actuators": "names of the actuators the controller drives",
-    "robot.sensors": "names of the sensors it measures (position or velocity stage)",
+    "robot.sensors": "names of the sensors it measures (any stage: an accelerometer or a force sensor reads the "
+    "command acting when it is sampled; a framequat or ballquat reading counts 3 entries, its rotation)",
     "robot.substeps": "physics steps per control period",
     "robot.dead_time": "command dead time in control periods",
-    "robot.sensor_noise": "standard deviation of the true sensors' noise, one per measured sensordata entry",
-    "robot.qpos0": "operating point (qpos) to linearise about and regulate around; empty: the model's qpos0",
+    "robot.sensor_noise": "standard deviation of the true sensors' noise, one per measured entry; empty: each "
+    "sensor's noise attribute in the MJCF",
+    "robot.qpos0": "operating point (qpos, quaternions of free and ball joints included) to linearise about and "
+    "regulate around; empty: the model's qpos0",
     "robot.ctrl0": "operating-point control of every actuator; empty: zero (a qpos0 that gravity or a spring moves "
     "needs the control that holds it: jaxobs.mjx.robot.holding_ctrl)",
+    "robot.act0": "operating-point actuator activations (muscles, filtered actuators); empty: those ctrl0 holds at "
+    "rest (jaxobs.mjx.robot.steady_activation)",
     "robot.solver_iterations": "constraint-solver iterations per physics step of a model with contacts, limits or "
     "equalities (a fixed loop that reverse mode differentiates); 0: MJX's solver to its tolerance (forward mode only)",
     "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
@@ -96,22 +106,26 @@ CONFIG_NOTES = {
     "plants.mismatch.body_mass[payload]": "factor on the mass of the body 'payload' (the shipped example's)",
     "scenario": "the rollout every plant runs, and its loss",
     "scenario.duration": "rollout length (s)",
-    "scenario.tracked": "sensors (one per actuator) whose values follow the reference",
-    "scenario.reference": "set-point of the tracked sensors (deviation from the operating point), from t = 0",
+    "scenario.tracked": "sensors whose entries follow the reference: one entry per actuator in all (a 3-D sensor "
+    "tracks three)",
+    "scenario.reference": "set-point of each tracked entry (deviation from the operating point), from t = 0",
     "scenario.output_weights": "loss weight of each measured entry's squared error to the desired closed loop's",
     "scenario.input_weight": "loss weight of the squared command",
-    "scenario.state_limit": "a rollout whose (qpos, qvel) leaves the operating point by more counts as diverged",
+    "scenario.state_limit": "a rollout whose state leaves the operating point by more (any entry of its tangent "
+    "deviation: positions, rotations, velocities, activations) counts as diverged",
     "design": "the observer-based controller on the linearised nominal model; the filter's Q and R are tuned",
     "design.observer": "'kalman' (the LQG) or 'aob' (an AOB-1: an active state per actuator, cancelled by the "
     "feedback)",
     "design.parameterisation": "'diagonal' (log variances of q, q_active and R) or 'cholesky' (full Q over every "
     "filter state, dead-time and active states included, and full R)",
-    "design.q": "hand-set process noise variances of (qpos, qvel) (R starts at sensor_noise^2)",
-    "design.q_input": "process noise variance of the commands in flight (dead-time states), one per actuator: an "
-    "input disturbance; empty: 0 (exact commands; the cholesky parameterisation needs > 0 with a dead time)",
+    "design.q": "hand-set process noise variances of the state's tangent entries: nv positions (a free joint's "
+    "3 positions and 3 rotations), nv velocities, na activations (R starts at sensor_noise^2)",
+    "design.q_input": "process noise variance of the commands in flight (dead-time states, and the command an "
+    "acceleration-stage sensor reads), one per actuator: an input disturbance; empty: 0 (exact commands; the "
+    "cholesky parameterisation needs > 0 with such states)",
     "design.q_active": "hand-set variance of the active state's increment per control period, one per actuator (AOB)",
-    "design.lqr_state": "LQR state weights: one per qpos and qvel entry (the commands in flight weighted 0), or one "
-    "per state of the linearised model (qpos, qvel, then the dead-time commands, oldest first: the count "
+    "design.lqr_state": "LQR state weights: one per tangent entry of the state (as design.q; the commands in flight "
+    "weighted 0), or one per state of the linearised model (then the commands in flight, oldest first: the count "
     "jaxobs.design.dlqr takes)",
     "design.lqr_input": "LQR input weights, one per actuator",
 }
@@ -137,8 +151,9 @@ def _check(config: dict, source: str) -> None:
                 f"must be a range [low, high] of factors, 0 < low <= high, got {bounds}",
             )
     n_act = len(rb["actuators"])
-    if len(sc["tracked"]) != n_act or len(sc["reference"]) != n_act:
-        fail(source, "scenario.tracked", f"needs one tracked sensor and one reference per actuator ({n_act})")
+    if not 0 < len(sc["tracked"]) <= n_act or len(sc["reference"]) != n_act:
+        fail(source, "scenario.tracked", f"needs tracked sensors with one entry and one reference per actuator "
+             f"({n_act})")  # fmt: skip
     if not set(sc["tracked"]) <= set(rb["sensors"]):
         fail(source, "scenario.tracked", f"must name measured sensors ({', '.join(rb['sensors'])})")
     if len(d["lqr_input"]) != n_act:
@@ -152,6 +167,7 @@ def _check(config: dict, source: str) -> None:
         if any(v < 0 or (v == 0 and key == "q_active") for v in d[key]):
             fail(source, f"design.{key}", f"variances {lowest}")
     if d["parameterisation"] == "cholesky" and rb["dead_time"] and not all(v > 0 for v in d["q_input"] or [0]):
+        # (a measured acceleration-stage sensor adds a command state too: build_problem checks that with the model)
         fail(source, "design.q_input", "the cholesky parameterisation needs a positive variance per actuator for "
              "the dead-time states (a full Q must be positive definite)")  # fmt: skip
     for key in ("design.q", "design.lqr_input", "robot.sensor_noise"):
@@ -174,8 +190,8 @@ def _robot(config: dict):
     from jaxobs.mjx.robot import make_robot
 
     rb = config["robot"]
-    timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"]}
-    point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None}
+    timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"] or None}
+    point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None, "act0": rb["act0"] or None}
     return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point,
                       solver_iterations=rb["solver_iterations"] or None)  # fmt: skip
 
@@ -184,14 +200,90 @@ def _check_differentiable(robot, config: dict, theta0: dict) -> None:
     """Refuse, before anything is compiled, a model whose constraint solver reverse mode cannot differentiate."""
     from jaxobs.mjx.common import constraint_rows, initial_data
 
-    if robot.solver_iterations is None and gradient_mode(settings(config), theta0) == "reverse":
-        rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
-        if rows:
-            raise ValueError(
-                f"robot.solver_iterations: the model has {rows} constraint rows (contacts, joint limits, equalities), "
-                "whose solver loop reverse mode cannot differentiate; set robot.solver_iterations >= 1 (e.g. 4) or "
-                "optimizer.gradient = 'forward'"
-            )
+    if gradient_mode(settings(config), theta0) != "reverse":
+        return
+    rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
+    if rows and robot.solver_iterations is None:
+        raise ValueError(
+            f"robot.solver_iterations: the model has {rows} constraint rows (contacts, joint limits, equalities), "
+            "whose solver loop reverse mode cannot differentiate; set robot.solver_iterations >= 1 (e.g. 4) or "
+            "optimizer.gradient = 'forward'"
+        )
+    if rows and robot.feedthrough:
+        raise ValueError(
+            f"robot.sensors: an acceleration-stage sensor on a model with {rows} constraint rows is read after MJX's "
+            "constraint solve to its tolerance, a loop reverse mode cannot differentiate; set optimizer.gradient = "
+            "'forward' (or measure position- and velocity-stage sensors)"
+        )
+
+
+def _check_sizes(robot, config: dict) -> int:
+    """``ValueError`` naming the key whose length does not fit ``robot`` (``scenario.output_weights``, ``design.q``,
+    ``design.lqr_state``, ``design.q_input``) or a measured entry without noise; returns the command slots of the
+    linearised model (commands in flight, and the one a feedthrough sensor reads)."""
+    d = config["design"]
+    n_x, p, m = robot.state_manifold.dim, robot.sensor_manifold.dim, len(robot.actuators)
+    slots = robot.dead_time + int(robot.feedthrough)
+    n = n_x + slots * m
+    what_x = "tangent entry of the state (nv positions, nv velocities, na activations)"
+    if n_x == robot.qpos0.shape[0] + robot.qvel0.shape[0]:
+        what_x = "qpos and qvel entry"
+    for key, size, what in (("scenario.output_weights", p, "measured entry"), ("design.q", n_x, what_x)):
+        section, name = key.split(".")
+        if len(config[section][name]) != size:
+            raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
+    if len(d["lqr_state"]) not in (n_x, n):
+        state = "qpos, qvel" if what_x == "qpos and qvel entry" else "the state"
+        raise ValueError(f"design.lqr_state: needs one weight per {what_x} ({n_x}) or per state of the linearised "
+                         f"model ({n}: {state}, then {slots} x {m} commands in flight), got "
+                         f"{len(d['lqr_state'])}")  # fmt: skip
+    if d["parameterisation"] == "cholesky" and slots and not all(v > 0 for v in d["q_input"] or [0]):
+        raise ValueError("design.q_input: the cholesky parameterisation needs a positive variance per actuator for the "
+                         "command states (a full Q must be positive definite)")  # fmt: skip
+    if not np.all(np.asarray(robot.sensor_noise) > 0):
+        raise ValueError("robot.sensor_noise: every measured entry needs a positive noise (the filter's R starts at "
+                         f"its square); got {np.asarray(robot.sensor_noise).tolist()}")  # fmt: skip
+    return slots
+
+
+def _sample_plants(config: dict, which: str) -> dict:
+    """The ``which`` ("train" or "heldout") plants: ``{"scales": {field: (count,)}, "key": (count,) keys}``, drawn
+    uniformly in the mismatch ranges from a key of their own."""
+    key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+    count, ranges = config["plants"][which], config["plants"]["mismatch"]
+    keys = jax.random.split(key, len(ranges) + 1)
+    scales = {k: jax.random.uniform(kk, (count,), minval=lo, maxval=hi)
+              for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
+    return {"scales": scales, "key": jax.random.split(keys[0], count)}
+
+
+def _responses(robot, config: dict, traces, desired, rows, theta, plants) -> dict:
+    """The held-out responses of the design ``theta`` for ``jaxobs tune``'s figure: ``traces(theta, plants)`` (the
+    measured deviations) against the ``desired`` closed loop, the tracked ``rows``' set-points, a label per plant."""
+    setpoint = np.full(desired.shape[1], np.nan)
+    setpoint[rows] = config["scenario"]["reference"]
+    return {
+        "t": robot.period * np.arange(desired.shape[0]),
+        "output": traces(theta, plants),
+        "desired": desired,
+        "labels": [
+            ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items()) for i in range(len(plants["key"]))
+        ],
+        "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
+        "setpoint": setpoint,
+    }
+
+
+def _describe(covariances, controller, theta) -> dict:
+    """The design ``theta`` as ``tuned.json`` shows it: ``Q`` and ``R`` (their diagonals when diagonal) and the
+    filter's gain."""
+    Q, R = (np.asarray(a) for a in covariances(theta))
+    full = "q_cholesky" in theta
+    return {
+        ("Q" if full else "Q_diagonal"): (Q if full else np.diagonal(Q)).tolist(),
+        ("R" if full else "R_diagonal"): (R if full else np.diagonal(R)).tolist(),
+        "kalman_gain": np.asarray(controller(theta).estimator.gain).tolist(),
+    }
 
 
 def build_problem(config: dict) -> TuningProblem:
@@ -202,21 +294,11 @@ def build_problem(config: dict) -> TuningProblem:
 
     robot = _robot(config)
     sc, d = config["scenario"], config["design"]
-    n_x, p, m = robot.qpos0.shape[0] + robot.qvel0.shape[0], len(robot.sensors), len(robot.actuators)
-    n = n_x + robot.dead_time * m
-    for key, size, what in (("scenario.output_weights", p, "measured sensordata entry"),
-                            ("design.q", n_x, "qpos and qvel entry")):  # fmt: skip
-        section, name = key.split(".")
-        if len(config[section][name]) != size:
-            raise ValueError(f"{key}: needs one value per {what} ({size}), got {len(config[section][name])}")
-    if len(d["lqr_state"]) not in (n_x, n):
-        raise ValueError(f"design.lqr_state: needs one weight per qpos and qvel entry ({n_x}) or per state of the "
-                         f"linearised model ({n}: qpos, qvel, then {robot.dead_time} x {m} commands in flight), got "
-                         f"{len(d['lqr_state'])}")  # fmt: skip
+    slots, m = _check_sizes(robot, config), len(robot.actuators)
+    n = robot.state_manifold.dim + slots * m
     aob = d["observer"] == "aob"
-    q_input = jnp.tile(jnp.asarray(d["q_input"] or [0.0] * m, float), robot.dead_time)
-    hand_set = {"log_q": jnp.log(jnp.asarray(d["q"], float)),
-                "log_r": jnp.log(jnp.asarray(config["robot"]["sensor_noise"], float) ** 2)}  # fmt: skip
+    q_input = jnp.tile(jnp.asarray(d["q_input"] or [0.0] * m, float), slots)
+    hand_set = {"log_q": jnp.log(jnp.asarray(d["q"], float)), "log_r": jnp.log(robot.sensor_noise**2)}
     if aob:
         hand_set["log_q_active"] = jnp.log(jnp.asarray(d["q_active"], float))
 
@@ -232,18 +314,20 @@ def build_problem(config: dict) -> TuningProblem:
         Q0, R0 = covariances(hand_set)
         theta0 = {"q_cholesky": cholesky_parameters(Q0), "r_cholesky": cholesky_parameters(R0)}
     _check_differentiable(robot, config, theta0)
+    rows = _tracked_rows(robot, config)
+    if len(rows) != m:
+        raise ValueError(f"scenario.tracked: the tracked sensors have {len(rows)} entries; the reference gain needs "
+                         f"one per actuator ({m})")  # fmt: skip
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
     lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
     L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
-    rows = _tracked_rows(robot, config)
     N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
     steps = max(1, int(round(sc["duration"] / robot.period)))
     reference = jnp.broadcast_to(jnp.asarray(sc["reference"], float), (steps, len(rows)))
     desired = ideal_response(lin, L, reference @ N.T)  # (steps, p): the LQR with the true state, nominal model
     weights = jnp.asarray(sc["output_weights"], float)
-    x_op = jnp.concatenate([robot.qpos0, robot.qvel0])
     estimator_controller = active.active_observer_controller if aob else LQG
 
     def controller(theta):
@@ -265,74 +349,41 @@ def build_problem(config: dict) -> TuningProblem:
         out = run(theta, plants)
         error = jnp.sum(weights * (out.y_true - desired) ** 2, axis=-1) + sc["input_weight"] * jnp.sum(out.u**2, -1)
         loss = jnp.mean(error, axis=-1)
-        excursion = jnp.max(jnp.abs(out.x - x_op), axis=(-2, -1))
+        excursion = jnp.max(jnp.abs(out.dx), axis=(-2, -1))
         return loss, ~jnp.isfinite(loss) | ~(excursion < sc["state_limit"])
 
-    def sample(which):
-        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
-        count, ranges = config["plants"][which], config["plants"]["mismatch"]
-        keys = jax.random.split(key, len(ranges) + 1)
-        scales = {k: jax.random.uniform(kk, (count,), minval=lo, maxval=hi)
-                  for kk, (k, (lo, hi)) in zip(keys[1:], ranges.items(), strict=True)}  # fmt: skip
-        return {"scales": scales, "key": jax.random.split(keys[0], count)}
-
     traces = jax.jit(lambda theta, plants: run(theta, plants).y_true)
-    setpoint = np.full(desired.shape[1], np.nan)
-    setpoint[rows] = sc["reference"]
-
-    def responses(theta, plants):
-        return {
-            "t": robot.period * np.arange(steps),
-            "output": traces(theta, plants),
-            "desired": np.asarray(desired),
-            "labels": [
-                ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items())
-                for i in range(len(plants["key"]))
-            ],  # fmt: skip
-            "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
-            "setpoint": setpoint,
-        }
-
-    def describe(theta):
-        Q, R = (np.asarray(a) for a in covariances(theta))
-        full = "q_cholesky" in theta
-        return {
-            ("Q" if full else "Q_diagonal"): (Q if full else np.diagonal(Q)).tolist(),
-            ("R" if full else "R_diagonal"): (R if full else np.diagonal(R)).tolist(),
-            "kalman_gain": np.asarray(controller(theta).estimator.gain).tolist(),
-        }
 
     return TuningProblem(
         theta0=theta0,
         losses=losses,
-        train=sample("train"),
-        heldout=sample("heldout"),
-        describe=describe,
-        responses=responses,
+        train=_sample_plants(config, "train"),
+        heldout=_sample_plants(config, "heldout"),
+        describe=functools.partial(_describe, covariances, controller),
+        responses=functools.partial(_responses, robot, config, traces, np.asarray(desired), rows),
         search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
     )
 
 
 def _entry_names(robot, config: dict) -> list[str]:
     """A name per measured entry (row of ``y``): its sensor's, indexed where the sensor has several."""
-    import mujoco
-    from mujoco import mjx
+    from jaxobs.mjx.manifold import tangent_rows
 
     names = []
     for name in config["robot"]["sensors"]:
-        dim = int(robot.model.sensor_dim[mjx.name2id(robot.model, mujoco.mjtObj.mjOBJ_SENSOR, name)])
-        names += [name] if dim == 1 else [f"{name}[{i}]" for i in range(dim)]
+        size = tangent_rows(robot.model, [name])[1][0]
+        names += [name] if size == 1 else [f"{name}[{i}]" for i in range(size)]
     return names
 
 
 def _tracked_rows(robot, config: dict) -> list[int]:
-    """The measured entry (row of ``y``) of each tracked sensor (its first ``sensordata`` entry)."""
-    import mujoco
-    from mujoco import mjx
+    """The measured entries (rows of ``y``) of the tracked sensors, in order."""
+    from jaxobs.mjx.manifold import tangent_rows
 
-    adr = np.asarray(robot.model.sensor_adr)
-    return [robot.sensors.index(int(adr[mjx.name2id(robot.model, mujoco.mjtObj.mjOBJ_SENSOR, name)]))
-            for name in config["scenario"]["tracked"]]  # fmt: skip
+    sizes = tangent_rows(robot.model, config["robot"]["sensors"])[1]
+    start = dict(zip(config["robot"]["sensors"], np.cumsum((0, *sizes[:-1])).tolist(), strict=True))
+    return [start[name] + i for name in config["scenario"]["tracked"]
+            for i in range(sizes[config["robot"]["sensors"].index(name)])]  # fmt: skip
 
 
 PROBLEM = TuningScenario(

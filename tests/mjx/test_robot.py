@@ -1,5 +1,6 @@
-"""Your own robot in MJX (jaxobs.mjx.robot): names, mismatch, linearisation against MuJoCo's finite differences,
-an LQG closed loop on the shipped payload cart, and gradients of a rollout (reverse and forward mode)."""
+"""Your own robot in MJX (jaxobs.mjx.robot): names, mismatch, linearisation against MuJoCo's finite differences (a
+floating base with an IMU and a star tracker too), an LQG closed loop on the shipped payload cart, and gradients of a
+rollout (reverse and forward mode)."""
 
 import dataclasses
 import warnings
@@ -12,6 +13,7 @@ import pytest
 
 from jaxobs import design
 from jaxobs.lti import ss
+from jaxobs.mjx import estimation
 from jaxobs.mjx import robot as rb
 from jaxobs.papers.robot_tuning import LQG, lqg_params
 from jaxobs.papers.shipped import ROBOTS
@@ -52,13 +54,52 @@ def test_unknown_names_are_errors_that_list_the_valid_ones(cart):
         rb.make_robot(XML, ["push"], ["cart_position"], substeps=0)
 
 
-def test_free_joints_and_acceleration_sensors_are_refused():
-    free = '<mujoco><worldbody><body><freejoint/><geom size="0.1" mass="1"/></body></worldbody></mujoco>'
-    with pytest.raises(ValueError, match="nq == nv"):
-        rb.make_robot(free, ["a"], ["s"])
-    acc = XML.read_text().replace("</sensor>", '<jointactuatorfrc name="f" joint="slider"/></sensor>')
-    with pytest.raises(ValueError, match="sensor 'f' is of the acceleration stage"):
-        rb.make_robot(acc, ["push"], ["f"])
+FLYER_ACTUATORS = ["thrust_x", "thrust_y", "thrust_z", "torque_x", "torque_y", "torque_z", "shoulder_motor",
+                   "elbow_motor"]  # fmt: skip
+FLYER_SENSORS = ["accelerometer", "gyro", "position_fix", "star_tracker", "shoulder_angle", "elbow_angle"]
+
+
+def test_any_mjcf_mjx_simulates_is_a_robot_and_the_rest_is_refused_in_one_line():
+    """A floating base with a quaternion sensor and an accelerometer, and a muscle arm: the noise comes from the MJCF,
+    the activations at rest follow the control; what MJX cannot simulate is one ValueError naming it."""
+    flyer = rb.make_robot("free_flyer.xml", FLYER_ACTUATORS, FLYER_SENSORS)
+    assert (flyer.x0.shape, flyer.state_manifold.dim, flyer.sensor_manifold.dim) == ((17,), 16, 14)
+    assert flyer.feedthrough and flyer.sensors == tuple(range(15))
+    np.testing.assert_allclose(flyer.sensor_noise, [0.02] * 3 + [0.002] * 3 + [0.01] * 3 + [0.005] * 3 + [0.001] * 2)
+    ctrl0 = [0.36, 0.23, 0.37, 0.22]
+    arm = rb.make_robot("muscle_arm.xml", ["shoulder_flexor", "elbow_flexor"], ["shoulder_angle"],
+                        ctrl0=ctrl0)  # fmt: skip
+    np.testing.assert_allclose(arm.act0, ctrl0)
+    assert not arm.feedthrough and arm.state_manifold.dim == 8
+    implicit = XML.read_text().replace('integrator="Euler"', 'integrator="implicit"')
+    with pytest.raises(ValueError, match=r"^MJX \(mujoco [\d.]+\) cannot simulate this model: .*IMPLICIT"):
+        rb.make_robot(implicit, ["push"], ["cart_position"])
+    rk4 = XML.read_text().replace('integrator="Euler"', 'integrator="RK4"')
+    rb.make_robot(rk4, ["push"], ["cart_position"])  # no rotations: RK4 differentiates
+    flying_rk4 = rb.load_mjcf("free_flyer.xml")
+    flying_rk4.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
+    with pytest.raises(ValueError, match="linearize: MJX's RK4 integrator differentiates a free or ball joint"):
+        rb.linearize(rb.make_robot(flying_rk4, ["thrust_x"], ["gyro"]))
+    with pytest.raises(ValueError, match="MJCF no_such.xml: cannot load it, nor a shipped robot of that name"):
+        rb.load_mjcf("no_such.xml")
+    assert ROBOTS == estimation.ASSETS  # one folder: the configs' paths and load_mjcf find the same robots
+
+
+def test_holding_a_muscle_arm_near_a_co_contraction():
+    """Muscles pull only: the smallest holding control would push (negative); the one nearest a co-contraction of 0.3
+    holds the raised arm at rest (MuJoCo C: qacc = 0, act_dot = 0) within [0, 1]."""
+    mjcf, pose = "muscle_arm.xml", np.array([0.3, 0.8])
+    with pytest.raises(ValueError, match="outside ctrlrange: 'shoulder_extensor' needs -0.059"):
+        rb.holding_ctrl(mjcf, pose)
+    ctrl = rb.holding_ctrl(mjcf, pose, near=np.full(4, 0.3))
+    assert np.all((ctrl > 0) & (ctrl < 1))
+    m = rb.load_mjcf(mjcf)
+    data = mujoco.MjData(m)
+    data.qpos[:], data.ctrl[:], data.act[:] = pose, ctrl, rb.steady_activation(m, ctrl)
+    mujoco.mj_forward(m, data)
+    np.testing.assert_allclose(data.qacc, 0.0, atol=1e-9)
+    np.testing.assert_allclose(data.act_dot, 0.0, atol=1e-12)
+    np.testing.assert_allclose(rb.steady_activation(m, [1.5, -0.2, 0.5, 0.5]), [1.0, 0.0, 0.5, 0.5])
 
 
 def test_mismatch_scales_the_named_rows_and_vmaps(cart):
@@ -73,6 +114,21 @@ def test_mismatch_scales_the_named_rows_and_vmaps(cart):
     np.testing.assert_allclose(batch.dof_damping[:, 1], 2 * scales * model.dof_damping[1])
     np.testing.assert_allclose(batch.dof_damping[:, 0], model.dof_damping[0])
     np.testing.assert_allclose(batch.actuator_gear, scales[:, None, None] * model.actuator_gear[None])
+
+
+def test_mismatch_of_a_free_joint_and_of_the_physics_options():
+    """``dof_*[joint]`` scales every degree of freedom of a free joint (six); ``opt.<name>`` scales a physics option;
+    a field without objects takes no name."""
+    model = rb.make_robot("free_flyer.xml", ["thrust_x"], ["gyro"]).model
+    scaled = rb.mismatch(model, {"dof_damping[root]": 3.0, "dof_damping[elbow]": 2.0, "opt.wind": 2.0,
+                                 "opt.viscosity": 1.5, "qpos_spring": 1.0})  # fmt: skip
+    nominal = np.asarray(model.dof_damping)
+    np.testing.assert_allclose(scaled.dof_damping, nominal * np.r_[[3.0] * 6, 1.0, 2.0])
+    np.testing.assert_allclose(scaled.opt.viscosity, 1.5 * model.opt.viscosity)
+    with pytest.raises(ValueError, match="'opt.timestep' is not a scalable model field"):
+        rb.mismatch(model, {"opt.timestep": 2.0})
+    with pytest.raises(ValueError, match="'qpos_spring' has no named rows"):
+        rb.mismatch(model, {"qpos_spring[root]": 2.0})
 
 
 @pytest.mark.slow  # ~15 s: MJX derivatives in both libraries
@@ -97,6 +153,50 @@ def test_linearize_matches_mujoco_finite_differences(cart):
     np.testing.assert_allclose(lin.C[:, :4], C, atol=1e-6)
     np.testing.assert_array_equal(lin.Gamma[:, 0], [0, 0, 0, 0, 1])
     np.testing.assert_array_equal(lin.Phi[4], 0)
+
+
+@pytest.mark.slow  # ~2 min: jax.jacfwd of 4 physics steps and every sensor of the free flyer
+def test_floating_base_linearisation_matches_mujoco_finite_differences():
+    """The free flyer turned by 0.4 rad, its arm bent: Phi and Gamma in the tangent space (16 directions: a free
+    joint's rotation as a 3-vector) against MuJoCo's mjd_transitionFD chained over the four physics steps (which
+    differences qpos with mj_differentiatePos: the same coordinates); C against its sensor derivatives; the
+    accelerometer's dependence on the command it reads (D, the extra command state) and the star tracker's rotation
+    rows against central differences of mj_forward (MuJoCo C)."""
+    m = rb.load_mjcf("free_flyer.xml")
+    qpos0 = m.qpos0.copy()
+    qpos0[3:7], qpos0[7:] = [np.cos(0.2), 0.0, 0.0, np.sin(0.2)], [0.4, -0.6]
+    flyer = rb.make_robot(m, FLYER_ACTUATORS, FLYER_SENSORS, substeps=4, qpos0=qpos0)
+    lin = rb.linearize(flyer)
+    assert (lin.Phi.shape, lin.Gamma.shape, lin.C.shape) == ((24, 24), (24, 8), (14, 24))
+    data = mujoco.MjData(m)
+    data.qpos[:] = qpos0
+    A, B, C = np.zeros((16, 16)), np.zeros((16, 8)), np.zeros((m.nsensordata, 16))
+    mujoco.mjd_transitionFD(m, data, 1e-7, True, A, B, C, None)
+    np.testing.assert_allclose(lin.Phi[:16, :16], np.linalg.matrix_power(A, 4), atol=1e-7)
+    np.testing.assert_allclose(lin.Gamma[:16], sum(np.linalg.matrix_power(A, i) @ B for i in range(4)), atol=1e-7)
+    vector_rows, readings = [0, 1, 2, 3, 4, 5, 6, 7, 8, 13, 14], [0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 13]
+    np.testing.assert_allclose(lin.C[readings, :16], C[vector_rows], atol=1e-7)
+
+    def reading(dq=None, ctrl=None):
+        data = mujoco.MjData(m)
+        data.qpos[:] = qpos0
+        mujoco.mj_integratePos(m, data.qpos, np.zeros(8) if dq is None else dq, 1.0)
+        data.ctrl[:] = 0.0 if ctrl is None else ctrl
+        mujoco.mj_forward(m, data)
+        return data.sensordata.copy()
+
+    eps, y0 = 1e-6, reading()
+    D = np.stack([(reading(ctrl=eps * e) - reading(ctrl=-eps * e))[:3] / (2 * eps) for e in np.eye(8)], axis=1)
+    np.testing.assert_allclose(lin.C[:3, 16:], D, atol=1e-7)
+    np.testing.assert_array_equal(lin.C[3:, 16:], 0.0)  # only the accelerometer reads the command
+
+    def rotation(dq):
+        e = np.zeros(3)
+        mujoco.mju_subQuat(e, reading(dq)[9:13], y0[9:13])
+        return e
+
+    C_rot = np.stack([(rotation(eps * e) - rotation(-eps * e)) / (2 * eps) for e in np.eye(8)], axis=1)
+    np.testing.assert_allclose(lin.C[9:12, :8], C_rot, atol=1e-7)
 
 
 ARM = ROBOTS / "arm_on_table.xml"

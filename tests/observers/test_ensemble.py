@@ -177,6 +177,8 @@ def test_bad_inputs_raise_naming_the_argument():
         jo.make_enkf(model, 10, key=np.zeros(3))
     with pytest.raises(ValueError, match="model is continuous-time"):
         jo.make_enkf(problem.model(continuous=True), 10, key=key)
+    with pytest.raises(ValueError, match="model has a feedthrough"):
+        jo.make_enkf(dataclasses.replace(model, feedthrough=True), 10, key=key)
     with pytest.raises(ValueError, match="output_ensemble must be a bool"):
         jo.make_enkf(model, 10, key=key, output_ensemble=1)
     X, R = jnp.zeros((5, 3)), jnp.eye(2)

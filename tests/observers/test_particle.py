@@ -199,6 +199,8 @@ def test_bad_inputs_raise_naming_the_argument(linear):
         jo.make_particle_filter(problem, 10, key=key)
     with pytest.raises(ValueError, match="model is continuous-time"):
         jo.make_particle_filter(problem.model(continuous=True), 10, key=key)
+    with pytest.raises(ValueError, match="model has a feedthrough"):
+        jo.make_particle_filter(dataclasses.replace(model, feedthrough=True), 10, key=key)
     with pytest.raises(ValueError, match="auxiliary must be a bool"):
         jo.make_particle_filter(model, 10, key=key, auxiliary="yes")
     params = jo.make_particle_filter(model, 10, key=key)

@@ -2,6 +2,7 @@
 run of the shipped payload-cart example that pins its README row."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +10,7 @@ import pytest
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
 from jaxobs.papers import robot_tuning
+from jaxobs.papers.shipped import ROBOTS
 from tests import ROOT, run_cli
 
 
@@ -18,6 +20,10 @@ def test_shipped_config_file_validates_to_the_default():
     assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.PROBLEM.validate({})
     arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
     assert arm["robot"]["solver_iterations"] == 4
+    for path in ("tuning/free_flyer.toml", "tuning/muscle_arm.toml"):
+        config = robot_tuning.PROBLEM.validate(load_toml(path), path)
+        assert config["robot"]["mjcf"] == str(ROBOTS / Path(path).name.replace(".toml", ".xml"))
+        assert config["optimizer"]["gradient"] == "reverse"
     full = {"tuning/arm_on_table_cholesky.toml": "kalman", "tuning/cartpole_payload_aob.toml": "aob"}
     for path, observer in full.items():
         design = robot_tuning.PROBLEM.validate(load_toml(path), path)["design"]
@@ -101,6 +107,30 @@ def test_a_constrained_model_without_a_solver_count_is_refused_in_reverse_mode(t
     assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "robot.solver_iterations: the model has 5 constraint rows" in err and "Traceback" not in err
+
+
+def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_line(tmp_path, capsys):
+    """The free flyer's config builds (its tangent-space linearisation is compiled once: slow under load, so only
+    the checks before it run here): a tracked quaternion sensor counts 3 entries, one reference each; an integrator
+    MJX lacks ends the command with one line naming it."""
+    flyer = (ROOT / "tuning/free_flyer.toml").read_text()
+    implicit = (ROBOTS / "free_flyer.xml").read_text().replace('integrator="Euler"', 'integrator="implicit"')
+    (tmp_path / "implicit.xml").write_text(implicit)
+    for toml, message in (
+        (flyer.replace('tracked = ["position_fix", "star_tracker", "shoulder_angle", "elbow_angle"]',
+                       'tracked = ["position_fix", "star_tracker", "shoulder_angle"]'),
+         "scenario.tracked: the tracked sensors have 7 entries; the reference gain needs one per actuator (8)"),
+        (flyer.replace('q = [1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6,', 'q = [1e-6,'),
+         "design.q: needs one value per tangent entry of the state (nv positions, nv velocities, na activations) "
+         "(16), got 9"),
+        (flyer.replace('mjcf = "free_flyer.xml"', f'mjcf = "{tmp_path / "implicit.xml"}"'),
+         "cannot simulate this model: mjtIntegrator.mjINT_IMPLICIT"),
+    ):  # fmt: skip
+        path = tmp_path / "flyer.toml"
+        path.write_text(toml)
+        status = main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"])
+        err = capsys.readouterr().err
+        assert status == 2 and message in err and "Traceback" not in err, err
 
 
 @pytest.mark.slow
