@@ -41,6 +41,7 @@ __all__ = [
     "observed_model",
     "innovation_log_likelihood",
     "tria",
+    "psd_factor",
     "SquareRootUpdate",
     "square_root_predict",
     "square_root_update",
@@ -466,6 +467,48 @@ def _tria_jvp(primals, tangents):
     lower = jnp.tril(X + _transpose(X)) - X * jnp.eye(n, dtype=X.dtype)
     outside = dAV - T @ (T_pinv @ dAV)  # (I - T T^+) dA V
     return T, T @ lower + outside
+
+
+def psd_factor(M):
+    """A lower-triangular factor ``F`` (n, n) with ``F F' = M`` of a symmetric positive semidefinite ``M`` (n, n):
+    its Cholesky factor where ``M`` is positive definite, else (a singular ``M``) the eigendecomposition with the
+    rounding-level negative eigenvalues clipped, triangularised (:func:`tria`).
+
+    Differentiable also where ``M`` has repeated eigenvalues (``M = q I``, where the derivative of an
+    eigendecomposition divides by zero gaps) and where it is singular: ``dF = F Phi(F^+ dM F^+')``, ``Phi`` the
+    lower triangle with half the diagonal, ``F^+`` the pseudo-inverse. Where ``M`` is definite that is the
+    derivative of the Cholesky factor (Murray 2016, "Differentiation of the Cholesky decomposition"); where it is
+    singular, that of the factor of ``M`` on its range (``dF F' + F dF'`` is ``dM`` projected on the range: the
+    factor has no derivative across it).
+
+    Example:
+      >>> F = psd_factor(jnp.array([[4.0, 2.0], [2.0, 2.0]]))
+      >>> F.tolist(), (F @ F.T).tolist()
+      ([[2.0, 0.0], [1.0, 1.0]], [[4.0, 2.0], [2.0, 2.0]])
+    """
+    (M,) = _checks.arrays("M (n, n)", M)
+    return _psd_factor(symmetrize(M))
+
+
+@jax.custom_jvp
+def _psd_factor(M):
+    L = cholesky(M)
+    definite = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+
+    def eigen(M):
+        w, V = jnp.linalg.eigh(M)
+        return tria(V * jnp.sqrt(jnp.clip(w, 0.0)))
+
+    return jax.lax.cond(definite, lambda M: L, eigen, M)
+
+
+@_psd_factor.defjvp
+def _psd_factor_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    F = _psd_factor(M)
+    F_pinv = jnp.linalg.pinv(F)
+    X = F_pinv @ symmetrize(dM) @ _transpose(F_pinv)
+    return F, F @ (jnp.tril(X) - 0.5 * jnp.diag(jnp.diagonal(X)))
 
 
 class SquareRootUpdate(NamedTuple):

@@ -19,13 +19,12 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import symmetrize
 from jaxobs.kalman_steps import (
     covariance_sequence,
     predict,
+    psd_factor,
     square_root_predict,
     square_root_update,
-    tria,
     update,
     update_covariance,
 )
@@ -400,16 +399,10 @@ class SquareRootKalmanState(NamedTuple):
     missing: jax.Array
 
 
-def _factor(M):
-    """A lower-triangular factor of a symmetric positive semidefinite ``M``: an eigendecomposition with the
-    rounding-level negative eigenvalues clipped, triangularised (:func:`jaxobs.kalman_steps.tria`)."""
-    w, V = jnp.linalg.eigh(symmetrize(M))
-    return tria(V * jnp.sqrt(jnp.clip(w, 0.0)))
-
-
 def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
     """The same time-varying filter with factors of ``Q``, ``R`` and ``P0`` (lower triangular; semidefinite
-    ``Q`` and ``P0`` allowed): the params of :data:`square_root_kalman_filter`, whose outputs equal those of
+    ``Q`` and ``P0`` allowed; :func:`jaxobs.kalman_steps.psd_factor`, differentiable also at repeated eigenvalues
+    such as ``Q = q I``): the params of :data:`square_root_kalman_filter`, whose outputs equal those of
     :data:`kalman_filter` on ``params`` to rounding.
 
     Example:
@@ -425,7 +418,7 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
     if params.schedule is not None:
         raise ValueError("params.schedule returns covariances: give the square-root filter a schedule of factors "
                          "(SquareRootKalmanParams(..., schedule=...) returning Q_sqrt, R_sqrt)")  # fmt: skip
-    Q_sqrt, R_sqrt, P0_sqrt = (_factor(M) for M in (params.Q, params.R, params.P0))
+    Q_sqrt, R_sqrt, P0_sqrt = (psd_factor(M) for M in (params.Q, params.R, params.P0))
     return SquareRootKalmanParams(params.Phi, params.Gamma, params.C, Q_sqrt, R_sqrt, params.x0, P0_sqrt,
                                   output_covariance=params.output_covariance)  # fmt: skip
 

@@ -1,0 +1,4 @@
+"""Registry entries: estimation."""
+
+ENTRIES = {}
+EXEMPT = {}

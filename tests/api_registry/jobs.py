@@ -1,0 +1,4 @@
+"""Registry entries: jobs."""
+
+ENTRIES = {}
+EXEMPT = {}

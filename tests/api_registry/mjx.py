@@ -1,0 +1,4 @@
+"""Registry entries: mjx."""
+
+ENTRIES = {}
+EXEMPT = {}

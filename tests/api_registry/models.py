@@ -1,0 +1,4 @@
+"""Registry entries: models."""
+
+ENTRIES = {}
+EXEMPT = {}

@@ -1,0 +1,4 @@
+"""Registry entries: observers."""
+
+ENTRIES = {}
+EXEMPT = {}

@@ -1,0 +1,4 @@
+"""Registry entries: systems."""
+
+ENTRIES = {}
+EXEMPT = {}

@@ -1,0 +1,4 @@
+"""Registry entries: vehicle."""
+
+ENTRIES = {}
+EXEMPT = {}

@@ -1,0 +1,362 @@
+"""Every public function keeps its promises: one parametrised test over the whole API.
+
+For each function and estimator in ``jaxobs.__all__`` and in the ``__all__`` of every public module (papers and
+cli aside), its entry in tests/api_registry/ gives one small valid call; the test checks eager = ``jit``,
+``vmap`` over perturbed inputs = a Python loop, gradients = central differences (reverse and forward mode),
+float32 in gives float32 out (or a ``ValueError``), Python lists and scalars accepted where an array is, and an
+undocumented leading batch axis refused with a ``ValueError`` naming the argument. Design-time functions run
+eagerly and say so under ``jit``; the exempt names (jobs, validators, loaders, transformations) are listed on
+docs/capabilities.md. A public name with neither an entry nor an exemption fails, saying what to add.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import pkgutil
+import re
+import zlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxobs
+from jaxobs.observers.base import Controller, Estimator
+from tests import ROOT
+from tests.api_registry import EXEMPT, EXEMPTIONS, REGISTRY, Design, Example, file_of
+
+# --------------------------------------------------------------------------------------------
+# The public names
+
+
+def _public_modules() -> list[str]:
+    names = ["jaxobs"]
+    for info in pkgutil.walk_packages(jaxobs.__path__, "jaxobs."):
+        parts = info.name.split(".")
+        if parts[1] in ("papers", "cli") or any(p.startswith("_") for p in parts):
+            continue
+        names.append(info.name)
+    return names
+
+
+def _computes(obj) -> bool:
+    """A function (or jitted, custom-derivative callable) or an estimator/controller: what needs an entry."""
+    if isinstance(obj, (Estimator, Controller)):
+        return True
+    return callable(obj) and not inspect.isclass(obj) and not inspect.ismodule(obj)
+
+
+def public_functions() -> dict[str, list[str]]:
+    """``home key -> the names it is exported as`` for every public function and estimator; the home is the
+    deepest public module that exports the object (``jaxobs.dare`` -> ``jaxobs.matrix_equations.dare``)."""
+    exported: dict[int, list[tuple[str, str]]] = {}
+    objects = {}
+    for module_name in _public_modules():
+        module = importlib.import_module(module_name)
+        for name in getattr(module, "__all__", ()):
+            obj = getattr(module, name)
+            if _computes(obj):
+                exported.setdefault(id(obj), []).append((module_name, name))
+                objects[id(obj)] = obj
+    homes = {}
+    for ident, places in exported.items():
+        module_name, name = max(places, key=lambda place: (place[0].count("."), place[0]))
+        homes[f"{module_name}.{name}"] = sorted(f"{m}.{n}" for m, n in places)
+    return dict(sorted(homes.items()))
+
+
+PUBLIC = public_functions()
+
+
+def _params():
+    for key in PUBLIC:
+        entry = REGISTRY.get(key)
+        slow = getattr(entry, "slow", False)
+        yield pytest.param(key, id=key, marks=[pytest.mark.slow] if slow else [])
+
+
+def _resolve(key: str):
+    module_name, name = key.rsplit(".", 1)
+    return getattr(importlib.import_module(module_name), name)
+
+
+def _missing_message(key: str) -> str:
+    short = key.rsplit(".", 1)[1]
+    return (
+        f"{key} (exported as {', '.join(PUBLIC[key])}) has no entry in the registry. Add to ENTRIES in "
+        f"{file_of(key)}:\n"
+        f'    "{key}": Example(lambda: dict({short}_args...), diff="<argument to differentiate>"),\n'
+        f"(Example's skip={{check: reason}} for promises it does not make; Design(...) for a design-time NumPy "
+        f"function), or exempt it in EXEMPT of that file with a reason starting with one of {sorted(EXEMPTIONS)} "
+        f"and list it under 'Transformation promises' in docs/capabilities.md."
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Arrays, perturbations and comparisons
+
+
+def _is_array(x) -> bool:
+    return isinstance(x, (np.ndarray, np.generic, jax.Array))
+
+
+def _dynamic(value) -> bool:
+    """An argument that is traced: an array or a pytree holding arrays (not a Python scalar, string, function)."""
+    if value is None or isinstance(value, (str, bool, int, float, complex)) or isinstance(value, (Estimator, Controller)):
+        return False
+    return any(_is_array(leaf) for leaf in jax.tree_util.tree_leaves(value))
+
+
+def _floating(x) -> bool:
+    return _is_array(x) and jnp.issubdtype(jnp.result_type(x), jnp.floating)
+
+
+def _rng(*labels) -> np.random.Generator:
+    return np.random.default_rng(zlib.crc32("/".join(map(str, labels)).encode()))
+
+
+def _direction(x, kind: str, rng):
+    """A perturbation direction of the floating leaf ``x``: of its size, symmetric for a symmetric matrix (on the
+    support of its diagonal, so a semidefinite covariance stays one), ``x`` itself for ``"scale"``."""
+    x = np.asarray(x)
+    if kind == "scale":
+        return x
+    scale = max(float(np.max(np.abs(x))) if x.size else 1.0, 1e-3)
+    d = rng.standard_normal(x.shape) * scale
+    if x.ndim >= 2 and x.shape[-1] == x.shape[-2] and np.allclose(x, np.swapaxes(x, -1, -2)):
+        support = np.diagonal(x, axis1=-2, axis2=-1) != 0
+        d = 0.5 * (d + np.swapaxes(d, -1, -2)) * (support[..., :, None] & support[..., None, :])
+    return d
+
+
+def _directions(value, kind: str, label: str):
+    rng = _rng(label)
+    return jax.tree_util.tree_map(lambda x: _direction(x, kind, rng) if _floating(x) else None, value)
+
+
+def _moved(value, directions, t):
+    """``value + t * direction`` on the floating leaves."""
+    return jax.tree_util.tree_map(
+        lambda x, d: x if d is None else (np.asarray(x) + t * d).astype(np.asarray(x).dtype),
+        value,
+        directions,
+        is_leaf=lambda x: x is None,
+    )
+
+
+def _members(value, kind: str, label: str, count: int = 3) -> list:
+    """``count`` perturbed copies of ``value`` (other PRNG keys for ``"key"``)."""
+    if kind == "key":
+        return [jax.random.fold_in(value, i + 1) for i in range(count)]
+    directions = _directions(value, kind, label)
+    return [_moved(value, directions, t) for t in (-1e-3, 1e-3, 2e-3)[:count]]
+
+
+def _stack(members):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *members)
+
+
+def _assert_close(got, want, rtol: float, what: str):
+    got_leaves, want_leaves = jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(want), f"{what}: other structure"
+    for i, (g, w) in enumerate(zip(got_leaves, want_leaves, strict=True)):
+        g, w = np.asarray(g), np.asarray(w)
+        assert g.shape == w.shape, f"{what}: output leaf {i} has shape {g.shape}, expected {w.shape}"
+        if np.issubdtype(w.dtype, np.inexact):
+            scale = max(float(np.max(np.abs(w[np.isfinite(w)]), initial=0.0)), 1e-300)
+            np.testing.assert_allclose(g, w, rtol=0, atol=rtol * scale, err_msg=f"{what}: output leaf {i}")
+        else:
+            np.testing.assert_array_equal(g, w, err_msg=f"{what}: output leaf {i}")
+
+
+# --------------------------------------------------------------------------------------------
+# The call of an entry
+
+
+class Call:
+    """The entry's call split into traced arrays (``dynamic``) and static settings."""
+
+    def __init__(self, key: str, entry):
+        self.key, self.entry, self.fn = key, entry, _resolve(key)
+        args = entry.args()
+        self.static = {k: v for k, v in args.items() if not _dynamic(v)}
+        self.dynamic = {k: v for k, v in args.items() if _dynamic(v)}
+        assert self.dynamic, f"{key}: the example has no array argument"
+        names = list(self.dynamic)
+        self.diff = getattr(entry, "diff", None) or getattr(entry, "traced", None) or names[0]
+        assert self.diff in self.dynamic, f"{key}: {self.diff!r} is not an array argument of the example"
+
+    def __call__(self, dynamic: dict):
+        args = {**self.static, **dynamic}
+        call = getattr(self.entry, "call", None)
+        return call(self.fn, **args) if call is not None else self.fn(**args)
+
+    def of(self, x):
+        """The call as a function of the ``diff`` argument."""
+        return self({**self.dynamic, self.diff: x})
+
+
+def _float_outputs(out) -> list:
+    return [leaf for leaf in jax.tree_util.tree_leaves(out) if _floating(leaf)]
+
+
+def _loss(call: Call, weights):
+    select = call.entry.out or (lambda out: out)
+
+    def loss(x):
+        leaves = _float_outputs(select(call.of(x)))
+        return sum(jnp.sum(w * leaf) for w, leaf in zip(weights, leaves, strict=True))
+
+    return loss
+
+
+# --------------------------------------------------------------------------------------------
+# The checks
+
+
+def _check_jit(call: Call, eager):
+    _assert_close(jax.jit(call)(call.dynamic), eager, call.entry.rtol, f"{call.key}: jit vs eager")
+
+
+def _check_vmap(call: Call):
+    members = _members(call.dynamic[call.diff], call.entry.tangent, call.key)
+    single = jax.jit(call.of)
+    looped = _stack([single(m) for m in members])
+    batched = jax.jit(jax.vmap(call.of))(_stack(members))
+    _assert_close(batched, looped, call.entry.rtol, f"{call.key}: vmap over {call.diff} vs a loop")
+
+
+def _check_grad(call: Call, eager):
+    select = call.entry.out or (lambda out: out)
+    rng = _rng(call.key, "weights")
+    weights = [rng.standard_normal(np.shape(leaf)) for leaf in _float_outputs(select(eager))]
+    assert weights, f"{call.key}: no floating output to differentiate"
+    loss = _loss(call, weights)
+    x = call.dynamic[call.diff]
+    directions = _directions(x, call.entry.tangent, call.key + "/grad")
+    h = 1e-5
+    value = jax.jit(loss)
+    central = (value(_moved(x, directions, h)) - value(_moved(x, directions, -h))) / (2 * h)
+    gradient = jax.jit(jax.grad(loss))(x)
+    reverse = sum(
+        float(np.vdot(np.asarray(g), d))
+        for g, d in zip(jax.tree_util.tree_leaves(gradient), jax.tree_util.tree_leaves(directions), strict=True)
+    )
+    tangent = jax.tree_util.tree_map(
+        lambda x, d: np.zeros_like(x) if d is None else d.astype(np.asarray(x).dtype), x, directions,
+        is_leaf=lambda v: v is None,
+    )
+    forward = float(jax.jit(lambda x, t: jax.jvp(loss, (x,), (t,))[1])(x, tangent))
+    size = sum(float(np.sum(np.abs(w * np.asarray(leaf)))) for w, leaf in zip(weights, _float_outputs(select(eager))))
+    tol = call.entry.grad_rtol * (abs(float(central)) + 1e-2 * size)
+    assert np.isfinite(reverse) and np.isfinite(forward), f"{call.key}: non-finite gradient in {call.diff}"
+    assert abs(reverse - central) <= tol, f"{call.key}: reverse mode {reverse!r} vs central differences {central!r}"
+    assert abs(forward - central) <= tol, f"{call.key}: forward mode {forward!r} vs central differences {central!r}"
+
+
+def _float32(value):
+    return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32) if _floating(x) else x, value)
+
+
+def _check_float32(call: Call):
+    try:
+        out = jax.eval_shape(call, _float32(call.dynamic))
+    except ValueError as refusal:  # a clear refusal: it names the precision
+        assert re.search(r"float32|float64|precision|dtype", str(refusal)), f"{call.key}: float32: {refusal}"
+        return
+    wide = [leaf.dtype for leaf in jax.tree_util.tree_leaves(out) if jnp.issubdtype(leaf.dtype, jnp.float64)]
+    assert not wide, f"{call.key}: float32 inputs gave float64 outputs"
+
+
+def _as_lists(value):
+    if isinstance(value, (np.ndarray, np.generic)) and value.dtype.kind == "f":
+        return value.tolist()  # nested lists, or a Python float for a 0-d array
+    return value
+
+
+def _check_lists(call: Call, eager):
+    listed = {k: _as_lists(v) for k, v in call.dynamic.items()}
+    if all(listed[k] is call.dynamic[k] for k in listed):
+        return  # no NumPy array argument
+    _assert_close(call(listed), eager, call.entry.rtol, f"{call.key}: nested lists vs arrays")
+    jax.eval_shape(lambda a: call({**call.dynamic, **a}), {k: v for k, v in listed.items() if isinstance(v, list)})
+
+
+def _check_batch(call: Call):
+    for name, value in call.dynamic.items():
+        if name in call.entry.batched or (call.entry.tangent == "key" and name == call.diff):
+            continue
+        batched = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * 2), value)
+        with pytest.raises(ValueError) as refusal:
+            jax.eval_shape(lambda a, name=name: call({**call.dynamic, name: a}), batched)
+        message = str(refusal.value)
+        assert re.search(rf"(?<![\w.]){re.escape(name)}\b", message), (
+            f"{call.key}: a batch axis on {name} raised a ValueError that does not name it: {message}"
+        )
+
+
+def _check_example(call: Call):
+    entry: Example = call.entry
+    eager = call(call.dynamic)
+    for i, leaf in enumerate(_float_outputs(eager)):
+        assert np.all(np.isfinite(np.asarray(leaf))), f"{call.key}: the example's output leaf {i} is not finite"
+    checks = {
+        "jit": lambda: _check_jit(call, eager),
+        "vmap": lambda: _check_vmap(call),
+        "grad": lambda: _check_grad(call, eager),
+        "float32": lambda: _check_float32(call),
+        "lists": lambda: _check_lists(call, eager),
+        "batch": lambda: _check_batch(call),
+    }
+    for name, check in checks.items():
+        if name not in entry.skip:
+            check()
+
+
+def _check_design(call: Call):
+    design: Design = call.entry
+    eager = call(call.dynamic)
+    listed = {k: _as_lists(v) for k, v in call.dynamic.items()}
+    _assert_close(call(listed), eager, 1e-9, f"{call.key}: nested lists vs arrays")
+    with pytest.raises(ValueError) as refusal:
+        jax.jit(call.of)(call.dynamic[call.diff])
+    message = str(refusal.value)
+    name = call.key.rsplit(".", 1)[1]
+    assert "\n" not in message and name in message and "design-time" in message, f"{call.key}: under jit: {message}"
+    assert design.alternative in message, f"{call.key}: the refusal does not name {design.alternative}"
+
+
+# --------------------------------------------------------------------------------------------
+# The test
+
+
+def _capabilities_exemptions() -> str:
+    text = (ROOT / "docs" / "capabilities.md").read_text(encoding="utf-8")
+    return text.split("## Transformation promises", 1)[-1].split("\n## ", 1)[0]
+
+
+@pytest.mark.parametrize("key", list(_params()))
+def test_public_function_keeps_its_promises(key):
+    entry, exemption = REGISTRY.get(key), EXEMPT.get(key)
+    assert entry is not None or exemption is not None, _missing_message(key)
+    assert entry is None or exemption is None, f"{key} has both an entry and an exemption"
+    if exemption is not None:
+        kind = exemption.split(":", 1)[0]
+        assert kind in EXEMPTIONS, f"{key}: the exemption must start with one of {sorted(EXEMPTIONS)}: {exemption}"
+        assert f"`{key}`" in _capabilities_exemptions(), (
+            f"{key} is exempt ({exemption}) but not listed under 'Transformation promises' in docs/capabilities.md"
+        )
+        return
+    call = Call(key, entry)
+    if isinstance(entry, Design):
+        _check_design(call)
+    else:
+        _check_example(call)
+
+
+def test_every_entry_and_exemption_is_a_public_name():
+    """No stale entry: each registered key is a public function's home (renamed or removed names fail here)."""
+    stale = sorted((set(REGISTRY) | set(EXEMPT)) - set(PUBLIC))
+    assert not stale, f"registry entries or exemptions for names that are not public (or not their home): {stale}"
