@@ -438,7 +438,6 @@ def _transpose(A):
     return jnp.swapaxes(A, -1, -2)
 
 
-@jax.custom_jvp
 def tria(A):
     """A lower-triangular ``(n, n)`` factor ``T`` with ``T T' = A A'`` for ``A`` (n, k), ``k >= n``: the
     transposed R factor of a QR decomposition of ``A'`` (Arasaratnam & Haykin 2008). Its diagonal may have
@@ -450,12 +449,18 @@ def tria(A):
     diag(X))`` is completed by the part of ``dA V`` outside that space, ``(I - T T^+) dA V``; ``T^+`` is the
     pseudo-inverse, which the standard QR derivative replaces by an inverse that does not exist there.
     """
+    (A,) = _checks.arrays("A (n, k)", A)
     if A.shape[-1] < A.shape[-2]:
-        raise ValueError(f"tria needs at least as many columns as rows, got shape {A.shape}")
+        raise ValueError(f"A must have at least as many columns as rows (tria), got shape {A.shape}")
+    return _tria(A)
+
+
+@jax.custom_jvp
+def _tria(A):
     return _transpose(jnp.linalg.qr(_transpose(A), mode="r"))
 
 
-@tria.defjvp
+@_tria.defjvp
 def _tria_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     V, R = jnp.linalg.qr(_transpose(A), mode="reduced")

@@ -503,9 +503,10 @@ def filter_dare(Phi, C, Q, R, *, what: str = "the filter DARE") -> DareSolution:
     Args:
       Phi: (n, n).  C: (p, n).  Q: (n, n) positive semidefinite.  R: (p, p) positive definite.
     """
+    Phi, C = _checks.float_arrays(Phi=Phi, C=C)
     _checks.matrix("Phi", Phi, square=True)
     _checks.matrix("C", C, shape=(None, np.shape(Phi)[-1]))
-    A, B = jnp.swapaxes(jnp.asarray(Phi), -1, -2), jnp.swapaxes(jnp.asarray(C), -1, -2)
+    A, B = jnp.swapaxes(Phi, -1, -2), jnp.swapaxes(C, -1, -2)
     sol = dare(A, B, Q, R)
     require_converged(sol, A, B, Q, R, what=what, estimation=True)
     return sol
