@@ -107,7 +107,8 @@ def _check_traced(ok, message: str, **values) -> None:
 def finite(name: str, value) -> None:
     """Raise when a concrete ``value`` has NaN or infinite entries (skipped on tracers, unless :func:`checked`)."""
     if not is_concrete(value):
-        _check_traced(jnp.isfinite(value), f"{name} contains NaN or infinite entries")
+        if _CHECKING.get():
+            _check_traced(jnp.isfinite(jnp.asarray(value)), f"{name} contains NaN or infinite entries")
     elif not np.all(np.isfinite(np.asarray(value))):
         raise ValueError(f"{name} contains NaN or infinite entries")
 
@@ -180,6 +181,13 @@ def float_arrays(**values) -> tuple:
     return tuple(None if a is None else a.astype(dtype) for a in arrays.values())
 
 
+def _dims(value) -> tuple:
+    """The shape of an array, a scalar or a nested list (also of traced scalars, which NumPy cannot read)."""
+    if isinstance(value, (list, tuple)):
+        return tuple(jnp.shape(jnp.asarray(value)))
+    return tuple(np.shape(value))
+
+
 def _shape_text(shape) -> str:
     dims = ["*" if d is None else str(d) for d in shape]
     return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
@@ -210,17 +218,16 @@ def shapes(spec: str, *values) -> dict[str, int]:
     for (name, dims), value in zip(parsed, values, strict=True):
         if value is None:
             continue
-        got = tuple(np.shape(value))
+        got = _dims(value)
         ok = len(got) == len(dims)
         for d, g in zip(dims, got, strict=False):
             if d != "*":
                 ok = ok and (int(d) if d.isdigit() else sizes.setdefault(d, g)) == g
         if not ok:
             want = tuple(sizes.get(d, d) if not d.isdigit() else int(d) for d in dims)
+            sized = f" = {_shape_text(want)}" if want != dims else ""
             batch = "; one value, not a batch: vmap over a batch" if len(got) > len(dims) else ""
-            raise ValueError(
-                f"{name} must have shape {_shape_text(dims)} = {_shape_text(want)}{batch}, got {_shape_text(got)}"
-            )
+            raise ValueError(f"{name} must have shape {_shape_text(dims)}{sized}{batch}, got {_shape_text(got)}")
     return sizes
 
 
@@ -238,7 +245,7 @@ def arrays(spec: str, *values) -> tuple:
 
 def shape(name: str, value, expected: tuple, what: str = "") -> None:
     """Static check that ``value`` has shape ``expected`` (``None`` entries: any size); works on tracers."""
-    got = np.shape(value)
+    got = _dims(value)
     if len(got) != len(expected) or any(e is not None and e != g for e, g in zip(expected, got, strict=False)):
         hint = f" ({what})" if what else ""
         raise ValueError(f"{name} must have shape {_shape_text(expected)}{hint}, got {tuple(got)}")
@@ -271,7 +278,7 @@ def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False
     """Check that ``value`` is a 2-D matrix (or a stack of them when ``batch``) of the given ``shape``
     (entries ``None``: any size), and finite when concrete. Shapes are checked on tracers too.
     Returns nothing; raises ``ValueError``."""
-    dims = np.shape(value)
+    dims = _dims(value)
     if len(dims) != 2 and not (batch and len(dims) > 2):
         batch_hint = "; one matrix, not a batch: vmap over a batch" if len(dims) > 2 else ""
         raise ValueError(f"{name} must be a 2-D matrix{batch_hint}, got an array of shape {tuple(dims)}")
@@ -329,6 +336,8 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
     """Check a finite positive (or non-negative) real scalar (a bool is refused); skipped on tracers (unless
     :func:`checked`)."""
     if not is_concrete(value):
+        if np.ndim(value) != 0:
+            raise ValueError(f"{name} must be a scalar, got shape {tuple(np.shape(value))}")
         bound = "non-negative" if allow_zero else "positive"
         ok = jnp.isfinite(value) & ((value >= 0) if allow_zero else (value > 0))
         _check_traced(ok, f"{name} must be a finite {bound} number, got {{value}}", value=value)

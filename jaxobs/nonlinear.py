@@ -70,6 +70,16 @@ class NonlinearModel:
     substeps: int = dataclasses.field(default=1, metadata=dict(static=True))
     method: str = dataclasses.field(default="rk4", metadata=dict(static=True))
 
+    def check(self, name: str = "model") -> NonlinearModel:
+        """``self``, checked at trace time to be one model: ``Q`` (n, n), ``R`` (p, p), ``x0`` (n,), ``P0`` (n, n),
+        ``dt`` and ``t0`` (), no leading batch axis (``vmap`` over a batch of models); a ``ValueError`` naming
+        ``name.Q`` ... otherwise (``name``: the argument that holds it)."""
+        if not isinstance(self, NonlinearModel):
+            raise ValueError(f"{name} must be a NonlinearModel (jaxobs.nonlinear.nonlinear_model), got {self!r}")
+        _checks.shapes(f"{name}.Q (n, n), {name}.R (p, p), {name}.x0 (n,), {name}.P0 (n, n), {name}.dt (), {name}.t0 ()",
+                       self.Q, self.R, self.x0, self.P0, self.dt, self.t0)  # fmt: skip
+        return self
+
 
 def nonlinear_model(
     f, h, Q, R, *, x0, P0=None, n_inputs: int = 0, dt=1.0, t0=0.0, continuous: bool = False,
@@ -203,6 +213,7 @@ class GaussianOutputs(NamedTuple):
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
     """The state before the first measurement: the prior ``(x0, P0)`` at ``t0``."""
+    model = NonlinearModel.check(model)
     zero = jnp.zeros((), jnp.int32)
     return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), zero, zero)
 
@@ -210,6 +221,7 @@ def gaussian_init(model: NonlinearModel) -> GaussianState:
 def model_inputs(model: NonlinearModel, inputs):
     """``(y, u)`` of ``EstimatorInputs(y, u_prev)`` checked against the model's sizes (at trace time) and cast to
     its dtype; ``u`` is an empty (0,) vector for a model without inputs."""
+    model = NonlinearModel.check(model)
     p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
     if inputs.u_prev is None:
@@ -310,6 +322,7 @@ def gaussian_factor(cov):
     :func:`jaxobs.kalman_steps.ud_factor` (``F = U diag(d)^(1/2)``), so a singular ``cov`` is no special case;
     differentiable where ``cov`` is definite. The Monte-Carlo filters (particle filters, ensemble Kalman filters)
     draw their noises with it (:func:`sample_gaussian`)."""
+    (cov,) = _checks.arrays("cov (n, n)", cov)
     U, d = ud_factor(cov)
     return U * jnp.sqrt(d)
 
@@ -317,5 +330,7 @@ def gaussian_factor(cov):
 def sample_gaussian(key, mean, factor, num: int):
     """``num`` draws (num, n) of ``N(mean, F F')`` as ``mean + F e``, ``e`` standard normal, for a factor ``F``
     (n, r) such as :func:`gaussian_factor`'s: reparameterised, so differentiable in ``mean`` and ``F``.
-    Shapes: ``mean`` (n,); ``num`` static."""
+    Shapes: ``mean`` (n,), ``factor`` (n, r); ``num`` static."""
+    mean, factor = _checks.arrays("mean (n,), factor (n, r)", mean, factor)
+    num = _checks.count("num", num)
     return mean + jax.random.normal(key, (num, factor.shape[-1]), mean.dtype) @ factor.T

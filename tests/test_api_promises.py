@@ -293,9 +293,10 @@ def _check_batch(call: Call):
     for name, value in call.dynamic.items():
         if name in call.entry.batched or (call.entry.tangent == "key" and name == call.diff):
             continue
-        batched = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * 2), value)
+        batched = jax.tree_util.tree_map(lambda x: jnp.stack([x] * 2), value)
         with pytest.raises(ValueError) as refusal:
             jax.eval_shape(lambda a, name=name: call({**call.dynamic, name: a}), batched)
+            pytest.fail(f"{call.key}: a batch axis on {name} was not refused")
         message = str(refusal.value)
         assert re.search(rf"(?<![\w.]){re.escape(name)}\b", message), (
             f"{call.key}: a batch axis on {name} raised a ValueError that does not name it: {message}"

@@ -130,9 +130,110 @@ PLANTS = {
                                          diff="stiffness"),  # fmt: skip
 }
 
-ENTRIES = {**LTI, **MATRIX_EQUATIONS, **DESIGN, **KALMAN_STEPS, **PLANTS}
+def _decay(x, u, t):
+    """A small time-varying ODE ``x' = -x + u + sin(t)`` for the integrators (``x`` and ``u`` with leading batch
+    axes too)."""
+    import jax.numpy as jnp
+
+    return -x + jnp.expand_dims(u, -1) + jnp.sin(t)
+
+
+PYTREE_STATE = {"lists": "x is a pytree of arrays: a list is a pytree (of scalars), not an array"}
+
+CT = {
+    "jaxobs.ct.euler_step": Example(lambda: dict(f=_decay, x=X2, u=np.float64(0.5), t=np.float64(0.1),
+                                                 dt=np.float64(0.01)), diff="x", batched=("x", "u"), skip=PYTREE_STATE),
+    "jaxobs.ct.rk4_step": Example(lambda: dict(f=_decay, x=X2, u=np.float64(0.5), t=np.float64(0.1),
+                                               dt=np.float64(0.01)), diff="x", batched=("x", "u"), skip=PYTREE_STATE),
+    "jaxobs.ct.integrate": Example(lambda: dict(f=_decay, x=X2, u=np.float64(0.5), t=np.float64(0.1),
+                                                h=np.float64(0.2), substeps=4), diff="x", batched=("x", "u"), skip=PYTREE_STATE),
+    "jaxobs.ct.trajectory": Example(lambda: dict(f=_decay, x0=X2, u=np.array([0.5, -0.2, 0.1]), h=np.float64(0.2),
+                                                 substeps=2), diff="x0",
+                                    skip={"lists": "x0 and u are pytrees: a list is a pytree (of scalars)",
+                                          "batch": "x0 and u are pytrees of any shapes that f takes"}),
+}
+
+
+def _ball():
+    from jaxobs.adaptive import Ball
+
+    return Ball(center=np.zeros(2), radius=np.float64(2.0))
+
+
+THETA = np.array([0.3, -0.4])
+OMEGA = np.array([[1.0, 0.5], [0.2, -0.3]])
+
+ADAPTIVE = {
+    "jaxobs.adaptive.regression_gradient_law": Example(lambda: dict(theta_hat=THETA, omega=OMEGA,
+                                                                    z=np.array([0.2, 0.1]),
+                                                                    adaptation_gain=np.float64(2.0))),
+    "jaxobs.adaptive.lyapunov_law": Example(lambda: dict(omega=OMEGA, x=np.array([0.2, 0.1]),
+                                                         adaptation_gain=np.float64(2.0))),
+    "jaxobs.adaptive.rls_update": Example(lambda: dict(theta_hat=THETA, P=P2, omega=OMEGA, z=np.array([0.2, 0.1]),
+                                                       forgetting=np.float64(0.98))),
+    "jaxobs.adaptive.rls_rate": Example(lambda: dict(theta_hat=THETA, P=P2, omega=OMEGA, z=np.array([0.2, 0.1]),
+                                                     forgetting=np.float64(0.1))),
+    "jaxobs.adaptive.project": Example(lambda: dict(tau=np.array([1.0, 0.5]), theta_hat=np.array([1.9, 0.3]),
+                                                    adaptation_gain=np.float64(1.0), region=_ball(),
+                                                    epsilon=np.float64(0.2)), diff="tau"),
+    "jaxobs.adaptive.clip_step": Example(lambda: dict(theta_hat=THETA, rate=np.array([1.0, -2.0]),
+                                                      dt=np.float64(0.01), lower=np.array([-1.0, -1.0]),
+                                                      upper=np.array([1.0, 1.0]))),
+    "jaxobs.adaptive.excitation": Example(lambda: dict(regressors=np.stack([np.sin(0.3 * np.arange(20)),
+                                                                            np.cos(0.2 * np.arange(20))], axis=1),
+                                                       dt=np.float64(0.01)),
+                                          skip={"batch": "regressors is a window of any length: a batch axis is "
+                                                "the (N, n_theta, q) form"}),
+}
+
+
+def _pendulum():
+    import jax.numpy as jnp
+    from jaxobs.nonlinear import nonlinear_model
+
+    f = lambda x, u, t: jnp.array([x[0] + 0.05 * x[1], x[1] - 0.05 * jnp.sin(x[0]) + 0.05 * u[0]])
+    return nonlinear_model(f, lambda x: jnp.sin(x[:1]), 0.01 * np.eye(2), [[0.1]], x0=[0.5, 0.0], n_inputs=1)
+
+
+def _inputs(y, u_prev=None):
+    from jaxobs.observers.base import EstimatorInputs
+
+    return EstimatorInputs(y=y, u_prev=u_prev)
+
+
+def _gaussian_step(fn, model, inputs):
+    from jaxobs.nonlinear import gaussian_init
+    from jaxobs.observers.ekf import taylor
+
+    return fn(taylor, 1, model, gaussian_init(model), inputs)
+
+
+NONLINEAR = {
+    "jaxobs.nonlinear.nonlinear_model": Example(lambda: dict(f=lambda x, u, t: -x, h=lambda x: x[:1], Q=Q2, R=R1,
+                                                             x0=X2, dt=np.float64(0.1)), diff="Q"),
+    "jaxobs.nonlinear.gaussian_init": Example(lambda: dict(model=_pendulum()), tangent="scale"),
+    "jaxobs.nonlinear.gaussian_step": Example(lambda: dict(model=_pendulum(), inputs=_inputs(Y1, U1)),
+                                              diff="inputs", call=_gaussian_step),
+    "jaxobs.nonlinear.model_inputs": Example(lambda: dict(model=_pendulum(), inputs=_inputs(Y1, U1)),
+                                             diff="inputs"),
+    "jaxobs.nonlinear.gaussian_factor": Example(lambda: dict(cov=P2)),
+    "jaxobs.nonlinear.sample_gaussian": Example(lambda: dict(key=_key(), mean=X2, factor=np.linalg.cholesky(P2),
+                                                             num=5), diff="mean"),
+}
+
+
+def _key(seed: int = 0):
+    import jax
+
+    return jax.random.key(seed)
+
+
+ENTRIES = {**LTI, **MATRIX_EQUATIONS, **DESIGN, **KALMAN_STEPS, **PLANTS, **CT, **ADAPTIVE, **NONLINEAR}
 
 EXEMPT = {
+    "jaxobs.ct.discretize": "transformation: returns the sampled model of the user's f (its calls are integrate's)",
+    "jaxobs.adaptive.check_law": "validator: checks an update law's fields and the start in its projection set",
+    "jaxobs.nonlinear.check_discrete_model": "validator: refuses a model that is not a discrete NonlinearModel",
     "jaxobs.matrix_equations.require_converged": "validator: raises with the reason when a concrete DARE solution "
     "did not converge",
     "jaxobs.matrix_equations.require_care_converged": "validator: raises with the reason when a concrete CARE "
