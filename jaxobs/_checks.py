@@ -231,6 +231,21 @@ def shapes(spec: str, *values) -> dict[str, int]:
     return sizes
 
 
+@functools.cache
+def _prefixed(name: str, spec: str) -> tuple[str, tuple[str, ...]]:
+    """``spec`` with every name prefixed by ``name.``, and the names."""
+    names = tuple(field for field, _ in _signature(spec))
+    return re.sub(r"([\w.]+)\s*\(", lambda m: f"{name}.{m.group(1)} (", spec), names
+
+
+def fields(name: str, obj, spec: str) -> dict[str, int]:
+    """:func:`shapes` of the attributes of ``obj`` (a params pytree) named in ``spec``, e.g. ``fields("params",
+    params, "Phi (n, n), C (p, n)")``, reported as ``params.Phi`` ...: the static check that ``obj`` holds one
+    model, not a batch of them (``vmap`` over a batch). ``None`` attributes are skipped."""
+    prefixed, names = _prefixed(name, spec)
+    return shapes(prefixed, *(getattr(obj, field) for field in names))
+
+
 def arrays(spec: str, *values) -> tuple:
     """``values`` as arrays of one floating dtype (:func:`float_arrays`: lists and scalars accepted) with the shapes
     of ``spec`` (:func:`shapes`, whose names they take in order), e.g.

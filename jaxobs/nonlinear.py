@@ -310,8 +310,7 @@ def gaussian_step(
 def check_discrete_model(model, what: str) -> None:
     """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state), as the
     Monte-Carlo filters, which draw the transition, need; ``what`` names the filter in the message."""
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    NonlinearModel.check(model, "model")
     if model.continuous:
         raise ValueError(f"model is continuous-time: {what} draws a discrete-time transition; build the model with "
                          "continuous=False (f the next state)")  # fmt: skip
@@ -330,7 +329,11 @@ def gaussian_factor(cov):
 def sample_gaussian(key, mean, factor, num: int):
     """``num`` draws (num, n) of ``N(mean, F F')`` as ``mean + F e``, ``e`` standard normal, for a factor ``F``
     (n, r) such as :func:`gaussian_factor`'s: reparameterised, so differentiable in ``mean`` and ``F``.
-    Shapes: ``mean`` (n,), ``factor`` (n, r); ``num`` static."""
-    mean, factor = _checks.arrays("mean (n,), factor (n, r)", mean, factor)
+    Shapes: ``mean`` (n,) (or a scalar, the same for every entry), ``factor`` (n, r); ``num`` static."""
+    mean, factor = _checks.float_arrays(mean=mean, factor=factor)
+    if mean.ndim:
+        _checks.shapes("mean (n,), factor (n, r)", mean, factor)
+    else:
+        _checks.shapes("factor (n, r)", factor)
     num = _checks.count("num", num)
     return mean + jax.random.normal(key, (num, factor.shape[-1]), mean.dtype) @ factor.T

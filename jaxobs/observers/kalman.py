@@ -89,6 +89,9 @@ class KalmanParams:
     schedule: Callable | None = None
 
 
+_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gain (n, p), gain_converged ()"
+
+
 class KalmanState(NamedTuple):
     """State of :data:`kalman_filter` between steps.
 
@@ -180,6 +183,7 @@ def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
     reported by every step (``KalmanOutputs.converged``).
     """
+    _checks.fields("params", params, _SHAPES)
     if params.schedule is not None:
         raise ValueError("params.schedule: a time-varying model has no steady-state gain; use the time-varying one")
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
@@ -270,10 +274,12 @@ def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
 
 
 def _init(params: KalmanParams) -> KalmanState:
+    _checks.fields("params", params, _SHAPES)
     return KalmanState(params.x0, params.P0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     params = _at_step(params, inputs)
     y, u_prev = _inputs(params, inputs)
     return _filter_step(params, state, y, u_prev, params.gain)
@@ -413,6 +419,7 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
       >>> bool(jnp.allclose(out.x, run(kalman.kalman_filter, params, EstimatorInputs(y=jnp.ones((50, 1))))[1].x))
       True
     """
+    _checks.fields("params", params, _SHAPES)
     if params.gain is not None:
         raise ValueError("params has a fixed gain: the square-root form propagates the time-varying covariance")
     if params.schedule is not None:
@@ -423,16 +430,18 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
                                   output_covariance=params.output_covariance)  # fmt: skip
 
 
+# the factors: Q_sqrt one row per state, R_sqrt one row per row of C, P0_sqrt square
+_SQUARE_ROOT_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Q_sqrt (n, r), R_sqrt (p, s), x0 (n,), P0_sqrt (n, n)"
+
+
 def _square_root_init(params: SquareRootKalmanParams) -> SquareRootKalmanState:
+    _checks.fields("params", params, _SQUARE_ROOT_SHAPES)
     return SquareRootKalmanState(params.x0, params.P0_sqrt, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _square_root_step(params: SquareRootKalmanParams, state: SquareRootKalmanState, inputs: EstimatorInputs):
     params = _at_step(params, inputs)
-    n, p = params.Phi.shape[-1], params.C.shape[-2]
-    _checks.shape("params.Q_sqrt", params.Q_sqrt, (n, None), "a factor of Q: one row per state")
-    _checks.shape("params.R_sqrt", params.R_sqrt, (p, None), "a factor of R: one row per row of C")
-    _checks.shape("params.P0_sqrt", params.P0_sqrt, (n, n), "a square factor of P0")
+    _checks.fields("params", params, _SQUARE_ROOT_SHAPES)
     y, u_prev = _inputs(params, inputs)
     x_prior, P_prior = square_root_predict(state.x, state.P_sqrt, params.Phi, params.Q_sqrt, params.Gamma, u_prev,
                                            skip=~state.started)  # fmt: skip

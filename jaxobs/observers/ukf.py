@@ -99,8 +99,7 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
       >>> out.x.shape
       (20, 2)
     """
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    NonlinearModel.check(model, "model")
     if rule not in RULES:
         raise ValueError(f"rule must be one of {list(RULES)}, got {rule!r}")
     given = {"alpha": alpha, "beta": beta, "kappa": kappa}
@@ -166,6 +165,7 @@ def sigma_points(m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented
       ``(X, wm, wc, L)``: (N, n) points (the unscented centre first), (N,) mean and covariance weights, and the
       (n, n) lower Cholesky factor of ``P``.
     """
+    m, P, alpha, beta, kappa = _checks.arrays("m (n,), P (n, n), alpha (), beta (), kappa ()", m, P, alpha, beta, kappa)
     n = m.shape[0]
     L = cholesky(P)
     if rule != "unscented":
@@ -182,6 +182,7 @@ def sigma_points(m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented
 def unscented(g, m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented", order: int = 3) -> Linearization:
     """Statistical linear regression of ``g`` on the sigma points of ``N(m, P)`` by any rule of
     :func:`sigma_points`: ``(g_bar, C' P^{-1}, Cov - G C)`` (Särkkä 2013, §5.6)."""
+    m, P = _checks.arrays("m (n,), P (n, n)", m, P)
     X, wm, wc, L = sigma_points(m, P, alpha, beta, kappa, rule=rule, order=order)
     Y = jax.vmap(g)(X)
     mean = wm @ Y
@@ -196,11 +197,13 @@ def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
     def linearize(g, m, P):
         return unscented(g, m, P, params.alpha, params.beta, params.kappa, rule=params.rule, order=params.order)
 
+    NonlinearModel.check(params.model, "params.model")
     return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph,
                          output_covariance=params.output_covariance)  # fmt: skip
 
 
-unscented_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
+unscented_kalman_filter = Estimator(lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")),
+                                    _step)
 """The sigma-point Kalman filter (unscented, cubature or Gauss-Hermite, ``UKFParams.rule``) as an
 :class:`~jaxobs.observers.base.Estimator` over :class:`UKFParams`.
 

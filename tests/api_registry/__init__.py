@@ -46,6 +46,7 @@ class Example:
       slow: run only in the slow suite (an MJX plant, a long record).
       rtol: tolerance of the eager/jit/vmap comparisons (relative to each output's largest entry).
       grad_rtol: tolerance of the gradient against central differences.
+      fd_step: the step of the central differences, relative to the direction (which has the size of ``diff``).
     """
 
     args: Callable[[], dict]
@@ -58,6 +59,7 @@ class Example:
     slow: bool = False
     rtol: float = 1e-9
     grad_rtol: float = 1e-6
+    fd_step: float = 1e-5
 
     def __post_init__(self):
         unknown = set(self.skip) - set(CHECKS)
@@ -92,6 +94,8 @@ EXEMPTIONS = {
     "validator": "an eager check that raises on concrete values (under tracing it checks shapes or nothing)",
     "loader": "reads a file, a name or a model description (strings and files, nothing to trace)",
     "transformation": "takes or returns functions (a transformation of the user's function, or a factory)",
+    "static": "takes only static sizes and settings (Python integers, strings) and returns constants: nothing to "
+    "trace",
 }
 """The kinds of exemption; an exempt name's reason starts with one of them (``"job: ..."``)."""
 
