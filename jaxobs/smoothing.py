@@ -213,7 +213,7 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
     Returns:
       ``(final_state, outputs)`` as :func:`~jaxobs.observers.base.run` returns them.
     """
-    if params.gain is not None:
+    if KalmanParams.check(params).gain is not None:
         raise ValueError("params has a fixed gain: the parallel filter computes the time-varying one")
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     y = jnp.asarray(inputs.y)

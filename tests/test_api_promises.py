@@ -253,7 +253,7 @@ def _check_grad(call: Call, eager):
     values = [_weighted(_float_outputs(select(single({**call.dynamic, call.diff: _moved(x, directions, t)}))), weights)
               for t in (h, -h)]  # fmt: skip
     central = (values[0] - values[1]) / (2 * h)
-    gradient = jax.jit(jax.grad(_loss(call, weights)))(x)
+    gradient = jax.jit(jax.grad(_loss(call, weights), allow_int=True))(x)
     pairs = zip(jax.tree_util.tree_leaves(gradient), jax.tree_util.tree_structure(x).flatten_up_to(directions),
                 strict=True)  # fmt: skip
     reverse = sum(float(np.vdot(np.asarray(g), d)) for g, d in pairs if d is not None)

@@ -88,6 +88,15 @@ class KalmanParams:
     joseph: bool = dataclasses.field(default=False, metadata=dict(static=True))
     schedule: Callable | None = None
 
+    def check(self, name: str = "params") -> KalmanParams:
+        """``self``, checked at trace time to be one filter: ``Phi`` (n, n), ``Gamma`` (n, m), ``C`` (p, n), ``Q``
+        (n, n), ``R`` (p, p), ``x0`` (n,), ``P0`` (n, n), ``gain`` (n, p), no leading batch axis (``vmap`` over a
+        batch of filters); a ``ValueError`` naming ``name.Phi`` ... otherwise (``name``: the argument)."""
+        if not isinstance(self, KalmanParams):
+            raise ValueError(f"{name} must be KalmanParams (make_kalman), got {type(self).__name__}")
+        _checks.fields(name, self, _SHAPES)
+        return self
+
 
 _SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gain (n, p), gain_converged ()"
 
@@ -183,7 +192,7 @@ def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
     reported by every step (``KalmanOutputs.converged``).
     """
-    _checks.fields("params", params, _SHAPES)
+    KalmanParams.check(params)
     if params.schedule is not None:
         raise ValueError("params.schedule: a time-varying model has no steady-state gain; use the time-varying one")
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
@@ -274,12 +283,12 @@ def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
 
 
 def _init(params: KalmanParams) -> KalmanState:
-    _checks.fields("params", params, _SHAPES)
+    KalmanParams.check(params)
     return KalmanState(params.x0, params.P0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: EstimatorInputs):
-    _checks.fields("params", params, _SHAPES)
+    KalmanParams.check(params)
     params = _at_step(params, inputs)
     y, u_prev = _inputs(params, inputs)
     return _filter_step(params, state, y, u_prev, params.gain)
@@ -419,7 +428,7 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
       >>> bool(jnp.allclose(out.x, run(kalman.kalman_filter, params, EstimatorInputs(y=jnp.ones((50, 1))))[1].x))
       True
     """
-    _checks.fields("params", params, _SHAPES)
+    KalmanParams.check(params)
     if params.gain is not None:
         raise ValueError("params has a fixed gain: the square-root form propagates the time-varying covariance")
     if params.schedule is not None:
