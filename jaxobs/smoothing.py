@@ -103,10 +103,11 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False) -> Smoothed:
     _checks.shape("filtered.P", P, (T, n, n), "(T, n, n) a-posteriori covariances")
     _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
     _checks.shape("filtered.P_prior", P_prior, (T, n, n), "(T, n, n) a-priori covariances")
-    if np.ndim(Phi) == 3:
+    (Phi,) = _checks.float_arrays(Phi=Phi)
+    if Phi.ndim == 3:
         _checks.shape("Phi", Phi, (T, n, n), "(T, n, n) transitions, Phi[k] from sample k - 1 to k")
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True, batch=np.ndim(Phi) == 3)
-    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
+    _checks.matrix("Phi", Phi, shape=(n, n), square=True, batch=Phi.ndim == 3)
+    return _rts(Phi.astype(x.dtype), x, P, x_prior, P_prior, parallel=bool(parallel))
 
 
 @partial(jax.jit, static_argnames=("parallel",))

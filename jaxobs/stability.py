@@ -49,7 +49,7 @@ def loop_transfer(plant: StateSpace, controller: Controller, params) -> StateSpa
     Returns a discrete :class:`StateSpace` from ``u'`` to ``L x_hat``; the loop is closed with ``u' = -L x_hat``
     (negative feedback), so its return ratio is the transfer function itself.
     """
-    if not plant.is_discrete:
+    if not StateSpace.check(plant, "plant").is_discrete:
         raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
     lin = _linear_form(controller, params)
     c, L = lin.estimator, lin.L
@@ -84,6 +84,7 @@ def closed_loop_matrix(plant: StateSpace, controller: Controller, params):
 def spectral_radius(A):
     """``max |eig(A)|`` of an (n, n) matrix ``A`` or a stack of them (differentiable where the largest eigenvalue
     is simple)."""
+    (A,) = _checks.float_arrays(A=A)
     _checks.matrix("A", A, square=True, batch=True)
     return jnp.max(jnp.abs(jnp.linalg.eigvals(A)))
 
@@ -296,17 +297,9 @@ def stability_margins(
     delay_margin = jnp.where(nyquist_gain > 1.0, jnp.minimum(delay_margin, sys.dt), delay_margin)
     stability_margin = jnp.abs(1.0 + H_exact[3])
 
-    return Margins(
-        gain_margin,
-        phase_margin,
-        delay_margin,
-        stability_margin,
-        phase_crossover,
-        gain_crossover,
-        jax.lax.stop_gradient(theta_sm) / sys.dt,
-        jnp.max(jnp.abs(closed)),
-        pc_trunc | gc_trunc,
-    )
+    values = (gain_margin, phase_margin, delay_margin, stability_margin, phase_crossover, gain_crossover,
+              jax.lax.stop_gradient(theta_sm) / sys.dt, jnp.max(jnp.abs(closed)))  # fmt: skip
+    return Margins(*(v.astype(dtype) for v in values), pc_trunc | gc_trunc)  # one dtype, the loop's
 
 
 def _golden_minimum(f, lo, hi, iters: int):
