@@ -731,8 +731,8 @@ _SHAPES = {
     SaturatedOutputDesign: "A (n, n), B (n, m), C (p, n), T (), alpha (), H (p, n), expAT (n, n), Bbar (n, n), "
     "Bbar_inv (n, n)",
     WindowModel: "H (p, f), E (f, f), G0 (f, m), G1 (f, m), h ()",
-    SandwichDesign: "A (n, n), B (n, 1), C (1, n), M (m, m), N (m, 1), G (p, m), AA (k, k), BB (k, 1), CC (p, k), T (), "
-    "alpha (), h (n,), beta_inv (n, n), expATbar (n, n), K (1, k), P (k, k)",
+    SandwichDesign: "A (n, n), B (n, 1), C (1, n), M (m, m), N (m, 1), G (p, m), AA (k, k), BB (k, 1), CC (p, k), "
+    "T (), alpha (), h (n,), beta_inv (n, n), expATbar (n, n), K (1, k), P (k, k)",
 }
 """The shapes of the fields of this module's designs and window models (checked by :func:`_design`)."""
 

@@ -15,7 +15,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxobs import _checks
 from jaxobs._linalg import solve_spd, symmetrize

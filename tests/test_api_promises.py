@@ -52,16 +52,14 @@ def public_functions() -> dict[str, list[str]]:
     """``home key -> the names it is exported as`` for every public function and estimator; the home is the
     deepest public module that exports the object (``jaxobs.dare`` -> ``jaxobs.matrix_equations.dare``)."""
     exported: dict[int, list[tuple[str, str]]] = {}
-    objects = {}
     for module_name in _public_modules():
         module = importlib.import_module(module_name)
         for name in getattr(module, "__all__", ()):
             obj = getattr(module, name)
             if _computes(obj):
                 exported.setdefault(id(obj), []).append((module_name, name))
-                objects[id(obj)] = obj
     homes = {}
-    for ident, places in exported.items():
+    for places in exported.values():
         module_name, name = max(places, key=lambda place: (place[0].count("."), place[0]))
         homes[f"{module_name}.{name}"] = sorted(f"{m}.{n}" for m, n in places)
     return dict(sorted(homes.items()))
@@ -310,10 +308,9 @@ def _check_batch(call: Call):
             f"{call.key}: a batch axis on {name} raised a ValueError that does not name it: {message}"
         )
     if call.entry.batched:
-        members = [
-            {name: _members(call.dynamic[name], call.entry.tangent, f"{call.key}/{name}")[i] for name in call.entry.batched}
-            for i in range(3)
-        ]  # fmt: skip
+        perturbed = {name: _members(call.dynamic[name], call.entry.tangent, f"{call.key}/{name}")
+                     for name in call.entry.batched}  # fmt: skip
+        members = [{name: values[i] for name, values in perturbed.items()} for i in range(3)]
         looped = _stack([call({**call.dynamic, **member}) for member in members])
         _assert_close(call({**call.dynamic, **_stack(members)}), looped, call.entry.rtol,
                       f"{call.key}: a batch of {call.entry.batched} vs a loop")  # fmt: skip

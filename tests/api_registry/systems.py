@@ -7,7 +7,7 @@ import numpy as np
 
 from tests.api_registry import Design, Example
 from tests.api_registry.models import NOT_DIFFERENTIABLE, R1, _key, _ss_discrete
-from tests.api_registry.observers import T, _aob_controller, _kalman_filter
+from tests.api_registry.observers import T, _aob_controller
 
 
 def _plant():
