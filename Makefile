@@ -22,7 +22,7 @@ reproduce: $(STAMP)
 	$(BIN)/jaxobs reproduce all --out $(OUT)
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=30
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m 'not slow and not published'

@@ -12,9 +12,11 @@ back as TOML with every key's note above it (``--print-config``).
 
 from __future__ import annotations
 
+import ast
 import copy
 import json
 import math
+import operator
 import re
 import textwrap
 from pathlib import Path
@@ -36,6 +38,9 @@ __all__ = [
     "check_memory",
     "leaf_keys",
     "to_toml",
+    "expression",
+    "Expression",
+    "EXPRESSION_FUNCTIONS",
 ]
 
 
@@ -98,10 +103,43 @@ def _check_numbers(source: str, name: str, value) -> None:
         fail(source, name, f"must be an integer of magnitude at most 2**31 - 1 = {MAX_INDEX} (int32), got {value!r}")
 
 
-def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tables: tuple = ()) -> dict:
+def _open_table(value, source: str, name: str, template: dict | None, open_tables) -> dict:
+    """A given open table: each entry a list of numbers (``template`` None) or a table merged over ``template``."""
+    if not isinstance(value, dict):
+        fail(source, name, "must be a table")
+    table = {}
+    for entry, given in value.items():
+        if template is not None:
+            if not isinstance(given, dict):
+                fail(source, f"{name}.{entry}", f"must be a table (keys: {', '.join(template)})")
+            table[entry] = merge(template, given, source, f"{name}.{entry}.", open_tables=open_tables)
+            continue
+        if not _is_numbers(given):
+            fail(source, f"{name}.{entry}", f"must be a list of finite numbers, got {given!r}")
+        _check_numbers(source, f"{name}.{entry}", given)
+        table[entry] = given
+    return table
+
+
+def _matrix(value, source: str, name: str) -> list:
+    """A given matrix: a list of equal-length rows of numbers or expression strings (:func:`expression`)."""
+    rows_ok = isinstance(value, list) and value and all(isinstance(r, list) and r for r in value)
+    if not rows_ok or len({len(r) for r in value}) != 1:
+        fail(source, name, f"must be a matrix: a list of rows of equal length, got {value!r}")
+    entries = [v for row in value for v in row]
+    if not all(isinstance(v, int | float | str) and not isinstance(v, bool) for v in entries):
+        fail(source, name, f"entries must be numbers or expressions (strings), got {value!r}")
+    _check_numbers(source, name, [v for v in entries if not isinstance(v, str)])
+    return value
+
+
+def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tables=()) -> dict:
     """``given`` over ``default``; unknown keys, type mismatches, non-finite numbers and integers beyond int32 are
-    errors. A list default of strings takes a list of strings, any other list default a list of numbers. The tables
-    named (dotted) in ``open_tables`` take keys of the user's choosing, each a list of numbers: a given one replaces
+    errors. A list default of strings takes a list of strings, a list of lists (a matrix) a list of equal-length
+    rows of numbers or strings (expressions), any other list default a list of numbers; an :class:`Expression`
+    default takes a number or a string. The tables named (dotted)
+    in ``open_tables`` take keys of the user's choosing: each a list of numbers, or, where ``open_tables`` is a
+    dict ``{name: template}`` with a table template, a table merged over the template; a given open table replaces
     the default's."""
     merged = copy.deepcopy(default)
     for key, value in given.items():
@@ -111,13 +149,10 @@ def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tab
             fail(source, name, f"unknown key (expected one of: {', '.join(default)})")
         expected = default[key]
         if name in open_tables:
-            if not isinstance(value, dict):
-                fail(source, name, "must be a table")
-            for entry, numbers in value.items():
-                if not _is_numbers(numbers):
-                    fail(source, f"{name}.{entry}", f"must be a list of finite numbers, got {numbers!r}")
-                _check_numbers(source, f"{name}.{entry}", numbers)
-            merged[key] = dict(value)
+            template = open_tables.get(name) if isinstance(open_tables, dict) else None
+            merged[key] = _open_table(value, source, name, template, open_tables)
+        elif isinstance(expected, list) and expected and isinstance(expected[0], list):
+            merged[key] = _matrix(value, source, name)
         elif isinstance(expected, dict):
             if not isinstance(value, dict):
                 fail(source, name, "must be a table")
@@ -133,6 +168,10 @@ def merge(default: dict, given: dict, source: str, prefix: str = "", *, open_tab
         elif isinstance(expected, bool) != isinstance(value, bool):
             kind = "true or false" if isinstance(expected, bool) else "a number"
             fail(source, name, f"must be {kind}, got {value!r}")
+        elif isinstance(expected, Expression):
+            if isinstance(value, bool) or not isinstance(value, int | float | str):
+                fail(source, name, f"must be a number or an expression (a string), got {value!r}")
+            merged[key] = value
         elif isinstance(expected, str) and not isinstance(value, str):
             fail(source, name, f"must be a string, got {value!r}")
         elif isinstance(expected, int) and not isinstance(value, int):
@@ -231,3 +270,59 @@ def to_toml(config: dict, notes: dict, header: str = "", width: int = 100) -> st
 
     head = [line for text in header.splitlines() for line in (comment(text) or ["#"])]
     return "\n".join([*head, *([""] if head else []), *table(config, "")]).strip("\n") + "\n"
+
+
+class Expression(str):
+    """A default that marks its key as a number or an expression (:func:`expression`): :func:`merge` takes either
+    for it (any other string default takes strings only)."""
+
+
+EXPRESSION_FUNCTIONS = ("sqrt", "exp", "log", "sin", "cos", "tan", "abs")
+"""The functions a config expression may call (one argument each); ``pi`` is the one constant."""
+
+_OPERATORS = {
+    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,
+    ast.Pow: operator.pow, ast.USub: operator.neg, ast.UAdd: operator.pos,
+}  # fmt: skip
+
+
+def expression(source: str, key: str, text, names):
+    """A config entry that is a number or an arithmetic expression of the parameters ``names``, as a function
+    ``values -> value`` of ``{name: value}`` (traceable: JAX arrays in, JAX arrays out).
+
+    ``text`` is a number or a string of numbers, ``names``, ``pi``, ``+ - * / **``, parentheses and the calls of
+    :data:`EXPRESSION_FUNCTIONS`; anything else (an unknown name, an attribute, a keyword) is a
+    :class:`ConfigError` naming ``source`` and ``key``. The string is parsed, never run as code."""
+    if isinstance(text, int | float) and not isinstance(text, bool):
+        return lambda values: text
+    try:
+        tree = ast.parse(str(text).strip(), mode="eval").body
+    except SyntaxError:
+        fail(source, key, f"{text!r} is not an arithmetic expression")
+
+    def build(node):
+        if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
+            return lambda values: node.value
+        if isinstance(node, ast.Name) and (node.id in names or node.id == "pi"):
+            return (lambda values: math.pi) if node.id == "pi" and node.id not in names else lambda v: v[node.id]
+        if isinstance(node, ast.BinOp) and type(node.op) in _OPERATORS:
+            op, left, right = _OPERATORS[type(node.op)], build(node.left), build(node.right)
+            return lambda values: op(left(values), right(values))
+        if isinstance(node, ast.UnaryOp) and type(node.op) in _OPERATORS:
+            op, operand = _OPERATORS[type(node.op)], build(node.operand)
+            return lambda values: op(operand(values))
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in EXPRESSION_FUNCTIONS
+                and len(node.args) == 1 and not node.keywords):  # fmt: skip
+            name, argument = node.func.id, build(node.args[0])
+            return lambda values: getattr(_numpy(), name)(argument(values))
+        what = f"the name {node.id!r}" if isinstance(node, ast.Name) else f"'{ast.unparse(node)}'"
+        fail(source, key, f"{text!r}: {what} is not allowed (parameters: {', '.join(names) or 'none'}; numbers, "
+                          f"pi, + - * / **, {', '.join(EXPRESSION_FUNCTIONS)})")  # fmt: skip
+
+    return build(tree)
+
+
+def _numpy():
+    import jax.numpy as jnp
+
+    return jnp

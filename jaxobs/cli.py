@@ -110,10 +110,12 @@ def _overrides(args, key: str) -> dict:
     return table
 
 
-def _scenario(args, registry: dict, key: str):
+def _scenario(args, registry: dict, key: str, resolve=None):
     """``(scenario, complete config, source)``: ``--config``'s TOML (or ``--example``'s, or nothing) over the
-    defaults of the scenario its ``key`` names, or ``--print-config``'s, or the default one, then the command line's
-    keys (``--set``, checked as ``--set``); raises :class:`jaxobs._config.ConfigError`."""
+    defaults of the scenario its ``key`` names, or ``--print-config``'s or ``--scenario``'s, or the default one, then
+    the command line's keys (``--set``, checked as ``--set``). A name not in ``registry`` goes to ``resolve`` (a
+    user's scenario, the sweep's ``module:ATTRIBUTE``); the config's ``key`` keeps the name as given. Raises
+    :class:`jaxobs._config.ConfigError`."""
     from jaxobs._config import deep_merge, fail, load_toml
     from jaxobs.papers.shipped import config_path
 
@@ -129,26 +131,33 @@ def _scenario(args, registry: dict, key: str):
     source = path or "<default>"
     overrides = _overrides(args, key)
     if key in overrides:  # --problem: the job to run, whatever the file names
-        given[key] = overrides[key]
-    chosen = getattr(args, "print_config", None) or None  # --print-config NAME
+        given[key] = overrides.pop(key)
+    flags = (("--print-config", getattr(args, "print_config", None)), ("--scenario", getattr(args, "scenario", None)))
+    flag, chosen = next(((flag, value) for flag, value in flags if value), (None, None))  # a NAME on the command line
     name = given.get(key, chosen or next(iter(registry)))
     if chosen and name != chosen:
-        fail(source, key, f"is {name!r}, not the {chosen!r} of --print-config")
-    if name not in registry:
-        fail(source if key in given else "--print-config", key,
-             f"must be one of {', '.join(map(repr, registry))}, got {name!r}")  # fmt: skip
-    scenario = registry[name]
-    config = scenario.validate({**given, key: name}, source)
+        fail(source, key, f"is {name!r}, not the {chosen!r} of {flag}")
+    where = source if key in given else flag
+    if name in registry:
+        scenario = registry[name]
+    elif resolve is None:
+        fail(where, key, f"must be one of {', '.join(map(repr, registry))}, got {name!r}")
+    else:
+        try:
+            scenario = resolve(name)
+        except ValueError as exc:
+            fail(where, key, str(exc))
+    config = scenario.validate({**given, key: scenario.name}, source)
     if overrides:
         config = scenario.validate(deep_merge(config, overrides), "--set")
-    return scenario, config, source
+    return scenario, {**config, key: name}, source
 
 
-def _print_config(args, registry: dict, key: str) -> int:
+def _print_config(args, registry: dict, key: str, resolve=None) -> int:
     from jaxobs._config import to_toml
 
     with contextlib.redirect_stdout(sys.stderr):  # stdout is the TOML only, whatever an import prints
-        scenario, config, source = _scenario(args, registry, key)
+        scenario, config, source = _scenario(args, registry, key, resolve)
     where = f"{source}'s values over the defaults of" if args.config else "the defaults of"
     header = (
         f"jaxobs {args.command} --config FILE: {where} {key} {scenario.name!r}. {scenario.summary}\n"
@@ -159,7 +168,7 @@ def _print_config(args, registry: dict, key: str) -> int:
 
 
 def _sweep(args) -> int:
-    from jaxobs.papers.registry import sweep_scenarios
+    from jaxobs.papers.registry import sweep_scenario, sweep_scenarios
     from jaxobs.sweep import read_manifest
 
     registry = sweep_scenarios()
@@ -167,10 +176,11 @@ def _sweep(args) -> int:
         _print_list(registry, "sweep")
         return 0
     if args.print_config is not None:
-        return _print_config(args, registry, "scenario")
+        return _print_config(args, registry, "scenario", sweep_scenario)
     import jax
 
-    scenario, config, source = _scenario(args, registry, "scenario")
+    scenario, config, source = _scenario(args, registry, "scenario", sweep_scenario)
+    config["scenario"] = scenario.name  # the sweep's identity, however the scenario was named
     out = Path(args.out)
     alone = jax.process_count() == 1  # else the engine checks and locks out_dir with every process's agreement
     with locked_out_dir(out) if alone else contextlib.nullcontext():
@@ -180,19 +190,19 @@ def _sweep(args) -> int:
     if result is None:  # not process 0
         print(f"process {jax.process_index()} of {jax.process_count()}: done; process 0 wrote {out}")
         return 0
-    ran = (
-        f"{result['seconds']:.1f} s, {result['compile_seconds']:.1f} s of it compiling the step"
-        if "seconds" in result
-        else "all already computed"
-    )
+    runs = result["runs"]
+    ran = f"{result['seconds']:.1f} s in {runs} run{'s' if runs != 1 else ''}, {result['compile_seconds']:.1f} s of it"
+    ran += " compiling the step" + ("" if result.get("chunks_computed") else "; nothing left to compute")
     print(
         f"{result['num_configs']} configurations ({ran}); {_command_seconds(args)} (building the scenario, the "
         f"report and figures included); wrote {out / 'summary.json'}, {out / 'report.md'} and "
         f"{', '.join(result['figures'])}"
     )
     for name, s in result.get("controllers", {"all": result}).items():
-        if "stable_fraction" in s:
+        if s.get("stable_fraction") is not None:
             print(f"  {name:6s} stable fraction {s['stable_fraction']:.3f}")
+    if result.get("invalid") is not None:
+        print(f"  invalid configurations: {result['invalid']} of {result['num_configs']}")
     return 0
 
 
@@ -323,6 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"print the full config of {what.upper()} (default: the default {what}; with "
                               f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
         run.set_defaults(func=func)
+    commands.choices["sweep"].add_argument(
+        "--scenario", metavar="NAME", help="the scenario to run (instead of the config's 'scenario' key): a name "
+        "from --list, or your own SweepScenario as MODULE:ATTRIBUTE (e.g. my_sweep:SCENARIO, my_sweep.py in the "
+        "current directory)")  # fmt: skip
     tune = commands.choices["tune"]
     tune.add_argument("--problem", metavar="NAME", help="the problem to tune (--list), over the file's")
     tune.add_argument("--steps", type=int, metavar="N", help="the step cap (optimizer.steps), over the file's")
@@ -379,7 +393,7 @@ def _run(argv, watch: InterruptWatch, started: float) -> int:
             status = args.func(args)
         watch.check()
         return status
-    except KeyboardInterrupt as exc:  # jaxobs._resources.Interrupted says where it stopped
+    except KeyboardInterrupt as exc:  # jaxobs.errors.Interrupted says where it stopped
         resumable = args.command != "reproduce"
         message = str(exc) or ("interrupted; " + RESUME_HINT if resumable else "interrupted")
         print(f"jaxobs {args.command}: {message}", file=sys.stderr)

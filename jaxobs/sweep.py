@@ -6,7 +6,9 @@ count or an interruption (up to the rounding of sums, which XLA may order differ
 count). ``vmap`` over a chunk per device inside ``jax.shard_map``; chunks written atomically to
 ``out_dir/chunks/*.parquet`` with a checksummed manifest; a rerun resumes, a different sweep is refused
 (:class:`SweepError`); several processes run one sweep after ``jax.distributed.initialize``. :func:`load_results`
-reads the columns. How it runs, the output format and resuming: docs/theory/jobs.md and docs/guides/sweeps.md.
+reads the columns (or a pandas DataFrame), :func:`run_history` what the runs measured (a rerun adds to it only
+what it computed). How it runs, the output format and resuming: docs/theory/jobs.md and docs/guides/sweeps.md.
+The errors it raises besides :class:`SweepError`: :mod:`jaxobs.errors`.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,10 +41,7 @@ from jaxobs._distributed import agree, from_process_0
 from jaxobs._jit import Compiling
 from jaxobs._resources import (
     MAX_INDEX,
-    Interrupted,
     InterruptWatch,
-    JobError,
-    LimitError,
     StallWatch,
     atomic_write,
     check_memory,
@@ -49,13 +49,16 @@ from jaxobs._resources import (
     program_nbytes,
 )
 from jaxobs.batching import lapack_calls, safe_vmap
+from jaxobs.errors import Interrupted, JobError, LimitError
 
 __all__ = [
     "SweepError",
     "SweepResult",
+    "RunHistory",
     "config_key",
     "load_results",
     "read_manifest",
+    "run_history",
     "run_sweep",
     "run_configured_sweep",
 ]
@@ -92,6 +95,43 @@ class SweepResult:
     seconds: float
     configs_per_second: float
     compile_seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class RunHistory:
+    """What the runs of a sweep measured (:func:`run_history`), summed over the runs that computed chunks: a rerun
+    of a finished sweep adds nothing, an interrupted run what it finished.
+
+    Attributes:
+      runs: how many runs computed chunks.
+      seconds: their wall time, compilation included (each from its compilation to its last chunk written).
+      compile_seconds: their compilation of the sweep step (part of ``seconds``).
+      compute_seconds: their computing and writing of chunks (``seconds`` less compilation).
+      configs_computed: the configurations they computed.
+      configs_per_second: ``configs_computed / compute_seconds`` (0 if none).
+    """
+
+    runs: int
+    seconds: float
+    compile_seconds: float
+    compute_seconds: float
+    configs_computed: int
+    configs_per_second: float
+
+
+def run_history(out_dir) -> RunHistory:
+    """The :class:`RunHistory` of the sweep in ``out_dir`` (:class:`SweepError` if there is none). A manifest
+    written before runs were recorded gives its total wall time and last compilation, with no throughput."""
+    manifest = read_manifest(out_dir)
+    if manifest is None:
+        raise SweepError(f"no {_MANIFEST} in {out_dir}; run run_sweep there first")
+    runs = manifest.get("runs")
+    if runs is None:
+        return RunHistory(0, manifest.get("seconds", 0.0), manifest.get("compile_seconds") or 0.0, 0.0, 0, 0.0)
+    total = {key: sum(run[key] for run in runs) for key in ("seconds", "compile_seconds", "compute_seconds")}
+    configs = sum(run["configs"] for run in runs)
+    speed = configs / total["compute_seconds"] if configs and total["compute_seconds"] > 0 else 0.0
+    return RunHistory(len(runs), total["seconds"], total["compile_seconds"], total["compute_seconds"], configs, speed)
 
 
 def config_key(seed: int, index) -> jax.Array:
@@ -141,6 +181,12 @@ def _manifest_problem(manifest) -> str | None:
             and entry["rows"] > 0 and isinstance(entry.get("sha256"), str)
         ):  # fmt: skip
             return f"completed[{chunk!r}] is not a chunk entry (rows, sha256)"
+    runs = manifest.get("runs", [])
+    numbers = ("seconds", "compile_seconds", "compute_seconds", "configs")
+    if not isinstance(runs, list) or not all(
+        isinstance(run, dict) and all(isinstance(run.get(k), int | float) for k in numbers) for run in runs
+    ):
+        return f"runs is not a list of run records ({', '.join(numbers)})"
     return None
 
 
@@ -198,7 +244,7 @@ def _columns(shapes) -> list[tuple[str, int, int, np.dtype]]:
         if not isinstance(dtype, np.dtype) or dtype.kind not in "biuf":
             raise ValueError(
                 f"{name} has dtype {leaf.dtype}; sampler and evaluate must return bool, integer or float arrays "
-                "(split complex values into real and imaginary parts, turn PRNG keys into key_data)"
+                "(split complex values into real and imaginary parts; a PRNG key is a parameter only)"
             )
         for pos, ix in enumerate(np.ndindex(*leaf.shape)):
             suffix = f"[{','.join(map(str, ix))}]" if ix else ""
@@ -254,13 +300,18 @@ def _compile(row, devices, chunk_size: int):
     return jax.jit(step).lower(batch).compile(), sharding
 
 
+def _is_key(leaf) -> bool:
+    return jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+
+
 def _row(sampler, evaluate, seed: int):
     """``(row, layout)``: ``row(index) = (params, metrics)`` of one configuration and its columns
     (:func:`_columns`), checked with ``jax.eval_shape``."""
 
     def row(index):
         params = sampler(config_key(seed, index), index)
-        return params, evaluate(params)
+        metrics = evaluate(params)  # a PRNG key among the params reaches evaluate, not the rows (see run_sweep)
+        return jax.tree.map(lambda x: None if _is_key(x) else x, params), metrics
 
     try:
         shapes = jax.eval_shape(row, jax.ShapeDtypeStruct((), jnp.int32))
@@ -368,9 +419,12 @@ def run_sweep(
     """Evaluate ``evaluate(sampler(config_key(seed, i), i))`` for ``i < num_configs`` into ``out_dir``.
 
     Args:
-      sampler: ``sampler(key, index)`` returns one configuration's parameters (a pytree of arrays).
+      sampler: ``sampler(key, index)`` returns one configuration's parameters (a pytree of arrays). A typed PRNG
+        key among them (``jax.random.split(key)[1]``, e.g. the seed of a noise sequence) reaches ``evaluate`` but
+        is not written: it is a function of ``(seed, index)``, which the row holds.
       evaluate: ``evaluate(params)`` returns its metrics (a pytree of bool/int/float arrays); the engine ``vmap``s
-        both and writes one row per configuration (Parquet chunks).
+        both and writes one row per configuration (Parquet chunks), a column per scalar (an array leaf gives one
+        per entry, ``name[i]``).
       num_configs: how many configurations.  out_dir: where the chunks and the manifest go.
       seed: the PRNG seed of the configuration keys.  chunk_size: configurations per compiled step and chunk.
       config: a JSON-able description of the sweep stored verbatim in the manifest.
@@ -381,9 +435,9 @@ def run_sweep(
 
     Raises ``ValueError`` for bad arguments or a bad evaluation (checked with ``jax.eval_shape`` before any file
     is written), :class:`SweepError` (a ``ValueError``) for a different sweep in ``out_dir``,
-    :class:`jaxobs._resources.JobError` (a ``ValueError``) for an unwritable or locked ``out_dir`` or a step
-    that cannot fit in memory, :class:`jaxobs._resources.Interrupted` on Ctrl-C, and
-    :class:`jaxobs._resources.Stalled` (a ``JobError``) for a chunk that makes no progress (its CPU idle for a
+    :class:`jaxobs.errors.JobError` (a ``ValueError``) for an unwritable or locked ``out_dir`` or a step
+    that cannot fit in memory, :class:`jaxobs.errors.Interrupted` on Ctrl-C, and
+    :class:`jaxobs.errors.Stalled` (a ``JobError``) for a chunk that makes no progress (its CPU idle for a
     minute, or 20 times slower than the slowest chunk before it): the chunks written so far are kept.
 
     Each chunk runs in blocks that keep jaxlib's CPU LAPACK kernels on their sequential path
@@ -407,14 +461,11 @@ def _agree(out_dir: Path, error: Exception | None, digest: bytes = b"") -> None:
           differs="sampler, evaluate, num_configs, chunk_size, seed or config differ")  # fmt: skip
 
 
-def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer, held):
-    """:func:`run_sweep` once its arguments are checked: process 0 (the ``writer``) takes the lock of ``out_dir``
-    into ``held`` and decides which chunks to compute, the others follow."""
-    watch = held.enter_context(InterruptWatch())
-    columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
+def _plan(out_dir: Path, overwrite: bool, writer: bool, held, identity: dict, columns: dict, fingerprint: str,
+          num_configs: int, chunk_size: int):  # fmt: skip
+    """``(old manifest, reusable chunk entries, which chunks to compute)``: decided by process 0 (the ``writer``,
+    which takes the lock of ``out_dir`` into ``held``) and agreed on by every process."""
     num_chunks = math.ceil(num_configs / chunk_size)
-    identity = {"config": config, "seed": seed, "chunk_size": chunk_size}
-    fingerprint = _fingerprint(row, chunk_size)
     old, completed, todo, error = None, {}, np.zeros(num_chunks, bool), None
     try:
         if writer:
@@ -429,25 +480,18 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     _agree(out_dir, error, digest)
     todo = from_process_0(todo)  # every process must compute the same chunks: process 0 decides
     completed = {c: e for c, e in completed.items() if int(c) >= num_chunks or not todo[int(c)]}
-    reused_rows = sum(e["rows"] for c, e in completed.items() if int(c) < num_chunks)
+    return old, completed, todo
 
-    devices, compiled, sharding, compile_seconds = jax.devices(), None, None, (old or {}).get("compile_seconds")
-    start, compiled_now = time.perf_counter(), 0.0
-    if todo.any():  # compile and size the step before writing anything
-        what = f"the sweep step ({chunk_size} configurations per device, {len(devices)} device(s))"
-        with Compiling(_log, what) as timer:
-            compiled, sharding = _compile(row, devices, chunk_size)
-        compile_seconds = compiled_now = timer.seconds
-        try:
-            _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
-        except JobError as exc:
-            error = exc
-        _agree(out_dir, error)
-    manifest = {
+
+def _new_manifest(old: dict | None, identity: dict, num_configs: int, chunk_size: int, fingerprint: str,
+                  columns: dict, completed: dict, devices) -> dict:  # fmt: skip
+    """The manifest this call writes: ``old``'s history (creation, runs) and the chunks it keeps."""
+    old = old or {}
+    return {
         "format_version": FORMAT_VERSION,
         **identity,
         "num_configs": num_configs,
-        "num_chunks": num_chunks,
+        "num_chunks": math.ceil(num_configs / chunk_size),
         "fingerprint": fingerprint,
         "device_count": len(devices),
         "process_count": jax.process_count(),
@@ -456,68 +500,123 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
         "versions": _versions(),
         "columns": columns,
         "completed": completed,
-        "created": (old or {}).get("created", _now()),
-        "seconds": (old or {}).get("seconds", 0.0),  # wall time of all runs, compilation included
-        "compile_seconds": compile_seconds,
+        "created": old.get("created", _now()),
+        "seconds": old.get("seconds", 0.0),  # wall time of all runs, compilation included
+        "compile_seconds": old.get("compile_seconds"),  # the last run's
+        "runs": old.get("runs", []),  # what each run that computed chunks measured (RunHistory)
     }
-    previous_seconds = manifest["seconds"]
-    done_chunks, computed_rows, compute_seconds = num_chunks - int(todo.sum()), 0, 0.0
-    bar, ndev = None, len(devices)
+
+
+def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, progress, overwrite, writer, held):
+    """:func:`run_sweep` once its arguments are checked: process 0 (the ``writer``) takes the lock of ``out_dir``
+    into ``held`` and decides which chunks to compute, the others follow."""
+    watch = held.enter_context(InterruptWatch())
+    columns = {"index": "int64"} | {name: str(dtype) for name, _, _, dtype in layout}
+    identity = {"config": config, "seed": seed, "chunk_size": chunk_size}
+    fingerprint = _fingerprint(row, chunk_size)
+    old, completed, todo = _plan(out_dir, overwrite, writer, held, identity, columns, fingerprint, num_configs,
+                                 chunk_size)  # fmt: skip
+    devices, compiled, sharding, error = jax.devices(), None, None, None
+    start, compiled_now = time.perf_counter(), 0.0
+    if todo.any():  # compile and size the step before writing anything
+        what = f"the sweep step ({chunk_size} configurations per device, {len(devices)} device(s))"
+        with Compiling(_log, what) as timer:
+            compiled, sharding = _compile(row, devices, chunk_size)
+        compiled_now = timer.seconds
+        try:
+            _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
+        except JobError as exc:
+            error = exc
+        _agree(out_dir, error)
+    manifest = _new_manifest(old, identity, num_configs, chunk_size, fingerprint, columns, completed, devices)
+    run = {"started": _now(), "seconds": compiled_now, "compile_seconds": compiled_now, "compute_seconds": 0.0,
+           "chunks": 0, "configs": 0, "device_count": len(devices), "process_count": jax.process_count(),
+           "platform": devices[0].platform, "device_kind": devices[0].device_kind}  # fmt: skip
+    if todo.any():
+        manifest["runs"].append(run)  # updated in place as chunks are written
+        manifest["compile_seconds"] = compiled_now
     stall = held.enter_context(StallWatch(
         f"the sweep in {out_dir}", "rerun with a smaller chunk_size, or with NPROC=1 in the environment (one XLA "
-        "intra-op thread); finished chunks are kept", cpu=devices[0].platform == "cpu", reference=compiled_now,
+        "intra-op thread); finished chunks are kept", cpu=devices[0].platform == "cpu",
     ))  # fmt: skip
-    try:
-        if writer:
-            if overwrite:
-                (out_dir / _MANIFEST).unlink(missing_ok=True)
-                shutil.rmtree(out_dir / "chunks", ignore_errors=True)
-            (out_dir / "chunks").mkdir(parents=True, exist_ok=True)
-            for tmp in [*(out_dir / "chunks").glob("*.tmp"), *out_dir.glob(f"{_MANIFEST}.*.tmp")]:
-                tmp.unlink()  # left by a killed run: this process holds the lock, so no other writer owns them
-            _write_manifest(out_dir, manifest)
-        bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer),
-                   desc=f"sweep (compiled in {compiled_now:.1f} s)")  # fmt: skip
-        todo_chunks = [int(c) for c in np.flatnonzero(todo)]
-        for first in range(0, len(todo_chunks), ndev):
-            watch.check()
-            t0 = time.perf_counter()
-            group = todo_chunks[first : first + ndev]
-            leaves = _compute(compiled, sharding, group, ndev, chunk_size, num_configs, stall)
-            for j, chunk in enumerate(group):
-                rows = min(chunk_size, num_configs - chunk * chunk_size)
-                if writer:
-                    indices = np.arange(chunk * chunk_size, chunk * chunk_size + rows)
-                    table = _table(indices, [leaf[j, :rows] for leaf in leaves], layout)
-                    sha = _write_chunk(_chunk_path(out_dir, chunk), table)
-                    manifest["completed"][str(chunk)] = {
-                        "rows": rows, "sha256": sha, "device_count": ndev, "process_count": jax.process_count(),
-                    }  # fmt: skip
-                    manifest["seconds"] = previous_seconds + time.perf_counter() - start
-                    _write_manifest(out_dir, manifest)
-                done_chunks += 1
-                computed_rows += rows
-                bar.update(rows)
-            compute_seconds += time.perf_counter() - t0
-            bar.set_postfix({"configs/s": f"{computed_rows / compute_seconds:.0f}"})
-        watch.check()
-    except KeyboardInterrupt as exc:
-        raise Interrupted(
-            f"interrupted after {done_chunks} of {num_chunks} chunks; rerun the same command to resume"
-        ) from exc
-    finally:
-        if bar is not None:
-            bar.close()
-    seconds = time.perf_counter() - start
+    if writer:
+        _prepare_out_dir(out_dir, manifest, overwrite)
+    reused_rows = sum(e["rows"] for c, e in completed.items() if int(c) < manifest["num_chunks"])
+    bar = tqdm(total=num_configs, initial=reused_rows, unit="config", disable=not (progress and writer),
+               desc=f"sweep (compiled in {compiled_now:.1f} s)")  # fmt: skip
+    step = _Step(compiled, sharding, len(devices), chunk_size, num_configs, layout, stall)
+    with bar:
+        _compute_chunks(step, [int(c) for c in np.flatnonzero(todo)], out_dir if writer else None, manifest, run,
+                        start, bar, watch)  # fmt: skip
     return SweepResult(
         out_dir=out_dir,
         num_configs=num_configs,
         chunks_computed=int(todo.sum()),
-        chunks_reused=num_chunks - int(todo.sum()),
-        seconds=seconds,
-        configs_per_second=computed_rows / compute_seconds if computed_rows else 0.0,
+        chunks_reused=manifest["num_chunks"] - int(todo.sum()),
+        seconds=time.perf_counter() - start,
+        configs_per_second=run["configs"] / run["compute_seconds"] if run["configs"] else 0.0,
         compile_seconds=compiled_now,
     )
+
+
+def _prepare_out_dir(out_dir: Path, manifest: dict, overwrite: bool) -> None:
+    """Clear ``out_dir`` of a replaced sweep (``overwrite``) and of temporary files left by a killed run; write the
+    first ``manifest``."""
+    if overwrite:
+        (out_dir / _MANIFEST).unlink(missing_ok=True)
+        shutil.rmtree(out_dir / "chunks", ignore_errors=True)
+    (out_dir / "chunks").mkdir(parents=True, exist_ok=True)
+    for tmp in [*(out_dir / "chunks").glob("*.tmp"), *out_dir.glob(f"{_MANIFEST}.*.tmp")]:
+        tmp.unlink()  # left by a killed run: this process holds the lock, so no other writer owns them
+    _write_manifest(out_dir, manifest)
+
+
+class _Step(NamedTuple):
+    """The compiled sweep step and what running it needs (:func:`_compute`, :func:`_table`)."""
+
+    compiled: Any
+    sharding: Any
+    ndev: int
+    chunk_size: int
+    num_configs: int
+    layout: list
+    stall: StallWatch
+
+
+def _compute_chunks(step: _Step, chunks: list[int], out_dir: Path | None, manifest: dict, run: dict, start: float,
+                    bar, watch: InterruptWatch) -> None:  # fmt: skip
+    """Compute ``chunks``, a step of one chunk per device at a time; in the writer (``out_dir`` given) write each
+    chunk, then the manifest with ``run``'s measurement so far (``start``: the call's start, before compiling)."""
+    done, num_chunks = manifest["num_chunks"] - len(chunks), manifest["num_chunks"]
+    previous_seconds = manifest["seconds"]
+    try:
+        for first in range(0, len(chunks), step.ndev):
+            watch.check()
+            t0 = time.perf_counter()
+            group = chunks[first : first + step.ndev]
+            leaves = _compute(step.compiled, step.sharding, group, step.ndev, step.chunk_size, step.num_configs,
+                              step.stall)  # fmt: skip
+            for j, chunk in enumerate(group):
+                rows = min(step.chunk_size, step.num_configs - chunk * step.chunk_size)
+                if out_dir is not None:
+                    indices = np.arange(chunk * step.chunk_size, chunk * step.chunk_size + rows)
+                    sha = _write_chunk(_chunk_path(out_dir, chunk),
+                                       _table(indices, [leaf[j, :rows] for leaf in leaves], step.layout))  # fmt: skip
+                    manifest["completed"][str(chunk)] = {
+                        "rows": rows, "sha256": sha, "device_count": step.ndev, "process_count": jax.process_count(),
+                    }  # fmt: skip
+                now = time.perf_counter()
+                run.update(seconds=now - start, compute_seconds=run["compute_seconds"] + now - t0,
+                           chunks=run["chunks"] + 1, configs=run["configs"] + rows)  # fmt: skip
+                manifest["seconds"], t0 = previous_seconds + run["seconds"], now
+                if out_dir is not None:
+                    _write_manifest(out_dir, manifest)
+                done += 1
+                bar.update(rows)
+            bar.set_postfix({"configs/s": f"{run['configs'] / max(run['compute_seconds'], 1e-9):.0f}"})
+        watch.check()
+    except KeyboardInterrupt as exc:
+        raise Interrupted(f"interrupted after {done} of {num_chunks} chunks; rerun the same command to resume") from exc
 
 
 def run_configured_sweep(
@@ -527,7 +626,7 @@ def run_configured_sweep(
     """:func:`run_sweep` with ``seed`` and ``chunk_size`` read from ``config`` (a scenario's validated
     configuration), which is also stored in the manifest, less the dotted ``size_key`` that sets ``num_configs``
     if given: then the same configuration with more configurations extends the sweep in ``out_dir``. A
-    scenario's report loads every row, so the rows must fit in memory (:class:`jaxobs._resources.JobError`
+    scenario's report loads every row, so the rows must fit in memory (:class:`jaxobs.errors.JobError`
     before anything is computed otherwise).
 
     Returns the :class:`SweepResult`, or with ``report`` (a function of it that writes the scenario's report into
@@ -553,11 +652,13 @@ def run_configured_sweep(
     return report(result) if jax.process_index() == 0 else None
 
 
-def load_results(out_dir) -> dict[str, np.ndarray]:
+def load_results(out_dir, *, as_frame: bool = False):
     """All rows of the finished sweep in ``out_dir``, ``{column: array}`` in index order; checksums are verified.
+    With ``as_frame``, a pandas DataFrame of the same columns indexed by ``index`` (pandas is not a dependency of
+    jaxobs: install it to use this).
 
     Raises :class:`SweepError` (a ``ValueError``) if the sweep is incomplete or a chunk is missing or corrupt
-    (rerun the same ``run_sweep`` call to resume or repair it), and :class:`jaxobs._resources.JobError` if the
+    (rerun the same ``run_sweep`` call to resume or repair it), and :class:`jaxobs.errors.JobError` if the
     columns cannot fit in memory (checked before reading).
     """
     out_dir = Path(out_dir)
@@ -584,4 +685,11 @@ def load_results(out_dir) -> dict[str, np.ndarray]:
     table = pa.concat_tables(tables)
     # columns copied out of Arrow's buffers, read without Arrow's threads: with zero-copy views a script that had
     # read the results aborted at exit now and then ("terminate called without an active exception")
-    return {name: np.array(table.column(name).to_numpy(), copy=True) for name in manifest["columns"]}
+    columns = {name: np.array(table.column(name).to_numpy(), copy=True) for name in manifest["columns"]}
+    if not as_frame:
+        return columns
+    try:
+        import pandas
+    except ImportError as exc:
+        raise ImportError("load_results(as_frame=True) needs pandas (pip install pandas)") from exc
+    return pandas.DataFrame(columns).set_index("index")

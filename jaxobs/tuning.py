@@ -472,14 +472,15 @@ _STALL_HINT = (
 )
 
 
-def _stall_watch(what: str, reference: float = 0.0) -> StallWatch:
+def _stall_watch(what: str) -> StallWatch:
     """The :class:`jaxobs._resources.StallWatch` of a tuning job's computations."""
-    return StallWatch(what, _STALL_HINT, cpu=jax.devices()[0].platform == "cpu", reference=reference)
+    return StallWatch(what, _STALL_HINT, cpu=jax.devices()[0].platform == "cpu")
 
 
 def _watched(stall: StallWatch, label: str, fn: Callable, *args):
-    """``fn(*args)`` (a compiled computation) brought to the host under ``stall``'s watch."""
-    with stall.waiting(label) as wait:
+    """``fn(*args)`` (a computation, compiled or compiled on its first call) brought to the host under ``stall``'s
+    watch."""
+    with stall.waiting(label, program=id(fn)) as wait:
         wait["pending"] = fn(*args)
         return _host(wait["pending"])
 
@@ -931,7 +932,7 @@ def tune(
     bar = tqdm(total=settings.steps, initial=meta["iterations"], desc=f"tune (compiled in {compile_seconds:.1f} s)",
                disable=not (progress and writer), unit="step")  # fmt: skip
     saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])
-    with InterruptWatch() as watch, _stall_watch("the tuning", compile_seconds) as stall:
+    with InterruptWatch() as watch, _stall_watch("the tuning") as stall:
         try:
             while meta["iterations"] < settings.steps and not all(lane["stopped"] for lane in lanes):
                 watch.check()

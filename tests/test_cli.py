@@ -21,6 +21,7 @@ from jaxobs import __version__, cli
 from jaxobs._config import leaf_keys
 from jaxobs.cli import main
 from jaxobs.papers.registry import reproductions, sweep_scenarios, tuning_problems
+from jaxobs.papers.shipped import shipped_configs
 from tests import FAST_COMPILE_FLAGS
 
 COMMANDS = {"sweep": ("scenario", sweep_scenarios), "tune": ("problem", tuning_problems)}
@@ -43,11 +44,16 @@ def test_every_name_has_one_style():
 def test_list_prints_every_name_with_its_description(capsys, command):
     registry = {"sweep": sweep_scenarios, "tune": tuning_problems, "reproduce": reproductions}[command]()
     assert main([command, "--list"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr().out
+    registered, _, shipped = out.partition("\n\n")
+    lines = registered.splitlines()
     assert [line.split()[0] for line in lines] == list(registry)
     for line, entry in zip(lines, registry.values(), strict=True):
         description = line.split(maxsplit=1)[1]
         assert description == entry.summary and len(description) > 20 and "``" not in description
+    kind = {"sweep": "sweep", "tune": "tune"}.get(command)
+    names = [line.split()[0] for line in shipped.splitlines()[1:]]
+    assert names == [config.name for config in shipped_configs() if config.kind == kind]
 
 
 def _scenarios():

@@ -12,6 +12,7 @@ A page whose first line is ``<!-- test: slow ... -->`` is a slow test. The block
 tour is checked by the same helpers (tests/test_readme.py).
 """
 
+import importlib.util
 import os
 import re
 import subprocess
@@ -129,3 +130,24 @@ def test_every_page_is_in_the_navigation():
     listed = set(re.findall(r"^\s*-\s[^#\n]*?:\s*([\w/.-]+\.md)\s*$", nav, re.M))
     pages = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md") if not p.is_relative_to(DOCS / "_ext")}
     assert pages - listed == set(), "pages missing from mkdocs.yml's nav"
+
+
+def _cli_output():
+    """docs/_ext/cli_output.py, the writer of the command output the pages show."""
+    spec = importlib.util.spec_from_file_location("cli_output", DOCS / "_ext" / "cli_output.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_command_output_the_pages_show_is_what_the_command_prints(capsys):
+    """The help texts, lists and configs of the pages are in the Markdown files (the repository reads as the site
+    does) and current: regenerate them with `python docs/_ext/cli_output.py`."""
+    writer = _cli_output()
+    pages = writer.pages()
+    assert {p.relative_to(DOCS).as_posix() for p in pages} >= {"cli.md", "guides/sweeps.md", "guides/tuning.md"}
+    stale = [page.relative_to(ROOT).as_posix() for page in pages if writer.fill(page.read_text()) != page.read_text()]
+    capsys.readouterr()
+    assert not stale, f"{stale}: the command output they show is stale; run python docs/_ext/cli_output.py"
+    bare = [p.name for p in pages if re.search(r"<!-- jaxobs-cli: .*? -->\n(?!```console)", p.read_text())]
+    assert not bare, f"{bare}: a jaxobs-cli marker without its output"

@@ -10,17 +10,21 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxobs.closed_loop import simulate
-from jaxobs.lti import ss
-from jaxobs.observers import FeedbackParams, LinearObserver, active
+from jaxobs.design import dlqr
+from jaxobs.lti import StateSpace, c2d, ss
+from jaxobs.observers import FeedbackParams, LinearObserver, active, observer_controller
 from jaxobs.observers.active import active_observer_controller
+from jaxobs.observers.kalman import kalman_filter, make_kalman
 from jaxobs.observers.linear import linear_controller
 from jaxobs.papers.cortesao.example1 import aob_params
 from jaxobs.papers.cortesao.force_control import EXAMPLE1, nominal_design, with_feedback
 from jaxobs.plants import force_plant
 from jaxobs.stability import (
+    ROBUSTNESS_MARGINS,
     closed_loop_matrix,
     frequency_response,
     loop_transfer,
+    robustness_metrics,
     spectral_radius,
     stability_margins,
     unstructured_mismatch,
@@ -222,6 +226,13 @@ def _response(A, B, C, theta):
     return np.array([(C @ np.linalg.solve(np.exp(1j * t) * np.eye(n) - A, B)).item() for t in np.atleast_1d(theta)])
 
 
+def _random_loop(rng, size: int, *, radius, gain):
+    """A random SISO loop ``(A, B, C)``: ``A``'s spectral radius and ``B``'s scale uniform in the ranges given."""
+    A = rng.normal(size=(size, size))
+    A *= rng.uniform(*radius) / np.abs(np.linalg.eigvals(A)).max()
+    return A, rng.normal(size=(size, 1)) * rng.uniform(*gain), rng.normal(size=(1, size))
+
+
 def _loops_with_several_gain_crossovers(count, *, nyquist_gain_above_one=False, seed=8, size=4):
     """Random loops, stable when closed, with two or more gain crossovers of which the one setting the delay
     margin is not the phase-margin crossover, python-control's crossovers (returnall=True) verified on the exact
@@ -230,9 +241,7 @@ def _loops_with_several_gain_crossovers(count, *, nyquist_gain_above_one=False, 
     rng = np.random.default_rng(seed)
     loops = []
     while len(loops) < count:
-        A = rng.normal(size=(size, size))
-        A *= rng.uniform(0.5, 0.98) / np.abs(np.linalg.eigvals(A)).max()
-        B, C = rng.normal(size=(size, 1)) * rng.uniform(0.5, 5.0), rng.normal(size=(1, size))
+        A, B, C = _random_loop(rng, size, radius=(0.5, 0.98), gain=(0.5, 5.0))
         if np.abs(np.linalg.eigvals(A - B @ C)).max() > 0.99:
             continue
         if (abs(_response(A, B, C, np.pi)[0]) > 1.0) != nyquist_gain_above_one:
@@ -374,3 +383,109 @@ def test_bad_input():
     plant, L_r = nominal_design()
     with pytest.raises(ValueError, match="steady-state"):
         loop_transfer(plant, active_observer_controller, with_feedback(active.make_ckf(plant, EXAMPLE1.R), L_r))
+
+
+def _conditionally_stable_loops(count, seed=11, size=4):
+    """Random loops that are open-loop unstable and stable when closed: a gain reduction destabilises them (a lower
+    gain margin above 0), and they have an upper one too."""
+    rng = np.random.default_rng(seed)
+    loops = []
+    while len(loops) < count:
+        A, B, C = _random_loop(rng, size, radius=(1.02, 1.5), gain=(0.5, 3.0))
+        if np.abs(np.linalg.eigvals(A - B @ C)).max() < 0.98:
+            loops.append((A, B, C))
+    return loops
+
+
+def test_lower_and_upper_gain_margins_of_conditionally_stable_loops_agree_with_python_control():
+    """The stable range of loop gains (lower, upper) is bounded by the phase crossovers nearest to 1 on either side:
+    python-control's phase crossovers (returnall=True) plus z = 1 and z = -1 where H is real and negative there
+    (python-control leaves those out); and the closed loop is unstable just outside the range, stable just inside."""
+    for A, B, C in _conditionally_stable_loops(6):
+        m = margins_jit(ss(A, B, C, dt=DT))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            gm = np.atleast_1d(control.stability_margins(control.ss(A, B, C, 0, DT), returnall=True)[0])
+        ends = _response(A, B, C, [0.0, np.pi]).real  # H is real at z = 1 and z = -1
+        gains = np.concatenate([gm, 1.0 / np.abs(ends[ends < 0])])
+        lower, upper = gains[gains < 1].max(initial=0.0), gains[gains > 1].min(initial=np.inf)
+        assert lower > 0  # open-loop unstable, closed-loop stable: conditionally stable
+        assert float(m.gain_margin_lower) == pytest.approx(lower, rel=1e-7)
+        assert float(m.gain_margin_upper) == pytest.approx(upper, rel=1e-7)
+        assert float(m.gain_margin) in (pytest.approx(float(m.gain_margin_lower)),
+                                        pytest.approx(float(m.gain_margin_upper)))  # fmt: skip
+        for k, stable in ((0.999 * lower, False), (1.001 * lower, True), (0.999 * upper, True), (1.001 * upper, False)):
+            if np.isfinite(k):
+                assert (np.abs(np.linalg.eigvals(A - k * B @ C)).max() < 1) == stable, k
+
+
+def test_a_loop_that_is_not_conditionally_stable_has_lower_gain_margin_zero():
+    m = margins_jit(ss([[0.5]], [[1.0]], [[0.4]], dt=DT))  # 0.4 / (z - 0.5): stable for gains in (0, 3.75)
+    assert float(m.gain_margin_lower) == 0.0
+    assert float(m.gain_margin_upper) == pytest.approx(3.75) == float(m.gain_margin)
+
+
+def test_a_non_finite_loop_has_nan_margins_not_infinite_ones():
+    """Under jit (eagerly such a loop is refused): every margin NaN, whatever entry is non-finite."""
+    A, B, C, D = np.eye(2) * 0.5, np.ones((2, 1)), np.ones((1, 2)), np.zeros((1, 1))
+    for bad in (np.nan, np.inf):
+        for which in range(3):
+            matrices = [np.array(M) for M in (A, B, C, D)]
+            matrices[which][0, 0] = bad
+            m = margins_jit(StateSpace(*map(jnp.asarray, matrices), DT))
+            assert all(np.isnan(float(getattr(m, f))) for f in m._fields if f != "truncated"), (bad, which)
+            assert not bool(m.truncated)
+
+
+def _lqg(gain, dead_time):
+    """robustness_metrics of an LQG designed on ``1 / (s + 1)`` (h = 0.1, no dead time) on the true plant
+    ``gain / (s + 1)`` with ``dead_time`` (two slots: beyond 0.2 s the plant is invalid)."""
+    nominal = c2d(ss([[-1.0]], [[1.0]], [[1.0]]), 0.1, 0.0, n_delay=2)
+    L = dlqr(nominal.A, nominal.B, jnp.diag(jnp.array([1.0, 0.0, 0.0])), jnp.eye(1))[0]
+    kf = make_kalman(nominal.A, nominal.C, 1e-2 * jnp.eye(3), jnp.eye(1), Gamma=nominal.B, steady_state=True)
+    true = c2d(ss([[-1.0]], [[gain]], [[1.0]]), 0.1, dead_time, n_delay=2)
+    return robustness_metrics(true, observer_controller(kalman_filter), FeedbackParams(kf, L), num_points=128)
+
+
+def test_robustness_metrics_validity_and_stability_as_data():
+    """A dead time beyond the plant's slots is invalid (NaN spectral radius, NaN margins: never inf); an unstable
+    loop keeps its spectral radius and has NaN margins; a stable one has stability_margins' margins; jit(vmap) =
+    jit of one (eagerly: the slow test below)."""
+    gain, dead = jnp.array([1.0, 1.0, 500.0]), jnp.array([0.05, 0.25, 0.05])  # nominal, dead time too long, unstable
+    batched = jax.jit(jax.vmap(_lqg))(gain, dead)
+    assert batched["valid"].tolist() == [True, False, True]
+    assert batched["stable"].tolist() == [True, False, False]
+    assert np.isnan(batched["spectral_radius"][1]) and batched["spectral_radius"][2] > 1
+    for name in ROBUSTNESS_MARGINS:
+        assert not np.isnan(batched[name][0]), name
+        assert np.isnan(batched[name][1:]).all(), name
+    one = jax.jit(_lqg)(1.0, 0.05)
+    for name, value in one.items():
+        assert float(value) == pytest.approx(float(batched[name][0]), rel=1e-9), name
+
+
+@pytest.mark.slow  # op by op
+def test_robustness_metrics_eagerly_is_what_it_is_under_jit():
+    eager, compiled = _lqg(1.0, 0.05), jax.jit(_lqg)(1.0, 0.05)
+    for name, value in eager.items():
+        assert float(value) == pytest.approx(float(compiled[name]), rel=1e-9), name
+
+
+@pytest.mark.slow  # ~10 s of compilation
+def test_the_aob_loops_are_conditionally_stable_as_python_control_says():
+    """The Example 1 AOB-2 (the sweep's demo): a gain reduction destabilises it, at python-control's phase
+    crossover below 1; robustness_metrics reports the same margins as stability_margins; a configuration flagged
+    invalid (e.g. a design that did not converge) has none."""
+    plant, L_r = nominal_design()
+    params = _aob(plant, L_r, 2)
+    loop = loop_transfer(plant, active_observer_controller, params)
+    m = margins_jit(loop)
+    gm = np.atleast_1d(control.stability_margins(control.ss(*map(np.asarray, (loop.A, loop.B, loop.C, loop.D)),
+                                                            EXAMPLE1.h), returnall=True)[0])  # fmt: skip
+    assert float(m.gain_margin_lower) == pytest.approx(gm[gm < 1].max(), rel=1e-6)
+    assert float(m.gain_margin_upper) == pytest.approx(gm[gm > 1].min(), rel=1e-6)
+    row = robustness_metrics(plant, active_observer_controller, params)
+    for name in ROBUSTNESS_MARGINS:
+        assert float(row[name]) == pytest.approx(float(getattr(m, name)), rel=1e-9), name
+    flagged = robustness_metrics(plant, active_observer_controller, params, valid=False)
+    assert not bool(flagged["valid"]) and np.isnan(float(flagged["gain_margin"]))

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 
 import jaxobs.sweep as sweep
-from jaxobs._resources import Interrupted, JobError
-from jaxobs.sweep import SweepError, config_key, load_results, run_sweep
+from jaxobs.errors import Interrupted, JobError
+from jaxobs.sweep import SweepError, config_key, load_results, run_history, run_sweep
 
 SCRIPT = Path(__file__).parent / "sweep_scripts" / "sweep_case.py"
 _spec = importlib.util.spec_from_file_location("sweep_case", SCRIPT)
@@ -351,7 +351,7 @@ def _scalar_sampler(key, index):
         ({"evaluate": lambda p: {}}, "evaluate returned no arrays"),
         ({"evaluate": lambda p: "text"}, "sampler/evaluate failed"),
         ({"evaluate": lambda p: p["missing"]}, "KeyError"),
-        ({"sampler": lambda k, i: {"a": jax.random.uniform(k), "key": k}}, "param.key has dtype key"),
+        ({"evaluate": lambda p: {"y": p["a"], "key": jax.random.key(0)}}, "metric.key has dtype key"),
         ({"evaluate": lambda p: {"a.b": p["a"], "a": {"b": p["a"]}}}, "column names collide"),
     ],
 )
@@ -440,3 +440,49 @@ def test_a_ctrl_c_inside_a_finaliser_is_left_to_the_next_check(monkeypatch):
         assert unraisable == [] and watch.requested
         with pytest.raises(KeyboardInterrupt):
             watch.check()
+
+
+def test_a_prng_key_parameter_reaches_evaluate_but_is_not_a_column(tmp_path):
+    """The noise key a sampler draws for evaluate is not written (it is a function of (seed, index)): no
+    param.noise_key[0], param.noise_key[1] columns, and the metrics are those of that key."""
+
+    def sampler(key, index):
+        k_a, k_noise = jax.random.split(key)
+        return {"a": jax.random.uniform(k_a), "noise_key": k_noise}
+
+    def evaluate(p):
+        return {"y": p["a"] + jax.random.normal(p["noise_key"])}
+
+    run_sweep(sampler, evaluate, 6, tmp_path / "out", chunk_size=4, progress=False)
+    rows = load_results(tmp_path / "out")
+    assert list(rows) == ["index", "param.a", "metric.y"]
+    want = [float(evaluate(sampler(config_key(0, i), i))["y"]) for i in range(6)]
+    np.testing.assert_allclose(rows["metric.y"], want, rtol=1e-12)
+
+
+def test_load_results_as_a_pandas_dataframe(reference):
+    pandas = pytest.importorskip("pandas")
+    out, cols = reference
+    frame = load_results(out, as_frame=True)
+    assert isinstance(frame, pandas.DataFrame) and frame.index.name == "index"
+    assert list(frame.columns) == COLUMNS[1:] and frame.index.tolist() == cols["index"].tolist()
+    np.testing.assert_array_equal(frame["metric.cost"].to_numpy(), cols["metric.cost"])
+
+
+def test_a_rerun_keeps_the_measured_history(tmp_path):
+    """Rerunning a finished sweep adds nothing to what its runs measured (the wall time, the compilation and the
+    throughput of the chunks computed); extending it adds the run that computes the new chunks."""
+    out = tmp_path / "out"
+    first = _run(out, num_configs=256)
+    history = run_history(out)
+    assert (history.runs, history.configs_computed) == (1, 256)
+    assert history.compile_seconds == pytest.approx(first.compile_seconds)
+    assert history.compile_seconds < history.seconds and 0 < history.compute_seconds < history.seconds
+    assert history.configs_per_second == pytest.approx(256 / history.compute_seconds)
+    again = _run(out, num_configs=256)
+    assert (again.chunks_computed, again.configs_per_second) == (0, 0.0)
+    assert run_history(out) == history
+    _run(out, num_configs=512)
+    extended = run_history(out)
+    assert (extended.runs, extended.configs_computed) == (2, 512) and extended.seconds > history.seconds
+    assert _manifest(out)["seconds"] == pytest.approx(extended.seconds)

@@ -1,19 +1,15 @@
-"""MkDocs hooks: the API reference generated from the package, the command-line page from the parser.
+"""MkDocs hooks: the API reference generated from the package.
 
 * API reference: one page per public module of ``jaxobs`` (a module without a leading underscore in its path),
   written in memory (``api/<module>.md``, rendered by mkdocstrings) and put under the ``API reference`` section
   of the nav, grouped by subpackage. A new module appears without editing mkdocs.yml. A package's page shows its
   docstring, what it defines itself and the table of what it exports (linked to their modules' pages).
-* Command line: ``<!-- jaxobs-cli: ARGS -->`` in a page is replaced by the output of ``jaxobs ARGS`` (help texts,
-  ``--list``, ``--print-config``), so the page shows what the installed command prints.
+* The command output the pages show (help texts, ``--list``, ``--print-config``) is in the pages themselves,
+  written there by ``docs/_ext/cli_output.py`` and checked by tests/test_docs.py; the site shows it as it is.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
-import re
-import shlex
 import sys
 from pathlib import Path
 
@@ -23,7 +19,6 @@ ROOT = Path(__file__).parents[2]
 PACKAGE = "jaxobs"
 API_SECTION = "API reference"
 API_INDEX = "api/index.md"
-CLI_MARKER = re.compile(r"<!-- jaxobs-cli: (.*?) -->")
 
 
 def public_modules() -> list[str]:
@@ -106,24 +101,3 @@ def on_files(files, config):
     for name in public_modules():
         files.append(File.generated(config, _page(name), content=_markdown(name)))
     return files
-
-
-def _cli_output(args: str) -> str:
-    import jaxobs
-    from jaxobs.cli import main
-
-    if Path(jaxobs.__file__).parent != ROOT / PACKAGE:
-        raise RuntimeError(f"the command-line page would show {jaxobs.__file__}, not this checkout's jaxobs")
-    out = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(out):
-            status = main(shlex.split(args))
-    except SystemExit as exc:  # --help, --version
-        status = exc.code
-    if status:
-        raise RuntimeError(f"jaxobs {args} exited with status {status}")
-    return f"```console\n$ jaxobs {args}\n{out.getvalue().rstrip()}\n```"
-
-
-def on_page_markdown(markdown, page, config, files):
-    return CLI_MARKER.sub(lambda m: _cli_output(m.group(1)), markdown)

@@ -19,8 +19,9 @@ from jaxobs._resources import LimitError
 from jaxobs.papers import tune_job, tuning_config
 from jaxobs.papers.shipped import resolve_path
 from jaxobs.sweep import run_configured_sweep
+from jaxobs.sweep_report import write_report
 
-__all__ = ["first_paragraph", "Reproduction", "Sweep", "SweepScenario", "TuningScenario"]
+__all__ = ["first_paragraph", "Reproduction", "Sweep", "SweepScenario", "TuningScenario", "SWEEP_NOTES"]
 
 
 def first_paragraph(text: str | None) -> str:
@@ -58,7 +59,7 @@ class _Configured:
 
     The limits are checked in one place for every registered job: integers beyond int32 when the config is merged
     (:func:`jaxobs._config.merge`), and, as :meth:`run` builds and compiles the job (before it computes any
-    configuration or step), the memory estimates and counts of the engines (:class:`jaxobs._resources.LimitError`),
+    configuration or step), the memory estimates and counts of the engines (:class:`jaxobs.errors.LimitError`),
     or an allocation or size that fails outright, as a :class:`jaxobs._config.ConfigError` naming the file and the
     size key (:meth:`blame`).
     """
@@ -71,7 +72,7 @@ class _Configured:
     defaults: dict
     notes: dict
     check: Callable[[dict, str], None]
-    open_tables: tuple[str, ...] = ()
+    open_tables: tuple[str, ...] | dict = ()
     size_keys: tuple[str, ...] = ()
     path_keys: tuple[str, ...] = ()
 
@@ -127,7 +128,7 @@ class _Configured:
     def run(self, config: dict, out_dir, *, source: str = "<default>", progress: bool = True,
             overwrite: bool = False) -> dict | None:  # fmt: skip
         """Run the job on its validated ``config`` (read from ``source``) into ``out_dir`` (:meth:`_run`). A limit it
-        exceeds while it is built and compiled (a :class:`jaxobs._resources.LimitError`, or an allocation or a size
+        exceeds while it is built and compiled (a :class:`jaxobs.errors.LimitError`, or an allocation or a size
         that fails: XLA's ``RESOURCE_EXHAUSTED``, ``MemoryError``, ``OverflowError``) is a
         :class:`jaxobs._config.ConfigError` naming ``source`` and the size key :meth:`blame` finds."""
         try:
@@ -164,18 +165,34 @@ class Sweep(NamedTuple):
     context: Any = None
 
 
+def _no_check(config: dict, source: str) -> None:
+    """Every value that the config's types allow is valid."""
+
+
+SWEEP_NOTES = {
+    "seed": "base of every configuration's random key (configuration i draws from its own key)",
+    "chunk_size": "configurations per device and step, and rows per Parquet chunk file",
+}
+"""The notes of the keys most sweeps have, for a scenario whose ``notes`` leave them out."""
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SweepScenario(_Configured):
-    """A Monte-Carlo sweep run by ``jaxobs sweep`` (the config's ``scenario`` key names it).
+    """A Monte-Carlo sweep run by ``jaxobs sweep`` (the config's ``scenario`` key names it): a shipped one, or your
+    own, defined in your module (``jaxobs sweep --scenario my_module:SCENARIO``, or an entry point of the group
+    ``jaxobs.sweeps``: docs/guides/sweeps.md).
 
     Attributes:
-      name, summary, defaults, notes, check, open_tables: the config (``check(config, source)`` raises a
-        :class:`jaxobs._config.ConfigError` for a bad value).
+      name, summary, defaults, notes, check, open_tables: the config: ``defaults`` holds every key (``scenario``
+        set to ``name``, ``seed`` and ``chunk_size`` read by the engine), ``notes`` a line per key
+        (``--print-config``; ``seed`` and ``chunk_size`` have one already), ``check(config, source)`` raises a
+        :class:`jaxobs._config.ConfigError` for a bad value (default: none beyond the types of ``defaults``).
       build: ``build(config) -> Sweep``.
       report: ``report(config, out_dir, result, context) -> dict`` writes ``summary.json``, ``report.md`` and the
         figures from the finished sweep in ``out_dir`` (``result``: this call's
         :class:`jaxobs.sweep.SweepResult`, or None) and returns the summary (with ``num_configs`` and
-        ``figures``).
+        ``figures``); None (the default): the generic report of :func:`jaxobs.sweep_report.write_report`.
+      units: ``{parameter or metric name: unit}`` for the generic report.
       size_key: the dotted key that sets the number of configurations: raising it extends a finished sweep in the
         same directory (None: any change starts over).
       size_keys: the dotted keys that set the sweep's sizes (``chunk_size`` is added), named when it exceeds a
@@ -186,18 +203,28 @@ class SweepScenario(_Configured):
     key: ClassVar[str] = "scenario"
     common_size_keys: ClassVar[tuple[str, ...]] = ("chunk_size",)
 
+    notes: dict = dataclasses.field(default_factory=dict)
+    check: Callable[[dict, str], None] = _no_check
     build: Callable[[dict], Sweep]
-    report: Callable[..., dict]
+    report: Callable[..., dict] | None = None
+    units: dict = dataclasses.field(default_factory=dict)
     size_key: str | None = None
+
+    def config_notes(self) -> dict:
+        """Comments on the configuration keys, the common ``seed`` and ``chunk_size`` included."""
+        return {**SWEEP_NOTES, **super().config_notes()}
 
     def _run(self, config: dict, out_dir, *, progress: bool, overwrite: bool) -> dict | None:
         """Run the sweep (resuming a partial run in ``out_dir``) and write its report; returns the report's summary
         in process 0, None in the other processes of a multi-process run (process 0 writes)."""
         sweep = self.build(config)
+        if self.report is None:
+            report = lambda result: write_report(out_dir, title=f"Sweep {self.name}", units=self.units, result=result)
+        else:
+            report = lambda result: self.report(config, Path(out_dir), result, sweep.context)
         return run_configured_sweep(
             config, sweep.sampler, sweep.evaluate, sweep.num_configs, out_dir, size_key=self.size_key,
-            progress=progress, overwrite=overwrite,
-            report=lambda result: self.report(config, Path(out_dir), result, sweep.context),
+            progress=progress, overwrite=overwrite, report=report,
         )  # fmt: skip
 
 

@@ -55,6 +55,7 @@ TINY_SWEEPS = {
         },
         "simulation": {"duration": 1.0, "error_start": 0.5},
     },
+    "state-space": {"chunk_size": 2, "configs": 4, "simulation": {"duration": 0.02}, "margins": {"num_points": 64}},
 }
 
 TINY_OPTIMIZER = {"steps": 2, "checkpoint_every": 1, "screening": 15}
@@ -73,7 +74,7 @@ TINY_TUNING = {
 }
 
 
-SLOW = {"sideslip", "force-1dof", "peg-on-hole", "own-robot", "sideslip-gains"}  # NVSO, MJX: long compiles
+SLOW = {"sideslip", "force-1dof", "peg-on-hole", "own-robot", "sideslip-gains", "state-space"}  # long compiles
 
 
 def _names(tiny: dict) -> list:

@@ -32,8 +32,9 @@ from jaxobs.papers.cortesao.force_control import (
 )
 from jaxobs.papers.scenarios import Sweep, SweepScenario
 from jaxobs.plants import force_plant
-from jaxobs.stability import loop_transfer, stability_margins
+from jaxobs.stability import robustness_metrics
 from jaxobs.sweep import load_results
+from jaxobs.sweep_report import MARGIN_NOTES, quantiles
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "SCENARIO", "build_designs", "make_sweep", "report"]
 
@@ -235,21 +236,9 @@ def make_sweep(config: dict):
     def evaluate(p):
         ctrl = jax.tree.map(lambda M: M[p["design"]], table)
         true = force_plant(p["stiffness"], p["time_constant"], h, p["dead_time_samples"] * h, n_delay=n_delay)
-        margins = stability_margins(
-            loop_transfer(true, linear_controller, ctrl),
-            num_points=config["margins"]["num_points"],
-        )
+        row = robustness_metrics(true, linear_controller, ctrl, num_points=config["margins"]["num_points"])
         _, error, peak = closed_loop(true, ctrl, p["noise_seed"])
-        return {
-            "spectral_radius": margins.spectral_radius,
-            "stable": margins.spectral_radius < 1.0,
-            "gain_margin": margins.gain_margin,
-            "phase_margin": margins.phase_margin,
-            "delay_margin": margins.delay_margin,
-            "stability_margin": margins.stability_margin,
-            "rms_force_error": error,
-            "peak_force": peak,
-        }
+        return row | {"rms_force_error": error, "peak_force": peak}
 
     return Sweep(sampler, evaluate, count * config["simulation"]["configs_per_design"], designs)
 
@@ -264,14 +253,6 @@ def _name(order: int) -> str:
     return NAMES.get(order, f"AOB-{order}")
 
 
-def _quantiles(values: np.ndarray) -> dict:
-    values = values[np.isfinite(values)]
-    if values.size == 0:
-        return {"count": 0}
-    q = np.quantile(values, [0.05, 0.5, 0.95])
-    return {"count": int(values.size), "p05": float(q[0]), "median": float(q[1]), "p95": float(q[2])}
-
-
 def summarize(config: dict, cols: dict) -> dict:
     """Per-controller statistics of a completed sweep."""
     stable = cols["metric.stable"].astype(bool)
@@ -281,15 +262,18 @@ def summarize(config: dict, cols: dict) -> dict:
         sel = cols["param.order"] == order
         s = sel & stable
         near = sel & (np.abs(np.log(ks_ratio)) < np.log(1.5))
+        conditional = cols["metric.gain_margin_lower"][s] > 0  # a gain reduction destabilises them
         per[_name(order)] = {
             "configs": int(sel.sum()),
+            "invalid": int((sel & ~cols["metric.valid"]).sum()),
             "stable_fraction": float(stable[sel].mean()),
             "stable_fraction_within_50pct_stiffness": float(stable[near].mean()) if near.any() else None,
-            "rms_force_error_stable": _quantiles(cols["metric.rms_force_error"][s]),
-            "gain_margin_stable": _quantiles(cols["metric.gain_margin"][s]),
-            "phase_margin_stable": _quantiles(cols["metric.phase_margin"][s]),
-            "delay_margin_stable_s": _quantiles(cols["metric.delay_margin"][s]),
-        }
+            "conditionally_stable_fraction": float(conditional.mean()) if s.any() else None,
+            "rms_force_error_stable": quantiles(cols["metric.rms_force_error"][s]),
+            **{f"{m}_stable": quantiles(cols[f"metric.{m}"][s]) for m in ("gain_margin", "gain_margin_lower",
+                                                                         "gain_margin_upper", "phase_margin")},
+            "delay_margin_stable_s": quantiles(cols["metric.delay_margin"][s]),
+        }  # fmt: skip
     return per
 
 
@@ -316,6 +300,7 @@ def report(config: dict, out_dir: Path, result=None, designs: Designs | None = N
     orders = config["controllers"]["orders"]
     summary = {
         "num_configs": int(cols["index"].size),
+        "invalid": int((~cols["metric.valid"]).sum()),
         "stable_fraction": float(cols["metric.stable"].mean()),
         "controllers": summarize(config, cols),
         "worst_cases": _worst_cases(cols, orders),
@@ -385,12 +370,18 @@ def _plot_distributions(cols, orders, out_dir: Path) -> str:
     plt = pyplot()
     stable = cols["metric.stable"].astype(bool)
     panels = [  # key, label, scale to report.md's unit, log axis
-        ("metric.gain_margin", "gain margin (factor)", 1.0, True),
+        (
+            "metric.gain_margin_lower",
+            "lower gain margin (factor < 1;\n0: not conditionally stable, left out)",
+            1.0,
+            True,
+        ),
+        ("metric.gain_margin_upper", "upper gain margin (factor > 1)", 1.0, True),
         ("metric.phase_margin", "phase margin (deg)", 1.0, False),
         ("metric.delay_margin", "delay margin (ms)", 1e3, True),
         ("metric.rms_force_error", "RMS force error (N)", 1.0, True),
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.6), layout="constrained")
+    fig, axes = plt.subplots(1, len(panels), figsize=(19, 3.8), layout="constrained")
     for ax, (key, label, scale, log) in zip(axes, panels, strict=True):
         values = {}
         for order in orders:
@@ -408,8 +399,9 @@ def _plot_distributions(cols, orders, out_dir: Path) -> str:
             ax.set_xscale("log")
         ax.set_xlabel(label)
     axes[0].set_ylabel("stable configurations")
-    if axes[0].get_legend_handles_labels()[0]:  # not for a sweep without a stable configuration
-        axes[0].legend()
+    fullest = max(axes, key=lambda ax: len(ax.get_legend_handles_labels()[0]))  # every controller with a value
+    if fullest.get_legend_handles_labels()[0]:  # not for a sweep without a stable configuration
+        fullest.legend()
     fig.suptitle("Margins and tracking error over the stable configurations (infinite margins left out)")
     return save_figure(fig, out_dir, "distributions")
 
@@ -471,22 +463,26 @@ def _markdown(summary: dict) -> str:
     lines = [
         "# Robustness sweep: Example 1 force controllers",
         "",
-        f"{summary['num_configs']} configurations; overall stable fraction {summary['stable_fraction']:.3f}.",
+        f"{summary['num_configs']} configurations; overall stable fraction {summary['stable_fraction']:.3f}; "
+        f"{summary['invalid']} invalid.",
     ]
     lines += [
         "",
-        "| controller | stable | stable, Ks within x1.5 | median RMS force error (N) | median GM | median PM (deg) "
-        "| median delay margin (ms) |",
-        "|---|---|---|---|---|---|---|",
+        "| controller | stable | stable, Ks within x1.5 | conditionally stable | median RMS force error (N) "
+        "| median lower GM | median upper GM | median PM (deg) | median delay margin (ms) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     fmt = lambda q, scale=1.0: f"{q['median'] * scale:.3g}" if q.get("count") else "-"
+    share = lambda x: "-" if x is None else f"{x:.3f}"
     for name, s in summary["controllers"].items():
-        near = s["stable_fraction_within_50pct_stiffness"]
         lines.append(
-            f"| {name} | {s['stable_fraction']:.3f} | {'-' if near is None else f'{near:.3f}'} "
-            f"| {fmt(s['rms_force_error_stable'])} | {fmt(s['gain_margin_stable'])} | {fmt(s['phase_margin_stable'])} "
-            f"| {fmt(s['delay_margin_stable_s'], 1e3)} |"
+            f"| {name} | {s['stable_fraction']:.3f} | {share(s['stable_fraction_within_50pct_stiffness'])} "
+            f"| {share(s['conditionally_stable_fraction'])} | {fmt(s['rms_force_error_stable'])} "
+            f"| {fmt(s['gain_margin_lower_stable'])} | {fmt(s['gain_margin_upper_stable'])} "
+            f"| {fmt(s['phase_margin_stable'])} | {fmt(s['delay_margin_stable_s'], 1e3)} |"
         )
+    lines += ["", "Over the stable configurations; conditionally stable: the share of them with a lower gain margin. "
+              + MARGIN_NOTES]  # fmt: skip
     lines += ["", "Worst stable case per controller (largest RMS force error):", ""]
     for name, case in summary["worst_cases"].items():
         lines.append(

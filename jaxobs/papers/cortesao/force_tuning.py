@@ -10,6 +10,7 @@ docs/theory/papers.md.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -221,6 +222,35 @@ def scenario(config: dict) -> dict:
     }
 
 
+def spectral_radius_penalty(theta, *, plants: dict, limit: float, base, L, n_plant: int, order: int):
+    """Mean squared excess over ``limit`` of the closed-loop spectral radius of the design ``theta`` on the analytic
+    true plants (Cortesão 2006, eq. 59) of ``plants`` (its ``ks`` and ``tp``)."""
+    ctrl = controller(theta, base, L, n_plant, order)
+    h, dead_time = EXAMPLE1.h, EXAMPLE1.dead_time_samples * EXAMPLE1.h
+
+    def radius(ks, tp):
+        plant = force_plant(ks, tp, h, dead_time)
+        return spectral_radius(closed_loop_matrix(plant, active.active_observer_controller, ctrl))
+
+    rho = jax.vmap(radius)(plants["ks"], plants["tp"])
+    return jnp.mean(jnp.maximum(rho - limit, 0.0) ** 2)
+
+
+def describe(theta, *, base, L, n_plant: int, order: int) -> dict:
+    """The design ``theta`` in the paper's terms: Q's diagonal, the active-state variance over R, the Kalman gain
+    and the AOB's strategy."""
+    Q, R = covariances(theta, n_plant, order)
+    aob = controller(theta, base, L, n_plant, order).estimator
+    return {
+        "Q_diagonal": np.asarray(jnp.diagonal(Q)).tolist(),
+        "q_active": float(Q[-1, -1]),
+        "R": float(R[0, 0]),
+        "q_active_over_R": float(Q[-1, -1] / R[0, 0]),
+        "kalman_gain": np.asarray(aob.gain).ravel().tolist(),
+        "strategy": active.classify_strategy(np.asarray(aob.gain), np.asarray(aob.C)),
+    }
+
+
 def build_problem(config: dict) -> TuningProblem:
     """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
     from jaxobs.mjx import ForcePlantParams, closed_loop_rollout, load_model, with_params
@@ -254,32 +284,8 @@ def build_problem(config: dict) -> TuningProblem:
         return loss, diverged
 
     train = sample_plants(config, "train")
+    design = {"base": base, "L": L, "n_plant": n_plant, "order": order}
     limit = config["design"]["spectral_radius_limit"]
-    h, dead_time = EXAMPLE1.h, EXAMPLE1.dead_time_samples * EXAMPLE1.h
-
-    def penalty(theta):
-        """Mean squared excess of the closed-loop spectral radius (analytic true plants, eq. 59) over the limit."""
-        ctrl = controller(theta, base, L, n_plant, order)
-
-        def radius(ks, tp):
-            plant = force_plant(ks, tp, h, dead_time)
-            return spectral_radius(closed_loop_matrix(plant, active.active_observer_controller, ctrl))
-
-        rho = jax.vmap(radius)(train["ks"], train["tp"])
-        return jnp.mean(jnp.maximum(rho - limit, 0.0) ** 2)
-
-    def describe(theta):
-        Q, R = covariances(theta, n_plant, order)
-        aob = controller(theta, base, L, n_plant, order).estimator
-        return {
-            "Q_diagonal": np.asarray(jnp.diagonal(Q)).tolist(),
-            "q_active": float(Q[-1, -1]),
-            "R": float(R[0, 0]),
-            "q_active_over_R": float(Q[-1, -1] / R[0, 0]),
-            "kalman_gain": np.asarray(aob.gain).ravel().tolist(),
-            "strategy": active.classify_strategy(np.asarray(aob.gain), np.asarray(aob.C)),
-        }
-
     rollout_jit = jax.jit(rollout)
 
     def responses(theta, plants):
@@ -298,8 +304,8 @@ def build_problem(config: dict) -> TuningProblem:
         losses=losses,
         train=train,
         heldout=sample_plants(config, "heldout"),
-        penalty=penalty,
-        describe=describe,
+        penalty=functools.partial(spectral_radius_penalty, plants=train, limit=limit, **design),
+        describe=functools.partial(describe, **design),
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
     )

@@ -171,3 +171,13 @@ def test_readme_default_sweep_figures(tmp_path):
             r"falls with the order \(([0-9.]+), ([0-9.]+), ([0-9.]+) degrees\)",
             group,
         )
+    # the conditionally stable AOB-2 and AOB-3 loops: lower and upper gain margins, python-control's single one
+    assert c["AOB-2"]["conditionally_stable_fraction"] == c["AOB-3"]["conditionally_stable_fraction"] == 1.0
+    assert c["AOB-1"]["conditionally_stable_fraction"] == c["CKF"]["conditionally_stable_fraction"] == 0.0
+    span = r"median lower gain margin of ([0-9.]+) to a median upper one of ([0-9.]+) \(AOB-3: ([0-9.]+) to ([0-9.]+)\)"
+    for group, (name, side) in enumerate([("AOB-2", "lower"), ("AOB-2", "upper"), ("AOB-3", "lower"),
+                                          ("AOB-3", "upper")], start=1):  # fmt: skip
+        pin(c[name][f"gain_margin_{side}_stable"]["median"], span, group)
+    pin(c["AOB-1"]["gain_margin_upper_stable"]["median"], r"no lower margin \(upper: ([0-9.]+) and ([0-9.]+)\)")
+    pin(c["CKF"]["gain_margin_upper_stable"]["median"], r"no lower margin \(upper: ([0-9.]+) and ([0-9.]+)\)", 2)
+    pin(c["AOB-2"]["gain_margin_stable"]["median"], r"has a median of ([0-9.]+) over the AOB-2 loops")
