@@ -44,8 +44,9 @@ def force_plant(stiffness, time_constant, h: float, dead_time, *, n_delay: int |
     """
     _checks.positive_scalar("stiffness", stiffness)
     _checks.positive_scalar("time_constant", time_constant)
-    Ks, Tp, gain, dead_time = _checks.arrays("stiffness (), time_constant (), input_gain (), dead_time ()",
-                                             stiffness, time_constant, input_gain, dead_time)  # fmt: skip
+    Ks, Tp, gain, _ = _checks.arrays("stiffness (), time_constant (), input_gain (), dead_time ()",
+                                     stiffness, time_constant, input_gain, dead_time)  # fmt: skip
+    # c2d gets dead_time as given: a Python number stays concrete under an outer trace (no n_delay needed)
     zero = jnp.zeros((), Ks.dtype)
     A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
     B = jnp.stack([zero, gain * Ks / Tp])[:, None]

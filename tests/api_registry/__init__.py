@@ -11,10 +11,30 @@ Every name in ``jaxobs.__all__`` and in the ``__all__`` of each public module (`
 * a design-time function with a :class:`Design` entry (NumPy/SciPy/sympy on concrete arrays: it works eagerly,
   takes lists, and under ``jit`` says in one line that it is design-time), or
 * exempt with a reason in the ``EXEMPT`` dict of its file (:data:`EXEMPTIONS`: jobs, validators, loaders,
-  function transformations), listed on docs/capabilities.md.
+  function transformations), listed on docs/capabilities.md, or
+* pending (``PENDING`` of its file, with the reason): not audited yet. Its test is an expected failure (strict: once
+  an entry exists, the name must leave ``PENDING``), and the capabilities page lists it as not yet checked.
 
 The entries live in one file per part of the package (:data:`FILES`), keyed by the name's home (the module that
 defines it; a re-export such as ``jaxobs.dare`` is covered by ``jaxobs.matrix_equations.dare``).
+
+Adding a public name (the test's failure message says the same): in the file of :data:`FILES` for its module, add
+to ``ENTRIES``::
+
+    "jaxobs.mjx.manifold.retract": Example(
+        lambda: dict(manifold=_so3(), x=X0, v=np.array([0.1, -0.2, 0.3])),  # one small valid call, lazily built
+        diff="v",  # the argument that vmap perturbs and grad differentiates (default: the first array)
+        skip={"batch": "x may carry leading batch axes (documented)"},  # a promise not made, with the reason
+    ),
+
+``batched=("x",)`` instead of that skip when a documented batch must equal the loop; ``tangent="scale"`` for a
+pytree of parameters (a random direction would break their validity); ``out=`` to differentiate part of the output;
+``slow=True`` only for what needs a physics model or a long record. An estimator's entry runs it over a record
+(``call=``, see ``estimator`` in observers.py). A design-time NumPy function gets ``Design(lambda: dict(...))`` and
+the ``@_checks.design_time()`` decorator; a job, validator, loader, transformation or static helper an ``EXEMPT``
+reason starting with its kind (:data:`EXEMPTIONS`), listed under "Transformation promises" on docs/capabilities.md.
+Run ``pytest -n 0 tests/test_api_promises.py -k NAME``: a failing check is a defect of the function to fix (a shape
+check naming the argument, lists through ``_checks.float_arrays``, a derivative), not a reason to skip.
 """
 
 from __future__ import annotations
@@ -100,7 +120,7 @@ EXEMPTIONS = {
 """The kinds of exemption; an exempt name's reason starts with one of them (``"job: ..."``)."""
 
 PARTS = ("models", "observers", "estimation", "systems", "vehicle", "mjx", "jobs")
-"""The registry files, each with ``ENTRIES`` and ``EXEMPT`` dicts."""
+"""The registry files, each with ``ENTRIES`` and ``EXEMPT`` dicts (and optionally ``PENDING``)."""
 
 
 def _merged(attribute: str) -> dict:
@@ -108,7 +128,7 @@ def _merged(attribute: str) -> dict:
 
     merged: dict = {}
     for part in PARTS:
-        entries = getattr(importlib.import_module(f"tests.api_registry.{part}"), attribute)
+        entries = getattr(importlib.import_module(f"tests.api_registry.{part}"), attribute, {})
         clash = set(merged) & set(entries)
         if clash:
             raise ValueError(f"registered twice: {sorted(clash)}")
@@ -157,4 +177,7 @@ REGISTRY: dict[str, Example | Design] = _merged("ENTRIES")
 EXEMPT: dict[str, str] = _merged("EXEMPT")
 """``"module.name"`` -> ``"kind: reason"`` (a kind of :data:`EXEMPTIONS`) for the names without an entry."""
 
-__all__ = ["CHECKS", "Example", "Design", "EXEMPTIONS", "REGISTRY", "EXEMPT", "FILES", "file_of"]
+PENDING: dict[str, str] = _merged("PENDING")
+"""``"module.name"`` -> why it has no entry yet: names not audited yet (an expected failure of the test)."""
+
+__all__ = ["PENDING", "CHECKS", "Example", "Design", "EXEMPTIONS", "REGISTRY", "EXEMPT", "FILES", "file_of"]

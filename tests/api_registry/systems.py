@@ -58,6 +58,11 @@ STABILITY = {
     "jaxobs.stability.closed_loop_matrix": Example(lambda: dict(plant=_plant(), controller=_aob_controller_system(),
                                                                 params=_steady_controller()), diff="params",
                                                    tangent="scale", skip=STABILITY_PARAMS),
+    "jaxobs.stability.robustness_metrics": Example(lambda: dict(plant=_plant(), controller=_aob_controller_system(),
+                                                                params=_steady_controller(), num_points=64),
+                                                   diff="params", tangent="scale",
+                                                   skip={**STABILITY_PARAMS, "grad": "margins are extrema and "
+                                                         "crossings over a frequency grid: piecewise smooth"}),
     "jaxobs.stability.spectral_radius": Example(lambda: dict(A=np.array([[0.5, 0.2], [-0.1, 0.3]])),
                                                 skip={"batch": "a stack of matrices is documented: the largest "
                                                       "spectral radius over the stack"}),
@@ -176,6 +181,7 @@ SCB = {
 ENTRIES = {**CLOSED_LOOP, **STABILITY, **SATURATION, **SCB}
 
 EXEMPT = {
+    "jaxobs.stability.check_nominal": "job: compiles robustness_metrics, runs it eagerly and logs a warning",
     "jaxobs.saturation.require_controllable_observable": "validator: raises naming the pair that is not "
     "controllable or observable",
 }
