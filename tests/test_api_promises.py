@@ -285,11 +285,24 @@ def _as_lists(value):
     return value
 
 
+def _shapes(out) -> list:
+    """The shape and dtype of each leaf (the dtype of arrays only: a Python number's is its tracer's)."""
+    return [(tuple(np.shape(leaf)), getattr(leaf, "dtype", None) if _is_array(leaf) or hasattr(leaf, "dtype") else None)
+            for leaf in jax.tree_util.tree_leaves(out)]  # fmt: skip
+
+
 def _check_lists(call: Call, eager):
+    """Nested lists (and Python floats) where the example has NumPy arrays give the outputs' shapes and dtypes:
+    traced, not run (a run would compile the function once more; the values come from the same conversion)."""
     listed = {k: _as_lists(v) for k, v in call.dynamic.items()}
     if all(listed[k] is call.dynamic[k] for k in listed):
         return  # no NumPy array argument
-    _assert_close(call(listed), eager, call.entry.rtol, f"{call.key}: nested lists vs arrays")
+    got = jax.eval_shape(lambda: call(listed))  # concrete lists, as an eager caller passes them
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(eager), f"{call.key}: lists: structure"
+    for (shape, dtype), (want_shape, want_dtype) in zip(_shapes(got), _shapes(eager), strict=True):
+        assert shape == want_shape and (want_dtype is None or dtype == want_dtype), (
+            f"{call.key}: nested lists give {shape} {dtype} where arrays give {want_shape} {want_dtype}"
+        )
     lists = {k: v for k, v in listed.items() if isinstance(v, list)}
     if lists:  # traced: lists of tracers, as jit passes a list argument
         jax.eval_shape(lambda a: call({**call.dynamic, **a}), lists)
