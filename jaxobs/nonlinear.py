@@ -76,8 +76,8 @@ class NonlinearModel:
         ``name.Q`` ... otherwise (``name``: the argument that holds it)."""
         if not isinstance(self, NonlinearModel):
             raise ValueError(f"{name} must be a NonlinearModel (jaxobs.nonlinear.nonlinear_model), got {self!r}")
-        _checks.shapes(f"{name}.Q (n, n), {name}.R (p, p), {name}.x0 (n,), {name}.P0 (n, n), {name}.dt (), {name}.t0 ()",
-                       self.Q, self.R, self.x0, self.P0, self.dt, self.t0)  # fmt: skip
+        shapes = f"{name}.Q (n, n), {name}.R (p, p), {name}.x0 (n,), {name}.P0 (n, n), {name}.dt (), {name}.t0 ()"
+        _checks.shapes(shapes, self.Q, self.R, self.x0, self.P0, self.dt, self.t0)
         return self
 
 

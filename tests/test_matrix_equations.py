@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-from jaxobs.kalman_steps import covariance_sequence, kalman_gain
 from jaxobs.design import dlqe, dlqr
+from jaxobs.kalman_steps import covariance_sequence, kalman_gain
 from jaxobs.matrix_equations import care, dare, filter_dare, lyapunov, stein
 
 

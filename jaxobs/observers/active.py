@@ -244,8 +244,10 @@ class ActiveObserverOutputs(NamedTuple):
     P_prior: jax.Array | None = None
 
 
-_SHAPES = ("Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), P0 (n, n), x0 (n,), active (), alpha (q,), "
-           "sigma_floor (q,), gain (n, p), gain_passive (n, p), gain_converged ()")
+_SHAPES = (
+    "Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), P0 (n, n), x0 (n,), active (), alpha (q,), "
+    "sigma_floor (q,), gain (n, p), gain_passive (n, p), gain_converged ()"
+)
 
 
 def _check_params(params) -> ActiveObserverParams:

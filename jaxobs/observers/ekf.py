@@ -103,8 +103,9 @@ def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
                          output_covariance=params.output_covariance)  # fmt: skip
 
 
-extended_kalman_filter = Estimator(lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")),
-                                   _step)
+extended_kalman_filter = Estimator(
+    lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")), _step
+)
 """The extended Kalman filter as an :class:`~jaxobs.observers.base.Estimator` over :class:`EKFParams`.
 
 Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,) (``u_prev=None`` without inputs), checked

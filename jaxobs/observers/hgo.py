@@ -436,8 +436,8 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
       >>> bool(jnp.abs(out.phi[-1, 0] - 0.3) < 1e-2)
       True
     """
-    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta0 if jnp.size(jnp.asarray(theta0)) else None,
-                                dt=dt, t0=t0)  # fmt: skip
+    theta = theta0 if jnp.size(jnp.asarray(theta0)) else None
+    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta, dt=dt, t0=t0)
     A, E, C = (jnp.asarray(M, dtype) for M in (A, E, C))
     _checks.matrix("A", A, square=True)
     n = A.shape[0]

@@ -194,8 +194,8 @@ def hinf_correction(P, Cz, gamma):
 
     Returns ``(Pb, margin, ok)``: ``margin`` is the smallest eigenvalue of ``M = I - gamma^{-2} Cz P Cz'``
     and ``ok = margin > 0`` the existence condition (``margin`` is a flag's measure: its gradient is stopped, as
-    the eigenvalue's derivative is undefined where eigenvalues repeat). ``Pb = P + gamma^{-2} P Cz' M^{-1} Cz P`` (Woodbury, a
-    Cholesky solve with ``M``); when ``ok`` is False, ``Pb = P`` (gradients stay finite).
+    the eigenvalue's derivative is undefined where eigenvalues repeat). ``Pb = P + gamma^{-2} P Cz' M^{-1} Cz P``
+    (Woodbury, a Cholesky solve with ``M``); when ``ok`` is False, ``Pb = P`` (gradients stay finite).
     """
     P, Cz, gamma = _checks.arrays("P (n, n), Cz (q, n), gamma ()", P, Cz, gamma)
     theta = 1.0 / jnp.square(gamma)  # gamma^{-2}; 0 for gamma = inf
@@ -217,7 +217,14 @@ def hinf_riccati_step(Pb_prev, Phi, C, Cz, Q, R, gamma, *, first=False):
     Shapes: ``Pb_prev`` (n, n), ``Phi`` (n, n), ``C`` (p, n), ``Cz`` (q, n), ``Q`` (n, n), ``R`` (p, p), ``gamma``
     ()."""
     Pb_prev, Phi, C, Cz, Q, R, gamma = _checks.arrays(
-        "Pb_prev (n, n), Phi (n, n), C (p, n), Cz (q, n), Q (n, n), R (p, p), gamma ()", Pb_prev, Phi, C, Cz, Q, R, gamma
+        "Pb_prev (n, n), Phi (n, n), C (p, n), Cz (q, n), Q (n, n), R (p, p), gamma ()",
+        Pb_prev,
+        Phi,
+        C,
+        Cz,
+        Q,
+        R,
+        gamma,
     )
     P1 = jnp.where(first, Pb_prev, predict_covariance(Pb_prev, Phi, Q))
     P, K = update_covariance(P1, C, R)
@@ -336,7 +343,10 @@ def with_steady_state_gain(params: HinfParams, num_iters: int = 1000) -> HinfPar
 # The observer
 
 
-_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Cz (q, n), Cd (r, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gamma (), gain (n, p)"
+_SHAPES = (
+    "Phi (n, n), Gamma (n, m), C (p, n), Cz (q, n), Cd (r, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gamma (), "
+    "gain (n, p)"
+)
 
 
 def _init(params: HinfParams) -> HinfState:

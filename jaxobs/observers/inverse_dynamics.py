@@ -260,8 +260,10 @@ class InverseDynamicsOutputs(NamedTuple):
     x_dot: jax.Array
 
 
-_SHAPES = ("A (n, n), B (n, d), C (y, n), Bu (n, m), K (n, y), F1 (d, y), F2 (d, y), G1 (d, n), G2 (d, n), "
-           "G3 (d, n), x0 (n,), h (), lowpass_pole ()")
+_SHAPES = (
+    "A (n, n), B (n, d), C (y, n), Bu (n, m), K (n, y), F1 (d, y), F2 (d, y), G1 (d, n), G2 (d, n), "
+    "G3 (d, n), x0 (n,), h (), lowpass_pole ()"
+)
 
 
 def _init(params: InverseDynamicsParams) -> InverseDynamicsState:

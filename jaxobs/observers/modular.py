@@ -105,8 +105,17 @@ class ModularOutputs(NamedTuple):
     innovation: jax.Array
 
 
-_ARGUMENT_SHAPES = {"u": "(r,)", "x": "(n,)", "x_dot": "(n,)", "phi_hat": "(n,)", "theta": "(s,)", "theta_hat": "(s,)", "t": "()",
-                    "state.z": "(n,)", "state.theta_hat": "(s,)"}
+_ARGUMENT_SHAPES = {
+    "u": "(r,)",
+    "x": "(n,)",
+    "x_dot": "(n,)",
+    "phi_hat": "(n,)",
+    "theta": "(s,)",
+    "theta_hat": "(s,)",
+    "t": "()",
+    "state.z": "(n,)",
+    "state.theta_hat": "(s,)",
+}
 
 
 def _arguments(model: ModularModel, **values) -> tuple:

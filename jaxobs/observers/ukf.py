@@ -202,8 +202,9 @@ def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
                          output_covariance=params.output_covariance)  # fmt: skip
 
 
-unscented_kalman_filter = Estimator(lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")),
-                                    _step)
+unscented_kalman_filter = Estimator(
+    lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")), _step
+)
 """The sigma-point Kalman filter (unscented, cubature or Gauss-Hermite, ``UKFParams.rule``) as an
 :class:`~jaxobs.observers.base.Estimator` over :class:`UKFParams`.
 

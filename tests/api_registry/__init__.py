@@ -29,10 +29,11 @@ to ``ENTRIES``::
 
 ``batched=("x",)`` instead of that skip when a documented batch must equal the loop; ``tangent="scale"`` for a
 pytree of parameters (a random direction would break their validity); ``out=`` to differentiate part of the output;
-``slow=True`` only for what needs a physics model or a long record. An estimator's entry runs it over a record
-(``call=``, see ``estimator`` in observers.py). A design-time NumPy function gets ``Design(lambda: dict(...))`` and
-the ``@_checks.design_time()`` decorator; a job, validator, loader, transformation or static helper an ``EXEMPT``
-reason starting with its kind (:data:`EXEMPTIONS`), listed under "Transformation promises" on docs/capabilities.md.
+``slow(ENTRIES, why, *keys)`` (:func:`slow`) only for what costs more than ~0.8 s of CPU on a warm compilation
+cache. An estimator's entry runs it over a record (``call=``, see ``estimator`` in observers.py). A design-time
+NumPy function gets ``Design(lambda: dict(...))`` and the ``@_checks.design_time()`` decorator; a job, validator,
+loader, transformation or static helper an ``EXEMPT`` reason starting with its kind (:data:`EXEMPTIONS`), listed
+under "Transformation promises" on docs/capabilities.md.
 Run ``pytest -n 0 tests/test_api_promises.py -k NAME``: a failing check is a defect of the function to fix (a shape
 check naming the argument, lists through ``_checks.float_arrays``, a derivative), not a reason to skip.
 """
@@ -63,7 +64,7 @@ class Example:
       out: the differentiated part of the output (default: every floating leaf).
       batched: arguments documented to take leading batch axes: a batch must equal the loop over its members.
       skip: ``{check: reason}`` for the promises of :data:`CHECKS` that the function does not make.
-      slow: run only in the slow suite (an MJX plant, a long record).
+      slow: why the entry runs only in the slow suite (empty: the default suite); see :func:`slow`.
       rtol: tolerance of the eager/jit/vmap comparisons (relative to each output's largest entry).
       grad_rtol: tolerance of the gradient against central differences.
       fd_step: the step of the central differences, relative to the direction (which has the size of ``diff``).
@@ -76,7 +77,7 @@ class Example:
     out: Callable | None = None
     batched: tuple[str, ...] = ()
     skip: Mapping[str, str] = dataclasses.field(default_factory=dict)
-    slow: bool = False
+    slow: str = ""
     rtol: float = 1e-9
     grad_rtol: float = 1e-6
     fd_step: float = 1e-5
@@ -99,13 +100,25 @@ class Design:
       args: builds the keyword arguments of one valid call.
       traced: the argument traced under ``jit`` for the refusal (default: the first array argument).
       alternative: the traceable alternative that the refusal names, if any.
-      slow: run only in the slow suite.
+      slow: why it runs only in the slow suite (empty: the default suite).
     """
 
     args: Callable[[], dict]
     traced: str | None = None
     alternative: str = ""
-    slow: bool = False
+    slow: str = ""
+
+
+def slow(entries: dict, reason: str, *keys: str) -> dict:
+    """``entries`` with those of ``keys`` run only in the slow suite, for ``reason``.
+
+    The default suite's budget for the whole test is ~60 s of CPU on one core; an entry whose checks cost more than
+    ~0.8 s of CPU on a warm compilation cache (measured per entry: a solver with an implicit derivative, a loop over
+    a record or a frequency grid, compiled for eager, ``jit``, ``vmap`` and ``grad``) goes to the slow suite."""
+    unknown = set(keys) - set(entries)
+    if unknown:
+        raise ValueError(f"slow: no such entries {sorted(unknown)}")
+    return {key: dataclasses.replace(e, slow=reason) if key in keys else e for key, e in entries.items()}
 
 
 EXEMPTIONS = {
@@ -114,8 +127,7 @@ EXEMPTIONS = {
     "validator": "an eager check that raises on concrete values (under tracing it checks shapes or nothing)",
     "loader": "reads a file, a name or a model description (strings and files, nothing to trace)",
     "transformation": "takes or returns functions (a transformation of the user's function, or a factory)",
-    "static": "takes only static sizes and settings (Python integers, strings) and returns constants: nothing to "
-    "trace",
+    "static": "takes only static sizes and settings (Python integers, strings) and returns constants: nothing to trace",
 }
 """The kinds of exemption; an exempt name's reason starts with one of them (``"job: ..."``)."""
 
@@ -180,4 +192,4 @@ EXEMPT: dict[str, str] = _merged("EXEMPT")
 PENDING: dict[str, str] = _merged("PENDING")
 """``"module.name"`` -> why it has no entry yet: names not audited yet (an expected failure of the test)."""
 
-__all__ = ["PENDING", "CHECKS", "Example", "Design", "EXEMPTIONS", "REGISTRY", "EXEMPT", "FILES", "file_of"]
+__all__ = ["PENDING", "slow", "CHECKS", "Example", "Design", "EXEMPTIONS", "REGISTRY", "EXEMPT", "FILES", "file_of"]

@@ -8,27 +8,35 @@ from tests.api_registry import Example
 LOSSES = np.array([0.3, 1.2, 0.7, 2.5])
 
 ENTRIES = {
-    "jaxobs.sweep.config_key": Example(lambda: dict(seed=3, index=np.int32(5)), skip={
-        "grad": "a PRNG key of an integer index", "batch": "index is any integer array (fold_in broadcasts)"}),
-    "jaxobs.tuning.cholesky_covariance": Example(lambda: dict(raw=np.array([[0.1, 0.0], [0.5, -0.3]])),
-                                                 batched=("raw",)),
+    "jaxobs.sweep.config_key": Example(
+        lambda: dict(seed=3, index=np.int32(5)),
+        skip={"grad": "a PRNG key of an integer index", "batch": "index is any integer array (fold_in broadcasts)"},
+    ),
+    "jaxobs.tuning.cholesky_covariance": Example(
+        lambda: dict(raw=np.array([[0.1, 0.0], [0.5, -0.3]])), batched=("raw",)
+    ),
     "jaxobs.tuning.unit_interval": Example(lambda: dict(raw=np.array([-1.0, 0.5])), batched=("raw",)),
-    "jaxobs.tuning.cvar": Example(lambda: dict(losses=LOSSES, alpha=0.5),
-                                  skip={"batch": "losses is any array of losses (raveled)"}),
-    "jaxobs.tuning.robust_objective": Example(lambda: dict(losses=LOSSES, kind="cvar", alpha=0.5),
-                                              skip={"batch": "losses is any array of losses (raveled)"}),
+    "jaxobs.tuning.cvar": Example(
+        lambda: dict(losses=LOSSES, alpha=0.5), skip={"batch": "losses is any array of losses (raveled)"}
+    ),
+    "jaxobs.tuning.robust_objective": Example(
+        lambda: dict(losses=LOSSES, kind="cvar", alpha=0.5), skip={"batch": "losses is any array of losses (raveled)"}
+    ),
     "jaxobs.tuning.penalise_diverged": Example(
-        lambda: dict(losses=LOSSES, failed=np.array([False, True, False, False]), factor=2.0), diff="losses",
-        skip={"batch": "losses (B,) is a batch of plants by definition; more axes broadcast",
-              "grad": "documented: the penalty scale (the largest sound loss) is held constant in derivatives"}),
+        lambda: dict(losses=LOSSES, failed=np.array([False, True, False, False]), factor=2.0),
+        diff="losses",
+        skip={
+            "batch": "losses (B,) is a batch of plants by definition; more axes broadcast",
+            "grad": "documented: the penalty scale (the largest sound loss) is held constant in derivatives",
+        },
+    ),
 }
 
 EXEMPT = {
     "jaxobs.batching.safe_vmap": "transformation: jax.vmap with LAPACK calls split (tested in tests/test_batching.py)",
     "jaxobs.batching.safe_lapack": "transformation: rewrites a function's LAPACK calls (tests/test_batching.py)",
     "jaxobs.batching.lapack_calls": "transformation: inspects the program of a function (tests/test_batching.py)",
-    "jaxobs.checked": "transformation: the function with its value checks compiled in "
-    "(tests/test_checks.py)",
+    "jaxobs.checked": "transformation: the function with its value checks compiled in (tests/test_checks.py)",
     "jaxobs.sweep.run_sweep": "job: evaluates configurations in chunks into Parquet files with a manifest",
     "jaxobs.sweep.run_configured_sweep": "job: run_sweep with the settings of a configuration",
     "jaxobs.sweep.load_results": "loader: reads a finished sweep's Parquet chunks",

@@ -10,11 +10,15 @@ from tests.api_registry.observers import _kalman
 
 ENTRIES = {
     "jaxobs.mjx.common.dead_time_step": Example(
-        lambda: dict(fifo=np.array([[0.1], [0.2]]), u_k=np.array([0.3]), d=2), diff="u_k",
-        skip={"batch": "fifo and u_k take any trailing shape (a command vector or a batch of them)"}),
+        lambda: dict(fifo=np.array([[0.1], [0.2]]), u_k=np.array([0.3]), d=2),
+        diff="u_k",
+        skip={"batch": "fifo and u_k take any trailing shape (a command vector or a batch of them)"},
+    ),
     "jaxobs.mjx.compliant_6dof.stack_controllers": Example(
-        lambda: dict(controllers=[_kalman()] * 6), tangent="scale",
-        skip={"batch": "stacks per-DOF parameters of any shapes: their leading axes are carried"}),
+        lambda: dict(controllers=[_kalman()] * 6),
+        tangent="scale",
+        skip={"batch": "stacks per-DOF parameters of any shapes: their leading axes are carried"},
+    ),
 }
 
 EXEMPT = {
