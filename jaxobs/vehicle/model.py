@@ -305,8 +305,10 @@ def reference_yaw_rate(vehicle: VehicleParams, vx, steering_wheel):
     """The yaw rate of the linear single track in steady state, ``v_x delta / (L + K_us v_x^2)`` (rad/s) with
     ``delta`` the road-wheel angle and ``K_us`` the :func:`understeer_gradient`: the reference of the friction
     switch (Grip 2010 §2.5) and of the simulated ESC (:func:`jaxobs.vehicle.esc_intervention`)."""
+    vx, steering_wheel = _checks.float_arrays(vx=vx, steering_wheel=steering_wheel)
     delta = steering_wheel / vehicle.steering_ratio
-    return vx * delta / (vehicle.wheelbase + understeer_gradient(vehicle) * vx**2)
+    K_us = understeer_gradient(vehicle).astype(vx.dtype)  # the vehicle's Python floats would give float64
+    return vx * delta / (vehicle.wheelbase + K_us * vx**2)
 
 
 def broadcast(params, n: int):
