@@ -1,22 +1,23 @@
 """Every public function keeps its promises: one parametrised test over the whole API.
 
-For each function and estimator in ``jaxobs.__all__`` and in the ``__all__`` of every public module (papers and
-cli aside), its entry in tests/api_registry/ gives one small valid call; the test checks eager = ``jit``,
-``vmap`` over perturbed inputs = a Python loop, gradients = central differences (reverse and forward mode),
-float32 in gives float32 out (or a ``ValueError``), Python lists and scalars accepted where an array is, and an
-undocumented leading batch axis refused with a ``ValueError`` naming the argument. Design-time functions run
-eagerly and say so under ``jit``; the exempt names (jobs, validators, loaders, transformations) are listed on
-docs/capabilities.md. A public name with neither an entry nor an exemption fails, saying what to add; the names
-not audited yet (``PENDING``: the MJX physics functions, the vehicle package) are expected failures.
+For each function and estimator in ``jaxobs.__all__`` and in the ``__all__`` of every public module (papers and cli
+aside), its entry in tests/api_registry/ gives one small valid call; the test checks eager = ``jit``, ``vmap`` over
+perturbed inputs = a Python loop, reverse-mode gradients = central differences along a random direction, float32 in
+gives float32 out (or a ``ValueError``), Python lists and scalars accepted where an array is, and an undocumented
+leading batch axis refused with a ``ValueError`` naming the argument. Design-time functions run eagerly and say so
+under ``jit``; the exempt names (jobs, validators, loaders, transformations) are listed on docs/capabilities.md. A
+public name with neither an entry nor an exemption fails, saying what to add; the names not audited yet
+(``PENDING``: the MJX physics functions, most of the vehicle package) are expected failures.
 
 Budget: the default suite runs the whole test in ~60 s of CPU on one core. It shares compiled programs (the
 central differences and the loop of the vmap check run on the jit check's program; nested lists are traced, not
 run), uses small inputs, one vmap batch of 3 and one random direction for the central differences. The entries
-that still cost more than ~0.8 s of CPU each on a warm compilation cache run only in the slow suite, each with its
-reason (``slow(...)`` in its registry file): the Riccati-based designs (lqe, dlqe, lqr, care and the designs built
-on them), the estimators over a record whose scans are the largest programs (particle, ensemble, H-infinity,
-unscented, modular, the AOB and its controller, the parallel filter, EM, NEES/whiteness), the closed loop and the
-stability margins, c2d and the Bierman update, and the saturation chapter's designs, simulations and window tests.
+that still cost more than ~0.65 s of CPU each on a warm compilation cache run only in the slow suite, each with its
+reason (``slow(...)`` in its registry file): the Riccati-based designs (lqe, dlqe, lqr, care, the steady-state gains
+and the designs built on them), the estimators over a record whose scans are the largest programs (particle,
+ensemble, H-infinity, unscented, modular, Gramian, high-gain, the AOB and its controller, the smoother and the
+parallel filter, EM, sampling, NEES/whiteness, resampling), the closed loop and the stability margins, c2d,
+force_plant and the Bierman update, and the saturation chapter's designs, simulations and window tests.
 """
 
 from __future__ import annotations

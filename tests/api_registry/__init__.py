@@ -29,7 +29,7 @@ to ``ENTRIES``::
 
 ``batched=("x",)`` instead of that skip when a documented batch must equal the loop; ``tangent="scale"`` for a
 pytree of parameters (a random direction would break their validity); ``out=`` to differentiate part of the output;
-``slow(ENTRIES, why, *keys)`` (:func:`slow`) only for what costs more than ~0.8 s of CPU on a warm compilation
+``slow(ENTRIES, why, *keys)`` (:func:`slow`) only for what costs more than ~0.65 s of CPU on a warm compilation
 cache. An estimator's entry runs it over a record (``call=``, see ``estimator`` in observers.py). A design-time
 NumPy function gets ``Design(lambda: dict(...))`` and the ``@_checks.design_time()`` decorator; a job, validator,
 loader, transformation or static helper an ``EXEMPT`` reason starting with its kind (:data:`EXEMPTIONS`), listed
@@ -113,7 +113,7 @@ def slow(entries: dict, reason: str, *keys: str) -> dict:
     """``entries`` with those of ``keys`` run only in the slow suite, for ``reason``.
 
     The default suite's budget for the whole test is ~60 s of CPU on one core; an entry whose checks cost more than
-    ~0.8 s of CPU on a warm compilation cache (measured per entry: a solver with an implicit derivative, a loop over
+    ~0.65 s of CPU on a warm compilation cache (measured per entry: a solver with an implicit derivative, a loop over
     a record or a frequency grid, compiled for eager, ``jit``, ``vmap`` and ``grad``) goes to the slow suite."""
     unknown = set(keys) - set(entries)
     if unknown:

@@ -127,8 +127,11 @@ RESAMPLING = {
 ENTRIES = {**SMOOTHING, **LEARNING, **CONSISTENCY, **RESAMPLING}
 ENTRIES = slow(
     ENTRIES,
-    "an estimator over a record: a scan compiled for eager, jit, vmap and grad (~0.8-2 s of CPU)",
+    "an estimator over a record: a scan compiled for eager, jit, vmap and grad (~0.65-2 s of CPU)",
     "jaxobs.consistency.nees",
+    "jaxobs.resampling.residual",
+    "jaxobs.learning.sample",
+    "jaxobs.smoothing.smooth",
     "jaxobs.consistency.whiteness",
     "jaxobs.learning.em",
     "jaxobs.smoothing.parallel_filter",

@@ -283,7 +283,7 @@ def _key(seed: int = 0):
 ENTRIES = {**LTI, **MATRIX_EQUATIONS, **DESIGN, **KALMAN_STEPS, **PLANTS, **CT, **ADAPTIVE, **NONLINEAR}
 ENTRIES = slow(
     ENTRIES,
-    "a Riccati solve with its implicit derivative, compiled for eager, jit, vmap and grad (~1-3 s of CPU)",
+    "a Riccati solve with its implicit derivative, compiled for eager, jit, vmap and grad (~0.7-3 s of CPU)",
     "jaxobs.design.dlqe",
     "jaxobs.design.lqe",
     "jaxobs.design.lqr",
@@ -293,9 +293,10 @@ ENTRIES = slow(
     ENTRIES,
     (
         "a matrix exponential of the padded delay model, or a factor update by a loop of rank-one steps, compiled"
-        " for eager, jit, vmap and grad (~0.9-1.2 s of CPU)"
+        " for eager, jit, vmap and grad (~0.7-1.2 s of CPU)"
     ),
     "jaxobs.lti.c2d",
+    "jaxobs.plants.force_plant",
     "jaxobs.kalman_steps.bierman_update",
 )
 

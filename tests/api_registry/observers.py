@@ -599,16 +599,22 @@ OTHERS = {
 ENTRIES = {**KALMAN, **ACTIVE, **CT_LINEAR, **NONLINEAR, **OTHERS}
 ENTRIES = slow(
     ENTRIES,
-    "a Riccati solve with its implicit derivative, compiled for eager, jit, vmap and grad (~1-3 s of CPU)",
+    "a Riccati solve with its implicit derivative, compiled for eager, jit, vmap and grad (~0.7-3 s of CPU)",
     "jaxobs.observers.active.with_steady_state_gains",
+    "jaxobs.observers.gramian.make_gramian",
+    "jaxobs.observers.hinf.hinf_steady_state",
+    "jaxobs.observers.kalman.with_steady_state_gain",
     "jaxobs.observers.ct_linear.make_kalman_bucy",
     "jaxobs.observers.gramian.make_gramian",
     "jaxobs.observers.ensemble.make_enkf",
 )
 ENTRIES = slow(
     ENTRIES,
-    "an estimator over a record: a scan compiled for eager, jit, vmap and grad (~0.8-2 s of CPU)",
+    "an estimator over a record: a scan compiled for eager, jit, vmap and grad (~0.65-2 s of CPU)",
     "jaxobs.observers.active.active_observer",
+    "jaxobs.observers.gramian.gramian_estimator",
+    "jaxobs.observers.hgo.hgo_observer",
+    "jaxobs.observers.ensemble.stochastic_update",
     "jaxobs.observers.active.active_observer_controller",
     "jaxobs.observers.ensemble.ensemble_kalman_filter",
     "jaxobs.observers.ensemble.ensemble_smoother",
