@@ -90,6 +90,7 @@ class LemmaCheck(NamedTuple):
     spr_above: bool
 
 
+@_checks.design_time()
 def lemma_check(lemma: str, *, a=None, K_vy=None, delta_min=None, g=GRAVITY, rel=1e-3) -> LemmaCheck:
     """Evaluate :func:`jaxobs.lti.is_spr` on the error system of Lemma 4.1 (``lemma="4.1"``, needs ``a``) or
     Lemma 4.2 (``"4.2"``, needs ``K_vy`` and ``delta_min``) with the gain a relative ``rel`` below and above the
