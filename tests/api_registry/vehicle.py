@@ -1,8 +1,9 @@
 """Registry entries: the vehicle simulator and its observers (jaxobs.vehicle).
 
 Entries: the elementwise tyre curves, the friction switch's gates, the low-pass, the road-angle lemmas' bounds and
-error systems, the model's static relations. Pending (PENDING below): the rest of the package (the observers, the
-simulator, the model's dynamics), whose examples need a vehicle state and measurements of a simulated drive."""
+error systems, the model (state, forces, dynamics, friction model). Pending (PENDING below): the rest of the package
+(the observers and their factories, the simulator with its driver and ESC, the friction switch), whose examples need
+measurements of a drive or a manoeuvre."""
 
 import numpy as np
 
@@ -161,7 +162,7 @@ ENTRIES = {**ENTRIES, **MORE}
 
 EXEMPT = VEHICLE_EXEMPT
 
-_VEHICLE = "pending: not audited yet (needs a vehicle, its state and measurements of a simulated drive)"
+_VEHICLE = "pending: not audited yet (needs measurements of a simulated drive or a manoeuvre)"
 
 PENDING = {
     key: _VEHICLE
