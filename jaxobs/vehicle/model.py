@@ -136,9 +136,11 @@ class VehicleState(NamedTuple):
     ax_lt: jax.Array
     ay_lt: jax.Array
 
-
-_STATE_SHAPES = "vx (), vy (), r (), omega (4,), tan_alpha (4,), ax_lt (), ay_lt ()"
-"""The shapes of a :class:`VehicleState`'s fields (one vehicle: ``vmap`` for a batch)."""
+    def check(self, name: str) -> VehicleState:
+        """The state, its fields' shapes checked at trace time (one vehicle: ``vmap`` for a batch), naming
+        ``name.field``."""
+        _checks.fields(name, self, "vx (), vy (), r (), omega (4,), tan_alpha (4,), ax_lt (), ay_lt ()")
+        return self
 
 
 class Inputs(NamedTuple):
@@ -227,7 +229,7 @@ def normal_loads(p: VehicleParams, ax, ay, bank=0.0, inclination=0.0):
 
 def forces(p: VehicleParams, x: VehicleState, u: Inputs) -> Forces:
     """Tyre forces, loads and slips of state ``x`` under inputs ``u`` (the lateral slips are the relaxed states)."""
-    _checks.fields("x", x, _STATE_SHAPES)
+    VehicleState.check(x, "x")
     _checks.fields("u", u, "steering_wheel (), torque (4,), bank (), inclination (), friction ()")
     v_l, v_s, delta = wheel_kinematics(p, x.vx, x.vy, x.r, u.steering_wheel)
     speed = jnp.maximum(jnp.abs(v_l), MIN_SPEED)

@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, is_spr, ss
@@ -170,7 +171,7 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
         _checks.positive(name, value, allow_zero=zero_ok)
     params = RoadAnglesParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
-    if _checks.is_concrete(lo, hi) and not bool(jnp.all(jnp.asarray(lo) < jnp.asarray(hi))):
+    if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
         raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
     return params
 

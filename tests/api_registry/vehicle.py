@@ -144,6 +144,41 @@ MORE = {
     "jaxobs.vehicle.road_angles.lemma_check": Design(lambda: dict(lemma="4.1", a=np.float64(0.5)), traced="a"),
 }
 
+
+def _measurements():
+    from jaxobs.vehicle.sensors import Measurements
+
+    k = np.arange(5.0)
+    return Measurements(0.01 * k, 0.1 * np.sin(k), 2.0 + 0.1 * k, 0.1 + 0.01 * k, 0.5 * np.cos(k),
+                        62.0 + np.outer(k, [0.1, 0.2, 0.3, 0.4]), 20.0 + 0.1 * k, np.zeros(5))  # fmt: skip
+
+
+def _command():
+    from jaxobs.vehicle.manoeuvres import Command
+
+    return Command(*(np.float64(v) for v in (0.4, 0.01, 0.5, 21.0, 0.2, 0.0, 0.01, 1.0)))
+
+
+def _esc():
+    from jaxobs.vehicle.simulate import ESCParams
+
+    return ESCParams()
+
+
+MORE_2 = {
+    "jaxobs.vehicle.sensors.sensor_inputs": Example(lambda: dict(measurements=_measurements())),
+    "jaxobs.vehicle.simulate.esc_intervention": Example(
+        lambda: dict(p=_vehicle(), esc=_esc(), x=_state(), steering_wheel=np.float64(2.0), friction=np.float64(0.8)),
+        diff="x",
+    ),  # fmt: skip
+    "jaxobs.vehicle.nvso.make_nvso": Example(
+        lambda: dict(vehicle=_vehicle()), tangent="scale", out=lambda params: params.vehicle
+    ),  # fmt: skip
+    "jaxobs.vehicle.road_angles.make_road_angles": Example(
+        lambda: dict(vehicle=_vehicle()), tangent="scale", out=lambda params: params.vehicle
+    ),  # fmt: skip
+}
+
 VEHICLE_EXEMPT = {
     "jaxobs.vehicle.model.check_vehicle": "validator: refuses a vehicle that is not a valid VehicleParams",
     "jaxobs.vehicle.manoeuvres.manoeuvre": "loader: a test drive by its name",
@@ -158,7 +193,7 @@ def _lateral():
     return make_adaptive_lateral()
 
 
-ENTRIES = {**ENTRIES, **MORE}
+ENTRIES = {**ENTRIES, **MORE, **MORE_2}
 
 EXEMPT = VEHICLE_EXEMPT
 
@@ -172,17 +207,16 @@ PENDING = {
         "jaxobs.vehicle.lateral.full_observer",
         "jaxobs.vehicle.lateral.lateral_observer",
         "jaxobs.vehicle.lateral.make_adaptive_lateral",
-        "jaxobs.vehicle.nvso.make_nvso",
         "jaxobs.vehicle.nvso.nvso",
         "jaxobs.vehicle.road_angles.final_angles",
-        "jaxobs.vehicle.road_angles.make_road_angles",
         "jaxobs.vehicle.road_angles.road_angles",
         "jaxobs.vehicle.road_angles.road_angles_adaptive",
         "jaxobs.vehicle.sensors.measure",
-        "jaxobs.vehicle.sensors.sensor_inputs",
-        "jaxobs.vehicle.simulate.driver",
-        "jaxobs.vehicle.simulate.esc_intervention",
         "jaxobs.vehicle.simulate.simulate",
         "jaxobs.vehicle.switching.switching",
     )
 }
+PENDING["jaxobs.vehicle.simulate.driver"] = (
+    "pending: at a turning, accelerating state its reverse-mode derivative in x disagreed with central differences "
+    "(13066 against 11132): a kink of the traction/anti-lock limiter at the example or a defect, not yet found"
+)
