@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextvars
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -75,6 +76,28 @@ def checked(fn):
     return run
 
 
+def design_time(alternative: str = ""):
+    """Decorator of a design-time function (NumPy, SciPy or sympy on concrete values, not traceable): called with
+    a traced argument (under ``jit``, ``vmap`` or ``grad``) it raises a one-line ``ValueError`` that says so and
+    names ``alternative``, the traceable function to use instead (if any), where NumPy would end in a
+    ``TracerArrayConversionError``."""
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def eager_only(*args, **kwargs):
+            if not is_concrete(args, kwargs):
+                instead = f"; under tracing use {alternative}" if alternative else ""
+                raise ValueError(
+                    f"{fn.__name__} is design-time (NumPy on concrete values): call it eagerly, outside jit, vmap and "
+                    f"grad{instead}"
+                )
+            return fn(*args, **kwargs)
+
+        return eager_only
+
+    return decorate
+
+
 def _check_traced(ok, message: str, **values) -> None:
     """Under :func:`checked`, a ``checkify`` check that ``ok`` holds (``message`` formatted with ``values``)."""
     if _CHECKING.get():
@@ -84,7 +107,8 @@ def _check_traced(ok, message: str, **values) -> None:
 def finite(name: str, value) -> None:
     """Raise when a concrete ``value`` has NaN or infinite entries (skipped on tracers, unless :func:`checked`)."""
     if not is_concrete(value):
-        _check_traced(jnp.isfinite(value), f"{name} contains NaN or infinite entries")
+        if _CHECKING.get():
+            _check_traced(jnp.isfinite(jnp.asarray(value)), f"{name} contains NaN or infinite entries")
     elif not np.all(np.isfinite(np.asarray(value))):
         raise ValueError(f"{name} contains NaN or infinite entries")
 
@@ -147,14 +171,96 @@ def float_dtype(**values):
     return jnp.result_type(*arrays, float)
 
 
+def float_arrays(**values) -> tuple:
+    """The named values as JAX arrays of their common floating dtype (:func:`float_dtype`), in order; ``None`` stays
+    ``None``. The one conversion path for arguments that are arrays: NumPy and JAX arrays, Python scalars and nested
+    lists or tuples (also of traced scalars, as ``jit`` passes a list argument), a ``ValueError`` naming the argument
+    for anything else."""
+    arrays = {name: None if value is None else real_array(name, value) for name, value in values.items()}
+    dtype = float_dtype(**arrays)
+    return tuple(None if a is None else a.astype(dtype) for a in arrays.values())
+
+
+def _dims(value) -> tuple:
+    """The shape of an array, a scalar or a nested list (also of traced scalars, which NumPy cannot read)."""
+    if isinstance(value, (list, tuple)):
+        return tuple(jnp.shape(jnp.asarray(value)))
+    return tuple(np.shape(value))
+
+
 def _shape_text(shape) -> str:
     dims = ["*" if d is None else str(d) for d in shape]
     return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
 
 
+@functools.cache
+def _signature(spec: str) -> tuple:
+    """``"P (n, n), C (p, n)"`` -> ``(("P", ("n", "n")), ("C", ("p", "n")))``."""
+    parsed = tuple(
+        (name, tuple(d.strip() for d in dims.split(",") if d.strip()))
+        for name, dims in re.findall(r"([\w.]+)\s*\(([^)]*)\)", spec)
+    )
+    if not parsed:
+        raise ValueError(f"no shapes in {spec!r}")
+    return parsed
+
+
+def shapes(spec: str, *values) -> dict[str, int]:
+    """Static check (at trace time, on tracers too) that ``values`` have the shapes of ``spec``, one per value in
+    order, e.g. ``shapes("P1 (n, n), C (p, n), R (p, p)", P1, C, R)``: letters are sizes that must agree across the
+    values (the first value with a letter sets it), digits fixed sizes, ``*`` any size; a ``None`` value is
+    skipped. Returns the sizes ``{letter: size}``. Raises ``ValueError`` naming the argument, the expected and the
+    given shape; a value with extra leading axes is told that it takes one, not a batch (``vmap`` for a batch)."""
+    sizes: dict[str, int] = {}
+    parsed = _signature(spec)
+    if len(parsed) != len(values):
+        raise TypeError(f"shapes: {len(parsed)} shapes in {spec!r} for {len(values)} values")
+    for (name, dims), value in zip(parsed, values, strict=True):
+        if value is None:
+            continue
+        got = _dims(value)
+        ok = len(got) == len(dims)
+        for d, g in zip(dims, got, strict=False):
+            if d != "*":
+                ok = ok and (int(d) if d.isdigit() else sizes.setdefault(d, g)) == g
+        if not ok:
+            want = tuple(sizes.get(d, d) if not d.isdigit() else int(d) for d in dims)
+            sized = f" = {_shape_text(want)}" if want != dims else ""
+            batch = "; one value, not a batch: vmap over a batch" if len(got) > len(dims) else ""
+            raise ValueError(f"{name} must have shape {_shape_text(dims)}{sized}{batch}, got {_shape_text(got)}")
+    return sizes
+
+
+@functools.cache
+def _prefixed(name: str, spec: str) -> tuple[str, tuple[str, ...]]:
+    """``spec`` with every name prefixed by ``name.``, and the names."""
+    names = tuple(field for field, _ in _signature(spec))
+    return re.sub(r"([\w.]+)\s*\(", lambda m: f"{name}.{m.group(1)} (", spec), names
+
+
+def fields(name: str, obj, spec: str) -> dict[str, int]:
+    """:func:`shapes` of the attributes of ``obj`` (a params pytree) named in ``spec``, e.g. ``fields("params",
+    params, "Phi (n, n), C (p, n)")``, reported as ``params.Phi`` ...: the static check that ``obj`` holds one
+    model, not a batch of them (``vmap`` over a batch). ``None`` attributes are skipped."""
+    prefixed, names = _prefixed(name, spec)
+    return shapes(prefixed, *(getattr(obj, field) for field in names))
+
+
+def arrays(spec: str, *values) -> tuple:
+    """``values`` as arrays of one floating dtype (:func:`float_arrays`: lists and scalars accepted) with the shapes
+    of ``spec`` (:func:`shapes`, whose names they take in order), e.g.
+    ``x, P = arrays("x (n,), P (n, n)", x, P)``; ``None`` stays ``None``."""
+    names = [name for name, _ in _signature(spec)]
+    if len(names) != len(values):
+        raise TypeError(f"arrays: {len(names)} shapes in {spec!r} for {len(values)} values")
+    converted = float_arrays(**dict(zip(names, values, strict=True)))
+    shapes(spec, *converted)
+    return converted
+
+
 def shape(name: str, value, expected: tuple, what: str = "") -> None:
     """Static check that ``value`` has shape ``expected`` (``None`` entries: any size); works on tracers."""
-    got = np.shape(value)
+    got = _dims(value)
     if len(got) != len(expected) or any(e is not None and e != g for e, g in zip(expected, got, strict=False)):
         hint = f" ({what})" if what else ""
         raise ValueError(f"{name} must have shape {_shape_text(expected)}{hint}, got {tuple(got)}")
@@ -187,9 +293,10 @@ def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False
     """Check that ``value`` is a 2-D matrix (or a stack of them when ``batch``) of the given ``shape``
     (entries ``None``: any size), and finite when concrete. Shapes are checked on tracers too.
     Returns nothing; raises ``ValueError``."""
-    dims = np.shape(value)
+    dims = _dims(value)
     if len(dims) != 2 and not (batch and len(dims) > 2):
-        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {tuple(dims)}")
+        batch_hint = "; one matrix, not a batch: vmap over a batch" if len(dims) > 2 else ""
+        raise ValueError(f"{name} must be a 2-D matrix{batch_hint}, got an array of shape {tuple(dims)}")
     rows, cols = dims[-2:]
     if square and rows != cols:
         raise ValueError(f"{name} must be square, got shape {tuple(dims)}")
@@ -203,9 +310,10 @@ def matrix(name: str, value, *, shape: tuple | None = None, square: bool = False
     finite(name, value)
 
 
-def covariance(name: str, value, *, definite: bool, size: int | None = None):
-    """Check that ``value`` is a finite symmetric positive (semi)definite matrix of the given size."""
-    matrix(name, value, shape=(size, size), square=True, batch=True)
+def covariance(name: str, value, *, definite: bool, size: int | None = None, batch: bool = False):
+    """Check that ``value`` is a finite symmetric positive (semi)definite matrix of the given size (a stack of them
+    with ``batch``; otherwise a leading batch axis is refused, naming ``name``)."""
+    matrix(name, value, shape=(size, size), square=True, batch=batch)
     if not is_concrete(value):
         if _CHECKING.get():
             _traced_covariance(name, jnp.asarray(value), definite)
@@ -243,6 +351,8 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
     """Check a finite positive (or non-negative) real scalar (a bool is refused); skipped on tracers (unless
     :func:`checked`)."""
     if not is_concrete(value):
+        if np.ndim(value) != 0:
+            raise ValueError(f"{name} must be a scalar, got shape {tuple(np.shape(value))}")
         bound = "non-negative" if allow_zero else "positive"
         ok = jnp.isfinite(value) & ((value >= 0) if allow_zero else (value > 0))
         _check_traced(ok, f"{name} must be a finite {bound} number, got {{value}}", value=value)

@@ -199,6 +199,7 @@ def rls_update(theta_hat, P, omega, z, forgetting=1.0):
 
 
 def _forgetting_factor(forgetting, dtype):
+    _checks.shapes("forgetting ()", forgetting)
     if _checks.is_concrete(forgetting):
         value = np.asarray(forgetting)
         if value.ndim != 0 or not np.isfinite(value) or not 0 < float(value) <= 1:

@@ -116,7 +116,7 @@ def simulate(
       >>> trace.y_true.shape
       (100, 1)
     """
-    if not plant.is_discrete:
+    if not StateSpace.check(plant, "plant").is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d)")
     if _checks.is_concrete(plant.D) and np.any(np.asarray(plant.D) != 0):
         raise ValueError("plant.D must be zero: a feedthrough would close an algebraic loop through u_k")
@@ -158,7 +158,7 @@ def ideal_response(plant: StateSpace, L, reference) -> jax.Array:
     """Output (T, p) of the desired closed loop ``x_k = (Phi - Gamma L) x_{k-1} + Gamma r_{k-1}``
     (Cortesão 2006, eq. 25/43) without disturbance or noise: what the AOB aims to impose. ``L`` (m, n),
     ``reference`` (T, m) (or (T,) for one input); computed in the common floating dtype."""
-    n, m = plant.n_states, plant.n_inputs
+    n, m = StateSpace.check(plant, "plant").n_states, plant.n_inputs
     L = jnp.atleast_2d(jnp.asarray(L))
     _checks.matrix("L", L, shape=(m, n))
     dtype = _checks.float_dtype(**{"plant.A": plant.A, "plant.B": plant.B, "plant.C": plant.C, "plant.D": plant.D},
@@ -192,4 +192,5 @@ def measurement_noise(key, num_steps: int, R) -> jax.Array:
 
 def rms(error, axis=0):
     """Root-mean-square of ``error`` over ``axis`` (default 0, the time axis of a trace): ``sqrt(mean(error^2))``."""
+    (error,) = _checks.float_arrays(error=error)
     return jnp.sqrt(jnp.mean(jnp.square(error), axis=axis))

@@ -25,12 +25,15 @@ def _axpy(a, x, y):
 
 
 def euler_step(f: Callable, x, u, t, dt):
-    """One explicit Euler step ``x + dt f(x, u, t)`` (``x`` a pytree, ``dt`` a scalar)."""
+    """One explicit Euler step ``x + dt f(x, u, t)`` (``x`` a pytree, ``t`` and ``dt`` scalars)."""
+    _checks.shapes("t (), dt ()", t, dt)
     return _axpy(dt, f(x, u, t), x)
 
 
 def rk4_step(f: Callable, x, u, t, dt):
-    """One step of the classical fourth-order Runge-Kutta rule (``x`` a pytree, ``dt`` a scalar, ``u`` held)."""
+    """One step of the classical fourth-order Runge-Kutta rule (``x`` a pytree, ``t`` and ``dt`` scalars, ``u``
+    held)."""
+    _checks.shapes("t (), dt ()", t, dt)
     half = dt / 2
     k1 = f(x, u, t)
     k2 = f(_axpy(half, k1, x), u, t + half)

@@ -40,6 +40,7 @@ def characteristic_polynomial(poles, dtype):
     ``prod (z - p_i)`` in ``dtype`` (complex poles in conjugate pairs; the product is formed in the complex type of
     ``poles`` and ``dtype``)."""
     poles = jnp.asarray(poles)
+    _checks.shapes("poles (n,)", poles)
     coeffs = jnp.ones((1,), jnp.result_type(poles, dtype, jnp.complex64))
     for i in range(poles.shape[-1]):
         coeffs = jnp.concatenate([coeffs, jnp.zeros((1,), coeffs.dtype)]) - poles[i] * jnp.concatenate(
@@ -98,6 +99,7 @@ def _ackermann(Phi, Gamma, poles):
     return (row @ P_Phi)[None, :], Wc
 
 
+@_checks.design_time(alternative="jaxobs.design.acker (single input) or jaxobs.design.dlqr")
 def place(Phi, Gamma, poles, *, zero_input_columns=(), method: str = "YT") -> np.ndarray:
     """MIMO pole placement (design time; SciPy's ``place_poles``).
 
@@ -165,10 +167,7 @@ def dlqr(A, B, Q, R):
       >>> K.shape, bool(np.all(np.abs(E) < 1))
       ((1, 2), True)
     """
-    A, B = jnp.asarray(A), jnp.asarray(B)
-    n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
-    _checks.matrix("B", B, shape=(n, None))
+    A, B, Q, R = _checks.float_arrays(A=A, B=B, Q=Q, R=R)
     sol = dare(A, B, Q, R)
     require_converged(sol, A, B, Q, R, what="dlqr's DARE")
     R = jnp.asarray(R, sol.X.dtype)
@@ -177,15 +176,17 @@ def dlqr(A, B, Q, R):
     return K, S, jnp.linalg.eigvals(A - B @ K)
 
 
-def _estimation_model(A, G, C, QN):
-    """``(A, G, C, QN)`` as 2-D arrays, their shapes checked (``ValueError`` naming the argument)."""
-    A, G, C, QN = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, G, C, QN))
+def _estimation_model(A, G, C, QN, RN):
+    """``(A, G, C, QN, RN)`` as 2-D arrays of one floating dtype, their shapes checked (``ValueError`` naming the
+    argument)."""
+    A, G, C, QN, RN = (jnp.atleast_2d(M) for M in _checks.float_arrays(A=A, G=G, C=C, QN=QN, RN=RN))
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("G", G, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     _checks.covariance("QN", QN, definite=False, size=G.shape[-1])
-    return A, G, C, QN
+    _checks.covariance("RN", RN, definite=True, size=C.shape[-2])
+    return A, G, C, QN, RN
 
 
 def dlqe(A, G, C, QN, RN):
@@ -213,9 +214,8 @@ def dlqe(A, G, C, QN, RN):
       >>> K.shape, bool(np.all(np.abs(E) < 1))
       ((2, 1), True)
     """
-    A, G, C, QN = _estimation_model(A, G, C, QN)
+    A, G, C, QN, RN = _estimation_model(A, G, C, QN, RN)
     sol = filter_dare(A, C, G @ QN @ G.T, RN, what="dlqe's DARE")
-    RN = jnp.asarray(RN, sol.X.dtype)
     CP = C @ sol.X
     K = solve_spd(symmetrize(CP @ C.T + RN), CP @ A.T).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
@@ -244,13 +244,9 @@ def lqr(A, B, Q, R):
       >>> [round(float(k), 4) for k in K[0]], bool(np.all(E.real < 0))
       ([1.0, 1.7321], True)
     """
-    A, B = jnp.asarray(A), jnp.asarray(B)
-    n = A.shape[-1]
-    _checks.matrix("A", A, shape=(n, n), square=True)
-    _checks.matrix("B", B, shape=(n, None))
+    A, B, Q, R = _checks.float_arrays(A=A, B=B, Q=Q, R=R)
     sol = care(A, B, Q, R)
     require_care_converged(sol, A, B, Q, what="lqr's CARE")
-    R = jnp.asarray(R, sol.X.dtype)
     K = solve_spd(symmetrize(R), B.T @ sol.X)
     K, S = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, S, jnp.linalg.eigvals(A - B @ K)
@@ -280,17 +276,16 @@ def lqe(A, G, C, QN, RN):
       >>> K.shape, bool(np.all(E.real < 0))
       ((2, 1), True)
     """
-    A, G, C, QN = _estimation_model(A, G, C, QN)
-    _checks.covariance("RN", RN, definite=True, size=C.shape[-2])
+    A, G, C, QN, RN = _estimation_model(A, G, C, QN, RN)
     W = symmetrize(G @ QN @ G.T)
     sol = care(A.T, C.T, W, RN)
     require_care_converged(sol, A.T, C.T, W, what="lqe's CARE", estimation=True)
-    RN = jnp.asarray(RN, sol.X.dtype)
     K = solve_spd(symmetrize(RN), C @ sol.X).T
     K, P = (jnp.where(sol.converged, M, jnp.nan) for M in (K, sol.X))
     return K, P, jnp.linalg.eigvals(A - K @ C)
 
 
+@_checks.design_time()
 def is_detectable(A, C, *, discrete: bool = False) -> bool:
     """Whether ``(C, A)`` is detectable, by the PBH test (Grip 2010 §1.1.1): every eigenvalue ``lam`` of ``A`` with
     ``rank [A - lam I; C] < n`` (an unobservable mode) is stable, ``Re lam < 0`` (``|lam| < 1`` when ``discrete``).
@@ -334,6 +329,7 @@ def critically_damped_gain(plant: StateSpace, tau_c):
       >>> [round(float(v), 4) for v in L_r[0, :3]]
       [0.1148, -0.0717, -0.0615]
     """
+    plant = StateSpace.check(plant, "plant")
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
     if plant.n_states < 2:
@@ -354,9 +350,11 @@ def reference_gain(plant: StateSpace, L):
       >>> bool(jnp.allclose(reference_gain(plant, L_r), L_r[0, 0]))   # the integrating plant: N = L_1
       True
     """
+    plant = StateSpace.check(plant, "plant")
     if not plant.is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
-    L = jnp.atleast_2d(jnp.asarray(L))
+    (L,) = _checks.float_arrays(L=L)
+    L = jnp.atleast_2d(L)
     _checks.matrix("L", L, shape=(plant.n_inputs, plant.n_states))
     closed = StateSpace(plant.A - plant.B @ L, plant.B, plant.C, plant.D, plant.dt)
     return dc_compensation(jnp.eye(plant.n_outputs, dtype=L.dtype), dcgain(closed))
@@ -365,11 +363,9 @@ def reference_gain(plant: StateSpace, L):
 def dc_compensation(dc_target, dc_closed_loop):
     """Reference pre-amplification ``L_c = DC_closed^{-1} DC_target`` (Cortesão 2006, eq. 102-104):
     ``dc_closed_loop`` (m, m), ``dc_target`` (m, k) (scalars for one channel)."""
-    M = jnp.atleast_2d(jnp.asarray(dc_closed_loop))
-    T = jnp.atleast_2d(jnp.asarray(dc_target))
-    dtype = _checks.float_dtype(dc_target=T, dc_closed_loop=M)
+    T, M = (jnp.atleast_2d(X) for X in _checks.float_arrays(dc_target=dc_target, dc_closed_loop=dc_closed_loop))
     _checks.matrix("dc_closed_loop", M, square=True)
     _checks.matrix("dc_target", T, shape=(M.shape[0], None))
     if _checks.is_concrete(M) and np.linalg.cond(np.asarray(M)) > 1e12:
         raise ValueError("dc_closed_loop is singular: the closed loop has no invertible DC gain to compensate")
-    return jnp.linalg.solve(M.astype(dtype), T.astype(dtype))
+    return jnp.linalg.solve(M, T)

@@ -41,6 +41,7 @@ __all__ = [
     "observed_model",
     "innovation_log_likelihood",
     "tria",
+    "psd_factor",
     "SquareRootUpdate",
     "square_root_predict",
     "square_root_update",
@@ -50,6 +51,8 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # Covariance algebra: the Riccati recursion of eq. 27-29
 
+_UPDATE_SHAPES = "P1 (n, n), C (p, n), R (p, p)"
+
 
 def predict_covariance(P, Phi, Q):
     """A-priori covariance ``Phi P Phi' + Q`` (eq. 28).
@@ -58,7 +61,9 @@ def predict_covariance(P, Phi, Q):
     (a batched transpose costs XLA on CPU as much as a matrix product). ``Phi'`` is materialised behind an
     optimization barrier: folded into the product instead, the transposed operand sends XLA's CPU backend to a
     slower kernel (``benchmarks/estimation.py``, ``filter``; the numbers in docs/theory/measurements.md).
+    Shapes: ``P`` (n, n), ``Phi`` (n, n), ``Q`` (n, n).
     """
+    P, Phi, Q = _checks.arrays("P (n, n), Phi (n, n), Q (n, n)", P, Phi, Q)
     return Phi @ P @ jax.lax.optimization_barrier(jnp.swapaxes(Phi, -1, -2)) + Q
 
 
@@ -66,7 +71,9 @@ def kalman_gain(P1, C, R):
     """Kalman gain ``K = P1 C' (C P1 C' + R)^{-1}`` (eq. 27) by a linear solve, never an inverse.
 
     With the DARE solution ``P`` (a-priori, see :func:`dare`) this is the steady-state gain.
+    Shapes: ``P1`` (n, n), ``C`` (p, n), ``R`` (p, p); ``K`` (n, p).
     """
+    P1, C, R = _checks.arrays(_UPDATE_SHAPES, P1, C, R)
     CP1 = C @ P1
     return solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
 
@@ -99,8 +106,9 @@ def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpd
     the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
     ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
     symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
-    the prior, where it can lose definiteness.
+    the prior, where it can lose definiteness. Shapes: ``P1`` (n, n), ``C`` (p, n), ``R`` (p, p).
     """
+    P1, C, R = _checks.arrays(_UPDATE_SHAPES, P1, C, R)
     CP1 = C @ P1
     S = symmetrize(CP1 @ C.T + R)
     if not joseph:
@@ -121,7 +129,8 @@ def update_covariance_moments(P1, CP1, S) -> CovarianceUpdate:
     """The standard-form update of :func:`update_covariance_factors` from the moments of the predicted measurement:
     ``CP1`` (p, n) its covariance with the state (``C P1``) and ``S`` (p, p) the innovation covariance
     (``C P1 C' + R``), read from its lower triangle. A sigma-point filter has both without a matrix ``C``.
-    ``P = P1 - W' W``, ``W = L^{-1} CP1``, ``K = L'^{-1} W``."""
+    ``P = P1 - W' W``, ``W = L^{-1} CP1``, ``K = L'^{-1} W``. Shapes: ``P1`` (n, n), ``CP1`` (p, n), ``S`` (p, p)."""
+    P1, CP1, S = _checks.arrays("P1 (n, n), CP1 (p, n), S (p, p)", P1, CP1, S)
     S_chol = cholesky(S)
     W = solve_lower(S_chol, CP1)
     return CovarianceUpdate(symmetrize(P1 - W.T @ W), solve_lower(S_chol, W, transpose=True).T, S, S_chol)
@@ -135,7 +144,10 @@ def update_covariance(P1, C, R):
 
 
 def riccati_step(P_prev, Phi, C, Q, R):
-    """One step of eq. 27-29: ``P_{k-1} -> (P_k, K_k, P1_k)``, all three exactly symmetric."""
+    """One step of eq. 27-29: ``P_{k-1} -> (P_k, K_k, P1_k)``, all three exactly symmetric.
+    Shapes: ``P_prev`` (n, n), ``Phi`` (n, n), ``C`` (p, n), ``Q`` (n, n), ``R`` (p, p)."""
+    P_prev, Phi, C, Q, R = _checks.arrays("P_prev (n, n), Phi (n, n), C (p, n), Q (n, n), R (p, p)",
+                                          P_prev, Phi, C, Q, R)  # fmt: skip
     P1 = predict_covariance(P_prev, Phi, Q)
     P, K = update_covariance(P1, C, R)
     return P, K, symmetrize(P1)
@@ -158,11 +170,13 @@ class CovarianceSequence(NamedTuple):
 def covariance_sequence(P_init, Phi, C, Q, R, num_steps: int) -> CovarianceSequence:
     """Gains and covariances of ``num_steps`` Riccati steps from ``P_{-1} = P_init`` (``lax.scan``).
 
-    The papers initialise with ``P_{-1} = Q_0`` (Cortesão 2006 §7.2).
+    The papers initialise with ``P_{-1} = Q_0`` (Cortesão 2006 §7.2). Shapes: ``P_init`` (n, n), ``Phi`` (n, n),
+    ``C`` (p, n), ``Q`` (n, n), ``R`` (p, p); ``num_steps`` static.
     """
+    P_init, Phi, C, Q, R = _checks.arrays("P_init (n, n), Phi (n, n), C (p, n), Q (n, n), R (p, p)",
+                                          P_init, Phi, C, Q, R)  # fmt: skip
+    num_steps = _checks.count("num_steps", num_steps)
     n = Phi.shape[-1]
-    _checks.matrix("Phi", Phi, shape=(n, n), square=True)
-    _checks.matrix("C", C, shape=(None, n))
     _checks.covariance("P_init", P_init, definite=False, size=n)
     _checks.covariance("Q", Q, definite=False, size=n)
     _checks.covariance("R", R, definite=True, size=C.shape[-2])
@@ -207,8 +221,11 @@ def predict(x, P, Phi, Q, Gamma=None, u_prev=None, *, skip=None):
     ``P`` may be ``None`` (fixed-gain filters propagate no covariance); ``Gamma``/``u_prev`` ``None`` for a
     model without inputs. ``skip`` (a traced bool) returns ``(x, P)`` unchanged instead: the first step of a
     filter whose prior is that of ``x_0`` (the state at the first measurement) has no prediction.
-    Shapes: ``x`` (n,), ``P`` (n, n), ``Gamma`` (n, m), ``u_prev`` (m,).
+    Shapes: ``x`` (n,), ``P`` (n, n), ``Phi`` (n, n), ``Q`` (n, n), ``Gamma`` (n, m), ``u_prev`` (m,), ``skip`` ().
     """
+    x, P, Phi, Q, Gamma, u_prev = _checks.arrays("x (n,), P (n, n), Phi (n, n), Q (n, n), Gamma (n, m), u_prev (m,)",
+                                                 x, P, Phi, Q, Gamma, u_prev)  # fmt: skip
+    _checks.shapes("skip ()", skip)
     x_prior = Phi @ x
     if u_prev is not None:
         x_prior = x_prior + Gamma @ u_prev
@@ -223,6 +240,7 @@ def observed(y, dtype=None):
     """``(mask, y_observed)`` of a measurement ``y`` (p,): ``mask`` 1 on finite components and 0 on missing ones
     (in ``dtype``, default ``y``'s), ``y_observed`` with the missing ones set to 0, so that no NaN reaches a
     product or a gradient."""
+    (y,) = _checks.arrays("y (p,)", y)
     finite = jnp.isfinite(y)
     return finite.astype(dtype or y.dtype), jnp.where(finite, y, 0.0)
 
@@ -231,14 +249,16 @@ def observed_model(C, R, mask):
     """``(C, R)`` with the rows of missing components (``mask`` 0, from :func:`observed`) removed: rows of ``C``
     zeroed, their rows and columns of ``R`` replaced by a unit variance placeholder. ``C P C' + R`` is then the
     innovation covariance of the observed components with 1 on a missing diagonal, which adds exactly 0 to a
-    log-determinant."""
+    log-determinant. Shapes: ``C`` (p, n), ``R`` (p, p), ``mask`` (p,)."""
+    C, R, mask = _checks.arrays("C (p, n), R (p, p), mask (p,)", C, R, mask)
     return C * mask[:, None], R * jnp.outer(mask, mask) + jnp.diag(1.0 - mask)
 
 
 def innovation_log_likelihood(innovation, S, n_observed):
     """``log N(innovation; 0, S)`` over ``n_observed`` components: ``-(n log 2 pi + log det S + e' S^{-1} e) / 2``
     with a Cholesky factor of ``S`` (p, p). Components with ``innovation`` 0 and a unit row and column of ``S``
-    (missing ones, see :func:`update`) add exactly 0."""
+    (missing ones, see :func:`update`) add exactly 0. Shapes: ``innovation`` (p,), ``S`` (p, p), ``n_observed`` ()."""
+    innovation, S, n_observed = _checks.arrays("innovation (p,), S (p, p), n_observed ()", innovation, S, n_observed)
     return _log_normal(innovation, cholesky(S), n_observed)
 
 
@@ -271,7 +291,13 @@ def update(x_prior, P_prior, C, R, y, gain=None, *, joseph: bool = True, predict
     With a fixed gain they assume it is a Kalman gain of the model ``(C, R)``, such as the steady-state gain: then
     ``C K = I - R S^{-1}`` (eq. 27), so ``S = (I - C K)^{-1} R`` is the steady-state ``C P_prior C' + R`` without
     its ``P_prior``; they are ``None`` when ``R`` is ``None`` (an observer without a noise model).
+    Shapes: ``x_prior`` (n,), ``P_prior`` (n, n), ``C`` (p, n), ``R`` (p, p), ``y`` (p,), ``gain`` (n, p).
     """
+    x_prior, P_prior, C, R, gain, predicted = _checks.arrays(
+        "x_prior (n,), P_prior (n, n), C (p, n), R (p, p), gain (n, p), predicted (p,)",
+        x_prior, P_prior, C, R, gain, predicted,
+    )  # fmt: skip
+    (y,) = _checks.arrays(f"y ({C.shape[-2]},)", y)
     mask, innovation, n_missing = _innovation(y, C @ x_prior if predicted is None else predicted)
     S = ll = None
     if gain is None:
@@ -292,6 +318,11 @@ def moment_update(x_prior, P_prior, cross, cov, R, y, predicted) -> Update:
     (p, p), so that ``S = cov + R`` and ``K = cross S^{-1}`` (the sigma-point update, Särkkä 2013 §5.5). With the
     moments of a linear map, ``cross = P_prior C'`` and ``cov = C P_prior C'``, it is ``update(..., joseph=False)``.
     Missing components of ``y`` are removed as in :func:`update`."""
+    x_prior, P_prior, cross, cov, R, predicted = _checks.arrays(
+        "x_prior (n,), P_prior (n, n), cross (n, p), cov (p, p), R (p, p), predicted (p,)",
+        x_prior, P_prior, cross, cov, R, predicted,
+    )  # fmt: skip
+    (y,) = _checks.arrays(f"y ({R.shape[-1]},)", y)
     mask, innovation, n_missing = _innovation(y, predicted)
     S = (cov + R) * (mask[:, None] * mask[None, :]) + jnp.diag(1.0 - mask)
     P, K, S, S_chol = update_covariance_moments(P_prior, cross.T * mask[:, None], symmetrize(S))
@@ -306,6 +337,9 @@ def innovation_gate(innovation, C, P_prior, R, threshold):
     vehicle filters reject outliers; Bar-Shalom, Li & Kirubarajan 2001). A filter skips the other components like
     missing ones.
     Shapes: ``innovation`` (p,), ``C`` (p, n), ``P_prior`` (n, n), ``R`` (p, p); ``threshold`` () > 0."""
+    innovation, C, P_prior, R, threshold = _checks.arrays(
+        "innovation (p,), C (p, n), P_prior (n, n), R (p, p), threshold ()", innovation, C, P_prior, R, threshold
+    )
     S_diag = jnp.sum((C @ P_prior) * C, axis=-1) + jnp.diagonal(R)
     return ~(jnp.abs(innovation) > threshold * jnp.sqrt(S_diag))  # NaN (missing) innovations pass
 
@@ -318,6 +352,7 @@ def ud_factor(P):
     """``(U, d)`` with ``P = U diag(d) U'`` for a symmetric positive semidefinite ``P`` (n, n): ``U`` unit upper
     triangular, ``d`` (n,) >= 0 (Bierman 1977, §III.2, columns from the last). A zero pivot (a singular ``P``)
     gives a zero column above the unit diagonal, so the product is still ``P``."""
+    (P,) = _checks.arrays("P (n, n)", P)
     n = P.shape[-1]
     index = jnp.arange(n)
 
@@ -370,6 +405,10 @@ def bierman_update(x_prior, P_prior, C, R, y, *, predicted=None) -> Update:
     whole sequence, ``x = x_prior + K (y - C x_prior)``. Shapes and ``predicted`` as in :func:`update` (``R``
     (p, p) positive definite).
     """
+    x_prior, P_prior, C, R, predicted = _checks.arrays(
+        "x_prior (n,), P_prior (n, n), C (p, n), R (p, p), predicted (p,)", x_prior, P_prior, C, R, predicted
+    )
+    (y,) = _checks.arrays(f"y ({C.shape[-2]},)", y)
     mask, innovation, n_missing = _innovation(y, C @ x_prior if predicted is None else predicted)
     C_o, R_o = observed_model(C, R, mask)
     L = jnp.linalg.cholesky(symmetrize(R_o))
@@ -399,7 +438,6 @@ def _transpose(A):
     return jnp.swapaxes(A, -1, -2)
 
 
-@jax.custom_jvp
 def tria(A):
     """A lower-triangular ``(n, n)`` factor ``T`` with ``T T' = A A'`` for ``A`` (n, k), ``k >= n``: the
     transposed R factor of a QR decomposition of ``A'`` (Arasaratnam & Haykin 2008). Its diagonal may have
@@ -411,12 +449,18 @@ def tria(A):
     diag(X))`` is completed by the part of ``dA V`` outside that space, ``(I - T T^+) dA V``; ``T^+`` is the
     pseudo-inverse, which the standard QR derivative replaces by an inverse that does not exist there.
     """
+    (A,) = _checks.arrays("A (n, k)", A)
     if A.shape[-1] < A.shape[-2]:
-        raise ValueError(f"tria needs at least as many columns as rows, got shape {A.shape}")
+        raise ValueError(f"A must have at least as many columns as rows (tria), got shape {A.shape}")
+    return _tria(A)
+
+
+@jax.custom_jvp
+def _tria(A):
     return _transpose(jnp.linalg.qr(_transpose(A), mode="r"))
 
 
-@tria.defjvp
+@_tria.defjvp
 def _tria_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     V, R = jnp.linalg.qr(_transpose(A), mode="reduced")
@@ -428,6 +472,48 @@ def _tria_jvp(primals, tangents):
     lower = jnp.tril(X + _transpose(X)) - X * jnp.eye(n, dtype=X.dtype)
     outside = dAV - T @ (T_pinv @ dAV)  # (I - T T^+) dA V
     return T, T @ lower + outside
+
+
+def psd_factor(M):
+    """A lower-triangular factor ``F`` (n, n) with ``F F' = M`` of a symmetric positive semidefinite ``M`` (n, n):
+    its Cholesky factor where ``M`` is positive definite, else (a singular ``M``) the eigendecomposition with the
+    rounding-level negative eigenvalues clipped, triangularised (:func:`tria`).
+
+    Differentiable also where ``M`` has repeated eigenvalues (``M = q I``, where the derivative of an
+    eigendecomposition divides by zero gaps) and where it is singular: ``dF = F Phi(F^+ dM F^+')``, ``Phi`` the
+    lower triangle with half the diagonal, ``F^+`` the pseudo-inverse. Where ``M`` is definite that is the
+    derivative of the Cholesky factor (Murray 2016, "Differentiation of the Cholesky decomposition"); where it is
+    singular, that of the factor of ``M`` on its range (``dF F' + F dF'`` is ``dM`` projected on the range: the
+    factor has no derivative across it).
+
+    Example:
+      >>> F = psd_factor(jnp.array([[4.0, 2.0], [2.0, 2.0]]))
+      >>> F.tolist(), (F @ F.T).tolist()
+      ([[2.0, 0.0], [1.0, 1.0]], [[4.0, 2.0], [2.0, 2.0]])
+    """
+    (M,) = _checks.arrays("M (n, n)", M)
+    return _psd_factor(symmetrize(M))
+
+
+@jax.custom_jvp
+def _psd_factor(M):
+    L = cholesky(M)
+    definite = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+
+    def eigen(M):
+        w, V = jnp.linalg.eigh(M)
+        return tria(V * jnp.sqrt(jnp.clip(w, 0.0)))
+
+    return jax.lax.cond(definite, lambda M: L, eigen, M)
+
+
+@_psd_factor.defjvp
+def _psd_factor_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    F = _psd_factor(M)
+    F_pinv = jnp.linalg.pinv(F)
+    X = F_pinv @ symmetrize(dM) @ _transpose(F_pinv)
+    return F, F @ (jnp.tril(X) - 0.5 * jnp.diag(jnp.diagonal(X)))
 
 
 class SquareRootUpdate(NamedTuple):
@@ -454,7 +540,9 @@ class SquareRootUpdate(NamedTuple):
 
 def square_root_predict(x, P_sqrt, Phi, Q_sqrt, Gamma=None, u_prev=None, *, skip=None):
     """:func:`predict` with factors: ``P_sqrt`` (n, n) of ``P`` and ``Q_sqrt`` (n, r) of ``Q = Q_sqrt Q_sqrt'``;
-    the a-priori factor is ``tria([Phi P_sqrt, Q_sqrt])`` (:func:`tria`)."""
+    the a-priori factor is ``tria([Phi P_sqrt, Q_sqrt])`` (:func:`tria`). Shapes: ``x`` (n,), ``Phi`` (n, n),
+    ``Gamma`` (n, m), ``u_prev`` (m,), ``skip`` ()."""
+    x, P_sqrt, Phi, Q_sqrt = _checks.arrays("x (n,), P_sqrt (n, n), Phi (n, n), Q_sqrt (n, r)", x, P_sqrt, Phi, Q_sqrt)
     x_prior, _ = predict(x, None, Phi, None, Gamma, u_prev, skip=skip)
     P_prior = tria(jnp.concatenate([Phi @ P_sqrt, Q_sqrt], axis=-1))
     if skip is not None:
@@ -470,8 +558,10 @@ def square_root_update(x_prior, P_sqrt, C, R_sqrt, y) -> SquareRootUpdate:
         [[C P_sqrt, R_sqrt, D], [P_sqrt, 0, 0]]  ->  tria  ->  [[S_sqrt, 0], [G, P_sqrt_post]],  K = G S_sqrt^{-1}
 
     with the rows of missing components of ``C`` and ``R_sqrt`` zeroed and ``D`` the unit placeholder on their
-    diagonal (as in :func:`update`).
+    diagonal (as in :func:`update`). Shapes: ``x_prior`` (n,), ``C`` (p, n), ``y`` (p,).
     """
+    x_prior, P_sqrt, C, R_sqrt, y = _checks.arrays("x_prior (n,), P_sqrt (n, n), C (p, n), R_sqrt (p, s), y (p,)",
+                                                   x_prior, P_sqrt, C, R_sqrt, y)  # fmt: skip
     mask, innovation, n_missing = _innovation(y, C @ x_prior)
     p, n = C.shape[-2], P_sqrt.shape[-1]
     dtype = x_prior.dtype

@@ -73,8 +73,8 @@ def sample(params: KalmanParams, key, num_steps: int, u_prev=None):
     Returns:
       ``(x, y)`` of shapes (T, n) and (T, p).
     """
-    if not isinstance(params, KalmanParams):
-        raise ValueError(f"params must be KalmanParams (make_kalman), got {type(params).__name__}")
+    KalmanParams.check(params)
+    _checks.key("key", key)
     T = _checks.count("num_steps", num_steps, minimum=1)
     m, dtype = params.Gamma.shape[-1], params.Phi.dtype
     if u_prev is not None:
@@ -641,9 +641,9 @@ def als(params: KalmanParams, innovation, *, lags: int = 15, G=None, diagonal=()
     if e.ndim not in (2, 3) or e.shape[-1] != p:
         raise ValueError(f"innovation must have shape (T, {p}) or (B, T, {p}) (innovations), got {e.shape}")
     lags = _checks.count("lags", lags, minimum=1, maximum=e.shape[-2] - 1, hint="autocovariance lags")
-    if _checks.is_concrete(params.Phi, params.gain):
-        A_bar = np.asarray(params.Phi - params.Phi @ params.gain @ params.C)
-        if np.max(np.abs(np.linalg.eigvals(A_bar))) >= 1:
+    A_bar = params.Phi - params.Phi @ params.gain @ params.C
+    if _checks.is_concrete(A_bar):  # (computed first: under an outer trace, products of constants are traced too)
+        if np.max(np.abs(np.linalg.eigvals(np.asarray(A_bar)))) >= 1:
             raise ValueError("params.gain does not stabilise the predictor Phi (I - K C): no stationary innovations")
     D_q, D_r = (jnp.asarray(_structure(size, name in diagonal), dtype) for size, name in ((G.shape[1], "Q"), (p, "R")))
     return _als(params.Phi, params.C, params.gain, G, D_q, D_r, e.astype(dtype), lags=lags)

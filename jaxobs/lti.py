@@ -98,6 +98,16 @@ class StateSpace:
         """Whether the model is discrete-time (it has a sample time ``dt``)."""
         return self.dt is not None
 
+    def check(self, name: str = "sys") -> StateSpace:
+        """``self``, checked at trace time to be one model: ``A`` (n, n), ``B`` (n, m), ``C`` (p, n), ``D`` (p, m),
+        no leading batch axis (``vmap`` over a batch of models); a ``ValueError`` naming ``name.A`` ... otherwise
+        (``name``: the argument that holds it)."""
+        if not isinstance(self, StateSpace):
+            raise ValueError(f"{name} must be a StateSpace (jaxobs.lti.ss), got {type(self).__name__}")
+        _checks.shapes(f"{name}.A (n, n), {name}.B (n, m), {name}.C (p, n), {name}.D (p, m)",
+                       self.A, self.B, self.C, self.D)  # fmt: skip
+        return self
+
 
 def ss(A, B, C, D=None, dt: float | None = None) -> StateSpace:
     """Build a :class:`StateSpace`, checking shapes (also under ``jit``) and finiteness (eagerly).
@@ -180,10 +190,12 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
       >>> plant.A.shape, plant.dt
       ((7, 7), 0.008)
     """
+    sys = StateSpace.check(sys, "sys")
     if sys.is_discrete:
         raise ValueError("sys is already discrete; c2d needs a continuous-time model (dt=None)")
     _checks.positive_scalar("h", h)
     _checks.positive_scalar("delay", delay, allow_zero=True)
+    _checks.shapes("delay ()", delay)
     h = float(h)
     if n_delay is None:
         if not _checks.is_concrete(delay):
@@ -214,7 +226,7 @@ def c2d(sys: StateSpace, h: float, delay=0.0, *, n_delay: int | None = None) -> 
                 f"period h={h} is too long for the model's time scales to discretise; lower h or rescale sys"
             )
     matrices = _c2d_matrices(A, B, C, D, jnp.asarray(delay, dtype), h=h, n_delay=n_delay)
-    if concrete and _checks.is_concrete(delay) and not all(np.isfinite(np.asarray(M)).all() for M in matrices[:2]):
+    if _checks.is_concrete(matrices[:2]) and not all(np.isfinite(np.asarray(M)).all() for M in matrices[:2]):
         raise ValueError(
             f"h={h} is too long for sys: e^(A h) overflows {jnp.dtype(dtype).name} (an unstable mode of sys.A grows "
             "beyond the float range over one sample); lower h"
@@ -297,6 +309,7 @@ def _siso_ss(num, den):
     return A, B, C, np.array([[D]])
 
 
+@_checks.design_time()
 def tf2ss(num, den, dt: float | None = None) -> StateSpace:
     """Transfer function (matrix) to state space (design time, NumPy).
 
@@ -360,12 +373,12 @@ def _is_matrix_of_polys(x) -> bool:
 def ctrb(A, B) -> jax.Array:
     """Controllability (reachability) matrix ``[B, A B, ..., A^{n-1} B]`` (Cortesão 2006, eq. 46); ``A`` (n, n),
     ``B`` (n, m), optionally with the same leading batch axes. Integer inputs are computed in float."""
-    A, B = jnp.asarray(A), jnp.asarray(B)
-    dtype = _checks.float_dtype(A=A, B=B)
+    A, B = _checks.float_arrays(A=A, B=B)
     _checks.matrix("A", A, square=True, batch=True)
     n = A.shape[-1]
     _checks.matrix("B", B, shape=(n, None), batch=True)
-    A, B = A.astype(dtype), B.astype(dtype)
+    if A.shape[:-2] != B.shape[:-2]:
+        raise ValueError(f"B must have the leading batch axes of A, {A.shape[:-2]}, got shape {B.shape}")
     blocks = [B]
     for _ in range(n - 1):
         blocks.append(A @ blocks[-1])
@@ -373,13 +386,17 @@ def ctrb(A, B) -> jax.Array:
 
 
 def obsv(A, C) -> jax.Array:
-    """Observability matrix ``[C; C A; ...; C A^{n-1}]``; ``A`` (n, n), ``C`` (p, n)."""
-    A, C = jnp.asarray(A), jnp.asarray(C)
+    """Observability matrix ``[C; C A; ...; C A^{n-1}]``; ``A`` (n, n), ``C`` (p, n), optionally with the same
+    leading batch axes."""
+    A, C = _checks.float_arrays(A=A, C=C)
     _checks.matrix("A", A, square=True, batch=True)
     _checks.matrix("C", C, shape=(None, A.shape[-1]), batch=True)
+    if A.shape[:-2] != C.shape[:-2]:
+        raise ValueError(f"C must have the leading batch axes of A, {A.shape[:-2]}, got shape {C.shape}")
     return jnp.swapaxes(ctrb(jnp.swapaxes(A, -1, -2), jnp.swapaxes(C, -1, -2)), -1, -2)
 
 
+@_checks.design_time()
 def controllability_rank(A, B, *, rtol: float = 1e-10) -> int:
     """Rank of the controllability matrix ``[B, A B, ..., A^{n-1} B]`` of ``A`` (n, n), ``B`` (n, m): its singular
     values above ``rtol`` times the largest (eager, NumPy in float64)."""
@@ -392,12 +409,14 @@ def controllability_rank(A, B, *, rtol: float = 1e-10) -> int:
     return int(np.sum(s > rtol * max(s[0], np.finfo(float).tiny))) if s.size else 0
 
 
+@_checks.design_time()
 def observability_rank(A, C, *, rtol: float = 1e-10) -> int:
     """Rank of the observability matrix ``[C; C A; ...; C A^{n-1}]`` of ``A`` (n, n), ``C`` (p, n) (eager, NumPy):
     :func:`controllability_rank` of ``(A', C')``."""
     return controllability_rank(np.transpose(A), np.transpose(C), rtol=rtol)
 
 
+@_checks.design_time()
 def unobservable_modes(A, C, region, tol: float = 1e-9) -> list[complex]:
     """Eigenvalues ``lam`` of ``A`` (n, n) in ``region`` (a predicate on a NumPy eigenvalue) whose PBH matrix
     ``[lam I - A; C]`` loses rank (smallest singular value below ``tol`` times ``max(|A|, 1)``, ``C`` (p, n) scaled
@@ -422,11 +441,13 @@ def dcgain(sys: StateSpace) -> jax.Array:
 
     Infinite/NaN entries come back for systems with a pole at 1 (discrete) or 0 (continuous).
     """
+    sys = StateSpace.check(sys, "sys")
     n = sys.A.shape[-1]
     M = jnp.eye(n, dtype=sys.A.dtype) - sys.A if sys.is_discrete else -sys.A
     return sys.C @ jnp.linalg.solve(M, sys.B) + sys.D
 
 
+@_checks.design_time()
 def is_spr(A, B, C, D=None, *, rtol: float = 1e-10) -> bool:
     """Whether ``G(s) = C (sI - A)^{-1} B + D`` (square, continuous time) is strictly positive real (design time,
     NumPy; concrete arrays only).
@@ -455,8 +476,6 @@ def is_spr(A, B, C, D=None, *, rtol: float = 1e-10) -> bool:
       >>> is_spr([[0.0, 1.0], [-1.0, -1.0]], [[0.0], [1.0]], [[1.0, 0.0]])  # 1 / (s^2 + s + 1)
       False
     """
-    if not _checks.is_concrete(A, B, C, D):
-        raise ValueError("is_spr is a design-time check: A, B, C and D must be concrete arrays, not traced")
     A, B, C = (np.asarray(M, dtype=float) for M in (A, B, C))
     _checks.matrix("A", A, square=True)
     n = A.shape[0]

@@ -200,16 +200,64 @@ def is_stable(A, max_iters: int = 64):
     """Whether the spectral radius of the (n, n) matrix ``A`` is below one, decided by squaring (:func:`_smith`):
     no eigenvalue solver, so it runs on every backend. Works under ``jit``/``vmap``; undecided to rounding for
     spectral radii within about ``1e-14`` of one."""
-    return _smith(A, jnp.zeros_like(A), max_iters)[1]
+    (A,) = _square_arguments(A=A)
+    return _smith(A, jnp.zeros_like(A), _checks.count("max_iters", max_iters, minimum=1))[1]
+
+
+def _square_arguments(**matrices):
+    """The named (n, n) matrices of :func:`stein`, :func:`lyapunov` and :func:`is_stable` as arrays of one floating
+    dtype (:func:`jaxobs._checks.float_arrays`: nested lists, also of traced scalars, are read as arrays), their
+    shapes checked at trace time, naming the argument (one matrix, no leading batch axis: ``vmap`` for a batch)."""
+    arrays = _checks.float_arrays(**matrices)
+    n = jnp.shape(arrays[0])[-1] if jnp.ndim(arrays[0]) else 0
+    for name, M in zip(matrices, arrays, strict=True):
+        _checks.matrix(name, M, shape=(n, n), square=True)
+    return arrays
 
 
 def stein(A, E, max_iters: int = 64):
-    """Solve the Stein (discrete Lyapunov) equation ``X = A X A' + E`` for a stable ``A``.
+    """Solve the Stein (discrete Lyapunov) equation ``X = A X A' + E`` for a stable ``A``
+    (``scipy.linalg.solve_discrete_lyapunov(A, E)``).
 
-    Smith's doubling: ``X <- X + A X A'``, ``A <- A A``, until ``A^(2^j)`` vanishes (at most
-    ``max_iters`` squarings). Linear in ``E``.
+    Args:
+      A: (n, n) with spectral radius below one.  E: (n, n).
+      max_iters: at most ``max_iters`` squarings.
+
+    Smith's doubling: ``X <- X + A X A'``, ``A <- A A``, until ``A^(2^j)`` vanishes. Linear in ``E``. Pure; works
+    under ``jit``, ``vmap`` and ``grad``: derivatives (forward and reverse) by the implicit function theorem, one
+    more Stein solve (``dX = A dX A' + dA X A' + A X dA' + dE``; the adjoint solves the equation of ``A'``), not a
+    backpropagation through the doubling.
+
+    Example:
+      >>> import numpy as np, scipy.linalg
+      >>> A, E = np.array([[0.5, 0.2], [0.0, -0.3]]), np.eye(2)
+      >>> bool(np.allclose(stein(A, E), scipy.linalg.solve_discrete_lyapunov(A, E)))
+      True
     """
+    A, E = _square_arguments(A=A, E=E)
+    return _stein(A, E, _checks.count("max_iters", max_iters, minimum=1))
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _stein(A, E, max_iters):
+    """:func:`stein`'s solve on checked arrays, with its implicit derivative."""
     return _smith(A, E, max_iters)[0]
+
+
+@_stein.defjvp
+def _stein_jvp(max_iters, primals, tangents):
+    """``dX = A dX A' + (dA X A' + A X dA' + dE)``: a Stein solve as a ``custom_linear_solve``, whose transpose
+    (reverse mode) is the Stein equation of ``A'``."""
+    (A, E), (dA, dE) = primals, tangents
+    X = _stein(A, E, max_iters)
+    rhs = dA @ X @ A.T + A @ X @ dA.T + dE
+    dX = jax.lax.custom_linear_solve(
+        lambda Y: Y - A @ Y @ A.T,
+        rhs,
+        lambda _, b: _stein(A, b, max_iters),
+        lambda _, b: _stein(A.T, b, max_iters),
+    )
+    return X, dX
 
 
 class _Newton(NamedTuple):
@@ -370,10 +418,10 @@ def _control_dare_jvp(max_iters, primals, tangents):
         return Y - Ac.T @ Y @ Ac
 
     def solve(_, b):
-        return stein(Ac.T, b, max_iters)
+        return _stein(Ac.T, b, max_iters)
 
     def transpose_solve(_, b):
-        return stein(Ac, b, max_iters)
+        return _stein(Ac, b, max_iters)
 
     dX = jax.lax.custom_linear_solve(matvec, E, solve, transpose_solve)
     no_tangent = np.zeros(jnp.shape(found), dtype=jax.dtypes.float0)
@@ -434,16 +482,16 @@ def dare(A, B, Q, R, *, max_iters: int = 64, tol: float | None = None) -> DareSo
 
 
 def _riccati_arguments(A, B, Q, R, tol):
-    """``(A, B, Q, R, tol)`` of :func:`dare` and :func:`care`, checked (shapes at trace time, definiteness when
-    concrete) and cast to one floating dtype; ``tol`` defaults to the square root of its machine epsilon."""
-    n = jnp.shape(A)[-1]
+    """``(A, B, Q, R, tol)`` of :func:`dare` and :func:`care` as arrays of one floating dtype
+    (:func:`jaxobs._checks.float_arrays`: nested lists, also of traced scalars, are read as arrays), checked (shapes
+    at trace time, definiteness when concrete); ``tol`` defaults to the square root of its machine epsilon."""
+    A, B, Q, R = _checks.float_arrays(A=A, B=B, Q=Q, R=R)
+    n = jnp.shape(A)[-1] if jnp.ndim(A) else 0
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.covariance("Q", Q, definite=False, size=n)
-    _checks.covariance("R", R, definite=True, size=jnp.shape(B)[-1])
-    dtype = jnp.result_type(A, B, Q, R, float)
-    A, B, Q, R = (jnp.asarray(M, dtype) for M in (A, B, Q, R))
-    return A, B, Q, R, float(np.sqrt(np.finfo(dtype).eps)) if tol is None else float(tol)
+    _checks.covariance("R", R, definite=True, size=B.shape[-1])
+    return A, B, Q, R, float(np.sqrt(np.finfo(A.dtype).eps)) if tol is None else float(tol)
 
 
 def filter_dare(Phi, C, Q, R, *, what: str = "the filter DARE") -> DareSolution:
@@ -455,9 +503,10 @@ def filter_dare(Phi, C, Q, R, *, what: str = "the filter DARE") -> DareSolution:
     Args:
       Phi: (n, n).  C: (p, n).  Q: (n, n) positive semidefinite.  R: (p, p) positive definite.
     """
+    Phi, C = _checks.float_arrays(Phi=Phi, C=C)
     _checks.matrix("Phi", Phi, square=True)
     _checks.matrix("C", C, shape=(None, np.shape(Phi)[-1]))
-    A, B = jnp.swapaxes(jnp.asarray(Phi), -1, -2), jnp.swapaxes(jnp.asarray(C), -1, -2)
+    A, B = jnp.swapaxes(Phi, -1, -2), jnp.swapaxes(C, -1, -2)
     sol = dare(A, B, Q, R)
     require_converged(sol, A, B, Q, R, what=what, estimation=True)
     return sol
@@ -586,9 +635,17 @@ def _lyapunov(A, E, max_iters, atol=None):
 
 
 def lyapunov(A, E, max_iters: int = 64):
-    """Solve the continuous Lyapunov equation ``A X + X A' + E = 0`` for a Hurwitz (n, n) ``A`` (python-control's
+    """Solve the continuous Lyapunov equation ``A X + X A' + E = 0`` for a Hurwitz ``A`` (python-control's
     ``lyap(A, E)``, SciPy's ``solve_continuous_lyapunov(A, -E)``): the Stein equation of its Cayley transform
-    (:func:`stein`'s doubling, at most ``max_iters`` squarings). Linear in ``E``; works under ``jit``/``vmap``/``grad``.
+    (:func:`stein`'s doubling).
+
+    Args:
+      A: (n, n) Hurwitz.  E: (n, n).
+      max_iters: at most ``max_iters`` squarings.
+
+    Linear in ``E``. Pure; works under ``jit``, ``vmap`` and ``grad``: derivatives (forward and reverse) by the
+    implicit function theorem, one more Lyapunov solve (``A dX + dX A' + dA X + X dA' + dE = 0``; the adjoint
+    solves the equation of ``A'``).
 
     Example:
       >>> import numpy as np
@@ -597,7 +654,30 @@ def lyapunov(A, E, max_iters: int = 64):
       ...                  -np.eye(2)))
       True
     """
-    return _lyapunov(jnp.swapaxes(A, -1, -2), E, max_iters)[0]
+    A, E = _square_arguments(A=A, E=E)
+    return _lyap(A, E, _checks.count("max_iters", max_iters, minimum=1))
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _lyap(A, E, max_iters):
+    """:func:`lyapunov`'s solve on checked arrays, with its implicit derivative."""
+    return _lyapunov(A.T, E, max_iters)[0]
+
+
+@_lyap.defjvp
+def _lyap_jvp(max_iters, primals, tangents):
+    """``A dX + dX A' + (dA X + X dA' + dE) = 0``: a Lyapunov solve as a ``custom_linear_solve``, whose transpose
+    (reverse mode) is the Lyapunov equation of ``A'``."""
+    (A, E), (dA, dE) = primals, tangents
+    X = _lyap(A, E, max_iters)
+    rhs = dA @ X + X @ dA.T + dE
+    dX = jax.lax.custom_linear_solve(
+        lambda Y: -(A @ Y + Y @ A.T),
+        rhs,
+        lambda _, b: _lyap(A, b, max_iters),
+        lambda _, b: _lyap(A.T, b, max_iters),
+    )
+    return X, dX
 
 
 # Multiples of the nominal Cayley shift of the CARE tried by the conditioning test, in order of preference

@@ -127,6 +127,19 @@ class NonlinearModel:
         """``x -> h(x)``, or ``x -> h(x, u)`` with ``feedthrough``."""
         return (lambda x: self.h(x, u)) if self.feedthrough else self.h
 
+    def check(self, name: str = "model") -> NonlinearModel:
+        """``self``, checked at trace time to be one model: ``Q`` (d, d), ``R`` (r, r), ``x0`` (n,), ``P0`` (d, d),
+        ``dt`` and ``t0`` (), no leading batch axis (``vmap`` over a batch of models); a ``ValueError`` naming
+        ``name.Q`` ... otherwise (``name``: the argument that holds it)."""
+        if not isinstance(self, NonlinearModel):
+            raise ValueError(f"{name} must be a NonlinearModel (jaxobs.nonlinear.nonlinear_model), got {self!r}")
+        d = "n" if self.manifold is None else "d"  # covariances live in the tangent space of a manifold state
+        shapes = (
+            f"{name}.Q ({d}, {d}), {name}.R (r, r), {name}.x0 (n,), {name}.P0 ({d}, {d}), {name}.dt (), {name}.t0 ()"
+        )
+        _checks.shapes(shapes, self.Q, self.R, self.x0, self.P0, self.dt, self.t0)
+        return self
+
 
 def nonlinear_model(
     f, h, Q, R, *, x0, P0=None, n_inputs: int = 0, dt=1.0, t0=0.0, continuous: bool = False,
@@ -300,6 +313,7 @@ class GaussianOutputs(NamedTuple):
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
     """The state before the first measurement: the prior ``(x0, P0)`` at ``t0``."""
+    model = NonlinearModel.check(model)
     zero = jnp.zeros((), jnp.int32)
     return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), zero, zero)
 
@@ -308,6 +322,7 @@ def model_inputs(model: NonlinearModel, inputs):
     """``(y, u)`` of ``EstimatorInputs(y, u_prev)`` checked against the model's sizes (at trace time) and cast to
     its dtype; ``u`` is an empty (0,) vector for a model without inputs. With a ``measurement_manifold``, ``y`` is
     a point of it (its ``size`` entries, e.g. 4 per quaternion)."""
+    model = NonlinearModel.check(model)
     m, dtype = model.n_inputs, model.x0.dtype
     p, what = model.R.shape[-1], "one entry per row of R"
     if model.measurement_manifold is not None:
@@ -362,6 +377,7 @@ def residual(manifold: Manifold | None, y, y_bar):
     """``y - y_bar`` on ``manifold`` (a measurement's innovation), NaN on the tangent entries of a missing
     (non-finite) component of ``y``; a missing component is replaced by ``y_bar`` before the difference, so no NaN
     reaches a derivative."""
+    y, y_bar = jnp.asarray(y), jnp.asarray(y_bar)
     if manifold is None:
         return y - y_bar
     e = manifold.difference(jnp.where(jnp.isfinite(y), y, y_bar), y_bar)
@@ -445,8 +461,7 @@ def check_discrete_model(model, what: str) -> None:
     """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state) on vector
     states and measurements without feedthrough, as the Monte-Carlo filters, which draw the transition, need;
     ``what`` names the filter in the message."""
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    NonlinearModel.check(model, "model")
     if model.continuous:
         raise ValueError(f"model is continuous-time: {what} draws a discrete-time transition; build the model with "
                          "continuous=False (f the next state)")  # fmt: skip
@@ -461,6 +476,7 @@ def gaussian_factor(cov):
     :func:`jaxobs.kalman_steps.ud_factor` (``F = U diag(d)^(1/2)``), so a singular ``cov`` is no special case;
     differentiable where ``cov`` is definite. The Monte-Carlo filters (particle filters, ensemble Kalman filters)
     draw their noises with it (:func:`sample_gaussian`)."""
+    (cov,) = _checks.arrays("cov (n, n)", cov)
     U, d = ud_factor(cov)
     return U * jnp.sqrt(d)
 
@@ -468,5 +484,11 @@ def gaussian_factor(cov):
 def sample_gaussian(key, mean, factor, num: int):
     """``num`` draws (num, n) of ``N(mean, F F')`` as ``mean + F e``, ``e`` standard normal, for a factor ``F``
     (n, r) such as :func:`gaussian_factor`'s: reparameterised, so differentiable in ``mean`` and ``F``.
-    Shapes: ``mean`` (n,); ``num`` static."""
+    Shapes: ``mean`` (n,) (or a scalar, the same for every entry), ``factor`` (n, r); ``num`` static."""
+    mean, factor = _checks.float_arrays(mean=mean, factor=factor)
+    if mean.ndim:
+        _checks.shapes("mean (n,), factor (n, r)", mean, factor)
+    else:
+        _checks.shapes("factor (n, r)", factor)
+    num = _checks.count("num", num)
     return mean + jax.random.normal(key, (num, factor.shape[-1]), mean.dtype) @ factor.T

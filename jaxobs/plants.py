@@ -32,8 +32,8 @@ def force_plant(stiffness, time_constant, h: float, dead_time, *, n_delay: int |
       n_delay: number of delay slots; required when ``dead_time`` is traced (see :func:`jaxobs.lti.c2d`).
       input_gain: a mismatch factor of the robot's velocity gain (1 nominally).
 
-    ``stiffness``, ``time_constant``, ``dead_time`` and ``input_gain`` may be traced (``vmap`` over mismatched
-    plants, ``grad``).
+    ``stiffness``, ``time_constant``, ``dead_time`` and ``input_gain`` are scalars and may be traced (``vmap`` over
+    mismatched plants, ``grad``); the model has their floating dtype (float32 in, float32 out).
     Returns the discrete :class:`~jaxobs.lti.StateSpace` with states ``[F, dF/dt, u_{k-d}, ..., u_{k-1}]``.
 
     Example:
@@ -44,8 +44,10 @@ def force_plant(stiffness, time_constant, h: float, dead_time, *, n_delay: int |
     """
     _checks.positive_scalar("stiffness", stiffness)
     _checks.positive_scalar("time_constant", time_constant)
-    Ks, Tp = jnp.asarray(stiffness, float), jnp.asarray(time_constant, float)
+    Ks, Tp, gain, _ = _checks.arrays("stiffness (), time_constant (), input_gain (), dead_time ()",
+                                     stiffness, time_constant, input_gain, dead_time)  # fmt: skip
+    # c2d gets dead_time as given: a Python number stays concrete under an outer trace (no n_delay needed)
     zero = jnp.zeros((), Ks.dtype)
     A = jnp.stack([jnp.stack([zero, zero + 1.0]), jnp.stack([zero, -1.0 / Tp])])
-    B = jnp.stack([zero, input_gain * Ks / Tp])[:, None]
-    return c2d(ss(A, B, [[1.0, 0.0]]), h, dead_time, n_delay=n_delay)
+    B = jnp.stack([zero, gain * Ks / Tp])[:, None]
+    return c2d(ss(A, B, jnp.array([[1.0, 0.0]], Ks.dtype)), h, dead_time, n_delay=n_delay)

@@ -101,8 +101,15 @@ def _finite_result(name: str, given, **values) -> None:
 
 
 def _design(name: str, value, kind) -> None:
+    """``value`` checked to be one ``kind`` (a design, window model or hypothesis of this module, no batch axis:
+    ``vmap`` over a batch), its fields' shapes at trace time, naming ``name.field``."""
     if not isinstance(value, kind):
         raise ValueError(f"{name} must be a {kind.__name__} (see {kind.__name__.lower()}), got {type(value).__name__}")
+    if kind is Hypothesis:
+        _design(f"{name}.fine", value.fine, WindowModel)
+        _design(f"{name}.coarse", value.coarse, WindowModel)
+    else:
+        _checks.fields(name, value, _SHAPES[kind])
 
 
 # ---------------------------------------------------------------------------------------------------- chapter 8
@@ -352,6 +359,7 @@ def forced_response(model: WindowModel, u):
     """States ``v(tau_j)``, ``tau_j = j h``, of ``v' = F v + Bf u``, ``v(0) = 0``, for the finite input ``u`` (N + 1,
     m) sampled at ``tau_j`` and linear in between (exact for piecewise-linear inputs): ``u_s*`` of (9.4) for a
     constant input, ``u_0*`` of §9.3.1 for the plant's input. ``model``: :func:`window_model`."""
+    _design("model", model, WindowModel)
     u = _samples("u", u, model.G0.shape[1], model.E.dtype, "the input at the samples")
 
     def step(v, pair):
@@ -373,6 +381,14 @@ def _samples(name: str, value, width: int, dtype, what: str, length: int | None 
         raise ValueError(f"{name} must have at least 2 samples (rows), got shape {value.shape}")
     _checks.finite(name, value)
     return value.astype(dtype)
+
+
+def _row_norms(x):
+    """Euclidean norms of the rows of ``x``, with a zero derivative at a zero row (where ``norm``'s is NaN: the
+    residual at ``tau = 0`` is always zero)."""
+    squares = jnp.sum(jnp.square(x), axis=-1)
+    positive = squares > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squares, 1)), 0)
 
 
 def _adjugate(D):
@@ -449,10 +465,9 @@ def hypothesis_residual(model: WindowModel, y, u) -> Residual:
     det, adj = jax.vmap(_adjugate)(Ds)
     first = det[:, None] * e
     second = jnp.einsum("pi,jik,jkl,jl->jp", H, Es, adj, xss)
-    norms = jnp.linalg.norm(first - second, axis=1)
+    norms = _row_norms(first - second)
     trap = lambda f: h * (jnp.sum(f) - (f[0] + f[-1]) / 2)
-    scale = trap(jnp.abs(det) * (jnp.linalg.norm(y, axis=1) + jnp.linalg.norm(v @ H.T, axis=1))
-                 + jnp.linalg.norm(second, axis=1))  # fmt: skip
+    scale = trap(jnp.abs(det) * (_row_norms(y) + _row_norms(v @ H.T)) + _row_norms(second))
     D_T = (Ds[-1] + Ds[-1].T) / 2
     w0 = jnp.linalg.solve(D_T, xss[-1])
     condition = _condition(D_T)
@@ -658,6 +673,7 @@ def sandwich_design(A, B, C, M, N, G, *, T, Tbar_intervals: int, rho, h=None, F,
 def sandwich_hypotheses(design: SandwichDesign, h) -> tuple[Hypothesis, Hypothesis]:
     """The two models of the detectors at sample step ``h``: ``L2`` alone (driven by ``+-1``) and the merged
     linear model (9.2) driven by ``u``."""
+    _design("design", design, SandwichDesign)
     return hypothesis(design.M, design.N, design.G, h), hypothesis(design.AA, design.BB, design.CC, h)
 
 
@@ -709,6 +725,16 @@ class SandwichTrace(NamedTuple):
     chi_end: jax.Array
     chi_hat_end: jax.Array
     u_max: jax.Array
+
+
+_SHAPES = {
+    SaturatedOutputDesign: "A (n, n), B (n, m), C (p, n), T (), alpha (), H (p, n), expAT (n, n), Bbar (n, n), "
+    "Bbar_inv (n, n)",
+    WindowModel: "H (p, f), E (f, f), G0 (f, m), G1 (f, m), h ()",
+    SandwichDesign: "A (n, n), B (n, 1), C (1, n), M (m, m), N (m, 1), G (p, m), AA (k, k), BB (k, 1), CC (p, k), "
+    "T (), alpha (), h (n,), beta_inv (n, n), expATbar (n, n), K (1, k), P (k, k)",
+}
+"""The shapes of the fields of this module's designs and window models (checked by :func:`_design`)."""
 
 
 def simulate_sandwich(design: SandwichDesign, chi0, num_intervals: int, *, substeps: int = 50) -> SandwichTrace:

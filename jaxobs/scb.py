@@ -498,6 +498,7 @@ def _validate(A, B, C, D):
     return {"A": (a_rows, a_shape), "B": (b_rows, b_shape), "C": (c_rows, c_shape), "D": (d_rows, d_shape)}
 
 
+@_checks.design_time()
 def scb(A, B, C, D=None, *, numeric: bool = False, tol: float = 1e-9) -> SCB:
     """Special coordinate basis (7.4)-(7.6) of ``x' = A x + B u``, ``y = C x + D u`` (Grip 2010, section 7.4).
 
@@ -598,6 +599,7 @@ def _system(system) -> SCB:
     raise ValueError(f"system must be an SCB or a tuple (A, B, C) or (A, B, C, D), got {type(system).__name__}")
 
 
+@_checks.design_time()
 def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     """Residuals of the identities relating ``system`` to the original ``(A, B, C, D)`` (section 7.2.3), in the
     inverse-free form ``state_transform A_scb - Ah state_transform``, ``state_transform B_scb - (B U) input_transform``,
@@ -636,6 +638,7 @@ def scb_residuals(system: SCB, A, B, C, D=None) -> dict:
     }
 
 
+@_checks.design_time()
 def invariant_zeros(system) -> list:
     """Invariant zeros: the eigenvalues of A_aa, with multiplicity (section 7.3).
 
@@ -670,6 +673,7 @@ def invariant_zeros(system) -> list:
     return [r for r, k in sorted(roots.items(), key=lambda rk: sp.default_sort_key(rk[0])) for _ in range(k)]
 
 
+@_checks.design_time()
 def infinite_zero_structure(system) -> dict[int, int]:
     """Infinite zeros ``{order: count}``: m0 of order 0 and, for each i, the number of chains of length i
     (section 7.3).
@@ -684,6 +688,7 @@ def infinite_zero_structure(system) -> dict[int, int]:
     return dict(sorted(counts.items()))
 
 
+@_checks.design_time()
 def is_left_invertible(system) -> bool:
     """True iff there is no x_c subsystem (section 7.3).
 
@@ -693,6 +698,7 @@ def is_left_invertible(system) -> bool:
     return _system(system).dims[2] == 0
 
 
+@_checks.design_time()
 def is_right_invertible(system) -> bool:
     """True iff there is no x_b subsystem (section 7.3).
 
@@ -702,6 +708,7 @@ def is_right_invertible(system) -> bool:
     return _system(system).dims[1] == 0
 
 
+@_checks.design_time()
 def is_minimum_phase(system) -> bool:
     """True iff every invariant zero has a negative real part (A_aa Hurwitz, section 7.3).
 
@@ -722,6 +729,7 @@ def is_minimum_phase(system) -> bool:
     return all(signs)
 
 
+@_checks.design_time()
 def scb_arrays(system: SCB, values: dict | None = None) -> SCB:
     """The SCB with every matrix a float array, the symbols replaced by ``values``.
 

@@ -15,7 +15,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxobs import _checks
 from jaxobs._linalg import solve_spd, symmetrize
@@ -112,10 +111,11 @@ def rts_smoother(Phi, filtered, *, parallel: bool = False, manifold: Manifold | 
     _checks.shape("filtered.P", P, (T, d, d), "(T, d, d) a-posteriori covariances (d: the state's tangent size)")
     _checks.shape("filtered.x_prior", x_prior, (T, n), "(T, n) a-priori means")
     _checks.shape("filtered.P_prior", P_prior, (T, d, d), "(T, d, d) a-priori covariances")
-    if np.ndim(Phi) == 3:
+    (Phi,) = _checks.float_arrays(Phi=Phi)
+    if Phi.ndim == 3:
         _checks.shape("Phi", Phi, (T, d, d), "(T, d, d) transitions, Phi[k] from sample k - 1 to k")
-    _checks.matrix("Phi", Phi, shape=(d, d), square=True, batch=np.ndim(Phi) == 3)
-    return _rts(jnp.asarray(Phi, x.dtype), x, P, x_prior, P_prior, manifold, parallel=bool(parallel))
+    _checks.matrix("Phi", Phi, shape=(d, d), square=True, batch=Phi.ndim == 3)
+    return _rts(Phi.astype(x.dtype), x, P, x_prior, P_prior, manifold, parallel=bool(parallel))
 
 
 @partial(jax.jit, static_argnames=("parallel",))
@@ -223,7 +223,7 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
     Returns:
       ``(final_state, outputs)`` as :func:`~jaxobs.observers.base.run` returns them.
     """
-    if params.gain is not None:
+    if KalmanParams.check(params).gain is not None:
         raise ValueError("params has a fixed gain: the parallel filter computes the time-varying one")
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     y = jnp.asarray(inputs.y)

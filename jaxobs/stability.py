@@ -62,7 +62,7 @@ def loop_transfer(plant: StateSpace, controller: Controller, params) -> StateSpa
     command and the plant's actuator, seen by both; an error that the observer does not see (a gain or delay in
     the actuator after the observer's tap) is a plant mismatch, checked with the true ``plant`` instead.
     """
-    if not plant.is_discrete:
+    if not StateSpace.check(plant, "plant").is_discrete:
         raise ValueError("plant must be discrete (dt set; use jaxobs.lti.c2d)")
     lin = _linear_form(controller, params)
     c, L = lin.estimator, lin.L
@@ -97,6 +97,7 @@ def closed_loop_matrix(plant: StateSpace, controller: Controller, params):
 def spectral_radius(A):
     """``max |eig(A)|`` of an (n, n) matrix ``A`` or a stack of them (differentiable where the largest eigenvalue
     is simple)."""
+    (A,) = _checks.float_arrays(A=A)
     _checks.matrix("A", A, square=True, batch=True)
     return jnp.max(jnp.abs(jnp.linalg.eigvals(A)))
 
@@ -369,7 +370,8 @@ def stability_margins(
         gain_margin_lower=jnp.where(has_lo, 1.0 / jnp.abs(jnp.real(H_lo)), 0.0),
         gain_margin_upper=jnp.where(has_up, 1.0 / jnp.abs(jnp.real(H_up)), inf),
     )
-    return Margins(*(jnp.where(finite, v, False if v.dtype == bool else nan) for v in margins))
+    return Margins(*(jnp.where(finite, v, False) if v.dtype == bool else jnp.where(finite, v, nan).astype(dtype)
+                     for v in margins))  # fmt: skip  # one floating dtype, the loop's
 
 
 ROBUSTNESS_MARGINS = ("gain_margin", "gain_margin_lower", "gain_margin_upper", "phase_margin", "delay_margin",

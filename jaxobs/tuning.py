@@ -114,6 +114,7 @@ def cholesky_parameters(cov):
 
 def unit_interval(raw):
     """A factor in ``(0, 1)`` (e.g. ``c`` of Cortesão 2006 eq. 55): the logistic function of ``raw``."""
+    (raw,) = _checks.float_arrays(raw=raw)
     return jax.nn.sigmoid(raw)
 
 
@@ -134,6 +135,7 @@ def cvar(losses, alpha: float):
     (0, 1]; ``alpha = 1`` is the mean). Differentiable almost everywhere (through ``lax.top_k``)."""
     if not 0 < alpha <= 1:
         raise ValueError(f"cvar alpha must be in (0, 1], got {alpha}")
+    (losses,) = _checks.float_arrays(losses=losses)
     losses = jnp.ravel(losses)
     worst = max(1, math.ceil(alpha * losses.shape[0] - 1e-9))
     return jnp.mean(jax.lax.top_k(losses, worst)[0])
@@ -141,6 +143,7 @@ def cvar(losses, alpha: float):
 
 def robust_objective(losses, kind: str = "mean", alpha: float = 0.25):
     """``mean(losses)`` or ``cvar(losses, alpha)``."""
+    (losses,) = _checks.float_arrays(losses=losses)
     if kind == "mean":
         return jnp.mean(losses)
     if kind == "cvar":
@@ -154,7 +157,9 @@ def penalise_diverged(losses, failed, factor: float, own=None):
     ``P (1 + log(1 + L / P))`` where ``L >= 0`` is finite and ``own`` (default: all) allows it, else ``P``.
     The failed plant's own gradient thus enters with the weight ``P / (P + L) <= 1``, which shrinks as it
     diverges further. NaN if every plant failed."""
-    own = jnp.ones_like(failed) if own is None else own
+    (losses,) = _checks.float_arrays(losses=losses)
+    failed = jnp.asarray(failed, bool)
+    own = jnp.ones_like(failed) if own is None else jnp.asarray(own, bool)
     worst = jax.lax.stop_gradient(factor * jnp.max(jnp.where(failed, -jnp.inf, losses)))
     usable = failed & own & jnp.isfinite(losses)
     excess = jnp.log1p(jnp.maximum(jnp.where(usable, losses, 0.0), 0.0) / worst)

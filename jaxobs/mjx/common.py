@@ -94,6 +94,7 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
 def dead_time_step(fifo: jax.Array, u_k: jax.Array, d: int):
     """The command FIFO of a ``d``-sample dead time (oldest first): push ``u_k``, pop ``u_{k-d}``.
     Returns ``(applied, fifo)``; ``fifo`` (d, ...) with the shape of ``u_k`` after its first axis."""
+    fifo, u_k = _checks.float_arrays(fifo=fifo, u_k=u_k)
     if d == 0:
         return u_k, fifo
     return fifo[0], jnp.concatenate([fifo[1:], u_k[None]])

@@ -47,8 +47,8 @@ _SERIES = 1e-8  # squared angle (or tangent of half of it) below which the serie
 
 def quat_multiply(a, b):
     """The quaternion product ``a * b`` (w, x, y, z first-axis-last), MuJoCo's ``mju_mulQuat``; broadcasts."""
-    aw, ax, ay, az = jnp.moveaxis(a, -1, 0)
-    bw, bx, by, bz = jnp.moveaxis(b, -1, 0)
+    aw, ax, ay, az = jnp.moveaxis(jnp.asarray(a), -1, 0)
+    bw, bx, by, bz = jnp.moveaxis(jnp.asarray(b), -1, 0)
     return jnp.stack([aw * bw - ax * bx - ay * by - az * bz,
                       aw * bx + ax * bw + ay * bz - az * by,
                       aw * by - ax * bz + ay * bw + az * bx,
@@ -58,6 +58,7 @@ def quat_multiply(a, b):
 def quat_difference(qa, qb):
     """The rotation vector ``v`` (..., 3) with ``qb * exp(v) = qa``: MuJoCo's ``mju_subQuat(qa, qb)``, the shorter
     of the two rotations, in ``qb``'s local frame. ``qa``, ``qb`` (..., 4), unit (scale does not matter)."""
+    qb = jnp.asarray(qb)
     conj = qb * jnp.array([1.0, -1.0, -1.0, -1.0], qb.dtype)
     q = quat_multiply(conj, qa)
     sign = jnp.where(q[..., :1] < 0, -1.0, 1.0)  # -q is the same rotation: take the one with w >= 0
@@ -74,6 +75,7 @@ def quat_difference(qa, qb):
 def quat_integrate(q, v):
     """``q * exp(v)``: ``q`` (..., 4) turned by the rotation vector ``v`` (..., 3) in its local frame, MuJoCo's
     ``mju_quatIntegrate(q, v, 1)`` (``q`` normalised first)."""
+    q, v = jnp.asarray(q), jnp.asarray(v)
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     t2 = jnp.sum(v * v, axis=-1)
     small = t2 <= _SERIES
@@ -176,7 +178,10 @@ def differentiate_pos(model, qpos1, qpos2, dt=1.0):
     ``mj_differentiatePos(m, qvel, dt, qpos1, qpos2)`` (rotations of free and ball joints in their local frames).
     ``model``: an ``mjx.Model`` or ``mujoco.MjModel``."""
     layout = _freeze(model.nq, model.nv, *_qpos_layout(model))
-    return _difference_of(layout)(jnp.asarray(qpos2), jnp.asarray(qpos1)) / dt
+    qpos1, qpos2 = jnp.asarray(qpos1), jnp.asarray(qpos2)
+    _check_point("qpos1", qpos1, layout)
+    _check_point("qpos2", qpos2, layout)
+    return _difference_of(layout)(qpos2, qpos1) / dt
 
 
 def integrate_pos(model, qpos, qvel, dt=1.0):
@@ -184,7 +189,11 @@ def integrate_pos(model, qpos, qvel, dt=1.0):
     qvel, dt)``."""
     layout = _freeze(model.nq, model.nv, *_qpos_layout(model))
     qvel = jnp.asarray(qvel)
-    return _retract_of(layout)(jnp.asarray(qpos, qvel.dtype), qvel * dt)
+    qpos = jnp.asarray(qpos, qvel.dtype)
+    _check_point("qpos", qpos, layout)
+    if qvel.shape != (layout.dim,):
+        raise ValueError(f"qvel must have shape ({layout.dim},) (nv), got {qvel.shape}")
+    return _retract_of(layout)(qpos, qvel * dt)
 
 
 def state_manifold(model) -> Manifold:

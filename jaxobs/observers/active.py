@@ -84,7 +84,7 @@ def augment(plant: StateSpace, order: int, disturbance_input=None):
     state feedback can cancel. ``order = 0`` returns the plant matrices unchanged (the CKF).
     """
     order = _checks.count("order", order)
-    Phi_r, Gamma_r, C_r = plant.A, plant.B, plant.C
+    Phi_r, Gamma_r, C_r = StateSpace.check(plant, "plant").A, plant.B, plant.C
     if order == 0:
         return Phi_r, Gamma_r, C_r
     G_d = Gamma_r if disturbance_input is None else jnp.atleast_2d(jnp.asarray(disturbance_input, Phi_r.dtype))
@@ -244,6 +244,20 @@ class ActiveObserverOutputs(NamedTuple):
     P_prior: jax.Array | None = None
 
 
+_SHAPES = (
+    "Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), P0 (n, n), x0 (n,), active (), alpha (q,), "
+    "sigma_floor (q,), gain (n, p), gain_passive (n, p), gain_converged ()"
+)
+
+
+def _check_params(params) -> ActiveObserverParams:
+    """``params``, checked at trace time to be one AOB (:class:`ActiveObserverParams`, no batch axis: ``vmap``)."""
+    if not isinstance(params, ActiveObserverParams):
+        raise ValueError(f"params must be ActiveObserverParams (make_aob, make_ckf), got {type(params).__name__}")
+    _checks.fields("params", params, _SHAPES)
+    return params
+
+
 def _active_slice(params: ActiveObserverParams):
     """Indices of the newest active-state block (where the driving noise enters)."""
     n = params.Phi.shape[-1]
@@ -260,6 +274,7 @@ def _active_mask(params: ActiveObserverParams):
 
 
 def _init(params: ActiveObserverParams) -> ActiveObserverState:
+    _check_params(params)
     mask = _active_mask(params)
     zeros = jnp.zeros((params.n_channels,), params.Phi.dtype)
     P0 = params.P0 * jnp.outer(mask, mask)
@@ -267,6 +282,7 @@ def _init(params: ActiveObserverParams) -> ActiveObserverState:
 
 
 def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: EstimatorInputs):
+    _check_params(params)
     p, m, dtype = params.C.shape[-2], params.n_inputs, params.Phi.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
     u_prev = inputs.u_prev
@@ -306,6 +322,9 @@ def _step(params: ActiveObserverParams, state: ActiveObserverState, inputs: Esti
 def disturbance(params: ActiveObserverParams, x):
     """The newest active state ``p_k`` (..., q) of augmented states ``x`` (..., n_aug): the disturbance estimate
     ``d`` of any record of states, e.g. the smoothed ones of :func:`jaxobs.smoothing.smooth` (zeros for a CKF)."""
+    _check_params(params)
+    (x,) = _checks.float_arrays(x=x)
+    _checks.shape("x", x, (*x.shape[:-1], params.Phi.shape[-1]), "augmented states, any leading axes")
     if not params.n_active:
         return jnp.zeros((*jnp.shape(x)[:-1], params.n_channels), jnp.result_type(x))
     return x[..., _active_slice(params)]
@@ -338,6 +357,7 @@ def feedback_gain(params: ActiveObserverParams, L_r):
     """``L = [L_r, 0, ..., 0, I]`` (Cortesão 2006 eq. 49-50) for the AOB ``params``: the plant's state feedback
     ``L_r`` (m, n) plus the compensation of the newest active state, on the augmented state (m, n + n_active);
     the ``L`` of :class:`~jaxobs.observers.feedback.FeedbackParams` for :data:`active_observer_controller`."""
+    _check_params(params)
     if not params.matched:
         raise ValueError(
             "params: the active state enters through disturbance_input, not the plant input, so state feedback "
@@ -421,7 +441,7 @@ def make_ckf(plant: StateSpace, R, *, Q=None, q_plant=1e-12, P0=None, x0=None, s
 def _make(plant, order, R, q_plant, q_active, Q, P0, x0, active, alpha, sigma_floor, disturbance_input, steady_state):
     """Shared by :func:`make_aob` and :func:`make_ckf`. Every array (plant, covariances, switches) is
     cast to their common floating dtype: integers become float, float32 mixed with float64 becomes float64."""
-    if not plant.is_discrete:
+    if not StateSpace.check(plant, "plant").is_discrete:
         raise ValueError("plant must be discrete (use jaxobs.lti.c2d first)")
     n = plant.n_states
     R = jnp.atleast_2d(_checks.real_array("R", R))
@@ -493,6 +513,7 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
     The prior ``P0`` is kept: a time-varying AOB switched off before its first sample starts from the AOB's default
     prior, not the CKF's (``make_aob(..., active=0)`` gives that).
     """
+    _check_params(params)
     on = jnp.asarray(on)
     if on.shape not in ((), params.active.shape):
         raise ValueError(
@@ -517,6 +538,7 @@ def with_steady_state_gains(params: ActiveObserverParams) -> ActiveObserverParam
     stabilising solution or did not converge (the AOB designs' ``Q`` entries of 1e-12 next to 1e-3 need float64
     from AOB-3 on); under tracing both flags are stored, combined, in ``gain_converged``.
     """
+    _check_params(params)
     n_plant = params.Phi.shape[-1] - params.n_active
     gain, gain_passive, sol, masks = _steady_state_gains(
         params.Phi, params.C, params.Q, params.R, params.P0, n_plant=n_plant
@@ -570,7 +592,9 @@ BETA_ONE_SIGMA = 1.0 - math.erf(math.sqrt(2.0) / 2.0)  # plain Python: importing
 def adaptive_variance(evolution, alpha, sigma_floor):
     """Active-state variance for the strategy ``P(|w_k| > |w_{k-1}|) = alpha`` (stochastic AOB paper, eq. 20, 27):
     ``sigma = |w_{k-1}| / (sqrt(2) erfinv(1 - alpha))``, floored at ``sigma_floor`` (sigma*, §3.1)
-    so the estimate can follow abrupt changes after quiet periods. Returns ``sigma**2``."""
+    so the estimate can follow abrupt changes after quiet periods. Returns ``sigma**2``. Elementwise (any shapes
+    that broadcast)."""
+    evolution, alpha, sigma_floor = _checks.float_arrays(evolution=evolution, alpha=alpha, sigma_floor=sigma_floor)
     alpha = jnp.clip(alpha, 1e-12, 1.0 - 1e-12)
     sigma = jnp.abs(evolution) / (jnp.sqrt(2.0) * erfinv(1.0 - alpha))
     return jnp.maximum(sigma, sigma_floor) ** 2
@@ -578,25 +602,30 @@ def adaptive_variance(evolution, alpha, sigma_floor):
 
 def alpha_for_floor(evolution, sigma_floor):
     """The stochastic AOB paper eq. 32: the ``alpha_k`` that yields ``sigma = sigma*`` for weak evolutions,
-    ``1 - sqrt(2/pi) |w_{k-1}| / sigma*``."""
+    ``1 - sqrt(2/pi) |w_{k-1}| / sigma*``. Elementwise."""
+    evolution, sigma_floor = _checks.float_arrays(evolution=evolution, sigma_floor=sigma_floor)
     return 1.0 - jnp.sqrt(2.0 / jnp.pi) * jnp.abs(evolution) / sigma_floor
 
 
 def strategy_alpha(evolution, q):
-    """The stochastic AOB paper eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``."""
-    q = jnp.maximum(q, jnp.finfo(jnp.result_type(q, float)).tiny)
+    """The stochastic AOB paper eq. 34: the strategy implied by a variance ``q``, ``1 - erf(|w_{k-1}| / sqrt(2 q))``.
+    Elementwise."""
+    evolution, q = _checks.float_arrays(evolution=evolution, q=q)
+    q = jnp.maximum(q, jnp.finfo(q.dtype).tiny)
     return 1.0 - erf(jnp.abs(evolution) / jnp.sqrt(2.0 * q))
 
 
 def constant_strategy_variance(evolution, c):
     """The stochastic AOB paper, eq. 35-36: ``Q_k = |w_{k-1}|^2 / c^2`` keeps ``alpha = 1 - erf(c / sqrt 2)``
-    constant."""
+    constant. Elementwise."""
+    evolution, c = _checks.float_arrays(evolution=evolution, c=c)
     return jnp.abs(evolution) ** 2 / c**2
 
 
 def deviation_variance(gamma, beta=BETA_ONE_SIGMA):
     """The stochastic AOB paper eq. 45-46: the ``Q_i`` for which ``P(|x_i - E x_i| > gamma) = beta``:
-    ``(gamma / (sqrt(2) erfinv(1 - beta)))**2``. With the default beta (eq. 47), ``Q_i = gamma**2``."""
+    ``(gamma / (sqrt(2) erfinv(1 - beta)))**2``. With the default beta (eq. 47), ``Q_i = gamma**2``. Elementwise."""
+    gamma, beta = _checks.float_arrays(gamma=gamma, beta=beta)
     return (gamma / (jnp.sqrt(2.0) * erfinv(1.0 - beta))) ** 2
 
 
@@ -607,10 +636,14 @@ def deviation_variance(gamma, beta=BETA_ONE_SIGMA):
 def sensor_based_gain(C):
     """The sensor-based (SBA) limit of a Kalman gain: measured states are replaced by the
     measurements, the others are not corrected (``K = C^+``; for ``C = [1 0 ... 0]``,
-    ``K = [1, 0, ..., 0]'``), the "CKF, SBA" of the MRAC chapter §7.4."""
-    return jnp.linalg.pinv(jnp.atleast_2d(C))
+    ``K = [1, 0, ..., 0]'``), the "CKF, SBA" of the MRAC chapter §7.4. ``C`` (p, n); returns (n, p)."""
+    (C,) = _checks.float_arrays(C=C)
+    C = jnp.atleast_2d(C)
+    _checks.matrix("C", C)
+    return jnp.linalg.pinv(C)
 
 
+@_checks.design_time()
 def classify_strategy(gain, C, *, low: float = 0.01, high: float = 0.9) -> str:
     """Name the estimation strategy of a (steady-state) gain: the fraction of the innovation that
     reaches the measured outputs, ``||C K||_2``, is below ``low`` (model-based, MBA), above ``high``

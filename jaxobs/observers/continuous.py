@@ -157,11 +157,13 @@ def _check_rate(F, args, x0) -> None:
 
 
 def _init(params: ContinuousObserverParams) -> ContinuousObserverState:
+    _checks.fields("params", params, "dt (), t0 ()")
     y = jnp.full((params.n_outputs,), jnp.nan, params.dtype)
     return ContinuousObserverState(params.x0, y, params.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _step(params: ContinuousObserverParams, state: ContinuousObserverState, inputs: EstimatorInputs):
+    _checks.fields("params", params, "dt (), t0 ()")
     dtype, p, m = params.dtype, params.n_outputs, params.n_inputs
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per output of h", check_finite=False)
     if inputs.u_prev is None:

@@ -79,16 +79,16 @@ def make_luenberger(A, B, C, K, *, D=None, x0=None) -> LuenbergerParams:
       >>> params.K.shape
       (2, 1)
     """
-    A, B, C, K = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K))
+    A, B, C, K, D = (None if M is None else jnp.atleast_2d(M) for M in _checks.float_arrays(A=A, B=B, C=C, K=K, D=D))
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     p, m = C.shape[0], B.shape[1]
     _checks.matrix("K", K, shape=(n, p))
-    D = jnp.zeros((p, m)) if D is None else jnp.atleast_2d(jnp.asarray(D))
+    dtype = A.dtype
+    D = jnp.zeros((p, m), dtype) if D is None else D
     _checks.matrix("D", D, shape=(p, m))
-    dtype = _checks.float_dtype(A=A, B=B, C=C, K=K, D=D)
     x0 = jnp.zeros(n, dtype) if x0 is None else _checks.vector("x0", x0, n, dtype)
     _require_detectable(A, C)
     if _checks.is_concrete(A, C, K):
@@ -108,15 +108,29 @@ def _require_detectable(A, C) -> None:
         )
 
 
+def _check(params, *values):
+    """``params`` (one observer of this module, not a batch) and ``values`` (``x_hat``/``z_hat``, ``u``, ``y``:
+    those given) checked at trace time, naming the field or argument; the values as arrays of the params' dtype."""
+    spec, x_name = _SHAPES[type(params)]
+    sizes = _checks.fields("params", params, spec)
+    names = (x_name, "u", "y")[: len(values)]
+    dims = {"u": "(m,)" if "m" in sizes else "(*,)", "y": "(p,)" if "p" in sizes else "(*,)", x_name: "(n,)"}
+    values = _checks.float_arrays(**dict(zip(names, values, strict=True)))
+    _checks.shapes(", ".join(f"{name} {dims[name]}" for name in names), *values)
+    return tuple(v.astype(params.x0.dtype) for v in values)
+
+
 def luenberger_rate(params: LuenbergerParams, x_hat, u, y, t):
     """Right-hand side of Grip 2010 eq. 1.3: ``A x_hat + B u + K (y - y_hat)``, ``y_hat = C x_hat + D u``; ``x_hat``
     (n,), ``u`` (m,), ``y`` (p,), ``t`` unused."""
-    del t
+    _checks.shapes("t ()", t)  # unused: the observer is time invariant
+    x_hat, u, y = _check(params, x_hat, u, y)
     return params.A @ x_hat + params.B @ u + params.K @ (y - luenberger_output(params, x_hat, u))
 
 
 def luenberger_output(params: LuenbergerParams, x_hat, u):
     """``y_hat = C x_hat + D u`` (p,)."""
+    x_hat, u = _check(params, x_hat, u)
     return params.C @ x_hat + params.D @ u
 
 
@@ -162,7 +176,7 @@ def make_kalman_bucy(A, B, C, Q, R, *, x0=None, P0=None, stationary: bool = Fals
       >>> bool(np.allclose(params.P0, [[np.sqrt(3), 1.0], [1.0, np.sqrt(3)]]))
       True
     """
-    A, B, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C))
+    A, B, C, Q, R = (jnp.atleast_2d(M) for M in _checks.float_arrays(A=A, B=B, C=C, Q=Q, R=R))
     n = A.shape[-1]
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
@@ -196,8 +210,9 @@ class KalmanBucyEstimate(NamedTuple):
 def kalman_bucy_rate(params: KalmanBucyParams, estimate: KalmanBucyEstimate, u, y, t) -> KalmanBucyEstimate:
     """Right-hand side of the Kalman-Bucy filter (Grip 2010 eq. 1.7 with the Riccati differential equation);
     ``u`` (m,), ``y`` (p,), ``t`` unused."""
-    del t
-    x, P = estimate
+    _checks.shapes("t ()", t)  # unused: the observer is time invariant
+    x, P = estimate = _checks.arrays("estimate.x (n,), estimate.P (n, n)", *estimate)
+    u, y = _check(params, x, u, y)[1:]
     gain_t = jnp.linalg.solve(params.R, params.C @ P)  # K' = R^{-1} C P
     x_dot = params.A @ x + params.B @ u + gain_t.T @ (y - params.C @ x)
     AP = params.A @ P
@@ -207,8 +222,9 @@ def kalman_bucy_rate(params: KalmanBucyParams, estimate: KalmanBucyEstimate, u, 
 
 def kalman_bucy_output(params: KalmanBucyParams, estimate: KalmanBucyEstimate, u):
     """``y_hat = C x_hat`` (p,)."""
-    del u
-    return params.C @ estimate.x
+    x, _ = _checks.arrays("estimate.x (n,), estimate.P (n, n)", *estimate)
+    _check(params, x, u)
+    return params.C @ x
 
 
 # --------------------------------------------------------------------------------------------
@@ -268,21 +284,33 @@ def make_output_injection(gamma: Callable, n, *, l=None, poles=None, x0=None) ->
 
 
 def output_injection_rate(params: OutputInjectionParams, z_hat, u, y, t):
-    """Right-hand side of Grip 2010 eq. 1.9's observer; ``y`` () or (1,), ``u`` (m,), ``t`` unused."""
-    del t
-    y = jnp.reshape(y, ())
+    """Right-hand side of Grip 2010 eq. 1.9's observer; ``z_hat`` (n,), ``y`` () or (1,), ``u`` (m,), ``t`` unused."""
+    _checks.shapes("t ()", t)  # unused: the observer is time invariant
+    (y,) = _checks.float_arrays(y=y)
+    if y.shape not in ((), (1,)):
+        raise ValueError(f"y must be a scalar or have shape (1,) (the one output z_1), got {y.shape}")
+    z_hat, u = _check(params, z_hat, u)
+    y = jnp.reshape(y, ()).astype(z_hat.dtype)
     shifted = jnp.concatenate([z_hat[1:], jnp.zeros((1,), z_hat.dtype)])
     return shifted + params.gamma(y, u) + params.l * (y - z_hat[0])
 
 
 def output_injection_output(params: OutputInjectionParams, z_hat, u):
     """``y_hat = z_hat_1`` (1,)."""
-    del params, u
+    z_hat, _ = _check(params, z_hat, u)
     return z_hat[:1]
 
 
 # --------------------------------------------------------------------------------------------
 # disturbance / exosystem augmentation
+
+
+_SHAPES = {
+    LuenbergerParams: ("A (n, n), B (n, m), C (p, n), D (p, m), K (n, p), x0 (n,)", "x_hat"),
+    KalmanBucyParams: ("A (n, n), B (n, m), C (p, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n)", "x_hat"),
+    OutputInjectionParams: ("l (n,), x0 (n,)", "z_hat"),
+}
+"""Each params class: the shapes of its fields and the name of the estimate its functions take."""
 
 
 def sinusoid_exosystem(frequencies):
@@ -324,22 +352,24 @@ def augment(A, B, C, E, A_w, C_w=None, B_w=None):
       >>> A_a.shape, C_a.tolist()
       ((3, 3), [[1.0, 0.0, 0.0]])
     """
-    A, B, C, E, A_w = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, E, A_w))
-    n, k = A.shape[-1], A_w.shape[-1]
+    A, B, C, E, A_w, C_w, B_w = (
+        None if M is None else jnp.atleast_2d(M)
+        for M in _checks.float_arrays(A=A, B=B, C=C, E=E, A_w=A_w, C_w=C_w, B_w=B_w)
+    )
+    n, k, dtype = A.shape[-1], A_w.shape[-1], A.dtype
     _checks.matrix("A", A, shape=(n, n), square=True)
     _checks.matrix("B", B, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     _checks.matrix("E", E, shape=(n, None))
     _checks.matrix("A_w", A_w, shape=(k, k), square=True)
-    C_w = jnp.eye(k) if C_w is None else jnp.atleast_2d(jnp.asarray(C_w))
+    C_w = jnp.eye(k, dtype=dtype) if C_w is None else C_w
     _checks.matrix("C_w", C_w, shape=(E.shape[1], k))
-    B_w = jnp.eye(k) if B_w is None else jnp.atleast_2d(jnp.asarray(B_w))
+    B_w = jnp.eye(k, dtype=dtype) if B_w is None else B_w
     _checks.matrix("B_w", B_w, shape=(k, None))
-    dtype = _checks.float_dtype(A=A, B=B, C=C, E=E, A_w=A_w, C_w=C_w, B_w=B_w)
-    A_a = jnp.block([[A, E @ C_w], [jnp.zeros((k, n)), A_w]]).astype(dtype)
-    B_a = jnp.concatenate([B, jnp.zeros((k, B.shape[1]))]).astype(dtype)
-    C_a = jnp.concatenate([C, jnp.zeros((C.shape[0], k))], axis=1).astype(dtype)
-    G_a = jnp.concatenate([jnp.zeros((n, B_w.shape[1])), B_w]).astype(dtype)
+    A_a = jnp.block([[A, E @ C_w], [jnp.zeros((k, n), dtype), A_w]])
+    B_a = jnp.concatenate([B, jnp.zeros((k, B.shape[1]), dtype)])
+    C_a = jnp.concatenate([C, jnp.zeros((C.shape[0], k), dtype)], axis=1)
+    G_a = jnp.concatenate([jnp.zeros((n, B_w.shape[1]), dtype), B_w])
     return A_a, B_a, C_a, G_a
 
 
@@ -369,6 +399,8 @@ def as_continuous(params, dt, *, n_inputs: int | None = None, t0=0.0, substeps: 
       >>> bool(np.all(np.abs(error) < 1e-4))  # holding y instead (measurement="hold") gives 0.05
       True
     """
+    if type(params) in _SHAPES:
+        _checks.fields("params", params, _SHAPES[type(params)][0])
     if isinstance(params, LuenbergerParams):
         rate, output, x0, m = luenberger_rate, luenberger_output, params.x0, params.B.shape[1]
     elif isinstance(params, KalmanBucyParams):

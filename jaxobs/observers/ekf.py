@@ -69,8 +69,7 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
       >>> out.x.shape, out.P.shape
       ((20, 2), (20, 2, 2))
     """
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    NonlinearModel.check(model, "model")
     iterations = _checks.count("iterations", iterations, minimum=1, hint="Gauss-Newton updates per sample")
     bierman, joseph = _checks.boolean("bierman", bierman), _checks.boolean("joseph", joseph)
     if bierman and not joseph:
@@ -83,8 +82,9 @@ def make_ekf(model: NonlinearModel, *, iterations: int = 1, bierman: bool = Fals
 def taylor(g, m, P, *, output: Manifold | None = None) -> Linearization:
     """First-order Taylor linearisation of ``g`` at ``m``: ``(g(m), dg/dx (m), None)``; one forward-mode pass
     evaluates ``g`` and its Jacobian together. ``P`` is unused. With ``output`` (the :class:`~jaxobs.nonlinear.Manifold`
-    of ``g``'s values) the Jacobian is that of ``output.difference(g(x), g(m))``, on the tangent space at ``g(m)``."""
-    del P
+    of ``g``'s values) the Jacobian is that of ``output.difference(g(x), g(m))``, on the tangent space at ``g(m)``.
+    ``m`` (n,); ``P`` (n, n)."""
+    m, _ = _checks.arrays("m (n,), P (n, n)", m, P)
 
     def value_twice(x):
         value = g(x)
@@ -102,12 +102,15 @@ def taylor(g, m, P, *, output: Manifold | None = None) -> Linearization:
 
 
 def _step(params: EKFParams, state: GaussianState, inputs: EstimatorInputs):
+    NonlinearModel.check(params.model, "params.model")
     return gaussian_step(taylor, params.iterations, params.model, state, inputs, bierman=params.bierman,
                          gate=params.gate, joseph=params.joseph,
                          output_covariance=params.output_covariance)  # fmt: skip
 
 
-extended_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
+extended_kalman_filter = Estimator(
+    lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")), _step
+)
 """The extended Kalman filter as an :class:`~jaxobs.observers.base.Estimator` over :class:`EKFParams`.
 
 Inputs: ``EstimatorInputs(y, u_prev)`` of shapes (p,) and (m,) (``u_prev=None`` without inputs), checked

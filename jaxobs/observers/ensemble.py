@@ -185,13 +185,22 @@ def _moments(forecast, predicted, R, y) -> tuple:
     return A, B * mask, P_prior, update
 
 
+def _check_params(params: EnsembleParams) -> NonlinearModel:
+    """``params`` checked at trace time to be one filter (no batch axis: ``vmap``); returns its model."""
+    _checks.key("params.key", params.key)
+    _checks.fields("params", params, "inflation (), Q_sqrt (n, n), R_sqrt (p, p)")
+    return NonlinearModel.check(params.model, "params.model")
+
+
 def _check_ensemble(forecast, predicted, R, y):
-    n_members, p = forecast.shape[0], R.shape[-1]
-    _checks.shape("forecast", forecast, (None, None), "(members, states)")
-    _checks.shape("predicted", predicted, (n_members, p), "(members, outputs): h of each forecast member")
-    _checks.shape("y", y, (p,), "one entry per row of R")
+    """The analysis' arrays in one floating dtype, their shapes checked at trace time: forecast (members,
+    states), predicted (members, outputs), h of each forecast member."""
+    forecast, predicted, R, y = _checks.arrays("forecast (N, n), predicted (N, p), R (p, p), y (p,)",
+                                               forecast, predicted, R, y)  # fmt: skip
+    n_members = forecast.shape[0]
     if n_members < 2:
         raise ValueError(f"forecast must have at least 2 members (rows), got {n_members}")
+    return forecast, predicted, R, y
 
 
 def stochastic_update(forecast, predicted, R, y, perturbations, *, transform: bool = False) -> Analysis:
@@ -210,7 +219,8 @@ def stochastic_update(forecast, predicted, R, y, perturbations, *, transform: bo
     Returns:
       :class:`Analysis`.
     """
-    _check_ensemble(forecast, predicted, R, y)
+    forecast, predicted, R, y = _check_ensemble(forecast, predicted, R, y)
+    (perturbations,) = _checks.float_arrays(perturbations=perturbations)
     _checks.shape("perturbations", perturbations, predicted.shape, "one draw of N(0, R) per member")
     A, B, P_prior, update = _moments(forecast, predicted, R, y)
     mask, y_observed = observed(y, forecast.dtype)
@@ -266,7 +276,7 @@ def transform_update(forecast, predicted, R, y, *, transform: bool = False) -> A
     Returns:
       :class:`Analysis`.
     """
-    _check_ensemble(forecast, predicted, R, y)
+    forecast, predicted, R, y = _check_ensemble(forecast, predicted, R, y)
     A, B, P_prior, update = _moments(forecast, predicted, R, y)
     mask = observed(y, forecast.dtype)[0]
     R_observed = observed_model(jnp.zeros((y.shape[-1], 0), R.dtype), R, mask)[1]
@@ -286,6 +296,7 @@ def perturbations(params: EnsembleParams, key):
     (:func:`jaxobs.nonlinear.sample_gaussian` with ``params.Q_sqrt``, ``params.R_sqrt``), from ``key, kw, ke =
     jax.random.split(key, 3)``. Public so that a run can be reproduced member by member (e.g. by another
     implementation fed the same draws)."""
+    _check_params(params)
     key, process, observation = jax.random.split(key, 3)
     zero = jnp.zeros((), params.model.x0.dtype)
     W = sample_gaussian(process, zero, params.Q_sqrt, params.num_members)
@@ -298,8 +309,8 @@ def perturbations(params: EnsembleParams, key):
 
 
 def _init(params: EnsembleParams) -> EnsembleState:
+    model = _check_params(params)
     key, draw = jax.random.split(params.key)
-    model = params.model
     ensemble = sample_gaussian(draw, model.x0, gaussian_factor(model.P0), params.num_members)
     return EnsembleState(ensemble, key, model.t0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
@@ -310,7 +321,7 @@ def _sample_covariance(ensemble):
 
 
 def _step(params: EnsembleParams, state: EnsembleState, inputs: EstimatorInputs):
-    model = params.model
+    model = _check_params(params)
     y, u = model_inputs(model, inputs)
     key, W, E = perturbations(params, state.key)
     first = ~state.started  # the ensemble holds draws of x_0: no forecast before the first update

@@ -124,13 +124,18 @@ def make_gramian(A, B, C, *, dt, forgetting=0.0, weights: str = "saturation", le
     return GramianParams(Phi, Phi_inv, Gamma, C, dt, forget, level, jnp.asarray(cond_max, dtype), x0, weights)
 
 
+_SHAPES = "Phi (n, n), Phi_inv (n, n), Gamma (n, m), C (p, n), dt (), forget (), level (p,), cond_max (), x0 (n,)"
+
+
 def _init(params: GramianParams) -> GramianState:
+    _checks.fields("params", params, _SHAPES)
     n = params.Phi.shape[0]
     # x carries the estimate at the previous sample; one step back from x0 so that the first prediction is x0
     return GramianState(jnp.zeros((n, n), params.Phi.dtype), jnp.zeros(n, params.Phi.dtype), params.Phi_inv @ params.x0)
 
 
 def _step(params: GramianParams, state: GramianState, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     n, p, m = params.Phi.shape[0], params.C.shape[0], params.Gamma.shape[1]
     dtype = params.Phi.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, check_finite=False)

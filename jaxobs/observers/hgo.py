@@ -142,6 +142,7 @@ def _pole_groups(name, poles, sizes):
     return groups
 
 
+@_checks.design_time(alternative="the gains K as arrays (make_hgo takes them)")
 def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, design=None,
               corrected: bool = True, numeric: bool = False) -> HGOGains:  # fmt: skip
     """Gains ``K(eps) = [K_x(eps); K_phi(eps)]`` of the modified high-gain observer (6.3) (Grip 2010, section 6.3).
@@ -435,14 +436,16 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
       >>> bool(jnp.abs(out.phi[-1, 0] - 0.3) < 1e-2)
       True
     """
-    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta0, dt=dt, t0=t0)
+    theta = theta0 if jnp.size(jnp.asarray(theta0)) else None
+    dtype = _checks.float_dtype(A=A, B=B, E=E, C=C, K=K, x0=x0, z0=z0, theta0=theta, dt=dt, t0=t0)
     A, E, C = (jnp.asarray(M, dtype) for M in (A, E, C))
     _checks.matrix("A", A, square=True)
     n = A.shape[0]
     _checks.matrix("E", E, shape=(n, None))
     _checks.matrix("C", C, shape=(None, n))
     k, p = E.shape[1], C.shape[0]
-    B = jnp.asarray(B, dtype).reshape((n, -1)) if np.size(B) == 0 else jnp.asarray(B, dtype)
+    B = jnp.asarray(B, dtype)
+    B = B.reshape((n, -1)) if B.size == 0 else B
     _checks.matrix("B", B, shape=(n, None))
     K = jnp.asarray(K, dtype)
     _checks.matrix("K", K, shape=(n + k, p))
@@ -452,7 +455,8 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
         _checks.matrix("K2", K2, shape=(n, p))
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     z0 = jnp.zeros((k,), dtype) if z0 is None else _checks.vector("z0", z0, k, dtype, what="one per perturbation")
-    theta0 = jnp.atleast_1d(jnp.asarray(theta0, dtype)) if np.size(theta0) else jnp.zeros((0,), dtype)
+    theta0 = jnp.asarray(theta0, dtype)
+    theta0 = jnp.atleast_1d(theta0) if theta0.size else jnp.zeros((0,), dtype)
     _checks.shape("theta0", theta0, (None,), "the initial parameter estimate, a vector")
     _checks.finite("theta0", theta0)
     _checks.positive_scalar("dt", dt)
@@ -477,11 +481,16 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, g2, dt, t0, substeps, method)
 
 
+_SHAPES = "A (n, n), B (n, m), E (n, k), C (p, n), K (j, p), x0 (n,), z0 (k,), theta0 (t,), K2 (n, r), dt (), t0 ()"
+
+
 def _init(params: HGOParams):
+    _checks.fields("params", params, _SHAPES)
     return continuous_observer.init(_continuous(params))
 
 
 def _step(params: HGOParams, state, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     m = params.B.shape[1]
     before = state.y  # y_{k-1}, held over the interval now integrated (NaN where missing)
     state, out = continuous_observer.step(_continuous(params), state, inputs)

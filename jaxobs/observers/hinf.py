@@ -100,7 +100,7 @@ class HinfOutputs(NamedTuple):
       innovation: (p,) y_k - C x_prior (0 for missing components)
       gain: (n, p) K_k
       feasible: () existence condition held at this step
-      margin: () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required)
+      margin: () smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (> 0 required; a flag's measure, with no gradient)
     """
 
     x: jax.Array
@@ -114,6 +114,7 @@ class HinfOutputs(NamedTuple):
 
 
 def _check_gamma(gamma):
+    _checks.shapes("gamma ()", gamma)
     if not _checks.is_concrete(gamma):
         return
     a = np.asarray(gamma, dtype=float)
@@ -138,10 +139,10 @@ def _validate(Phi, C, Cz, Q, R, P0, gamma=None, Gamma=None):
 
 
 def _as_matrices(Phi, C, Cz, Q, R, P0):
-    Phi, C = (jnp.atleast_2d(jnp.asarray(M)) for M in (Phi, C))
-    Cz = jnp.eye(Phi.shape[-1], dtype=Phi.dtype) if Cz is None else jnp.atleast_2d(jnp.asarray(Cz))
-    Q, R = jnp.atleast_2d(jnp.asarray(Q)), jnp.atleast_2d(jnp.asarray(R))
-    P0 = Q if P0 is None else jnp.atleast_2d(jnp.asarray(P0))
+    Phi, C, Cz, Q, R, P0 = (None if M is None else jnp.atleast_2d(M)
+                            for M in _checks.float_arrays(Phi=Phi, C=C, Cz=Cz, Q=Q, R=R, P0=P0))  # fmt: skip
+    Cz = jnp.eye(Phi.shape[-1], dtype=Phi.dtype) if Cz is None else Cz
+    P0 = Q if P0 is None else P0
     return Phi, C, Cz, Q, R, P0
 
 
@@ -192,9 +193,11 @@ def hinf_correction(P, Cz, gamma):
     """``Pb = (P^{-1} - gamma^{-2} Cz' Cz)^{-1}`` from the Kalman a-posteriori matrix ``P``, without inverting ``P``.
 
     Returns ``(Pb, margin, ok)``: ``margin`` is the smallest eigenvalue of ``M = I - gamma^{-2} Cz P Cz'``
-    and ``ok = margin > 0`` the existence condition. ``Pb = P + gamma^{-2} P Cz' M^{-1} Cz P`` (Woodbury, a
-    Cholesky solve with ``M``); when ``ok`` is False, ``Pb = P`` (gradients stay finite).
+    and ``ok = margin > 0`` the existence condition (``margin`` is a flag's measure: its gradient is stopped, as
+    the eigenvalue's derivative is undefined where eigenvalues repeat). ``Pb = P + gamma^{-2} P Cz' M^{-1} Cz P``
+    (Woodbury, a Cholesky solve with ``M``); when ``ok`` is False, ``Pb = P`` (gradients stay finite).
     """
+    P, Cz, gamma = _checks.arrays("P (n, n), Cz (q, n), gamma ()", P, Cz, gamma)
     theta = 1.0 / jnp.square(gamma)  # gamma^{-2}; 0 for gamma = inf
     q = Cz.shape[-2]
     eye = jnp.eye(q, dtype=P.dtype)
@@ -210,7 +213,19 @@ def hinf_correction(P, Cz, gamma):
 
 def hinf_riccati_step(Pb_prev, Phi, C, Cz, Q, R, gamma, *, first=False):
     """One step ``Pb_{k-1} -> (Pb_k, K_k, P1_k, margin_k, ok_k)`` of the H-infinity Riccati recursion; with
-    ``first`` (a traced bool) ``Pb_prev`` is the prior ``P0`` of ``x_0`` and is used as ``P1_0`` (no prediction)."""
+    ``first`` (a traced bool) ``Pb_prev`` is the prior ``P0`` of ``x_0`` and is used as ``P1_0`` (no prediction).
+    Shapes: ``Pb_prev`` (n, n), ``Phi`` (n, n), ``C`` (p, n), ``Cz`` (q, n), ``Q`` (n, n), ``R`` (p, p), ``gamma``
+    ()."""
+    Pb_prev, Phi, C, Cz, Q, R, gamma = _checks.arrays(
+        "Pb_prev (n, n), Phi (n, n), C (p, n), Cz (q, n), Q (n, n), R (p, p), gamma ()",
+        Pb_prev,
+        Phi,
+        C,
+        Cz,
+        Q,
+        R,
+        gamma,
+    )
     P1 = jnp.where(first, Pb_prev, predict_covariance(Pb_prev, Phi, Q))
     P, K = update_covariance(P1, C, R)
     Pb, margin, ok = hinf_correction(P, Cz, gamma)
@@ -224,7 +239,7 @@ class HinfSequence(NamedTuple):
       P: (T, n, n) Pb_k
       K: (T, n, p) gains K_k
       P_prior: (T, n, n) P1_k
-      margin: (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz'
+      margin: (T,) smallest eigenvalue of I - gamma^{-2} Cz P_k Cz' (no gradient)
       feasible: (T,) the existence condition held at step k
     """
 
@@ -258,7 +273,7 @@ class HinfSteadyState(NamedTuple):
       P_prior: (n, n) steady P1
       P: (n, n) steady Pb
       gain: (n, p) steady K = P1 C' (C P1 C' + R)^{-1}
-      margin: () smallest margin met along the iteration
+      margin: () smallest margin met along the iteration (no gradient)
       converged: () last relative change below tol, P and P_prior finite and positive semidefinite, the gain
         finite, and the steady filter stable
       feasible: () existence condition held at every iteration
@@ -318,6 +333,7 @@ def _steady(Phi, C, Cz, Q, R, gamma, P_init, *, num_iters, tol):
 def with_steady_state_gain(params: HinfParams, num_iters: int = 1000) -> HinfParams:
     """Same filter with the fixed steady-state gain of :func:`hinf_steady_state` (``P0`` becomes the steady
     ``Pb``). Under tracing, check the flags of :func:`hinf_steady_state` yourself."""
+    _checks.fields("params", params, _SHAPES)
     sol = hinf_steady_state(params.Phi, params.C, params.Cz, params.Q, params.R, params.gamma, P_init=params.P0,
                             num_iters=num_iters)  # fmt: skip
     return dataclasses.replace(params, gain=sol.gain, P0=sol.P)
@@ -327,12 +343,20 @@ def with_steady_state_gain(params: HinfParams, num_iters: int = 1000) -> HinfPar
 # The observer
 
 
+_SHAPES = (
+    "Phi (n, n), Gamma (n, m), C (p, n), Cz (q, n), Cd (r, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gamma (), "
+    "gain (n, p)"
+)
+
+
 def _init(params: HinfParams) -> HinfState:
+    _checks.fields("params", params, _SHAPES)
     zero = jnp.zeros((), jnp.int32)
     return HinfState(params.x0, params.P0, jnp.zeros((), bool), zero, zero)
 
 
 def _step(params: HinfParams, state: HinfState, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     m, p, dtype = params.Gamma.shape[-1], params.C.shape[-2], params.Phi.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)
     u_prev = inputs.u_prev

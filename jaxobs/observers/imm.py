@@ -126,6 +126,7 @@ def mix(weights, x, P):
     Returns:
       ``(x_mixed, P_mixed)`` of shapes (K, n) and (K, n, n).
     """
+    weights, x, P = _checks.arrays("weights (M, K), x (M, n), P (M, n, n)", weights, x, P)
     means = weights.T @ x  # (K, n)
     spread = x[None, :, :] - means[:, None, :]  # (K, M, n)
     second = jnp.einsum("ik,kim,kil->kml", weights, spread, spread)

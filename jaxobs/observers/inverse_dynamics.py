@@ -62,6 +62,7 @@ def left_inverse(B, rho=None):
     return B_dag + rho @ (jnp.eye(n, dtype=B.dtype) - B @ B_dag)
 
 
+@_checks.design_time()
 def case1_f2(B, C):
     """The minimum-norm ``F2`` with ``F2 C B = I`` (eq. 5), or ``ValueError`` if none exists (go to Case 2)."""
     B, C = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (B, C))
@@ -75,16 +76,24 @@ def case1_f2(B, C):
     return np.linalg.pinv(CB)
 
 
+def _gain_arguments(A, B, C, F1, F2):
+    """The plant and the gains of Lemmas 3.1 and 3.3 as 2-D arrays of one dtype, their shapes checked."""
+    arrays = (jnp.atleast_2d(M) for M in _checks.float_arrays(A=A, B=B, C=C, F1=F1, F2=F2))
+    return _checks.arrays("A (n, n), B (n, d), C (y, n), F1 (d, y), F2 (d, y)", *arrays)
+
+
 def case1_gains(A, B, C, F1, F2):
-    """``(G1, G2, G3)`` of Lemma 3.1: ``-(F1 C + F2 C A)``, ``0``, ``-F2 C``. Traceable."""
-    A, B, C, F1, F2 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, F1, F2))
+    """``(G1, G2, G3)`` of Lemma 3.1: ``-(F1 C + F2 C A)``, ``0``, ``-F2 C``. Traceable. Shapes: ``A`` (n, n),
+    ``B`` (n, n_d), ``C`` (n_y, n), ``F1``, ``F2`` (n_d, n_y)."""
+    A, B, C, F1, F2 = _gain_arguments(A, B, C, F1, F2)
     G1 = -(F1 @ C + F2 @ C @ A)
     return G1, jnp.zeros_like(G1), -F2 @ C
 
 
 def case2_gains(A, B, C, F1, F2, rho=None):
-    """``(G1, G2, G3)`` of Lemma 3.3, eq. 12-14, with ``B+ = left_inverse(B, rho)``. Traceable."""
-    A, B, C, F1, F2 = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, F1, F2))
+    """``(G1, G2, G3)`` of Lemma 3.3, eq. 12-14, with ``B+ = left_inverse(B, rho)``. Traceable. Shapes as
+    :func:`case1_gains`."""
+    A, B, C, F1, F2 = _gain_arguments(A, B, C, F1, F2)
     Bp = left_inverse(B, rho)
     return -(F1 @ C + Bp @ A), -(F2 @ C - Bp), -Bp
 
@@ -92,9 +101,11 @@ def case2_gains(A, B, C, F1, F2, rho=None):
 def error_dynamics(A, B, C, K, G1, G2):
     """``(M_e, A_e)`` of ``M_e e' = A_e e``: ``M_e = I - B G2``, ``A_e = A - K C + B G1``.
 
-    With the Case 1 gains this is eq. 8 (``M_e = I``); with the Case 2 gains, eq. 17-18. Traceable.
+    With the Case 1 gains this is eq. 8 (``M_e = I``); with the Case 2 gains, eq. 17-18. Traceable. Shapes:
+    ``A`` (n, n), ``B`` (n, n_d), ``C`` (n_y, n), ``K`` (n, n_y), ``G1``, ``G2`` (n_d, n).
     """
-    A, B, C, K = (jnp.atleast_2d(jnp.asarray(M)) for M in (A, B, C, K))
+    arrays = (jnp.atleast_2d(M) for M in _checks.float_arrays(A=A, B=B, C=C, K=K, G1=G1, G2=G2))
+    A, B, C, K, G1, G2 = _checks.arrays("A (n, n), B (n, d), C (y, n), K (n, y), G1 (d, n), G2 (d, n)", *arrays)
     n = A.shape[-1]
     return jnp.eye(n, dtype=A.dtype) - B @ G2, A - K @ C + B @ G1
 
@@ -135,7 +146,7 @@ def fact35(M_e, A_e, *, rank: int | None = None, U=None, V=None, tol: float = 1e
     independently, so the sign (and Hurwitz property) of ``A22`` in ``printed_stable`` depends on that
     choice; only its nonsingularity, ``S`` up to congruence and the exact ``stable``/``poles`` do not.
     """
-    M_e, A_e = jnp.asarray(M_e), jnp.asarray(A_e)
+    M_e, A_e = _checks.arrays("M_e (n, n), A_e (n, n)", M_e, A_e)
     n = M_e.shape[-1]
     U_svd, s, Vt = jnp.linalg.svd(M_e)
     U = U_svd if U is None else jnp.asarray(U, A_e.dtype)
@@ -166,6 +177,7 @@ def fact35(M_e, A_e, *, rank: int | None = None, U=None, V=None, tol: float = 1e
     return Fact35(stable, fast_ok & slow_printed & nonsingular, rank, A11, A12, A21, A22, S, poles, fast)
 
 
+@_checks.design_time()
 def plant_zeros(A, B, C):
     """Invariant zeros of ``(A, B, C, 0)`` for ``n_y = n_d`` (finite generalised eigenvalues of the
     Rosenbrock pencil). Design time (SciPy)."""
@@ -248,7 +260,14 @@ class InverseDynamicsOutputs(NamedTuple):
     x_dot: jax.Array
 
 
+_SHAPES = (
+    "A (n, n), B (n, d), C (y, n), Bu (n, m), K (n, y), F1 (d, y), F2 (d, y), G1 (d, n), G2 (d, n), "
+    "G3 (d, n), x0 (n,), h (), lowpass_pole ()"
+)
+
+
 def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
+    _checks.fields("params", params, _SHAPES)
     p = params.C.shape[-2]
     dtype = params.x0.dtype
     return InverseDynamicsState(
@@ -257,6 +276,7 @@ def _init(params: InverseDynamicsParams) -> InverseDynamicsState:
 
 
 def _step(params: InverseDynamicsParams, state: InverseDynamicsState, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     A, B, C, K, F1, F2 = params.A, params.B, params.C, params.K, params.F1, params.F2
     n, p, m, dtype = A.shape[-1], C.shape[-2], params.Bu.shape[-1], params.x0.dtype
     h = params.h

@@ -19,13 +19,12 @@ import jax
 import jax.numpy as jnp
 
 from jaxobs import _checks
-from jaxobs._linalg import symmetrize
 from jaxobs.kalman_steps import (
     covariance_sequence,
     predict,
+    psd_factor,
     square_root_predict,
     square_root_update,
-    tria,
     update,
     update_covariance,
 )
@@ -88,6 +87,18 @@ class KalmanParams:
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
     joseph: bool = dataclasses.field(default=False, metadata=dict(static=True))
     schedule: Callable | None = None
+
+    def check(self, name: str = "params") -> KalmanParams:
+        """``self``, checked at trace time to be one filter: ``Phi`` (n, n), ``Gamma`` (n, m), ``C`` (p, n), ``Q``
+        (n, n), ``R`` (p, p), ``x0`` (n,), ``P0`` (n, n), ``gain`` (n, p), no leading batch axis (``vmap`` over a
+        batch of filters); a ``ValueError`` naming ``name.Phi`` ... otherwise (``name``: the argument)."""
+        if not isinstance(self, KalmanParams):
+            raise ValueError(f"{name} must be KalmanParams (make_kalman), got {type(self).__name__}")
+        _checks.fields(name, self, _SHAPES)
+        return self
+
+
+_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Q (n, n), R (p, p), x0 (n,), P0 (n, n), gain (n, p), gain_converged ()"
 
 
 class KalmanState(NamedTuple):
@@ -181,6 +192,7 @@ def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
     reported by every step (``KalmanOutputs.converged``).
     """
+    KalmanParams.check(params)
     if params.schedule is not None:
         raise ValueError("params.schedule: a time-varying model has no steady-state gain; use the time-varying one")
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
@@ -271,10 +283,12 @@ def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
 
 
 def _init(params: KalmanParams) -> KalmanState:
+    KalmanParams.check(params)
     return KalmanState(params.x0, params.P0, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: EstimatorInputs):
+    KalmanParams.check(params)
     params = _at_step(params, inputs)
     y, u_prev = _inputs(params, inputs)
     return _filter_step(params, state, y, u_prev, params.gain)
@@ -400,16 +414,10 @@ class SquareRootKalmanState(NamedTuple):
     missing: jax.Array
 
 
-def _factor(M):
-    """A lower-triangular factor of a symmetric positive semidefinite ``M``: an eigendecomposition with the
-    rounding-level negative eigenvalues clipped, triangularised (:func:`jaxobs.kalman_steps.tria`)."""
-    w, V = jnp.linalg.eigh(symmetrize(M))
-    return tria(V * jnp.sqrt(jnp.clip(w, 0.0)))
-
-
 def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
     """The same time-varying filter with factors of ``Q``, ``R`` and ``P0`` (lower triangular; semidefinite
-    ``Q`` and ``P0`` allowed): the params of :data:`square_root_kalman_filter`, whose outputs equal those of
+    ``Q`` and ``P0`` allowed; :func:`jaxobs.kalman_steps.psd_factor`, differentiable also at repeated eigenvalues
+    such as ``Q = q I``): the params of :data:`square_root_kalman_filter`, whose outputs equal those of
     :data:`kalman_filter` on ``params`` to rounding.
 
     Example:
@@ -420,26 +428,29 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
       >>> bool(jnp.allclose(out.x, run(kalman.kalman_filter, params, EstimatorInputs(y=jnp.ones((50, 1))))[1].x))
       True
     """
+    KalmanParams.check(params)
     if params.gain is not None:
         raise ValueError("params has a fixed gain: the square-root form propagates the time-varying covariance")
     if params.schedule is not None:
         raise ValueError("params.schedule returns covariances: give the square-root filter a schedule of factors "
                          "(SquareRootKalmanParams(..., schedule=...) returning Q_sqrt, R_sqrt)")  # fmt: skip
-    Q_sqrt, R_sqrt, P0_sqrt = (_factor(M) for M in (params.Q, params.R, params.P0))
+    Q_sqrt, R_sqrt, P0_sqrt = (psd_factor(M) for M in (params.Q, params.R, params.P0))
     return SquareRootKalmanParams(params.Phi, params.Gamma, params.C, Q_sqrt, R_sqrt, params.x0, P0_sqrt,
                                   output_covariance=params.output_covariance)  # fmt: skip
 
 
+# the factors: Q_sqrt one row per state, R_sqrt one row per row of C, P0_sqrt square
+_SQUARE_ROOT_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), Q_sqrt (n, r), R_sqrt (p, s), x0 (n,), P0_sqrt (n, n)"
+
+
 def _square_root_init(params: SquareRootKalmanParams) -> SquareRootKalmanState:
+    _checks.fields("params", params, _SQUARE_ROOT_SHAPES)
     return SquareRootKalmanState(params.x0, params.P0_sqrt, jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
 
 def _square_root_step(params: SquareRootKalmanParams, state: SquareRootKalmanState, inputs: EstimatorInputs):
     params = _at_step(params, inputs)
-    n, p = params.Phi.shape[-1], params.C.shape[-2]
-    _checks.shape("params.Q_sqrt", params.Q_sqrt, (n, None), "a factor of Q: one row per state")
-    _checks.shape("params.R_sqrt", params.R_sqrt, (p, None), "a factor of R: one row per row of C")
-    _checks.shape("params.P0_sqrt", params.P0_sqrt, (n, n), "a square factor of P0")
+    _checks.fields("params", params, _SQUARE_ROOT_SHAPES)
     y, u_prev = _inputs(params, inputs)
     x_prior, P_prior = square_root_predict(state.x, state.P_sqrt, params.Phi, params.Q_sqrt, params.Gamma, u_prev,
                                            skip=~state.started)  # fmt: skip

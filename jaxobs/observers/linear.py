@@ -53,12 +53,17 @@ class LinearObserverOutputs(NamedTuple):
     innovation: jax.Array
 
 
+_SHAPES = "Phi (n, n), Gamma (n, m), C (p, n), K (n, p)"
+
+
 def _init(params: LinearObserver) -> LinearObserverState:
+    _checks.fields("params", params, _SHAPES)
     zero = jnp.zeros((), jnp.int32)
     return LinearObserverState(jnp.zeros(params.Phi.shape[-1], params.Phi.dtype), jnp.zeros((), bool), zero)
 
 
 def _step(params: LinearObserver, state: LinearObserverState, inputs: EstimatorInputs):
+    _checks.fields("params", params, _SHAPES)
     dtype = params.Phi.dtype
     p, m = params.C.shape[-2], params.Gamma.shape[-1]
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of C", check_finite=False)

@@ -105,13 +105,37 @@ class ModularOutputs(NamedTuple):
     innovation: jax.Array
 
 
+_ARGUMENT_SHAPES = {
+    "u": "(r,)",
+    "x": "(n,)",
+    "x_dot": "(n,)",
+    "phi_hat": "(n,)",
+    "theta": "(s,)",
+    "theta_hat": "(s,)",
+    "t": "()",
+    "state.z": "(n,)",
+    "state.theta_hat": "(s,)",
+}
+
+
+def _arguments(model: ModularModel, **values) -> tuple:
+    """``model`` checked to be one (``K_phi`` (n, n), bounds (n,), no batch axis) and ``values`` (named as the
+    arguments) as arrays of its dtype with their shapes checked at trace time (lists and scalars accepted)."""
+    n = _checks.fields("model", model, "K_phi (n, n), phi_lower (n,), phi_upper (n,)")["n"]
+    arrays = _checks.float_arrays(**values)
+    _checks.shapes(", ".join(f"{name} {_ARGUMENT_SHAPES[name]}" for name in values).replace("(n,)", f"({n},)"),
+                   *arrays)  # fmt: skip
+    return tuple(a.astype(model.K_phi.dtype) for a in arrays)
+
+
 def _phi_hat(model: ModularModel, state: ModularState, t, x):
     return state.z + model.K_phi @ x + model.B(t, x) @ model.g(t, x, state.theta_hat)
 
 
 def perturbation_estimate(model: ModularModel, state: ModularState, t, x):
     """``phi_hat = z + K_phi x + B(t, x) g(t, x, theta_hat)`` (5.8c), (n,), for the measured ``x`` (n,) at ``t``."""
-    return _phi_hat(model, state, t, x)
+    z, theta_hat, t, x = _arguments(model, **{"state.z": state.z, "state.theta_hat": state.theta_hat}, t=t, x=x)
+    return _phi_hat(model, ModularState(z, theta_hat), t, x)
 
 
 def _perturbation_model(model: ModularModel, t, x, theta):
@@ -121,6 +145,7 @@ def _perturbation_model(model: ModularModel, t, x, theta):
 def parameter_rate(model: ModularModel, t, x, phi_hat, theta_hat):
     """The update law ``u_theta(t, x, phi_hat, theta_hat)`` (n_theta,) of ``model.law`` (Grip 2010 Props.
     5.1-5.4), with ``phi_hat`` (n,) saturated to ``[phi_lower, phi_upper]`` (Remark 5.2)."""
+    t, x, phi_hat, theta_hat = _arguments(model, t=t, x=x, phi_hat=phi_hat, theta_hat=theta_hat)
     phi = jnp.clip(phi_hat, model.phi_lower, model.phi_upper)
     return model.law(jax.tree_util.Partial(_perturbation_model, model), (t, x), phi, theta_hat)
 
@@ -128,6 +153,9 @@ def parameter_rate(model: ModularModel, t, x, phi_hat, theta_hat):
 def modular_rate(model: ModularModel, state: ModularState, u, x, t) -> ModularState:
     """The right-hand side ``(z', theta_hat')`` of the estimator (5.8) for the measured state ``x`` (n,) and the
     applied input ``u`` (r,) at time ``t`` (``dg/dtheta u_theta`` by a Jacobian-vector product)."""
+    z, theta_hat, u, t, x = _arguments(model, **{"state.z": state.z, "state.theta_hat": state.theta_hat}, u=u, t=t,
+                                       x=x)  # fmt: skip
+    state = ModularState(z, theta_hat)
     phi_hat = _phi_hat(model, state, t, x)
     u_theta = parameter_rate(model, t, x, phi_hat, state.theta_hat)
     Bm = model.B(t, x)
@@ -141,13 +169,14 @@ def perturbation_error_rate(model: ModularModel, t, x, x_dot, theta, theta_hat):
     """``d(t, x, theta_tilde)`` of (5.10): the time derivative of ``B(t, x) (g(t, x, theta) - g(t, x, theta_hat))``
     along ``x' = x_dot`` (n,) with ``theta`` (n_theta,) and ``theta_hat`` (n_theta,) fixed (one Jacobian-vector
     product)."""
+    t, x, x_dot, theta, theta_hat = _arguments(model, t=t, x=x, x_dot=x_dot, theta=theta, theta_hat=theta_hat)
     gap = lambda s, y: model.B(s, y) @ (model.g(s, y, theta) - model.g(s, y, theta_hat))
-    t = jnp.asarray(t, x.dtype)
     return jax.jvp(gap, (t, x), (jnp.ones_like(t), x_dot))[1]
 
 
 def compensation(model: ModularModel, theta_hat, t, x):
-    """The compensating input ``v = -g(t, x, theta_hat)`` (m,) of (5.15)."""
+    """The compensating input ``v = -g(t, x, theta_hat)`` (m,) of (5.15); ``theta_hat`` (n_theta,), ``x`` (n,)."""
+    theta_hat, t, x = _arguments(model, theta_hat=theta_hat, t=t, x=x)
     return -model.g(t, x, theta_hat)
 
 

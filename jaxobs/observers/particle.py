@@ -172,8 +172,15 @@ def _first_stage(model: NonlinearModel, y, means, log_weights):
     return _log_observation(H @ model.Q @ H.T + model.R, y, jax.vmap(model.h)(means))[0]
 
 
+def _check_params(params: ParticleParams) -> NonlinearModel:
+    """``params`` checked at trace time to be one filter (no batch axis: ``vmap``); returns its model."""
+    _checks.key("params.key", params.key)
+    _checks.fields("params", params, "ess_threshold (), Q_sqrt (n, n)")
+    return NonlinearModel.check(params.model, "params.model")
+
+
 def _init(params: ParticleParams) -> ParticleState:
-    model, num = params.model, params.num_particles
+    model, num = _check_params(params), params.num_particles
     key, draw = jax.random.split(params.key)
     particles = sample_gaussian(draw, model.x0, gaussian_factor(model.P0), num)
     log_weights = jnp.full((num,), -math.log(num), model.x0.dtype)
@@ -181,7 +188,7 @@ def _init(params: ParticleParams) -> ParticleState:
 
 
 def _step(params: ParticleParams, state: ParticleState, inputs: EstimatorInputs):
-    model, num = params.model, params.num_particles
+    model, num = _check_params(params), params.num_particles
     y, u = model_inputs(model, inputs)
     key, resample_key, noise_key = jax.random.split(state.key, 3)
     first = ~state.started  # the particles are draws of x_0: no propagation before the first update

@@ -101,12 +101,14 @@ def make_pe_monitor(n_regressors, window, dt, threshold) -> PEMonitorParams:
 
 
 def _init(params: PEMonitorParams) -> PEMonitorState:
+    _checks.fields("params", params, "dt (), threshold ()")
     N, n_theta, dtype = params.window, params.n_regressors, params.dt.dtype
     zero = jnp.zeros((), jnp.int32)
     return PEMonitorState(jnp.zeros((N, n_theta), dtype), jnp.zeros(N, dtype), zero, jnp.zeros(n_theta, dtype), zero)
 
 
 def _step(params: PEMonitorParams, state: PEMonitorState, inputs: EstimatorInputs):
+    _checks.fields("params", params, "dt (), threshold ()")
     n_theta, dtype = params.n_regressors, params.dt.dtype
     what = "the regressor omega and the target z"
     y = _checks.vector("inputs.y", inputs.y, n_theta + 1, dtype, what=what, check_finite=False)

@@ -104,8 +104,7 @@ def make_ukf(model: NonlinearModel, *, rule: str = "unscented", alpha=None, beta
       >>> out.x.shape
       (20, 2)
     """
-    if not isinstance(model, NonlinearModel):
-        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    NonlinearModel.check(model, "model")
     if rule not in RULES:
         raise ValueError(f"rule must be one of {list(RULES)}, got {rule!r}")
     given = {"alpha": alpha, "beta": beta, "kappa": kappa}
@@ -171,6 +170,7 @@ def sigma_points(m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented
       ``(X, wm, wc, L)``: (N, n) points (the unscented centre first), (N,) mean and covariance weights, and the
       (n, n) lower Cholesky factor of ``P``.
     """
+    m, P, alpha, beta, kappa = _checks.arrays("m (n,), P (n, n), alpha (), beta (), kappa ()", m, P, alpha, beta, kappa)
     n = m.shape[0]
     L = cholesky(P)
     if rule != "unscented":
@@ -190,6 +190,7 @@ def unscented(g, m, P, alpha=1.0, beta=2.0, kappa=0.0, *, rule: str = "unscented
     :func:`sigma_points`: ``(g_bar, C' P^{-1}, Cov - G C)`` (Särkkä 2013, §5.6). With ``output`` (the
     :class:`~jaxobs.nonlinear.Manifold` of ``g``'s values) ``g_bar`` is their weighted mean on the manifold
     (:func:`manifold_mean`) and the deviations from it are tangent vectors."""
+    m, P = _checks.arrays("m (n,), P (n, n)", m, P)
     X, wm, wc, L = sigma_points(m, P, alpha, beta, kappa, rule=rule, order=order)
     Y = jax.vmap(g)(X)
     if output is None:
@@ -210,7 +211,7 @@ def manifold_mean(manifold: Manifold, Y, w, reference, iterations: int = MEAN_IT
     ``reference``, ``iterations`` Gauss-Newton steps ``mean <- mean + sum_i w_i (Y_i - mean)`` (``+`` and ``-`` the
     manifold's ``retract`` and ``difference``; the weighted Karcher mean, Pennec 2006). For points a sigma-point
     spread apart the steps contract quickly; a fixed count keeps the step traceable."""
-    mean = reference
+    Y, w, mean = _checks.float_arrays(Y=Y, w=w, reference=reference)
     for _ in range(iterations):
         mean = manifold.retract(mean, w @ jax.vmap(manifold.difference, (0, None))(Y, mean))
     return mean
@@ -221,11 +222,14 @@ def _step(params: UKFParams, state: GaussianState, inputs: EstimatorInputs):
         return unscented(g, m, P, params.alpha, params.beta, params.kappa, rule=params.rule, order=params.order,
                          output=output)  # fmt: skip
 
+    NonlinearModel.check(params.model, "params.model")
     return gaussian_step(linearize, params.iterations, params.model, state, inputs, joseph=params.joseph,
                          output_covariance=params.output_covariance)  # fmt: skip
 
 
-unscented_kalman_filter = Estimator(lambda params: gaussian_init(params.model), _step)
+unscented_kalman_filter = Estimator(
+    lambda params: gaussian_init(NonlinearModel.check(params.model, "params.model")), _step
+)
 """The sigma-point Kalman filter (unscented, cubature or Gauss-Hermite, ``UKFParams.rule``) as an
 :class:`~jaxobs.observers.base.Estimator` over :class:`UKFParams`.
 

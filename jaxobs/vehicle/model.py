@@ -136,6 +136,12 @@ class VehicleState(NamedTuple):
     ax_lt: jax.Array
     ay_lt: jax.Array
 
+    def check(self, name: str) -> VehicleState:
+        """The state, its fields' shapes checked at trace time (one vehicle: ``vmap`` for a batch), naming
+        ``name.field``."""
+        _checks.fields(name, self, "vx (), vy (), r (), omega (4,), tan_alpha (4,), ax_lt (), ay_lt ()")
+        return self
+
 
 class Inputs(NamedTuple):
     """Plant inputs at one instant.
@@ -195,7 +201,10 @@ def _scaled(tyre, friction):
 
 
 def wheel_kinematics(p: VehicleParams, vx, vy, r, steering_wheel):
-    """Wheel-centre velocities in the wheel frames and the road-wheel angles: ``(v_l, v_s, delta)``, each (4,)."""
+    """Wheel-centre velocities in the wheel frames and the road-wheel angles: ``(v_l, v_s, delta)``, each (4,), of
+    the scalars ``vx``, ``vy``, ``r`` and ``steering_wheel`` (``vmap`` for a batch)."""
+    p = check_vehicle(p, "p")
+    vx, vy, r, steering_wheel = _checks.arrays("vx (), vy (), r (), steering_wheel ()", vx, vy, r, steering_wheel)
     x, y = _geometry(p)
     d = steering_wheel / p.steering_ratio
     delta = jnp.stack(jnp.broadcast_arrays(d, d, 0.0 * d, 0.0 * d))
@@ -205,7 +214,10 @@ def wheel_kinematics(p: VehicleParams, vx, vy, r, steering_wheel):
 
 
 def normal_loads(p: VehicleParams, ax, ay, bank=0.0, inclination=0.0):
-    """Quasi-static normal loads (4,) (N) at the accelerations ``ax``, ``ay`` (m/s^2), clipped at 0 (wheel lift)."""
+    """Quasi-static normal loads (4,) (N) at the accelerations ``ax``, ``ay`` (m/s^2), clipped at 0 (wheel lift);
+    scalars (``vmap`` for a batch)."""
+    p = check_vehicle(p, "p")
+    ax, ay, bank, inclination = _checks.arrays("ax (), ay (), bank (), inclination ()", ax, ay, bank, inclination)
     L = p.wheelbase
     w = p.mass * GRAVITY * jnp.cos(inclination) * jnp.cos(bank)
     front = (w * p.lr / L - p.mass * ax * p.cg_height / L) / 2
@@ -217,6 +229,8 @@ def normal_loads(p: VehicleParams, ax, ay, bank=0.0, inclination=0.0):
 
 def forces(p: VehicleParams, x: VehicleState, u: Inputs) -> Forces:
     """Tyre forces, loads and slips of state ``x`` under inputs ``u`` (the lateral slips are the relaxed states)."""
+    VehicleState.check(x, "x")
+    _checks.fields("u", u, "steering_wheel (), torque (4,), bank (), inclination (), friction ()")
     v_l, v_s, delta = wheel_kinematics(p, x.vx, x.vy, x.r, u.steering_wheel)
     speed = jnp.maximum(jnp.abs(v_l), MIN_SPEED)
     kappa = (x.omega * p.wheel_radius - v_l) / speed
@@ -258,10 +272,11 @@ def dynamics(p: VehicleParams, x: VehicleState, u: Inputs) -> VehicleState:
 
 def steady_state(p: VehicleParams, vx, vy=0.0, r=0.0, steering_wheel=0.0, ax=0.0, ay=None) -> VehicleState:
     """A state with free-rolling wheels, relaxed slips and the load transfer of ``ax`` and ``ay`` (default
-    ``ay = r vx``), e.g. the initial state of a manoeuvre. Scalars (or arrays of one shape), finite where concrete."""
+    ``ay = r vx``), e.g. the initial state of a manoeuvre. Scalars (``vmap`` for a batch), finite where concrete."""
     for name, value in (("vx", vx), ("vy", vy), ("r", r), ("steering_wheel", steering_wheel), ("ax", ax), ("ay", ay)):
         if value is not None:
             _checks.finite(name, _checks.real_array(name, value))
+    _checks.shapes("vx (), vy (), r (), steering_wheel (), ax (), ay ()", vx, vy, r, steering_wheel, ax, ay)
     dtype = jnp.result_type(vx, vy, r, float)
     vx, vy, r = (jnp.asarray(v, dtype) for v in (vx, vy, r))
     v_l, v_s, _ = wheel_kinematics(p, vx, vy, r, steering_wheel)
@@ -282,6 +297,10 @@ def friction_model(p: VehicleParams, vx, vy, r, steering_wheel, omega, ax, ay, f
     """The road-tyre friction model an observer evaluates (Grip 2010 §2.2, §2.8): the :class:`Forces` of the
     velocities ``vx``, ``vy``, yaw rate ``r``, steering-wheel angle and wheel speeds ``omega`` (4,) with
     steady-state (unrelaxed) slips and the normal loads of the given (measured) ``ax``, ``ay``."""
+    vx, vy, r, steering_wheel, omega, ax, ay, friction = _checks.arrays(
+        "vx (), vy (), r (), steering_wheel (), omega (4,), ax (), ay (), friction ()",
+        vx, vy, r, steering_wheel, omega, ax, ay, friction,
+    )  # fmt: skip
     v_l, v_s, _ = wheel_kinematics(p, vx, vy, r, steering_wheel)
     x = VehicleState(vx, vy, r, omega, -v_s / jnp.maximum(jnp.abs(v_l), MIN_SPEED), ax, ay)
     return forces(p, x, Inputs(steering_wheel, jnp.zeros(4), friction=friction))
@@ -304,9 +323,12 @@ def understeer_gradient(vehicle: VehicleParams):
 def reference_yaw_rate(vehicle: VehicleParams, vx, steering_wheel):
     """The yaw rate of the linear single track in steady state, ``v_x delta / (L + K_us v_x^2)`` (rad/s) with
     ``delta`` the road-wheel angle and ``K_us`` the :func:`understeer_gradient`: the reference of the friction
-    switch (Grip 2010 §2.5) and of the simulated ESC (:func:`jaxobs.vehicle.esc_intervention`)."""
+    switch (Grip 2010 §2.5) and of the simulated ESC (:func:`jaxobs.vehicle.esc_intervention`). Scalars (``vmap``
+    for a batch)."""
+    vx, steering_wheel = _checks.arrays("vx (), steering_wheel ()", vx, steering_wheel)
     delta = steering_wheel / vehicle.steering_ratio
-    return vx * delta / (vehicle.wheelbase + understeer_gradient(vehicle) * vx**2)
+    K_us = understeer_gradient(vehicle).astype(vx.dtype)  # the vehicle's Python floats would give float64
+    return vx * delta / (vehicle.wheelbase + K_us * vx**2)
 
 
 def broadcast(params, n: int):
@@ -318,9 +340,12 @@ def broadcast(params, n: int):
 
 def check_vehicle(vehicle, name: str = "vehicle") -> VehicleParams:
     """``vehicle`` checked: a :class:`VehicleParams` (``None``: the default one) whose concrete fields are valid
-    (:meth:`VehicleParams.validate`); ``ValueError`` naming ``name`` (or the bad field) otherwise."""
+    (:meth:`VehicleParams.validate`) and scalar (at trace time too: ``vmap`` for a batch of vehicles);
+    ``ValueError`` naming ``name`` (or the bad field) otherwise."""
     vehicle = VehicleParams() if vehicle is None else vehicle
     if not isinstance(vehicle, VehicleParams):
         raise ValueError(f"{name} must be a VehicleParams, got {type(vehicle).__name__}")
+    for path, leaf in jax.tree_util.tree_flatten_with_path(vehicle)[0]:
+        _checks.shapes(f"{name}{jax.tree_util.keystr(path)} ()", leaf)
     vehicle.validate()
     return vehicle

@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxobs import _checks
 from jaxobs.lti import StateSpace, is_spr, ss
@@ -46,8 +47,7 @@ def inclination_error_system(a, K_theta_i, g=GRAVITY) -> StateSpace:
     sector part ``-(K_vx(t) - a) v_x~``), output ``v_x~``: ``A = [[-a, g], [-K_theta_i a, 0]]``,
     ``B = [1, K_theta_i]'``, ``C = [1, 0]``. Args: ``a`` (1/s, ``0 < a < K_vx,min``), ``K_theta_i``, ``g``
     (m/s^2). Traceable (jit, vmap, grad)."""
-    a, K, g = jnp.broadcast_arrays(*(jnp.asarray(v, _checks.float_dtype(a=a, K_theta_i=K_theta_i, g=g))
-                                     for v in (a, K_theta_i, g)))  # fmt: skip
+    a, K, g = _checks.arrays("a (), K_theta_i (), g ()", a, K_theta_i, g)
     zero, one = jnp.zeros_like(a), jnp.ones_like(a)
     A = jnp.stack([jnp.stack([-a, g]), jnp.stack([-K * a, zero])])
     return ss(A, jnp.stack([one, K])[:, None], jnp.stack([one, zero])[None, :])
@@ -58,8 +58,7 @@ def bank_error_system(K_vy, delta_min, K_theta_b, g=GRAVITY) -> StateSpace:
     delta_min) v_y~``, output ``v_y~``: ``A = [[-K_vy delta_min, -g], [K_theta_b delta_min, 0]]``,
     ``B = [K_vy, -K_theta_b]'``, ``C = [1, 0]``. Args: ``K_vy``, ``delta_min`` (1/s, the least slope of
     ``-a_y~`` in ``v_y~``, Assumption 4.1), ``K_theta_b``, ``g``. Traceable."""
-    dtype = _checks.float_dtype(K_vy=K_vy, delta_min=delta_min, K_theta_b=K_theta_b, g=g)
-    k, d, K, g = jnp.broadcast_arrays(*(jnp.asarray(v, dtype) for v in (K_vy, delta_min, K_theta_b, g)))
+    k, d, K, g = _checks.arrays("K_vy (), delta_min (), K_theta_b (), g ()", K_vy, delta_min, K_theta_b, g)
     zero, one = jnp.zeros_like(k), jnp.ones_like(k)
     A = jnp.stack([jnp.stack([-k * d, -g]), jnp.stack([K * d, zero])])
     return ss(A, jnp.stack([k, -K])[:, None], jnp.stack([one, zero])[None, :])
@@ -68,17 +67,19 @@ def bank_error_system(K_vy, delta_min, K_theta_b, g=GRAVITY) -> StateSpace:
 def inclination_gain_bound(a, g=GRAVITY):
     """Lemma 4.1: the inclination estimator is GES for ``0 < K_theta_i < a / g``; returns ``a / g``. ``a`` (1/s) and
     ``g`` (m/s^2) finite and > 0, checked where concrete."""
+    a, g = _checks.arrays("a (), g ()", a, g)
     for name, value in (("a", a), ("g", g)):
         _checks.positive(name, value)
-    return jnp.asarray(a, _checks.float_dtype(a=a, g=g)) / g
+    return a / g
 
 
 def bank_gain_bound(K_vy, delta_min, g=GRAVITY):
     """Lemma 4.2: the bank estimator is GES for ``0 < K_theta_b < K_vy^2 delta_min / g``; returns the bound. ``K_vy``,
     ``delta_min`` (1/s) and ``g`` (m/s^2) finite and > 0, checked where concrete."""
+    K_vy, delta_min, g = _checks.arrays("K_vy (), delta_min (), g ()", K_vy, delta_min, g)
     for name, value in (("K_vy", K_vy), ("delta_min", delta_min), ("g", g)):
         _checks.positive(name, value)
-    return jnp.asarray(K_vy, _checks.float_dtype(K_vy=K_vy, delta_min=delta_min, g=g)) ** 2 * delta_min / g
+    return K_vy**2 * delta_min / g
 
 
 class LemmaCheck(NamedTuple):
@@ -90,6 +91,7 @@ class LemmaCheck(NamedTuple):
     spr_above: bool
 
 
+@_checks.design_time()
 def lemma_check(lemma: str, *, a=None, K_vy=None, delta_min=None, g=GRAVITY, rel=1e-3) -> LemmaCheck:
     """Evaluate :func:`jaxobs.lti.is_spr` on the error system of Lemma 4.1 (``lemma="4.1"``, needs ``a``) or
     Lemma 4.2 (``"4.2"``, needs ``K_vy`` and ``delta_min``) with the gain a relative ``rel`` below and above the
@@ -169,7 +171,7 @@ def make_road_angles(vehicle: VehicleParams | None = None, **settings) -> RoadAn
         _checks.positive(name, value, allow_zero=zero_ok)
     params = RoadAnglesParams(vehicle, **settings)
     lo, hi = params.theta_min, params.theta_max
-    if _checks.is_concrete(lo, hi) and not bool(jnp.all(jnp.asarray(lo) < jnp.asarray(hi))):
+    if _checks.is_concrete(lo, hi) and not np.all(np.asarray(lo) < np.asarray(hi)):  # NumPy: no tracer under jit
         raise ValueError(f"theta_min must be below theta_max (the bounds of theta), got {lo!r} >= {hi!r}")
     return params
 

@@ -197,5 +197,7 @@ def sensor_inputs(measurements: Measurements) -> EstimatorInputs:
     """The vehicle observers' inputs from :class:`Measurements` (K samples): ``y`` (K, :data:`N_SENSORS`) in the
     layout of :data:`AX` ... :data:`ESC_ACTIVE`."""
     m = measurements
+    _checks.fields("measurements", m, "time (k,), ax (k,), ay (k,), yaw_rate (k,), steering_wheel (k,), "
+                   "wheel_speed (k, 4), vx_ref (k,), esc_active (k,)")  # fmt: skip
     columns = [m.ax[:, None], m.ay[:, None], m.yaw_rate[:, None], m.steering_wheel[:, None], m.wheel_speed]
     return EstimatorInputs(y=jnp.concatenate([*columns, m.vx_ref[:, None], m.esc_active[:, None]], axis=1))

@@ -103,6 +103,9 @@ def esc_intervention(p: VehicleParams, esc: ESCParams, x: VehicleState, steering
     sign of ``r`` (the car yaws too much in its own direction: oversteer), the inner rear wheel otherwise
     (understeer), as production ESCs do.
     """
+    p = check_vehicle(p, "p")
+    VehicleState.check(x, "x")
+    steering_wheel, friction = _checks.arrays("steering_wheel (), friction ()", steering_wheel, friction)
     vx = jnp.maximum(x.vx, MIN_SPEED)
     limit = esc.friction_margin * friction * GRAVITY / vx
     r_d = jnp.clip(reference_yaw_rate(p, vx, steering_wheel), -limit, limit)

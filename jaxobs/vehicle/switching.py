@@ -70,6 +70,7 @@ def make_switching(vehicle: VehicleParams | None = None, **settings) -> Switchin
 def gate(smooth, x, threshold, scale):
     """``x > threshold`` as 0/1 (``smooth`` ``None``), or its sigmoid of sharpness ``smooth`` on the given
     ``scale``."""
+    x, threshold, scale = _checks.float_arrays(x=x, threshold=threshold, scale=scale)
     if smooth is None:
         return (x > threshold).astype(jnp.result_type(x, float))
     return jax.nn.sigmoid(smooth * (x - threshold) / scale)
@@ -77,6 +78,7 @@ def gate(smooth, x, threshold, scale):
 
 def either(*gates):
     """Logical or of 0/1 values (or gates): ``1 - prod(1 - g)``."""
+    gates = _checks.float_arrays(**{f"gates[{i}]": g for i, g in enumerate(gates)})
     out = 1.0 - gates[0]
     for g in gates[1:]:
         out = out * (1.0 - g)

@@ -124,7 +124,7 @@ def pure_force(tyre, slip, fz, *, direction: str = "y"):
     """
     if direction not in ("x", "y"):
         raise ValueError(f"direction must be 'x' or 'y', got {direction!r}")
-    slip = jnp.asarray(slip)
+    slip, fz = _checks.float_arrays(slip=slip, fz=fz)
     return _curve_ratio(tyre, jnp.abs(slip), fz, direction) * slip
 
 
@@ -150,6 +150,7 @@ def tyre_forces(tyre, kappa, tan_alpha, fz):
     Returns:
       ``(F_x, F_y)``, broadcast to the common shape of the arguments.
     """
+    kappa, tan_alpha, fz = _checks.float_arrays(kappa=kappa, tan_alpha=tan_alpha, fz=fz)
     denom = 1.0 + jnp.maximum(kappa, -0.99)
     sx, sy = kappa / denom, tan_alpha / denom
     s2 = sx**2 + sy**2

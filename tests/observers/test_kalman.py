@@ -538,6 +538,30 @@ def test_square_root_filter_gradients_finite_with_singular_covariances():
         np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10)
 
 
+def test_square_root_form_gradient_at_repeated_eigenvalues_equals_the_filters_issue46():
+    """Q = q I (and R, P0 scalar multiples of I: every eigenvalue repeated): the gradient in q of a loss through
+    square_root_form equals that through kalman_filter to 1e-8 (the factor's derivative is Cholesky's, not an
+    eigendecomposition's, whose derivative divides by the zero gaps and gave NaN), eagerly, under jit and vmap."""
+    Phi, C = np.array([[1.0, 0.1], [0.0, 0.9]]), np.array([[1.0, 0.0]])
+    inputs = EstimatorInputs(y=np.sin(0.3 * np.arange(40))[:, None])
+
+    def loss(q, square_root):
+        params = make_kalman(Phi, C, q * jnp.eye(2), [[0.5]])
+        if square_root:
+            out = run(square_root_kalman_filter, square_root_form(params), inputs)[1]
+        else:
+            out = run(kalman_filter, params, inputs)[1]
+        return jnp.sum(out.x**2) - jnp.sum(out.log_likelihood)
+
+    want = jax.grad(loss)(0.01, False)
+    assert np.isfinite(want)
+    np.testing.assert_allclose(jax.grad(loss)(0.01, True), want, rtol=1e-8)
+    np.testing.assert_allclose(jax.jit(jax.grad(loss), static_argnums=1)(0.01, True), want, rtol=1e-8)
+    qs = jnp.array([0.01, 0.03])
+    np.testing.assert_allclose(jax.vmap(jax.grad(loss), (0, None))(qs, True),
+                               jax.vmap(jax.grad(loss), (0, None))(qs, False), rtol=1e-8)  # fmt: skip
+
+
 @pytest.mark.slow
 def test_float32_square_root_form_drifts_less_than_covariance_form():
     """The AOB-2 of Cortesão 2006 Example 1 (9 states, q_plant = 1e-12: a nearly singular covariance) as the Kalman

@@ -1,0 +1,61 @@
+"""Registry entries: jobs and their pure pieces (jaxobs.sweep, jaxobs.sweep_report, jaxobs.tuning), the function
+transformations of jaxobs.batching and jaxobs.checked."""
+
+import numpy as np
+
+from tests.api_registry import Example
+
+LOSSES = np.array([0.3, 1.2, 0.7, 2.5])
+
+ENTRIES = {
+    "jaxobs.sweep.config_key": Example(
+        lambda: dict(seed=3, index=np.int32(5)),
+        skip={"grad": "a PRNG key of an integer index", "batch": "index is any integer array (fold_in broadcasts)"},
+    ),
+    "jaxobs.tuning.cholesky_covariance": Example(
+        lambda: dict(raw=np.array([[0.1, 0.0], [0.5, -0.3]])), batched=("raw",)
+    ),
+    "jaxobs.tuning.unit_interval": Example(lambda: dict(raw=np.array([-1.0, 0.5])), batched=("raw",)),
+    "jaxobs.tuning.cvar": Example(
+        lambda: dict(losses=LOSSES, alpha=0.5), skip={"batch": "losses is any array of losses (raveled)"}
+    ),
+    "jaxobs.tuning.robust_objective": Example(
+        lambda: dict(losses=LOSSES, kind="cvar", alpha=0.5), skip={"batch": "losses is any array of losses (raveled)"}
+    ),
+    "jaxobs.tuning.penalise_diverged": Example(
+        lambda: dict(losses=LOSSES, failed=np.array([False, True, False, False]), factor=2.0),
+        diff="losses",
+        skip={
+            "batch": "losses (B,) is a batch of plants by definition; more axes broadcast",
+            "grad": "documented: the penalty scale (the largest sound loss) is held constant in derivatives",
+        },
+    ),
+}
+
+EXEMPT = {
+    "jaxobs.batching.safe_vmap": "transformation: jax.vmap with LAPACK calls split (tested in tests/test_batching.py)",
+    "jaxobs.batching.safe_lapack": "transformation: rewrites a function's LAPACK calls (tests/test_batching.py)",
+    "jaxobs.batching.lapack_calls": "transformation: inspects the program of a function (tests/test_batching.py)",
+    "jaxobs.checked": "transformation: the function with its value checks compiled in (tests/test_checks.py)",
+    "jaxobs.sweep.run_sweep": "job: evaluates configurations in chunks into Parquet files with a manifest",
+    "jaxobs.sweep.run_configured_sweep": "job: run_sweep with the settings of a configuration",
+    "jaxobs.sweep.load_results": "loader: reads a finished sweep's Parquet chunks",
+    "jaxobs.sweep.read_manifest": "loader: reads a sweep's manifest file",
+    "jaxobs.sweep.run_history": "loader: reads a sweep's run records",
+    "jaxobs.sweep_report.write_report": "job: writes a sweep's summary, report and figures",
+    "jaxobs.sweep_report.finish_report": "job: writes a report's files",
+    "jaxobs.sweep_report.summarize": "job: NumPy statistics of a finished sweep's rows (concrete results)",
+    "jaxobs.sweep_report.quantiles": "job: NumPy quantiles of a finished sweep's column (concrete results)",
+    "jaxobs.sweep_report.timing": "loader: reads what a sweep's runs measured",
+    "jaxobs.tuning.tune": "job: an optimisation run (optax steps in a Python loop with restarts and a stopping rule)",
+    "jaxobs.tuning.random_search": "job: a gradient-free search over candidates within a time budget",
+    "jaxobs.tuning.evaluate": "job: compiles and scores parameters on a tuning problem's held-out plants",
+    "jaxobs.tuning.batch_objective": "transformation: returns a compiled scorer of candidates",
+    "jaxobs.tuning.value_and_grad": "transformation: the value and gradient function of an objective",
+    "jaxobs.tuning.lbfgs": "transformation: returns an optax gradient transformation",
+    "jaxobs.tuning.gradient_mode": "static: resolves a setting string from the size of the parameters",
+    "jaxobs.tuning.cholesky_parameters": "validator: the inverse of cholesky_covariance for a starting point, which "
+    "refuses a concrete covariance that is not positive definite",
+    "jaxobs.tuning.unit_interval_parameters": "validator: the inverse of unit_interval for a starting point, which "
+    "refuses a concrete value outside (0, 1)",
+}
