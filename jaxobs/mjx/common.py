@@ -1,6 +1,9 @@
 """Parts the MJX plants share: putting a model on this process's device, the initial data in a dtype, the physics
-step (with a fixed-count constraint solver that reverse mode differentiates), the dead-time FIFO of a command,
-per-step input series and the checks of integer timing arguments.
+step (MJX's own constraint solver with implicit derivatives, or a fixed iteration count), the dead-time FIFO of a
+command, per-step input series and the checks of integer timing arguments.
+
+Every rollout of the plants steps through :func:`step`, so how a rollout is differentiated is decided here once:
+the constraint solve is MJX's at the model's settings, differentiated implicitly (:func:`solve`).
 
 :mod:`jaxobs.mjx.force_1dof`, :mod:`jaxobs.mjx.compliant_6dof`, :mod:`jaxobs.mjx.estimation` and
 :mod:`jaxobs.mjx.robot` build on them.
@@ -13,12 +16,15 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
+from mujoco.mjx._src import solver as mjx_solver  # its cost (Context): the gradient whose root is qacc
 
-from jaxobs import _checks
+from jaxobs import _checks, _linalg
 
 __all__ = [
     "put_model",
     "initial_data",
+    "solve",
+    "forward",
     "step",
     "constraint_rows",
     "check_solver_iterations",
@@ -53,41 +59,112 @@ def constraint_rows(data: mjx.Data) -> int:
     return int(data._impl.nefc)  # MJX keeps the static row count in its backend-specific part
 
 
-def check_solver_iterations(solver_iterations) -> None:
-    """``ValueError`` unless ``solver_iterations`` is None or an int >= 1."""
-    if solver_iterations is not None and not is_int_at_least(solver_iterations, 1):
-        raise ValueError(f"solver_iterations must be None or a Python int >= 1, got {solver_iterations!r}")
+def check_solver_iterations(solver_iterations) -> int | None:
+    """``solver_iterations`` normalised: None for None or 0 (MJX's own solver at the model's settings), the int
+    for an int >= 1 (a fixed count); ``ValueError`` otherwise."""
+    if solver_iterations is None or (is_int_at_least(solver_iterations, 0) and solver_iterations == 0):
+        return None
+    if not is_int_at_least(solver_iterations, 1):
+        raise ValueError(
+            "solver_iterations must be None or 0 (MJX's solver at the model's settings) or a Python int >= 1 "
+            f"(a fixed count), got {solver_iterations!r}"
+        )
+    return int(solver_iterations)
+
+
+def _constraint_context(model: mjx.Model, data: mjx.Data, qacc: jax.Array):
+    """MJX's solver context at ``qacc``: the constraint forces and the gradient's terms of its cost there."""
+    return mjx_solver.Context.create(model, data.replace(qacc=qacc), grad=False)
+
+
+def _cost_gradient(model: mjx.Model, data: mjx.Data):
+    """``qacc -> M qacc - qfrc_smooth - J' f(qacc)``: the gradient of the solver's convex cost (Gauss term plus
+    the constraints' piecewise quadratic), whose root is the solve's ``qacc``."""
+
+    def gradient(qacc):
+        ctx = _constraint_context(model, data, qacc)
+        return ctx.Ma - data.qfrc_smooth - ctx.qfrc_constraint
+
+    return gradient
+
+
+def _hessian_solve(linear, rhs):
+    """``H^{-1} rhs`` for the linear map ``linear`` (the cost gradient's derivative at the solution, ``H = M + J' D
+    J`` on the active rows plus the cone's curvature: symmetric positive definite), by a Cholesky factor."""
+    basis = jnp.eye(rhs.shape[-1], dtype=rhs.dtype)
+    hessian = _linalg.symmetrize(jax.vmap(linear)(basis))
+    return _linalg.cho_solve(_linalg.cholesky(hessian), rhs)
+
+
+def solve(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """``mjx.solve`` (MJX's constraint solver: its ``while_loop`` at the model's ``opt.iterations`` and
+    ``opt.tolerance``, warm-started from ``qacc_warmstart``) with implicit derivatives.
+
+    The solve minimises a convex cost in ``qacc`` whose gradient ``g(qacc) = M qacc - qfrc_smooth - J' f(qacc)``
+    vanishes at the solution; by the implicit function theorem ``d qacc = -H^{-1} dg``, where ``dg`` is the
+    gradient's change with the inputs at fixed ``qacc`` and ``H = dg/dqacc = M + J' D J`` over the active rows
+    (plus the elliptic cone's curvature), MuJoCo's Newton Hessian. Tangents and cotangents therefore cost one
+    linear solve with ``H`` at the solution (``jax.lax.custom_root``: forward and reverse mode); the iterations
+    and the warm start are not differentiated. The constraint forces ``efc_force`` and ``qfrc_constraint`` are the
+    solver's, with the derivatives of ``f`` at the solution.
+    """
+    gradient = _cost_gradient(model, data)
+
+    def run(_, guess):
+        solved = mjx.solve(model, data)
+        return solved.qacc, (solved._impl.efc_force, solved.qfrc_constraint)
+
+    qacc, (efc_force, qfrc_constraint) = jax.lax.custom_root(gradient, data.qacc_smooth, run, _hessian_solve,
+                                                             has_aux=True)  # fmt: skip
+    at = _constraint_context(model, data, qacc)  # values: the solver's; derivatives: those of f at the solution
+    efc_force = efc_force + (at.efc_force - jax.lax.stop_gradient(at.efc_force))
+    qfrc_constraint = qfrc_constraint + (at.qfrc_constraint - jax.lax.stop_gradient(at.qfrc_constraint))
+    return data.tree_replace({"qacc": qacc, "qfrc_constraint": qfrc_constraint, "_impl.efc_force": efc_force})
+
+
+def _fixed_solve(model: mjx.Model, data: mjx.Data, iterations: int) -> mjx.Data:
+    """``iterations`` calls of ``mjx.solve`` at ``opt.iterations = 1``, each warm-started from the last ``qacc``."""
+    one = model.replace(opt=model.opt.replace(iterations=1))
+    data = mjx.solve(one, data)
+    return jax.lax.fori_loop(0, iterations - 1, lambda _, d: mjx.solve(one, d.replace(qacc_warmstart=d.qacc)), data)
+
+
+def forward(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
+    """``mjx.forward`` with the constraint solve of :func:`step`."""
+    solver_iterations = check_solver_iterations(solver_iterations)
+    data = mjx.fwd_position(model, data)
+    data = mjx.sensor_pos(model, data)
+    data = mjx.fwd_velocity(model, data)
+    data = mjx.sensor_vel(model, data)
+    data = mjx.fwd_actuation(model, data)
+    data = mjx.fwd_acceleration(model, data)
+    if not constraint_rows(data):
+        return data.replace(qacc=data.qacc_smooth)
+    data = solve(model, data) if solver_iterations is None else _fixed_solve(model, data, solver_iterations)
+    return mjx.sensor_acc(model, data)
 
 
 def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
-    """One physics step: ``mjx.step``, or with ``solver_iterations = K`` a step whose constraint solver runs exactly
-    ``K`` iterations.
+    """One physics step: ``mjx.step`` with a constraint solve that reverse mode differentiates.
 
-    MJX's solver iterates in a ``lax.while_loop`` until ``opt.tolerance`` (at most ``opt.iterations``), which
-    reverse mode cannot differentiate. With ``K``, the solver runs as ``K`` calls of ``mjx.solve`` at
-    ``opt.iterations = 1``, each warm-started from the last ``qacc``: a loop of fixed length (reverse mode goes
-    through it) that, for MuJoCo's default Newton solver, is ``K`` Newton iterations of the same problem. A model
-    without constraint rows takes the plain step either way. Euler, RK4 and implicit-fast integrators.
+    ``solver_iterations`` None or 0: MJX's own solver at the model's settings (``opt.iterations``,
+    ``opt.tolerance``), differentiated implicitly (:func:`solve`), so the step equals ``mjx.step`` and its
+    derivatives are those of the exact solution. ``K >= 1``: the solver runs exactly ``K`` Newton iterations (``K``
+    calls of ``mjx.solve`` at ``opt.iterations = 1``, each warm-started from the last ``qacc``), differentiated
+    through every iteration. A model without constraint rows takes the plain step either way. Euler and
+    implicit-fast integrators; RK4 too, whose later stages run ``mjx.forward`` (a model with constraint rows: forward
+    mode only, or a fixed ``K``).
     """
-    if solver_iterations is None:
-        return mjx.step(model, data)
-    check_solver_iterations(solver_iterations)
-    one = model.replace(opt=model.opt.replace(iterations=1))
-    data = mjx.forward(one, data)
-    if constraint_rows(data) and solver_iterations > 1:
-
-        def iterate(_, data):
-            return mjx.solve(one, data.replace(qacc_warmstart=data.qacc))
-
-        data = jax.lax.fori_loop(0, solver_iterations - 1, iterate, data)
-        data = mjx.sensor_acc(one, data)
+    solver_iterations = check_solver_iterations(solver_iterations)
     integrator = mujoco.mjtIntegrator(int(model.opt.integrator))
-    if integrator == mujoco.mjtIntegrator.mjINT_EULER:
-        return mjx.euler(one, data)
     if integrator == mujoco.mjtIntegrator.mjINT_RK4:
-        return mjx.rungekutta4(one, data)
+        stages = model if solver_iterations is None else model.replace(opt=model.opt.replace(iterations=1))
+        return mjx.rungekutta4(stages, forward(model, data, solver_iterations))
+    data = forward(model, data, solver_iterations)
+    if integrator == mujoco.mjtIntegrator.mjINT_EULER:
+        return mjx.euler(model, data)
     if integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
-        return mjx.implicit(one, data)
+        return mjx.implicit(model, data)
     raise ValueError(f"model: integrator {integrator.name} is not supported by MJX (Euler, RK4, implicitfast)")
 
 

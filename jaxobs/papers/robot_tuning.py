@@ -25,9 +25,8 @@ from jaxobs.papers.tuning_config import (
     SHIPPED_STRATEGY,
     optimizer_defaults,
     search_box,
-    settings,
 )
-from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters, gradient_mode
+from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]
 
@@ -50,7 +49,7 @@ DEFAULT_CONFIG = {
         "sensor_noise": [0.002, 0.005],
         "qpos0": [],
         "ctrl0": [],
-        "solver_iterations": 4,
+        "solver_iterations": 0,
     },
     "plants": {"train": 8, "heldout": 32, "mismatch": {"body_mass[payload]": [0.25, 2.0]}},
     "scenario": {
@@ -86,8 +85,9 @@ CONFIG_NOTES = {
     "robot.qpos0": "operating point (qpos) to linearise about and regulate around; empty: the model's qpos0",
     "robot.ctrl0": "operating-point control of every actuator; empty: zero (a qpos0 that gravity or a spring moves "
     "needs the control that holds it: jaxobs.mjx.robot.holding_ctrl)",
-    "robot.solver_iterations": "constraint-solver iterations per physics step of a model with contacts, limits or "
-    "equalities (a fixed loop that reverse mode differentiates); 0: MJX's solver to its tolerance (forward mode only)",
+    "robot.solver_iterations": "constraint solver of a model with contacts, limits or equalities: 0, MJX's solver at "
+    "the MJCF's settings (its iterations and tolerance), differentiated implicitly; K >= 1, exactly K Newton "
+    "iterations per physics step, differentiated through each (jaxobs.mjx.common.step)",
     "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
     "plants.train": "training plants (one rollout each per gradient evaluation)",
     "plants.heldout": "held-out plants, never used in training, that score the designs",
@@ -176,21 +176,7 @@ def _robot(config: dict):
     timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"]}
     point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None}
     return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point,
-                      solver_iterations=rb["solver_iterations"] or None)  # fmt: skip
-
-
-def _check_differentiable(robot, config: dict, theta0: dict) -> None:
-    """Refuse, before anything is compiled, a model whose constraint solver reverse mode cannot differentiate."""
-    from jaxobs.mjx.common import constraint_rows, initial_data
-
-    if robot.solver_iterations is None and gradient_mode(settings(config), theta0) == "reverse":
-        rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
-        if rows:
-            raise ValueError(
-                f"robot.solver_iterations: the model has {rows} constraint rows (contacts, joint limits, equalities), "
-                "whose solver loop reverse mode cannot differentiate; set robot.solver_iterations >= 1 (e.g. 4) or "
-                "optimizer.gradient = 'forward'"
-            )
+                      solver_iterations=rb["solver_iterations"])  # fmt: skip
 
 
 def build_problem(config: dict) -> TuningProblem:
@@ -230,7 +216,6 @@ def build_problem(config: dict) -> TuningProblem:
     if d["parameterisation"] == "cholesky":
         Q0, R0 = covariances(hand_set)
         theta0 = {"q_cholesky": cholesky_parameters(Q0), "r_cholesky": cholesky_parameters(R0)}
-    _check_differentiable(robot, config, theta0)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
