@@ -12,9 +12,13 @@ the constraint solve is MJX's at the model's settings, differentiated implicitly
 from __future__ import annotations
 
 import jax
+import jax.extend
+import jax.flatten_util
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
+from jax.custom_derivatives import SymbolicZero, zero_from_primal
 from mujoco import mjx
 from mujoco.mjx._src import solver as mjx_solver  # its cost (Context): the gradient whose root is qacc
 
@@ -24,6 +28,10 @@ __all__ = [
     "put_model",
     "initial_data",
     "solve",
+    "STAGES",
+    "STATE_FIELDS",
+    "PASSED",
+    "JACOBIAN_MAX",
     "forward",
     "step",
     "constraint_rows",
@@ -96,26 +104,31 @@ def _hessian_solve(linear, rhs):
     return _linalg.cho_solve(_linalg.cholesky(hessian), rhs)
 
 
-def solve(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+def solve(model: mjx.Model, data: mjx.Data, solution=None) -> mjx.Data:
     """``mjx.solve`` (MJX's constraint solver: its ``while_loop`` at the model's ``opt.iterations`` and
     ``opt.tolerance``, warm-started from ``qacc_warmstart``) with implicit derivatives.
 
     The solve minimises a convex cost in ``qacc`` whose gradient ``g(qacc) = M qacc - qfrc_smooth - J' f(qacc)``
-    vanishes at the solution; by the implicit function theorem ``d qacc = -H^{-1} dg``, where ``dg`` is the
-    gradient's change with the inputs at fixed ``qacc`` and ``H = dg/dqacc = M + J' D J`` over the active rows
-    (plus the elliptic cone's curvature), MuJoCo's Newton Hessian. Tangents and cotangents therefore cost one
+    vanishes at the solution (Todorov 2014); by the implicit function theorem ``d qacc = -H^{-1} dg``, where ``dg``
+    is the gradient's change with the inputs at fixed ``qacc`` and ``H = dg/dqacc = M + J' D J`` over the active
+    rows (plus the elliptic cone's curvature), MuJoCo's Newton Hessian. Tangents and cotangents therefore cost one
     linear solve with ``H`` at the solution (``jax.lax.custom_root``: forward and reverse mode); the iterations
     and the warm start are not differentiated. The constraint forces ``efc_force`` and ``qfrc_constraint`` are the
-    solver's, with the derivatives of ``f`` at the solution.
+    solver's, with the derivatives of ``f`` at the solution; the three carry the ``jax.checkpoint`` name
+    ``"constraint_solve"`` (a policy that saves them spares a rematerialised step the solver's loop). ``solution``:
+    ``(qacc, efc_force, qfrc_constraint)`` of this very solve, computed before (it is then not run again).
     """
     gradient = _cost_gradient(model, data)
 
     def run(_, guess):
+        if solution is not None:
+            return solution[0], tuple(solution[1:])
         solved = mjx.solve(model, data)
         return solved.qacc, (solved._impl.efc_force, solved.qfrc_constraint)
 
     qacc, (efc_force, qfrc_constraint) = jax.lax.custom_root(gradient, data.qacc_smooth, run, _hessian_solve,
                                                              has_aux=True)  # fmt: skip
+    qacc, efc_force, qfrc_constraint = checkpoint_name((qacc, efc_force, qfrc_constraint), "constraint_solve")
     at = _constraint_context(model, data, qacc)  # values: the solver's; derivatives: those of f at the solution
     efc_force = efc_force + (at.efc_force - jax.lax.stop_gradient(at.efc_force))
     qfrc_constraint = qfrc_constraint + (at.qfrc_constraint - jax.lax.stop_gradient(at.qfrc_constraint))
@@ -129,19 +142,73 @@ def _fixed_solve(model: mjx.Model, data: mjx.Data, iterations: int) -> mjx.Data:
     return jax.lax.fori_loop(0, iterations - 1, lambda _, d: mjx.solve(one, d.replace(qacc_warmstart=d.qacc)), data)
 
 
-def forward(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
-    """``mjx.forward`` with the constraint solve of :func:`step`."""
+STAGES = (
+    ("kinematics", mjx.kinematics),
+    ("com_pos", mjx.com_pos),
+    ("camlight", mjx.camlight),
+    ("tendon", mjx.tendon),
+    ("crb", mjx.crb),
+    ("tendon_armature", mjx.tendon_armature),
+    ("factor_m", mjx.factor_m),
+    ("collision", mjx.collision),
+    ("make_constraint", mjx.make_constraint),
+    ("transmission", mjx.transmission),
+    ("sensor_pos", mjx.sensor_pos),
+    ("fwd_velocity", mjx.fwd_velocity),
+    ("sensor_vel", mjx.sensor_vel),
+    ("fwd_actuation", mjx.fwd_actuation),
+    ("fwd_acceleration", mjx.fwd_acceleration),
+)
+"""``mjx.forward``'s stages before the constraint solve, in its order: ``(name, fn(model, data) -> data)``. Each runs
+under ``jax.named_scope(name)`` (as do ``solve``, ``sensor_acc`` and ``integrator``), so a profile of a compiled
+step attributes its operations to them (benchmarks/mjx_stages.py)."""
+
+STATE_FIELDS = ("time", "qpos", "qvel", "act", "history", "qacc_warmstart", "plugin_state", "ctrl", "qfrc_applied",
+                "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata")  # fmt: skip
+"""The fields of ``mjx.Data`` a physics step reads (MuJoCo's full physics state, its controls and applied forces):
+it computes every other field."""
+
+PASSED = ("time", "ctrl", "qfrc_applied", "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata",
+          "plugin_state", "history")  # fmt: skip
+"""The :data:`STATE_FIELDS` a physics step leaves as they are (``time`` advances by a constant)."""
+
+JACOBIAN_MAX = 8
+"""Largest number of differentiated input entries for which :func:`step`'s reverse mode is one forward-mode
+Jacobian of the step (a ``vmap``-ed ``jax.jvp``) instead of JAX's transpose of it."""
+
+
+def forward(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None, *, solution=None) -> mjx.Data:
+    """``mjx.forward`` with the constraint solve of :func:`step` (``solution``: see :func:`solve`)."""
     solver_iterations = check_solver_iterations(solver_iterations)
-    data = mjx.fwd_position(model, data)
-    data = mjx.sensor_pos(model, data)
-    data = mjx.fwd_velocity(model, data)
-    data = mjx.sensor_vel(model, data)
-    data = mjx.fwd_actuation(model, data)
-    data = mjx.fwd_acceleration(model, data)
+    for name, stage in STAGES:
+        with jax.named_scope(name):
+            data = stage(model, data)
     if not constraint_rows(data):
         return data.replace(qacc=data.qacc_smooth)
-    data = solve(model, data) if solver_iterations is None else _fixed_solve(model, data, solver_iterations)
-    return mjx.sensor_acc(model, data)
+    with jax.named_scope("solve"):
+        if solver_iterations is None:
+            data = solve(model, data, solution)
+        else:
+            data = _fixed_solve(model, data, solver_iterations)
+    with jax.named_scope("sensor_acc"):
+        return mjx.sensor_acc(model, data)
+
+
+def _physics_step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None, solution=None) -> mjx.Data:
+    """:func:`forward`, then the model's integrator."""
+    integrator = mujoco.mjtIntegrator(int(model.opt.integrator))
+    if integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        stages = model if solver_iterations is None else model.replace(opt=model.opt.replace(iterations=1))
+        data = forward(model, data, solver_iterations, solution=solution)
+        with jax.named_scope("integrator"):
+            return mjx.rungekutta4(stages, data)
+    data = forward(model, data, solver_iterations, solution=solution)
+    with jax.named_scope("integrator"):
+        if integrator == mujoco.mjtIntegrator.mjINT_EULER:
+            return mjx.euler(model, data)
+        if integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+            return mjx.implicit(model, data)
+    raise ValueError(f"model: integrator {integrator.name} is not supported by MJX (Euler, RK4, implicitfast)")
 
 
 def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
@@ -154,18 +221,107 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
     through every iteration. A model without constraint rows takes the plain step either way. Euler and
     implicit-fast integrators; RK4 too, whose later stages run ``mjx.forward`` (a model with constraint rows: forward
     mode only, or a fixed ``K``).
+
+    Reverse mode (with None): when at most :data:`JACOBIAN_MAX` entries of the step's inputs (:data:`STATE_FIELDS`)
+    are differentiated and no model field is, the backward pass is the step's forward-mode Jacobian in those entries
+    (one ``vmap``-ed ``jax.jvp`` at the saved inputs and solver output, ``jax.lax.custom_linear_solve`` giving the
+    transpose) contracted with the cotangent: on a CPU it costs a fraction of JAX's transpose of the step, whose
+    backward program stores and pads hundreds of small arrays per step (benchmarks/mjx_stages.py). Otherwise JAX's
+    transpose. Forward mode is the step's own ``jax.jvp`` either way.
     """
     solver_iterations = check_solver_iterations(solver_iterations)
-    integrator = mujoco.mjtIntegrator(int(model.opt.integrator))
-    if integrator == mujoco.mjtIntegrator.mjINT_RK4:
-        stages = model if solver_iterations is None else model.replace(opt=model.opt.replace(iterations=1))
-        return mjx.rungekutta4(stages, forward(model, data, solver_iterations))
-    data = forward(model, data, solver_iterations)
-    if integrator == mujoco.mjtIntegrator.mjINT_EULER:
-        return mjx.euler(model, data)
-    if integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
-        return mjx.implicit(model, data)
-    raise ValueError(f"model: integrator {integrator.name} is not supported by MJX (Euler, RK4, implicitfast)")
+    if solver_iterations is None:
+        return _implicit_step(model, data)
+    return _physics_step(model, data, solver_iterations)
+
+
+@jax.custom_jvp
+def _implicit_step(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    return _physics_step(model, data, None)
+
+
+def _implicit_step_jvp(primals, tangents):
+    """The step's tangent; for at most :data:`JACOBIAN_MAX` differentiated state entries (the warm start aside: the
+    solve's derivative does not depend on it) and a model held fixed, :func:`_jacobian_tangent`. The fields the step
+    passes through (:data:`PASSED`) keep their tangents, symbolic zeros included, so that a rollout's later steps see
+    as few differentiated inputs as its first."""
+    model, data = primals
+    d_model, d_data = tangents
+    names = [name for name in STATE_FIELDS if name != "qacc_warmstart" and getattr(data, name).size
+             and jnp.issubdtype(getattr(data, name).dtype, jnp.floating)
+             and not _is_zero(getattr(d_data, name))]  # fmt: skip
+    moved = any(not _is_zero(t) for t in jax.tree.leaves(d_model, is_leaf=_is_zero))
+    if moved or not names or sum(getattr(data, name).size for name in names) > JACOBIAN_MAX:
+        dense = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype) if _is_zero(t) else t, tangents, is_leaf=_is_zero)
+        out, d_out = jax.jvp(lambda m, d: _physics_step(m, d, None), primals, dense)
+    else:
+        out = _physics_step(model, data, None)
+        d_out = _jacobian_tangent(model, data, out, {name: getattr(d_data, name) for name in names})
+    return out, d_out.replace(**{name: getattr(d_data, name) for name in PASSED})
+
+
+def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents: dict) -> mjx.Data:
+    """The tangent of the step ``data -> out`` for the tangents ``tangents`` of some of its state fields, as a
+    linear map (``jax.lax.custom_linear_solve``) whose transpose, reverse mode's backward pass, is the step's
+    forward-mode Jacobian in those entries (one ``vmap``-ed ``jax.jvp`` at the saved state and solver output)
+    contracted with the cotangent. Each output leaf's tangent depends, as the natural one, only on the inputs it
+    depends on (so that ``vmap`` batches it as it batches the output)."""
+    template = mjx.make_data(model).replace(**{name: getattr(data, name) for name in STATE_FIELDS})
+    solution = (out.qacc, out._impl.efc_force, out.qfrc_constraint) if constraint_rows(data) else None
+    paths, tree = jax.tree_util.tree_flatten_with_path(out)
+    candidates = [i for i, (path, x) in enumerate(paths)
+                  if x.size and jnp.issubdtype(x.dtype, jnp.floating) and path[0].name not in PASSED]  # fmt: skip
+
+    def outputs(inputs):
+        leaves = jax.tree.leaves(_physics_step(model, template.replace(**inputs), None, solution))
+        return [leaves[i] for i in candidates]
+
+    inputs = {name: getattr(data, name) for name in tangents}
+    moving = [(i, names) for i, names in zip(candidates, _dependence(outputs, inputs), strict=True) if names]
+    vector, unravel = jax.flatten_util.ravel_pytree(inputs)
+
+    def moved(v):
+        leaves = outputs(unravel(v))
+        return [leaves[candidates.index(i)] for i, _ in moving]
+
+    def apply(_, b):  # (t, 0, ...) -> (0, J t): one jvp
+        return jnp.zeros_like(b[0]), jax.jvp(moved, (vector,), (b[0],))[1]
+
+    def apply_transpose(_, c):  # (c_0, c_1, ...) -> (J' (c_1, ...), 0, ...): the Jacobian's columns, one vmap-ed jvp
+        columns = jax.vmap(lambda e: jax.jvp(moved, (vector,), (e,))[1])(jnp.eye(vector.size, dtype=vector.dtype))
+        products = [jnp.tensordot(col, ct, axes=ct.ndim) for col, ct in zip(columns, c[1], strict=True)]
+        return sum(products), [jnp.zeros_like(ct) for ct in c[1]]
+
+    flat = jax.flatten_util.ravel_pytree(tangents)[0]
+    zeros = [sum(0.0 * tangents[name].ravel()[0] for name in names) for _, names in moving]  # linear in the tangent
+    rhs = (flat, [jnp.broadcast_to(z, paths[i][1].shape).astype(paths[i][1].dtype)
+                  for z, (i, _) in zip(zeros, moving, strict=True)])  # fmt: skip
+    _, d_moving = jax.lax.custom_linear_solve(lambda b: b, rhs, apply, apply_transpose)
+    d_out = jax.tree.leaves(zero_from_primal(out))
+    for (i, _), t in zip(moving, d_moving, strict=True):
+        d_out[i] = t
+    return jax.tree.unflatten(tree, d_out)
+
+
+def _dependence(fn, inputs: dict) -> list[frozenset]:
+    """For each output of ``fn(inputs)`` (a list of arrays), the names of the ``inputs`` it depends on: data flow
+    through ``fn``'s jaxpr (an operation's outputs depend on all its inputs)."""
+    closed = jax.make_jaxpr(fn)(inputs)
+    names = [path[0].key for path, _ in jax.tree_util.tree_flatten_with_path(inputs)[0]]
+    depends = {var: frozenset([name]) for var, name in zip(closed.jaxpr.invars, names, strict=True)}
+    for eqn in closed.jaxpr.eqns:
+        used = [depends.get(v, frozenset()) for v in eqn.invars if not isinstance(v, jax.extend.core.Literal)]
+        for var in eqn.outvars:
+            depends[var] = frozenset().union(*used)
+    return [frozenset() if isinstance(v, jax.extend.core.Literal) else depends.get(v, frozenset())
+            for v in closed.jaxpr.outvars]  # fmt: skip
+
+
+def _is_zero(tangent) -> bool:
+    return isinstance(tangent, SymbolicZero)
+
+
+_implicit_step.defjvp(_implicit_step_jvp, symbolic_zeros=True)
 
 
 def dead_time_step(fifo: jax.Array, u_k: jax.Array, d: int):
