@@ -211,6 +211,10 @@ def _physics_step(model: mjx.Model, data: mjx.Data, solver_iterations: int | Non
     raise ValueError(f"model: integrator {integrator.name} is not supported by MJX (Euler, RK4, implicitfast)")
 
 
+_traced_step = jax.jit(_physics_step, static_argnums=2)
+""":func:`_physics_step` traced once per signature: the Jacobian rule evaluates it several times per trace."""
+
+
 def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
     """One physics step: ``mjx.step`` with a constraint solve that reverse mode differentiates.
 
@@ -237,7 +241,7 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
 
 @jax.custom_jvp
 def _implicit_step(model: mjx.Model, data: mjx.Data) -> mjx.Data:
-    return _physics_step(model, data, None)
+    return _traced_step(model, data, None)
 
 
 def _implicit_step_jvp(primals, tangents):
@@ -253,9 +257,9 @@ def _implicit_step_jvp(primals, tangents):
     moved = any(not _is_zero(t) for t in jax.tree.leaves(d_model, is_leaf=_is_zero))
     if moved or not names or sum(getattr(data, name).size for name in names) > JACOBIAN_MAX:
         dense = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype) if _is_zero(t) else t, tangents, is_leaf=_is_zero)
-        out, d_out = jax.jvp(lambda m, d: _physics_step(m, d, None), primals, dense)
+        out, d_out = jax.jvp(lambda m, d: _traced_step(m, d, None), primals, dense)
     else:
-        out = _physics_step(model, data, None)
+        out = _traced_step(model, data, None)
         d_out = _jacobian_tangent(model, data, out, {name: getattr(d_data, name) for name in names})
     return out, d_out.replace(**{name: getattr(d_data, name) for name in PASSED})
 
@@ -273,15 +277,18 @@ def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents:
                   if x.size and jnp.issubdtype(x.dtype, jnp.floating) and path[0].name not in PASSED]  # fmt: skip
 
     def outputs(inputs):
-        leaves = jax.tree.leaves(_physics_step(model, template.replace(**inputs), None, solution))
+        leaves = jax.tree.leaves(_traced_step(model, template.replace(**inputs), None, solution))
         return [leaves[i] for i in candidates]
 
     inputs = {name: getattr(data, name) for name in tangents}
-    moving = [(i, names) for i, names in zip(candidates, _dependence(outputs, inputs), strict=True) if names]
+    traced = jax.make_jaxpr(outputs)(inputs)  # traced once: evaluated again by the jvp's below, not retraced
+    keys = [path[0].key for path, _ in jax.tree_util.tree_flatten_with_path(inputs)[0]]
+    moving = [(i, names) for i, names in zip(candidates, _dependence(traced, keys), strict=True) if names]
     vector, unravel = jax.flatten_util.ravel_pytree(inputs)
+    step_outputs = jax.extend.core.jaxpr_as_fun(traced)
 
     def moved(v):
-        leaves = outputs(unravel(v))
+        leaves = step_outputs(*jax.tree.leaves(unravel(v)))
         return [leaves[candidates.index(i)] for i, _ in moving]
 
     def apply(_, b):  # (t, 0, ...) -> (0, J t): one jvp
@@ -303,18 +310,24 @@ def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents:
     return jax.tree.unflatten(tree, d_out)
 
 
-def _dependence(fn, inputs: dict) -> list[frozenset]:
-    """For each output of ``fn(inputs)`` (a list of arrays), the names of the ``inputs`` it depends on: data flow
-    through ``fn``'s jaxpr (an operation's outputs depend on all its inputs)."""
-    closed = jax.make_jaxpr(fn)(inputs)
-    names = [path[0].key for path, _ in jax.tree_util.tree_flatten_with_path(inputs)[0]]
-    depends = {var: frozenset([name]) for var, name in zip(closed.jaxpr.invars, names, strict=True)}
-    for eqn in closed.jaxpr.eqns:
-        used = [depends.get(v, frozenset()) for v in eqn.invars if not isinstance(v, jax.extend.core.Literal)]
-        for var in eqn.outvars:
-            depends[var] = frozenset().union(*used)
-    return [frozenset() if isinstance(v, jax.extend.core.Literal) else depends.get(v, frozenset())
-            for v in closed.jaxpr.outvars]  # fmt: skip
+def _dependence(traced, names: list) -> list[frozenset]:
+    """For each output of the closed jaxpr ``traced``, the ``names`` of its inputs it depends on: data flow through
+    the jaxpr and the ``jit`` calls in it (any other operation's outputs depend on all its inputs)."""
+    return _flow(traced.jaxpr, [frozenset([name]) for name in names])
+
+
+def _flow(jaxpr, inputs: list) -> list[frozenset]:
+    """The dependence sets of ``jaxpr``'s outputs given those of its inputs (see :func:`_dependence`)."""
+    literal = jax.extend.core.Literal
+    depends = dict(zip(jaxpr.invars, inputs, strict=True))
+    for eqn in jaxpr.eqns:
+        used = [frozenset() if isinstance(v, literal) else depends.get(v, frozenset()) for v in eqn.invars]
+        if eqn.primitive.name == "jit":
+            outs = _flow(eqn.params["jaxpr"].jaxpr, used)
+        else:
+            outs = [frozenset().union(*used)] * len(eqn.outvars)
+        depends.update(zip(eqn.outvars, outs, strict=True))
+    return [frozenset() if isinstance(v, literal) else depends.get(v, frozenset()) for v in jaxpr.outvars]
 
 
 def _is_zero(tangent) -> bool:

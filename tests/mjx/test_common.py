@@ -139,6 +139,70 @@ def test_elliptic_cone_and_vmap(tight):
     np.testing.assert_allclose(batched, looped, rtol=1e-12)
 
 
+def test_a_step_reads_only_its_state_fields_and_passes_some_through(arm):
+    """The premise of the Jacobian rule: a step's output depends on ``STATE_FIELDS`` only (JAX's own vjp gives every
+    other field of the input a zero cotangent, but for those MJX does not write here, which the output copies) and
+    leaves the ``PASSED`` ones as they are (time advanced by dt)."""
+    _, model = arm
+    data = common.initial_data(model, jnp.float64).replace(qpos=jnp.array([-0.77, 0.0]), ctrl=TORQUE)
+    data = common.step(model, data)  # every computed field filled in
+    saved, common.JACOBIAN_MAX = common.JACOBIAN_MAX, 0
+    try:
+        out, pullback = jax.vjp(lambda d: common.step(model, d), data)
+        ones = jax.tree.map(lambda x: jnp.ones_like(x) if jnp.issubdtype(x.dtype, jnp.floating) else None, out)
+        cotangent = pullback(jax.tree.map(lambda x, o: o if o is not None else np.zeros(x.shape, jax.dtypes.float0),
+                                          out, ones))[0]  # fmt: skip
+    finally:
+        common.JACOBIAN_MAX = saved
+    unwritten = []
+    for (path, leaf), before, after in zip(jax.tree_util.tree_flatten_with_path(cotangent)[0],
+                                           jax.tree.leaves(data), jax.tree.leaves(out), strict=True):  # fmt: skip
+        if path[0].name not in common.STATE_FIELDS and leaf.dtype != jax.dtypes.float0 and np.any(np.asarray(leaf)):
+            np.testing.assert_array_equal(after, before)  # a field MJX never writes (qfrc_fluid): identity, no physics
+            np.testing.assert_array_equal(leaf, 1.0)
+            unwritten.append(path[0].name)
+    assert set(unwritten) == {"qfrc_fluid", "qfrc_inverse", "_impl"}  # _impl: cacc, cfrc_int, ... (no sensor uses them)
+    assert np.any(np.asarray(cotangent.qpos)) and np.any(np.asarray(cotangent.ctrl))
+    for name in common.PASSED:
+        if name != "time":
+            np.testing.assert_array_equal(getattr(out, name), getattr(data, name))
+    assert float(out.time - data.time) == pytest.approx(float(model.opt.timestep))
+
+
+def test_jacobian_rule_equals_jax_transpose_and_forward_mode():
+    """The 1-DOF plant (3 differentiated entries per step: the Jacobian rule): reverse mode equals JAX's transpose of
+    the step and forward mode, under ``vmap`` over plants (equal to the loop) and with a model field differentiated
+    (the rule steps aside)."""
+    from jaxobs.mjx import force_1dof
+
+    model = force_1dof.load_model()[1]
+
+    def loss(theta, scale):
+        plant = model.replace(dof_damping=model.dof_damping * scale)
+        data = common.initial_data(plant, jnp.float64).replace(qpos=theta[:1], qvel=theta[1:2])
+
+        def body(d, _):
+            d = common.step(plant, d.replace(ctrl=theta[2:]))
+            return d, d.qpos[0]
+
+        return jnp.sum(jax.lax.scan(body, data, None, length=30)[1] ** 2)
+
+    theta = jnp.array([[0.3, -1.0, 2.0], [0.1, 0.5, -1.0]])
+    rule = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(theta, 1.0)
+    saved, common.JACOBIAN_MAX = common.JACOBIAN_MAX, 0
+    try:
+        transposed = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(theta, 1.0)
+    finally:
+        common.JACOBIAN_MAX = saved
+    forward = jax.jit(jax.vmap(jax.jacfwd(loss), in_axes=(0, None)))(theta, 1.0)
+    np.testing.assert_allclose(rule, transposed, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(rule, forward, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(rule[1], jax.jit(jax.grad(loss))(theta[1], 1.0), rtol=1e-13)
+    both = jax.jit(jax.grad(loss, argnums=(0, 1)))(theta[0], 1.0)
+    np.testing.assert_allclose(both[0], rule[0], rtol=1e-12)
+    np.testing.assert_allclose(both[1], jax.jit(jax.jacfwd(loss, argnums=1))(theta[0], 1.0), rtol=1e-10)
+
+
 def test_solver_iterations_zero_is_none_and_bad_ones_are_refused(arm):
     _, model = arm
     assert common.check_solver_iterations(0) is None and common.check_solver_iterations(None) is None
