@@ -1,7 +1,7 @@
 """Gradients through MJX's constraint solver, differentiated implicitly (``jaxobs.mjx.common.step``), against central
 differences, on segments with and without contact changes.
 
-The shipped arm on a table (``examples/robots/arm_on_table.xml``, its solver set to 50 iterations and a tolerance of
+The shipped arm on a table (``jaxobs/mjx/assets/arm_on_table.xml``, its solver set to 50 iterations and a tolerance of
 1e-10 so that the solve is exact to rounding), under a constant torque ``gain * (-3.5, -0.6)`` N m:
 
 * ``impact``: 0.8 s from rest: the hand strikes the wall after about 0.37 s and slides on it, the contact rows
@@ -32,8 +32,8 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxobs.mjx import common  # noqa: E402
+from jaxobs.papers.shipped import ROBOTS  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
 TORQUE = jnp.array([-3.5, -0.6])
 SEGMENTS = {  # name: (initial qpos, torque at gain 1, physics steps)
     "impact": (jnp.zeros(2), TORQUE, 160),
@@ -44,7 +44,7 @@ STEPS_FD = (1e-3, 1e-5, 1e-7)
 
 
 def arm_model():
-    xml = (ROOT / "examples" / "robots" / "arm_on_table.xml").read_text()
+    xml = (ROBOTS / "arm_on_table.xml").read_text()
     xml = xml.replace('iterations="20"', 'iterations="50" tolerance="1e-10"')
     return common.put_model(mujoco.MjModel.from_xml_string(xml))
 

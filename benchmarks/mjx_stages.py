@@ -69,7 +69,6 @@ import numpy as np  # noqa: E402
 
 from jaxobs.mjx import common  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
 MJX_TEST_DATA = Path(mujoco.__file__).parent / "mjx" / "test_data"
 GROUPS = {
     "kinematics": "kinematics",
@@ -105,8 +104,8 @@ def _mujoco_defaults(mj: mujoco.MjModel) -> mujoco.MjModel:
 def load_models(names=None) -> dict:
     """``{label: (MjModel, qpos the batch is spread around or None)}``."""
     from jaxobs.mjx import compliant_6dof, force_1dof
+    from jaxobs.papers.shipped import ROBOTS as robots
 
-    robots = ROOT / "examples" / "robots"
     loaders = {
         "1-DOF force plant": lambda: force_1dof.load_model()[0],
         "6-DOF compliant peg": lambda: compliant_6dof.load_model()[0],

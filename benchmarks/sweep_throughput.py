@@ -24,10 +24,9 @@ and [min, max] over the rounds.
 Device scaling reruns the jaxobs measurement in subprocesses with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=D`` for two workloads, each through the sweep engine's
 compiled, sharded step (``jaxobs.sweep``; Parquet writing excluded), ``--rounds`` timed passes per subprocess
-(compiled once): the default evaluation, which the engine computes on one CPU device whatever D (it calls
-jaxlib's batched LAPACK kernels, which can deadlock several CPU devices), and its LAPACK-free closed-loop
-simulation alone (true plants from a table discretised beforehand), which shards over the D devices. Forced
-host devices share the machine's cores, so more devices than cores cannot help; the subprocesses run one
+(compiled once): the default evaluation (its LAPACK calls in the blocks of ``jaxobs.batching``) and its
+closed-loop simulation alone (true plants from a table discretised beforehand), both sharded over the D devices.
+Forced host devices share the machine's cores, so more devices than cores cannot help; the subprocesses run one
 after the other (not interleaved).
 
     python benchmarks/sweep_throughput.py --out DIR [--configs 2000] [--rounds 7] [--peer-margin-configs 40]
@@ -99,9 +98,8 @@ def prepare_jaxobs(config: dict, configs: int, margins: bool = True):
 
 
 def _simulation_only(config: dict):
-    """A LAPACK-free workload for the device scaling: the default sweep's 2500-step closed loop and RMS force
-    error, with the true plants drawn from a table discretised beforehand (the full evaluation's ``c2d`` and
-    eigenvalues call LAPACK kernels, which make the engine compute on one CPU device; see ``jaxobs.sweep``)."""
+    """The default sweep's 2500-step closed loop and RMS force error alone, with the true plants drawn from a table
+    discretised beforehand: the workload without the LAPACK calls (``c2d``, eigenvalues) and margins."""
     sampler, _, _, designs = fr.make_sweep(config)
     n_delay, closed_loop = fr._timing(config)[1], fr.tracking(config)
     params = jax.vmap(lambda i: sampler(config_key(0, i), i))(jnp.arange(PLANT_TABLE))
@@ -140,7 +138,8 @@ def engine_rate(configs: int, chunk: int, workload: str, rounds: int) -> dict:
         return evaluate(sampler(config_key(0, index), index))
 
     start = time.perf_counter()
-    compiled, sharding, devices = _compile(row, jax.devices(), chunk)
+    devices = jax.devices()
+    compiled, sharding = _compile(row, devices, chunk)
     compile_s = time.perf_counter() - start
     per_call = len(devices) * chunk
     batches = [np.arange(s, s + per_call, dtype=np.int32) % configs for s in range(0, configs, per_call)]

@@ -1,19 +1,17 @@
 """What the jobs (``jaxobs.sweep``, ``jaxobs.tuning``) need to run in several processes on JAX's distributed runtime
-(``jax.distributed.initialize``), and on several CPU devices of one process.
+(``jax.distributed.initialize``).
 
 :func:`join` joins a run in bounded time (a malformed coordinator address is an error before anything starts);
 :func:`agree` stops every process with the same error when one cannot run the job; :func:`from_process_0` and
-:func:`json_from_process_0` give every process process 0's value; :func:`lapack_guard` runs programs with jaxlib's
-blocking LAPACK kernels on one CPU device per process. All are no-ops (or the identity) in a single process.
+:func:`json_from_process_0` give every process process 0's value. All are no-ops (or the identity) in a single
+process.
 Details: the "Jobs" page of the design notes (docs/theory/jobs.md).
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import math
-import re
 import threading
 from collections.abc import Callable
 
@@ -21,10 +19,7 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-__all__ = ["DEFAULT_JOIN_TIMEOUT", "coordinator_address", "join", "agree", "from_process_0", "json_from_process_0",
-           "lapack_guard"]  # fmt: skip
-
-_BLOCKING_LAPACK = re.compile(r'custom_call_target="lapack_(?!\w*trsm)\w+"')
+__all__ = ["DEFAULT_JOIN_TIMEOUT", "coordinator_address", "join", "agree", "from_process_0", "json_from_process_0"]
 
 
 DEFAULT_JOIN_TIMEOUT = 60.0
@@ -127,21 +122,3 @@ def json_from_process_0(value):
     data = np.frombuffer(json.dumps(value).encode(), np.uint8) if jax.process_index() == 0 else np.zeros(0, np.uint8)
     size = int(from_process_0(np.int64(data.size)))
     return json.loads(from_process_0(np.resize(data, size)).tobytes().decode())
-
-
-def lapack_guard(compiled, devices: list, log: logging.Logger) -> list | None:
-    """One device per process instead of ``devices`` when ``compiled`` (a program over all of ``devices``) runs
-    on several CPU devices of a process and calls jaxlib's blocking LAPACK kernels (logged on ``log``); None
-    when ``devices`` are fine."""
-    one_per_process = [next(d for d in devices if d.process_index == p) for p in range(jax.process_count())]
-    if len(devices) == len(one_per_process) or devices[0].platform != "cpu":
-        return None
-    kernels = sorted(set(_BLOCKING_LAPACK.findall(compiled.as_text())))
-    if not kernels:
-        return None
-    log.warning(
-        "the computation calls jaxlib's batched CPU LAPACK kernels (%s), which can deadlock when several CPU "
-        "devices run them at once; computing on %d device(s), one per process, instead of %d",
-        ", ".join(k.split('"')[1] for k in kernels), len(one_per_process), len(devices),
-    )  # fmt: skip
-    return one_per_process

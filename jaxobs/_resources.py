@@ -2,19 +2,25 @@
 output directory held by one process at a time, atomic writes, and enough memory.
 
 :func:`locked_out_dir` (a re-entrant ``flock`` on ``.jaxobs.lock``), :func:`atomic_write`, :func:`check_memory`,
-:func:`program_nbytes` and :func:`compile_checked` (XLA's memory estimate checked before a program runs), and
-:class:`InterruptWatch` (Ctrl-C noted even when its ``KeyboardInterrupt`` was lost). POSIX only (``fcntl``).
+:func:`program_nbytes` and :func:`compile_checked` (XLA's memory estimate checked before a program runs),
+:class:`InterruptWatch` (Ctrl-C noted even when its ``KeyboardInterrupt`` was lost) and :class:`StallWatch` (a
+computation that makes no progress reported, never waited on forever). POSIX only (``fcntl``).
 Details: docs/theory/jobs.md.
 """
 
 from __future__ import annotations
 
+import atexit
+import collections
 import contextlib
 import fcntl
+import logging
 import os
 import secrets
 import signal
+import sys
 import threading
+import time
 from pathlib import Path
 
 from jaxobs._checks import MAX_INDEX
@@ -25,6 +31,8 @@ __all__ = [
     "MAX_INDEX",
     "Interrupted",
     "InterruptWatch",
+    "Stalled",
+    "StallWatch",
     "LOCK_NAME",
     "locked_out_dir",
     "atomic_write",
@@ -56,6 +64,11 @@ class LimitError(JobError):
 
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C during a resumable job; the message says where it stopped and how to resume."""
+
+
+class Stalled(JobError):
+    """A job's computation made no progress within the :class:`StallWatch` bound: the message says which, how long,
+    and what to do. The process's JAX runtime stays blocked: the interpreter is ended with ``os._exit`` at exit."""
 
 
 _FINALISERS = frozenset({"_xla_gc_callback", "__del__"})
@@ -286,3 +299,118 @@ def compile_checked(lowered, what: str, hint: str = ""):
     compiled = lowered.compile()
     check_memory(program_nbytes(compiled), what, device=jax.local_devices()[0], hint=hint)
     return compiled
+
+
+_log = logging.getLogger(__name__)
+
+
+class StallWatch:
+    """Reports a job's computation that makes no progress instead of waiting on it forever.
+
+    ``with StallWatch(what, hint, cpu=...) as watch:`` starts a monitor thread; each blocking wait of the job runs
+    in ``with watch.waiting(label, program):``. A wait is stalled when
+
+    * on CPU devices (``cpu=True``), the process used less than 2 % of one core over the last
+      :attr:`IDLE_SECONDS` (a deadlocked runtime, e.g. jaxlib's batched LAPACK kernels of
+      :mod:`jaxobs.batching`, leaves every thread waiting), or
+    * it has lasted more than :attr:`FACTOR` times the slowest completed wait of the same ``program`` (and at
+      least :attr:`MIN_SECONDS`). A program's first wait has no time bound: it may include its compilation.
+
+    Then the monitor logs an error naming ``label`` and interrupts the main thread: the wait raises
+    :class:`Stalled` (message: the stall, its bound and ``hint``). A deadlocked runtime cannot be stopped, and
+    would keep the interpreter from exiting: if ``pending`` (the arrays the wait is for) are not ready at exit, the
+    process ends with ``os._exit(1)`` once the exit handlers before this one have run.
+    """
+
+    POLL_SECONDS = 0.5
+    IDLE_SHARE = 0.02
+    IDLE_SECONDS = 60.0
+    FACTOR = 20.0
+    MIN_SECONDS = 60.0
+
+    def __init__(self, what: str, hint: str, *, cpu: bool):
+        self.what, self.hint, self.cpu = what, hint, cpu
+        self.idle_seconds, self.factor, self.min_seconds = self.IDLE_SECONDS, self.FACTOR, self.MIN_SECONDS
+        self.slowest: dict = {}  # program -> seconds of its slowest completed wait
+        self._lock, self._stop = threading.Lock(), threading.Event()
+        self._wait: dict | None = None
+        self._thread: threading.Thread | None = None
+        self.message = ""
+
+    def __enter__(self) -> StallWatch:
+        self._thread = threading.Thread(target=self._monitor, name="jaxobs-stall-watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._stop.set()
+
+    def bound(self, program="") -> float | None:
+        """Seconds after which a wait of ``program`` is stalled whatever the CPU does (None: no bound yet)."""
+        slowest = self.slowest.get(program)
+        return None if slowest is None else max(self.min_seconds, self.factor * slowest)
+
+    @contextlib.contextmanager
+    def waiting(self, label: str, program=""):
+        """Watch the ``with`` block (one blocking computation of ``program``, any hashable key; ``label`` names the
+        wait); yields a dict where the block puts its ``"pending"`` arrays (checked at exit after a stall)."""
+        wait = {"label": label, "program": program, "start": time.perf_counter(), "cpu": collections.deque(),
+                "pending": None, "fired": False}  # fmt: skip
+        with self._lock:
+            self._wait = wait
+        try:
+            yield wait
+        except BaseException:  # the interrupt, or what it became inside JAX (an error of a host callback)
+            if wait["fired"]:
+                raise Stalled(self.message) from None
+            raise
+        finally:
+            with self._lock:
+                self._wait = None
+        if wait["fired"]:  # fired as the computation ended: its interrupt may still be pending
+            raise Stalled(self.message)
+        self.slowest[program] = max(self.slowest.get(program, 0.0), time.perf_counter() - wait["start"])
+
+    def _stalled(self, wait: dict, now: float) -> str | None:
+        """Why ``wait`` counts as stalled at ``now``, or None."""
+        elapsed = now - wait["start"]
+        samples = wait["cpu"]
+        samples.append((now, time.process_time()))
+        while len(samples) > 1 and samples[1][0] <= now - self.idle_seconds:
+            samples.popleft()
+        if self.cpu and elapsed >= self.idle_seconds and samples[0][0] <= now - self.idle_seconds:
+            used = samples[-1][1] - samples[0][1]
+            if used < self.IDLE_SHARE * (now - samples[0][0]):
+                return f"the CPU stayed idle ({used:.2f} s of CPU in the last {now - samples[0][0]:.0f} s)"
+        bound = self.bound(wait["program"])
+        if bound is not None and elapsed > bound:
+            return f"it has run {elapsed:.3g} s, over {self.factor:g}x the slowest step so far ({bound:.3g} s)"
+        return None
+
+    def _monitor(self) -> None:
+        while not self._stop.wait(self.POLL_SECONDS):
+            with self._lock:
+                wait = self._wait
+                why = None if wait is None or wait["fired"] else self._stalled(wait, time.perf_counter())
+                if why is None:
+                    continue
+                wait["fired"] = True
+                self.message = (
+                    f"{self.what}: {wait['label']} made no progress ({why}); it is left running, and this "
+                    f"process is ended at exit if it has not finished by then; {self.hint}"
+                )
+                _log.error("%s", self.message)
+                atexit.register(_exit_if_pending, wait)
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # wakes a blocking call too
+
+
+def _exit_if_pending(wait: dict) -> None:
+    """At exit after a stall: end the process at once if the stalled computation never finished (the runtime's
+    own clean-up would wait on it forever)."""
+    import jax
+
+    pending = [leaf for leaf in jax.tree.leaves(wait["pending"]) if hasattr(leaf, "is_ready")]
+    if wait["pending"] is None or not all(leaf.is_ready() for leaf in pending):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(1)

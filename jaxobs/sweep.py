@@ -2,7 +2,8 @@
 
 :func:`run_sweep` evaluates ``num_configs`` configurations, configuration ``i`` sampled from its own key
 :func:`config_key` ``(seed, i)``, so every number depends only on ``(seed, i)``: never on the chunk size, the device
-count or an interruption. ``vmap`` over a chunk per device inside ``jax.shard_map``; chunks written atomically to
+count or an interruption (up to the rounding of sums, which XLA may order differently for another batch or device
+count). ``vmap`` over a chunk per device inside ``jax.shard_map``; chunks written atomically to
 ``out_dir/chunks/*.parquet`` with a checksummed manifest; a rerun resumes, a different sweep is refused
 (:class:`SweepError`); several processes run one sweep after ``jax.distributed.initialize``. :func:`load_results`
 reads the columns. How it runs, the output format and resuming: docs/theory/jobs.md and docs/guides/sweeps.md.
@@ -33,7 +34,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from jaxobs._distributed import agree, from_process_0, lapack_guard
+from jaxobs._distributed import agree, from_process_0
 from jaxobs._jit import Compiling
 from jaxobs._resources import (
     MAX_INDEX,
@@ -41,11 +42,13 @@ from jaxobs._resources import (
     InterruptWatch,
     JobError,
     LimitError,
+    StallWatch,
     atomic_write,
     check_memory,
     locked_out_dir,
     program_nbytes,
 )
+from jaxobs.batching import lapack_calls, safe_vmap
 
 __all__ = [
     "SweepError",
@@ -228,23 +231,27 @@ def _check_args(sampler, evaluate, num_configs, chunk_size, seed, config) -> Non
         raise ValueError(f"config must be a JSON-serialisable dict (it is stored in the manifest): {e}") from e
 
 
-def _compile(row, devices, chunk_size: int):
-    """``(compiled step, input sharding, devices used)`` for ``vmap(row)`` over one chunk per device.
+def _log_blocks(row, chunk_size: int) -> None:
+    """Say (INFO) which LAPACK calls of a chunk run in blocks (:func:`jaxobs.batching.safe_vmap`)."""
+    if jax.default_backend() != "cpu":
+        return
+    calls = lapack_calls(jax.vmap(row), jax.ShapeDtypeStruct((chunk_size,), jnp.int32))
+    over = sorted({f"{name} of {shape[-2]}x{shape[-1]} in blocks of {bound}" for name, shape, bound in calls
+                   if math.prod(shape[:-2]) > bound})  # fmt: skip
+    if over:
+        _log.info("LAPACK calls of a chunk done in blocks, on one thread each (jaxobs.batching): %s", "; ".join(over))
 
-    On CPU, a program with blocking LAPACK kernels is run on one device per process instead
-    (:func:`jaxobs._distributed.lapack_guard`).
-    """
-    while True:
-        mesh = Mesh(np.array(devices), ("configs",))
-        sharding = NamedSharding(mesh, PartitionSpec("configs"))
-        spec = PartitionSpec("configs")  # check_vma=False: scans may start from constant carries
-        step = jax.shard_map(jax.vmap(row), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
-        batch = jax.ShapeDtypeStruct((len(devices) * chunk_size,), jnp.int32, sharding=sharding)
-        compiled = jax.jit(step).lower(batch).compile()
-        fewer = lapack_guard(compiled, devices, _log)
-        if fewer is None:
-            return compiled, sharding, devices
-        devices = fewer
+
+def _compile(row, devices, chunk_size: int):
+    """``(compiled step, input sharding)`` for ``vmap(row)`` over one chunk per device, in blocks that keep CPU
+    LAPACK kernels on their sequential path (:func:`jaxobs.batching.safe_vmap`)."""
+    mesh = Mesh(np.array(devices), ("configs",))
+    sharding = NamedSharding(mesh, PartitionSpec("configs"))
+    spec = PartitionSpec("configs")  # check_vma=False: scans may start from constant carries
+    _log_blocks(row, chunk_size)
+    step = jax.shard_map(safe_vmap(row), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+    batch = jax.ShapeDtypeStruct((len(devices) * chunk_size,), jnp.int32, sharding=sharding)
+    return jax.jit(step).lower(batch).compile(), sharding
 
 
 def _row(sampler, evaluate, seed: int):
@@ -268,6 +275,19 @@ def _row(sampler, evaluate, seed: int):
     if len(set(names)) != len(names):
         raise ValueError(f"column names collide (rename pytree keys): {names}")
     return row, layout
+
+
+def _compute(compiled, sharding, group: list[int], ndev: int, chunk_size: int, num_configs: int, stall) -> list:
+    """The output leaves, shaped (devices, chunk_size, -1), of the chunks ``group`` (one per device; the last
+    repeated to fill them), computed under the :class:`jaxobs._resources.StallWatch` ``stall``."""
+    padded = group + group[-1:] * (ndev - len(group))
+    starts = np.repeat(np.array(padded) * chunk_size, chunk_size) + np.tile(np.arange(chunk_size), ndev)
+    indices = np.minimum(starts, num_configs - 1).astype(np.int32)  # each process places its devices' part
+    with stall.waiting(f"chunk(s) {', '.join(map(str, group))}") as wait:
+        outputs = wait["pending"] = compiled(jax.make_array_from_callback(indices.shape, sharding, indices.__getitem__))
+        if jax.process_count() > 1:
+            outputs = multihost_utils.process_allgather(outputs, tiled=True)
+        return [np.asarray(x).reshape(ndev, chunk_size, -1) for x in jax.tree_util.tree_leaves(outputs)]
 
 
 def _row_nbytes(layout) -> int:
@@ -362,7 +382,12 @@ def run_sweep(
     Raises ``ValueError`` for bad arguments or a bad evaluation (checked with ``jax.eval_shape`` before any file
     is written), :class:`SweepError` (a ``ValueError``) for a different sweep in ``out_dir``,
     :class:`jaxobs._resources.JobError` (a ``ValueError``) for an unwritable or locked ``out_dir`` or a step
-    that cannot fit in memory, and :class:`jaxobs._resources.Interrupted` on Ctrl-C.
+    that cannot fit in memory, :class:`jaxobs._resources.Interrupted` on Ctrl-C, and
+    :class:`jaxobs._resources.Stalled` (a ``JobError``) for a chunk that makes no progress (its CPU idle for a
+    minute, or 20 times slower than the slowest chunk before it): the chunks written so far are kept.
+
+    Each chunk runs in blocks that keep jaxlib's CPU LAPACK kernels on their sequential path
+    (:func:`jaxobs.batching.safe_vmap`): the same numbers, without the deadlock those kernels can cause.
     """
     _check_args(sampler, evaluate, num_configs, chunk_size, seed, config)
     num_configs, chunk_size, seed = int(num_configs), int(chunk_size), int(seed)
@@ -411,7 +436,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     if todo.any():  # compile and size the step before writing anything
         what = f"the sweep step ({chunk_size} configurations per device, {len(devices)} device(s))"
         with Compiling(_log, what) as timer:
-            compiled, sharding, devices = _compile(row, devices, chunk_size)
+            compiled, sharding = _compile(row, devices, chunk_size)
         compile_seconds = compiled_now = timer.seconds
         try:
             _check_step_memory(compiled, devices, chunk_size, _row_nbytes(layout))
@@ -438,6 +463,10 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     previous_seconds = manifest["seconds"]
     done_chunks, computed_rows, compute_seconds = num_chunks - int(todo.sum()), 0, 0.0
     bar, ndev = None, len(devices)
+    stall = held.enter_context(StallWatch(
+        f"the sweep in {out_dir}", "rerun with a smaller chunk_size, or with NPROC=1 in the environment (one XLA "
+        "intra-op thread); finished chunks are kept", cpu=devices[0].platform == "cpu",
+    ))  # fmt: skip
     try:
         if writer:
             if overwrite:
@@ -454,13 +483,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
             watch.check()
             t0 = time.perf_counter()
             group = todo_chunks[first : first + ndev]
-            padded = group + group[-1:] * (ndev - len(group))  # one chunk per device
-            starts = np.repeat(np.array(padded) * chunk_size, chunk_size) + np.tile(np.arange(chunk_size), ndev)
-            indices = np.minimum(starts, num_configs - 1).astype(np.int32)  # each process places its devices' part
-            outputs = compiled(jax.make_array_from_callback(indices.shape, sharding, indices.__getitem__))
-            if jax.process_count() > 1:
-                outputs = multihost_utils.process_allgather(outputs, tiled=True)
-            leaves = [np.asarray(x).reshape(ndev, chunk_size, -1) for x in jax.tree_util.tree_leaves(outputs)]
+            leaves = _compute(compiled, sharding, group, ndev, chunk_size, num_configs, stall)
             for j, chunk in enumerate(group):
                 rows = min(chunk_size, num_configs - chunk * chunk_size)
                 if writer:

@@ -31,9 +31,10 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxobs import _checks
-from jaxobs._distributed import agree, from_process_0, json_from_process_0, lapack_guard
+from jaxobs._distributed import agree, from_process_0, json_from_process_0
 from jaxobs._jit import Compiling
-from jaxobs._resources import Interrupted, InterruptWatch, compile_checked, temporary_path
+from jaxobs._resources import Interrupted, InterruptWatch, Stalled, StallWatch, compile_checked, temporary_path
+from jaxobs.batching import safe_vmap
 
 __all__ = [
     "cholesky_covariance",
@@ -452,25 +453,36 @@ def _host(tree):
 
 def _compile_spread(build: Callable, batch, theta, what: str, hint: str, alone=None):
     """``(compiled, placed batch, mesh, seconds)``: ``build(mesh) -> fn(theta, batch)`` compiled over every device
-    of every process (:func:`_jit`, memory checked by :func:`jaxobs._resources.compile_checked`), or over one device
-    per process when the program calls blocking CPU LAPACK kernels (:func:`jaxobs._distributed.lapack_guard`), in
-    ``seconds`` (logged at INFO level). ``alone``: the program already lowered for a single device, used when there
-    is one."""
-    devices = jax.devices()
+    of every process (:func:`_jit`, memory checked by :func:`jaxobs._resources.compile_checked`), in ``seconds``
+    (logged at INFO level). ``alone``: the program already lowered for a single device, used when there is one."""
+    mesh = _mesh(jax.devices())
+    placed = _place(batch, mesh)
     with Compiling(logger, what) as timer:
-        while True:
-            mesh = _mesh(devices)
-            placed = _place(batch, mesh)
-            if mesh is None and alone is not None:
-                lowered = alone
-            else:
-                lowered = _jit(build(mesh), mesh, (False, True)).lower(_host(theta), placed)
-            compiled = compile_checked(lowered, what, hint=hint)
-            fewer = lapack_guard(compiled, devices, logger)
-            if fewer is None:
-                break
-            devices = fewer
+        if mesh is None and alone is not None:
+            lowered = alone
+        else:
+            lowered = _jit(build(mesh), mesh, (False, True)).lower(_host(theta), placed)
+        compiled = compile_checked(lowered, what, hint=hint)
     return compiled, placed, mesh, timer.seconds
+
+
+_STALL_HINT = (
+    "use fewer training plants, starts or screening candidates, or set NPROC=1 in the environment (one XLA "
+    "intra-op thread); a checkpoint keeps the accepted steps"
+)
+
+
+def _stall_watch(what: str) -> StallWatch:
+    """The :class:`jaxobs._resources.StallWatch` of a tuning job's computations."""
+    return StallWatch(what, _STALL_HINT, cpu=jax.devices()[0].platform == "cpu")
+
+
+def _watched(stall: StallWatch, label: str, fn: Callable, *args):
+    """``fn(*args)`` (a computation, compiled or compiled on its first call) brought to the host under ``stall``'s
+    watch."""
+    with stall.waiting(label, program=id(fn)) as wait:
+        wait["pending"] = fn(*args)
+        return _host(wait["pending"])
 
 
 def gradient_mode(settings: TuneSettings, theta: dict) -> str:
@@ -501,8 +513,8 @@ def _evaluations(problem: TuningProblem, settings: TuneSettings, mesh: Mesh | No
         sound = jax.tree.map(lambda x: x[keep], batch)
         return value_and_grad(lambda th: objective(th, sound, failed), mode)(theta)[1]
 
-    starts = jax.vmap(evaluation, in_axes=(0, None))
-    return starts, (jax.vmap(sound_gradient, in_axes=(0, None, 0)) if mode == "reverse" else None)
+    starts = safe_vmap(evaluation, in_axes=(0, None))
+    return starts, (safe_vmap(sound_gradient, in_axes=(0, None, 0)) if mode == "reverse" else None)
 
 
 def _lower_gradient(evaluation: Callable, theta, batch, mode: str):
@@ -513,10 +525,9 @@ def _lower_gradient(evaluation: Callable, theta, batch, mode: str):
     except ValueError as exc:
         if mode == "reverse" and "Reverse-mode differentiation does not work for lax.while_loop" in str(exc):
             raise TuningError(
-                "reverse mode cannot differentiate a while loop in the rollouts (MJX's constraint solver, for a model "
-                "with contacts, joint limits or equalities): give the solver a fixed iteration count (the robot's "
-                'solver_iterations, see jaxobs.mjx.common.step) or the model <option iterations="1">, or tune '
-                "with gradient = 'forward'"
+                "reverse mode cannot differentiate a while loop in the rollouts: give the loop a fixed count or a "
+                "custom derivative (as jaxobs.mjx.common.solve does for MJX's constraint solver), or tune with "
+                "gradient = 'forward'"
             ) from None
         raise
 
@@ -709,7 +720,7 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
     size = problem.batch_size(problem.train)
     chunk = {k: np.repeat(np.asarray(v)[None], CANDIDATE_CHUNK, 0) for k, v in _strong(problem.theta0).items()}
     score, train, _, _ = _compile_spread(
-        lambda mesh: jax.vmap(_objective_fn(problem, settings, _spread(problem.losses, mesh, size)), in_axes=(0, None)),
+        lambda mesh: safe_vmap(_objective_fn(problem, settings, _spread(problem.losses, mesh, size)), (0, None)),
         problem.train, chunk, f"{CANDIDATE_CHUNK} candidates' {size} training rollouts each",
         hint="use fewer training plants",
     )  # fmt: skip
@@ -718,12 +729,14 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
         count = len(next(iter(candidates.values())))
         rows = np.minimum(np.arange(-(-count // CANDIDATE_CHUNK) * CANDIDATE_CHUNK), count - 1)  # pad with the last
         values, diverged = [], []
-        for first in range(0, rows.size, CANDIDATE_CHUNK):
-            part = {k: v[rows[first : first + CANDIDATE_CHUNK]] for k, v in candidates.items()}
-            value, failed = _host(score(part, train))
-            counts = np.sum(np.asarray(failed), axis=1)
-            values.append(np.where((counts < size) & np.isfinite(value), value, np.inf))
-            diverged.append(counts)
+        with _stall_watch(f"scoring {count} candidates") as stall:
+            for first in range(0, rows.size, CANDIDATE_CHUNK):
+                part = {k: v[rows[first : first + CANDIDATE_CHUNK]] for k, v in candidates.items()}
+                value, failed = _watched(stall, f"candidates {first} to {first + CANDIDATE_CHUNK - 1}", score, part,
+                                         train)  # fmt: skip
+                counts = np.sum(np.asarray(failed), axis=1)
+                values.append(np.where((counts < size) & np.isfinite(value), value, np.inf))
+                diverged.append(counts)
         return np.concatenate(values)[:count], np.concatenate(diverged)[:count]
 
     return scores
@@ -918,13 +931,14 @@ def tune(
     bar = tqdm(total=settings.steps, initial=meta["iterations"], desc=f"tune (compiled in {compile_seconds:.1f} s)",
                disable=not (progress and writer), unit="step")  # fmt: skip
     saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])
-    with InterruptWatch() as watch:
+    with InterruptWatch() as watch, _stall_watch("the tuning") as stall:
         try:
             while meta["iterations"] < settings.steps and not all(lane["stopped"] for lane in lanes):
                 watch.check()
                 saved = (dict(trees), copy.deepcopy(meta), [len(h) for h in histories])  # consistent, for Ctrl-C
                 step_start = time.perf_counter()
-                (values, failed), grads = _host(evaluate_with_grad(trees["theta"], train))
+                label = f"evaluation {meta['iterations'] + 1}"
+                (values, failed), grads = _watched(stall, label, evaluate_with_grad, trees["theta"], train)
                 counts = np.sum(failed, axis=1)
                 running = np.array([not lane["stopped"] for lane in lanes])
                 poisoned = running & (counts > 0) & (counts < batch)
@@ -932,7 +946,8 @@ def tune(
                     [np.all(np.isfinite(g), axis=tuple(range(1, g.ndim))) for g in jax.tree.leaves(grads)], 0
                 )
                 if sound_gradient is not None and poisoned.any():
-                    grads = _where(poisoned, _host(sound_gradient(trees["theta"], train, failed)), grads)
+                    sound = _watched(stall, label, sound_gradient, trees["theta"], train, failed)
+                    grads = _where(poisoned, sound, grads)
                 meta["iterations"] += 1
                 accepted, rejected = np.zeros(count, bool), np.zeros(count, bool)
                 for k in np.flatnonzero(running):
@@ -1007,7 +1022,8 @@ def tune(
                     )  # fmt: skip
                 scale = np.array([lane["scale"] for lane in lanes])
                 if accepted.any():
-                    update, opt = _host(update_step(grads, trees["opt"], trees["theta"], values, train))
+                    update, opt = _watched(stall, label, update_step, grads, trees["opt"], trees["theta"], values,
+                                           train)  # fmt: skip
                     trees["opt"] = _where(accepted, opt, trees["opt"])
                     trees["anchor"] = _where(accepted, trees["theta"], trees["anchor"])
                     trees["update"] = _where(accepted, update, trees["update"])
@@ -1025,13 +1041,15 @@ def tune(
                     raise TuningError(
                         f"{rejections} consecutive steps rejected (last: {last}); lower the learning rate"
                     )
-        except KeyboardInterrupt as exc:
+        except (KeyboardInterrupt, Stalled) as exc:
             trees, meta, done = saved
             histories = [h[:n] for h, n in zip(histories, done, strict=True)]
             where = ""
             if meta["iterations"] > 0 and path is not None and writer:
                 save(trees, meta, histories)
                 where = f"; checkpoint saved to {path}"
+            if isinstance(exc, Stalled):
+                raise Stalled(f"{exc}{where}") from None
             raise Interrupted(
                 f"interrupted after {meta['iterations']} of {settings.steps} evaluations{where}; "
                 "rerun the same command to resume"

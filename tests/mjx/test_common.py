@@ -10,9 +10,9 @@ import pytest
 from mujoco import mjx
 
 from jaxobs.mjx import common
-from tests import ROOT
+from jaxobs.papers.shipped import ROBOTS
 
-ARM = ROOT / "examples" / "robots" / "arm_on_table.xml"
+ARM = ROBOTS / "arm_on_table.xml"
 STEPS = 160  # 0.8 s at 5 ms: the hand reaches the wall after about 0.5 s
 TORQUE = jnp.array([-3.5, -0.6])  # the shoulder drives the hand into the wall
 AT_LIMIT = (jnp.array([0.0, -0.31]), jnp.array([0.5, -2.0]))  # elbow pressed on its limit, the wall never reached

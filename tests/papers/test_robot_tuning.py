@@ -9,12 +9,14 @@ import pytest
 from jaxobs._config import ConfigError, load_toml
 from jaxobs.cli import main
 from jaxobs.papers import robot_tuning
+from jaxobs.papers.shipped import ROBOTS
 from tests import ROOT, run_cli
 
 
 def test_shipped_config_file_validates_to_the_default():
     path = "tuning/cartpole_payload.toml"
-    assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.DEFAULT_CONFIG
+    # the shipped file's robot and the default's resolve to the same packaged MJCF
+    assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.PROBLEM.validate({})
     arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
     assert arm["robot"]["solver_iterations"] == 0  # MJX's solver at the MJCF's settings
     full = {"tuning/arm_on_table_cholesky.toml": "kalman", "tuning/cartpole_payload_aob.toml": "aob"}
@@ -96,11 +98,11 @@ def test_reverse_mode_tunes_an_mjcf_whose_solver_settings_are_left_as_written(tm
     ``robot.solver_iterations`` left out: ``jaxobs tune`` runs in reverse mode through MJX's own solver (implicit
     derivatives) and writes a finite tuned objective."""
     mjcf = tmp_path / "arm.xml"
-    mjcf.write_text((ROOT / "examples/robots/arm_on_table.xml").read_text()
+    mjcf.write_text((ROBOTS / "arm_on_table.xml").read_text()
                     .replace('iterations="20"', 'iterations="50" tolerance="1e-10"'))  # fmt: skip
     toml = (ROOT / "tuning/arm_on_table.toml").read_text().replace("solver_iterations = 0", "")
     small = {
-        'mjcf = "examples/robots/arm_on_table.xml"': f'mjcf = "{mjcf}"',
+        'mjcf = "arm_on_table.xml"': f'mjcf = "{mjcf}"',
         "train = 8": "train = 2",
         "heldout = 32": "heldout = 2",
         "duration = 2.0": "duration = 0.4",

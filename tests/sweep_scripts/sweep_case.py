@@ -3,7 +3,7 @@
 ``python sweep_case.py OUT_DIR [OUT_DIR ...] --num N --chunk C`` runs the sweep into each OUT_DIR and prints one
 JSON line per run (the SweepResult). ``--coordinator HOST:PORT --num-processes N --process-id I`` first joins a
 multi-process run (``jax.distributed.initialize``); ``--lapack`` adds a metric computed with ``jnp.linalg.solve``
-(jaxlib's batched LAPACK kernel, which makes the engine compute on one CPU device per process). The last line
+(jaxlib's batched LAPACK kernel, which the engine keeps on its sequential path: jaxobs.batching). The last line
 counts the files this process wrote through the engine (``files_written``). ``SWEEP_SLEEP`` (seconds, read at
 run time) slows every chunk down so that a test can kill the process mid-sweep; the sleep is an identity
 callback, so the numbers do not depend on it.

@@ -120,8 +120,10 @@ def test_small_sweep_end_to_end(small_sweep):
 
 @pytest.mark.slow
 def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
-    """The default evaluation calls batched LAPACK kernels (LU, eigenvalues) that can deadlock jaxlib 0.10's CPU
-    thread pool when several devices run them at once: the engine says so and computes on one device."""
+    """The default evaluation calls batched LAPACK kernels (LU, eigenvalues), which run in blocks that keep them
+    sequential (jaxobs.batching): two host devices compute the one-device rows, up to rounding (the two devices
+    share the thread pool, and sums of the 2500-step simulation round differently: at most 6.5e-12 relative in
+    the RMS force error and 3.1e-12 in the peak force, measured; every other column bit for bit)."""
     path, reference = small_sweep
     out = tmp_path / "two"
     env = {
@@ -132,13 +134,14 @@ def test_two_host_devices_give_the_one_device_results(small_sweep, tmp_path):
     cmd = [sys.executable, "-m", "jaxobs.cli", "sweep", "--config", str(path), "--out", str(out), "--no-progress"]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    assert "can deadlock when several CPU devices run them at once" in run.stderr
-    assert "lapack_dgeev_ffi" in run.stderr and "lapack_dgetrf_ffi" in run.stderr
-    assert json.loads((out / "manifest.json").read_text())["device_count"] == 1
+    assert json.loads((out / "manifest.json").read_text())["device_count"] == 2
     want, got = fr.load_results(reference), fr.load_results(out)
     assert list(got) == list(want)
     for name in want:
-        assert np.array_equal(got[name], want[name], equal_nan=True), name
+        if name in ("metric.rms_force_error", "metric.peak_force"):
+            np.testing.assert_allclose(got[name], want[name], rtol=1e-10, err_msg=name)
+        else:
+            assert np.array_equal(got[name], want[name], equal_nan=True), name
 
 
 @pytest.mark.slow
