@@ -74,6 +74,16 @@ def test_the_step_is_mjx_step_and_the_fixed_count_reproduces_it_through_contact(
     assert 1e-4 < float(jnp.max(jnp.abs(one - reference))) < 0.1
 
 
+def _gradient_and_central_differences(loss, theta, eps=1e-6):
+    """The reverse-mode gradient of ``loss`` (``theta -> (value, aux)``) at ``theta``, its central differences of
+    step ``eps`` and ``aux``, from one compiled ``value_and_grad`` (called at ``theta`` and its ``2 n`` neighbours)."""
+    evaluate = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    (_, aux), grad = evaluate(theta)
+    steps = eps * np.eye(theta.size)
+    fd = np.array([(evaluate(theta + e)[0][0] - evaluate(theta - e)[0][0]) / (2 * eps) for e in steps])
+    return grad, fd, aux
+
+
 def test_implicit_gradient_on_a_constrained_segment_matches_central_differences(tight):
     """The elbow held on its joint limit for 0.3 s (an active constraint row throughout): the reverse-mode gradient
     with respect to a torque gain and the hand's mass, through MJX's own solver (50 iterations, tolerance 1e-10),
@@ -84,12 +94,8 @@ def test_implicit_gradient_on_a_constrained_segment_matches_central_differences(
         qpos, force = _trajectory(_with_mass(tight, theta[1]), theta[0] * torque, None, qpos0, 60)
         return jnp.sum(qpos**2), force
 
-    theta = jnp.array([1.0, 1.0])
-    grad, force = jax.jit(jax.grad(loss, has_aux=True))(theta)
+    grad, fd, force = _gradient_and_central_differences(loss, jnp.array([1.0, 1.0]))
     assert float(force) > 0.5  # the limit pushes back
-    value = jax.jit(lambda th: loss(th)[0])
-    eps = 1e-6
-    fd = np.array([(value(theta + eps * e) - value(theta - eps * e)) / (2 * eps) for e in np.eye(2)])
     assert np.all(np.abs(fd) > 1e-3)
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
@@ -139,6 +145,7 @@ def test_elliptic_cone_and_vmap(tight):
     np.testing.assert_allclose(batched, looped, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_step_reads_only_its_state_fields_and_passes_some_through(arm):
     """The premise of the Jacobian rule: a step's output depends on ``STATE_FIELDS`` only (JAX's own vjp gives every
     other field of the input a zero cotangent, but for those MJX does not write here, which the output copies) and
@@ -169,10 +176,9 @@ def test_a_step_reads_only_its_state_fields_and_passes_some_through(arm):
     assert float(out.time - data.time) == pytest.approx(float(model.opt.timestep))
 
 
-def test_jacobian_rule_equals_jax_transpose_and_forward_mode():
-    """The 1-DOF plant (3 differentiated entries per step: the Jacobian rule): reverse mode equals JAX's transpose of
-    the step and forward mode, under ``vmap`` over plants (equal to the loop) and with a model field differentiated
-    (the rule steps aside)."""
+def _one_dof_loss():
+    """``(theta, scale) -> loss``: 30 steps of the 1-DOF plant from ``(qpos, qvel) = theta[:2]`` under the control
+    ``theta[2]``, its damping scaled by ``scale`` (3 differentiated entries per step: the Jacobian rule)."""
     from jaxobs.mjx import force_1dof
 
     model = force_1dof.load_model()[1]
@@ -187,20 +193,39 @@ def test_jacobian_rule_equals_jax_transpose_and_forward_mode():
 
         return jnp.sum(jax.lax.scan(body, data, None, length=30)[1] ** 2)
 
-    theta = jnp.array([[0.3, -1.0, 2.0], [0.1, 0.5, -1.0]])
-    rule = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(theta, 1.0)
+    return loss
+
+
+THETA = jnp.array([[0.3, -1.0, 2.0], [0.1, 0.5, -1.0]])
+
+
+def test_jacobian_rule_matches_central_differences():
+    """Reverse mode by the Jacobian rule equals central differences (forward mode, JAX's transpose and ``vmap``: the
+    slow test below)."""
+    loss = _one_dof_loss()
+    grad, fd, _ = _gradient_and_central_differences(lambda th: (loss(th, 1.0), None), THETA[0])
+    assert np.all(np.abs(fd) > 1e-3)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_jacobian_rule_equals_forward_mode_and_jax_transpose_and_steps_aside_for_a_model_field():
+    """The Jacobian rule equals forward mode and JAX's transpose of the step, ``vmap`` equals the loop, and with a
+    model field differentiated the rule steps aside (JAX's transpose; equal to forward mode)."""
+    loss = _one_dof_loss()
+    rule = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(THETA, 1.0)
+    forward = jax.jit(jax.vmap(jax.jacfwd(loss), in_axes=(0, None)))(THETA, 1.0)
+    np.testing.assert_allclose(rule, forward, rtol=1e-12, atol=1e-15)
     saved, common.JACOBIAN_MAX = common.JACOBIAN_MAX, 0
     try:
-        transposed = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(theta, 1.0)
+        transposed = jax.jit(jax.vmap(jax.grad(loss), in_axes=(0, None)))(THETA, 1.0)
     finally:
         common.JACOBIAN_MAX = saved
-    forward = jax.jit(jax.vmap(jax.jacfwd(loss), in_axes=(0, None)))(theta, 1.0)
     np.testing.assert_allclose(rule, transposed, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(rule, forward, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(rule[1], jax.jit(jax.grad(loss))(theta[1], 1.0), rtol=1e-13)
-    both = jax.jit(jax.grad(loss, argnums=(0, 1)))(theta[0], 1.0)
+    np.testing.assert_allclose(rule[1], jax.jit(jax.grad(loss))(THETA[1], 1.0), rtol=1e-13)
+    both = jax.jit(jax.grad(loss, argnums=(0, 1)))(THETA[0], 1.0)
     np.testing.assert_allclose(both[0], rule[0], rtol=1e-12)
-    np.testing.assert_allclose(both[1], jax.jit(jax.jacfwd(loss, argnums=1))(theta[0], 1.0), rtol=1e-10)
+    np.testing.assert_allclose(both[1], jax.jit(jax.jacfwd(loss, argnums=1))(THETA[0], 1.0), rtol=1e-10)
 
 
 def test_solver_iterations_zero_is_none_and_bad_ones_are_refused(arm):
