@@ -343,8 +343,8 @@ def main(argv=None) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    """Per batch size, for each model, stacked bars of the forward program and of the reverse programs by stage
-    group (profile), as multiples of the forward program's time."""
+    """Per batch size, for each model, a bar per program whose height is its CPU time over the forward program's,
+    split by stage group in the proportions of its profile."""
     from jaxobs.papers._output import pyplot, save_figure
 
     models = list(results["models"])
@@ -352,7 +352,8 @@ def plot(results: dict, path: Path) -> None:
     names = ("forward", "reverse", "reverse, JAX's transpose", "reverse, 4 fixed iterations")
     hatches = {"forward": "", "backward": "//"}
     colors = dict(zip(ORDER, pyplot().get_cmap("tab20").colors, strict=False))
-    fig, axes = pyplot().subplots(len(batches), 1, figsize=(13, 4.6 * len(batches)), squeeze=False)
+    size = (14, 4.6 * len(batches))
+    fig, axes = pyplot().subplots(len(batches), 1, figsize=size, squeeze=False, layout="constrained")
     for ax, batch in zip(axes[:, 0], batches, strict=True):
         ticks, labels = [], []
         for i, label in enumerate(models):
@@ -360,13 +361,12 @@ def plot(results: dict, path: Path) -> None:
             if result is None:
                 continue
             rows = result["programs"]
-            unit = sum(rows["forward"]["profile_ms"].values())
             for j, name in enumerate(n for n in names if n in rows):
                 x = i * (len(names) + 1) + j
-                bottom = 0.0
+                bottom, scale = 0.0, rows[name]["cpu_ratio"] / sum(rows[name]["profile_ms"].values())
                 for group in ORDER:
                     for direction, hatch in hatches.items():
-                        ms = rows[name]["profile_ms"].get(f"{group}|{direction}", 0.0) / unit
+                        ms = rows[name]["profile_ms"].get(f"{group}|{direction}", 0.0) * scale
                         ax.bar(x, ms, bottom=bottom, color=colors[group], hatch=hatch, edgecolor="white", width=0.9)
                         bottom += ms
                 ax.text(x, bottom, f"{rows[name]['cpu_ratio']:.1f}x", ha="center", va="bottom", fontsize=7)
@@ -376,12 +376,14 @@ def plot(results: dict, path: Path) -> None:
             ax.text(i * (len(names) + 1) + 1.5, -0.16, label, transform=ax.get_xaxis_transform(), ha="center",
                     fontsize=8)  # fmt: skip
         ax.set_xticks(ticks, labels, fontsize=7)
-        ax.set_ylabel("profiled time / forward program's")
-        ax.set_title(f"batch {batch}: {results['steps']} physics steps; bar label: CPU-time ratio to the forward "
-                     "(median of rounds); hatched: backward operations", fontsize=9)  # fmt: skip
+        ax.set_ylabel("CPU time / the forward program's")
+        loads = [x for per in results["models"].values() if str(batch) in per for x in per[str(batch)]["load_average"]]
+        ax.set_title(f"batch {batch}, {results['steps']} physics steps, CPU (median of {results['rounds']} rounds; "
+                     f"load average {min(loads):.0f} to {max(loads):.0f} on {results['platform']['cpu_count']} cores), "
+                     "split by the profile's stage shares", fontsize=9)  # fmt: skip
     handles = [pyplot().Rectangle((0, 0), 1, 1, color=colors[g]) for g in ORDER]
-    fig.legend(handles, ORDER, loc="center right", fontsize=8)
-    fig.subplots_adjust(right=0.83, hspace=0.35)
+    handles.append(pyplot().Rectangle((0, 0), 1, 1, facecolor="white", edgecolor="0.3", hatch="//"))
+    fig.legend(handles, [*ORDER, "backward operations"], loc="outside right center", fontsize=8)
     save_figure(fig, path.parent, path.stem)
 
 
