@@ -108,7 +108,11 @@ def plot(results: dict, path: Path) -> None:
 
     impact = results["segments"]["impact"]
     gains = np.asarray(impact["gains"])
-    fig, (a, b) = pyplot().subplots(1, 2, figsize=(12, 4.2))
+    fig, (loss, a, b) = pyplot().subplots(1, 3, figsize=(16, 4.6))
+    loss.plot(gains, impact["loss"], "o-", ms=3)
+    loss.set_xlabel("torque gain (dotted: the contact's first step changes)")
+    loss.set_ylabel("loss: sum of squared shoulder angles (rad^2)")
+    loss.set_title("hand striking the wall: the loss at each gain", fontsize=9)
     a.plot(gains, impact["reverse"], "o-", ms=3, label="reverse mode (implicit solve)")
     a.plot(gains, (np.asarray(impact["reverse"]) * (1 + np.asarray(impact["relative_difference"]
            ["central differences, step 1e-05"]))), "x", ms=4, label="central differences, step 1e-5")  # fmt: skip
@@ -120,11 +124,12 @@ def plot(results: dict, path: Path) -> None:
         b.semilogy(gains, np.maximum(diffs, 1e-17), ".-", ms=3, label=label)
     first = np.asarray(impact["first_active_step"])
     for g in gains[1:][np.diff(first) != 0]:
-        b.axvline(g, color="0.7", lw=0.8, ls=":")
+        for ax in (loss, b):
+            ax.axvline(g, color="0.7", lw=0.8, ls=":")
     b.set_xlabel("torque gain (dotted: the contact's first step changes)")
     b.set_ylabel("relative difference to the reverse-mode gradient")
     b.set_title("agreement per gain (values below 1e-17 drawn at 1e-17)", fontsize=9)
-    b.legend(fontsize=7)
+    b.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     save_figure(fig, path.parent, path.stem)
 
 
