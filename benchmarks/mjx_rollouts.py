@@ -46,9 +46,9 @@ evaluation; ``mode`` is the one ``gradient = "auto"`` picks; and 16 starts' grad
 The floor under reverse mode (``--step-costs [BATCH ...]``): for each MJX model of the shipped problems, 50
 physics steps (a ``lax.scan`` of ``jaxobs.mjx.common.step``; the arm's solver at its MJCF's settings and, for
 comparison, at 4 fixed iterations) of a batch against their ``jax.vjp`` (forward and backward pass): the ratio of
-their times over ``--rounds`` interleaved rounds, of their compile times and of the flops XLA's cost analysis counts. A rollout's
-reverse-mode gradient runs every step's backward pass at least once (checkpointing only adds forward
-recomputation), so where the physics dominates the rollout this ratio bounds the gradient's from below.
+their times over ``--rounds`` interleaved rounds, of their compile times and of the flops XLA's cost analysis
+counts. A rollout's reverse-mode gradient runs every step's backward pass at least once (checkpointing only adds
+forward recomputation), so where the physics dominates the rollout this ratio bounds the gradient's from below.
 
     python benchmarks/mjx_rollouts.py --out DIR [--steps 250] [--batches 1 64 1024] [--max-batch N]
                                       [--rounds 5] [--peer-plants 20] [--problems [NAME ...]]
