@@ -376,7 +376,7 @@ def plot(results: dict, path: Path) -> None:
             ax.text(i * (len(names) + 1) + 1.5, -0.16, label, transform=ax.get_xaxis_transform(), ha="center",
                     fontsize=8)  # fmt: skip
         ax.set_xticks(ticks, labels, fontsize=7)
-        ax.margins(y=0.08)  # room for the bar labels
+        ax.set_ylim(0, 1.08 * ax.get_ylim()[1])  # room for the bar labels
         ax.set_ylabel("CPU time / the forward program's")
         loads = [x for per in results["models"].values() if str(batch) in per for x in per[str(batch)]["load_average"]]
         ax.set_title(f"batch {batch}, {results['steps']} physics steps, CPU (median of {results['rounds']} rounds; "
