@@ -530,10 +530,9 @@ def _lower_gradient(evaluation: Callable, theta, batch, mode: str):
     except ValueError as exc:
         if mode == "reverse" and "Reverse-mode differentiation does not work for lax.while_loop" in str(exc):
             raise TuningError(
-                "reverse mode cannot differentiate a while loop in the rollouts (MJX's constraint solver, for a model "
-                "with contacts, joint limits or equalities): give the solver a fixed iteration count (the robot's "
-                'solver_iterations, see jaxobs.mjx.common.step) or the model <option iterations="1">, or tune '
-                "with gradient = 'forward'"
+                "reverse mode cannot differentiate a while loop in the rollouts: give the loop a fixed count or a "
+                "custom derivative (as jaxobs.mjx.common.solve does for MJX's constraint solver), or tune with "
+                "gradient = 'forward'"
             ) from None
         raise
 

@@ -21,7 +21,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, put_model
+from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, put_model, step
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -303,7 +303,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data: mjx.Data, fifo: jax.
     data = data.replace(ctrl=applied)
 
     def substep(_, data):
-        return mjx.step(model, data.replace(qfrc_applied=coupling_force(model, data.qpos)))
+        return step(model, data.replace(qfrc_applied=coupling_force(model, data.qpos)))
 
     data = jax.lax.fori_loop(0, substeps, substep, data)
     return data, fifo, applied
@@ -418,14 +418,14 @@ def closed_loop_rollout(
     noise = input_series("noise", noise, (n_steps, N_DOF), dtype, "reference")
     disturbance = input_series("disturbance", disturbance, (n_steps, N_DOF), dtype, "reference")
     d = int(dead_time_samples)
-    step = jax.vmap(controller.step)
+    controller_step = jax.vmap(controller.step)
 
     def control_step(carry, inputs):
         data, fifo, ctrl_state = carry
         r_k, ff_k, n_k, d_k = inputs
         wrench = sensor_wrench(model, data)
         y_k = wrench + n_k
-        ctrl_state, ctrl_out = step(params, ctrl_state, ControllerInputs(y_k[:, None], r_k[:, None]))
+        ctrl_state, ctrl_out = controller_step(params, ctrl_state, ControllerInputs(y_k[:, None], r_k[:, None]))
         _checks.shape("params", ctrl_out.u, (N_DOF, 1), "per DOF the controller's command u must have "
                       "one entry, the DOF's velocity command")  # fmt: skip
         u_k = ctrl_out.u[:, 0].astype(dtype)

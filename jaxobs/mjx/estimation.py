@@ -147,10 +147,10 @@ def _measurement_of(rows: tuple, acceleration: bool):
 def transition(model: mjx.Model, *, substeps: int = 1, solver_iterations: int | None = None) -> jax.tree_util.Partial:
     """``f(x, u, t)``: the state ``(qpos, qvel, act)`` after ``substeps`` physics steps from ``x`` with ``ctrl = u``
     (nu,) held, starting at time ``t``; a ``Partial`` carrying ``model`` as a leaf. The sample period is
-    :func:`sample_period`. ``solver_iterations``: None for ``mjx.step``, an int for a constraint solver of that
-    many iterations that reverse mode differentiates (:func:`jaxobs.mjx.common.step`)."""
+    :func:`sample_period`. ``solver_iterations``: None or 0 for MJX's constraint solver at the model's settings, an
+    int for a solver of exactly that many iterations (:func:`jaxobs.mjx.common.step`; both differentiable)."""
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per sample")
-    check_solver_iterations(solver_iterations)
+    solver_iterations = check_solver_iterations(solver_iterations)
     return jax.tree_util.Partial(_transition_of(substeps, solver_iterations), model)
 
 

@@ -22,7 +22,15 @@ import numpy as np
 from mujoco import mjx
 
 from jaxobs import _checks
-from jaxobs.mjx.common import check_timing, dead_time_step, initial_data, input_series, is_int_at_least, put_model
+from jaxobs.mjx.common import (
+    check_timing,
+    dead_time_step,
+    initial_data,
+    input_series,
+    is_int_at_least,
+    put_model,
+    step,
+)
 from jaxobs.observers.base import Controller, ControllerInputs
 
 __all__ = [
@@ -203,7 +211,7 @@ def _at_surface(model: mjx.Model, surface) -> mjx.Model:
 
 def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, surface_velocity):
     """One control step of the plant: push ``u_k`` into the dead-time FIFO, pop ``u_{k-d}`` and hold it
-    (ZOH) for ``substeps`` ``mjx.step`` calls while the surface moves from ``surface`` at
+    (ZOH) for ``substeps`` physics steps (:func:`jaxobs.mjx.common.step`) while the surface moves from ``surface`` at
     ``surface_velocity`` mm/s (one position per physics step). Returns ``(data, fifo, applied, surface)``.
     Shared by the open-loop :func:`rollout` and :func:`closed_loop_rollout`."""
     applied, fifo = dead_time_step(fifo, u_k, d)
@@ -212,7 +220,7 @@ def _advance(model: mjx.Model, substeps: int, d: int, data, fifo, u_k, surface, 
 
     def substep(_, carry):
         data, surface = carry
-        return mjx.step(_at_surface(model, surface), data), surface + dx
+        return step(_at_surface(model, surface), data), surface + dx
 
     data, surface = jax.lax.fori_loop(0, substeps, substep, (data, surface))
     return data, fifo, applied, surface

@@ -8,8 +8,9 @@ and acceleration-stage sensors (accelerometer, force, touch) read the command ac
 :func:`linearize` gives the discrete ``(Phi, Gamma, C)`` by ``jax.jacfwd`` of ``mjx.step`` (warning when the
 operating point is not an equilibrium), :func:`holding_ctrl` the control that holds a pose at rest,
 :func:`mismatch` scales named model fields (``body_mass[payload]``, ``opt.gravity``, ...), and :func:`rollout`
-runs any controller in one ``lax.scan``. Forward-mode gradients always work; reverse mode needs the model's
-constraint solver off. The requirements and the differentiation notes: docs/theory/mjx.md.
+runs any controller in one ``lax.scan``. Forward- and reverse-mode gradients go through contacts and joint limits
+(MJX's constraint solver, differentiated implicitly: :func:`jaxobs.mjx.common.solve`). The requirements and the
+differentiation notes: docs/theory/mjx.md.
 """
 
 from __future__ import annotations
@@ -67,9 +68,9 @@ class Robot:
       substeps: static, physics steps per control period (``h = substeps * model.opt.timestep``).
       dead_time: static, command dead time in control periods (``u_k`` acts during period ``k + d``).
       timestep: static, the model's physics time step in seconds (so the period is known under tracing).
-      solver_iterations: static, iterations of the constraint solver per physics step: None runs MJX's solver to
-        its tolerance (a ``while`` loop: forward-mode derivatives only), an int exactly that many
-        (:func:`jaxobs.mjx.common.step`: reverse mode too).
+      solver_iterations: static, the constraint solver of each physics step: None runs MJX's solver at the model's
+        settings (its iterations and tolerance; derivatives by the implicit function theorem), an int ``K >= 1``
+        exactly ``K`` Newton iterations, differentiated through each (:func:`jaxobs.mjx.common.step`).
     """
 
     model: mjx.Model
@@ -171,8 +172,8 @@ def make_robot(
       qpos0, qvel0, act0, ctrl0: the operating point (defaults: the model's ``qpos0``, zero velocity, zero
         control, and the activations that ``ctrl0`` holds at rest: the control itself for filter and muscle
         dynamics, 0 for an integrator).
-      solver_iterations: constraint-solver iterations per physics step (see :class:`Robot`); a model with
-        contacts, joint limits or equalities needs an int for ``jax.grad`` through its rollouts.
+      solver_iterations: the constraint solver per physics step (see :class:`Robot`): None or 0 for MJX's solver at
+        the model's settings, an int ``K >= 1`` for exactly ``K`` iterations; both work with ``jax.grad``.
 
     Example:
       >>> from jaxobs.mjx import estimation, robot
@@ -196,7 +197,7 @@ def make_robot(
             raise ValueError(f"{name}: each may be named once, got {list(given)}")
     substeps = _checks.count("substeps", substeps, minimum=1, hint="physics steps per control period")
     dead_time = _checks.count("dead_time", dead_time, minimum=0, hint="control periods")
-    check_solver_iterations(solver_iterations)
+    solver_iterations = check_solver_iterations(solver_iterations)
     model = estimation.put(m)
     dtype = model.body_mass.dtype
     ctrl0 = _checks.vector("ctrl0", np.zeros(m.nu) if ctrl0 is None else ctrl0, m.nu, dtype, what=f"{m.nu} entries")
@@ -605,8 +606,8 @@ def rollout(
       reference: ``r_k``, shape (steps, q) (default zeros of shape (steps, m)).
 
     Returns:
-      :class:`RobotRollout`. Pure: ``jit``, ``vmap`` (over scales, keys, params), ``jax.jvp`` / ``jacfwd``, and
-      ``grad`` where the model has no constraints or ``robot.solver_iterations`` is set (docs/theory/mjx.md).
+      :class:`RobotRollout`. Pure: ``jit``, ``vmap`` (over scales, keys, params), ``jax.jvp`` / ``jacfwd`` and
+      ``grad``, contacts and joint limits included (docs/theory/mjx.md).
     """
     steps = _checks.count("steps", steps, minimum=1, hint="control periods")
     model = robot.model if not scales else mismatch(robot.model, scales)

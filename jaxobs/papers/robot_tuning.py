@@ -55,7 +55,7 @@ DEFAULT_CONFIG = {
         "qpos0": [],
         "ctrl0": [],
         "act0": [],
-        "solver_iterations": 4,
+        "solver_iterations": 0,
     },
     "plants": {"train": 8, "heldout": 32, "mismatch": {"body_mass[payload]": [0.25, 2.0]}},
     "scenario": {
@@ -97,8 +97,9 @@ CONFIG_NOTES = {
     "needs the control that holds it: jaxobs.mjx.robot.holding_ctrl)",
     "robot.act0": "operating-point actuator activations (muscles, filtered actuators); empty: those ctrl0 holds at "
     "rest (jaxobs.mjx.robot.steady_activation)",
-    "robot.solver_iterations": "constraint-solver iterations per physics step of a model with contacts, limits or "
-    "equalities (a fixed loop that reverse mode differentiates); 0: MJX's solver to its tolerance (forward mode only)",
+    "robot.solver_iterations": "constraint solver of a model with contacts, limits or equalities: 0, MJX's solver at "
+    "the MJCF's settings (its iterations and tolerance), differentiated implicitly; K >= 1, exactly K Newton "
+    "iterations per physics step, differentiated through each (jaxobs.mjx.common.step)",
     "plants": "the mismatched plants, drawn per plant (training and held-out sets from independent keys)",
     "plants.train": "training plants (one rollout each per gradient evaluation)",
     "plants.heldout": "held-out plants, never used in training, that score the designs",
@@ -193,22 +194,17 @@ def _robot(config: dict):
     timing = {"substeps": rb["substeps"], "dead_time": rb["dead_time"], "sensor_noise": rb["sensor_noise"] or None}
     point = {"qpos0": rb["qpos0"] or None, "ctrl0": rb["ctrl0"] or None, "act0": rb["act0"] or None}
     return make_robot(rb["mjcf"], rb["actuators"], rb["sensors"], **timing, **point,
-                      solver_iterations=rb["solver_iterations"] or None)  # fmt: skip
+                      solver_iterations=rb["solver_iterations"])  # fmt: skip
 
 
 def _check_differentiable(robot, config: dict, theta0: dict) -> None:
-    """Refuse, before anything is compiled, a model whose constraint solver reverse mode cannot differentiate."""
+    """Refuse, before anything is compiled, acceleration-stage sensors that reverse mode cannot differentiate: the
+    measurement reads them after MJX's own constraint solve (the transition's solve is differentiated implicitly)."""
     from jaxobs.mjx.common import constraint_rows, initial_data
 
     if gradient_mode(settings(config), theta0) != "reverse":
         return
     rows = constraint_rows(initial_data(robot.model, robot.qpos0.dtype))
-    if rows and robot.solver_iterations is None:
-        raise ValueError(
-            f"robot.solver_iterations: the model has {rows} constraint rows (contacts, joint limits, equalities), "
-            "whose solver loop reverse mode cannot differentiate; set robot.solver_iterations >= 1 (e.g. 4) or "
-            "optimizer.gradient = 'forward'"
-        )
     if rows and robot.feedthrough:
         raise ValueError(
             f"robot.sensors: an acceleration-stage sensor on a model with {rows} constraint rows is read after MJX's "

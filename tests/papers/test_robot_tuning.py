@@ -19,7 +19,7 @@ def test_shipped_config_file_validates_to_the_default():
     # the shipped file's robot and the default's resolve to the same packaged MJCF
     assert robot_tuning.PROBLEM.validate(load_toml(path), path) == robot_tuning.PROBLEM.validate({})
     arm = robot_tuning.PROBLEM.validate(load_toml("tuning/arm_on_table.toml"), "tuning/arm_on_table.toml")
-    assert arm["robot"]["solver_iterations"] == 4
+    assert arm["robot"]["solver_iterations"] == 0  # MJX's solver at the MJCF's settings
     for path in ("tuning/free_flyer.toml", "tuning/muscle_arm.toml"):
         config = robot_tuning.PROBLEM.validate(load_toml(path), path)
         assert config["robot"]["mjcf"] == str(ROBOTS / Path(path).name.replace(".toml", ".xml"))
@@ -97,16 +97,34 @@ def test_robot_errors_exit_2_with_the_reason(tmp_path, capsys, toml, message):
     assert not (tmp_path / "out" / "config.json").exists()
 
 
-def test_a_constrained_model_without_a_solver_count_is_refused_in_reverse_mode(tmp_path, capsys):
-    """The arm with a wall and a joint limit, its solver left to MJX's while loop: refused before anything compiles,
-    naming the key to change."""
-    path = tmp_path / "arm.toml"
-    path.write_text(
-        (ROOT / "tuning/arm_on_table.toml").read_text().replace("solver_iterations = 4", "solver_iterations = 0")
-    )
-    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
-    err = capsys.readouterr().err
-    assert "robot.solver_iterations: the model has 5 constraint rows" in err and "Traceback" not in err
+@pytest.mark.slow
+def test_reverse_mode_tunes_an_mjcf_whose_solver_settings_are_left_as_written(tmp_path):
+    """The arm with a wall and a joint limit, its MJCF asking for 50 solver iterations to a tolerance of 1e-10 and
+    ``robot.solver_iterations`` left out: ``jaxobs tune`` runs in reverse mode through MJX's own solver (implicit
+    derivatives) and writes a finite tuned objective."""
+    mjcf = tmp_path / "arm.xml"
+    mjcf.write_text((ROBOTS / "arm_on_table.xml").read_text()
+                    .replace('iterations="20"', 'iterations="50" tolerance="1e-10"'))  # fmt: skip
+    toml = (ROOT / "tuning/arm_on_table.toml").read_text().replace("solver_iterations = 0", "")
+    small = {
+        'mjcf = "arm_on_table.xml"': f'mjcf = "{mjcf}"',
+        "train = 8": "train = 2",
+        "heldout = 32": "heldout = 2",
+        "duration = 2.0": "duration = 0.4",
+        "screening = 127": "screening = 0",
+        "starts = 2": "starts = 1",
+        "steps = 100": "steps = 2",
+        "random_search = true": "random_search = false",
+    }
+    for old, new in small.items():
+        toml = toml.replace(old, new)
+    config = tmp_path / "arm.toml"
+    config.write_text(toml)
+    assert robot_tuning.PROBLEM.validate(load_toml(config), str(config))["robot"]["solver_iterations"] == 0
+    assert main(["tune", "--config", str(config), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    tuned = json.loads((tmp_path / "out" / "tuned.json").read_text())
+    assert tuned["config"]["optimizer"]["gradient"] == "reverse" and tuned["evaluations"] >= 1
+    assert np.isfinite(tuned["train_objective"]["tuned"]) and tuned["train_diverged"]["tuned"] == 0
 
 
 def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_line(tmp_path, capsys):
