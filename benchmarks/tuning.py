@@ -55,10 +55,10 @@ class Box:
     """The problem's search box as a flat vector: ``flat(theta)``, ``unflat(rows)`` (N, d) -> stacked theta."""
 
     def __init__(self, problem, spread: float):
-        from jaxobs.tuning import _search_box
+        from jaxobs.tuning.box import search_box
 
         self.theta0 = {k: np.asarray(v) for k, v in problem.theta0.items()}
-        box = _search_box(problem, spread)
+        box = search_box(problem.theta0, problem.search_box, spread)
         self.low = self.flat({k: np.broadcast_to(box[k][0], v.shape) for k, v in self.theta0.items()})
         self.high = self.flat({k: np.broadcast_to(box[k][1], v.shape) for k, v in self.theta0.items()})
         self.free = self.high > self.low
