@@ -315,15 +315,13 @@ def _label(state: TunerState, population: int) -> str:
 
 
 def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar, compile_seconds: float):
-    """Step until the tuner is done or ``seconds`` have passed; ``(state, timed_out)``. Ctrl-C or a stall save
-    the checkpoint of the last completed step and raise."""
+    """Step until the tuner is done or a step ends after ``seconds``; ``(state, timed_out)``. Ctrl-C or a stall
+    save the checkpoint of the last completed step and raise."""
     settings = job.settings
     saved = (state, [list(h) for h in job.histories], list(job.finished))
     with InterruptWatch() as watch, _devices.stall_watch("the tuning", compile_seconds) as stall:
         try:
             while int(state.phase) != DONE:
-                if seconds is not None and job.seconds() >= seconds:
-                    return state, True
                 watch.check()
                 saved = (state, [list(h) for h in job.histories], list(job.finished))  # consistent, for Ctrl-C
                 start, label = time.perf_counter(), _label(state, settings.population)
@@ -340,6 +338,8 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar,
                 turned = int(new.phase) != int(saved[0].phase)
                 if (turned and not polished) or (polished and int(state.iteration) % settings.checkpoint_every == 0):
                     job.save(state)
+                if seconds is not None and job.seconds() >= seconds and int(state.phase) != DONE:
+                    return state, True
             return state, False
         except (KeyboardInterrupt, Stalled) as exc:
             state, job.histories, job.finished = saved
