@@ -31,6 +31,28 @@ PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
 }
 
 
+ORACLES = {"gain-schedule-100": 13, "gain-schedule-1000": 125, "gain-schedule-10000": 1250, "speed-schedule-256": 32}
+"""Problems with an exact optimum or bound (:mod:`jaxobs.tuning.problems`): the gain schedules of
+``gain_schedule_problem`` (label -> horizon T; T x 4 states x 2 outputs gains: 104, 1000 and 10 000), with the
+optimum ``J*``; the speed schedule of ``speed_schedule_problem`` (label -> knots; 32 x 4 x 2 gains), whose losses
+are already ``J / J*`` per plant (the bound 1)."""
+
+
+def load_oracle(label: str):
+    """``(problem, settings, optimum)`` of a problem of :data:`ORACLES`, tuned with the shipped strategy."""
+    from jaxobs.papers.tuning_config import BASELINE_DEFAULTS, SHIPPED_STRATEGY, optimizer_defaults
+    from jaxobs.tuning.problems import gain_schedule_problem, speed_schedule_problem
+
+    if label.startswith("speed"):
+        problem, _ = speed_schedule_problem(knots=ORACLES[label], train=32, heldout=32)
+        optimum = 1.0
+    else:
+        problem, schedule = gain_schedule_problem(ORACLES[label])
+        optimum = float(schedule.cost)
+    config = {"seed": 0, "optimizer": optimizer_defaults(**SHIPPED_STRATEGY), "baseline": dict(BASELINE_DEFAULTS)}
+    return problem, tuning_settings(config), optimum
+
+
 def load_problem(label: str, spread: float | None = None):
     """``(problem, settings, config)`` of a shipped tuning problem; ``spread`` replaces its ``baseline.spread`` (the
     search box of the screening and of the baselines)."""

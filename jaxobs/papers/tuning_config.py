@@ -34,11 +34,12 @@ __all__ = [
 
 BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
 
-SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "starts": 2, "steps": 100,
-                    "patience": 4}  # fmt: skip
+SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "evolve": 50, "distinct": 0.1,
+                    "starts": 2, "steps": 100, "patience": 4, "max_rejections": 16}  # fmt: skip
 """The ``[optimizer]`` defaults of the shipped problems: 127 scrambled-Sobol candidates screened in the search box,
-then L-BFGS with backtracking from two starts at once, ``theta0`` and the best candidate, until the plateau rule
-stops each (measured against random search, CMA-ES and Optuna at equal wall time: docs/tuning-results.md)."""
+a CMA-ES from the best of them until it stalls (at most 50 generations of 16), then L-BFGS with backtracking (16
+halvings at most) from two starts at once, ``theta0`` and the best point found, until the plateau rule stops each
+(measured against random search, CMA-ES, OpenAI-ES and Optuna at equal wall time: docs/tuning-results.md)."""
 
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
               "lbfgs": lbfgs}  # fmt: skip
