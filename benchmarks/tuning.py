@@ -62,7 +62,7 @@ FAIR_SPREAD = {"force-1dof": 20.0, "force-1dof-cvar": 20.0, "peg-on-hole": 45.0,
                "cartpole-payload-aob": 12.0, "arm-on-table-cholesky": 8.0}  # fmt: skip
 """The fair box per shipped problem: ``theta0 +- spread``, wide enough to hold every method's best design (the
 designs the tuner finds when it may leave the shipped box, docs/tuning-results.md)."""
-BUDGET = {"gain-schedule-100": 40.0, "gain-schedule-1000": 60.0, "gain-schedule-10000": 90.0,
+BUDGET = {"gain-schedule-100": 45.0, "gain-schedule-1000": 60.0, "gain-schedule-10000": 90.0,
           "speed-schedule-256": 90.0}  # fmt: skip
 """Wall time per method and seed (s), compilation included; 120 s for the problems not named."""
 STRATEGY = {"bounded": True, "rounds": 10_000}

@@ -201,11 +201,8 @@ def make_tuner(settings: TuneSettings = TuneSettings(), *, penalty: Callable | N
     """
     settings.validate()
     optimizer = optax.with_extra_args_support(settings.optimizer)
-    return Tuner(
-        functools.partial(_init, settings, optimizer),
-        functools.partial(_step, settings, optimizer, penalty),
-        settings,
-    )
+    init = jax.jit(functools.partial(_init, settings, optimizer))  # one program, not an eager operation at a time
+    return Tuner(init, functools.partial(_step, settings, optimizer, penalty), settings)
 
 
 # --------------------------------------------------------------------------------------------
@@ -311,7 +308,8 @@ def _step(settings: TuneSettings, optimizer, penalty, state: TunerState, losses:
 
         return run
 
-    return jax.lax.switch(state.phase, [typed(b) for b in (explore, explore, polish, advance, done)], state, batch)
+    branch = jnp.asarray([0, 0, 1, 2, 3], jnp.int32)[state.phase]  # screen and evolve share one program
+    return jax.lax.switch(branch, [typed(b) for b in (explore, polish, advance, done)], state, batch)
 
 
 def _info(phase, population: int, count: int, dtype, **given) -> StepInfo:
@@ -483,25 +481,46 @@ def _advance(settings, layout, state: TunerState, batch):
 
 
 def _gradients(settings, objective, state: TunerState, batch, running):
-    """Each start's ``((objective, failed), grad)``; in reverse mode, a gradient that a diverged plant made
-    non-finite is recomputed with the failed plants' inputs replaced by a sound plant's (no terms of their own)."""
+    """Each start's ``((objective, failed), grad)``. In reverse mode a gradient that a diverged plant made non-finite
+    is computed again with the failed plants' inputs replaced by a sound plant's (no terms of their own); both passes
+    run the one compiled gradient in a loop of at most two iterations (the objective is the first pass's)."""
     mode = gradient_mode(settings, {k: v[0] for k, v in state.theta.items()})
-    evaluate = safe_vmap(lambda th, plants: value_and_grad(lambda t: objective(t, plants), mode)(th), (0, None))
-    (values, failed), grads = evaluate(state.theta, batch)
-    if mode == "forward":  # a failed plant's tangents stay in its own lane
-        return values, failed, grads
-    size, rows = failed.shape[1], jax.tree.leaves(batch)[0].shape[0]  # rows > size: padding over devices
+    count = running.shape[0]
+    size, rows = _plant_count(objective, state, batch), jax.tree.leaves(batch)[0].shape[0]  # rows > size: padding
 
-    def sound(theta, failed, batch):
-        keep = jnp.where(failed, jnp.argmin(failed), jnp.arange(size))[np.minimum(np.arange(rows), size - 1)]
+    def evaluate(theta, replaced, batch):
+        keep = jnp.where(replaced, jnp.argmin(replaced), jnp.arange(size))[np.minimum(np.arange(rows), size - 1)]
         plants = jax.tree.map(lambda x: x[keep], batch)
-        return value_and_grad(lambda t: objective(t, plants, failed), mode)(theta)[1]
+        return value_and_grad(lambda t: objective(t, plants, replaced), mode)(theta)
 
-    counts = jnp.sum(failed, axis=1)
-    poisoned = running & (counts > 0) & (counts < size) & ~_finite_rows(grads)
-    replaced = jax.lax.cond(jnp.any(poisoned), lambda: safe_vmap(sound, (0, 0, None))(state.theta, failed, batch),
-                            lambda: grads)  # fmt: skip
-    return values, failed, _where(poisoned, replaced, grads)
+    evaluate = safe_vmap(evaluate, (0, 0, None))
+    none = jnp.zeros((count, size), bool)
+    if mode == "forward":  # a failed plant's tangents stay in its own lane
+        (values, failed), grads = evaluate(state.theta, none, batch)
+        return values, failed, grads
+
+    def body(carry):
+        passes, _, values, failed, grads, poisoned = carry
+        (new_values, new_failed), new_grads = evaluate(state.theta, jnp.where(passes > 0, failed, none), batch)
+        first = passes == 0
+        values, failed = jnp.where(first, new_values, values), jnp.where(first, new_failed, failed)
+        counts = jnp.sum(failed, axis=1)
+        found = running & (counts > 0) & (counts < size) & ~_finite_rows(new_grads)
+        poisoned = jnp.where(first, found, poisoned)
+        grads = jax.tree.map(lambda n, o: jnp.where(first, n, o), new_grads, _where(poisoned, new_grads, grads))
+        return passes + 1, first & jnp.any(poisoned), values, failed, grads, poisoned
+
+    (values, failed), grads = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
+                                           jax.eval_shape(evaluate, state.theta, none, batch))  # fmt: skip
+    start = (jnp.zeros((), jnp.int32), jnp.asarray(True), values, failed, grads, jnp.zeros(count, bool))
+    _, _, values, failed, grads, _ = jax.lax.while_loop(lambda c: c[1], body, start)
+    return values, failed, grads
+
+
+def _plant_count(objective, state: TunerState, batch) -> int:
+    """The training plants (B) the objective scores (the batch may hold padding rows beyond them)."""
+    theta = {k: v[0] for k, v in state.theta.items()}
+    return jax.eval_shape(lambda t: objective(t, batch)[1], theta).shape[0]
 
 
 def _finite_rows(tree):
