@@ -27,6 +27,8 @@ class CMAState(NamedTuple):
     Attributes:
       mean: (d,) the distribution's mean.  sigma: () the step size.
       cov: (d, d) the covariance, or (d,) its diagonal above :data:`FULL_MAX` coordinates.
+      root, inverse_root: its symmetric square root ``A`` (``C = A A^T``) and ``A^-1`` (diagonals above
+        :data:`FULL_MAX`), one eigendecomposition per generation.
       path_sigma, path_c: (d,) the evolution paths of the step size and of the covariance.
       generation: () generations told.  free: (d,) bool, the coordinates that move.
     """
@@ -34,6 +36,8 @@ class CMAState(NamedTuple):
     mean: jax.Array
     sigma: jax.Array
     cov: jax.Array
+    root: jax.Array
+    inverse_root: jax.Array
     path_sigma: jax.Array
     path_c: jax.Array
     generation: jax.Array
@@ -47,7 +51,7 @@ def init(mean, sigma, free) -> CMAState:
     cov = jnp.eye(d, dtype=mean.dtype) if d <= FULL_MAX else jnp.ones(d, mean.dtype)
     zeros = jnp.zeros_like(mean)
     sigma = jnp.asarray(sigma, mean.dtype)
-    return CMAState(mean, sigma, cov, zeros, zeros, jnp.zeros((), jnp.int32), jnp.asarray(free, bool))
+    return CMAState(mean, sigma, cov, cov, cov, zeros, zeros, jnp.zeros((), jnp.int32), jnp.asarray(free, bool))
 
 
 def _weights(population: int, dtype):
@@ -74,12 +78,12 @@ def _constants(state: CMAState, population: int):
     return w, mu_eff, c_sigma, d_sigma, c_c, c_1, c_mu, chi
 
 
-def _factor(state: CMAState):
+def _factor(cov):
     """``(A, A^-1)`` with ``C = A A^T`` symmetric (the eigendecomposition's ``B D B^T``), or diagonals."""
-    if state.cov.ndim == 1:
-        root = jnp.sqrt(state.cov)
+    if cov.ndim == 1:
+        root = jnp.sqrt(cov)
         return root, 1.0 / root
-    values, vectors = jnp.linalg.eigh(state.cov)
+    values, vectors = jnp.linalg.eigh(cov)
     root = jnp.sqrt(jnp.maximum(values, 1e-300))
     return (vectors * root) @ vectors.T, (vectors / root) @ vectors.T
 
@@ -90,9 +94,8 @@ def _apply(matrix, rows):
 
 def ask(state: CMAState, key, population: int):
     """``population`` candidates (population, d): ``mean + sigma A z`` with ``z ~ N(0, I)``, clipped to the cube."""
-    root, _ = _factor(state)
     z = jax.random.normal(key, (population, state.mean.shape[0]), state.mean.dtype) * state.free
-    return jnp.clip(state.mean + state.sigma * _apply(root, z), 0.0, 1.0)
+    return jnp.clip(state.mean + state.sigma * _apply(state.root, z), 0.0, 1.0)
 
 
 def tell(state: CMAState, ranked) -> CMAState:
@@ -102,9 +105,8 @@ def tell(state: CMAState, ranked) -> CMAState:
     w, mu_eff, c_sigma, d_sigma, c_c, c_1, c_mu, chi = _constants(state, population)
     steps = (ranked[: w.shape[0]] - state.mean) / state.sigma * state.free
     step = w @ steps
-    _, inverse_root = _factor(state)
     path_sigma = (1 - c_sigma) * state.path_sigma + jnp.sqrt(c_sigma * (2 - c_sigma) * mu_eff) * _apply(
-        inverse_root, step
+        state.inverse_root, step
     )
     norm = jnp.linalg.norm(path_sigma)
     generation = state.generation + 1
@@ -118,4 +120,5 @@ def tell(state: CMAState, ranked) -> CMAState:
         rank_one, rank_mu = jnp.outer(path_c, path_c), (steps.T * w) @ steps
     cov = (1 + c_1 * lost - c_1 - c_mu) * state.cov + c_1 * rank_one + c_mu * rank_mu
     sigma = state.sigma * jnp.exp(jnp.minimum(c_sigma / d_sigma * (norm / chi - 1), 1.0))
-    return CMAState(state.mean + state.sigma * step, sigma, cov, path_sigma, path_c, generation, state.free)
+    return CMAState(state.mean + state.sigma * step, sigma, cov, *_factor(cov), path_sigma, path_c, generation,
+                    state.free)  # fmt: skip

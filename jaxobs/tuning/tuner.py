@@ -445,20 +445,18 @@ def _pick(archive: Archive, chosen, taken, distinct: float, low, high):
     where the archive runs out. Returns the rows and the archive's new ``used`` flags."""
     width = jnp.where(high > low, high - low, 1.0)
     usable = (archive.diverged < NONE_YET) & ~archive.used
+    size = archive.rows.shape[0]
 
-    def take(carry, i, need_distinct):
+    def take(carry, j):  # j < size: a distinct candidate; j >= size: any (the second pass)
         chosen, taken, used = carry
+        i, need_distinct = j % size, j < size
         far = jnp.min(jnp.where(jnp.arange(chosen.shape[0]) < taken,
                                 jnp.max(jnp.abs(chosen - archive.rows[i]) / width, axis=1), jnp.inf))  # fmt: skip
-        ok = usable[i] & ~used[i] & (taken < chosen.shape[0]) & ((not need_distinct) | (far >= distinct))
+        ok = usable[i] & ~used[i] & (taken < chosen.shape[0]) & (~need_distinct | (far >= distinct))
         chosen = jnp.where(ok, chosen.at[jnp.minimum(taken, chosen.shape[0] - 1)].set(archive.rows[i]), chosen)
         return (chosen, taken + ok, used.at[i].set(used[i] | ok)), None
 
-    carry = (chosen, taken, archive.used)
-    for need_distinct in (True, False):
-        carry = jax.lax.scan(functools.partial(take, need_distinct=need_distinct), carry,
-                             jnp.arange(archive.rows.shape[0]))[0]  # fmt: skip
-    chosen, taken, used = carry
+    chosen, taken, used = jax.lax.scan(take, (chosen, taken, archive.used), jnp.arange(2 * size))[0]
     last = chosen[jnp.maximum(taken - 1, 0)]
     return jnp.where((jnp.arange(chosen.shape[0]) < taken)[:, None], chosen, last), used
 
