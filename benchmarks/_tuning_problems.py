@@ -28,6 +28,7 @@ PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
     "peg-on-hole-cholesky": "tuning/peg_on_hole_cholesky.toml",
     "cartpole-payload-aob": "tuning/cartpole_payload_aob.toml",
     "arm-on-table-cholesky": "tuning/arm_on_table_cholesky.toml",
+    "arm7-aob-cholesky": "tuning/arm7_aob_cholesky.toml",
 }
 
 

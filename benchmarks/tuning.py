@@ -21,13 +21,13 @@ the held-out plants at :data:`GRID` log-spaced times up to the budget: the anyti
 the seeds). The table gives the median [min, max] over the seeds at the budget, the training rollouts each method
 computed, and where a method's best lies on the boundary of the box (then the box is too small: ``--widen``).
 
-    python benchmarks/tuning.py --out DIR [--problems NAME ...] [--seeds 5] [--budget S] [--spread S] [--widen]
-                                [--methods M ...] [--readme README.md]
-    python benchmarks/tuning.py --out DIR --merge A/tuning.json B/tuning.json [--readme README.md]
+    python benchmarks/tuning.py --out DIR [--problems NAME ...] [--seeds 5] [--budget S] [--spread S] [--widen N]
+                                [--methods M ...] [--readme README.md docs/tuning-results.md]
+    python benchmarks/tuning.py --out DIR --merge A/tuning.json B/tuning.json [--readme ...]
 
-Writes ``DIR/tuning.json``, ``DIR/tuning.png`` (anytime curves) and ``DIR/tuning.md`` (the table); ``--readme``
-replaces the table between the ``<!-- tuning-table -->`` markers of that file; ``--merge`` runs nothing and
-tabulates and plots runs saved by earlier calls.
+Writes ``DIR/tuning.json``, ``DIR/tuning.png`` (anytime curves) and ``DIR/tuning.md`` (the tables); ``--readme``
+replaces the tables between the ``<!-- tuning-table -->`` and ``<!-- tuning-anytime -->`` markers of those files;
+``--merge`` runs nothing and tabulates and plots runs saved by earlier calls.
 """
 
 from __future__ import annotations
@@ -59,11 +59,11 @@ METHODS = ("jaxobs", "random search", "CMA-ES (evosax)", "CMA-ES (cma)", "sep-CM
            "Optuna (TPE)")  # fmt: skip
 FAIR_SPREAD = {"force-1dof": 20.0, "force-1dof-cvar": 20.0, "peg-on-hole": 45.0, "grip-example56": 3.0,
                "cartpole-payload": 12.0, "arm-on-table": 8.0, "sideslip": 4.0, "peg-on-hole-cholesky": 45.0,
-               "cartpole-payload-aob": 12.0, "arm-on-table-cholesky": 8.0}  # fmt: skip
+               "cartpole-payload-aob": 12.0, "arm-on-table-cholesky": 8.0, "arm7-aob-cholesky": 4.0}  # fmt: skip
 """The fair box per shipped problem: ``theta0 +- spread``, wide enough to hold every method's best design (the
 designs the tuner finds when it may leave the shipped box, docs/tuning-results.md)."""
 BUDGET = {"gain-schedule-100": 45.0, "gain-schedule-1000": 60.0, "gain-schedule-10000": 90.0,
-          "speed-schedule-256": 90.0}  # fmt: skip
+          "speed-schedule-256": 90.0, "arm7-aob-cholesky": 600.0}  # fmt: skip
 """Wall time per method and seed (s), compilation included; 120 s for the problems not named."""
 STRATEGY = {"bounded": True, "rounds": 10_000}
 """jaxobs' settings over each problem's (the shipped strategy): the box kept, restarts until the budget is spent."""
@@ -322,6 +322,39 @@ def markdown_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def anytime_table(results: dict, shares=(0.1, 0.25, 0.5, 1.0)) -> str:
+    """The anytime curves as numbers: per problem and method, the median over the seeds of the held-out objective
+    (gain schedules: ``(J - J*) / J*``) of the best design so far at ``shares`` of the budget."""
+    head = ["problem", "method", *(f"{share:.0%} of the budget" for share in shares)]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for label, r in results.items():
+        grid = np.asarray(r["grid"])
+        columns = [int(np.argmin(np.abs(grid - share * r["budget"]))) for share in shares]
+        for method in METHODS:
+            runs = r["runs"].get(method) or []
+            if not runs:
+                continue
+            cells = []
+            for j in columns:
+                values = [x["heldout"][j] for x in runs]
+                if any(v is None for v in values):
+                    cells.append("-")
+                    continue
+                value = statistics.median(values)
+                cells.append(f"{(value - r['optimum']) / r['optimum']:.2g}" if r["optimum"] else f"{value:.4g}")
+            lines.append(f"| {label} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def replace_tables(path: Path, tables: dict) -> None:
+    """Replace the text between each pair of ``<!-- name -->`` markers of ``path`` by ``tables[name]``."""
+    text = path.read_text()
+    for name, table in tables.items():
+        marker = f"<!-- {name} -->"
+        text = re.sub(f"{marker}.*?{marker}", lambda _, m=marker, t=table: f"{m}\n{t}\n{m}", text, flags=re.S)
+    path.write_text(text)
+
+
 def plot(results: dict, path: Path) -> None:
     from jaxobs.papers._output import pyplot, save_figure
 
@@ -363,7 +396,13 @@ def main() -> None:
     parser.add_argument("--spread", type=float, help="replace the fair box's spread of the shipped problems")
     parser.add_argument("--widen", type=int, default=0, help="rerun a problem with a doubled spread while a best "
                         "design lies on the box's boundary, at most this many times")  # fmt: skip
-    parser.add_argument("--readme", help="replace the table between <!-- tuning-table --> markers of this file")
+    parser.add_argument(
+        "--readme",
+        nargs="+",
+        default=[],
+        help="replace the tables between <!-- tuning-table --> "
+        "and <!-- tuning-anytime --> markers of these files (README.md, docs/tuning-results.md)",
+    )
     parser.add_argument("--merge", nargs="+", metavar="JSON", help="run nothing: the table and figure of these "
                         "tuning.json files' problems (a later file's run of a problem replaces an earlier "
                         "one's)")  # fmt: skip
@@ -385,15 +424,12 @@ def main() -> None:
             if label in ORACLES or not widened:
                 break
             spread = 2 * results[label]["spread"]
-    table = markdown_table(results)
-    print(table)
-    (out / "tuning.md").write_text(table + "\n")
+    tables = {"tuning-table": markdown_table(results), "tuning-anytime": anytime_table(results)}
+    print(tables["tuning-table"])
+    (out / "tuning.md").write_text("\n\n".join(tables.values()) + "\n")
     plot(results, out / "tuning.png")
-    if args.readme:
-        path = Path(args.readme)
-        marker = "<!-- tuning-table -->"
-        path.write_text(re.sub(f"{marker}.*?{marker}", lambda _: f"{marker}\n{table}\n{marker}", path.read_text(),
-                               flags=re.S))  # fmt: skip
+    for path in args.readme:
+        replace_tables(Path(path), tables)
 
 
 if __name__ == "__main__":

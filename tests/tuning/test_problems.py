@@ -50,3 +50,28 @@ def test_the_tuner_reaches_the_optimal_schedule():
     result = tune(problem, TuneSettings(lbfgs(), backtrack=True, steps=100, patience=10, min_improvement=1e-7),
                   progress=False)  # fmt: skip
     assert result.converged and problem.describe(result.theta)["suboptimality"] < 1e-6
+
+
+def test_the_speed_schedule_is_bounded_by_each_profiles_riccati_gains():
+    """The lateral model's accelerometer row against its dynamics (``a_y = dv_y / dt + v r``); interpolation
+    weights that sum to one (one knot: a fixed gain); every plant's loss of the fixed-gain design above 1 (its
+    Riccati bound), and that bound reached by the Riccati gains themselves."""
+    from jaxobs.tuning import problems
+
+    Phi, C = problems.lateral_model(np.array([10.0, 30.0]), h=1e-6)  # a_y = dv_y / dt + v r: C's row is A's
+    assert Phi.shape == (2, 4, 4) and C.shape == (2, 2, 4)
+    np.testing.assert_allclose(Phi[:, 2:, 2:], np.broadcast_to(np.eye(2), (2, 2, 2)))  # the biases are random walks
+    speeds, h = np.array([10.0, 30.0]), 1e-6
+    A_first_row = (Phi[:, 0, :2] - np.array([1.0, 0.0])) / h  # Phi = I + A h + O(h^2)
+    np.testing.assert_allclose(A_first_row, np.stack([C[:, 1, 0], C[:, 1, 1] - speeds], -1), rtol=1e-4)  # a_y
+    weights = problems._hat_weights(np.array([5.0, 7.5, 40.0, 22.0]), np.linspace(5.0, 40.0, 8))
+    np.testing.assert_allclose(weights.sum(-1), 1.0)
+    assert problems._hat_weights(np.array([12.0]), np.array([20.0])).tolist() == [[1.0]]
+    problem, bounds = problems.speed_schedule_problem(knots=4, train=2, heldout=3, steps=60)
+    assert problem.theta0["gains"].shape == (4, 4, 2) and bounds["heldout"].shape == (3,)
+    losses = jax.jit(problem.losses)(problem.theta0, problem.heldout)[0]
+    assert bool(jnp.all(losses > 1.0)) and problem.describe(problem.theta0)["excess"] > 0
+    plant = jax.tree.map(lambda x: x[0], problem.train)
+    model = {k: plant[k] for k in ("Phi", "C", "Q", "R", "P_init")}
+    np.testing.assert_allclose(schedule_cost(optimal_schedule(**model).gains, **model) / plant["optimum"], 1.0,
+                               rtol=1e-12)  # fmt: skip
