@@ -174,15 +174,17 @@ class Tuner(NamedTuple):
 
 
 def make_tuner(settings: TuneSettings = TuneSettings(), *, penalty: Callable | None = None) -> Tuner:
-    """The tuner of ``settings`` as a pure ``init`` / ``step`` pair (see the module docstring for its phases).
+    """The tuner of ``settings`` (a :class:`TuneSettings`) as a pure ``init`` / ``step`` pair (see the module
+    docstring for its phases); ``penalty``: an optional ``theta -> scalar`` added to the objective with
+    ``settings.penalty_weight`` (a :class:`jaxobs.tuning.TuningProblem`'s).
 
     ``init(theta0, key=None, *, box=None, starts=None)``: the state before the first step; ``theta0`` a dict of
     arrays, ``key`` the CMA-ES's PRNG key (default: from ``settings.seed``), ``box`` ``{name: (low, high)}`` (default
     ``theta0 +- settings.spread``), ``starts`` a list of ``theta`` to polish at once without exploring.
 
     ``step(state, losses, batch)``: one batched computation of ``losses(theta, batch) -> (losses (B,), diverged
-    (B,))`` (a :class:`jaxobs.tuning.TuningProblem`'s), whose training objective (:func:`make_objective`, with
-    ``penalty(theta)`` weighted by ``settings.penalty_weight``) the tuner minimises; returns the new state and a
+    (B,))`` (a :class:`jaxobs.tuning.TuningProblem`'s), whose training objective (:func:`make_objective`, with the
+    penalty) the tuner minimises; returns the new state and a
     :class:`StepInfo`. A step after the last does nothing (``PHASES[state.phase] == "done"``). Jittable: the
     shapes of ``state`` are fixed by ``init``.
 
