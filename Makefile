@@ -43,6 +43,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/ct_integration.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/parallel_in_time.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/estimation.py --out $(OUT)/bench
+	$(BIN)/python benchmarks/estimation_breadth.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/learning.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/hgo.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/ct_estimation.py --out $(OUT)/bench

@@ -337,8 +337,8 @@ def _step_models() -> dict:
     """``{label: (mjx.Model, solver_iterations)}``: the MJX models of the shipped tuning problems."""
     from jaxobs.mjx import compliant_6dof, force_1dof
     from jaxobs.mjx.robot import make_robot
+    from jaxobs.papers.shipped import ROBOTS as root
 
-    root = Path(__file__).resolve().parent.parent / "examples" / "robots"
     cart = make_robot(root / "cartpole_payload.xml", ["push"], ["cart_position"])
     arm = make_robot(root / "arm_on_table.xml", ["shoulder_motor", "elbow_motor"], ["shoulder_angle"],
                      solver_iterations=4)  # fmt: skip

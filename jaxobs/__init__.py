@@ -19,10 +19,12 @@ import importlib.util
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at run time __getattr__ loads on first use
+    from jaxobs._checks import checked
     from jaxobs.batching import safe_lapack, safe_vmap
     from jaxobs.closed_loop import ClosedLoopTrace, measurement_noise, rms, simulate
+    from jaxobs.consistency import nees, nis, whiteness
     from jaxobs.design import acker, critically_damped_gain, dlqe, dlqr, lqe, lqr, place, reference_gain
-    from jaxobs.learning import FitSettings, covariance_model, em, fit, sample
+    from jaxobs.learning import FitSettings, als, covariance_model, em, fit, sample
     from jaxobs.lti import StateSpace, c2d, ctrb, dcgain, is_spr, obsv, ss, tf2ss
     from jaxobs.matrix_equations import care, dare
     from jaxobs.nonlinear import NonlinearModel, nonlinear_model
@@ -39,13 +41,16 @@ if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at r
     from jaxobs.observers.active import active_observer, active_observer_controller, feedback_gain, make_aob, make_ckf
     from jaxobs.observers.continuous import continuous_observer, make_continuous_observer
     from jaxobs.observers.ekf import extended_kalman_filter, make_ekf
+    from jaxobs.observers.ensemble import ensemble_kalman_filter, ensemble_smoother, make_enkf
     from jaxobs.observers.gramian import gramian_estimator, make_gramian
     from jaxobs.observers.hgo import hgo_gains, hgo_observer, make_hgo
     from jaxobs.observers.hinf import hinf_filter, make_hinf
+    from jaxobs.observers.imm import imm, make_imm
     from jaxobs.observers.inverse_dynamics import inverse_dynamics_observer, make_inverse_dynamics
     from jaxobs.observers.kalman import kalman_filter, make_kalman, square_root_form, square_root_kalman_filter
     from jaxobs.observers.linear import linear_observer
     from jaxobs.observers.modular import make_modular, modular_estimator
+    from jaxobs.observers.particle import make_particle_filter, particle_filter, particle_smoother
     from jaxobs.observers.pe_monitor import make_pe_monitor, pe_monitor
     from jaxobs.observers.ukf import make_ukf, unscented_kalman_filter
     from jaxobs.plants import force_plant
@@ -117,6 +122,12 @@ __all__ = [
     "make_ekf",
     "unscented_kalman_filter",
     "make_ukf",
+    "particle_filter",
+    "make_particle_filter",
+    "particle_smoother",
+    "ensemble_kalman_filter",
+    "make_enkf",
+    "ensemble_smoother",
     "continuous_observer",
     "make_continuous_observer",
     "hgo_gains",
@@ -124,6 +135,8 @@ __all__ = [
     "make_hgo",
     "modular_estimator",
     "make_modular",
+    "imm",
+    "make_imm",
     # estimation over a record
     "log_likelihood",
     "smooth",
@@ -136,6 +149,11 @@ __all__ = [
     "FitSettings",
     "covariance_model",
     "em",
+    "als",
+    # consistency of a filter
+    "nees",
+    "nis",
+    "whiteness",
     # closed loops and robustness
     "simulate",
     "ClosedLoopTrace",
@@ -149,6 +167,7 @@ __all__ = [
     "run_sweep",
     "safe_vmap",
     "safe_lapack",
+    "checked",
     "load_results",
     "tune",
     "make_tuner",

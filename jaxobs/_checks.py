@@ -2,16 +2,21 @@
 
 Shapes, dtypes and counts are static, so the checks of them (:func:`matrix`'s shapes, :func:`count`,
 :func:`vector`, :func:`float_dtype`) run on tracers too, at trace time, under ``jit``/``vmap``/``grad``.
-Checks of values (NaN, sign, definiteness) run only on concrete arrays: on tracers they are skipped
-(traced code reports problems through flags and NaNs instead, never by raising). Each check raises
-``ValueError`` naming the argument, the expected and the given value.
+Checks of values (NaN, sign, definiteness) run on concrete arrays; on tracers they are skipped (traced code
+reports problems through flags and NaNs instead, never by raising), except while :func:`checked` traces a
+function, when they become ``checkify`` checks with the same messages. Each check raises ``ValueError`` naming
+the argument, the expected and the given value.
 """
 
 from __future__ import annotations
 
+import contextvars
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import checkify
 
 MAX_INDEX = 2**31 - 1
 """The largest count or index the library and its jobs take: JAX's default integers (indices, seeds, loop
@@ -23,9 +28,64 @@ def is_concrete(*values) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
 
 
+_CHECKING = contextvars.ContextVar("jaxobs_checked", default=False)
+
+
+def checked(fn):
+    """``fn`` with the library's value checks in compiled code: the ``ValueError`` that an eager call raises for a
+    bad value (non-finite or indefinite ``Q``/``R``, a non-positive variance, ...) is raised under ``jit`` and
+    ``vmap`` too.
+
+    Wrap the outermost function: ``checked(jax.jit(jax.vmap(f)))(...)``. While it traces ``fn``, the checks that
+    are skipped on traced values become ``jax.experimental.checkify`` checks with the same messages; after the
+    run, the first that failed is raised as ``ValueError`` (``checkify`` tells where). It costs what the checks
+    compute (an eigenvalue decomposition per covariance) and is meant for debugging, not for sweeps.
+
+    Example::
+
+        >>> import jax, jax.numpy as jnp
+        >>> import jaxobs as jo
+        >>> design = lambda r: jo.make_kalman([[1.0]], [[1.0]], [[0.1]], r[None, None]).x0
+        >>> jax.jit(jax.vmap(design))(jnp.array([1.0, -1.0])).shape  # unchecked: a negative R passes
+        (2, 1)
+        >>> jo.checked(jax.jit(jax.vmap(design)))(jnp.array([1.0, -1.0]))
+        Traceback (most recent call last):
+        ...
+        ValueError: R must be positive definite (smallest eigenvalue -1.0); a singular R cannot be inverted ...
+    """
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        if not is_concrete(args, kwargs):
+            raise ValueError("checked(fn) must be the outermost call: checked(jax.jit(jax.vmap(fn)))(...)")
+
+        def flagged(*a, **k):
+            token = _CHECKING.set(True)
+            try:
+                return fn(*a, **k)
+            finally:
+                _CHECKING.reset(token)
+
+        error, out = checkify.checkify(flagged, errors=checkify.user_checks)(*args, **kwargs)
+        message = error.get()
+        if message is not None:
+            raise ValueError(message)
+        return out
+
+    return run
+
+
+def _check_traced(ok, message: str, **values) -> None:
+    """Under :func:`checked`, a ``checkify`` check that ``ok`` holds (``message`` formatted with ``values``)."""
+    if _CHECKING.get():
+        checkify.check(jnp.all(ok), message, **values)
+
+
 def finite(name: str, value) -> None:
-    """Raise when a concrete ``value`` has NaN or infinite entries (skipped on tracers)."""
-    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+    """Raise when a concrete ``value`` has NaN or infinite entries (skipped on tracers, unless :func:`checked`)."""
+    if not is_concrete(value):
+        _check_traced(jnp.isfinite(value), f"{name} contains NaN or infinite entries")
+    elif not np.all(np.isfinite(np.asarray(value))):
         raise ValueError(f"{name} contains NaN or infinite entries")
 
 
@@ -147,6 +207,8 @@ def covariance(name: str, value, *, definite: bool, size: int | None = None):
     """Check that ``value`` is a finite symmetric positive (semi)definite matrix of the given size."""
     matrix(name, value, shape=(size, size), square=True, batch=True)
     if not is_concrete(value):
+        if _CHECKING.get():
+            _traced_covariance(name, jnp.asarray(value), definite)
         return
     a = np.asarray(value, dtype=float)
     scale = max(float(np.max(np.abs(a))), np.finfo(float).tiny) if a.size else 1.0
@@ -163,9 +225,27 @@ def covariance(name: str, value, *, definite: bool, size: int | None = None):
         raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lowest:.3g})")
 
 
+def _traced_covariance(name: str, a, definite: bool) -> None:
+    """:func:`covariance`'s value checks as ``checkify`` checks (:func:`checked`), with its tolerances."""
+    scale = jnp.maximum(jnp.max(jnp.abs(a)), jnp.finfo(a.dtype).tiny)
+    _check_traced(jnp.abs(a - jnp.swapaxes(a, -1, -2)) <= 1e-10 * jnp.abs(a) + 1e-12 * scale,
+                  f"{name} must be symmetric; symmetrise it with (M + M.T) / 2")  # fmt: skip
+    lowest = jnp.min(jnp.linalg.eigvalsh((a + jnp.swapaxes(a, -1, -2)) / 2))
+    if definite:
+        _check_traced(lowest > 1e-14 * scale, f"{name} must be positive definite (smallest eigenvalue {{lowest}}); "
+                      f"a singular {name} cannot be inverted", lowest=lowest)  # fmt: skip
+    else:
+        _check_traced(lowest >= -1e-10 * scale, f"{name} must be positive semidefinite (smallest eigenvalue "
+                      "{lowest})", lowest=lowest)  # fmt: skip
+
+
 def positive_scalar(name: str, value, *, allow_zero: bool = False):
-    """Check a finite positive (or non-negative) real scalar (a bool is refused); skipped on tracers."""
+    """Check a finite positive (or non-negative) real scalar (a bool is refused); skipped on tracers (unless
+    :func:`checked`)."""
     if not is_concrete(value):
+        bound = "non-negative" if allow_zero else "positive"
+        ok = jnp.isfinite(value) & ((value >= 0) if allow_zero else (value > 0))
+        _check_traced(ok, f"{name} must be a finite {bound} number, got {{value}}", value=value)
         return
     a = np.asarray(value)
     if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
@@ -181,8 +261,11 @@ def positive_scalar(name: str, value, *, allow_zero: bool = False):
 
 def positive(name: str, value, *, allow_zero: bool = False, what: str = "") -> None:
     """Check that every entry of a concrete real array (any shape, e.g. a batch of parameters) is finite and
-    positive (or non-negative); skipped on tracers. ``what`` ends the message."""
+    positive (or non-negative); skipped on tracers (unless :func:`checked`). ``what`` ends the message."""
     if not is_concrete(value):
+        bound, hint = ("non-negative" if allow_zero else "positive"), (f" ({what})" if what else "")
+        ok = jnp.isfinite(value) & ((value >= 0) if allow_zero else (value > 0))
+        _check_traced(ok, f"{name} must be finite and {bound}{hint}")
         return
     a = np.asarray(value)
     if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
@@ -240,3 +323,14 @@ def returns(call: str, fn, args: tuple, shape: tuple, what: str) -> None:
         raise ValueError(f"{call} must return {what}, shape {_shape_text(shape)}, got {out.shape}")
     if not jnp.issubdtype(out.dtype, jnp.floating):
         raise ValueError(f"{call} must return a floating array, got dtype {out.dtype}")
+
+
+def key(name: str, value) -> jax.Array:
+    """``value`` checked to be a PRNG key: a typed key (``jax.random.key``, shape ``()``) or a raw one
+    (``jax.random.PRNGKey``, uint32 of shape (2,)); static, so it runs under ``jit`` and ``vmap`` too."""
+    value = value if isinstance(value, jax.Array) else jnp.asarray(value)
+    typed = jnp.issubdtype(value.dtype, jax.dtypes.prng_key) and value.shape == ()
+    if not (typed or (value.dtype == jnp.uint32 and value.shape == (2,))):
+        raise ValueError(f"{name} must be a PRNG key (jax.random.key(seed) or jax.random.PRNGKey(seed)), got "
+                         f"{value.dtype}{tuple(value.shape)}")  # fmt: skip
+    return value

@@ -26,6 +26,8 @@ __all__ = [
     "ConfigError",
     "fail",
     "load_toml",
+    "load_toml_text",
+    "deep_merge",
     "merge",
     "get",
     "check_range",
@@ -48,17 +50,34 @@ def fail(source: str, key: str, message: str):
 
 def load_toml(path) -> dict:
     """Parse a TOML file; a missing file or invalid TOML is a :class:`ConfigError` naming the file."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: no such config file")
     try:
-        return tomllib.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:  # tomllib.TOMLDecodeError is a ValueError
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return load_toml_text(text, str(path))
+
+
+def load_toml_text(text: str, source: str) -> dict:
+    """Parse TOML ``text``; invalid TOML is a :class:`ConfigError` naming ``source``."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    try:
+        return tomllib.loads(text)
+    except ValueError as exc:  # tomllib.TOMLDecodeError is a ValueError
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+
+
+def deep_merge(base: dict, over: dict) -> dict:
+    """A copy of ``base`` with ``over``'s keys set, tables merged key by key (no checks: :func:`merge` does them)."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        out[key] = deep_merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 def _is_names(value) -> bool:

@@ -308,14 +308,13 @@ class StallWatch:
     """Reports a job's computation that makes no progress instead of waiting on it forever.
 
     ``with StallWatch(what, hint, cpu=...) as watch:`` starts a monitor thread; each blocking wait of the job runs
-    in ``with watch.waiting(label, pending):``. A wait is stalled when
+    in ``with watch.waiting(label, program):``. A wait is stalled when
 
     * on CPU devices (``cpu=True``), the process used less than 2 % of one core over the last
       :attr:`IDLE_SECONDS` (a deadlocked runtime, e.g. jaxlib's batched LAPACK kernels of
       :mod:`jaxobs.batching`, leaves every thread waiting), or
-    * it has lasted more than :attr:`FACTOR` times the slowest completed wait (and at least
-      :attr:`MIN_SECONDS`); before the first wait completes, on devices other than CPU, :attr:`FACTOR` times
-      ``reference`` seconds (e.g. the compile time).
+    * it has lasted more than :attr:`FACTOR` times the slowest completed wait of the same ``program`` (and at
+      least :attr:`MIN_SECONDS`). A program's first wait has no time bound: it may include its compilation.
 
     Then the monitor logs an error naming ``label`` and interrupts the main thread: the wait raises
     :class:`Stalled` (message: the stall, its bound and ``hint``). A deadlocked runtime cannot be stopped, and
@@ -329,10 +328,10 @@ class StallWatch:
     FACTOR = 20.0
     MIN_SECONDS = 60.0
 
-    def __init__(self, what: str, hint: str, *, cpu: bool, reference: float = 0.0):
-        self.what, self.hint, self.cpu, self.reference = what, hint, cpu, reference
+    def __init__(self, what: str, hint: str, *, cpu: bool):
+        self.what, self.hint, self.cpu = what, hint, cpu
         self.idle_seconds, self.factor, self.min_seconds = self.IDLE_SECONDS, self.FACTOR, self.MIN_SECONDS
-        self.slowest = 0.0
+        self.slowest: dict = {}  # program -> seconds of its slowest completed wait
         self._lock, self._stop = threading.Lock(), threading.Event()
         self._wait: dict | None = None
         self._thread: threading.Thread | None = None
@@ -346,17 +345,17 @@ class StallWatch:
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
 
-    def bound(self) -> float | None:
-        """Seconds after which a wait is stalled whatever the CPU does (None: no time bound yet)."""
-        reference = self.slowest or (0.0 if self.cpu else self.reference)
-        return max(self.min_seconds, self.factor * reference) if reference else None
+    def bound(self, program="") -> float | None:
+        """Seconds after which a wait of ``program`` is stalled whatever the CPU does (None: no bound yet)."""
+        slowest = self.slowest.get(program)
+        return None if slowest is None else max(self.min_seconds, self.factor * slowest)
 
     @contextlib.contextmanager
-    def waiting(self, label: str):
-        """Watch the ``with`` block (one blocking computation, ``label`` naming it); yields a dict where the block
-        puts its ``"pending"`` arrays (checked at exit after a stall)."""
-        wait = {"label": label, "start": time.perf_counter(), "cpu": collections.deque(), "pending": None,
-                "fired": False}  # fmt: skip
+    def waiting(self, label: str, program=""):
+        """Watch the ``with`` block (one blocking computation of ``program``, any hashable key; ``label`` names the
+        wait); yields a dict where the block puts its ``"pending"`` arrays (checked at exit after a stall)."""
+        wait = {"label": label, "program": program, "start": time.perf_counter(), "cpu": collections.deque(),
+                "pending": None, "fired": False}  # fmt: skip
         with self._lock:
             self._wait = wait
         try:
@@ -370,7 +369,7 @@ class StallWatch:
                 self._wait = None
         if wait["fired"]:  # fired as the computation ended: its interrupt may still be pending
             raise Stalled(self.message)
-        self.slowest = max(self.slowest, time.perf_counter() - wait["start"])
+        self.slowest[program] = max(self.slowest.get(program, 0.0), time.perf_counter() - wait["start"])
 
     def _stalled(self, wait: dict, now: float) -> str | None:
         """Why ``wait`` counts as stalled at ``now``, or None."""
@@ -383,7 +382,7 @@ class StallWatch:
             used = samples[-1][1] - samples[0][1]
             if used < self.IDLE_SHARE * (now - samples[0][0]):
                 return f"the CPU stayed idle ({used:.2f} s of CPU in the last {now - samples[0][0]:.0f} s)"
-        bound = self.bound()
+        bound = self.bound(wait["program"])
         if bound is not None and elapsed > bound:
             return f"it has run {elapsed:.3g} s, over {self.factor:g}x the slowest step so far ({bound:.3g} s)"
         return None

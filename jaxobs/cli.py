@@ -21,13 +21,34 @@ from jaxobs._distributed import DEFAULT_JOIN_TIMEOUT
 from jaxobs._resources import InterruptWatch, JobError, Stalled, locked_out_dir
 
 RESUME_HINT = "rerun the same command to resume"
+EXAMPLES = {
+    "sweep": """examples:
+  jaxobs sweep --list                                 scenarios and shipped configs
+  jaxobs sweep --example sweep-small --out out/small  a shipped config, from any directory
+  jaxobs sweep --config my.toml --set seed=3          a key over the file's""",
+    "tune": """examples:
+  jaxobs tune --list                                  problems and shipped configs
+  jaxobs tune --problem own-robot --steps 5 --out out/robot
+  jaxobs tune --example cartpole_payload --print-config
+  jaxobs tune --config my.toml --set plants.train=4   a key over the file's""",
+}
 CACHE_MIN_COMPILE_SECONDS = 0.2  # programs that compile faster are not worth a cache file
 
 
-def _print_list(registry: dict) -> None:
+def _print_list(registry: dict, command: str | None = None) -> None:
+    """The registry's entries, one line each; for ``sweep`` and ``tune``, then the shipped configs."""
     width = max(map(len, registry))
     for name, entry in registry.items():
         print(f"{name:{width}s}  {entry.summary}")
+    if command is None:
+        return
+    from jaxobs.papers.shipped import shipped_configs
+
+    configs = shipped_configs(command)
+    width = max(len(c.name) for c in configs)
+    print(f"\nshipped configs (jaxobs {command} --example NAME; --print-config prints one):")
+    for c in configs:
+        print(f"{c.name:{width}s}  [{c.job}] {c.summary}")
 
 
 def _reproduce(args) -> int:
@@ -62,13 +83,53 @@ def _reproduce_one(reproduction, out: Path) -> None:
         print(f"  {key} = {shown}")
 
 
-def _scenario(args, registry: dict, key: str):
-    """``(scenario, complete config, source)``: ``--config``'s TOML (or nothing) over the defaults of the scenario
-    its ``key`` names, or ``--print-config``'s, or the default one; raises :class:`jaxobs._config.ConfigError`."""
-    from jaxobs._config import fail, load_toml
+def _overrides(args, key: str) -> dict:
+    """The config keys the command line sets: ``--set KEY=VALUE`` (a TOML value, else a string), ``--problem``
+    and ``--steps``, as a nested table; a :class:`jaxobs._config.ConfigError` names a malformed ``--set``."""
+    from jaxobs._config import ConfigError, load_toml_text
 
-    given = load_toml(args.config) if args.config else {}
-    source = args.config or "<default>"
+    table: dict = {}
+    pairs = list(args.set or [])
+    if getattr(args, "problem", None):
+        pairs.append(f"{key}={args.problem!r}".replace("'", '"'))
+    if getattr(args, "steps", None) is not None:
+        pairs.append(f"optimizer.steps={args.steps}")
+    for pair in pairs:
+        name, eq, text = pair.partition("=")
+        if not eq or not name.strip():
+            raise ConfigError(f"--set: {pair!r} must be KEY=VALUE, e.g. --set optimizer.steps=5")
+        try:
+            value = load_toml_text(f"value = {text}", "--set")["value"]
+        except ConfigError:
+            value = text  # a bare string: --set robot.mjcf=arm.xml
+        *tables, last = name.strip().split(".")
+        node = table
+        for part in tables:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return table
+
+
+def _scenario(args, registry: dict, key: str):
+    """``(scenario, complete config, source)``: ``--config``'s TOML (or ``--example``'s, or nothing) over the
+    defaults of the scenario its ``key`` names, or ``--print-config``'s, or the default one, then the command line's
+    keys (``--set``, checked as ``--set``); raises :class:`jaxobs._config.ConfigError`."""
+    from jaxobs._config import deep_merge, fail, load_toml
+    from jaxobs.papers.shipped import config_path
+
+    path = args.config
+    if getattr(args, "example", None):
+        if args.config:
+            fail("--example", "--config", "give one of --config and --example")
+        try:
+            path = str(config_path(args.example, args.command))
+        except ValueError as exc:
+            fail("--example", args.example, str(exc).partition(": ")[2])
+    given = load_toml(path) if path else {}
+    source = path or "<default>"
+    overrides = _overrides(args, key)
+    if key in overrides:  # --problem: the job to run, whatever the file names
+        given[key] = overrides[key]
     chosen = getattr(args, "print_config", None) or None  # --print-config NAME
     name = given.get(key, chosen or next(iter(registry)))
     if chosen and name != chosen:
@@ -77,7 +138,10 @@ def _scenario(args, registry: dict, key: str):
         fail(source if key in given else "--print-config", key,
              f"must be one of {', '.join(map(repr, registry))}, got {name!r}")  # fmt: skip
     scenario = registry[name]
-    return scenario, scenario.validate({**given, key: name}, source), source
+    config = scenario.validate({**given, key: name}, source)
+    if overrides:
+        config = scenario.validate(deep_merge(config, overrides), "--set")
+    return scenario, config, source
 
 
 def _print_config(args, registry: dict, key: str) -> int:
@@ -100,7 +164,7 @@ def _sweep(args) -> int:
 
     registry = sweep_scenarios()
     if args.list:
-        _print_list(registry)
+        _print_list(registry, "sweep")
         return 0
     if args.print_config is not None:
         return _print_config(args, registry, "scenario")
@@ -160,7 +224,7 @@ def _tune(args) -> int:
 
     registry = tuning_problems()
     if args.list:
-        _print_list(registry)
+        _print_list(registry, "tune")
         return 0
     if args.print_config is not None:
         return _print_config(args, registry, "problem")
@@ -245,6 +309,12 @@ def build_parser() -> argparse.ArgumentParser:
         run = commands.add_parser(name, help=help_text, description=help_text)
         run.add_argument("--config", metavar="FILE",
                          help=f"TOML file over the defaults; its '{what}' key picks the {what} (--list)")  # fmt: skip
+        run.add_argument("--example", metavar="NAME",
+                         help="a shipped config instead of --config (--list names them); with --print-config: print "
+                              "it")  # fmt: skip
+        run.add_argument("--set", action="append", metavar="KEY=VALUE",
+                         help="a config key over the file's, checked like the file's (repeatable): e.g. --set "
+                              "seed=3")  # fmt: skip
         run.add_argument("--out", metavar="DIR", default=f"out/{name}", help=f"output directory (default: out/{name})")
         run.add_argument("--overwrite", action="store_true", help="discard a run of another config in --out")
         run.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -253,6 +323,12 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"print the full config of {what.upper()} (default: the default {what}; with "
                               f"--config: that file's) as TOML, every key commented, and exit")  # fmt: skip
         run.set_defaults(func=func)
+    tune = commands.choices["tune"]
+    tune.add_argument("--problem", metavar="NAME", help="the problem to tune (--list), over the file's")
+    tune.add_argument("--steps", type=int, metavar="N", help="the step cap (optimizer.steps), over the file's")
+    for name in ("sweep", "tune"):
+        commands.choices[name].epilog = EXAMPLES[name]
+        commands.choices[name].formatter_class = argparse.RawDescriptionHelpFormatter
     for name, engine in (("sweep", "jaxobs.sweep"), ("tune", "jaxobs.tuning")):
         launch = commands.choices[name].add_argument_group(
             "multi-process run", f"every process runs the same command; process 0 writes (see {engine})"

@@ -1,11 +1,12 @@
 """Learning a model from recorded data: maximum likelihood by gradient (optax) for any estimator with a
-log-likelihood, and expectation-maximisation for the linear-Gaussian model.
+log-likelihood, expectation-maximisation for the linear-Gaussian model, and ``Q``, ``R`` from a steady-state
+filter's innovations by autocovariance least squares.
 
 Data are ``B`` sequences of ``T`` samples: ``EstimatorInputs`` with ``y`` (B, T, p) (NaN components missing) and
 ``u_prev`` (B, T, m) or ``None``. :func:`fit` minimises :func:`negative_log_likelihood` over unconstrained
 ``theta`` (:func:`covariance_model` for full ``Q``, ``R``); :func:`em` is EM for the linear-Gaussian model (Shumway
-& Stoffer 1982; Ghahramani & Hinton 1996), exact with missing data; :func:`sample` draws records.
-The algorithms: docs/learning.md.
+& Stoffer 1982; Ghahramani & Hinton 1996), exact with missing data; :func:`als` is autocovariance least squares
+(Odelson, Rajamani & Rawlings 2006); :func:`sample` draws records. The algorithms: docs/learning.md.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import optax
 
 from jaxobs import _checks
 from jaxobs._linalg import symmetrize
+from jaxobs.consistency import autocovariance
 from jaxobs.nonlinear import NonlinearModel
 from jaxobs.observers.base import Estimator, EstimatorInputs
 from jaxobs.observers.kalman import KalmanParams, kalman_filter
@@ -38,6 +40,8 @@ __all__ = [
     "EMResult",
     "em",
     "EM_FIELDS",
+    "ALSResult",
+    "als",
 ]
 
 EM_FIELDS = ("Phi", "Gamma", "C", "Q", "R", "x0", "P0")
@@ -110,6 +114,8 @@ def _batched(params, inputs: EstimatorInputs, what: str = "inputs"):
     """``(y, u_prev)`` as (B, T, p) and (B, T, m) or None, shapes checked (static) against ``params``."""
     if not isinstance(inputs, EstimatorInputs):
         raise ValueError(f"{what} must be EstimatorInputs(y, u_prev), got {type(inputs).__name__}")
+    if inputs.model is not None:
+        raise ValueError(f"{what}.model: fitting takes a constant model; a time-varying one is not supported here")
     p, m = _sizes(params)
     y = jnp.asarray(inputs.y)
     if y.ndim == 2:
@@ -536,3 +542,120 @@ def _em(params, y, u, tolerance, *, iterations: int, update: frozenset) -> EMRes
     start = (jnp.zeros((), jnp.int32), params, jnp.full((iterations,), jnp.nan, dtype), jnp.zeros((), bool))
     i, params, lls, done = jax.lax.while_loop(cond, body, start)
     return EMResult(params, lls, i, done)
+
+
+# --------------------------------------------------------------------------------------------
+# Autocovariance least squares
+
+
+class ALSResult(NamedTuple):
+    """Result of :func:`als`.
+
+    Attributes:
+      Q: (g, g) the estimate of the covariance of the process noise ``w`` (``G w`` drives the state)
+      R: (p, p) the estimate of the measurement noise covariance
+      autocovariance: (lags, p, p) the innovations' sample autocovariances ``C_0 .. C_{lags-1}`` it fits
+      residual: () the norm of the least-squares residual
+      identifiable: () bool: the least-squares matrix has full column rank, so ``Q`` and ``R`` are determined by
+        the autocovariances of ``lags`` lags (otherwise the estimate is the minimum-norm one)
+    """
+
+    Q: jax.Array
+    R: jax.Array
+    autocovariance: jax.Array
+    residual: jax.Array
+    identifiable: jax.Array
+
+
+def _structure(size: int, diagonal: bool) -> np.ndarray:
+    """The (size^2, k) matrix ``D`` with ``vec(M) = D theta`` (row-major ``vec``) for a symmetric (``k = size (size
+    + 1) / 2``, the lower triangle) or a diagonal (``k = size``) ``M``."""
+    pairs = [(i, i) for i in range(size)] if diagonal else [(i, j) for i in range(size) for j in range(i + 1)]
+    D = np.zeros((size * size, len(pairs)))
+    for column, (i, j) in enumerate(pairs):
+        D[i * size + j, column] = D[j * size + i, column] = 1.0
+    return D
+
+
+def _als_matrix(Phi, C, K, G, D_q, D_r, lags: int):
+    """The matrix ``A`` of ``[vec C_0; ...; vec C_{lags-1}] = A [theta_Q; theta_R]`` (Odelson, Rajamani & Rawlings
+    2006; ``vec`` row-major): with ``A_bar = Phi (I - K C)`` the predictor's error dynamics and
+    ``vec P = (I - A_bar (x) A_bar)^{-1} ((G (x) G) vec Q + (Phi K (x) Phi K) vec R)`` its stationary covariance,
+    ``C_0 = C P C' + R`` and ``C_j = C A_bar^j P C' - C A_bar^(j-1) Phi K R``."""
+    n, p = Phi.shape[-1], C.shape[-2]
+    A_bar, AK = Phi - Phi @ K @ C, Phi @ K
+    noise = jnp.concatenate([jnp.kron(G, G) @ D_q, jnp.kron(AK, AK) @ D_r], axis=1)
+    vec_P = jnp.linalg.solve(jnp.eye(n * n, dtype=Phi.dtype) - jnp.kron(A_bar, A_bar), noise)
+    blocks, O, previous = [], C, None  # O = C A_bar^j, previous = C A_bar^(j-1)
+    direct_q = jnp.zeros((p * p, D_q.shape[1]), Phi.dtype)
+    for j in range(lags):
+        direct_r = D_r if j == 0 else -jnp.kron(previous @ AK, jnp.eye(p, dtype=Phi.dtype)) @ D_r
+        blocks.append(jnp.kron(O, C) @ vec_P + jnp.concatenate([direct_q, direct_r], axis=1))
+        previous, O = O, O @ A_bar
+    return jnp.concatenate(blocks)
+
+
+def als(params: KalmanParams, innovation, *, lags: int = 15, G=None, diagonal=()) -> ALSResult:
+    """Autocovariance least squares (Odelson, Rajamani & Rawlings 2006): ``Q`` and ``R`` from the innovations of a
+    filter with a fixed gain, by matching their sample autocovariances ``C_j``
+    (:func:`jaxobs.consistency.autocovariance`) with the ones the model implies, which are linear in ``(Q, R)``.
+
+    The filter ``params`` may use any stabilising gain (typically the steady-state gain of a guess of ``Q`` and
+    ``R``): its innovations are correlated when the guess is wrong, and that correlation identifies the true
+    noise covariances. The estimate is the unconstrained least-squares solution over symmetric (or diagonal)
+    matrices: unbiased, but it can be indefinite on short records (no semidefinite constraint).
+
+    Args:
+      params: :class:`~jaxobs.observers.kalman.KalmanParams` with a fixed gain (e.g. ``steady_state=True``): the
+        model ``Phi``, ``C`` and the gain ``K`` the innovations were filtered with (``Q``, ``R`` unused).
+      innovation: (T, p) or (B, T, p) the innovations ``outputs.innovation`` of ``run(kalman_filter, params,
+        ...)`` once the filter's start-up transient has decayed, without missing components.
+      lags: the number of autocovariance lags fitted (an integer >= 1, fewer than ``T``).
+      G: (n, g) the noise input matrix, ``x_{k+1} = Phi x_k + Gamma u_k + G w_k``; ``None`` for the identity.
+      diagonal: the names among ``("Q", "R")`` estimated as diagonal matrices (fewer unknowns).
+
+    Returns:
+      :class:`ALSResult`. Works under ``jit`` and ``vmap`` (over records or plants).
+
+    Example:
+      >>> import jax, jaxobs as jo
+      >>> true = jo.make_kalman([[0.9]], [[1.0]], [[0.5]], [[0.2]])
+      >>> guess = jo.make_kalman([[0.9]], [[1.0]], [[1.0]], [[1.0]], steady_state=True)
+      >>> _, y = jax.vmap(lambda k: jo.sample(true, k, 2000))(jax.random.split(jax.random.PRNGKey(0), 8))
+      >>> _, out = jax.vmap(lambda y: jo.run(jo.kalman_filter, guess, jo.EstimatorInputs(y)))(y)
+      >>> result = jo.als(guess, out.innovation[:, 100:], lags=10)
+      >>> [round(float(result.Q[0, 0]), 1), round(float(result.R[0, 0]), 1)]
+      [0.5, 0.2]
+    """
+    if not isinstance(params, KalmanParams) or params.gain is None:
+        raise ValueError("params must be KalmanParams with the fixed gain the innovations were filtered with "
+                         "(make_kalman(..., steady_state=True))")  # fmt: skip
+    n, p = params.Phi.shape[-1], params.C.shape[-2]
+    dtype = params.Phi.dtype
+    G = jnp.eye(n, dtype=dtype) if G is None else jnp.asarray(_checks.real_array("G", G), dtype)
+    _checks.matrix("G", G, shape=(n, None))
+    diagonal = (diagonal,) if isinstance(diagonal, str) else tuple(diagonal)
+    if any(name not in ("Q", "R") for name in diagonal):
+        raise ValueError(f"diagonal must name among ('Q', 'R'), got {list(diagonal)}")
+    e = jnp.asarray(innovation)
+    if e.ndim not in (2, 3) or e.shape[-1] != p:
+        raise ValueError(f"innovation must have shape (T, {p}) or (B, T, {p}) (innovations), got {e.shape}")
+    lags = _checks.count("lags", lags, minimum=1, maximum=e.shape[-2] - 1, hint="autocovariance lags")
+    if _checks.is_concrete(params.Phi, params.gain):
+        A_bar = np.asarray(params.Phi - params.Phi @ params.gain @ params.C)
+        if np.max(np.abs(np.linalg.eigvals(A_bar))) >= 1:
+            raise ValueError("params.gain does not stabilise the predictor Phi (I - K C): no stationary innovations")
+    D_q, D_r = (jnp.asarray(_structure(size, name in diagonal), dtype) for size, name in ((G.shape[1], "Q"), (p, "R")))
+    return _als(params.Phi, params.C, params.gain, G, D_q, D_r, e.astype(dtype), lags=lags)
+
+
+@partial(jax.jit, static_argnames=("lags",))
+def _als(Phi, C, K, G, D_q, D_r, innovation, *, lags: int) -> ALSResult:
+    covariances = autocovariance(innovation, lags)
+    A = _als_matrix(Phi, C, K, G, D_q, D_r, lags)
+    b = jnp.reshape(covariances, (-1,))
+    theta, _, rank, _ = jnp.linalg.lstsq(A, b)
+    g, p = G.shape[1], C.shape[-2]
+    Q = jnp.reshape(D_q @ theta[: D_q.shape[1]], (g, g))
+    R = jnp.reshape(D_r @ theta[D_q.shape[1] :], (p, p))
+    return ALSResult(Q, R, covariances, jnp.linalg.norm(A @ theta - b), rank == theta.shape[0])

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from jaxobs import _checks, ct
 from jaxobs._linalg import symmetrize
-from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, update
+from jaxobs.kalman_steps import bierman_update, innovation_gate, moment_update, predict_covariance, ud_factor, update
 
 __all__ = [
     "NonlinearModel",
@@ -30,6 +30,10 @@ __all__ = [
     "GaussianOutputs",
     "gaussian_init",
     "gaussian_step",
+    "model_inputs",
+    "check_discrete_model",
+    "gaussian_factor",
+    "sample_gaussian",
 ]
 
 
@@ -182,6 +186,8 @@ class GaussianOutputs(NamedTuple):
         cross-covariance ``Cov(x_{k-1}, x_k) = P_{k-1} F_k'`` the smoother needs: the Jacobian of ``f``
         (EKF), the statistical linear regression matrix (UKF), the flow's sensitivity ``dPhi/dt = F Phi``
         (continuous-discrete); the identity at the first sample (with output_covariance, else None)
+      S: (p, p) the innovation covariance ``S`` of ``log_likelihood`` (1 on the diagonal of a missing or gated
+        component), what the normalised innovation squared needs (:func:`jaxobs.consistency.nis`)
     """
 
     x: jax.Array
@@ -192,6 +198,7 @@ class GaussianOutputs(NamedTuple):
     log_likelihood: jax.Array
     P_prior: jax.Array | None = None
     transition: jax.Array | None = None
+    S: jax.Array | None = None
 
 
 def gaussian_init(model: NonlinearModel) -> GaussianState:
@@ -200,8 +207,9 @@ def gaussian_init(model: NonlinearModel) -> GaussianState:
     return GaussianState(model.x0, model.P0, model.t0, jnp.zeros((), bool), zero, zero)
 
 
-def _inputs(model: NonlinearModel, inputs):
-    """``(y, u)`` checked against the model's sizes (at trace time) and cast to its dtype."""
+def model_inputs(model: NonlinearModel, inputs):
+    """``(y, u)`` of ``EstimatorInputs(y, u_prev)`` checked against the model's sizes (at trace time) and cast to
+    its dtype; ``u`` is an empty (0,) vector for a model without inputs."""
     p, m, dtype = model.R.shape[-1], model.n_inputs, model.x0.dtype
     y = _checks.vector("inputs.y", inputs.y, p, dtype, what="one entry per row of R", check_finite=False)
     if inputs.u_prev is None:
@@ -253,7 +261,7 @@ def gaussian_step(
       ``(GaussianState, GaussianOutputs)`` of sample ``k``; its ``log_likelihood`` is that of the first
       linearisation of ``h`` (around the prior), the filter's predictive density of ``y_k``.
     """
-    y, u = _inputs(model, inputs)
+    y, u = model_inputs(model, inputs)
     m_pred, P_pred, F = _predict(linearize, model, state.x, state.P, u, state.t, output_covariance)
     first = ~state.started  # the prior is that of x_0: no prediction before the first update
     m_prior, P_prior = jnp.where(first, state.x, m_pred), jnp.where(first, state.P, P_pred)
@@ -279,9 +287,35 @@ def gaussian_step(
             first_update = result
     missing = state.missing + result.n_missing.astype(jnp.int32)
     new_state = GaussianState(x, P, t, jnp.ones((), bool), missing, state.gated + gated)
-    covariances = ()
+    covariances = (None, None)
     if output_covariance:
         covariances = (P_prior, jnp.where(first, jnp.eye(x.shape[-1], dtype=x.dtype), F))
     outputs = GaussianOutputs(x, P, m_prior, first_update.innovation, result.K, first_update.log_likelihood,
-                              *covariances)  # fmt: skip
+                              *covariances, first_update.S)  # fmt: skip
     return new_state, outputs
+
+
+def check_discrete_model(model, what: str) -> None:
+    """``ValueError`` unless ``model`` is a discrete-time :class:`NonlinearModel` (``f`` the next state), as the
+    Monte-Carlo filters, which draw the transition, need; ``what`` names the filter in the message."""
+    if not isinstance(model, NonlinearModel):
+        raise ValueError(f"model must be a NonlinearModel (see jaxobs.nonlinear_model), got {type(model).__name__}")
+    if model.continuous:
+        raise ValueError(f"model is continuous-time: {what} draws a discrete-time transition; build the model with "
+                         "continuous=False (f the next state)")  # fmt: skip
+
+
+def gaussian_factor(cov):
+    """A factor ``F`` (n, n) with ``F F' = cov`` of a symmetric positive semidefinite ``cov``, from
+    :func:`jaxobs.kalman_steps.ud_factor` (``F = U diag(d)^(1/2)``), so a singular ``cov`` is no special case;
+    differentiable where ``cov`` is definite. The Monte-Carlo filters (particle filters, ensemble Kalman filters)
+    draw their noises with it (:func:`sample_gaussian`)."""
+    U, d = ud_factor(cov)
+    return U * jnp.sqrt(d)
+
+
+def sample_gaussian(key, mean, factor, num: int):
+    """``num`` draws (num, n) of ``N(mean, F F')`` as ``mean + F e``, ``e`` standard normal, for a factor ``F``
+    (n, r) such as :func:`gaussian_factor`'s: reparameterised, so differentiable in ``mean`` and ``F``.
+    Shapes: ``mean`` (n,); ``num`` static."""
+    return mean + jax.random.normal(key, (num, factor.shape[-1]), mean.dtype) @ factor.T

@@ -21,7 +21,7 @@ from jaxobs import _checks
 from jaxobs._linalg import solve_spd, symmetrize
 from jaxobs.kalman_steps import observed, observed_model, predict_covariance, update
 from jaxobs.observers.base import Estimator, EstimatorInputs, run
-from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter
+from jaxobs.observers.kalman import KalmanOutputs, KalmanParams, KalmanState, kalman_filter, step_model
 
 __all__ = ["Smoothed", "rts_smoother", "smooth", "log_likelihood", "parallel_filter"]
 
@@ -198,7 +198,8 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
     (Särkkä & García-Fernández 2021, Lemmas 7-8; the first element holds the prior of ``x_0`` updated with
     ``y_0``, as in the sequential filter); the outputs are then computed from the a-priori moments they imply
     with :func:`jaxobs.kalman_steps.update`, for all samples at once. Equal to ``run(kalman_filter, params,
-    inputs)`` to rounding, missing components included.
+    inputs)`` to rounding, missing components and time-varying models (``inputs.model``,
+    :func:`~jaxobs.observers.kalman.step_model`) included.
 
     An active observer without its adaptive strategy (``alpha <= 0``) and switched on is the Kalman filter of
     its augmented model: run it in parallel as ``make_kalman(aob.Phi, aob.C, aob.Q, aob.R, Gamma=aob.Gamma,
@@ -206,7 +207,8 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
 
     Args:
       params: :class:`~jaxobs.observers.kalman.KalmanParams` with the time-varying gain (``gain`` ``None``).
-      inputs: ``EstimatorInputs`` with ``y`` (T, p) and ``u_prev`` (T, m) or ``None``.
+      inputs: ``EstimatorInputs`` with ``y`` (T, p), ``u_prev`` (T, m) or ``None``, and ``model`` (each leaf with
+        the leading axis T) or ``None``.
 
     Returns:
       ``(final_state, outputs)`` as :func:`~jaxobs.observers.base.run` returns them.
@@ -223,27 +225,46 @@ def parallel_filter(params: KalmanParams, inputs: EstimatorInputs):
     if u_prev is not None:
         u_prev = jnp.asarray(u_prev)
         _checks.shape("inputs.u_prev", u_prev, (T, m), "(time, inputs) like inputs.y")
-    return _parallel_filter(params, y, u_prev)
+    return _parallel_filter(params, y, u_prev, _step_models(params, inputs.model, T))
+
+
+def _step_models(params, model, T: int) -> dict:
+    """The per-step model values of a record (:func:`~jaxobs.observers.kalman.step_model` of every sample), each
+    with the leading axis ``T``; ``{}`` for a constant model."""
+    if model is None:
+        return step_model(params, None)  # {} or the error of a schedule without its argument
+    for path, leaf in jax.tree_util.tree_leaves_with_path(model):
+        if jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != T:
+            raise ValueError(f"inputs.model{jax.tree_util.keystr(path)} must have the leading time axis of "
+                             f"inputs.y ({T} samples), got shape {jnp.shape(leaf)}")  # fmt: skip
+    return jax.vmap(partial(step_model, params))(model)
 
 
 @jax.jit
-def _parallel_filter(params: KalmanParams, y, u_prev):
+def _parallel_filter(params: KalmanParams, y, u_prev, varying: dict):
     n, dtype, T = params.Phi.shape[-1], params.Phi.dtype, y.shape[0]
     y = y.astype(dtype)
-    offsets = jnp.zeros((T, n), dtype) if u_prev is None else u_prev.astype(dtype) @ params.Gamma.T
-    first = update(params.x0, params.P0, params.C, params.R, y[0], joseph=params.joseph)
+    # the model of every sample: a per-step value (axis 0) or the params' constant (broadcast, axis None)
+    model = {name: varying.get(name, getattr(params, name)) for name in params.model_fields}
+    axes = {name: 0 if name in varying else None for name in model}
+    Phi, Gamma, C, Q, R = (model[name][1:] if axes[name] == 0 else model[name] for name in params.model_fields)
+    aPhi, aGamma, aC, aQ, aR = (axes[name] for name in params.model_fields)
+    if u_prev is None:
+        offsets = jnp.zeros((T - 1, n), dtype)
+    else:
+        offsets = jax.vmap(jnp.matmul, (aGamma, 0))(Gamma, u_prev[1:].astype(dtype))
+    first = update(params.x0, params.P0, *(model[k][0] if axes[k] == 0 else model[k] for k in ("C", "R")), y[0],
+                   joseph=params.joseph)  # fmt: skip
     zeros = jnp.zeros((n, n), dtype)
     head = _FilterElement(zeros, first.x, first.P, jnp.zeros((n,), dtype), zeros)
-    rest = jax.vmap(_filter_element, (None, None, None, None, 0, 0))(
-        params.Phi, params.Q, params.C, params.R, offsets[1:], y[1:]
-    )
+    rest = jax.vmap(_filter_element, (aPhi, aQ, aC, aR, 0, 0))(Phi, Q, C, R, offsets, y[1:])
     elements = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), head, rest)
     posterior = jax.lax.associative_scan(jax.vmap(_filter_combine), elements)  # fn sees batches of pairs
-    x_prior = jnp.concatenate([params.x0[None], posterior.b[:-1] @ params.Phi.T + offsets[1:]])
-    P_prior = jnp.concatenate([params.P0[None], predict_covariance(posterior.C[:-1], params.Phi, params.Q)])
-    result = jax.vmap(partial(update, joseph=params.joseph), (0, 0, None, None, 0))(
-        x_prior, P_prior, params.C, params.R, y
-    )
+    x_prior = jnp.concatenate([params.x0[None], jax.vmap(jnp.matmul, (aPhi, 0))(Phi, posterior.b[:-1]) + offsets])
+    P_prior = jax.vmap(predict_covariance, (0, aPhi, aQ))(posterior.C[:-1], Phi, Q)
+    P_prior = jnp.concatenate([params.P0[None], P_prior])
+    result = jax.vmap(partial(update, joseph=params.joseph), (0, 0, aC, aR, 0))(x_prior, P_prior, model["C"],
+                                                                              model["R"], y)  # fmt: skip
     covariances = (result.P, P_prior) if params.output_covariance else ()
     outputs = KalmanOutputs(result.x, x_prior, result.innovation, result.K, jnp.ones((T,), bool), result.S,
                             result.log_likelihood, *covariances)  # fmt: skip
@@ -311,7 +332,11 @@ def smooth(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: b
     params = _with_covariances(params)
     filtered = _filtered(estimator, params, inputs, parallel)
     Phi = getattr(filtered, "transition", None)  # a nonlinear filter's linearisations, else the model's Phi
-    return filtered, rts_smoother(params.Phi if Phi is None else Phi, filtered, parallel=parallel)
+    if Phi is None:
+        Phi = params.Phi
+        if hasattr(params, "model_fields"):  # a Kalman filter's time-varying model: Phi_k of every sample
+            Phi = _step_models(params, getattr(inputs, "model", None), jnp.shape(inputs.y)[0]).get("Phi", Phi)
+    return filtered, rts_smoother(Phi, filtered, parallel=parallel)
 
 
 def log_likelihood(estimator: Estimator, params, inputs: EstimatorInputs, *, parallel: bool = False):

@@ -465,7 +465,7 @@ def _run_locked(row, layout, num_configs, out_dir, seed, chunk_size, config, pro
     bar, ndev = None, len(devices)
     stall = held.enter_context(StallWatch(
         f"the sweep in {out_dir}", "rerun with a smaller chunk_size, or with NPROC=1 in the environment (one XLA "
-        "intra-op thread); finished chunks are kept", cpu=devices[0].platform == "cpu", reference=compiled_now,
+        "intra-op thread); finished chunks are kept", cpu=devices[0].platform == "cpu",
     ))  # fmt: skip
     try:
         if writer:

@@ -534,3 +534,31 @@ def test_vehicle_and_scb_bad_inputs_raise_naming_the_argument(call, name):
     duration = 1e12 tried to allocate 8 PB, a string for the vehicle gave an AttributeError)."""
     with pytest.raises(ValueError, match=rf"^{re.escape(name)}\b"):
         call()
+
+
+def test_checked_raises_in_compiled_code_what_eager_calls_raise():
+    """``jaxobs.checked``: a negative R under jit(vmap(...)) raises the eager call's ValueError naming R; a NaN
+    Q and a non-positive sample time are refused the same way; good values pass and give the unchecked result."""
+    import jaxobs as jo
+
+    def design(r):
+        return jo.make_kalman([[1.0]], [[1.0]], [[0.1]], r[None, None]).x0
+
+    with pytest.raises(ValueError, match=r"^R must be positive definite \(smallest eigenvalue -1"):
+        jo.checked(jax.jit(jax.vmap(design)))(jnp.array([1.0, -1.0]))
+    good = jnp.array([1.0, 2.0])
+    np.testing.assert_array_equal(jo.checked(jax.jit(jax.vmap(design)))(good), jax.vmap(design)(good))
+
+    def with_q(q):
+        return jo.make_kalman([[1.0]], [[1.0]], q[None, None], [[1.0]]).x0
+
+    with pytest.raises(ValueError, match="^Q contains NaN or infinite entries"):
+        jo.checked(jax.jit(with_q))(jnp.array(jnp.nan))
+
+    def discretised(h):
+        return jo.c2d(jo.ss([[0.0]], [[1.0]], [[1.0]]), 0.1, delay=h, n_delay=1).A
+
+    with pytest.raises(ValueError, match="^delay must be a finite non-negative number"):
+        jo.checked(jax.jit(discretised))(jnp.array(-0.05))
+    with pytest.raises(ValueError, match="must be the outermost call"):
+        jax.jit(jo.checked(design))(jnp.array(1.0))

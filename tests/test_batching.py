@@ -134,13 +134,25 @@ def test_an_idle_wait_on_cpu_is_reported(quick_watch):
 
 def test_a_wait_far_slower_than_the_slowest_is_reported(quick_watch):
     with StallWatch("the job", "smaller chunks", cpu=False) as watch:
+        with watch.waiting("first", program="other"):  # another program: its slow wait sets no bound on "step"
+            time.sleep(1.5)
         for _ in range(2):
-            with watch.waiting("fast"):
+            with watch.waiting("fast", program="step"):
                 time.sleep(0.1)
         start = time.perf_counter()
-        with pytest.raises(Stalled, match=r"5x the slowest step so far.*smaller chunks"), watch.waiting("slow"):
-            time.sleep(30)
+        with pytest.raises(Stalled, match=r"5x the slowest step so far.*smaller chunks"):
+            with watch.waiting("slow", program="step"):
+                time.sleep(30)
     assert 0.5 <= time.perf_counter() - start < 5
+
+
+def test_a_programs_first_wait_has_no_time_bound(quick_watch):
+    """A first wait may compile its program: only the idle rule applies to it (here off: cpu=False)."""
+    with StallWatch("the job", "", cpu=False) as watch:
+        with watch.waiting("fast", program="a"):
+            time.sleep(0.1)
+        with watch.waiting("compiling", program="b"):
+            time.sleep(1.5)
 
 
 def test_busy_waits_are_not_stalls(quick_watch):

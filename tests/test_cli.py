@@ -21,6 +21,7 @@ from jaxobs import __version__, cli
 from jaxobs._config import leaf_keys
 from jaxobs.cli import main
 from jaxobs.papers.registry import reproductions, sweep_scenarios, tuning_problems
+from jaxobs.papers.shipped import shipped_configs
 from tests import FAST_COMPILE_FLAGS
 
 COMMANDS = {"sweep": ("scenario", sweep_scenarios), "tune": ("problem", tuning_problems)}
@@ -43,11 +44,16 @@ def test_every_name_has_one_style():
 def test_list_prints_every_name_with_its_description(capsys, command):
     registry = {"sweep": sweep_scenarios, "tune": tuning_problems, "reproduce": reproductions}[command]()
     assert main([command, "--list"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr().out
+    registered, _, shipped = out.partition("\n\n")
+    lines = registered.splitlines()
     assert [line.split()[0] for line in lines] == list(registry)
     for line, entry in zip(lines, registry.values(), strict=True):
         description = line.split(maxsplit=1)[1]
         assert description == entry.summary and len(description) > 20 and "``" not in description
+    kind = {"sweep": "sweep", "tune": "tune"}.get(command)
+    names = [line.split()[0] for line in shipped.splitlines()[1:]]
+    assert names == [config.name for config in shipped_configs() if config.kind == kind]
 
 
 def _scenarios():
@@ -342,3 +348,39 @@ def test_ctrl_c_exits_130_with_the_resume_hint(tmp_path):
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith("jaxobs sweep: interrupted")
     assert err.strip().endswith("rerun the same command to resume")
+
+
+def test_shipped_configs_are_listed_and_run_by_name(capsys):
+    """``--list`` names every shipped config after the scenarios, ``--example NAME`` reads it from the package."""
+    assert main(["tune", "--list"]) == 0
+    listed = capsys.readouterr().out
+    assert "\ncartpole_payload " in listed and "[own-robot]" in listed and "\ntune-small " in listed
+    assert main(["tune", "--example", "cartpole_payload", "--print-config"]) == 0
+    printed = capsys.readouterr().out
+    mjcf = re.search(r'^mjcf = "(.+)"', printed, re.M).group(1)
+    assert os.path.isabs(mjcf) and mjcf.endswith("jaxobs/mjx/assets/cartpole_payload.xml")  # not the cwd's
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--example", "no-such"], "--example: no-such: no shipped tune config 'no-such'; one of"),
+        (["--example", "tune-small", "--config", "x.toml"], "give one of --config and --example"),
+        (["--set", "optimizer.stepz=3"], "--set: optimizer.stepz: unknown key"),
+        (["--set", "seed"], "--set: 'seed' must be KEY=VALUE"),
+        (["--steps", "-1"], "--set: optimizer: steps must be > 0, got -1"),
+    ],
+)
+def test_command_line_keys_are_checked_like_the_file(capsys, argv, message):
+    assert main(["tune", "--problem", "own-robot", *argv, "--print-config"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_command_line_keys_override_the_file(tmp_path, capsys):
+    path = tmp_path / "mine.toml"
+    path.write_text('problem = "own-robot"\nseed = 4\n[plants]\ntrain = 3\n')
+    assert main(["tune", "--config", str(path), "--set", "plants.train=5", "--steps", "7", "--print-config"]) == 0
+    printed = capsys.readouterr().out
+    assert re.search(r"^seed = 4$", printed, re.M) and re.search(r"^train = 5", printed, re.M)
+    assert re.search(r"^steps = 7", printed, re.M)

@@ -1,5 +1,5 @@
 """The code on the documentation pages: every ``python`` block of a page runs, in order, as one script in a fresh
-interpreter (from a scratch directory holding the repository's ``examples/`` and ``tuning/``, as a user runs it
+interpreter (from a scratch directory holding the repository's ``tuning/``, as a user runs it
 from the repository root), and prints what the page's ``Output`` blocks show (each after the block that prints it;
 together, in order, the script's output), number for number within one unit of the last printed digit (integers
 exactly). Code lines (python, TOML, shell) fit the site's column.
@@ -69,17 +69,19 @@ def test_same_output_allows_the_last_digit_only():
     assert not same_output("rms 0.177", "RMS 0.177")
 
 
-def assert_prints_its_output(page, tmp_path) -> None:
+def assert_prints_its_output(page, tmp_path, python: str | None = None) -> None:
     """Runs the ``python`` blocks of the markdown file ``page`` as one script from ``tmp_path`` and checks that it
-    prints what the page's ``Output`` blocks show; the docs pages and the README are checked alike."""
+    prints what the page's ``Output`` blocks show; the docs pages and the README are checked alike. ``python``:
+    another interpreter (an installed jaxobs, tests/test_package.py), run without the repository on its path."""
     text = page.read_text()
     code = "\n".join(grab_code_blocks(text, lang="python"))
     shown = "".join(grab_code_blocks(text, lang=OUTPUT)).rstrip("\n")
-    for folder in ("examples", "tuning"):
-        (tmp_path / folder).symlink_to(ROOT / folder)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=900)  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    if python is None:
+        (tmp_path / "tuning").symlink_to(ROOT / "tuning")
+        env["PYTHONPATH"] = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    done = subprocess.run([python or sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     printed = "\n".join(line.rstrip() for line in done.stdout.splitlines() if not IMPORT_NOISE.match(line))
     assert same_output(printed, shown), f"{page.name} printed\n{printed}\n\nand shows\n{shown}"

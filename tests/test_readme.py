@@ -5,7 +5,7 @@ through tests/_published.py.)"""
 import pytest
 
 from tests import ROOT
-from tests.test_docs import assert_code_lines_fit_the_column, assert_prints_its_output
+from tests.test_docs import assert_code_lines_fit_the_column
 
 pytestmark = pytest.mark.published
 
@@ -22,6 +22,4 @@ def test_readme_code_lines_fit_the_column():
     assert_code_lines_fit_the_column([README])
 
 
-@pytest.mark.slow
-def test_readme_tour_prints_its_output(tmp_path):
-    assert_prints_its_output(README, tmp_path)
+# the tour runs from an installed wheel: tests/test_package.py

@@ -8,6 +8,9 @@ filter), ``continuous`` (continuous-time observers run as sampled estimators), `
 Luenberger, Kalman-Bucy and output-injection observers), ``modular`` (the modular parameter and perturbation
 estimator of Grip 2010 ch. 5), ``hgo`` (the modified high-gain observer of Grip 2010, ch. 6, and its gains),
 ``gramian`` (the masked observability-Gramian reconstruction of Grip 2010, ch. 8).
+``imm.imm`` combines Gaussian estimators into an interacting multiple model estimator.
+``particle`` (bootstrap and auxiliary particle filters, backward-simulation smoother).
+``ensemble`` (stochastic and transform ensemble Kalman filters, ensemble Kalman smoother).
 ``feedback.observer_controller`` turns any of them into
 an observer-based controller.
 """
@@ -17,14 +20,17 @@ from jaxobs.observers import (
     continuous,
     ct_linear,
     ekf,
+    ensemble,
     feedback,
     gramian,
     hgo,
     hinf,
+    imm,
     inverse_dynamics,
     kalman,
     linear,
     modular,
+    particle,
     pe_monitor,
     ukf,
 )
@@ -61,4 +67,7 @@ __all__ = [
     "modular",
     "hgo",
     "gramian",
+    "imm",
+    "particle",
+    "ensemble",
 ]

@@ -34,10 +34,15 @@ class EstimatorInputs(NamedTuple):
       y: (p,) measurement ``y_k``; NaN (or inf) entries are missing.
       u_prev: (m,) input ``u_{k-1}`` held over the interval that ends at sample ``k``; ``None`` for a model
         without inputs.
+      model: the model of sample ``k`` for the estimators of a time-varying linear model (the Kalman filter and
+        its square-root and parallel forms): a dict of per-step values of their params' model fields, e.g.
+        ``{"Phi": Phi_k, "Q": Q_k}``, or the argument of the params' ``schedule`` (e.g. the step index ``k``);
+        ``None`` for a constant model (:func:`jaxobs.observers.kalman.step_model`). Other estimators ignore it.
     """
 
     y: jax.Array
     u_prev: jax.Array | None = None
+    model: Any = None
 
 
 class ControllerInputs(NamedTuple):

@@ -4,13 +4,16 @@ Model (Cortesão 2006 eq. 27-29; the steps are those of :mod:`jaxobs.kalman_step
 u_{k-1} + w_k``, ``y_k = C x_k + v_k``, ``E[w w'] = Q``, ``E[v v'] = R``, with the prior ``x0``, ``P0`` of ``x_0``,
 the state at the first measurement. :func:`make_kalman`, :data:`kalman_filter`; non-finite measurement components
 are skipped and counted. :data:`square_root_kalman_filter` (:func:`square_root_form`) is the same filter with
-factors of the covariances (Bierman 1977). Prior convention and outputs: docs/theory/estimators.md.
+factors of the covariances (Bierman 1977). A time-varying model (``Phi_k``, ``Gamma_k``, ``C_k``, ``Q_k``,
+``R_k``) travels in the inputs or comes from the params' ``schedule`` (:func:`step_model`). Prior convention and
+outputs: docs/theory/estimators.md.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from collections.abc import Callable, Mapping
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +44,7 @@ __all__ = [
     "SquareRootKalmanState",
     "square_root_kalman_filter",
     "square_root_form",
+    "step_model",
 ]
 
 
@@ -65,7 +69,12 @@ class KalmanParams:
         precise than the prior, where the standard form's difference cancels and can lose definiteness
         (:func:`jaxobs.kalman_steps.update_covariance_factors`). The Joseph form costs up to 1.7x the time per step
         (docs/estimation.md).
+      schedule: ``None``, or a time-varying model as a function of the inputs' ``model`` (e.g. the step index
+        ``k``): a ``jax.tree_util.Partial`` returning a dict of the step's values of some of :attr:`model_fields`
+        (:func:`step_model`); its bound arrays are leaves (``grad`` and ``vmap`` reach them).
     """
+
+    model_fields: ClassVar[tuple[str, ...]] = ("Phi", "Gamma", "C", "Q", "R")
 
     Phi: jax.Array
     Gamma: jax.Array
@@ -78,6 +87,7 @@ class KalmanParams:
     gain_converged: jax.Array | None = None
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
     joseph: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    schedule: Callable | None = None
 
 
 class KalmanState(NamedTuple):
@@ -123,7 +133,7 @@ class KalmanOutputs(NamedTuple):
 
 
 def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: bool = False,
-                joseph: bool = False) -> KalmanParams:  # fmt: skip
+                joseph: bool = False, schedule=None) -> KalmanParams:  # fmt: skip
     """Build and check :class:`KalmanParams`.
 
     Args:
@@ -133,6 +143,8 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
       steady_state: use the steady-state gain (:func:`with_steady_state_gain`).
       joseph: ``False`` (default): the standard-form covariance update, one product per step; ``True``: the Joseph
         form, for measurements far more precise than the prior (see :class:`KalmanParams`).
+      schedule: ``None``, or a function of the inputs' ``model`` (e.g. the step index) returning a dict of the
+        step's model values (:func:`step_model`); ``Phi`` ... ``R`` then give the shapes and the constant fields.
 
     All arrays are cast to their common floating dtype (integers become float, float32 mixed with float64
     becomes float64), so the filter's state keeps one dtype over a run.
@@ -156,7 +168,9 @@ def make_kalman(Phi, C, Q, R, *, Gamma=None, x0=None, P0=None, steady_state: boo
     _checks.covariance("P0", P0, definite=False, size=n)
     x0 = jnp.zeros((n,), dtype) if x0 is None else _checks.vector("x0", x0, n, dtype, what="one entry per state")
     joseph = _checks.boolean("joseph", joseph)
-    params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype), joseph=joseph)
+    schedule = None if schedule is None else _checks.function("schedule", schedule)
+    params = KalmanParams(*(M.astype(dtype) for M in (Phi, Gamma, C, Q, R)), x0, P0.astype(dtype), joseph=joseph,
+                          schedule=schedule)  # fmt: skip
     return with_steady_state_gain(params) if _checks.boolean("steady_state", steady_state) else params
 
 
@@ -167,6 +181,8 @@ def with_steady_state_gain(params: KalmanParams) -> KalmanParams:
     solution or did not converge (e.g. in float32); under tracing the flag is stored in ``gain_converged`` and
     reported by every step (``KalmanOutputs.converged``).
     """
+    if params.schedule is not None:
+        raise ValueError("params.schedule: a time-varying model has no steady-state gain; use the time-varying one")
     sol = filter_dare(params.Phi, params.C, params.Q, params.R, what="the steady-state Kalman filter's DARE")
     P, gain = update_covariance(sol.X, params.C, params.R)
     return dataclasses.replace(params, gain=gain, P0=P, gain_converged=sol.converged)
@@ -191,6 +207,53 @@ def _require_time_varying(params, what: str) -> None:
         )
 
 
+def step_model(params, model) -> dict:
+    """The model of one step of a time-varying filter: the values that replace fields of ``params`` at this step.
+
+    ``model`` is the inputs' ``model`` of the step (:class:`~jaxobs.observers.base.EstimatorInputs`): a dict of
+    per-step values of ``params.model_fields`` (``Phi``, ``Gamma``, ``C``, ``Q``, ``R``; ``Q_sqrt``, ``R_sqrt`` for
+    :class:`SquareRootKalmanParams`), or, when ``params.schedule`` is set, its argument (e.g. the step index
+    ``k``). ``Phi_k``, ``Gamma_k`` and ``Q_k`` are those of the transition into sample ``k`` (unused at the first
+    sample, which has no prediction); ``C_k``, ``R_k`` those of ``y_k``. Each value has the shape of the params'
+    field (checked while tracing) and is cast to its dtype; fields not named keep the params' value. Returns
+    ``{}`` for a constant model (``model`` and ``params.schedule`` ``None``).
+
+    Example:
+      >>> from jaxobs.observers import kalman, EstimatorInputs, run
+      >>> params = kalman.make_kalman([[1.0]], [[1.0]], [[0.1]], [[1.0]])
+      >>> Phi = jnp.linspace(0.5, 1.0, 20)[:, None, None]  # Phi_k for k = 0 .. 19
+      >>> _, out = run(kalman.kalman_filter, params, EstimatorInputs(y=jnp.ones((20, 1)), model={"Phi": Phi}))
+      >>> out.x.shape
+      (20, 1)
+    """
+    schedule = params.schedule
+    if model is None:
+        if schedule is not None:
+            raise ValueError("inputs.model is None: params.schedule maps it (e.g. the step index k) to the model")
+        return {}
+    values = model if schedule is None else schedule(model)
+    what = "inputs.model" if schedule is None else "params.schedule(inputs.model)"
+    fields = params.model_fields
+    if not isinstance(values, Mapping) or any(name not in fields for name in values):
+        given = sorted(values) if isinstance(values, Mapping) else type(values).__name__
+        raise ValueError(f"{what} must be a dict of per-step values of {fields}, got {given}")
+    if getattr(params, "gain", None) is not None:
+        raise ValueError("params has a fixed gain: a time-varying model needs the time-varying gain (gain None)")
+    out = {}
+    for name, value in values.items():
+        constant = getattr(params, name)
+        value = jnp.asarray(value)
+        _checks.shape(f"{what}['{name}']", value, constant.shape, f"that of params.{name}, at one step")
+        out[name] = value.astype(constant.dtype)
+    return out
+
+
+def _at_step(params, inputs: EstimatorInputs):
+    """``params`` with the model of this step (:func:`step_model`)."""
+    values = step_model(params, inputs.model)
+    return dataclasses.replace(params, **values) if values else params
+
+
 def _filter_step(params: KalmanParams, state: KalmanState, y, u_prev, gain):
     P = None if gain is not None else state.P
     if gain is not None:
@@ -212,6 +275,7 @@ def _init(params: KalmanParams) -> KalmanState:
 
 
 def _step(params: KalmanParams, state: KalmanState, inputs: EstimatorInputs):
+    params = _at_step(params, inputs)
     y, u_prev = _inputs(params, inputs)
     return _filter_step(params, state, y, u_prev, params.gain)
 
@@ -250,6 +314,9 @@ def filter_shared_model(params: KalmanParams, inputs: EstimatorInputs):
     """
     if params.gain is not None:
         raise ValueError("params has a fixed gain: filter_shared_model computes the time-varying one; use vmap(run)")
+    if params.schedule is not None or inputs.model is not None:
+        raise ValueError("inputs.model, params.schedule: filter_shared_model shares one constant model's covariance "
+                         "schedule; for a time-varying model use vmap(run)")  # fmt: skip
     if params.output_covariance:
         raise ValueError("params.output_covariance: filter_shared_model shares one covariance schedule over the batch "
                          "and outputs none; use vmap(run) for the covariances of every sequence")  # fmt: skip
@@ -299,7 +366,11 @@ class SquareRootKalmanParams:
       output_covariance: static; outputs ``P = P_sqrt P_sqrt'`` and ``P_prior`` at every step (see
         :class:`KalmanParams`).
       joseph: static; the covariance update in Joseph form (see :class:`KalmanParams`).
+      schedule: ``None`` or a time-varying model as in :class:`KalmanParams`, with factors: its dict holds values
+        of ``Phi``, ``Gamma``, ``C``, ``Q_sqrt``, ``R_sqrt`` (:func:`step_model`).
     """
+
+    model_fields: ClassVar[tuple[str, ...]] = ("Phi", "Gamma", "C", "Q_sqrt", "R_sqrt")
 
     Phi: jax.Array
     Gamma: jax.Array
@@ -310,6 +381,7 @@ class SquareRootKalmanParams:
     P0_sqrt: jax.Array
     output_covariance: bool = dataclasses.field(default=False, metadata=dict(static=True))
     joseph: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    schedule: Callable | None = None
 
 
 class SquareRootKalmanState(NamedTuple):
@@ -350,6 +422,9 @@ def square_root_form(params: KalmanParams) -> SquareRootKalmanParams:
     """
     if params.gain is not None:
         raise ValueError("params has a fixed gain: the square-root form propagates the time-varying covariance")
+    if params.schedule is not None:
+        raise ValueError("params.schedule returns covariances: give the square-root filter a schedule of factors "
+                         "(SquareRootKalmanParams(..., schedule=...) returning Q_sqrt, R_sqrt)")  # fmt: skip
     Q_sqrt, R_sqrt, P0_sqrt = (_factor(M) for M in (params.Q, params.R, params.P0))
     return SquareRootKalmanParams(params.Phi, params.Gamma, params.C, Q_sqrt, R_sqrt, params.x0, P0_sqrt,
                                   output_covariance=params.output_covariance)  # fmt: skip
@@ -360,6 +435,7 @@ def _square_root_init(params: SquareRootKalmanParams) -> SquareRootKalmanState:
 
 
 def _square_root_step(params: SquareRootKalmanParams, state: SquareRootKalmanState, inputs: EstimatorInputs):
+    params = _at_step(params, inputs)
     n, p = params.Phi.shape[-1], params.C.shape[-2]
     _checks.shape("params.Q_sqrt", params.Q_sqrt, (n, None), "a factor of Q: one row per state")
     _checks.shape("params.R_sqrt", params.R_sqrt, (p, None), "a factor of R: one row per row of C")

@@ -7,7 +7,7 @@ state (an equivalent input disturbance per actuator) the feedback cancels (Corte
 filter's noise covariances, as log diagonals (``design.parameterisation = "diagonal"``) or as full Cholesky factors
 of ``Q`` over every filter state and of ``R`` (``"cholesky"``); the loss is the error against the desired closed
 loop (Cortesão 2006 eq. 43) on plants with mismatched fields. Shipped example:
-``examples/robots/cartpole_payload.xml`` with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
+``cartpole_payload.xml`` (a shipped robot) with ``tuning/cartpole_payload.toml``. Details: docs/theory/papers.md.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ DEFAULT_CONFIG = {
     "problem": NAME,
     "seed": 0,
     "robot": {
-        "mjcf": "examples/robots/cartpole_payload.xml",
+        "mjcf": "cartpole_payload.xml",
         "actuators": ["push"],
         "sensors": ["cart_position", "pole_angle"],
         "substeps": 2,
@@ -77,7 +77,8 @@ DEFAULT_CONFIG = {
 
 CONFIG_NOTES = {
     "robot": "your robot: the MJCF and what the controller sees of it (jaxobs.mjx.robot.make_robot)",
-    "robot.mjcf": "path of the MJCF file (relative paths: from the current directory)",
+    "robot.mjcf": "path of the MJCF file: relative to the config file's directory (the current directory without "
+    "one), or the name of a shipped robot (cartpole_payload.xml, arm_on_table.xml)",
     "robot.actuators": "names of the actuators the controller drives",
     "robot.sensors": "names of the sensors it measures (position or velocity stage)",
     "robot.substeps": "physics steps per control period",
@@ -343,4 +344,5 @@ PROBLEM = TuningScenario(
     build=build_problem,
     open_tables=("plants.mismatch",),
     size_keys=("scenario.duration", "plants.train", "plants.heldout", "robot.substeps", "robot.solver_iterations"),
+    path_keys=("robot.mjcf",),
 )

@@ -17,6 +17,7 @@ import jax
 from jaxobs._config import check_choice, fail, get, merge
 from jaxobs._resources import LimitError
 from jaxobs.papers import tune_job, tuning_config
+from jaxobs.papers.shipped import resolve_path
 from jaxobs.sweep import run_configured_sweep
 
 __all__ = ["first_paragraph", "Reproduction", "Sweep", "SweepScenario", "TuningScenario"]
@@ -72,6 +73,7 @@ class _Configured:
     check: Callable[[dict, str], None]
     open_tables: tuple[str, ...] = ()
     size_keys: tuple[str, ...] = ()
+    path_keys: tuple[str, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "summary", first_paragraph(self.summary))
@@ -115,6 +117,10 @@ class _Configured:
         naming ``source`` and the key."""
         config = merge(self.defaults, given or {}, source, open_tables=self.open_tables)
         check_choice(config, source, self.key, (self.name,))
+        for key in self.path_keys:  # a file path: from the config file's directory, or a shipped file
+            *tables, last = key.split(".")
+            table = get(config, ".".join(tables)) if tables else config
+            table[last] = resolve_path(table[last], source)
         self.check(config, source)
         return config
 
@@ -174,6 +180,7 @@ class SweepScenario(_Configured):
         same directory (None: any change starts over).
       size_keys: the dotted keys that set the sweep's sizes (``chunk_size`` is added), named when it exceeds a
         limit (:meth:`run`).
+      path_keys: the dotted keys that hold file paths, resolved by :func:`jaxobs.papers.shipped.resolve_path`.
     """
 
     key: ClassVar[str] = "scenario"
@@ -206,6 +213,7 @@ class TuningScenario(_Configured):
         as a config error.
       size_keys: the dotted keys that set the problem's sizes (``optimizer.screening`` and ``optimizer.starts`` are
         added), named when it exceeds a limit (:meth:`run`).
+      path_keys: the dotted keys that hold file paths, resolved by :func:`jaxobs.papers.shipped.resolve_path`.
     """
 
     key: ClassVar[str] = "problem"

@@ -87,13 +87,14 @@ def compile_spread(build: Callable, batch, first, what: str, hint: str, alone=No
     return compiled, placed, mesh, timer.seconds
 
 
-def stall_watch(what: str, reference: float = 0.0) -> StallWatch:
+def stall_watch(what: str) -> StallWatch:
     """The :class:`jaxobs._resources.StallWatch` of a tuning job's computations."""
-    return StallWatch(what, STALL_HINT, cpu=jax.devices()[0].platform == "cpu", reference=reference)
+    return StallWatch(what, STALL_HINT, cpu=jax.devices()[0].platform == "cpu")
 
 
 def watched(stall: StallWatch, label: str, fn: Callable, *args):
-    """``fn(*args)`` (a compiled computation) brought to the host under ``stall``'s watch."""
-    with stall.waiting(label) as wait:
+    """``fn(*args)`` (a computation, compiled or compiled on its first call) brought to the host under ``stall``'s
+    watch."""
+    with stall.waiting(label, program=id(fn)) as wait:
         wait["pending"] = fn(*args)
         return host(wait["pending"])

@@ -319,7 +319,7 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar,
     save the checkpoint of the last completed step and raise."""
     settings = job.settings
     saved = (state, [list(h) for h in job.histories], list(job.finished))
-    with InterruptWatch() as watch, _devices.stall_watch("the tuning", compile_seconds) as stall:
+    with InterruptWatch() as watch, _devices.stall_watch("the tuning") as stall:
         try:
             while int(state.phase) != DONE:
                 watch.check()

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from jaxobs.mjx import common
-from tests import ROOT
+from jaxobs.papers.shipped import ROBOTS
 
-ARM = ROOT / "examples" / "robots" / "arm_on_table.xml"
+ARM = ROBOTS / "arm_on_table.xml"
 STEPS = 160  # 0.8 s at 5 ms: the hand reaches the wall after about 0.5 s
 
 

@@ -14,9 +14,9 @@ from jaxobs import design
 from jaxobs.lti import ss
 from jaxobs.mjx import robot as rb
 from jaxobs.papers.robot_tuning import LQG, lqg_params
-from tests import ROOT
+from jaxobs.papers.shipped import ROBOTS
 
-XML = ROOT / "examples" / "robots" / "cartpole_payload.xml"
+XML = ROBOTS / "cartpole_payload.xml"
 NOISE = np.array([0.002, 0.005])
 STEPS = 250  # 5 s at 20 ms
 
@@ -99,7 +99,7 @@ def test_linearize_matches_mujoco_finite_differences(cart):
     np.testing.assert_array_equal(lin.Phi[4], 0)
 
 
-ARM = ROOT / "examples" / "robots" / "arm_on_table.xml"
+ARM = ROBOTS / "arm_on_table.xml"
 
 
 def test_holding_ctrl_holds_a_pose_and_linearize_warns_about_one_it_does_not():

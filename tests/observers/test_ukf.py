@@ -1,7 +1,7 @@
 """Tests for jaxobs.observers.ukf: dynamax's unscented Kalman filter on a pendulum and a bearings-only model (the
-unscented rule and the cubature rule), the Kalman filter on linear models (discrete and continuous-discrete),
-the sigma-point moments, the iterated posterior linearisation, missing measurements, jit/vmap/grad and bad
-inputs."""
+unscented rule and the cubature rule), cuthbert's quadrature linearisation and Kalman steps (the cubature and
+Gauss-Hermite filters), the Kalman filter on linear models (discrete and continuous-discrete), the sigma-point
+moments, the iterated posterior linearisation, missing measurements, jit/vmap/grad and bad inputs."""
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +11,7 @@ from jax.test_util import check_grads
 
 import jaxobs as jo
 from jaxobs.lti import c2d, ss
-from jaxobs.observers.ukf import sigma_points, unscented
+from jaxobs.observers.ukf import sigma_points, unit_points, unscented
 from tests._nonlinear_models import (
     bearings,
     bearings_h,
@@ -45,6 +45,100 @@ def test_equals_dynamax_ukf(make_problem, monkeypatch):
         post = nlgssm.unscented_kalman_filter(dynamax_params(problem), jnp.asarray(problem.y), hyper[name], inputs)
         assert relative_error(out.x, post.filtered_means) < 1e-9, (name, joseph)
         assert relative_error(out.P, post.filtered_covariances) < 1e-9, (name, joseph)
+
+
+def cuthbert_quadrature_filter(problem, quadrature):
+    """cuthbert's quadrature filter on ``problem``: at each sample its statistical linear regression of ``f`` and
+    then ``h`` (``cuthbertlib.quadrature.functional``) around the current Gaussian, then its square-root Kalman
+    predict and update (``cuthbertlib.kalman.filtering``), from the prior of ``x_0`` (no prediction at the first
+    sample, as jaxobs). Returns the filtered means, covariances and per-step log-likelihoods."""
+    from cuthbertlib.kalman import filtering
+    from cuthbertlib.quadrature import functional
+
+    Q, R = jnp.asarray(problem.Q), jnp.asarray(problem.R)
+    u_prev = np.zeros((len(problem.y), 0)) if problem.u_prev is None else problem.u_prev
+
+    def step(carry, inputs):
+        m, chol_P, first = carry
+        u, y = inputs
+        F, c, Q_lin = functional(lambda x: problem.f(x, u, 0.0), Q, m, chol_P @ chol_P.T, quadrature)
+        m_pred, chol_pred = filtering.predict(m, chol_P, F, c, jnp.linalg.cholesky(Q_lin))
+        m, chol_P = jnp.where(first, m, m_pred), jnp.where(first, chol_P, chol_pred)
+        H, d, R_lin = functional(problem.h, R, m, chol_P @ chol_P.T, quadrature)
+        (m, chol_P), ell = filtering.update(m, chol_P, H, d, jnp.linalg.cholesky(R_lin), y)
+        return (m, chol_P, False), (m, chol_P @ chol_P.T, ell)
+
+    start = (jnp.asarray(problem.x0), jnp.linalg.cholesky(jnp.asarray(problem.P0)), True)
+    _, out = jax.lax.scan(step, start, (jnp.asarray(u_prev), jnp.asarray(problem.y)))
+    return out
+
+
+QUADRATURES = {"cubature": {}, "gauss_hermite": {"order": 3}, "gauss_hermite order 5": {"order": 5}}
+
+
+@pytest.mark.parametrize("make_problem", [pendulum, pytest.param(bearings, marks=pytest.mark.slow)],
+                         ids=["pendulum", "bearings"])  # fmt: skip
+def test_cubature_and_gauss_hermite_equal_cuthbert(make_problem):
+    """The cubature (Arasaratnam & Haykin 2009) and Gauss-Hermite (orders 3 and 5) filters equal cuthbert's
+    quadrature linearisation with its square-root Kalman steps: means, covariances and per-step log-likelihoods
+    to 1e-8 relative, in both covariance updates."""
+    from cuthbertlib.quadrature import cubature, gauss_hermite
+
+    problem = make_problem(T=40)
+    n = problem.x0.shape[0]
+    for name, kw in QUADRATURES.items():
+        rule = name.split()[0]
+        quadrature = cubature.weights(n) if rule == "cubature" else gauss_hermite.weights(n, **kw)
+        means, covariances, ell = cuthbert_quadrature_filter(problem, quadrature)
+        for joseph in (True, False):
+            params = jo.make_ukf(problem.model(), rule=rule, joseph=joseph, **kw)
+            _, out = jo.run(jo.unscented_kalman_filter, params, problem.inputs())
+            assert relative_error(out.x, means) < 1e-8, (name, joseph)
+            assert relative_error(out.P, covariances) < 1e-8, (name, joseph)
+            assert relative_error(out.log_likelihood, ell) < 1e-8, (name, joseph)
+
+
+def test_quadrature_points_integrate_polynomials():
+    """The cubature points are cuthbert's and integrate every polynomial of degree 3 exactly; the Gauss-Hermite
+    points of order k integrate x_i^(2k - 2) exactly (its Gaussian moment (2k - 3)!!) and sum to one; the rule of
+    order 3 equals cuthbert's points and weights."""
+    from cuthbertlib.quadrature import cubature, gauss_hermite
+
+    n = 3
+    xi, w = unit_points(n, "cubature")
+    reference = cubature.weights(n)
+    np.testing.assert_allclose(xi, reference.xi, rtol=1e-15)
+    np.testing.assert_allclose(w, reference.wm, rtol=1e-15)
+    np.testing.assert_allclose(w @ (xi[:, 0] ** 2 * xi[:, 1] + xi[:, 2] ** 3), 0.0, atol=1e-15)
+    np.testing.assert_allclose(w @ (xi**2), np.ones(n), rtol=1e-14)
+    for order in (2, 3, 4):
+        xi, w = unit_points(n, "gauss_hermite", order)
+        assert xi.shape == (order**n, n)
+        np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-14)
+        double_factorial = np.prod(np.arange(2 * order - 3, 0, -2))
+        np.testing.assert_allclose(w @ xi[:, 1] ** (2 * order - 2), double_factorial, rtol=1e-12)
+    reference = gauss_hermite.weights(n, 3)
+    xi, w = unit_points(n, "gauss_hermite", 3)
+    np.testing.assert_allclose(xi, reference.xi, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(w, reference.wm, rtol=1e-14)
+
+
+def test_quadrature_filters_under_jit_vmap_and_grad():
+    """The Gauss-Hermite filter's estimation error: eager = jit, a vmap over three measurement-noise levels (the
+    plants) equals a loop, and its gradient passes check_grads."""
+    problem = pendulum(T=8)
+    truth = jnp.asarray(problem.x)
+
+    def error(r):
+        model = jo.nonlinear_model(problem.f, problem.h, problem.Q, r * jnp.eye(1), x0=problem.x0, P0=problem.P0,
+                                   n_inputs=1)  # fmt: skip
+        x = jo.run(jo.unscented_kalman_filter, jo.make_ukf(model, rule="gauss_hermite"), problem.inputs())[1].x
+        return jnp.sum((x - truth) ** 2)
+
+    np.testing.assert_allclose(jax.jit(error)(0.09), error(0.09), rtol=1e-12)
+    levels = jnp.array([0.05, 0.09, 0.2])
+    np.testing.assert_allclose(jax.jit(jax.vmap(error))(levels), [error(r) for r in levels], rtol=1e-12)
+    check_grads(jax.jit(error), (0.09,), order=1, modes=("rev",))
 
 
 def test_linear_model_equals_the_kalman_filter():
@@ -177,8 +271,12 @@ def test_bad_inputs_raise_naming_the_argument():
     model = problem.model()
     with pytest.raises(ValueError, match="rule must be one of"):
         jo.make_ukf(model, rule="gauss-hermite")
-    with pytest.raises(ValueError, match="rule='cubature' fixes alpha=1"):
+    with pytest.raises(ValueError, match="rule='cubature' has no alpha, beta, kappa"):
         jo.make_ukf(model, rule="cubature", alpha=0.5)
+    with pytest.raises(ValueError, match="order is the Gauss-Hermite rule's"):
+        jo.make_ukf(model, rule="cubature", order=3)
+    with pytest.raises(ValueError, match="order must be an integer >= 2"):
+        jo.make_ukf(model, rule="gauss_hermite", order=1)
     with pytest.raises(ValueError, match="alpha must be positive"):
         jo.make_ukf(model, alpha=0.0)
     with pytest.raises(ValueError, match="kappa must exceed -n = -2"):

@@ -313,4 +313,5 @@ PROBLEM = TuningScenario(
     check=_check,
     build=build_problem,
     size_keys=("scenario.duration", "plants.train", "plants.heldout"),
+    path_keys=("plants.mjcf",),
 )
