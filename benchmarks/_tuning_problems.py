@@ -60,12 +60,10 @@ def load_problem(label: str, spread: float | None = None):
     registry = tuning_problems()
     path = PROBLEMS[label]
     given = load_toml(ROOT / path) if path else {}
-    if "mjcf" in given.get("robot", {}):  # a path relative to the repository root, wherever this runs
-        given["robot"]["mjcf"] = str(ROOT / given["robot"]["mjcf"])
     if spread is not None:
         given.setdefault("baseline", {})["spread"] = spread
     name = given.get("problem", next(iter(registry)))
-    config = registry[name].validate({**given, "problem": name}, path or "defaults")
+    config = registry[name].validate({**given, "problem": name}, str(ROOT / path) if path else "defaults")
     return registry[name].build(config), tuning_settings(config), config
 
 

@@ -385,7 +385,7 @@ def plot(results: dict, path: Path) -> None:
     save_figure(fig, path.parent, path.stem, dpi=110)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True)
     names = [*ORACLES, *PROBLEMS]
@@ -406,7 +406,7 @@ def main() -> None:
     parser.add_argument("--merge", nargs="+", metavar="JSON", help="run nothing: the table and figure of these "
                         "tuning.json files' problems (a later file's run of a problem replaces an earlier "
                         "one's)")  # fmt: skip
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("jaxobs.tuning").setLevel(logging.WARNING)  # not every backtracking step
     out = Path(args.out)
@@ -430,6 +430,7 @@ def main() -> None:
     plot(results, out / "tuning.png")
     for path in args.readme:
         replace_tables(Path(path), tables)
+    return results
 
 
 if __name__ == "__main__":

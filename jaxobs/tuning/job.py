@@ -16,7 +16,8 @@ import numpy as np
 from jaxobs._distributed import agree, from_process_0, json_from_process_0
 from jaxobs._jit import Compiling
 from jaxobs._resources import Interrupted, InterruptWatch, Stalled
-from jaxobs.tuning import _checkpoint, _devices
+from jaxobs.tuning import checkpoints
+from jaxobs.tuning._devices import compile_spread, host, spread, stall_watch, watched
 from jaxobs.tuning.box import Layout
 from jaxobs.tuning.problem import CheckpointError, TuningError, TuningProblem
 from jaxobs.tuning.settings import TuneSettings, gradient_mode
@@ -130,7 +131,7 @@ def _lower(step, state, batch, mode: str):
     """``jax.jit(step)`` lowered on one device: traced, not run, so that a rollout reverse mode cannot
     differentiate is reported (:class:`TuningError`, one line) before anything is compiled or run."""
     try:
-        return jax.jit(step).lower(_devices.host(state), batch)
+        return jax.jit(step).lower(host(state), batch)
     except ValueError as exc:
         if mode == "reverse" and "Reverse-mode differentiation does not work for lax.while_loop" in str(exc):
             raise TuningError(
@@ -230,9 +231,9 @@ class _Job:
 
     def save(self, state: TunerState) -> None:
         if self.path is not None and self.writer:
-            trees, meta = _checkpoint.split(_devices.host(state), self.histories, self.seconds())
+            trees, meta = checkpoints.split(host(state), self.histories, self.seconds())
             meta.update(finished=[_stored(r) for r in self.finished], fingerprint=self.fingerprint)
-            _checkpoint.save(self.path, trees, meta)
+            checkpoints.save(self.path, trees, meta)
 
     def rollouts(self, state: TunerState) -> int:
         return (int(state.scored) + int(state.polished) * self.count) * self.batch
@@ -319,7 +320,7 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar,
     save the checkpoint of the last completed step and raise."""
     settings = job.settings
     saved = (state, [list(h) for h in job.histories], list(job.finished))
-    with InterruptWatch() as watch, _devices.stall_watch("the tuning") as stall:
+    with InterruptWatch() as watch, stall_watch("the tuning") as stall:
         try:
             while int(state.phase) != DONE:
                 watch.check()
@@ -327,7 +328,7 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar,
                 start, label = time.perf_counter(), _label(state, settings.population)
                 if int(state.phase) == NEXT:
                     job.finish_round(state)
-                new, info = _devices.watched(stall, label, step, state, train)
+                new, info = watched(stall, label, step, state, train)
                 job.observe(state, new, info, time.perf_counter() - start)
                 state, polished = new, int(info.phase) == POLISH
                 if polished:
@@ -428,8 +429,8 @@ def tune(
     tuner = make_tuner(settings, penalty=problem.penalty)
     state = tuner.init(problem.theta0, box=problem.search_box, starts=initial)
     job, state, lowered, what, tracing = _open(problem, tuner, state, checkpoint, tag, initial, clock)
-    step, train, _, compile_seconds = _devices.compile_spread(
-        lambda mesh: lambda s, plants: tuner.step(s, _devices.spread(problem.losses, mesh, batch), plants),
+    step, train, _, compile_seconds = compile_spread(
+        lambda mesh: lambda s, plants: tuner.step(s, spread(problem.losses, mesh, batch), plants),
         problem.train, state, what, hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
         alone=lowered,
     )  # fmt: skip
@@ -447,11 +448,11 @@ def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str
     settings, batch = tuner.settings, problem.batch_size(problem.train)
     count, mode = int(state.lanes.scale.shape[0]), gradient_mode(tuner.settings, problem.theta0)
     path = Path(checkpoint) if checkpoint is not None else None
-    trees, meta = _checkpoint.split(_devices.host(state), [[] for _ in range(count)], 0.0)
+    trees, meta = checkpoints.split(host(state), [[] for _ in range(count)], 0.0)
     resume, error = jax.process_index() == 0 and path is not None and path.exists(), None
     if resume:  # a damaged checkpoint is reported before the step is traced
         try:
-            trees, meta = _checkpoint.load(path, trees)
+            trees, meta = checkpoints.load(path, trees)
         except CheckpointError as exc:
             error = exc
     _agree(error)
@@ -459,13 +460,13 @@ def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str
     with Compiling(logger, f"{what} (tracing)") as tracing:
         lowered = _lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode)
     given = "" if initial is None else json.dumps([_as_numpy(t) for t in initial])  # the starting points, if given
-    fingerprint = _checkpoint.fingerprint(problem.theta0, settings, tag + given, lowered.as_text(), problem.train)
+    fingerprint = checkpoints.fingerprint(problem.theta0, settings, tag + given, lowered.as_text(), problem.train)
     if resume and meta.pop("fingerprint") != fingerprint:
         error = CheckpointError(f"{path}: written for a different problem, program or settings; delete it (or use "
                                 "another --out) to start over")  # fmt: skip
     _agree(error, bytes.fromhex(fingerprint))
     meta = json_from_process_0(meta)
-    state, histories = _checkpoint.join(_devices.host(from_process_0(trees)), meta, settings.steps)
+    state, histories = checkpoints.join(host(from_process_0(trees)), meta, settings.steps)
     if resume:
         logger.info("resuming from %s at step %d", path, int(state.iteration))
     return _Job(problem, settings, path, fingerprint, meta, histories, clock), state, lowered, what, tracing.seconds

@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxobs._distributed import from_process_0
 from jaxobs.batching import safe_vmap
-from jaxobs.tuning import _devices
+from jaxobs.tuning._devices import compile_spread, host, spread, stall_watch, watched
 from jaxobs.tuning.box import Layout, search_box
 from jaxobs.tuning.objectives import cvar, make_objective, penalise_diverged, robust_objective
 from jaxobs.tuning.problem import TuningProblem
@@ -48,8 +48,8 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
     """
     size = problem.batch_size(problem.train)
     chunk = {k: np.repeat(v[None], CANDIDATE_CHUNK, 0) for k, v in _strong(problem.theta0).items()}
-    score, train, _, _ = _devices.compile_spread(
-        lambda mesh: safe_vmap(make_objective(_devices.spread(problem.losses, mesh, size), settings, problem.penalty),
+    score, train, _, _ = compile_spread(
+        lambda mesh: safe_vmap(make_objective(spread(problem.losses, mesh, size), settings, problem.penalty),
                                (0, None)),
         problem.train, chunk, f"{CANDIDATE_CHUNK} candidates' {size} training rollouts each",
         hint="use fewer training plants",
@@ -59,11 +59,11 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
         count = len(next(iter(candidates.values())))
         rows = np.minimum(np.arange(-(-count // CANDIDATE_CHUNK) * CANDIDATE_CHUNK), count - 1)  # pad with the last
         values, diverged = [], []
-        with _devices.stall_watch(f"scoring {count} candidates") as stall:
+        with stall_watch(f"scoring {count} candidates") as stall:
             for first in range(0, rows.size, CANDIDATE_CHUNK):
                 part = {k: np.asarray(v)[rows[first : first + CANDIDATE_CHUNK]] for k, v in candidates.items()}
                 label = f"candidates {first} to {first + CANDIDATE_CHUNK - 1}"
-                value, failed = _devices.watched(stall, label, score, part, train)
+                value, failed = watched(stall, label, score, part, train)
                 counts = np.sum(np.asarray(failed), axis=1)
                 values.append(np.where((counts < size) & np.isfinite(value), value, np.inf))
                 diverged.append(counts)
@@ -167,11 +167,11 @@ def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneS
     diverged)."""
     batch = problem.heldout if batch is None else batch
     size = problem.batch_size(batch)
-    compiled, placed, _, _ = _devices.compile_spread(
-        lambda mesh: _devices.spread(problem.losses, mesh, size), batch, theta,
+    compiled, placed, _, _ = compile_spread(
+        lambda mesh: spread(problem.losses, mesh, size), batch, theta,
         f"the {size} rollouts of an evaluation", hint="use fewer plants",
     )  # fmt: skip
-    losses, diverged = _devices.host(compiled(_devices.host(theta), placed))
+    losses, diverged = host(compiled(host(theta), placed))
     failed = np.asarray(diverged) | ~np.isfinite(losses)
     penalised = penalise_diverged(jnp.asarray(losses), jnp.asarray(failed), settings.divergence_factor)
     finite = losses[~failed]
