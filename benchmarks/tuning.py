@@ -253,6 +253,7 @@ def run_problem(label: str, seeds: list[int], methods: list[str], budget: float 
             trace = run_method(method, problem, settings, box, seconds, seed)
             record = anytime(trace, grid, heldout)
             record["on_boundary"] = record["row"] is not None and box.on_boundary(record["row"])
+            record["load"] = os.getloadavg()[0]  # the machine's 1-minute load average as the run ended
             runs[method].append(record)
             logging.info("%s seed %d %-20s held-out %.6g after %d rollouts%s (load %.1f)", label, seed, method,
                          record["heldout"][-1], record["final_rollouts"], " ON THE BOUNDARY" * record["on_boundary"],
@@ -290,6 +291,12 @@ def summarise(r: dict) -> dict:
     return out
 
 
+def _load_range(r: dict) -> str:
+    """The range of the machine's load average over a problem's runs (at each run's end)."""
+    loads = [x["load"] for runs in r["runs"].values() for x in runs if "load" in x] or [r["load"][0]]
+    return f"{min(loads):.3g} to {max(loads):.3g}"
+
+
 def _cell(s: dict, oracle: bool) -> str:
     fmt = (lambda v: f"{v:.2g}") if oracle else (lambda v: f"{v:.4g}")
     text = f"{fmt(s['median'])} [{fmt(s['min'])}, {fmt(s['max'])}]"
@@ -316,7 +323,8 @@ def markdown_table(results: dict) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("\nMedian [min, max] over the seeds of the held-out objective of each method's best design at the "
                  "budget (gain schedules: (J - J*) / J*); bold: lowest median, or within 1 % of it; ‡: on the box's "
-                 "boundary for some seed. Rollouts: " + "; ".join(
+                 "boundary for some seed. Load average during the runs: " + "; ".join(
+                     f"{label}: {_load_range(r)}" for label, r in results.items()) + ". Rollouts: " + "; ".join(
                      f"{label}: " + ", ".join(f"{m} {v['rollouts']:.3g}" for m, v in summarise(r).items())
                      for label, r in results.items()))  # fmt: skip
     return "\n".join(lines)
