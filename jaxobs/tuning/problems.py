@@ -84,6 +84,13 @@ def schedule_cost(gains, Phi, C, Q, R, P_init):
     return jnp.mean(jax.lax.scan(step, P_init, (gains, R, _per_step(Phi, R), _per_step(C, R)))[1])
 
 
+def _invalid(cost, bound):
+    """Where ``cost`` is no value of the covariance recursion: not finite, or below ``bound`` (the Riccati
+    optimum, which no gain schedule beats: a lower number is the roundoff of a covariance that blew up, e.g. a
+    negative one after an unstable schedule's growth to 1e80)."""
+    return ~jnp.isfinite(cost) | (cost < bound * (1 - 1e-6))
+
+
 def _per_step(matrix, R):
     """``matrix`` (a, b) or (T, a, b) as one matrix per step of ``R``."""
     return jnp.broadcast_to(matrix, (R.shape[0], *np.shape(matrix)[-2:]))
@@ -145,7 +152,7 @@ def gain_schedule_problem(
 
     def losses(theta, plants):
         cost = jax.vmap(lambda p: schedule_cost(theta["gains"], p["Phi"], p["C"], p["Q"], p["R"], p["P_init"]))(plants)
-        return cost, ~jnp.isfinite(cost)
+        return cost, _invalid(cost, optimum.cost)
 
     def describe(theta):
         cost = losses(theta, batch)[0][0]
@@ -251,7 +258,7 @@ def speed_schedule_problem(knots: int = 32, train: int = 8, heldout: int = 32, s
             return schedule_cost(gains, p["Phi"], p["C"], p["Q"], p["R"], p["P_init"]) / p["optimum"]
 
         cost = jax.vmap(one)(plants)
-        return cost, ~jnp.isfinite(cost)
+        return cost, _invalid(cost, 1.0)
 
     batches = {name: {k: jnp.asarray(v) for k, v in b.items()} for name, b in batches.items()}
 

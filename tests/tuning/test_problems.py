@@ -75,3 +75,16 @@ def test_the_speed_schedule_is_bounded_by_each_profiles_riccati_gains():
     model = {k: plant[k] for k in ("Phi", "C", "Q", "R", "P_init")}
     np.testing.assert_allclose(schedule_cost(optimal_schedule(**model).gains, **model) / plant["optimum"], 1.0,
                                rtol=1e-12)  # fmt: skip
+
+
+def test_values_below_the_optimum_count_as_diverged():
+    """A cost below the Riccati optimum is the roundoff of a covariance that blew up (an unstable schedule's
+    recursion can end negative): the losses flag it like a non-finite one, and the optimum itself is valid."""
+    from jaxobs.tuning import problems
+
+    problem, best = gain_schedule_problem(13)
+    J = float(best.cost)
+    flagged = problems._invalid(jnp.array([J, 2 * J, J * (1 - 1e-3), -1e80, jnp.inf, jnp.nan]), J)
+    assert flagged.tolist() == [False, False, True, True, True, True]
+    assert not bool(problem.losses({"gains": best.gains}, problem.train)[1][0])
+    assert not bool(problem.losses(problem.theta0, problem.train)[1][0])
