@@ -137,7 +137,8 @@ def gain_schedule_problem(
 
     ``theta0`` is the hand-set design an engineer would use: the steady-state Kalman gain of the mean sensor
     variance, at every step. The loss of the one plant (training and held-out batch alike: the cost is an exact
-    expectation, nothing is sampled) is :func:`schedule_cost`; ``describe`` gives the suboptimality ``(J - J*) /
+    expectation, nothing is sampled) is :func:`schedule_cost`, diverged where it is not finite or below ``J*`` (the
+    roundoff of an unstable schedule's covariance); ``describe`` gives the suboptimality ``(J - J*) /
     J*``. The search box is ``[-half_width, half_width]`` on every gain, by default 1.5 times the largest gain of
     the optimum and of ``theta0`` (rounded up to 0.1): it holds both.
     """
