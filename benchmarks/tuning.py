@@ -384,12 +384,13 @@ def plot(results: dict, path: Path) -> None:
             ax.fill_between(grid, np.nanmin(values, 0), np.nanmax(values, 0), color=f"C{i}", alpha=0.15, lw=0)
         ax.set(xscale="log", yscale="log", xlabel="wall time (s, compilation included)",
                ylabel="(J - J*) / J*" if oracle else "held-out objective",
-               title=f"{label} ({r['parameters']} parameters)")  # fmt: skip
+               title=f"{label} ({r['parameters']} parameters; load {_load_range(r)})")  # fmt: skip
     for ax in axes.flat[count:]:
         ax.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)
-    fig.suptitle("Best design so far against wall time: median over the seeds, band min to max (lower is better)")
+    fig.suptitle("Best design so far against wall time: median over the seeds that have one by then, band min to max "
+                 "(lower is better)")  # fmt: skip
     save_figure(fig, path.parent, path.stem, dpi=110)
 
 
