@@ -20,7 +20,8 @@ def test_benchmark_runs_and_writes_its_tables(tmp_path, monkeypatch):
     spec.loader.exec_module(module)
     page = tmp_path / "page.md"
     page.write_text(
-        "a\n<!-- tuning-table -->\nold\n<!-- tuning-table -->\nb\n<!-- tuning-anytime -->\n<!-- tuning-anytime -->\n"
+        "a\n<!-- tuning-table -->\nstale rows\n<!-- tuning-table -->\n"
+        "b\n<!-- tuning-anytime -->\n<!-- tuning-anytime -->\n"
     )
     argv = ["--out", str(tmp_path), "--problems", "gain-schedule-100", "--seeds", "1", "--budget", "40",
             "--methods", "jaxobs", "random search", "--readme", str(page)]  # fmt: skip
@@ -35,5 +36,5 @@ def test_benchmark_runs_and_writes_its_tables(tmp_path, monkeypatch):
     # every method scores the hand-set design first (46 % above J*); none ends below the exact optimum
     assert all(0 <= s["min"] <= s["median"] < 0.5 for s in summary.values())
     text = page.read_text()
-    assert "old" not in text and "| gain-schedule-100 (104; +-1.5 max gain) | 40 s |" in text
+    assert "stale rows" not in text and "| gain-schedule-100 (104; +-1.5 max gain) | 40 s |" in text
     assert "| gain-schedule-100 | jaxobs |" in text
