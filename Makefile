@@ -35,7 +35,7 @@ bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/kalman_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/sweep_throughput.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/mjx_rollouts.py --out $(OUT)/bench --problems
-	$(BIN)/python benchmarks/tuning.py --out $(OUT)/bench --readme README.md
+	$(BIN)/python benchmarks/tuning.py --out $(OUT)/bench --readme README.md docs/tuning-results.md
 	$(BIN)/python benchmarks/dare_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/care_accuracy.py --out $(OUT)/bench
 	$(BIN)/python benchmarks/design_latency.py --out $(OUT)/bench

@@ -28,7 +28,30 @@ PROBLEMS = {  # label -> shipped config (None: jaxobs tune's default problem)
     "peg-on-hole-cholesky": "tuning/peg_on_hole_cholesky.toml",
     "cartpole-payload-aob": "tuning/cartpole_payload_aob.toml",
     "arm-on-table-cholesky": "tuning/arm_on_table_cholesky.toml",
+    "arm7-aob-cholesky": "tuning/arm7_aob_cholesky.toml",
 }
+
+
+ORACLES = {"gain-schedule-100": 13, "gain-schedule-1000": 125, "gain-schedule-10000": 1250, "speed-schedule-256": 32}
+"""Problems with an exact optimum or bound (:mod:`jaxobs.tuning.problems`): the gain schedules of
+``gain_schedule_problem`` (label -> horizon T; T x 4 states x 2 outputs gains: 104, 1000 and 10 000), with the
+optimum ``J*``; the speed schedule of ``speed_schedule_problem`` (label -> knots; 32 x 4 x 2 gains), whose losses
+are already ``J / J*`` per plant (the bound 1)."""
+
+
+def load_oracle(label: str):
+    """``(problem, settings, optimum)`` of a problem of :data:`ORACLES`, tuned with the shipped strategy."""
+    from jaxobs.papers.tuning_config import BASELINE_DEFAULTS, SHIPPED_STRATEGY, optimizer_defaults
+    from jaxobs.tuning.problems import gain_schedule_problem, speed_schedule_problem
+
+    if label.startswith("speed"):
+        problem, _ = speed_schedule_problem(knots=ORACLES[label], train=32, heldout=32)
+        optimum = 1.0
+    else:
+        problem, schedule = gain_schedule_problem(ORACLES[label])
+        optimum = float(schedule.cost)
+    config = {"seed": 0, "optimizer": optimizer_defaults(**SHIPPED_STRATEGY), "baseline": dict(BASELINE_DEFAULTS)}
+    return problem, tuning_settings(config), optimum
 
 
 def load_problem(label: str, spread: float | None = None):
@@ -37,12 +60,10 @@ def load_problem(label: str, spread: float | None = None):
     registry = tuning_problems()
     path = PROBLEMS[label]
     given = load_toml(ROOT / path) if path else {}
-    if "mjcf" in given.get("robot", {}):  # a path relative to the repository root, wherever this runs
-        given["robot"]["mjcf"] = str(ROOT / given["robot"]["mjcf"])
     if spread is not None:
         given.setdefault("baseline", {})["spread"] = spread
     name = given.get("problem", next(iter(registry)))
-    config = registry[name].validate({**given, "problem": name}, path or "defaults")
+    config = registry[name].validate({**given, "problem": name}, str(ROOT / path) if path else "defaults")
     return registry[name].build(config), tuning_settings(config), config
 
 

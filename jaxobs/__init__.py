@@ -65,7 +65,7 @@ if TYPE_CHECKING:  # what static tools see (IDEs, type checkers, the docs); at r
     from jaxobs.smoothing import Smoothed, log_likelihood, parallel_filter, rts_smoother, smooth
     from jaxobs.stability import closed_loop_matrix, loop_transfer, spectral_radius, stability_margins
     from jaxobs.sweep import load_results, run_sweep
-    from jaxobs.tuning import TuneSettings, TuningProblem, random_search, tune
+    from jaxobs.tuning import TuneSettings, TuningProblem, make_tuner, random_search, tune
 
 __all__ = [
     "__version__",
@@ -171,6 +171,7 @@ __all__ = [
     "checked",
     "load_results",
     "tune",
+    "make_tuner",
     "TuningProblem",
     "TuneSettings",
     "random_search",

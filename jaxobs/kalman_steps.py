@@ -23,6 +23,7 @@ from jaxobs._linalg import cho_solve, cholesky, solve_lower, solve_spd, symmetri
 __all__ = [
     "predict_covariance",
     "kalman_gain",
+    "joseph_covariance",
     "CovarianceUpdate",
     "update_covariance_factors",
     "update_covariance_moments",
@@ -78,6 +79,21 @@ def kalman_gain(P1, C, R):
     return solve_spd(symmetrize(CP1 @ C.T + R), CP1).T
 
 
+def joseph_covariance(P1, C, R, K, CP1=None):
+    """Error covariance after a measurement update with any gain ``K`` (n, p): ``(I - K C) P1 (I - K C)' + K R K'``
+    (eq. 29 in Joseph form, exact for every gain, the Kalman gain or not), symmetric. ``CP1``: ``C P1`` if known.
+    With fewer outputs than half the states each factor is applied as a rank-p correction, ``(I - K C) X = X - K
+    (C X)``: ``4 n^2 p`` flops instead of ``2 n^3``."""
+    n, m = C.shape[-1], C.shape[-2]
+    if 2 * m < n:
+        left = P1 - K @ (C @ P1 if CP1 is None else CP1)  # (I - K C) P1
+        congruence = left - (left @ C.T) @ K.T  # ((I - K C) P1) (I - K C)'
+    else:
+        IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
+        congruence = IKC @ P1 @ IKC.T
+    return symmetrize(congruence + K @ R @ K.T)
+
+
 class CovarianceUpdate(NamedTuple):
     """Result of :func:`update_covariance_factors` (``n`` states, ``p`` outputs).
 
@@ -100,10 +116,9 @@ def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpd
     ``S = C P1 C' + R`` is factored once (``S = L L'``) and the factor serves the gain ``K = P1 C' S^{-1}`` and
     the caller (a log-likelihood needs ``log det S`` and ``L^{-1} e``).
 
-    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'``, a congruence plus a PSD term, so ``P``
-    stays symmetric positive semidefinite in floating point even for very precise measurements. With fewer
-    outputs than half the states, each factor is applied as a rank-m correction, ``(I - K C) X = X - K (C X)``:
-    the same congruence in ``4 n^2 m`` flops instead of ``2 n^3``. ``joseph=False``: the standard form
+    ``joseph=True`` (default): ``P = (I - K C) P1 (I - K C)' + K R K'`` (:func:`joseph_covariance`), a congruence
+    plus a PSD term, so ``P`` stays symmetric positive semidefinite in floating point even for very precise
+    measurements. ``joseph=False``: the standard form
     ``P = P1 - W' W``, ``W = L^{-1} C P1`` (``= P1 - K S K'``, as dynamax): one product instead of three or four,
     symmetric, but a difference that cancels at the scale of ``P1`` when a measurement is far more precise than
     the prior, where it can lose definiteness. Shapes: ``P1`` (n, n), ``C`` (p, n), ``R`` (p, p).
@@ -115,14 +130,7 @@ def update_covariance_factors(P1, C, R, *, joseph: bool = True) -> CovarianceUpd
         return update_covariance_moments(P1, CP1, S)
     S_chol = cholesky(S)
     K = cho_solve(S_chol, CP1).T
-    n, m = C.shape[-1], C.shape[-2]
-    if 2 * m < n:
-        left = P1 - K @ CP1  # (I - K C) P1
-        congruence = left - (left @ C.T) @ K.T  # ((I - K C) P1) (I - K C)'
-    else:
-        IKC = jnp.eye(n, dtype=P1.dtype) - K @ C
-        congruence = IKC @ P1 @ IKC.T
-    return CovarianceUpdate(symmetrize(congruence + K @ R @ K.T), K, S, S_chol)
+    return CovarianceUpdate(joseph_covariance(P1, C, R, K, CP1), K, S, S_chol)
 
 
 def update_covariance_moments(P1, CP1, S) -> CovarianceUpdate:

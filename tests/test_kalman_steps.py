@@ -410,3 +410,24 @@ def test_covariance_sequence_rejects_bad_input(kwargs, name):
     args.update(kwargs)
     with pytest.raises(ValueError, match=rf"\b{name}\b"):
         covariance_sequence(args["P_init"], args["Phi"], args["C"], args["Q"], args["R"], 5)
+
+
+def test_joseph_covariance_of_any_gain():
+    """The error covariance of a fixed-gain update: the Kalman gain gives the update's own ``P`` (both branches: rank-p
+    correction for p < n / 2, full congruence otherwise); any other gain gives more (in the PSD order); the closed form
+    matches the mean outer product of the errors it describes (Monte Carlo)."""
+    from jaxobs.kalman_steps import joseph_covariance, update_covariance
+
+    rng = np.random.default_rng(3)
+    for n, p in ((5, 2), (3, 2)):
+        A = rng.normal(size=(n, n))
+        P1, C, R = A @ A.T + np.eye(n), rng.normal(size=(p, n)), np.diag(rng.uniform(0.5, 2.0, p))
+        P, K = update_covariance(P1, C, R)
+        np.testing.assert_allclose(joseph_covariance(P1, C, R, K), P, rtol=1e-12, atol=1e-12)
+        other = joseph_covariance(P1, C, R, K + 0.1 * rng.normal(size=K.shape))
+        assert np.min(np.linalg.eigvalsh(np.asarray(other) - np.asarray(P))) > -1e-12
+    x = rng.multivariate_normal(np.zeros(n), P1, 200_000)
+    v = rng.multivariate_normal(np.zeros(p), R, 200_000)
+    G = 0.3 * rng.normal(size=(n, p))
+    errors = x - (x @ C.T + v) @ G.T  # x - G y
+    np.testing.assert_allclose(errors.T @ errors / len(errors), joseph_covariance(P1, C, R, G), atol=0.06)

@@ -266,6 +266,7 @@ duration = 0.4
 steps = 3
 checkpoint_every = 1
 screening = 15
+evolve = 3
 [baseline]
 random_search = false
 """

@@ -29,8 +29,9 @@ def installed(tmp_path_factory) -> Path:
     subprocess.run([sys.executable, "-m", "venv", str(root / "venv")], check=True, timeout=300)
     bin_dir = root / "venv" / "bin"
     wheel = next((root / "dist").glob("jaxobs-*.whl"))
+    clean = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # else pip finds a checkout's egg-info
     subprocess.run([bin_dir / "python", "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True,
-                   capture_output=True, timeout=600)  # fmt: skip
+                   capture_output=True, timeout=600, env=clean)  # fmt: skip
     purelib = subprocess.run([bin_dir / "python", "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                              check=True, capture_output=True, text=True).stdout.strip()  # fmt: skip
     (Path(purelib) / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")

@@ -36,6 +36,7 @@ from jaxobs.tuning import (
     cholesky_parameters,
     cvar,
     evaluate,
+    job,
     penalise_diverged,
     random_search,
     robust_objective,
@@ -227,8 +228,9 @@ def test_a_diverged_rollout_does_not_poison_the_gradient(mode):
 
     batch = {"t": jnp.array([0.0, 3.0, 0.0]), "s": jnp.array([0.0, 0.0, 800.0])}
     problem = TuningProblem({"x": jnp.asarray(1.0)}, losses, batch, batch)
-    plain = jax.jit(tuning._evaluations(problem, TuneSettings(gradient=mode), None)[0])  # one device
-    grad = plain({"x": jnp.asarray([1.0])}, batch)[1]["x"][0]  # one starting point
+    objective = tuning.make_objective(losses, TuneSettings(gradient=mode))
+    plain = jax.jit(value_and_grad(lambda theta: objective(theta, batch), mode))  # without the tuner's recomputation
+    grad = plain({"x": jnp.asarray(1.0)})[1]["x"]
     assert bool(jnp.isnan(grad)) == (mode == "reverse")
     result = tune(problem, TuneSettings(gradient=mode, steps=1), progress=False)
     first = result.history[0]
@@ -320,19 +322,19 @@ def test_damaged_checkpoints_raise(tmp_path, damage, message):
 def test_ctrl_c_saves_the_checkpoint_and_the_rerun_resumes(tmp_path, monkeypatch):
     s = TuneSettings(_adam(0.1), steps=10, checkpoint_every=100, patience=100)
     straight = tune(quadratic_problem(), s, progress=False)
-    failure, calls = tuning._failure, []
+    record, calls = job._record, []  # the record of each start's evaluation, made after each step
 
     def interrupted(*args):
         calls.append(1)
         if len(calls) == 5:
             raise KeyboardInterrupt
-        return failure(*args)
+        return record(*args)
 
-    monkeypatch.setattr(tuning, "_failure", interrupted)
+    monkeypatch.setattr(job, "_record", interrupted)
     path = tmp_path / "ckpt.npz"
     with pytest.raises(Interrupted, match=r"after 4 of 10 evaluations; checkpoint saved to .*ckpt.npz; rerun"):
         tune(quadratic_problem(), s, checkpoint=path, progress=False)
-    monkeypatch.setattr(tuning, "_failure", failure)
+    monkeypatch.setattr(job, "_record", record)
     resumed = tune(quadratic_problem(), s, checkpoint=path, progress=False)
     assert [h["objective"] for h in resumed.history] == [h["objective"] for h in straight.history]
     assert float(resumed.theta["x"]) == float(straight.theta["x"])

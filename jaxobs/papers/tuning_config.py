@@ -34,11 +34,12 @@ __all__ = [
 
 BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
 
-SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "starts": 2, "steps": 100,
-                    "patience": 4}  # fmt: skip
+SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "evolve": 50, "distinct": 0.1,
+                    "starts": 2, "steps": 100, "patience": 4, "max_rejections": 16}  # fmt: skip
 """The ``[optimizer]`` defaults of the shipped problems: 127 scrambled-Sobol candidates screened in the search box,
-then L-BFGS with backtracking from two starts at once, ``theta0`` and the best candidate, until the plateau rule
-stops each (measured against random search, CMA-ES and Optuna at equal wall time: docs/tuning-results.md)."""
+a CMA-ES from the best of them until it stalls (at most 50 generations of 16), then L-BFGS with backtracking (16
+halvings at most) from two starts at once, ``theta0`` and the best point found, until the plateau rule stops each
+(measured against random search, CMA-ES, OpenAI-ES and Optuna at equal wall time: docs/tuning-results.md)."""
 
 OPTIMIZERS = {"adam": optax.adam, "sgd": optax.sgd, "adabelief": optax.adabelief, "lamb": optax.lamb,
               "lbfgs": lbfgs}  # fmt: skip
@@ -57,6 +58,12 @@ COMMON_NOTES = {
     "(value_and_grad) or 'forward' (jacfwd: exact, cheaper for few parameters)",
     "optimizer.starts": "starting points tuned together (one vmap); the result is the best on the training objective",
     "optimizer.screening": "candidates scored in the search box before tuning; the best seed the starts (with theta0)",
+    "optimizer.evolve": "CMA-ES generations per round at most after the screening (0: none); its best is a start",
+    "optimizer.population": "candidates per batched call of the exploration (a screening chunk, a CMA-ES generation)",
+    "optimizer.evolve_sigma": "the CMA-ES's initial step, as a fraction of the search box's width",
+    "optimizer.rounds": "explore-and-polish rounds: each later one restarts the CMA-ES at a random point of the box",
+    "optimizer.distinct": "starts at least this far apart (largest coordinate difference, in box widths); 0: any",
+    "optimizer.bounded": "keep every design in the search box, as the baseline's search does",
     "optimizer.learning_rate": "the optimizer's step size (in the unconstrained parameters)",
     "optimizer.steps": "the cap: gradient evaluations per start at most, rejected ones included",
     "optimizer.objective": "'mean' or 'cvar' (mean of the cvar_alpha worst) of the per-plant training losses",

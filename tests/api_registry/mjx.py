@@ -91,7 +91,9 @@ _PHYSICS = "pending: needs a loaded MJX model and compiles a physics step (a slo
 PENDING = {
     key: _PHYSICS
     for key in (
+        "jaxobs.mjx.common.forward",
         "jaxobs.mjx.common.initial_data",
+        "jaxobs.mjx.common.solve",
         "jaxobs.mjx.common.step",
         "jaxobs.mjx.compliant_6dof.closed_loop_rollout",
         "jaxobs.mjx.compliant_6dof.contact_point",

@@ -25,17 +25,18 @@ import jaxobs.tuning
 from jaxobs._config import load_toml
 from jaxobs.papers.registry import tuning_problems
 from jaxobs.papers.tuning_config import settings
+from jaxobs.tuning import checkpoints
 
 WRITES = []
 
 
-def _counted_save(path, trees, meta, *, _save=jaxobs.tuning._save_checkpoint):
+def _counted_save(path, trees, meta, *, _save=checkpoints.save):
     time.sleep(float(os.environ.get("TUNE_SLEEP", "0")))
     WRITES.append(str(path))
     _save(path, trees, meta)
 
 
-jaxobs.tuning._save_checkpoint = _counted_save
+checkpoints.save = _counted_save
 
 
 def analytic_problem(lapack: bool = False) -> jaxobs.tuning.TuningProblem:

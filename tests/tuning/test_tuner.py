@@ -1,0 +1,108 @@
+"""jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps,
+an eager step equals a jitted one, vmap over keys equals separate runs), its exploration finding the global basin of
+a multimodal objective, restarts with distinct starts, the box kept, and the job's wall-time budget, anytime curve
+and resumption mid-exploration."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxobs.tuning import TuneSettings, TuningProblem, job, lbfgs, make_tuner, tune
+from jaxobs.tuning.tuner import PHASES
+
+
+def losses(theta, targets):
+    """A shifted Rastrigin function per plant (many local minima, period 1): the mean over the plants (targets 1.0 and
+    1.2 in both coordinates) has its global minimum at (1.1, 1.1), 0.78."""
+    z = theta["x"] - targets[:, None]
+    value = jnp.sum(z**2 - 2.0 * jnp.cos(2 * jnp.pi * z) + 2.0, axis=1)
+    return value, jnp.zeros(targets.shape, bool)
+
+
+TARGETS = jnp.array([1.0, 1.2])
+SETTINGS = TuneSettings(lbfgs(), backtrack=True, screening=31, evolve=20, patience=4, starts=3, rounds=2,
+                        distinct=0.1, spread=5.0, bounded=True)  # fmt: skip
+
+
+def test_the_tuner_runs_inside_a_users_jitted_loop():
+    tuner = make_tuner(SETTINGS)
+    start = tuner.init({"x": jnp.array([-3.0, 2.5])})  # in the basin of a local minimum
+
+    def run(state, steps):
+        return jax.lax.scan(lambda s, _: tuner.step(s, losses, TARGETS), state, None, length=steps)
+
+    final, infos = jax.jit(run, static_argnums=1)(start, 100)
+    assert PHASES[int(final.phase)] == "done" and int(final.round) == 1  # two rounds, then done
+    np.testing.assert_allclose(final.search.best.row, [1.1, 1.1], atol=1e-6)
+    step = jax.jit(lambda s: tuner.step(s, losses, TARGETS))
+    state = start
+    for _ in range(100):
+        state = step(state)[0]
+    jax.tree.map(np.testing.assert_array_equal, state, final)  # the scan is the loop of jitted steps
+    low, high = final.search.low, final.search.high  # bounded: every start stayed in the box
+    assert bool(jnp.all((final.best["x"] >= low) & (final.best["x"] <= high)))
+    scored = np.asarray(infos.scored)[np.asarray(infos.phase) < 2]
+    assert int(final.scored) == scored.sum() == 32 + 16 * np.sum(np.asarray(infos.phase) == 1)
+
+
+@pytest.mark.slow
+def test_the_tuners_step_eagerly_and_under_vmap():
+    """An eager step is the jitted step; runs vmapped over the CMA-ES's keys are the runs one at a time."""
+    tuner = make_tuner(SETTINGS)
+    start = tuner.init({"x": jnp.array([-3.0, 2.5])})
+    step = jax.jit(lambda s: tuner.step(s, losses, TARGETS))
+    for _ in range(3):  # a screening step, then CMA-ES generations
+        eager, jitted = tuner.step(start, losses, TARGETS), step(start)
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-12), eager, jitted)
+        start = jitted[0]
+
+    def run(key):
+        state = tuner.init({"x": jnp.array([-3.0, 2.5])}, key)
+        return jax.lax.scan(lambda s, _: tuner.step(s, losses, TARGETS), state, None, length=100)[0]
+
+    keys = jax.random.split(jax.random.PRNGKey(5), 2)
+    runs = jax.jit(jax.vmap(run))(keys)
+    np.testing.assert_allclose(runs.search.best.row[1], jax.jit(run)(keys[1]).search.best.row, rtol=1e-12)
+
+
+def test_tune_explores_restarts_and_keeps_a_curve():
+    """The job over the same tuner: the global minimum from a start in a local basin, the starts of both rounds
+    (theta0 and distinct others), an anytime curve that only falls; a wall-time budget stops it early."""
+    problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
+    result = tune(problem, SETTINGS, progress=False)
+    np.testing.assert_allclose(result.theta["x"], [1.1, 1.1], atol=1e-6)
+    assert len(result.starts) == 6 and result.screened > 32
+    np.testing.assert_array_equal(result.starts[0].start["x"], [-3.0, 2.5])  # theta0 is a start of round 0
+    firsts = np.array([s.start["x"] for s in result.starts[:3]])
+    assert np.min(np.abs(firsts[:, None] - firsts[None]).max(-1)[np.triu_indices(3, 1)]) >= 0.1 * 10
+    objectives = [p["objective"] for p in result.curve]
+    assert objectives == sorted(objectives, reverse=True) and objectives[-1] == result.objective
+    short = tune(problem, SETTINGS, progress=False, seconds=1e-9)
+    assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
+
+
+def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch):
+    problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
+    settings = dataclasses.replace(SETTINGS, checkpoint_every=1)
+    straight = tune(problem, settings, progress=False)
+    observe, calls = job._Job.observe, []
+
+    def interrupted(self, *args):
+        calls.append(1)
+        if len(calls) == 4:  # the third CMA-ES generation
+            raise KeyboardInterrupt
+        return observe(self, *args)
+
+    monkeypatch.setattr(job._Job, "observe", interrupted)
+    path = tmp_path / "ckpt.npz"
+    with pytest.raises(KeyboardInterrupt, match="after 0 of 50 evaluations; checkpoint saved"):
+        tune(problem, settings, checkpoint=path, progress=False)
+    monkeypatch.setattr(job._Job, "observe", observe)
+    resumed = tune(problem, settings, checkpoint=path, progress=False)
+    assert resumed.screened == straight.screened and resumed.objective == straight.objective
+    for got, want in zip(resumed.starts, straight.starts, strict=True):
+        assert (got.stopped, got.evaluations) == (want.stopped, want.evaluations)
+        np.testing.assert_array_equal(got.theta["x"], want.theta["x"])
