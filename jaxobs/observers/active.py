@@ -511,9 +511,11 @@ def set_active(params: ActiveObserverParams, on) -> ActiveObserverParams:
     ``on`` may be a bool, a number or a traced array, a scalar or of the shape of ``params.active`` (e.g. one
     per DOF of stacked controllers); it is cast to the params' dtype so switching never triggers a recompilation.
     The prior ``P0`` is kept: a time-varying AOB switched off before its first sample starts from the AOB's default
-    prior, not the CKF's (``make_aob(..., active=0)`` gives that).
+    prior, not the CKF's (``make_aob(..., active=0)`` gives that). ``params`` may be stacked (a leading axis per
+    DOF, as :func:`jaxobs.mjx.compliant_6dof.stack_controllers` builds them).
     """
-    _check_params(params)
+    if not isinstance(params, ActiveObserverParams):
+        raise ValueError(f"params must be ActiveObserverParams (make_aob, make_ckf), got {type(params).__name__}")
     on = jnp.asarray(on)
     if on.shape not in ((), params.active.shape):
         raise ValueError(

@@ -125,7 +125,7 @@ def _arguments(model: ModularModel, **values) -> tuple:
     arrays = _checks.float_arrays(**values)
     _checks.shapes(", ".join(f"{name} {_ARGUMENT_SHAPES[name]}" for name in values).replace("(n,)", f"({n},)"),
                    *arrays)  # fmt: skip
-    return tuple(a.astype(model.K_phi.dtype) for a in arrays)
+    return tuple(None if a is None else a.astype(model.K_phi.dtype) for a in arrays)
 
 
 def _phi_hat(model: ModularModel, state: ModularState, t, x):

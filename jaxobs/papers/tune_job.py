@@ -192,11 +192,13 @@ def markdown_report(summary: dict) -> str:
     every design, the run (its stopping, starts and time split into compiling and computing), the random-search
     baseline at equal rollouts and at equal time, the settings and the figures."""
     config, held = summary["config"], summary["heldout"]
-    plants = config["plants"]
+    plants = config.get("plants", {})  # a problem without plant counts (noise seeds, vehicles) names them itself
+    counts = ""
+    if {"heldout", "train"} <= set(plants):
+        counts = f" Held-out: {plants['heldout']}, training: {plants['train']}."
     lines = [f"# Tuning report: {summary['problem']}", "",
-             f"Objective: the {config['optimizer']['objective']} of the per-plant losses. Held-out plants: "
-             f"{plants['heldout']}, never used in training (training plants: {plants['train']}).", "",
-             "## Held-out plants", ""]  # fmt: skip
+             f"Objective: the {config['optimizer']['objective']} of the per-plant losses on held-out plants, never "
+             f"used in training.{counts}", "", "## Held-out plants", ""]  # fmt: skip
     rows = []
     for name, s in held.items():
         change = s["reduction_vs_hand_set"]

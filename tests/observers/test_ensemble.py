@@ -182,7 +182,7 @@ def test_bad_inputs_raise_naming_the_argument():
     with pytest.raises(ValueError, match="output_ensemble must be a bool"):
         jo.make_enkf(model, 10, key=key, output_ensemble=1)
     X, R = jnp.zeros((5, 3)), jnp.eye(2)
-    with pytest.raises(ValueError, match=r"predicted must have shape \(5, 2\)"):
+    with pytest.raises(ValueError, match=r"predicted must have shape \(N, p\) = \(5, p\), got \(4, 2\)"):
         ensemble.transform_update(X, jnp.zeros((4, 2)), R, jnp.zeros(2))
     with pytest.raises(ValueError, match=r"perturbations must have shape \(5, 2\)"):
         ensemble.stochastic_update(X, jnp.zeros((5, 2)), R, jnp.zeros(2), jnp.zeros((5, 3)))

@@ -129,7 +129,7 @@ def design(
     n_obs = 3 + int(dead_time_samples)
     if process_noise is not None:
         _checks.shape("process_noise", process_noise, (N_DOF, n_obs, n_obs), "one (n, n) Q per DOF")
-        _checks.covariance("process_noise", process_noise, definite=False, size=n_obs)
+        _checks.covariance("process_noise", process_noise, definite=False, size=n_obs, batch=True)
     for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
         if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
             raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
