@@ -397,6 +397,23 @@ def _continuous(params: HGOParams) -> ContinuousObserverParams:
     return ContinuousObserverParams(F, h, x0, params.dt, params.t0, params.B.shape[1], params.substeps, params.method)
 
 
+def _check_models(g, g2, law, v, x0, z0, theta0):
+    """``(g, g2)`` (``g2`` defaulting to ``g``) checked to return ``phi`` (k,) at ``(v, x0, theta0)``, and ``law``
+    (if any) to return one rate per entry of ``theta0``; ``ValueError`` naming the function otherwise."""
+    k = z0.shape[0]
+    g = _checks.function("g", g)
+    _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    if law is not None:
+        adaptive.check_law(law, theta0)
+        _checks.returns(
+            "law(g, (v, x_hat), phi_hat, theta_hat)", lambda *a: law(g, a[:2], *a[2:]), (v, x0, z0, theta0),
+            theta0.shape, "theta_hat_dot, one entry per entry of theta0",
+        )  # fmt: skip
+    g2 = g if g2 is None else _checks.function("g2", g2)
+    _checks.returns("g2(v, x, theta)", g2, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
+    return g, g2
+
+
 def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None, g2=None, dt, t0=0.0,
              substeps: int = 1, method: str = "rk4") -> HGOParams:  # fmt: skip
     """Build and check :class:`HGOParams` of the modified high-gain observer (6.3) (Grip 2010, ch. 6).
@@ -461,22 +478,12 @@ def make_hgo(A, B, E, C, K, g, *, law=None, x0=None, z0=None, theta0=(), K2=None
     _checks.finite("theta0", theta0)
     _checks.positive_scalar("dt", dt)
     _checks.finite("t0", t0)
-    g = _checks.function("g", g)
-    v = jnp.zeros((m + p,), dtype)
-    _checks.returns("g(v, x, theta)", g, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
-    if law is not None:
-        adaptive.check_law(law, theta0)
-        _checks.returns(
-            "law(g, (v, x_hat), phi_hat, theta_hat)", lambda *a: law(g, a[:2], *a[2:]), (v, x0, z0, theta0),
-            theta0.shape, "theta_hat_dot, one entry per entry of theta0",
-        )  # fmt: skip
+    g, g2 = _check_models(g, g2, law, jnp.zeros((m + p,), dtype), x0, z0, theta0)
     substeps = _checks.count("substeps", substeps, minimum=1, hint="fixed integration steps per sample")
     if method not in ("rk4", "euler"):
         raise ValueError(f"method must be 'rk4' or 'euler', got {method!r}")
     t0 = jnp.asarray(t0, dtype)
     _checks.shape("t0", t0, (), "a scalar time")
-    g2 = g if g2 is None else _checks.function("g2", g2)
-    _checks.returns("g2(v, x, theta)", g2, (v, x0, theta0), (k,), f"phi, one entry per column of E ({k})")
     dt = jnp.asarray(dt, dtype)
     return HGOParams(A, B, E, C, K, g, law, x0, z0, theta0, K2, g2, dt, t0, substeps, method)
 
