@@ -29,6 +29,7 @@ EXAMPLES = {
     "tune": """examples:
   jaxobs tune --list                                  problems and shipped configs
   jaxobs tune --problem own-robot --steps 5 --out out/robot
+  jaxobs tune --example sideslip --seconds 60         a wall-time budget
   jaxobs tune --example cartpole_payload --print-config
   jaxobs tune --config my.toml --set plants.train=4   a key over the file's""",
 }
@@ -94,6 +95,8 @@ def _overrides(args, key: str) -> dict:
         pairs.append(f"{key}={args.problem!r}".replace("'", '"'))
     if getattr(args, "steps", None) is not None:
         pairs.append(f"optimizer.steps={args.steps}")
+    if getattr(args, "seconds", None) is not None:
+        pairs.append(f"optimizer.seconds={args.seconds!r}")
     for pair in pairs:
         name, eq, text = pair.partition("=")
         if not eq or not name.strip():
@@ -341,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     tune = commands.choices["tune"]
     tune.add_argument("--problem", metavar="NAME", help="the problem to tune (--list), over the file's")
     tune.add_argument("--steps", type=int, metavar="N", help="the step cap (optimizer.steps), over the file's")
+    tune.add_argument("--seconds", type=float, metavar="S",
+                      help="a wall-time budget of the tuning (optimizer.seconds), over the file's")  # fmt: skip
     for name in ("sweep", "tune"):
         commands.choices[name].epilog = EXAMPLES[name]
         commands.choices[name].formatter_class = argparse.RawDescriptionHelpFormatter

@@ -369,6 +369,7 @@ def test_shipped_configs_are_listed_and_run_by_name(capsys):
         (["--set", "optimizer.stepz=3"], "--set: optimizer.stepz: unknown key"),
         (["--set", "seed"], "--set: 'seed' must be KEY=VALUE"),
         (["--steps", "-1"], "--set: optimizer: steps must be > 0, got -1"),
+        (["--seconds", "-5"], "--set: optimizer.seconds: must be >= 0, got -5.0"),
     ],
 )
 def test_command_line_keys_are_checked_like_the_file(capsys, argv, message):
@@ -380,7 +381,8 @@ def test_command_line_keys_are_checked_like_the_file(capsys, argv, message):
 def test_command_line_keys_override_the_file(tmp_path, capsys):
     path = tmp_path / "mine.toml"
     path.write_text('problem = "own-robot"\nseed = 4\n[plants]\ntrain = 3\n')
-    assert main(["tune", "--config", str(path), "--set", "plants.train=5", "--steps", "7", "--print-config"]) == 0
+    argv = ["--set", "plants.train=5", "--steps", "7", "--seconds", "90", "--print-config"]
+    assert main(["tune", "--config", str(path), *argv]) == 0
     printed = capsys.readouterr().out
     assert re.search(r"^seed = 4$", printed, re.M) and re.search(r"^train = 5", printed, re.M)
-    assert re.search(r"^steps = 7", printed, re.M)
+    assert re.search(r"^steps = 7", printed, re.M) and re.search(r"^seconds = 90", printed, re.M)

@@ -100,7 +100,8 @@ def run(scenario, config: dict, out_dir, *, progress: bool = True, overwrite: bo
 
 def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: bool) -> dict | None:
     settings = tuning_settings(config)
-    result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag)
+    result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag,
+                  seconds=config["optimizer"]["seconds"] or None)  # fmt: skip
     designs = {"hand-set": problem.theta0, "tuned": result.theta}
     summary = {
         "problem": config["problem"],
@@ -157,10 +158,9 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
     }
     summary["parameters"] = {name: problem.describe(theta) for name, theta in designs.items()}
     summary["theta"] = {name: {k: np.asarray(v) for k, v in theta.items()} for name, theta in designs.items()}
-    summary["figures"] = [
-        _plot_loss_curves(result, search, scores, settings.objective, out),
-        _plot_parameters(result.history, out),
-    ]
+    summary["figures"] = [_plot_loss_curves(result, search, scores, settings.objective, out)]
+    if result.history:  # a time budget may end the run before its first gradient step
+        summary["figures"].append(_plot_parameters(result.history, out))
     if problem.responses is not None:
         summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
     atomic_write(out / "tuned.json", (json.dumps(to_builtin(summary), indent=2) + "\n").encode())
@@ -243,9 +243,9 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     plt = pyplot()
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
     history = result.history
-    ev = result.screened + len(result.starts) * np.array([h["evaluation"] for h in history])
-    val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history])
-    ok = np.array([h["accepted"] for h in history])
+    ev = result.screened + len(result.starts) * np.array([h["evaluation"] for h in history], int)
+    val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history], float)
+    ok = np.array([h["accepted"] for h in history], bool)  # empty when a time budget ended the run before a step
     ax.plot(ev[ok], val[ok], "o-", ms=3, label="gradient: objective (best start)")
     if np.any(~ok):
         ax.plot(ev[~ok], np.where(np.isfinite(val[~ok]), val[~ok], np.nanmax(val)), "rx", label="rejected step")
@@ -254,7 +254,8 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     if search is not None:
         best = np.minimum.accumulate(search.objectives)
         ax.plot(np.arange(1, best.size + 1), best, "C1-", label="random search: best so far")
-        ax.axvline(ev[-1], color="k", lw=0.6, ls=":", label="the gradient run's rollouts (equal-rollouts budget)")
+        spent = ev[-1] if ev.size else result.screened
+        ax.axvline(spent, color="k", lw=0.6, ls=":", label="the gradient run's rollouts (equal-rollouts budget)")
         ax.set_xscale("log")  # the search runs for as long as the tuning took: often many more rollouts
     else:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))

@@ -49,6 +49,7 @@ instead (``TuneSettings.backtrack``, set for it)."""
 
 _OPTIMIZER_KEYS = {"optimizer": "adam", "learning_rate": 0.1, "clip_norm": 1.0}  # the optimiser, by name
 _ELSEWHERE = ("optimizer", "spread", "seed")  # TuneSettings fields set from other keys: baseline.spread, seed
+_JOB_KEYS = {"seconds": 0.0}  # the run's, not the tuner's: jaxobs.tuning.tune's wall-time budget
 
 COMMON_NOTES = {
     "seed": "seed of the sampled plants (training and held-out sets), the screening and the random search",
@@ -66,6 +67,8 @@ COMMON_NOTES = {
     "optimizer.bounded": "keep every design in the search box, as the baseline's search does",
     "optimizer.learning_rate": "the optimizer's step size (in the unconstrained parameters)",
     "optimizer.steps": "the cap: gradient evaluations per start at most, rejected ones included",
+    "optimizer.seconds": "wall-time budget of the tuning (compilation and a resumed checkpoint's earlier runs "
+    "included), ending it after the step that passes it; 0: none",
     "optimizer.objective": "'mean' or 'cvar' (mean of the cvar_alpha worst) of the per-plant training losses",
     "optimizer.cvar_alpha": "fraction of worst training plants the CVaR objective averages",
     "optimizer.penalty_weight": "weight of the problem's penalty term; 0 switches it off",
@@ -88,7 +91,7 @@ def optimizer_defaults(**overrides) -> dict:
     other fields of :class:`jaxobs.tuning.TuneSettings`, with a problem's ``overrides``."""
     settings = TuneSettings()
     fields = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings) if f.name not in _ELSEWHERE}
-    table = {**_OPTIMIZER_KEYS, **fields}
+    table = {**_OPTIMIZER_KEYS, **fields, **_JOB_KEYS}
     unknown = set(overrides) - set(table)
     if unknown:
         raise KeyError(f"not TuneSettings fields: {sorted(unknown)}")
@@ -99,6 +102,7 @@ def check_common(config: dict, source: str) -> None:
     """Check ``seed``, ``[optimizer]`` and ``[baseline]``; a :class:`jaxobs._config.ConfigError` names the key."""
     check_at_least(config, source, "seed", 0)
     check_at_least(config, source, "baseline.spread", 0, strict=True)
+    check_at_least(config, source, "optimizer.seconds", 0)
     try:
         settings(config).validate()
     except ValueError as exc:
@@ -122,7 +126,7 @@ def optimizer(table: dict) -> optax.GradientTransformation:
 def settings(config: dict) -> TuneSettings:
     """The tuner's settings of a tuning configuration (its ``[optimizer]`` table, ``baseline.spread``, ``seed``)."""
     table = config["optimizer"]
-    rest = {k: v for k, v in table.items() if k not in _OPTIMIZER_KEYS}
+    rest = {k: v for k, v in table.items() if k not in _OPTIMIZER_KEYS and k not in _JOB_KEYS}
     rest["backtrack"] = rest["backtrack"] or table["optimizer"] == "lbfgs"
     return TuneSettings(optimizer=optimizer(table), spread=config["baseline"]["spread"], seed=config["seed"], **rest)
 
