@@ -107,9 +107,14 @@ def check_rotations(model, what: str) -> None:
     """``ValueError`` for a model whose step MJX differentiates wrongly: free or ball joints under RK4 (see
     :func:`_step`); ``what`` names the derivative that needs it."""
     if _rotations(model) and int(model.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_RK4):
-        raise ValueError(f"{what}: MJX's RK4 integrator differentiates a free or ball joint's rotation wrongly at zero "
-                         "angular velocity (its quaternion update has a zero derivative there); use the Euler or "
-                         "implicitfast integrator (option integrator=...)")  # fmt: skip
+        kinds = np.asarray(model.jnt_type)
+        j = int(np.flatnonzero((kinds == mujoco.mjtJoint.mjJNT_FREE) | (kinds == mujoco.mjtJoint.mjJNT_BALL))[0])
+        kind = "free" if kinds[j] == mujoco.mjtJoint.mjJNT_FREE else "ball"
+        name = mjx.id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) if isinstance(model, mjx.Model) else model.joint(j).name
+        raise ValueError(f"{what}: MJX's RK4 integrator differentiates the rotation of the {kind} joint "
+                         f"{name or f'#{j}'!r} wrongly at zero angular velocity (its quaternion update has a zero "
+                         "derivative there); use the Euler or implicitfast integrator (<option integrator=...> in "
+                         "the MJCF)")  # fmt: skip
 
 
 def _transition(model: mjx.Model, x, u, t, *, substeps: int, solver_iterations: int | None):

@@ -42,6 +42,7 @@ __all__ = [
     "make_robot",
     "steady_activation",
     "holding_ctrl",
+    "warn_outside_joint_ranges",
     "linearize",
     "mismatch",
     "rollout",
@@ -309,6 +310,33 @@ def holding_ctrl(mjcf, qpos=None, *, near=None) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------
 # Transition and measurement in the controller's coordinates
+
+
+def warn_outside_joint_ranges(model, qpos, what: str) -> list[str]:
+    """Warn (``UserWarning``, one line each) for every limited hinge or slide joint whose entry of the concrete
+    ``qpos`` (nq,) lies outside its range, naming ``what`` (e.g. "robot.qpos0"), the joint, its type and its range
+    in the model's units (radians for a hinge: an MJCF's ranges are read in degrees unless its ``<compiler
+    angle="radian">`` says otherwise). ``model``: an ``mjx.Model`` or ``mujoco.MjModel``; returns the messages."""
+    qpos = np.asarray(qpos, float)
+    messages = []
+    for j in range(model.njnt):
+        kind = int(model.jnt_type[j])
+        if not model.jnt_limited[j] or kind not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+            continue
+        low, high = (float(v) for v in np.asarray(model.jnt_range[j]))
+        value = float(qpos[int(model.jnt_qposadr[j])])
+        if low <= value <= high:
+            continue
+        hinge = kind == int(mujoco.mjtJoint.mjJNT_HINGE)
+        unit = "rad" if hinge else "m"
+        name = mjx.id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) if isinstance(model, mjx.Model) else model.joint(j).name
+        hint = ' (MJCF ranges are in degrees unless <compiler angle="radian">)' if hinge else ""
+        messages.append(f"{what}: {'hinge' if hinge else 'slide'} joint {name or f'#{j}'!r} at {value:.4g} {unit} "
+                        f"lies outside its range [{low:.4g}, {high:.4g}] {unit}{hint}; the joint will sit at its "
+                        "limit")  # fmt: skip
+    for message in messages:
+        warnings.warn(message, UserWarning, stacklevel=2)
+    return messages
 
 
 def _step(robot: Robot, model: mjx.Model, x, applied, t):

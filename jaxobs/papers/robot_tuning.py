@@ -314,6 +314,7 @@ def build_problem(config: dict) -> TuningProblem:
     if len(rows) != m:
         raise ValueError(f"scenario.tracked: the tracked sensors have {len(rows)} entries; the reference gain needs "
                          f"one per actuator ({m})")  # fmt: skip
+    _warn_outside_ranges(robot, config)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
     lin = linearize(robot)
@@ -370,6 +371,26 @@ def _entry_names(robot, config: dict) -> list[str]:
         size = tangent_rows(robot.model, [name])[1][0]
         names += [name] if size == 1 else [f"{name}[{i}]" for i in range(size)]
     return names
+
+
+def _warn_outside_ranges(robot, config: dict) -> None:
+    """Warn when the operating point (``robot.qpos0``) or a tracked joint's set-point (its ``jointpos`` sensor's
+    entry of ``qpos0`` plus ``scenario.reference``) lies outside the joint's range."""
+    import mujoco
+
+    from jaxobs.mjx.manifold import sensor_ids, tangent_rows
+    from jaxobs.mjx.robot import warn_outside_joint_ranges
+
+    model, qpos0 = robot.model, np.asarray(robot.qpos0, float)
+    if warn_outside_joint_ranges(model, qpos0, "robot.qpos0"):
+        return
+    tracked = config["scenario"]["tracked"]
+    target, entry = qpos0.copy(), 0
+    for sensor, size in zip(sensor_ids(model, tracked), tangent_rows(model, tracked)[1], strict=True):
+        if int(model.sensor_type[sensor]) == int(mujoco.mjtSensor.mjSENS_JOINTPOS):
+            target[int(model.jnt_qposadr[int(model.sensor_objid[sensor])])] += config["scenario"]["reference"][entry]
+        entry += size
+    warn_outside_joint_ranges(model, target, "scenario.reference (from robot.qpos0)")
 
 
 def _tracked_rows(robot, config: dict) -> list[int]:

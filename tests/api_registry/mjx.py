@@ -58,6 +58,8 @@ ENTRIES = {
 }
 
 EXEMPT = {
+    "jaxobs.mjx.robot.warn_outside_joint_ranges": "validator: warns about concrete joint positions outside their "
+    "ranges",
     "jaxobs.mjx.estimation.check_rotations": "validator: refuses free or ball joints under RK4 (MJX's derivative)",
     "jaxobs.mjx.estimation.put": "loader: mjx.put_model, naming what MJX cannot simulate",
     "jaxobs.mjx.estimation.sensor_noise": "loader: reads the MJCF's noise attribute of the named sensors",

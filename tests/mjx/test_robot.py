@@ -78,7 +78,9 @@ def test_any_mjcf_mjx_simulates_is_a_robot_and_the_rest_is_refused_in_one_line()
     rb.make_robot(rk4, ["push"], ["cart_position"])  # no rotations: RK4 differentiates
     flying_rk4 = rb.load_mjcf("free_flyer.xml")
     flying_rk4.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
-    with pytest.raises(ValueError, match="linearize: MJX's RK4 integrator differentiates a free or ball joint"):
+    with pytest.raises(
+        ValueError, match="linearize: MJX's RK4 integrator differentiates the rotation of the free joint 'root'"
+    ):
         rb.linearize(rb.make_robot(flying_rk4, ["thrust_x"], ["gyro"]))
     with pytest.raises(ValueError, match="MJCF no_such.xml: cannot load it, nor a shipped robot of that name"):
         rb.load_mjcf("no_such.xml")
@@ -307,3 +309,13 @@ def test_docstring_examples_run():
 
     result = doctest.testmod(rb, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
     assert result.attempted >= 2 and result.failed == 0
+
+
+def test_qpos_outside_a_joint_range_warns_naming_the_joint_its_type_and_unit():
+    m = rb.load_mjcf("arm_on_table.xml")
+    with pytest.warns(UserWarning, match=r"^robot.qpos0: hinge joint 'elbow' at -0.5 rad lies outside its range "
+                      r"\[-0.3, 1.2\] rad \(MJCF ranges are in degrees unless"):  # fmt: skip
+        assert len(rb.warn_outside_joint_ranges(m, [0.2, -0.5], "robot.qpos0")) == 1
+    assert (
+        rb.warn_outside_joint_ranges(rb.make_robot(m, ["shoulder_motor"], ["elbow_angle"]).model, [0.2, 1.0], "x") == []
+    )

@@ -2,6 +2,7 @@
 run of the shipped payload-cart example that pins its README row."""
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -178,3 +179,23 @@ def test_readme_table_row(tmp_path):
     pin(100 * held["tuned"]["reduction_vs_hand_set"], row, 3)
     pin(held["random search, equal rollouts"]["objective"], row, 4)
     pin(100 * held["random search, equal rollouts"]["reduction_vs_hand_set"], row, 5)
+
+
+def test_a_set_point_or_operating_point_outside_a_joint_range_warns_naming_the_joint():
+    """The shipped arm drives its elbow against its limit on purpose (reference -0.45 rad, range [-0.3, 1.2]): the
+    warning names the key, the joint, its range in radians and the MJCF's angle unit; inside the range, nothing."""
+    path = "tuning/arm_on_table.toml"
+    config = robot_tuning.PROBLEM.validate(load_toml(path), path)
+    robot = robot_tuning._robot(config)
+    with pytest.warns(UserWarning) as caught:
+        robot_tuning._warn_outside_ranges(robot, config)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith("scenario.reference (from robot.qpos0): hinge joint 'elbow' at -0.45 rad lies outside "
+                              "its range [-0.3, 1.2] rad (MJCF ranges are in degrees unless")  # fmt: skip
+    config["scenario"]["reference"] = [-0.85, 0.5]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        robot_tuning._warn_outside_ranges(robot, config)
+    config["robot"]["qpos0"] = [0.0, 2.0]
+    with pytest.warns(UserWarning, match=r"^robot.qpos0: hinge joint 'elbow' at 2 rad lies outside"):
+        robot_tuning._warn_outside_ranges(robot_tuning._robot(config), config)
