@@ -73,12 +73,18 @@ def _exports(name: str) -> list[tuple[str, str]]:
     return rows
 
 
+def _documented_at(name: str, export: str, path: str) -> str:
+    """Where the page of package ``name`` documents ``export`` (defined at ``path``): its home module's page, or the
+    package's own page when the home is private (``jaxobs.checked``, defined in ``jaxobs._checks``)."""
+    return f"{name}.{export}" if any(p.startswith("_") for p in path.split(".")) else path
+
+
 def _markdown(name: str) -> str:
     header = f"::: {name}\n    options:\n      heading_level: 1\n"
     if not _is_package(name):
         return header
-    exports = _exports(name)
-    own = [export for export, path in exports if path == f"{name}.{export}"]  # defined in the package itself
+    exports = [(export, _documented_at(name, export, path)) for export, path in _exports(name)]
+    own = [export for export, path in exports if path == f"{name}.{export}"]  # documented on the package's page
     rows = "".join(f"| [`{export}`][{path}] | `{path.rpartition('.')[0]}` |\n" for export, path in exports)
     table = f"\n| name | defined in |\n| --- | --- |\n{rows}" if rows else ""
     return header + f"      members: {own or 'false'}\n" + table

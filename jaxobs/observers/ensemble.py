@@ -358,7 +358,7 @@ class SmoothedEnsemble(NamedTuple):
 
     Attributes:
       ensemble: (T, N, n) the smoothed ensembles.  x: (T, n) their means.  P: (T, n, n) their sample
-      covariances.
+        covariances.
     """
 
     ensemble: jax.Array

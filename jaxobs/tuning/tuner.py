@@ -56,7 +56,7 @@ class Lanes(NamedTuple):
       best_objective, best_diverged: the best accepted evaluation (inf and :data:`NONE_YET` before one).
       diverged: diverged training plants at the last accepted point.  since_best: evaluations since the best
       improved by ``min_improvement``.  rejections: rejected evaluations in a row.  stopped: index into
-      :data:`STOPS`.
+        :data:`STOPS`.
     """
 
     evaluations: jax.Array
@@ -118,7 +118,7 @@ class TunerState(NamedTuple):
       phase: () index into :data:`PHASES`.  round: () the explore-and-polish round.  iteration: () polish steps of
       this round.  polished: () polish steps of every round.  scored: () candidates scored (screening, CMA-ES).
       cap: () gradient evaluations per start at most (``TuneSettings.steps``; a value, so that a larger cap can
-      continue a run with the same compiled step).
+        continue a run with the same compiled step).
       lanes: :class:`Lanes` of the starts.
       start, theta, anchor, update, best: ``theta``-shaped dicts with a leading axis of starts (K, ...): each
         start's starting point, the point evaluated next, its last accepted point, the optimiser's update from
