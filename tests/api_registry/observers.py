@@ -163,7 +163,10 @@ ACTIVE = {
         diff="q_active",
     ),
     "jaxobs.observers.active.set_active": Example(
-        lambda: dict(params=_aob(), on=np.float64(0.0)), diff="params", tangent="scale"
+        lambda: dict(params=_aob(), on=np.float64(0.0)),
+        diff="params",
+        tangent="scale",
+        skip={"batch": "params may be stacked per DOF (documented: one switch per DOF of stacked controllers)"},
     ),
     "jaxobs.observers.active.adaptive_variance": Example(
         lambda: dict(evolution=np.array([0.3]), alpha=np.array([0.2]), sigma_floor=np.array([0.01])),

@@ -182,7 +182,7 @@ def test_the_size_key_raised_most_is_named(name):
     assert job.blame(job.validate()) == keys[0]
     for key in keys:
         value = get(job.defaults, key)
-        raised = value * 3 if isinstance(value, list) else value * 1000
+        raised = value * 3 if isinstance(value, list) else (value or 1) * 1000  # a default of 0 rises too
         assert job.blame(_merged(job, key, raised)) == key
 
 
