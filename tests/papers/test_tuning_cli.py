@@ -67,6 +67,7 @@ parameterisation = "{kind}"
 [optimizer]
 steps = {steps}
 screening = 15
+evolve = 0
 checkpoint_every = 2
 [baseline]
 random_search = {search}
@@ -76,7 +77,8 @@ random_search = {search}
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["diagonal", "cholesky", "structured"])
 def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
-    """Every parameterisation runs the shipped strategy (16 screened candidates, then 2 starts) end to end on the MJX
+    """Every parameterisation runs the shipped strategy without its CMA-ES (16 screened candidates, then 2 starts;
+    tests/tuning covers the exploration) end to end on the MJX
     plant (the random search, which runs as long as the tuning, with the diagonal one only); a rerun with more steps
     continues the checkpoint; a corrupt checkpoint is an error (exit 2), not a silent restart."""
     config, out = tmp_path / "small.toml", tmp_path / "out"
