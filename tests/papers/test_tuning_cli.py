@@ -200,6 +200,7 @@ optimizer = "adam"
 learning_rate = 0.2
 clip_norm = 5.0
 screening = 0
+evolve = 0
 starts = 1
 patience = 12
 steps = 10
