@@ -300,7 +300,8 @@ def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents:
         return sum(products), [jnp.zeros_like(ct) for ct in c[1]]
 
     flat = jax.flatten_util.ravel_pytree(tangents)[0]
-    zeros = [sum(0.0 * tangents[name].ravel()[0] for name in names) for _, names in moving]  # linear in the tangent
+    # linear in the tangent; sorted, so that the program does not depend on the hash seed (checkpoint fingerprints)
+    zeros = [sum(0.0 * tangents[name].ravel()[0] for name in sorted(names)) for _, names in moving]
     rhs = (flat, [jnp.broadcast_to(z, paths[i][1].shape).astype(paths[i][1].dtype)
                   for z, (i, _) in zip(zeros, moving, strict=True)])  # fmt: skip
     _, d_moving = jax.lax.custom_linear_solve(lambda b: b, rhs, apply, apply_transpose)
