@@ -80,7 +80,6 @@ EXEMPT = {
 }
 
 
-
 def _cma(told: bool = False):
     """A CMA-ES on 3 coordinates (the last fixed) near the middle of the cube; ``told``: after one generation."""
     import jax
@@ -118,8 +117,12 @@ _INDEX = "an index: an integer output"
 
 TUNER = {
     "jaxobs.kalman_steps.joseph_covariance": Example(
-        lambda: dict(P1=np.array([[1.0, 0.2], [0.2, 0.5]]), C=np.array([[1.0, 0.0]]), R=np.array([[0.1]]),
-                     K=np.array([[0.6], [0.1]])),
+        lambda: dict(
+            P1=np.array([[1.0, 0.2], [0.2, 0.5]]),
+            C=np.array([[1.0, 0.0]]),
+            R=np.array([[0.1]]),
+            K=np.array([[0.6], [0.1]]),
+        ),
         diff="K",
     ),  # fmt: skip
     "jaxobs.tuning.box.search_box": Example(
@@ -132,14 +135,17 @@ TUNER = {
     "jaxobs.tuning.cmaes.ask": Example(lambda: dict(state=_cma(told=True), key=jax_key(3), population=4)),
     "jaxobs.tuning.cmaes.tell": Example(lambda: dict(state=_cma(told=True), ranked=_ranked()), diff="ranked"),
     "jaxobs.tuning.problems.optimal_schedule": Example(
-        lambda: dict(Phi=np.array([[1.0, 0.1], [0.0, 0.9]]), C=np.array([[1.0, 0.0]]), Q=0.01 * np.eye(2),
-                     R=np.full((3, 1, 1), 0.1), P_init=np.eye(2)),
+        lambda: dict(
+            Phi=np.array([[1.0, 0.1], [0.0, 0.9]]),
+            C=np.array([[1.0, 0.0]]),
+            Q=0.01 * np.eye(2),
+            R=np.full((3, 1, 1), 0.1),
+            P_init=np.eye(2),
+        ),
         diff="R",
     ),  # fmt: skip
     "jaxobs.tuning.problems.lateral_model": Design(lambda: dict(speed=np.array([10.0, 25.0]), h=0.05)),
-    "jaxobs.tuning.tuner.best_start": Example(
-        lambda: dict(state=_tuner_state()), skip={"grad": _INDEX}
-    ),
+    "jaxobs.tuning.tuner.best_start": Example(lambda: dict(state=_tuner_state()), skip={"grad": _INDEX}),
 }
 
 
