@@ -3,7 +3,7 @@ transformations of jaxobs.batching and jaxobs.checked."""
 
 import numpy as np
 
-from tests.api_registry import Design, Example
+from tests.api_registry import Design, Example, slow
 
 LOSSES = np.array([0.3, 1.2, 0.7, 2.5])
 
@@ -80,24 +80,17 @@ EXEMPT = {
 }
 
 
-def _cma(told: bool = False):
-    """A CMA-ES on 3 coordinates (the last fixed) near the middle of the cube; ``told``: after one generation."""
+def _cma():
+    """A CMA-ES on 3 coordinates (the last fixed) near the middle of the cube, as cmaes.init builds it."""
     import jax
 
     from jaxobs.tuning import cmaes
 
-    state = cmaes.init(np.array([0.5, 0.4, 0.6]), 0.1, np.array([True, True, False]))
-    if told:
-        state = cmaes.tell(state, cmaes.ask(state, jax.random.key(1), 6))
-    return jax.tree_util.tree_map(np.asarray, state)
+    return jax.tree_util.tree_map(np.asarray, cmaes.init(np.array([0.5, 0.4, 0.6]), 0.1, np.array([True, True, False])))
 
 
-def _ranked():
-    import jax
-
-    from jaxobs.tuning import cmaes
-
-    return np.asarray(cmaes.ask(_cma(told=True), jax.random.key(2), 6))
+RANKED = np.array([[0.52, 0.43, 0.6], [0.47, 0.41, 0.6], [0.55, 0.35, 0.6], [0.44, 0.46, 0.6]])
+"""Four candidates of :func:`_cma`'s generation, best first (the fixed coordinate where it is)."""
 
 
 def _tuner_state():
@@ -132,8 +125,8 @@ TUNER = {
     "jaxobs.tuning.cmaes.init": Example(
         lambda: dict(mean=np.array([0.5, 0.4, 0.6]), sigma=np.float64(0.1), free=np.array([True, True, False]))
     ),
-    "jaxobs.tuning.cmaes.ask": Example(lambda: dict(state=_cma(told=True), key=jax_key(3), population=4)),
-    "jaxobs.tuning.cmaes.tell": Example(lambda: dict(state=_cma(told=True), ranked=_ranked()), diff="ranked"),
+    "jaxobs.tuning.cmaes.ask": Example(lambda: dict(state=_cma(), key=jax_key(3), population=4)),
+    "jaxobs.tuning.cmaes.tell": Example(lambda: dict(state=_cma(), ranked=RANKED), diff="ranked"),
     "jaxobs.tuning.problems.optimal_schedule": Example(
         lambda: dict(
             Phi=np.array([[1.0, 0.1], [0.0, 0.9]]),
@@ -155,4 +148,10 @@ def jax_key(seed: int):
     return jax.random.key(seed)
 
 
-ENTRIES = {**ENTRIES, **TUNER}
+ENTRIES = slow(
+    {**ENTRIES, **TUNER},
+    "an eigendecomposition or a Riccati scan differentiated (the CMA-ES update, the optimal schedule)",
+    "jaxobs.tuning.cmaes.ask",
+    "jaxobs.tuning.cmaes.tell",
+    "jaxobs.tuning.problems.optimal_schedule",
+)

@@ -331,11 +331,12 @@ _SLOW_VEHICLE = tuple(
     f"jaxobs.vehicle.{name}"
     for name in ("simulate.simulate", "sensors.measure", "ekf.vehicle_ekf", "ekf.make_vehicle_ekf",
                  "lateral.lateral_observer", "lateral.full_observer", "nvso.nvso", "road_angles.road_angles",
-                 "road_angles.road_angles_adaptive")
+                 "road_angles.road_angles_adaptive", "simulate.driver", "switching.switching")
 )  # fmt: skip
 
 ENTRIES = slow(
     {**ENTRIES, **MORE, **MORE_2, **OBSERVERS},
-    "a scan over a record or a drive (the observers, the simulator, the sensors), compiled for each promise",
+    "a scan over a record or a drive (the observers, the simulator, the sensors) or the whole driver or switch, "
+    "compiled for each promise",
     *_SLOW_VEHICLE,
 )
