@@ -132,7 +132,7 @@ def _compliant():
 def _robot():
     from jaxobs.mjx.robot import make_robot
 
-    return make_robot(PENDULUM, ["push"], ["angle"], qpos0=np.array([0.1]))
+    return make_robot(PENDULUM, ["push"], ["angle"])  # hanging at rest: an equilibrium
 
 
 def _data(model, qpos, qvel):
@@ -194,7 +194,7 @@ PHYSICS = {
     ),
     "jaxobs.mjx.common.forward": _state_entry(_PEND, lambda d: (d.qacc, d.qfrc_constraint, d.sensordata)),
     "jaxobs.mjx.common.step": _state_entry(_PEND, lambda d: (d.qpos, d.qvel)),
-    "jaxobs.mjx.common.solve": _state_entry(_PEND, lambda d: (d.qacc, d.efc_force), prepare=_staged),
+    "jaxobs.mjx.common.solve": _state_entry(_PEND, lambda d: (d.qacc, d._impl.efc_force), prepare=_staged),
     "jaxobs.mjx.estimation.state": Example(
         lambda: dict(OVER_LIMIT), call=lambda fn, qpos, qvel: fn(_data(_PEND(), qpos, qvel)), **_STATE
     ),
@@ -267,7 +267,7 @@ PHYSICS = {
         skip={"float32": _MODEL_DTYPE},
     ),  # fmt: skip
     "jaxobs.mjx.robot.linearize": Example(
-        lambda: dict(qpos0=np.array([0.1]), qvel0=np.array([0.2])),
+        lambda: dict(qpos0=np.array([0.0]), qvel0=np.array([0.0])),  # the rest pose: an equilibrium
         diff="qpos0",
         call=lambda fn, **args: fn(_robot(), **args),
         skip={"float32": _MODEL_DTYPE},
