@@ -83,7 +83,9 @@ def joseph_covariance(P1, C, R, K, CP1=None):
     """Error covariance after a measurement update with any gain ``K`` (n, p): ``(I - K C) P1 (I - K C)' + K R K'``
     (eq. 29 in Joseph form, exact for every gain, the Kalman gain or not), symmetric. ``CP1``: ``C P1`` if known.
     With fewer outputs than half the states each factor is applied as a rank-p correction, ``(I - K C) X = X - K
-    (C X)``: ``4 n^2 p`` flops instead of ``2 n^3``."""
+    (C X)``: ``4 n^2 p`` flops instead of ``2 n^3``.
+    Shapes: ``P1`` (n, n), ``C`` (p, n), ``R`` (p, p), ``K`` (n, p), ``CP1`` (p, n)."""
+    P1, C, R, K, CP1 = _checks.arrays(_UPDATE_SHAPES + ", K (n, p), CP1 (p, n)", P1, C, R, K, CP1)
     n, m = C.shape[-1], C.shape[-2]
     if 2 * m < n:
         left = P1 - K @ (C @ P1 if CP1 is None else CP1)  # (I - K C) P1

@@ -6,8 +6,8 @@ perturbed inputs = a Python loop, reverse-mode gradients = central differences a
 gives float32 out (or a ``ValueError``), Python lists and scalars accepted where an array is, and an undocumented
 leading batch axis refused with a ``ValueError`` naming the argument. Design-time functions run eagerly and say so
 under ``jit``; the exempt names (jobs, validators, loaders, transformations) are listed on docs/capabilities.md. A
-public name with neither an entry nor an exemption fails, saying what to add; the names not audited yet
-(``PENDING``: the MJX physics functions, most of the vehicle package) are expected failures.
+public name with neither an entry nor an exemption fails, saying what to add; a name not audited yet (``PENDING`` of
+its registry file, empty today) is an expected failure, listed on the capabilities page.
 
 Budget: the default suite runs the whole test in ~60 s of CPU on one core. It shares compiled programs (the
 central differences and the loop of the vmap check run on the jit check's program; nested lists are traced, not
@@ -17,7 +17,8 @@ reason (``slow(...)`` in its registry file): the Riccati-based designs (lqe, dlq
 and the designs built on them), the estimators over a record whose scans are the largest programs (particle,
 ensemble, H-infinity, unscented, modular, Gramian, high-gain, the AOB and its controller, the smoother and the
 parallel filter, EM, sampling, NEES/whiteness, resampling), the closed loop and the stability margins, c2d,
-force_plant and the Bierman update, and the saturation chapter's designs, simulations and window tests.
+force_plant and the Bierman update, the saturation chapter's designs, simulations and window tests, the vehicle
+observers, simulator and sensors, and the MJX physics (steps, solves, rollouts of a loaded model).
 """
 
 from __future__ import annotations

@@ -51,6 +51,7 @@ def put_model(m: mujoco.MjModel) -> mjx.Model:
 
 def initial_data(model: mjx.Model, dtype) -> mjx.Data:
     """``mjx.make_data`` (the model's initial state) with its state arrays in ``dtype``."""
+    _checks.fields("model", model, "qpos0 (q,), body_mass (b,)")  # one model: vmap for a batch
     data = mjx.make_data(model)
     return data.replace(
         qpos=data.qpos.astype(dtype),
@@ -118,6 +119,7 @@ def solve(model: mjx.Model, data: mjx.Data, solution=None) -> mjx.Data:
     ``"constraint_solve"`` (a policy that saves them spares a rematerialised step the solver's loop). ``solution``:
     ``(qacc, efc_force, qfrc_constraint)`` of this very solve, computed before (it is then not run again).
     """
+    _checks.fields("data", data, "qpos (q,), qvel (v,), qacc_smooth (v,)")  # one state: vmap for a batch
     gradient = _cost_gradient(model, data)
 
     def run(_, guess):
@@ -180,6 +182,7 @@ Jacobian of the step (a ``vmap``-ed ``jax.jvp``) instead of JAX's transpose of i
 def forward(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None, *, solution=None) -> mjx.Data:
     """``mjx.forward`` with the constraint solve of :func:`step` (``solution``: see :func:`solve`)."""
     solver_iterations = check_solver_iterations(solver_iterations)
+    _checks.fields("data", data, "qpos (q,), qvel (v,), act (a,), ctrl (u,)")  # one state: vmap for a batch
     for name, stage in STAGES:
         with jax.named_scope(name):
             data = stage(model, data)
@@ -234,6 +237,7 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
     transpose. Forward mode is the step's own ``jax.jvp`` either way.
     """
     solver_iterations = check_solver_iterations(solver_iterations)
+    _checks.fields("data", data, "qpos (q,), qvel (v,), act (a,), ctrl (u,)")  # one state: vmap for a batch
     if solver_iterations is None:
         return _implicit_step(model, data)
     return _physics_step(model, data, solver_iterations)

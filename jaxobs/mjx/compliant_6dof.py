@@ -94,18 +94,19 @@ class Compliant6Params:
     tilt: jax.Array = _default(0.04)
     coupling: jax.Array = _default(1.0)
 
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        check_per_dof("stiffness", self.stiffness, minimum=0.0, strict=False)
-        check_per_dof("time_constant", self.time_constant, minimum=0.0, strict=True)
-        check_per_dof("damping", self.damping, minimum=0.0, strict=False)
-        check_per_dof("servo_gain", self.servo_gain, minimum=0.0, strict=True)
+    def validate(self, prefix: str = "") -> None:
+        """Raise ``ValueError`` naming the bad field, after ``prefix`` (e.g. ``"params."``); shapes at trace time,
+        values where concrete."""
+        check_per_dof(f"{prefix}stiffness", self.stiffness, minimum=0.0, strict=False)
+        check_per_dof(f"{prefix}time_constant", self.time_constant, minimum=0.0, strict=True)
+        check_per_dof(f"{prefix}damping", self.damping, minimum=0.0, strict=False)
+        check_per_dof(f"{prefix}servo_gain", self.servo_gain, minimum=0.0, strict=True)
         for name in ("contact_radius", "contact_depth", "tilt", "coupling"):
             value = getattr(self, name)
             if np.shape(value) != ():
-                raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+                raise ValueError(f"{prefix}{name} must be a scalar, got shape {np.shape(value)}")
             if _checks.is_concrete(value) and not np.isfinite(np.asarray(value)):
-                raise ValueError(f"{name} must be finite, got {value}")
+                raise ValueError(f"{prefix}{name} must be finite, got {value}")
 
     def per_dof(self, name: str, dtype=None) -> jax.Array:
         """The field ``name`` broadcast to shape (6,)."""
@@ -197,7 +198,7 @@ def with_params(model: mjx.Model, params: Compliant6Params) -> mjx.Model:
     ``dof_armature = kv Tp - tool inertia``, ``site_pos[contact] = coupling R_y(tilt) (rho, 0, -l)``.
     Derived fields used only by constraints are left as they are: constraints and contacts are disabled.
     """
-    params.validate()
+    params.validate("params.")
     dtype = model.jnt_stiffness.dtype
     unit = jnp.asarray(_TO_MODEL, dtype)
     stiffness, damping, kv = (params.per_dof(f, dtype) * unit for f in ("stiffness", "damping", "servo_gain"))
@@ -246,10 +247,18 @@ def load_model(params: Compliant6Params | None = None) -> tuple[mujoco.MjModel, 
 # Coupling and sensor
 
 
+def _qpos(model: mjx.Model, qpos) -> jax.Array:
+    """``qpos`` (nq,) as an array, its shape checked at trace time (one configuration: ``vmap`` for a batch)."""
+    qpos = _checks.real_array("qpos", qpos)
+    _checks.shape("qpos", qpos, (model.nq,), "one configuration")
+    return qpos
+
+
 def contact_point(model: mjx.Model, qpos: jax.Array) -> jax.Array:
     """The contact point ``p(theta) = R_y(theta) p0`` (mm, sensor frame, x and z components) for the
     alignment rotation ``theta = q_ry``: MuJoCo's own position of the ``contact`` site relative to the tool
     body when only ``ry`` is deflected."""
+    qpos = _qpos(model, qpos)
     theta = qpos[RY] - model.qpos_spring[RY]
     p0x, p0z = model.site_pos[0, 0], model.site_pos[0, 2]
     cos, sin = jnp.cos(theta), jnp.sin(theta)
@@ -274,7 +283,7 @@ def coupling_force(model: mjx.Model, qpos: jax.Array) -> jax.Array:
 
     with ``p``, ``s`` and the contact forces ``f`` of docs/theory/mjx.md; zero for a zero lever arm. Added to
     ``qfrc_applied`` before every physics step; MuJoCo's diagonal joint springs supply the rest of the force."""
-    p, s, f = _contact(model, qpos)
+    p, s, f = _contact(model, _qpos(model, qpos))
     moment = p[1] * f[0] - p[0] * f[1]
     zero = jnp.zeros_like(moment)
     k = model.jnt_stiffness
@@ -290,6 +299,7 @@ def sensor_wrench(model: mjx.Model, data: mjx.Data) -> jax.Array:
     the other components ``K_i q_i + D_i qdot_i``. Computed from the state, so a controller can read it before
     choosing the step's command. Moments are converted from the model's N·mm to N·m.
     """
+    _checks.fields("data", data, "qpos (q,), qvel (v,)")  # one state: vmap for a batch
     q = data.qpos - model.qpos_spring
     wrench = model.jnt_stiffness * q + model.dof_damping * data.qvel - coupling_force(model, data.qpos)
     return wrench / jnp.asarray(_TO_MODEL, wrench.dtype)

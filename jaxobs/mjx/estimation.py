@@ -64,6 +64,7 @@ def put(m: mujoco.MjModel) -> mjx.Model:
 
 def state(data: mjx.Data) -> jax.Array:
     """The filter state ``x = (qpos, qvel, act)`` of ``data``, shape (nq + nv + na,)."""
+    _checks.fields("data", data, "qpos (q,), qvel (v,), act (a,)")  # one state: vmap for a batch
     return jnp.concatenate([data.qpos, data.qvel, data.act])
 
 

@@ -74,12 +74,13 @@ class ForcePlantParams:
     damping: float = 0.0
     servo_gain: float = 1.0e4
 
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the bad field (concrete values only; skipped under tracing)."""
-        _checks.positive_scalar("stiffness", self.stiffness)
-        _checks.positive_scalar("time_constant", self.time_constant)
-        _checks.positive_scalar("damping", self.damping, allow_zero=True)
-        _checks.positive_scalar("servo_gain", self.servo_gain)
+    def validate(self, prefix: str = "") -> None:
+        """Raise ``ValueError`` naming the bad field, after ``prefix`` (e.g. ``"params."``); shapes at trace time,
+        values where concrete."""
+        _checks.positive_scalar(f"{prefix}stiffness", self.stiffness)
+        _checks.positive_scalar(f"{prefix}time_constant", self.time_constant)
+        _checks.positive_scalar(f"{prefix}damping", self.damping, allow_zero=True)
+        _checks.positive_scalar(f"{prefix}servo_gain", self.servo_gain)
 
 
 class ForceRollout(NamedTuple):
@@ -122,7 +123,7 @@ def with_params(model: mjx.Model, params: ForcePlantParams) -> mjx.Model:
     Derived fields used only by constraints (``dof_invweight0``, ``actuator_acc0``, ...) are left as
     they are: constraints and contacts are disabled in this model.
     """
-    params.validate()
+    params.validate("params.")
     if _checks.is_concrete(params.servo_gain, params.time_constant, model.body_mass):
         inertia = float(params.servo_gain) * float(params.time_constant)
         tool_mass = float(np.asarray(model.body_mass)[_tool_body(model)])
@@ -200,6 +201,7 @@ def sensor_force(model: mjx.Model, data: mjx.Data) -> jax.Array:
     gravity, fluid forces and gravity compensation are off in this model), computed from the state so a
     controller can read it before choosing the step's command.
     """
+    _checks.fields("data", data, "qpos (q,), qvel (v,)")  # one state: vmap for a batch
     x = data.qpos[0] - model.qpos_spring[0]
     return model.jnt_stiffness[0] * x + model.dof_damping[0] * data.qvel[0]
 

@@ -15,6 +15,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxobs import _checks
+
 __all__ = ["FULL_MAX", "CMAState", "init", "ask", "tell"]
 
 FULL_MAX = 100
@@ -45,8 +47,9 @@ class CMAState(NamedTuple):
 
 
 def init(mean, sigma, free) -> CMAState:
-    """A CMA-ES at ``mean`` (d,) in the unit cube with step ``sigma`` and identity covariance; ``free`` (d,)."""
-    mean = jnp.asarray(mean)
+    """A CMA-ES at ``mean`` (d,) in the unit cube with step ``sigma`` () and identity covariance; ``free`` (d,)."""
+    _checks.shapes("mean (d,), sigma (), free (d,)", mean, sigma, free)
+    mean = _checks.real_array("mean", mean)
     d = mean.shape[0]
     cov = jnp.eye(d, dtype=mean.dtype) if d <= FULL_MAX else jnp.ones(d, mean.dtype)
     zeros = jnp.zeros_like(mean)
@@ -88,19 +91,32 @@ def _factor(cov):
     return (vectors * root) @ vectors.T, (vectors / root) @ vectors.T
 
 
+def _check_state(state: CMAState) -> int:
+    """The coordinate count ``d`` of one state (not a batch: ``vmap`` over states), checked at trace time."""
+    d = _checks.fields("state", state, "mean (d,), sigma (), path_sigma (d,), path_c (d,), free (d,)")["d"]
+    square = (d, d) if d <= FULL_MAX else (d,)
+    for name in ("cov", "root", "inverse_root"):
+        _checks.shape(f"state.{name}", getattr(state, name), square, f"{d} coordinates")
+    return d
+
+
 def _apply(matrix, rows):
     return rows * matrix if matrix.ndim == 1 else rows @ matrix.T
 
 
 def ask(state: CMAState, key, population: int):
     """``population`` candidates (population, d): ``mean + sigma A z`` with ``z ~ N(0, I)``, clipped to the cube."""
-    z = jax.random.normal(key, (population, state.mean.shape[0]), state.mean.dtype) * state.free
+    d = _check_state(state)
+    population = _checks.count("population", population, minimum=1, maximum=_checks.MAX_INDEX)
+    z = jax.random.normal(_checks.key("key", key), (population, d), state.mean.dtype) * state.free
     return jnp.clip(state.mean + state.sigma * _apply(state.root, z), 0.0, 1.0)
 
 
 def tell(state: CMAState, ranked) -> CMAState:
     """The state after a generation whose candidates (as :func:`ask` returned them, so repaired) are ``ranked``
     (population, d), best first (Hansen 2016 eq. 41-47)."""
+    _checks.shape("ranked", ranked, (None, _check_state(state)), "one row per candidate")
+    ranked = jnp.asarray(ranked, state.mean.dtype)
     population = ranked.shape[0]
     w, mu_eff, c_sigma, d_sigma, c_c, c_1, c_mu, chi = _constants(state, population)
     steps = (ranked[: w.shape[0]] - state.mean) / state.sigma * state.free

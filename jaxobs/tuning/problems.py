@@ -100,7 +100,9 @@ def _per_step(matrix, R):
 
 def optimal_schedule(Phi, C, Q, R, P_init) -> Schedule:
     """The gains that minimise :func:`schedule_cost` (every term ``tr(P_t)`` at once): the Kalman gains of the
-    finite-horizon Riccati recursion (:func:`jaxobs.kalman_steps.riccati_step`) with ``R_t`` per step."""
+    finite-horizon Riccati recursion (:func:`jaxobs.kalman_steps.riccati_step`) with ``R_t`` per step.
+    Shapes as :func:`schedule_cost`'s."""
+    Phi, C, Q, R, P_init = _checks.float_arrays(Phi=Phi, C=C, Q=Q, R=R, P_init=P_init)
     _check(Phi, C, Q, R, P_init)
 
     def step(P, inputs):
@@ -166,6 +168,7 @@ def gain_schedule_problem(
     return problem, optimum
 
 
+@_checks.design_time()
 def lateral_model(speed, h: float = 0.05, vehicle=None):
     """``(Phi, C)`` of a car's lateral dynamics at ``speed`` (m/s; any shape ``S``, giving ``S + (4, 4)`` and
     ``S + (2, 4)``) sampled at ``h`` (s): the linear single track (Rajamani 2012, §2.3) with the cornering

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxobs import _checks
 from jaxobs.batching import safe_vmap
 from jaxobs.tuning import cmaes
 from jaxobs.tuning.box import Layout, search_box
@@ -342,10 +343,12 @@ def _improve(best: Best, rows, objective, diverged, valid) -> Best:
     return jax.tree.map(lambda new, old: jnp.where(better, new, old), Best(rows[i], objective[i], diverged[i]), best)
 
 
-def best_start(state: TunerState) -> int:
-    """Index of the start with the best accepted evaluation (fewest diverged plants, then lowest objective)."""
+def best_start(state: TunerState) -> jax.Array:
+    """Index (a 0-d int32 array; ``int(...)`` for a Python index) of the start with the best accepted evaluation:
+    fewest diverged plants, then lowest objective. Traceable: ``jit`` and ``vmap`` over states."""
     lanes = state.lanes
-    return int(jnp.lexsort((lanes.best_objective, lanes.best_diverged))[0])
+    _checks.fields("state.lanes", lanes, "best_objective (s,), best_diverged (s,)")
+    return jnp.lexsort((lanes.best_objective, lanes.best_diverged))[0].astype(jnp.int32)
 
 
 # --------------------------------------------------------------------------------------------

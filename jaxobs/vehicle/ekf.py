@@ -171,14 +171,16 @@ def make_vehicle_ekf(
       (True, (8,))
     """
     vehicle = check_vehicle(vehicle)
+    dtype = jnp.result_type(vehicle.mass, float)  # the vehicle's precision
+    q_d, r_std, P0_diag = (_checks.real_array(k, v).astype(dtype) for k, v in (("q_d", q_d), ("r_std", r_std),
+                                                                             ("P0_diag", P0_diag)))  # fmt: skip
     for name, value in (("q_v", q_v), ("q_d", q_d), ("q_mu", q_mu), ("tau", tau), ("r_std", r_std), ("dt", dt)):
         _checks.positive(name, value)
     _checks.positive("P0_diag", P0_diag, allow_zero=True)
     _checks.positive("mu_attraction", mu_attraction, allow_zero=True)
     _checks.positive("mu0", mu0)
-    q_d, r_std, P0_diag = jnp.asarray(q_d, float), jnp.asarray(r_std, float), jnp.asarray(P0_diag, float)
     _checks.shape("q_d", q_d, (2,), "one intensity per angle derivative")
-    q_mu = jnp.asarray(q_mu, float)
+    q_mu = jnp.asarray(q_mu, dtype)
     _checks.shape("q_mu", q_mu, (2,), "(slow, fast)")
     switching = make_switching(vehicle, dt=dt) if switching is None else switching
     if not isinstance(switching, SwitchingParams):
@@ -186,21 +188,24 @@ def make_vehicle_ekf(
         raise ValueError(f"switching must be SwitchingParams (jaxobs.vehicle.make_switching), got {kind}")
     _checks.shape("r_std", r_std, (4,), "one per measurement (a_x, a_y, r', v_x,ref)")
     _checks.shape("P0_diag", P0_diag, (8,), "one variance per state")
-    mu_bounds = jnp.asarray(mu_bounds, float)
+    mu_bounds = jnp.asarray(mu_bounds, dtype)
     _checks.shape("mu_bounds", mu_bounds, (2,), "(lo, hi)")
     _checks.positive("mu_bounds", mu_bounds)
     if _checks.is_concrete(mu_bounds) and not bool(mu_bounds[0] < mu_bounds[1]):
         raise ValueError(f"mu_bounds must have lo < hi, got {mu_bounds.tolist()}")
-    Q = dt * jnp.diag(jnp.concatenate([jnp.full(2, q_v**2), jnp.zeros(3), q_d**2, q_mu[:1] ** 2]))
-    x0 = jnp.zeros(8).at[0].set(vx0).at[4].set(mu0)
-    constants = tuple(jnp.asarray(c, float) for c in (dt, tau, mu_attraction, mu0))
+    Q = dt * jnp.diag(jnp.concatenate([jnp.full(2, q_v**2, dtype), jnp.zeros(3, dtype), q_d**2, q_mu[:1] ** 2]))
+    x0 = jnp.zeros(8, dtype).at[0].set(vx0).at[4].set(mu0)
+    constants = tuple(jnp.asarray(c, dtype) for c in (dt, tau, mu_attraction, mu0))
     f = Partial(_process, constants)
-    h = Partial(_measurement, vehicle, mu_bounds, jnp.zeros(N_SENSORS))
+    h = Partial(_measurement, vehicle, mu_bounds, jnp.zeros(N_SENSORS, dtype))
     model = nonlinear_model(f, h, Q, jnp.diag(r_std**2), x0=x0, P0=jnp.diag(P0_diag), n_inputs=4, dt=dt)
     return VehicleEKFParams(vehicle, make_ekf(model, bierman=bierman, gate=gate), mu_bounds, switching, q_mu)
 
 
 def _init(params: VehicleEKFParams) -> VehicleEKFState:
+    check_vehicle(params.vehicle, "params.vehicle")  # one filter, checked at trace time: vmap for a batch
+    _checks.fields("params", params, "mu_bounds (2,), q_mu (2,)")
+    _checks.fields("params.ekf.model", params.ekf.model, "Q (8, 8), R (4, 4), x0 (8,), P0 (8, 8)")
     model = params.ekf.model
     sensors = jnp.zeros((N_SENSORS,), model.x0.dtype).at[VX_REF].set(model.x0[0])
     sensors = sensors.at[WHEEL_SPEED].set(model.x0[0] / params.vehicle.wheel_radius)

@@ -101,6 +101,10 @@ _DEFAULTS = dict(
 )  # fmt: skip
 
 
+_NUMERIC = tuple(f.name for f in dataclasses.fields(AdaptiveLateralParams))[1:-3]
+"""The numeric (scalar) fields of :class:`AdaptiveLateralParams`: all but the model, the monitor and the rules."""
+
+
 def make_adaptive_lateral(
     vehicle: VehicleParams | None = None, *, model=None, monitor=None, xi_rule="grip", high_pass=True, **settings
 ) -> AdaptiveLateralParams:
@@ -126,7 +130,7 @@ def make_adaptive_lateral(
       (5.0, 1.0)
     """
     vehicle = check_vehicle(vehicle)
-    fields = [f.name for f in dataclasses.fields(AdaptiveLateralParams)][1:-3]
+    fields = list(_NUMERIC)
     unknown = sorted(set(settings) - set(fields))
     if unknown:
         raise ValueError(f"unknown settings {unknown}; the fields are {fields}")
@@ -191,6 +195,7 @@ class AdaptiveLateralOutputs(NamedTuple):
 
 
 def _init(params: AdaptiveLateralParams) -> AdaptiveLateralState:
+    _checks.fields("params", params, ", ".join(f"{name} ()" for name in _NUMERIC))  # one observer: vmap for a batch
     dtype = params.dt.dtype
     vx0 = params.vx0
     y = jnp.zeros((N_SENSORS,), dtype).at[VX_REF].set(vx0)

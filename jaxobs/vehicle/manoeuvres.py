@@ -16,6 +16,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxobs import _checks
+
 __all__ = ["Command", "Manoeuvre", "MANOEUVRES", "manoeuvre"]
 
 
@@ -33,6 +35,12 @@ class Command(NamedTuple):
     bank: jax.Array = 0.0
     inclination: jax.Array = 0.0
     friction: jax.Array = 1.0
+
+    def check(self, name: str) -> Command:
+        """The command, its fields checked to be scalars at trace time (one command: ``vmap`` for a batch), naming
+        ``name.field``."""
+        _checks.fields(name, self, ", ".join(f"{field} ()" for field in self._fields))
+        return self
 
 
 class Manoeuvre(NamedTuple):

@@ -194,7 +194,9 @@ class NVSOOutputs(NamedTuple):
 
 
 def _init(params: NVSOParams) -> NVSOState:
-    dtype = jnp.result_type(params.vx0, params.theta_default, float)
+    check_vehicle(params.vehicle, "params.vehicle")  # one observer, checked at trace time: vmap for a batch
+    _checks.fields("params", params, ", ".join(f"{name} ()" for name in NVSOParams._fields[1:]))
+    dtype = jnp.result_type(params.vx0, params.theta_default, params.vehicle.mass, float)  # the vehicle's precision
     v = params.vehicle
     vx0 = jnp.asarray(params.vx0, dtype)
     y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / v.wheel_radius).at[VX_REF].set(vx0)

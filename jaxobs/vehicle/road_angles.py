@@ -213,7 +213,9 @@ class RoadAnglesOutputs(NamedTuple):
 
 
 def _init(params: RoadAnglesParams) -> RoadAnglesState:
-    dtype = jnp.result_type(params.vx0, params.friction, float)
+    check_vehicle(params.vehicle, "params.vehicle")  # one estimator, checked at trace time: vmap for a batch
+    _checks.fields("params", params, ", ".join(f"{name} ()" for name in RoadAnglesParams._fields[1:]))
+    dtype = jnp.result_type(params.vx0, params.friction, params.vehicle.mass, float)  # the vehicle's precision
     vx0 = jnp.asarray(params.vx0, dtype)
     y = jnp.zeros((N_SENSORS,), dtype).at[WHEEL_SPEED].set(vx0 / params.vehicle.wheel_radius).at[VX_REF].set(vx0)
     zero = jnp.zeros((), dtype)

@@ -19,7 +19,7 @@ import numpy as np
 
 from jaxobs import _checks
 from jaxobs.observers.base import EstimatorInputs
-from jaxobs.vehicle.model import GRAVITY, VehicleParams
+from jaxobs.vehicle.model import GRAVITY, VehicleParams, check_vehicle
 from jaxobs.vehicle.simulate import PLANT_STEP, Trajectory
 
 __all__ = [
@@ -144,6 +144,13 @@ def _period_ratio(rate, dt) -> int:
     return n
 
 
+_TRAJECTORY = (
+    "trajectory.time (k,), trajectory.ax (k,), trajectory.ay (k,), trajectory.state.r (k,), "
+    "trajectory.state.omega (k, 4), trajectory.inputs.steering_wheel (k,), trajectory.esc_active (k,)"
+)
+"""The shapes of the trajectory fields that :func:`measure` reads: one drive of K plant samples."""
+
+
 def measure(
     trajectory: Trajectory,
     params: VehicleParams,
@@ -165,6 +172,11 @@ def measure(
       :class:`Measurements` at every ``1 / (rate dt)``-th plant sample, starting at the first.
     """
     sensors.validate()
+    tr, s = trajectory, sensors
+    _checks.shapes(_TRAJECTORY, tr.time, tr.ax, tr.ay, tr.state.r, tr.state.omega, tr.inputs.steering_wheel,
+                   tr.esc_active)  # fmt: skip
+    _checks.fields("sensors", s, ", ".join(f"{f.name} ()" for f in dataclasses.fields(s)))
+    params, key = check_vehicle(params, "params"), _checks.key("key", key)
     n = _period_ratio(rate, dt)
     period = n * dt
     tr = jax.tree_util.tree_map(lambda a: a[::n], trajectory)
@@ -177,7 +189,6 @@ def measure(
         return truth + bias + walk + noise * jax.random.normal(k_noise, truth.shape, dtype)
 
     roll = 1.0 + params.roll_gradient * GRAVITY
-    s = sensors
     raw = {
         "ax": channel(tr.ax, s.bias_ax, s.drift_acc, s.noise_acc, keys[0], keys[1]),
         "ay": channel(roll * tr.ay, s.bias_ay, s.drift_acc, s.noise_acc, keys[2], keys[3]),

@@ -124,7 +124,8 @@ def esc_intervention(p: VehicleParams, esc: ESCParams, x: VehicleState, steering
 def driver(p: VehicleParams, x: VehicleState, c: Command, esc: ESCParams | None = None) -> Inputs:
     """The plant inputs the driver applies in state ``x`` to follow the command ``c``, with the brake torques of
     the ``esc`` (:func:`esc_intervention`; ``None``: no ESC) added before the traction and anti-lock limiter
-    (docs/theory/vehicle.md)."""
+    (docs/theory/vehicle.md). One vehicle, state and command (``vmap`` for a batch), checked at trace time."""
+    p, x, c = check_vehicle(p, "p"), VehicleState.check(x, "x"), Command.check(c, "c")
     curvature = x.r / jnp.maximum(x.vx, MIN_SPEED)
     steering = c.steering_wheel + p.steering_ratio * c.curvature_gain * (c.curvature - curvature)
     steering = jnp.clip(steering, -p.steering_ratio * STEERING_LOCK, p.steering_ratio * STEERING_LOCK)
@@ -189,7 +190,7 @@ def simulate(
     steps = max(int(round(duration / dt)), 1)
     if steps > _checks.MAX_INDEX:
         raise ValueError(f"duration = {duration:g} s is {steps} plant steps of {dt:g} s, more than 2**31 - 1")
-    x0 = steady_state(params, jnp.asarray(manoeuvre.initial_speed, float))
+    x0 = steady_state(params, jnp.asarray(manoeuvre.initial_speed, jnp.result_type(params.mass, float)))
 
     def f(x, _, t):
         return dynamics(params, x, driver(params, x, _command(manoeuvre, t), esc))

@@ -108,7 +108,12 @@ def switching(params, off_timer, low_pass, vx, r, ay, steering_wheel, esc_active
     """The friction-estimation switch of Grip 2010 §2.5 (module docstring), shared by the NVSO and the EKF baseline
     of §2.9: from the timer and high-pass states of the last sample, the estimated ``vx``, the measured yaw rate
     ``r``, roll-corrected ``ay``, steering-wheel angle and ESC status (0/1), with the thresholds (and ``smooth``) of
-    ``params``, a :class:`SwitchingParams` or an :class:`~jaxobs.vehicle.NVSOParams`."""
+    ``params``, a :class:`SwitchingParams` or an :class:`~jaxobs.vehicle.NVSOParams`. One sample: the seven
+    values are scalars (``vmap`` for a batch), checked at trace time."""
+    _checks.fields("params", params, ", ".join(f"{name} ()" for name in SwitchingParams._fields[1:-1]))
+    check_vehicle(params.vehicle, "params.vehicle")
+    _checks.shapes("off_timer (), low_pass (), vx (), r (), ay (), steering_wheel (), esc_active ()",
+                   off_timer, low_pass, vx, r, ay, steering_wheel, esc_active)  # fmt: skip
     dt = params.dt
     r_ref = reference_yaw_rate(params.vehicle, vx, steering_wheel)
     high_pass = ay - r * vx - low_pass

@@ -3,7 +3,7 @@ transformations of jaxobs.batching and jaxobs.checked."""
 
 import numpy as np
 
-from tests.api_registry import Example
+from tests.api_registry import Design, Example, slow
 
 LOSSES = np.array([0.3, 1.2, 0.7, 2.5])
 
@@ -79,16 +79,79 @@ EXEMPT = {
     "point, which refuses a concrete value outside (0, 1)",
 }
 
-PENDING = {
-    key: "pending: not yet audited (added with the pure tuner)"
-    for key in (
-        "jaxobs.kalman_steps.joseph_covariance",
-        "jaxobs.tuning.box.search_box",
-        "jaxobs.tuning.cmaes.ask",
-        "jaxobs.tuning.cmaes.init",
-        "jaxobs.tuning.cmaes.tell",
-        "jaxobs.tuning.problems.lateral_model",
-        "jaxobs.tuning.problems.optimal_schedule",
-        "jaxobs.tuning.tuner.best_start",
-    )
+
+def _cma():
+    """A CMA-ES on 3 coordinates (the last fixed) near the middle of the cube, as cmaes.init builds it."""
+    import jax
+
+    from jaxobs.tuning import cmaes
+
+    return jax.tree_util.tree_map(np.asarray, cmaes.init(np.array([0.5, 0.4, 0.6]), 0.1, np.array([True, True, False])))
+
+
+RANKED = np.array([[0.52, 0.43, 0.6], [0.47, 0.41, 0.6], [0.55, 0.35, 0.6], [0.44, 0.46, 0.6]])
+"""Four candidates of :func:`_cma`'s generation, best first (the fixed coordinate where it is)."""
+
+
+def _tuner_state():
+    """The state of a tuner of two starts polishing a 2-vector, its lanes' best evaluations set apart."""
+    import jax
+
+    from jaxobs.tuning import TuneSettings
+    from jaxobs.tuning.tuner import make_tuner
+
+    starts = [{"a": np.zeros(2)}, {"a": np.ones(2)}]
+    state = make_tuner(TuneSettings(steps=2, starts=2)).init({"a": np.zeros(2)}, starts=starts)
+    lanes = state.lanes._replace(best_objective=np.array([0.7, 0.4]), best_diverged=np.array([0, 0], np.int32))
+    return jax.tree_util.tree_map(np.asarray, state._replace(lanes=lanes))
+
+
+_INDEX = "an index: an integer output"
+
+TUNER = {
+    "jaxobs.kalman_steps.joseph_covariance": Example(
+        lambda: dict(
+            P1=np.array([[1.0, 0.2], [0.2, 0.5]]),
+            C=np.array([[1.0, 0.0]]),
+            R=np.array([[0.1]]),
+            K=np.array([[0.6], [0.1]]),
+        ),
+        diff="K",
+    ),  # fmt: skip
+    "jaxobs.tuning.box.search_box": Example(
+        lambda: dict(theta0={"q": np.array([0.1, 0.2]), "r": np.float64(0.3)}, box=None, spread=0.5),
+        skip={"batch": "theta0's entries are parameter arrays of any shapes"},
+    ),
+    "jaxobs.tuning.cmaes.init": Example(
+        lambda: dict(mean=np.array([0.5, 0.4, 0.6]), sigma=np.float64(0.1), free=np.array([True, True, False]))
+    ),
+    "jaxobs.tuning.cmaes.ask": Example(lambda: dict(state=_cma(), key=jax_key(3), population=4)),
+    "jaxobs.tuning.cmaes.tell": Example(lambda: dict(state=_cma(), ranked=RANKED), diff="ranked"),
+    "jaxobs.tuning.problems.optimal_schedule": Example(
+        lambda: dict(
+            Phi=np.array([[1.0, 0.1], [0.0, 0.9]]),
+            C=np.array([[1.0, 0.0]]),
+            Q=0.01 * np.eye(2),
+            R=np.full((3, 1, 1), 0.1),
+            P_init=np.eye(2),
+        ),
+        diff="R",
+    ),  # fmt: skip
+    "jaxobs.tuning.problems.lateral_model": Design(lambda: dict(speed=np.array([10.0, 25.0]), h=0.05)),
+    "jaxobs.tuning.tuner.best_start": Example(lambda: dict(state=_tuner_state()), skip={"grad": _INDEX}),
 }
+
+
+def jax_key(seed: int):
+    import jax
+
+    return jax.random.key(seed)
+
+
+ENTRIES = slow(
+    {**ENTRIES, **TUNER},
+    "an eigendecomposition or a Riccati scan differentiated (the CMA-ES update, the optimal schedule)",
+    "jaxobs.tuning.cmaes.ask",
+    "jaxobs.tuning.cmaes.tell",
+    "jaxobs.tuning.problems.optimal_schedule",
+)
