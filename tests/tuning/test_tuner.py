@@ -84,7 +84,9 @@ def test_tune_explores_restarts_and_keeps_a_curve():
     assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
 
 
-def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch):
+def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch, caplog):
+    """Ctrl-C mid-exploration, then a rerun: the same result as a run without a break; a rerun of the finished
+    checkpoint compiles nothing and reports the same times (tuning and compiling, over both runs)."""
     problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
     settings = dataclasses.replace(SETTINGS, checkpoint_every=1)
     straight = tune(problem, settings, progress=False)
@@ -106,3 +108,10 @@ def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, 
     for got, want in zip(resumed.starts, straight.starts, strict=True):
         assert (got.stopped, got.evaluations) == (want.stopped, want.evaluations)
         np.testing.assert_array_equal(got.theta["x"], want.theta["x"])
+    caplog.clear()
+    with caplog.at_level("INFO", logger="jaxobs.tuning"):
+        rerun = tune(problem, settings, checkpoint=path, progress=False)  # finished: nothing to compile or compute
+    assert "holds a finished run" in caplog.text and "compiling" not in caplog.text
+    assert (rerun.seconds, rerun.compile_seconds, rerun.objective) == (resumed.seconds, resumed.compile_seconds,
+                                                                       resumed.objective)  # fmt: skip
+    assert rerun.compile_seconds > 0 and rerun.curve == () and len(rerun.starts) == len(resumed.starts)
