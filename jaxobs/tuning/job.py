@@ -455,6 +455,8 @@ def tune(
         logger.info("%s holds a finished run: nothing to compute", job.path)  # its times and result, unchanged
         job.clock = None
         return job.result(state, int(state.phase) != DONE)
+    if job.fingerprint.recorded is not None:  # a checkpoint read
+        logger.info("resuming from %s at step %d", job.path, int(state.iteration))
     count, mode = int(state.lanes.scale.shape[0]), gradient_mode(settings, problem.theta0)
     what = f"the tuner's step ({batch} training rollouts at {count} start(s), {mode}-mode gradient)"
     with Compiling(logger, what) as compiling:
@@ -495,8 +497,6 @@ def _open(problem: TuningProblem, settings: TuneSettings, state: TunerState, che
     meta = json_from_process_0(meta)
     state, histories = checkpoints.join(host(from_process_0(trees)), meta, settings.steps)
     resumed = bool(from_process_0(np.bool_(resume)))
-    if resumed:
-        logger.info("resuming from %s at step %d", path, int(state.iteration))
     program = functools.partial(checkpoints.fingerprint, problem.theta0, settings, tag + given, train=problem.train)
     recorded = meta.get("fingerprint") if resumed else None
     job = _Job(problem, settings, path, _Fingerprint(setup, recorded, program), meta, histories, clock)
