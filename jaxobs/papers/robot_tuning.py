@@ -327,7 +327,10 @@ def build_problem(config: dict) -> TuningProblem:
     _warn_outside_ranges(robot, config)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
-    lin = linearize(robot)
+    try:
+        lin = linearize(robot)
+    except ValueError as exc:  # a model MJX cannot differentiate: name its file
+        raise ValueError(f"robot.mjcf {config['robot']['mjcf']}: {exc}") from None
     lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
     L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
     N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
