@@ -407,7 +407,7 @@ def _loss_unit(robot, config: dict) -> str:
     units = {u for u, w in zip(_entry_units(robot, config), weights, strict=True) if w > 0}
     if len(units) == 1 and "" not in units and config["scenario"]["input_weight"] == 0:
         return f"{units.pop()}²"
-    return "weighted squared errors, mixed units"
+    return "weighted, mixed units"
 
 
 def _entry_names(robot, config: dict) -> list[str]:

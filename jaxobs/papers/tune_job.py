@@ -295,7 +295,7 @@ def _plot_loss_curves(result, search, scores, objective: str, unit: str, out: Pa
     from matplotlib.ticker import MaxNLocator
 
     plt = pyplot()
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
     history = result.history
     ev = result.screened + len(result.starts) * np.array([h["evaluation"] for h in history], int)
     val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history], float)
@@ -314,7 +314,7 @@ def _plot_loss_curves(result, search, scores, objective: str, unit: str, out: Pa
     else:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
-           ylabel=f"training objective ({objective} of the losses{_unit(unit)})", yscale="log",
+           ylabel=f"training objective\n({objective} of the per-plant losses{_unit(unit)})", yscale="log",
            title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
     for name, s in scores.items():
