@@ -296,7 +296,7 @@ def build_problem(config: dict) -> TuningProblem:
     """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
     from jaxobs import design
     from jaxobs.lti import ss
-    from jaxobs.mjx.robot import linearize, mismatch, rollout
+    from jaxobs.mjx.robot import mismatch, rollout
 
     robot = _robot(config)
     sc, d = config["scenario"], config["design"]
@@ -327,10 +327,7 @@ def build_problem(config: dict) -> TuningProblem:
     _warn_outside_ranges(robot, config)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
-    try:
-        lin = linearize(robot)
-    except ValueError as exc:  # a model MJX cannot differentiate: name its file
-        raise ValueError(f"robot.mjcf {config['robot']['mjcf']}: {exc}") from None
+    lin = _linearized(robot, config)
     lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
     L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
     N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
@@ -363,7 +360,6 @@ def build_problem(config: dict) -> TuningProblem:
         return loss, ~jnp.isfinite(loss) | ~(excursion < sc["state_limit"])
 
     traces = jax.jit(lambda theta, plants: run(theta, plants).y_true)
-    labels = _labels(robot, config, slots, theta0)
 
     return TuningProblem(
         theta0=theta0,
@@ -373,9 +369,20 @@ def build_problem(config: dict) -> TuningProblem:
         describe=functools.partial(_describe, covariances, controller),
         responses=functools.partial(_responses, robot, config, traces, np.asarray(desired), rows),
         search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
-        labels=labels,
+        labels=_labels(robot, config, slots, theta0),
         loss_unit=_loss_unit(robot, config),
     )
+
+
+def _linearized(robot, config: dict):
+    """:func:`jaxobs.mjx.robot.linearize` of ``robot``; a model it refuses (MJX differentiates it wrongly) is named by
+    its MJCF file."""
+    from jaxobs.mjx.robot import linearize
+
+    try:
+        return linearize(robot)
+    except ValueError as exc:
+        raise ValueError(f"robot.mjcf {config['robot']['mjcf']}: {exc}") from None
 
 
 def _labels(robot, config: dict, slots: int, theta0: dict) -> dict:

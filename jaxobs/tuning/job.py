@@ -446,7 +446,7 @@ def tune(
 
     settings.validate()
     clock = time.perf_counter()
-    initial, batch = _initial(problem, initial), problem.batch_size(problem.train)
+    initial = _initial(problem, initial)
     tuner = make_tuner(settings, penalty=problem.penalty)
     state = tuner.init(problem.theta0, box=problem.search_box, starts=initial)
     job, state = _open(problem, settings, state, checkpoint, tag, initial, clock)
@@ -457,7 +457,20 @@ def tune(
         return job.result(state, int(state.phase) != DONE)
     if job.fingerprint.recorded is not None:  # a checkpoint read
         logger.info("resuming from %s at step %d", job.path, int(state.iteration))
-    count, mode = int(state.lanes.scale.shape[0]), gradient_mode(settings, problem.theta0)
+    step, train, compiled = _compiled(problem, tuner, job, state)
+    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compiled:.1f} s)",
+               disable=not (progress and job.writer), unit="step")  # fmt: skip
+    state, timed_out = _loop(job, step, state, train, seconds, bar)
+    job.previous, job.clock = job.seconds(), None  # the checkpoint and the result hold the same time
+    job.save(state)
+    return job.result(state, timed_out)
+
+
+def _compiled(problem: TuningProblem, tuner, job: _Job, state: TunerState):
+    """``(step, placed training batch, seconds)``: the tuner's step traced (its program checked against the
+    checkpoint's, :meth:`_Job.adopt`) and compiled over every device, said in one line pair."""
+    batch, count = problem.batch_size(problem.train), int(state.lanes.scale.shape[0])
+    mode = gradient_mode(tuner.settings, problem.theta0)
     what = f"the tuner's step ({batch} training rollouts at {count} start(s), {mode}-mode gradient)"
     with Compiling(logger, what) as compiling:
         job.adopt(_lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode))
@@ -467,12 +480,7 @@ def tune(
             hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
         )  # fmt: skip
     job.compiled += compiling.seconds
-    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compiling.seconds:.1f} s)",
-               disable=not (progress and job.writer), unit="step")  # fmt: skip
-    state, timed_out = _loop(job, step, state, train, seconds, bar)
-    job.previous, job.clock = job.seconds(), None  # the checkpoint and the result hold the same time
-    job.save(state)
-    return job.result(state, timed_out)
+    return step, train, compiling.seconds
 
 
 def _open(problem: TuningProblem, settings: TuneSettings, state: TunerState, checkpoint, tag: str, initial,
