@@ -374,9 +374,7 @@ def _footer(summary: dict) -> str:
     if summary["configs_computed"]:
         lines[0] += (f"; {summary['configs_per_second']:.3g} configurations/s over the "
                      f"{summary['configs_computed']} configurations computed (compilation excluded)")  # fmt: skip
-    lines[0] += "."
-    if "chunks_computed" in summary:
-        lines[0] += f" This call computed {summary['chunks_computed']} chunks and reused {summary['chunks_reused']}."
+    lines[0] += "."  # what this call computed or reused is not said: a rerun of a finished sweep leaves the report
     if summary.get("invalid") is not None:
         lines += ["", f"Invalid configurations: {summary['invalid']} of {summary['num_configs']}."]
     return "\n".join([*lines, "", *(f"![{f}]({f})" for f in summary["figures"])]) + "\n"

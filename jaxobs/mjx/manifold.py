@@ -33,6 +33,8 @@ __all__ = [
     "quat_integrate",
     "differentiate_pos",
     "integrate_pos",
+    "tangent_names",
+    "sensor_units",
     "state_manifold",
     "sensor_manifold",
     "tangent_rows",
@@ -263,3 +265,57 @@ def sensor_manifold(model, sensors=None) -> Manifold:
             point += size
         coordinate += size
     return _manifold(_freeze(len(rows), coordinate, linear, linear_tangent, quats, quats_tangent))
+
+
+def _dof_names(model) -> list[str]:
+    """A name per degree of freedom (``qvel`` entry): the joint's, with ``.x .y .z .rx .ry .rz`` for a free joint's
+    and ``.rx .ry .rz`` for a ball joint's."""
+    names = []
+    for j, kind in enumerate(np.asarray(model.jnt_type)):
+        name = mjx.id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
+        axes = {mujoco.mjtJoint.mjJNT_FREE: ("x", "y", "z", "rx", "ry", "rz"), mujoco.mjtJoint.mjJNT_BALL:
+                ("rx", "ry", "rz")}.get(int(kind))  # fmt: skip
+        names += [name] if axes is None else [f"{name}.{a}" for a in axes]
+    return names
+
+
+def tangent_names(model) -> list[str]:
+    """A name per entry of :func:`state_manifold`'s tangent (``2 nv + na``): each degree of freedom's position
+    (its joint's name), then its velocity (``"... vel"``), then each activation (``"... act"``, its actuator's).
+
+    Example:
+      >>> import mujoco
+      >>> from jaxobs.mjx import manifold
+      >>> m = mujoco.MjModel.from_xml_string("<mujoco><worldbody><body><joint name='hinge'/><geom size='.1'/>"
+      ...                                    "</body></worldbody></mujoco>")
+      >>> manifold.tangent_names(m)
+      ['hinge', 'hinge vel']
+    """
+    dofs = _dof_names(model)
+    dynamic = np.flatnonzero(np.asarray(model.actuator_dyntype) != mujoco.mjtDyn.mjDYN_NONE)
+    acts = [mjx.id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, int(i)) or f"actuator{i}" for i in dynamic]
+    return [*dofs, *(f"{d} vel" for d in dofs), *(f"{a} act" for a in acts)]
+
+
+_SENSOR_UNITS = {"TOUCH": "N", "ACCELEROMETER": "m/s²", "VELOCIMETER": "m/s", "GYRO": "rad/s", "FORCE": "N",
+                 "TORQUE": "N m", "MAGNETOMETER": "T", "RANGEFINDER": "m", "TENDONPOS": "m", "TENDONVEL": "m/s",
+                 "BALLQUAT": "rad", "BALLANGVEL": "rad/s", "FRAMEPOS": "m", "FRAMEQUAT": "rad", "FRAMELINVEL": "m/s",
+                 "FRAMEANGVEL": "rad/s", "FRAMELINACC": "m/s²", "FRAMEANGACC": "rad/s²", "SUBTREECOM": "m",
+                 "SUBTREELINVEL": "m/s", "SUBTREEANGMOM": "kg m²/s", "CLOCK": "s"}  # fmt: skip
+_JOINT_UNITS = {"JOINTPOS": ("rad", "m"), "JOINTVEL": ("rad/s", "m/s"), "JOINTACTFRC": ("N m", "N")}
+
+
+def sensor_units(model, sensors=None) -> list[str]:
+    """The SI unit of each tangent entry of the named sensors' readings (None: every sensor; see
+    :func:`tangent_rows`): radians for a hinge joint's position (whatever the MJCF's angle unit), a quaternion
+    sensor's rotation vector in rad; ``""`` where the unit depends on a transmission or is not known (actuator
+    sensors, user sensors)."""
+    units = []
+    for i, size in zip(sensor_ids(model, sensors), tangent_rows(model, sensors)[1], strict=True):
+        kind = mujoco.mjtSensor(int(np.asarray(model.sensor_type)[i])).name.removeprefix("mjSENS_")
+        unit = _SENSOR_UNITS.get(kind, "")
+        if kind in _JOINT_UNITS:
+            joint = int(np.asarray(model.jnt_type)[int(np.asarray(model.sensor_objid)[i])])
+            unit = _JOINT_UNITS[kind][joint == mujoco.mjtJoint.mjJNT_SLIDE]
+        units += [unit] * size
+    return units

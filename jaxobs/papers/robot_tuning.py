@@ -31,7 +31,14 @@ from jaxobs.papers.tuning_config import (
     search_box,
     settings,
 )
-from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters, gradient_mode
+from jaxobs.tuning import (
+    TuningProblem,
+    cholesky_covariance,
+    cholesky_labels,
+    cholesky_parameters,
+    gradient_mode,
+    log_labels,
+)
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "LQG", "PROBLEM", "build_problem", "lqg_params"]
 
@@ -265,7 +272,10 @@ def _responses(robot, config: dict, traces, desired, rows, theta, plants) -> dic
         "labels": [
             ", ".join(f"{k} x{float(v[i]):.2f}" for k, v in plants["scales"].items()) for i in range(len(plants["key"]))
         ],
-        "ylabel": [f"{name} (deviation)" for name in _entry_names(robot, config)],
+        "ylabel": [
+            f"{name} (deviation{f', {unit}' if unit else ''})"
+            for name, unit in zip(_entry_names(robot, config), _entry_units(robot, config), strict=True)
+        ],
         "setpoint": setpoint,
     }
 
@@ -286,7 +296,7 @@ def build_problem(config: dict) -> TuningProblem:
     """The :class:`jaxobs.tuning.TuningProblem` of ``config`` (see the module docstring)."""
     from jaxobs import design
     from jaxobs.lti import ss
-    from jaxobs.mjx.robot import linearize, mismatch, rollout
+    from jaxobs.mjx.robot import mismatch, rollout
 
     robot = _robot(config)
     sc, d = config["scenario"], config["design"]
@@ -317,7 +327,7 @@ def build_problem(config: dict) -> TuningProblem:
     _warn_outside_ranges(robot, config)
     for key in config["plants"]["mismatch"]:
         mismatch(robot.model, {key: 1.0})  # names checked before any compilation
-    lin = linearize(robot)
+    lin = _linearized(robot, config)
     lqr_state = jnp.zeros(n).at[: len(d["lqr_state"])].set(jnp.asarray(d["lqr_state"], float))
     L, _, _ = design.dlqr(lin.Phi, lin.Gamma, jnp.diag(lqr_state), jnp.diag(jnp.asarray(d["lqr_input"], float)))
     N = design.reference_gain(ss(lin.Phi, lin.Gamma, lin.C[jnp.asarray(rows)], dt=lin.dt), L)
@@ -359,7 +369,52 @@ def build_problem(config: dict) -> TuningProblem:
         describe=functools.partial(_describe, covariances, controller),
         responses=functools.partial(_responses, robot, config, traces, np.asarray(desired), rows),
         search_box=search_box(config, theta0, cholesky=("q_cholesky", "r_cholesky")),
+        labels=_labels(robot, config, slots, theta0),
+        loss_unit=_loss_unit(robot, config),
     )
+
+
+def _linearized(robot, config: dict):
+    """:func:`jaxobs.mjx.robot.linearize` of ``robot``; a model it refuses (MJX differentiates it wrongly) is named by
+    its MJCF file."""
+    from jaxobs.mjx.robot import linearize
+
+    try:
+        return linearize(robot)
+    except ValueError as exc:
+        raise ValueError(f"robot.mjcf {config['robot']['mjcf']}: {exc}") from None
+
+
+def _labels(robot, config: dict, slots: int, theta0: dict) -> dict:
+    """What each entry of ``theta0`` is: the filter's states (the state's tangent entries, the commands in flight,
+    the active states) and the measured entries."""
+    from jaxobs.mjx.manifold import tangent_names
+
+    actuators = config["robot"]["actuators"]
+    states, entries = tangent_names(robot.model), _entry_names(robot, config)
+    active = [f"{a} active" for a in actuators] if config["design"]["observer"] == "aob" else []
+    if "q_cholesky" in theta0:
+        flight = [f"{a} command {s + 1}" for s in range(slots) for a in actuators]  # oldest first
+        return {"q_cholesky": cholesky_labels("Q", [*states, *flight, *active]),
+                "r_cholesky": cholesky_labels("R", entries)}  # fmt: skip
+    labels = {"log_q": log_labels("Q", states), "log_r": log_labels("R", entries)}
+    return {**labels, "log_q_active": log_labels("Q", active)} if active else labels
+
+
+def _entry_units(robot, config: dict) -> list[str]:
+    from jaxobs.mjx.manifold import sensor_units
+
+    return sensor_units(robot.model, config["robot"]["sensors"])
+
+
+def _loss_unit(robot, config: dict) -> str:
+    """The loss's unit: the squared unit of the weighted entries when they share one and the command is not
+    weighted, else a description."""
+    weights = config["scenario"]["output_weights"]
+    units = {u for u, w in zip(_entry_units(robot, config), weights, strict=True) if w > 0}
+    if len(units) == 1 and "" not in units and config["scenario"]["input_weight"] == 0:
+        return f"{units.pop()}²"
+    return "weighted, mixed units"
 
 
 def _entry_names(robot, config: dict) -> list[str]:

@@ -21,12 +21,12 @@ import jax
 import numpy as np
 
 from jaxobs._config import ConfigError
-from jaxobs._distributed import agree
+from jaxobs._distributed import agree, from_process_0
 from jaxobs._resources import LOCK_NAME, JobError, LimitError, atomic_write, locked_out_dir
 from jaxobs.papers._output import pyplot, save_figure, to_builtin
 from jaxobs.papers.tuning_config import config_tag
 from jaxobs.papers.tuning_config import settings as tuning_settings
-from jaxobs.tuning import batch_objective, evaluate, random_search, tune
+from jaxobs.tuning import batch_objective, evaluator, random_search, tune
 
 __all__ = ["run"]
 
@@ -102,8 +102,56 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
     settings = tuning_settings(config)
     result = tune(problem, settings, checkpoint=out / "checkpoint.npz", progress=progress, tag=tag,
                   seconds=config["optimizer"]["seconds"] or None)  # fmt: skip
-    designs = {"hand-set": problem.theta0, "tuned": result.theta}
-    summary = {
+    recorded = _recorded(out, config, result) if writer else None
+    if from_process_0(np.bool_(recorded is not None)):  # a rerun of a finished run: its record, not a new one
+        if writer:
+            atomic_write(out / "report.md", markdown_report(recorded).encode())
+        return recorded
+    summary = _tuned(problem, config, result)
+    search, designs = _baselines(problem, settings, config, result, summary, progress)
+    scorer = evaluator(problem, settings)
+    scores = {name: scorer(theta) for name, theta in designs.items()}
+    if not writer:
+        return None
+    hand = scores["hand-set"]["objective"]
+    summary["heldout"] = {
+        name: {
+            **{k: v for k, v in s.items() if k != "losses"},
+            "reduction_vs_hand_set": 1.0 - s["objective"] / hand if np.isfinite(hand) else None,
+        }
+        for name, s in scores.items()
+    }
+    summary["parameters"] = {name: problem.describe(theta) for name, theta in designs.items()}
+    summary["theta"] = {name: {k: np.asarray(v) for k, v in theta.items()} for name, theta in designs.items()}
+    summary["parameter_labels"] = problem.component_labels()
+    summary["loss_unit"] = problem.loss_unit
+    summary["figures"] = [_plot_loss_curves(result, search, scores, settings.objective, problem.loss_unit, out)]
+    if result.history:  # a time budget may end the run before its first gradient step
+        summary["figures"].append(_plot_parameters(problem, result.history, result.theta, out))
+    if problem.responses is not None:
+        summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
+    atomic_write(out / "tuned.json", (json.dumps(to_builtin(summary), indent=2) + "\n").encode())
+    atomic_write(out / "report.md", markdown_report(summary).encode())
+    return summary
+
+
+def _recorded(out: Path, config: dict, result) -> dict | None:
+    """``tuned.json`` of ``out`` when it records ``result`` (a rerun of a finished run: same configuration, same
+    measured time and counts) and its figures are there; else None."""
+    try:
+        summary = json.loads((out / "tuned.json").read_text())
+    except (OSError, ValueError):
+        return None
+    same = isinstance(summary, dict) and summary.get("config") == json.loads(json.dumps(to_builtin(config))) and all(
+        summary.get(key) == value for key, value in
+        (("seconds_tune", result.seconds), ("evaluations", result.evaluations), ("rollouts", result.rollouts))
+    )  # fmt: skip
+    return summary if same and all((out / name).exists() for name in summary.get("figures", [])) else None
+
+
+def _tuned(problem, config: dict, result) -> dict:
+    """The tuning's part of the summary."""
+    return {
         "problem": config["problem"],
         "config": config,
         "stopped": result.stopped,
@@ -119,6 +167,12 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
             for r in result.starts
         ],  # fmt: skip
     }
+
+
+def _baselines(problem, settings, config: dict, result, summary: dict, progress: bool):
+    """``(search, designs)``: the random search (None without it) and the designs to score (hand-set, tuned, the
+    search's best at equal rollouts and at equal time); the training objectives go into ``summary``."""
+    designs = {"hand-set": problem.theta0, "tuned": result.theta}
     search, equal_rollouts = None, max(1, result.rollouts // problem.batch_size(problem.train))
     if config["baseline"]["random_search"]:
         search = random_search(
@@ -145,27 +199,7 @@ def _run(problem, config: dict, out: Path, tag: str, progress: bool, writer: boo
     else:
         hand = search.objectives, search.diverged  # theta0 is the search's first candidate
     summary["train_objective"]["hand-set"], summary["train_diverged"]["hand-set"] = float(hand[0][0]), int(hand[1][0])
-    scores = {name: evaluate(problem, theta, settings) for name, theta in designs.items()}
-    if not writer:
-        return None
-    hand = scores["hand-set"]["objective"]
-    summary["heldout"] = {
-        name: {
-            **{k: v for k, v in s.items() if k != "losses"},
-            "reduction_vs_hand_set": 1.0 - s["objective"] / hand if np.isfinite(hand) else None,
-        }
-        for name, s in scores.items()
-    }
-    summary["parameters"] = {name: problem.describe(theta) for name, theta in designs.items()}
-    summary["theta"] = {name: {k: np.asarray(v) for k, v in theta.items()} for name, theta in designs.items()}
-    summary["figures"] = [_plot_loss_curves(result, search, scores, settings.objective, out)]
-    if result.history:  # a time budget may end the run before its first gradient step
-        summary["figures"].append(_plot_parameters(result.history, out))
-    if problem.responses is not None:
-        summary["figures"].append(_plot_responses(problem, designs, scores["hand-set"]["losses"], out))
-    atomic_write(out / "tuned.json", (json.dumps(to_builtin(summary), indent=2) + "\n").encode())
-    atomic_write(out / "report.md", markdown_report(summary).encode())
-    return summary
+    return search, designs
 
 
 # --------------------------------------------------------------------------------------------
@@ -225,23 +259,43 @@ def markdown_report(summary: dict) -> str:
         lines += _table(["budget", "candidates", "rollouts", "seconds", "training objective"],
                         [[name, b["candidates"], b["rollouts"], b["seconds"], b["train_objective"]]
                          for name, b in search.items() if isinstance(b, dict) and "rollouts" in b])  # fmt: skip
+    lines += _parameter_table(summary)
     settings = (f"- `{key} = {json.dumps(value)}`" for key, value in config["optimizer"].items())
     figures = (f"![{name}]({name})" for name in summary["figures"])
     lines += ["## Settings (`[optimizer]`)", "", *settings, "", "## Figures", "", *figures, ""]
     return "\n".join(lines)
 
 
+def _parameter_table(summary: dict) -> list[str]:
+    """The tuned parameters by name: hand-set and tuned unconstrained values, and the factor of a log entry."""
+    labels, theta = summary.get("parameter_labels"), summary.get("theta", {})
+    if not labels or not {"hand-set", "tuned"} <= set(theta):
+        return []
+    rows = []
+    for name, entry in labels.items():
+        hand, tuned = (np.ravel(np.asarray(theta[k][name], float)) for k in ("hand-set", "tuned"))
+        for label, a, b in zip(entry, hand, tuned, strict=True):
+            if label != "unused":
+                rows.append([label, a, b, f"x {np.exp(b - a):.3g}" if label.startswith("log") else f"{b - a:+.3g}"])
+    return ["## Parameters", "", "Unconstrained values (log entries: natural logs; the change of a log entry is its "
+            "factor).", "", *_table(["parameter", "hand-set", "tuned", "change"], rows)]  # fmt: skip
+
+
 # --------------------------------------------------------------------------------------------
 # Figures
 
 
-def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
+def _unit(unit: str) -> str:
+    return f", {unit}" if unit else ""
+
+
+def _plot_loss_curves(result, search, scores, objective: str, unit: str, out: Path) -> str:
     """The training objective against the rollouts per training plant spent (the screening's candidates, then each
     step of every start), beside the random search's; the held-out plants' sorted losses of each design."""
     from matplotlib.ticker import MaxNLocator
 
     plt = pyplot()
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
     history = result.history
     ev = result.screened + len(result.starts) * np.array([h["evaluation"] for h in history], int)
     val = np.array([np.nan if h["objective"] is None else h["objective"] for h in history], float)
@@ -260,38 +314,62 @@ def _plot_loss_curves(result, search, scores, objective: str, out: Path) -> str:
     else:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
-           ylabel=f"training objective ({objective})", yscale="log", title="Training objective")  # fmt: skip
+           ylabel=f"training objective\n({objective} of the per-plant losses{_unit(unit)})", yscale="log",
+           title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
     for name, s in scores.items():
         losses = np.sort(s["losses"])
         bx.plot(np.linspace(0, 1, losses.size), losses, label=f"{name} (objective {s['objective']:.3g})")
-    bx.set(xlabel="fraction of held-out plants", ylabel="per-plant loss", yscale="log",
+    bx.set(xlabel="fraction of held-out plants", ylabel=f"per-plant loss ({unit})" if unit else "per-plant loss",
+           yscale="log",
            title="Held-out plants, sorted losses")  # fmt: skip
     bx.legend(fontsize=8)
     return save_figure(fig, out, "loss_curves")
 
 
-def _plot_parameters(history, out: Path) -> str:
-    """Each unconstrained parameter per evaluation, one panel per entry of ``theta``, a line per component
-    (labelled by its flat index when there are at most 10)."""
+def _free_components(problem) -> tuple[list[str], np.ndarray]:
+    """``(labels, mask)`` over ``theta``'s flattened components: their labels, and which the tuning may move (not
+    fixed by the search box, not an unused entry)."""
+    labels = [label for entry in problem.component_labels().values() for label in entry]
+    free = np.array([label != "unused" for label in labels])
+    if problem.search_box is not None:
+        low, high = (np.concatenate([np.ravel(problem.search_box[k][i]) for k in problem.theta0]) for i in (0, 1))
+        free &= high > low
+    return labels, free
+
+
+def _flat(theta: dict, names) -> np.ndarray:
+    return np.concatenate([np.ravel(np.asarray(theta[k], float)) for k in names])
+
+
+def _plot_parameters(problem, history, tuned: dict, out: Path, shown: int = 6) -> str:
+    """Each free parameter's change from the hand-set design: the tuned design's (bars, one per parameter, named
+    by :meth:`~jaxobs.tuning.TuningProblem.component_labels`), and the best start's path over its evaluations for
+    the ``shown`` that changed most."""
     from matplotlib.ticker import MaxNLocator
 
+    names, (labels, free) = list(problem.theta0), _free_components(problem)
+    hand = _flat(problem.theta0, names)
+    change = (_flat(tuned, names) - hand)[free]
+    paths = np.array([_flat(h["theta"], names) - hand for h in history])[:, free]
+    labels = [label for label, f in zip(labels, free, strict=True) if f]
     plt = pyplot()
-    names = list(history[0]["theta"])
-    fig, axes = plt.subplots(1, len(names), figsize=(5 * len(names), 3.8), squeeze=False, layout="constrained")
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, max(3.8, 0.22 * len(labels) + 1.5)), layout="constrained",
+                                 width_ratios=(1, 1.3))  # fmt: skip
+    rows = np.arange(len(labels))[::-1]
+    ax.barh(rows, change, color=np.where(change >= 0, "C3", "C0"))
+    ax.set_yticks(rows, labels, fontsize=7 if len(labels) > 20 else 9)
+    ax.axvline(0.0, color="k", lw=0.6)
+    ax.set(xlabel="tuned minus hand-set, unconstrained (log entries: ln of the factor)",
+           title=f"Change of the {len(labels)} tuned parameters")  # fmt: skip
     ev = [h["evaluation"] for h in history]
-    for ax, name in zip(axes[0], names, strict=True):
-        values = np.array([np.ravel(h["theta"][name]) for h in history])
-        for i, column in enumerate(values.T):
-            ax.plot(ev, column, "o-", ms=2.5, lw=1, label=f"{name}[{i}]")
-        size = values.shape[1]
-        ax.set(xlabel="evaluation", ylabel=f"{name} (unconstrained)", title=name if size <= 10 else
-               f"{name} ({size} components, flattened)")  # fmt: skip
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        if 1 < size <= 10:  # a legend of more entries would hide the lines
-            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.suptitle("Unconstrained parameters during tuning (log_: natural log of a variance; logit_: of a factor "
-                 "in (0, 1); q_cholesky: Cholesky factor, log diagonal)", fontsize=10)  # fmt: skip
+    for i in np.argsort(-np.abs(change))[:shown]:
+        bx.plot(ev, paths[:, i], "o-", ms=2.5, lw=1, label=labels[i])
+    bx.axhline(0.0, color="k", lw=0.6, ls=":", label="hand-set")
+    bx.set(xlabel="gradient evaluation of the best start", ylabel="change from hand-set (unconstrained)",
+           title=f"Path of the {min(shown, len(labels))} that changed most")  # fmt: skip
+    bx.xaxis.set_major_locator(MaxNLocator(integer=True))
+    bx.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return save_figure(fig, out, "parameters")
 
 

@@ -6,8 +6,9 @@ is a pure ``init`` / ``step`` pair that explores the search box (Sobol screening
 best points with any optax optimiser from several starts in one ``vmap``, minimising a robust objective (mean or
 CVaR) with diverged plants penalised (:func:`penalise_diverged`); a JAX program can run it in its own jitted loop.
 :func:`tune` is the job around it (checkpoints, processes and devices, progress, a wall-time budget);
-:func:`random_search` the gradient-free baseline; :func:`evaluate` scores a ``theta`` on the held-out batch.
-Parameterisations: :func:`cholesky_covariance`, :func:`unit_interval`. Design: docs/theory/jobs.md.
+:func:`random_search` the gradient-free baseline; :func:`evaluate` scores a ``theta`` on the held-out batch
+(:func:`evaluator`: several designs, compiled once). Parameterisations: :func:`cholesky_covariance`,
+:func:`unit_interval`. Design: docs/theory/jobs.md.
 """
 
 from jaxobs.tuning.job import StartResult, TuneResult, tune
@@ -20,9 +21,16 @@ from jaxobs.tuning.objectives import (
     robust_objective,
     value_and_grad,
 )
-from jaxobs.tuning.parameters import cholesky_covariance, cholesky_parameters, unit_interval, unit_interval_parameters
+from jaxobs.tuning.parameters import (
+    cholesky_covariance,
+    cholesky_labels,
+    cholesky_parameters,
+    log_labels,
+    unit_interval,
+    unit_interval_parameters,
+)
 from jaxobs.tuning.problem import CheckpointError, TuningError, TuningProblem
-from jaxobs.tuning.search import SearchResult, batch_objective, evaluate, random_search
+from jaxobs.tuning.search import SearchResult, batch_objective, evaluate, evaluator, random_search
 from jaxobs.tuning.settings import (
     CANDIDATE_CHUNK,
     DEFAULT_OPTIMIZER,
@@ -35,6 +43,8 @@ from jaxobs.tuning.tuner import Tuner, TunerState, make_tuner
 
 __all__ = [
     "cholesky_covariance",
+    "cholesky_labels",
+    "log_labels",
     "cholesky_parameters",
     "unit_interval",
     "unit_interval_parameters",
@@ -64,4 +74,5 @@ __all__ = [
     "random_search",
     "batch_objective",
     "evaluate",
+    "evaluator",
 ]

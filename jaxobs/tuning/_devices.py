@@ -72,18 +72,24 @@ def host(tree):
     return jax.tree.map(np.asarray, tree)
 
 
-def compile_spread(build: Callable, batch, first, what: str, hint: str, alone=None):
-    """``(compiled, placed batch, mesh, seconds)``: ``build(mesh) -> fn(first, batch)`` compiled over every device
-    of every process (:func:`jit_over`, memory checked by :func:`jaxobs._resources.compile_checked`), in ``seconds``
-    (logged at INFO level). ``alone``: the program already lowered for a single device, used when there is one."""
+def compile_over(build: Callable, batch, first, what: str, hint: str, alone=None):
+    """``(compiled, placed batch, mesh)``: ``build(mesh) -> fn(first, batch)`` compiled over every device of every
+    process (:func:`jit_over`, memory checked by :func:`jaxobs._resources.compile_checked`), not logged. ``alone``:
+    the program already lowered for a single device, used when there is one."""
     mesh = mesh_of(jax.devices())
     placed = place(batch, mesh)
+    if mesh is None and alone is not None:
+        lowered = alone
+    else:
+        lowered = jit_over(build(mesh), mesh, (False, True)).lower(host(first), placed)
+    return compile_checked(lowered, what, hint=hint), placed, mesh
+
+
+def compile_spread(build: Callable, batch, first, what: str, hint: str):
+    """:func:`compile_over`, logged at INFO level (:class:`jaxobs._jit.Compiling`): ``(compiled, placed batch, mesh,
+    seconds)``."""
     with Compiling(logger, what) as timer:
-        if mesh is None and alone is not None:
-            lowered = alone
-        else:
-            lowered = jit_over(build(mesh), mesh, (False, True)).lower(host(first), placed)
-        compiled = compile_checked(lowered, what, hint=hint)
+        compiled, placed, mesh = compile_over(build, batch, first, what, hint)
     return compiled, placed, mesh, timer.seconds
 
 

@@ -116,7 +116,10 @@ def _meta_problem(meta) -> str | None:
             return problem
         if lane["scale"] <= 0 or lane["stopped"] not in STOPS:
             return f"{where[:-1]} holds a scale or stop reason out of range"
-        if len(lane["history"]) != lane["evaluations"] or not all(isinstance(h, dict) for h in lane["history"]):
+        ended = meta["phase"] == "done" and not lane["history"]  # the last of several rounds: its starts are finished
+        if (len(lane["history"]) != lane["evaluations"] and not ended) or not all(
+            isinstance(h, dict) for h in lane["history"]
+        ):
             return f"{where}history has {len(lane['history'])} entries for {lane['evaluations']} evaluations"
     return None
 

@@ -3,10 +3,12 @@ of every process, checkpoints and resumption, Ctrl-C and stalls, progress, the s
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -17,7 +19,7 @@ from jaxobs._distributed import agree, from_process_0, json_from_process_0
 from jaxobs._jit import Compiling
 from jaxobs._resources import Interrupted, InterruptWatch, Stalled
 from jaxobs.tuning import checkpoints
-from jaxobs.tuning._devices import compile_spread, host, spread, stall_watch, watched
+from jaxobs.tuning._devices import compile_over, host, spread, stall_watch, watched
 from jaxobs.tuning.box import Layout
 from jaxobs.tuning.problem import CheckpointError, TuningError, TuningProblem
 from jaxobs.tuning.settings import TuneSettings, gradient_mode
@@ -88,9 +90,10 @@ class TuneResult(NamedTuple):
         included
       starts: one :class:`StartResult` per starting point (of every round)
       screened: candidates scored by the exploration (screening and CMA-ES, ``theta0`` included), 0 without one
-      compile_seconds: this call's tracing and compiling of the tuner's step (part of ``seconds``)
+      compile_seconds: the tracing and compiling of the tuner's step over all runs that built this checkpoint (part
+        of ``seconds``; a rerun of a finished checkpoint compiles nothing and adds no time to either)
       curve: the best design so far, one dict each time it improved: seconds, rollouts, objective, diverged, theta
-        (the anytime performance of this call)
+        (the anytime performance of this call; empty when the checkpoint had nothing left to do)
     """
 
     theta: dict
@@ -212,26 +215,45 @@ def _loaded(record: dict, theta0: dict) -> StartResult:
     return StartResult(**record)
 
 
+class _Fingerprint(NamedTuple):
+    """What a checkpoint was written for: ``setup`` (all but the step's program), ``recorded`` (with the program:
+    the checkpoint's, or this run's once :meth:`_Job.adopt` has it) and ``program`` (``text -> fingerprint``)."""
+
+    setup: str
+    recorded: str | None
+    program: Callable
+
+
 class _Job:
     """One call of :func:`tune`: its checkpoint, the starts' histories, the starts of finished rounds, the anytime
     curve and the clock."""
 
-    def __init__(self, problem, settings, path, fingerprint: str, meta: dict, histories: list, clock: float):
+    def __init__(self, problem, settings, path, fingerprint, meta: dict, histories: list, clock: float):
         self.problem, self.settings, self.path, self.fingerprint = problem, settings, path, fingerprint
         self.batch, self.count = problem.batch_size(problem.train), len(histories)
         self.writer = jax.process_index() == 0  # process 0 alone writes the checkpoint; the others follow it
-        self.histories = histories
+        self.histories, self.resumed, self.lowered = histories, False, None
         self.finished = [_loaded(r, problem.theta0) for r in meta.get("finished", [])]
         self.previous, self.clock, self.curve = meta["seconds"], clock, []
+        self.compiled = meta.get("compile_seconds", 0.0)  # by the runs that built the checkpoint
         self.named = (lambda k: f"start {k}: ") if self.count > 1 else (lambda k: "")
 
+    def adopt(self, lowered) -> None:
+        """Take ``lowered`` (the step for one device) as the run's program: :class:`CheckpointError` when the
+        checkpoint was written by another one."""
+        program, recorded = self.fingerprint.program(lowered.as_text()), self.fingerprint.recorded
+        _agree(None if recorded in (None, program) else _other_run(self.path), bytes.fromhex(program))
+        self.lowered, self.fingerprint = lowered, self.fingerprint._replace(recorded=program)
+
     def seconds(self) -> float:
-        return self.previous + time.perf_counter() - self.clock
+        """Wall time of every run of the checkpoint (this one's until it stops)."""
+        return self.previous + (0.0 if self.clock is None else time.perf_counter() - self.clock)
 
     def save(self, state: TunerState) -> None:
         if self.path is not None and self.writer:
             trees, meta = checkpoints.split(host(state), self.histories, self.seconds())
-            meta.update(finished=[_stored(r) for r in self.finished], fingerprint=self.fingerprint)
+            meta.update(finished=[_stored(r) for r in self.finished], fingerprint=self.fingerprint.recorded,
+                        setup=self.fingerprint.setup, compile_seconds=self.compiled)  # fmt: skip
             checkpoints.save(self.path, trees, meta)
 
     def rollouts(self, state: TunerState) -> int:
@@ -291,7 +313,7 @@ class _Job:
             rejections = int(np.max(state.lanes.rejections))
             raise TuningError(f"{rejections} consecutive steps rejected (last: {last}); lower the learning rate")
 
-    def result(self, state: TunerState, timed_out: bool, compile_seconds: float) -> TuneResult:
+    def result(self, state: TunerState, timed_out: bool) -> TuneResult:
         starts = self.starts(state)
         best = self.best(state)
         history, stopped = [], "steps"
@@ -304,7 +326,7 @@ class _Job:
             raise TuningError("the time budget ended the run before any design was evaluated")
         return TuneResult(best[0], best[2], history, "time" if timed_out else stopped,
                           sum(s.evaluations for s in starts), self.rollouts(state), best[1], self.seconds(), starts,
-                          int(state.scored), compile_seconds, tuple(self.curve))  # fmt: skip
+                          int(state.scored), self.compiled, tuple(self.curve))  # fmt: skip
 
 
 def _label(state: TunerState, population: int) -> str:
@@ -314,7 +336,7 @@ def _label(state: TunerState, population: int) -> str:
     return f"candidates {int(state.scored)} to {int(state.scored) + population - 1}" if phase < POLISH else "restart"
 
 
-def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar, compile_seconds: float):
+def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar):
     """Step until the tuner is done or a step ends after ``seconds``; ``(state, timed_out)``. Ctrl-C or a stall
     save the checkpoint of the last completed step and raise."""
     settings = job.settings
@@ -424,28 +446,48 @@ def tune(
 
     settings.validate()
     clock = time.perf_counter()
-    initial, batch = _initial(problem, initial), problem.batch_size(problem.train)
+    initial = _initial(problem, initial)
     tuner = make_tuner(settings, penalty=problem.penalty)
     state = tuner.init(problem.theta0, box=problem.search_box, starts=initial)
-    job, state, lowered, what, tracing = _open(problem, tuner, state, checkpoint, tag, initial, clock)
-    step, train, _, compile_seconds = compile_spread(
-        lambda mesh: lambda s, plants: tuner.step(s, spread(problem.losses, mesh, batch), plants),
-        problem.train, state, what, hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
-        alone=lowered,
-    )  # fmt: skip
-    compile_seconds += tracing
-    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compile_seconds:.1f} s)",
+    job, state = _open(problem, settings, state, checkpoint, tag, initial, clock)
+    state = _resumed(settings, state)
+    if job.resumed and (int(state.phase) == DONE or (seconds is not None and job.previous >= seconds)):
+        logger.info("%s holds a finished run: nothing to compute", job.path)  # its times and result, unchanged
+        job.clock = None
+        return job.result(state, int(state.phase) != DONE)
+    if job.fingerprint.recorded is not None:  # a checkpoint read
+        logger.info("resuming from %s at step %d", job.path, int(state.iteration))
+    step, train, compiled = _compiled(problem, tuner, job, state)
+    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compiled:.1f} s)",
                disable=not (progress and job.writer), unit="step")  # fmt: skip
-    state, timed_out = _loop(job, step, _resumed(settings, state), train, seconds, bar, compile_seconds)
+    state, timed_out = _loop(job, step, state, train, seconds, bar)
+    job.previous, job.clock = job.seconds(), None  # the checkpoint and the result hold the same time
     job.save(state)
-    return job.result(state, timed_out, compile_seconds)
+    return job.result(state, timed_out)
 
 
-def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str, initial, clock: float):
-    """``(job, state, lowered step, what, tracing seconds)``: the run's checkpoint read (process 0) and agreed on by
-    every process, the step traced for one device (its program is the checkpoint's fingerprint)."""
-    settings, batch = tuner.settings, problem.batch_size(problem.train)
-    count, mode = int(state.lanes.scale.shape[0]), gradient_mode(tuner.settings, problem.theta0)
+def _compiled(problem: TuningProblem, tuner, job: _Job, state: TunerState):
+    """``(step, placed training batch, seconds)``: the tuner's step traced (its program checked against the
+    checkpoint's, :meth:`_Job.adopt`) and compiled over every device, said in one line pair."""
+    batch, count = problem.batch_size(problem.train), int(state.lanes.scale.shape[0])
+    mode = gradient_mode(tuner.settings, problem.theta0)
+    what = f"the tuner's step ({batch} training rollouts at {count} start(s), {mode}-mode gradient)"
+    with Compiling(logger, what) as compiling:
+        job.adopt(_lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode))
+        step, train, _ = compile_over(
+            lambda mesh: lambda s, plants: tuner.step(s, spread(problem.losses, mesh, batch), plants),
+            problem.train, state, what, alone=job.lowered,
+            hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
+        )  # fmt: skip
+    job.compiled += compiling.seconds
+    return step, train, compiling.seconds
+
+
+def _open(problem: TuningProblem, settings: TuneSettings, state: TunerState, checkpoint, tag: str, initial,
+          clock: float):  # fmt: skip
+    """``(job, state)``: the run's checkpoint read (process 0) and agreed on by every process, checked against the
+    fingerprint of everything but the step's program (:meth:`_Job.adopt` checks that)."""
+    count = int(state.lanes.scale.shape[0])
     path = Path(checkpoint) if checkpoint is not None else None
     trees, meta = checkpoints.split(host(state), [[] for _ in range(count)], 0.0)
     resume, error = jax.process_index() == 0 and path is not None and path.exists(), None
@@ -455,17 +497,21 @@ def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str
         except CheckpointError as exc:
             error = exc
     _agree(error)
-    what = f"one evaluation of the {batch} training rollouts at {count} start(s), {mode}-mode gradient"
-    with Compiling(logger, f"{what} (tracing)") as tracing:
-        lowered = _lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode)
     given = "" if initial is None else json.dumps([_as_numpy(t) for t in initial])  # the starting points, if given
-    fingerprint = checkpoints.fingerprint(problem.theta0, settings, tag + given, lowered.as_text(), problem.train)
-    if resume and meta.pop("fingerprint") != fingerprint:
-        error = CheckpointError(f"{path}: written for a different problem, program or settings; delete it (or use "
-                                "another --out) to start over")  # fmt: skip
-    _agree(error, bytes.fromhex(fingerprint))
+    setup = checkpoints.fingerprint(problem.theta0, settings, tag + given, "", problem.train)
+    if resume and meta.get("setup", setup) != setup:
+        error = _other_run(path)
+    _agree(error, bytes.fromhex(setup))
     meta = json_from_process_0(meta)
     state, histories = checkpoints.join(host(from_process_0(trees)), meta, settings.steps)
-    if resume:
-        logger.info("resuming from %s at step %d", path, int(state.iteration))
-    return _Job(problem, settings, path, fingerprint, meta, histories, clock), state, lowered, what, tracing.seconds
+    resumed = bool(from_process_0(np.bool_(resume)))
+    program = functools.partial(checkpoints.fingerprint, problem.theta0, settings, tag + given, train=problem.train)
+    recorded = meta.get("fingerprint") if resumed else None
+    job = _Job(problem, settings, path, _Fingerprint(setup, recorded, program), meta, histories, clock)
+    job.resumed = resumed and "setup" in meta  # a checkpoint of an older jaxobs is checked against the program too
+    return job, state
+
+
+def _other_run(path: Path) -> CheckpointError:
+    return CheckpointError(f"{path}: written for a different problem, program or settings; delete it (or use another "
+                           "--out) to start over")  # fmt: skip

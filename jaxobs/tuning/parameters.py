@@ -8,7 +8,8 @@ import jax.numpy as jnp
 
 from jaxobs import _checks
 
-__all__ = ["cholesky_covariance", "cholesky_parameters", "unit_interval", "unit_interval_parameters"]
+__all__ = ["cholesky_covariance", "cholesky_parameters", "unit_interval", "unit_interval_parameters", "log_labels",
+           "cholesky_labels"]  # fmt: skip
 
 
 def cholesky_covariance(raw):
@@ -51,3 +52,23 @@ def unit_interval_parameters(value):
     if bool(jnp.any((value <= 0) | (value >= 1))):
         raise ValueError(f"value must lie strictly between 0 and 1, got {value}")
     return jnp.log(value) - jnp.log1p(-value)
+
+
+def log_labels(symbol: str, names) -> list[str]:
+    """Labels of log variances, one per name: ``log_labels("Q", ["F", "p"]) == ["log Q[F]", "log Q[p]"]`` (the
+    diagonal of ``symbol``, for :attr:`jaxobs.tuning.TuningProblem.labels`)."""
+    return [f"log {symbol}[{name}]" for name in names]
+
+
+def cholesky_labels(symbol: str, names) -> list[list[str]]:
+    """Labels of :func:`cholesky_covariance`'s ``raw`` (n, n) for a covariance ``symbol`` over ``names``: the
+    diagonal ``log scale {symbol}[a]``, below it ``coupling {symbol}[a, b]``, above it ``unused``.
+
+    Example:
+      >>> from jaxobs.tuning import cholesky_labels
+      >>> cholesky_labels("R", ["x", "y"])
+      [['log scale R[x]', 'unused'], ['coupling R[y, x]', 'log scale R[y]']]
+    """
+    names = list(names)
+    return [[f"log scale {symbol}[{a}]" if i == j else f"coupling {symbol}[{a}, {b}]" if j < i else "unused"
+             for j, b in enumerate(names)] for i, a in enumerate(names)]  # fmt: skip

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 
 __all__ = ["TuningProblem", "TuningError", "CheckpointError"]
 
@@ -30,6 +31,10 @@ class TuningProblem:
         or one per output) and optionally ``setpoint`` (scalar or (k,)).
       search_box: optional ``{name: (low, high)}`` bounds of ``theta`` (arrays of each entry's shape) for the
         tuner's exploration and :func:`jaxobs.tuning.random_search`; entries with ``low == high`` stay fixed.
+      labels: optional ``{name: strings shaped like theta0[name]}``, what each component is (e.g. ``"log Q[F]"``;
+        :func:`jaxobs.tuning.log_labels`, :func:`jaxobs.tuning.cholesky_labels`) for reports and figures; default
+        ``name[i]`` by flat index (:meth:`component_labels`).
+      loss_unit: the unit of a plant's loss (e.g. ``"N²"``), for the axes of reports; empty: not given.
     """
 
     theta0: dict
@@ -40,6 +45,27 @@ class TuningProblem:
     describe: Callable = dict
     responses: Callable | None = None
     search_box: dict | None = None
+    labels: dict | None = None
+    loss_unit: str = ""
+
+    def __post_init__(self):  # noqa: D105
+        if self.labels is None:
+            return
+        if set(self.labels) != set(self.theta0):
+            raise ValueError(f"labels must name theta0's entries {sorted(self.theta0)}, got {sorted(self.labels)}")
+        for name, labels in self.labels.items():
+            if np.shape(labels) != np.shape(self.theta0[name]):
+                raise ValueError(f"labels[{name!r}] must have theta0[{name!r}]'s shape "
+                                 f"{np.shape(self.theta0[name])}, got {np.shape(labels)}")  # fmt: skip
+
+    def component_labels(self) -> dict[str, list[str]]:
+        """``{name: [label per component of theta0[name], flattened]}``: :attr:`labels`, or ``name`` for a scalar
+        and ``name[i]`` by flat index."""
+        if self.labels is not None:
+            return {name: [str(x) for x in np.ravel(self.labels[name])] for name in self.theta0}
+        sizes = {name: int(np.size(value)) for name, value in self.theta0.items()}
+        return {name: [name] if not np.shape(self.theta0[name]) else [f"{name}[{i}]" for i in range(size)]
+                for name, size in sizes.items()}  # fmt: skip
 
     def batch_size(self, batch) -> int:
         """Number of plants in ``batch`` (the leading axis of its leaves)."""

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -21,7 +22,9 @@ from jaxobs.tuning.objectives import cvar, make_objective, penalise_diverged, ro
 from jaxobs.tuning.problem import TuningProblem
 from jaxobs.tuning.settings import CANDIDATE_CHUNK, TuneSettings
 
-__all__ = ["SearchResult", "batch_objective", "random_search", "evaluate"]
+__all__ = ["SearchResult", "batch_objective", "random_search", "evaluate", "evaluator"]
+
+logger = logging.getLogger("jaxobs.tuning")
 
 
 def _strong(theta: dict) -> dict:
@@ -51,7 +54,7 @@ def batch_objective(problem: TuningProblem, settings: TuneSettings = TuneSetting
     score, train, _, _ = compile_spread(
         lambda mesh: safe_vmap(make_objective(spread(problem.losses, mesh, size), settings, problem.penalty),
                                (0, None)),
-        problem.train, chunk, f"{CANDIDATE_CHUNK} candidates' {size} training rollouts each",
+        problem.train, chunk, f"the scorer of {CANDIDATE_CHUNK} candidates a call ({size} training rollouts each)",
         hint="use fewer training plants",
     )  # fmt: skip
 
@@ -155,23 +158,31 @@ def random_search(
         elapsed += [now] * keep
         bar.update(keep)
     bar.close()
+    logger.info("random search: %d candidates scored in %.1f s, best objective %.4g", len(candidates), elapsed[-1],
+                min(values))  # fmt: skip
     return SearchResult(candidates, np.asarray(values), np.asarray(diverged), np.asarray(elapsed),
                         problem.batch_size(problem.train))  # fmt: skip
 
 
-def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneSettings(), batch=None) -> dict:
-    """Scores of ``theta`` on ``batch`` (default: the held-out plants): ``objective`` (the robust objective of
-    ``settings`` with diverged plants penalised as in training: finite unless every plant diverges),
-    ``finite_fraction`` (of plants that did not diverge), ``diverged`` (their count), the ``mean``, ``cvar`` and
-    quantiles ``p50``, ``p90``, ``max`` of the finite losses (None if there are none), and ``losses`` (inf where
-    diverged)."""
+def evaluator(problem: TuningProblem, settings: TuneSettings = TuneSettings(), batch=None) -> Callable:
+    """``theta -> scores`` of :func:`evaluate`, its rollouts compiled once for every design it scores."""
     batch = problem.heldout if batch is None else batch
     size = problem.batch_size(batch)
     compiled, placed, _, _ = compile_spread(
-        lambda mesh: spread(problem.losses, mesh, size), batch, theta,
-        f"the {size} rollouts of an evaluation", hint="use fewer plants",
+        lambda mesh: spread(problem.losses, mesh, size), batch, problem.theta0,
+        f"a design's {size} rollouts for its scores", hint="use fewer plants",
     )  # fmt: skip
-    losses, diverged = host(compiled(host(theta), placed))
+
+    dtypes = {k: np.asarray(v).dtype for k, v in problem.theta0.items()}
+
+    def scores(theta: dict) -> dict:
+        losses, diverged = host(compiled({k: np.asarray(v, dtypes[k]) for k, v in theta.items()}, placed))
+        return _scores(losses, diverged, settings)
+
+    return scores
+
+
+def _scores(losses, diverged, settings: TuneSettings) -> dict:
     failed = np.asarray(diverged) | ~np.isfinite(losses)
     penalised = penalise_diverged(jnp.asarray(losses), jnp.asarray(failed), settings.divergence_factor)
     finite = losses[~failed]
@@ -188,3 +199,12 @@ def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneS
         **stats,
         "losses": np.where(failed, np.inf, losses),
     }
+
+
+def evaluate(problem: TuningProblem, theta: dict, settings: TuneSettings = TuneSettings(), batch=None) -> dict:
+    """Scores of ``theta`` on ``batch`` (default: the held-out plants): ``objective`` (the robust objective of
+    ``settings`` with diverged plants penalised as in training: finite unless every plant diverges),
+    ``finite_fraction`` (of plants that did not diverge), ``diverged`` (their count), the ``mean``, ``cvar`` and
+    quantiles ``p50``, ``p90``, ``max`` of the finite losses (None if there are none), and ``losses`` (inf where
+    diverged). Several designs: :func:`evaluator` compiles the rollouts once for all."""
+    return evaluator(problem, settings, batch)(theta)

@@ -70,6 +70,8 @@ EXEMPT = {
     "jaxobs.mjx.estimation.state_size": "static: the sizes nq + nv + na and 2 nv + na of a model",
     "jaxobs.mjx.manifold.sensor_ids": "static: the ids of named sensors of a model",
     "jaxobs.mjx.manifold.tangent_rows": "static: the sensordata rows and tangent sizes of named sensors",
+    "jaxobs.mjx.manifold.tangent_names": "static: a name per tangent entry of a model's state",
+    "jaxobs.mjx.manifold.sensor_units": "static: the SI unit per tangent entry of named sensors",
     "jaxobs.mjx.manifold.state_manifold": "loader: the Manifold of a model's state, from its joint layout",
     "jaxobs.mjx.manifold.sensor_manifold": "loader: the Manifold of named sensors' readings, from the model",
     "jaxobs.mjx.robot.steady_activation": "loader: the resting activations of an MJCF under a constant control "

@@ -110,3 +110,16 @@ def test_jit_and_vmap(model):
     np.testing.assert_allclose(jax.jit(jax.vmap(space.difference))(a, b), looped, atol=1e-13)
     with pytest.raises(ValueError, match=r"delta must be a tangent vector of shape \(23,\)"):
         space.retract(a[0], np.zeros(22))
+
+
+def test_names_and_units_of_the_tangent_entries(model):
+    """A name per tangent entry of the state (a free joint's six, a ball joint's three, a filtered actuator's
+    activation) and the SI unit per tangent entry of the sensors (a quaternion reading's rotation in rad)."""
+    names = manifold.tangent_names(model)
+    dofs = ["joint0.x", "joint0.y", "joint0.z", "joint0.rx", "joint0.ry", "joint0.rz", "ball.rx", "ball.ry", "ball.rz",
+            "hinge", "slide"]  # fmt: skip
+    assert names == [*dofs, *(f"{d} vel" for d in dofs), "actuator0 act"]
+    assert len(names) == manifold.state_manifold(model).dim
+    assert manifold.sensor_units(model) == ["rad"] * 3 + ["rad"] + ["rad"] * 3 + ["rad/s"] * 3
+    slide = mujoco.MjModel.from_xml_string(XML.replace('type="hinge"', 'type="slide"'))
+    assert manifold.sensor_units(slide, ["angle"]) == ["m"]

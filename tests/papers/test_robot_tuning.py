@@ -131,10 +131,12 @@ def test_reverse_mode_tunes_an_mjcf_whose_solver_settings_are_left_as_written(tm
 def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_line(tmp_path, capsys):
     """The free flyer's config builds (its tangent-space linearisation is compiled once: slow under load, so only
     the checks before it run here): a tracked quaternion sensor counts 3 entries, one reference each; an integrator
-    MJX lacks ends the command with one line naming it."""
+    MJX lacks ends the command with one line naming it, and RK4 (which MJX differentiates wrongly at a free joint)
+    with one naming the joint and the file."""
     flyer = (ROOT / "tuning/free_flyer.toml").read_text()
     implicit = (ROBOTS / "free_flyer.xml").read_text().replace('integrator="Euler"', 'integrator="implicit"')
     (tmp_path / "implicit.xml").write_text(implicit)
+    (tmp_path / "rk4.xml").write_text(implicit.replace('integrator="implicit"', 'integrator="RK4"'))
     for toml, message in (
         (flyer.replace('tracked = ["position_fix", "star_tracker", "shoulder_angle", "elbow_angle"]',
                        'tracked = ["position_fix", "star_tracker", "shoulder_angle"]'),
@@ -144,6 +146,9 @@ def test_a_floating_base_with_an_imu_is_a_tuning_problem_and_mjx_limits_are_one_
          "(16), got 9"),
         (flyer.replace('mjcf = "free_flyer.xml"', f'mjcf = "{tmp_path / "implicit.xml"}"'),
          "cannot simulate this model: mjtIntegrator.mjINT_IMPLICIT"),
+        (flyer.replace('mjcf = "free_flyer.xml"', f'mjcf = "{tmp_path / "rk4.xml"}"'),
+         f"robot.mjcf {tmp_path / 'rk4.xml'}: linearize: MJX's RK4 integrator differentiates the rotation of the free "
+         "joint 'root' wrongly"),
     ):  # fmt: skip
         path = tmp_path / "flyer.toml"
         path.write_text(toml)

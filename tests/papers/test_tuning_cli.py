@@ -80,7 +80,8 @@ def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
     """Every parameterisation runs the shipped strategy without its CMA-ES (16 screened candidates, then 2 starts;
     tests/tuning covers the exploration) end to end on the MJX
     plant (the random search, which runs as long as the tuning, with the diagonal one only); a rerun with more steps
-    continues the checkpoint; a corrupt checkpoint is an error (exit 2), not a silent restart."""
+    continues the checkpoint, and a rerun of the finished one leaves tuned.json as it was (no compilation, no new
+    time); a corrupt checkpoint is an error (exit 2), not a silent restart. The report names the parameters."""
     config, out = tmp_path / "small.toml", tmp_path / "out"
     search = str(kind == "diagonal").lower()
     config.write_text(SMALL.format(kind=kind, steps=3, search=search))
@@ -98,12 +99,20 @@ def test_small_run_writes_its_outputs_and_resumes(tmp_path, capsys, kind):
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
     for name in ("loss_curves.png", "parameters.png", "responses.png", "checkpoint.npz", "report.md"):
         assert (out / name).stat().st_size > 0
-    assert f"| tuned | {summary['heldout']['tuned']['objective']:.4g} |" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert f"| tuned | {summary['heldout']['tuned']['objective']:.4g} |" in report
+    first = {"diagonal": "log Q[F]", "cholesky": "log scale Q[F]", "structured": "log q_plant"}[kind]
+    assert summary["parameter_labels"]["log_r"] == ["log R[force]"] and f"| {first} |" in report
     config.write_text(SMALL.format(kind=kind, steps=5, search=search))
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0
     resumed = json.loads((out / "tuned.json").read_text())
     assert resumed["evaluations"] > 6 and all(start["evaluations"] <= 5 for start in resumed["starts"])
     assert resumed["train_objective"]["hand-set"] == summary["train_objective"]["hand-set"]
+    assert resumed["compile_seconds_tune"] > summary["compile_seconds_tune"]  # both runs' compilations
+    capsys.readouterr()
+    assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 0  # finished: a rerun
+    assert "holds a finished run" in capsys.readouterr().err
+    assert json.loads((out / "tuned.json").read_text()) == resumed  # no compilation, no new time, no new scores
     (out / "checkpoint.npz").write_bytes(b"garbage")
     capsys.readouterr()
     assert main(["tune", "--config", str(config), "--out", str(out), "--no-progress"]) == 2
@@ -233,7 +242,8 @@ def _held(objective, reduction):
 
 def test_the_report_gives_held_out_results_run_time_and_baselines():
     """report.md, from tuned.json's content: a row per design (the change against the hand-set design), the time
-    split into compiling and computing, a row per start, the random search's budgets, the settings, the figures."""
+    split into compiling and computing, a row per start, the random search's budgets, the parameters by name (a log
+    entry's change as its factor), the settings, the figures."""
     summary = {
         "problem": "force-1dof", "stopped": "converged", "converged": True, "evaluations": 12, "rollouts": 3000,
         "seconds_tune": 30.0, "compile_seconds_tune": 10.0, "train_objective": {"hand-set": 4.0, "tuned": 1.0},
@@ -245,8 +255,13 @@ def test_the_report_gives_held_out_results_run_time_and_baselines():
         "random_search": {"spread": 2.0, "candidates": 50, "tuned_position_in_box": {},
                           "equal time": {"candidates": 40, "rollouts": 160, "seconds": 29.0, "train_objective": 3.0}},
         "figures": ["loss_curves.png"],
+        "parameter_labels": {"log_q": ["log Q[F]", "log Q[p]"], "c": ["coupling"]},
+        "theta": {"hand-set": {"log_q": [0.0, -2.0], "c": [0.5]}, "tuned": {"log_q": [0.0, -2.0 + np.log(2.0)],
+                                                                           "c": [0.25]}},
     }  # fmt: skip
     report = markdown_report(summary)
+    assert "| log Q[F] | 0 | 0 | x 1 |" in report and "| log Q[p] | -2 | -1.307 | x 2 |" in report
+    assert "| coupling | 0.5 | 0.25 | -0.25 |" in report
     assert "| hand-set | 5 | - | 100 % | 5 | 10 | 15 |" in report
     assert "| tuned | 2 | -60.0 % | 100 % | 2 | 4 | 6 |" in report
     assert "| random search, equal time | 4 | -20.0 % |" in report

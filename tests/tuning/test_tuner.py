@@ -68,9 +68,10 @@ def test_the_tuners_step_eagerly_and_under_vmap():
     np.testing.assert_allclose(runs.search.best.row[1], jax.jit(run)(keys[1]).search.best.row, rtol=1e-12)
 
 
-def test_tune_explores_restarts_and_keeps_a_curve():
+def test_tune_explores_restarts_and_keeps_a_curve(tmp_path):
     """The job over the same tuner: the global minimum from a start in a local basin, the starts of both rounds
-    (theta0 and distinct others), an anytime curve that only falls; a wall-time budget stops it early."""
+    (theta0 and distinct others), an anytime curve that only falls; a wall-time budget stops it early, and a rerun
+    past the budget computes nothing."""
     problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
     result = tune(problem, SETTINGS, progress=False)
     np.testing.assert_allclose(result.theta["x"], [1.1, 1.1], atol=1e-6)
@@ -80,11 +81,15 @@ def test_tune_explores_restarts_and_keeps_a_curve():
     assert np.min(np.abs(firsts[:, None] - firsts[None]).max(-1)[np.triu_indices(3, 1)]) >= 0.1 * 10
     objectives = [p["objective"] for p in result.curve]
     assert objectives == sorted(objectives, reverse=True) and objectives[-1] == result.objective
-    short = tune(problem, SETTINGS, progress=False, seconds=1e-9)
+    short = tune(problem, SETTINGS, progress=False, seconds=1e-9, checkpoint=tmp_path / "short.npz")
     assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
+    again = tune(problem, SETTINGS, progress=False, seconds=1e-9, checkpoint=tmp_path / "short.npz")  # past its budget
+    assert (again.stopped, again.seconds, again.screened, again.curve) == ("time", short.seconds, short.screened, ())
 
 
-def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch):
+def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch, caplog):
+    """Ctrl-C mid-exploration, then a rerun: the same result as a run without a break; a rerun of the finished
+    checkpoint compiles nothing and reports the same times (tuning and compiling, over both runs)."""
     problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
     settings = dataclasses.replace(SETTINGS, checkpoint_every=1)
     straight = tune(problem, settings, progress=False)
@@ -106,3 +111,10 @@ def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, 
     for got, want in zip(resumed.starts, straight.starts, strict=True):
         assert (got.stopped, got.evaluations) == (want.stopped, want.evaluations)
         np.testing.assert_array_equal(got.theta["x"], want.theta["x"])
+    caplog.clear()
+    with caplog.at_level("INFO", logger="jaxobs.tuning"):
+        rerun = tune(problem, settings, checkpoint=path, progress=False)  # finished: nothing to compile or compute
+    assert "holds a finished run" in caplog.text and "compiling" not in caplog.text
+    assert (rerun.seconds, rerun.compile_seconds, rerun.objective) == (resumed.seconds, resumed.compile_seconds,
+                                                                       resumed.objective)  # fmt: skip
+    assert rerun.compile_seconds > 0 and rerun.curve == () and len(rerun.starts) == len(resumed.starts)

@@ -41,7 +41,9 @@ from jaxobs.stability import closed_loop_matrix, spectral_radius
 from jaxobs.tuning import (
     TuningProblem,
     cholesky_covariance,
+    cholesky_labels,
     cholesky_parameters,
+    log_labels,
     unit_interval,
     unit_interval_parameters,
 )
@@ -163,6 +165,23 @@ def initial_theta(config: dict, plant: StateSpace) -> dict:
         "logit_c": unit_interval_parameters(c),
         "log_r": log_r,
     }
+
+
+def state_names(n_plant: int, order: int) -> list[str]:
+    """The AOB's states: the force, its rate, the commands in flight (oldest first) and the active states."""
+    delays = [f"u(k-{n_plant - 2 - i})" for i in range(n_plant - 2)]
+    return ["F", "dF/dt", *delays, *(["p"] if order == 1 else [f"p{i + 1}" for i in range(order)])]
+
+
+def parameter_labels(theta: dict, n_plant: int, order: int) -> dict:
+    """What each entry of ``theta`` is, under its parameterisation (:attr:`jaxobs.tuning.TuningProblem.labels`)."""
+    names = state_names(n_plant, order)
+    labels = {"log_r": "log R[force]"}
+    if "log_q" in theta:
+        return {**labels, "log_q": log_labels("Q", names)}
+    if "q_cholesky" in theta:
+        return {**labels, "q_cholesky": cholesky_labels("Q", names)}
+    return {**labels, "log_q_plant": "log q_plant", "log_sigma2": "log sigma² (active)", "logit_c": "logit c"}
 
 
 def covariances(theta: dict, n_plant: int, order: int):
@@ -308,6 +327,8 @@ def build_problem(config: dict) -> TuningProblem:
         describe=functools.partial(describe, **design),
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
+        labels=parameter_labels(theta0, plant.n_states, order),
+        loss_unit="N²",
     )
 
 

@@ -28,7 +28,7 @@ from jaxobs.papers.tuning_config import (
     search_box,
 )
 from jaxobs.plants import force_plant
-from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_parameters
+from jaxobs.tuning import TuningProblem, cholesky_covariance, cholesky_labels, cholesky_parameters
 
 __all__ = ["NAME", "DEFAULT_CONFIG", "CONFIG_NOTES", "PROBLEM", "build_problem"]
 
@@ -190,10 +190,13 @@ def build_problem(config: dict) -> TuningProblem:
             "ylabel": "f_x (N)",
         }
 
+    dofs = [c6.DOF_NAMES[i] for i in tuned]
     if cholesky:
         theta0 = {"q_cholesky": cholesky_parameters(hand_set_q[np.ix_(tuned, block, block)])}
+        labels = {"q_cholesky": [cholesky_labels(f"Q_{dof}", ("F", "dF/dt", "p")) for dof in dofs]}
     else:
         theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
+        labels = {"log_q_active": [f"log Q_{dof}[p]" for dof in dofs]}
     return TuningProblem(
         theta0=theta0,
         losses=losses,
@@ -202,6 +205,8 @@ def build_problem(config: dict) -> TuningProblem:
         describe=describe,
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
+        labels=labels,
+        loss_unit="sensor noise variances",
     )
 
 

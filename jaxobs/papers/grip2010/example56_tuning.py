@@ -106,7 +106,7 @@ def build_problem(config: dict) -> TuningProblem:
             "output": traces(theta, keys),
             "desired": theta_samples[::stride],
             "labels": [f"noise key {k[0]:08x}{k[1]:08x}" for k in np.asarray(keys).tolist()],
-            "ylabel": "theta_hat (modular)",
+            "ylabel": "theta_hat, modular (dimensionless)",
         }
 
     def describe(theta):
@@ -126,6 +126,8 @@ def build_problem(config: dict) -> TuningProblem:
         describe=describe,
         responses=responses,
         search_box=search_box(config, theta0),
+        labels={"log_K_phi": "log K_phi", "log_adaptation_gain": "log adaptation gain"},
+        loss_unit="dimensionless, as theta",
     )
 
 

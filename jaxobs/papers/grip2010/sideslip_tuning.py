@@ -187,6 +187,8 @@ def build_problem(config: dict) -> TuningProblem:
         describe=describe,
         responses=responses,
         search_box=search_box(config, theta0),
+        labels={"log_gains": [f"log {n}" for n in GAINS], "log_thresholds": [f"log {n}" for n in THRESHOLDS]},
+        loss_unit="deg",
     )
 
 
