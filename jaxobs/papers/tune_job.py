@@ -313,7 +313,7 @@ def _plot_loss_curves(result, search, scores, objective: str, unit: str, out: Pa
         ax.set_xscale("log")  # the search runs for as long as the tuning took: often many more rollouts
     else:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set(xlabel="rollouts per training plant (screening, then gradient steps)",
+    ax.set(xlabel="rollouts per training plant (screening, CMA-ES, then gradient steps)",
            ylabel=f"training objective\n({objective} of the per-plant losses{_unit(unit)})", yscale="log",
            title="Training objective")  # fmt: skip
     ax.legend(fontsize=8)
