@@ -32,11 +32,14 @@ from jaxobs.tuning.tuner import (
     NEXT,
     NONE_YET,
     POLISH,
+    PROGRAM_OF,
+    PROGRAMS,
     REJECTED,
     ROSE,
     RUNNING,
     SCREEN,
     STOPS,
+    Tuner,
     TunerState,
     make_tuner,
 )
@@ -314,7 +317,7 @@ def _label(state: TunerState, population: int) -> str:
     return f"candidates {int(state.scored)} to {int(state.scored) + population - 1}" if phase < POLISH else "restart"
 
 
-def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar, compile_seconds: float):
+def _loop(job: _Job, programs: _Programs, state: TunerState, seconds: float | None, bar):
     """Step until the tuner is done or a step ends after ``seconds``; ``(state, timed_out)``. Ctrl-C or a stall
     save the checkpoint of the last completed step and raise."""
     settings = job.settings
@@ -327,7 +330,8 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar,
                 start, label = time.perf_counter(), _label(state, settings.population)
                 if int(state.phase) == NEXT:
                     job.finish_round(state)
-                new, info = watched(stall, label, step, state, train)
+                step = programs.get(state)
+                new, info = watched(stall, label, step, state, programs.train)
                 job.observe(state, new, info, time.perf_counter() - start)
                 state, polished = new, int(info.phase) == POLISH
                 if polished:
@@ -424,26 +428,48 @@ def tune(
 
     settings.validate()
     clock = time.perf_counter()
-    initial, batch = _initial(problem, initial), problem.batch_size(problem.train)
+    initial = _initial(problem, initial)
     tuner = make_tuner(settings, penalty=problem.penalty)
     state = tuner.init(problem.theta0, box=problem.search_box, starts=initial)
-    job, state, lowered, what, tracing = _open(problem, tuner, state, checkpoint, tag, initial, clock)
-    step, train, _, compile_seconds = compile_spread(
-        lambda mesh: lambda s, plants: tuner.step(s, spread(problem.losses, mesh, batch), plants),
-        problem.train, state, what, hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
-        alone=lowered,
-    )  # fmt: skip
-    compile_seconds += tracing
-    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compile_seconds:.1f} s)",
+    job, state, programs = _open(problem, tuner, state, checkpoint, tag, initial, clock)
+    state = _resumed(settings, state)
+    if int(state.phase) != DONE:
+        programs.get(state)  # the first phase's program (the exploration's, usually); the others when first needed
+    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {programs.seconds:.1f} s)",
                disable=not (progress and job.writer), unit="step")  # fmt: skip
-    state, timed_out = _loop(job, step, _resumed(settings, state), train, seconds, bar, compile_seconds)
+    state, timed_out = _loop(job, programs, state, seconds, bar)
     job.save(state)
-    return job.result(state, timed_out, compile_seconds)
+    return job.result(state, timed_out, programs.seconds)
+
+
+class _Programs:
+    """The tuner's step as its programs (:data:`jaxobs.tuning.tuner.PROGRAMS`) over every device of every process,
+    each compiled when a state first needs it (:meth:`get`); ``seconds``: their tracing and compiling so far,
+    ``train``: the training batch as placed for them."""
+
+    HINT = "use fewer training plants or starts, shorter rollouts or a gradient_horizon"
+
+    def __init__(self, problem: TuningProblem, tuner: Tuner, lowered: list, what: str, tracing: float):
+        self.problem, self.tuner, self.lowered, self.what = problem, tuner, lowered, what
+        self.seconds, self.compiled, self.train = tracing, {}, problem.train
+
+    def get(self, state: TunerState):
+        """The compiled step of ``state``'s phase."""
+        program = PROGRAM_OF[int(state.phase)]
+        if program not in self.compiled:
+            losses, size = self.problem.losses, self.problem.batch_size(self.problem.train)
+            self.compiled[program], self.train, _, seconds = compile_spread(
+                lambda mesh: lambda s, plants: self.tuner.step_in(program, s, spread(losses, mesh, size), plants),
+                self.problem.train, state, f"{self.what}: the {PROGRAMS[program]} program", hint=self.HINT,
+                alone=self.lowered[program],
+            )  # fmt: skip
+            self.seconds += seconds
+        return self.compiled[program]
 
 
 def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str, initial, clock: float):
-    """``(job, state, lowered step, what, tracing seconds)``: the run's checkpoint read (process 0) and agreed on by
-    every process, the step traced for one device (its program is the checkpoint's fingerprint)."""
+    """``(job, state, programs)``: the run's checkpoint read (process 0) and agreed on by every process, the step's
+    programs traced for one device (their text is the checkpoint's fingerprint) and not yet compiled."""
     settings, batch = tuner.settings, problem.batch_size(problem.train)
     count, mode = int(state.lanes.scale.shape[0]), gradient_mode(tuner.settings, problem.theta0)
     path = Path(checkpoint) if checkpoint is not None else None
@@ -457,9 +483,11 @@ def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str
     _agree(error)
     what = f"one evaluation of the {batch} training rollouts at {count} start(s), {mode}-mode gradient"
     with Compiling(logger, f"{what} (tracing)") as tracing:
-        lowered = _lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode)
+        lowered = [_lower(lambda s, plants, i=i: tuner.step_in(i, s, problem.losses, plants), state, problem.train,
+                          mode) for i in range(len(PROGRAMS))]  # fmt: skip
     given = "" if initial is None else json.dumps([_as_numpy(t) for t in initial])  # the starting points, if given
-    fingerprint = checkpoints.fingerprint(problem.theta0, settings, tag + given, lowered.as_text(), problem.train)
+    text = "".join(program.as_text() for program in lowered)
+    fingerprint = checkpoints.fingerprint(problem.theta0, settings, tag + given, text, problem.train)
     if resume and meta.pop("fingerprint") != fingerprint:
         error = CheckpointError(f"{path}: written for a different problem, program or settings; delete it (or use "
                                 "another --out) to start over")  # fmt: skip
@@ -468,4 +496,5 @@ def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str
     state, histories = checkpoints.join(host(from_process_0(trees)), meta, settings.steps)
     if resume:
         logger.info("resuming from %s at step %d", path, int(state.iteration))
-    return _Job(problem, settings, path, fingerprint, meta, histories, clock), state, lowered, what, tracing.seconds
+    job = _Job(problem, settings, path, fingerprint, meta, histories, clock)
+    return job, state, _Programs(problem, tuner, lowered, what, tracing.seconds)

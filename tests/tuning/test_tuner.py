@@ -1,5 +1,5 @@
-"""jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps,
-an eager step equals a jitted one, vmap over keys equals separate runs), its exploration finding the global basin of
+"""jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps
+and the loop of each phase's program alone), an eager step equals a jitted one, vmap over keys equals separate runs), its exploration finding the global basin of
 a multimodal objective, restarts with distinct starts, the box kept, and the job's wall-time budget, anytime curve
 and resumption mid-exploration."""
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxobs.tuning import TuneSettings, TuningProblem, job, lbfgs, make_tuner, tune
-from jaxobs.tuning.tuner import PHASES
+from jaxobs.tuning.tuner import PHASES, PROGRAM_OF, PROGRAMS
 
 
 def losses(theta, targets):
@@ -42,6 +42,11 @@ def test_the_tuner_runs_inside_a_users_jitted_loop():
     for _ in range(100):
         state = step(state)[0]
     jax.tree.map(np.testing.assert_array_equal, state, final)  # the scan is the loop of jitted steps
+    programs = [jax.jit(lambda s, i=i: tuner.step_in(i, s, losses, TARGETS)) for i in range(len(PROGRAMS))]
+    state = start
+    for _ in range(100):  # and the loop of the phases' programs alone (a job's, tune's)
+        state = programs[PROGRAM_OF[int(state.phase)]](state)[0]
+    jax.tree.map(np.testing.assert_array_equal, state, final)
     low, high = final.search.low, final.search.high  # bounded: every start stayed in the box
     assert bool(jnp.all((final.best["x"] >= low) & (final.best["x"] <= high)))
     scored = np.asarray(infos.scored)[np.asarray(infos.phase) < 2]
