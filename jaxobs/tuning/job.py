@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -434,7 +435,8 @@ def tune(
     job, state, programs = _open(problem, tuner, state, checkpoint, tag, initial, clock)
     state = _resumed(settings, state)
     if int(state.phase) != DONE:
-        programs.get(state)  # the first phase's program (the exploration's, usually); the others when first needed
+        programs.get(state)  # the first phase's program (the exploration's, usually)
+        programs.ahead(state)  # the others in the background, or when first needed
     bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {programs.seconds:.1f} s)",
                disable=not (progress and job.writer), unit="step")  # fmt: skip
     state, timed_out = _loop(job, programs, state, seconds, bar)
@@ -444,27 +446,46 @@ def tune(
 
 class _Programs:
     """The tuner's step as its programs (:data:`jaxobs.tuning.tuner.PROGRAMS`) over every device of every process,
-    each compiled when a state first needs it (:meth:`get`); ``seconds``: their tracing and compiling so far,
-    ``train``: the training batch as placed for them."""
+    each compiled when a state first needs it (:meth:`get`) or ahead of it in a background thread (:meth:`ahead`);
+    ``seconds``: their tracing and compiling so far, ``train``: the training batch as placed for them."""
 
     HINT = "use fewer training plants or starts, shorter rollouts or a gradient_horizon"
 
     def __init__(self, problem: TuningProblem, tuner: Tuner, lowered: list, what: str, tracing: float):
         self.problem, self.tuner, self.lowered, self.what = problem, tuner, lowered, what
-        self.seconds, self.compiled, self.train = tracing, {}, problem.train
+        self.seconds, self.compiled, self.pending, self.train = tracing, {}, {}, problem.train
 
     def get(self, state: TunerState):
         """The compiled step of ``state``'s phase."""
         program = PROGRAM_OF[int(state.phase)]
+        if program in self.pending:
+            self.compiled[program] = self.pending.pop(program).result()
         if program not in self.compiled:
-            losses, size = self.problem.losses, self.problem.batch_size(self.problem.train)
-            self.compiled[program], self.train, _, seconds = compile_spread(
-                lambda mesh: lambda s, plants: self.tuner.step_in(program, s, spread(losses, mesh, size), plants),
-                self.problem.train, state, f"{self.what}: the {PROGRAMS[program]} program", hint=self.HINT,
-                alone=self.lowered[program],
-            )  # fmt: skip
-            self.seconds += seconds
+            self.compiled[program] = self._compile(program, state)
         return self.compiled[program]
+
+    def ahead(self, state: TunerState) -> None:
+        """Compile the programs after ``state``'s phase (the polish's, between rounds) in a background thread while
+        the first one runs: on one device, where the programs are already lowered (a mesh's are lowered when
+        compiled, in the thread of the call, with its JAX configuration)."""
+        first, rounds = PROGRAM_OF[int(state.phase)], self.tuner.settings.rounds
+        later = [p for p in (PROGRAMS.index("polish"), PROGRAMS.index("advance")) if p > first]
+        later = [p for p in later if p != PROGRAMS.index("advance") or rounds > 1]
+        if len(jax.devices()) > 1 or not later:
+            return
+        pool = ThreadPoolExecutor(1, thread_name_prefix="jaxobs-compile")
+        self.pending.update({p: pool.submit(self._compile, p, state) for p in later if p not in self.compiled})
+        pool.shutdown(wait=False)  # the thread ends once the programs are compiled
+
+    def _compile(self, program: int, state: TunerState):
+        losses, size = self.problem.losses, self.problem.batch_size(self.problem.train)
+        compiled, self.train, _, seconds = compile_spread(
+            lambda mesh: lambda s, plants: self.tuner.step_in(program, s, spread(losses, mesh, size), plants),
+            self.problem.train, state, f"{self.what}: the {PROGRAMS[program]} program", hint=self.HINT,
+            alone=self.lowered[program],
+        )  # fmt: skip
+        self.seconds += seconds
+        return compiled
 
 
 def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str, initial, clock: float):
