@@ -613,8 +613,9 @@ def _polish(settings, optimizer, layout, objective, state: TunerState, batch):
             moved = {k: jnp.clip(v, low[k], high[k]) for k, v in moved.items()}
         search = search._replace(best=_improve(search.best, layout.flat_rows(state.theta), values, counts, better))
     stopped = jnp.all(lanes.stopped != RUNNING)
+    again = settings.rounds > 1 and search is not None  # without a search (given starts, no box): one round
     state = state._replace(
-        phase=jnp.where(stopped, NEXT if settings.rounds > 1 else DONE, POLISH).astype(jnp.int32),
+        phase=jnp.where(stopped, NEXT if again else DONE, POLISH).astype(jnp.int32),
         iteration=state.iteration + 1, polished=state.polished + 1, lanes=lanes,
         theta=_where(accepted | rejected, moved, state.theta), anchor=anchor, update=update,
         best=_where(better, state.theta, state.best), opt=_where(accepted, opt, state.opt), search=search,

@@ -89,6 +89,15 @@ def test_tune_explores_restarts_and_keeps_a_curve():
     assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
 
 
+def test_given_starts_without_a_box_polish_one_round():
+    """``initial`` starts and no box (nothing to restart the CMA-ES in): one round, then done, whatever ``rounds``."""
+    problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
+    settings = dataclasses.replace(SETTINGS, bounded=False, starts=1)
+    result = tune(problem, settings, initial=[{"x": jnp.array([1.0, 1.0])}], progress=False)
+    assert len(result.starts) == 1 and result.screened == 0
+    np.testing.assert_allclose(result.theta["x"], [1.1, 1.1], atol=1e-6)
+
+
 def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch):
     problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
     settings = dataclasses.replace(SETTINGS, checkpoint_every=1)
