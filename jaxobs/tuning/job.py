@@ -458,10 +458,10 @@ class _Programs:
     def get(self, state: TunerState):
         """The compiled step of ``state``'s phase."""
         program = PROGRAM_OF[int(state.phase)]
-        if program in self.pending:
-            self.compiled[program] = self.pending.pop(program).result()
         if program not in self.compiled:
-            self.compiled[program] = self._compile(program, state)
+            pending = self.pending.pop(program, None)
+            self.compiled[program], seconds = pending.result() if pending else self._compile(program, state)
+            self.seconds += seconds
         return self.compiled[program]
 
     def ahead(self, state: TunerState) -> None:
@@ -478,14 +478,14 @@ class _Programs:
         pool.shutdown(wait=False)  # the thread ends once the programs are compiled
 
     def _compile(self, program: int, state: TunerState):
+        """``(compiled program, seconds)``."""
         losses, size = self.problem.losses, self.problem.batch_size(self.problem.train)
         compiled, self.train, _, seconds = compile_spread(
             lambda mesh: lambda s, plants: self.tuner.step_in(program, s, spread(losses, mesh, size), plants),
             self.problem.train, state, f"{self.what}: the {PROGRAMS[program]} program", hint=self.HINT,
             alone=self.lowered[program],
         )  # fmt: skip
-        self.seconds += seconds
-        return compiled
+        return compiled, seconds
 
 
 def _open(problem: TuningProblem, tuner, state: TunerState, checkpoint, tag: str, initial, clock: float):
