@@ -335,7 +335,8 @@ def markdown_table(results: dict) -> str:
                  "boundary for some seed. Load average during the runs: " + "; ".join(
                      f"{label}: {_load_range(r)}" for label, r in results.items()) + ". Rollouts: " + "; ".join(
                      f"{label}: " + ", ".join(f"{m} {v['rollouts']:.3g}" for m, v in summarise(r).items())
-                     for label, r in results.items()) + ". First design scored (median s): " + "; ".join(
+                     for label, r in results.items()) + ". First design scored (median s; for runs saved without "
+                 "the time, the anytime grid's first time with one): " + "; ".join(
                      f"{label}: " + ", ".join(f"{m} {v['first']:.3g}" for m, v in summarise(r).items())
                      for label, r in results.items()))  # fmt: skip
     return "\n".join(lines)
