@@ -1,5 +1,5 @@
 """jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps and
-the loop of each phase's program alone), an eager step equals a jitted one, vmap over keys equals separate runs), its
+the loop of each phase's program alone, an eager step equals a jitted one, vmap over keys equals separate runs), its
 exploration finding the global basin of a multimodal objective, restarts with distinct starts, the box kept, and the
 job's wall-time budget, anytime curve and resumption mid-exploration."""
 
