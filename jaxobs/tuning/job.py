@@ -9,6 +9,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -34,11 +35,14 @@ from jaxobs.tuning.tuner import (
     NEXT,
     NONE_YET,
     POLISH,
+    PROGRAM_OF,
+    PROGRAMS,
     REJECTED,
     ROSE,
     RUNNING,
     SCREEN,
     STOPS,
+    Tuner,
     TunerState,
     make_tuner,
 )
@@ -232,18 +236,18 @@ class _Job:
         self.problem, self.settings, self.path, self.fingerprint = problem, settings, path, fingerprint
         self.batch, self.count = problem.batch_size(problem.train), len(histories)
         self.writer = jax.process_index() == 0  # process 0 alone writes the checkpoint; the others follow it
-        self.histories, self.resumed, self.lowered = histories, False, None
+        self.histories, self.resumed = histories, False
         self.finished = [_loaded(r, problem.theta0) for r in meta.get("finished", [])]
         self.previous, self.clock, self.curve = meta["seconds"], clock, []
         self.compiled = meta.get("compile_seconds", 0.0)  # by the runs that built the checkpoint
         self.named = (lambda k: f"start {k}: ") if self.count > 1 else (lambda k: "")
 
-    def adopt(self, lowered) -> None:
-        """Take ``lowered`` (the step for one device) as the run's program: :class:`CheckpointError` when the
-        checkpoint was written by another one."""
-        program, recorded = self.fingerprint.program(lowered.as_text()), self.fingerprint.recorded
+    def adopt(self, text: str) -> None:
+        """Take ``text`` (the step's programs for one device, lowered) as the run's program: :class:`CheckpointError`
+        when the checkpoint was written by another one."""
+        program, recorded = self.fingerprint.program(text), self.fingerprint.recorded
         _agree(None if recorded in (None, program) else _other_run(self.path), bytes.fromhex(program))
-        self.lowered, self.fingerprint = lowered, self.fingerprint._replace(recorded=program)
+        self.fingerprint = self.fingerprint._replace(recorded=program)
 
     def seconds(self) -> float:
         """Wall time of every run of the checkpoint (this one's until it stops)."""
@@ -336,7 +340,7 @@ def _label(state: TunerState, population: int) -> str:
     return f"candidates {int(state.scored)} to {int(state.scored) + population - 1}" if phase < POLISH else "restart"
 
 
-def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar):
+def _loop(job: _Job, programs: _Programs, state: TunerState, seconds: float | None, bar):
     """Step until the tuner is done or a step ends after ``seconds``; ``(state, timed_out)``. Ctrl-C or a stall
     save the checkpoint of the last completed step and raise."""
     settings = job.settings
@@ -349,7 +353,8 @@ def _loop(job: _Job, step, state: TunerState, train, seconds: float | None, bar)
                 start, label = time.perf_counter(), _label(state, settings.population)
                 if int(state.phase) == NEXT:
                     job.finish_round(state)
-                new, info = watched(stall, label, step, state, train)
+                step = programs.get(state)
+                new, info = watched(stall, label, step, state, programs.train)
                 job.observe(state, new, info, time.perf_counter() - start)
                 state, polished = new, int(info.phase) == POLISH
                 if polished:
@@ -457,30 +462,69 @@ def tune(
         return job.result(state, int(state.phase) != DONE)
     if job.fingerprint.recorded is not None:  # a checkpoint read
         logger.info("resuming from %s at step %d", job.path, int(state.iteration))
-    step, train, compiled = _compiled(problem, tuner, job, state)
-    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {compiled:.1f} s)",
+    programs = _Programs(problem, tuner, job, state)
+    programs.get(state)  # the first phase's program (the exploration's, usually)
+    programs.ahead(state)  # the others in the background, or when first needed
+    bar = tqdm(total=settings.steps, initial=int(state.iteration), desc=f"tune (compiled in {job.compiled:.1f} s)",
                disable=not (progress and job.writer), unit="step")  # fmt: skip
-    state, timed_out = _loop(job, step, state, train, seconds, bar)
+    state, timed_out = _loop(job, programs, state, seconds, bar)
     job.previous, job.clock = job.seconds(), None  # the checkpoint and the result hold the same time
     job.save(state)
     return job.result(state, timed_out)
 
 
-def _compiled(problem: TuningProblem, tuner, job: _Job, state: TunerState):
-    """``(step, placed training batch, seconds)``: the tuner's step traced (its program checked against the
-    checkpoint's, :meth:`_Job.adopt`) and compiled over every device, said in one line pair."""
-    batch, count = problem.batch_size(problem.train), int(state.lanes.scale.shape[0])
-    mode = gradient_mode(tuner.settings, problem.theta0)
-    what = f"the tuner's step ({batch} training rollouts at {count} start(s), {mode}-mode gradient)"
-    with Compiling(logger, what) as compiling:
-        job.adopt(_lower(lambda s, plants: tuner.step(s, problem.losses, plants), state, problem.train, mode))
-        step, train, _ = compile_over(
-            lambda mesh: lambda s, plants: tuner.step(s, spread(problem.losses, mesh, batch), plants),
-            problem.train, state, what, alone=job.lowered,
-            hint="use fewer training plants or starts, shorter rollouts or a gradient_horizon",
-        )  # fmt: skip
-    job.compiled += compiling.seconds
-    return step, train, compiling.seconds
+class _Programs:
+    """The tuner's step as its programs (:data:`jaxobs.tuning.tuner.PROGRAMS`), traced for one device at once (their
+    text checked against the checkpoint's, :meth:`_Job.adopt`) and compiled over every device of every process
+    when a state first needs one (:meth:`get`) or ahead of it in a background thread (:meth:`ahead`); each
+    tracing and compiling said in one line pair and added to ``job.compiled``; ``train``: the training batch as
+    placed for them."""
+
+    HINT = "use fewer training plants or starts, shorter rollouts or a gradient_horizon"
+
+    def __init__(self, problem: TuningProblem, tuner: Tuner, job: _Job, state: TunerState):
+        self.problem, self.tuner, self.job, self.train = problem, tuner, job, problem.train
+        batch, count = problem.batch_size(problem.train), int(state.lanes.scale.shape[0])
+        mode = gradient_mode(tuner.settings, problem.theta0)
+        self.what = f"the tuner's step ({batch} training rollouts at {count} start(s), {mode}-mode gradient)"
+        with Compiling(logger, f"{self.what}: tracing its {len(PROGRAMS)} programs") as tracing:
+            self.lowered = [_lower(lambda s, plants, i=i: tuner.step_in(i, s, problem.losses, plants), state,
+                                   problem.train, mode) for i in range(len(PROGRAMS))]  # fmt: skip
+            job.adopt("".join(program.as_text() for program in self.lowered))
+        job.compiled += tracing.seconds
+        self.compiled, self.pending = {}, {}
+
+    def get(self, state: TunerState):
+        """The compiled step of ``state``'s phase."""
+        program = PROGRAM_OF[int(state.phase)]
+        if program not in self.compiled:
+            pending = self.pending.pop(program, None)
+            self.compiled[program], seconds = pending.result() if pending else self._compile(program, state)
+            self.job.compiled += seconds
+        return self.compiled[program]
+
+    def ahead(self, state: TunerState) -> None:
+        """Compile the programs after ``state``'s phase (the polish's, between rounds) in a background thread while
+        the first one runs: on one device, where the programs are already lowered (a mesh's are lowered when
+        compiled, in the thread of the call, with its JAX configuration)."""
+        first, rounds = PROGRAM_OF[int(state.phase)], self.tuner.settings.rounds
+        later = [p for p in (PROGRAMS.index("polish"), PROGRAMS.index("advance")) if p > first]
+        later = [p for p in later if p != PROGRAMS.index("advance") or rounds > 1]
+        if len(jax.devices()) > 1 or not later:
+            return
+        pool = ThreadPoolExecutor(1, thread_name_prefix="jaxobs-compile")
+        self.pending.update({p: pool.submit(self._compile, p, state) for p in later if p not in self.compiled})
+        pool.shutdown(wait=False)  # the thread ends once the programs are compiled
+
+    def _compile(self, program: int, state: TunerState):
+        """``(compiled program, seconds)``."""
+        losses, size, what = self.problem.losses, self.problem.batch_size(self.problem.train), self.what
+        with Compiling(logger, f"{what}: the {PROGRAMS[program]} program") as compiling:
+            compiled, self.train, _ = compile_over(
+                lambda mesh: lambda s, plants: self.tuner.step_in(program, s, spread(losses, mesh, size), plants),
+                self.problem.train, state, what, hint=self.HINT, alone=self.lowered[program],
+            )  # fmt: skip
+        return compiled, compiling.seconds
 
 
 def _open(problem: TuningProblem, settings: TuneSettings, state: TunerState, checkpoint, tag: str, initial,

@@ -29,12 +29,18 @@ from jaxobs.tuning.box import Layout, search_box
 from jaxobs.tuning.objectives import make_objective, value_and_grad
 from jaxobs.tuning.settings import TuneSettings, gradient_mode
 
-__all__ = ["PHASES", "STOPS", "REASONS", "NONE_YET", "Lanes", "Best", "Archive", "Search", "TunerState",
-           "StepInfo", "Tuner", "make_tuner", "best_start"]  # fmt: skip
+__all__ = ["PHASES", "PROGRAMS", "PROGRAM_OF", "STOPS", "REASONS", "NONE_YET", "Lanes", "Best", "Archive", "Search",
+           "TunerState", "StepInfo", "Tuner", "make_tuner", "best_start"]  # fmt: skip
 
 PHASES = ("screen", "evolve", "polish", "next", "done")
 """``TunerState.phase`` indexes this: exploring (screen, evolve), polishing, between rounds (next), done."""
 SCREEN, EVOLVE, POLISH, NEXT, DONE = range(len(PHASES))
+
+PROGRAMS = ("explore", "polish", "advance", "done")
+"""The step's programs: :meth:`Tuner.step` branches between them, :meth:`Tuner.step_in` runs one alone (a job
+compiles each when it is first needed: the exploration's first results do not wait for the polish's compilation)."""
+PROGRAM_OF = (0, 0, 1, 2, 3)
+"""The program (index into :data:`PROGRAMS`) of each phase (index into :data:`PHASES`): screen and evolve share one."""
 
 STOPS = ("", "converged", "steps", "rejected", "failed")
 """``Lanes.stopped`` indexes this: still running (""), the plateau rule, the cap, rejections, a failed start."""
@@ -167,11 +173,15 @@ class StepInfo(NamedTuple):
 
 class Tuner(NamedTuple):
     """A tuner (:func:`make_tuner`): ``init(theta0, key=None, *, box=None, starts=None) -> TunerState`` and
-    ``step(state, losses, batch) -> (TunerState, StepInfo)``, pure; ``settings`` its :class:`TuneSettings`."""
+    ``step(state, losses, batch) -> (TunerState, StepInfo)``, pure; ``settings`` its :class:`TuneSettings`;
+    ``step_in(program, state, losses, batch)``: the step of a state whose phase belongs to ``program`` (index into
+    :data:`PROGRAMS`, ``PROGRAM_OF[state.phase]``), that program alone: the same result as ``step``, in a smaller
+    program to compile."""
 
     init: Callable
     step: Callable
     settings: TuneSettings
+    step_in: Callable
 
 
 def make_tuner(settings: TuneSettings = TuneSettings(), *, penalty: Callable | None = None) -> Tuner:
@@ -205,7 +215,8 @@ def make_tuner(settings: TuneSettings = TuneSettings(), *, penalty: Callable | N
     settings.validate()
     optimizer = optax.with_extra_args_support(settings.optimizer)
     init = jax.jit(functools.partial(_init, settings, optimizer))  # one program, not an eager operation at a time
-    return Tuner(init, functools.partial(_step, settings, optimizer, penalty), settings)
+    step, step_in = (functools.partial(f, settings, optimizer, penalty) for f in (_step, _step_in))
+    return Tuner(init, step, settings, step_in)
 
 
 # --------------------------------------------------------------------------------------------
@@ -293,7 +304,9 @@ def _init(settings: TuneSettings, optimizer, theta0: dict, key=None, *, box=None
 # step
 
 
-def _step(settings: TuneSettings, optimizer, penalty, state: TunerState, losses: Callable, batch):
+def _programs(settings: TuneSettings, optimizer, penalty, state: TunerState, losses: Callable) -> list:
+    """The step's programs in :data:`PROGRAMS` order, each ``(state, batch) -> (state, info)`` returning the state
+    with the dtypes it was given."""
     objective = make_objective(losses, settings, penalty)
     layout = Layout({k: v[0] for k, v in state.theta.items()})
     count = jax.tree.leaves(state.theta)[0].shape[0]
@@ -304,15 +317,23 @@ def _step(settings: TuneSettings, optimizer, penalty, state: TunerState, losses:
     if state.search is None:  # polish only, one round
         explore = advance = done
 
-    def typed(branch):  # every branch returns the state with the dtypes it was given
+    def typed(branch):
         def run(state, batch):
             new, info = branch(state, batch)
             return jax.tree.map(lambda a, b: jnp.asarray(a).astype(b.dtype), new, state), info
 
         return run
 
-    branch = jnp.asarray([0, 0, 1, 2, 3], jnp.int32)[state.phase]  # screen and evolve share one program
-    return jax.lax.switch(branch, [typed(b) for b in (explore, polish, advance, done)], state, batch)
+    return [typed(b) for b in (explore, polish, advance, done)]
+
+
+def _step(settings: TuneSettings, optimizer, penalty, state: TunerState, losses: Callable, batch):
+    programs = _programs(settings, optimizer, penalty, state, losses)
+    return jax.lax.switch(jnp.asarray(PROGRAM_OF, jnp.int32)[state.phase], programs, state, batch)
+
+
+def _step_in(settings: TuneSettings, optimizer, penalty, program: int, state: TunerState, losses: Callable, batch):
+    return _programs(settings, optimizer, penalty, state, losses)[program](state, batch)
 
 
 def _info(phase, population: int, count: int, dtype, **given) -> StepInfo:
@@ -595,8 +616,9 @@ def _polish(settings, optimizer, layout, objective, state: TunerState, batch):
             moved = {k: jnp.clip(v, low[k], high[k]) for k, v in moved.items()}
         search = search._replace(best=_improve(search.best, layout.flat_rows(state.theta), values, counts, better))
     stopped = jnp.all(lanes.stopped != RUNNING)
+    again = settings.rounds > 1 and search is not None  # without a search (given starts, no box): one round
     state = state._replace(
-        phase=jnp.where(stopped, NEXT if settings.rounds > 1 else DONE, POLISH).astype(jnp.int32),
+        phase=jnp.where(stopped, NEXT if again else DONE, POLISH).astype(jnp.int32),
         iteration=state.iteration + 1, polished=state.polished + 1, lanes=lanes,
         theta=_where(accepted | rejected, moved, state.theta), anchor=anchor, update=update,
         best=_where(better, state.theta, state.best), opt=_where(accepted, opt, state.opt), search=search,

@@ -1,7 +1,7 @@
-"""jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps,
-an eager step equals a jitted one, vmap over keys equals separate runs), its exploration finding the global basin of
-a multimodal objective, restarts with distinct starts, the box kept, and the job's wall-time budget, anytime curve
-and resumption mid-exploration."""
+"""jaxobs.tuning.tuner: the pure tuner inside a user's jitted loop (a scan equals the Python loop of jitted steps and
+the loop of each phase's program alone, an eager step equals a jitted one, vmap over keys equals separate runs), its
+exploration finding the global basin of a multimodal objective, restarts with distinct starts, the box kept, and the
+job's wall-time budget, anytime curve and resumption mid-exploration."""
 
 import dataclasses
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxobs.tuning import TuneSettings, TuningProblem, job, lbfgs, make_tuner, tune
-from jaxobs.tuning.tuner import PHASES
+from jaxobs.tuning.tuner import PHASES, PROGRAM_OF, PROGRAMS
 
 
 def losses(theta, targets):
@@ -42,6 +42,11 @@ def test_the_tuner_runs_inside_a_users_jitted_loop():
     for _ in range(100):
         state = step(state)[0]
     jax.tree.map(np.testing.assert_array_equal, state, final)  # the scan is the loop of jitted steps
+    programs = [jax.jit(lambda s, i=i: tuner.step_in(i, s, losses, TARGETS)) for i in range(len(PROGRAMS))]
+    state = start
+    for _ in range(100):  # and the loop of the phases' programs alone (a job's, tune's)
+        state = programs[PROGRAM_OF[int(state.phase)]](state)[0]
+    jax.tree.map(np.testing.assert_array_equal, state, final)
     low, high = final.search.low, final.search.high  # bounded: every start stayed in the box
     assert bool(jnp.all((final.best["x"] >= low) & (final.best["x"] <= high)))
     scored = np.asarray(infos.scored)[np.asarray(infos.phase) < 2]
@@ -85,6 +90,15 @@ def test_tune_explores_restarts_and_keeps_a_curve(tmp_path):
     assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
     again = tune(problem, SETTINGS, progress=False, seconds=1e-9, checkpoint=tmp_path / "short.npz")  # past its budget
     assert (again.stopped, again.seconds, again.screened, again.curve) == ("time", short.seconds, short.screened, ())
+
+
+def test_given_starts_without_a_box_polish_one_round():
+    """``initial`` starts and no box (nothing to restart the CMA-ES in): one round, then done, whatever ``rounds``."""
+    problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
+    settings = dataclasses.replace(SETTINGS, bounded=False, starts=1)
+    result = tune(problem, settings, initial=[{"x": jnp.array([1.0, 1.0])}], progress=False)
+    assert len(result.starts) == 1 and result.screened == 0
+    np.testing.assert_allclose(result.theta["x"], [1.1, 1.1], atol=1e-6)
 
 
 def test_a_run_interrupted_while_exploring_resumes_to_the_same_result(tmp_path, monkeypatch, caplog):
