@@ -470,15 +470,17 @@ def test_k_starts_run_together_as_k_separate_runs(caplog):
 def test_screening_seeds_the_starts_with_the_best_candidates(caplog):
     """15 Sobol candidates in theta0 +- 2 and theta0 are scored in batched calls; theta0 and the 3 best are the
     starts, in order; every start converges to the mean optimum (2); the rollouts count the screening. With one
-    start, the best candidate is it. What compiles is said once (tracing and compiling), with its seconds, which the
-    result keeps."""
+    start, the best candidate is it. What compiles is said once per program (the tracing of all of them, then each
+    program as it is compiled), with its seconds, which the result keeps."""
     s = TuneSettings(optax.adam(0.3), steps=60, patience=5, starts=4, screening=15, seed=3)
     problem = quadratic_problem(start=-1.0)
     with caplog.at_level(logging.INFO, logger="jaxobs.tuning"):
         result = tune(problem, s, progress=False)
     assert "screened 16 candidates" in caplog.text
     what = "the tuner's step (3 training rollouts at 4 start(s), forward-mode gradient)"
-    assert caplog.text.count(f"compiling {what} ...") == 1 and caplog.text.count(f"compiled {what} in ") == 1
+    for program in ("tracing its 4 programs", "the explore program", "the polish program"):
+        assert caplog.text.count(f"compiling {what}: {program} ...") == 1, program
+        assert caplog.text.count(f"compiled {what}: {program} in ") == 1, program
     assert 0 < result.compile_seconds <= result.seconds
     firsts = [r.history[0]["objective"] for r in result.starts]
     assert float(result.starts[0].start["x"]) == -1.0 and firsts[0] == pytest.approx(29 / 3)  # theta0
