@@ -332,14 +332,20 @@ def markdown_table(results: dict) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("\nMedian [min, max] over the seeds of the held-out objective of each method's best design at the "
                  "budget (gain schedules: (J - J*) / J*); bold: lowest median, or within 1 % of it; ‡: on the box's "
-                 "boundary for some seed. Load average during the runs: " + "; ".join(
-                     f"{label}: {_load_range(r)}" for label, r in results.items()) + ". Rollouts: " + "; ".join(
-                     f"{label}: " + ", ".join(f"{m} {v['rollouts']:.3g}" for m, v in summarise(r).items())
-                     for label, r in results.items()) + ". First design scored (median s; for runs saved without "
-                 "the time, the anytime grid's first time with one): " + "; ".join(
-                     f"{label}: " + ", ".join(f"{m} {v['first']:.3g}" for m, v in summarise(r).items())
-                     for label, r in results.items()))  # fmt: skip
+                 "boundary for some seed. The runs' load, rollouts and first designs: with the anytime curves of "
+                 "docs/tuning-results.md.")  # fmt: skip
     return "\n".join(lines)
+
+
+def run_notes(results: dict) -> str:
+    """The runs' machine load, each method's rollouts and the time of its first scored design, per problem."""
+    return ("Load average during the runs: " + "; ".join(
+                f"{label}: {_load_range(r)}" for label, r in results.items()) + ". Rollouts: " + "; ".join(
+                f"{label}: " + ", ".join(f"{m} {v['rollouts']:.3g}" for m, v in summarise(r).items())
+                for label, r in results.items()) + ". First design scored (median s; for runs saved without "
+            "the time, the anytime grid's first time with one): " + "; ".join(
+                f"{label}: " + ", ".join(f"{m} {v['first']:.3g}" for m, v in summarise(r).items())
+                for label, r in results.items()) + ".")  # fmt: skip
 
 
 def anytime_table(results: dict, shares=(0.1, 0.25, 0.5, 1.0)) -> str:
@@ -445,7 +451,8 @@ def main(argv: list[str] | None = None) -> dict:
             if label in ORACLES or not widened:
                 break
             spread = 2 * results[label]["spread"]
-    tables = {"tuning-table": markdown_table(results), "tuning-anytime": anytime_table(results)}
+    tables = {"tuning-table": markdown_table(results),
+              "tuning-anytime": anytime_table(results) + "\n\n" + run_notes(results)}  # fmt: skip
     print(tables["tuning-table"])
     (out / "tuning.md").write_text("\n\n".join(tables.values()) + "\n")
     plot(results, out / "tuning.png")
