@@ -188,11 +188,7 @@ def make_vehicle_ekf(
         raise ValueError(f"switching must be SwitchingParams (jaxobs.vehicle.make_switching), got {kind}")
     _checks.shape("r_std", r_std, (4,), "one per measurement (a_x, a_y, r', v_x,ref)")
     _checks.shape("P0_diag", P0_diag, (8,), "one variance per state")
-    mu_bounds = jnp.asarray(mu_bounds, dtype)
-    _checks.shape("mu_bounds", mu_bounds, (2,), "(lo, hi)")
-    _checks.positive("mu_bounds", mu_bounds)
-    if _checks.is_concrete(mu_bounds) and not bool(mu_bounds[0] < mu_bounds[1]):
-        raise ValueError(f"mu_bounds must have lo < hi, got {mu_bounds.tolist()}")
+    mu_bounds = _checked_mu_bounds(mu_bounds, dtype)
     Q = dt * jnp.diag(jnp.concatenate([jnp.full(2, q_v**2, dtype), jnp.zeros(3, dtype), q_d**2, q_mu[:1] ** 2]))
     x0 = jnp.zeros(8, dtype).at[0].set(vx0).at[4].set(mu0)
     constants = tuple(jnp.asarray(c, dtype) for c in (dt, tau, mu_attraction, mu0))
@@ -200,6 +196,16 @@ def make_vehicle_ekf(
     h = Partial(_measurement, vehicle, mu_bounds, jnp.zeros(N_SENSORS, dtype))
     model = nonlinear_model(f, h, Q, jnp.diag(r_std**2), x0=x0, P0=jnp.diag(P0_diag), n_inputs=4, dt=dt)
     return VehicleEKFParams(vehicle, make_ekf(model, bierman=bierman, gate=gate), mu_bounds, switching, q_mu)
+
+
+def _checked_mu_bounds(mu_bounds, dtype) -> jax.Array:
+    """``mu_bounds`` as a (2,) array ``(lo, hi)`` of ``dtype``, positive, ``lo < hi`` where concrete."""
+    mu_bounds = jnp.asarray(mu_bounds, dtype)
+    _checks.shape("mu_bounds", mu_bounds, (2,), "(lo, hi)")
+    _checks.positive("mu_bounds", mu_bounds)
+    if _checks.is_concrete(mu_bounds) and not bool(mu_bounds[0] < mu_bounds[1]):
+        raise ValueError(f"mu_bounds must have lo < hi, got {mu_bounds.tolist()}")
+    return mu_bounds
 
 
 def _init(params: VehicleEKFParams) -> VehicleEKFState:

@@ -11,6 +11,7 @@ desired closed-loop response (eq. 43), in units of its sensor noise variance. Th
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -96,12 +97,59 @@ def _check(config: dict, source: str) -> None:
     check_plant_memory(config, source, int(round(config["scenario"]["duration"] / CONTROL_PERIOD)), 6)
 
 
+def _desired(nominal, L, reference, h: float, d: int) -> jax.Array:
+    """(T, 6) the ideal closed-loop wrench of each axis's force plant under the hand-set feedback ``L`` (6, ...)."""
+
+    def one(ks, L, r):
+        plant = force_plant(ks, nominal.time_constant, h, d * h)
+        return ideal_response(plant, L[:, : plant.n_states], r)[:, 0]
+
+    return jax.vmap(one, in_axes=(0, 0, 1), out_axes=1)(nominal.per_dof("stiffness", float), L, reference)
+
+
+def _sample_plants(config: dict, which: str, noise_variance, steps: int) -> dict:
+    """The ``which`` ("train" or "heldout") plants: stiffness scales (n, 6), tilts and contact radii (n,), sensor
+    noise (n, steps, 6)."""
+    pl = config["plants"]
+    count = pl[which]
+    key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
+    k_s, k_t, k_r, k_n = jax.random.split(key, 4)
+    lo, hi = pl["stiffness_scale"]
+    return {
+        "stiffness_scale": jax.random.uniform(k_s, (count, 6), minval=lo, maxval=hi),
+        "tilt": jax.random.uniform(k_t, (count,), minval=pl["tilt"][0], maxval=pl["tilt"][1]),
+        "contact_radius": jax.random.uniform(
+            k_r, (count,), minval=pl["contact_radius"][0], maxval=pl["contact_radius"][1]
+        ),  # fmt: skip
+        "noise": jnp.sqrt(noise_variance) * jax.random.normal(k_n, (count, steps, 6)),
+    }
+
+
+def _describe(theta: dict, *, dofs: list, noise_variance) -> dict:
+    """The tuned covariances by axis (``noise_variance``: the tuned axes' R)."""
+    if "q_cholesky" in theta:
+        Q = np.asarray(cholesky_covariance(theta["q_cholesky"]))
+        return {"Q_force_rate_active": dict(zip(dofs, Q.tolist(), strict=True))}
+    q = np.exp(np.asarray(theta["log_q_active"]))
+    return {"q_active": dict(zip(dofs, q.tolist(), strict=True)),
+            "q_active_over_R": dict(zip(dofs, (q / noise_variance).tolist(), strict=True))}  # fmt: skip
+
+
+def _start(cholesky: bool, blocks, q_active, dofs: list) -> tuple[dict, dict]:
+    """``(theta0, labels)`` of the hand-set design: the Cholesky factors of the (F, dF/dt, p) blocks ``blocks``
+    (k, 3, 3), or the log active-state variances ``q_active`` (k,), of the tuned axes ``dofs``."""
+    if cholesky:
+        return ({"q_cholesky": cholesky_parameters(blocks)},
+                {"q_cholesky": [cholesky_labels(f"Q_{dof}", ("F", "dF/dt", "p")) for dof in dofs]})  # fmt: skip
+    return {"log_q_active": jnp.log(q_active)}, {"log_q_active": [f"log Q_{dof}[p]" for dof in dofs]}
+
+
 def build_problem(config: dict) -> TuningProblem:
     """The tuning problem of a validated configuration (this module's ``DEFAULT_CONFIG`` merged with the user's)."""
     from jaxobs.mjx import compliant_6dof as c6
     from jaxobs.papers.cortesao import mrac
 
-    sc, pl = config["scenario"], config["plants"]
+    sc = config["scenario"]
     nominal = c6.Compliant6Params()
     scenario = mrac.peg_on_hole_scenario(
         nominal, duration=sc["duration"], alignment=(sc["alignment_start"], sc["alignment_end"]),
@@ -114,11 +162,7 @@ def build_problem(config: dict) -> TuningProblem:
     h, d = c6.CONTROL_PERIOD, 5
     stiffness = nominal.per_dof("stiffness", float)
 
-    def desired_one(ks, L, r):
-        plant = force_plant(ks, nominal.time_constant, h, d * h)
-        return ideal_response(plant, L[:, : plant.n_states], r)[:, 0]
-
-    desired = jax.vmap(desired_one, in_axes=(0, 0, 1), out_axes=1)(stiffness, hand_set.L, scenario.reference)
+    desired = _desired(nominal, hand_set.L, scenario.reference, h, d)
     model = c6.load_model()[1]
     steps = scenario.t.shape[0]
 
@@ -155,30 +199,6 @@ def build_problem(config: dict) -> TuningProblem:
         peak = jnp.max(jnp.abs(wrench), axis=(-2, -1))
         return loss, ~jnp.isfinite(loss) | ~(peak < sc["force_limit"])
 
-    def sample(which):
-        count = pl[which]
-        key = jax.random.fold_in(jax.random.PRNGKey(config["seed"]), {"train": 0, "heldout": 1}[which])
-        k_s, k_t, k_r, k_n = jax.random.split(key, 4)
-        lo, hi = pl["stiffness_scale"]
-        return {
-            "stiffness_scale": jax.random.uniform(k_s, (count, 6), minval=lo, maxval=hi),
-            "tilt": jax.random.uniform(k_t, (count,), minval=pl["tilt"][0], maxval=pl["tilt"][1]),
-            "contact_radius": jax.random.uniform(
-                k_r, (count,), minval=pl["contact_radius"][0], maxval=pl["contact_radius"][1]
-            ),
-            "noise": jnp.sqrt(noise_variance) * jax.random.normal(k_n, (count, steps, 6)),
-        }
-
-    def describe(theta):
-        names = [c6.DOF_NAMES[i] for i in tuned]
-        if cholesky:
-            Q = np.asarray(cholesky_covariance(theta["q_cholesky"]))
-            return {"Q_force_rate_active": dict(zip(names, Q.tolist(), strict=True))}
-        q = np.exp(np.asarray(theta["log_q_active"]))
-        r = np.asarray(noise_variance)[tuned]
-        return {"q_active": dict(zip(names, q.tolist(), strict=True)),
-                "q_active_over_R": dict(zip(names, (q / r).tolist(), strict=True))}  # fmt: skip
-
     rollout_jit = jax.jit(rollout)
 
     def responses(theta, plants):
@@ -191,18 +211,13 @@ def build_problem(config: dict) -> TuningProblem:
         }
 
     dofs = [c6.DOF_NAMES[i] for i in tuned]
-    if cholesky:
-        theta0 = {"q_cholesky": cholesky_parameters(hand_set_q[np.ix_(tuned, block, block)])}
-        labels = {"q_cholesky": [cholesky_labels(f"Q_{dof}", ("F", "dF/dt", "p")) for dof in dofs]}
-    else:
-        theta0 = {"log_q_active": jnp.log(q_hand[tuned])}
-        labels = {"log_q_active": [f"log Q_{dof}[p]" for dof in dofs]}
+    theta0, labels = _start(cholesky, hand_set_q[np.ix_(tuned, block, block)], q_hand[tuned], dofs)
     return TuningProblem(
         theta0=theta0,
         losses=losses,
-        train=sample("train"),
-        heldout=sample("heldout"),
-        describe=describe,
+        train=_sample_plants(config, "train", noise_variance, steps),
+        heldout=_sample_plants(config, "heldout", noise_variance, steps),
+        describe=functools.partial(_describe, dofs=dofs, noise_variance=np.asarray(noise_variance)[tuned]),
         responses=responses,
         search_box=search_box(config, theta0, cholesky=("q_cholesky",)),
         labels=labels,
