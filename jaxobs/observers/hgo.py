@@ -189,17 +189,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
       [6.0, 13.08, -0.01, 13.09]
     """
     A, E, C = _triple(A, E, C)
-    if design is None:
-        A0, E0, C0 = A, E, C
-    else:
-        if not (isinstance(design, tuple | list) and len(design) == 3):
-            raise ValueError(f"design must be a triple (A0, E0, C0), got {type(design).__name__}")
-        A0, E0, C0 = _triple(*design, prefix="design ")
-        if (A0.shape, E0.shape, C0.shape) != (A.shape, E.shape, C.shape):
-            raise ValueError(
-                f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
-                f"{(A.shape, E.shape, C.shape)}"
-            )
+    A0, E0, C0 = (A, E, C) if design is None else _design_triple(design, (A.shape, E.shape, C.shape))
     hint = " (for a traced eps use HGOGains.at)"
     if not _checks.is_concrete(eps):
         raise ValueError(f"eps must be a concrete number in (0, 1]{hint}, got a traced value")
@@ -208,16 +198,7 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
     extended, corrected = _checks.boolean("extended", extended), _checks.boolean("corrected", corrected)
     numeric = _checks.boolean("numeric", numeric)
     triple = "(C, A, E)" if design is None else "the design triple (C0, A0, E0)"
-    s = _scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric)
-    if not _scb.is_left_invertible(s):
-        raise ValueError(f"{triple} must be left-invertible (Assumption 6.1), but its SCB has n_c = {s.dims[2]}")
-    zeros = np.asarray([complex(z) for z in _scb.invariant_zeros(s)], dtype=complex)
-    unstable = zeros[np.real(zeros) >= 0]
-    if unstable.size:
-        raise ValueError(
-            f"{triple} must be minimum-phase (Assumption 6.1), but has the invariant zeros {unstable.tolist()} in the "
-            "closed right half-plane"
-        )
+    s, zeros = _assumption_6_1(_scb.scb(*_error_system(A0, E0, C0, extended), numeric=numeric), triple)
     f = _scb.scb_arrays(s)
     n_a, n_b, _, n_q = f.dims
     chains = f.chain_lengths
@@ -235,6 +216,34 @@ def hgo_gains(A, E, C, poles, eps=1.0, *, poles_b=None, extended: bool = True, d
         chain_lengths=chains,
         system=f,
     )
+
+
+def _design_triple(design, shapes: tuple) -> tuple:
+    """``(A0, E0, C0)`` of ``design`` (section 6.7.1), checked: three matrices of the plant's ``shapes``."""
+    if not (isinstance(design, tuple | list) and len(design) == 3):
+        raise ValueError(f"design must be a triple (A0, E0, C0), got {type(design).__name__}")
+    A0, E0, C0 = _triple(*design, prefix="design ")
+    if (A0.shape, E0.shape, C0.shape) != shapes:
+        raise ValueError(
+            f"design: the shapes {(A0.shape, E0.shape, C0.shape)} of (A0, E0, C0) must equal those of (A, E, C), "
+            f"{shapes}"
+        )
+    return A0, E0, C0
+
+
+def _assumption_6_1(s, triple: str) -> tuple:
+    """``(s, invariant zeros)`` of the error system's SCB ``s``; ``ValueError`` naming ``triple`` unless it is
+    left-invertible and minimum-phase (Assumption 6.1)."""
+    if not _scb.is_left_invertible(s):
+        raise ValueError(f"{triple} must be left-invertible (Assumption 6.1), but its SCB has n_c = {s.dims[2]}")
+    zeros = np.asarray([complex(z) for z in _scb.invariant_zeros(s)], dtype=complex)
+    unstable = zeros[np.real(zeros) >= 0]
+    if unstable.size:
+        raise ValueError(
+            f"{triple} must be minimum-phase (Assumption 6.1), but has the invariant zeros {unstable.tolist()} in the "
+            "closed right half-plane"
+        )
+    return s, zeros
 
 
 def _scb_gain_terms(f: _scb.SCB, groups, poles_b, corrected: bool) -> np.ndarray:

@@ -206,6 +206,19 @@ def _init(params: NVSOParams) -> NVSOState:
                      jnp.zeros((), bool), jnp.zeros((), jnp.int32))  # fmt: skip
 
 
+def _longitudinal_gain(params: NVSOParams, sw, omega, r) -> jax.Array:
+    """K_vx, lowered by the spread of the four wheels' longitudinal velocities (wheel speeds ``omega`` (4,), steering
+    wheel angle ``sw``, yaw rate ``r``): spinning or locked wheels make v_x,ref less trustworthy."""
+    v = params.vehicle
+    delta = sw / v.steering_ratio
+    half_f, half_r = v.track_front / 2, v.track_rear / 2
+    lateral = jnp.stack(jnp.broadcast_arrays(half_f, -half_f, half_r, -half_r))
+    steer = jnp.stack([jnp.cos(delta), jnp.cos(delta), jnp.ones_like(delta), jnp.ones_like(delta)])
+    wheel_vx = omega * v.wheel_radius / steer + r * lateral
+    spread = jnp.sqrt(jnp.mean((wheel_vx - jnp.mean(wheel_vx)) ** 2) + 1e-12)
+    return jnp.maximum(params.K_vx_min, params.K_vx / (1.0 + (spread / params.wheel_spread) ** 2))
+
+
 def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     v, dt = params.vehicle, params.dt
     dtype = state.x.dtype
@@ -246,14 +259,7 @@ def _step(params: NVSOParams, state: NVSOState, inputs: EstimatorInputs):
     lam = jax.lax.rsqrt(jnp.maximum(xi**2 + regressor**2, 1e-12))
     e = ay - ay_model
 
-    # longitudinal gain from the spread of the four wheel velocities
-    delta = sw / v.steering_ratio
-    half_f, half_r = v.track_front / 2, v.track_rear / 2
-    lateral = jnp.stack(jnp.broadcast_arrays(half_f, -half_f, half_r, -half_r))
-    steer = jnp.stack([jnp.cos(delta), jnp.cos(delta), jnp.ones_like(delta), jnp.ones_like(delta)])
-    wheel_vx = omega * v.wheel_radius / steer + r * lateral
-    spread = jnp.sqrt(jnp.mean((wheel_vx - jnp.mean(wheel_vx)) ** 2) + 1e-12)
-    K_vx = jnp.maximum(params.K_vx_min, params.K_vx / (1.0 + (spread / params.wheel_spread) ** 2))
+    K_vx = _longitudinal_gain(params, sw, omega, r)
 
     # switching logic (§2.5) and the K_theta_b reductions (§2.7)
     switch = switching(params, state.off_timer, state.low_pass, vx, r, ay, sw, m[ESC_ACTIVE])

@@ -77,6 +77,29 @@ P0_FX = 1e-4  # eq. 63
 TAU_C_OVER_TP = 10.0  # eq. 68
 
 
+def _check_design(params, noise_variance, q_active, process_noise, n_obs: int, sba, feedback_off, steady_state):
+    """:func:`design`'s arguments, a ``ValueError`` naming the bad one (``n_obs``: observer states per DOF)."""
+    params.validate()
+    if _checks.is_concrete(params.stiffness) and np.any(np.asarray(params.stiffness) <= 0):
+        raise ValueError(
+            f"stiffness must be > 0 in every DOF for a design (Ks/(s(1+Tp s)) is uncontrollable at Ks = 0), "
+            f"got {np.asarray(params.stiffness).tolist()}"
+        )
+    check_per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
+    if q_active is not None:
+        check_per_dof("q_active", q_active, minimum=0.0, strict=False)
+        if process_noise is not None:
+            raise ValueError("give q_active or process_noise, not both")
+    if process_noise is not None:
+        _checks.shape("process_noise", process_noise, (N_DOF, n_obs, n_obs), "one (n, n) Q per DOF")
+        _checks.covariance("process_noise", process_noise, definite=False, size=n_obs, batch=True)
+    for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
+        if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
+            raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
+    if not steady_state and sba:
+        raise ValueError("steady_state=False needs sba=(): the SBA gain is fixed, the time-varying AOBs have none")
+
+
 def design(
     params: Compliant6Params | None = None,
     *,
@@ -115,26 +138,8 @@ def design(
       :data:`~jaxobs.observers.active.active_observer_controller` (leading axis 6, 8 observer states each).
     """
     params = Compliant6Params() if params is None else params
-    params.validate()
-    if _checks.is_concrete(params.stiffness) and np.any(np.asarray(params.stiffness) <= 0):
-        raise ValueError(
-            f"stiffness must be > 0 in every DOF for a design (Ks/(s(1+Tp s)) is uncontrollable at Ks = 0), "
-            f"got {np.asarray(params.stiffness).tolist()}"
-        )
-    check_per_dof("noise_variance", noise_variance, minimum=0.0, strict=True)
-    if q_active is not None:
-        check_per_dof("q_active", q_active, minimum=0.0, strict=False)
-        if process_noise is not None:
-            raise ValueError("give q_active or process_noise, not both")
     n_obs = 3 + int(dead_time_samples)
-    if process_noise is not None:
-        _checks.shape("process_noise", process_noise, (N_DOF, n_obs, n_obs), "one (n, n) Q per DOF")
-        _checks.covariance("process_noise", process_noise, definite=False, size=n_obs, batch=True)
-    for name, dofs in (("sba", sba), ("feedback_off", feedback_off)):
-        if any(not isinstance(i, (int, np.integer)) or not 0 <= i < N_DOF for i in dofs):
-            raise ValueError(f"{name} must list DOF indices in 0..5 (x, y, z, rx, ry, rz), got {dofs!r}")
-    if not steady_state and sba:
-        raise ValueError("steady_state=False needs sba=(): the SBA gain is fixed, the time-varying AOBs have none")
+    _check_design(params, noise_variance, q_active, process_noise, n_obs, sba, feedback_off, steady_state)
     r = jnp.broadcast_to(jnp.asarray(noise_variance, float), (N_DOF,))
     if r.dtype != jnp.float64:
         raise ValueError(
