@@ -171,20 +171,24 @@ def _tuned(problem, config: dict, result) -> dict:
 
 def _baselines(problem, settings, config: dict, result, summary: dict, progress: bool):
     """``(search, designs)``: the random search (None without it) and the designs to score (hand-set, tuned, the
-    search's best at equal rollouts and at equal time); the training objectives go into ``summary``."""
+    search's best at equal rollouts and, with ``baseline.equal_time``, at equal time); the training objectives go
+    into ``summary``."""
     designs = {"hand-set": problem.theta0, "tuned": result.theta}
     search, equal_rollouts = None, max(1, result.rollouts // problem.batch_size(problem.train))
     if config["baseline"]["random_search"]:
-        search = random_search(
-            problem, settings, equal_rollouts, seconds=result.seconds, seed=config["seed"], progress=progress
-        )
+        equal_time = config["baseline"]["equal_time"]
+        search = random_search(problem, settings, equal_rollouts, seconds=result.seconds if equal_time else 0.0,
+                               seed=config["seed"], progress=progress)  # fmt: skip
         summary["random_search"] = {
             "spread": config["baseline"]["spread"],
             "tuned_position_in_box": _box_position(result.theta, problem.search_box),
             "candidates": len(search.candidates),
             "failed_candidates": int(np.sum(~np.isfinite(search.objectives))),
         }
-        for name, count in (("equal rollouts", equal_rollouts), ("equal time", search.within(result.seconds))):
+        budgets = {"equal rollouts": equal_rollouts}
+        if equal_time:
+            budgets["equal time"] = search.within(result.seconds)
+        for name, count in budgets.items():
             theta, objective, diverged = search.best(count)
             designs[f"random search, {name}"] = theta
             summary["random_search"][name] = {
@@ -224,7 +228,7 @@ def _table(header: list[str], rows: list[list]) -> list[str]:
 def markdown_report(summary: dict) -> str:
     """``report.md`` of a finished tune from its ``summary`` (``tuned.json``'s content): the held-out results of
     every design, the run (its stopping, starts and time split into compiling and computing), the random-search
-    baseline at equal rollouts and at equal time, the settings and the figures."""
+    baseline at equal rollouts and (``baseline.equal_time``) at equal time, the settings and the figures."""
     config, held = summary["config"], summary["heldout"]
     plants = config.get("plants", {})  # a problem without plant counts (noise seeds, vehicles) names them itself
     counts = ""
@@ -255,7 +259,8 @@ def markdown_report(summary: dict) -> str:
     if search:
         lines += ["## Baseline: random search in the same box", "",
                   f"{search['candidates']} candidates drawn in the search box (spread {search['spread']}); the best "
-                  "at equal rollouts and at equal wall time, scored on the held-out plants above.", ""]  # fmt: skip
+                  f"at {' and at '.join(b for b in ('equal rollouts', 'equal time') if b in search)}, scored on the "
+                  "held-out plants above.", ""]  # fmt: skip
         lines += _table(["budget", "candidates", "rollouts", "seconds", "training objective"],
                         [[name, b["candidates"], b["rollouts"], b["seconds"], b["train_objective"]]
                          for name, b in search.items() if isinstance(b, dict) and "rollouts" in b])  # fmt: skip

@@ -32,7 +32,7 @@ __all__ = [
     "search_box",
 ]
 
-BASELINE_DEFAULTS = {"random_search": True, "spread": 2.0}
+BASELINE_DEFAULTS = {"random_search": True, "equal_time": True, "spread": 2.0}
 
 SHIPPED_STRATEGY = {"optimizer": "lbfgs", "learning_rate": 1.0, "screening": 127, "evolve": 50, "distinct": 0.1,
                     "starts": 2, "steps": 100, "patience": 4, "max_rejections": 16}  # fmt: skip
@@ -80,7 +80,8 @@ COMMON_NOTES = {
     "optimizer.backtrack": "reject and halve a step that does not improve the objective (always on for lbfgs)",
     "optimizer.checkpoint_every": "evaluations between checkpoints (checkpoint.npz; rerun to resume)",
     "baseline": "the search box and the random-search baseline, scored like the tuner",
-    "baseline.random_search": "run the baseline (same rollouts, then the same wall time as the tuning)",
+    "baseline.random_search": "run the random-search baseline (the tuning's rollouts, and its time: equal_time)",
+    "baseline.equal_time": "go on to the tuning's wall time (a machine-dependent result); false: equal rollouts only",
     "baseline.spread": "the search box theta0 +- spread per unconstrained coordinate (random search and screening)",
 }
 """Notes of the keys every problem shares, for ``jaxobs tune --print-config``."""

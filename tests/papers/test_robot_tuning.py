@@ -163,17 +163,17 @@ def test_readme_table_row(tmp_path):
     """``jaxobs tune --config tuning/cartpole_payload.toml`` end to end: every output, in the report format of the
     other problems, the tuned filter lowers the training objective, and the README's tuning-table row: the held-out
     objectives of the hand-set filter, the tuned one and the random search at equal rollouts (seeded, so
-    reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    reproducible; the equal-time search depends on the machine's speed, is not pinned, and is left out here)."""
     from tests._published import pin
 
     out = tmp_path / "robot"
-    run_cli(["tune", "--config", "tuning/cartpole_payload.toml", "--out", str(out), "--no-progress"])
+    run_cli(["tune", "--config", "tuning/cartpole_payload.toml", "--set", "baseline.equal_time=false", "--out",
+             str(out), "--no-progress"])  # fmt: skip
     summary = json.loads((out / "tuned.json").read_text())
     assert summary["converged"] and all(start["stopped"] == "converged" for start in summary["starts"])
     assert summary["train_diverged"] == {"hand-set": 0, "tuned": 0}
     assert summary["train_objective"]["tuned"] < summary["train_objective"]["hand-set"]
-    searched = {"random search, equal rollouts", "random search, equal time"}
-    assert set(summary["heldout"]) == {"hand-set", "tuned", *searched}
+    assert set(summary["heldout"]) == {"hand-set", "tuned", "random search, equal rollouts"}
     assert summary["parameters"]["hand-set"]["R_diagonal"] == pytest.approx([0.002**2, 0.005**2])
     for name in ("loss_curves.png", "parameters.png", "responses.png"):
         assert (out / name).is_file()

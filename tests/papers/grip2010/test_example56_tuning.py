@@ -51,11 +51,12 @@ def test_gradient_matches_finite_differences():
 def test_readme_table_row(tmp_path):
     """The README's tuning-table row of ``jaxobs tune --config tuning/grip_example56.toml`` from a fresh run: the
     held-out objectives of the printed gains, the tuned gains and the random search at equal rollouts (seeded,
-    so reproducible; the equal-time search depends on the machine's speed and is not pinned)."""
+    so reproducible; the equal-time search depends on the machine's speed, is not pinned, and is left out here)."""
     from tests._published import pin
 
     out = tmp_path / "grip"
-    run_cli(["tune", "--config", "tuning/grip_example56.toml", "--out", str(out), "--no-progress"])
+    run_cli(["tune", "--config", "tuning/grip_example56.toml", "--set", "baseline.equal_time=false", "--out", str(out),
+             "--no-progress"])  # fmt: skip
     summary = json.loads((out / "tuned.json").read_text())
     row = (
         r"\| Grip 2010 Example 5\.6, [^|]*\\\|theta_tilde\\\|[^|]*\| ([0-9.]+) \(10, 3\) \| ([0-9.]+) \(-([0-9.]+) %\) "

@@ -64,17 +64,19 @@ def test_gradient_matches_finite_differences():
 def test_shipped_tuning_run(tmp_path):
     """``jaxobs tune --config tuning/sideslip.toml``: the tuned gains lower the held-out objective (mean RMS sideslip
     error over 36 held-out vehicles) below the hand-set gains', and the run reports the random search at equal
-    rollouts and at equal time. The README's tuning-table row pins the held-out objectives (seeded, so reproducible;
-    the equal-time search depends on the machine's speed and is not pinned)."""
+    rollouts. The README's tuning-table row pins the held-out objectives (seeded, so reproducible; the equal-time
+    search depends on the machine's speed, is not pinned, and is left out here: tests/papers/test_tuning_cli.py
+    checks it)."""
     from tests._published import pin
 
     out = tmp_path / "sideslip"
-    run_cli(["tune", "--config", "tuning/sideslip.toml", "--out", str(out), "--no-progress"])
+    run_cli(["tune", "--config", "tuning/sideslip.toml", "--set", "baseline.equal_time=false", "--out", str(out),
+             "--no-progress"])  # fmt: skip
     summary = json.loads((out / "tuned.json").read_text())
     held = summary["heldout"]
     assert held["tuned"]["objective"] < held["hand-set"]["objective"]
     assert held["tuned"]["diverged"] == 0
-    assert {"random search, equal rollouts", "random search, equal time"} <= set(held)
+    assert set(held) == {"hand-set", "tuned", "random search, equal rollouts"}
     for name in ("loss_curves.png", "parameters.png", "responses.png"):
         assert (out / name).is_file()
     row = r"\| Grip 2010 ch\. 2 NVSO, [^|]*\| ([0-9.]+) \| ([0-9.]+) \(-([0-9.]+) %\) \| ([0-9.]+) \(-([0-9.]+) %\) \|"
