@@ -34,9 +34,9 @@ line-search iterations), as a user's model would.
 
 ``--variants`` times the reverse pass under the options that may change the smooth part: the other Jacobian layout
 (``opt.jacobian`` dense or sparse), the disable flags of what a model does not use (``clampctrl``,
-``filterparent``, ``eulerdamp`` without damping, ``gravity`` without gravity), a ``jax.checkpoint`` of each step
-that saves only the constraint solve's output (``jax.checkpoint_policies.save_only_these_names("constraint_solve")``)
-under JAX's transpose, and, on a model with more differentiated entries per step than ``JACOBIAN_MAX``, the
+``filterparent``, ``eulerdamp`` without damping, ``gravity`` without gravity), JAX's transpose of the step without
+the rematerialisation ``jaxobs.mjx.common.step`` applies on that route (every step's residuals stored), and, on a
+model with more differentiated entries per step than ``JACOBIAN_MAX``, the
 Jacobian rule for all of them; ``--variants-only`` skips the stage breakdown.
 
     python benchmarks/mjx_stages.py --out DIR [--batches 16 128] [--steps 50] [--rounds 5] [--models NAME ...]
@@ -67,6 +67,7 @@ from pathlib import Path  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+from mujoco import mjx  # noqa: E402
 
 from jaxobs.mjx import common  # noqa: E402
 
@@ -250,6 +251,18 @@ def measure(mj, qpos, batch: int, steps: int, rounds: int) -> dict:
     return {"nv": int(mj.nv), "constraint_rows": common.constraint_rows(data), "programs": rows}
 
 
+def _stored_step(model, data, solver_iterations=None):
+    """The physics step without the Jacobian rule and without rematerialisation, for JAX to transpose (storing each
+    step's residuals): ``jaxobs.mjx.common.forward`` (the implicit solve) and the model's Euler or implicit-fast
+    integrator."""
+    data = common.forward(model, data, solver_iterations)
+    if mujoco.mjtIntegrator(int(model.opt.integrator)) == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return mjx.implicit(model, data)
+    if mujoco.mjtIntegrator(int(model.opt.integrator)) != mujoco.mjtIntegrator.mjINT_EULER:
+        raise ValueError("the stored-residuals variant takes Euler and implicit-fast models")
+    return mjx.euler(model, data)
+
+
 def _variant_models(mj: mujoco.MjModel) -> dict:
     """The other Jacobian layout, and the disable flags of features the model does not use."""
     other = copy.copy(mj)
@@ -274,10 +287,8 @@ def variants(mj, qpos, batch: int, steps: int, rounds: int) -> dict:
     programs, args = rollout_programs(mj, qpos, batch, steps)
     chosen = {"as written: forward": programs["forward"], "as written: reverse": programs["reverse"],
               "as written: reverse, JAX's transpose": programs["reverse, JAX's transpose"]}  # fmt: skip
-    policy = jax.checkpoint_policies.save_only_these_names("constraint_solve")
-    saved = jax.checkpoint(common.step, policy=policy, static_argnums=(2,))
-    checkpointed, _ = rollout_programs(mj, qpos, batch, steps, lambda m, d, k=None: saved(m, d, k))
-    chosen["checkpointed step (saves the solve): reverse, JAX's transpose"] = checkpointed["reverse, JAX's transpose"]
+    stored, _ = rollout_programs(mj, qpos, batch, steps, _stored_step)
+    chosen["residuals stored: reverse, JAX's transpose"] = stored["reverse"]
     entries = mj.nq + mj.nv + mj.nu + mj.na  # the differentiated entries per step
     if entries > common.JACOBIAN_MAX:
         chosen[f"Jacobian rule for all {entries} entries: reverse"] = _transposed(programs["reverse"], entries)

@@ -11,6 +11,8 @@ the constraint solve is MJX's at the model's settings, differentiated implicitly
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.extend
 import jax.flatten_util
@@ -218,6 +220,14 @@ _traced_step = jax.jit(_physics_step, static_argnums=2)
 """:func:`_physics_step` traced once per signature: the Jacobian rule evaluates it several times per trace."""
 
 
+@functools.partial(jax.checkpoint, policy=jax.checkpoint_policies.save_only_these_names("constraint_solve"))
+def _rematerialised_step(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """The step as JAX's transpose differentiates it: reverse mode keeps only its inputs and the solver's output and
+    recomputes the rest in the backward pass, cheaper in a rollout than storing every step's residuals
+    (docs/performance.md)."""
+    return _traced_step(model, data, None)
+
+
 def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
     """One physics step: ``mjx.step`` with a constraint solve that reverse mode differentiates.
 
@@ -234,8 +244,9 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
     (one ``vmap``-ed ``jax.jvp`` at the saved inputs and solver output, ``jax.lax.custom_linear_solve`` giving the
     transpose) contracted with the cotangent: on a CPU it costs a fraction of JAX's transpose of the step, whose
     backward program stores and pads hundreds of small arrays per step (benchmarks/mjx_stages.py). Otherwise JAX's
-    transpose. Forward mode is the step's own ``jax.jvp`` either way, and second derivatives (reverse mode over
-    ``jax.jacfwd`` of steps, as in the gradient of :func:`jaxobs.mjx.robot.linearize`) are JAX's derivatives of it.
+    transpose of the step rematerialised (``jax.checkpoint`` saving only the solver's output). Forward mode is the
+    step's own ``jax.jvp`` either way, and second derivatives (reverse mode over ``jax.jacfwd`` of steps, as in the
+    gradient of :func:`jaxobs.mjx.robot.linearize`) are JAX's derivatives of it.
     """
     solver_iterations = check_solver_iterations(solver_iterations)
     _checks.fields("data", data, "qpos (q,), qvel (v,), act (a,), ctrl (u,)")  # one state: vmap for a batch
@@ -262,7 +273,7 @@ def _implicit_step_jvp(primals, tangents):
     moved = any(not _is_zero(t) for t in jax.tree.leaves(d_model, is_leaf=_is_zero))
     if moved or not names or sum(getattr(data, name).size for name in names) > JACOBIAN_MAX:
         dense = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype) if _is_zero(t) else t, tangents, is_leaf=_is_zero)
-        out, d_out = jax.jvp(lambda m, d: _traced_step(m, d, None), primals, dense)
+        out, d_out = jax.jvp(_rematerialised_step, primals, dense)
     else:
         out = _traced_step(model, data, None)
         d_out = _jacobian_tangent(model, data, out, {name: getattr(d_data, name) for name in names})
