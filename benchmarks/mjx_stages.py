@@ -34,12 +34,13 @@ line-search iterations), as a user's model would.
 
 ``--variants`` times the reverse pass under the options that may change the smooth part: the other Jacobian layout
 (``opt.jacobian`` dense or sparse), the disable flags of what a model does not use (``clampctrl``,
-``filterparent``, ``eulerdamp`` without damping, ``gravity`` without gravity), and a ``jax.checkpoint`` of each step
-that saves only the constraint solve's output (``jax.checkpoint_policies.save_only_these_names("constraint_solve")``)
-under JAX's transpose.
+``filterparent``, ``eulerdamp`` without damping, ``gravity`` without gravity), JAX's transpose of the step without
+the rematerialisation ``jaxobs.mjx.common.step`` applies on that route (every step's residuals stored), and, on a
+model with more differentiated entries per step than ``JACOBIAN_MAX``, the
+Jacobian rule for all of them; ``--variants-only`` skips the stage breakdown.
 
     python benchmarks/mjx_stages.py --out DIR [--batches 16 128] [--steps 50] [--rounds 5] [--models NAME ...]
-                                    [--variants]
+                                    [--variants | --variants-only]
 
 Writes ``DIR/mjx_stages.json`` (merged with an earlier one in DIR) and ``DIR/mjx_stages.png``.
 """
@@ -66,6 +67,7 @@ from pathlib import Path  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+from mujoco import mjx  # noqa: E402
 
 from jaxobs.mjx import common  # noqa: E402
 
@@ -160,12 +162,12 @@ def rollout_programs(mj: mujoco.MjModel, qpos, batch: int, steps: int, step=comm
     return programs, (x,)
 
 
-def _transposed(fn):
-    """``fn`` traced with the step's Jacobian rule off (``jaxobs.mjx.common.JACOBIAN_MAX = 0``): JAX transposes the
-    step."""
+def _transposed(fn, jacobian_max: int = 0):
+    """``fn`` traced with ``jaxobs.mjx.common.JACOBIAN_MAX = jacobian_max``: 0 turns the step's Jacobian rule off
+    (JAX transposes the step)."""
 
     def traced(*args):
-        saved, common.JACOBIAN_MAX = common.JACOBIAN_MAX, 0
+        saved, common.JACOBIAN_MAX = common.JACOBIAN_MAX, jacobian_max
         try:
             return fn(*args)
         finally:
@@ -249,6 +251,18 @@ def measure(mj, qpos, batch: int, steps: int, rounds: int) -> dict:
     return {"nv": int(mj.nv), "constraint_rows": common.constraint_rows(data), "programs": rows}
 
 
+def _stored_step(model, data, solver_iterations=None):
+    """The physics step without the Jacobian rule and without rematerialisation, for JAX to transpose (storing each
+    step's residuals): ``jaxobs.mjx.common.forward`` (the implicit solve) and the model's Euler or implicit-fast
+    integrator."""
+    data = common.forward(model, data, solver_iterations)
+    if mujoco.mjtIntegrator(int(model.opt.integrator)) == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return mjx.implicit(model, data)
+    if mujoco.mjtIntegrator(int(model.opt.integrator)) != mujoco.mjtIntegrator.mjINT_EULER:
+        raise ValueError("the stored-residuals variant takes Euler and implicit-fast models")
+    return mjx.euler(model, data)
+
+
 def _variant_models(mj: mujoco.MjModel) -> dict:
     """The other Jacobian layout, and the disable flags of features the model does not use."""
     other = copy.copy(mj)
@@ -273,10 +287,11 @@ def variants(mj, qpos, batch: int, steps: int, rounds: int) -> dict:
     programs, args = rollout_programs(mj, qpos, batch, steps)
     chosen = {"as written: forward": programs["forward"], "as written: reverse": programs["reverse"],
               "as written: reverse, JAX's transpose": programs["reverse, JAX's transpose"]}  # fmt: skip
-    policy = jax.checkpoint_policies.save_only_these_names("constraint_solve")
-    saved = jax.checkpoint(common.step, policy=policy, static_argnums=(2,))
-    checkpointed, _ = rollout_programs(mj, qpos, batch, steps, lambda m, d, k=None: saved(m, d, k))
-    chosen["checkpointed step (saves the solve): reverse, JAX's transpose"] = checkpointed["reverse, JAX's transpose"]
+    stored, _ = rollout_programs(mj, qpos, batch, steps, _stored_step)
+    chosen["residuals stored: reverse, JAX's transpose"] = stored["reverse"]
+    entries = mj.nq + mj.nv + mj.nu + mj.na  # the differentiated entries per step
+    if entries > common.JACOBIAN_MAX:
+        chosen[f"Jacobian rule for all {entries} entries: reverse"] = _transposed(programs["reverse"], entries)
     for label, variant in _variant_models(mj).items():
         other, _ = rollout_programs(variant, qpos, batch, steps)
         chosen[f"{label}: forward"] = other["forward"]
@@ -320,6 +335,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--models", nargs="+", help="labels of the models (default: all)")
     parser.add_argument("--variants", action="store_true", help="Jacobian layout, disable flags, checkpointing")
+    parser.add_argument("--variants-only", action="store_true", help="the variants without the stage breakdown")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "mjx_stages.json"
@@ -329,16 +345,19 @@ def main(argv=None) -> dict:
         for batch in args.batches:
             start = time.perf_counter()
             load = os.getloadavg()[0]
-            result = measure(mj, qpos, batch, args.steps, args.rounds)
-            result.update(seconds=time.perf_counter() - start, load_average=[load, os.getloadavg()[0]])
-            results["models"].setdefault(label, {})[str(batch)] = result
-            _print(label, batch, result)
-            if args.variants:
-                results["variants"].setdefault(label, {})[str(batch)] = variants(mj, qpos, batch, args.steps,
-                                                                                 args.rounds)  # fmt: skip
-                print(json.dumps(results["variants"][label][str(batch)], indent=1), flush=True)
+            if not args.variants_only:
+                result = measure(mj, qpos, batch, args.steps, args.rounds)
+                result.update(seconds=time.perf_counter() - start, load_average=[load, os.getloadavg()[0]])
+                results["models"].setdefault(label, {})[str(batch)] = result
+                _print(label, batch, result)
+            if args.variants or args.variants_only:
+                result = variants(mj, qpos, batch, args.steps, args.rounds)
+                result["load_average"] = [load, os.getloadavg()[0]]
+                results["variants"].setdefault(label, {})[str(batch)] = result
+                print(json.dumps(result, indent=1), flush=True)
             path.write_text(json.dumps(results, indent=2) + "\n")
-    plot(results, args.out / "mjx_stages.png")
+    if results["models"]:
+        plot(results, args.out / "mjx_stages.png")
     return results
 
 

@@ -11,6 +11,8 @@ the constraint solve is MJX's at the model's settings, differentiated implicitly
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.extend
 import jax.flatten_util
@@ -218,6 +220,14 @@ _traced_step = jax.jit(_physics_step, static_argnums=2)
 """:func:`_physics_step` traced once per signature: the Jacobian rule evaluates it several times per trace."""
 
 
+@functools.partial(jax.checkpoint, policy=jax.checkpoint_policies.save_only_these_names("constraint_solve"))
+def _rematerialised_step(model: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """The step as JAX's transpose differentiates it: reverse mode keeps only its inputs and the solver's output and
+    recomputes the rest in the backward pass, cheaper in a rollout than storing every step's residuals
+    (docs/performance.md)."""
+    return _traced_step(model, data, None)
+
+
 def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None) -> mjx.Data:
     """One physics step: ``mjx.step`` with a constraint solve that reverse mode differentiates.
 
@@ -234,7 +244,9 @@ def step(model: mjx.Model, data: mjx.Data, solver_iterations: int | None = None)
     (one ``vmap``-ed ``jax.jvp`` at the saved inputs and solver output, ``jax.lax.custom_linear_solve`` giving the
     transpose) contracted with the cotangent: on a CPU it costs a fraction of JAX's transpose of the step, whose
     backward program stores and pads hundreds of small arrays per step (benchmarks/mjx_stages.py). Otherwise JAX's
-    transpose. Forward mode is the step's own ``jax.jvp`` either way.
+    transpose of the step rematerialised (``jax.checkpoint`` saving only the solver's output). Forward mode is the
+    step's own ``jax.jvp`` either way, and second derivatives (reverse mode over ``jax.jacfwd`` of steps, as in the
+    gradient of :func:`jaxobs.mjx.robot.linearize`) are JAX's derivatives of it.
     """
     solver_iterations = check_solver_iterations(solver_iterations)
     _checks.fields("data", data, "qpos (q,), qvel (v,), act (a,), ctrl (u,)")  # one state: vmap for a batch
@@ -261,7 +273,7 @@ def _implicit_step_jvp(primals, tangents):
     moved = any(not _is_zero(t) for t in jax.tree.leaves(d_model, is_leaf=_is_zero))
     if moved or not names or sum(getattr(data, name).size for name in names) > JACOBIAN_MAX:
         dense = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype) if _is_zero(t) else t, tangents, is_leaf=_is_zero)
-        out, d_out = jax.jvp(lambda m, d: _traced_step(m, d, None), primals, dense)
+        out, d_out = jax.jvp(_rematerialised_step, primals, dense)
     else:
         out = _traced_step(model, data, None)
         d_out = _jacobian_tangent(model, data, out, {name: getattr(d_data, name) for name in names})
@@ -269,11 +281,9 @@ def _implicit_step_jvp(primals, tangents):
 
 
 def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents: dict) -> mjx.Data:
-    """The tangent of the step ``data -> out`` for the tangents ``tangents`` of some of its state fields, as a
-    linear map (``jax.lax.custom_linear_solve``) whose transpose, reverse mode's backward pass, is the step's
-    forward-mode Jacobian in those entries (one ``vmap``-ed ``jax.jvp`` at the saved state and solver output)
-    contracted with the cotangent. Each output leaf's tangent depends, as the natural one, only on the inputs it
-    depends on (so that ``vmap`` batches it as it batches the output)."""
+    """The tangent of the step ``data -> out`` for the tangents ``tangents`` of some of its state fields: the step's
+    forward-mode Jacobian in those entries applied to them (:func:`_jacobian_product`), the program traced once.
+    Output leaves that no differentiated input reaches keep a symbolic zero."""
     template = mjx.make_data(model).replace(**{name: getattr(data, name) for name in STATE_FIELDS})
     solution = (out.qacc, out._impl.efc_force, out.qfrc_constraint) if constraint_rows(data) else None
     paths, tree = jax.tree_util.tree_flatten_with_path(out)
@@ -285,34 +295,78 @@ def _jacobian_tangent(model: mjx.Model, data: mjx.Data, out: mjx.Data, tangents:
         return [leaves[i] for i in candidates]
 
     inputs = {name: getattr(data, name) for name in tangents}
-    traced = jax.make_jaxpr(outputs)(inputs)  # traced once: evaluated again by the jvp's below, not retraced
+    traced = jax.make_jaxpr(outputs)(inputs)  # traced once: evaluated again by the jvp's, not retraced
     keys = [path[0].key for path, _ in jax.tree_util.tree_flatten_with_path(inputs)[0]]
     moving = [(i, names) for i, names in zip(candidates, _dependence(traced, keys), strict=True) if names]
-    vector, unravel = jax.flatten_util.ravel_pytree(inputs)
-    step_outputs = jax.extend.core.jaxpr_as_fun(traced)
-
-    def moved(v):
-        leaves = step_outputs(*jax.tree.leaves(unravel(v)))
-        return [leaves[candidates.index(i)] for i, _ in moving]
-
-    def apply(_, b):  # (t, 0, ...) -> (0, J t): one jvp
-        return jnp.zeros_like(b[0]), jax.jvp(moved, (vector,), (b[0],))[1]
-
-    def apply_transpose(_, c):  # (c_0, c_1, ...) -> (J' (c_1, ...), 0, ...): the Jacobian's columns, one vmap-ed jvp
-        columns = jax.vmap(lambda e: jax.jvp(moved, (vector,), (e,))[1])(jnp.eye(vector.size, dtype=vector.dtype))
-        products = [jnp.tensordot(col, ct, axes=ct.ndim) for col, ct in zip(columns, c[1], strict=True)]
-        return sum(products), [jnp.zeros_like(ct) for ct in c[1]]
-
-    flat = jax.flatten_util.ravel_pytree(tangents)[0]
-    # linear in the tangent; sorted, so that the program does not depend on the hash seed (checkpoint fingerprints)
-    zeros = [sum(0.0 * tangents[name].ravel()[0] for name in sorted(names)) for _, names in moving]
-    rhs = (flat, [jnp.broadcast_to(z, paths[i][1].shape).astype(paths[i][1].dtype)
-                  for z, (i, _) in zip(zeros, moving, strict=True)])  # fmt: skip
-    _, d_moving = jax.lax.custom_linear_solve(lambda b: b, rhs, apply, apply_transpose)
+    picks = [(candidates.index(i), names, paths[i][1]) for i, names in moving]
+    d_moving = _jacobian_product(traced.jaxpr, picks)(traced.consts, inputs, tangents)
     d_out = jax.tree.leaves(zero_from_primal(out))
     for (i, _), t in zip(moving, d_moving, strict=True):
         d_out[i] = t
     return jax.tree.unflatten(tree, d_out)
+
+
+def _jacobian_product(program, picks: list):
+    """``(consts, inputs, tangents) -> J tangents``: the Jacobian of the outputs ``picks`` (``(index, names of the
+    inputs it depends on, output)``) of the step's jaxpr ``program`` (constants ``consts``) in ``inputs``, applied to
+    ``tangents``, as a linear map (``jax.lax.custom_linear_solve``) whose transpose, reverse mode's backward pass, is
+    the Jacobian's columns (one ``vmap``-ed ``jax.jvp``) contracted with the cotangent. Its own derivative in
+    ``consts`` and ``inputs`` (the step's second derivatives, e.g. the gradient of :func:`jaxobs.mjx.robot.linearize`)
+    is JAX's of the plain product: a custom_linear_solve alone would drop it (its rule treats the solve as constant)."""
+
+    def moved(consts, inputs):
+        leaves = jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(program, consts))(*jax.tree.leaves(inputs))
+        return [leaves[k] for k, _, _ in picks]
+
+    def plain(consts, inputs, tangents):
+        return jax.jvp(lambda x: moved(consts, x), (inputs,), (tangents,))[1]
+
+    @jax.custom_jvp
+    def product(consts, inputs, tangents):
+        vector, unravel = jax.flatten_util.ravel_pytree(inputs)
+
+        def jvp(e):
+            return jax.jvp(lambda v: moved(consts, unravel(v)), (vector,), (e,))[1]
+
+        def apply(_, b):  # (t, 0, ...) -> (0, J t): one jvp
+            return jnp.zeros_like(b[0]), jvp(b[0])
+
+        def apply_transpose(_, c):  # (c_0, c_1, ...) -> (J' (c_1, ...), 0, ...): the Jacobian's columns
+            columns = jax.vmap(jvp)(jnp.eye(vector.size, dtype=vector.dtype))
+            products = [jnp.tensordot(col, ct, axes=ct.ndim) for col, ct in zip(columns, c[1], strict=True)]
+            return sum(products), [jnp.zeros_like(ct) for ct in c[1]]
+
+        # zeros linear in the tangents each output depends on (vmap batches them as the output); sorted names, so
+        # that the program does not depend on the hash seed (checkpoint fingerprints)
+        zeros = [jnp.broadcast_to(sum(0.0 * tangents[n].ravel()[0] for n in sorted(names)), x.shape).astype(x.dtype)
+                 for _, names, x in picks]  # fmt: skip
+        rhs = (jax.flatten_util.ravel_pytree(tangents)[0], zeros)
+        return jax.lax.custom_linear_solve(lambda b: b, rhs, apply, apply_transpose)[1]
+
+    def product_jvp(primals, derivatives):
+        consts, inputs, tangents = primals
+        d_consts, d_inputs, d_tangents = derivatives
+        leaves, shape = jax.tree.flatten((consts, inputs))
+        d_leaves = jax.tree.leaves((d_consts, d_inputs), is_leaf=_is_zero)
+        varying = [k for k, d in enumerate(d_leaves) if not _is_zero(d)]
+
+        def second(*values):  # the plain product in the varying constants and inputs
+            moved_leaves = list(leaves)
+            for k, value in zip(varying, values, strict=True):
+                moved_leaves[k] = value
+            return plain(*jax.tree.unflatten(shape, moved_leaves), tangents)
+
+        out = product(consts, inputs, tangents)
+        d_out = [jnp.zeros_like(x) for x in out]
+        if varying:
+            d_out = jax.jvp(second, [leaves[k] for k in varying], [d_leaves[k] for k in varying])[1]
+        if not all(_is_zero(d) for d in d_tangents.values()):
+            dense = {n: jnp.zeros_like(tangents[n]) if _is_zero(d) else d for n, d in d_tangents.items()}
+            d_out = [a + b for a, b in zip(d_out, product(consts, inputs, dense), strict=True)]
+        return out, d_out
+
+    product.defjvp(product_jvp, symbolic_zeros=True)
+    return product
 
 
 def _dependence(traced, names: list) -> list[frozenset]:

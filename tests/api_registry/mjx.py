@@ -332,10 +332,3 @@ ENTRIES = slow(
     "compiles physics steps of a loaded MJX model (a rollout: a scan of them) for each promise",
     *PHYSICS,
 )
-
-PENDING = {
-    "jaxobs.mjx.robot.linearize": "a defect, not fixed: reverse mode of linearize (grad over the implicit step's "
-    "forward-mode Jacobian) raises JAX's 'Error interpreting argument to custom_linear_solve as a JAX value' (a "
-    "symbolic Zero, JAX issues #10929 and #11213) from the custom_linear_solve of jaxobs.mjx.common's Jacobian "
-    "tangent; eager, jit, vmap, lists and the batch refusal hold",
-}
