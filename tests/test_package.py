@@ -59,13 +59,23 @@ def test_readme_tour_runs_from_the_wheel(installed, tmp_path):
 
 
 def test_every_shipped_config_is_listed_and_prints(installed, tmp_path):
+    """``jaxobs COMMAND --list`` names every shipped config and ``--example NAME --print-config`` prints each (the
+    print-outs in one process of the installed interpreter: one import of jaxobs, not one per config)."""
+    calls = []
     for command in ("sweep", "tune"):
         listed = _jaxobs(installed, tmp_path, command, "--list")
         names = [path.stem for path in (ROOT / "tuning").glob("*.toml")
                  if ("scenario = " if command == "sweep" else "problem = ") in path.read_text()]  # fmt: skip
         assert names and all(f"\n{name} " in listed for name in names), listed
-        for name in names:
-            assert _jaxobs(installed, tmp_path, command, "--example", name, "--print-config").strip()
+        calls += [[command, "--example", name, "--print-config"] for name in names]
+    script = (f"from jaxobs.cli import main\nfor args in {calls!r}:\n    print('=== ' + ' '.join(args), flush=True)\n"
+              "    assert main(args) == 0, args\n")  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    done = subprocess.run([installed / "python", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    printed = done.stdout.split("=== ")[1:]
+    assert len(printed) == len(calls) and all(p.split("\n", 1)[1].strip() for p in printed), done.stdout[-3000:]
 
 
 @pytest.mark.parametrize("command, guide", [("sweep", "sweeps"), ("tune", "tuning")])
