@@ -68,8 +68,8 @@ BUDGET = {"gain-schedule-100": 45.0, "gain-schedule-1000": 60.0, "gain-schedule-
 """Wall time per method and seed (s), compilation included; 120 s for the problems not named."""
 STRATEGY = {"bounded": True, "rounds": 10_000, "screening": "auto"}
 """jaxobs' settings over each problem's (the shipped strategy): the box kept, restarts until the budget is spent, a
-screening sized to the parameters (``jaxobs.tuning.screening_size``: 31 candidates up to 8 parameters, 63 up to 16);
-``tune``'s ``seconds`` ends the first round's screening and CMA-ES at their share of the budget
+screening sized to the parameters (``jaxobs.tuning.screening_size``: 31 candidates up to 8 parameters, 63 up to
+16, 127 above); ``tune``'s ``seconds`` ends the first round's screening and CMA-ES at their share of the budget
 (``jaxobs.tuning.job.EXPLORE_SHARE``)."""
 CMA_MAX_DIMENSION = 2000
 GRID = 16

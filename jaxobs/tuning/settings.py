@@ -14,7 +14,7 @@ from jaxobs import _checks
 from jaxobs.tuning.objectives import GRADIENT_MODES, OBJECTIVES
 
 __all__ = ["DEFAULT_OPTIMIZER", "FORWARD_MAX_PARAMETERS", "CANDIDATE_CHUNK", "TuneSettings", "gradient_mode",
-           "lbfgs", "screening_size"]  # fmt: skip
+           "lbfgs", "screening_size", "AUTO_SCREENING_MAX"]  # fmt: skip
 
 FORWARD_MAX_PARAMETERS = 10
 """``gradient = "auto"`` differentiates in forward mode up to this many scalar parameters, in reverse mode above:
@@ -24,6 +24,10 @@ measured crossover on the MJX problems: docs/performance.md)."""
 CANDIDATE_CHUNK = 16
 """Candidates scored per batched call (one ``vmap`` over candidates and plants) by :func:`jaxobs.tuning.random_search`
 and :func:`jaxobs.tuning.batch_objective`; the tuner's exploration scores ``TuneSettings.population`` per call."""
+
+AUTO_SCREENING_MAX = 128
+"""The most points (``theta0`` included) of the screening ``TuneSettings(screening="auto")`` sizes to the parameters
+(:func:`screening_size`): the shipped problems' 127 candidates and ``theta0``."""
 
 DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
 """The tuner's default optimiser: adam with step size 0.1 after clipping the gradient to global norm 1."""
@@ -152,16 +156,18 @@ def gradient_mode(settings: TuneSettings, theta: dict) -> str:
 
 def screening_size(settings: TuneSettings, parameters: int) -> int:
     """The screening's candidates for ``parameters`` scalar parameters: ``settings.screening``, or for "auto" a
-    Sobol design sized to them: with ``theta0``, the power of two at or above ``4 * parameters`` and two batches of
-    ``settings.population`` (at the default population of 16: 31 candidates up to 8 parameters, 63 up to 16, 127
-    up to 32).
+    Sobol design sized to them: with ``theta0``, the power of two at or above ``4 * parameters``, at most
+    :data:`AUTO_SCREENING_MAX` points and at least two batches of ``settings.population`` (at the default population
+    of 16: 31 candidates up to 8 parameters, 63 up to 16, 127 above: in a wider box the CMA-ES and the gradient do
+    the work, a screening of more points would be a random search as costly as the dimension).
 
     Example::
 
         >>> from jaxobs.tuning import TuneSettings, screening_size
-        >>> [screening_size(TuneSettings(screening="auto"), d) for d in (2, 12, 37)]
-        [31, 63, 255]
+        >>> [screening_size(TuneSettings(screening="auto"), d) for d in (2, 12, 10_000)]
+        [31, 63, 127]
     """
     if settings.screening != "auto":
         return int(settings.screening)
-    return 2 ** math.ceil(math.log2(max(4 * parameters, 2 * settings.population))) - 1
+    points = min(AUTO_SCREENING_MAX, 2 ** math.ceil(math.log2(4 * max(parameters, 1))))
+    return max(2 * settings.population, points) - 1
