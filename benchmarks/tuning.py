@@ -9,7 +9,8 @@ Cholesky couplings +- 1; the gain schedules: +-1.5 times the largest optimal gai
 same batched training objective (``jaxobs.tuning.batch_objective``):
 
 * jaxobs: ``jaxobs.tuning.tune`` with the shipped strategy (Sobol screening, CMA-ES in JAX, L-BFGS polish of two
-  starts in one vmap) kept in the box (``bounded``) and restarting (``rounds``) until the budget is spent;
+  starts in one vmap) kept in the box (``bounded``), its screening sized to the parameters (``screening = "auto"``)
+  and restarting (``rounds``) until the budget is spent;
 * random search: uniform draws in the box, as ``jaxobs.tuning.random_search`` makes them;
 * CMA-ES in JAX (evosax ``CMA_ES``), separable CMA-ES (evosax ``Sep_CMA_ES``), OpenAI-ES (evosax ``Open_ES``), all
   on the unit cube of the box from ``theta0``, and the reference CMA-ES (``cma``; not above
@@ -65,8 +66,11 @@ designs the tuner finds when it may leave the shipped box, docs/tuning-results.m
 BUDGET = {"gain-schedule-100": 45.0, "gain-schedule-1000": 60.0, "gain-schedule-10000": 90.0,
           "speed-schedule-256": 90.0, "arm7-aob-cholesky": 600.0}  # fmt: skip
 """Wall time per method and seed (s), compilation included; 120 s for the problems not named."""
-STRATEGY = {"bounded": True, "rounds": 10_000}
-"""jaxobs' settings over each problem's (the shipped strategy): the box kept, restarts until the budget is spent."""
+STRATEGY = {"bounded": True, "rounds": 10_000, "screening": "auto"}
+"""jaxobs' settings over each problem's (the shipped strategy): the box kept, restarts until the budget is spent, a
+screening sized to the parameters (``jaxobs.tuning.screening_size``: 31 candidates up to 8 parameters, 63 up to
+16, 127 above); ``tune``'s ``seconds`` ends the first round's screening and CMA-ES at their share of the budget
+(``jaxobs.tuning.job.EXPLORE_SHARE``)."""
 CMA_MAX_DIMENSION = 2000
 GRID = 16
 TIE = 0.01  # relative difference under which two medians tie

@@ -38,8 +38,9 @@ from jaxobs.tuning.settings import (
     TuneSettings,
     gradient_mode,
     lbfgs,
+    screening_size,
 )
-from jaxobs.tuning.tuner import Tuner, TunerState, make_tuner
+from jaxobs.tuning.tuner import Tuner, TunerState, explore_until, make_tuner
 
 __all__ = [
     "cholesky_covariance",
@@ -70,6 +71,8 @@ __all__ = [
     "Tuner",
     "TunerState",
     "make_tuner",
+    "explore_until",
+    "screening_size",
     "tune",
     "random_search",
     "batch_objective",

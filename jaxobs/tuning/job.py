@@ -30,6 +30,7 @@ from jaxobs.tuning.tuner import (
     BAD_OBJECTIVE,
     CAPPED,
     DONE,
+    EVOLVE,
     FAILED,
     MORE_DIVERGED,
     NEXT,
@@ -44,12 +45,19 @@ from jaxobs.tuning.tuner import (
     STOPS,
     Tuner,
     TunerState,
+    explore_until,
     make_tuner,
 )
 
-__all__ = ["StartResult", "TuneResult", "tune"]
+__all__ = ["EXPLORE_SHARE", "StartResult", "TuneResult", "tune"]
 
 logger = logging.getLogger("jaxobs.tuning")
+
+EXPLORE_SHARE = 0.5
+"""With a ``seconds`` budget, the first round's exploration moves on once it has used this share of the time left
+after the first compilation: the screening at half of it (then the CMA-ES), the CMA-ES at all of it (then the
+polish), each with the batch that would pass it (timed at run time), so that a slow machine does not spend its
+budget screening (docs/tuning-results.md has the measurements)."""
 
 
 class StartResult(NamedTuple):
@@ -241,6 +249,7 @@ class _Job:
         self.previous, self.clock, self.curve = meta["seconds"], clock, []
         self.compiled = meta.get("compile_seconds", 0.0)  # by the runs that built the checkpoint
         self.named = (lambda k: f"start {k}: ") if self.count > 1 else (lambda k: "")
+        self.explored_from = None  # when this call's first exploration step began (s, as seconds() counts)
 
     def adopt(self, text: str) -> None:
         """Take ``text`` (the step's programs for one device, lowered) as the run's program: :class:`CheckpointError`
@@ -259,6 +268,19 @@ class _Job:
             meta.update(finished=[_stored(r) for r in self.finished], fingerprint=self.fingerprint.recorded,
                         setup=self.fingerprint.setup, compile_seconds=self.compiled)  # fmt: skip
             checkpoints.save(self.path, trees, meta)
+
+    def share(self, state: TunerState, seconds: float | None, last: float) -> TunerState:
+        """``state`` whose first round's exploration phase ends with the next step where that step (about ``last``
+        seconds, the previous step's) would pass the phase's share of ``seconds`` (:data:`EXPLORE_SHARE`)."""
+        phase = int(state.phase)
+        if seconds is None or state.search is None or int(state.round) or phase not in (SCREEN, EVOLVE):
+            return state
+        if self.explored_from is None:
+            self.explored_from = self.seconds()
+        share = EXPLORE_SHARE * (0.5 if phase == SCREEN else 1.0) * max(seconds - self.explored_from, 0.0)
+        if self.seconds() + last < self.explored_from + share:
+            return state
+        return explore_until(state, int(state.scored) + self.settings.population)
 
     def rollouts(self, state: TunerState) -> int:
         return (int(state.scored) + int(state.polished) * self.count) * self.batch
@@ -343,7 +365,7 @@ def _label(state: TunerState, population: int) -> str:
 def _loop(job: _Job, programs: _Programs, state: TunerState, seconds: float | None, bar):
     """Step until the tuner is done or a step ends after ``seconds``; ``(state, timed_out)``. Ctrl-C or a stall
     save the checkpoint of the last completed step and raise."""
-    settings = job.settings
+    settings, last = job.settings, 0.0
     saved = (state, [list(h) for h in job.histories], list(job.finished))
     with InterruptWatch() as watch, stall_watch("the tuning") as stall:
         try:
@@ -353,9 +375,11 @@ def _loop(job: _Job, programs: _Programs, state: TunerState, seconds: float | No
                 start, label = time.perf_counter(), _label(state, settings.population)
                 if int(state.phase) == NEXT:
                     job.finish_round(state)
+                state = job.share(state, seconds, last)
                 step = programs.get(state)
                 new, info = watched(stall, label, step, state, programs.train)
-                job.observe(state, new, info, time.perf_counter() - start)
+                last = time.perf_counter() - start
+                job.observe(state, new, info, last)
                 state, polished = new, int(info.phase) == POLISH
                 if polished:
                     job.check(state)
@@ -431,7 +455,8 @@ def tune(
       progress: show a progress bar with the objective.
       tag: a string identifying the problem's configuration, checked when resuming.
       seconds: a wall-time budget (compilation included): the run stops after the step that passes it, and the
-        result is the best design evaluated by then (``stopped == "time"``).
+        result is the best design evaluated by then (``stopped == "time"``); the first round's screening and
+        CMA-ES end early where they would pass their share of it (:data:`EXPLORE_SHARE`).
 
     Returns:
       :class:`TuneResult` with the best accepted ``theta``. Ctrl-C raises :class:`jaxobs._resources.Interrupted`

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +14,7 @@ from jaxobs import _checks
 from jaxobs.tuning.objectives import GRADIENT_MODES, OBJECTIVES
 
 __all__ = ["DEFAULT_OPTIMIZER", "FORWARD_MAX_PARAMETERS", "CANDIDATE_CHUNK", "TuneSettings", "gradient_mode",
-           "lbfgs"]  # fmt: skip
+           "lbfgs", "screening_size", "AUTO_SCREENING_MAX"]  # fmt: skip
 
 FORWARD_MAX_PARAMETERS = 10
 """``gradient = "auto"`` differentiates in forward mode up to this many scalar parameters, in reverse mode above:
@@ -23,6 +24,10 @@ measured crossover on the MJX problems: docs/performance.md)."""
 CANDIDATE_CHUNK = 16
 """Candidates scored per batched call (one ``vmap`` over candidates and plants) by :func:`jaxobs.tuning.random_search`
 and :func:`jaxobs.tuning.batch_objective`; the tuner's exploration scores ``TuneSettings.population`` per call."""
+
+AUTO_SCREENING_MAX = 128
+"""The most points (``theta0`` included) of the screening ``TuneSettings(screening="auto")`` sizes to the parameters
+(:func:`screening_size`): the shipped problems' 127 candidates and ``theta0``."""
 
 DEFAULT_OPTIMIZER = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
 """The tuner's default optimiser: adam with step size 0.1 after clipping the gradient to global norm 1."""
@@ -61,7 +66,8 @@ class TuneSettings:
         is the best of them on the training objective.
       screening: candidates drawn (scrambled Sobol) in the search box and scored, batched, before the gradient
         runs: one start is the best of them and ``theta0``; more starts are ``theta0`` and the ``starts - 1`` best
-        candidates (0: ``theta0`` alone, which needs ``starts == 1`` unless ``evolve``).
+        candidates (0: ``theta0`` alone, which needs ``starts == 1`` unless ``evolve``); "auto": a design sized to
+        the parameters' count (:func:`screening_size`).
       evolve: CMA-ES generations per round at most (0: none): after the screening, a CMA-ES (Hansen 2016) of
         ``population`` candidates per generation explores the box from the best candidate so far until it stalls
         (``patience`` generations without a relative improvement of ``min_improvement``, or its step below 1e-3 of
@@ -95,7 +101,7 @@ class TuneSettings:
     gradient: str = "auto"
     steps: int = 50
     starts: int = 1
-    screening: int = 0
+    screening: int | str = 0
     evolve: int = 0
     population: int = CANDIDATE_CHUNK
     evolve_sigma: float = 0.25
@@ -130,9 +136,11 @@ class TuneSettings:
             if not getattr(self, name) > low:
                 raise ValueError(f"{name} must be > {low}, got {getattr(self, name)!r}")
         for name, low in (("penalty_weight", 0), ("min_improvement", 0), ("max_rejections", 0), ("evolve", 0),
-                          ("divergence_factor", 1), ("screening", 0), ("seed", 0), ("distinct", 0)):  # fmt: skip
+                          ("divergence_factor", 1), ("seed", 0), ("distinct", 0)):  # fmt: skip
             if not getattr(self, name) >= low:
                 raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)!r}")
+        if self.screening != "auto" and not (isinstance(self.screening, int | np.integer) and self.screening >= 0):
+            raise ValueError(f"screening must be an integer >= 0 or 'auto', got {self.screening!r}")
         if self.rounds > 1 and not self.evolve:
             raise ValueError(f"rounds = {self.rounds} restarts the CMA-ES: it needs evolve >= 1")
 
@@ -144,3 +152,22 @@ def gradient_mode(settings: TuneSettings, theta: dict) -> str:
         return settings.gradient
     count = sum(int(np.size(leaf)) for leaf in jax.tree.leaves(theta))
     return "forward" if count <= FORWARD_MAX_PARAMETERS else "reverse"
+
+
+def screening_size(settings: TuneSettings, parameters: int) -> int:
+    """The screening's candidates for ``parameters`` scalar parameters: ``settings.screening``, or for "auto" a
+    Sobol design sized to them: with ``theta0``, the power of two at or above ``4 * parameters``, at most
+    :data:`AUTO_SCREENING_MAX` points and at least two batches of ``settings.population`` (at the default population
+    of 16: 31 candidates up to 8 parameters, 63 up to 16, 127 above: in a wider box the CMA-ES and the gradient do
+    the work, a screening of more points would be a random search as costly as the dimension).
+
+    Example::
+
+        >>> from jaxobs.tuning import TuneSettings, screening_size
+        >>> [screening_size(TuneSettings(screening="auto"), d) for d in (2, 12, 10_000)]
+        [31, 63, 127]
+    """
+    if settings.screening != "auto":
+        return int(settings.screening)
+    points = min(AUTO_SCREENING_MAX, 2 ** math.ceil(math.log2(4 * max(parameters, 1))))
+    return max(2 * settings.population, points) - 1

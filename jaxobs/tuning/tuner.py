@@ -12,6 +12,7 @@ has the design.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -27,10 +28,10 @@ from jaxobs.batching import safe_vmap
 from jaxobs.tuning import cmaes
 from jaxobs.tuning.box import Layout, search_box
 from jaxobs.tuning.objectives import make_objective, value_and_grad
-from jaxobs.tuning.settings import TuneSettings, gradient_mode
+from jaxobs.tuning.settings import TuneSettings, gradient_mode, screening_size
 
 __all__ = ["PHASES", "PROGRAMS", "PROGRAM_OF", "STOPS", "REASONS", "NONE_YET", "Lanes", "Best", "Archive", "Search",
-           "TunerState", "StepInfo", "Tuner", "make_tuner", "best_start"]  # fmt: skip
+           "TunerState", "StepInfo", "Tuner", "make_tuner", "best_start", "explore_until"]  # fmt: skip
 
 PHASES = ("screen", "evolve", "polish", "next", "done")
 """``TunerState.phase`` indexes this: exploring (screen, evolve), polishing, between rounds (next), done."""
@@ -103,7 +104,9 @@ class Search(NamedTuple):
       low, high: (d,) the search box.  points: (P, d) ``theta0`` and the screening's candidates.  next: () the next
       point to score.  archive: :class:`Archive`.  cma: the CMA-ES's state.  since: () generations without an
       improvement of ``incumbent``.  key: PRNG key of the CMA-ES.  incumbent: the round's best of the CMA-ES.
-      best: the best design scored in any phase.
+      best: the best design scored in any phase.  until: () the exploration's phase (the screening, the round's
+      CMA-ES) moves on once ``TunerState.scored`` reaches this (:func:`explore_until`; :data:`NONE_YET`: its own
+      rules alone).
     """
 
     low: jax.Array
@@ -116,6 +119,7 @@ class Search(NamedTuple):
     key: jax.Array
     incumbent: Best
     best: Best
+    until: jax.Array
 
 
 class TunerState(NamedTuple):
@@ -236,7 +240,7 @@ def _no_best(d: int, dtype) -> Best:
     return Best(jnp.zeros(d, dtype), jnp.asarray(jnp.finfo(dtype).max, dtype), jnp.asarray(NONE_YET, jnp.int32))
 
 
-def _archive_size(settings: TuneSettings) -> int:
+def _archive_size(settings: TuneSettings) -> int:  # settings.screening: a count
     """Screened candidates kept: enough for every round's starts and a choice of distinct ones."""
     return min(settings.screening + 1, max(16, 4 * settings.starts * settings.rounds))
 
@@ -251,8 +255,8 @@ def _search_init(settings: TuneSettings, layout: Layout, theta0: dict, box: dict
     archive = Archive(jnp.zeros((m, d), dtype), jnp.full(m, jnp.finfo(dtype).max, dtype), none, none,
                       jnp.zeros(m, bool))  # fmt: skip
     cma = cmaes.init(_unit(layout.flat(theta0), low, high), settings.evolve_sigma, high > low)
-    zero = jnp.zeros((), jnp.int32)
-    return Search(low, high, points, zero, archive, cma, zero, key, _no_best(d, dtype), _no_best(d, dtype))
+    zero, until = jnp.zeros((), jnp.int32), jnp.asarray(NONE_YET, jnp.int32)
+    return Search(low, high, points, zero, archive, cma, zero, key, _no_best(d, dtype), _no_best(d, dtype), until)
 
 
 def _unit(row, low, high):
@@ -281,6 +285,7 @@ def _begin_polish(optimizer, state: TunerState, starts: dict) -> TunerState:
 def _init(settings: TuneSettings, optimizer, theta0: dict, key=None, *, box=None, starts=None) -> TunerState:
     theta0 = {k: jnp.asarray(v).astype(jnp.asarray(v).dtype) for k, v in theta0.items()}  # fixed, not weak, dtypes
     layout = Layout(theta0)
+    settings = dataclasses.replace(settings, screening=screening_size(settings, layout.size))  # "auto": a count
     exploring = starts is None and (settings.screening > 0 or settings.evolve > 0)
     if starts is None:
         if settings.starts > 1 and settings.screening < settings.starts - 1 and not settings.evolve:
@@ -364,6 +369,28 @@ def _improve(best: Best, rows, objective, diverged, valid) -> Best:
     return jax.tree.map(lambda new, old: jnp.where(better, new, old), Best(rows[i], objective[i], diverged[i]), best)
 
 
+def explore_until(state: TunerState, scored) -> TunerState:
+    """``state`` whose current exploration phase (the screening, or the round's CMA-ES) moves on once ``scored``
+    candidates have been scored in all (``TunerState.scored``; the step that reaches it is its last), its own
+    rules notwithstanding: a job's time share (:func:`jaxobs.tuning.tune`'s ``seconds``) or a user's loop. The
+    next phase keeps its own rules. Traceable; a state without a search is returned as it is.
+
+    Example::
+
+        >>> import jax.numpy as jnp
+        >>> from jaxobs.tuning import TuneSettings, make_tuner, explore_until
+        >>> from jaxobs.tuning.tuner import PHASES
+        >>> losses = lambda theta, t: ((theta["x"] - t) ** 2, t < -1e9)
+        >>> tuner = make_tuner(TuneSettings(screening=63, evolve=5))
+        >>> state = explore_until(tuner.init({"x": jnp.array(0.0)}), 16)  # one batch of the screening
+        >>> PHASES[int(tuner.step(state, losses, jnp.array([1.0]))[0].phase)]
+        'evolve'
+    """
+    if state.search is None:
+        return state
+    return state._replace(search=state.search._replace(until=jnp.asarray(scored, jnp.int32)))
+
+
 def best_start(state: TunerState) -> jax.Array:
     """Index (a 0-d int32 array; ``int(...)`` for a Python index) of the start with the best accepted evaluation:
     fewest diverged plants, then lowest objective. Traceable: ``jit`` and ``vmap`` over states."""
@@ -431,18 +458,21 @@ def _explore(settings, optimizer, layout, objective, state: TunerState, batch):
 
 def _after_exploring(settings, optimizer, layout, state: TunerState) -> TunerState:
     """The next phase: the CMA-ES once the screening is scored (from the best point so far), the polish once the
-    CMA-ES has stalled, shrunk below 1e-3 of the box or reached ``evolve`` generations."""
+    CMA-ES has stalled, shrunk below 1e-3 of the box or reached ``evolve`` generations; either as soon as
+    ``state.scored`` reaches ``search.until``."""
     s = state.search
-    screened = (state.phase == SCREEN) & (s.next >= s.points.shape[0])
+    ended = state.scored >= s.until
+    screened = (state.phase == SCREEN) & ((s.next >= s.points.shape[0]) | ended)
     width = s.cma.sigma * jnp.sqrt(jnp.max(jnp.diagonal(s.cma.cov) if s.cma.cov.ndim == 2 else s.cma.cov))
     evolved = (state.phase == EVOLVE) & ((s.cma.generation >= settings.evolve) | (s.since >= settings.patience) |
-                                         (width < 1e-3))  # fmt: skip
+                                         (width < 1e-3) | ended)  # fmt: skip
     if settings.evolve:
         centre = cmaes.init(_unit(s.best.row, s.low, s.high), settings.evolve_sigma, s.high > s.low)
         state = state._replace(
             phase=jnp.where(screened, EVOLVE, state.phase),
-            search=s._replace(cma=jax.tree.map(lambda a, b: jnp.where(screened, a, b), centre, s.cma)),
-        )
+            search=s._replace(cma=jax.tree.map(lambda a, b: jnp.where(screened, a, b), centre, s.cma),
+                              until=jnp.where(screened, NONE_YET, s.until)),
+        )  # fmt: skip
         return jax.lax.cond(evolved, lambda: _polish_starts(settings, optimizer, layout, state), lambda: state)
     return jax.lax.cond(screened, lambda: _polish_starts(settings, optimizer, layout, state), lambda: state)
 
@@ -493,7 +523,8 @@ def _advance(settings, layout, state: TunerState, batch):
     key, draw = jax.random.split(s.key)
     restart = state.round + 1 < settings.rounds
     cma = cmaes.init(jax.random.uniform(draw, s.low.shape, s.low.dtype), settings.evolve_sigma, s.high > s.low)
-    search = s._replace(key=key, cma=cma, since=jnp.zeros((), jnp.int32), incumbent=_no_best(layout.size, layout.dtype))
+    search = s._replace(key=key, cma=cma, since=jnp.zeros((), jnp.int32), incumbent=_no_best(layout.size, layout.dtype),
+                        until=jnp.asarray(NONE_YET, jnp.int32))  # fmt: skip
     restarted = state._replace(phase=jnp.asarray(EVOLVE, jnp.int32), round=state.round + 1, search=search)
     state = jax.tree.map(lambda a, b: jnp.where(restart, a, b), restarted,
                          state._replace(phase=jnp.asarray(DONE, jnp.int32)))  # fmt: skip

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxobs.tuning import TuneSettings, TuningProblem, job, lbfgs, make_tuner, tune
-from jaxobs.tuning.tuner import PHASES, PROGRAM_OF, PROGRAMS
+from jaxobs.tuning import TuneSettings, TuningProblem, explore_until, job, lbfgs, make_tuner, screening_size, tune
+from jaxobs.tuning.tuner import NONE_YET, PHASES, PROGRAM_OF, PROGRAMS
 
 
 def losses(theta, targets):
@@ -51,6 +51,22 @@ def test_the_tuner_runs_inside_a_users_jitted_loop():
     assert bool(jnp.all((final.best["x"] >= low) & (final.best["x"] <= high)))
     scored = np.asarray(infos.scored)[np.asarray(infos.phase) < 2]
     assert int(final.scored) == scored.sum() == 32 + 16 * np.sum(np.asarray(infos.phase) == 1)
+    cut = step(explore_until(start, 16))[0]  # the screening ends with its first batch, the CMA-ES keeps its rules
+    assert (PHASES[int(cut.phase)], int(cut.scored), int(cut.search.until)) == ("evolve", 16, NONE_YET)
+    cut = step(explore_until(cut, 17))[0]  # and the CMA-ES with its first generation
+    assert (PHASES[int(cut.phase)], int(cut.scored)) == ("polish", 32)
+
+
+def test_the_auto_screening_is_sized_to_the_parameters():
+    """A power of two with ``theta0``: about four points per parameter, two batches at least, 128 at most."""
+    auto = TuneSettings(screening="auto")
+    assert [screening_size(auto, d) for d in (1, 8, 9, 16, 17, 10_000)] == [31, 31, 63, 63, 127, 127]
+    assert screening_size(dataclasses.replace(auto, population=32), 2) == 63
+    assert screening_size(TuneSettings(screening=7), 100) == 7
+    with pytest.raises(ValueError, match="screening must be an integer >= 0 or 'auto'"):
+        TuneSettings(screening="all").validate()
+    state = make_tuner(dataclasses.replace(SETTINGS, screening="auto")).init({"x": jnp.array([-3.0, 2.5])})
+    assert state.search.points.shape == (32, 2)
 
 
 @pytest.mark.slow
@@ -90,6 +106,23 @@ def test_tune_explores_restarts_and_keeps_a_curve(tmp_path):
     assert short.stopped == "time" and short.evaluations == 0 and len(short.curve) == 1
     again = tune(problem, SETTINGS, progress=False, seconds=1e-9, checkpoint=tmp_path / "short.npz")  # past its budget
     assert (again.stopped, again.seconds, again.screened, again.curve) == ("time", short.seconds, short.screened, ())
+
+
+def test_a_time_budget_ends_the_first_rounds_exploration_at_its_share(monkeypatch):
+    """With ``seconds``, the first round's screening and CMA-ES move on once their share is used (here none: one
+    batch each), the later rounds' CMA-ES keeps its own rules."""
+    problem = TuningProblem({"x": jnp.array([-3.0, 2.5])}, losses, TARGETS, TARGETS)
+    monkeypatch.setattr(job, "EXPLORE_SHARE", 0.0)
+    observe, steps = job._Job.observe, []
+
+    def record(self, before, after, info, seconds):
+        steps.append((int(before.round), PHASES[int(info.phase)]))
+        return observe(self, before, after, info, seconds)
+
+    monkeypatch.setattr(job._Job, "observe", record)
+    result = tune(problem, SETTINGS, progress=False, seconds=1e6)
+    assert [p for r, p in steps if r == 0 and p in ("screen", "evolve")] == ["screen", "evolve"]
+    assert steps.count((1, "evolve")) > 1 and result.stopped == "converged"
 
 
 def test_given_starts_without_a_box_polish_one_round():
