@@ -104,9 +104,8 @@ class Search(NamedTuple):
       low, high: (d,) the search box.  points: (P, d) ``theta0`` and the screening's candidates.  next: () the next
       point to score.  archive: :class:`Archive`.  cma: the CMA-ES's state.  since: () generations without an
       improvement of ``incumbent``.  key: PRNG key of the CMA-ES.  incumbent: the round's best of the CMA-ES.
-      best: the best design scored in any phase.  until: () the exploration's phase (the screening, the round's
-      CMA-ES) moves on once ``TunerState.scored`` reaches this (:func:`explore_until`; :data:`NONE_YET`: its own
-      rules alone).
+      best: the best design scored in any phase.  until: () the phase (screening, the round's CMA-ES) moves on
+      once ``TunerState.scored`` reaches it (:func:`explore_until`; :data:`NONE_YET`: by its own rules alone).
     """
 
     low: jax.Array
