@@ -11,6 +11,9 @@ to ``$XLA_FLAGS``): most programs run once, so compiling them costs more than ru
 
 import gc
 import os
+import signal
+import threading
+import warnings
 
 from tests import FAST_COMPILE_FLAGS, ROOT
 
@@ -69,6 +72,18 @@ def _free_compiled_programs():
     if _mappings() >= MAX_MAPPINGS:
         jax.clear_caches()
         gc.collect()
+
+
+@pytest.fixture(autouse=True)
+def _python_handles_ctrl_c(request):
+    """Every test starts with Python's own Ctrl-C handler, which the interrupt and stall watches build on
+    (jaxobs._resources): a test (or a library it loads) that leaves another one has it put back, with a warning
+    naming the handler and the test, so that the tests after it do not fail for it."""
+    yield
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is not signal.default_int_handler and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        warnings.warn(f"{request.node.nodeid} left the SIGINT handler {handler!r}; Python's was put back", stacklevel=1)
 
 
 settings.register_profile(

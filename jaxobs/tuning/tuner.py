@@ -387,6 +387,9 @@ def explore_until(state: TunerState, scored) -> TunerState:
     """
     if state.search is None:
         return state
+    if jnp.ndim(state.search.until) or jnp.ndim(scored):
+        raise ValueError(f"state, scored: one tuner state and one count (vmap for a batch), got counts of shapes "
+                         f"{jnp.shape(state.search.until)} and {jnp.shape(scored)}")  # fmt: skip
     return state._replace(search=state.search._replace(until=jnp.asarray(scored, jnp.int32)))
 
 

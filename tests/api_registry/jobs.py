@@ -76,6 +76,7 @@ EXEMPT = {
     "jaxobs.tuning.objectives.value_and_grad": "transformation: the value and gradient function of an objective",
     "jaxobs.tuning.settings.lbfgs": "transformation: returns an optax gradient transformation",
     "jaxobs.tuning.settings.gradient_mode": "static: resolves a setting string from the size of the parameters",
+    "jaxobs.tuning.settings.screening_size": "static: a count (Python int) from a setting and the parameters' count",
     "jaxobs.tuning.parameters.cholesky_parameters": "validator: the inverse of cholesky_covariance for a starting "
     "point, which refuses a concrete covariance that is not positive definite",
     "jaxobs.tuning.parameters.unit_interval_parameters": "validator: the inverse of unit_interval for a starting "
@@ -111,6 +112,15 @@ def _tuner_state():
 
 _INDEX = "an index: an integer output"
 
+
+def _exploring_state():
+    """The state of a tuner about to screen 15 candidates around a 2-vector."""
+    from jaxobs.tuning import TuneSettings
+    from jaxobs.tuning.tuner import make_tuner
+
+    return make_tuner(TuneSettings(screening=15)).init({"a": np.zeros(2)})
+
+
 TUNER = {
     "jaxobs.kalman_steps.joseph_covariance": Example(
         lambda: dict(
@@ -142,6 +152,11 @@ TUNER = {
     ),  # fmt: skip
     "jaxobs.tuning.problems.lateral_model": Design(lambda: dict(speed=np.array([10.0, 25.0]), h=0.05)),
     "jaxobs.tuning.tuner.best_start": Example(lambda: dict(state=_tuner_state()), skip={"grad": _INDEX}),
+    "jaxobs.tuning.tuner.explore_until": Example(
+        lambda: dict(state=_exploring_state(), scored=np.int32(16)),
+        diff="scored",
+        skip={"grad": "sets an integer count of the state; its other leaves pass through unchanged"},
+    ),  # fmt: skip
 }
 
 
